@@ -1,0 +1,204 @@
+"""Camera and light geometry shared by every kernel (DESIGN §2, §3).
+
+Warp structs hold a camera (OpenCV pinhole with k1, k2, p1, p2, k3) and a light
+(parallel or perspective); ``@wp.func`` helpers project, distort, undistort and cast
+rays. Host functions build the structs from plain NumPy values, so this module, like
+all of kernels/, knows nothing of the rig file (pipeline/ converts it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+LIGHT_PARALLEL = wp.constant(0)
+LIGHT_PERSPECTIVE = wp.constant(1)
+UNDISTORT_ITERS = wp.constant(12)
+
+__all__ = [
+    "LIGHT_PARALLEL",
+    "LIGHT_PERSPECTIVE",
+    "CameraModel",
+    "LightModel",
+    "make_camera",
+    "make_parallel_light",
+    "make_perspective_light",
+    "distort",
+    "undistort",
+    "camera_ray",
+    "project_camera",
+    "light_pixel",
+    "light_point_local",
+    "direction_to_light",
+]
+
+
+@wp.struct
+class CameraModel:
+    """An OpenCV pinhole camera: X_c = R X_w + t, distortion (k1, k2, p1, p2, k3)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    skew: float
+    k1: float
+    k2: float
+    p1: float
+    p2: float
+    k3: float
+    R: wp.mat33
+    t: wp.vec3
+    center: wp.vec3
+
+
+@wp.struct
+class LightModel:
+    """A parallel light (model 0) or a perspective projector (model 1).
+
+    Parallel: X_L = R X_w + t; pixel (u_p, v_p) lights x_L = s (u_p - a_u),
+    y_L = s (v_p - a_v). Perspective: an inverse camera in ``cam``.
+    """
+
+    model: int
+    R: wp.mat33
+    t: wp.vec3
+    s: float
+    a: wp.vec2
+    cam: CameraModel
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def distort(cam: CameraModel, x: float, y: float):
+    """Normalised undistorted (x, y) -> normalised distorted (x'', y'')."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+    xd = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y
+    return wp.vec2(xd, yd)
+
+
+@wp.func
+def undistort(cam: CameraModel, xd: float, yd: float):
+    """Normalised distorted -> undistorted, by Newton's method on the 2x2 system."""
+    x = xd
+    y = yd
+    for _i in range(UNDISTORT_ITERS):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+        dr = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
+        fx = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x) - xd
+        fy = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y - yd
+        a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
+        b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
+        c = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
+        d = radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
+        det = a * d - b * c
+        if wp.abs(det) < 1.0e-12:
+            break
+        x = x - (d * fx - b * fy) / det
+        y = y - (a * fy - c * fx) / det
+    return wp.vec2(x, y)
+
+
+@wp.func
+def camera_ray(cam: CameraModel, u: float, v: float):
+    """Unit world direction of the ray through pixel (u, v) (origin: cam.center)."""
+    yd = (v - cam.cy) / cam.fy
+    xd = (u - cam.cx - cam.skew * yd) / cam.fx
+    n = undistort(cam, xd, yd)
+    dc = wp.vec3(n[0], n[1], 1.0)
+    return wp.normalize(wp.transpose(cam.R) * dc)
+
+
+@wp.func
+def project_camera(cam: CameraModel, X: wp.vec3):
+    """World point -> (u, v, Z_c): pixel with distortion and the camera-frame depth."""
+    Xc = cam.R * X + cam.t
+    z = Xc[2]
+    zs = wp.where(wp.abs(z) > 1.0e-12, z, 1.0e-12)
+    d = distort(cam, Xc[0] / zs, Xc[1] / zs)
+    return wp.vec3(cam.fx * d[0] + cam.skew * d[1] + cam.cx, cam.fy * d[1] + cam.cy, z)
+
+
+@wp.func
+def light_point_local(light: LightModel, X: wp.vec3):
+    """World point -> light frame (parallel) or projector frame (perspective)."""
+    if light.model == LIGHT_PARALLEL:
+        return light.R * X + light.t
+    return light.cam.R * X + light.cam.t
+
+
+@wp.func
+def light_pixel(light: LightModel, X: wp.vec3):
+    """World point -> (u_p, v_p, valid) on the projector pixel grid.
+
+    valid is 0 when the point is behind a perspective projector.
+    """
+    if light.model == LIGHT_PARALLEL:
+        XL = light.R * X + light.t
+        return wp.vec3(XL[0] / light.s + light.a[0], XL[1] / light.s + light.a[1], 1.0)
+    p = project_camera(light.cam, X)
+    return wp.vec3(p[0], p[1], wp.where(p[2] > 1.0e-6, 1.0, 0.0))
+
+
+@wp.func
+def direction_to_light(light: LightModel, X: wp.vec3):
+    """Unit world direction from X toward the light source."""
+    if light.model == LIGHT_PARALLEL:
+        return wp.transpose(light.R) * wp.vec3(0.0, 0.0, 1.0)
+    return wp.normalize(light.cam.center - X)
+
+
+# ----------------------------------------------------------------------------- host builders
+
+
+def _dist5(dist) -> np.ndarray:
+    d = np.zeros(5)
+    dd = np.asarray(dist if dist is not None else [], float).ravel()
+    d[: dd.size] = dd
+    return d
+
+
+def make_camera(K, dist, R, t) -> CameraModel:
+    """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
+    K = np.asarray(K, float)
+    R = np.asarray(R, float)
+    t = np.asarray(t, float).ravel()
+    if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(f"make_camera: expected K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
+    d = _dist5(dist)
+    c = CameraModel()
+    c.fx, c.fy, c.cx, c.cy, c.skew = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1])
+    c.k1, c.k2, c.p1, c.p2, c.k3 = (float(x) for x in d)
+    c.R = wp.mat33(*R.ravel().tolist())
+    c.t = wp.vec3(*t.tolist())
+    c.center = wp.vec3(*(-R.T @ t).tolist())
+    return c
+
+
+def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
+    """Build a parallel :class:`LightModel` (DESIGN §3)."""
+    li = LightModel()
+    li.model = 0
+    li.R = wp.mat33(*np.asarray(R, float).ravel().tolist())
+    li.t = wp.vec3(*np.asarray(t, float).ravel().tolist())
+    li.s = float(pixel_pitch_mm)
+    li.a = wp.vec2(*np.asarray(axis_px, float).ravel().tolist())
+    li.cam = make_camera(np.eye(3), None, np.eye(3), np.zeros(3))
+    return li
+
+
+def make_perspective_light(K, dist, R, t) -> LightModel:
+    """Build a perspective (projector) :class:`LightModel` (DESIGN §3)."""
+    li = LightModel()
+    li.model = 1
+    li.R = wp.mat33(*np.eye(3).ravel().tolist())
+    li.t = wp.vec3(0.0, 0.0, 0.0)
+    li.s = 1.0
+    li.a = wp.vec2(0.0, 0.0)
+    li.cam = make_camera(K, dist, R, t)
+    return li

@@ -1,0 +1,84 @@
+"""The ``ringscan`` command line.
+
+Each sub-command lives in its own module ``ringscan.tools.cmd_<name>`` with two
+functions: ``add_parser(subparsers)`` and ``run(args) -> int``. The device is chosen
+here, once, at the edge (``--device``), and handed down.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from ringscan.pipeline.errors import RingscanError
+
+log = logging.getLogger("ringscan")
+
+# Sub-commands in the order `ringscan --help` lists them.
+COMMANDS = [
+    "demo",
+    "patterns",
+    "simulate",
+    "reconstruct",
+    "batch",
+    "evaluate",
+    "fuse",
+    "mesh",
+    "view",
+    "sweep",
+    "capture",
+    "emulate",
+    "bench",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ringscan",
+        description="Structured-light 3D scanning with concentric ring patterns.",
+    )
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            mod = importlib.import_module(f"ringscan.tools.cmd_{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"ringscan.tools.cmd_{name}":
+                continue  # not built yet in this checkout
+            raise
+        sp = mod.add_parser(sub)
+        sp.set_defaults(_run=mod.run)
+    return p
+
+
+def add_device_option(p: argparse.ArgumentParser) -> None:
+    """The one --device option every computing sub-command shares."""
+    p.add_argument("--device", default=None,
+                   help='Warp device: "cpu", "cuda", "cuda:N" (default: CUDA when present, else cpu)')
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose + 1, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except RingscanError as e:
+        print(f"ringscan {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except ValueError as e:
+        print(f"ringscan {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"ringscan {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
