@@ -45,6 +45,7 @@ __all__ = [
     "rig_to_dict",
     "default_rig",
     "look_at",
+    "turntable_matrix",
 ]
 
 
@@ -402,3 +403,21 @@ def default_rig(
     vol = Volume(z_min=-3.0, z_max=95.0, r_max=100.0)
     tt = Turntable(axis_point=np.zeros(3), axis_dir=np.array([0.0, 0.0, 1.0])) if turntable else None
     return Rig(camera=cam, light=light, volume=vol, turntable=tt)
+
+
+def turntable_matrix(rig: Rig, deg: float) -> np.ndarray:
+    """4x4 transform taking object-frame points (turntable angle 0) to the world
+    pose of a view at ``deg`` (DESIGN §6: the object turned by deg, right-handed
+    about the axis). Its inverse brings a view's points into the object frame.
+    Without a turntable (or at 0 deg) it is the identity."""
+    T = np.eye(4)
+    if rig.turntable is None or deg == 0:
+        return T
+    k = rig.turntable.axis_dir / np.linalg.norm(rig.turntable.axis_dir)
+    a = math.radians(deg)
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    Rm = np.eye(3) + math.sin(a) * Kx + (1 - math.cos(a)) * (Kx @ Kx)
+    p = rig.turntable.axis_point
+    T[:3, :3] = Rm
+    T[:3, 3] = p - Rm @ p
+    return T

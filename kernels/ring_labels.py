@@ -1,0 +1,237 @@
+"""Ring labelling, per pixel: decode gray-rings (and sector) codes (DESIGN §5).
+
+For every camera pixel the kernel reads the ``white``/``black`` pair and each Gray
+code frame/inverse pair, and writes
+
+- ``code``: the raw band Gray code (bit b set where frame b is brighter than its
+  inverse; b = 0 is the most significant bit),
+- ``weak``: a mask of the band bits whose frame/inverse difference is below the
+  margin (a pixel on a band edge has exactly its flipping bit weak),
+- ``band``: the band index k (inverse Gray code) where the pixel has contrast and
+  no weak bit, else -1,
+- ``sector``: the decoded angular sector where every sector bit is strong, else -1,
+- ``contrast``: white - black in grey levels of the frames' own scale.
+
+Frame layout in the (n_frames, H, W) stack (the order of
+``pipeline.patterns.frame_names``): white, black, gray_0, gray_0_inv, ...,
+gray_{bits-1}_inv, then sector_0, sector_0_inv, ...
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+FRAME_WHITE = wp.constant(0)
+FRAME_BLACK = wp.constant(1)
+FRAME_FIRST_BIT = wp.constant(2)
+
+__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings", "gray_frame_index", "sector_frame_index"]
+
+
+@dataclass(frozen=True)
+class DecodeSettings:
+    """Thresholds of the per-pixel decoder."""
+
+    min_contrast: float = 12.0
+    """Least white - black difference, in 8-bit grey levels (scaled by 257 for
+    16-bit frames), for a pixel to be decoded at all. Shadowed and unlit pixels
+    fall below it."""
+    bit_margin: float = 0.12
+    """A bit is strong when |frame - inverse| >= bit_margin * (white - black). A weak
+    bit is not trusted: the pixel keeps no band label (edge sampling still uses it
+    as the one bit that flips between two strong neighbours)."""
+
+
+@dataclass
+class RingLabels:
+    """Per-pixel decode results (Warp arrays of shape (H, W) on the frames' device)."""
+
+    code: wp.array
+    """int32 raw band Gray code."""
+    weak: wp.array
+    """int32 mask of weak band bits."""
+    band: wp.array
+    """int32 band index, -1 where not decoded."""
+    sector: wp.array
+    """int32 sector index, -1 where not decoded or no sector code."""
+    contrast: wp.array
+    """float32 white - black."""
+
+
+def gray_frame_index(bit: int) -> int:
+    """Index of frame ``gray_<bit>`` in the stack (its inverse follows it)."""
+    return 2 + 2 * bit
+
+
+def sector_frame_index(bits: int, bit: int) -> int:
+    """Index of frame ``sector_<bit>`` in the stack (its inverse follows it)."""
+    return 2 + 2 * bits + 2 * bit
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def gray_to_binary(g: int, bits: int):
+    """Inverse Gray code of a ``bits``-bit code."""
+    k = g
+    shift = int(1)
+    while shift < bits:
+        k = k ^ (k >> shift)
+        shift = shift * 2
+    return k
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def decode_gray_rings_kernel(
+    frames: wp.array3d(dtype=Any),
+    bits: int,
+    sector_bits: int,
+    min_contrast: float,
+    bit_margin: float,
+    row0: int,
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    band: wp.array2d(dtype=wp.int32),
+    sector: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+):
+    """Decode one pixel per thread, rows ``row0 + i // W``.
+
+    frames:   (n_frames, H, W) uint8/uint16, read.
+    code, weak, band, sector: (H, W) int32, written.
+    contrast: (H, W) float32, written.
+    """
+    tid = wp.tid()
+    w = frames.shape[2]
+    y = row0 + tid / w
+    x = tid - (tid / w) * w
+    white = float(frames[FRAME_WHITE, y, x])
+    black = float(frames[FRAME_BLACK, y, x])
+    c = white - black
+    contrast[y, x] = c
+    g = int(0)
+    wk = int(0)
+    margin = bit_margin * c
+    for b in range(bits):
+        d = float(frames[FRAME_FIRST_BIT + 2 * b, y, x]) - float(frames[FRAME_FIRST_BIT + 2 * b + 1, y, x])
+        g = g * 2
+        wk = wk * 2
+        if d > 0.0:
+            g = g + 1
+        if wp.abs(d) < margin:
+            wk = wk + 1
+    code[y, x] = g
+    weak[y, x] = wk
+    ok = c >= min_contrast
+    band[y, x] = wp.where(ok and wk == 0, gray_to_binary(g, bits), -1)
+    s = int(-1)
+    if sector_bits > 0 and ok:
+        sg = int(0)
+        strong = int(1)
+        base = FRAME_FIRST_BIT + 2 * bits
+        for b in range(sector_bits):
+            d = float(frames[base + 2 * b, y, x]) - float(frames[base + 2 * b + 1, y, x])
+            sg = sg * 2
+            if d > 0.0:
+                sg = sg + 1
+            if wp.abs(d) < margin:
+                strong = 0
+        if strong == 1:
+            s = gray_to_binary(sg, sector_bits)
+    sector[y, x] = s
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def _row_slices(h: int, n: int) -> list[tuple[int, int]]:
+    n = max(1, min(n, h))
+    edges = np.linspace(0, h, n + 1).astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int) -> None:
+    """Launch ``kernel`` over all H*W pixels, split into row slices.
+
+    On the CPU each Warp launch runs on one thread and releases the GIL, so
+    slices launched from a small thread pool use every core; on CUDA one launch
+    covers the image. ``inputs_fn(row0)`` returns the kernel's inputs for a slice.
+    """
+    dev = wp.get_device(device)
+    if dev.is_cuda or threads <= 1:
+        wp.launch(kernel, dim=h * w, inputs=inputs_fn(0), outputs=outputs, device=dev)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    def run(sl):
+        a, b = sl
+        wp.launch(kernel, dim=(b - a) * w, inputs=inputs_fn(a), outputs=outputs, device=dev)
+
+    with ThreadPoolExecutor(max_workers=threads) as ex:
+        list(ex.map(run, _row_slices(h, threads)))
+
+
+def default_threads() -> int:
+    import os
+
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+def decode_gray_rings(
+    frames: wp.array,
+    *,
+    bits: int,
+    sector_bits: int = 0,
+    settings: DecodeSettings = DecodeSettings(),
+    threads: int | None = None,
+) -> RingLabels:
+    """Decode a gray-rings (+ sectors) frame stack, one pixel per thread.
+
+    Args:
+        frames: (n_frames, H, W) uint8 or uint16 Warp array in
+            ``frame_names`` order (white, black, gray pairs, sector pairs, ...).
+        bits: band Gray-code bits.
+        sector_bits: sector Gray-code bits (0: none).
+        settings: thresholds.
+        threads: CPU threads (row slices); default: all cores.
+
+    Returns:
+        :class:`RingLabels` on the frames' device.
+    """
+    if not isinstance(frames, wp.array) or frames.ndim != 3:
+        raise ValueError(f"decode_gray_rings: frames must be a 3D Warp array (n, H, W), got {type(frames).__name__}"
+                         f" with ndim {getattr(frames, 'ndim', None)}")
+    if frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError(f"decode_gray_rings: frames must be uint8 or uint16, got {frames.dtype.__name__}")
+    if not 1 <= bits <= 16 or not 0 <= sector_bits <= 12:
+        raise ValueError(f"decode_gray_rings: bits must be 1..16 and sector_bits 0..12, got {bits}, {sector_bits}")
+    need = 2 + 2 * bits + 2 * sector_bits
+    if frames.shape[0] < need:
+        raise ValueError(f"decode_gray_rings: {bits} bits and {sector_bits} sector bits need {need} frames, got {frames.shape[0]}")
+    n, h, w = frames.shape
+    dev = frames.device
+    scale = 257.0 if frames.dtype == wp.uint16 else 1.0
+    out = RingLabels(
+        code=wp.empty((h, w), dtype=wp.int32, device=dev),
+        weak=wp.empty((h, w), dtype=wp.int32, device=dev),
+        band=wp.empty((h, w), dtype=wp.int32, device=dev),
+        sector=wp.empty((h, w), dtype=wp.int32, device=dev),
+        contrast=wp.empty((h, w), dtype=wp.float32, device=dev),
+    )
+    if h * w == 0:
+        return out
+    launch_rows(
+        decode_gray_rings_kernel, h, w,
+        lambda r0: [frames, bits, sector_bits, settings.min_contrast * scale, settings.bit_margin, r0],
+        [out.code, out.weak, out.band, out.sector, out.contrast],
+        dev, default_threads() if threads is None else threads,
+    )
+    return out

@@ -1,0 +1,319 @@
+"""Dense sub-pixel ring sampling (DESIGN §5).
+
+gray-rings: a band boundary k (radius rho0 + k * pitch) runs between two
+neighbouring pixels p, q whose band codes differ in exactly the one bit b that
+flips at k, every other bit being strong at both. The boundary point is where
+frame b crosses its inverse: with d = frame_b - inverse_b, linear interpolation
+between p and q puts it at p + d_p / (d_p - d_q) * (q - p). Each pixel pair is
+tried along +x and +y; of the two directions only the one closer to the edge's
+normal (the larger component of the gradient of d) is kept, so a boundary gives
+about one sample per pixel it crosses and never a grazing one.
+
+Output order is deterministic: per pixel in raster order, the +x sample first.
+Counts are computed, scanned (``wp.utils.array_scan``) and then written.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from .ring_labels import FRAME_FIRST_BIT, RingLabels, default_threads, gray_to_binary, launch_rows
+
+__all__ = ["SampleSettings", "RingSamples", "sample_gray_rings", "ring_radii"]
+
+
+@dataclass(frozen=True)
+class SampleSettings:
+    """Settings of the edge sampler."""
+
+    min_contrast: float = 12.0
+    """Least white - black (8-bit grey levels; x257 for 16-bit) at both pixels."""
+    min_slope: float = 0.15
+    """Least |d_p - d_q| / contrast across the edge: flatter crossings (blurred,
+    noisy or mixed pixels) are dropped."""
+
+
+@dataclass
+class RingSamples:
+    """Sub-pixel ring samples (Warp arrays of length n on the frames' device)."""
+
+    uv: wp.array
+    """vec2 (u, v) camera pixel coordinates."""
+    ring: wp.array
+    """int32 boundary index k (radius rho0 + k * pitch), 1 <= k < 2**bits."""
+    sector: wp.array
+    """int32 decoded sector at the sample, -1 where unknown."""
+    confidence: wp.array
+    """float32 in [0, 1]: edge slope relative to the contrast."""
+    pixel: wp.array
+    """int32 linear index y * W + x of the first pixel of the pair."""
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        return {"uv": self.uv.numpy(), "ring": self.ring.numpy(), "sector": self.sector.numpy(),
+                "confidence": self.confidence.numpy(), "pixel": self.pixel.numpy()}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def bit_diff(frames: wp.array3d(dtype=Any), fidx: int, y: int, x: int):
+    """frame - inverse at (y, x) for the frame pair starting at ``fidx``."""
+    return float(frames[fidx, y, x]) - float(frames[fidx + 1, y, x])
+
+
+@wp.func
+def single_bit(m: int):
+    """Index (from the least significant end) of the only set bit of m, or -1."""
+    if m <= 0 or (m & (m - 1)) != 0:
+        return -1
+    i = int(0)
+    while (m >> i) != 1:
+        i = i + 1
+    return i
+
+
+@wp.func
+def edge_pair(
+    frames: wp.array3d(dtype=Any),
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    bits: int,
+    min_contrast: float,
+    min_slope: float,
+    y: int,
+    x: int,
+    dy: int,
+    dx: int,
+):
+    """Test the pair p = (y, x), q = (y + dy, x + dx).
+
+    Returns vec4(found, fraction, boundary k, confidence).
+    """
+    h = code.shape[0]
+    w = code.shape[1]
+    none = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    y2 = y + dy
+    x2 = x + dx
+    if y2 >= h or x2 >= w:
+        return none
+    cp = contrast[y, x]
+    cq = contrast[y2, x2]
+    if cp < min_contrast or cq < min_contrast:
+        return none
+    gp = code[y, x]
+    gq = code[y2, x2]
+    lsb = single_bit(gp ^ gq)
+    if lsb < 0:
+        return none
+    m = int(1) << lsb
+    if ((weak[y, x] | weak[y2, x2]) & (~m)) != 0:
+        return none
+    kp = gray_to_binary(gp, bits)
+    kq = gray_to_binary(gq, bits)
+    if wp.abs(kp - kq) != 1:
+        return none
+    b = bits - 1 - lsb
+    fidx = FRAME_FIRST_BIT + 2 * b
+    dp = bit_diff(frames, fidx, y, x)
+    dq = bit_diff(frames, fidx, y2, x2)
+    slope = dp - dq
+    cm = 0.5 * (cp + cq)
+    if wp.abs(slope) < min_slope * cm:
+        return none
+    # Keep the direction closer to the edge normal: compare with the gradient
+    # component across the pair (central differences, averaged over p and q).
+    ay0 = wp.max(y - dx, 0)
+    ay1 = wp.min(y + dx, h - 1)
+    ax0 = wp.max(x - dy, 0)
+    ax1 = wp.min(x + dy, w - 1)
+    by0 = wp.max(y2 - dx, 0)
+    by1 = wp.min(y2 + dx, h - 1)
+    bx0 = wp.max(x2 - dy, 0)
+    bx1 = wp.min(x2 + dy, w - 1)
+    across = 0.5 * (bit_diff(frames, fidx, ay1, ax1) - bit_diff(frames, fidx, ay0, ax0)) * 0.5 + 0.5 * (
+        bit_diff(frames, fidx, by1, bx1) - bit_diff(frames, fidx, by0, bx0)
+    ) * 0.5
+    if dx == 1:
+        if wp.abs(across) > wp.abs(slope):
+            return none
+    else:
+        if wp.abs(across) >= wp.abs(slope):
+            return none
+    f = dp / slope
+    conf = wp.min(wp.abs(slope) / cm, 1.0)
+    return wp.vec4(1.0, f, float(wp.max(kp, kq)), conf)
+
+
+@wp.func
+def pair_sector(sector: wp.array2d(dtype=wp.int32), y: int, x: int, y2: int, x2: int):
+    s = sector[y, x]
+    if s < 0:
+        s = sector[y2, x2]
+    return s
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def count_edges_kernel(
+    frames: wp.array3d(dtype=Any),
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    bits: int,
+    min_contrast: float,
+    min_slope: float,
+    row0: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    """Count the samples (0, 1 or 2) whose pair starts at each pixel.
+
+    frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
+    counts: (H*W,) int32 written.
+    """
+    tid = wp.tid()
+    w = code.shape[1]
+    y = row0 + tid / w
+    x = tid - (tid / w) * w
+    n = int(0)
+    ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
+    ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
+    if ex[0] > 0.0:
+        n = n + 1
+    if ey[0] > 0.0:
+        n = n + 1
+    counts[y * w + x] = n
+
+
+@wp.kernel
+def write_edges_kernel(
+    frames: wp.array3d(dtype=Any),
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    sector: wp.array2d(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    bits: int,
+    min_contrast: float,
+    min_slope: float,
+    row0: int,
+    uv: wp.array(dtype=wp.vec2),
+    ring: wp.array(dtype=wp.int32),
+    sample_sector: wp.array(dtype=wp.int32),
+    confidence: wp.array(dtype=wp.float32),
+    pixel: wp.array(dtype=wp.int32),
+):
+    """Write each pixel's samples at its scanned offset.
+
+    frames (n, H, W), code/weak/sector (H, W) int32, contrast (H, W) float32,
+    offsets (H*W,) int32 exclusive scan of the counts: read.
+    uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
+    confidence (n_samples,) float32: written.
+    """
+    tid = wp.tid()
+    w = code.shape[1]
+    y = row0 + tid / w
+    x = tid - (tid / w) * w
+    i = y * w + x
+    o = offsets[i]
+    ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
+    if ex[0] > 0.0:
+        uv[o] = wp.vec2(float(x) + ex[1], float(y))
+        ring[o] = int(ex[2])
+        sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
+        confidence[o] = ex[3]
+        pixel[o] = i
+        o = o + 1
+    ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
+    if ey[0] > 0.0:
+        uv[o] = wp.vec2(float(x), float(y) + ey[1])
+        ring[o] = int(ey[2])
+        sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
+        confidence[o] = ey[3]
+        pixel[o] = i
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def sample_gray_rings(
+    frames: wp.array,
+    labels: RingLabels,
+    *,
+    bits: int,
+    settings: SampleSettings = SampleSettings(),
+    threads: int | None = None,
+) -> RingSamples:
+    """Sub-pixel samples of every band boundary seen in a gray-rings frame stack.
+
+    Args:
+        frames: (n_frames, H, W) uint8/uint16 Warp array (``frame_names`` order).
+        labels: the decode of the same frames (:func:`decode_gray_rings`).
+        bits: band Gray-code bits.
+        settings: sampler thresholds.
+        threads: CPU threads (row slices); default: all cores.
+
+    Returns:
+        :class:`RingSamples` on the frames' device, in raster order.
+    """
+    if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError("sample_gray_rings: frames must be a (n, H, W) uint8/uint16 Warp array")
+    n, h, w = frames.shape
+    if tuple(labels.code.shape) != (h, w):
+        raise ValueError(f"sample_gray_rings: labels are {tuple(labels.code.shape)}, frames are {(h, w)}")
+    if frames.shape[0] < 2 + 2 * bits:
+        raise ValueError(f"sample_gray_rings: {bits} bits need {2 + 2 * bits} frames, got {frames.shape[0]}")
+    dev = frames.device
+    threads = default_threads() if threads is None else threads
+    scale = 257.0 if frames.dtype == wp.uint16 else 1.0
+    mc = settings.min_contrast * scale
+    counts = wp.zeros(h * w, dtype=wp.int32, device=dev)
+    common = [labels.code, labels.weak, labels.contrast]
+    if h * w:
+        launch_rows(count_edges_kernel, h, w,
+                    lambda r0: [frames, *common, bits, mc, settings.min_slope, r0], [counts], dev, threads)
+    offsets = wp.empty_like(counts)
+    total = 0
+    if h * w:
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        total = int(offsets[-1:].numpy()[0] + counts[-1:].numpy()[0])
+    out = RingSamples(
+        uv=wp.empty(total, dtype=wp.vec2, device=dev),
+        ring=wp.empty(total, dtype=wp.int32, device=dev),
+        sector=wp.empty(total, dtype=wp.int32, device=dev),
+        confidence=wp.empty(total, dtype=wp.float32, device=dev),
+        pixel=wp.empty(total, dtype=wp.int32, device=dev),
+    )
+    if total:
+        launch_rows(write_edges_kernel, h, w,
+                    lambda r0: [frames, *common, labels.sector, offsets, bits, mc, settings.min_slope, r0],
+                    [out.uv, out.ring, out.sector, out.confidence, out.pixel], dev, threads)
+    return out
+
+
+@wp.kernel
+def ring_radius_kernel(ring: wp.array(dtype=wp.int32), rho0: float, pitch: float, rho: wp.array(dtype=wp.float32)):
+    """rho[i] = rho0 + ring[i] * pitch. ring (n,) read; rho (n,) written."""
+    i = wp.tid()
+    rho[i] = rho0 + float(ring[i]) * pitch
+
+
+def ring_radii(ring: wp.array, *, rho0: float, pitch: float) -> wp.array:
+    """Radius (projector px) of each sample's ring: rho0 + k * pitch, on ring's device."""
+    if not isinstance(ring, wp.array) or ring.dtype != wp.int32 or ring.ndim != 1:
+        raise ValueError("ring_radii: ring must be a 1D int32 Warp array")
+    rho = wp.empty(ring.shape[0], dtype=wp.float32, device=ring.device)
+    if ring.shape[0]:
+        wp.launch(ring_radius_kernel, dim=ring.shape[0], inputs=[ring, float(rho0), float(pitch)], outputs=[rho],
+                  device=ring.device)
+    return rho

@@ -1,0 +1,396 @@
+"""Triangulation, per point: a camera ray meets the quadric of its ring (DESIGN §3, §4).
+
+Both light models give a quadric in the undistorted case:
+
+- parallel: in the light frame, (x_L - e_u)^2 + (y_L - e_v)^2 = (s rho)^2 with
+  e = s (c - a): a cylinder around the ring's axis;
+- perspective: with X_p the point in the projector frame,
+  (fx X_p + skew Y_p + (cx - c_u) Z_p)^2 + (fy Y_p + (cy - c_v) Z_p)^2 = rho^2 Z_p^2:
+  the elliptic cone of rays whose undistorted pixel lies on |p - c| = rho.
+  With projector distortion each root is refined by Newton steps on
+  |pixel(X(t)) - c| - rho, starting from the undistorted cone.
+
+Along the ray X(t) = C + t d both reduce to a (t^2) + b t + c = 0, solved in
+float64 with the stable form. Root choice follows DESIGN §4: a root is kept only
+in front of the camera and inside the working volume; where both are inside, the
+decoded angular sector picks the root whose polar angle (around the pattern
+centre, on the projector grid) lies in that sector; without a sector code the
+point is dropped and counted as ambiguous, never guessed. With a sector code a
+root whose polar angle misses its sector by more than ``sector_tolerance``
+sectors is dropped as inconsistent.
+
+Status codes (``status`` array): 0 point, 1 no real root, 2 no root in the
+volume, 3 ambiguous (two roots, no way to choose), 4 sector mismatch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .geometry import LIGHT_PARALLEL, CameraModel, LightModel, camera_ray, project_camera
+from .ring_labels import default_threads
+
+STATUS_OK = wp.constant(0)
+STATUS_NO_ROOT = wp.constant(1)
+STATUS_OUTSIDE = wp.constant(2)
+STATUS_AMBIGUOUS = wp.constant(3)
+STATUS_SECTOR_MISMATCH = wp.constant(4)
+NEWTON_STEPS = wp.constant(4)
+STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch")
+PI = wp.constant(3.14159265358979)
+
+__all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES"]
+
+
+@dataclass(frozen=True)
+class TriangulateSettings:
+    """Root choice and consistency settings."""
+
+    sector_tolerance: float = 0.75
+    """How far (in sector widths) a root's polar angle may lie outside its decoded
+    sector and still count as matching it: it absorbs the half-sector a sample on
+    a sector edge may be off. Above it the point is dropped (sector mismatch)."""
+    sector_margin: float = 0.5
+    """Where both roots lie in the volume, the one nearer the decoded sector wins
+    only if the other is farther by at least this many sector widths; otherwise
+    the point is dropped as ambiguous."""
+
+
+@dataclass
+class Triangulation:
+    """Per-sample triangulation results (Warp arrays of length n)."""
+
+    points: wp.array
+    """vec3 world point (mm); zero where status != 0."""
+    status: wp.array
+    """int32 status code (0 = point)."""
+    confidence: wp.array
+    """float32 sample confidence times |cos| of the ray's incidence on the quadric."""
+    residual: wp.array
+    """float32 angular residual in sectors (0 inside the sector; -1 without sectors)."""
+
+
+@wp.struct
+class Volume:
+    z_min: float
+    z_max: float
+    r_max: float
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def local_frame(light: LightModel, X: wp.vec3):
+    if light.model == LIGHT_PARALLEL:
+        return light.R * X + light.t
+    return light.cam.R * X + light.cam.t
+
+
+@wp.func
+def local_dir(light: LightModel, d: wp.vec3):
+    if light.model == LIGHT_PARALLEL:
+        return light.R * d
+    return light.cam.R * d
+
+
+@wp.func
+def ring_terms(light: LightModel, P: wp.vec3d, center: wp.vec2d):
+    """(a, b, z) at a point P of the light's own frame, with a^2 + b^2 = rho^2 z^2
+    on the ring's quadric (z = 1 for the parallel light, in projector pixels)."""
+    if light.model == LIGHT_PARALLEL:
+        s = wp.float64(light.s)
+        a = P[0] / s + wp.float64(light.a[0]) - center[0]
+        b = P[1] / s + wp.float64(light.a[1]) - center[1]
+        return wp.vec3d(a, b, wp.float64(1.0))
+    c = light.cam
+    a = wp.float64(c.fx) * P[0] + wp.float64(c.skew) * P[1] + (wp.float64(c.cx) - center[0]) * P[2]
+    b = wp.float64(c.fy) * P[1] + (wp.float64(c.cy) - center[1]) * P[2]
+    return wp.vec3d(a, b, P[2])
+
+
+@wp.func
+def has_distortion(light: LightModel):
+    c = light.cam
+    return light.model != LIGHT_PARALLEL and (
+        c.k1 != 0.0 or c.k2 != 0.0 or c.k3 != 0.0 or c.p1 != 0.0 or c.p2 != 0.0
+    )
+
+
+@wp.func
+def pattern_offset(light: LightModel, X: wp.vec3, center: wp.vec2):
+    """Pixel offset p - c of world point X on the projector grid (with distortion)."""
+    if light.model == LIGHT_PARALLEL:
+        XL = light.R * X + light.t
+        return wp.vec2(XL[0] / light.s + light.a[0] - center[0], XL[1] / light.s + light.a[1] - center[1])
+    p = project_camera(light.cam, X)
+    return wp.vec2(p[0] - center[0], p[1] - center[1])
+
+
+@wp.func
+def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float, center: wp.vec2):
+    """Newton steps on |pixel(X(t)) - c| - rho (projector lens distortion)."""
+    t = t0
+    for _i in range(NEWTON_STEPS):
+        h = wp.max(1.0e-3, 1.0e-5 * wp.abs(t))
+        g0 = wp.length(pattern_offset(light, C + d * t, center)) - rho
+        g1 = wp.length(pattern_offset(light, C + d * (t + h), center)) - rho
+        dg = (g1 - g0) / h
+        if wp.abs(dg) < 1.0e-12:
+            break
+        t = t - g0 / dg
+    return t
+
+
+@wp.func
+def in_volume(X: wp.vec3, vol: Volume):
+    r = wp.sqrt(X[0] * X[0] + X[1] * X[1])
+    return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
+
+
+@wp.func
+def sector_residual(light: LightModel, X: wp.vec3, center: wp.vec2, sector: int, n_sectors: int):
+    """Distance (in sector widths) of X's polar angle outside decoded ``sector``."""
+    off = pattern_offset(light, X, center)
+    phi = wp.atan2(off[1], off[0])
+    width = 2.0 * PI / float(n_sectors)
+    mid = (float(sector) + 0.5) * width - PI
+    dphi = phi - mid
+    dphi = dphi - 2.0 * PI * wp.floor((dphi + PI) / (2.0 * PI))
+    return wp.max(wp.abs(dphi) / width - 0.5, 0.0)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def triangulate_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    rho: wp.array(dtype=wp.float32),
+    sector: wp.array(dtype=wp.int32),
+    sample_conf: wp.array(dtype=wp.float32),
+    cam: CameraModel,
+    light: LightModel,
+    vol: Volume,
+    center: wp.vec2,
+    n_sectors: int,
+    sector_tolerance: float,
+    sector_margin: float,
+    i0: int,
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    confidence: wp.array(dtype=wp.float32),
+    residual: wp.array(dtype=wp.float32),
+):
+    """Triangulate sample i0 + tid.
+
+    uv (n,) vec2, rho (n,) float32 projector px, sector (n,) int32 (-1 unknown),
+    sample_conf (n,) float32: read.
+    points (n,) vec3, status (n,) int32, confidence (n,) float32,
+    residual (n,) float32: written.
+    """
+    i = i0 + wp.tid()
+    d = camera_ray(cam, uv[i][0], uv[i][1])
+    C = cam.center
+    r = rho[i]
+    # The ray in the light's frame, in float64.
+    P0 = local_frame(light, C)
+    D0 = local_dir(light, d)
+    o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
+    e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
+    c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))
+    q0 = ring_terms(light, o, c2)
+    q1 = ring_terms(light, o + e, c2)
+    # terms are affine in t: q(t) = q0 + t (q1 - q0) (z stays 1 for parallel)
+    dq = q1 - q0
+    if light.model == LIGHT_PARALLEL:
+        dq = wp.vec3d(dq[0], dq[1], wp.float64(0.0))
+    r2 = wp.float64(r) * wp.float64(r)
+    A = dq[0] * dq[0] + dq[1] * dq[1] - r2 * dq[2] * dq[2]
+    B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
+    Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
+    points[i] = wp.vec3(0.0, 0.0, 0.0)
+    confidence[i] = 0.0
+    residual[i] = -1.0
+    disc = B * B - wp.float64(4.0) * A * Cc
+    if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
+        status[i] = STATUS_NO_ROOT
+        return
+    sq = wp.sqrt(disc)
+    qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
+    ta = float(qq / A)
+    tb = float(Cc / qq) if qq != wp.float64(0.0) else ta
+    t1 = wp.min(ta, tb)
+    t2 = wp.max(ta, tb)
+    if has_distortion(light):
+        t1 = refine_root(light, C, d, t1, r, center)
+        t2 = refine_root(light, C, d, t2, r, center)
+    X1 = C + d * t1
+    X2 = C + d * t2
+    ok1 = t1 > 0.0 and in_volume(X1, vol)
+    # For a perspective light the root must also lie in front of the projector.
+    if light.model != LIGHT_PARALLEL:
+        ok1 = ok1 and (light.cam.R * X1 + light.cam.t)[2] > 0.0
+    ok2 = t2 > 0.0 and in_volume(X2, vol)
+    if light.model != LIGHT_PARALLEL:
+        ok2 = ok2 and (light.cam.R * X2 + light.cam.t)[2] > 0.0
+    if not ok1 and not ok2:
+        status[i] = STATUS_OUTSIDE
+        return
+    s = sector[i]
+    use_sector = n_sectors > 0 and s >= 0
+    X = X1
+    res = float(-1.0)
+    if use_sector:
+        e1 = wp.where(ok1, sector_residual(light, X1, center, s, n_sectors), 1.0e9)
+        e2 = wp.where(ok2, sector_residual(light, X2, center, s, n_sectors), 1.0e9)
+        if ok1 and ok2 and wp.abs(e1 - e2) < sector_margin:
+            status[i] = STATUS_AMBIGUOUS
+            return
+        if e2 < e1:
+            X = X2
+            res = e2
+        else:
+            res = e1
+        if res > sector_tolerance:
+            status[i] = STATUS_SECTOR_MISMATCH
+            residual[i] = res
+            return
+    else:
+        if ok1 and ok2:
+            status[i] = STATUS_AMBIGUOUS
+            return
+        if ok2:
+            X = X2
+    # Incidence: the angle between the ray and the quadric's normal (gradient of
+    # a^2 + b^2 - rho^2 z^2, taken numerically in world space).
+    h = 0.01
+    f0 = wp.length(pattern_offset(light, X, center))
+    gx = wp.length(pattern_offset(light, X + wp.vec3(h, 0.0, 0.0), center)) - f0
+    gy = wp.length(pattern_offset(light, X + wp.vec3(0.0, h, 0.0), center)) - f0
+    gz = wp.length(pattern_offset(light, X + wp.vec3(0.0, 0.0, h), center)) - f0
+    g = wp.vec3(gx, gy, gz)
+    gl = wp.length(g)
+    cosi = wp.where(gl > 0.0, wp.abs(wp.dot(g, d)) / gl, 0.0)
+    points[i] = X
+    status[i] = STATUS_OK
+    confidence[i] = sample_conf[i] * cosi
+    residual[i] = res
+
+
+@wp.kernel
+def count_valid_kernel(status: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    """flags[i] = 1 where status[i] == 0. status (n,) read; flags (n,) written."""
+    i = wp.tid()
+    flags[i] = wp.where(status[i] == STATUS_OK, 1, 0)
+
+
+@wp.kernel
+def compact_kernel(
+    status: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    index: wp.array(dtype=wp.int32),
+):
+    """index[offsets[i]] = i for every valid sample. status, offsets (n,) read;
+    index (n_valid,) written."""
+    i = wp.tid()
+    if status[i] == STATUS_OK:
+        index[offsets[i]] = i
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def make_volume(z_min: float, z_max: float, r_max: float) -> Volume:
+    v = Volume()
+    v.z_min, v.z_max, v.r_max = float(z_min), float(z_max), float(r_max)
+    return v
+
+
+def triangulate_rings(
+    uv: wp.array,
+    rho: wp.array,
+    sector: wp.array,
+    sample_confidence: wp.array,
+    *,
+    camera: CameraModel,
+    light: LightModel,
+    volume: tuple[float, float, float],
+    center: tuple[float, float],
+    sector_bits: int = 0,
+    settings: TriangulateSettings = TriangulateSettings(),
+    threads: int | None = None,
+) -> Triangulation:
+    """Triangulate ring samples: each camera ray meets its ring's quadric.
+
+    Args:
+        uv: (n,) vec2 camera pixel coordinates (distorted image).
+        rho: (n,) float32 ring radius in projector pixels.
+        sector: (n,) int32 decoded sector, -1 where unknown.
+        sample_confidence: (n,) float32.
+        camera, light: from :mod:`ringscan.kernels.geometry`.
+        volume: (z_min, z_max, r_max) of the working volume, world mm.
+        center: pattern centre (c_u, c_v) in projector pixels.
+        sector_bits: sector Gray-code bits of the scan (0: none).
+        settings: root-choice settings.
+        threads: CPU threads; default all cores.
+    """
+    n = uv.shape[0] if isinstance(uv, wp.array) else None
+    if n is None or uv.dtype != wp.vec2:
+        raise ValueError("triangulate_rings: uv must be a Warp array of vec2")
+    for name, a, dt in (("rho", rho, wp.float32), ("sector", sector, wp.int32), ("sample_confidence", sample_confidence, wp.float32)):
+        if not isinstance(a, wp.array) or a.dtype != dt or a.shape != (n,):
+            raise ValueError(f"triangulate_rings: {name} must be a ({n},) {dt.__name__} Warp array")
+    z_min, z_max, r_max = (float(x) for x in volume)
+    if not (z_max > z_min and r_max > 0):
+        raise ValueError(f"triangulate_rings: bad volume {volume}")
+    dev = uv.device
+    out = Triangulation(
+        points=wp.empty(n, dtype=wp.vec3, device=dev),
+        status=wp.empty(n, dtype=wp.int32, device=dev),
+        confidence=wp.empty(n, dtype=wp.float32, device=dev),
+        residual=wp.empty(n, dtype=wp.float32, device=dev),
+    )
+    if n == 0:
+        return out
+    vol = make_volume(z_min, z_max, r_max)
+    n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
+    args = [uv, rho, sector, sample_confidence, camera, light, vol, wp.vec2(*center), n_sectors,
+            settings.sector_tolerance, settings.sector_margin]
+    outputs = [out.points, out.status, out.confidence, out.residual]
+    threads = default_threads() if threads is None else threads
+    if dev.is_cuda or threads <= 1 or n < 20000:
+        wp.launch(triangulate_kernel, dim=n, inputs=args + [0], outputs=outputs, device=dev)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        edges = np.linspace(0, n, threads + 1).astype(int)
+
+        def run(k):
+            a, b = int(edges[k]), int(edges[k + 1])
+            if b > a:
+                wp.launch(triangulate_kernel, dim=b - a, inputs=args + [a], outputs=outputs, device=dev)
+
+        with ThreadPoolExecutor(max_workers=threads) as ex:
+            list(ex.map(run, range(threads)))
+    return out
+
+
+def compact_points(status: wp.array) -> wp.array:
+    """Indices (int32, ascending) of the samples that became points (status 0)."""
+    n = status.shape[0]
+    dev = status.device
+    if n == 0:
+        return wp.empty(0, dtype=wp.int32, device=dev)
+    flags = wp.empty(n, dtype=wp.int32, device=dev)
+    wp.launch(count_valid_kernel, dim=n, inputs=[status], outputs=[flags], device=dev)
+    offsets = wp.empty_like(flags)
+    wp.utils.array_scan(flags, offsets, inclusive=False)
+    total = int(offsets[-1:].numpy()[0] + flags[-1:].numpy()[0])
+    index = wp.empty(total, dtype=wp.int32, device=dev)
+    if total:
+        wp.launch(compact_kernel, dim=n, inputs=[status, offsets], outputs=[index], device=dev)
+    return index
