@@ -158,17 +158,35 @@ def _row_slices(h: int, n: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+_warmed: set = set()
+
+
+def _launch_key(kernel, inputs, device) -> tuple:
+    return (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)).__name__ if isinstance(a, wp.array)
+                                            else type(a).__name__ for a in inputs))
+
+
 def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int) -> None:
     """Launch ``kernel`` over all H*W pixels, split into row slices.
 
     On the CPU each Warp launch runs on one thread and releases the GIL, so
     slices launched from a small thread pool use every core; on CUDA one launch
     covers the image. ``inputs_fn(row0)`` returns the kernel's inputs for a slice.
+    The first launch of a kernel (which builds or loads its module) always runs
+    on the calling thread: Warp's module loading is not thread-safe.
     """
     dev = wp.get_device(device)
     if dev.is_cuda or threads <= 1:
         wp.launch(kernel, dim=h * w, inputs=inputs_fn(0), outputs=outputs, device=dev)
         return
+    slices = _row_slices(h, threads)
+    key = _launch_key(kernel, inputs_fn(0) + list(outputs), dev)
+    if key not in _warmed:
+        a, b = slices.pop(0)
+        wp.launch(kernel, dim=(b - a) * w, inputs=inputs_fn(a), outputs=outputs, device=dev)
+        _warmed.add(key)
+        if not slices:
+            return
     from concurrent.futures import ThreadPoolExecutor
 
     def run(sl):
@@ -176,7 +194,7 @@ def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int
         wp.launch(kernel, dim=(b - a) * w, inputs=inputs_fn(a), outputs=outputs, device=dev)
 
     with ThreadPoolExecutor(max_workers=threads) as ex:
-        list(ex.map(run, _row_slices(h, threads)))
+        list(ex.map(run, slices))
 
 
 def default_threads() -> int:

@@ -374,8 +374,9 @@ def triangulate_rings(
             if b > a:
                 wp.launch(triangulate_kernel, dim=b - a, inputs=args + [a], outputs=outputs, device=dev)
 
+        run(0)  # the first launch loads the module: keep it on this thread
         with ThreadPoolExecutor(max_workers=threads) as ex:
-            list(ex.map(run, range(threads)))
+            list(ex.map(run, range(1, threads)))
     return out
 
 

@@ -1,0 +1,93 @@
+"""Decode of gray-rings + sectors, per pixel, against the pattern's own geometry."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.pipeline.patterns import PatternSpec, frame_names, render_frames
+
+
+def _spec(**kw):
+    d = dict(codec="gray-rings", width=160, height=120, center=(79.5, 59.5), rho0=6.0, pitch=4.0, bits=4, sector_bits=3)
+    d.update(kw)
+    return PatternSpec(**d)
+
+
+def _stack(spec, blur=0.0, dtype=np.uint8):
+    fr = render_frames(spec)
+    imgs = []
+    for n in frame_names(spec):
+        f = fr[n].astype(np.float32)
+        if blur:
+            f = cv2.GaussianBlur(f, (0, 0), blur)
+        if dtype == np.uint16:
+            f = f * 257.0
+        imgs.append(np.clip(np.rint(f), 0, np.iinfo(dtype).max).astype(dtype))
+    return np.stack(imgs)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_decode_matches_band_and_sector_truth(device, dtype):
+    spec = _spec()
+    frames = wp.array(_stack(spec, blur=0.6, dtype=dtype), device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits)
+    band, sector = lab.band.numpy(), lab.sector.numpy()
+    v, u = np.mgrid[0:spec.height, 0:spec.width]
+    rho = np.hypot(u - spec.center[0], v - spec.center[1])
+    phi = np.arctan2(v - spec.center[1], u - spec.center[0])
+    k_true = np.floor((rho - spec.rho0) / spec.pitch).astype(int)
+    s_true = np.floor((phi + math.pi) / (2 * math.pi) * 2 ** spec.sector_bits).astype(int)
+    # Pixels well inside a band and a sector (away from edges and the annulus rims).
+    frac = (rho - spec.rho0) / spec.pitch - k_true
+    inside = (k_true >= 0) & (k_true < 2 ** spec.bits) & (frac > 0.3) & (frac < 0.7) & (rho < min(spec.width, spec.height) / 2 - 2)
+    sfrac = (phi + math.pi) / (2 * math.pi) * 2 ** spec.sector_bits - s_true
+    s_inside = inside & (sfrac > 0.1) & (sfrac < 0.9) & (rho > 12)
+    assert inside.sum() > 1000
+    assert np.array_equal(band[inside], k_true[inside])
+    assert np.array_equal(sector[s_inside], s_true[s_inside])
+    # Decoded pixels are never mislabelled, wherever they are.
+    dec = (band >= 0) & (k_true >= 0) & (k_true < 2 ** spec.bits)
+    assert np.all(np.abs(band[dec] - k_true[dec]) <= 1)
+    assert np.mean(band[dec] == k_true[dec]) > 0.97
+
+
+def test_decode_rejects_low_contrast_and_outside(device):
+    spec = _spec()
+    st = _stack(spec)
+    st[:, :40, :] = 100  # a flat, unlit strip: white == black
+    lab = decode_gray_rings(wp.array(st, device=device), bits=spec.bits, sector_bits=spec.sector_bits)
+    band = lab.band.numpy()
+    assert np.all(band[:40] == -1)
+    assert np.all(lab.sector.numpy()[:40] == -1)
+    # Outside the coded annulus (the centre disc) frame == inverse: weak bits, no label.
+    assert band[59, 79] == -1 and lab.weak.numpy()[59, 79] != 0
+
+
+def test_decode_empty_image(device):
+    fr = wp.zeros((10, 0, 0), dtype=wp.uint8, device=device)
+    lab = decode_gray_rings(fr, bits=4)
+    assert lab.band.shape == (0, 0)
+
+
+def test_decode_bad_input(device):
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        decode_gray_rings(wp.zeros((10, 4, 4), dtype=wp.float32, device=device), bits=4)
+    with pytest.raises(ValueError, match="need 10 frames"):
+        decode_gray_rings(wp.zeros((6, 4, 4), dtype=wp.uint8, device=device), bits=4)
+    with pytest.raises(ValueError, match="3D Warp array"):
+        decode_gray_rings(np.zeros((10, 4, 4), np.uint8), bits=4)
+    with pytest.raises(ValueError, match="bits"):
+        decode_gray_rings(wp.zeros((40, 4, 4), dtype=wp.uint8, device=device), bits=0)
+
+
+def test_decode_threads_agree():
+    spec = _spec()
+    frames = wp.array(_stack(spec, blur=0.8), device="cpu")
+    a = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=1)
+    b = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=3)
+    assert np.array_equal(a.band.numpy(), b.band.numpy())
+    assert np.array_equal(a.sector.numpy(), b.sector.numpy())

@@ -1,0 +1,74 @@
+"""Sub-pixel ring samples land on the pattern's circles (camera = projector grid)."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
+
+from .test_ring_labels import _spec, _stack
+
+
+@pytest.mark.parametrize("blur", [0.0, 0.8, 1.5])
+def test_samples_lie_on_ring_circles(device, blur):
+    spec = _spec(width=200, height=160, center=(99.3, 79.6), bits=5, pitch=3.0, rho0=5.0)
+    frames = wp.array(_stack(spec, blur=blur), device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    s = sample_gray_rings(frames, lab, bits=spec.bits)
+    d = s.numpy()
+    assert len(s) > 2000
+    r = np.hypot(d["uv"][:, 0] - spec.center[0], d["uv"][:, 1] - spec.center[1])
+    r_true = spec.rho0 + d["ring"] * spec.pitch
+    err = np.abs(r - r_true)
+    # Every sample sits on its own circle (a wrong ring would be >= 3 px off).
+    # Away from the image border (where blurring reflects the image) and from the
+    # smallest circles (a blurred circle's edge moves inward by ~sigma^2 / 2 rho):
+    u, v = d["uv"][:, 0], d["uv"][:, 1]
+    away = (u > 5) & (v > 5) & (u < spec.width - 6) & (v < spec.height - 6) & (r_true > 12)
+    assert err[away].max() < 0.15
+    assert np.median(err) < 0.04
+    assert d["ring"].min() >= 1 and d["ring"].max() <= 2 ** spec.bits - 1
+    assert np.all((d["confidence"] > 0) & (d["confidence"] <= 1))
+    rho = ring_radii(s.ring, rho0=spec.rho0, pitch=spec.pitch).numpy()
+    assert np.allclose(rho, r_true)
+
+
+def test_sample_order_is_deterministic_raster():
+    spec = _spec()
+    frames = wp.array(_stack(spec, blur=0.7), device="cpu")
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    a = sample_gray_rings(frames, lab, bits=spec.bits, threads=1).numpy()
+    b = sample_gray_rings(frames, lab, bits=spec.bits, threads=2).numpy()
+    assert np.array_equal(a["pixel"], b["pixel"]) and np.array_equal(a["uv"], b["uv"])
+    assert np.all(np.diff(a["pixel"]) >= 0)
+
+
+def test_no_edges_gives_no_samples(device):
+    spec = _spec()
+    st = _stack(spec)
+    st[2:] = st[2:, :1, :1]  # every code frame flat: no edge anywhere
+    frames = wp.array(st, device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    s = sample_gray_rings(frames, lab, bits=spec.bits)
+    assert len(s) == 0 and s.uv.shape == (0,)
+
+
+def test_flat_edges_are_dropped(device):
+    spec = _spec()
+    frames = wp.array(_stack(spec, blur=3.0), device=device)  # heavy defocus
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    strict = sample_gray_rings(frames, lab, bits=spec.bits, settings=SampleSettings(min_slope=0.9))
+    assert len(strict) == 0
+
+
+def test_sampling_bad_input(device):
+    spec = _spec()
+    frames = wp.array(_stack(spec), device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    with pytest.raises(ValueError, match="labels are"):
+        sample_gray_rings(wp.zeros((10, 8, 8), dtype=wp.uint8, device=device), lab, bits=4)
+    with pytest.raises(ValueError, match="need"):
+        sample_gray_rings(frames, lab, bits=9)
+    with pytest.raises(ValueError, match="int32"):
+        ring_radii(wp.zeros(3, dtype=wp.float32, device=device), rho0=0, pitch=1)

@@ -1,0 +1,111 @@
+"""Triangulation against hand-made geometry: known points, projected through the
+camera and the light, come back where they were."""
+
+import cv2
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
+from ringscan.kernels.triangulation import TriangulateSettings, compact_points, triangulate_rings
+from ringscan.pipeline.rig import default_rig
+
+CENTER = (511.5, 383.5)
+SB = 6
+PROJ_DIST = np.array([0.05, -0.02, 0.001, 0.0005, 0.0])
+
+
+def _setup(model, n=400, seed=0):
+    rig = default_rig(light_model=model)
+    c, L = rig.camera, rig.light
+    cam = make_camera(c.K, c.dist, c.R, c.t)
+    rng = np.random.default_rng(seed)
+    P = np.c_[rng.uniform(-40, 40, n), rng.uniform(-40, 40, n), rng.uniform(0, 60, n)]
+    if model == "parallel":
+        light = make_parallel_light(L.R, L.t, L.pixel_pitch_mm, L.axis_px)
+        pu = P[:, 0] / L.pixel_pitch_mm + L.axis_px[0]
+        pv = P[:, 1] / L.pixel_pitch_mm + L.axis_px[1]
+    else:
+        light = make_perspective_light(L.K, PROJ_DIST, L.R, L.t)
+        pp = cv2.projectPoints(P, cv2.Rodrigues(L.R)[0], L.t, L.K, PROJ_DIST)[0][:, 0]
+        pu, pv = pp[:, 0], pp[:, 1]
+    rho = np.hypot(pu - CENTER[0], pv - CENTER[1]).astype(np.float32)
+    phi = np.arctan2(pv - CENTER[1], pu - CENTER[0])
+    sec = np.floor((phi + np.pi) / (2 * np.pi) * 2 ** SB).astype(np.int32)
+    uv = cv2.projectPoints(P, cv2.Rodrigues(c.R)[0], c.t, c.K, c.dist)[0][:, 0].astype(np.float32)
+    return rig, cam, light, P, uv, rho, sec
+
+
+def _run(device, cam, light, uv, rho, sec, sector_bits=SB, vol=(-3, 95, 100), **kw):
+    n = len(uv)
+    return triangulate_rings(wp.array(uv, dtype=wp.vec2, device=device), wp.array(rho, device=device),
+                             wp.array(sec, device=device), wp.ones(n, dtype=wp.float32, device=device),
+                             camera=cam, light=light, volume=vol, center=CENTER, sector_bits=sector_bits, **kw)
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_points_come_back_with_sectors(device, model):
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    T = _run(device, cam, light, uv, rho, sec)
+    st, X = T.status.numpy(), T.points.numpy()
+    ok = st == 0
+    assert ok.mean() > 0.95  # the rest: both roots in the same sector -> ambiguous, counted
+    assert set(np.unique(st[~ok])) <= {3}
+    err = np.linalg.norm(X[ok] - P[ok], axis=1)
+    assert err.max() < 2e-3  # mm; float32 pixel coordinates limit it
+    conf = T.confidence.numpy()[ok]
+    assert np.all((conf > 0) & (conf <= 1))
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_without_sectors_nothing_is_guessed(device, model):
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    T = _run(device, cam, light, uv, rho, np.full_like(sec, -1))
+    st, X = T.status.numpy(), T.points.numpy()
+    ok = st == 0
+    amb = st == 3
+    assert amb.sum() > 50  # many rays meet the cylinder twice inside the volume
+    assert ok.sum() + amb.sum() == len(st)
+    # every point placed is the true one: single roots only
+    assert np.linalg.norm(X[ok] - P[ok], axis=1).max() < 2e-3
+
+
+def test_wrong_sector_is_rejected(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel")
+    bad = (sec + 2 ** SB // 2) % 2 ** SB  # opposite side of the pattern
+    st = _run(device, cam, light, uv, rho, bad).status.numpy()
+    assert np.mean(st == 4) > 0.9
+
+
+def test_volume_and_no_root(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=50)
+    # a volume that excludes every true point (all have z >= 0): nothing inside
+    T = _run(device, cam, light, uv, rho, sec, vol=(-50, -40, 100))
+    st = T.status.numpy()
+    assert np.all(st != 0)
+    assert np.mean(st == 2) > 0.5  # the rest meet it below the plane, in the wrong sector (4)
+    # a ring larger than any the rays can reach inside: no real root or outside
+    T = _run(device, cam, light, uv, np.full_like(rho, 5000.0), sec)
+    assert np.all(np.isin(T.status.numpy(), [1, 2]))
+
+
+def test_empty_and_compaction(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=4)
+    T = _run(device, cam, light, uv[:0], rho[:0], sec[:0])
+    assert T.points.shape == (0,)
+    assert compact_points(T.status).shape == (0,)
+    st = wp.array(np.array([0, 3, 0, 1, 0], np.int32), device=device)
+    assert compact_points(st).numpy().tolist() == [0, 2, 4]
+
+
+def test_bad_input(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=4)
+    with pytest.raises(ValueError, match="rho"):
+        triangulate_rings(wp.array(uv, dtype=wp.vec2, device=device), wp.array(rho[:2], device=device),
+                          wp.array(sec, device=device), wp.ones(4, dtype=wp.float32, device=device),
+                          camera=cam, light=light, volume=(0, 1, 1), center=CENTER)
+    with pytest.raises(ValueError, match="volume"):
+        _run(device, cam, light, uv, rho, sec, vol=(5, 1, 10))
+    with pytest.raises(ValueError, match="vec2"):
+        triangulate_rings(wp.array(rho, device=device), wp.array(rho, device=device), wp.array(sec, device=device),
+                          wp.array(rho, device=device), camera=cam, light=light, volume=(0, 1, 1), center=CENTER)
