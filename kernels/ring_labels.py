@@ -149,6 +149,12 @@ def decode_gray_rings_kernel(
     sector[y, x] = s
 
 
+# Frames are 8- or 16-bit: declare both overloads (so ahead-of-time CUDA builds
+# compile them too).
+for _t in (wp.uint8, wp.uint16):
+    wp.overload(decode_gray_rings_kernel, {"frames": wp.array3d(dtype=_t)})
+
+
 # ----------------------------------------------------------------------------- host
 
 

@@ -243,6 +243,11 @@ def write_edges_kernel(
         pixel[o] = i
 
 
+for _t in (wp.uint8, wp.uint16):
+    wp.overload(count_edges_kernel, {"frames": wp.array3d(dtype=_t)})
+    wp.overload(write_edges_kernel, {"frames": wp.array3d(dtype=_t)})
+
+
 # ----------------------------------------------------------------------------- host
 
 
