@@ -145,8 +145,7 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_deg: float
     fi, fj = ci // 3, cj // 3
     keep = np.einsum("ij,ij->i", fn[fi], fn[fj]) >= math.cos(math.radians(crease_deg))
     w = area[fj[keep]][:, None] * fn[fj[keep]]
-    acc = np.zeros((3 * m, 3))
-    np.add.at(acc, ci[keep], w)
+    acc = np.stack([np.bincount(ci[keep], weights=w[:, k], minlength=3 * m) for k in range(3)], 1)
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     out = np.where(norm > 1e-300, acc / np.maximum(norm, 1e-300), np.repeat(fn, 3, axis=0))
     return out.reshape(m, 3, 3)
