@@ -7,10 +7,14 @@ turntable angle) plus the reference plane z = 0. Figures:
   95th percentile, max, and the fraction of points more than 1 mm off;
 - coverage: of the camera pixels that saw the surface lit (truth ``lit`` mask)
   inside the coded annulus, the fraction whose truth point has a reconstructed
-  point within ``coverage_radius_mm`` (default: one band width on a surface facing
-  the light, s * pitch for the parallel light; the ring codecs sample the surface
-  along curves that far apart); reported for the whole view and for the object
-  alone (truth points more than 0.5 mm above the plane).
+  point within r = ``coverage_radius_mm`` / max(cos theta, 0.25), theta being the
+  angle between the surface normal and the light. The ring codecs sample the
+  surface along curves one band apart in the light's cross-section (default
+  radius: one band width, s * pitch for the parallel light, or two camera pixels
+  for the dense codec, whichever is larger); on a slope the curves lie 1 / cos theta
+  farther apart on the surface, so a point between two sampled rings is covered
+  and a ring that was not sampled is not. Reported for the whole view and for the
+  object alone (truth points more than 0.5 mm above the plane).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 
 from .errors import FormatError
 from .io import read_image, read_json, read_ply
-from .rig import ParallelLight, Rig, turntable_matrix
+from .rig import ParallelLight, Rig, turntable_matrix, undistort_normalized
 from .scan import Scan, load_scan
 
 log = logging.getLogger(__name__)
@@ -77,15 +81,30 @@ def distance_stats(d: np.ndarray, *, over_mm: float = 1.0) -> dict:
             "max_mm": float(d.max()), "frac_over_1mm": float(np.mean(d > over_mm))}
 
 
+def _scene(mesh):
+    o3d = _o3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
 def point_distances(mesh, points: np.ndarray) -> np.ndarray:
     """Unsigned distance of each point to the mesh (Open3D raycasting scene)."""
     o3d = _o3d()
     if len(points) == 0:
         return np.zeros(0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     q = o3d.core.Tensor(np.asarray(points, np.float32))
-    return scene.compute_distance(q).numpy().astype(np.float64)
+    return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
+
+
+def surface_normals(mesh, points: np.ndarray) -> np.ndarray:
+    """Unit normal of the mesh triangle closest to each point."""
+    o3d = _o3d()
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    ans = _scene(mesh).compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+    n = ans["primitive_normals"].numpy().astype(np.float64)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def truth_points(scan: Scan, view_name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -104,11 +123,9 @@ def truth_points(scan: Scan, view_name: str) -> tuple[np.ndarray, np.ndarray]:
     ok = lit & np.isfinite(depth)
     vv, uu = np.nonzero(ok)
     cam = scan.rig.camera
-    pts = np.stack([uu, vv], -1).astype(np.float64).reshape(-1, 1, 2)
-    und = cv2.undistortPointsIter(pts, cam.K, cam.dist, None, None,
-                                  (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)).reshape(-1, 2) if len(pts) else np.zeros((0, 2))
+    x, y = undistort_normalized(cam, uu, vv)
     z = depth[vv, uu].astype(np.float64)
-    Xc = np.stack([und[:, 0] * z, und[:, 1] * z, z], -1)
+    Xc = np.stack([x * z, y * z, z], -1)
     Xw = (Xc - cam.t) @ cam.R
     return Xw, vv * cam.width + uu
 
@@ -123,6 +140,14 @@ def _projector_polar(rig: Rig, X: np.ndarray, center) -> np.ndarray:
     else:
         p = cv2.projectPoints(X.reshape(-1, 1, 3), cv2.Rodrigues(li.R)[0], li.t, li.K, li.dist)[0].reshape(-1, 2)
     return np.hypot(p[:, 0] - center[0], p[:, 1] - center[1])
+
+
+def _light_direction(rig: Rig, X: np.ndarray) -> np.ndarray:
+    li = rig.light
+    if isinstance(li, ParallelLight):
+        return np.broadcast_to(li.R.T @ np.array([0.0, 0.0, 1.0]), X.shape)
+    d = li.center - X
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def coverage_radius(scan: Scan) -> float:
@@ -163,7 +188,10 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     if len(X) and len(points):
         tp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(X))
         rp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-        near = np.asarray(tp.compute_point_cloud_distance(rp)) <= r
+        dn = np.asarray(tp.compute_point_cloud_distance(rp))
+        light_dir = _light_direction(scan.rig, X)
+        cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
+        near = dn <= r / np.maximum(cos_t, 0.25)
         obj = np.abs(X[:, 2] - float(scan.extra["truth"].get("reference_plane_z", 0.0))) > 0.5
         out["coverage"] = float(near.mean())
         out["coverage_object"] = float(near[obj].mean()) if obj.any() else None

@@ -46,6 +46,7 @@ __all__ = [
     "default_rig",
     "look_at",
     "turntable_matrix",
+    "undistort_normalized",
 ]
 
 
@@ -421,3 +422,25 @@ def turntable_matrix(rig: Rig, deg: float) -> np.ndarray:
     T[:3, :3] = Rm
     T[:3, 3] = p - Rm @ p
     return T
+
+
+def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray, *, iters: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (u, v) -> undistorted normalised coordinates (x', y') in float64,
+    by Newton's method on the OpenCV distortion model (as the kernels do)."""
+    K = camera.K
+    yd = (np.asarray(v, np.float64) - K[1, 2]) / K[1, 1]
+    xd = (np.asarray(u, np.float64) - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+    k1, k2, p1, p2, k3 = camera.dist
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iters):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+        a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        d = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * b
+        x, y = x - (d * fx - b * fy) / det, y - (a * fy - b * fx) / det
+    return x, y

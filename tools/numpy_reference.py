@@ -1,0 +1,175 @@
+"""Plain vectorised NumPy versions of the decode, sampling and triangulation
+stages, for ``ringscan bench`` (the reference each Warp timing is divided by) and
+for tests that cross-check the kernels. They follow the kernels' rules exactly
+(same thresholds, same root choice) but are written the way a careful NumPy user
+would: whole-image array operations, no Python loops over pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ringscan.pipeline.rig import ParallelLight, Rig, undistort_normalized
+
+__all__ = ["decode_numpy", "sample_numpy", "triangulate_numpy"]
+
+
+def _gray_to_binary(g: np.ndarray, bits: int) -> np.ndarray:
+    k = g.copy()
+    shift = 1
+    while shift < bits:
+        k ^= k >> shift
+        shift <<= 1
+    return k
+
+
+def decode_numpy(frames: np.ndarray, *, bits: int, sector_bits: int = 0, min_contrast: float = 12.0,
+                 bit_margin: float = 0.12) -> dict:
+    """NumPy twin of ``kernels.ring_labels.decode_gray_rings``."""
+    f = frames.astype(np.float32)
+    scale = 257.0 if frames.dtype == np.uint16 else 1.0
+    c = f[0] - f[1]
+    d = f[2:2 + 2 * bits:2] - f[3:3 + 2 * bits:2]
+    weights = (1 << np.arange(bits - 1, -1, -1)).astype(np.int32)[:, None, None]
+    code = ((d > 0).astype(np.int32) * weights).sum(0, dtype=np.int32)
+    weak = ((np.abs(d) < bit_margin * c).astype(np.int32) * weights).sum(0, dtype=np.int32)
+    ok = c >= min_contrast * scale
+    band = np.where(ok & (weak == 0), _gray_to_binary(code, bits), -1).astype(np.int32)
+    sector = np.full(c.shape, -1, np.int32)
+    if sector_bits:
+        base = 2 + 2 * bits
+        ds = f[base:base + 2 * sector_bits:2] - f[base + 1:base + 1 + 2 * sector_bits:2]
+        sw = (1 << np.arange(sector_bits - 1, -1, -1)).astype(np.int32)[:, None, None]
+        sg = ((ds > 0).astype(np.int32) * sw).sum(0, dtype=np.int32)
+        strong = np.all(np.abs(ds) >= bit_margin * c, axis=0)
+        sector = np.where(ok & strong, _gray_to_binary(sg, sector_bits), -1).astype(np.int32)
+    return {"code": code, "weak": weak, "band": band, "sector": sector, "contrast": c, "d": d}
+
+
+def sample_numpy(frames: np.ndarray, dec: dict, *, bits: int, min_contrast: float = 12.0,
+                 min_slope: float = 0.15) -> dict:
+    """NumPy twin of ``kernels.ring_sampling.sample_gray_rings`` (same order)."""
+    scale = 257.0 if frames.dtype == np.uint16 else 1.0
+    code, weak, c, d, sector = dec["code"], dec["weak"], dec["contrast"], dec["d"], dec["sector"]
+    h, w = code.shape
+    k = _gray_to_binary(code, bits)
+    out = []
+    for axis in (1, 0):  # +x pairs, then +y pairs
+        if axis == 1:
+            P = (slice(None), slice(0, w - 1))
+            Q = (slice(None), slice(1, w))
+        else:
+            P = (slice(0, h - 1), slice(None))
+            Q = (slice(1, h), slice(None))
+        x = code[P] ^ code[Q]
+        single = (x > 0) & ((x & (x - 1)) == 0)
+        m = np.where(single, x, 0)
+        ok = single & ((c[P] >= min_contrast * scale) & (c[Q] >= min_contrast * scale))
+        ok &= ((weak[P] | weak[Q]) & ~m) == 0
+        ok &= np.abs(k[P] - k[Q]) == 1
+        lsb = np.zeros_like(x)
+        lsb[ok] = np.log2(m[ok]).astype(np.int32)
+        b = bits - 1 - lsb
+        yy, xx = np.nonzero(ok)
+        bb = b[yy, xx]
+        y2, x2 = (yy, xx + 1) if axis == 1 else (yy + 1, xx)
+        dp = d[bb, yy, xx]
+        dq = d[bb, y2, x2]
+        slope = dp - dq
+        cm = 0.5 * (c[yy, xx] + c[y2, x2])
+        keep = np.abs(slope) >= min_slope * cm
+        # gradient across the pair (central differences, clamped at the border)
+        if axis == 1:
+            a = (d[bb, np.minimum(yy + 1, h - 1), xx] - d[bb, np.maximum(yy - 1, 0), xx]) * 0.5
+            bq = (d[bb, np.minimum(y2 + 1, h - 1), x2] - d[bb, np.maximum(y2 - 1, 0), x2]) * 0.5
+            across = 0.5 * a + 0.5 * bq
+            keep &= ~(np.abs(across) > np.abs(slope))
+        else:
+            a = (d[bb, yy, np.minimum(xx + 1, w - 1)] - d[bb, yy, np.maximum(xx - 1, 0)]) * 0.5
+            bq = (d[bb, y2, np.minimum(x2 + 1, w - 1)] - d[bb, y2, np.maximum(x2 - 1, 0)]) * 0.5
+            across = 0.5 * a + 0.5 * bq
+            keep &= ~(np.abs(across) >= np.abs(slope))
+        yy, xx, y2, x2 = yy[keep], xx[keep], y2[keep], x2[keep]
+        f = (dp[keep] / slope[keep]).astype(np.float32)
+        uv = np.stack([xx + (f if axis == 1 else 0), yy + (f if axis == 0 else 0)], -1).astype(np.float32)
+        ring = np.maximum(k[yy, xx], k[y2, x2])
+        s = np.where(sector[yy, xx] >= 0, sector[yy, xx], sector[y2, x2])
+        conf = np.minimum(np.abs(slope[keep]) / cm[keep], 1.0).astype(np.float32)
+        out.append((yy * w + xx, 0 if axis == 1 else 1, uv, ring, s, conf))
+    pix = np.concatenate([o[0] for o in out])
+    order = np.lexsort((np.concatenate([np.full(len(o[0]), o[1]) for o in out]), pix))
+    return {"pixel": pix[order].astype(np.int32), "uv": np.concatenate([o[2] for o in out])[order],
+            "ring": np.concatenate([o[3] for o in out])[order].astype(np.int32),
+            "sector": np.concatenate([o[4] for o in out])[order].astype(np.int32),
+            "confidence": np.concatenate([o[5] for o in out])[order]}
+
+
+def triangulate_numpy(uv: np.ndarray, rho: np.ndarray, sector: np.ndarray, rig: Rig, *, center, sector_bits: int,
+                      sector_tolerance: float = 0.75, sector_margin: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy twin of ``kernels.triangulation.triangulate_rings`` for the parallel
+    light (the default rig). Returns (points (n, 3), status (n,))."""
+    li = rig.light
+    if not isinstance(li, ParallelLight):
+        raise ValueError("triangulate_numpy: only the parallel light model")
+    cam = rig.camera
+    x, y = undistort_normalized(cam, uv[:, 0], uv[:, 1])
+    dcam = np.stack([x, y, np.ones_like(x)], -1)
+    d = dcam @ cam.R  # R^T d
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    C = cam.center
+    P0 = li.R @ C + li.t
+    D = d @ li.R.T
+    s = li.pixel_pitch_mm
+    a0 = P0[0] / s + li.axis_px[0] - center[0]
+    b0 = P0[1] / s + li.axis_px[1] - center[1]
+    a1, b1 = D[:, 0] / s, D[:, 1] / s
+    r2 = rho.astype(np.float64) ** 2
+    A = a1 * a1 + b1 * b1
+    B = 2 * (a0 * a1 + b0 * b1)
+    Cc = a0 * a0 + b0 * b0 - r2
+    disc = B * B - 4 * A * Cc
+    status = np.zeros(len(uv), np.int32)
+    status[disc < 0] = 1
+    sq = np.sqrt(np.maximum(disc, 0))
+    q = -0.5 * (B + np.where(B >= 0, sq, -sq))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = q / A, np.where(q != 0, Cc / q, q / A)
+    t1, t2 = np.minimum(ta, tb), np.maximum(ta, tb)
+    X1 = C + d * t1[:, None]
+    X2 = C + d * t2[:, None]
+    vol = rig.volume
+
+    def inside(X, t):
+        r = np.hypot(X[:, 0], X[:, 1])
+        return (t > 0) & (X[:, 2] >= vol.z_min) & (X[:, 2] <= vol.z_max) & (r <= vol.r_max)
+
+    ok1, ok2 = inside(X1, t1), inside(X2, t2)
+    status[(status == 0) & ~ok1 & ~ok2] = 2
+    X = np.where(ok1[:, None], X1, X2)
+    if sector_bits:
+        n = 2 ** sector_bits
+        width = 2 * math.pi / n
+
+        def resid(Xr):
+            XL = Xr @ li.R.T + li.t
+            phi = np.arctan2(XL[:, 1] / s + li.axis_px[1] - center[1], XL[:, 0] / s + li.axis_px[0] - center[0])
+            dphi = phi - ((sector + 0.5) * width - math.pi)
+            dphi -= 2 * math.pi * np.floor((dphi + math.pi) / (2 * math.pi))
+            return np.maximum(np.abs(dphi) / width - 0.5, 0)
+
+        has = sector >= 0
+        e1 = np.where(ok1, resid(X1), 1e9)
+        e2 = np.where(ok2, resid(X2), 1e9)
+        amb = has & ok1 & ok2 & (np.abs(e1 - e2) < sector_margin)
+        pick2 = has & (e2 < e1)
+        res = np.where(pick2, e2, e1)
+        X = np.where(pick2[:, None], X2, np.where(has[:, None], X1, X))
+        live = status == 0
+        status[live & amb] = 3
+        status[live & ~amb & has & (res > sector_tolerance)] = 4
+        status[live & ~has & ok1 & ok2] = 3
+    else:
+        status[(status == 0) & ok1 & ok2] = 3
+    return X, status
