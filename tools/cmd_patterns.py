@@ -1,0 +1,74 @@
+"""``ringscan patterns --codec ... --out DIR``: the projector frames of a codec as PNG files.
+
+Writes ``<frame>.png`` for every frame, in projection order, plus ``patterns.json``
+(the scan.json ``patterns`` block) and ``frames.txt`` (the frame names, one a line,
+in projection order) for a real projector. The pattern options are shared with
+``ringscan simulate``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ringscan.pipeline.io import atomic_write_bytes, atomic_write_json, write_image
+from ringscan.pipeline.patterns import CODECS, PatternSpec, frame_names, parse_patterns, render_frame
+
+RINGS_DEFAULT_PITCH = 40.0
+DEFAULT_PITCH = 4.0
+
+
+def add_pattern_options(p, *, size: bool = True) -> None:
+    """The pattern options of ``patterns`` and ``simulate`` (``size``: also --width/--height/--center)."""
+    g = p.add_argument_group("pattern")
+    g.add_argument("--codec", choices=CODECS, default="gray-rings", help="pattern codec (default gray-rings)")
+    g.add_argument("--bits", type=int, default=7, help="Gray-code bits of the band index (default 7)")
+    g.add_argument("--pitch", type=float, default=None,
+                   help=f"projector px per band (default {DEFAULT_PITCH:g}; {RINGS_DEFAULT_PITCH:g} for rings)")
+    g.add_argument("--rho0", type=float, default=8.0, help="inner radius in projector px (default 8)")
+    g.add_argument("--sector-bits", type=int, default=6,
+                   help="Gray-code bits of the angular sector (default 6; 0 = none; not for rings)")
+    g.add_argument("--count", type=int, default=9, help="rings of the single-shot codec (default 9)")
+    g.add_argument("--line-width", type=float, default=3.0, help="ring line width in px, rings codec (default 3)")
+    g.add_argument("--steps", type=int, default=4, help="phase steps, phase-rings codec (default 4)")
+    if size:
+        g.add_argument("--width", type=int, default=1024, help="projector width in px (default 1024)")
+        g.add_argument("--height", type=int, default=768, help="projector height in px (default 768)")
+        g.add_argument("--center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
+                       help="pattern centre in projector px (default the image centre, (W-1)/2, (H-1)/2)")
+
+
+def pattern_spec_from_args(args, width: int, height: int, center=None) -> PatternSpec:
+    """A validated :class:`PatternSpec` from the options of :func:`add_pattern_options`."""
+    if center is None:
+        center = [(width - 1) / 2.0, (height - 1) / 2.0]
+    pitch = args.pitch if args.pitch is not None else (RINGS_DEFAULT_PITCH if args.codec == "rings" else DEFAULT_PITCH)
+    d = {"codec": args.codec, "width": int(width), "height": int(height), "center": [float(c) for c in center],
+         "rho0": args.rho0, "pitch": pitch}
+    if args.codec == "rings":
+        d.update(count=args.count, line_width=args.line_width)
+    else:
+        d.update(bits=args.bits, sector_bits=args.sector_bits)
+        if args.codec == "phase-rings":
+            d["steps"] = args.steps
+    return parse_patterns(d, source="command line")
+
+
+def add_parser(sub):
+    p = sub.add_parser("patterns", help="write the projector frames of a pattern codec as PNG",
+                       description="Write every frame of a codec as <frame>.png (projection order in "
+                                   "frames.txt) plus patterns.json, the scan.json 'patterns' block.")
+    p.add_argument("--out", required=True, help="output folder")
+    add_pattern_options(p)
+    return p
+
+
+def run(args) -> int:
+    spec = pattern_spec_from_args(args, args.width, args.height, args.center)
+    out = Path(args.out)
+    names = frame_names(spec)
+    for n in names:
+        write_image(out / f"{n}.png", render_frame(spec, n))
+    atomic_write_json(out / "patterns.json", spec.to_dict())
+    atomic_write_bytes(out / "frames.txt", ("\n".join(f"{n}.png" for n in names) + "\n").encode())
+    print(f"{len(names)} {spec.codec} frame(s) of {spec.width}x{spec.height} -> {out} (patterns.json, frames.txt)")
+    return 0
