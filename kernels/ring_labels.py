@@ -28,6 +28,8 @@ import warp as wp
 FRAME_WHITE = wp.constant(0)
 FRAME_BLACK = wp.constant(1)
 FRAME_FIRST_BIT = wp.constant(2)
+SECTOR_WEAK = wp.constant(1 << 30)
+BIT_GROUP = wp.constant(4)
 
 __all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings", "gray_frame_index", "sector_frame_index"]
 
@@ -97,13 +99,19 @@ def decode_gray_rings_kernel(
     min_contrast: float,
     bit_margin: float,
     row0: int,
+    chunk: int,
     code: wp.array2d(dtype=wp.int32),
     weak: wp.array2d(dtype=wp.int32),
     band: wp.array2d(dtype=wp.int32),
     sector: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
 ):
-    """Decode one pixel per thread, rows ``row0 + i // W``.
+    """Decode a run of ``chunk`` pixels of one row per thread.
+
+    Thread t covers row row0 + t // n_chunks, columns [c * chunk, (c + 1) * chunk)
+    with c = t % n_chunks. Frame planes are streamed one after the other over the
+    run (the outer loop is over frames), which keeps a CPU thread's reads
+    sequential; on CUDA ``chunk`` is 1 and each thread is one pixel.
 
     frames:   (n_frames, H, W) uint8/uint16, read.
     code, weak, band, sector: (H, W) int32, written.
@@ -111,42 +119,60 @@ def decode_gray_rings_kernel(
     """
     tid = wp.tid()
     w = frames.shape[2]
-    y = row0 + tid / w
-    x = tid - (tid / w) * w
-    white = float(frames[FRAME_WHITE, y, x])
-    black = float(frames[FRAME_BLACK, y, x])
-    c = white - black
-    contrast[y, x] = c
-    g = int(0)
-    wk = int(0)
-    margin = bit_margin * c
-    for b in range(bits):
-        d = float(frames[FRAME_FIRST_BIT + 2 * b, y, x]) - float(frames[FRAME_FIRST_BIT + 2 * b + 1, y, x])
-        g = g * 2
-        wk = wk * 2
-        if d > 0.0:
-            g = g + 1
-        if wp.abs(d) < margin:
-            wk = wk + 1
-    code[y, x] = g
-    weak[y, x] = wk
-    ok = c >= min_contrast
-    band[y, x] = wp.where(ok and wk == 0, gray_to_binary(g, bits), -1)
-    s = int(-1)
-    if sector_bits > 0 and ok:
-        sg = int(0)
-        strong = int(1)
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    x1 = wp.min(x0 + chunk, w)
+    for x in range(x0, x1):
+        contrast[y, x] = float(frames[FRAME_WHITE, y, x]) - float(frames[FRAME_BLACK, y, x])
+        code[y, x] = 0
+        weak[y, x] = 0
+    # Bits in groups of BIT_GROUP frame pairs per pass over the run: few enough
+    # streams for the CPU's prefetchers, few read-modify-writes of code/weak.
+    for b0 in range(0, bits, BIT_GROUP):
+        b1 = wp.min(b0 + BIT_GROUP, bits)
+        for x in range(x0, x1):
+            g = code[y, x]
+            k = weak[y, x]
+            margin = bit_margin * contrast[y, x]
+            for b in range(b0, b1):
+                f = FRAME_FIRST_BIT + 2 * b
+                d = float(frames[f, y, x]) - float(frames[f + 1, y, x])
+                g = g * 2
+                k = k * 2
+                if d > 0.0:
+                    g = g + 1
+                if wp.abs(d) < margin:
+                    k = k + 1
+            code[y, x] = g
+            weak[y, x] = k
+    for x in range(x0, x1):
+        ok = contrast[y, x] >= min_contrast and weak[y, x] == 0
+        band[y, x] = wp.where(ok, gray_to_binary(code[y, x], bits), -1)
+        sector[y, x] = 0
+    if sector_bits > 0:
+        # sector code accumulates in ``sector``; a weak sector bit sets bit 30 of it
         base = FRAME_FIRST_BIT + 2 * bits
-        for b in range(sector_bits):
-            d = float(frames[base + 2 * b, y, x]) - float(frames[base + 2 * b + 1, y, x])
-            sg = sg * 2
-            if d > 0.0:
-                sg = sg + 1
-            if wp.abs(d) < margin:
-                strong = 0
-        if strong == 1:
-            s = gray_to_binary(sg, sector_bits)
-    sector[y, x] = s
+        for b0 in range(0, sector_bits, BIT_GROUP):
+            b1 = wp.min(b0 + BIT_GROUP, sector_bits)
+            for x in range(x0, x1):
+                sg = sector[y, x]
+                weakbit = sg & SECTOR_WEAK
+                sg = sg & (SECTOR_WEAK - 1)
+                margin = bit_margin * contrast[y, x]
+                for b in range(b0, b1):
+                    f = base + 2 * b
+                    d = float(frames[f, y, x]) - float(frames[f + 1, y, x])
+                    sg = sg * 2
+                    if d > 0.0:
+                        sg = sg + 1
+                    if wp.abs(d) < margin:
+                        weakbit = SECTOR_WEAK
+                sector[y, x] = sg | weakbit
+    for x in range(x0, x1):
+        sg = sector[y, x]
+        ok = sector_bits > 0 and contrast[y, x] >= min_contrast and (sg & SECTOR_WEAK) == 0
+        sector[y, x] = wp.where(ok, gray_to_binary(sg, sector_bits), -1)
 
 
 # Frames are 8- or 16-bit: declare both overloads (so ahead-of-time CUDA builds
@@ -173,31 +199,38 @@ def _launch_key(kernel, inputs, device) -> tuple:
 
 
 def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int) -> None:
-    """Launch ``kernel`` over all H*W pixels, split into row slices.
+    """Launch a row-run kernel over an H x W image.
 
-    On the CPU each Warp launch runs on one thread and releases the GIL, so
-    slices launched from a small thread pool use every core; on CUDA one launch
-    covers the image. ``inputs_fn(row0)`` returns the kernel's inputs for a slice.
-    The first launch of a kernel (which builds or loads its module) always runs
-    on the calling thread: Warp's module loading is not thread-safe.
+    The kernel's inputs end with ``row0, chunk``: each thread covers ``chunk``
+    pixels of one row. On CUDA ``chunk`` is 1 (a thread per pixel, one launch);
+    on the CPU ``chunk`` is the whole row and the rows are split into slices
+    launched from a small thread pool: each Warp CPU launch runs on one thread
+    and releases the GIL, so the slices use every core. ``inputs_fn(row0, chunk)``
+    returns the kernel's inputs. The first launch of a kernel (which builds or
+    loads its module) runs on the calling thread: Warp's module loading is not
+    thread-safe.
     """
     dev = wp.get_device(device)
-    if dev.is_cuda or threads <= 1:
-        wp.launch(kernel, dim=h * w, inputs=inputs_fn(0), outputs=outputs, device=dev)
+    if dev.is_cuda:
+        wp.launch(kernel, dim=h * w, inputs=inputs_fn(0, 1), outputs=outputs, device=dev)
         return
-    slices = _row_slices(h, threads)
-    key = _launch_key(kernel, inputs_fn(0) + list(outputs), dev)
-    if key not in _warmed:
+    slices = _row_slices(h, threads * 4 if threads > 1 else 1)
+    key = _launch_key(kernel, inputs_fn(0, w) + list(outputs), dev)
+    if key not in _warmed or threads <= 1:
         a, b = slices.pop(0)
-        wp.launch(kernel, dim=(b - a) * w, inputs=inputs_fn(a), outputs=outputs, device=dev)
+        wp.launch(kernel, dim=b - a, inputs=inputs_fn(a, w), outputs=outputs, device=dev)
         _warmed.add(key)
+        if threads <= 1:
+            for a, b in slices:
+                wp.launch(kernel, dim=b - a, inputs=inputs_fn(a, w), outputs=outputs, device=dev)
+            return
         if not slices:
             return
     from concurrent.futures import ThreadPoolExecutor
 
     def run(sl):
         a, b = sl
-        wp.launch(kernel, dim=(b - a) * w, inputs=inputs_fn(a), outputs=outputs, device=dev)
+        wp.launch(kernel, dim=b - a, inputs=inputs_fn(a, w), outputs=outputs, device=dev)
 
     with ThreadPoolExecutor(max_workers=threads) as ex:
         list(ex.map(run, slices))
@@ -254,7 +287,7 @@ def decode_gray_rings(
         return out
     launch_rows(
         decode_gray_rings_kernel, h, w,
-        lambda r0: [frames, bits, sector_bits, settings.min_contrast * scale, settings.bit_margin, r0],
+        lambda r0, chunk: [frames, bits, sector_bits, settings.min_contrast * scale, settings.bit_margin, r0, chunk],
         [out.code, out.weak, out.band, out.sector, out.contrast],
         dev, default_threads() if threads is None else threads,
     )

@@ -105,14 +105,16 @@ def edge_pair(
     x2 = x + dx
     if y2 >= h or x2 >= w:
         return none
+    gp = code[y, x]
+    gq = code[y2, x2]
+    if gp == gq:
+        return none
+    lsb = single_bit(gp ^ gq)
+    if lsb < 0:
+        return none
     cp = contrast[y, x]
     cq = contrast[y2, x2]
     if cp < min_contrast or cq < min_contrast:
-        return none
-    gp = code[y, x]
-    gq = code[y2, x2]
-    lsb = single_bit(gp ^ gq)
-    if lsb < 0:
         return none
     m = int(1) << lsb
     if ((weak[y, x] | weak[y2, x2]) & (~m)) != 0:
@@ -174,25 +176,29 @@ def count_edges_kernel(
     min_contrast: float,
     min_slope: float,
     row0: int,
+    chunk: int,
     counts: wp.array(dtype=wp.int32),
 ):
-    """Count the samples (0, 1 or 2) whose pair starts at each pixel.
+    """Count the samples (0, 1 or 2) whose pair starts at each pixel; a thread
+    covers ``chunk`` pixels of one row (see ``ring_labels.launch_rows``).
 
     frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
     counts: (H*W,) int32 written.
     """
     tid = wp.tid()
     w = code.shape[1]
-    y = row0 + tid / w
-    x = tid - (tid / w) * w
-    n = int(0)
-    ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
-    ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
-    if ex[0] > 0.0:
-        n = n + 1
-    if ey[0] > 0.0:
-        n = n + 1
-    counts[y * w + x] = n
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        n = int(0)
+        ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
+        ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
+        if ex[0] > 0.0:
+            n = n + 1
+        if ey[0] > 0.0:
+            n = n + 1
+        counts[y * w + x] = n
 
 
 @wp.kernel
@@ -202,45 +208,50 @@ def write_edges_kernel(
     weak: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
     sector: wp.array2d(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
     bits: int,
     min_contrast: float,
     min_slope: float,
     row0: int,
+    chunk: int,
     uv: wp.array(dtype=wp.vec2),
     ring: wp.array(dtype=wp.int32),
     sample_sector: wp.array(dtype=wp.int32),
     confidence: wp.array(dtype=wp.float32),
     pixel: wp.array(dtype=wp.int32),
 ):
-    """Write each pixel's samples at its scanned offset.
+    """Write each pixel's samples at its scanned offset (pixels with a count only).
 
     frames (n, H, W), code/weak/sector (H, W) int32, contrast (H, W) float32,
-    offsets (H*W,) int32 exclusive scan of the counts: read.
+    counts (H*W,) int32 and offsets (H*W,) int32 (their exclusive scan): read.
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32: written.
     """
     tid = wp.tid()
     w = code.shape[1]
-    y = row0 + tid / w
-    x = tid - (tid / w) * w
-    i = y * w + x
-    o = offsets[i]
-    ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
-    if ex[0] > 0.0:
-        uv[o] = wp.vec2(float(x) + ex[1], float(y))
-        ring[o] = int(ex[2])
-        sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
-        confidence[o] = ex[3]
-        pixel[o] = i
-        o = o + 1
-    ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
-    if ey[0] > 0.0:
-        uv[o] = wp.vec2(float(x), float(y) + ey[1])
-        ring[o] = int(ey[2])
-        sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
-        confidence[o] = ey[3]
-        pixel[o] = i
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        i = y * w + x
+        if counts[i] > 0:
+            o = offsets[i]
+            ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
+            if ex[0] > 0.0:
+                uv[o] = wp.vec2(float(x) + ex[1], float(y))
+                ring[o] = int(ex[2])
+                sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
+                confidence[o] = ex[3]
+                pixel[o] = i
+                o = o + 1
+            ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
+            if ey[0] > 0.0:
+                uv[o] = wp.vec2(float(x), float(y) + ey[1])
+                ring[o] = int(ey[2])
+                sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
+                confidence[o] = ey[3]
+                pixel[o] = i
 
 
 for _t in (wp.uint8, wp.uint16):
@@ -286,7 +297,8 @@ def sample_gray_rings(
     common = [labels.code, labels.weak, labels.contrast]
     if h * w:
         launch_rows(count_edges_kernel, h, w,
-                    lambda r0: [frames, *common, bits, mc, settings.min_slope, r0], [counts], dev, threads)
+                    lambda r0, chunk: [frames, *common, bits, mc, settings.min_slope, r0, chunk], [counts], dev,
+                    threads)
     offsets = wp.empty_like(counts)
     total = 0
     if h * w:
@@ -301,7 +313,8 @@ def sample_gray_rings(
     )
     if total:
         launch_rows(write_edges_kernel, h, w,
-                    lambda r0: [frames, *common, labels.sector, offsets, bits, mc, settings.min_slope, r0],
+                    lambda r0, chunk: [frames, *common, labels.sector, counts, offsets, bits, mc, settings.min_slope,
+                                       r0, chunk],
                     [out.uv, out.ring, out.sector, out.confidence, out.pixel], dev, threads)
     return out
 
