@@ -1,0 +1,190 @@
+"""``ringscan capture``: capture a scan from a rig (a real one, or the emulated virtual rig).
+
+::
+
+    ringscan capture --rig RIG --patterns PATTERNS.json --views N --out SCAN
+                     --turntable PORT --projector PORT --camera SPEC
+    ringscan capture --rig RIG --patterns PATTERNS.json --views N --out SCAN --virtual SCENE
+    ringscan capture --out SCAN --resume [device options as before] [--table-at DEG]
+
+The frames go to SCAN/view_<k>/<frame>.png as they are grabbed, scan.json is
+rewritten after each one, capture.json keeps the plan, the settings and the
+table's angle; ``--resume`` continues an interrupted capture. See docs/hardware.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+from ringscan.hardware.capture import CaptureSettings, capture_scan, read_capture_state, resume_angle
+from ringscan.pipeline.errors import FormatError
+from ringscan.pipeline.io import read_json
+from ringscan.pipeline.patterns import PatternSpec, frame_names, parse_patterns
+from ringscan.pipeline.rig import load_rig
+from ringscan.pipeline.scan import load_scan
+from ringscan.tools.cli import add_device_option
+
+log = logging.getLogger(__name__)
+
+# Option -> CaptureSettings field.
+SETTING_OPTIONS = {
+    "turntable_settle": "turntable_settle_s",
+    "projector_settle": "projector_settle_s",
+    "feed": "feed_deg_per_min",
+    "timeout": "command_timeout_s",
+    "motion_timeout": "motion_timeout_s",
+    "retries": "retries",
+    "retry_delay": "retry_delay_s",
+    "image_format": "image_format",
+}
+
+
+def load_patterns(path) -> PatternSpec:
+    """A pattern set from a JSON file: a ``patterns`` block (``ringscan patterns`` writes
+    patterns.json) or any JSON object holding one under ``"patterns"`` (a scan.json)."""
+    d = read_json(path)
+    if "codec" not in d and isinstance(d.get("patterns"), dict):
+        d = d["patterns"]
+    return parse_patterns(d, source=path)
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "capture", help="capture a scan from a turntable rig (or the emulated virtual rig)",
+        description="For each view turn the table and settle; for each frame show it, wait for the projector's "
+                    "acknowledgement and the settle time, grab, write the frame and scan.json atomically. "
+                    "--resume continues an interrupted capture; a device fault is retried, then the capture stops "
+                    "with a valid partial scan.")
+    p.add_argument("--out", required=True, metavar="SCAN", help="scan folder (new or empty; the interrupted one with --resume)")
+    p.add_argument("--rig", help="rig (calibration) file (required for a new capture)")
+    p.add_argument("--patterns", metavar="PATTERNS.json", help="pattern set, as 'ringscan patterns' writes it (required for a new capture)")
+    p.add_argument("--views", type=int, help="number of turntable views (required for a new capture)")
+    p.add_argument("--step", type=float, default=None, metavar="DEG", help="angle between views (default 360/views)")
+    p.add_argument("--start", type=float, default=None, metavar="DEG", help="angle of the first view (default 0)")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted capture in --out")
+    p.add_argument("--table-at", type=float, default=None, metavar="DEG",
+                   help="with --resume: the angle the table stands at now (needed when a move was cut short)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    g = p.add_argument_group("devices")
+    g.add_argument("--turntable", metavar="PORT", help="GRBL/Horus turntable serial port (or pyserial URL); "
+                                                       "may be left out for a single view")
+    g.add_argument("--projector", metavar="PORT", help="pattern projector serial port (or pyserial URL)")
+    g.add_argument("--camera", metavar="SPEC", help="camera: OpenCV index (0), URL, video or image-sequence "
+                                                    "path, folder:SCAN (replay), unix:SOCKET (ringscan emulate)")
+    g.add_argument("--baud", type=int, default=115200, help="serial baud rate of both boards (default 115200)")
+    g.add_argument("--direction", type=int, choices=(1, -1), default=1,
+                   help="-1 if positive G-code X turns the object clockwise seen from above (default 1)")
+    g.add_argument("--exposure", type=float, default=None, help="manual camera exposure (backend units)")
+    g.add_argument("--gain", type=float, default=None, help="camera gain (backend units)")
+    g.add_argument("--flush", type=int, default=None, metavar="N",
+                   help="frames dropped before each grab (default 4 for live cameras, 0 for files)")
+
+    v = p.add_argument_group("virtual rig")
+    v.add_argument("--virtual", metavar="SCENE", help="capture from the emulated virtual rig: turntable and "
+                                                      "projector emulated on pseudo-terminals, camera rendered "
+                                                      "(scene name or mesh file)")
+    v.add_argument("--size-mm", type=float, default=80.0, help="virtual scene size (default 80)")
+    v.add_argument("--seed", type=int, default=0, help="virtual camera noise seed (default 0)")
+    v.add_argument("--flavor", choices=("grbl", "horus"), default="grbl", help="emulated turntable firmware")
+    v.add_argument("--time-scale", type=float, default=100.0,
+                   help="emulated table moves this many times faster than a real one (default 100)")
+    add_device_option(v)
+
+    s = p.add_argument_group("settings (defaults: --settings file, else the resumed capture's, else built in)")
+    s.add_argument("--settings", metavar="JSON", help="capture settings file (keys of CaptureSettings)")
+    s.add_argument("--turntable-settle", type=float, help="wait after a move, s (default 0.5; 0 virtual)")
+    s.add_argument("--projector-settle", type=float, help="wait after a frame's ack, s (default 0.05; 0 virtual)")
+    s.add_argument("--feed", type=float, help="table speed, deg/min (default 600)")
+    s.add_argument("--timeout", type=float, help="reply timeout, s (default 2)")
+    s.add_argument("--motion-timeout", type=float, help="extra time allowed per move, s (default 30)")
+    s.add_argument("--retries", type=int, help="retries of a failed device operation (default 3)")
+    s.add_argument("--retry-delay", type=float, help="pause before a retry, s (default 0.5)")
+    s.add_argument("--image-format", choices=("png", "tiff"), help="frame files (default png)")
+    return p
+
+
+def _settings(args, out: Path) -> CaptureSettings:
+    if args.settings:
+        base = CaptureSettings.from_dict(read_json(args.settings), source=args.settings)
+    elif args.resume and (out / "capture.json").is_file() and read_capture_state(out).get("settings"):
+        base = CaptureSettings.from_dict(read_capture_state(out)["settings"], source=out / "capture.json")
+    elif args.virtual:
+        base = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0)
+    else:
+        base = CaptureSettings()
+    over = {field: getattr(args, opt) for opt, field in SETTING_OPTIONS.items() if getattr(args, opt) is not None}
+    return dataclasses.replace(base, **over) if over else base
+
+
+def run(args) -> int:
+    from ringscan.hardware.camera import open_camera
+    from ringscan.hardware.projector import SerialProjector
+    from ringscan.hardware.turntable import GrblTurntable, VirtualTurntable
+
+    out = Path(args.out)
+    rig = load_rig(args.rig) if args.rig else None
+    patterns = load_patterns(args.patterns) if args.patterns else None
+    if not args.resume and (rig is None or patterns is None or args.views is None):
+        raise ValueError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
+    if args.table_at is not None and not args.resume:
+        raise ValueError("--table-at only applies with --resume")
+    settings = _settings(args, out)
+    if args.resume:
+        if not (out / "scan.json").is_file():
+            raise FormatError(out / "scan.json", "nothing to resume (no scan.json)")
+        saved = load_scan(out, check_files=False, allow_incomplete=True)
+        rig_v, patterns_v = rig or saved.rig, patterns or saved.patterns
+        n_views = len(read_capture_state(out)["plan"]["angles"])
+        if args.virtual and args.table_at is None:
+            # The virtual world starts afresh with its table where the capture says it
+            # is, so the last confirmed angle is always consistent.
+            table_deg = float(read_capture_state(out)["table"]["deg"])
+        else:
+            table_deg = resume_angle(out, args.table_at)
+    else:
+        rig_v, patterns_v, n_views, table_deg = rig, patterns, args.views, 0.0
+    names = frame_names(patterns_v)
+
+    emu = camera = projector = turntable = None
+    try:
+        if args.virtual:
+            from ringscan.hardware.emulate import EmulatedRig
+
+            if args.turntable or args.projector or args.camera:
+                raise ValueError("--virtual replaces --turntable, --projector and --camera")
+            emu = EmulatedRig(rig_v, patterns_v, args.virtual, flavor=args.flavor, time_scale=args.time_scale,
+                              start_deg=table_deg, seed=args.seed, size_mm=args.size_mm, device=args.device)
+            tt_port, pj_port = emu.turntable_port, emu.projector_port
+            camera = emu.camera
+        else:
+            missing = [o for o, v in (("--projector", args.projector), ("--camera", args.camera)) if not v]
+            if not args.turntable and n_views > 1:
+                missing.insert(0, "--turntable")
+            if missing:
+                raise ValueError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
+            tt_port, pj_port = args.turntable, args.projector
+            camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain)
+        if tt_port:
+            turntable = GrblTurntable(tt_port, baudrate=args.baud, feed_deg_per_min=settings.feed_deg_per_min,
+                                      direction=args.direction, timeout_s=settings.command_timeout_s,
+                                      motion_timeout_s=settings.motion_timeout_s, position_deg=table_deg)
+        else:
+            turntable = VirtualTurntable(table_deg)  # one view: nothing turns
+        projector = SerialProjector(pj_port, baudrate=args.baud, timeout_s=settings.command_timeout_s,
+                                    expect_names=names)
+        scan = capture_scan(out, camera=camera, projector=projector, turntable=turntable, rig=rig,
+                            patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
+                            settings=settings, resume=args.resume, table_at=table_deg if args.resume else None,
+                            progress=not args.no_progress)
+    finally:
+        for dev in (turntable, projector, camera, emu):
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception as e:  # closing must not hide the real error
+                    log.warning("closing %s failed: %s", type(dev).__name__, e)
+    print(f"captured {len(scan.views)} view(s) x {len(names)} frame(s) -> {out}")
+    return 0
