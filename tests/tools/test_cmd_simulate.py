@@ -1,0 +1,69 @@
+"""``ringscan patterns`` and ``ringscan simulate`` from the command line."""
+
+import dataclasses
+
+import numpy as np
+
+from ringscan.pipeline.io import read_image, read_json
+from ringscan.pipeline.patterns import frame_names, parse_patterns, render_frame
+from ringscan.pipeline.rig import Camera, ParallelLight, default_rig, save_rig
+from ringscan.pipeline.scan import load_scan
+from ringscan.pipeline.simulate import load_truth
+from ringscan.tools.cli import main
+
+
+def _small_rig_file(path):
+    rig = default_rig()
+    c = rig.camera
+    K = np.array([[325.0, 0, 79.5], [0, 325.0, 63.5], [0, 0, 1.0]])
+    rig = dataclasses.replace(
+        rig, camera=Camera(width=160, height=128, K=K, dist=c.dist, R=c.R, t=c.t, gamma=2.2),
+        light=ParallelLight(R=np.eye(3), t=np.zeros(3), pixel_pitch_mm=0.6, axis_px=np.array([127.5, 95.5]),
+                            width=256, height=192))
+    save_rig(path, rig)
+    return path
+
+
+def test_patterns_writes_every_frame(tmp_path):
+    out = tmp_path / "p"
+    assert main(["patterns", "--codec", "phase-rings", "--bits", "3", "--pitch", "5", "--sector-bits", "2",
+                 "--width", "200", "--height", "150", "--out", str(out)]) == 0
+    spec = parse_patterns(read_json(out / "patterns.json"))
+    assert (spec.width, spec.height, spec.center, spec.steps) == (200, 150, (99.5, 74.5), 4)
+    names = frame_names(spec)
+    assert (out / "frames.txt").read_text().split() == [f"{n}.png" for n in names]
+    for n in names:
+        assert np.array_equal(read_image(out / f"{n}.png"), render_frame(spec, n))
+
+
+def test_patterns_rings_default_pitch(tmp_path):
+    assert main(["patterns", "--codec", "rings", "--out", str(tmp_path)]) == 0
+    spec = parse_patterns(read_json(tmp_path / "patterns.json"))
+    assert (spec.count, spec.pitch, spec.line_width) == (9, 40.0, 3.0)
+
+
+def test_simulate_cli(tmp_path, capsys):
+    rig = _small_rig_file(tmp_path / "rig.json")
+    out = tmp_path / "scan"
+    rc = main(["simulate", "--scene", "cube", "--size-mm", "40", "--rig", str(rig), "--bits", "3", "--rho0", "4",
+               "--pitch", "3", "--sector-bits", "0", "--views", "2", "--supersample", "1", "--bit-depth", "16",
+               "--gamma", "1.0", "--noise", "0", "--out", str(out), "--device", "cpu", "--no-progress"])
+    assert rc == 0 and "2 view(s)" in capsys.readouterr().out
+    scan = load_scan(out)
+    assert scan.rig.camera.gamma == 1.0 and scan.patterns.center == (127.5, 95.5)
+    assert [v.turntable_deg for v in scan.views] == [0.0, 180.0]
+    assert read_image(scan.frame_path(scan.views[1], "white")).dtype == np.uint16
+    t = load_truth(scan)
+    assert t.settings["bit_depth"] == 16 and t.settings["noise"] == 0.0 and t.faces.shape == (12, 3)
+
+
+def test_simulate_cli_errors(tmp_path, capsys):
+    rig = _small_rig_file(tmp_path / "rig.json")
+    assert main(["simulate", "--scene", "blob", "--rig", str(rig), "--out", str(tmp_path / "o")]) == 2
+    assert "'blob'" in capsys.readouterr().err
+    assert main(["simulate", "--rig", str(rig), "--light", "perspective", "--out", str(tmp_path / "o")]) == 2
+    assert "--light" in capsys.readouterr().err
+    assert main(["simulate", "--rig", str(rig), "--supersample", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "supersample" in capsys.readouterr().err
+    assert main(["simulate", "--rig", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 2
+    assert "none.json" in capsys.readouterr().err
