@@ -155,6 +155,8 @@ def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> fl
     move was under way when the capture stopped: then the angle is unknown and
     this raises CaptureError asking for ``table_at``.
     """
+    folder = Path(folder)
+    _require_capture(folder)
     state = read_capture_state(folder)
     if table_at is not None:
         return float(table_at)
@@ -210,13 +212,17 @@ def _new_capture(out: Path, rig: Rig | None, patterns: PatternSpec | None, views
     return scan, state
 
 
-def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, views: int | None,
-                     step_deg: float | None, start_deg: float | None) -> tuple[Scan, dict]:
+def _require_capture(out: Path) -> None:
     if not (out / "scan.json").is_file():
         raise CaptureError(f"nothing to resume: {out} holds no scan.json", folder=out)
     if not (out / CAPTURE_FILE).is_file():
         raise CaptureError(f"cannot resume: {out} holds no {CAPTURE_FILE} (not made by 'ringscan capture')",
                            folder=out)
+
+
+def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, views: int | None,
+                     step_deg: float | None, start_deg: float | None) -> tuple[Scan, dict]:
+    _require_capture(out)
     state = read_capture_state(out)
     scan = load_scan(out, check_files=False, allow_incomplete=True)
     src = out / "scan.json"
@@ -252,6 +258,13 @@ def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, v
     scan = dataclasses.replace(scan, views=tuple(kept))
     save_scan(scan)
     return scan, state
+
+
+def _check_frame_count(projector, patterns: PatternSpec, out: Path) -> None:
+    n = len(frame_names(patterns))
+    if projector.frame_count != n:
+        raise CaptureError(f"the projector holds {projector.frame_count} frames, the {patterns.codec} codec "
+                           f"needs {n}", folder=out)
 
 
 def _device_of(err: DeviceError, turntable, projector, camera):
@@ -323,6 +336,8 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
         FormatError, ValueError: bad input (nothing captured).
     """
     out = Path(out)
+    if not resume and patterns is not None:
+        _check_frame_count(projector, patterns, out)
     if resume:
         table_deg = resume_angle(out, table_at)
         scan, state = _open_for_resume(out, rig, patterns, views, step_deg, start_deg)
@@ -332,9 +347,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     names = frame_names(scan.patterns)
     angles = [float(a) for a in state["plan"]["angles"]]
     cam = scan.rig.camera
-    if projector.frame_count != len(names):
-        raise CaptureError(f"the projector holds {projector.frame_count} frames, the {scan.patterns.codec} codec "
-                           f"needs {len(names)}", folder=out)
+    _check_frame_count(projector, scan.patterns, out)
     ext = settings.image_format
     devices = (turntable, projector, camera)
 
@@ -407,8 +420,9 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
             msg = (f"capture stopped: {e}. The turntable may have stopped part way to {target:g} deg. The scan in "
                    f"{out} is valid but incomplete; check the table's angle and continue with --resume --table-at DEG")
         else:
-            msg = (f"capture stopped after {settings.retries} retries: {e}. The scan in {out} is valid but "
-                   f"incomplete; fix the device and continue with --resume")
+            tried = f" after {settings.retries} retries" if e.retryable and settings.retries else ""
+            msg = (f"capture stopped{tried}: {e}. The scan in {out} is valid but incomplete; fix the device "
+                   f"and continue with --resume")
         state["error"] = msg
         raise CaptureError(msg, folder=out, cause=e) from e
     except KeyboardInterrupt:
