@@ -20,7 +20,9 @@ root whose polar angle misses its sector by more than ``sector_tolerance``
 sectors is dropped as inconsistent.
 
 Status codes (``status`` array): 0 point, 1 no real root, 2 no root in the
-volume, 3 ambiguous (two roots, no way to choose), 4 sector mismatch.
+volume, 3 ambiguous (two roots, no way to choose), 4 sector mismatch, 5 grazing
+(the ray meets the quadric at a glancing angle: a tiny sampling error moves the
+point far along the ray), 6 isolated (set later by ``point_filter``).
 """
 
 from __future__ import annotations
@@ -38,8 +40,10 @@ STATUS_NO_ROOT = wp.constant(1)
 STATUS_OUTSIDE = wp.constant(2)
 STATUS_AMBIGUOUS = wp.constant(3)
 STATUS_SECTOR_MISMATCH = wp.constant(4)
+STATUS_GRAZING = wp.constant(5)
+STATUS_ISOLATED = 6  # given by kernels.point_filter
 NEWTON_STEPS = wp.constant(4)
-STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch")
+STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated")
 PI = wp.constant(3.14159265358979)
 
 __all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES"]
@@ -57,6 +61,10 @@ class TriangulateSettings:
     """Where both roots lie in the volume, the one nearer the decoded sector wins
     only if the other is farther by at least this many sector widths; otherwise
     the point is dropped as ambiguous."""
+    min_incidence_cos: float = 0.03
+    """Least |cos| of the angle between the camera ray and the quadric's normal.
+    The depth error is the sampling error divided by it: below 0.03 (rays within
+    ~2 degrees of grazing the ring's surface) a 0.05 px error costs millimetres."""
 
 
 @dataclass
@@ -179,6 +187,7 @@ def triangulate_kernel(
     n_sectors: int,
     sector_tolerance: float,
     sector_margin: float,
+    min_incidence_cos: float,
     i0: int,
     points: wp.array(dtype=wp.vec3),
     status: wp.array(dtype=wp.int32),
@@ -265,19 +274,23 @@ def triangulate_kernel(
             return
         if ok2:
             X = X2
-    # Incidence: the angle between the ray and the quadric's normal (gradient of
-    # a^2 + b^2 - rho^2 z^2, taken numerically in world space).
-    h = 0.01
-    f0 = wp.length(pattern_offset(light, X, center))
-    gx = wp.length(pattern_offset(light, X + wp.vec3(h, 0.0, 0.0), center)) - f0
-    gy = wp.length(pattern_offset(light, X + wp.vec3(0.0, h, 0.0), center)) - f0
-    gz = wp.length(pattern_offset(light, X + wp.vec3(0.0, 0.0, h), center)) - f0
-    g = wp.vec3(gx, gy, gz)
+    # Incidence: the angle between the ray and the quadric's normal (the
+    # gradient of |p - c|: analytic for the parallel light, numerical otherwise).
+    g = wp.vec3(0.0, 0.0, 0.0)
+    if light.model == LIGHT_PARALLEL:
+        off = pattern_offset(light, X, center)
+        g = wp.transpose(light.R) * wp.vec3(off[0], off[1], 0.0)
+    else:
+        h = 0.01
+        f0 = wp.length(pattern_offset(light, X, center))
+        g = wp.vec3(wp.length(pattern_offset(light, X + wp.vec3(h, 0.0, 0.0), center)) - f0,
+                    wp.length(pattern_offset(light, X + wp.vec3(0.0, h, 0.0), center)) - f0,
+                    wp.length(pattern_offset(light, X + wp.vec3(0.0, 0.0, h), center)) - f0)
     gl = wp.length(g)
     cosi = wp.where(gl > 0.0, wp.abs(wp.dot(g, d)) / gl, 0.0)
     points[i] = X
-    status[i] = STATUS_OK
     confidence[i] = sample_conf[i] * cosi
+    status[i] = wp.where(cosi >= min_incidence_cos, STATUS_OK, STATUS_GRAZING)
     residual[i] = res
 
 
@@ -359,7 +372,7 @@ def triangulate_rings(
     vol = make_volume(z_min, z_max, r_max)
     n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
     args = [uv, rho, sector, sample_confidence, camera, light, vol, wp.vec2(*center), n_sectors,
-            settings.sector_tolerance, settings.sector_margin]
+            settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos]
     outputs = [out.points, out.status, out.confidence, out.residual]
     threads = default_threads() if threads is None else threads
     if dev.is_cuda or threads <= 1 or n < 20000:

@@ -29,7 +29,8 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.ring_sampling import ring_radii, sample_gray_rings
-from ringscan.kernels.triangulation import STATUS_NAMES, compact_points, triangulate_rings
+from ringscan.kernels.point_filter import mark_isolated_points
+from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
 
 from .errors import FormatError
 from .io import atomic_write_json, read_json, write_ply
@@ -42,7 +43,7 @@ log = logging.getLogger(__name__)
 REPORT_FORMAT = "ringscan.report/1"
 
 __all__ = ["REPORT_FORMAT", "ViewCloud", "reconstruct_scan", "reconstruct_view", "light_model_for", "camera_model_for",
-           "extract_samples", "EXTRACTORS"]
+           "extract_samples", "EXTRACTORS", "Samples"]
 
 
 @dataclass
@@ -89,10 +90,29 @@ def _extract_gray_rings(frames: wp.array, scan: Scan, settings: ReconstructSetti
     band = labels.band.numpy()
     stats = {"pixels_decoded": int(np.count_nonzero(band >= 0)), "samples": len(samples),
              "times_s": {"decode": t1 - t0, "sample": t2 - t1}}
-    return samples.uv, rho, samples.ring, samples.sector, samples.confidence, stats
+    return Samples(uv=samples.uv, rho=rho, ring=samples.ring, sector=samples.sector, confidence=samples.confidence,
+                   pixel=samples.pixel), stats
 
 
-# codec -> function(frames, scan, settings, threads) -> (uv, rho, ring, sector, confidence, stats)
+@dataclass
+class Samples:
+    """What a codec's decode + sampling stages hand to triangulation (Warp arrays, length n)."""
+
+    uv: wp.array
+    """vec2 camera pixel coordinates."""
+    rho: wp.array
+    """float32 ring radius (projector px)."""
+    ring: wp.array | None
+    """int32 ring / band-boundary index, or None for dense codecs."""
+    sector: wp.array
+    """int32 decoded sector (-1 unknown)."""
+    confidence: wp.array
+    """float32 sample confidence."""
+    pixel: wp.array
+    """int32 linear camera pixel index of each sample."""
+
+
+# codec -> function(frames, scan, settings, threads) -> (Samples, stats)
 EXTRACTORS = {"gray-rings": _extract_gray_rings, "phase-rings": _extract_gray_rings}
 
 
@@ -134,29 +154,35 @@ def reconstruct_view(
     fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device)
     times["upload"] = time.perf_counter() - t
 
-    uv, rho, ring, sector, conf, st = extract_samples(fr, scan, settings, threads)
+    smp, st = extract_samples(fr, scan, settings, threads)
     times.update(st.pop("times_s"))
 
     t = time.perf_counter()
     rig = scan.rig
     vol = rig.volume
-    tri = triangulate_rings(uv, rho, sector, conf, camera=camera_model_for(rig), light=light_model_for(rig),
+    cam = camera_model_for(rig)
+    tri = triangulate_rings(smp.uv, smp.rho, smp.sector, smp.confidence, camera=cam, light=light_model_for(rig),
                             volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
                             sector_bits=scan.patterns.sector_bits, settings=settings.triangulate, threads=threads)
-    idx = compact_points(tri.status)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    status_w = mark_isolated_points(tri.points, smp.pixel, tri.status, camera=cam, width=rig.camera.width,
+                                    height=rig.camera.height, isolated_status=STATUS_ISOLATED, settings=settings.filter)
+    idx = compact_points(status_w)
+    wp.synchronize_device(device)
+    times["filter"] = time.perf_counter() - t
 
     t = time.perf_counter()
     idx_np = idx.numpy()
-    status = tri.status.numpy()
+    status = status_w.numpy()
     counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
     cloud = ViewCloud(
         points=tri.points.numpy()[idx_np],
-        ring=ring.numpy()[idx_np] if ring is not None else np.full(idx_np.size, -1, np.int32),
-        rho=rho.numpy()[idx_np],
+        ring=smp.ring.numpy()[idx_np] if smp.ring is not None else np.full(idx_np.size, -1, np.int32),
+        rho=smp.rho.numpy()[idx_np],
         confidence=tri.confidence.numpy()[idx_np],
-        uv=uv.numpy()[idx_np],
+        uv=smp.uv.numpy()[idx_np],
         stats={},
     )
     if settings.min_confidence > 0:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from ringscan.kernels.point_filter import NeighbourFilterSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.triangulation import TriangulateSettings
@@ -22,6 +23,8 @@ class ReconstructSettings:
     """Sub-pixel ring sampling thresholds."""
     triangulate: TriangulateSettings = field(default_factory=TriangulateSettings)
     """Root choice (DESIGN §4)."""
+    filter: NeighbourFilterSettings = field(default_factory=NeighbourFilterSettings)
+    """Image-space neighbour filter (mixed pixels, isolated outliers)."""
     min_confidence: float = 0.0
     """Points below this confidence are not written."""
     threads: int = 0

@@ -1,0 +1,52 @@
+"""The image-space neighbour filter drops isolated points and keeps surfaces."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.geometry import make_camera
+from ringscan.kernels.point_filter import NeighbourFilterSettings, mark_isolated_points
+
+
+def _plane_points(w=40, h=30, f=500.0, z=400.0):
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    cam = make_camera(K, None, np.eye(3), np.zeros(3))
+    v, u = np.mgrid[0:h, 0:w]
+    X = np.stack([(u - w / 2) / f * z, (v - h / 2) / f * z, np.full(u.shape, z)], -1).reshape(-1, 3)
+    return cam, X.astype(np.float32), (v * w + u).ravel().astype(np.int32)
+
+
+def test_keeps_a_surface_and_drops_outliers(device):
+    cam, X, pix = _plane_points()
+    X = X.copy()
+    X[100] += [0, 0, 20.0]  # a mixed pixel 20 mm (25 footprints) off the plane
+    X[500] += [0, 0, -15.0]
+    status = np.zeros(len(X), np.int32)
+    status[7] = 3  # not a point: neither filtered nor a neighbour
+    out = mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix, device=device),
+                               wp.array(status, device=device), camera=cam, width=40, height=30,
+                               isolated_status=6).numpy()
+    assert out[100] == 6 and out[500] == 6 and out[7] == 3
+    assert np.sum(out == 6) == 2
+
+
+def test_disabled_and_empty(device):
+    cam, X, pix = _plane_points()
+    X[3] += [0, 0, 50.0]
+    st = wp.zeros(len(X), dtype=wp.int32, device=device)
+    out = mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix, device=device), st,
+                               camera=cam, width=40, height=30, isolated_status=6,
+                               settings=NeighbourFilterSettings(radius=0)).numpy()
+    assert np.all(out == 0)
+    e = mark_isolated_points(wp.empty(0, dtype=wp.vec3, device=device), wp.empty(0, dtype=wp.int32, device=device),
+                             wp.empty(0, dtype=wp.int32, device=device), camera=cam, width=40, height=30,
+                             isolated_status=6)
+    assert e.shape == (0,)
+
+
+def test_bad_input(device):
+    cam, X, pix = _plane_points()
+    with pytest.raises(ValueError, match="pixel must be"):
+        mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix[:3], device=device),
+                             wp.zeros(len(X), dtype=wp.int32, device=device), camera=cam, width=40, height=30,
+                             isolated_status=6)
