@@ -1,0 +1,152 @@
+"""``ringscan capture`` and ``ringscan emulate`` end to end: a virtual capture, a capture
+killed mid-way and resumed, and a capture against a running ``ringscan emulate``."""
+
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from ringscan.hardware.capture import read_capture_state
+from ringscan.pipeline.io import atomic_write_json, read_image, write_image
+from ringscan.pipeline.patterns import frame_names
+from ringscan.pipeline.rig import save_rig
+from ringscan.pipeline.scan import load_scan
+from ringscan.tools.cli import main
+
+from .conftest import small_patterns, small_rig
+
+SEED = "3"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rigfiles")
+    save_rig(d / "rig.json", small_rig())
+    atomic_write_json(d / "patterns.json", small_patterns().to_dict())
+    return d
+
+
+def _args(files, out, *extra):
+    return ["capture", "--rig", str(files / "rig.json"), "--patterns", str(files / "patterns.json"),
+            "--out", str(out), "--no-progress", *extra]
+
+
+VIRTUAL = ["--virtual", "terrain", "--seed", SEED, "--device", "cpu"]
+
+
+@pytest.fixture(scope="module")
+def reference(files, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "scan"
+    assert main(_args(files, out, "--views", "3", *VIRTUAL)) == 0
+    return load_scan(out)
+
+
+def _assert_same(scan, ref):
+    names = frame_names(ref.patterns)
+    assert [(v.name, v.turntable_deg) for v in scan.views] == [(v.name, v.turntable_deg) for v in ref.views]
+    for v, r in zip(scan.views, ref.views):
+        assert list(v.frames) == names  # every frame exactly once, in order
+        for n in names:
+            np.testing.assert_array_equal(read_image(scan.frame_path(v, n)), read_image(ref.frame_path(r, n)))
+
+
+def test_virtual_capture(reference, capsys):
+    scan = reference
+    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    state = read_capture_state(scan.folder)
+    assert state["status"] == "complete" and state["settings"]["turntable_settle_s"] == 0.0
+    white = read_image(scan.frame_path(scan.views[0], "white")).astype(float)
+    black = read_image(scan.frame_path(scan.views[0], "black")).astype(float)
+    assert white.mean() > black.mean() + 20
+
+
+def test_killed_capture_resumes_to_the_same_scan(files, reference, tmp_path):
+    out = tmp_path / "scan"
+    cmd = [sys.executable, "-m", "ringscan.tools.cli"] + _args(files, out, "--views", "3", *VIRTUAL,
+                                                                 "--projector-settle", "0.06")
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        listed = 0
+        while listed < 5:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the capture did not start"
+            time.sleep(0.02)
+            if (out / "scan.json").is_file():
+                listed = sum(len(v.frames) for v in load_scan(out, check_files=False, allow_incomplete=True).views)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    part = load_scan(out, allow_incomplete=True)  # still valid after a kill
+    listed = sum(len(v.frames) for v in part.views)
+    assert 5 <= listed < 18
+    assert read_capture_state(out)["status"] == "running"  # it never got to say otherwise
+    assert main(["capture", "--out", str(out), "--resume", "--no-progress", *VIRTUAL]) == 0
+    scan = load_scan(out)
+    _assert_same(scan, reference)
+    runs = read_capture_state(out)["runs"]
+    assert len(runs) == 2 and runs[1]["result"] == "complete" and runs[1]["frames"] >= 18 - listed
+    leftovers = [p for p in out.rglob(".*") if p.is_file()]
+    assert not leftovers
+
+
+def test_capture_against_ringscan_emulate(files, reference, tmp_path):
+    emu_dir = tmp_path / "emu"
+    cmd = [sys.executable, "-m", "ringscan.tools.cli", "emulate", "--rig", str(files / "rig.json"), "--patterns",
+           str(files / "patterns.json"), "--scene", "terrain", "--folder", str(emu_dir), "--time-scale", "500",
+           "--seed", SEED, "--seconds", "120", "--device", "cpu"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        ports = {}
+        for line in proc.stdout:
+            key, _, rest = line.partition(":")
+            if key in ("turntable", "projector", "camera"):
+                ports[key] = rest.split()[0]
+            if line.startswith("running"):
+                break
+        assert set(ports) == {"turntable", "projector", "camera"}, ports
+        assert ports["camera"] == f"unix:{emu_dir / 'camera.sock'}"
+        out = tmp_path / "scan"
+        assert main(_args(files, out, "--views", "3", "--turntable", ports["turntable"], "--projector",
+                          ports["projector"], "--camera", ports["camera"], "--turntable-settle", "0",
+                          "--projector-settle", "0", "--timeout", "1")) == 0
+        _assert_same(load_scan(out), reference)
+        proc.send_signal(signal.SIGINT)
+        rest = proc.stdout.read()
+        assert proc.wait(timeout=30) == 0 and "emulator stopped" in rest
+        assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+
+
+def test_cli_errors(files, tmp_path, capsys):
+    assert main(["capture", "--out", str(tmp_path / "a")]) == 2
+    assert "needs --rig, --patterns and --views" in capsys.readouterr().err
+    assert main(_args(files, tmp_path / "b", "--views", "2", "--camera", "0")) == 2
+    assert "missing --turntable, --projector" in capsys.readouterr().err
+    assert main(_args(files, tmp_path / "c", "--views", "2", "--table-at", "5", *VIRTUAL)) == 2
+    assert "--table-at only applies with --resume" in capsys.readouterr().err
+    assert main(["capture", "--out", str(tmp_path / "d"), "--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    port = str(tmp_path / "no_such_port")
+    (tmp_path / "cam").mkdir()
+    write_image(tmp_path / "cam" / "0.png", np.zeros((256, 320), np.uint8))
+    assert main(_args(files, tmp_path / "e", "--views", "2", "--turntable", port, "--projector", port,
+                      "--camera", str(tmp_path / "cam"))) == 2
+    err = capsys.readouterr().err
+    assert "no_such_port" in err and "cannot open" in err
+    assert not (tmp_path / "e").exists()
+    bad = tmp_path / "settings.json"
+    atomic_write_json(bad, {"retries": "x"})
+    assert main(_args(files, tmp_path / "f", "--views", "2", "--settings", str(bad), *VIRTUAL)) == 2
+    assert "settings.json: settings: retries" in capsys.readouterr().err
