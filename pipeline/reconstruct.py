@@ -112,13 +112,26 @@ class Samples:
     """int32 linear camera pixel index of each sample."""
 
 
-# codec -> function(frames, scan, settings, threads) -> (Samples, stats)
-EXTRACTORS = {"gray-rings": _extract_gray_rings, "phase-rings": _extract_gray_rings}
+# codec -> function(frames, scan, settings, threads) -> (Samples, stats), or the
+# "module:function" name of one (imported when first used).
+EXTRACTORS = {
+    "gray-rings": _extract_gray_rings,
+    "phase-rings": "ringscan.pipeline.dense:extract_phase_rings",
+    "rings": "ringscan.pipeline.single_shot:extract_rings",
+}
 
 
 def extract_samples(frames: wp.array, scan: Scan, settings: ReconstructSettings, threads: int):
     """Run the codec's decode and sampling stages on a view's frames."""
     fn = EXTRACTORS.get(scan.patterns.codec)
+    if isinstance(fn, str):
+        import importlib
+
+        mod, name = fn.split(":")
+        try:
+            fn = EXTRACTORS[scan.patterns.codec] = getattr(importlib.import_module(mod), name)
+        except (ImportError, AttributeError):
+            fn = None
     if fn is None:
         raise FormatError(scan.path, f"patterns.codec: no reconstruction for codec {scan.patterns.codec!r} in this build")
     return fn(frames, scan, settings, threads)
