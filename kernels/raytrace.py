@@ -16,7 +16,9 @@ Two passes:
   inside the projector image).
 - shading, once per frame (:func:`shade_frame`): each pixel's irradiance is the
   mean over its sub-samples of ``ambient weight + direct weight * E(u_p, v_p)``,
-  E the emitted projector image sampled bilinearly (0 outside the image); then the
+  E the emitted projector light, given on a grid k times finer than the projector
+  pixels and sampled bilinearly (or, for sharp pixels, nearest; 0 outside the
+  projector image); then the
   camera response ``recorded = full_scale * (I / I_full)^(1/gamma)``, Gaussian
   noise (``wp.randn``, deterministic from a seed), clamping and rounding.
 
@@ -133,14 +135,22 @@ def inside_image(u: float, v: float, w: int, hgt: int):
 
 
 @wp.func
-def sample_bilinear(img: wp.array2d(dtype=float), u: float, v: float):
-    """Bilinear sample at (u, v) (pixel centres at integers); 0 outside the image."""
+def sample_emitted(img: wp.array2d(dtype=float), u: float, v: float, k: int, linear: int):
+    """Emitted light at projector position (u, v) from an image sampled k times finer
+    than the projector's pixels (fine pixel centres at ((m + 0.5) / k - 0.5) + i);
+    bilinear (``linear`` = 1) or nearest; 0 outside the projector image."""
     hgt = img.shape[0]
     w = img.shape[1]
-    if inside_image(u, v, w, hgt) == 0:
+    if inside_image(u, v, w / k, hgt / k) == 0:
         return 0.0
-    x = wp.clamp(u, 0.0, float(w - 1))
-    y = wp.clamp(v, 0.0, float(hgt - 1))
+    uf = (u + 0.5) * float(k) - 0.5
+    vf = (v + 0.5) * float(k) - 0.5
+    if linear == 0:
+        xn = wp.clamp(int(wp.floor(uf + 0.5)), 0, w - 1)
+        yn = wp.clamp(int(wp.floor(vf + 0.5)), 0, hgt - 1)
+        return img[yn, xn]
+    x = wp.clamp(uf, 0.0, float(w - 1))
+    y = wp.clamp(vf, 0.0, float(hgt - 1))
     x0 = int(wp.floor(x))
     y0 = int(wp.floor(y))
     x1 = wp.min(x0 + 1, w - 1)
@@ -236,6 +246,8 @@ def shade_kernel(
     samples: wp.array(dtype=wp.vec3),
     base: wp.array2d(dtype=float),
     emitted: wp.array2d(dtype=float),
+    upsample: int,
+    linear: int,
     supersample: int,
     inv_full: float,
     inv_gamma: float,
@@ -249,7 +261,8 @@ def shade_kernel(
     Args:
         samples: (H * W * S * S,) read: from :func:`trace_geometry_kernel`.
         base: (H, W) read: ambient irradiance per pixel.
-        emitted: (Hp, Wp) read: emitted projector light, 0..1 (after response and defocus).
+        emitted: (Hp * k, Wp * k) read: emitted projector light, 0..1 (after response and
+            defocus), sampled k = ``upsample`` times finer than the projector pixels.
         out: (H, W) written: recorded value, 0..full_scale.
     """
     y, x = wp.tid()
@@ -261,7 +274,7 @@ def shade_kernel(
     for k in range(n):
         s = samples[k0 + k]
         if s[2] > 0.0:
-            acc += s[2] * sample_bilinear(emitted, s[0], s[1])
+            acc += s[2] * sample_emitted(emitted, s[0], s[1], upsample, linear)
     irr = base[y, x] + acc / float(n)
     val = full_scale * wp.pow(wp.max(irr * inv_full, 0.0), inv_gamma)
     if noise_sigma > 0.0:
@@ -409,6 +422,8 @@ def shade_frame(
     emitted: wp.array,
     *,
     full_irradiance: float,
+    upsample: int = 1,
+    interpolation: str = "linear",
     gamma: float = 1.0,
     full_scale: int = 255,
     noise_sigma: float = 0.0,
@@ -418,7 +433,10 @@ def shade_frame(
 
     Args:
         geometry: from :func:`trace_geometry`.
-        emitted: (H_p, W_p) float32 emitted light, 0..1, on the same device.
+        emitted: (H_p * k, W_p * k) float32 emitted light, 0..1, on the same device.
+        upsample: k, how many times finer than the projector's pixels ``emitted`` is sampled.
+        interpolation: ``linear`` (bilinear between samples) or ``nearest`` (a
+            piecewise-constant image: sharp projector pixels).
         full_irradiance: the irradiance recorded as ``full_scale``.
         gamma: camera response: recorded = full_scale * (I / full_irradiance)^(1/gamma).
         full_scale: 255 (8-bit) or 65535 (16-bit).
@@ -432,6 +450,10 @@ def shade_frame(
         raise ValueError(f"emitted: expected a 2D float32 array, got {emitted.ndim}D {emitted.dtype}")
     if str(emitted.device) != str(geometry.device):
         raise ValueError(f"emitted is on {emitted.device}, the geometry on {geometry.device}")
+    if upsample < 1 or emitted.shape[0] % upsample or emitted.shape[1] % upsample:
+        raise ValueError(f"upsample: {upsample} must be >= 1 and divide the emitted image's {emitted.shape}")
+    if interpolation not in ("linear", "nearest"):
+        raise ValueError(f"interpolation: expected 'linear' or 'nearest', got {interpolation!r}")
     if not full_irradiance > 0 or not gamma > 0:
         raise ValueError(f"full_irradiance and gamma must be > 0, got {full_irradiance}, {gamma}")
     if not 0 < full_scale <= 65535:
@@ -440,7 +462,8 @@ def shade_frame(
     wp.launch(
         shade_kernel,
         dim=(geometry.height, geometry.width),
-        inputs=[geometry.samples, geometry.base, emitted, int(geometry.supersample), 1.0 / float(full_irradiance),
+        inputs=[geometry.samples, geometry.base, emitted, int(upsample), int(interpolation == "linear"),
+                int(geometry.supersample), 1.0 / float(full_irradiance),
                 1.0 / float(gamma), float(full_scale), float(noise_sigma), int(seed) & 0x7FFFFFFF],
         outputs=[out],
         device=geometry.device,

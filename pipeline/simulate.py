@@ -16,8 +16,9 @@ ground truth:
   "views": {name: {"depth", "lit"}}, "settings": {...}}``.
 
 Radiometry (per camera pixel, mean over sub-samples):
-``I = albedo * (ambient + max(0, n.l) * lit * E(u_p, v_p))`` with
-``E = blur((frame / 255)^gamma_light)``, then
+``I = albedo * (ambient + max(0, n.l) * lit * E(u_p, v_p))`` with E the emitted
+light: each projector pixel a uniform square of ``(frame / 255)^gamma_light``,
+blurred by a Gaussian (projector defocus; see :meth:`VirtualRig.emitted`), then
 ``recorded = full_scale * exposure * (I / (1 + ambient))^(1 / gamma_camera)`` plus
 Gaussian noise, clamped and rounded.
 """
@@ -44,6 +45,7 @@ from .scenes import SceneMesh, corner_normals, make_scene
 log = logging.getLogger(__name__)
 
 TRUTH_DIR = "truth"
+EMIT_UPSAMPLE = 4
 
 __all__ = [
     "RenderSettings",
@@ -157,6 +159,20 @@ def view_angles(views: int) -> tuple[float, ...]:
     return tuple(k * 360.0 / views for k in range(int(views)))
 
 
+def _pixel_gauss_weights(sigma: float, k: int) -> np.ndarray:
+    """(k, 2 r + 1) float32: weight of projector pixel i0 + j at fine sample m of pixel i0.
+
+    The fine sample sits at x = i0 + (m + 0.5) / k - 0.5; the weight is the Gaussian
+    (sigma) integrated over the pixel square [i0 + j - 0.5, i0 + j + 0.5].
+    """
+    r = int(math.ceil(4.0 * sigma + 1.0))
+    j = np.arange(-r, r + 1)
+    x = (np.arange(k) + 0.5) / k - 0.5
+    cdf = np.vectorize(lambda z: 0.5 * (1.0 + math.erf(z / (sigma * math.sqrt(2.0)))))
+    d = x[:, None] - j[None, :]
+    return (cdf(d + 0.5) - cdf(d - 0.5)).astype(np.float32)
+
+
 def _mix_seed(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0]) & 0x7FFFFFFF
 
@@ -257,11 +273,21 @@ class VirtualRig:
 
     # -- rendering
 
-    def emitted(self, frame: np.ndarray) -> np.ndarray:
-        """The light a projector frame emits, (H_p, W_p) float32 in 0..1.
+    @property
+    def emitted_upsample(self) -> int:
+        """k: :meth:`emitted` samples the projector image k times finer than its pixels."""
+        return EMIT_UPSAMPLE if self.settings.defocus_px > 0 else 1
 
-        ``(frame / 255)^gamma_light``, blurred by the projector defocus (Gaussian,
-        ``settings.defocus_px``; no light comes from outside the image).
+    def emitted(self, frame: np.ndarray) -> np.ndarray:
+        """The light a projector frame emits, (H_p k, W_p k) float32 in 0..1, k = :attr:`emitted_upsample`.
+
+        Each projector pixel emits ``(value / 255)^gamma_light`` uniformly over its
+        square (a piecewise-constant image); the lens defocus blurs it with a
+        Gaussian of ``settings.defocus_px``. The blurred image is evaluated exactly
+        (the Gaussian integrated over each pixel square, no light from outside the
+        image) at the centres of a grid k = 4 times finer than the projector's, from
+        which the renderer interpolates bilinearly. Without defocus k = 1 and the
+        renderer samples the sharp pixels (nearest).
         """
         import cv2
 
@@ -273,9 +299,17 @@ class VirtualRig:
             raise ValueError(f"frame: expected uint8, got {f.dtype}")
         lut = ((np.arange(256) / 255.0) ** float(self.rig.light.gamma)).astype(np.float32)
         e = lut[f]
-        if self.settings.defocus_px > 0:
-            e = cv2.GaussianBlur(e, (0, 0), sigmaX=self.settings.defocus_px, borderType=cv2.BORDER_CONSTANT)
-        return e
+        if self.settings.defocus_px <= 0:
+            return e
+        k = EMIT_UPSAMPLE
+        w = _pixel_gauss_weights(self.settings.defocus_px, k)
+        tmp = np.empty((ph, pw * k), np.float32)
+        for m in range(k):
+            tmp[:, m::k] = cv2.filter2D(e, cv2.CV_32F, w[m][None, :], borderType=cv2.BORDER_CONSTANT)
+        out = np.empty((ph * k, pw * k), np.float32)
+        for m in range(k):
+            out[m::k, :] = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], borderType=cv2.BORDER_CONSTANT)
+        return out
 
     def render(self, frame: np.ndarray, *, seed: int | None = None) -> np.ndarray:
         """The camera image under a projector frame.
@@ -302,7 +336,10 @@ class VirtualRig:
         s = self.settings
         gamma = float(self.rig.camera.gamma)
         full_irr = (1.0 + s.ambient) / s.exposure ** gamma
-        out = raytrace.shade_frame(geo, e, full_irradiance=full_irr, gamma=gamma, full_scale=s.full_scale,
+        k = self.emitted_upsample
+        out = raytrace.shade_frame(geo, e, full_irradiance=full_irr, upsample=k,
+                                   interpolation="linear" if k > 1 else "nearest",
+                                   gamma=gamma, full_scale=s.full_scale,
                                    noise_sigma=s.noise * s.full_scale / 255.0, seed=int(seed))
         img = out.numpy()
         return img.astype(np.uint8) if s.bit_depth == 8 else img

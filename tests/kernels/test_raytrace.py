@@ -100,17 +100,26 @@ def test_white_on_plane_is_exposure_times_albedo(device):
     assert np.abs(img[lit] / 65535.0 - 0.9 * 0.5).max() < 1e-4
 
 
-def test_brightness_follows_projector_frame(device):
-    """Parallel light: a pixel that sees (x, y, 0) records E at (x/s + a_u, y/s + a_v)."""
+@pytest.mark.parametrize("k,interp", [(1, "linear"), (3, "linear"), (1, "nearest")])
+def test_brightness_follows_projector_frame(device, k, interp):
+    """Parallel light: a pixel that sees (x, y, 0) records E at (x/s + a_u, y/s + a_v).
+
+    E is given k times finer than the projector pixels: projector position u is
+    fine position (u + 0.5) k - 0.5.
+    """
     geo, _ = _trace(device, make_scene("plane"), albedo=1.0, ambient=0.0)
-    vp, up = np.mgrid[0:192, 0:256].astype(np.float32)
-    E = 0.5 + 0.4 * np.sin(up / 7.0) * np.cos(vp / 5.0)
-    img = shade_frame(geo, wp.array(E, device=device), full_irradiance=1.0, gamma=1.0, full_scale=65535).numpy()
-    pts = geo.points.numpy()
-    u_p = pts[..., 0] / 0.6 + 127.5
-    v_p = pts[..., 1] / 0.6 + 95.5
-    inside = (u_p > 0) & (u_p < 255) & (v_p > 0) & (v_p < 191)
-    expect = cv2.remap(E, u_p.astype(np.float32), v_p.astype(np.float32), cv2.INTER_LINEAR)
+    vf, uf = np.mgrid[0:192 * k, 0:256 * k].astype(np.float32)
+    E = 0.5 + 0.4 * np.sin(uf / (7.0 * k)) * np.cos(vf / (5.0 * k))
+    img = shade_frame(geo, wp.array(E, device=device), upsample=k, interpolation=interp, full_irradiance=1.0,
+                      gamma=1.0, full_scale=65535).numpy()
+    pts = geo.points.numpy().astype(np.float64)
+    u_p = (pts[..., 0] / 0.6 + 127.5 + 0.5) * k - 0.5
+    v_p = (pts[..., 1] / 0.6 + 95.5 + 0.5) * k - 0.5
+    inside = (u_p > 0) & (u_p < 256 * k - 1) & (v_p > 0) & (v_p < 192 * k - 1)
+    if interp == "linear":
+        expect = cv2.remap(E, u_p.astype(np.float32), v_p.astype(np.float32), cv2.INTER_LINEAR)
+    else:
+        expect = E[np.clip(np.rint(v_p), 0, 191).astype(int), np.clip(np.rint(u_p), 0, 255).astype(int)]
     assert inside.sum() > 1000
     assert np.abs(img[inside] / 65535.0 - expect[inside]).max() < 2e-3
     assert np.all(img[~geo.lit.numpy().astype(bool)] == 0)       # no ambient: unlit pixels are black
@@ -226,6 +235,10 @@ def test_empty_scene_and_bad_input(device):
         make_trace_mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), np.zeros((2, 3, 3)), device=device)
     with pytest.raises(ValueError, match="emitted"):
         shade_frame(geo, wp.zeros((4, 4), dtype=wp.uint8, device=device), full_irradiance=1.0)
+    with pytest.raises(ValueError, match="upsample"):
+        shade_frame(geo, wp.zeros((6, 6), dtype=float, device=device), full_irradiance=1.0, upsample=4)
+    with pytest.raises(ValueError, match="interpolation"):
+        shade_frame(geo, wp.zeros((6, 6), dtype=float, device=device), full_irradiance=1.0, interpolation="cubic")
     with pytest.raises(ValueError, match="supersample"):
         trace_geometry(mesh, make_camera(*_camera()), _light()[0], width=W, height=H, projector_size=(8, 8),
                        supersample=0)

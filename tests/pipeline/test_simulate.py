@@ -49,20 +49,24 @@ CLEAN = RenderSettings(supersample=1, ambient=0.0, albedo=1.0, defocus_px=0.0, n
 
 
 def test_pixel_brightness_follows_the_frame_under_parallel_light(device):
-    """A pixel seeing (x, y, 0) records the frame at (x/s + a_u, y/s + a_v) (gamma 1, no noise)."""
+    """A pixel seeing (x, y, 0) records the frame at (x/s + a_u, y/s + a_v) (gamma 1, no noise).
+
+    Without defocus each projector pixel is a sharp uniform square: the value is
+    that of the projector pixel the point falls in.
+    """
     vr = VirtualRig(small_rig(gamma=1.0), "plane", settings=CLEAN, device=device)
     vp, up = np.mgrid[0:PH, 0:PW]
     frame = np.clip(128 + 100 * np.sin(up / 9.0) * np.cos(vp / 6.0), 0, 255).astype(np.uint8)
     img = vr.render(frame)
     assert img.dtype == np.uint16 and img.shape == (256, 320)
     tr = vr.truth()
-    pts = tr["points"]
+    pts = tr["points"].astype(np.float64)
     u_p, v_p = pts[..., 0] / S + 127.5, pts[..., 1] / S + 95.5
     inside = (u_p > 0) & (u_p < PW - 1) & (v_p > 0) & (v_p < PH - 1)
-    expect = cv2.remap(frame.astype(np.float32) / 255, u_p.astype(np.float32), v_p.astype(np.float32),
-                       cv2.INTER_LINEAR)
-    assert inside.sum() > 5000
-    assert np.abs(img[inside] / 65535.0 - 0.9 * expect[inside]).max() < 2e-3    # exposure 0.9
+    clear = inside & (np.abs(u_p - np.floor(u_p) - 0.5) > 1e-3) & (np.abs(v_p - np.floor(v_p) - 0.5) > 1e-3)
+    expect = frame[np.rint(v_p[clear]).astype(int), np.rint(u_p[clear]).astype(int)] / 255.0
+    assert clear.sum() > 5000
+    assert np.abs(img[clear] / 65535.0 - 0.9 * expect).max() < 1e-4             # exposure 0.9
     assert tr["lit"][inside].all()                                              # lit inside the image
     assert not tr["lit"][(u_p < -1) | (u_p > PW) | (v_p < -1) | (v_p > PH)].any()
 
@@ -84,17 +88,49 @@ def test_exposure_and_camera_gamma():
 
 def test_light_gamma_and_defocus():
     vr = VirtualRig(small_rig(light_gamma=2.0), "plane", settings=RenderSettings(defocus_px=1.5), device="cpu")
+    k = vr.emitted_upsample
     f = np.zeros((PH, PW), np.uint8)
     f[96, 128] = 128
     e = vr.emitted(f).astype(np.float64)
-    assert e.sum() == pytest.approx((128 / 255) ** 2, rel=1e-3)              # response, energy kept
-    vv, uu = np.mgrid[0:PH, 0:PW]
-    var_u = (e * (uu - 128) ** 2).sum() / e.sum()
-    assert var_u == pytest.approx(1.5 ** 2, rel=0.05)                       # Gaussian sigma 1.5 px
+    assert e.shape == (PH * k, PW * k) and k == 4
+    assert e.sum() / k ** 2 == pytest.approx((128 / 255) ** 2, rel=1e-3)   # response, energy kept
+    vv, uu = np.mgrid[0:PH * k, 0:PW * k]
+    u = (uu + 0.5) / k - 0.5
+    var_u = (e * (u - 128) ** 2).sum() / e.sum()
+    assert var_u == pytest.approx(1.5 ** 2 + 1 / 12, rel=0.01)            # pixel square * Gaussian
     with pytest.raises(ValueError, match="frame"):
         vr.render(np.zeros((10, 10), np.uint8))
     with pytest.raises(ValueError, match="uint8"):
         vr.render(np.zeros((PH, PW), np.float32))
+
+
+@pytest.mark.parametrize("edge", [100.5, 100.62, 100.8, 101.3])
+def test_defocused_edge_crosses_half_where_the_blurred_pixels_do(edge):
+    """The emitted light is the projector's sharp pixel squares blurred by a Gaussian:
+    its 50 % level matches that model computed directly (not the ideal edge: an
+    edge inside a pixel is shown as a grey pixel)."""
+    sigma = 0.7
+    vr = VirtualRig(small_rig(), "plane", settings=RenderSettings(defocus_px=sigma), device="cpu")
+    cov = np.clip(np.arange(PW) + 0.5 - edge, 0, 1)
+    f = np.tile(np.rint(cov * 255).astype(np.uint8), (PH, 1))
+    row = vr.emitted(f)[321].astype(np.float64)
+    uf = (np.arange(row.size) + 0.5) / 4 - 0.5
+    i = np.nonzero((row[:-1] < 0.5) & (row[1:] >= 0.5))[0][0]
+    x = uf[i] + (0.5 - row[i]) / (row[i + 1] - row[i]) * 0.25
+
+    p = f[0] / 255.0
+    cdf = np.vectorize(lambda z: 0.5 * (1 + math.erf(z / (sigma * math.sqrt(2)))))
+    j = np.arange(PW)
+
+    def model(t):
+        return float((p * (cdf(t - j + 0.5) - cdf(t - j - 0.5))).sum())
+
+    lo, hi = edge - 1.5, edge + 1.5                                          # bisection on the model
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if model(mid) < 0.5 else (lo, mid)
+    assert abs(x - lo) < 2e-3
+    assert abs(x - edge) < 0.035                                             # within 0.035 px of the ideal edge
 
 
 def test_turntable_rotates_truth_points():
