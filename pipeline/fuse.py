@@ -67,12 +67,12 @@ class FuseSettings:
     at z = 0 would otherwise fuse into the object); None keeps every point."""
     statistical_neighbors: int = 20
     """Statistical outlier removal: neighbours averaged per point (0 turns it off)."""
-    statistical_std_ratio: float = 2.5
+    statistical_std_ratio: float = 3.0
     """Statistical outlier removal: drop points whose mean neighbour distance is
     more than this many standard deviations above the view's average."""
     radius_mm: float = 1.5
     """Radius outlier removal: search radius (0 turns it off)."""
-    radius_min_points: int = 5
+    radius_min_points: int = 4
     """Radius outlier removal: a point needs this many neighbours within radius_mm."""
     normal_radius_mm: float = 2.5
     """Normal estimation: PCA neighbourhood radius; it must span several rings."""
