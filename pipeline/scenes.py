@@ -22,9 +22,8 @@ A path to an OBJ, PLY, STL (or any mesh Open3D reads) loads that mesh: duplicate
 vertices are merged (OBJ files split them at texture seams), degenerate and
 duplicate triangles dropped; it is turned so its up axis becomes +z (``up="y"``:
 Y-up models, the common convention of OBJ/PLY files, turned +90 degrees about x so
-that model +y -> world +z and model +z -> world -y, i.e. the model's front faces the
-camera of the default rig; ``up="z"``: kept as is; ``up="auto"``: z for STL, y
-otherwise), scaled to ``size_mm`` on its longest side, set down on the plane and
+that model +y -> world +z and model +z -> world -y, toward the default rig's camera;
+``up="z"``: kept as is; ``up="auto"``: z for STL, y otherwise), scaled to ``size_mm`` on its longest side, set down on the plane and
 centred on the axis.
 """
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FormatError
-from .io import atomic_path, write_image
+from .io import atomic_path, atomic_write_bytes, write_image
 from .patterns import PatternSpec, frame_names, render_frame
 from .rig import ParallelLight, Rig, Turntable, default_rig
 from .scan import Scan, View, load_scan, save_scan
@@ -411,14 +411,30 @@ class Truth:
 
 
 def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    import open3d as o3d
+    """Binary little-endian PLY mesh (double x, y, z; int triangles) that Open3D and
+    MeshLab read; written by hand because Open3D refuses an empty mesh (the plane)."""
+    v = np.ascontiguousarray(vertices, "<f8").reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              "comment ringscan virtual rig ground truth: object frame (= world at turntable 0), mm\n"
+              f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+              f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    rec["n"] = 3
+    rec["i"] = f
+    atomic_write_bytes(path, header.encode("ascii") + v.tobytes() + rec.tobytes())
 
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
-                                  o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
-    with atomic_path(path) as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), m, write_ascii=False, write_vertex_normals=False,
-                                          write_vertex_colors=False):
-            raise FormatError(path, "Open3D could not write the mesh")
+
+def _mesh_is_empty(path: Path) -> bool:
+    head = path.read_bytes()[:4096]
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise FormatError(path, "not a PLY file")
+    for ln in head[:end].decode("ascii", "replace").splitlines():
+        parts = ln.split()
+        if parts[:2] == ["element", "vertex"] and len(parts) == 3:
+            return parts[2] == "0"
+    raise FormatError(path, "PLY header has no vertex element")
 
 
 def _write_depth(path: Path, depth: np.ndarray) -> None:
@@ -444,14 +460,14 @@ def load_truth(scan: Scan | str | os.PathLike) -> Truth:
     if not isinstance(t, dict):
         raise FormatError(src, "no 'truth' block: not a scan written by the virtual rig")
     mesh_rel = t.get("mesh")
-    if mesh_rel is None:
+    if not isinstance(mesh_rel, str) or ".." in Path(mesh_rel).parts or os.path.isabs(mesh_rel):
+        raise FormatError(src, f"truth.mesh: bad path {mesh_rel!r}")
+    mp = scan.folder / mesh_rel
+    if not mp.is_file():
+        raise FormatError(mp, "truth mesh not found (listed in scan.json truth.mesh)")
+    if _mesh_is_empty(mp):
         vertices, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int32)
     else:
-        if not isinstance(mesh_rel, str) or ".." in Path(mesh_rel).parts or os.path.isabs(mesh_rel):
-            raise FormatError(src, f"truth.mesh: bad path {mesh_rel!r}")
-        mp = scan.folder / mesh_rel
-        if not mp.is_file():
-            raise FormatError(mp, "truth mesh not found (listed in scan.json truth.mesh)")
         m = o3d.io.read_triangle_mesh(str(mp))
         vertices = np.asarray(m.vertices, np.float64).copy()
         faces = np.asarray(m.triangles, np.int64).astype(np.int32)
@@ -528,10 +544,8 @@ def simulate_scan(
 
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    mesh_rel = None
-    if not scene.is_empty:
-        mesh_rel = f"{TRUTH_DIR}/object.ply"
-        _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)
+    mesh_rel = f"{TRUTH_DIR}/object.ply"
+    _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
              "settings": settings.to_dict()}
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": truth})

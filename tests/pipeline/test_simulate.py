@@ -214,7 +214,8 @@ def test_determinism_and_16_bit(tmp_path):
     s2 = simulate_scan(tmp_path / "b", scene="plane", rig=small_rig(), patterns=small_spec(sector_bits=0),
                        settings=st, device="cpu", progress=False)
     assert np.array_equal(read_view_frames(s1, s1.views[0]), read_view_frames(s2, s2.views[0]))
-    assert load_truth(s1).faces.shape == (0, 3)                               # plane: no mesh
+    assert load_truth(s1).faces.shape == (0, 3)                               # plane: an empty mesh
+    assert (s1.folder / "truth" / "object.ply").is_file()
 
 
 def test_perspective_light_smoke():
