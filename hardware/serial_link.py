@@ -13,6 +13,13 @@ import time
 
 import serial
 
+try:  # pyserial lets termios errors through (tcdrain/tcflush on a vanished port)
+    import termios
+
+    _IO_ERRORS = (serial.SerialException, OSError, termios.error)
+except ImportError:  # not POSIX
+    _IO_ERRORS = (serial.SerialException, OSError)
+
 log = logging.getLogger(__name__)
 
 __all__ = ["LineLink"]
@@ -51,7 +58,7 @@ class LineLink:
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1,
                                               write_timeout=self._write_timeout_s)
-        except (serial.SerialException, OSError, ValueError) as e:
+        except (*_IO_ERRORS, ValueError) as e:
             raise self._disconnected_error(f"cannot open the port ({e})", port=self.port) from None
         self._buf.clear()
         log.debug("%s: opened %s at %d baud", self.name, self.port, self.baudrate)
@@ -63,7 +70,7 @@ class LineLink:
         if ser is not None:
             try:
                 ser.close()
-            except (serial.SerialException, OSError):
+            except _IO_ERRORS:
                 pass
 
     def _lost(self, e: Exception):
@@ -81,7 +88,7 @@ class LineLink:
         except serial.SerialTimeoutException:
             raise self._timeout_error(f"write of {data!r} timed out after {self._write_timeout_s:g} s",
                                       port=self.port) from None
-        except (serial.SerialException, OSError) as e:
+        except _IO_ERRORS as e:
             raise self._lost(e) from None
 
     def send_line(self, text: str) -> None:
@@ -111,7 +118,7 @@ class LineLink:
                     waiting = self._ser.in_waiting
                     if waiting:
                         chunk += self._ser.read(waiting)
-            except (serial.SerialException, OSError) as e:
+            except _IO_ERRORS as e:
                 raise self._lost(e) from None
             self._buf += chunk
 
@@ -125,7 +132,7 @@ class LineLink:
             if waiting:
                 self._ser.timeout = 0
                 self._buf += self._ser.read(waiting)
-        except (serial.SerialException, OSError) as e:
+        except _IO_ERRORS as e:
             raise self._lost(e) from None
         while True:
             line = self.read_line(0.0) if b"\n" in self._buf else None
@@ -139,5 +146,5 @@ class LineLink:
         if self._ser is not None:
             try:
                 self._ser.reset_input_buffer()
-            except (serial.SerialException, OSError) as e:
+            except _IO_ERRORS as e:
                 raise self._lost(e) from None

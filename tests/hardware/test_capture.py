@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import logging
+import time
 
 import numpy as np
 import pytest
@@ -218,7 +219,10 @@ def test_turntable_lost_mid_move_needs_table_at_and_resumes_exactly(tmp_path, ri
             resume_angle(out)
         with pytest.raises(CaptureError, match="--table-at"):
             capture_scan(out, settings=FAST, resume=True, progress=False, **e.devices())
-        # the board finished the move on its own; the user plugs it back and says so
+        # the board finishes the move on its own; the user plugs it back and says so
+        deadline = time.monotonic() + 5.0
+        while e.emu.turntable.moving and time.monotonic() < deadline:
+            time.sleep(0.005)
         e.emu.turntable.replug()
         assert e.emu.turntable.angle_deg == 240.0
         e.turntable.close()
