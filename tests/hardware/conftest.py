@@ -72,5 +72,6 @@ def patterns():
 def virtual_rig(rig):
     """The real virtual rig renderer (pipeline.simulate) on the CPU; terrain scene (not symmetric about the turntable axis)."""
     from ringscan.hardware.camera import make_virtual_rig
+    from ringscan.pipeline.simulate import RenderSettings
 
-    return make_virtual_rig(rig, "terrain", device="cpu")
+    return make_virtual_rig(rig, "terrain", device="cpu", settings=RenderSettings(supersample=1))
