@@ -11,8 +11,8 @@ Procedural scenes:
 - ``sphere``: a full sphere of diameter ``size_mm`` resting on the plane at the
   origin (radius 40 mm by default), an icosphere fine enough that its facets stay
   within ~2 micrometres of the true sphere.
-- ``cube``: a closed cube of edge ``size_mm`` turned 30 degrees about z, so no face
-  is aligned with the camera or the light axes.
+- ``cube``: a closed cube of edge ``size_mm`` turned 30 degrees about z, so no
+  face is aligned with the camera or the light axes.
 - ``terrain``: a smooth heightfield (a sum of Gaussian hills and a gentle ripple)
   over a ``size_mm`` square, heights 0 .. 0.3125 * ``size_mm`` (25 mm by default),
   faded to z = 0 all round its border so that it meets the plane, and closed
@@ -23,8 +23,8 @@ vertices are merged (OBJ files split them at texture seams), degenerate and
 duplicate triangles dropped; it is turned so its up axis becomes +z (``up="y"``:
 Y-up models, the common convention of OBJ/PLY files, turned +90 degrees about x so
 that model +y -> world +z and model +z -> world -y, toward the default rig's camera;
-``up="z"``: kept as is; ``up="auto"``: z for STL, y otherwise), scaled to ``size_mm`` on its longest side, set down on the plane and
-centred on the axis.
+``up="z"``: kept as is; ``up="auto"``: z for STL, y otherwise), scaled to
+``size_mm`` on its longest side, set down on the plane and centred on the axis.
 """
 
 from __future__ import annotations

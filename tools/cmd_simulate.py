@@ -33,12 +33,17 @@ def add_parser(sub):
     add_pattern_options(p, size=False)
     s = p.add_argument_group("rendering")
     d = RenderSettings()
-    s.add_argument("--noise", type=float, default=d.noise, help=f"camera noise sigma, 8-bit grey levels (default {d.noise})")
-    s.add_argument("--supersample", type=int, default=d.supersample, help=f"sub-samples per pixel side (default {d.supersample})")
-    s.add_argument("--ambient", type=float, default=d.ambient, help=f"ambient light, fraction of white (default {d.ambient})")
+    s.add_argument("--noise", type=float, default=d.noise,
+                   help=f"camera noise sigma, 8-bit grey levels (default {d.noise})")
+    s.add_argument("--supersample", type=int, default=d.supersample,
+                   help=f"sub-samples per pixel side (default {d.supersample})")
+    s.add_argument("--ambient", type=float, default=d.ambient,
+                   help=f"ambient light, fraction of white (default {d.ambient})")
     s.add_argument("--albedo", type=float, default=d.albedo, help=f"surface albedo (default {d.albedo})")
-    s.add_argument("--defocus", type=float, default=d.defocus_px, help=f"projector blur sigma in px (default {d.defocus_px})")
-    s.add_argument("--exposure", type=float, default=d.exposure, help=f"recorded level of full white (default {d.exposure})")
+    s.add_argument("--defocus", type=float, default=d.defocus_px,
+                   help=f"projector blur sigma in px (default {d.defocus_px})")
+    s.add_argument("--exposure", type=float, default=d.exposure,
+                   help=f"recorded level of full white (default {d.exposure})")
     s.add_argument("--bit-depth", type=int, choices=(8, 16), default=d.bit_depth, help="frame bit depth (default 8)")
     s.add_argument("--seed", type=int, default=d.seed, help="noise seed (default 0)")
     s.add_argument("--format", choices=("png", "tiff"), default="png", help="frame file format (default png)")

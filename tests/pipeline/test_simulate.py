@@ -3,7 +3,6 @@
 import dataclasses
 import math
 
-import cv2
 import numpy as np
 import open3d as o3d
 import pytest
