@@ -416,6 +416,8 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     except DeviceError as e:
         run["result"] = state["status"] = "stopped"
         target = state["table"]["moving_to"]
+        if e.position_known:  # the move was refused, or the fault came before or after it
+            state["table"] = {"deg": turntable.position_deg, "moving_to": None}
         if not e.position_known and target is not None:
             msg = (f"capture stopped: {e}. The turntable may have stopped part way to {target:g} deg. The scan in "
                    f"{out} is valid but incomplete; check the table's angle and continue with --resume --table-at DEG")

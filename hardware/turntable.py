@@ -104,9 +104,9 @@ class TurntableDevice(abc.ABC):
     def move_to(self, deg: float) -> None:
         """Turn to the absolute angle ``deg``; return when the table has stopped."""
 
+    @abc.abstractmethod
     def set_position(self, deg: float) -> None:
         """Declare that the table now stands at ``deg`` (no motion)."""
-        raise NotImplementedError
 
     def enable_motor(self, on: bool = True) -> None:
         """Energise (or release) the stepper where the controller can; else nothing."""

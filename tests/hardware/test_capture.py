@@ -248,6 +248,26 @@ def test_turntable_alarm_mid_move_stops_clearly(tmp_path, rig, patterns, virtual
     assert [len(v.frames) for v in part.views] == [6]
 
 
+def test_refused_move_keeps_the_angle_known(tmp_path, rig, patterns):
+    from ringscan.hardware.emulate import EmulatedTurntable
+
+    with EmulatedTurntable(time_scale=1000.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        table = GrblTurntable(emu.port, timeout_s=0.3, poll_s=0.005)
+        kw = dict(camera=ProbeCamera(proj, emu), projector=proj, turntable=table, settings=FAST, progress=False)
+        emu.inject("error", on="G1 X240", code=33, times=100)
+        with pytest.raises(CaptureError, match="stopped after 2 retries.*error:33 \\(invalid motion target\\)"):
+            capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, **kw)
+        assert emu.lines.count("G1 X240.000 F600") == 3 and emu.resets == 3
+        assert read_capture_state(tmp_path / "s")["table"] == {"deg": 120.0, "moving_to": None}
+        assert resume_angle(tmp_path / "s") == 120.0  # the table did not move: no --table-at needed
+        emu.faults.clear()
+        scan = capture_scan(tmp_path / "s", resume=True, **kw)
+        table.close()
+    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    assert all(read_image(scan.frame_path(v, "white"))[0, 1] == round(v.turntable_deg / 5) for v in scan.views)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 
