@@ -548,7 +548,7 @@ def simulate_scan(
     _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
              "settings": settings.to_dict()}
-    scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": truth})
+    scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
 
     names = frame_names(patterns)
@@ -572,7 +572,8 @@ def simulate_scan(
             write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
             truth["views"][vname] = {"depth": depth_rel, "lit": lit_rel}
             done.append(View(name=vname, turntable_deg=float(deg), frames=rel))
-            scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": truth})
+            snapshot = {**truth, "views": dict(truth["views"])}
+            scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": snapshot})
             save_scan(scan)
     finally:
         bar.close()
