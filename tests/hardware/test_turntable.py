@@ -91,19 +91,23 @@ def test_emulator_reports_run_during_a_move_and_idle_after(emu):
     with serial.Serial(emu.port, 115200, timeout=0.5) as s:
         s.write(b"\x18")
         assert s.readline() == b"\r\n" and s.readline().startswith(b"Grbl 1.1h")
-        s.write(b"G1 X90 F600\n")          # 90 deg at 600 deg/min / 200 = 45 ms
+        t0 = time.monotonic()
+        s.write(b"G1 X90 F60\n")           # 90 deg at 60 deg/min, 200 times faster: 0.45 s
         assert s.readline() == b"ok\r\n"
         s.write(b"?")
         run = parse_status(s.readline().decode())
         assert run.state == "Run" and 0 <= run.x < 90
-        time.sleep(0.1)
-        s.write(b"?")
-        idle = parse_status(s.readline().decode())
-        assert idle.state == "Idle" and idle.x == 90.0
+        while True:
+            s.write(b"?")
+            st = parse_status(s.readline().decode())
+            if st.state != "Run" or time.monotonic() - t0 > 5:
+                break
+            assert 0 <= st.x < 90
+        assert st.state == "Idle" and st.x == 90.0 and time.monotonic() - t0 >= 0.45
         s.write(b"G1 X10\n")               # G1 keeps its feed rate (modal)
         assert s.readline() == b"ok\r\n"
         s.write(b"G4 P0\n")                # ok only once the move is over
-        assert s.readline() == b"ok\r\n" and not emu.moving
+        assert s.readline() == b"ok\r\n" and not emu.moving and emu.angle_deg == 10.0
         s.write(b"G7\n")
         assert s.readline() == b"error:20\r\n"
 
