@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import FormatError
 from .io import read_image, read_json, read_ply
-from .rig import ParallelLight, Rig, turntable_matrix, undistort_normalized
+from .rig import ParallelLight, Rig, turntable_transform, undistort_normalized
 from .scan import Scan, load_scan
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ def truth_surface(scan: Scan, turntable_deg: float):
     V = np.asarray(mesh.vertices, np.float64)
     F = np.asarray(mesh.triangles, np.int64)
     if len(V):
-        T = turntable_matrix(scan.rig, turntable_deg)
+        T = turntable_transform(scan.rig.turntable, turntable_deg)
         V = V @ T[:3, :3].T + T[:3, 3]
     zp = float(truth.get("reference_plane_z", 0.0))
     if truth.get("reference_plane", True):

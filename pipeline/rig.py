@@ -45,7 +45,7 @@ __all__ = [
     "rig_to_dict",
     "default_rig",
     "look_at",
-    "turntable_matrix",
+    "turntable_transform",
     "undistort_normalized",
 ]
 
@@ -406,19 +406,27 @@ def default_rig(
     return Rig(camera=cam, light=light, volume=vol, turntable=tt)
 
 
-def turntable_matrix(rig: Rig, deg: float) -> np.ndarray:
-    """4x4 transform taking object-frame points (turntable angle 0) to the world
-    pose of a view at ``deg`` (DESIGN §6: the object turned by deg, right-handed
-    about the axis). Its inverse brings a view's points into the object frame.
-    Without a turntable (or at 0 deg) it is the identity."""
+def turntable_transform(turntable: Turntable | None, deg: float) -> np.ndarray:
+    """4x4 transform that turns the object by ``deg`` about the turntable axis
+    (right-handed about ``axis_dir`` through ``axis_point``, DESIGN §6): it takes
+    object-frame points (angle 0) to their world pose in a view at ``deg``; with
+    ``-deg`` it brings a view's points back into the object frame. A rig without a
+    turntable accepts only multiples of 360 degrees.
+    """
+    deg = float(deg)
+    if not math.isfinite(deg):
+        raise ValueError(f"turntable angle must be finite, got {deg}")
     T = np.eye(4)
-    if rig.turntable is None or deg == 0:
+    if turntable is None:
+        if deg % 360.0 != 0.0:
+            raise ValueError(f"turntable angle {deg} deg: the rig has no turntable")
         return T
-    k = rig.turntable.axis_dir / np.linalg.norm(rig.turntable.axis_dir)
+    k = np.asarray(turntable.axis_dir, float)
+    k = k / np.linalg.norm(k)
     a = math.radians(deg)
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    Rm = np.eye(3) + math.sin(a) * Kx + (1 - math.cos(a)) * (Kx @ Kx)
-    p = rig.turntable.axis_point
+    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    Rm = np.eye(3) + math.sin(a) * Kx + (1.0 - math.cos(a)) * (Kx @ Kx)
+    p = np.asarray(turntable.axis_point, float)
     T[:3, :3] = Rm
     T[:3, 3] = p - Rm @ p
     return T

@@ -38,7 +38,7 @@ import numpy as np
 from .errors import FormatError
 from .io import atomic_path, atomic_write_bytes, write_image
 from .patterns import PatternSpec, frame_names, render_frame
-from .rig import ParallelLight, Rig, Turntable, default_rig
+from .rig import ParallelLight, Rig, Turntable, default_rig, turntable_transform
 from .scan import Scan, View, load_scan, save_scan
 from .scenes import SceneMesh, corner_normals, make_scene
 
@@ -53,7 +53,6 @@ __all__ = [
     "Truth",
     "simulate_scan",
     "load_truth",
-    "turntable_transform",
     "view_angles",
 ]
 
@@ -130,26 +129,10 @@ class RenderSettings:
         return cls(**d)
 
 
-def turntable_transform(turntable: Turntable | None, deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) that turn the object by ``deg`` about the turntable axis: X' = R X + t.
-
-    Right-handed about ``axis_dir`` through ``axis_point`` (DESIGN §6). A rig
-    without a turntable accepts only 0 degrees.
-    """
-    deg = float(deg)
-    if not math.isfinite(deg):
-        raise ValueError(f"turntable angle must be finite, got {deg}")
-    if turntable is None:
-        if deg % 360.0 != 0.0:
-            raise ValueError(f"turntable angle {deg} deg: the rig has no turntable")
-        return np.eye(3), np.zeros(3)
-    a = np.asarray(turntable.axis_dir, float)
-    a = a / np.linalg.norm(a)
-    th = math.radians(deg)
-    Kx = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    R = np.eye(3) + math.sin(th) * Kx + (1.0 - math.cos(th)) * (Kx @ Kx)
-    p = np.asarray(turntable.axis_point, float)
-    return R, p - R @ p
+def _turn(turntable: Turntable | None, deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of :func:`ringscan.pipeline.rig.turntable_transform`: X' = R X + t."""
+    T = turntable_transform(turntable, deg)
+    return T[:3, :3], T[:3, 3]
 
 
 def view_angles(views: int) -> tuple[float, ...]:
@@ -247,7 +230,7 @@ class VirtualRig:
 
     def object_vertices(self) -> np.ndarray:
         """The object's vertices in the world frame at the current angle, (N, 3) float64."""
-        R, t = turntable_transform(self.rig.turntable, self._deg)
+        R, t = _turn(self.rig.turntable, self._deg)
         return self.scene.vertices @ R.T + t
 
     def geometry(self):
@@ -256,7 +239,7 @@ class VirtualRig:
             from ringscan.kernels import raytrace
 
             t0 = time.perf_counter()
-            R, _ = turntable_transform(self.rig.turntable, self._deg)
+            R, _ = _turn(self.rig.turntable, self._deg)
             mesh = raytrace.make_trace_mesh(self.object_vertices(), self.scene.faces, self._corner @ R.T,
                                             device=self.device)
             c = self.rig.camera
@@ -383,7 +366,7 @@ class Truth:
 
     def mesh_at(self, turntable_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """The mesh in the world frame of a view at ``turntable_deg``: (vertices, faces)."""
-        R, t = turntable_transform(self.turntable, turntable_deg)
+        R, t = _turn(self.turntable, turntable_deg)
         return self.vertices @ R.T + t, self.faces
 
     def _file(self, view: str, key: str) -> Path:

@@ -10,7 +10,7 @@ import pytest
 from ringscan.pipeline.errors import FormatError
 from ringscan.pipeline.io import read_ply, write_image, write_ply
 from ringscan.pipeline.patterns import frame_names, gray_decode, gray_encode, parse_patterns, render_frame
-from ringscan.pipeline.rig import default_rig, load_rig, parse_rig, rig_to_dict, save_rig, turntable_matrix
+from ringscan.pipeline.rig import default_rig, load_rig, parse_rig, rig_to_dict, save_rig, turntable_transform
 from ringscan.pipeline.scan import Scan, View, load_scan, read_view_frames, save_scan
 
 GRAY = {"codec": "gray-rings", "width": 64, "height": 48, "center": [31.5, 23.5], "rho0": 2.0, "pitch": 2.0,
@@ -63,11 +63,11 @@ def test_rig_not_json(tmp_path):
         load_rig(tmp_path / "missing.json")
 
 
-def test_turntable_matrix_turns_right_handed():
+def test_turntable_transform_turns_right_handed():
     rig = default_rig()
-    T = turntable_matrix(rig, 90.0)
+    T = turntable_transform(rig.turntable, 90.0)
     assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0])  # +x -> +y about +z
-    assert np.allclose(turntable_matrix(rig, 0.0), np.eye(4))
+    assert np.allclose(turntable_transform(rig.turntable, 0.0), np.eye(4))
 
 
 def test_patterns_and_gray_code():

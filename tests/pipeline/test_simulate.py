@@ -13,7 +13,8 @@ from ringscan.pipeline.patterns import frame_names, parse_patterns, render_frame
 from ringscan.pipeline.rig import Camera, ParallelLight, default_rig
 from ringscan.pipeline.scan import load_scan, read_view_frames
 from ringscan.pipeline.scenes import make_scene
-from ringscan.pipeline.simulate import (RenderSettings, VirtualRig, load_truth, simulate_scan, turntable_transform,
+from ringscan.pipeline.rig import turntable_transform
+from ringscan.pipeline.simulate import (RenderSettings, VirtualRig, load_truth, simulate_scan,
                                         view_angles)
 
 PW, PH, S = 256, 192, 0.6     # projector of the small rig: 153.6 x 115.2 mm like the default one
@@ -142,7 +143,8 @@ def test_turntable_rotates_truth_points():
     obj = p90[p90[..., 2] > 1.0]
     assert obj.shape[0] > 2000
     # Turned back by -90 deg about z, every point lies on the mesh at angle 0.
-    R, t = turntable_transform(rig.turntable, -90.0)
+    T = turntable_transform(rig.turntable, -90.0)
+    R, t = T[:3, :3], T[:3, 3]
     assert np.allclose(R, [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
     back = obj @ R.T + t
     m = o3d.t.geometry.TriangleMesh()
@@ -263,4 +265,4 @@ def test_bad_input(tmp_path):
     with pytest.raises(FormatError, match="no 'truth'"):
         load_truth(tmp_path / "y")
     assert view_angles(4) == (0.0, 90.0, 180.0, 270.0)
-    assert math.isclose(turntable_transform(None, 360.0)[0][0, 0], 1.0)
+    assert math.isclose(turntable_transform(None, 360.0)[0, 0], 1.0)
