@@ -25,8 +25,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 
 def small_rig():
     from ringscan.pipeline.rig import default_rig
@@ -82,7 +80,8 @@ def measure(scan_dir: Path, truth_scan: Path, recon_dir: Path, device) -> dict:
     ev = evaluate_recon(recon_dir, truth_scan)
     a = ev["all"]
     return {"points": int(rep["totals"]["points"]), "median_mm": a.get("median_mm"), "p95_mm": a.get("p95_mm"),
-            "rms_mm": a.get("rms_mm"), "frac_over_1mm": a.get("frac_over_1mm"), "coverage": a.get("coverage_mean"), "seconds": dt, "eval": ev}
+            "rms_mm": a.get("rms_mm"), "frac_over_1mm": a.get("frac_over_1mm"), "coverage": a.get("coverage_mean"),
+            "seconds": dt, "eval": ev}
 
 
 def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: int = 1) -> dict:

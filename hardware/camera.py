@@ -287,7 +287,8 @@ class VirtualCamera(CameraDevice):
         if self.seed is None:
             return None
         mdeg = int(round(angle * 1000.0)) % (2 ** 32)
-        return int(np.random.SeedSequence([int(self.seed) % (2 ** 32), index + 1, mdeg]).generate_state(1)[0]) & 0x7FFFFFFF
+        ss = np.random.SeedSequence([int(self.seed) % (2 ** 32), index + 1, mdeg])
+        return int(ss.generate_state(1)[0]) & 0x7FFFFFFF
 
     def _read(self) -> np.ndarray:
         angle = 0.0 if self.turntable is None else float(self.turntable.angle_deg)

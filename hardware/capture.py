@@ -99,7 +99,8 @@ class CaptureSettings:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise FormatError(source, f"settings: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+            raise FormatError(source, f"settings: unknown key(s) {', '.join(unknown)} "
+                                      f"(known: {', '.join(sorted(known))})")
         try:
             return cls(**d)
         except (TypeError, ValueError) as e:

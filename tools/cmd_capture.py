@@ -57,9 +57,11 @@ def add_parser(sub):
                     "acknowledgement and the settle time, grab, write the frame and scan.json atomically. "
                     "--resume continues an interrupted capture; a device fault is retried, then the capture stops "
                     "with a valid partial scan.")
-    p.add_argument("--out", required=True, metavar="SCAN", help="scan folder (new or empty; the interrupted one with --resume)")
+    p.add_argument("--out", required=True, metavar="SCAN",
+                   help="scan folder (new or empty; the interrupted one with --resume)")
     p.add_argument("--rig", help="rig (calibration) file (required for a new capture)")
-    p.add_argument("--patterns", metavar="PATTERNS.json", help="pattern set, as 'ringscan patterns' writes it (required for a new capture)")
+    p.add_argument("--patterns", metavar="PATTERNS.json",
+                   help="pattern set, as 'ringscan patterns' writes it (required for a new capture)")
     p.add_argument("--views", type=int, help="number of turntable views (required for a new capture)")
     p.add_argument("--step", type=float, default=None, metavar="DEG", help="angle between views (default 360/views)")
     p.add_argument("--start", type=float, default=None, metavar="DEG", help="angle of the first view (default 0)")

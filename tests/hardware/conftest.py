@@ -70,7 +70,8 @@ def patterns():
 
 @pytest.fixture(scope="session")
 def virtual_rig(rig):
-    """The real virtual rig renderer (pipeline.simulate) on the CPU; terrain scene (not symmetric about the turntable axis)."""
+    """The real virtual rig renderer (pipeline.simulate) on the CPU, one ray per pixel;
+    terrain scene (not symmetric about the turntable axis)."""
     from ringscan.hardware.camera import make_virtual_rig
     from ringscan.pipeline.simulate import RenderSettings
 

@@ -23,7 +23,7 @@ from ringscan.hardware.turntable import VirtualTurntable
 from ringscan.pipeline.io import write_image
 from ringscan.pipeline.scan import Scan, View, save_scan
 
-from .conftest import pattern_frames, small_patterns, small_rig
+from .conftest import pattern_frames, small_patterns
 
 
 def _sequence(folder, n=4, colour=False):

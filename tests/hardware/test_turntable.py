@@ -2,6 +2,7 @@
 
 import time
 
+import numpy as np
 import pytest
 import serial
 
@@ -13,8 +14,6 @@ from ringscan.hardware.errors import (
     TurntableTimeout,
 )
 from ringscan.hardware.turntable import GrblTurntable, VirtualTurntable, format_angle, parse_status
-
-import numpy as np
 
 FAST = dict(timeout_s=0.5, poll_s=0.005, boot_timeout_s=0.5)
 
