@@ -62,7 +62,7 @@ def add_parser(sub):
     p.add_argument("--rig", help="rig (calibration) file (required for a new capture)")
     p.add_argument("--patterns", metavar="PATTERNS.json",
                    help="pattern set, as 'ringscan patterns' writes it (required for a new capture)")
-    p.add_argument("--views", type=int, help="number of turntable views (required for a new capture)")
+    p.add_argument("--views", type=int, metavar="N", help="number of turntable views (required for a new capture)")
     p.add_argument("--step", type=float, default=None, metavar="DEG", help="angle between views (default 360/views)")
     p.add_argument("--start", type=float, default=None, metavar="DEG", help="angle of the first view (default 0)")
     p.add_argument("--resume", action="store_true", help="continue the interrupted capture in --out")
@@ -79,8 +79,8 @@ def add_parser(sub):
     g.add_argument("--baud", type=int, default=115200, help="serial baud rate of both boards (default 115200)")
     g.add_argument("--direction", type=int, choices=(1, -1), default=1,
                    help="-1 if positive G-code X turns the object clockwise seen from above (default 1)")
-    g.add_argument("--exposure", type=float, default=None, help="manual camera exposure (backend units)")
-    g.add_argument("--gain", type=float, default=None, help="camera gain (backend units)")
+    g.add_argument("--exposure", type=float, default=None, metavar="E", help="manual camera exposure (backend units)")
+    g.add_argument("--gain", type=float, default=None, metavar="G", help="camera gain (backend units)")
     g.add_argument("--flush", type=int, default=None, metavar="N",
                    help="frames dropped before each grab (default 4 for live cameras, 0 for files)")
 
@@ -88,22 +88,22 @@ def add_parser(sub):
     v.add_argument("--virtual", metavar="SCENE", help="capture from the emulated virtual rig: turntable and "
                                                       "projector emulated on pseudo-terminals, camera rendered "
                                                       "(scene name or mesh file)")
-    v.add_argument("--size-mm", type=float, default=80.0, help="virtual scene size (default 80)")
+    v.add_argument("--size-mm", type=float, default=80.0, metavar="MM", help="virtual scene size (default 80)")
     v.add_argument("--seed", type=int, default=0, help="virtual camera noise seed (default 0)")
     v.add_argument("--flavor", choices=("grbl", "horus"), default="grbl", help="emulated turntable firmware")
-    v.add_argument("--time-scale", type=float, default=100.0,
+    v.add_argument("--time-scale", type=float, default=100.0, metavar="X",
                    help="emulated table moves this many times faster than a real one (default 100)")
     add_device_option(v)
 
     s = p.add_argument_group("settings (defaults: --settings file, else the resumed capture's, else built in)")
     s.add_argument("--settings", metavar="JSON", help="capture settings file (keys of CaptureSettings)")
-    s.add_argument("--turntable-settle", type=float, help="wait after a move, s (default 0.5; 0 virtual)")
-    s.add_argument("--projector-settle", type=float, help="wait after a frame's ack, s (default 0.05; 0 virtual)")
-    s.add_argument("--feed", type=float, help="table speed, deg/min (default 600)")
-    s.add_argument("--timeout", type=float, help="reply timeout, s (default 2)")
-    s.add_argument("--motion-timeout", type=float, help="extra time allowed per move, s (default 30)")
-    s.add_argument("--retries", type=int, help="retries of a failed device operation (default 3)")
-    s.add_argument("--retry-delay", type=float, help="pause before a retry, s (default 0.5)")
+    s.add_argument("--turntable-settle", type=float, metavar="S", help="wait after a move, s (default 0.5; 0 virtual)")
+    s.add_argument("--projector-settle", type=float, metavar="S", help="wait after a frame's ack, s (default 0.05; 0 virtual)")
+    s.add_argument("--feed", type=float, metavar="DEG_PER_MIN", help="table speed, deg/min (default 600)")
+    s.add_argument("--timeout", type=float, metavar="S", help="reply timeout, s (default 2)")
+    s.add_argument("--motion-timeout", type=float, metavar="S", help="extra time allowed per move, s (default 30)")
+    s.add_argument("--retries", type=int, metavar="N", help="retries of a failed device operation (default 3)")
+    s.add_argument("--retry-delay", type=float, metavar="S", help="pause before a retry, s (default 0.5)")
     s.add_argument("--image-format", choices=("png", "tiff"), help="frame files (default png)")
     return p
 
