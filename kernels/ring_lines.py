@@ -1,0 +1,726 @@
+"""Single-shot ``rings`` codec, per pixel and per candidate: line (ridge) detection
+with sub-pixel centres, and the meetings of camera rays with every ring's quadric
+(DESIGN §3, §5).
+
+Line detection (after Steger's curvilinear-structure detector): the frame is
+smoothed with a Gaussian of ``sigma`` camera pixels (separable, two row-run
+passes). At every pixel the Hessian H of the smoothed image S gives the direction
+n across the line: the eigenvector of its most negative eigenvalue lambda. Along
+n the profile S(p + t n) ~ S + t (g . n) + t^2 lambda / 2 peaks at
+t = -(g . n) / lambda; the pixel holds a line centre when that peak lies inside
+the pixel (|t n_x| <= 0.5 and |t n_y| <= 0.5), the profile bends down strongly
+enough (-lambda >= ``min_curvature``), the line is elongated (the other
+eigenvalue is small beside lambda) and the peak stands ``min_contrast`` grey
+levels above the local background on both sides (S read at the centre
++- ``background_px`` along n). The sample is that sub-pixel centre: for a
+symmetric line profile it is the line's centre whatever the blur.
+
+Intensities are in 8-bit grey levels (16-bit frames are divided by 257), so the
+thresholds mean the same for both depths.
+
+Output order is deterministic (raster order of the pixels): counts per pixel,
+``wp.utils.array_scan``, then write.
+
+Ring roots: for sample i and candidate radius rho_k, the camera ray meets the
+ring's quadric (cylinder for a parallel light, cone for a perspective one, with
+Newton steps for projector distortion) at up to two points; each is kept when it
+lies in front of the camera and inside the working volume. The labelling stage
+(``pipeline.single_shot``) tests its hypotheses with them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from .geometry import LIGHT_PARALLEL, CameraModel, LightModel, camera_ray
+from .ring_labels import default_threads, launch_rows
+from .triangulation import Volume, has_distortion, in_volume, local_dir, local_frame, make_volume, pattern_offset
+from .triangulation import refine_root, ring_terms
+
+BORDER = wp.constant(2)
+RESULT = wp.types.vector(length=8, dtype=wp.float32)
+
+__all__ = ["LineSettings", "RingLines", "RingRoots", "detect_ring_lines", "ring_roots", "smooth_frame",
+           "gaussian_weights", "link_lines"]
+
+
+@dataclass(frozen=True)
+class LineSettings:
+    """Settings of the line (ridge) detector."""
+
+    sigma: float = 1.2
+    """Gaussian smoothing in camera pixels before differentiation. A line of width
+    w camera pixels needs sigma >= w / (2 sqrt 3) for one clean maximum across it;
+    a larger sigma merges rings that lie close together in the image."""
+    min_contrast: float = 6.0
+    """Least height of the line's peak above the local background on both of its
+    sides, in 8-bit grey levels (of the smoothed image)."""
+    min_curvature: float = 0.4
+    """Least -lambda (grey levels per px^2 of the smoothed image): the profile
+    across the line must bend down at least this much at its centre."""
+    max_eigen_ratio: float = 0.6
+    """The eigenvalue along the line may be at most this fraction of |lambda|:
+    blobs and crossings (both eigenvalues alike) are not lines."""
+    background_px: float = 3.0
+    """Distance (camera px) from the centre, along the normal, where the local
+    background is read on each side."""
+    confidence_contrast: float = 40.0
+    """Contrast (grey levels) at which a sample's confidence reaches 1."""
+
+    def __post_init__(self):
+        for name in ("sigma", "background_px", "confidence_contrast"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"LineSettings.{name}: must be a finite number > 0, got {v!r}")
+        for name in ("min_contrast", "min_curvature", "max_eigen_ratio"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"LineSettings.{name}: must be a finite number >= 0, got {v!r}")
+        if self.sigma > 20:
+            raise ValueError(f"LineSettings.sigma: {self.sigma} px is too large (at most 20)")
+
+
+@dataclass
+class RingLines:
+    """Sub-pixel line centres (Warp arrays of length n on the frames' device)."""
+
+    uv: wp.array
+    """vec2 (u, v) camera pixel coordinates of the line's centre."""
+    normal: wp.array
+    """vec2 unit direction across the line (its sign is arbitrary)."""
+    pixel: wp.array
+    """int32 linear index y * W + x of the pixel that holds the centre."""
+    contrast: wp.array
+    """float32 peak height above the local background (8-bit grey levels)."""
+    curvature: wp.array
+    """float32 -lambda: how sharply the profile bends at the centre."""
+    confidence: wp.array
+    """float32 in (0, 1]: contrast / ``confidence_contrast``, at most 1."""
+    smoothed: wp.array | None = None
+    """(H, W) float32 the smoothed frame the centres were found in (8-bit levels)."""
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        return {"uv": self.uv.numpy(), "normal": self.normal.numpy(), "pixel": self.pixel.numpy(),
+                "contrast": self.contrast.numpy(), "curvature": self.curvature.numpy(),
+                "confidence": self.confidence.numpy()}
+
+
+@dataclass
+class RingRoots:
+    """Where each sample's camera ray meets each candidate ring (Warp arrays)."""
+
+    points: wp.array
+    """(n, k, 2) vec3 world points of the two roots (nearer first); zero where invalid."""
+    offset: wp.array
+    """(n, k, 2) vec2 projector offset p - c of each root (its polar angle on the
+    pattern); zero where invalid."""
+    valid: wp.array
+    """(n, k) int32 bit mask: bit 0 = root 0 usable, bit 1 = root 1 usable (in
+    front of the camera, inside the working volume, in front of a perspective
+    light)."""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def bilinear(img: wp.array2d(dtype=wp.float32), u: float, v: float):
+    """Bilinear read of img at (u, v) (x = u, y = v), clamped to the image."""
+    h = img.shape[0]
+    w = img.shape[1]
+    uc = wp.clamp(u, 0.0, float(w - 1))
+    vc = wp.clamp(v, 0.0, float(h - 1))
+    x0 = wp.min(int(wp.floor(uc)), w - 2)
+    y0 = wp.min(int(wp.floor(vc)), h - 2)
+    x0 = wp.max(x0, 0)
+    y0 = wp.max(y0, 0)
+    fx = uc - float(x0)
+    fy = vc - float(y0)
+    a = img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx
+    b = img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx
+    return a * (1.0 - fy) + b * fy
+
+
+@wp.func
+def ridge_at(
+    S: wp.array2d(dtype=wp.float32),
+    y: int,
+    x: int,
+    min_contrast: float,
+    min_curvature: float,
+    max_eigen_ratio: float,
+    background_px: float,
+):
+    """Test pixel (y, x) of the smoothed image for a line centre.
+
+    Returns RESULT(found, u, v, n_x, n_y, contrast, curvature, 0).
+    """
+    none = RESULT(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    h = S.shape[0]
+    w = S.shape[1]
+    if x < BORDER or y < BORDER or x >= w - BORDER or y >= h - BORDER:
+        return none
+    c = S[y, x]
+    gx = 0.5 * (S[y, x + 1] - S[y, x - 1])
+    gy = 0.5 * (S[y + 1, x] - S[y - 1, x])
+    hxx = S[y, x + 1] - 2.0 * c + S[y, x - 1]
+    hyy = S[y + 1, x] - 2.0 * c + S[y - 1, x]
+    hxy = 0.25 * (S[y + 1, x + 1] - S[y + 1, x - 1] - S[y - 1, x + 1] + S[y - 1, x - 1])
+    half = 0.5 * (hxx + hyy)
+    disc = wp.sqrt(0.25 * (hxx - hyy) * (hxx - hyy) + hxy * hxy)
+    lam = half - disc  # most negative eigenvalue
+    other = half + disc
+    if -lam < min_curvature or wp.abs(other) > max_eigen_ratio * (-lam):
+        return none
+    # eigenvector of lam: the better conditioned of the two row forms
+    ax = lam - hyy
+    ay = hxy
+    bx = hxy
+    by = lam - hxx
+    la = ax * ax + ay * ay
+    lb = bx * bx + by * by
+    nx = float(0.0)
+    ny = float(0.0)
+    if la >= lb and la > 1.0e-20:
+        s = 1.0 / wp.sqrt(la)
+        nx = ax * s
+        ny = ay * s
+    elif lb > 1.0e-20:
+        s = 1.0 / wp.sqrt(lb)
+        nx = bx * s
+        ny = by * s
+    elif hxx <= hyy:
+        nx = 1.0
+    else:
+        ny = 1.0
+    t = -(gx * nx + gy * ny) / lam
+    px = t * nx
+    py = t * ny
+    if wp.abs(px) > 0.5 or wp.abs(py) > 0.5:
+        return none
+    u = float(x) + px
+    v = float(y) + py
+    peak = c + t * (gx * nx + gy * ny) + 0.5 * t * t * lam
+    b1 = bilinear(S, u + background_px * nx, v + background_px * ny)
+    b2 = bilinear(S, u - background_px * nx, v - background_px * ny)
+    contrast = peak - wp.max(b1, b2)
+    if contrast < min_contrast:
+        return none
+    return RESULT(1.0, u, v, nx, ny, contrast, -lam, 0.0)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def smooth_rows_kernel(
+    frames: wp.array3d(dtype=Any),
+    frame: int,
+    weights: wp.array(dtype=wp.float32),
+    radius: int,
+    scale: float,
+    row0: int,
+    chunk: int,
+    out: wp.array2d(dtype=wp.float32),
+):
+    """Horizontal Gaussian pass over a run of ``chunk`` pixels of one row
+    (``ring_labels.launch_rows``), edges replicated.
+
+    frames: (n_frames, H, W) uint8/uint16, read (plane ``frame`` only).
+    weights: (2 * radius + 1,) float32, read.
+    out: (H, W) float32 in 8-bit grey levels (``scale`` = 1 or 1/257), written.
+    """
+    tid = wp.tid()
+    w = frames.shape[2]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        acc = float(0.0)
+        for k in range(-radius, radius + 1):
+            xx = wp.clamp(x + k, 0, w - 1)
+            acc = acc + weights[k + radius] * float(frames[frame, y, xx])
+        out[y, x] = acc * scale
+
+
+@wp.kernel
+def smooth_cols_kernel(
+    src: wp.array2d(dtype=wp.float32),
+    weights: wp.array(dtype=wp.float32),
+    radius: int,
+    row0: int,
+    chunk: int,
+    out: wp.array2d(dtype=wp.float32),
+):
+    """Vertical Gaussian pass over a run of ``chunk`` pixels of one row, edges replicated.
+
+    src: (H, W) float32, read. weights: (2 * radius + 1,) float32, read.
+    out: (H, W) float32, written.
+    """
+    tid = wp.tid()
+    h = src.shape[0]
+    w = src.shape[1]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    x1 = wp.min(x0 + chunk, w)
+    for x in range(x0, x1):
+        out[y, x] = 0.0
+    for k in range(-radius, radius + 1):
+        yy = wp.clamp(y + k, 0, h - 1)
+        wk = weights[k + radius]
+        for x in range(x0, x1):
+            out[y, x] = out[y, x] + wk * src[yy, x]
+
+
+@wp.kernel
+def count_ridges_kernel(
+    S: wp.array2d(dtype=wp.float32),
+    min_contrast: float,
+    min_curvature: float,
+    max_eigen_ratio: float,
+    background_px: float,
+    row0: int,
+    chunk: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    """counts[y * W + x] = 1 where pixel (y, x) holds a line centre, else 0; a
+    thread covers ``chunk`` pixels of one row.
+
+    S: (H, W) float32 smoothed frame, read. counts: (H * W,) int32, written.
+    """
+    tid = wp.tid()
+    w = S.shape[1]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, background_px)
+        counts[y * w + x] = wp.where(r[0] > 0.0, 1, 0)
+
+
+@wp.kernel
+def write_ridges_kernel(
+    S: wp.array2d(dtype=wp.float32),
+    counts: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    min_contrast: float,
+    min_curvature: float,
+    max_eigen_ratio: float,
+    background_px: float,
+    confidence_contrast: float,
+    row0: int,
+    chunk: int,
+    uv: wp.array(dtype=wp.vec2),
+    normal: wp.array(dtype=wp.vec2),
+    pixel: wp.array(dtype=wp.int32),
+    contrast: wp.array(dtype=wp.float32),
+    curvature: wp.array(dtype=wp.float32),
+    confidence: wp.array(dtype=wp.float32),
+):
+    """Write each line centre at its pixel's scanned offset.
+
+    S (H, W) float32, counts and offsets (H * W,) int32 (their exclusive scan): read.
+    uv, normal (n,) vec2; pixel (n,) int32; contrast, curvature, confidence (n,)
+    float32: written.
+    """
+    tid = wp.tid()
+    w = S.shape[1]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        i = y * w + x
+        if counts[i] > 0:
+            r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, background_px)
+            o = offsets[i]
+            uv[o] = wp.vec2(r[1], r[2])
+            normal[o] = wp.vec2(r[3], r[4])
+            pixel[o] = i
+            contrast[o] = r[5]
+            curvature[o] = r[6]
+            confidence[o] = wp.min(r[5] / confidence_contrast, 1.0)
+
+
+@wp.kernel
+def ring_roots_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    radii: wp.array(dtype=wp.float32),
+    cam: CameraModel,
+    light: LightModel,
+    vol: Volume,
+    center: wp.vec2,
+    points: wp.array3d(dtype=wp.vec3),
+    offset: wp.array3d(dtype=wp.vec2),
+    valid: wp.array2d(dtype=wp.int32),
+):
+    """Both meetings of sample i's camera ray with ring k's quadric (thread (i, k)).
+
+    uv (n,) vec2 camera px and radii (k,) float32 projector px: read.
+    points (n, k, 2) vec3, offset (n, k, 2) vec2, valid (n, k) int32: written.
+    """
+    i, k = wp.tid()
+    d = camera_ray(cam, uv[i][0], uv[i][1])
+    C = cam.center
+    r = radii[k]
+    P0 = local_frame(light, C)
+    D0 = local_dir(light, d)
+    o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
+    e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
+    c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))
+    q0 = ring_terms(light, o, c2)
+    dq = ring_terms(light, o + e, c2) - q0
+    if light.model == LIGHT_PARALLEL:
+        dq = wp.vec3d(dq[0], dq[1], wp.float64(0.0))
+    r2 = wp.float64(r) * wp.float64(r)
+    A = dq[0] * dq[0] + dq[1] * dq[1] - r2 * dq[2] * dq[2]
+    B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
+    Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
+    zero3 = wp.vec3(0.0, 0.0, 0.0)
+    zero2 = wp.vec2(0.0, 0.0)
+    points[i, k, 0] = zero3
+    points[i, k, 1] = zero3
+    offset[i, k, 0] = zero2
+    offset[i, k, 1] = zero2
+    valid[i, k] = 0
+    disc = B * B - wp.float64(4.0) * A * Cc
+    if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
+        return
+    sq = wp.sqrt(disc)
+    qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
+    ta = float(qq / A)
+    tb = float(Cc / qq) if qq != wp.float64(0.0) else ta
+    t1 = wp.min(ta, tb)
+    t2 = wp.max(ta, tb)
+    if has_distortion(light):
+        t1 = refine_root(light, C, d, t1, r, center)
+        t2 = refine_root(light, C, d, t2, r, center)
+    mask = int(0)
+    for m in range(2):
+        t = wp.where(m == 0, t1, t2)
+        X = C + d * t
+        ok = t > 0.0 and in_volume(X, vol)
+        if light.model != LIGHT_PARALLEL:
+            ok = ok and (light.cam.R * X + light.cam.t)[2] > 0.0
+        if ok:
+            points[i, k, m] = X
+            offset[i, k, m] = pattern_offset(light, X, center)
+            mask = mask | (1 << m)
+    valid[i, k] = mask
+
+
+@wp.kernel
+def link_lines_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    normal: wp.array(dtype=wp.vec2),
+    piece: wp.array(dtype=wp.int32),
+    sample_map: wp.array2d(dtype=wp.int32),
+    image: wp.array2d(dtype=wp.float32),
+    max_gap: float,
+    step: float,
+    self_gap: float,
+    bump_contrast: float,
+    neighbour: wp.array2d(dtype=wp.int32),
+    gap: wp.array2d(dtype=wp.float32),
+    bump: wp.array2d(dtype=wp.int32),
+):
+    """March from sample i across its line, along +normal (side 0) and -normal
+    (side 1), to the first line centre met within ``max_gap`` px, and check that
+    the gap between them is one clean valley of the (smoothed) image.
+
+    A centre of another piece ends the march at once; one of the sample's own
+    piece only beyond ``self_gap`` px (the far side of a closed curve). Pieces
+    < 0 are ignored. The gap holds a bump when, after the profile has risen
+    ``bump_contrast`` grey levels above its lowest point, it falls again by as
+    much before the centre met: a faint line (a ring too weak or too crowded to be
+    detected) lies between.
+
+    uv, normal (n,) vec2, piece (n,) int32, sample_map (H, W) int32 (sample index
+    per pixel, -1 for none), image (H, W) float32: read.
+    neighbour (n, 2) int32 (sample met, -1 for none), gap (n, 2) float32 (its
+    distance along the normal, px), bump (n, 2) int32 (1: the gap holds a bump):
+    written.
+    """
+    i = wp.tid()
+    h = sample_map.shape[0]
+    w = sample_map.shape[1]
+    p = uv[i]
+    own = piece[i]
+    for side in range(2):
+        sg = wp.where(side == 0, 1.0, -1.0)
+        n = normal[i] * sg
+        tx = -n[1]
+        ty = n[0]
+        found = int(-1)
+        dist = float(0.0)
+        s = step
+        while s <= max_gap and found < 0 and own >= 0:
+            qx = p[0] + n[0] * s
+            qy = p[1] + n[1] * s
+            x0 = int(wp.floor(qx))
+            y0 = int(wp.floor(qy))
+            best = float(1.0e9)
+            for k in range(4):
+                xx = x0 + (k % 2)
+                yy = y0 + (k / 2)
+                if xx >= 0 and yy >= 0 and xx < w and yy < h:
+                    j = sample_map[yy, xx]
+                    if j >= 0 and j != i and piece[j] >= 0:
+                        dq = uv[j] - p
+                        along = dq[0] * n[0] + dq[1] * n[1]
+                        across = wp.abs(dq[0] * tx + dq[1] * ty)
+                        other = piece[j] != own
+                        if along > 0.0 and (other or along > self_gap) and across < best:
+                            best = across
+                            found = j
+                            dist = along
+            s = s + step
+        neighbour[i, side] = found
+        gap[i, side] = dist
+        bumped = int(0)
+        if found >= 0:
+            # one valley between the two centres: no rise-then-fall on the way
+            lo = bilinear(image, p[0], p[1])
+            hi = lo
+            rising = int(0)
+            s = step
+            while s < dist and bumped == 0:
+                v = bilinear(image, p[0] + n[0] * s, p[1] + n[1] * s)
+                if rising == 0:
+                    lo = wp.min(lo, v)
+                    if v >= lo + bump_contrast:
+                        rising = 1
+                        hi = v
+                else:
+                    hi = wp.max(hi, v)
+                    if v <= hi - bump_contrast:
+                        bumped = 1
+                s = s + step
+        bump[i, side] = bumped
+
+
+@wp.kernel
+def scatter_samples_kernel(pixel: wp.array(dtype=wp.int32), sample_map: wp.array(dtype=wp.int32)):
+    """sample_map[pixel[i]] = i. pixel (n,) int32 read; sample_map (H * W,) int32 written."""
+    i = wp.tid()
+    sample_map[pixel[i]] = i
+
+
+for _t in (wp.uint8, wp.uint16):
+    wp.overload(smooth_rows_kernel, {"frames": wp.array3d(dtype=_t)})
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def gaussian_weights(sigma: float) -> np.ndarray:
+    """Normalised 1D Gaussian taps, radius ceil(3 sigma): (2 r + 1,) float32."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    return (g / g.sum()).astype(np.float32)
+
+
+def smooth_frame(frames: wp.array, *, frame: int = 0, sigma: float = 1.2, threads: int | None = None) -> wp.array:
+    """Gaussian-smoothed copy of one frame of a stack, in 8-bit grey levels.
+
+    Args:
+        frames: (n_frames, H, W) uint8/uint16 Warp array.
+        frame: the plane to smooth.
+        sigma: Gaussian sigma in pixels.
+        threads: CPU threads (row slices); default all cores.
+
+    Returns:
+        (H, W) float32 Warp array on the frames' device.
+    """
+    _check_frames(frames, frame, "smooth_frame")
+    n, h, w = frames.shape
+    dev = frames.device
+    threads = default_threads() if threads is None else threads
+    wts = gaussian_weights(sigma)
+    radius = (wts.size - 1) // 2
+    weights = wp.array(wts, dtype=wp.float32, device=dev)
+    scale = 1.0 / 257.0 if frames.dtype == wp.uint16 else 1.0
+    tmp = wp.empty((h, w), dtype=wp.float32, device=dev)
+    out = wp.empty((h, w), dtype=wp.float32, device=dev)
+    if h * w == 0:
+        return out
+    launch_rows(smooth_rows_kernel, h, w, lambda r0, c: [frames, int(frame), weights, radius, scale, r0, c], [tmp],
+                dev, threads)
+    launch_rows(smooth_cols_kernel, h, w, lambda r0, c: [tmp, weights, radius, r0, c], [out], dev, threads)
+    return out
+
+
+def _check_frames(frames, frame, who):
+    if not isinstance(frames, wp.array) or frames.ndim != 3:
+        raise ValueError(f"{who}: frames must be a 3D Warp array (n, H, W), got {type(frames).__name__}"
+                         f" with ndim {getattr(frames, 'ndim', None)}")
+    if frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError(f"{who}: frames must be uint8 or uint16, got {frames.dtype.__name__}")
+    if not 0 <= int(frame) < frames.shape[0]:
+        raise ValueError(f"{who}: frame {frame} is not in the stack of {frames.shape[0]} frame(s)")
+
+
+def detect_ring_lines(
+    frames: wp.array,
+    *,
+    frame: int = 0,
+    settings: LineSettings = LineSettings(),
+    threads: int | None = None,
+) -> RingLines:
+    """Sub-pixel centres of the bright lines of one frame (the ``rings`` frame).
+
+    Args:
+        frames: (n_frames, H, W) uint8 or uint16 Warp array.
+        frame: which plane holds the ring lines (0 for a ``rings`` scan).
+        settings: detector thresholds.
+        threads: CPU threads (row slices); default all cores.
+
+    Returns:
+        :class:`RingLines` on the frames' device, one sample per pixel that holds
+        a line centre, in raster order.
+    """
+    _check_frames(frames, frame, "detect_ring_lines")
+    if not isinstance(settings, LineSettings):
+        raise ValueError(f"detect_ring_lines: settings must be LineSettings, got {type(settings).__name__}")
+    n, h, w = frames.shape
+    dev = frames.device
+    threads = default_threads() if threads is None else threads
+    S = smooth_frame(frames, frame=frame, sigma=settings.sigma, threads=threads)
+    params = [float(settings.min_contrast), float(settings.min_curvature), float(settings.max_eigen_ratio),
+              float(settings.background_px)]
+    counts = wp.zeros(h * w, dtype=wp.int32, device=dev)
+    if h * w:
+        launch_rows(count_ridges_kernel, h, w, lambda r0, c: [S, *params, r0, c], [counts], dev, threads)
+    offsets = wp.empty_like(counts)
+    total = 0
+    if h * w:
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        total = int(offsets[-1:].numpy()[0] + counts[-1:].numpy()[0])
+    out = RingLines(
+        uv=wp.empty(total, dtype=wp.vec2, device=dev),
+        normal=wp.empty(total, dtype=wp.vec2, device=dev),
+        pixel=wp.empty(total, dtype=wp.int32, device=dev),
+        contrast=wp.empty(total, dtype=wp.float32, device=dev),
+        curvature=wp.empty(total, dtype=wp.float32, device=dev),
+        confidence=wp.empty(total, dtype=wp.float32, device=dev),
+        smoothed=S,
+    )
+    if total:
+        launch_rows(write_ridges_kernel, h, w,
+                    lambda r0, c: [S, counts, offsets, *params, float(settings.confidence_contrast), r0, c],
+                    [out.uv, out.normal, out.pixel, out.contrast, out.curvature, out.confidence], dev, threads)
+    return out
+
+
+def ring_roots(
+    uv: wp.array,
+    radii,
+    *,
+    camera: CameraModel,
+    light: LightModel,
+    volume: tuple[float, float, float],
+    center: tuple[float, float],
+) -> RingRoots:
+    """Both meetings of every sample's camera ray with every candidate ring.
+
+    Args:
+        uv: (n,) vec2 camera pixel coordinates (distorted image).
+        radii: (k,) ring radii in projector px (sequence or float32 Warp array).
+        camera, light: from :mod:`ringscan.kernels.geometry`.
+        volume: (z_min, z_max, r_max) of the working volume (world mm).
+        center: pattern centre (c_u, c_v) in projector px.
+
+    Returns:
+        :class:`RingRoots` on uv's device.
+    """
+    if not isinstance(uv, wp.array) or uv.dtype != wp.vec2 or uv.ndim != 1:
+        raise ValueError("ring_roots: uv must be a 1D Warp array of vec2")
+    dev = uv.device
+    if isinstance(radii, wp.array):
+        if radii.dtype != wp.float32 or radii.ndim != 1:
+            raise ValueError("ring_roots: radii must be a 1D float32 array")
+        rad = radii if radii.device == dev else wp.clone(radii, device=dev)
+    else:
+        r = np.asarray(radii, np.float32).ravel()
+        if not np.all(np.isfinite(r)) or np.any(r < 0):
+            raise ValueError("ring_roots: radii must be finite and >= 0")
+        rad = wp.array(r, dtype=wp.float32, device=dev)
+    z_min, z_max, r_max = (float(x) for x in volume)
+    if not (z_max > z_min and r_max > 0):
+        raise ValueError(f"ring_roots: bad volume {volume}")
+    n, k = uv.shape[0], rad.shape[0]
+    out = RingRoots(points=wp.zeros((n, k, 2), dtype=wp.vec3, device=dev),
+                    offset=wp.zeros((n, k, 2), dtype=wp.vec2, device=dev),
+                    valid=wp.zeros((n, k), dtype=wp.int32, device=dev))
+    if n * k:
+        wp.launch(ring_roots_kernel, dim=(n, k),
+                  inputs=[uv, rad, camera, light, make_volume(z_min, z_max, r_max), wp.vec2(*center)],
+                  outputs=[out.points, out.offset, out.valid], device=dev)
+    return out
+
+
+def link_lines(
+    uv: wp.array,
+    normal: wp.array,
+    piece: wp.array,
+    *,
+    image: wp.array,
+    pixel: wp.array,
+    max_gap: float,
+    self_gap: float = 3.0,
+    bump_contrast: float = 2.0,
+    step: float = 0.35,
+) -> tuple[wp.array, wp.array, wp.array]:
+    """For every line sample, the nearest line sample across it on each side, and
+    whether the gap between them holds a bump (a faint line).
+
+    Args:
+        uv, normal: (n,) vec2 sample centres and normals (oriented as the caller
+            wants its sides: side 0 is +normal).
+        piece: (n,) int32 curve id of each sample (-1: ignore the sample).
+        image: (H, W) float32 smoothed frame (:func:`smooth_frame`, or
+            ``RingLines.smoothed``).
+        pixel: (n,) int32 linear pixel index of each sample.
+        max_gap: how far to look (px).
+        self_gap: a sample of the same curve counts only beyond this distance.
+        bump_contrast: grey levels of rise and fall that make a bump.
+        step: marching step (px); the 2 x 2 pixels around each step are read, so
+            steps below 0.5 px cannot jump over an 8-connected line.
+
+    Returns:
+        (neighbour (n, 2) int32, gap (n, 2) float32, bump (n, 2) int32) on uv's device.
+    """
+    n = uv.shape[0] if isinstance(uv, wp.array) else -1
+    for name, a, dt in (("uv", uv, wp.vec2), ("normal", normal, wp.vec2), ("piece", piece, wp.int32),
+                        ("pixel", pixel, wp.int32)):
+        if not isinstance(a, wp.array) or a.dtype != dt or a.shape != (n,):
+            raise ValueError(f"link_lines: {name} must be a ({n},) {dt.__name__} Warp array")
+    if not isinstance(image, wp.array) or image.ndim != 2 or image.dtype != wp.float32:
+        raise ValueError("link_lines: image must be an (H, W) float32 Warp array")
+    if not (max_gap > 0 and 0 < step <= 0.5 and bump_contrast > 0):
+        raise ValueError(f"link_lines: need max_gap > 0, 0 < step <= 0.5 and bump_contrast > 0, got {max_gap}, "
+                         f"{step}, {bump_contrast}")
+    dev = uv.device
+    height, width = image.shape
+    smap = wp.full((height, width), -1, dtype=wp.int32, device=dev)
+    neighbour = wp.empty((n, 2), dtype=wp.int32, device=dev)
+    gap = wp.empty((n, 2), dtype=wp.float32, device=dev)
+    bump = wp.empty((n, 2), dtype=wp.int32, device=dev)
+    if n:
+        pix = pixel.numpy()
+        if pix.min() < 0 or pix.max() >= width * height:
+            raise ValueError("link_lines: pixel index outside the image")
+        wp.launch(scatter_samples_kernel, dim=n, inputs=[pixel], outputs=[smap.flatten()], device=dev)
+        wp.launch(link_lines_kernel, dim=n, inputs=[uv, normal, piece, smap, image, float(max_gap), float(step),
+                                                   float(self_gap), float(bump_contrast)],
+                  outputs=[neighbour, gap, bump], device=dev)
+    return neighbour, gap, bump
