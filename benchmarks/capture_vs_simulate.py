@@ -13,7 +13,8 @@ The two differ only in sensor noise, so their figures should agree.
 Default: the default rig (1280x1024 camera) and the 28-frame gray-rings set
 (7 band bits, 6 sector bits), 8 views: the issue's "8 views x 28 frames".
 ``--small``: a 320x256 camera and a 12-frame set, for a quick run.
-Prints one line per scan and the ratios captured / simulated.
+Prints one line per scan (make_s: seconds to simulate / capture it, 0 when reused
+from --out; recon_s: seconds to reconstruct) and the ratios captured / simulated.
 """
 
 from __future__ import annotations
@@ -84,6 +85,17 @@ def measure(scan_dir: Path, truth_scan: Path, recon_dir: Path, device) -> dict:
             "seconds": dt, "eval": ev}
 
 
+def _complete(folder: Path, views: int) -> bool:
+    """A complete scan of ``views`` views is already there (kept by an earlier --out run)."""
+    from ringscan.pipeline.errors import FormatError
+    from ringscan.pipeline.scan import load_scan
+
+    try:
+        return (folder / "scan.json").is_file() and len(load_scan(folder).views) == views
+    except FormatError:
+        return False
+
+
 def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: int = 1) -> dict:
     """Simulate, capture, reconstruct and measure both; returns both figure sets."""
     from ringscan.pipeline.rig import default_rig
@@ -93,12 +105,15 @@ def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: in
     patterns = patterns_for(small)
     sim = work / "simulated"
     cap = work / "captured"
-    t0 = time.perf_counter()
-    simulate_scan(sim, scene=scene, rig=rig, patterns=patterns, views=views, device=device, progress=False)
-    t_sim = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    capture_emulated(cap, rig, patterns, scene, views, seed=seed, device=device)
-    t_cap = time.perf_counter() - t0
+    t_sim = t_cap = 0.0
+    if not _complete(sim, views):
+        t0 = time.perf_counter()
+        simulate_scan(sim, scene=scene, rig=rig, patterns=patterns, views=views, device=device, progress=False)
+        t_sim = time.perf_counter() - t0
+    if not _complete(cap, views):
+        t0 = time.perf_counter()
+        capture_emulated(cap, rig, patterns, scene, views, seed=seed, device=device)
+        t_cap = time.perf_counter() - t0
     out = {"simulated": measure(sim, sim, work / "recon_sim", device),
            "captured": measure(cap, sim, work / "recon_cap", device)}
     out["simulated"]["make_s"], out["captured"]["make_s"] = t_sim, t_cap
@@ -111,7 +126,8 @@ def main(argv=None) -> int:
     p.add_argument("--scene", default="terrain")
     p.add_argument("--small", action="store_true", help="320x256 camera, 12-frame set")
     p.add_argument("--device", default=None)
-    p.add_argument("--out", default=None, help="keep the scans here (default: a temporary folder)")
+    p.add_argument("--out", default=None,
+                   help="keep the scans here; complete scans already there are reused (default: a temporary folder)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
