@@ -1,0 +1,621 @@
+"""Phase-rings, per pixel: wrapped phase, modulation, unwrapping by the band code (DESIGN §5).
+
+The phase frames are I_n = 0.5 + 0.5 cos(2 pi t - 2 pi n / N), n = 0..N-1, with
+t = (rho - rho0) / pitch the continuous band coordinate: band k = floor(t) is
+what the gray-rings frames of the same scan code. Per camera pixel:
+
+1. Linearise. A response table maps each recorded value to linear irradiance
+   (the camera's response, e.g. (value / full)^gamma). Where the light's own
+   response is not linear, the values are normalised by the pixel's linearised
+   white and black frames and raised to 1 / gamma_light, which undoes the light's
+   curve exactly for a sharp projector.
+2. Wrapped phase and modulation by weighted least squares: the model
+   L_n = A + B cos(phi - 2 pi n / N) is fitted with weights 1 / (dL/dr)^2, the
+   inverse variance of each linearised sample when the sensor noise is additive
+   in recorded values (a gamma-encoded camera is noisier, in linear terms, where
+   it is bright). With a linear response every weight is 1 and the fit is the
+   classic N-step formula. phi = atan2(B sin phi, B cos phi), f = phi / 2 pi mod 1.
+   The modulation q = 2 B / (L_white - L_black) is 1 for a perfect fringe; mixed
+   pixels (two surfaces, two phases), blur and shadows lower it.
+3. Unwrapping that cannot slip at band edges. The phase wraps (f jumps from 1 to
+   0) exactly where the band code flips, so ``t = k + f`` slips a whole period
+   wherever noise puts the two on different sides of an edge. Instead, the two
+   band-code bits that flip at the pixel's band edges (lower edge k, upper edge
+   k + 1) are read back: |frame - inverse| / (white - black) is near 0 on an edge
+   and near 1 away from it. Where the smaller of the two is below ``edge_ratio``
+   the pixel lies in that edge's transition zone and the expected coordinate is
+   the edge itself (t_b = k or k + 1); elsewhere it is the band's centre
+   (t_b = k + 0.5, and the band code is sure there). The period is then
+   m = round(t_b - f) and t = m + f: the phase decides where in the period the
+   pixel is, the code only which period, and near an edge either of the two bands
+   names the same period. This is the complementary-code idea (a second code
+   whose edges fall at the first one's band centres) with the complementary
+   information taken from the edge bits' own contrast, so it needs no extra
+   frames. A pixel whose band code has a weak bit other than one of its two edge
+   bits (mixed or noisy code) is dropped, and so is a pixel whose phase puts it
+   more than ``slip_tolerance`` bands across an edge on the side its strong edge
+   bit rules out (an unwrapping slip or a mixed pixel).
+4. Optional smoothing (``smooth_radius``): t is averaged with the mean of each
+   opposite pair of neighbours (p + h, p - h) within the window whose mean agrees
+   with t(p) to ``smooth_tolerance`` bands. Pairs keep the average exact where t
+   is linear in the image (a plane) and pairs that straddle a depth edge disagree
+   and are left out. A pixel that has neighbours but no agreeing pair is dropped
+   (a lone slip or an outlier).
+
+Status codes per pixel: 0 point, 1 dark (contrast below ``min_contrast``), 2 code
+(band code unreliable), 3 modulation (below ``min_modulation``), 4 slip (phase
+and code disagree), 5 lonely (no agreeing neighbour pair).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from .ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, default_threads, gray_to_binary, launch_rows
+
+PHASE_OK = wp.constant(0)
+PHASE_DARK = wp.constant(1)
+PHASE_CODE = wp.constant(2)
+PHASE_MODULATION = wp.constant(3)
+PHASE_SLIP = wp.constant(4)
+PHASE_LONELY = wp.constant(5)
+PHASE_STATUS_NAMES = ("ok", "dark", "code", "modulation", "slip", "lonely")
+TWO_PI = wp.constant(6.283185307179586)
+SECTOR_FILL_RADIUS = wp.constant(2)
+RESPONSE_FLOOR = 0.02
+"""Recorded values below this fraction of full scale get the weight of this value
+(the slope of a gamma curve vanishes at 0; sensor noise does not)."""
+
+__all__ = [
+    "PhaseSettings",
+    "PhaseMap",
+    "PhasePoints",
+    "PHASE_STATUS_NAMES",
+    "response_tables",
+    "decode_phase",
+    "smooth_phase",
+    "compact_phase_points",
+]
+
+
+@dataclass(frozen=True)
+class PhaseSettings:
+    """Settings of the phase decoder (``phase-rings``)."""
+
+    response: str = "rig"
+    """How recorded values are linearised: ``rig`` uses the rig's camera and light
+    gammas; ``estimate`` estimates the camera gamma from the view's own frames
+    (light gamma from the rig); ``linear`` takes the frames as they are."""
+    weighted: bool = True
+    """Weight each phase sample by the inverse of its noise variance after
+    linearisation (weighted least squares). Off: the classic N-step formula."""
+    min_contrast: float = 12.0
+    """Least white - black difference, in 8-bit grey levels (x257 for 16-bit)."""
+    min_modulation: float = 0.3
+    """Least fringe modulation q = 2 B / (white - black), linear units: a clean
+    fringe at the default pitch gives 0.8 - 1; mixed, blurred or grazing pixels
+    fall below 0.3."""
+    edge_ratio: float = 0.5
+    """A pixel is in an edge's transition zone where that edge's bit has
+    |frame - inverse| < edge_ratio * (white - black): the band code may name
+    either side there, so the edge itself anchors the unwrapping."""
+    slip_tolerance: float = 0.05
+    """How far (bands) the phase may put a pixel across an edge against a strong
+    edge bit before the pixel is dropped as a slip."""
+    smooth_radius: int = 1
+    """Half-size of the smoothing window in pixels (0: no smoothing)."""
+    smooth_tolerance: float = 0.05
+    """A neighbour pair joins the average when its mean t is within this many
+    bands of the pixel's own t."""
+    min_pairs: int = 1
+    """With smoothing, pixels with valid neighbours but fewer agreeing pairs than
+    this are dropped as lonely (0: keep them)."""
+
+    def __post_init__(self):
+        if self.response not in ("rig", "estimate", "linear"):
+            raise ValueError(f"PhaseSettings.response: expected rig, estimate or linear, got {self.response!r}")
+        if not 0 <= self.smooth_radius <= 4:
+            raise ValueError(f"PhaseSettings.smooth_radius: must be in 0..4, got {self.smooth_radius}")
+        if not 0 < self.edge_ratio < 1:
+            raise ValueError(f"PhaseSettings.edge_ratio: must be in (0, 1), got {self.edge_ratio}")
+        if self.min_modulation < 0 or self.slip_tolerance < 0 or self.smooth_tolerance < 0 or self.min_pairs < 0:
+            raise ValueError("PhaseSettings: min_modulation, slip_tolerance, smooth_tolerance and min_pairs must be >= 0")
+
+
+@dataclass
+class PhaseMap:
+    """Per-pixel phase results (Warp arrays of shape (H, W) on the frames' device)."""
+
+    t: wp.array
+    """float32 continuous band coordinate (rho - rho0) / pitch (0 where status != 0)."""
+    modulation: wp.array
+    """float32 fringe modulation q (0 where not computed)."""
+    status: wp.array
+    """int32 status code (0 = valid; see ``PHASE_STATUS_NAMES``)."""
+    sector: wp.array | None = None
+    """int32 sector per pixel with gaps at sector edges filled from neighbours
+    (set by :func:`smooth_phase`), -1 unknown."""
+
+
+@dataclass
+class PhasePoints:
+    """One sample per valid pixel, in raster order (Warp arrays of length n)."""
+
+    uv: wp.array
+    """vec2 pixel centre (x, y)."""
+    rho: wp.array
+    """float32 ring radius rho0 + pitch * t (projector px)."""
+    sector: wp.array
+    """int32 sector, -1 unknown."""
+    confidence: wp.array
+    """float32 modulation clamped to [0, 1]."""
+    pixel: wp.array
+    """int32 linear pixel index y * W + x."""
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def trailing_zeros(k: int):
+    """Number of trailing zero bits of k > 0."""
+    n = int(0)
+    while (k & 1) == 0:
+        k = k >> 1
+        n = n + 1
+    return n
+
+
+@wp.func
+def edge_bit_ratio(frames: wp.array3d(dtype=Any), y: int, x: int, edge: int, bits: int, contrast: float):
+    """|frame - inverse| / contrast of the bit that flips at band edge ``edge``
+    (between bands edge - 1 and edge), or 2 where the edge does not exist."""
+    if edge < 1 or edge >= (1 << bits):
+        return 2.0
+    b = bits - 1 - trailing_zeros(edge)
+    f = FRAME_FIRST_BIT + 2 * b
+    d = float(frames[f, y, x]) - float(frames[f + 1, y, x])
+    return wp.abs(d) / contrast
+
+
+@wp.func
+def edge_mask(edge: int, bits: int):
+    """Code mask (LSB numbering) of the bit that flips at band edge ``edge``, 0 if none."""
+    if edge < 1 or edge >= (1 << bits):
+        return 0
+    return 1 << trailing_zeros(edge)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def phase_unwrap_kernel(
+    frames: wp.array3d(dtype=Any),
+    lut: wp.array(dtype=wp.float32),
+    wlut: wp.array(dtype=wp.float32),
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    bits: int,
+    phase0: int,
+    steps: int,
+    inv_light_gamma: float,
+    min_contrast: float,
+    min_modulation: float,
+    edge_ratio: float,
+    slip_tolerance: float,
+    row0: int,
+    chunk: int,
+    t_out: wp.array2d(dtype=wp.float32),
+    modulation: wp.array2d(dtype=wp.float32),
+    status: wp.array2d(dtype=wp.int32),
+):
+    """Wrapped phase, modulation and unwrapped band coordinate of a run of
+    ``chunk`` pixels of one row per thread (see ``ring_labels.launch_rows``).
+
+    frames: (n_frames, H, W) uint8/uint16, read (white, black, gray pairs, ...,
+        phase_0 at index ``phase0``).
+    lut, wlut: (full_scale + 1,) float32, read: linear value and weight of each
+        recorded value.
+    code, weak: (H, W) int32, contrast: (H, W) float32, read (the band decode).
+    t_out, modulation: (H, W) float32, status: (H, W) int32, written.
+    """
+    tid = wp.tid()
+    w = frames.shape[2]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    x1 = wp.min(x0 + chunk, w)
+    for x in range(x0, x1):
+        t_out[y, x] = 0.0
+        modulation[y, x] = 0.0
+        c = contrast[y, x]
+        if c < min_contrast:
+            status[y, x] = PHASE_DARK
+            continue
+        lw = lut[int(frames[FRAME_WHITE, y, x])]
+        lb = lut[int(frames[FRAME_BLACK, y, x])]
+        span = lw - lb
+        if span <= 0.0:
+            status[y, x] = PHASE_DARK
+            continue
+        normalise = inv_light_gamma != 1.0
+        # Weighted normal equations of L_n = A + Bc cos(d_n) + Bs sin(d_n).
+        s0 = float(0.0)
+        sc = float(0.0)
+        ss = float(0.0)
+        scc = float(0.0)
+        scs = float(0.0)
+        sss = float(0.0)
+        r0 = float(0.0)
+        rc = float(0.0)
+        rs = float(0.0)
+        for n in range(steps):
+            r = int(frames[phase0 + n, y, x])
+            val = lut[r]
+            wt = wlut[r]
+            if normalise:
+                u = wp.clamp((val - lb) / span, 1.0e-6, 1.0)
+                val = wp.pow(u, inv_light_gamma)
+                # chain rule: d val / dL = inv_gamma * u^(inv_gamma - 1) / span
+                g = inv_light_gamma * wp.pow(u, inv_light_gamma - 1.0) / span
+                wt = wt / (g * g)
+            dl = TWO_PI * float(n) / float(steps)
+            cn = wp.cos(dl)
+            sn = wp.sin(dl)
+            s0 += wt
+            sc += wt * cn
+            ss += wt * sn
+            scc += wt * cn * cn
+            scs += wt * cn * sn
+            sss += wt * sn * sn
+            r0 += wt * val
+            rc += wt * cn * val
+            rs += wt * sn * val
+        G = wp.mat33(s0, sc, ss, sc, scc, scs, ss, scs, sss)
+        det = wp.determinant(G)
+        if not (det > 1.0e-9 * s0 * s0 * s0):
+            status[y, x] = PHASE_MODULATION
+            continue
+        sol = wp.inverse(G) * wp.vec3(r0, rc, rs)
+        bc = sol[1]
+        bs = sol[2]
+        amp = wp.sqrt(bc * bc + bs * bs)
+        q = 2.0 * amp
+        if not normalise:
+            q = q / span
+        modulation[y, x] = q
+        if q < min_modulation:
+            status[y, x] = PHASE_MODULATION
+            continue
+        f = wp.atan2(bs, bc) / TWO_PI
+        f = f - wp.floor(f)
+        # Band code and its two edges.
+        k = gray_to_binary(code[y, x], bits)
+        wk = weak[y, x]
+        m_lo = edge_mask(k, bits)
+        m_hi = edge_mask(k + 1, bits)
+        if wk != 0 and wk != m_lo and wk != m_hi:
+            status[y, x] = PHASE_CODE
+            continue
+        e_lo = edge_bit_ratio(frames, y, x, k, bits, c)
+        e_hi = edge_bit_ratio(frames, y, x, k + 1, bits, c)
+        tb = float(k) + 0.5
+        edge = int(-1)
+        if wp.min(e_lo, e_hi) < edge_ratio:
+            if e_lo <= e_hi:
+                edge = k
+            else:
+                edge = k + 1
+            tb = float(edge)
+        t = wp.round(tb - f) + f
+        if edge >= 0:
+            strong = (wk & edge_mask(edge, bits)) == 0
+            # a strong edge bit says which side of the edge the pixel is on
+            if strong and edge == k and t < float(edge) - slip_tolerance:
+                status[y, x] = PHASE_SLIP
+                continue
+            if strong and edge == k + 1 and t > float(edge) + slip_tolerance:
+                status[y, x] = PHASE_SLIP
+                continue
+        t_out[y, x] = t
+        status[y, x] = PHASE_OK
+
+
+for _t in (wp.uint8, wp.uint16):
+    wp.overload(phase_unwrap_kernel, {"frames": wp.array3d(dtype=_t)})
+
+
+@wp.kernel
+def smooth_phase_kernel(
+    t: wp.array2d(dtype=wp.float32),
+    status: wp.array2d(dtype=wp.int32),
+    sector: wp.array2d(dtype=wp.int32),
+    radius: int,
+    tolerance: float,
+    min_pairs: int,
+    row0: int,
+    chunk: int,
+    t_out: wp.array2d(dtype=wp.float32),
+    status_out: wp.array2d(dtype=wp.int32),
+    sector_out: wp.array2d(dtype=wp.int32),
+):
+    """Pair-wise smoothing of t and sector gap filling, ``chunk`` pixels of one row
+    per thread.
+
+    t: (H, W) float32, status: (H, W) int32, sector: (H, W) int32, read.
+    t_out: (H, W) float32, status_out, sector_out: (H, W) int32, written.
+    """
+    tid = wp.tid()
+    h = t.shape[0]
+    w = t.shape[1]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    x1 = wp.min(x0 + chunk, w)
+    for x in range(x0, x1):
+        st = status[y, x]
+        t_out[y, x] = t[y, x]
+        status_out[y, x] = st
+        s = int(sector[y, x])
+        if st != PHASE_OK:
+            sector_out[y, x] = s
+            continue
+        tc = t[y, x]
+        acc = float(tc)
+        cnt = float(1.0)
+        pairs = int(0)
+        seen = int(0)
+        for dy in range(0, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dy > 0 or dx > 0:
+                    ya = y + dy
+                    xa = x + dx
+                    yb = y - dy
+                    xb = x - dx
+                    oka = ya < h and xa >= 0 and xa < w
+                    okb = yb >= 0 and xb >= 0 and xb < w
+                    if oka:
+                        oka = status[ya, xa] == PHASE_OK
+                    if okb:
+                        okb = status[yb, xb] == PHASE_OK
+                    if oka or okb:
+                        seen = seen + 1
+                    if oka and okb:
+                        ta = t[ya, xa]
+                        tb = t[yb, xb]
+                        if wp.abs(0.5 * (ta + tb) - tc) <= tolerance:
+                            acc += ta + tb
+                            cnt += 2.0
+                            pairs = pairs + 1
+        if radius > 0 and seen > 0 and pairs < min_pairs:
+            status_out[y, x] = PHASE_LONELY
+        t_out[y, x] = acc / cnt
+        # A pixel on a sector edge has a weak sector bit: either neighbouring
+        # sector is right to within the triangulation's tolerance.
+        if s < 0:
+            best = int(1 << 30)
+            for dy in range(-SECTOR_FILL_RADIUS, SECTOR_FILL_RADIUS + 1):
+                for dx in range(-SECTOR_FILL_RADIUS, SECTOR_FILL_RADIUS + 1):
+                    yy = y + dy
+                    xx = x + dx
+                    d2 = dx * dx + dy * dy
+                    if yy >= 0 and yy < h and xx >= 0 and xx < w and d2 < best:
+                        if sector[yy, xx] >= 0:
+                            best = d2
+                            s = sector[yy, xx]
+        sector_out[y, x] = s
+
+
+@wp.kernel
+def count_points_kernel(status: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    """flags[i] = 1 where status[i] == 0. status (H*W,) read; flags (H*W,) written."""
+    i = wp.tid()
+    flags[i] = wp.where(status[i] == PHASE_OK, 1, 0)
+
+
+@wp.kernel
+def write_points_kernel(
+    t: wp.array(dtype=wp.float32),
+    modulation: wp.array(dtype=wp.float32),
+    status: wp.array(dtype=wp.int32),
+    sector: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    width: int,
+    rho0: float,
+    pitch: float,
+    uv: wp.array(dtype=wp.vec2),
+    rho: wp.array(dtype=wp.float32),
+    sector_out: wp.array(dtype=wp.int32),
+    confidence: wp.array(dtype=wp.float32),
+    pixel: wp.array(dtype=wp.int32),
+):
+    """Write pixel i's point at offsets[i] (valid pixels only).
+
+    t, modulation (H*W,) float32, status, sector, offsets (H*W,) int32: read.
+    uv (n,) vec2, rho/confidence (n,) float32, sector_out/pixel (n,) int32: written.
+    """
+    i = wp.tid()
+    if status[i] != PHASE_OK:
+        return
+    o = offsets[i]
+    y = i / width
+    x = i - y * width
+    uv[o] = wp.vec2(float(x), float(y))
+    rho[o] = rho0 + pitch * t[i]
+    sector_out[o] = sector[i]
+    confidence[o] = wp.clamp(modulation[i], 0.0, 1.0)
+    pixel[o] = i
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def response_tables(full_scale: int, *, camera_gamma: float = 1.0, weighted: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Linearisation and weight tables for recorded values 0..full_scale.
+
+    lut[r] = (r / full)^gamma (linear irradiance, full white = 1); wlut[r] =
+    1 / (d lut / d r)^2 up to a constant (the inverse noise variance of the
+    linearised value under additive sensor noise), the slope taken at no less
+    than ``RESPONSE_FLOOR`` of full scale; all ones when not ``weighted``.
+
+    Returns:
+        (lut, wlut), two (full_scale + 1,) float32 arrays.
+    """
+    if full_scale not in (255, 65535):
+        raise ValueError(f"response_tables: full_scale must be 255 or 65535, got {full_scale}")
+    g = float(camera_gamma)
+    if not np.isfinite(g) or g <= 0:
+        raise ValueError(f"response_tables: camera_gamma must be > 0, got {camera_gamma}")
+    x = np.arange(full_scale + 1, dtype=np.float64) / full_scale
+    lut = x ** g
+    if weighted and g != 1.0:
+        xf = np.maximum(x, RESPONSE_FLOOR)
+        wlut = xf ** (-2.0 * (g - 1.0))
+        wlut /= wlut.max()
+    else:
+        wlut = np.ones_like(x)
+    return lut.astype(np.float32), wlut.astype(np.float32)
+
+
+def decode_phase(
+    frames: wp.array,
+    labels: RingLabels,
+    *,
+    bits: int,
+    sector_bits: int,
+    steps: int,
+    lut: wp.array,
+    wlut: wp.array,
+    light_gamma: float = 1.0,
+    settings: PhaseSettings = PhaseSettings(),
+    threads: int | None = None,
+) -> PhaseMap:
+    """Wrapped phase, modulation and unwrapped band coordinate of every pixel.
+
+    Args:
+        frames: (n_frames, H, W) uint8/uint16 Warp array of a phase-rings view
+            (``frame_names`` order: white, black, gray pairs, sector pairs, phase).
+        labels: the band (and sector) decode of the same frames
+            (:func:`ringscan.kernels.ring_labels.decode_gray_rings`).
+        bits, sector_bits, steps: the pattern's band bits, sector bits and phase steps.
+        lut, wlut: (full_scale + 1,) float32 Warp arrays from :func:`response_tables`.
+        light_gamma: the light's response exponent (1: linear).
+        settings: thresholds.
+        threads: CPU threads (row slices); default: all cores.
+
+    Returns:
+        :class:`PhaseMap` on the frames' device (``sector`` unset).
+    """
+    if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError("decode_phase: frames must be a (n, H, W) uint8/uint16 Warp array")
+    if not 1 <= bits <= 16 or not 0 <= sector_bits <= 12 or not 3 <= steps <= 64:
+        raise ValueError(f"decode_phase: bits 1..16, sector_bits 0..12 and steps 3..64 expected, got {bits}, "
+                         f"{sector_bits}, {steps}")
+    n, h, w = frames.shape
+    phase0 = 2 + 2 * bits + 2 * sector_bits
+    if n < phase0 + steps:
+        raise ValueError(f"decode_phase: {bits} bits, {sector_bits} sector bits and {steps} steps need "
+                         f"{phase0 + steps} frames, got {n}")
+    if tuple(labels.code.shape) != (h, w):
+        raise ValueError(f"decode_phase: labels are {tuple(labels.code.shape)}, frames are {(h, w)}")
+    full = 255 if frames.dtype == wp.uint8 else 65535
+    for name, a in (("lut", lut), ("wlut", wlut)):
+        if not isinstance(a, wp.array) or a.dtype != wp.float32 or a.shape != (full + 1,):
+            raise ValueError(f"decode_phase: {name} must be a ({full + 1},) float32 Warp array for "
+                             f"{frames.dtype.__name__} frames")
+    if not (np.isfinite(light_gamma) and light_gamma > 0):
+        raise ValueError(f"decode_phase: light_gamma must be > 0, got {light_gamma}")
+    dev = frames.device
+    scale = 257.0 if frames.dtype == wp.uint16 else 1.0
+    out = PhaseMap(t=wp.empty((h, w), dtype=wp.float32, device=dev),
+                   modulation=wp.empty((h, w), dtype=wp.float32, device=dev),
+                   status=wp.empty((h, w), dtype=wp.int32, device=dev))
+    if h * w == 0:
+        return out
+    s = settings
+    launch_rows(
+        phase_unwrap_kernel, h, w,
+        lambda r0, chunk: [frames, lut, wlut, labels.code, labels.weak, labels.contrast, bits, phase0, steps,
+                           1.0 / float(light_gamma), s.min_contrast * scale, s.min_modulation, s.edge_ratio,
+                           s.slip_tolerance, r0, chunk],
+        [out.t, out.modulation, out.status], dev, default_threads() if threads is None else threads,
+    )
+    return out
+
+
+def smooth_phase(
+    phase: PhaseMap,
+    sector: wp.array,
+    *,
+    settings: PhaseSettings = PhaseSettings(),
+    threads: int | None = None,
+) -> PhaseMap:
+    """Pair-wise smoothing of the band coordinate, lonely-pixel rejection and
+    sector gap filling.
+
+    Args:
+        phase: the output of :func:`decode_phase`.
+        sector: (H, W) int32 decoded sector per pixel (-1 unknown).
+        settings: ``smooth_radius``, ``smooth_tolerance``, ``min_pairs``.
+        threads: CPU threads (row slices); default: all cores.
+
+    Returns:
+        A new :class:`PhaseMap` with ``sector`` set.
+    """
+    h, w = phase.t.shape
+    if not isinstance(sector, wp.array) or sector.dtype != wp.int32 or tuple(sector.shape) != (h, w):
+        raise ValueError(f"smooth_phase: sector must be a ({h}, {w}) int32 Warp array")
+    dev = phase.t.device
+    out = PhaseMap(t=wp.empty_like(phase.t), modulation=phase.modulation, status=wp.empty_like(phase.status),
+                   sector=wp.empty_like(sector))
+    if h * w == 0:
+        return out
+    s = settings
+    launch_rows(
+        smooth_phase_kernel, h, w,
+        lambda r0, chunk: [phase.t, phase.status, sector, int(s.smooth_radius), float(s.smooth_tolerance),
+                           int(s.min_pairs), r0, chunk],
+        [out.t, out.status, out.sector], dev, default_threads() if threads is None else threads,
+    )
+    return out
+
+
+def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float) -> PhasePoints:
+    """One point per valid pixel, in raster order (count, scan, write).
+
+    Args:
+        phase: a :class:`PhaseMap` with ``sector`` set (:func:`smooth_phase`).
+        rho0, pitch: the pattern's inner radius and pitch (projector px).
+    """
+    if phase.sector is None:
+        raise ValueError("compact_phase_points: the phase map has no sector (run smooth_phase first)")
+    h, w = phase.t.shape
+    dev = phase.t.device
+    n = h * w
+    flat = lambda a: a.reshape((n,))  # noqa: E731
+    total = 0
+    if n:
+        flags = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.launch(count_points_kernel, dim=n, inputs=[flat(phase.status)], outputs=[flags], device=dev)
+        offsets = wp.empty_like(flags)
+        wp.utils.array_scan(flags, offsets, inclusive=False)
+        total = int(offsets[-1:].numpy()[0] + flags[-1:].numpy()[0])
+    out = PhasePoints(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=wp.empty(total, dtype=wp.float32, device=dev),
+                      sector=wp.empty(total, dtype=wp.int32, device=dev),
+                      confidence=wp.empty(total, dtype=wp.float32, device=dev),
+                      pixel=wp.empty(total, dtype=wp.int32, device=dev))
+    if total:
+        wp.launch(write_points_kernel, dim=n,
+                  inputs=[flat(phase.t), flat(phase.modulation), flat(phase.status), flat(phase.sector), offsets, w,
+                          float(rho0), float(pitch)],
+                  outputs=[out.uv, out.rho, out.sector, out.confidence, out.pixel], device=dev)
+    return out

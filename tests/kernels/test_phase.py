@@ -1,0 +1,269 @@
+"""Phase-rings kernels against the pattern's own geometry (camera = projector grid)."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.phase import (
+    PHASE_STATUS_NAMES,
+    PhaseMap,
+    PhaseSettings,
+    compact_phase_points,
+    decode_phase,
+    response_tables,
+    smooth_phase,
+)
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.pipeline.patterns import PatternSpec, frame_names, gray_decode, render_frames
+
+STATUS = {n: i for i, n in enumerate(PHASE_STATUS_NAMES)}
+
+
+def _spec(**kw):
+    d = dict(codec="phase-rings", width=160, height=120, center=(79.5, 59.5), rho0=4.0, pitch=6.0, bits=4,
+             sector_bits=2, steps=4)
+    d.update(kw)
+    return PatternSpec(**d)
+
+
+def _stack(spec, *, blur=0.6, cam_gamma=1.0, light_gamma=1.0, noise=0.0, seed=0, mix_with=None):
+    """Camera frames of a flat albedo-0.8 target seen pixel for pixel: light response,
+    projector blur, ambient 0.05, camera response, noise, 8-bit."""
+    rng = np.random.default_rng(seed)
+    fr = render_frames(spec)
+    other = render_frames(mix_with) if mix_with is not None else None
+    out = []
+    for n in frame_names(spec):
+        e = (fr[n].astype(np.float64) / 255.0) ** light_gamma
+        if other is not None:
+            e = 0.5 * e + 0.5 * (other[n].astype(np.float64) / 255.0) ** light_gamma
+        if blur:
+            e = cv2.GaussianBlur(e, (0, 0), blur)
+        irr = 0.8 * (0.05 + e) / 0.85
+        val = 255.0 * 0.9 * irr ** (1.0 / cam_gamma) + rng.normal(0.0, noise, irr.shape)
+        out.append(np.clip(np.rint(val), 0, 255).astype(np.uint8))
+    return np.stack(out)
+
+
+def _truth_t(spec):
+    v, u = np.mgrid[0:spec.height, 0:spec.width]
+    rho = np.hypot(u - spec.center[0], v - spec.center[1])
+    return (rho - spec.rho0) / spec.pitch, rho
+
+
+def _decode(frames_np, spec, device, *, cam_gamma=1.0, light_gamma=1.0, settings=PhaseSettings(), weighted=True):
+    fr = wp.array(frames_np, device=device)
+    lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
+    lut, wlut = response_tables(255, camera_gamma=cam_gamma, weighted=weighted)
+    ph = decode_phase(fr, lab, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps,
+                      lut=wp.array(lut, device=device), wlut=wp.array(wlut, device=device), light_gamma=light_gamma,
+                      settings=settings)
+    return fr, lab, ph
+
+
+def _annulus(spec, rho, margin=1.5):
+    far = min(spec.width, spec.height) / 2 - 2
+    return (rho > spec.rho0 + margin) & (rho < min(spec.rho_max, far) - margin)
+
+
+def test_phase_matches_geometry_and_never_slips(device):
+    spec = _spec()
+    t_true, rho = _truth_t(spec)
+    _, _, ph = _decode(_stack(spec, noise=1.0), spec, device, settings=PhaseSettings(smooth_radius=0))
+    st, t = ph.status.numpy(), ph.t.numpy()
+    ann = _annulus(spec, rho)
+    ok = ann & (st == 0)
+    assert ok.sum() >= 0.97 * ann.sum()
+    err = t[ok] - t_true[ok]
+    assert np.abs(err).max() < 0.05, np.abs(err).max()  # no slip anywhere (a slip is a whole band)
+    assert np.sqrt(np.mean(err ** 2)) < 0.01
+    q = ph.modulation.numpy()[ok]
+    assert np.median(q) > 0.8 and q.max() < 1.2
+    # Outside the coded annulus there is no point.
+    outside = rho > spec.rho_max + 2
+    assert not np.any(st[outside] == 0)
+
+
+def test_unwrapping_at_band_edges_beats_the_naive_rule(device):
+    """Strong noise: t = band + wrapped phase slips a period near edges; the
+    edge-anchored unwrapping does not."""
+    spec = _spec()
+    t_true, rho = _truth_t(spec)
+    fr, lab, ph = _decode(_stack(spec, noise=5.0, seed=3), spec, device, settings=PhaseSettings(smooth_radius=0))
+    st, t = ph.status.numpy(), ph.t.numpy()
+    ann = _annulus(spec, rho)
+    ok = ann & (st == 0)
+    assert ok.sum() > 0.9 * ann.sum()
+    assert np.sum(np.abs(t[ok] - t_true[ok]) > 0.5) == 0
+    # The plain rule on the same wrapped phase: band index (decoded from the raw
+    # code, weak bits and all) + wrapped phase.
+    band = gray_decode(lab.code.numpy(), spec.bits)
+    naive = band + (t - np.floor(t))
+    assert np.sum(np.abs(naive[ok] - t_true[ok]) > 0.5) > 20
+
+
+@pytest.mark.parametrize("cam_gamma,light_gamma,steps", [(2.2, 1.0, 4), (1.0, 1.8, 3), (2.2, 2.0, 3)])
+def test_response_correction_removes_gamma_error(device, cam_gamma, light_gamma, steps):
+    spec = _spec(steps=steps)
+    t_true, rho = _truth_t(spec)
+    frames = _stack(spec, cam_gamma=cam_gamma, light_gamma=light_gamma, blur=0.0)
+    s = PhaseSettings(smooth_radius=0)
+    ann = _annulus(spec, rho)
+
+    def rms(cg, lg):
+        _, _, ph = _decode(frames, spec, device, cam_gamma=cg, light_gamma=lg, settings=s)
+        ok = ann & (ph.status.numpy() == 0)
+        assert ok.sum() > 0.9 * ann.sum()
+        return float(np.sqrt(np.mean((ph.t.numpy()[ok] - t_true[ok]) ** 2)))
+
+    corrected, raw = rms(cam_gamma, light_gamma), rms(1.0, 1.0)
+    assert corrected < 0.006, corrected
+    assert raw > 3 * corrected, (raw, corrected)
+
+
+def test_mixed_pixels_are_dropped_for_low_modulation(device):
+    spec = _spec()
+    shifted = _spec(rho0=spec.rho0 + spec.pitch / 2)  # opposite fringe phase, same bands
+    _, rho = _truth_t(spec)
+    _, _, ph = _decode(_stack(spec, mix_with=shifted), spec, device)
+    st = ph.status.numpy()
+    ann = _annulus(spec, rho, margin=spec.pitch)
+    assert np.mean(st[ann] == STATUS["modulation"]) > 0.95
+    assert np.mean(ph.modulation.numpy()[ann] < 0.3) > 0.95
+
+
+def test_dark_frames_give_no_points(device):
+    spec = _spec()
+    frames = np.zeros((len(frame_names(spec)), spec.height, spec.width), np.uint8)
+    fr, lab, ph = _decode(frames, spec, device)
+    assert np.all(ph.status.numpy() == STATUS["dark"])
+    sm = smooth_phase(ph, lab.sector)
+    pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch)
+    assert len(pts) == 0 and pts.uv.shape == (0,)
+
+
+def test_smoothing_keeps_planes_edges_and_drops_lone_slips(device):
+    h, w = 40, 50
+    rng = np.random.default_rng(1)
+    v, u = np.mgrid[0:h, 0:w]
+    ramp = 3.0 + 0.13 * u + 0.05 * v
+    ramp[:, 30:] += 0.6  # a depth edge: t jumps by 0.6 band
+    noisy = ramp + rng.normal(0, 0.004, ramp.shape)
+    status = np.zeros((h, w), np.int32)
+    noisy[20, 10] += 1.0  # a lone unwrapping slip
+    sector = np.where(u < 25, 3, 4).astype(np.int32)
+    sector[:, 25] = -1  # a sector edge: no sector decoded
+    ph = PhaseMap(t=wp.array(noisy.astype(np.float32), device=device),
+                  modulation=wp.array(np.full((h, w), 0.9, np.float32), device=device),
+                  status=wp.array(status, device=device))
+    sm = smooth_phase(ph, wp.array(sector, device=device))
+    t, st, sec = sm.t.numpy(), sm.status.numpy(), sm.sector.numpy()
+    assert st[20, 10] == STATUS["lonely"]
+    inner = (u > 1) & (u < 28) & (v > 1) & (v < h - 2) & ~((abs(u - 10) <= 1) & (abs(v - 20) <= 1))
+    e0 = (noisy - ramp)[inner]
+    e1 = (t - ramp)[inner]
+    assert np.std(e1) < 0.5 * np.std(e0)
+    assert abs(np.mean(e1)) < 0.001
+    # Next to the edge: no averaging across it.
+    for x in (29, 30):
+        assert np.all(np.abs(t[2:-2, x] - ramp[2:-2, x]) < 0.02)
+    assert np.all(np.isin(sec[:, 25], (3, 4)))
+    pts = compact_phase_points(sm, rho0=2.0, pitch=4.0)
+    valid = (st == 0).ravel()
+    assert len(pts) == int(valid.sum())
+    pix = pts.pixel.numpy()
+    assert np.all(np.diff(pix) > 0) and np.array_equal(pix, np.flatnonzero(valid))
+    uv = pts.uv.numpy()
+    assert np.array_equal(uv[:, 0], pix % w) and np.array_equal(uv[:, 1], pix // w)
+    assert np.allclose(pts.rho.numpy(), 2.0 + 4.0 * t.ravel()[pix], atol=1e-4)
+    assert np.allclose(pts.confidence.numpy(), 0.9)
+
+
+def test_kernel_matches_numpy_twin(device):
+    from ringscan.pipeline.dense import phase_numpy, points_numpy, smooth_numpy
+    from ringscan.tools.numpy_reference import decode_numpy
+
+    spec = _spec()
+    frames = _stack(spec, noise=2.0, cam_gamma=2.2, light_gamma=1.3, seed=5)
+    fr, lab, ph = _decode(frames, spec, device, cam_gamma=2.2, light_gamma=1.3)
+    dec = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
+    lut, wlut = response_tables(255, camera_gamma=2.2)
+    ref = phase_numpy(frames, dec, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps, lut=lut, wlut=wlut,
+                      light_gamma=1.3)
+    st, rst = ph.status.numpy(), ref["status"]
+    assert np.mean(st == rst) > 0.999
+    both = (st == 0) & (rst == 0)
+    assert both.sum() > 3000
+    assert np.allclose(ph.t.numpy()[both], ref["t"][both], atol=2e-4)
+    sm = smooth_phase(ph, lab.sector)
+    rsm = smooth_numpy(ref, dec["sector"])
+    p = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch)
+    rp = points_numpy(rsm, rho0=spec.rho0, pitch=spec.pitch)
+    common, ia, ib = np.intersect1d(p.pixel.numpy(), rp["pixel"], return_indices=True)
+    assert len(common) > 0.99 * max(len(p), len(rp["pixel"]))
+    assert np.allclose(p.rho.numpy()[ia], rp["rho"][ib], atol=2e-3)
+    assert np.mean(p.sector.numpy()[ia] == rp["sector"][ib]) > 0.999
+
+
+def test_response_tables():
+    lut, wlut = response_tables(255, camera_gamma=2.2)
+    assert lut.shape == wlut.shape == (256,)
+    assert lut[0] == 0 and lut[255] == pytest.approx(1.0) and lut[128] == pytest.approx((128 / 255) ** 2.2, rel=1e-6)
+    # brighter values are noisier once linearised: lower weight
+    assert np.all(np.diff(wlut[10:]) < 0) and wlut.max() == pytest.approx(1.0)
+    lut1, w1 = response_tables(65535, camera_gamma=1.0)
+    assert lut1.shape == (65536,) and np.all(w1 == 1)
+    _, wu = response_tables(255, camera_gamma=2.2, weighted=False)
+    assert np.all(wu == 1)
+    with pytest.raises(ValueError, match="full_scale"):
+        response_tables(1023)
+    with pytest.raises(ValueError, match="gamma"):
+        response_tables(255, camera_gamma=0.0)
+
+
+def test_bad_inputs(device):
+    spec = _spec()
+    frames = _stack(spec)
+    fr = wp.array(frames, device=device)
+    lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
+    lut, wlut = (wp.array(a, device=device) for a in response_tables(255))
+    kw = dict(bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps, lut=lut, wlut=wlut)
+    with pytest.raises(ValueError, match="uint8/uint16"):
+        decode_phase(wp.array(frames.astype(np.float32), device=device), lab, **kw)
+    with pytest.raises(ValueError, match="need"):
+        decode_phase(wp.array(frames[:-1], device=device), lab, **kw)
+    with pytest.raises(ValueError, match="lut"):
+        decode_phase(fr, lab, **{**kw, "lut": wp.array(response_tables(65535)[0], device=device)})
+    small = decode_gray_rings(wp.array(frames[:, :10, :10].copy(), device=device), bits=spec.bits,
+                              sector_bits=spec.sector_bits)
+    with pytest.raises(ValueError, match="labels"):
+        decode_phase(fr, small, **kw)
+    with pytest.raises(ValueError, match="steps"):
+        decode_phase(fr, lab, **{**kw, "steps": 2})
+    ph = decode_phase(fr, lab, **kw)
+    with pytest.raises(ValueError, match="sector"):
+        smooth_phase(ph, small.sector)
+    with pytest.raises(ValueError, match="smooth_phase first"):
+        compact_phase_points(ph, rho0=1.0, pitch=2.0)
+    with pytest.raises(ValueError, match="response"):
+        PhaseSettings(response="auto")
+    with pytest.raises(ValueError, match="smooth_radius"):
+        PhaseSettings(smooth_radius=9)
+
+
+def test_sixteen_bit_frames(device):
+    spec = _spec()
+    t_true, rho = _truth_t(spec)
+    frames = (_stack(spec).astype(np.uint16) * 257)
+    fr = wp.array(frames, device=device)
+    lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
+    lut, wlut = (wp.array(a, device=device) for a in response_tables(65535))
+    ph = decode_phase(fr, lab, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps, lut=lut, wlut=wlut,
+                      settings=PhaseSettings(smooth_radius=0))
+    ok = _annulus(spec, rho) & (ph.status.numpy() == 0)
+    assert ok.sum() > 0.95 * _annulus(spec, rho).sum()
+    assert np.abs(ph.t.numpy()[ok] - t_true[ok]).max() < 0.05
+    assert math.isfinite(float(ph.modulation.numpy().max()))
