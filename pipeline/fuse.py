@@ -35,7 +35,7 @@ import numpy as np
 
 from .errors import FormatError
 from .io import read_json, read_ply
-from .rig import Rig, Turntable, parse_rig
+from .rig import Rig, Turntable, parse_rig, turntable_transform
 
 log = logging.getLogger(__name__)
 
@@ -44,10 +44,10 @@ __all__ = [
     "ViewCloud",
     "ViewResidual",
     "FuseResult",
-    "turntable_transform",
     "fuse_views",
     "load_recon",
     "fuse_recon",
+    "recon_folder",
 ]
 
 REPORT_NAME = "report.json"
@@ -62,9 +62,10 @@ class FuseSettings:
 
     min_confidence: float = 0.0
     """Points whose ``confidence`` is below this are dropped before anything else."""
-    ground_clip_mm: float | None = None
-    """Drop points whose world z is below this (the reference plane / turntable top
-    at z = 0 would otherwise fuse into the object); None keeps every point."""
+    ground_clip_mm: float | None = 0.5
+    """Drop points whose world z is below this: the reference plane z = 0 (DESIGN §2),
+    on which the object stands, would otherwise fuse into the object as a disc;
+    None keeps every point."""
     statistical_neighbors: int = 20
     """Statistical outlier removal: neighbours averaged per point (0 turns it off)."""
     statistical_std_ratio: float = 3.0
@@ -193,24 +194,6 @@ class FuseResult:
 
 
 # ----------------------------------------------------------------------------- geometry helpers
-
-
-def turntable_transform(turntable: Turntable, theta_deg: float) -> np.ndarray:
-    """4x4 rigid transform turning points by ``theta_deg`` about the turntable axis.
-
-    Right-handed about ``axis_dir``. ``turntable_transform(tt, -theta)`` takes a
-    point seen in a view at angle ``theta`` into the object frame (DESIGN §6).
-    """
-    k = np.asarray(turntable.axis_dir, float)
-    k = k / np.linalg.norm(k)
-    p = np.asarray(turntable.axis_point, float)
-    a = math.radians(theta_deg)
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    R = np.eye(3) + math.sin(a) * Kx + (1 - math.cos(a)) * (Kx @ Kx)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = p - R @ p
-    return T
 
 
 def _rotation_deg(T: np.ndarray) -> float:
@@ -559,15 +542,51 @@ def load_recon(recon_dir: str | os.PathLike) -> tuple[list[ViewCloud], Rig | Non
     return views, rig, report
 
 
+def recon_folder(path: str | os.PathLike, *, work_dir: str | os.PathLike | None = None, device: str | None = None,
+                 progress: bool = False) -> Path:
+    """The reconstruction folder for ``path``.
+
+    A folder with ``report.json`` is returned as it is. A scan folder (with
+    ``scan.json``) is reconstructed first, into ``work_dir`` (required then), with
+    :func:`ringscan.pipeline.reconstruct.reconstruct_scan`.
+
+    Raises:
+        FormatError: ``path`` is neither.
+        ValueError: a scan folder without ``work_dir``.
+    """
+    path = Path(path)
+    if (path / REPORT_NAME).is_file():
+        return path
+    if (path / "scan.json").is_file():
+        if work_dir is None:
+            raise ValueError(f"{path} is a scan folder: give a folder to reconstruct it into")
+        try:
+            from .reconstruct import reconstruct_scan
+        except ImportError as e:  # pragma: no cover - only in partial checkouts
+            raise ValueError(f"{path} is a scan folder, but this install cannot reconstruct scans ({e}); "
+                             "run `ringscan reconstruct` first and fuse its output folder") from None
+        log.info("reconstructing scan %s into %s", path, work_dir)
+        reconstruct_scan(path, work_dir, device=device, progress=progress)
+        return Path(work_dir)
+    if not path.exists():
+        raise FormatError(path, "not found")
+    raise FormatError(path, f"neither a reconstruction folder ({REPORT_NAME}) nor a scan folder (scan.json)")
+
+
 def fuse_recon(path: str | os.PathLike, *, settings: FuseSettings = FuseSettings(), rig: Rig | None = None,
+               work_dir: str | os.PathLike | None = None, device: str | None = None,
                progress: bool = False) -> FuseResult:
-    """Fuse a reconstruction folder (``report.json`` + per-view PLYs).
+    """Fuse a reconstruction folder (``report.json`` + per-view PLYs) or a scan folder.
 
     Args:
-        path: the reconstruction folder.
+        path: the reconstruction folder, or a scan folder (reconstructed first into
+            ``work_dir``, see :func:`recon_folder`).
         settings: fusion settings.
         rig: use this rig instead of the one in the report (e.g. a corrected axis).
-        progress: show a progress bar.
+        work_dir: where a scan folder is reconstructed.
+        device: Warp device for that reconstruction.
+        progress: show progress bars.
     """
-    views, rep_rig, _ = load_recon(path)
+    folder = recon_folder(path, work_dir=work_dir, device=device, progress=progress)
+    views, rep_rig, _ = load_recon(folder)
     return fuse_views(views, rig if rig is not None else rep_rig, settings=settings, progress=progress)

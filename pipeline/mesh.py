@@ -47,6 +47,7 @@ __all__ = [
     "mesh_cloud",
     "mesh_fused",
     "make_watertight",
+    "orient_normals",
     "clean_mesh",
     "write_mesh",
     "read_mesh",
@@ -229,6 +230,9 @@ def _poisson(cloud, s: MeshSettings, scale: float | None = None):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             cloud, depth=s.poisson_depth, scale=s.poisson_scale if scale is None else scale,
             linear_fit=s.poisson_linear_fit)
+    if not cloud.has_colors():
+        # Open3D gives the mesh black vertex colours when the cloud has none.
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
     return mesh, np.asarray(dens)
 
 
@@ -555,6 +559,27 @@ def mesh_fused(result, *, settings: MeshSettings = MeshSettings()) -> MeshResult
     return poisson_mesh(result.cloud, settings=settings)
 
 
+def orient_normals(cloud, *, k: int = 20):
+    """Estimate normals of a bare cloud and orient them outward, in place.
+
+    Normals come from PCA over the ``k`` nearest neighbours, are made consistent
+    over the cloud (Open3D's tangent-plane propagation) and flipped as a whole when
+    most point toward the centroid (right for a single closed object). Clouds from
+    :func:`~ringscan.pipeline.fuse.fuse_views` need none of this: their normals are
+    oriented toward each view's camera.
+    """
+    o3d = _o3d()
+    if len(cloud.points) < 3:
+        raise ValueError(f"cloud has {len(cloud.points)} points: too few to estimate normals")
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
+    cloud.orient_normals_consistent_tangent_plane(k)
+    pts = np.asarray(cloud.points)
+    nrm = np.asarray(cloud.normals)
+    if np.mean(np.einsum("ij,ij->i", nrm, pts - pts.mean(axis=0)) < 0) > 0.5:
+        cloud.normals = o3d.utility.Vector3dVector(-nrm)
+    return cloud
+
+
 # ----------------------------------------------------------------------------- files
 
 
@@ -663,12 +688,19 @@ def compare_to_truth(mesh, truth, *, samples: int = 200_000, within_mm: float = 
 
 def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, fuse_settings=None,
                   mesh_settings: MeshSettings = MeshSettings(), formats=(".ply",), preview: bool = True,
-                  rig=None, progress: bool = False) -> dict:
-    """Fuse a reconstruction folder, mesh it, write everything to ``out_dir``.
+                  rig=None, truth=None, device: str | None = None, progress: bool = False) -> dict:
+    """Fuse a reconstruction folder (or a scan folder), mesh it, write everything.
 
-    Writes ``fused.ply`` (the fused cloud), ``mesh.<ext>`` for each of ``formats``,
-    ``preview.png`` (when ``preview``; see :mod:`ringscan.pipeline.visualize`) and
-    ``fuse_report.json`` (per-view residuals, mesh checks, resolved settings).
+    Writes into ``out_dir``: ``fused.ply`` (the fused cloud), ``mesh.<ext>`` for each
+    of ``formats`` (ply, obj, stl), ``preview.png`` (when ``preview``; see
+    :mod:`ringscan.pipeline.visualize`) and ``fuse_report.json`` (per-view residuals,
+    mesh checks, resolved settings, and the figures against ``truth`` when given).
+    A scan folder is reconstructed first into ``out_dir/recon``.
+
+    Args:
+        truth: a truth mesh (``o3d.geometry.TriangleMesh``, a mesh file, or a
+            simulated scan folder whose ``truth/object.ply`` is used) to measure the
+            mesh against with :func:`compare_to_truth`.
 
     Returns:
         The report dictionary (also written to ``fuse_report.json``).
@@ -676,14 +708,18 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
     from .fuse import FuseSettings, fuse_recon
 
     fuse_settings = FuseSettings() if fuse_settings is None else fuse_settings
+    _check_settings(mesh_settings)
     out_dir = Path(out_dir)
     fmts = []
     for f in formats:
-        f = f if str(f).startswith(".") else f".{f}"
-        _ext(Path("mesh" + f.lower()), MESH_FORMATS)
-        fmts.append(f.lower())
+        f = str(f).lower()
+        f = f if f.startswith(".") else f".{f}"
+        _ext(Path("mesh" + f), MESH_FORMATS)
+        fmts.append(f)
+    truth_mesh = _load_truth(truth) if truth is not None else None
     t0 = time.perf_counter()
-    fused = fuse_recon(recon_dir, settings=fuse_settings, rig=rig, progress=progress)
+    fused = fuse_recon(recon_dir, settings=fuse_settings, rig=rig, work_dir=out_dir / "recon", device=device,
+                       progress=progress)
     t_fuse = time.perf_counter() - t0
     mres = mesh_fused(fused, settings=mesh_settings)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -695,11 +731,30 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
     if preview:
         from .visualize import render_to_png
 
-        render_to_png([mres.mesh], out_dir / "preview.png")
+        res = render_to_png([mres.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
+        outputs["preview_renderer"] = res.renderer
     rep = {"format": FUSE_REPORT_FORMAT, "source": str(Path(recon_dir).resolve()),
            "fusion": fused.report(), "mesh": {"method": mres.method, "watertight": mres.watertight, **mres.info},
            "settings": {"fuse": dataclasses.asdict(fuse_settings), "mesh": dataclasses.asdict(mesh_settings)},
-           "outputs": outputs, "seconds": {"fuse": round(t_fuse, 3), "total": round(time.perf_counter() - t0, 3)}}
+           "outputs": outputs}
+    if truth_mesh is not None:
+        rep["truth"] = compare_to_truth(mres.mesh, truth_mesh)
+    rep["seconds"] = {"fuse": round(t_fuse, 3), "total": round(time.perf_counter() - t0, 3)}
     atomic_write_json(out_dir / "fuse_report.json", rep)
     return rep
+
+
+def _load_truth(truth):
+    o3d = _o3d()
+    if isinstance(truth, o3d.geometry.TriangleMesh):
+        return truth
+    p = Path(truth)
+    if p.is_dir():
+        from .io import read_json
+
+        t = read_json(p / "scan.json").get("truth")
+        if not isinstance(t, dict) or not isinstance(t.get("mesh"), str):
+            raise FormatError(p / "scan.json", "truth.mesh: this scan has no ground truth mesh")
+        p = p / t["mesh"]
+    return read_mesh(p)

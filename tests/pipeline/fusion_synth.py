@@ -14,8 +14,8 @@ import dataclasses
 import numpy as np
 import open3d as o3d
 
-from ringscan.pipeline.fuse import ViewCloud, turntable_transform
-from ringscan.pipeline.rig import Camera, Rig, Turntable, default_rig
+from ringscan.pipeline.fuse import ViewCloud
+from ringscan.pipeline.rig import Camera, Rig, Turntable, default_rig, turntable_transform
 
 
 def lumpy_object(radius: float = 22.0, center=(3.0, -2.0, 30.0), resolution: int = 60) -> o3d.geometry.TriangleMesh:

@@ -1,0 +1,88 @@
+"""``ringscan fuse SCAN_OR_RECON --out DIR``: fused cloud, mesh, preview and report."""
+
+from __future__ import annotations
+
+from ringscan.pipeline.fuse import FuseSettings
+from ringscan.pipeline.mesh import MESH_FORMATS, MeshSettings, fuse_and_mesh
+
+from .cli import add_device_option
+
+
+def add_parser(sub):
+    p = sub.add_parser("fuse", help="fuse turntable views into one cloud and mesh it",
+                       description="SCAN_OR_RECON is a reconstruction folder (report.json + one PLY per view) or a "
+                                   "scan folder (reconstructed first into DIR/recon). Writes DIR/fused.ply, "
+                                   "DIR/mesh.<ext>, DIR/preview.png and DIR/fuse_report.json (per-view residuals "
+                                   "and the resolved settings).")
+    p.add_argument("source", metavar="SCAN_OR_RECON", help="reconstruction folder or scan folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--method", choices=("poisson", "tsdf"), default="poisson", help="meshing method (default poisson)")
+    p.add_argument("--watertight", action="store_true", help="closed manifold mesh (checked with is_watertight)")
+    p.add_argument("--formats", default="ply", metavar="LIST",
+                   help="mesh formats, comma-separated from ply,obj,stl (default ply)")
+    p.add_argument("--voxel", type=float, default=None, metavar="MM",
+                   help=f"voxel size of the fused cloud (default {FuseSettings.voxel_mm})")
+    p.add_argument("--ground-clip", default=None, metavar="MM",
+                   help=f"drop points below this world z; 'none' keeps all (default {FuseSettings.ground_clip_mm})")
+    p.add_argument("--no-refine", action="store_true", help="trust the turntable axis: no ICP / pose graph")
+    p.add_argument("--poisson-depth", type=int, default=None, metavar="N",
+                   help=f"Poisson octree depth (default {MeshSettings.poisson_depth})")
+    p.add_argument("--tsdf-voxel", type=float, default=None, metavar="MM",
+                   help=f"TSDF voxel size (default {MeshSettings.tsdf_voxel_mm})")
+    p.add_argument("--truth", default=None, metavar="MESH_OR_SCAN",
+                   help="measure the mesh against this truth mesh (or a simulated scan's truth)")
+    p.add_argument("--no-preview", action="store_true", help="do not render preview.png")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_device_option(p)
+    return p
+
+
+def parse_formats(text: str) -> tuple[str, ...]:
+    fmts = tuple("." + f.strip().lower().lstrip(".") for f in text.split(",") if f.strip())
+    bad = [f for f in fmts if f not in MESH_FORMATS]
+    if not fmts or bad:
+        raise ValueError(f"--formats: expected some of ply, obj, stl, got {text!r}")
+    return fmts
+
+
+def run(args) -> int:
+    fkw = {}
+    if args.voxel is not None:
+        fkw["voxel_mm"] = args.voxel
+    if args.ground_clip is not None:
+        if args.ground_clip.lower() == "none":
+            fkw["ground_clip_mm"] = None
+        else:
+            try:
+                fkw["ground_clip_mm"] = float(args.ground_clip)
+            except ValueError:
+                raise ValueError(f"--ground-clip: expected a number of mm or 'none', got {args.ground_clip!r}") from None
+    if args.no_refine:
+        fkw["refine"] = False
+    mkw = {"method": args.method, "watertight": args.watertight}
+    if args.poisson_depth is not None:
+        mkw["poisson_depth"] = args.poisson_depth
+    if args.tsdf_voxel is not None:
+        mkw["tsdf_voxel_mm"] = args.tsdf_voxel
+    rep = fuse_and_mesh(args.source, args.out, fuse_settings=FuseSettings(**fkw), mesh_settings=MeshSettings(**mkw),
+                        formats=parse_formats(args.formats), preview=not args.no_preview, truth=args.truth,
+                        device=args.device, progress=not args.no_progress)
+    print(f"{'view':<12}{'deg':>7}{'points':>9}{'kept':>9}{'fit before':>11}{'rms before':>11}{'fit':>7}"
+          f"{'rms mm':>8}{'corr mm':>9}{'corr deg':>9}")
+    for v in rep["fusion"]["views"]:
+        print(f"{v['name']:<12}{v['turntable_deg']:>7.1f}{v['points_in']:>9}{v['points_kept']:>9}"
+              f"{v['fitness_before']:>11.3f}{v['rmse_before_mm']:>11.4f}{v['fitness']:>7.3f}{v['rmse_mm']:>8.4f}"
+              f"{v['correction_mm']:>9.3f}{v['correction_deg']:>9.3f}")
+    m = rep["mesh"]
+    wt = "" if m["watertight"] is None else f", watertight {m['watertight']}"
+    print(f"fused {rep['fusion']['points']} points; {m['method']} mesh {m['vertices']} vertices, "
+          f"{m['triangles']} triangles{wt}; {rep['seconds']['total']:.1f} s")
+    if "truth" in rep:
+        t = rep["truth"]
+        print(f"vs truth: mesh->truth {t['mesh_to_truth_mean']:.4f} mm, truth->mesh {t['truth_to_mesh_mean']:.4f} mm, "
+              f"{100 * t['truth_within']:.2f}% of truth within {t['within_mm']} mm")
+    print(f"wrote {args.out}/: {', '.join([rep['outputs']['cloud'], *rep['outputs']['meshes'], *([rep['outputs']['preview']] if 'preview' in rep['outputs'] else [])])}, fuse_report.json")
+    if args.watertight and not m["watertight"]:
+        print("warning: the mesh is not watertight (see fuse_report.json mesh checks)")
+        return 1
+    return 0

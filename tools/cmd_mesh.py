@@ -1,0 +1,50 @@
+"""``ringscan mesh CLOUD.ply --out MESH.{ply,obj,stl}``: mesh a point cloud."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ringscan.pipeline.mesh import MESH_FORMATS, MeshSettings, mesh_cloud, orient_normals, read_cloud, write_mesh
+
+
+def add_parser(sub):
+    p = sub.add_parser("mesh", help="mesh a point cloud (Poisson or TSDF) into PLY, OBJ or STL",
+                       description="CLOUD is a point cloud file (e.g. fused.ply of `ringscan fuse`). Normals are "
+                                   "used when present, else estimated and oriented outward. The output format "
+                                   "follows the extension of --out.")
+    p.add_argument("cloud", metavar="CLOUD", help="point cloud file (PLY, PCD, XYZ, ...)")
+    p.add_argument("--out", required=True, metavar="MESH", help="output mesh: .ply, .obj or .stl")
+    p.add_argument("--method", choices=("poisson", "tsdf"), default="poisson", help="meshing method (default poisson)")
+    p.add_argument("--watertight", action="store_true", help="closed manifold mesh (checked with is_watertight)")
+    p.add_argument("--poisson-depth", type=int, default=None, metavar="N",
+                   help=f"Poisson octree depth (default {MeshSettings.poisson_depth})")
+    p.add_argument("--density-quantile", type=float, default=None, metavar="Q",
+                   help=f"trim Poisson vertices below this density quantile (default {MeshSettings.density_quantile})")
+    p.add_argument("--tsdf-voxel", type=float, default=None, metavar="MM",
+                   help=f"TSDF voxel size (default {MeshSettings.tsdf_voxel_mm})")
+    return p
+
+
+def run(args) -> int:
+    out = Path(args.out)
+    if out.suffix.lower() not in MESH_FORMATS:
+        raise ValueError(f"--out: {out.name}: the extension must be one of {', '.join(MESH_FORMATS)}")
+    kw = {"method": args.method, "watertight": args.watertight}
+    if args.poisson_depth is not None:
+        kw["poisson_depth"] = args.poisson_depth
+    if args.density_quantile is not None:
+        kw["density_quantile"] = args.density_quantile
+    if args.tsdf_voxel is not None:
+        kw["tsdf_voxel_mm"] = args.tsdf_voxel
+    settings = MeshSettings(**kw)
+    cloud = read_cloud(args.cloud)
+    if not cloud.has_normals():
+        orient_normals(cloud)
+    res = mesh_cloud(cloud, settings=settings)
+    write_mesh(out, res.mesh)
+    wt = "" if res.watertight is None else f", watertight {res.watertight}"
+    print(f"{res.method} mesh: {res.info['vertices']} vertices, {res.info['triangles']} triangles{wt}; wrote {out}")
+    if args.watertight and not res.watertight:
+        print("warning: the mesh is not watertight")
+        return 1
+    return 0
