@@ -91,3 +91,19 @@ def test_decode_threads_agree():
     b = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=3)
     assert np.array_equal(a.band.numpy(), b.band.numpy())
     assert np.array_equal(a.sector.numpy(), b.sector.numpy())
+
+
+def test_eight_pixel_words_match_pixel_kernel(device):
+    """The 8-bit decode runs on uint64 words (eight pixels at once) where the width
+    is a multiple of 8, else one pixel at a time: both give the same labels."""
+    rng = np.random.default_rng(3)
+    st = rng.integers(0, 256, size=(2 + 2 * 5 + 2 * 3, 20, 64), dtype=np.uint8)
+    st[0] = np.maximum(st[0], 150)
+    st[1] = np.minimum(st[1], 60)
+    wide = np.concatenate([st, st[:, :, :1]], axis=2)  # width 65: the per-pixel kernel
+    for margin in (0.0, 0.12, 0.5, 2.0):
+        s = DecodeSettings(bit_margin=margin)
+        a = decode_gray_rings(wp.array(st, device=device), bits=5, sector_bits=3, settings=s)
+        b = decode_gray_rings(wp.array(wide, device=device), bits=5, sector_bits=3, settings=s)
+        for name in ("code", "weak", "band", "sector", "contrast"):
+            assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()[:, :64]), (margin, name)
