@@ -10,6 +10,7 @@ Fusing the views with the right axis must give the object back.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import open3d as o3d
@@ -95,3 +96,43 @@ def visible_truth(mesh: o3d.geometry.TriangleMesh, rig: Rig, angles_deg, n: int 
         t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
         seen |= np.abs(t - dist) < 0.05
     return pts[seen]
+
+
+ANGLES = tuple(float(a) for a in np.arange(8) * 45.0)
+
+
+@functools.lru_cache(maxsize=2)
+def synthetic_scan(noise_mm: float = 0.03):
+    """(object mesh, rig, angles, views): 8 turntable views of the lumpy object with
+    a 400 x 320 camera (cached; treat as read-only)."""
+    rig = small_rig(400, 320, 800.0)
+    obj = lumpy_object()
+    return obj, rig, ANGLES, tuple(scan_views(obj, rig, ANGLES, noise_mm=noise_mm))
+
+
+def wrong_axis(rig: Rig, tilt_deg: float = 0.5, offset_mm: float = 1.0) -> Rig:
+    """The rig with its turntable axis tilted by ``tilt_deg`` and moved by ``offset_mm``."""
+    a = np.radians(tilt_deg)
+    tt = Turntable(axis_point=rig.turntable.axis_point + np.array([offset_mm, 0.0, 0.0]),
+                   axis_dir=np.array([np.sin(a), 0.0, np.cos(a)]))
+    return dataclasses.replace(rig, turntable=tt)
+
+
+def write_recon(folder, views, rig: Rig, *, with_normals: bool = False) -> None:
+    """Write views as a reconstruction folder (report.json + one PLY per view)."""
+    from ringscan.pipeline.io import atomic_write_json, write_ply
+    from ringscan.pipeline.rig import rig_to_dict
+
+    entries = []
+    for i, v in enumerate(views):
+        f = {"x": v.points[:, 0].astype(np.float32), "y": v.points[:, 1].astype(np.float32),
+             "z": v.points[:, 2].astype(np.float32)}
+        if with_normals and v.normals is not None:
+            f.update(nx=v.normals[:, 0], ny=v.normals[:, 1], nz=v.normals[:, 2])
+        n = len(v.points)
+        f.update(ring=np.arange(n, dtype=np.int32) % 50, view=np.full(n, i, np.int32),
+                 confidence=np.ones(n, np.float32))
+        write_ply(folder / f"{v.name}.ply", f)
+        entries.append({"name": v.name, "turntable_deg": v.turntable_deg, "ply": f"{v.name}.ply",
+                        "camera_center": v.camera_center.tolist(), "points": n})
+    atomic_write_json(folder / "report.json", {"scan": str(folder), "views": entries, "rig": rig_to_dict(rig)})
