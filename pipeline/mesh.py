@@ -606,7 +606,9 @@ def write_mesh(path: str | os.PathLike, mesh) -> None:
         mesh.compute_vertex_normals()
     with atomic_path(path) as tmp:
         kw = {"write_ascii": False} if ext != ".obj" else {}
-        ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_vertex_colors=mesh.has_vertex_colors(), **kw)
+        # (OBJ keeps vertex normals only: Open3D's warning about triangle normals is noise.)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_vertex_colors=mesh.has_vertex_colors(), **kw)
         if not ok:
             raise FormatError(path, "Open3D could not write the mesh")
 
