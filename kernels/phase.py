@@ -139,6 +139,8 @@ class PhaseMap:
     sector: wp.array | None = None
     """int32 sector per pixel with gaps at sector edges filled from neighbours
     (set by :func:`smooth_phase`), -1 unknown."""
+    flags: wp.array | None = None
+    """int32 (H*W,) 1 where status is 0 (set by :func:`smooth_phase`)."""
 
 
 @dataclass
@@ -201,6 +203,7 @@ def phase_unwrap_kernel(
     frames: wp.array3d(dtype=Any),
     lut: wp.array(dtype=wp.float32),
     wlut: wp.array(dtype=wp.float32),
+    trig: wp.array(dtype=wp.vec2),
     code: wp.array2d(dtype=wp.int32),
     weak: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
@@ -225,6 +228,7 @@ def phase_unwrap_kernel(
         phase_0 at index ``phase0``).
     lut, wlut: (full_scale + 1,) float32, read: linear value and weight of each
         recorded value.
+    trig: (steps,) vec2, read: (cos, sin) of each step's shift 2 pi n / steps.
     code, weak: (H, W) int32, contrast: (H, W) float32, read (the band decode).
     t_out, modulation: (H, W) float32, status: (H, W) int32, written.
     """
@@ -268,9 +272,8 @@ def phase_unwrap_kernel(
                 # chain rule: d val / dL = inv_gamma * u^(inv_gamma - 1) / span
                 g = inv_light_gamma * wp.pow(u, inv_light_gamma - 1.0) / span
                 wt = wt / (g * g)
-            dl = TWO_PI * float(n) / float(steps)
-            cn = wp.cos(dl)
-            sn = wp.sin(dl)
+            cn = trig[n][0]
+            sn = trig[n][1]
             s0 += wt
             sc += wt * cn
             ss += wt * sn
@@ -280,14 +283,18 @@ def phase_unwrap_kernel(
             r0 += wt * val
             rc += wt * cn * val
             rs += wt * sn * val
-        G = wp.mat33(s0, sc, ss, sc, scc, scs, ss, scs, sss)
-        det = wp.determinant(G)
+        # Solve the symmetric system by its cofactors (Cramer's rule).
+        c12 = ss * scs - sc * sss
+        c13 = sc * scs - ss * scc
+        c22 = s0 * sss - ss * ss
+        c23 = sc * ss - s0 * scs
+        c33 = s0 * scc - sc * sc
+        det = s0 * (scc * sss - scs * scs) + sc * c12 + ss * c13
         if not (det > 1.0e-9 * s0 * s0 * s0):
             status[y, x] = PHASE_MODULATION
             continue
-        sol = wp.inverse(G) * wp.vec3(r0, rc, rs)
-        bc = sol[1]
-        bs = sol[2]
+        bc = (c12 * r0 + c22 * rc + c23 * rs) / det
+        bs = (c13 * r0 + c23 * rc + c33 * rs) / det
         amp = wp.sqrt(bc * bc + bs * bs)
         q = 2.0 * amp
         if not normalise:
@@ -347,12 +354,14 @@ def smooth_phase_kernel(
     t_out: wp.array2d(dtype=wp.float32),
     status_out: wp.array2d(dtype=wp.int32),
     sector_out: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
 ):
     """Pair-wise smoothing of t and sector gap filling, ``chunk`` pixels of one row
     per thread.
 
     t: (H, W) float32, status: (H, W) int32, sector: (H, W) int32, read.
-    t_out: (H, W) float32, status_out, sector_out: (H, W) int32, written.
+    t_out: (H, W) float32, status_out, sector_out: (H, W) int32, flags: (H*W,)
+    int32 (1 where the pixel stays a point, the count for the compaction), written.
     """
     tid = wp.tid()
     h = t.shape[0]
@@ -366,6 +375,7 @@ def smooth_phase_kernel(
         t_out[y, x] = t[y, x]
         status_out[y, x] = st
         s = int(sector[y, x])
+        flags[y * w + x] = 0
         if st != PHASE_OK:
             sector_out[y, x] = s
             continue
@@ -398,6 +408,8 @@ def smooth_phase_kernel(
                             pairs = pairs + 1
         if radius > 0 and seen > 0 and pairs < min_pairs:
             status_out[y, x] = PHASE_LONELY
+        else:
+            flags[y * w + x] = 1
         t_out[y, x] = acc / cnt
         # A pixel on a sector edge has a weak sector bit: either neighbouring
         # sector is right to within the triangulation's tolerance.
@@ -413,13 +425,6 @@ def smooth_phase_kernel(
                             best = d2
                             s = sector[yy, xx]
         sector_out[y, x] = s
-
-
-@wp.kernel
-def count_points_kernel(status: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
-    """flags[i] = 1 where status[i] == 0. status (H*W,) read; flags (H*W,) written."""
-    i = wp.tid()
-    flags[i] = wp.where(status[i] == PHASE_OK, 1, 0)
 
 
 @wp.kernel
@@ -542,9 +547,11 @@ def decode_phase(
     if h * w == 0:
         return out
     s = settings
+    shifts = 2.0 * np.pi * np.arange(steps) / steps
+    trig = wp.array(np.stack([np.cos(shifts), np.sin(shifts)], -1).astype(np.float32), dtype=wp.vec2, device=dev)
     launch_rows(
         phase_unwrap_kernel, h, w,
-        lambda r0, chunk: [frames, lut, wlut, labels.code, labels.weak, labels.contrast, bits, phase0, steps,
+        lambda r0, chunk: [frames, lut, wlut, trig, labels.code, labels.weak, labels.contrast, bits, phase0, steps,
                            1.0 / float(light_gamma), s.min_contrast * scale, s.min_modulation, s.edge_ratio,
                            s.slip_tolerance, r0, chunk],
         [out.t, out.modulation, out.status], dev, default_threads() if threads is None else threads,
@@ -576,7 +583,7 @@ def smooth_phase(
         raise ValueError(f"smooth_phase: sector must be a ({h}, {w}) int32 Warp array")
     dev = phase.t.device
     out = PhaseMap(t=wp.empty_like(phase.t), modulation=phase.modulation, status=wp.empty_like(phase.status),
-                   sector=wp.empty_like(sector))
+                   sector=wp.empty_like(sector), flags=wp.empty(h * w, dtype=wp.int32, device=dev))
     if h * w == 0:
         return out
     s = settings
@@ -584,19 +591,20 @@ def smooth_phase(
         smooth_phase_kernel, h, w,
         lambda r0, chunk: [phase.t, phase.status, sector, int(s.smooth_radius), float(s.smooth_tolerance),
                            int(s.min_pairs), r0, chunk],
-        [out.t, out.status, out.sector], dev, default_threads() if threads is None else threads,
+        [out.t, out.status, out.sector, out.flags], dev, default_threads() if threads is None else threads,
     )
     return out
 
 
 def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float) -> PhasePoints:
-    """One point per valid pixel, in raster order (count, scan, write).
+    """One point per valid pixel, in raster order (count: the flags that
+    :func:`smooth_phase` wrote; scan; write).
 
     Args:
         phase: a :class:`PhaseMap` with ``sector`` set (:func:`smooth_phase`).
         rho0, pitch: the pattern's inner radius and pitch (projector px).
     """
-    if phase.sector is None:
+    if phase.sector is None or phase.flags is None:
         raise ValueError("compact_phase_points: the phase map has no sector (run smooth_phase first)")
     h, w = phase.t.shape
     dev = phase.t.device
@@ -604,8 +612,7 @@ def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float) -> Phase
     flat = lambda a: a.reshape((n,))  # noqa: E731
     total = 0
     if n:
-        flags = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(count_points_kernel, dim=n, inputs=[flat(phase.status)], outputs=[flags], device=dev)
+        flags = phase.flags
         offsets = wp.empty_like(flags)
         wp.utils.array_scan(flags, offsets, inclusive=False)
         total = int(offsets[-1:].numpy()[0] + flags[-1:].numpy()[0])
