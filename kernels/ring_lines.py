@@ -10,7 +10,8 @@ n the profile S(p + t n) ~ S + t (g . n) + t^2 lambda / 2 peaks at
 t = -(g . n) / lambda; the pixel holds a line centre when that peak lies inside
 the pixel (|t n_x| <= 0.5 and |t n_y| <= 0.5), the profile bends down strongly
 enough (-lambda >= ``min_curvature``), the line is elongated (the other
-eigenvalue is small beside lambda) and the peak stands ``min_contrast`` grey
+eigenvalue is small beside lambda), the image is nearly flat along the line
+(which rejects the flanks of tightly curved lines) and the peak stands ``min_contrast`` grey
 levels above the local background on both sides (S read at the centre
 +- ``background_px`` along n). The sample is that sub-pixel centre: for a
 symmetric line profile it is the line's centre whatever the blur.
@@ -66,6 +67,10 @@ class LineSettings:
     max_eigen_ratio: float = 0.6
     """The eigenvalue along the line may be at most this fraction of |lambda|:
     blobs and crossings (both eigenvalues alike) are not lines."""
+    max_tangent_slope: float = 1.0
+    """Along the line the image may climb at most this many px times -lambda per
+    px: the flanks of a tightly curved line (where the profile along the line's
+    tangent also bends down) are not line centres."""
     background_px: float = 3.0
     """Distance (camera px) from the centre, along the normal, where the local
     background is read on each side."""
@@ -77,7 +82,7 @@ class LineSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"LineSettings.{name}: must be a finite number > 0, got {v!r}")
-        for name in ("min_contrast", "min_curvature", "max_eigen_ratio"):
+        for name in ("min_contrast", "min_curvature", "max_eigen_ratio", "max_tangent_slope"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"LineSettings.{name}: must be a finite number >= 0, got {v!r}")
@@ -157,6 +162,7 @@ def ridge_at(
     min_contrast: float,
     min_curvature: float,
     max_eigen_ratio: float,
+    max_tangent_slope: float,
     background_px: float,
 ):
     """Test pixel (y, x) of the smoothed image for a line centre.
@@ -201,6 +207,11 @@ def ridge_at(
         nx = 1.0
     else:
         ny = 1.0
+    # Along the line the image must be nearly flat: on the flank of a tightly
+    # curved line the profile along the line's tangent also bends down, but the
+    # image still climbs steeply toward the line there.
+    if wp.abs(-gx * ny + gy * nx) > max_tangent_slope * (-lam):
+        return none
     t = -(gx * nx + gy * ny) / lam
     px = t * nx
     py = t * ny
@@ -287,6 +298,7 @@ def count_ridges_kernel(
     min_contrast: float,
     min_curvature: float,
     max_eigen_ratio: float,
+    max_tangent_slope: float,
     background_px: float,
     row0: int,
     chunk: int,
@@ -303,7 +315,7 @@ def count_ridges_kernel(
     y = row0 + tid / n_chunks
     x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
     for x in range(x0, wp.min(x0 + chunk, w)):
-        r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, background_px)
+        r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, max_tangent_slope, background_px)
         counts[y * w + x] = wp.where(r[0] > 0.0, 1, 0)
 
 
@@ -315,6 +327,7 @@ def write_ridges_kernel(
     min_contrast: float,
     min_curvature: float,
     max_eigen_ratio: float,
+    max_tangent_slope: float,
     background_px: float,
     confidence_contrast: float,
     row0: int,
@@ -340,7 +353,7 @@ def write_ridges_kernel(
     for x in range(x0, wp.min(x0 + chunk, w)):
         i = y * w + x
         if counts[i] > 0:
-            r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, background_px)
+            r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, max_tangent_slope, background_px)
             o = offsets[i]
             uv[o] = wp.vec2(r[1], r[2])
             normal[o] = wp.vec2(r[3], r[4])
@@ -596,7 +609,7 @@ def detect_ring_lines(
     threads = default_threads() if threads is None else threads
     S = smooth_frame(frames, frame=frame, sigma=settings.sigma, threads=threads)
     params = [float(settings.min_contrast), float(settings.min_curvature), float(settings.max_eigen_ratio),
-              float(settings.background_px)]
+              float(settings.max_tangent_slope), float(settings.background_px)]
     counts = wp.zeros(h * w, dtype=wp.int32, device=dev)
     if h * w:
         launch_rows(count_ridges_kernel, h, w, lambda r0, c: [S, *params, r0, c], [counts], dev, threads)

@@ -82,6 +82,29 @@ class SingleShotSettings:
     """A centre with two neighbours on one side that lie this far apart across the
     line is a fork (two rings merging where they crowd together): the centres
     within 2 px of it are left out, so that no piece holds two rings."""
+    junction_px: float = 3.0
+    """Centres up to this far apart are compared for junctions: where their normals
+    turn by more than ``junction_deg`` + d / ``min_curvature_radius_px`` (radians)
+    over their distance d, two rings' images meet (a ring ending on another where
+    the object hides it, a kink): the centres within 2 px are left out, so that no
+    piece holds two rings."""
+    junction_deg: float = 12.0
+    """See ``junction_px``: the turn allowed for noise in the normals."""
+    min_curvature_radius_px: float = 8.0
+    """See ``junction_px``: the tightest curve (camera px) a ring's own image may
+    make; ring 0 of a pattern must appear larger than this to serve as the
+    centre anchor."""
+    segment_deg: float = 6.0
+    """Curves are cut into pieces (the units that get labels) where two centres
+    up to ``junction_px`` apart turn by more than this + d /
+    ``segment_curvature_radius_px``, or by more than this while their contrast
+    steps by ``segment_contrast_ratio``: where two rings' images might meet
+    gently. A label never passes along a curve through such a cut, only across
+    gaps from neighbouring rings."""
+    segment_curvature_radius_px: float = 30.0
+    """See ``segment_deg``."""
+    segment_contrast_ratio: float = 1.5
+    """See ``segment_deg``."""
     max_gap_px: float = 0.0
     """How far across the dark gap to look for the next ring (camera px);
     0: three times the widest ring spacing on the reference plane."""
@@ -123,7 +146,9 @@ class SingleShotSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"SingleShotSettings.{name}: expected an integer >= 1, got {v!r}")
-        for name in ("max_normal_turn_deg", "max_piece_step_px", "fork_px", "plane_tolerance_px", "bump_contrast",
+        for name in ("max_normal_turn_deg", "max_piece_step_px", "fork_px", "junction_px", "junction_deg",
+                     "min_curvature_radius_px", "segment_deg", "segment_curvature_radius_px", "segment_contrast_ratio",
+                     "plane_tolerance_px", "bump_contrast",
                      "plane_min_arc_deg", "closed_max_gap_deg", "max_step_pitches"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -150,6 +175,8 @@ class RingLabelling:
     where ``root`` is -1."""
     piece: np.ndarray
     """(n,) int32 piece of each sample (-1: in no piece)."""
+    curve: np.ndarray
+    """(n,) int32 curve of each sample (-1: in no curve)."""
     stats: dict
     """Counts: pieces, labelled pieces, anchors, links, conflicts, dropped samples."""
 
@@ -250,35 +277,56 @@ def _plane_ring_spacing_px(rig: Rig, spec: PatternSpec) -> float:
 # ----------------------------------------------------------------------------- pieces
 
 
-def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, width: int, height: int, *,
-                 settings: SingleShotSettings = SingleShotSettings()) -> tuple[np.ndarray, np.ndarray]:
-    """Chain line centres into curve pieces.
+@dataclass
+class Pieces:
+    """Line centres chained into curves and cut into pieces (NumPy, one entry per centre)."""
+
+    curve: np.ndarray
+    """(n,) int32 curve id (a chain of neighbouring centres), -1 where in none."""
+    piece: np.ndarray
+    """(n,) int32 piece id: a smooth stretch of a curve (curves are cut wherever
+    their image bends or their brightness steps), -1 where in none. Pieces are
+    the units that get ring labels."""
+    normal: np.ndarray
+    """(n, 2) float64 normals turned to agree along each curve."""
+
+
+def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast: np.ndarray, width: int,
+                 height: int, *, settings: SingleShotSettings = SingleShotSettings()) -> Pieces:
+    """Chain line centres into curves and cut those into smooth pieces.
 
     Neighbouring centres (8-neighbour pixels) join when their normals agree within
     ``max_normal_turn_deg`` and they lie within ``max_piece_step_px`` of each other
-    across the line; centres at forks (and within 2 px of them) are left out;
-    pieces shorter than ``min_piece_samples`` are dropped.
+    across the line; centres at forks and sharp junctions (and within 2 px of
+    them) are left out; curves shorter than ``min_piece_samples`` are dropped.
+    Each curve is then cut into pieces wherever two of its centres at most
+    ``junction_px`` apart turn by more than ``segment_deg`` + d /
+    ``segment_curvature_radius_px``, or turn by more than ``segment_deg`` while
+    their contrast differs by a factor above ``segment_contrast_ratio``.
 
     Args:
         uv: (n, 2) sub-pixel centres; normal: (n, 2) unit normals; pixel: (n,)
-            linear pixel index of each centre (at most one centre per pixel).
+            linear pixel index of each centre (at most one centre per pixel);
+            contrast: (n,) line contrast of each centre.
         width, height: the image size.
 
     Returns:
-        (piece (n,) int32, -1 where in no piece; normals (n, 2) float64 turned to
-        agree along each piece).
+        :class:`Pieces`.
     """
     import scipy.sparse as sp
     from scipy.sparse.csgraph import breadth_first_order, connected_components
+    from scipy.spatial import cKDTree
 
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     normal = np.asarray(normal, np.float64).reshape(-1, 2)
     pixel = np.asarray(pixel, np.int64).ravel()
+    contrast = np.asarray(contrast, np.float64).ravel()
     n = uv.shape[0]
-    if normal.shape != (n, 2) or pixel.shape != (n,):
-        raise ValueError(f"build_pieces: uv {uv.shape}, normal {normal.shape} and pixel {pixel.shape} disagree")
+    if normal.shape != (n, 2) or pixel.shape != (n,) or contrast.shape != (n,):
+        raise ValueError(f"build_pieces: uv {uv.shape}, normal {normal.shape}, pixel {pixel.shape} and contrast "
+                         f"{contrast.shape} disagree")
     if n == 0:
-        return np.zeros(0, np.int32), normal.copy()
+        return Pieces(np.full(n, -1, np.int32), np.full(n, -1, np.int32), normal.copy())
     if pixel.min() < 0 or pixel.max() >= width * height or np.unique(pixel).size != n:
         raise ValueError("build_pieces: pixel indices must be distinct and inside the image")
     smap = np.full(width * height, -1, np.int64)
@@ -313,33 +361,100 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, width: i
         s = (ends[k:] == ends[:-k]) & (side[k:] == side[:-k])
         e, q1, q2 = ends[:-k][s], other[:-k][s], other[k:][s]
         fork[e[np.abs(np.sum((uv[q1] - uv[q2]) * normal[e], 1)) > settings.fork_px]] = True
+    # Sharp junctions and kinks: two centres d px apart (d <= ``junction_px``)
+    # whose normals turn by more than ``junction_deg`` + d / ``min_curvature_radius_px``
+    # (a ring ending on another where the object hides it, a kink where two
+    # rings' images meet). A ring's own image turns by d / radius of curvature.
+    tree = cKDTree(uv)
+    pr = tree.query_pairs(settings.junction_px, output_type="ndarray").reshape(-1, 2)
+    turn = np.arccos(np.clip(np.abs(np.sum(normal[pr[:, 0]] * normal[pr[:, 1]], 1)), 0.0, 1.0))
+    dist = np.linalg.norm(uv[pr[:, 0]] - uv[pr[:, 1]], axis=1)
+    fork[pr[turn > math.radians(settings.junction_deg) + dist / settings.min_curvature_radius_px].ravel()] = True
     drop = np.zeros(n, bool)
     if fork.any():
-        from scipy.spatial import cKDTree
-
-        for near in cKDTree(uv).query_ball_point(uv[fork], 2.0):
+        for near in tree.query_ball_point(uv[fork], 2.0):
             drop[near] = True
         keep = ~drop[a] & ~drop[b]
         a, b = a[keep], b[keep]
     g = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr()
-    _, comp = connected_components(g, directed=False)
-    sizes = np.bincount(comp)
-    good = (sizes[comp] >= settings.min_piece_samples) & ~drop
-    uniq, piece = np.unique(np.where(good, comp, -1), return_inverse=True)
-    piece = piece.ravel().astype(np.int32)
-    if uniq[0] == -1:
-        piece -= 1
-    # Turn the normals to agree along each piece (breadth-first from one centre).
+    curve = _components(g, ~drop, settings.min_piece_samples)
+    # Turn the normals to agree along each curve (breadth-first from one centre).
     sign = np.ones(n)
-    first = np.full(piece.max() + 1 if piece.size and piece.max() >= 0 else 0, -1, np.int64)
-    valid = np.nonzero(piece >= 0)[0]
-    first[piece[valid[::-1]]] = valid[::-1]
+    first = np.full(int(curve.max()) + 1, -1, np.int64)
+    valid = np.nonzero(curve >= 0)[0]
+    first[curve[valid[::-1]]] = valid[::-1]
     for root in first:
         order, pred = breadth_first_order(g, int(root), directed=False, return_predecessors=True)
         for v in order[1:]:
             p = pred[v]
             sign[v] = sign[p] if normal[v] @ normal[p] >= 0 else -sign[p]
-    return piece, normal * sign[:, None]
+    # Pieces: cut where the curve bends or its brightness steps, except on the
+    # innermost closed loops (a loop around nothing is one ring whatever its
+    # curvature; the centre anchor looks for one).
+    same = (curve[pr[:, 0]] == curve[pr[:, 1]]) & (curve[pr[:, 0]] >= 0)
+    loops = _innermost_loops(uv, curve, settings.closed_max_gap_deg)
+    same &= ~np.isin(curve[pr[:, 0]], loops)
+    step = np.abs(np.log(np.maximum(contrast[pr[:, 0]], 1e-6) / np.maximum(contrast[pr[:, 1]], 1e-6)))
+    soft = math.radians(settings.segment_deg)
+    cut = same & ((turn > soft + dist / settings.segment_curvature_radius_px)
+                  | ((turn > soft) & (step > math.log(settings.segment_contrast_ratio))))
+    barrier = np.zeros(n, bool)
+    barrier[pr[cut].ravel()] = True
+    keep = ~barrier[a] & ~barrier[b]
+    gs = sp.coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n)).tocsr()
+    piece = _components(gs, (curve >= 0) & ~barrier, settings.min_piece_samples)
+    return Pieces(curve, piece, normal * sign[:, None])
+
+
+def _closed_loop_order(q: np.ndarray, max_gap_deg: float) -> np.ndarray | None:
+    """The order of points q around their centroid if they surround it with no
+    angular gap wider than max_gap_deg (a closed loop), else None."""
+    c = q.mean(0)
+    ang = np.arctan2(q[:, 1] - c[1], q[:, 0] - c[0])
+    order = np.argsort(ang)
+    gaps = np.diff(np.concatenate([ang[order], ang[order][:1] + 2 * np.pi]))
+    return order if np.degrees(gaps.max()) <= max_gap_deg else None
+
+
+def _innermost_loops(uv: np.ndarray, curve: np.ndarray, max_gap_deg: float) -> list[int]:
+    """Curves that close around their centroid with no centre of another curve inside."""
+    from skimage.measure import points_in_poly
+
+    out = []
+    for cid in range(int(curve.max()) + 1):
+        idx = np.nonzero(curve == cid)[0]
+        order = _closed_loop_order(uv[idx], max_gap_deg)
+        if order is None:
+            continue
+        poly = uv[idx][order]
+        lo, hi = poly.min(0), poly.max(0)
+        others = np.nonzero((curve >= 0) & (curve != cid) & np.all((uv >= lo) & (uv <= hi), axis=1))[0]
+        if others.size == 0 or not points_in_poly(uv[others], poly).any():
+            out.append(cid)
+    return out
+
+
+def _components(g, allowed: np.ndarray, min_size: int) -> np.ndarray:
+    """Connected components of graph g over the allowed nodes with at least
+    min_size nodes, numbered 0.. in order of their first node; -1 elsewhere."""
+    from scipy.sparse.csgraph import connected_components
+
+    _, comp = connected_components(g, directed=False)
+    sizes = np.bincount(comp[allowed], minlength=comp.max() + 1)
+    good = allowed & (sizes[comp] >= min_size)
+    uniq, lab = np.unique(np.where(good, comp, -1), return_inverse=True)
+    lab = lab.ravel().astype(np.int32)
+    if uniq[0] == -1:
+        lab -= 1
+    # number in order of first appearance
+    out = np.full(lab.size, -1, np.int32)
+    v = np.nonzero(lab >= 0)[0]
+    if v.size:
+        _, first = np.unique(lab[v], return_index=True)
+        rank = np.empty(first.size, np.int32)
+        rank[np.argsort(first)] = np.arange(first.size, dtype=np.int32)
+        out[v] = rank[lab[v]]
+    return out
 
 
 # ----------------------------------------------------------------------------- labelling
@@ -364,10 +479,11 @@ class _Link:
 class _Labeller:
     """Pieces, their links and the per-(piece, ring) roots; anchors and spreading."""
 
-    def __init__(self, uv, normal, piece, neighbour, bump, rig, spec, settings, device):
+    def __init__(self, uv, normal, piece, curve, neighbour, bump, rig, spec, settings, device):
         self.uv = uv
         self.normal = normal
         self.piece = piece
+        self.curve = curve
         self.nb = neighbour
         self.bump = bump
         self.rig = rig
@@ -392,6 +508,9 @@ class _Labeller:
         self.occupied = np.zeros((self.count, PHI_BINS), np.int64) - 1  # piece holding each (ring, phi bin)
         self.stats = {"pieces": self.n_pieces, "anchors_plane": 0, "anchors_centre": 0, "links_used": 0,
                       "links_rejected": 0, "conflicts": 0}
+        self.curve_pieces: dict = {}
+        for p, idx in enumerate(self.members):
+            self.curve_pieces.setdefault(int(curve[idx[0]]), []).append(p)
 
     # -- per-(piece, ring) roots
 
@@ -570,44 +689,48 @@ class _Labeller:
             out.append((p, jj, side))
         return out
 
-    def centre_anchor(self) -> tuple[int, int] | None:
-        """(piece, outward side) of the innermost closed loop around the pattern
+    def centre_anchor(self) -> tuple[list[int], int] | None:
+        """(pieces, outward side) of the innermost closed loop around the pattern
         axis with nothing inside it, if it is consistent with ring 0."""
         import cv2
         from skimage.measure import points_in_poly
 
         s = self.s
         found = []
-        for p, idx in enumerate(self.members):
+        for cid, plist in self.curve_pieces.items():
+            idx = np.nonzero(self.curve == cid)[0]
             q = self.uv[idx]
             c = q.mean(0)
-            ang = np.sort(np.arctan2(q[:, 1] - c[1], q[:, 0] - c[0]))
-            gaps = np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))
-            if np.degrees(gaps.max()) > s.closed_max_gap_deg:
+            order = _closed_loop_order(q, s.closed_max_gap_deg)
+            if order is None:
                 continue
-            order = np.argsort(np.arctan2(q[:, 1] - c[1], q[:, 0] - c[0]))
-            poly = q[order].astype(np.float32).reshape(-1, 1, 2)
             radial = np.sign(np.sum((q - c) * self.normal[idx], 1))
             side = int(np.sign(radial.sum()))
             if side == 0 or np.mean(radial == side) < 0.9:
                 continue
-            # nothing inside: no centre of another piece within the loop
-            others = np.nonzero((self.piece >= 0) & (self.piece != p))[0]
+            # nothing inside: no centre of another curve within the loop
+            others = np.nonzero((self.curve >= 0) & (self.curve != cid))[0]
             if others.size and points_in_poly(self.uv[others], q[order]).any():
                 continue
-            # ring 0 under this outward side, and the axis inside the loop
-            r = self.choose(p, 0, side)
-            if np.mean(r >= 0) < s.min_root_fraction:
+            # ring 0 under this outward side, on every piece of the loop
+            X, good = [], True
+            for p in plist:
+                r = self.choose(p, 0, side)
+                if np.mean(r >= 0) < s.min_root_fraction:
+                    good = False
+                    break
+                k = np.nonzero(r >= 0)[0]
+                X.append(self.roots(p, 0)["P"][k, r[k]])
+            if not good or sum(len(x) for x in X) < s.min_piece_samples:
                 continue
-            k = np.nonzero(r >= 0)[0]
-            X = self.roots(p, 0)["P"][k, r[k]]
+            # the pattern axis, at the loop's height, lies inside the loop
             o, d = _light_ray(self.rig, np.asarray(self.spec.center, np.float64))
-            Xm = X.mean(0)
-            axis_pt = o + np.dot(Xm - o, d) * d
-            ci = _to_camera(self.rig, axis_pt[None])[0]
+            Xm = np.concatenate(X).mean(0)
+            ci = _to_camera(self.rig, (o + np.dot(Xm - o, d) * d)[None])[0]
+            poly = q[order].astype(np.float32).reshape(-1, 1, 2)
             if cv2.pointPolygonTest(poly, (float(ci[0]), float(ci[1])), False) < 0:
                 continue
-            found.append((p, side))
+            found.append((list(plist), side))
         if len(found) != 1:
             if len(found) > 1:
                 log.info("single shot: %d candidate centre loops: none used", len(found))
@@ -629,7 +752,7 @@ class _Labeller:
         anchors = [(p, j, o, "plane") for p, j, o in self.plane_anchors()]
         c = self.centre_anchor()
         if c is not None:
-            anchors.append((c[0], 0, c[1], "centre"))
+            anchors += [(p, 0, c[1], "centre") for p in c[0]]
         # Anchors that contradict each other (same piece, or overlapping arcs of
         # one ring) are not used.
         bad = set()
@@ -645,7 +768,8 @@ class _Labeller:
             if x in bad or self.state[p] >= 0:
                 continue
             self.assign(p, j, o, kind)
-            self.stats["anchors_" + kind] += 1
+            self.stats["anchors_plane"] += kind == "plane"
+            self.stats["anchors_centre"] = int(self.stats["anchors_centre"] or kind == "centre")
             push(p)
         while heap:
             _, _, a, link = heapq.heappop(heap)
@@ -678,6 +802,13 @@ class _Labeller:
                 if self.check(a, link, *pred):
                     bad[a] = bad[b] = True
                     self.stats["conflicts"] += 1
+        # The pieces of one curve are one ring unless the curve joins two at a
+        # junction that the cuts missed: labelled pieces of a curve must agree.
+        for plist in self.curve_pieces.values():
+            lab = [p for p in plist if self.state[p] >= 0]
+            if len({(int(self.state[p]), int(self.out[p])) for p in lab}) > 1:
+                bad[lab] = True
+                self.stats["conflicts"] += 1
         if bad.any():
             # everything labelled through a dropped piece goes too
             changed = True
@@ -713,6 +844,7 @@ def label_ring_lines(
     pixel: np.ndarray,
     smoothed: wp.array,
     *,
+    contrast: np.ndarray | None = None,
     rig: Rig,
     patterns: PatternSpec,
     settings: SingleShotSettings = SingleShotSettings(),
@@ -725,6 +857,8 @@ def label_ring_lines(
         pixel: (n,) linear pixel index of each centre.
         smoothed: (H, W) float32 Warp array, the smoothed frame
             (``RingLines.smoothed``); its device runs the root computations.
+        contrast: (n,) line contrast of each centre (cuts curves where it
+            steps); None: no cuts by contrast.
         rig: the calibrated rig.
         patterns: the ``rings`` pattern set.
         settings: stage settings.
@@ -735,7 +869,9 @@ def label_ring_lines(
     if patterns.codec != "rings":
         raise ValueError(f"label_ring_lines: patterns must be the 'rings' codec, got {patterns.codec!r}")
     cam = rig.camera
-    piece, nrm = build_pieces(uv, normal, pixel, cam.width, cam.height, settings=settings)
+    contrast = np.ones(len(uv)) if contrast is None else contrast
+    pcs = build_pieces(uv, normal, pixel, contrast, cam.width, cam.height, settings=settings)
+    piece, curve, nrm = pcs.piece, pcs.curve, pcs.normal
     n = piece.size
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     ring = np.full(n, -1, np.int32)
@@ -744,15 +880,15 @@ def label_ring_lines(
     stats = {"pieces": 0, "pieces_labelled": 0, "pieces_dropped": 0, "samples_in_pieces": int(np.sum(piece >= 0)),
              "samples_labelled": 0, "samples_root_undecided": 0, "samples_root_inconsistent": 0}
     if n == 0 or piece.max() < 0:
-        return RingLabelling(ring, root, phi, piece, stats)
+        return RingLabelling(ring, root, phi, piece, curve, stats)
     max_gap = settings.max_gap_px or min(400.0, max(10.0, 3.0 * _plane_ring_spacing_px(rig, patterns)))
     device = smoothed.device
     nb, _, bump = link_lines(wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device),
                              wp.array(nrm.astype(np.float32), dtype=wp.vec2, device=device),
-                             wp.array(piece, dtype=wp.int32, device=device), image=smoothed,
+                             wp.array(curve, dtype=wp.int32, device=device), image=smoothed,
                              pixel=wp.array(np.asarray(pixel, np.int32), dtype=wp.int32, device=device),
                              max_gap=max_gap, bump_contrast=settings.bump_contrast)
-    lab = _Labeller(uv, nrm, piece, nb.numpy(), bump.numpy(), rig, patterns, settings, device)
+    lab = _Labeller(uv, nrm, piece, curve, nb.numpy(), bump.numpy(), rig, patterns, settings, device)
     lab.spread()
     bad = lab.verify()
     for p, idx in enumerate(lab.members):
@@ -773,7 +909,8 @@ def label_ring_lines(
     stats.update({"pieces": lab.n_pieces, "pieces_labelled": int(labelled.sum()),
                   "pieces_dropped": int(lab.n_pieces - labelled.sum()), "samples_labelled": int(np.sum(ring >= 0))})
     stats.update({k: v for k, v in lab.stats.items() if k != "pieces"})
-    return RingLabelling(ring, root, phi, piece, stats)
+    stats["curves"] = int(curve.max()) + 1
+    return RingLabelling(ring, root, phi, piece, curve, stats)
 
 
 # ----------------------------------------------------------------------------- the reconstruct hook
@@ -809,7 +946,8 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
     lines = detect_ring_lines(frames, frame=0, settings=ss.lines, threads=threads)
     d = lines.numpy()
     t1 = time.perf_counter()
-    lab = label_ring_lines(d["uv"], d["normal"], d["pixel"], lines.smoothed, rig=scan.rig, patterns=spec, settings=ss)
+    lab = label_ring_lines(d["uv"], d["normal"], d["pixel"], lines.smoothed, contrast=d["contrast"], rig=scan.rig,
+                           patterns=spec, settings=ss)
     keep = np.nonzero(lab.ring >= 0)[0]
     ring = lab.ring[keep]
     n_sec = 2 ** SECTOR_BITS
