@@ -416,20 +416,33 @@ def _closed_loop_order(q: np.ndarray, max_gap_deg: float) -> np.ndarray | None:
     return order if np.degrees(gaps.max()) <= max_gap_deg else None
 
 
+def _inside(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Which points (rounded to pixels) lie inside polygon poly (both (k, 2), px)."""
+    import cv2
+
+    lo = np.floor(poly.min(0)).astype(np.int64) - 1
+    hi = np.ceil(poly.max(0)).astype(np.int64) + 1
+    q = np.rint(points).astype(np.int64) - lo
+    size = hi - lo + 1
+    ok = np.all((q >= 0) & (q < size), axis=1)
+    out = np.zeros(len(points), bool)
+    if ok.any():
+        mask = np.zeros((int(size[1]), int(size[0])), np.uint8)
+        cv2.fillPoly(mask, [np.rint(poly - lo).astype(np.int32).reshape(-1, 1, 2)], 1)
+        out[ok] = mask[q[ok, 1], q[ok, 0]] > 0
+    return out
+
+
 def _innermost_loops(uv: np.ndarray, curve: np.ndarray, max_gap_deg: float) -> list[int]:
     """Curves that close around their centroid with no centre of another curve inside."""
-    from skimage.measure import points_in_poly
-
     out = []
+    others = curve >= 0
     for cid in range(int(curve.max()) + 1):
         idx = np.nonzero(curve == cid)[0]
         order = _closed_loop_order(uv[idx], max_gap_deg)
         if order is None:
             continue
-        poly = uv[idx][order]
-        lo, hi = poly.min(0), poly.max(0)
-        others = np.nonzero((curve >= 0) & (curve != cid) & np.all((uv >= lo) & (uv <= hi), axis=1))[0]
-        if others.size == 0 or not points_in_poly(uv[others], poly).any():
+        if not np.any(_inside(uv[others & (curve != cid)], uv[idx][order])):
             out.append(cid)
     return out
 
@@ -693,7 +706,6 @@ class _Labeller:
         """(pieces, outward side) of the innermost closed loop around the pattern
         axis with nothing inside it, if it is consistent with ring 0."""
         import cv2
-        from skimage.measure import points_in_poly
 
         s = self.s
         found = []
@@ -709,8 +721,8 @@ class _Labeller:
             if side == 0 or np.mean(radial == side) < 0.9:
                 continue
             # nothing inside: no centre of another curve within the loop
-            others = np.nonzero((self.curve >= 0) & (self.curve != cid))[0]
-            if others.size and points_in_poly(self.uv[others], q[order]).any():
+            others = (self.curve >= 0) & (self.curve != cid)
+            if np.any(_inside(self.uv[others], q[order])):
                 continue
             # ring 0 under this outward side, on every piece of the loop
             X, good = [], True
