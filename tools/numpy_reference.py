@@ -107,7 +107,8 @@ def sample_numpy(frames: np.ndarray, dec: dict, *, bits: int, min_contrast: floa
 
 
 def triangulate_numpy(uv: np.ndarray, rho: np.ndarray, sector: np.ndarray, rig: Rig, *, center, sector_bits: int,
-                      sector_tolerance: float = 0.75, sector_margin: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                      sector_tolerance: float = 0.75, sector_margin: float = 0.5,
+                      min_incidence_cos: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
     """NumPy twin of ``kernels.triangulation.triangulate_rings`` for the parallel
     light (the default rig). Returns (points (n, 3), status (n,))."""
     li = rig.light
@@ -172,4 +173,11 @@ def triangulate_numpy(uv: np.ndarray, rho: np.ndarray, sector: np.ndarray, rig: 
         status[live & ~has & ok1 & ok2] = 3
     else:
         status[(status == 0) & ok1 & ok2] = 3
+    # incidence on the cylinder: its normal is radial in the light's x-y plane
+    XL = X @ li.R.T + li.t
+    g = np.stack([XL[:, 0] / s + li.axis_px[0] - center[0], XL[:, 1] / s + li.axis_px[1] - center[1],
+                  np.zeros(len(X))], -1) @ li.R
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosi = np.abs(np.sum(g * d, axis=1)) / np.linalg.norm(g, axis=1)
+    status[(status == 0) & ~(cosi >= min_incidence_cos)] = 5
     return X, status
