@@ -133,6 +133,10 @@ class SingleShotSettings:
     max_step_pitches: float = 8.0
     """Longest 3D step between two linked samples, in ring pitches at the object
     (a continuous surface between two neighbouring rings up to ~83 degrees steep)."""
+    min_root_separation_mm: float = 3.0
+    """Where a sample's two meetings with its ring lie closer than this (the ray
+    nearly grazes the ring's quadric), the orientation does not choose between
+    them: the sample's root is left undecided (sector -1)."""
     min_view_cos: float = 0.05
     """The patch between two linked rings must face the camera at least this much
     (cosine of the angle between its normal and the view direction)."""
@@ -148,6 +152,7 @@ class SingleShotSettings:
                 raise ValueError(f"SingleShotSettings.{name}: expected an integer >= 1, got {v!r}")
         for name in ("max_normal_turn_deg", "max_piece_step_px", "fork_px", "junction_px", "junction_deg",
                      "min_curvature_radius_px", "segment_deg", "segment_curvature_radius_px", "segment_contrast_ratio",
+                     "min_root_separation_mm",
                      "plane_tolerance_px", "bump_contrast",
                      "plane_min_arc_deg", "closed_max_gap_deg", "max_step_pitches"):
             v = getattr(self, name)
@@ -908,8 +913,14 @@ def label_ring_lines(
             continue
         j, o = int(lab.state[p]), int(lab.out[p])
         r = lab.choose(p, j, o)
-        oo = lab.roots(p, j)["o"]
+        R = lab.roots(p, j)
+        oo = R["o"]
         inconsistent = ~np.any(oo == o, axis=1)  # no root runs the piece's way: not on this ring
+        # where the ray nearly grazes the ring's quadric its two meetings close up
+        # and their orientations cannot be told apart: leave the root undecided
+        close = np.all(oo != 0, axis=1) & (np.linalg.norm(R["P"][:, 0] - R["P"][:, 1], axis=1)
+                                           < settings.min_root_separation_mm)
+        r = np.where(close, -1, r)
         keep = ~inconsistent
         ring[idx[keep]] = j
         k = np.nonzero(keep & (r >= 0))[0]
