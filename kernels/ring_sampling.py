@@ -32,9 +32,11 @@ class SampleSettings:
 
     min_contrast: float = 12.0
     """Least white - black (8-bit grey levels; x257 for 16-bit) at both pixels."""
-    min_slope: float = 0.15
+    min_slope: float = 0.3
     """Least |d_p - d_q| / contrast across the edge: flatter crossings (blurred,
-    noisy or mixed pixels) are dropped."""
+    noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
+    band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
+    position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
 
 
 @dataclass

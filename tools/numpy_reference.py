@@ -49,7 +49,7 @@ def decode_numpy(frames: np.ndarray, *, bits: int, sector_bits: int = 0, min_con
 
 
 def sample_numpy(frames: np.ndarray, dec: dict, *, bits: int, min_contrast: float = 12.0,
-                 min_slope: float = 0.15) -> dict:
+                 min_slope: float = 0.3) -> dict:
     """NumPy twin of ``kernels.ring_sampling.sample_gray_rings`` (same order)."""
     scale = 257.0 if frames.dtype == np.uint16 else 1.0
     code, weak, c, d, sector = dec["code"], dec["weak"], dec["contrast"], dec["d"], dec["sector"]
