@@ -60,6 +60,7 @@ __all__ = [
     "phase_settings_of",
     "view_response",
     "estimate_camera_gamma",
+    "truth_rho_at",
     "phase_numpy",
     "smooth_numpy",
     "points_numpy",
@@ -218,6 +219,40 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
     }
     return Samples(uv=pts.uv, rho=pts.rho, ring=None, sector=pts.sector, confidence=pts.confidence,
                    pixel=pts.pixel), stats
+
+
+def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: float = 0.5) -> np.ndarray:
+    """Ring radius (projector px) of the truth surface at sub-pixel camera positions.
+
+    The truth world points of the four pixel centres around each position (from
+    the virtual rig's depth map) are interpolated bilinearly and projected onto the
+    pattern. NaN where a neighbour saw nothing or the four points are more than
+    ``max_step_mm`` apart (a depth edge): there the truth is not smooth enough to
+    judge a label. Used to count mislabelled ring samples (a sample of ring k whose
+    truth radius is nearer another ring).
+    """
+    from .evaluate import _projector_polar, truth_points
+
+    cam = scan.rig.camera
+    w, h = cam.width, cam.height
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    X, pix = truth_points(scan, view_name)
+    grid = np.full((h * w, 3), np.nan)
+    grid[pix] = X
+    x0 = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 2)
+    y0 = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, h - 2)
+    fx = (uv[:, 0] - x0)[:, None]
+    fy = (uv[:, 1] - y0)[:, None]
+    p00, p10 = grid[y0 * w + x0], grid[y0 * w + x0 + 1]
+    p01, p11 = grid[(y0 + 1) * w + x0], grid[(y0 + 1) * w + x0 + 1]
+    Xi = (1 - fy) * ((1 - fx) * p00 + fx * p10) + fy * ((1 - fx) * p01 + fx * p11)
+    corners = np.stack([p00, p10, p01, p11], 1)
+    spread = np.max(np.linalg.norm(corners - corners.mean(1, keepdims=True), axis=2), axis=1)
+    ok = np.isfinite(spread) & (spread <= max_step_mm)
+    rho = np.full(uv.shape[0], np.nan)
+    if ok.any():
+        rho[ok] = _projector_polar(scan.rig, Xi[ok], scan.patterns.center)
+    return rho
 
 
 # ----------------------------------------------------------------------------- NumPy twins
