@@ -14,9 +14,17 @@ def add_parser(sub):
     p.add_argument("--scene", default=None, help="scene for the default scan (default: Spot from ../shared, or sphere)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--device", action="append", default=None, help="device(s) to time (repeatable); default cpu (+cuda)")
+    p.add_argument("--dense", action="store_true",
+                   help="time the dense phase-rings path instead (decode, phase, smoothing, triangulation; "
+                        "--scan then names a phase-rings scan)")
     return p
 
 
 def run(args) -> int:
+    if args.dense:
+        from ringscan.pipeline.dense import bench_dense
+
+        bench_dense(scan_dir=args.scan, scene=args.scene, repeats=args.repeats, devices=args.device)
+        return 0
     run_bench(scan_dir=args.scan, scene=args.scene, repeats=args.repeats, devices=args.device)
     return 0
