@@ -151,8 +151,8 @@ def test_bench_dense_runs_both_sides(small_phase_scan):
     res = bench_dense(scan_dir=small_phase_scan.folder, repeats=1, devices=["cpu"], out=lines.append)
     assert any(line.startswith("total") for line in lines) and any("points/s" in line for line in lines)
     warp_pts = res["warp"][0]["points"]
-    # Same stages, same rules: the NumPy side keeps the grazing points the kernel drops.
-    assert 0.9 * res["numpy_points"] <= warp_pts <= res["numpy_points"]
+    # Same stages, same rules: the same points, to a few float32 rounding cases.
+    assert abs(warp_pts - res["numpy_points"]) <= 0.005 * res["numpy_points"]
     assert all(v > 0 for v in res["numpy"].values())
 
 
