@@ -11,9 +11,9 @@ t = -(g . n) / lambda; the pixel holds a line centre when that peak lies inside
 the pixel (|t n_x| <= 0.5 and |t n_y| <= 0.5), the profile bends down strongly
 enough (-lambda >= ``min_curvature``), the line is elongated (the other
 eigenvalue is small beside lambda), the image is nearly flat along the line
-(which rejects the flanks of tightly curved lines) and the peak stands ``min_contrast`` grey
-levels above the local background on both sides (S read at the centre
-+- ``background_px`` along n). The sample is that sub-pixel centre: for a
+(which rejects the flanks of tightly curved lines) and the peak stands
+``min_contrast`` grey levels above the local background on both sides (S read at
+the centre +- ``background_px`` along n). The sample is that sub-pixel centre: for a
 symmetric line profile it is the line's centre whatever the blur.
 
 Intensities are in 8-bit grey levels (16-bit frames are divided by 257), so the
@@ -27,6 +27,10 @@ ring's quadric (cylinder for a parallel light, cone for a perspective one, with
 Newton steps for projector distortion) at up to two points; each is kept when it
 lies in front of the camera and inside the working volume. The labelling stage
 (``pipeline.single_shot``) tests its hypotheses with them.
+
+Gap links: from every line centre a march across the line, both ways, finds the
+first centre of another curve, and checks that the gap between them is one clean
+valley of the smoothed image (no faint line inside it).
 """
 
 from __future__ import annotations

@@ -323,7 +323,7 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
         :class:`Pieces`.
     """
     import scipy.sparse as sp
-    from scipy.sparse.csgraph import breadth_first_order, connected_components
+    from scipy.sparse.csgraph import breadth_first_order
     from scipy.spatial import cKDTree
 
     uv = np.asarray(uv, np.float64).reshape(-1, 2)

@@ -69,11 +69,10 @@ def test_centres_lie_on_the_circles(device, dtype):
 def test_line_centre_is_unbiased_by_blur_and_width(device):
     # a straight line at a sub-pixel position: its centre, whatever the blur
     for x0, width, blur in ((60.3, 3.0, 0.5), (60.71, 5.0, 1.5), (61.05, 2.0, 1.0)):
-        u = np.arange(120)[None, :].repeat(40, 0).astype(np.float64)
         s = 16
         uu = (np.arange(120 * s) + 0.5) / s - 0.5
         prof = (np.abs(uu - x0) <= width / 2).reshape(120, s).mean(1)
-        img = cv2.GaussianBlur(50 + 100 * prof[None, :].repeat(40, 0), (0, 0), blur) + 0 * u
+        img = cv2.GaussianBlur(50 + 100 * prof[None, :].repeat(40, 0), (0, 0), blur)
         d = _detect(np.rint(img).astype(np.uint8), device).numpy()
         assert len(d["uv"]) >= 30
         assert np.abs(d["uv"][:, 0] - x0).max() < 0.05, (x0, width, blur)
