@@ -49,7 +49,6 @@ __all__ = [
 ]
 
 RENDERER_ENV = "RINGSCAN_RENDERER"
-_CHILD_TIMEOUT_S = 180
 _SUN_LUX = 120000.0
 _SKY_INTENSITY = 45000.0
 
@@ -81,6 +80,10 @@ class ViewSettings:
     """Point size in pixels for point clouds."""
     renderer: str = "auto"
     """"auto" (Open3D when it can start, else software), "open3d" or "software"."""
+    timeout_s: float = 120.0
+    """An Open3D render still running after this long is stopped (then "auto" falls
+    back to the software renderer). On Mesa's llvmpipe a few meshes (Open3D's own
+    UV spheres at some resolutions) take tens of seconds."""
 
 
 @dataclass
@@ -216,9 +219,9 @@ def _render_open3d(geoms, K, E, s: ViewSettings) -> np.ndarray:
         Path(tmp, "job.json").write_text(json.dumps(job))
         code = f"from ringscan.pipeline.visualize import _child_main; _child_main({tmp!r})"
         try:
-            res = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=_CHILD_TIMEOUT_S)
+            res = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=s.timeout_s)
         except subprocess.TimeoutExpired:
-            raise RuntimeError(f"the Open3D renderer did not finish within {_CHILD_TIMEOUT_S} s") from None
+            raise RuntimeError(f"the Open3D renderer did not finish within {s.timeout_s:g} s") from None
         out = Path(tmp, "image.npy")
         if res.returncode != 0 or not out.is_file():
             tail = (res.stderr or b"").decode(errors="replace").strip().splitlines()[-3:]
@@ -234,7 +237,7 @@ def offscreen_available() -> bool:
     import open3d as o3d
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.zeros((1, 3))))
-    s = ViewSettings(width=16, height=16)
+    s = ViewSettings(width=16, height=16, timeout_s=60.0)
     try:
         _render_open3d([pc], *view_camera(([-1.0, -1, -1], [1.0, 1, 1]), settings=s), s)
     except RuntimeError as e:
@@ -392,12 +395,13 @@ def _cmap_rgb(x: np.ndarray, cmap: str) -> np.ndarray:
     import cv2
 
     if cmap == "diverging":
-        return _diverging(x)
+        return _diverging(np.where(np.isfinite(x), x, 0.5))
     maps = {"turbo": cv2.COLORMAP_TURBO, "viridis": cv2.COLORMAP_VIRIDIS, "inferno": cv2.COLORMAP_INFERNO,
             "jet": cv2.COLORMAP_JET}
     if cmap not in maps:
         raise ValueError(f"unknown colour map {cmap!r}; use one of {', '.join([*maps, 'diverging'])}")
-    idx = np.clip(np.rint(np.asarray(x, float) * 255), 0, 255).astype(np.uint8)
+    x = np.asarray(x, float)
+    idx = np.clip(np.rint(np.where(np.isfinite(x), x, 0.0) * 255), 0, 255).astype(np.uint8)
     lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], maps[cmap])[:, 0, ::-1] / 255.0
     return lut[idx]
 
@@ -446,8 +450,9 @@ def colorbar(height: int, *, vmin: float, vmax: float, cmap: str = "turbo", labe
     bg = np.clip(np.rint(np.asarray(background, float)[::-1] * 255), 0, 255).astype(np.uint8)
     bar = np.empty((height, width, 3), np.uint8)
     bar[:] = bg
-    top, bottom = 28, max(height - 14, 40)
-    if bottom - top < 10:
+    roomy = height >= 90
+    top, bottom = (28, height - 14) if roomy else (4, height - 4)
+    if bottom - top < 4:
         return bar
     x0, x1 = 10, 30
     ramp = np.linspace(1, 0, bottom - top)
@@ -464,7 +469,7 @@ def colorbar(height: int, *, vmin: float, vmax: float, cmap: str = "turbo", labe
         txt = f"{val:.3g}"
         cv2.putText(bar, txt, (x1 + 8, min(max(y + 4, 10), height - 2)), cv2.FONT_HERSHEY_SIMPLEX, 0.38, ink, 1,
                     cv2.LINE_AA)
-    if label:
+    if label and roomy:
         cv2.putText(bar, label[:16], (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, ink, 1, cv2.LINE_AA)
     return bar
 
