@@ -1,0 +1,78 @@
+"""``ringscan view``: the PNG it writes shows the object where the camera puts it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from ringscan.pipeline.mesh import write_mesh
+from ringscan.pipeline.visualize import ViewSettings, offscreen_available, view_camera
+from ringscan.tools.cli import main
+
+
+def _ellipsoid():
+    m = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=60)
+    m.vertices = o3d.utility.Vector3dVector(np.asarray(m.vertices) * [20.0, 12.0, 15.0] + [10.0, 0.0, 15.0])
+    m.compute_vertex_normals()
+    return m
+
+
+def _expected(points, settings) -> np.ndarray:
+    K, E = view_camera((points.min(axis=0), points.max(axis=0)), settings=settings)
+    pc = points @ E[:3, :3].T + E[:3, 3]
+    uv = pc[:, :2] / pc[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    mask = np.zeros((settings.height, settings.width), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.rint(uv).astype(np.int32)), 1)
+    return mask.astype(bool)
+
+
+@pytest.mark.parametrize("renderer", ["auto", "software"])
+def test_view_writes_a_png_of_the_object(tmp_path, capsys, renderer):
+    if renderer == "auto" and not offscreen_available():
+        pytest.skip("Open3D's offscreen renderer cannot start here")
+    mesh = _ellipsoid()
+    path = tmp_path / "obj.stl"
+    write_mesh(path, mesh)
+    out = tmp_path / "view.png"
+    rc = main(["view", str(path), "--out", str(out), "--width", "200", "--height", "160", "--renderer", renderer])
+    assert rc == 0
+    assert ("open3d renderer" if renderer == "auto" else "software renderer") in capsys.readouterr().out
+    img = cv2.imread(str(out))
+    assert img.shape == (160, 200, 3)
+    got = np.any(img != 255, axis=2)
+    want = _expected(np.asarray(mesh.vertices), ViewSettings(width=200, height=160))
+    iou = (got & want).sum() / (got | want).sum()
+    assert iou > 0.9
+    assert 40 < img[got].mean() < 240  # shaded, not a black or white blob
+
+
+def test_view_cloud_with_truth_colours(tmp_path, capsys):
+    mesh = _ellipsoid()
+    pc = mesh.sample_points_uniformly(5000)
+    pts = np.asarray(pc.points)
+    pts[: len(pts) // 2] *= 1.02  # half the points off the surface
+    cloud_path = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(cloud_path), pc)
+    truth = tmp_path / "truth.ply"
+    write_mesh(truth, mesh)
+    out = tmp_path / "err.png"
+    rc = main(["view", str(cloud_path), "--out", str(out), "--width", "160", "--height", "120",
+               "--renderer", "software", "--truth", str(truth)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "distance to truth: mean" in text
+    img = cv2.imread(str(out))
+    assert img.shape == (120, 160 + 110, 3)  # colour bar appended
+    obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
+    assert np.ptp(obj[:, 2] - obj[:, 0]) > 100  # both ends of the colour map appear
+
+
+def test_view_errors(tmp_path, capsys):
+    assert main(["view", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "missing.ply: file not found" in capsys.readouterr().err
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "no points" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
