@@ -132,7 +132,8 @@ def interpolate_surface(uv: np.ndarray, points: np.ndarray, ring: np.ndarray, qu
     ring j or j + 1 nearest, and of all odd-labelled samples one of the other: the
     two nearest samples by parity (OpenCV distance transforms with labels, one per
     parity) bracket it when their labels differ by one, the pixel projects
-    between them and they are at most ``max_gap_mm`` apart in 3D. The point is
+    between them and is no farther from either than they are from each other,
+    and they are at most ``max_gap_mm`` apart in 3D. The point is
     then interpolated by the pixel's image distances to the two. Samples with
     ring -1 (dense codecs) at a pixel centre give that pixel its point directly.
 
@@ -194,6 +195,8 @@ def interpolate_surface(uv: np.ndarray, points: np.ndarray, ring: np.ndarray, qu
     ok &= np.linalg.norm(P[a] - P[b], axis=1) <= max_gap_mm
     da = np.linalg.norm(p - ua, axis=1)
     db = np.linalg.norm(p - ub, axis=1)
+    span = np.linalg.norm(ab, axis=1)
+    ok &= (da <= span) & (db <= span)  # the pixel lies in the lens between the two
     wsum = np.maximum(da + db, 1e-12)
     Xi = (db / wsum)[:, None] * P[a] + (da / wsum)[:, None] * P[b]
     X[ok] = Xi[ok]
