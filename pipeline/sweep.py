@@ -48,7 +48,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -437,10 +437,10 @@ def plot_sweep(runs: list[dict], *, title: str = "", size: tuple[int, int] = (96
     cv2.putText(img, "number of rings (log scale)", (W // 2 - 110, H - 20), font, 0.5, black, 1, cv2.LINE_AA)
     cv2.putText(img, "surface error, mm", (8, T - 20), font, 0.45, black, 1, cv2.LINE_AA)
     cv2.putText(img, "coverage", (W - R + 8, T - 20), font, 0.45, c_cov, 1, cv2.LINE_AA)
-    ly = T + 20
+    ly = H - B - 60  # legend in the lower left, where the curves seldom go
     for label, color, marker in (("surface error p95", c_p95, square), ("surface error median", c_med, dot),
                                  ("coverage (right axis)", c_cov, tri)):
-        marker((W - R - 200, ly - 4), color)
-        cv2.putText(img, label, (W - R - 188, ly), font, 0.45, black, 1, cv2.LINE_AA)
+        marker((L + 16, ly - 4), color)
+        cv2.putText(img, label, (L + 28, ly), font, 0.45, black, 1, cv2.LINE_AA)
         ly += 20
     return img
