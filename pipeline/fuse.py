@@ -68,12 +68,12 @@ class FuseSettings:
     None keeps every point."""
     statistical_neighbors: int = 20
     """Statistical outlier removal: neighbours averaged per point (0 turns it off)."""
-    statistical_std_ratio: float = 3.0
+    statistical_std_ratio: float = 4.0
     """Statistical outlier removal: drop points whose mean neighbour distance is
     more than this many standard deviations above the view's average."""
     radius_mm: float = 1.5
     """Radius outlier removal: search radius (0 turns it off)."""
-    radius_min_points: int = 4
+    radius_min_points: int = 3
     """Radius outlier removal: a point needs this many neighbours within radius_mm."""
     normal_radius_mm: float = 2.5
     """Normal estimation: PCA neighbourhood radius; it must span several rings."""

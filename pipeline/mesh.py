@@ -87,7 +87,7 @@ class MeshSettings:
     """Place iso-surface vertices by linear interpolation (more accurate on fine grids)."""
     density_quantile: float = 0.02
     """Trim vertices whose Poisson density is below this quantile (0 keeps all)."""
-    trim_distance_mm: float | None = 1.0
+    trim_distance_mm: float | None = 1.5
     """Trim vertices farther than this from every input point (None keeps all);
     this removes the lid Poisson puts where no view looked (the object's base)."""
     tsdf_voxel_mm: float = 0.4
