@@ -163,7 +163,9 @@ def _render_open3d_here(geoms, K, E, s: ViewSettings) -> np.ndarray:
         is_mesh = hasattr(g, "triangles")
         has_col = g.has_vertex_colors() if is_mesh else g.has_colors()
         has_nrm = g.has_vertex_normals() if is_mesh else g.has_normals()
-        mat.shader = "defaultLit" if has_nrm else "defaultUnlit"
+        # Coloured geometries (colour maps) are drawn unlit, so that the colours match
+        # their colour bar; plain ones are shaded.
+        mat.shader = "defaultLit" if has_nrm and not has_col else "defaultUnlit"
         mat.base_color = [1.0, 1.0, 1.0, 1.0] if has_col else [*map(float, s.color), 1.0]
         mat.point_size = float(s.point_size)
         r.scene.add_geometry(f"g{i}", g, mat)
@@ -286,7 +288,7 @@ def _render_software(geoms, K, E, s: ViewSettings) -> np.ndarray:
         u = K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2]
         v = K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
         base = np.broadcast_to(np.asarray(s.color, float), (len(pc), 3)) if col is None else col[ok]
-        if nrm is not None:
+        if nrm is not None and col is None:
             nc = nrm[ok] @ R.T
             view = -pc / np.linalg.norm(pc, axis=1, keepdims=True)
             shade = 0.25 + 0.75 * np.abs(np.einsum("ij,ij->i", nc, view))
