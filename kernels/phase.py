@@ -166,6 +166,28 @@ class PhasePoints:
 
 
 @wp.func
+def phase_atan2(y: float, x: float):
+    """atan2(y, x) in (-pi, pi] to within 1e-5 rad (Abramowitz & Stegun 4.4.49
+    on [0, 1] with octant reduction): 1.6e-6 of a fringe period, far below the
+    phase noise, at a fraction of the cost of the library atan2."""
+    ax = wp.abs(x)
+    ay = wp.abs(y)
+    mx = wp.max(ax, ay)
+    if mx == 0.0:
+        return 0.0
+    a = wp.min(ax, ay) / mx
+    s = a * a
+    r = a * (0.9998660 + s * (-0.3302995 + s * (0.1801410 + s * (-0.0851330 + s * 0.0208351))))
+    if ay > ax:
+        r = 1.5707963267948966 - r
+    if x < 0.0:
+        r = 3.141592653589793 - r
+    if y < 0.0:
+        r = -r
+    return r
+
+
+@wp.func
 def trailing_zeros(k: int):
     """Number of trailing zero bits of k > 0."""
     n = int(0)
@@ -303,7 +325,7 @@ def phase_unwrap_kernel(
         if q < min_modulation:
             status[y, x] = PHASE_MODULATION
             continue
-        f = wp.atan2(bs, bc) / TWO_PI
+        f = phase_atan2(bs, bc) / TWO_PI
         f = f - wp.floor(f)
         # Band code and its two edges.
         k = gray_to_binary(code[y, x], bits)
@@ -429,36 +451,42 @@ def smooth_phase_kernel(
 
 @wp.kernel
 def write_points_kernel(
-    t: wp.array(dtype=wp.float32),
-    modulation: wp.array(dtype=wp.float32),
-    status: wp.array(dtype=wp.int32),
-    sector: wp.array(dtype=wp.int32),
+    t: wp.array2d(dtype=wp.float32),
+    modulation: wp.array2d(dtype=wp.float32),
+    status: wp.array2d(dtype=wp.int32),
+    sector: wp.array2d(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
-    width: int,
     rho0: float,
     pitch: float,
+    row0: int,
+    chunk: int,
     uv: wp.array(dtype=wp.vec2),
     rho: wp.array(dtype=wp.float32),
     sector_out: wp.array(dtype=wp.int32),
     confidence: wp.array(dtype=wp.float32),
     pixel: wp.array(dtype=wp.int32),
 ):
-    """Write pixel i's point at offsets[i] (valid pixels only).
+    """Write each valid pixel's point at its scanned offset, ``chunk`` pixels of
+    one row per thread.
 
-    t, modulation (H*W,) float32, status, sector, offsets (H*W,) int32: read.
+    t, modulation (H, W) float32, status, sector (H, W) int32, offsets (H*W,)
+    int32 (exclusive scan of the flags): read.
     uv (n,) vec2, rho/confidence (n,) float32, sector_out/pixel (n,) int32: written.
     """
-    i = wp.tid()
-    if status[i] != PHASE_OK:
-        return
-    o = offsets[i]
-    y = i / width
-    x = i - y * width
-    uv[o] = wp.vec2(float(x), float(y))
-    rho[o] = rho0 + pitch * t[i]
-    sector_out[o] = sector[i]
-    confidence[o] = wp.clamp(modulation[i], 0.0, 1.0)
-    pixel[o] = i
+    tid = wp.tid()
+    w = t.shape[1]
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    for x in range(x0, wp.min(x0 + chunk, w)):
+        if status[y, x] == PHASE_OK:
+            i = y * w + x
+            o = offsets[i]
+            uv[o] = wp.vec2(float(x), float(y))
+            rho[o] = rho0 + pitch * t[y, x]
+            sector_out[o] = sector[y, x]
+            confidence[o] = wp.clamp(modulation[y, x], 0.0, 1.0)
+            pixel[o] = i
 
 
 # ----------------------------------------------------------------------------- host
@@ -596,20 +624,20 @@ def smooth_phase(
     return out
 
 
-def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float) -> PhasePoints:
+def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads: int | None = None) -> PhasePoints:
     """One point per valid pixel, in raster order (count: the flags that
     :func:`smooth_phase` wrote; scan; write).
 
     Args:
         phase: a :class:`PhaseMap` with ``sector`` set (:func:`smooth_phase`).
         rho0, pitch: the pattern's inner radius and pitch (projector px).
+        threads: CPU threads (row slices); default: all cores.
     """
     if phase.sector is None or phase.flags is None:
         raise ValueError("compact_phase_points: the phase map has no sector (run smooth_phase first)")
     h, w = phase.t.shape
     dev = phase.t.device
     n = h * w
-    flat = lambda a: a.reshape((n,))  # noqa: E731
     total = 0
     if n:
         flags = phase.flags
@@ -621,8 +649,9 @@ def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float) -> Phase
                       confidence=wp.empty(total, dtype=wp.float32, device=dev),
                       pixel=wp.empty(total, dtype=wp.int32, device=dev))
     if total:
-        wp.launch(write_points_kernel, dim=n,
-                  inputs=[flat(phase.t), flat(phase.modulation), flat(phase.status), flat(phase.sector), offsets, w,
-                          float(rho0), float(pitch)],
-                  outputs=[out.uv, out.rho, out.sector, out.confidence, out.pixel], device=dev)
+        launch_rows(write_points_kernel, h, w,
+                    lambda r0, chunk: [phase.t, phase.modulation, phase.status, phase.sector, offsets, float(rho0),
+                                       float(pitch), r0, chunk],
+                    [out.uv, out.rho, out.sector, out.confidence, out.pixel], dev,
+                    default_threads() if threads is None else threads)
     return out

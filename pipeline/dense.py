@@ -203,7 +203,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
     wp.synchronize_device(dev)
     t1 = time.perf_counter()
     sm = smooth_phase(phase, labels.sector, settings=ps, threads=threads)
-    pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch)
+    pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
     st = sm.status.numpy()
@@ -533,7 +533,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
 
                 def wsmooth():
                     sm = smooth_phase(ws["ph"], ws["lab"].sector, settings=ps, threads=threads)
-                    ws["pts"] = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch)
+                    ws["pts"] = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
                     wp.synchronize_device(dev)
 
                 def wtri():
