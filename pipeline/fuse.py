@@ -5,8 +5,8 @@ with the object turned by the view's ``turntable_deg``. Fusion
 
 1. turns every view back by ``-turntable_deg`` about the rig's turntable axis
    (DESIGN §6), which puts all views in the object frame (the pose of angle 0);
-2. cleans each view: non-finite and low-confidence points, an optional ground clip
-   (the reference plane z = 0), statistical and radius outlier removal;
+2. cleans each view: non-finite and low-confidence points, a ground clip
+   (the reference plane z = 0; on by default), statistical and radius outlier removal;
 3. estimates normals (or rotates the ones the view carries) and orients them
    toward the view's camera centre, which turns with the view too;
 4. refines the poses with Open3D: point-to-plane ICP between each view and its
@@ -275,7 +275,8 @@ def _clean_view(o3d, v: ViewCloud, T: np.ndarray, cam: np.ndarray, s: FuseSettin
     conf = (v.confidence[keep] if v.confidence is not None else np.ones(int(keep.sum()))).astype(np.float64)
     idx = np.arange(len(pcd.points))
     if len(idx) and s.statistical_neighbors > 0 and len(idx) > s.statistical_neighbors:
-        pcd, kept = pcd.remove_statistical_outlier(nb_neighbors=s.statistical_neighbors, std_ratio=s.statistical_std_ratio)
+        pcd, kept = pcd.remove_statistical_outlier(nb_neighbors=s.statistical_neighbors,
+                                                   std_ratio=s.statistical_std_ratio)
         idx = idx[np.asarray(kept, dtype=np.int64)]
     if len(idx) and s.radius_mm > 0 and s.radius_min_points > 0:
         pcd, kept = pcd.remove_radius_outlier(nb_points=s.radius_min_points, radius=s.radius_mm)
@@ -283,7 +284,8 @@ def _clean_view(o3d, v: ViewCloud, T: np.ndarray, cam: np.ndarray, s: FuseSettin
     conf = conf[idx]
     if len(pcd.points) >= 3:
         if not pcd.has_normals():
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm, max_nn=s.normal_max_nn))
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm,
+                                                                      max_nn=s.normal_max_nn))
         pcd.normalize_normals()
         pcd.orient_normals_towards_camera_location(cam)
     return pcd, conf

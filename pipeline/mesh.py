@@ -4,20 +4,21 @@
   cloud; then trimming of the surface that Poisson invents where no view looked:
   vertices whose Poisson density is below a quantile, and vertices farther than a
   distance from every input point.
-- **TSDF**: each view's points are projected into a depth map of that view's
-  camera (moved into the object frame with the view's pose) and integrated into an
-  Open3D sparse voxel-block TSDF (``VoxelBlockGrid``, the successor of
+- **TSDF**: each view's points are drawn into a depth map of that view's camera
+  (moved into the object frame with the view's pose) and integrated into Open3D's
+  sparse voxel-block TSDF (``VoxelBlockGrid``, the successor of
   ``ScalableTSDFVolume``, whose Open3D 0.20 build cannot take millimetre depth
-  maps). The depth maps are rendered at a pixel size close
-  to the TSDF voxel (not the camera's own resolution), so that the sparse ring
-  samples of a view land in neighbouring pixels; small holes are closed by a
-  neighbour-median fill. A bare point cloud (no views) is integrated the same way
-  from virtual cameras around it, each keeping only points that face it.
+  maps). The depth maps have a pixel of a quarter voxel (not the camera's own
+  resolution) and every point paints a small disk of its tangent plane into them,
+  so that sparse ring samples make a dense depth map without the error of
+  nearest-pixel depth on slopes; small holes are closed by a neighbour-median
+  fill. A bare point cloud (no views) is integrated the same way from virtual
+  cameras around it, each drawing only the points that face it.
 - **Watertight**: Poisson without any trimming, then cleanup (near-duplicate
   vertices merged, degenerate triangles and non-manifold edges removed, only the
   largest connected piece kept); the result is checked with Open3D's
-  ``is_watertight()``. With TSDF, the TSDF surface is resampled and goes through
-  the same watertight Poisson.
+  ``is_watertight()``. With TSDF, the TSDF surface's vertices and normals go
+  through the same watertight Poisson.
 
 Meshes are written as PLY, OBJ or STL (from the extension), atomically.
 """
@@ -200,24 +201,23 @@ def _mesh_info(mesh, t0: float, **extra) -> dict:
 
 
 def clean_mesh(mesh, *, merge_mm: float | None = None):
-    """Tidy a mesh in place: merge near-duplicate vertices (within ``merge_mm``),
-    drop degenerate and duplicate triangles, non-manifold edges, unused vertices.
+    """Tidy a mesh: merge near-duplicate vertices (within ``merge_mm``; default
+    1e-4 of the mesh's extent), drop degenerate and duplicate triangles,
+    non-manifold edges and unused vertices. Returns the tidied mesh (use it).
 
     Poisson's marching cubes leaves vertices a hair apart that make Open3D's
-    self-intersection test fire; merging them fixes that. Returns the mesh.
+    self-intersection test fire; merging them fixes that.
     """
-    o3d = _o3d()
-    if merge_mm is None:
-        ext = np.asarray(mesh.get_max_bound()) - np.asarray(mesh.get_min_bound()) if len(mesh.vertices) else np.ones(3)
-        merge_mm = 1e-6 * max(float(np.max(ext)), 1e-9) * 100
     if len(mesh.vertices):
+        if merge_mm is None:
+            ext = np.asarray(mesh.get_max_bound()) - np.asarray(mesh.get_min_bound())
+            merge_mm = 1e-4 * max(float(np.max(ext)), 1e-9)
         mesh = mesh.merge_close_vertices(merge_mm)
     mesh.remove_degenerate_triangles()
     mesh.remove_duplicated_triangles()
     mesh.remove_duplicated_vertices()
     mesh.remove_non_manifold_edges()
     mesh.remove_unreferenced_vertices()
-    assert isinstance(mesh, o3d.geometry.TriangleMesh)
     return mesh
 
 
@@ -404,7 +404,8 @@ def _fill_holes(depth: np.ndarray, passes: int) -> np.ndarray:
 
 
 def _integrate(jobs, voxel: float, trunc_voxels: float):
-    """TSDF-integrate [(points (N,3), normals (N,3) or None, K, E (4x4 object->camera), w, h, splat_px, fill)].
+    """TSDF-integrate jobs (points (N, 3), normals (N, 3) or None, K, E (4x4
+    object -> camera), w, h, splat_px, fill).
 
     Returns (legacy mesh, number of depth maps integrated).
 
@@ -450,7 +451,8 @@ def _depth_camera(pts: np.ndarray, E: np.ndarray, pixel_mm: float, margin: int =
     w = int(math.ceil(x1 - x0)) + 2 * margin + 1
     h = int(math.ceil(y1 - y0)) + 2 * margin + 1
     if w * h > 16_000_000:
-        raise ValueError(f"TSDF depth map would be {w}x{h} pixels: increase MeshSettings.tsdf_voxel_mm or lower tsdf_supersample")
+        raise ValueError(f"TSDF depth map would be {w}x{h} pixels: increase MeshSettings.tsdf_voxel_mm "
+                         "or lower tsdf_supersample")
     K = np.array([[f, 0, margin - x0], [0, f, margin - y0], [0, 0, 1.0]])
     return K, w, h
 

@@ -56,7 +56,8 @@ def run(args) -> int:
             try:
                 fkw["ground_clip_mm"] = float(args.ground_clip)
             except ValueError:
-                raise ValueError(f"--ground-clip: expected a number of mm or 'none', got {args.ground_clip!r}") from None
+                raise ValueError(f"--ground-clip: expected a number of mm or 'none', "
+                                 f"got {args.ground_clip!r}") from None
     if args.no_refine:
         fkw["refine"] = False
     mkw = {"method": args.method, "watertight": args.watertight}
@@ -81,7 +82,9 @@ def run(args) -> int:
         t = rep["truth"]
         print(f"vs truth: mesh->truth {t['mesh_to_truth_mean']:.4f} mm, truth->mesh {t['truth_to_mesh_mean']:.4f} mm, "
               f"{100 * t['truth_within']:.2f}% of truth within {t['within_mm']} mm")
-    print(f"wrote {args.out}/: {', '.join([rep['outputs']['cloud'], *rep['outputs']['meshes'], *([rep['outputs']['preview']] if 'preview' in rep['outputs'] else [])])}, fuse_report.json")
+    outs = rep["outputs"]
+    files = [outs["cloud"], *outs["meshes"], *([outs["preview"]] if "preview" in outs else []), "fuse_report.json"]
+    print(f"wrote {args.out}/: {', '.join(files)}")
     if args.watertight and not m["watertight"]:
         print("warning: the mesh is not watertight (see fuse_report.json mesh checks)")
         return 1
