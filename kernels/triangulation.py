@@ -33,7 +33,7 @@ import numpy as np
 import warp as wp
 
 from .geometry import LIGHT_PARALLEL, CameraModel, LightModel, camera_ray, project_camera
-from .ring_labels import default_threads
+from .ring_labels import default_threads, launch_spans
 
 STATUS_OK = wp.constant(0)
 STATUS_NO_ROOT = wp.constant(1)
@@ -397,21 +397,7 @@ def triangulate_rings(
             settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos]
     outputs = [out.points, out.status, out.confidence, out.residual]
     threads = default_threads() if threads is None else threads
-    if dev.is_cuda or threads <= 1 or n < 20000:
-        wp.launch(triangulate_kernel, dim=n, inputs=args + [0], outputs=outputs, device=dev)
-    else:
-        from concurrent.futures import ThreadPoolExecutor
-
-        edges = np.linspace(0, n, threads + 1).astype(int)
-
-        def run(k):
-            a, b = int(edges[k]), int(edges[k + 1])
-            if b > a:
-                wp.launch(triangulate_kernel, dim=b - a, inputs=args + [a], outputs=outputs, device=dev)
-
-        run(0)  # the first launch loads the module: keep it on this thread
-        with ThreadPoolExecutor(max_workers=threads) as ex:
-            list(ex.map(run, range(1, threads)))
+    launch_spans(triangulate_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out
 
 

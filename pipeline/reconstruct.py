@@ -169,6 +169,9 @@ def reconstruct_view(
 
     smp, st = extract_samples(fr, scan, settings, threads)
     times.update(st.pop("times_s"))
+    # An extractor may decide sectors of its own (single-shot: line orientation
+    # sectors); it says how many bits they carry.
+    sector_bits = int(st.pop("sector_bits", scan.patterns.sector_bits))
 
     t = time.perf_counter()
     rig = scan.rig
@@ -176,7 +179,7 @@ def reconstruct_view(
     cam = camera_model_for(rig)
     tri = triangulate_rings(smp.uv, smp.rho, smp.sector, smp.confidence, camera=cam, light=light_model_for(rig),
                             volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
-                            sector_bits=scan.patterns.sector_bits, settings=settings.triangulate, threads=threads)
+                            sector_bits=sector_bits, settings=settings.triangulate, threads=threads)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     t = time.perf_counter()

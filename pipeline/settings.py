@@ -5,10 +5,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.point_filter import NeighbourFilterSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.triangulation import TriangulateSettings
+
+from .single_shot import SingleShotSettings
 
 __all__ = ["ReconstructSettings", "settings_to_dict", "settings_from_dict"]
 
@@ -25,6 +28,10 @@ class ReconstructSettings:
     """Root choice (DESIGN §4)."""
     filter: NeighbourFilterSettings = field(default_factory=NeighbourFilterSettings)
     """Image-space neighbour filter (mixed pixels, isolated outliers)."""
+    phase: PhaseSettings = field(default_factory=PhaseSettings)
+    """Phase decoder of the ``phase-rings`` codec (response, modulation, unwrapping)."""
+    single_shot: SingleShotSettings = field(default_factory=SingleShotSettings)
+    """Line detection and nesting-order labelling of the single-shot ``rings`` codec."""
     min_confidence: float = 0.0
     """Points below this confidence are not written."""
     threads: int = 0
