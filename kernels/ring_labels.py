@@ -19,6 +19,8 @@ gray_{bits-1}_inv, then sector_0, sector_0_inv, ...
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -348,10 +350,21 @@ def _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads: int) -> Non
         _warmed.add(key)
     if not slices:
         return
-    from concurrent.futures import ThreadPoolExecutor
+    list(_pool(threads).map(run, slices))
 
-    with ThreadPoolExecutor(max_workers=threads) as ex:
-        list(ex.map(run, slices))
+
+_pools: dict = {}
+_pool_lock = threading.Lock()
+
+
+def _pool(threads: int):
+    """A process-wide thread pool per thread count (starting threads on every
+    launch costs more than a small kernel)."""
+    with _pool_lock:
+        ex = _pools.get(threads)
+        if ex is None:
+            ex = _pools[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ringscan-launch")
+        return ex
 
 
 def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int) -> None:

@@ -107,16 +107,19 @@ def edge_pair(
     x2 = x + dx
     if y2 >= h or x2 >= w:
         return none
+    # cheapest tests first: most pixels are dark or inside a band
+    cp = contrast[y, x]
+    if cp < min_contrast:
+        return none
     gp = code[y, x]
     gq = code[y2, x2]
     if gp == gq:
         return none
+    cq = contrast[y2, x2]
+    if cq < min_contrast:
+        return none
     lsb = single_bit(gp ^ gq)
     if lsb < 0:
-        return none
-    cp = contrast[y, x]
-    cq = contrast[y2, x2]
-    if cp < min_contrast or cq < min_contrast:
         return none
     m = int(1) << lsb
     if ((weak[y, x] | weak[y2, x2]) & (~m)) != 0:
@@ -180,12 +183,19 @@ def count_edges_kernel(
     row0: int,
     chunk: int,
     counts: wp.array(dtype=wp.int32),
+    found: wp.array(dtype=wp.uint8),
+    fraction: wp.array(dtype=wp.float32),
+    slope: wp.array(dtype=wp.float32),
 ):
-    """Count the samples (0, 1 or 2) whose pair starts at each pixel; a thread
+    """Test both pairs of every pixel; count its samples (0, 1 or 2) and keep
+    what the write pass needs, so that no pair is evaluated twice. A thread
     covers ``chunk`` pixels of one row (see ``ring_labels.launch_rows``).
 
     frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
-    counts: (H*W,) int32 written.
+    counts: (H*W,) int32 written (every pixel).
+    found: (H*W,) uint8 written where counts > 0: bit 0 the +x pair, bit 1 the +y pair.
+    fraction, slope: (2*H*W,) float32 written at 2*i + d for each found pair d
+        (0: +x, 1: +y): the crossing's position along the pair and its confidence.
     """
     tid = wp.tid()
     w = code.shape[1]
@@ -193,28 +203,43 @@ def count_edges_kernel(
     y = row0 + tid / n_chunks
     x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
     for x in range(x0, wp.min(x0 + chunk, w)):
+        i = y * w + x
         n = int(0)
-        ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
-        ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
-        if ex[0] > 0.0:
-            n = n + 1
-        if ey[0] > 0.0:
-            n = n + 1
-        counts[y * w + x] = n
+        bitsf = int(0)
+        if contrast[y, x] >= min_contrast:
+            ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
+            ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
+            if ex[0] > 0.0:
+                n = n + 1
+                bitsf = bitsf | 1
+                fraction[2 * i] = ex[1]
+                slope[2 * i] = ex[3]
+            if ey[0] > 0.0:
+                n = n + 1
+                bitsf = bitsf | 2
+                fraction[2 * i + 1] = ey[1]
+                slope[2 * i + 1] = ey[3]
+            if n > 0:
+                found[i] = wp.uint8(bitsf)
+        counts[i] = n
+
+
+@wp.func
+def pair_ring(code: wp.array2d(dtype=wp.int32), bits: int, y: int, x: int, y2: int, x2: int):
+    """The boundary index between two neighbouring bands: the larger band index."""
+    return wp.max(gray_to_binary(code[y, x], bits), gray_to_binary(code[y2, x2], bits))
 
 
 @wp.kernel
 def write_edges_kernel(
-    frames: wp.array3d(dtype=Any),
     code: wp.array2d(dtype=wp.int32),
-    weak: wp.array2d(dtype=wp.int32),
-    contrast: wp.array2d(dtype=wp.float32),
     sector: wp.array2d(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
+    found: wp.array(dtype=wp.uint8),
+    fraction: wp.array(dtype=wp.float32),
+    slope: wp.array(dtype=wp.float32),
     bits: int,
-    min_contrast: float,
-    min_slope: float,
     row0: int,
     chunk: int,
     uv: wp.array(dtype=wp.vec2),
@@ -225,8 +250,9 @@ def write_edges_kernel(
 ):
     """Write each pixel's samples at its scanned offset (pixels with a count only).
 
-    frames (n, H, W), code/weak/sector (H, W) int32, contrast (H, W) float32,
-    counts (H*W,) int32 and offsets (H*W,) int32 (their exclusive scan): read.
+    code/sector (H, W) int32, counts and offsets (H*W,) int32 (offsets: their
+    exclusive scan), found (H*W,) uint8, fraction/slope (2*H*W,) float32, all
+    from the count pass: read.
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32: written.
     """
@@ -239,26 +265,24 @@ def write_edges_kernel(
         i = y * w + x
         if counts[i] > 0:
             o = offsets[i]
-            ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
-            if ex[0] > 0.0:
-                uv[o] = wp.vec2(float(x) + ex[1], float(y))
-                ring[o] = int(ex[2])
+            f = int(found[i])
+            if (f & 1) != 0:
+                uv[o] = wp.vec2(float(x) + fraction[2 * i], float(y))
+                ring[o] = pair_ring(code, bits, y, x, y, x + 1)
                 sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
-                confidence[o] = ex[3]
+                confidence[o] = slope[2 * i]
                 pixel[o] = i
                 o = o + 1
-            ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
-            if ey[0] > 0.0:
-                uv[o] = wp.vec2(float(x), float(y) + ey[1])
-                ring[o] = int(ey[2])
+            if (f & 2) != 0:
+                uv[o] = wp.vec2(float(x), float(y) + fraction[2 * i + 1])
+                ring[o] = pair_ring(code, bits, y, x, y + 1, x)
                 sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
-                confidence[o] = ey[3]
+                confidence[o] = slope[2 * i + 1]
                 pixel[o] = i
 
 
 for _t in (wp.uint8, wp.uint16):
     wp.overload(count_edges_kernel, {"frames": wp.array3d(dtype=_t)})
-    wp.overload(write_edges_kernel, {"frames": wp.array3d(dtype=_t)})
 
 
 # ----------------------------------------------------------------------------- host
@@ -295,12 +319,17 @@ def sample_gray_rings(
     threads = default_threads() if threads is None else threads
     scale = 257.0 if frames.dtype == wp.uint16 else 1.0
     mc = settings.min_contrast * scale
-    counts = wp.zeros(h * w, dtype=wp.int32, device=dev)
-    common = [labels.code, labels.weak, labels.contrast]
+    # count pass: every pixel's count (scanned below), and for the pairs found
+    # their crossing and confidence (read back by the write pass only where found)
+    counts = wp.empty(h * w, dtype=wp.int32, device=dev)
+    found = wp.empty(h * w, dtype=wp.uint8, device=dev)
+    fraction = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
+    slope = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     if h * w:
         launch_rows(count_edges_kernel, h, w,
-                    lambda r0, chunk: [frames, *common, bits, mc, settings.min_slope, r0, chunk], [counts], dev,
-                    threads)
+                    lambda r0, chunk: [frames, labels.code, labels.weak, labels.contrast, bits, mc, settings.min_slope,
+                                       r0, chunk],
+                    [counts, found, fraction, slope], dev, threads)
     offsets = wp.empty_like(counts)
     total = 0
     if h * w:
@@ -315,7 +344,7 @@ def sample_gray_rings(
     )
     if total:
         launch_rows(write_edges_kernel, h, w,
-                    lambda r0, chunk: [frames, *common, labels.sector, counts, offsets, bits, mc, settings.min_slope,
+                    lambda r0, chunk: [labels.code, labels.sector, counts, offsets, found, fraction, slope, bits,
                                        r0, chunk],
                     [out.uv, out.ring, out.sector, out.confidence, out.pixel], dev, threads)
     return out
