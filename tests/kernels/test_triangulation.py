@@ -129,3 +129,15 @@ def test_fast_atan2_accuracy(device):
     d = np.abs(got - ref)
     d = np.minimum(d, 2 * np.pi - d)
     assert d[1:].max() < 2.1e-4 and got[0] == 0.0
+
+
+def test_cpu_spans_on_several_threads_match_one_thread():
+    """On the CPU the samples are cut into spans launched from a thread pool
+    (``launch_spans``): every span must land where one launch puts it."""
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=30000, seed=3)
+    one = _run("cpu", cam, light, uv, rho, sec, threads=1)
+    many = _run("cpu", cam, light, uv, rho, sec, threads=2)
+    for a, b in ((one.status, many.status), (one.points, many.points), (one.confidence, many.confidence)):
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
+    ok = one.status.numpy() == 0
+    assert np.linalg.norm(one.points.numpy()[ok] - P[ok], axis=1).max() < 2e-3
