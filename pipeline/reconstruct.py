@@ -282,25 +282,58 @@ def reconstruct_scan(
     t_all = time.perf_counter()
     from tqdm import tqdm
 
+    todo = [v for v in chosen if v.name not in done]
+    # Read the next view's frames while this one is reconstructed (image decoding
+    # and Warp launches both release the GIL).
+    from concurrent.futures import ThreadPoolExecutor
+
+    reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
+    pending = {}
+
+    def prefetch(k):
+        if k < len(todo) and todo[k].name not in pending:
+            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k])
+
     bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
-    for view in bar:
-        index = scan.views.index(view)
-        if view.name in done:
-            report["views"].append(done[view.name])
-            continue
-        cloud = reconstruct_view(scan, view, settings=settings, device=device)
-        ply = f"{view.name}.ply"
-        write_view_ply(out / ply, cloud, index)
-        entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
-                 "camera_center": scan.rig.camera.center.tolist(), **cloud.stats}
-        report["views"].append(entry)
-        log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
-                 ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
-        atomic_write_json(report_path, report)
+    try:
+        for view in bar:
+            index = scan.views.index(view)
+            if view.name in done:
+                report["views"].append(done[view.name])
+                continue
+            k = todo.index(view)
+            prefetch(k)
+            frames, read_s = pending.pop(view.name).result()
+            prefetch(k + 1)
+            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device)
+    finally:
+        for f in pending.values():
+            f.cancel()
+        reader.shutdown(wait=True)
     report["totals"] = _totals(report["views"])
     report["time_s"] = time.perf_counter() - t_all
     atomic_write_json(report_path, report)
     return report
+
+
+def _timed_read(scan: Scan, view: View) -> tuple[np.ndarray, float]:
+    t = time.perf_counter()
+    frames = read_view_frames(scan, view)
+    return frames, time.perf_counter() - t
+
+
+def _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device) -> None:
+    """Reconstruct one view from its frames; write its PLY and the updated report."""
+    cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
+    cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
+    ply = f"{view.name}.ply"
+    write_view_ply(out / ply, cloud, index)
+    entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
+             "camera_center": scan.rig.camera.center.tolist(), **cloud.stats}
+    report["views"].append(entry)
+    log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
+             ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
+    atomic_write_json(report_path, report)
 
 
 def _totals(views: list[dict]) -> dict:

@@ -168,21 +168,41 @@ def save_scan(scan: Scan) -> None:
     atomic_write_json(scan.path, scan_to_dict(scan))
 
 
-def read_view_frames(scan: Scan, view: View, names: list[str] | None = None) -> np.ndarray:
+def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:
     """Read a view's frames as one (n_frames, H, W) array (uint8 or uint16).
 
-    Frames are read in the order of ``names`` (default: the codec's frame order).
+    Frames are read in the order of ``names`` (default: the codec's frame order),
+    ``threads`` at a time (default: the CPU count, at most 8; image decoding
+    releases the GIL, and decoding PNGs costs more than reconstructing them).
     Raises :class:`FormatError` naming the file for a missing or unreadable frame,
-    frames of different sizes or bit depths, or a size other than the camera's.
+    frames of different sizes or bit depths, or a size other than the camera's
+    (the first such frame in frame order).
     """
     names = frame_names(scan.patterns) if names is None else names
     cam = scan.rig.camera
-    out = None
-    for i, n in enumerate(names):
+    for n in names:
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
-        p = scan.frame_path(view, n)
-        img = read_image(p)
+    paths = [scan.frame_path(view, n) for n in names]
+    threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))
+
+    def read(p):
+        try:
+            return read_image(p)
+        except FormatError as e:
+            return e
+
+    if threads > 1 and len(paths) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(threads, len(paths))) as ex:
+            images = list(ex.map(read, paths))
+    else:
+        images = [read(p) for p in paths]
+    out = None
+    for i, (p, img) in enumerate(zip(paths, images)):
+        if isinstance(img, FormatError):
+            raise img
         if img.shape != (cam.height, cam.width):
             raise FormatError(p, f"frame is {img.shape[1]}x{img.shape[0]}, but the camera is {cam.width}x{cam.height}")
         if out is None:

@@ -1,0 +1,61 @@
+"""``ringscan batch``: every scan below a folder, failures listed, reruns resume."""
+
+import pytest
+
+from ringscan.pipeline.batch import batch_reconstruct, find_scans
+from ringscan.pipeline.evaluate import evaluate_recon
+from ringscan.pipeline.errors import RingscanError
+from ringscan.pipeline.io import read_json
+from ringscan.pipeline.patterns import parse_patterns
+from ringscan.pipeline.simulate import simulate_scan
+from ringscan.tools.cli import main
+
+from .test_reconstruct import PROJ, small_rig
+
+
+@pytest.fixture(scope="module")
+def scan_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("batch") / "scans"
+    spec = parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 5, "sector_bits": 4})
+    for name, scene in (("a_sphere", "sphere"), ("b/cube", "cube")):
+        simulate_scan(root / name, scene=scene, rig=small_rig(), patterns=spec, progress=False)
+    return root
+
+
+def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):
+    assert [p.relative_to(scan_root).as_posix() for p in find_scans(scan_root)] == ["a_sphere", "b/cube"]
+    out = tmp_path / "out"
+    rep = batch_reconstruct(scan_root, out, progress=False)
+    assert [s["status"] for s in rep["scans"]] == ["done", "done"]
+    for rel in ("a_sphere", "b/cube"):
+        ev = evaluate_recon(out / rel, scan_root / rel)
+        assert ev["all"]["median_mm"] < 0.1 and ev["all"]["frac_over_1mm"] < 0.01
+    assert read_json(out / "batch_report.json")["scans"] == rep["scans"]
+    ply = out / "a_sphere" / "view_000.ply"
+    before = ply.stat().st_mtime_ns
+    rep2 = batch_reconstruct(scan_root, out, progress=False)
+    assert [s["status"] for s in rep2["scans"]] == ["skipped (already done)"] * 2
+    assert ply.stat().st_mtime_ns == before  # nothing redone
+
+
+def test_batch_lists_a_broken_scan_and_goes_on(scan_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "root"
+    shutil.copytree(scan_root, root)
+    frame = root / "a_sphere" / "view_000" / "white.png"
+    frame.write_bytes(b"not a png")
+    out = tmp_path / "out"
+    rep = batch_reconstruct(root, out, progress=False)
+    status = {s["scan"]: s for s in rep["scans"]}
+    assert status["a_sphere"]["status"] == "failed"
+    assert "white.png" in status["a_sphere"]["error"] and "not a readable image" in status["a_sphere"]["error"]
+    assert status["b/cube"]["status"] == "done"
+    # the CLI says so and exits 1; the scan that worked is kept
+    assert main(["batch", str(root), "--out", str(out), "--no-progress", "--device", "cpu"]) == 1
+    assert (out / "b" / "cube" / "view_000.ply").is_file()
+
+
+def test_batch_of_a_folder_without_scans(tmp_path):
+    with pytest.raises(RingscanError, match="no scan.json"):
+        batch_reconstruct(tmp_path, tmp_path / "out", progress=False)
