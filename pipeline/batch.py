@@ -25,11 +25,26 @@ __all__ = ["find_scans", "batch_reconstruct"]
 
 
 def find_scans(root: str | os.PathLike) -> list[Path]:
-    """Scan folders (holding scan.json) below ``root``, sorted."""
+    """Scan folders (holding scan.json) below ``root``, sorted.
+
+    Symbolic links to folders are followed (a batch folder of links to scans kept
+    elsewhere works); a folder reached twice through links is listed once.
+    A scan folder's own subfolders are not searched.
+    """
     root = Path(root)
     if (root / "scan.json").is_file():
         return [root]
-    return sorted(p.parent for p in root.rglob("scan.json") if ".tmp" not in p.name)
+    found, seen = [], set()
+    for dirpath, dirnames, filenames in os.walk(root, followlinks=True):
+        real = os.path.realpath(dirpath)
+        if real in seen:
+            dirnames[:] = []
+            continue
+        seen.add(real)
+        if "scan.json" in filenames:
+            found.append(Path(dirpath))
+            dirnames[:] = []
+    return sorted(found)
 
 
 def _complete(out: Path, n_views: int) -> bool:

@@ -59,3 +59,14 @@ def test_batch_lists_a_broken_scan_and_goes_on(scan_root, tmp_path):
 def test_batch_of_a_folder_without_scans(tmp_path):
     with pytest.raises(RingscanError, match="no scan.json"):
         batch_reconstruct(tmp_path, tmp_path / "out", progress=False)
+
+
+def test_find_scans_follows_links_once(scan_root, tmp_path):
+    root = tmp_path / "links"
+    root.mkdir()
+    (root / "one").symlink_to(scan_root / "a_sphere", target_is_directory=True)
+    (root / "two").symlink_to(scan_root / "a_sphere", target_is_directory=True)
+    (root / "all").symlink_to(scan_root, target_is_directory=True)
+    found = [p.relative_to(root).as_posix() for p in find_scans(root)]
+    assert found == ["all/b/cube", "one"] or found == ["all/a_sphere", "all/b/cube"]
+    assert len(found) == 2  # a_sphere once, however many links reach it
