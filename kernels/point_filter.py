@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .geometry import CameraModel
+from .ring_labels import default_threads, launch_spans
 
 MAX_PER_PIXEL = wp.constant(2)
 
@@ -70,15 +71,17 @@ def count_neighbours_kernel(
     floor_mm: float,
     min_neighbours: int,
     isolated_status: int,
+    i0: int,
     status_out: wp.array(dtype=wp.int32),
 ):
-    """status_out[i] = isolated_status where point i (status 0) has fewer than
-    min_neighbours consistent image neighbours, else status[i].
+    """status_out[i] = isolated_status where point i = i0 + tid (status 0) has
+    fewer than min_neighbours consistent image neighbours, else status[i]. The
+    window is walked row by row and left as soon as enough neighbours agree.
 
     points (n,) vec3 world, pixel/status (n,) int32, slots (2 * H * W,) int32: read.
     status_out (n,) int32: written.
     """
-    i = wp.tid()
+    i = i0 + wp.tid()
     status_out[i] = status[i]
     if status[i] != 0:
         return
@@ -89,19 +92,22 @@ def count_neighbours_kernel(
     depth = wp.length(X - cam.center)
     foot = depth / cam.fx
     n = int(0)
-    for dy in range(-radius, radius + 1):
+    win = 2 * radius + 1
+    for q in range(win * win):
+        if n >= min_neighbours:
+            break
+        dy = q / win - radius
+        dx = q - (q / win) * win - radius
         yy = y + dy
-        if yy >= 0 and yy < height:
-            for dx in range(-radius, radius + 1):
-                xx = x + dx
-                if xx >= 0 and xx < width:
-                    pd = wp.sqrt(float(dx * dx + dy * dy))
-                    lim = tolerance * wp.max(pd, 1.0) * foot + floor_mm
-                    for k in range(MAX_PER_PIXEL):
-                        j = slots[MAX_PER_PIXEL * (yy * width + xx) + k]
-                        if j >= 0 and j != i:
-                            if wp.length(points[j] - X) <= lim:
-                                n = n + 1
+        xx = x + dx
+        if yy >= 0 and yy < height and xx >= 0 and xx < width:
+            pd = wp.sqrt(float(dx * dx + dy * dy))
+            lim = tolerance * wp.max(pd, 1.0) * foot + floor_mm
+            for k in range(MAX_PER_PIXEL):
+                j = slots[MAX_PER_PIXEL * (yy * width + xx) + k]
+                if j >= 0 and j != i:
+                    if wp.length(points[j] - X) <= lim:
+                        n = n + 1
     if n < min_neighbours:
         status_out[i] = isolated_status
 
@@ -116,6 +122,7 @@ def mark_isolated_points(
     height: int,
     isolated_status: int,
     settings: NeighbourFilterSettings = NeighbourFilterSettings(),
+    threads: int | None = None,
 ) -> wp.array:
     """New status array in which the points (status 0) that disagree with their
     image neighbours get ``isolated_status``.
@@ -130,6 +137,7 @@ def mark_isolated_points(
         width, height: image size.
         isolated_status: the status code given to dropped points.
         settings: filter settings.
+        threads: CPU threads (spans of points); default: all cores.
     """
     if not isinstance(points, wp.array) or points.dtype != wp.vec3:
         raise ValueError("mark_isolated_points: points must be a Warp array of vec3")
@@ -143,7 +151,8 @@ def mark_isolated_points(
     slots = wp.full(MAX_PER_PIXEL * width * height, -1, dtype=wp.int32, device=dev)
     out = wp.empty_like(status)
     wp.launch(map_pixels_kernel, dim=n, inputs=[pixel, status], outputs=[slots], device=dev)
-    wp.launch(count_neighbours_kernel, dim=n,
-              inputs=[points, pixel, status, slots, camera, width, height, settings.radius, settings.tolerance,
-                      settings.floor_mm, settings.min_neighbours, isolated_status], outputs=[out], device=dev)
+    args = [points, pixel, status, slots, camera, width, height, settings.radius, settings.tolerance,
+            settings.floor_mm, settings.min_neighbours, isolated_status]
+    launch_spans(count_neighbours_kernel, n, lambda i0: args + [i0], [out], dev,
+                 default_threads() if threads is None else threads)
     return out

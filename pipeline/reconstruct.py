@@ -184,7 +184,8 @@ def reconstruct_view(
     times["triangulate"] = time.perf_counter() - t
     t = time.perf_counter()
     status_w = mark_isolated_points(tri.points, smp.pixel, tri.status, camera=cam, width=rig.camera.width,
-                                    height=rig.camera.height, isolated_status=STATUS_ISOLATED, settings=settings.filter)
+                                    height=rig.camera.height, isolated_status=STATUS_ISOLATED, settings=settings.filter,
+                                    threads=threads)
     idx = compact_points(status_w)
     wp.synchronize_device(device)
     times["filter"] = time.perf_counter() - t
