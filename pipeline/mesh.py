@@ -690,9 +690,10 @@ def compare_to_truth(mesh, truth, *, samples: int = 200_000, within_mm: float = 
 # ----------------------------------------------------------------------------- one call for the demo
 
 
-def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, fuse_settings=None,
+def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
                   mesh_settings: MeshSettings = MeshSettings(), formats=(".ply",), preview: bool = True,
-                  rig=None, truth=None, device: str | None = None, progress: bool = False) -> dict:
+                  rig=None, truth=None, device: str | None = None, progress: bool = False,
+                  pose_settings=None) -> dict:
     """Fuse a reconstruction folder (or a scan folder), mesh it, write everything.
 
     Writes into ``out_dir``: ``fused.ply`` (the fused cloud), ``mesh.<ext>`` for each
@@ -700,6 +701,14 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
     :mod:`ringscan.pipeline.visualize`) and ``fuse_report.json`` (per-view residuals,
     mesh checks, resolved settings, and the figures against ``truth`` when given).
     A scan folder is reconstructed first into ``out_dir/recon``.
+
+    ``recon_dir`` may also be a list of folders: scans of the same object in several
+    poses (flip and rescan). The first is the reference pose; each is fused on its
+    own, the others are aligned to it (:func:`ringscan.pipeline.fuse.fuse_poses`,
+    with ``pose_settings``) and everything is merged in its object frame. Scan
+    folders are then reconstructed into ``out_dir/recon/pose_<i>``; the report's
+    ``fusion.poses`` holds each pose's transform, fitness and inlier RMSE, and
+    ``fused.ply``'s ``view`` property is the pose index.
 
     Args:
         truth: a truth mesh (``o3d.geometry.TriangleMesh``, a mesh file, or a
@@ -709,9 +718,16 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
     Returns:
         The report dictionary (also written to ``fuse_report.json``).
     """
-    from .fuse import FuseSettings, fuse_recon
+    from .fuse import FuseSettings, PoseSettings, fuse_recon, fuse_recons
 
     fuse_settings = FuseSettings() if fuse_settings is None else fuse_settings
+    pose_settings = PoseSettings() if pose_settings is None else pose_settings
+    sources = [recon_dir] if isinstance(recon_dir, (str, bytes, os.PathLike)) else list(recon_dir)
+    if not sources:
+        raise ValueError("no source folder given")
+    multi = len(sources) > 1
+    if multi and rig is not None:
+        raise ValueError("rig: a replacement rig applies to a single source only")
     _check_settings(mesh_settings)
     out_dir = Path(out_dir)
     fmts = []
@@ -722,10 +738,15 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
         fmts.append(f)
     truth_mesh = _load_truth(truth) if truth is not None else None
     t0 = time.perf_counter()
-    fused = fuse_recon(recon_dir, settings=fuse_settings, rig=rig, work_dir=out_dir / "recon", device=device,
-                       progress=progress)
+    if multi:
+        fused = fuse_recons(sources, settings=fuse_settings, pose_settings=pose_settings, work_dir=out_dir / "recon",
+                            device=device, progress=progress)
+    else:
+        fused = fuse_recon(sources[0], settings=fuse_settings, rig=rig, work_dir=out_dir / "recon", device=device,
+                           progress=progress)
     t_fuse = time.perf_counter() - t0
-    mres = mesh_fused(fused, settings=mesh_settings)
+    # TSDF from several poses integrates the merged cloud (virtual views), not the per-view depth maps.
+    mres = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_cloud(out_dir / "fused.ply", fused.cloud, view=fused.point_view, confidence=fused.point_confidence)
     outputs = {"cloud": "fused.ply", "meshes": []}
@@ -738,10 +759,13 @@ def fuse_and_mesh(recon_dir: str | os.PathLike, out_dir: str | os.PathLike, *, f
         res = render_to_png([mres.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
         outputs["preview_renderer"] = res.renderer
-    rep = {"format": FUSE_REPORT_FORMAT, "source": str(Path(recon_dir).resolve()),
+    rep = {"format": FUSE_REPORT_FORMAT, "source": str(Path(sources[0]).resolve()),
            "fusion": fused.report(), "mesh": {"method": mres.method, "watertight": mres.watertight, **mres.info},
            "settings": {"fuse": dataclasses.asdict(fuse_settings), "mesh": dataclasses.asdict(mesh_settings)},
            "outputs": outputs}
+    if multi:
+        rep["sources"] = [str(Path(p).resolve()) for p in sources]
+        rep["settings"]["poses"] = dataclasses.asdict(pose_settings)
     if truth_mesh is not None:
         rep["truth"] = compare_to_truth(mres.mesh, truth_mesh)
     rep["seconds"] = {"fuse": round(t_fuse, 3), "total": round(time.perf_counter() - t0, 3)}

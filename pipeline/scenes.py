@@ -25,6 +25,15 @@ Y-up models, the common convention of OBJ/PLY files, turned +90 degrees about x 
 that model +y -> world +z and model +z -> world -y, toward the default rig's camera;
 ``up="z"``: kept as is; ``up="auto"``: z for STL, y otherwise), scaled to
 ``size_mm`` on its longest side, set down on the plane and centred on the axis.
+
+Poses (:func:`pose_scene`, "flip and rescan"): a placed scene can be turned into
+another resting pose before it is scanned. The pose turns the object about the
+centre of its bounding box, then sets it down again on z = 0 and centres it on the
+axis (no rescaling). Named poses: ``upright`` (no turn, the default),
+``upside-down`` (180 degrees about x), ``side-x`` (+90 degrees about x: the object's
++y side faces up), ``side-y`` (+90 degrees about y: its -x side faces up); or a
+general spec ``AXIS:DEG[,AXIS:DEG...]`` with AXIS one of x, y, z (turns applied
+left to right about the world axes), e.g. ``x:-90`` or ``x:135,z:20``.
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ from .errors import FormatError
 log = logging.getLogger(__name__)
 
 SCENES = ("plane", "sphere", "cube", "terrain")
+POSES = {"upright": (), "upside-down": (("x", 180.0),), "side-x": (("x", 90.0),), "side-y": (("y", 90.0),)}
 CUBE_TURN_DEG = 30.0
 SPHERE_SUBDIVISIONS = 6
 TERRAIN_CELLS = 240
@@ -50,7 +60,10 @@ CREASE_DEG = 40.0
 
 __all__ = [
     "SCENES",
+    "POSES",
     "SceneMesh",
+    "pose_rotation",
+    "pose_scene",
     "make_scene",
     "load_mesh_file",
     "icosphere",
@@ -303,3 +316,71 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
     if p.suffix or p.exists() or os.sep in key or "/" in key:
         return load_mesh_file(p, size_mm=size_mm, up=up)
     raise ValueError(f"scene {key!r}: unknown (known: {', '.join(SCENES)}, or the path of an OBJ/PLY/STL file)")
+
+
+# ----------------------------------------------------------------------------- poses
+
+
+def _axis_rotation(axis: str, deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    if axis == "x":
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return _rot_z(deg)
+
+
+def pose_rotation(pose: str | None) -> np.ndarray:
+    """The 3x3 rotation of a pose: a name of :data:`POSES` or ``AXIS:DEG[,AXIS:DEG...]``.
+
+    None and ``upright`` give the identity.
+
+    Raises:
+        ValueError: an unknown name or a malformed spec (naming the bad part).
+    """
+    if pose is None:
+        return np.eye(3)
+    if not isinstance(pose, str):
+        raise ValueError(f"pose: expected a name ({', '.join(POSES)}) or 'AXIS:DEG,...', got {pose!r}")
+    key = pose.strip().lower()
+    if key in POSES:
+        turns = POSES[key]
+    else:
+        turns = []
+        for part in key.split(","):
+            axis, sep, deg = part.strip().partition(":")
+            try:
+                val = float(deg)
+            except ValueError:
+                val = float("nan")
+            if not sep or axis.strip() not in ("x", "y", "z") or not math.isfinite(val):
+                raise ValueError(f"pose {pose!r}: expected one of {', '.join(POSES)} or 'AXIS:DEG[,AXIS:DEG...]' "
+                                 f"with AXIS x, y or z (bad part {part.strip()!r})")
+            turns.append((axis.strip(), val))
+    R = np.eye(3)
+    for axis, deg in turns:
+        R = _axis_rotation(axis, deg) @ R
+    return R
+
+
+def pose_scene(scene: SceneMesh, pose: str | None) -> tuple[SceneMesh, np.ndarray]:
+    """The scene turned into ``pose`` and set down again on z = 0, centred on the axis.
+
+    Returns:
+        (posed scene, T): T is the 4x4 rigid transform from the scene's frame to the
+        posed scene's frame (``posed.vertices = scene.vertices @ T[:3, :3].T + T[:3, 3]``).
+        The ``upright`` pose (and None) returns the scene unchanged and the identity.
+    """
+    R = pose_rotation(pose)
+    T = np.eye(4)
+    if scene.is_empty or np.allclose(R, np.eye(3), atol=0.0, rtol=0.0):
+        return scene, T
+    v = scene.vertices
+    c = 0.5 * (v.min(0) + v.max(0))
+    w = (v - c) @ R.T
+    lo, hi = w.min(0), w.max(0)
+    shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    T[:3, :3] = R
+    T[:3, 3] = shift - R @ c
+    return SceneMesh(vertices=w + shift, faces=scene.faces, name=scene.name), T

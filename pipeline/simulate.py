@@ -13,7 +13,9 @@ ground truth:
 - ``truth/<view>_lit.png``: 255 where the pixel's centre sees a point lit by the
   projector image (not shadowed, facing the light), else 0;
 - scan.json ``"truth"``: ``{"mesh", "reference_plane_z", "scene", "size_mm",
-  "views": {name: {"depth", "lit"}}, "settings": {...}}``.
+  "views": {name: {"depth", "lit"}}, "settings": {...}}``, plus ``"pose": {"name",
+  "transform"}`` when a pose was given (``transform``: the 4x4 rigid transform from
+  the upright placed scene to the posed one, which ``truth/object.ply`` holds).
 
 Radiometry (per camera pixel, mean over sub-samples):
 ``I = albedo * (ambient + max(0, n.l) * lit * E(u_p, v_p))`` with E the emitted
@@ -40,7 +42,7 @@ from .io import atomic_path, atomic_write_bytes, write_image
 from .patterns import PatternSpec, frame_names, render_frame
 from .rig import ParallelLight, Rig, Turntable, default_rig, turntable_transform
 from .scan import Scan, View, load_scan, save_scan
-from .scenes import SceneMesh, corner_normals, make_scene
+from .scenes import SceneMesh, corner_normals, make_scene, pose_scene
 
 log = logging.getLogger(__name__)
 
@@ -490,6 +492,7 @@ def simulate_scan(
     size_mm: float = 80.0,
     up: str = "auto",
     image_format: str = "png",
+    pose: str | None = None,
 ) -> Scan:
     """Render a whole scan with the virtual rig and write it with its ground truth.
 
@@ -505,6 +508,11 @@ def simulate_scan(
         progress: show a tqdm progress bar.
         size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
         image_format: ``png`` or ``tiff`` for the frames.
+        pose: turn the placed scene into this resting pose first (see
+            :func:`ringscan.pipeline.scenes.pose_scene`: ``upright``, ``upside-down``,
+            ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
+            The truth mesh is the posed scene, and scan.json ``truth.pose`` records
+            the transform from the upright scene.
 
     Returns:
         The written scan (as :func:`load_scan` reads it back).
@@ -523,6 +531,9 @@ def simulate_scan(
         turntable_transform(rig.turntable, a)
     if not isinstance(scene, SceneMesh):
         scene = make_scene(scene, size_mm=size_mm, up=up)
+    pose_T = None
+    if pose is not None:
+        scene, pose_T = pose_scene(scene, pose)
     vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=(patterns.width, patterns.height))
 
     folder = Path(out_dir)
@@ -531,6 +542,8 @@ def simulate_scan(
     _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
              "settings": settings.to_dict()}
+    if pose_T is not None:
+        truth["pose"] = {"name": str(pose), "transform": pose_T.tolist()}
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
 

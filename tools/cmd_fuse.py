@@ -1,8 +1,11 @@
-"""``ringscan fuse SCAN_OR_RECON --out DIR``: fused cloud, mesh, preview and report."""
+"""``ringscan fuse SCAN_OR_RECON [SCAN_OR_RECON ...] --out DIR``: fused cloud, mesh, preview and report.
+
+Several sources are scans of one object in several poses (flip and rescan): the
+first is the reference pose, the others are aligned to it and merged."""
 
 from __future__ import annotations
 
-from ringscan.pipeline.fuse import FuseSettings
+from ringscan.pipeline.fuse import FuseSettings, PoseSettings
 from ringscan.pipeline.mesh import MESH_FORMATS, MeshSettings, fuse_and_mesh
 
 from .cli import add_device_option
@@ -13,8 +16,13 @@ def add_parser(sub):
                        description="SCAN_OR_RECON is a reconstruction folder (report.json + one PLY per view) or a "
                                    "scan folder (reconstructed first into DIR/recon). Writes DIR/fused.ply, "
                                    "DIR/mesh.<ext>, DIR/preview.png and DIR/fuse_report.json (per-view residuals "
-                                   "and the resolved settings).")
-    p.add_argument("source", metavar="SCAN_OR_RECON", help="reconstruction folder or scan folder")
+                                   "and the resolved settings). Several sources are scans of the same object in "
+                                   "several poses (flip and rescan): each is fused on its own, the others are "
+                                   "aligned to the first (FPFH + RANSAC, then ICP) and merged in its object frame; "
+                                   "fuse_report.json then has a per-pose section (transform, fitness, inlier RMSE). "
+                                   "A pose that fails to align is an error naming it.")
+    p.add_argument("source", metavar="SCAN_OR_RECON", nargs="+",
+                   help="reconstruction folder or scan folder; more than one: further poses of the object")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--method", choices=("poisson", "tsdf"), default="poisson", help="meshing method (default poisson)")
     p.add_argument("--watertight", action="store_true", help="closed manifold mesh (checked with is_watertight)")
@@ -31,6 +39,14 @@ def add_parser(sub):
                    help=f"TSDF voxel size (default {MeshSettings.tsdf_voxel_mm})")
     p.add_argument("--truth", default=None, metavar="MESH_OR_SCAN",
                    help="measure the mesh against this truth mesh (or a simulated scan's truth)")
+    p.add_argument("--min-pose-fitness", type=float, default=None, metavar="F",
+                   help=f"several poses: a pose whose ICP fitness against the first is below this fails "
+                        f"(default {PoseSettings.min_fitness})")
+    p.add_argument("--max-pose-rmse", type=float, default=None, metavar="MM",
+                   help=f"several poses: a pose whose ICP inlier RMSE is above this fails "
+                        f"(default {PoseSettings.max_rmse_mm})")
+    p.add_argument("--no-pose-graph", action="store_true",
+                   help="several poses: align each pose to the first only (no pose graph across poses)")
     p.add_argument("--no-preview", action="store_true", help="do not render preview.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_device_option(p)
@@ -65,9 +81,24 @@ def run(args) -> int:
         mkw["poisson_depth"] = args.poisson_depth
     if args.tsdf_voxel is not None:
         mkw["tsdf_voxel_mm"] = args.tsdf_voxel
-    rep = fuse_and_mesh(args.source, args.out, fuse_settings=FuseSettings(**fkw), mesh_settings=MeshSettings(**mkw),
+    pkw = {}
+    if args.voxel is not None:
+        pkw["voxel_mm"] = args.voxel
+    if args.min_pose_fitness is not None:
+        pkw["min_fitness"] = args.min_pose_fitness
+    if args.max_pose_rmse is not None:
+        pkw["max_rmse_mm"] = args.max_pose_rmse
+    if args.no_pose_graph:
+        pkw["pose_graph"] = False
+    sources = args.source[0] if len(args.source) == 1 else list(args.source)
+    rep = fuse_and_mesh(sources, args.out, fuse_settings=FuseSettings(**fkw), mesh_settings=MeshSettings(**mkw),
                         formats=parse_formats(args.formats), preview=not args.no_preview, truth=args.truth,
-                        device=args.device, progress=not args.no_progress)
+                        device=args.device, progress=not args.no_progress, pose_settings=PoseSettings(**pkw))
+    if "poses" in rep["fusion"]:
+        print(f"{'pose':<32}{'points':>9}{'fitness':>9}{'rmse mm':>9}{'rot deg':>9}{'trans mm':>10}")
+        for ps in rep["fusion"]["poses"]:
+            print(f"{ps['name'][-32:]:<32}{ps['points']:>9}{ps['fitness']:>9.3f}{ps['inlier_rmse_mm']:>9.4f}"
+                  f"{ps['rotation_deg']:>9.2f}{ps['translation_mm']:>10.2f}")
     print(f"{'view':<12}{'deg':>7}{'points':>9}{'kept':>9}{'fit before':>11}{'rms before':>11}{'fit':>7}"
           f"{'rms mm':>8}{'corr mm':>9}{'corr deg':>9}")
     for v in rep["fusion"]["views"]:

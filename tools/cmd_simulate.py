@@ -23,6 +23,10 @@ def add_parser(sub):
     p.add_argument("--size-mm", type=float, default=80.0, help="longest side of the object in mm (default 80)")
     p.add_argument("--up", choices=("auto", "y", "z"), default="auto",
                    help="up axis of a mesh file (default auto: z for STL, y otherwise)")
+    p.add_argument("--pose", default=None, metavar="POSE",
+                   help="resting pose for flip-and-rescan: upright (default), upside-down, side-x, side-y, or "
+                        "AXIS:DEG[,AXIS:DEG...] (e.g. x:-90 or x:135,z:20); the object is turned about its "
+                        "bounding-box centre, then set down on z = 0")
     p.add_argument("--out", required=True, help="scan folder to write")
     p.add_argument("--rig", default=None, help="rig file (default: the built-in virtual rig)")
     p.add_argument("--light", choices=("parallel", "perspective"), default=None,
@@ -81,7 +85,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     scan = simulate_scan(args.out, scene=args.scene, rig=rig, patterns=spec, views=args.views, settings=settings,
                          device=args.device, progress=not args.no_progress, size_mm=args.size_mm, up=args.up,
-                         image_format=args.format)
+                         image_format=args.format, pose=args.pose)
     n_frames = len(scan.views[0].frames) if scan.views else 0
     print(f"{len(scan.views)} view(s) x {n_frames} {spec.codec} frame(s) of {args.scene} "
           f"({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in {time.perf_counter() - t0:.1f} s "
