@@ -10,7 +10,9 @@ normal (the larger component of the gradient of d) is kept, so a boundary gives
 about one sample per pixel it crosses and never a grazing one.
 
 Output order is deterministic: per pixel in raster order, the +x sample first.
-Counts are computed, scanned (``wp.utils.array_scan``) and then written.
+Counts are computed, scanned (``wp.utils.array_scan``) and then written; the count
+pass keeps each crossing it finds (position and confidence, per pixel and
+direction) so the write pass only copies them to their scanned offsets.
 """
 
 from __future__ import annotations
