@@ -4,7 +4,7 @@ The virtual rig's light is parallel to the turntable axis, so lighting does not
 change with the turntable angle: a surface point unlit at angle 0 is never lit, and
 one turntable scan covers only the upward-facing surface. This benchmark simulates
 a mesh (default: Keenan Crane's Spot from ../shared/data/models) in several resting
-poses (default ``upright``, ``upside-down``, ``side-x``), each an N-view turntable
+poses (default ``upright``, ``tetra-1``, ``tetra-2``, ``tetra-3``), each an N-view turntable
 scan, reconstructs and fuses each pose, aligns the poses to the first one
 (FPFH + RANSAC, then ICP; :func:`ringscan.pipeline.fuse.fuse_poses`), meshes
 (Poisson) and measures against the *whole* truth mesh of the first pose:
@@ -36,7 +36,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_MODEL = REPO.parent / "shared" / "data" / "models" / "odedstein_spot.obj"
-DEFAULT_POSES = "upright,upside-down,side-x"
+DEFAULT_POSES = "upright,tetra-1,tetra-2,tetra-3"
 
 
 def _rot_err_deg(R: np.ndarray) -> float:

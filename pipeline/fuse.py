@@ -651,6 +651,9 @@ class PoseSettings:
     within icp_fine_mm, ``plane_rmse_mm``) is above this has failed to align: an
     error. (Open3D's inlier RMSE is point-to-point, dominated by the point spacing,
     so it is reported but not checked.)"""
+    min_points: int = 1000
+    """A pose whose cloud has fewer points than this cannot be aligned reliably (a
+    few points fit anywhere): an error."""
     voxel_mm: float = 0.3
     """Voxel size of the merged cloud (points and normals averaged per voxel; 0 keeps all)."""
 
@@ -753,7 +756,7 @@ def _check_pose_settings(s: PoseSettings) -> None:
                  "icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "max_rmse_mm"):
         if not getattr(s, name) > 0:
             raise ValueError(f"PoseSettings.{name} must be > 0, got {getattr(s, name)}")
-    for name in ("ransac_iterations", "ransac_trials", "icp_iterations", "feature_max_nn"):
+    for name in ("ransac_iterations", "ransac_trials", "icp_iterations", "feature_max_nn", "min_points"):
         if getattr(s, name) < 1:
             raise ValueError(f"PoseSettings.{name} must be >= 1, got {getattr(s, name)}")
     if not 0 <= s.min_fitness <= 1:
@@ -894,9 +897,9 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
 
     prepared = []
     for (cloud, _, _), name in zip(items, names):
+        if n > 1 and len(cloud.points) < s.min_points:
+            raise AlignmentError(name, f"too few points to align ({len(cloud.points)} < min_points {s.min_points})")
         g = _oriented_copy(o3d, cloud, s.global_voxel_mm, s.global_normal_radius_mm)
-        if n > 1 and len(g.points) < 10:
-            raise ValueError(f"pose {name!r}: too few points ({len(cloud.points)}) to register")
         f = reg.compute_fpfh_feature(g, o3d.geometry.KDTreeSearchParamHybrid(radius=s.feature_radius_mm,
                                                                             max_nn=s.feature_max_nn))
         prepared.append((g, f, _oriented_copy(o3d, cloud, s.icp_voxel_mm, None)))

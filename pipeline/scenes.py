@@ -31,7 +31,11 @@ another resting pose before it is scanned. The pose turns the object about the
 centre of its bounding box, then sets it down again on z = 0 and centres it on the
 axis (no rescaling). Named poses: ``upright`` (no turn, the default),
 ``upside-down`` (180 degrees about x), ``side-x`` (+90 degrees about x: the object's
-+y side faces up), ``side-y`` (+90 degrees about y: its -x side faces up); or a
++y side faces up), ``side-y`` (+90 degrees about y: its -x side faces up),
+``tetra-1``, ``tetra-2``, ``tetra-3`` (with ``upright``, the four poses that turn up
+the object's directions of a regular tetrahedron: z, then 109.47 degrees about x
+after 0, 120, 240 degrees about z; every surface normal is within 70.5 degrees of
+one of them, so a light along z lights every normal in some pose); or a
 general spec ``AXIS:DEG[,AXIS:DEG...]`` with AXIS one of x, y, z (turns applied
 left to right about the world axes), e.g. ``x:-90`` or ``x:135,z:20``.
 """
@@ -51,7 +55,10 @@ from .errors import FormatError
 log = logging.getLogger(__name__)
 
 SCENES = ("plane", "sphere", "cube", "terrain")
-POSES = {"upright": (), "upside-down": (("x", 180.0),), "side-x": (("x", 90.0),), "side-y": (("y", 90.0),)}
+TETRA_DEG = math.degrees(math.acos(-1.0 / 3.0))   # 109.47: the angle between tetrahedron directions
+POSES = {"upright": (), "upside-down": (("x", 180.0),), "side-x": (("x", 90.0),), "side-y": (("y", 90.0),),
+         "tetra-1": (("x", TETRA_DEG),), "tetra-2": (("z", 120.0), ("x", TETRA_DEG)),
+         "tetra-3": (("z", 240.0), ("x", TETRA_DEG))}
 CUBE_TURN_DEG = 30.0
 SPHERE_SUBDIVISIONS = 6
 TERRAIN_CELLS = 240

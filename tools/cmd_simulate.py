@@ -24,7 +24,8 @@ def add_parser(sub):
     p.add_argument("--up", choices=("auto", "y", "z"), default="auto",
                    help="up axis of a mesh file (default auto: z for STL, y otherwise)")
     p.add_argument("--pose", default=None, metavar="POSE",
-                   help="resting pose for flip-and-rescan: upright (default), upside-down, side-x, side-y, or "
+                   help="resting pose for flip-and-rescan: upright (default), upside-down, side-x, side-y, "
+                        "tetra-1, tetra-2, tetra-3 (with upright: the 4 poses that light every normal), or "
                         "AXIS:DEG[,AXIS:DEG...] (e.g. x:-90 or x:135,z:20); the object is turned about its "
                         "bounding-box centre, then set down on z = 0")
     p.add_argument("--out", required=True, help="scan folder to write")

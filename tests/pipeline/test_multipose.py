@@ -73,6 +73,9 @@ def test_pose_scene_turns_and_sets_down():
     assert np.allclose(pose_rotation("upside-down"), np.diag([1.0, -1.0, -1.0]))
     assert np.allclose(pose_rotation("side-x") @ [0, 1, 0], [0, 0, 1])       # +y side up
     assert np.allclose(pose_rotation("side-y") @ [-1, 0, 0], [0, 0, 1])      # -x side up
+    d = np.stack([pose_rotation(p).T @ [0.0, 0.0, 1.0] for p in ("upright", "tetra-1", "tetra-2", "tetra-3")])
+    G = d @ d.T
+    assert np.allclose(G[~np.eye(4, dtype=bool)], -1.0 / 3.0)           # a regular tetrahedron of up directions
     for bad in ("sideways", "w:3", "x:abc", "x90"):
         with pytest.raises(ValueError, match="pose"):
             pose_rotation(bad)
@@ -113,6 +116,8 @@ def test_failed_alignment_names_the_pose():
     junk.normals = o3d.utility.Vector3dVector(np.tile([0.0, 0.0, 1.0], (5000, 1)))
     with pytest.raises(AlignmentError, match="'junk_scan'.*fail"):
         fuse_poses([a, junk], names=["ref", "junk_scan"], settings=FAST)
+    with pytest.raises(AlignmentError, match="'tiny'.*too few points"):
+        fuse_poses([a, o3d.geometry.PointCloud(a).random_down_sample(0.01)], names=["ref", "tiny"], settings=FAST)
     with pytest.raises(ValueError, match="no normals"):
         fuse_poses([a, o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rng.uniform(0, 1, (50, 3))))])
     with pytest.raises(ValueError, match="non-empty"):
@@ -148,7 +153,7 @@ def test_cli_fuses_several_sources(tmp_path, capsys):
     rng = np.random.default_rng(0)
     (tmp_path / "bad").mkdir()
     views = scan_views(up, rig, angles[:1])
-    junk = [type(views[0])(name="view_000", points=rng.uniform(-30, 30, (4000, 3)) + [0, 0, 40],
+    junk = [type(views[0])(name="view_000", points=rng.uniform(-30, 30, (40000, 3)) + [0, 0, 40],
                           turntable_deg=0.0, camera_center=views[0].camera_center)]
     write_recon(tmp_path / "bad", junk, rig)
     out2 = tmp_path / "out2"
