@@ -95,14 +95,20 @@ def run(args) -> int:
                         formats=parse_formats(args.formats), preview=not args.no_preview, truth=args.truth,
                         device=args.device, progress=not args.no_progress, pose_settings=PoseSettings(**pkw))
     if "poses" in rep["fusion"]:
-        print(f"{'pose':<32}{'points':>9}{'fitness':>9}{'rmse mm':>9}{'rot deg':>9}{'trans mm':>10}")
-        for ps in rep["fusion"]["poses"]:
-            print(f"{ps['name'][-32:]:<32}{ps['points']:>9}{ps['fitness']:>9.3f}{ps['inlier_rmse_mm']:>9.4f}"
-                  f"{ps['rotation_deg']:>9.2f}{ps['translation_mm']:>10.2f}")
+        # fitness / p2pl: against all other poses; fit ref: against the first alone;
+        # o3d rmse: Open3D's point-to-point inlier RMSE (reported, not checked).
+        print(f"{'#':<3}{'pose':<30}{'points':>8}{'fitness':>9}{'fit ref':>9}{'p2pl mm':>9}{'o3d rmse':>9}"
+              f"{'rot deg':>9}{'trans mm':>10}  aligned with")
+        for k, ps in enumerate(rep["fusion"]["poses"]):
+            print(f"{k:<3}{ps['name'][-30:]:<30}{ps['points']:>8}{ps['fitness']:>9.3f}{ps['fitness_to_reference']:>9.3f}"
+                  f"{ps['plane_rmse_mm']:>9.4f}{ps['inlier_rmse_mm']:>9.4f}{ps['rotation_deg']:>9.2f}"
+                  f"{ps['translation_mm']:>10.2f}  {'-' if k == 0 else ps['aligned_with'][-30:]}")
+    pose_index = {ps["name"]: k for k, ps in enumerate(rep["fusion"].get("poses", []))}
     print(f"{'view':<12}{'deg':>7}{'points':>9}{'kept':>9}{'fit before':>11}{'rms before':>11}{'fit':>7}"
           f"{'rms mm':>8}{'corr mm':>9}{'corr deg':>9}")
     for v in rep["fusion"]["views"]:
-        print(f"{v['name']:<12}{v['turntable_deg']:>7.1f}{v['points_in']:>9}{v['points_kept']:>9}"
+        name = f"{pose_index[v['pose']]}:{v['name']}" if "pose" in v else v["name"]
+        print(f"{name:<12}{v['turntable_deg']:>7.1f}{v['points_in']:>9}{v['points_kept']:>9}"
               f"{v['fitness_before']:>11.3f}{v['rmse_before_mm']:>11.4f}{v['fitness']:>7.3f}{v['rmse_mm']:>8.4f}"
               f"{v['correction_mm']:>9.3f}{v['correction_deg']:>9.3f}")
     m = rep["mesh"]
