@@ -17,6 +17,16 @@ with the object turned by the view's ``turntable_deg``. Fusion
    refinement, and the correction applied (mm, degrees);
 6. merges the views and voxel-downsamples them into the fused cloud.
 
+Several poses ("flip and rescan", :func:`fuse_poses`, :func:`fuse_recons`): each
+pose's scan is fused as above into its own object frame; every further pose is
+registered to the first (and, with three or more, to each other) with FPFH features
++ RANSAC on voxel-downsampled copies, then point-to-plane ICP (coarse, fine);
+poses are placed along a spanning tree of the pairs that pass the fitness and
+point-to-plane RMSE checks, a pose graph is optimised when there are more pairs,
+every pose is checked against the others merged, and the clouds are merged in the
+first pose's frame. A pose that cannot be aligned raises :class:`AlignmentError`
+naming it.
+
 Everything returned is an Open3D geometry or a NumPy array, so a user's script can
 carry on with Open3D directly.
 """

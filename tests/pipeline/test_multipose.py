@@ -162,3 +162,27 @@ def test_cli_fuses_several_sources(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and f"pose '{tmp_path / 'bad'}'" in err and "failed to align" in err
     assert not (out2 / "fused.ply").exists()
+
+
+def test_simulate_with_a_pose_writes_the_posed_truth(tmp_path, capsys):
+    from ringscan.pipeline.io import read_json
+    from ringscan.pipeline.mesh import read_mesh
+    from ringscan.pipeline.simulate import RenderSettings, simulate_scan
+
+    from .test_simulate import small_rig as sim_rig
+    from .test_simulate import small_spec
+
+    kw = dict(scene="cube", rig=sim_rig(), patterns=small_spec(), views=1, settings=RenderSettings(supersample=1),
+              device="cpu", progress=False, size_mm=40.0)
+    simulate_scan(tmp_path / "up", **kw)
+    simulate_scan(tmp_path / "side", pose="side-x", **kw)
+    t_up, t_side = read_json(tmp_path / "up" / "scan.json")["truth"], read_json(tmp_path / "side" / "scan.json")["truth"]
+    assert "pose" not in t_up                                            # default: unchanged scan.json
+    assert t_side["pose"]["name"] == "side-x"
+    T = np.asarray(t_side["pose"]["transform"])
+    up = np.asarray(read_mesh(tmp_path / "up" / t_up["mesh"]).vertices)
+    side = np.asarray(read_mesh(tmp_path / "side" / t_side["mesh"]).vertices)
+    assert np.allclose(up @ T[:3, :3].T + T[:3, 3], side, atol=1e-4)
+    assert abs(side[:, 2].min()) < 1e-6
+    with pytest.raises(ValueError, match="pose 'sideways'"):
+        simulate_scan(tmp_path / "bad", pose="sideways", **kw)
