@@ -108,6 +108,28 @@ def test_fuse_poses_recovers_the_known_transform():
     json.dumps(rep)
 
 
+def test_three_poses_go_through_the_pose_graph():
+    """With three poses every pair is registered and the pose graph refines them all."""
+    up, down, T_down = _object_in_two_poses()
+    m = up
+    scene = SceneMesh(vertices=np.asarray(m.vertices), faces=np.asarray(m.triangles, np.int32), name="lumpy")
+    third, T3 = pose_scene(scene, "y:-100,z:70")
+    side = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(third.vertices),
+                                     o3d.utility.Vector3iVector(third.faces))
+    side.compute_triangle_normals()
+    T_side = np.linalg.inv(T3)                       # up is already upright: side frame -> up frame
+    clouds = [_partial_cloud(mesh, min_nz=-0.3, seed=k) for k, mesh in enumerate((up, down, side))]
+    res = fuse_poses(clouds, names=["up", "down", "side"], settings=FAST)
+    assert res.pose_graph is not None and len(res.pose_graph.edges) == 3
+    for i, T_true in ((1, T_down), (2, T_side)):
+        T = res.transforms[i]
+        c = np.asarray(clouds[i].points).mean(axis=0)
+        assert _rot_err_deg((np.linalg.inv(T_true) @ T)[:3, :3]) < 0.5, i
+        assert np.linalg.norm((T[:3, :3] - T_true[:3, :3]) @ c + T[:3, 3] - T_true[:3, 3]) < 0.5, i
+    assert res.report()["poses"][2]["fitness"] >= FAST.min_fitness
+    assert set(np.unique(res.point_view)) == {0, 1, 2}
+
+
 def test_failed_alignment_names_the_pose():
     up, _, _ = _object_in_two_poses()
     a = _partial_cloud(up, min_nz=-0.3, seed=1)
