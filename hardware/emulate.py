@@ -131,6 +131,10 @@ class _PtyDevice:
         log.debug("emulated %s on %s", self.name, self._tty)
 
     def _unplug(self) -> None:
+        # The port's name goes first, then the pty: a host that sees the line drop
+        # (EIO at once) must also find the port gone, as with a pulled USB cable.
+        if self.link_path is not None and self.link_path.is_symlink():
+            self.link_path.unlink()
         for fd in (self._master, self._slave):
             if fd is not None:
                 try:
@@ -138,8 +142,6 @@ class _PtyDevice:
                 except OSError:
                     pass
         self._master = self._slave = self._tty = None
-        if self.link_path is not None and self.link_path.is_symlink():
-            self.link_path.unlink()
         log.debug("emulated %s unplugged", self.name)
 
     def unplug(self) -> None:
