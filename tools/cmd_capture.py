@@ -19,6 +19,7 @@ import logging
 from pathlib import Path
 
 from ringscan.hardware.capture import CaptureSettings, capture_scan, read_capture_state, resume_angle
+from ringscan.hardware.errors import CaptureError
 from ringscan.pipeline.errors import FormatError
 from ringscan.pipeline.io import read_json
 from ringscan.pipeline.patterns import PatternSpec, frame_names, parse_patterns
@@ -69,6 +70,10 @@ def add_parser(sub):
     p.add_argument("--table-at", type=float, default=None, metavar="DEG",
                    help="with --resume: the angle the table stands at now (needed when a move was cut short)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--reconstruct", metavar="DIR", default=None,
+                   help="reconstruct each view into DIR (as `ringscan reconstruct`) while the next one is captured")
+    p.add_argument("--reconstruct-settings", metavar="JSON", default=None,
+                   help="reconstruction settings file for --reconstruct (as `ringscan reconstruct --settings`)")
 
     g = p.add_argument_group("devices")
     g.add_argument("--turntable", metavar="PORT", help="GRBL/Horus turntable serial port (or pyserial URL); "
@@ -133,7 +138,16 @@ def run(args) -> int:
         raise ValueError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
     if args.table_at is not None and not args.resume:
         raise ValueError("--table-at only applies with --resume")
+    if args.reconstruct_settings and not args.reconstruct:
+        raise ValueError("--reconstruct-settings only applies with --reconstruct")
     settings = _settings(args, out)
+    live = None
+    if args.reconstruct:
+        from ringscan.pipeline.reconstruct import LiveReconstructor
+        from ringscan.tools.cmd_reconstruct import load_settings
+
+        live = LiveReconstructor(args.reconstruct, settings=load_settings(args.reconstruct_settings),
+                                 device=args.device)
     if args.resume:
         if not (out / "scan.json").is_file():
             raise FormatError(out / "scan.json", "nothing to resume (no scan.json)")
@@ -180,7 +194,14 @@ def run(args) -> int:
         scan = capture_scan(out, camera=camera, projector=projector, turntable=turntable, rig=rig,
                             patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
                             settings=settings, resume=args.resume, table_at=table_deg if args.resume else None,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, on_view=live)
+    except CaptureError:
+        if live is not None:  # keep what was captured reconstructed, then report the fault
+            try:
+                live.finish(load_scan(out, check_files=False, allow_incomplete=True))
+            except Exception as e:  # noqa: BLE001 - the capture's fault is the error to report
+                log.warning("reconstructing the partial scan failed: %s", e)
+        raise
     finally:
         for dev in (turntable, projector, camera, emu):
             if dev is not None:
@@ -189,4 +210,12 @@ def run(args) -> int:
                 except Exception as e:  # closing must not hide the real error
                     log.warning("closing %s failed: %s", type(dev).__name__, e)
     print(f"captured {len(scan.views)} view(s) x {len(names)} frame(s) -> {out}")
+    if live is not None:
+        rep = live.finish(scan)
+        if rep is None:
+            log.error("%s; run `ringscan reconstruct %s --out %s --resume` once the cause is fixed", live.error, out,
+                      args.reconstruct)
+            return 1
+        t = rep["totals"]
+        print(f"reconstructed {len(rep['views'])} view(s): {t['points']} points -> {args.reconstruct}")
     return 0

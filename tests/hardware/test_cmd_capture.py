@@ -150,3 +150,54 @@ def test_cli_errors(files, tmp_path, capsys):
     atomic_write_json(bad, {"retries": "x"})
     assert main(_args(files, tmp_path / "f", "--views", "2", "--settings", str(bad), *VIRTUAL)) == 2
     assert "settings.json: settings: retries" in capsys.readouterr().err
+
+
+def test_capture_reconstructs_while_capturing(files, reference, tmp_path, capsys):
+    from ringscan.pipeline.io import read_json, read_ply
+    from ringscan.pipeline.reconstruct import reconstruct_scan
+
+    out, rec = tmp_path / "scan", tmp_path / "rec"
+    assert main(_args(files, out, "--views", "3", *VIRTUAL, "--reconstruct", str(rec))) == 0
+    assert "reconstructed 3 view(s)" in capsys.readouterr().out
+    _assert_same(load_scan(out), reference)
+    live = read_json(rec / "report.json")
+    again = reconstruct_scan(out, tmp_path / "again", device="cpu", progress=False)
+    assert [v["name"] for v in live["views"]] == [v.name for v in reference.views]
+    assert live["totals"]["points"] == again["totals"]["points"] > 100
+    for v in reference.views:  # the same points as a reconstruction after the capture
+        a, b = read_ply(rec / f"{v.name}.ply"), read_ply(tmp_path / "again" / f"{v.name}.ply")
+        for key in ("x", "y", "z", "ring", "view"):
+            np.testing.assert_array_equal(a[key], b[key])
+    assert main(_args(files, tmp_path / "x", "--views", "2", *VIRTUAL, "--reconstruct-settings", "s.json")) == 2
+    assert "--reconstruct-settings only applies with --reconstruct" in capsys.readouterr().err
+
+
+def test_live_reconstructor_partial_scan_resume_and_failure(reference, tmp_path):
+    import dataclasses
+    import shutil
+
+    from ringscan.pipeline.io import read_json
+    from ringscan.pipeline.reconstruct import LiveReconstructor
+    from ringscan.pipeline.scan import View
+
+    v0, v1, v2 = reference.views
+    half = View(name=v2.name, turntable_deg=v2.turntable_deg, frames=dict(list(v2.frames.items())[:3]))
+    partial = dataclasses.replace(reference, views=(v0, v1, half))  # a capture that stopped in view 2
+    live = LiveReconstructor(tmp_path / "rec", device="cpu")
+    live(partial, v0)
+    rep = live.finish(partial)
+    assert [v["name"] for v in rep["views"]] == [v0.name, v1.name] and live.error is None
+    first = read_json(tmp_path / "rec" / "report.json")["views"]
+    # Resumed and finished: only the new view is reconstructed, the others are kept.
+    rep = LiveReconstructor(tmp_path / "rec", device="cpu").finish(reference)
+    assert [v["name"] for v in rep["views"]] == [v0.name, v1.name, v2.name]
+    assert rep["views"][:2] == first
+    # A frame that cannot be read: logged and kept, never raised into the capture.
+    bad = tmp_path / "bad"
+    shutil.copytree(reference.folder, bad)
+    (bad / v1.frames["white"]).write_bytes(b"not a png")
+    live = LiveReconstructor(tmp_path / "rec_bad", device="cpu")
+    scan = load_scan(bad, check_files=False)
+    live(scan, scan.views[1])
+    assert live.finish() is None
+    assert "white.png" in live.error and "failed" in live.error and str(bad) in live.error
