@@ -8,13 +8,16 @@ drivers, the virtual camera, the capture sequence), reconstructs both with
 The two differ only in sensor noise, so their figures should agree.
 
     python benchmarks/capture_vs_simulate.py [--views 8] [--scene terrain] [--small]
-        [--device cpu] [--out DIR]
+        [--device cpu] [--out DIR] [--live]
 
 Default: the default rig (1280x1024 camera) and the 28-frame gray-rings set
 (7 band bits, 6 sector bits), 8 views: the issue's "8 views x 28 frames".
 ``--small``: a 320x256 camera and a 12-frame set, for a quick run.
 Prints one line per scan (make_s: seconds to simulate / capture it, 0 when reused
 from --out; recon_s: seconds to reconstruct) and the ratios captured / simulated.
+``--live``: captures the scene once more with each view reconstructed while the
+next is captured (``ringscan capture --reconstruct``), checks that it gives the same
+points, and prints its wall time against capture-then-reconstruct of the same run.
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ def patterns_for(small: bool):
     return parse_patterns(d, source="benchmark")
 
 
-def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, device, size_mm: float = 80.0):
+def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, device, size_mm: float = 80.0,
+                     on_view=None):
     """Capture ``views`` views of ``scene`` through the emulated rig and the real drivers."""
     from ringscan.hardware.capture import CaptureSettings, capture_scan
     from ringscan.hardware.emulate import EmulatedRig
@@ -64,7 +68,7 @@ def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, 
         pj = SerialProjector(emu.projector_port, expect_names=frame_names(patterns))
         try:
             return capture_scan(out, camera=emu.camera, projector=pj, turntable=tt, rig=rig, patterns=patterns,
-                                views=views, settings=settings, progress=False)
+                                views=views, settings=settings, progress=False, on_view=on_view)
         finally:
             tt.close()
             pj.close()
@@ -96,7 +100,7 @@ def _complete(folder: Path, views: int) -> bool:
         return False
 
 
-def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: int = 1) -> dict:
+def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: int = 1, live: bool = False) -> dict:
     """Simulate, capture, reconstruct and measure both; returns both figure sets."""
     from ringscan.pipeline.rig import default_rig
     from ringscan.pipeline.simulate import simulate_scan
@@ -117,6 +121,18 @@ def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: in
     out = {"simulated": measure(sim, sim, work / "recon_sim", device),
            "captured": measure(cap, sim, work / "recon_cap", device)}
     out["simulated"]["make_s"], out["captured"]["make_s"] = t_sim, t_cap
+    if live:
+        from ringscan.pipeline.reconstruct import LiveReconstructor
+
+        if t_cap == 0.0:
+            raise SystemExit("--live needs the captured scan made in this run (use a fresh --out)")
+        rec = LiveReconstructor(work / "recon_live", device=device)
+        t0 = time.perf_counter()
+        scan = capture_emulated(work / "captured_live", rig, patterns, scene, views, seed=seed, device=device,
+                                on_view=rec)
+        rep = rec.finish(scan)
+        out["live"] = {"seconds": time.perf_counter() - t0, "points": int(rep["totals"]["points"]),
+                       "sequential_s": t_cap + out["captured"]["seconds"]}
     return out
 
 
@@ -126,12 +142,13 @@ def main(argv=None) -> int:
     p.add_argument("--scene", default="terrain")
     p.add_argument("--small", action="store_true", help="320x256 camera, 12-frame set")
     p.add_argument("--device", default=None)
+    p.add_argument("--live", action="store_true", help="also time a capture that reconstructs while capturing")
     p.add_argument("--out", default=None,
                    help="keep the scans here; complete scans already there are reused (default: a temporary folder)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
-        res = compare(work, views=args.views, scene=args.scene, small=args.small, device=args.device)
+        res = compare(work, views=args.views, scene=args.scene, small=args.small, device=args.device, live=args.live)
     fmt = "{:<10} {:>9} {:>10} {:>8} {:>8} {:>9} {:>8} {:>8}"
     print(fmt.format("scan", "points", "median_mm", "p95_mm", "rms_mm", "coverage", "make_s", "recon_s"))
     for k in ("simulated", "captured"):
@@ -142,6 +159,11 @@ def main(argv=None) -> int:
     print(f"captured / simulated: points {c['points'] / max(s['points'], 1):.4f}, median "
           f"{c['median_mm'] / s['median_mm']:.3f}, p95 {c['p95_mm'] / s['p95_mm']:.3f}, coverage "
           f"{c['coverage'] / s['coverage']:.4f}")
+    if "live" in res:
+        lv = res["live"]
+        print(f"capture then reconstruct: {lv['sequential_s']:.1f} s; reconstruct while capturing: "
+              f"{lv['seconds']:.1f} s (ratio {lv['sequential_s'] / lv['seconds']:.2f}x); points "
+              f"{lv['points']} vs {c['points']}")
     return 0
 
 
