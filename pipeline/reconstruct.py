@@ -368,6 +368,8 @@ class LiveReconstructor:
         from concurrent.futures import ThreadPoolExecutor
 
         self.out_dir = Path(out_dir)
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise ValueError(f"{self.out_dir}: exists and is not a folder (the reconstruction's output folder)")
         self.settings = settings
         self.device = resolve_device(device)
         self.error: str | None = None

@@ -170,6 +170,10 @@ def test_capture_reconstructs_while_capturing(files, reference, tmp_path, capsys
             np.testing.assert_array_equal(a[key], b[key])
     assert main(_args(files, tmp_path / "x", "--views", "2", *VIRTUAL, "--reconstruct-settings", "s.json")) == 2
     assert "--reconstruct-settings only applies with --reconstruct" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    assert main(_args(files, tmp_path / "y", "--views", "2", *VIRTUAL, "--reconstruct", str(tmp_path / "afile"))) == 2
+    assert "afile: exists and is not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()  # refused before anything was captured
 
 
 def test_live_reconstructor_partial_scan_resume_and_failure(reference, tmp_path):
