@@ -42,8 +42,8 @@ log = logging.getLogger(__name__)
 
 REPORT_FORMAT = "ringscan.report/1"
 
-__all__ = ["REPORT_FORMAT", "ViewCloud", "LiveReconstructor", "reconstruct_scan", "reconstruct_view", "light_model_for", "camera_model_for",
-           "extract_samples", "EXTRACTORS", "Samples"]
+__all__ = ["REPORT_FORMAT", "ViewCloud", "LiveReconstructor", "reconstruct_scan", "reconstruct_view", "light_model_for",
+           "camera_model_for", "extract_samples", "EXTRACTORS", "Samples"]
 
 
 @dataclass
@@ -373,7 +373,6 @@ class LiveReconstructor:
         self.settings = settings
         self.device = resolve_device(device)
         self.error: str | None = None
-        self.views_done: list[str] = []
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-live")
         self._futures: list = []
 
@@ -387,7 +386,6 @@ class LiveReconstructor:
             self.error = f"reconstructing {names[-1]} of {scan.folder} into {self.out_dir} failed: {e}"
             log.error("%s", self.error)
             return None
-        self.views_done = [v["name"] for v in report["views"]]
         log.info("live reconstruction: %s done (%d points)", names[-1], report["views"][-1]["points"])
         return report
 

@@ -111,8 +111,7 @@ def test_fuse_poses_recovers_the_known_transform():
 def test_three_poses_go_through_the_pose_graph():
     """With three poses every pair is registered and the pose graph refines them all."""
     up, down, T_down = _object_in_two_poses()
-    m = up
-    scene = SceneMesh(vertices=np.asarray(m.vertices), faces=np.asarray(m.triangles, np.int32), name="lumpy")
+    scene = SceneMesh(vertices=np.asarray(up.vertices), faces=np.asarray(up.triangles, np.int32), name="lumpy")
     third, T3 = pose_scene(scene, "y:-100,z:70")
     side = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(third.vertices),
                                      o3d.utility.Vector3iVector(third.faces))
