@@ -31,7 +31,7 @@ from pathlib import Path
 
 
 def small_rig():
-    from ringscan.pipeline.rig import default_rig
+    from ringscan.pipeline.formats.rig import default_rig
 
     rig = default_rig()
     cam = rig.camera
@@ -42,7 +42,7 @@ def small_rig():
 
 
 def patterns_for(small: bool):
-    from ringscan.pipeline.patterns import parse_patterns
+    from ringscan.pipeline.formats.patterns import parse_patterns
 
     if small:
         d = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0,
@@ -56,11 +56,11 @@ def patterns_for(small: bool):
 def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, device, size_mm: float = 80.0,
                      on_view=None):
     """Capture ``views`` views of ``scene`` through the emulated rig and the real drivers."""
-    from ringscan.hardware.capture import CaptureSettings, capture_scan
-    from ringscan.hardware.emulate import EmulatedRig
-    from ringscan.hardware.projector import SerialProjector
-    from ringscan.hardware.turntable import GrblTurntable
-    from ringscan.pipeline.patterns import frame_names
+    from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
+    from ringscan.hardware.devices.projector import SerialProjector
+    from ringscan.hardware.devices.turntable import GrblTurntable
+    from ringscan.hardware.emulators.rig import EmulatedRig
+    from ringscan.pipeline.formats.patterns import frame_names
 
     settings = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0)
     with EmulatedRig(rig, patterns, scene, time_scale=1000.0, seed=seed, size_mm=size_mm, device=device) as emu:
@@ -76,8 +76,8 @@ def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, 
 
 def measure(scan_dir: Path, truth_scan: Path, recon_dir: Path, device) -> dict:
     """Reconstruct a scan and measure it against the truth of ``truth_scan``."""
-    from ringscan.pipeline.evaluate import evaluate_recon
-    from ringscan.pipeline.reconstruct import reconstruct_scan
+    from ringscan.pipeline.evaluate.metrics import evaluate_recon
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 
     t0 = time.perf_counter()
     rep = reconstruct_scan(scan_dir, recon_dir, device=device, progress=False)
@@ -91,8 +91,8 @@ def measure(scan_dir: Path, truth_scan: Path, recon_dir: Path, device) -> dict:
 
 def _complete(folder: Path, views: int) -> bool:
     """A complete scan of ``views`` views is already there (kept by an earlier --out run)."""
-    from ringscan.pipeline.errors import FormatError
-    from ringscan.pipeline.scan import load_scan
+    from ringscan.pipeline.formats.errors import FormatError
+    from ringscan.pipeline.formats.scan import load_scan
 
     try:
         return (folder / "scan.json").is_file() and len(load_scan(folder).views) == views
@@ -102,8 +102,8 @@ def _complete(folder: Path, views: int) -> bool:
 
 def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: int = 1, live: bool = False) -> dict:
     """Simulate, capture, reconstruct and measure both; returns both figure sets."""
-    from ringscan.pipeline.rig import default_rig
-    from ringscan.pipeline.simulate import simulate_scan
+    from ringscan.pipeline.formats.rig import default_rig
+    from ringscan.pipeline.simulate.scan import simulate_scan
 
     rig = small_rig() if small else default_rig()
     patterns = patterns_for(small)
@@ -122,7 +122,7 @@ def compare(work: Path, *, views: int, scene: str, small: bool, device, seed: in
            "captured": measure(cap, sim, work / "recon_cap", device)}
     out["simulated"]["make_s"], out["captured"]["make_s"] = t_sim, t_cap
     if live:
-        from ringscan.pipeline.reconstruct import LiveReconstructor
+        from ringscan.pipeline.reconstruct.live import LiveReconstructor
 
         if t_cap == 0.0:
             raise SystemExit("--live needs the captured scan made in this run (use a fresh --out)")

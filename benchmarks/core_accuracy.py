@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ringscan.pipeline.evaluate import evaluate_recon
-from ringscan.pipeline.patterns import parse_patterns
-from ringscan.pipeline.reconstruct import reconstruct_scan
-from ringscan.pipeline.simulate import simulate_scan
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.simulate.scan import simulate_scan
 
 PROJ = {"width": 1024, "height": 768, "center": [511.5, 383.5]}
 SHARED_SPOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "models" / "odedstein_spot.obj"
@@ -48,8 +48,8 @@ def run_case(name: str, out: Path, scene: str, patterns: dict, device: str | Non
 
 def wrong_ring_labels(scan, rec: Path) -> int:
     """Points whose ring label is not the ring the truth depth puts there."""
-    from ringscan.pipeline.dense import truth_rho_at
-    from ringscan.pipeline.io import read_ply
+    from ringscan.pipeline.evaluate.metrics import truth_rho_at
+    from ringscan.pipeline.formats.ply import read_ply
 
     sp = scan.patterns
     wrong = 0

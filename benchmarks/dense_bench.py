@@ -50,7 +50,7 @@ def _scene(arg):
 
 def scaled_rig(scale: float, gamma: float = 2.2):
     """The default rig with a camera of the same field of view and 1/scale as many pixels per side."""
-    from ringscan.pipeline.rig import default_rig
+    from ringscan.pipeline.formats.rig import default_rig
 
     rig = default_rig(gamma=gamma)
     c = rig.camera
@@ -64,7 +64,7 @@ def scaled_rig(scale: float, gamma: float = 2.2):
 
 
 def _lit_object_fraction(scan, view_name, uv):
-    from ringscan.pipeline.evaluate import truth_points
+    from ringscan.pipeline.evaluate.metrics import truth_points
 
     X, pix = truth_points(scan, view_name)
     obj = pix[X[:, 2] > 0.5]
@@ -78,9 +78,8 @@ def _lit_object_fraction(scan, view_name, uv):
 
 def _measure(scan):
     """Reconstruct view 0 and measure it against the truth."""
-    from ringscan.pipeline.dense import truth_rho_at
-    from ringscan.pipeline.evaluate import evaluate_view
-    from ringscan.pipeline.reconstruct import reconstruct_view
+    from ringscan.pipeline.evaluate.metrics import evaluate_view, truth_rho_at
+    from ringscan.pipeline.reconstruct.view import reconstruct_view
 
     view = scan.views[0]
     t = time.perf_counter()
@@ -107,21 +106,22 @@ def _measure(scan):
 
 
 def _simulate(folder, scene, rig, patterns, **render):
-    from ringscan.pipeline.patterns import parse_patterns
-    from ringscan.pipeline.simulate import RenderSettings, simulate_scan
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.simulate.scan import simulate_scan
+    from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
     return simulate_scan(folder, scene=scene, rig=rig, patterns=parse_patterns(patterns),
                          settings=RenderSettings(**render), progress=False)
 
 
 def cmd_speed(args):
-    from ringscan.pipeline.dense import bench_dense
+    from ringscan.tools.bench.dense import bench_dense
 
     bench_dense(scan_dir=args.scan, scene=args.scene, repeats=args.repeats)
 
 
 def cmd_accuracy(args):
-    from ringscan.pipeline.rig import default_rig
+    from ringscan.pipeline.formats.rig import default_rig
 
     scene = _scene(args.scene)
     phase = {"codec": "phase-rings", **PROJ, "rho0": 8.0, "pitch": 8.0, "bits": 6, "sector_bits": 6, "steps": 4}

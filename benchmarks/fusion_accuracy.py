@@ -40,8 +40,8 @@ DEFAULT_MODEL = REPO.parent / "shared" / "data" / "models" / "odedstein_spot.obj
 
 def observed_truth(scan, ground_clip_mm: float) -> np.ndarray:
     """Object-frame truth points that some view saw lit (above the ground clip)."""
-    from ringscan.pipeline.evaluate import truth_points
-    from ringscan.pipeline.rig import turntable_transform
+    from ringscan.pipeline.evaluate.metrics import truth_points
+    from ringscan.pipeline.formats.rig import turntable_transform
 
     pts = []
     for v in scan.views:
@@ -55,7 +55,7 @@ def observed_truth(scan, ground_clip_mm: float) -> np.ndarray:
 def measure(mesh, truth, seen: np.ndarray, cloud=None) -> dict:
     import open3d as o3d
 
-    from ringscan.pipeline.mesh import compare_to_truth
+    from ringscan.pipeline.fusion.mesh import compare_to_truth
 
     f = compare_to_truth(mesh, truth, samples=300_000, within_mm=0.5)
     scene = o3d.t.geometry.RaycastingScene()
@@ -84,13 +84,15 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
 
-    from ringscan.pipeline.fuse import FuseSettings, fuse_views, load_recon
-    from ringscan.pipeline.mesh import MeshSettings, mesh_fused, read_mesh
-    from ringscan.pipeline.patterns import parse_patterns
-    from ringscan.pipeline.reconstruct import reconstruct_scan
-    from ringscan.pipeline.rig import Turntable
-    from ringscan.pipeline.scan import load_scan
-    from ringscan.pipeline.simulate import simulate_scan
+    from ringscan.pipeline.formats.meshes import read_mesh
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.formats.rig import Turntable
+    from ringscan.pipeline.formats.scan import load_scan
+    from ringscan.pipeline.fusion.mesh import MeshSettings, mesh_fused
+    from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
+    from ringscan.pipeline.fusion.workflow import load_recon
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+    from ringscan.pipeline.simulate.scan import simulate_scan
 
     work = Path(args.work or tempfile.mkdtemp(prefix="ringscan-fusion-"))
     t0 = time.perf_counter()
@@ -152,7 +154,7 @@ def main(argv=None) -> int:
           f"{r1['mesh_to_truth_mean'] / r0['mesh_to_truth_mean']:.2f}, seen->mesh "
           f"{r1['seen_to_mesh_mean'] / r0['seen_to_mesh_mean']:.2f}")
     if args.json:
-        from ringscan.pipeline.io import atomic_write_json
+        from ringscan.pipeline.formats.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"model": str(args.model), "views": len(views), "results": results})
     print(f"work folder: {work}")

@@ -56,12 +56,15 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
 
-    from ringscan.pipeline.fuse import AlignmentError, FuseSettings, PoseSettings, fuse_poses, fuse_views, load_recon
-    from ringscan.pipeline.io import read_json
-    from ringscan.pipeline.mesh import MeshSettings, compare_to_truth, mesh_cloud, read_mesh
-    from ringscan.pipeline.patterns import parse_patterns
-    from ringscan.pipeline.reconstruct import reconstruct_scan
-    from ringscan.pipeline.simulate import simulate_scan
+    from ringscan.pipeline.formats.atomic import read_json
+    from ringscan.pipeline.formats.meshes import read_mesh
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth, mesh_cloud
+    from ringscan.pipeline.fusion.poses import AlignmentError, PoseSettings, fuse_poses
+    from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
+    from ringscan.pipeline.fusion.workflow import load_recon
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+    from ringscan.pipeline.simulate.scan import simulate_scan
 
     poses = [p.strip().replace("+", ",") for p in args.poses.split(",") if p.strip()]
     work = Path(args.work or tempfile.mkdtemp(prefix="ringscan-multipose-"))
@@ -136,7 +139,7 @@ def main(argv=None) -> int:
               f"point-to-plane rmse {p['plane_rmse_mm']:.4f} mm, via {p['aligned_with']}, "
               f"rotation error {p['rotation_error_deg']:.4f} deg, translation error {p['translation_error_mm']:.4f} mm")
     if args.json:
-        from ringscan.pipeline.io import atomic_write_json
+        from ringscan.pipeline.formats.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"model": str(args.model), "views": args.views, "poses": poses,
                                       "results": results, "failed": failed})

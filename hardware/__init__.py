@@ -1,8 +1,17 @@
 """ringscan.hardware."""
 
-from .camera import CameraDevice, FolderCamera, OpenCVCamera, SocketCamera, VirtualCamera, make_virtual_rig, open_camera
-from .capture import CaptureSettings, capture_scan, plan_angles, read_capture_state, resume_angle
-from .errors import (
+from ringscan.hardware.capture.sequence import (
+    CaptureSettings,
+    capture_scan,
+    plan_angles,
+    read_capture_state,
+    resume_angle,
+)
+from ringscan.hardware.devices.camera import CameraDevice, FolderCamera, OpenCVCamera, SocketCamera, open_camera
+from ringscan.hardware.devices.projector import ProjectorDevice, SerialProjector, VirtualProjector
+from ringscan.hardware.devices.turntable import GrblTurntable, TurntableDevice, VirtualTurntable
+from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
+from ringscan.hardware.errors import (
     CameraError,
     CaptureError,
     DeviceDisconnected,
@@ -18,8 +27,6 @@ from .errors import (
     TurntableError,
     TurntableTimeout,
 )
-from .projector import ProjectorDevice, SerialProjector, VirtualProjector
-from .turntable import GrblTurntable, TurntableDevice, VirtualTurntable
 
 __all__ = [
     "CameraDevice", "OpenCVCamera", "FolderCamera", "VirtualCamera", "SocketCamera", "open_camera",

@@ -11,7 +11,7 @@ silently put the next view at the wrong angle. Such errors are never retried.
 
 from __future__ import annotations
 
-from ringscan.pipeline.errors import RingscanError
+from ringscan.pipeline.formats.errors import RingscanError
 
 __all__ = [
     "DeviceError",

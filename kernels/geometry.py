@@ -210,3 +210,87 @@ def make_perspective_light(K, dist, R, t) -> LightModel:
     li.a = wp.vec2(0.0, 0.0)
     li.cam = make_camera(K, dist, R, t)
     return li
+
+
+NEWTON_STEPS = wp.constant(4)
+
+
+@wp.struct
+class Volume:
+    z_min: float
+    z_max: float
+    r_max: float
+
+
+@wp.func
+def local_frame(light: LightModel, X: wp.vec3):
+    if light.model == LIGHT_PARALLEL:
+        return light.R * X + light.t
+    return light.cam.R * X + light.cam.t
+
+
+@wp.func
+def local_dir(light: LightModel, d: wp.vec3):
+    if light.model == LIGHT_PARALLEL:
+        return light.R * d
+    return light.cam.R * d
+
+
+@wp.func
+def ring_terms(light: LightModel, P: wp.vec3d, center: wp.vec2d):
+    """(a, b, z) at a point P of the light's own frame, with a^2 + b^2 = rho^2 z^2
+    on the ring's quadric (z = 1 for the parallel light, in projector pixels)."""
+    if light.model == LIGHT_PARALLEL:
+        s = wp.float64(light.s)
+        a = P[0] / s + wp.float64(light.a[0]) - center[0]
+        b = P[1] / s + wp.float64(light.a[1]) - center[1]
+        return wp.vec3d(a, b, wp.float64(1.0))
+    c = light.cam
+    a = wp.float64(c.fx) * P[0] + wp.float64(c.skew) * P[1] + (wp.float64(c.cx) - center[0]) * P[2]
+    b = wp.float64(c.fy) * P[1] + (wp.float64(c.cy) - center[1]) * P[2]
+    return wp.vec3d(a, b, P[2])
+
+
+@wp.func
+def has_distortion(light: LightModel):
+    c = light.cam
+    return light.model != LIGHT_PARALLEL and (
+        c.k1 != 0.0 or c.k2 != 0.0 or c.k3 != 0.0 or c.p1 != 0.0 or c.p2 != 0.0
+    )
+
+
+@wp.func
+def pattern_offset(light: LightModel, X: wp.vec3, center: wp.vec2):
+    """Pixel offset p - c of world point X on the projector grid (with distortion)."""
+    if light.model == LIGHT_PARALLEL:
+        XL = light.R * X + light.t
+        return wp.vec2(XL[0] / light.s + light.a[0] - center[0], XL[1] / light.s + light.a[1] - center[1])
+    p = project_camera(light.cam, X)
+    return wp.vec2(p[0] - center[0], p[1] - center[1])
+
+
+@wp.func
+def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float, center: wp.vec2):
+    """Newton steps on |pixel(X(t)) - c| - rho (projector lens distortion)."""
+    t = t0
+    for _i in range(NEWTON_STEPS):
+        h = wp.max(1.0e-3, 1.0e-5 * wp.abs(t))
+        g0 = wp.length(pattern_offset(light, C + d * t, center)) - rho
+        g1 = wp.length(pattern_offset(light, C + d * (t + h), center)) - rho
+        dg = (g1 - g0) / h
+        if wp.abs(dg) < 1.0e-12:
+            break
+        t = t - g0 / dg
+    return t
+
+
+@wp.func
+def in_volume(X: wp.vec3, vol: Volume):
+    r = wp.sqrt(X[0] * X[0] + X[1] * X[1])
+    return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
+
+
+def make_volume(z_min: float, z_max: float, r_max: float) -> Volume:
+    v = Volume()
+    v.z_min, v.z_max, v.r_max = float(z_min), float(z_max), float(r_max)
+    return v

@@ -55,7 +55,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, default_threads, gray_to_binary, launch_rows
+from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, gray_to_binary
 
 PHASE_OK = wp.constant(0)
 PHASE_DARK = wp.constant(1)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .geometry import CameraModel
-from .ring_labels import default_threads, launch_spans
+from ringscan.kernels.geometry import CameraModel
+from ringscan.kernels.launch import default_threads, launch_spans
 
 MAX_PER_PIXEL = wp.constant(2)
 

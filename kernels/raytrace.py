@@ -35,7 +35,14 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .geometry import LIGHT_PARALLEL, CameraModel, LightModel, camera_ray, direction_to_light, light_pixel
+from ringscan.kernels.geometry import (
+    LIGHT_PARALLEL,
+    CameraModel,
+    LightModel,
+    camera_ray,
+    direction_to_light,
+    light_pixel,
+)
 
 RAY_MAX_T = wp.constant(1.0e7)
 NO_HIT_T = wp.constant(1.0e30)

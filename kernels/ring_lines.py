@@ -42,10 +42,22 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .geometry import LIGHT_PARALLEL, CameraModel, LightModel, camera_ray
-from .ring_labels import default_threads, launch_rows
-from .triangulation import Volume, has_distortion, in_volume, local_dir, local_frame, make_volume, pattern_offset
-from .triangulation import refine_root, ring_terms
+from ringscan.kernels.geometry import (
+    LIGHT_PARALLEL,
+    CameraModel,
+    LightModel,
+    Volume,
+    camera_ray,
+    has_distortion,
+    in_volume,
+    local_dir,
+    local_frame,
+    make_volume,
+    pattern_offset,
+    refine_root,
+    ring_terms,
+)
+from ringscan.kernels.launch import default_threads, launch_rows
 
 BORDER = wp.constant(2)
 RESULT = wp.types.vector(length=8, dtype=wp.float32)

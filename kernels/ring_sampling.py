@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .ring_labels import FRAME_FIRST_BIT, RingLabels, default_threads, gray_to_binary, launch_rows
+from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
 
 __all__ = ["SampleSettings", "RingSamples", "sample_gray_rings", "ring_radii"]
 

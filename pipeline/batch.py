@@ -13,11 +13,11 @@ import os
 import time
 from pathlib import Path
 
-from .errors import RingscanError
-from .io import atomic_write_json, read_json
-from .reconstruct import REPORT_FORMAT, reconstruct_scan
-from .scan import load_scan
-from .settings import ReconstructSettings
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import RingscanError
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.reconstruct.scan import REPORT_FORMAT, reconstruct_scan
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from ringscan.pipeline.errors import RingscanError
+from ringscan.pipeline.formats.errors import RingscanError
 
 log = logging.getLogger("ringscan")
 

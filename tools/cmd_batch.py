@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct
-
-from .cli import add_device_option
-from .cmd_reconstruct import load_settings
+from ringscan.tools.cli import add_device_option
+from ringscan.tools.cmd_reconstruct import load_settings
 
 
 def add_parser(sub):

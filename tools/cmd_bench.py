@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .bench import run_bench
+from ringscan.tools.bench.core import run_bench
 
 
 def add_parser(sub):
@@ -22,7 +22,7 @@ def add_parser(sub):
 
 def run(args) -> int:
     if args.dense:
-        from ringscan.pipeline.dense import bench_dense
+        from ringscan.tools.bench.dense import bench_dense
 
         bench_dense(scan_dir=args.scan, scene=args.scene, repeats=args.repeats, devices=args.device)
         return 0

@@ -18,13 +18,13 @@ import dataclasses
 import logging
 from pathlib import Path
 
-from ringscan.hardware.capture import CaptureSettings, capture_scan, read_capture_state, resume_angle
+from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan, read_capture_state, resume_angle
 from ringscan.hardware.errors import CaptureError
-from ringscan.pipeline.errors import FormatError
-from ringscan.pipeline.io import read_json
-from ringscan.pipeline.patterns import PatternSpec, frame_names, parse_patterns
-from ringscan.pipeline.rig import load_rig
-from ringscan.pipeline.scan import load_scan
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import load_rig
+from ringscan.pipeline.formats.scan import load_scan
 from ringscan.tools.cli import add_device_option
 
 log = logging.getLogger(__name__)
@@ -127,9 +127,9 @@ def _settings(args, out: Path) -> CaptureSettings:
 
 
 def run(args) -> int:
-    from ringscan.hardware.camera import open_camera
-    from ringscan.hardware.projector import SerialProjector
-    from ringscan.hardware.turntable import GrblTurntable, VirtualTurntable
+    from ringscan.hardware.devices.camera import open_camera
+    from ringscan.hardware.devices.projector import SerialProjector
+    from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
 
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
@@ -143,7 +143,7 @@ def run(args) -> int:
     settings = _settings(args, out)
     live = None
     if args.reconstruct:
-        from ringscan.pipeline.reconstruct import LiveReconstructor
+        from ringscan.pipeline.reconstruct.live import LiveReconstructor
         from ringscan.tools.cmd_reconstruct import load_settings
 
         live = LiveReconstructor(args.reconstruct, settings=load_settings(args.reconstruct_settings),
@@ -167,7 +167,7 @@ def run(args) -> int:
     emu = camera = projector = turntable = None
     try:
         if args.virtual:
-            from ringscan.hardware.emulate import EmulatedRig
+            from ringscan.hardware.emulators.rig import EmulatedRig
 
             if args.turntable or args.projector or args.camera:
                 raise ValueError("--virtual replaces --turntable, --projector and --camera")

@@ -11,9 +11,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ringscan.pipeline.io import atomic_write_json
-from ringscan.pipeline.patterns import parse_patterns
-from ringscan.pipeline.rig import default_rig, load_rig, rig_to_dict
+from ringscan.pipeline.formats.atomic import atomic_write_json
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict
 from ringscan.tools.cli import add_device_option
 
 # The default pattern set: the 28-frame gray-rings set of ``ringscan patterns``'s
@@ -41,7 +41,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from ringscan.hardware.emulate import EmulatedRig
+    from ringscan.hardware.emulators.rig import EmulatedRig
     from ringscan.tools.cmd_capture import load_patterns
 
     rig = load_rig(args.rig) if args.rig else default_rig()

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ringscan.pipeline.evaluate import evaluate_recon
-from ringscan.pipeline.io import atomic_write_json
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.atomic import atomic_write_json
 
 
 def add_parser(sub):

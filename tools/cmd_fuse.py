@@ -5,10 +5,12 @@ first is the reference pose, the others are aligned to it and merged."""
 
 from __future__ import annotations
 
-from ringscan.pipeline.fuse import FuseSettings, PoseSettings
-from ringscan.pipeline.mesh import MESH_FORMATS, MeshSettings, fuse_and_mesh
-
-from .cli import add_device_option
+from ringscan.pipeline.formats.meshes import MESH_FORMATS
+from ringscan.pipeline.fusion.mesh import MeshSettings
+from ringscan.pipeline.fusion.poses import PoseSettings
+from ringscan.pipeline.fusion.turntable import FuseSettings
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh
+from ringscan.tools.cli import add_device_option
 
 
 def add_parser(sub):

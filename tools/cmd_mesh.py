@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.mesh import MESH_FORMATS, MeshSettings, mesh_cloud, orient_normals, read_cloud, write_mesh
+from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud, write_mesh
+from ringscan.pipeline.fusion.mesh import MeshSettings, mesh_cloud, orient_normals
 
 
 def add_parser(sub):

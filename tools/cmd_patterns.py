@@ -10,8 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.io import atomic_write_bytes, atomic_write_json, write_image
-from ringscan.pipeline.patterns import CODECS, PatternSpec, frame_names, parse_patterns, render_frame
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.patterns import CODECS, PatternSpec, frame_names, parse_patterns
 
 RINGS_DEFAULT_PITCH = 40.0
 DEFAULT_PITCH = 4.0

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 
-from ringscan.pipeline.io import read_json
-from ringscan.pipeline.reconstruct import reconstruct_scan
-from ringscan.pipeline.settings import ReconstructSettings, settings_from_dict
-
-from .cli import add_device_option
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.settings import settings_from_dict
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.tools.cli import add_device_option
 
 
 def add_parser(sub):

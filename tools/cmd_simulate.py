@@ -5,12 +5,12 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from ringscan.pipeline.rig import default_rig, load_rig
-from ringscan.pipeline.scenes import SCENES
-from ringscan.pipeline.simulate import RenderSettings, simulate_scan
-
-from .cli import add_device_option
-from .cmd_patterns import add_pattern_options, pattern_spec_from_args
+from ringscan.pipeline.formats.rig import default_rig, load_rig
+from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.pipeline.simulate.scenes import SCENES
+from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+from ringscan.tools.cli import add_device_option
+from ringscan.tools.cmd_patterns import add_pattern_options, pattern_spec_from_args
 
 
 def add_parser(sub):

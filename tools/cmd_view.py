@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from ringscan.pipeline.visualize import ViewSettings, colorize, read_geometry, render_to_png
+from ringscan.pipeline.preview.colour import colorize
+from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
 
 
 def add_parser(sub):
@@ -34,7 +35,7 @@ def run(args) -> int:
     import numpy as np
     import open3d as o3d
 
-    from ringscan.pipeline.mesh import read_mesh
+    from ringscan.pipeline.formats.meshes import read_mesh
 
     geoms = [read_geometry(f) for f in args.files]
     bar = None

@@ -8,9 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ringscan.hardware.camera import CameraDevice
-from ringscan.pipeline.patterns import frame_names, parse_patterns, render_frame
-from ringscan.pipeline.rig import default_rig
+from ringscan.hardware.devices.camera import CameraDevice
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import default_rig
 
 CAM_W, CAM_H = 320, 256
 
@@ -72,7 +73,7 @@ def patterns():
 def virtual_rig(rig):
     """The real virtual rig renderer (pipeline.simulate) on the CPU, one ray per pixel;
     terrain scene (not symmetric about the turntable axis)."""
-    from ringscan.hardware.camera import make_virtual_rig
-    from ringscan.pipeline.simulate import RenderSettings
+    from ringscan.hardware.devices.virtual import make_virtual_rig
+    from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
     return make_virtual_rig(rig, "terrain", device="cpu", settings=RenderSettings(supersample=1))

@@ -9,11 +9,12 @@ import time
 import numpy as np
 import pytest
 
-from ringscan.hardware.capture import read_capture_state
-from ringscan.pipeline.io import atomic_write_json, read_image, write_image
-from ringscan.pipeline.patterns import frame_names
-from ringscan.pipeline.rig import save_rig
-from ringscan.pipeline.scan import load_scan
+from ringscan.hardware.capture.sequence import read_capture_state
+from ringscan.pipeline.formats.atomic import atomic_write_json
+from ringscan.pipeline.formats.images import read_image, write_image
+from ringscan.pipeline.formats.patterns import frame_names
+from ringscan.pipeline.formats.rig import save_rig
+from ringscan.pipeline.formats.scan import load_scan
 from ringscan.tools.cli import main
 
 from .conftest import small_patterns, small_rig
@@ -153,8 +154,9 @@ def test_cli_errors(files, tmp_path, capsys):
 
 
 def test_capture_reconstructs_while_capturing(files, reference, tmp_path, capsys):
-    from ringscan.pipeline.io import read_json, read_ply
-    from ringscan.pipeline.reconstruct import reconstruct_scan
+    from ringscan.pipeline.formats.atomic import read_json
+    from ringscan.pipeline.formats.ply import read_ply
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 
     out, rec = tmp_path / "scan", tmp_path / "rec"
     assert main(_args(files, out, "--views", "3", *VIRTUAL, "--reconstruct", str(rec))) == 0
@@ -180,9 +182,9 @@ def test_live_reconstructor_partial_scan_resume_and_failure(reference, tmp_path)
     import dataclasses
     import shutil
 
-    from ringscan.pipeline.io import read_json
-    from ringscan.pipeline.reconstruct import LiveReconstructor
-    from ringscan.pipeline.scan import View
+    from ringscan.pipeline.formats.atomic import read_json
+    from ringscan.pipeline.formats.scan import View
+    from ringscan.pipeline.reconstruct.live import LiveReconstructor
 
     v0, v1, v2 = reference.views
     half = View(name=v2.name, turntable_deg=v2.turntable_deg, frames=dict(list(v2.frames.items())[:3]))

@@ -18,7 +18,8 @@ from ringscan.kernels.phase import (
     smooth_phase,
 )
 from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.pipeline.patterns import PatternSpec, frame_names, gray_decode, render_frames
+from ringscan.pipeline.codecs.render import render_frames
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, gray_decode
 
 STATUS = {n: i for i, n in enumerate(PHASE_STATUS_NAMES)}
 
@@ -184,8 +185,7 @@ def test_smoothing_keeps_planes_edges_and_drops_lone_slips(device):
 
 
 def test_kernel_matches_numpy_twin(device):
-    from ringscan.pipeline.dense import phase_numpy, points_numpy, smooth_numpy
-    from ringscan.tools.numpy_reference import decode_numpy
+    from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy
 
     spec = _spec()
     frames = _stack(spec, noise=2.0, cam_gamma=2.2, light_gamma=1.3, seed=5)

@@ -9,8 +9,8 @@ import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.kernels.raytrace import make_trace_mesh, shade_frame, trace_geometry
-from ringscan.pipeline.rig import look_at
-from ringscan.pipeline.scenes import corner_normals, icosphere, make_scene
+from ringscan.pipeline.formats.rig import look_at
+from ringscan.pipeline.simulate.scenes import corner_normals, icosphere, make_scene
 
 W, H = 160, 128
 DIST = np.array([0.02, -0.05, 0.001, -0.001, 0.0])

@@ -8,7 +8,8 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
-from ringscan.pipeline.patterns import PatternSpec, frame_names, render_frames
+from ringscan.pipeline.codecs.render import render_frames
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 
 
 def _spec(**kw):

@@ -8,7 +8,7 @@ import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.kernels.ring_lines import LineSettings, detect_ring_lines, link_lines, ring_roots, smooth_frame
-from ringscan.pipeline.rig import default_rig
+from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (100.3, 80.7)
 RADII = (22.0, 37.0, 52.0, 67.0)

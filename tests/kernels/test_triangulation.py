@@ -8,7 +8,7 @@ import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.kernels.triangulation import TriangulateSettings, compact_points, triangulate_rings
-from ringscan.pipeline.rig import default_rig
+from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (511.5, 383.5)
 SB = 6

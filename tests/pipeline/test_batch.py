@@ -3,11 +3,11 @@
 import pytest
 
 from ringscan.pipeline.batch import batch_reconstruct, find_scans
-from ringscan.pipeline.evaluate import evaluate_recon
-from ringscan.pipeline.errors import RingscanError
-from ringscan.pipeline.io import read_json
-from ringscan.pipeline.patterns import parse_patterns
-from ringscan.pipeline.simulate import simulate_scan
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.errors import RingscanError
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
 
 from .test_reconstruct import PROJ, small_rig

@@ -4,11 +4,13 @@ import dataclasses
 
 import numpy as np
 
-from ringscan.pipeline.io import read_image, read_json
-from ringscan.pipeline.patterns import frame_names, parse_patterns, render_frame
-from ringscan.pipeline.rig import Camera, ParallelLight, default_rig, save_rig
-from ringscan.pipeline.scan import load_scan
-from ringscan.pipeline.simulate import load_truth
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import Camera, ParallelLight, default_rig, save_rig
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.simulate.truth import load_truth
 from ringscan.tools.cli import main
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from ringscan.pipeline.mesh import write_mesh
-from ringscan.pipeline.visualize import ViewSettings, offscreen_available, view_camera
+from ringscan.pipeline.formats.meshes import write_mesh
+from ringscan.pipeline.preview.render import ViewSettings, offscreen_available, view_camera
 from ringscan.tools.cli import main
 
 

@@ -1,0 +1,450 @@
+"""The capture sequence: turn, show, grab, write, for every view and frame.
+
+For each view the table turns to its angle and settles; for each frame of the
+codec the projector shows it (and acknowledges), the sequence waits the settle
+time, the camera grabs, and the frame is written atomically; then scan.json,
+listing the frames written so far, is rewritten atomically. At every moment the
+folder holds a valid (maybe partial) scan: ``load_scan(folder,
+allow_incomplete=True)`` reads it, and every frame it lists is complete on disk.
+
+Next to scan.json, ``capture.json`` keeps the plan (views and angles), the
+settings, the turntable's last confirmed angle (and the target of a move under
+way), the status and a log of runs. ``resume=True`` continues from there: frames
+already listed are kept, the rest captured, none twice.
+
+A device fault is retried (after the device's ``recover()``) up to
+``settings.retries`` times; then the capture stops with :class:`CaptureError`,
+leaving the partial scan. A turntable fault during a move is never retried: the
+table may have turned partly, and resuming needs its angle (``table_at``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ringscan.hardware.errors import CameraError, CaptureError, DeviceError, ProjectorError, TurntableError
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.rig import Rig, rig_to_dict
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CAPTURE_FORMAT", "CaptureSettings", "capture_scan", "resume_angle", "read_capture_state",
+           "plan_angles", "view_name"]
+
+CAPTURE_FORMAT = "ringscan.capture/1"
+CAPTURE_FILE = "capture.json"
+IMAGE_FORMATS = ("png", "tiff")
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """Timing and fault handling of a capture (saved in capture.json)."""
+
+    turntable_settle_s: float = 0.5
+    """Wait after the table reports Idle, so the object stops wobbling."""
+    projector_settle_s: float = 0.05
+    """Wait after the projector acknowledges a frame, before the camera grabs
+    (covers the display's latch and the camera's rolling exposure)."""
+    feed_deg_per_min: float = 600.0
+    """Table speed for moves (G-code F word); slow enough that the object does not slip."""
+    command_timeout_s: float = 2.0
+    """Longest wait for a device's reply to one command."""
+    motion_timeout_s: float = 30.0
+    """Time allowed for a move on top of its length at the feed rate."""
+    retries: int = 3
+    """Further attempts of a failed device operation (after recovering the device)."""
+    retry_delay_s: float = 0.5
+    """Pause before recovering a device and retrying."""
+    image_format: str = "png"
+    """Frame files: "png" or "tiff" (both lossless, 8 or 16 bit)."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "image_format":
+                if v not in IMAGE_FORMATS:
+                    raise ValueError(f"image_format must be one of {IMAGE_FORMATS}, got {v!r}")
+            elif f.name == "retries":
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ValueError(f"retries must be an integer >= 0, got {v!r}")
+            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{f.name} must be a finite number >= 0, got {v!r}")
+        if self.feed_deg_per_min <= 0 or self.command_timeout_s <= 0:
+            raise ValueError("feed_deg_per_min and command_timeout_s must be > 0")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, *, source=None) -> CaptureSettings:
+        """Settings from a JSON object; unknown keys and bad values raise FormatError."""
+        if not isinstance(d, dict):
+            raise FormatError(source, "settings: expected an object")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise FormatError(source, f"settings: unknown key(s) {', '.join(unknown)} "
+                                      f"(known: {', '.join(sorted(known))})")
+        try:
+            return cls(**d)
+        except (TypeError, ValueError) as e:
+            raise FormatError(source, f"settings: {e}") from None
+
+
+def view_name(i: int) -> str:
+    """Folder name of view ``i``."""
+    return f"view_{i:03d}"
+
+
+def plan_angles(views: int, step_deg: float | None = None, start_deg: float = 0.0) -> list[float]:
+    """Turntable angles of the views (degrees, rounded to 0.001 as G-code sends them).
+
+    Default step: one full turn over the views (360 / views).
+    """
+    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+        raise ValueError(f"views must be an integer >= 1, got {views!r}")
+    step = 360.0 / views if step_deg is None else float(step_deg)
+    if not math.isfinite(step) or not math.isfinite(start_deg):
+        raise ValueError("step and start angles must be finite")
+    return [round(start_deg + i * step, 3) + 0.0 for i in range(views)]
+
+
+def read_capture_state(folder: str | os.PathLike) -> dict:
+    """The capture.json of a scan folder, checked."""
+    path = Path(folder) / CAPTURE_FILE
+    d = read_json(path)
+    if d.get("format") != CAPTURE_FORMAT:
+        raise FormatError(path, f"format: unknown capture state format {d.get('format')!r} "
+                                f"(this version reads {CAPTURE_FORMAT!r})")
+    plan = d.get("plan")
+    if not isinstance(plan, dict) or not isinstance(plan.get("angles"), list) or not plan["angles"]:
+        raise FormatError(path, "plan.angles: expected a non-empty list of angles")
+    for i, a in enumerate(plan["angles"]):
+        if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(a):
+            raise FormatError(path, f"plan.angles[{i}]: expected a finite number, got {a!r}")
+    table = d.get("table")
+    if not isinstance(table, dict) or not isinstance(table.get("deg"), (int, float)):
+        raise FormatError(path, "table.deg: expected the table's last confirmed angle")
+    mv = table.get("moving_to")
+    if mv is not None and (isinstance(mv, bool) or not isinstance(mv, (int, float))):
+        raise FormatError(path, f"table.moving_to: expected a number or null, got {mv!r}")
+    if not isinstance(d.get("runs", []), list):
+        raise FormatError(path, "runs: expected a list")
+    return d
+
+
+def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> float:
+    """Where the table stands for a resumed capture.
+
+    ``table_at`` (the user's word) wins; else the last confirmed angle, unless a
+    move was under way when the capture stopped: then the angle is unknown and
+    this raises CaptureError asking for ``table_at``.
+    """
+    folder = Path(folder)
+    _require_capture(folder)
+    state = read_capture_state(folder)
+    if table_at is not None:
+        return float(table_at)
+    mv = state["table"].get("moving_to")
+    if mv is not None:
+        raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable was moving from {state['table']['deg']:g} "
+                           f"to {mv:g} deg when the capture stopped, so its angle is unknown; check where it "
+                           f"stands and resume with --table-at DEG (e.g. --table-at {mv:g} if the move finished)",
+                           folder=folder)
+    return float(state["table"]["deg"])
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _same(a: dict, b: dict) -> bool:
+    return json.dumps(a, sort_keys=True, default=float) == json.dumps(b, sort_keys=True, default=float)
+
+
+def _clean_temp_files(folder: Path) -> int:
+    """Remove temporary files that a killed writer left (``.<stem>.*.tmp<suffix>``)."""
+    n = 0
+    for d in [folder] + [p for p in folder.iterdir() if p.is_dir()]:
+        for p in d.iterdir():
+            if p.name.startswith(".") and ".tmp" in p.name and p.is_file():
+                p.unlink()
+                n += 1
+    return n
+
+
+def _new_capture(out: Path, rig: Rig | None, patterns: PatternSpec | None, views: int | None,
+                 step_deg: float | None, start_deg: float) -> tuple[Scan, dict]:
+    if rig is None or patterns is None or views is None:
+        raise ValueError("a new capture needs the rig, the patterns and the number of views")
+    if (out / "scan.json").exists():
+        raise CaptureError(f"{out} already holds a scan; use --resume to continue it, or choose another folder",
+                           folder=out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise CaptureError(f"{out} exists and is not an empty folder; choose another folder", folder=out)
+    lw, lh = getattr(rig.light, "width", 0), getattr(rig.light, "height", 0)
+    if lw and (patterns.width, patterns.height) != (lw, lh):
+        raise ValueError(f"patterns are {patterns.width}x{patterns.height}, but the rig's projector is {lw}x{lh}")
+    angles = plan_angles(views, step_deg, start_deg)
+    out.mkdir(parents=True, exist_ok=True)
+    state = {"format": CAPTURE_FORMAT,
+             "plan": {"views": views, "step_deg": 360.0 / views if step_deg is None else float(step_deg),
+                      "start_deg": float(start_deg), "angles": angles},
+             "settings": None, "table": {"deg": 0.0, "moving_to": None}, "status": "new", "error": None, "runs": []}
+    atomic_write_json(out / CAPTURE_FILE, state)
+    scan = Scan(folder=out, rig=rig, patterns=patterns, views=())
+    save_scan(scan)
+    return scan, state
+
+
+def _require_capture(out: Path) -> None:
+    if not (out / "scan.json").is_file():
+        raise CaptureError(f"nothing to resume: {out} holds no scan.json", folder=out)
+    if not (out / CAPTURE_FILE).is_file():
+        raise CaptureError(f"cannot resume: {out} holds no {CAPTURE_FILE} (not made by 'ringscan capture')",
+                           folder=out)
+
+
+def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, views: int | None,
+                     step_deg: float | None, start_deg: float | None) -> tuple[Scan, dict]:
+    _require_capture(out)
+    state = read_capture_state(out)
+    scan = load_scan(out, check_files=False, allow_incomplete=True)
+    src = out / "scan.json"
+    if rig is not None and not _same(rig_to_dict(rig), rig_to_dict(scan.rig)):
+        raise CaptureError(f"{src}: the rig given differs from the rig of the capture being resumed", folder=out)
+    if patterns is not None and not _same(patterns.to_dict(), scan.patterns.to_dict()):
+        raise CaptureError(f"{src}: the patterns given differ from those of the capture being resumed", folder=out)
+    angles = state["plan"]["angles"]
+    if views is not None or step_deg is not None or start_deg is not None:
+        want = plan_angles(views if views is not None else len(angles),
+                           step_deg if step_deg is not None else state["plan"].get("step_deg"),
+                           start_deg if start_deg is not None else state["plan"].get("start_deg", 0.0))
+        if want != angles:
+            raise CaptureError(f"{out / CAPTURE_FILE}: the capture being resumed has {len(angles)} views at "
+                               f"{angles} deg; the options given ask for {want}", folder=out)
+    if len(scan.views) > len(angles):
+        raise FormatError(src, f"views: {len(scan.views)} views, but the capture plan has {len(angles)}")
+    kept = []
+    for i, v in enumerate(scan.views):
+        if v.name != view_name(i) or abs(v.turntable_deg - angles[i]) > 1e-9:
+            raise FormatError(src, f"views[{i}]: {v.name} at {v.turntable_deg:g} deg does not match the capture "
+                                   f"plan ({view_name(i)} at {angles[i]:g} deg)")
+        frames = {}
+        for k, rel in v.frames.items():
+            if (out / rel).is_file():
+                frames[k] = rel
+            else:
+                log.warning("capture: %s frame %s listed but missing on disk; it will be captured again", v.name, k)
+        kept.append(View(name=v.name, turntable_deg=v.turntable_deg, frames=frames))
+    n = _clean_temp_files(out)
+    if n:
+        log.info("capture: removed %d temporary file(s) left by an interrupted write", n)
+    scan = dataclasses.replace(scan, views=tuple(kept))
+    save_scan(scan)
+    return scan, state
+
+
+def _check_frame_count(projector, patterns: PatternSpec, out: Path) -> None:
+    n = len(frame_names(patterns))
+    if projector.frame_count != n:
+        raise CaptureError(f"the projector holds {projector.frame_count} frames, the {patterns.codec} codec "
+                           f"needs {n}", folder=out)
+
+
+def _device_of(err: DeviceError, turntable, projector, camera):
+    if isinstance(err, TurntableError):
+        return turntable
+    if isinstance(err, ProjectorError):
+        return projector
+    if isinstance(err, CameraError):
+        return camera
+    return None
+
+
+def _with_retries(what: str, fn: Callable, settings: CaptureSettings, devices: tuple):
+    """Run ``fn``; on a retryable device fault recover that device and try again."""
+    attempt = 0
+    while True:
+        try:
+            return fn()
+        except DeviceError as e:
+            if not e.retryable or not e.position_known or attempt >= settings.retries:
+                raise
+            err = e
+        while True:
+            attempt += 1
+            log.warning("capture: %s failed: %s; retry %d of %d", what, err, attempt, settings.retries)
+            time.sleep(settings.retry_delay_s)
+            dev = _device_of(err, *devices)
+            try:
+                if dev is not None:
+                    dev.recover()
+                break
+            except DeviceError as e:
+                if not e.retryable or attempt >= settings.retries:
+                    raise
+                err = e
+
+
+def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: Rig | None = None,
+                 patterns: PatternSpec | None = None, views: int | None = None, step_deg: float | None = None,
+                 start_deg: float | None = None, settings: CaptureSettings = CaptureSettings(), resume: bool = False,
+                 table_at: float | None = None, progress: bool = True,
+                 on_view: Callable[[Scan, View], None] | None = None) -> Scan:
+    """Capture a scan into ``out``, or resume an interrupted capture there.
+
+    Args:
+        out: the scan folder (new or empty; with ``resume``, the interrupted one).
+        camera: a CameraDevice.
+        projector: a ProjectorDevice holding the codec's frames in frame order.
+        turntable: a TurntableDevice; its current pose is angle 0 of a new capture.
+        rig: the rig (required for a new capture; when resuming, checked against the scan's).
+        patterns: the pattern set (as rig).
+        views: number of views (as rig).
+        step_deg: angle between views (default 360 / views).
+        start_deg: angle of the first view (default 0).
+        settings: timing and retries.
+        resume: continue the capture in ``out``.
+        table_at: when resuming, where the table stands now (default: the last
+            confirmed angle; required when a move was under way).
+        progress: show a progress bar.
+        on_view: called with (scan, view) after each view is complete (e.g. to start
+            reconstructing it while the next one is captured).
+
+    Returns:
+        The complete scan (loaded back from disk).
+
+    Raises:
+        CaptureError: a device fault that retries did not cure; the folder holds a
+            valid partial scan and ``resume`` continues it.
+        FormatError, ValueError: bad input (nothing captured).
+    """
+    out = Path(out)
+    if not resume and patterns is not None:
+        _check_frame_count(projector, patterns, out)
+    if resume:
+        table_deg = resume_angle(out, table_at)
+        scan, state = _open_for_resume(out, rig, patterns, views, step_deg, start_deg)
+    else:
+        scan, state = _new_capture(out, rig, patterns, views, step_deg, 0.0 if start_deg is None else start_deg)
+        table_deg = 0.0
+    names = frame_names(scan.patterns)
+    angles = [float(a) for a in state["plan"]["angles"]]
+    cam = scan.rig.camera
+    _check_frame_count(projector, scan.patterns, out)
+    ext = settings.image_format
+    devices = (turntable, projector, camera)
+
+    run = {"started": _now(), "ended": None, "frames": 0, "result": "running"}
+    state["settings"] = settings.to_dict()
+    state["status"] = "running"
+    state["error"] = None
+    state["table"] = {"deg": table_deg, "moving_to": None}
+    state["runs"] = list(state.get("runs", [])) + [run]
+
+    def write_state():
+        atomic_write_json(out / CAPTURE_FILE, state)
+
+    write_state()
+    views_list = list(scan.views)
+    total = len(angles) * len(names)
+    done = sum(len([n for n in names if n in v.frames]) for v in views_list)
+    bar = tqdm(total=total, initial=done, unit="frame", desc=f"capture {out.name}", disable=not progress,
+               dynamic_ncols=True)
+    log.info("capture: %s, %d views x %d frames, %d already captured", out, len(angles), len(names), done)
+
+    def show_and_grab(j: int) -> np.ndarray:
+        projector.show(j)
+        if settings.projector_settle_s > 0:
+            time.sleep(settings.projector_settle_s)
+        img = camera.grab()
+        if img.shape != (cam.height, cam.width):
+            raise CameraError(f"camera delivers {img.shape[1]}x{img.shape[0]} frames, the rig's camera is "
+                              f"{cam.width}x{cam.height}", port=getattr(camera, "source", None), retryable=False)
+        return img
+
+    try:
+        _with_retries("declaring the table angle", lambda: turntable.set_position(table_deg), settings, devices)
+        _with_retries("enabling the table motor", lambda: turntable.enable_motor(True), settings, devices)
+        for i, angle in enumerate(angles):
+            view = views_list[i] if i < len(views_list) else None
+            if view is not None and all(n in view.frames for n in names):
+                continue
+            if abs(turntable.position_deg - angle) > 1e-9:
+                state["table"]["moving_to"] = angle
+                write_state()
+                _with_retries(f"turning to {angle:g} deg", lambda a=angle: turntable.move_to(a), settings, devices)
+                state["table"] = {"deg": angle, "moving_to": None}
+                write_state()
+                if settings.turntable_settle_s > 0:
+                    time.sleep(settings.turntable_settle_s)
+            if view is None:
+                view = View(name=view_name(i), turntable_deg=angle, frames={})
+                views_list.append(view)
+            frames = dict(view.frames)
+            bar.set_postfix_str(view.name)
+            for j, fname in enumerate(names):
+                if fname in frames:
+                    continue
+                img = _with_retries(f"{view.name} frame {fname}", lambda j=j: show_and_grab(j), settings, devices)
+                rel = f"{view.name}/{fname}.{ext}"
+                write_image(out / rel, img)
+                frames[fname] = rel
+                views_list[i] = View(name=view.name, turntable_deg=angle, frames=dict(frames))
+                scan = dataclasses.replace(scan, views=tuple(views_list))
+                save_scan(scan)
+                run["frames"] += 1
+                bar.update(1)
+            if on_view is not None:
+                on_view(scan, views_list[i])
+    except DeviceError as e:
+        run["result"] = state["status"] = "stopped"
+        target = state["table"]["moving_to"]
+        if e.position_known:  # the move was refused, or the fault came before or after it
+            state["table"] = {"deg": turntable.position_deg, "moving_to": None}
+        if not e.position_known and target is not None:
+            msg = (f"capture stopped: {e}. The turntable may have stopped part way to {target:g} deg. The scan in "
+                   f"{out} is valid but incomplete; check the table's angle and continue with --resume --table-at DEG")
+        else:
+            tried = f" after {settings.retries} retries" if e.retryable and settings.retries else ""
+            msg = (f"capture stopped{tried}: {e}. The scan in {out} is valid but incomplete; fix the device "
+                   f"and continue with --resume")
+        state["error"] = msg
+        raise CaptureError(msg, folder=out, cause=e) from e
+    except KeyboardInterrupt:
+        run["result"] = state["status"] = "interrupted"
+        state["error"] = "interrupted by the user"
+        raise
+    except BaseException as e:
+        run["result"] = state["status"] = "stopped"
+        state["error"] = f"{type(e).__name__}: {e}"
+        raise
+    else:
+        run["result"] = state["status"] = "complete"
+    finally:
+        bar.close()
+        run["ended"] = _now()
+        write_state()
+    try:
+        projector.blank()
+    except DeviceError as e:
+        log.warning("capture: could not blank the projector at the end: %s", e)
+    log.info("capture: %s complete (%d frames this run)", out, run["frames"])
+    return load_scan(out)

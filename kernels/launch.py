@@ -1,0 +1,111 @@
+"""TODO docstring (ringscan.kernels.launch, split from ringscan.kernels.ring_labels)."""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import warp as wp
+
+
+def _row_slices(h: int, n: int) -> list[tuple[int, int]]:
+    n = max(1, min(n, h))
+    edges = np.linspace(0, h, n + 1).astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+_warmed: set = set()
+
+
+def _launch_key(kernel, inputs, device) -> tuple:
+    return (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)).__name__ if isinstance(a, wp.array)
+                                            else type(a).__name__ for a in inputs))
+
+
+def _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads: int) -> None:
+    """Launch ``kernel`` once per ``(a, b)`` slice (dim ``b - a``), from a thread pool.
+
+    The first launch of a kernel signature (which builds or loads its module)
+    runs on the calling thread: Warp's module loading is not thread-safe.
+    """
+    slices = list(slices)
+    if not slices:
+        return
+
+    def run(sl):
+        a, b = sl
+        wp.launch(kernel, dim=b - a, inputs=inputs_fn(a), outputs=outputs, device=dev)
+
+    key = _launch_key(kernel, inputs_fn(slices[0][0]) + list(outputs), dev)
+    if threads <= 1:
+        for sl in slices:
+            run(sl)
+        _warmed.add(key)
+        return
+    if key not in _warmed:
+        run(slices.pop(0))
+        _warmed.add(key)
+    if not slices:
+        return
+    list(_pool(threads).map(run, slices))
+
+
+_pools: dict = {}
+
+
+_pool_lock = threading.Lock()
+
+
+def _pool(threads: int):
+    """A process-wide thread pool per thread count (starting threads on every
+    launch costs more than a small kernel)."""
+    with _pool_lock:
+        ex = _pools.get(threads)
+        if ex is None:
+            ex = _pools[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ringscan-launch")
+        return ex
+
+
+def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int) -> None:
+    """Launch a row-run kernel over an H x W image.
+
+    The kernel's inputs end with ``row0, chunk``: each thread covers ``chunk``
+    pixels of one row. On CUDA ``chunk`` is 1 (a thread per pixel, one launch);
+    on the CPU ``chunk`` is the whole row and the rows are split into slices
+    launched from a small thread pool: each Warp CPU launch runs on one thread
+    and releases the GIL, so the slices use every core. ``inputs_fn(row0, chunk)``
+    returns the kernel's inputs.
+    """
+    dev = wp.get_device(device)
+    if dev.is_cuda:
+        wp.launch(kernel, dim=h * w, inputs=inputs_fn(0, 1), outputs=outputs, device=dev)
+        return
+    slices = _row_slices(h, threads * 4 if threads > 1 else 1)
+    _launch_slices(kernel, slices, lambda a: inputs_fn(a, w), outputs, dev, threads)
+
+
+def launch_spans(kernel, n: int, inputs_fn, outputs, device, threads: int, *, min_span: int = 4096) -> None:
+    """Launch a 1-D kernel over ``n`` items, split into spans on the CPU.
+
+    The kernel's last input is the span's first index ``i0`` (thread ``t``
+    handles item ``i0 + t``); ``inputs_fn(i0)`` returns the kernel's inputs.
+    On CUDA it is one launch of ``n`` threads; on the CPU the items are cut
+    into spans of at least ``min_span`` launched from a thread pool.
+    """
+    dev = wp.get_device(device)
+    if n <= 0:
+        return
+    if dev.is_cuda:
+        wp.launch(kernel, dim=n, inputs=inputs_fn(0), outputs=outputs, device=dev)
+        return
+    pieces = max(1, min(threads * 4 if threads > 1 else 1, n // max(1, min_span)))
+    edges = np.linspace(0, n, pieces + 1).astype(int)
+    slices = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads)
+
+
+def default_threads() -> int:
+    import os
+
+    return max(1, min(8, os.cpu_count() or 1))

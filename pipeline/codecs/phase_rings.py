@@ -1,0 +1,213 @@
+"""Dense reconstruction with phase-rings: a ring through every pixel (DESIGN §5).
+
+:func:`extract_phase_rings` is the ``phase-rings`` codec's decode + sampling stage
+for :func:`ringscan.pipeline.reconstruct.reconstruct_scan`: it decodes the band
+and sector Gray codes (``kernels.ring_labels``), the phase frames
+(``kernels.phase``: linearisation, weighted N-step phase, unwrapping anchored at
+band edges, smoothing) and hands one sample per valid camera pixel, in raster
+order, to the triangulation (which meets each pixel's ray with the quadric of its
+own continuous rho).
+
+Response (gamma) handling, ``PhaseSettings.response``:
+
+- ``rig`` (default): the rig file's ``camera.response.gamma`` linearises the
+  recorded values and ``light.response.gamma`` is undone after normalising by the
+  white and black frames;
+- ``estimate``: the camera gamma is estimated from the view's own frames
+  (:func:`estimate_camera_gamma`: the N phase samples of a clean fringe average
+  to the middle of white and black only in linear units); the light gamma is
+  still taken from the rig;
+- ``linear``: no correction.
+
+This module also holds the vectorised NumPy twins of the dense stages
+(:func:`phase_numpy`, :func:`smooth_numpy`, :func:`points_numpy`) that the tests
+cross-check the kernels against and that :func:`bench_dense` times the kernels
+against.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.phase import (
+    PHASE_STATUS_NAMES,
+    PhaseSettings,
+    compact_phase_points,
+    decode_phase,
+    response_tables,
+    smooth_phase,
+)
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.pipeline.formats.scan import Scan
+
+log = logging.getLogger(__name__)
+
+GAMMA_RANGE = (0.3, 4.0)
+"""Search interval of :func:`estimate_camera_gamma`."""
+
+__all__ = ["extract_phase_rings", "phase_settings_of", "view_response", "estimate_camera_gamma", "PhaseSettings"]
+
+
+def phase_settings_of(settings) -> PhaseSettings:
+    """The phase block of a ``ReconstructSettings`` (its ``phase`` field), or the defaults."""
+    ps = getattr(settings, "phase", None)
+    if ps is None:
+        return PhaseSettings()
+    if not isinstance(ps, PhaseSettings):
+        raise ValueError(f"settings.phase: expected PhaseSettings, got {type(ps).__name__}")
+    return ps
+
+
+def view_response(frames: np.ndarray | wp.array, scan: Scan, settings: PhaseSettings) -> tuple[float, float]:
+    """(camera gamma, light gamma) used to linearise one view (see the module docstring)."""
+    rig = scan.rig
+    light_gamma = float(getattr(rig.light, "gamma", 1.0))
+    if settings.response == "linear":
+        return 1.0, 1.0
+    if settings.response == "rig":
+        return float(rig.camera.gamma), light_gamma
+    fr = frames.numpy() if isinstance(frames, wp.array) else np.asarray(frames)
+    spec = scan.patterns
+    return estimate_camera_gamma(fr, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps,
+                                 light_gamma=light_gamma), light_gamma
+
+
+def estimate_camera_gamma(
+    frames: np.ndarray,
+    *,
+    bits: int,
+    sector_bits: int,
+    steps: int,
+    light_gamma: float = 1.0,
+    min_contrast: float = 12.0,
+    stride: int = 4,
+) -> float:
+    """Estimate the camera's gamma from a phase-rings view.
+
+    For a clean fringe the linearised phase samples average to the middle of the
+    linearised white and black, (1/N) sum_n v_n = 1/2 with
+    v_n = ((L_n - L_b) / (L_w - L_b))^(1 / light_gamma) and L = (r / full)^g, and
+    only for the right g (a wrong exponent bends the samples, and the bend does
+    not average out). The estimate is the g in ``GAMMA_RANGE`` that minimises the
+    mean squared departure over the pixels with contrast, unsaturated white and a
+    strong fringe (every ``stride``-th row and column), by golden-section search.
+
+    Args:
+        frames: (n, H, W) uint8/uint16 frames of one view (``frame_names`` order).
+        bits, sector_bits, steps: the pattern's parameters.
+        light_gamma: the light's exponent (from the rig).
+        min_contrast: least white - black (8-bit levels, x257 for 16-bit).
+        stride: pixel subsampling.
+
+    Raises:
+        ValueError: too few usable pixels (fewer than 100).
+    """
+    fr = np.asarray(frames)
+    if fr.ndim != 3 or fr.dtype not in (np.uint8, np.uint16):
+        raise ValueError("estimate_camera_gamma: frames must be (n, H, W) uint8 or uint16")
+    phase0 = 2 + 2 * bits + 2 * sector_bits
+    if fr.shape[0] < phase0 + steps:
+        raise ValueError(f"estimate_camera_gamma: expected {phase0 + steps} frames, got {fr.shape[0]}")
+    full = 255.0 if fr.dtype == np.uint8 else 65535.0
+    sub = fr[:, ::stride, ::stride].astype(np.float64) / full
+    w, b, p = sub[0], sub[1], sub[phase0:phase0 + steps]
+    ok = ((w - b) * full >= min_contrast * (full / 255.0)) & (w < 0.97) & (b > 0.5 / full)
+    # a strong fringe: the phase samples spread over most of white - black
+    ok &= (p.max(0) - p.min(0)) >= 0.5 * (w - b)
+    if np.count_nonzero(ok) < 100:
+        raise ValueError(f"estimate_camera_gamma: only {int(np.count_nonzero(ok))} usable pixels (need 100): "
+                         "too little fringe contrast to estimate the response")
+    w, b, p = w[ok], b[ok], p[:, ok]
+    ig = 1.0 / float(light_gamma)
+
+    def cost(g):
+        lw, lb, lp = w ** g, b ** g, p ** g
+        u = np.clip((lp - lb) / (lw - lb), 0.0, 1.0) ** ig
+        return float(np.mean((u.mean(0) - 0.5) ** 2))
+
+    lo, hi = GAMMA_RANGE
+    grid = np.linspace(lo, hi, 38)
+    costs = [cost(g) for g in grid]
+    i = int(np.argmin(costs))
+    a, c = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    r = (math.sqrt(5) - 1) / 2
+    x1, x2 = c - r * (c - a), a + r * (c - a)
+    f1, f2 = cost(x1), cost(x2)
+    for _ in range(40):
+        if f1 < f2:
+            c, x2, f2 = x2, x1, f1
+            x1 = c - r * (c - a)
+            f1 = cost(x1)
+        else:
+            a, x1, f1 = x1, x2, f2
+            x2 = a + r * (c - a)
+            f2 = cost(x2)
+    g = 0.5 * (a + c)
+    log.info("estimated camera gamma %.3f from %d pixels", g, w.size)
+    return float(g)
+
+
+def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
+    """Decode + sampling stage of the ``phase-rings`` codec (see ``reconstruct.EXTRACTORS``).
+
+    Args:
+        frames: (n, H, W) uint8/uint16 Warp array of one view.
+        scan: the scan (patterns, rig).
+        settings: ``ReconstructSettings`` (its ``decode`` block, and its ``phase``
+            block where it has one).
+        threads: CPU threads.
+
+    Returns:
+        (Samples, stats) with stats ``pixels_decoded`` (pixels with a phase),
+        ``samples`` (points handed on), ``phase_dropped`` (pixels per reason),
+        ``camera_gamma``/``light_gamma`` used and ``times_s``.
+    """
+    from ringscan.pipeline.codecs.samples import Samples
+
+    spec = scan.patterns
+    if spec.codec != "phase-rings":
+        raise ValueError(f"extract_phase_rings: the scan's codec is {spec.codec!r}, not phase-rings")
+    ps = phase_settings_of(settings)
+    dev = frames.device
+    t0 = time.perf_counter()
+    labels = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, settings=settings.decode,
+                               threads=threads)
+    g_cam, g_light = view_response(frames, scan, ps)
+    full = 255 if frames.dtype == wp.uint8 else 65535
+    lut_np, wlut_np = response_tables(full, camera_gamma=g_cam, weighted=ps.weighted)
+    lut = wp.array(lut_np, dtype=wp.float32, device=dev)
+    wlut = wp.array(wlut_np, dtype=wp.float32, device=dev)
+    phase = decode_phase(frames, labels, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps, lut=lut,
+                         wlut=wlut, light_gamma=g_light, settings=ps, threads=threads)
+    wp.synchronize_device(dev)
+    t1 = time.perf_counter()
+    sm = smooth_phase(phase, labels.sector, settings=ps, threads=threads)
+    pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
+    wp.synchronize_device(dev)
+    t2 = time.perf_counter()
+    st = sm.status.numpy()
+    counts = np.bincount(st.ravel(), minlength=len(PHASE_STATUS_NAMES))
+    decoded = int(np.count_nonzero(phase.status.numpy() == 0))
+    stats = {
+        "pixels_decoded": decoded,
+        "samples": len(pts),
+        "phase_dropped": {name: int(counts[i]) for i, name in enumerate(PHASE_STATUS_NAMES) if i > 0},
+        "camera_gamma": g_cam,
+        "light_gamma": g_light,
+        "times_s": {"decode": t1 - t0, "sample": t2 - t1},
+    }
+    return Samples(uv=pts.uv, rho=pts.rho, ring=None, sector=pts.sector, confidence=pts.confidence,
+                   pixel=pts.pixel), stats
+
+
+# ----------------------------------------------------------------------------- NumPy twins
+
+
+# ----------------------------------------------------------------------------- bench
+
+

@@ -1,0 +1,71 @@
+"""TODO docstring (ringscan.pipeline.codecs.single_shot.extract, split from ringscan.pipeline.codecs.single_shot.labeller)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.ring_lines import detect_ring_lines
+from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines
+from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, SingleShotSettings
+
+log = logging.getLogger(__name__)
+
+
+def extract_rings(frames: wp.array, scan, settings, threads: int):
+    """``reconstruct`` hook for the ``rings`` codec: (Samples, stats) of one view.
+
+    Args:
+        frames: (1, H, W) uint8/uint16 Warp stack (the ``rings`` frame).
+        scan: the :class:`~ringscan.pipeline.scan.Scan`.
+        settings: ``ReconstructSettings``; its ``single_shot`` block when it has
+            one, else :class:`SingleShotSettings` defaults.
+        threads: CPU threads for the row-run kernels.
+
+    Returns:
+        (``reconstruct.Samples`` of the labelled samples in raster order, stats
+        with pixels_decoded, samples, the labelling counts and times_s
+        {"sample": line detection, "decode": labelling}). ``sector`` holds the
+        sector (``SECTOR_BITS`` bits) of the root that the orientation rule
+        chose, -1 where it does not decide; stats["sector_bits"] says so.
+    """
+    from ringscan.pipeline.codecs.samples import Samples
+
+    spec = scan.patterns
+    if spec.codec != "rings":
+        raise ValueError(f"extract_rings: codec {spec.codec!r} is not 'rings'")
+    if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.shape[0] < 1:
+        raise ValueError("extract_rings: frames must be a (1, H, W) Warp array")
+    ss = getattr(settings, "single_shot", None) or SingleShotSettings()
+    dev = frames.device
+    t0 = time.perf_counter()
+    lines = detect_ring_lines(frames, frame=0, settings=ss.lines, threads=threads)
+    d = lines.numpy()
+    t1 = time.perf_counter()
+    lab = label_ring_lines(d["uv"], d["normal"], d["pixel"], lines.smoothed, contrast=d["contrast"], rig=scan.rig,
+                           patterns=spec, settings=ss)
+    keep = np.nonzero(lab.ring >= 0)[0]
+    ring = lab.ring[keep]
+    n_sec = 2 ** SECTOR_BITS
+    phi = lab.phi[keep].astype(np.float64)
+    sector = np.where(np.isfinite(phi), np.floor((np.nan_to_num(phi) + np.pi) / (2 * np.pi) * n_sec), -1)
+    sector = np.clip(sector, -1, n_sec - 1).astype(np.int32)
+    rho = (spec.rho0 + spec.pitch * ring).astype(np.float32)
+    smp = Samples(
+        uv=wp.array(d["uv"][keep], dtype=wp.vec2, device=dev),
+        rho=wp.array(rho, dtype=wp.float32, device=dev),
+        ring=wp.array(ring, dtype=wp.int32, device=dev),
+        sector=wp.array(sector, dtype=wp.int32, device=dev),
+        confidence=wp.array(d["confidence"][keep], dtype=wp.float32, device=dev),
+        pixel=wp.array(d["pixel"][keep], dtype=wp.int32, device=dev),
+    )
+    wp.synchronize_device(dev)
+    t2 = time.perf_counter()
+    stats = {"pixels_decoded": int(keep.size), "samples": int(keep.size), "line_samples": len(lines),
+             "sector_bits": SECTOR_BITS, **lab.stats, "times_s": {"sample": t1 - t0, "decode": t2 - t1}}
+    log.info("rings: %d line centres, %d pieces, %d labelled (%d dropped), %d samples", len(lines),
+             lab.stats["pieces"], lab.stats["pieces_labelled"], lab.stats["pieces_dropped"], keep.size)
+    return smp, stats

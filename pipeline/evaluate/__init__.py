@@ -1,0 +1,1 @@
+"""ringscan.pipeline.evaluate."""

@@ -1,0 +1,246 @@
+"""Accuracy against the virtual rig's ground truth (``ringscan evaluate``, DESIGN §8).
+
+For each view the truth surface is the placed object (turned to the view's
+turntable angle) plus the reference plane z = 0. Figures:
+
+- point-to-surface distance of every reconstructed point (mm): median, mean, RMS,
+  95th percentile, max, and the fraction of points more than 1 mm off;
+- coverage: of the camera pixels that saw the surface lit (truth ``lit`` mask)
+  inside the coded annulus, the fraction whose truth point has a reconstructed
+  point within r = ``coverage_radius_mm`` / max(cos theta, 0.25), theta being the
+  angle between the surface normal and the light. The ring codecs sample the
+  surface along curves one band apart in the light's cross-section (default
+  radius: one band width, s * pitch for the parallel light, or two camera pixels
+  for the dense codec, whichever is larger); on a slope the curves lie 1 / cos theta
+  farther apart on the surface, so a point between two sampled rings is covered
+  and a ring that was not sampled is not. Reported for the whole view and for the
+  object alone (truth points more than 0.5 mm above the plane).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.meshes import open3d_lib
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
+from ringscan.pipeline.formats.scan import Scan, load_scan
+from ringscan.pipeline.geometry import _light_direction, _projector_polar, undistort_normalized
+
+log = logging.getLogger(__name__)
+
+
+
+
+__all__ = ["distance_stats", "truth_surface", "truth_points", "evaluate_view", "evaluate_recon", "coverage_radius"]
+
+
+
+
+def truth_surface(scan: Scan, turntable_deg: float):
+    """Open3D triangle mesh of the truth for a view: the object at the view's
+    angle plus a reference-plane quad, in world coordinates."""
+    o3d = open3d_lib()
+    truth = scan.extra.get("truth")
+    if not isinstance(truth, dict) or "mesh" not in truth:
+        raise FormatError(scan.path, "truth: this scan has no ground truth (simulate it with `ringscan simulate`)")
+    mesh_path = scan.folder / truth["mesh"]
+    if not mesh_path.is_file():
+        raise FormatError(mesh_path, "truth mesh not found")
+    mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.triangles, np.int64)
+    if len(V):
+        T = turntable_transform(scan.rig.turntable, turntable_deg)
+        V = V @ T[:3, :3].T + T[:3, 3]
+    zp = float(truth.get("reference_plane_z", 0.0))
+    if truth.get("reference_plane", True):
+        r = 4.0 * scan.rig.volume.r_max
+        PV = np.array([[-r, -r, zp], [r, -r, zp], [r, r, zp], [-r, r, zp]])
+        PF = np.array([[0, 1, 2], [0, 2, 3]]) + len(V)
+        V = np.vstack([V, PV]) if len(V) else PV
+        F = np.vstack([F, PF]) if len(F) else PF - len(V) + 4
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F.astype(np.int32)))
+    return out
+
+
+def distance_stats(d: np.ndarray, *, over_mm: float = 1.0) -> dict:
+    """Summary of point-to-surface distances (mm)."""
+    d = np.asarray(d, np.float64)
+    if d.size == 0:
+        return {"points": 0, "median_mm": None, "mean_mm": None, "rms_mm": None, "p95_mm": None, "max_mm": None,
+                "frac_over_1mm": None}
+    return {"points": int(d.size), "median_mm": float(np.median(d)), "mean_mm": float(d.mean()),
+            "rms_mm": float(np.sqrt(np.mean(d * d))), "p95_mm": float(np.percentile(d, 95)),
+            "max_mm": float(d.max()), "frac_over_1mm": float(np.mean(d > over_mm))}
+
+
+def _scene(mesh):
+    o3d = open3d_lib()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+def point_distances(mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance of each point to the mesh (Open3D raycasting scene)."""
+    o3d = open3d_lib()
+    if len(points) == 0:
+        return np.zeros(0)
+    q = o3d.core.Tensor(np.asarray(points, np.float32))
+    return _scene(mesh).compute_distance(q).numpy().astype(np.float64)
+
+
+def surface_normals(mesh, points: np.ndarray) -> np.ndarray:
+    """Unit normal of the mesh triangle closest to each point."""
+    o3d = open3d_lib()
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    ans = _scene(mesh).compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+    n = ans["primitive_normals"].numpy().astype(np.float64)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def truth_points(scan: Scan, view_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """World points of the pixels that saw the surface lit, and their pixel index."""
+    import cv2
+
+    truth = scan.extra.get("truth", {})
+    tv = truth.get("views", {}).get(view_name)
+    if not tv:
+        raise FormatError(scan.path, f"truth.views: no ground truth for view {view_name!r}")
+    dpath = scan.folder / tv["depth"]
+    depth = cv2.imread(str(dpath), cv2.IMREAD_UNCHANGED)
+    if depth is None:
+        raise FormatError(dpath, "cannot read truth depth")
+    lit = read_image(scan.folder / tv["lit"]) > 0
+    ok = lit & np.isfinite(depth)
+    vv, uu = np.nonzero(ok)
+    cam = scan.rig.camera
+    x, y = undistort_normalized(cam, uu, vv)
+    z = depth[vv, uu].astype(np.float64)
+    Xc = np.stack([x * z, y * z, z], -1)
+    Xw = (Xc - cam.t) @ cam.R
+    return Xw, vv * cam.width + uu
+
+
+def coverage_radius(scan: Scan) -> float:
+    """Default coverage radius (mm): one band width at the object."""
+    li = scan.rig.light
+    spec = scan.patterns
+    if isinstance(li, ParallelLight):
+        px = li.pixel_pitch_mm
+    else:
+        d = np.linalg.norm(li.center - np.array([0, 0, 0.5 * (scan.rig.volume.z_min + scan.rig.volume.z_max)]))
+        px = d / li.K[0, 0]
+    cam_px = np.linalg.norm(scan.rig.camera.center) / scan.rig.camera.K[0, 0]
+    return float(max(spec.pitch * px if spec.codec != "phase-rings" else 0.0, 2.0 * cam_px))
+
+
+def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_radius_mm: float | None = None,
+                  return_distances: bool = False):
+    """Accuracy and coverage of one view's points against the truth.
+
+    Returns the figures (dict), and with ``return_distances`` also each point's
+    distance to the truth surface (mm)."""
+    o3d = open3d_lib()
+    view = next((v for v in scan.views if v.name == view_name), None)
+    if view is None:
+        raise FormatError(scan.path, f"no view named {view_name!r}")
+    mesh = truth_surface(scan, view.turntable_deg)
+    d = point_distances(mesh, points)
+    out = distance_stats(d)
+    # Coverage of the lit, seen surface inside the coded annulus.
+    X, _ = truth_points(scan, view_name)
+    spec = scan.patterns
+    rho = _projector_polar(scan.rig, X, spec.center)
+    lo = spec.rho0 + (spec.pitch if spec.codec != "rings" else 0.0)
+    hi = spec.ring_radii()[-1] if spec.codec == "rings" else spec.rho0 + (spec.n_bands - 1) * spec.pitch
+    X = X[(rho >= lo) & (rho <= hi)]
+    r = coverage_radius(scan) if coverage_radius_mm is None else float(coverage_radius_mm)
+    out["coverage_radius_mm"] = r
+    if len(X) and len(points):
+        tp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(X))
+        rp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+        dn = np.asarray(tp.compute_point_cloud_distance(rp))
+        light_dir = _light_direction(scan.rig, X)
+        cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
+        near = dn <= r / np.maximum(cos_t, 0.25)
+        obj = np.abs(X[:, 2] - float(scan.extra["truth"].get("reference_plane_z", 0.0))) > 0.5
+        out["coverage"] = float(near.mean())
+        out["coverage_object"] = float(near[obj].mean()) if obj.any() else None
+    else:
+        out["coverage"] = 0.0 if len(X) else None
+        out["coverage_object"] = None
+    out["truth_pixels"] = int(len(X))
+    return (out, d) if return_distances else out
+
+
+def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLike | Scan, *,
+                   coverage_radius_mm: float | None = None) -> dict:
+    """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY."""
+    scan = truth_scan if isinstance(truth_scan, Scan) else load_scan(truth_scan, check_files=False)
+    p = Path(cloud_or_dir)
+    items = []
+    if p.is_dir():
+        rep = read_json(p / "report.json")
+        for v in rep.get("views", []):
+            items.append((v["name"], p / v["ply"]))
+    else:
+        ply = read_ply(p)
+        vi = int(ply["view"][0]) if "view" in ply and len(ply["view"]) else 0
+        items.append((scan.views[vi].name, p))
+    result = {"views": {}}
+    all_d = []
+    for name, ply_path in items:
+        ply = read_ply(ply_path)
+        pts = np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64)
+        result["views"][name], d = evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
+                                                 return_distances=True)
+        all_d.append(d)
+    result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
+    covs = [v["coverage"] for v in result["views"].values() if v.get("coverage") is not None]
+    result["all"]["coverage_mean"] = float(np.mean(covs)) if covs else None
+    return result
+
+
+def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: float = 0.5) -> np.ndarray:
+    """Ring radius (projector px) of the truth surface at sub-pixel camera positions.
+
+    The truth world points of the four pixel centres around each position (from
+    the virtual rig's depth map) are interpolated bilinearly and projected onto the
+    pattern. NaN where a neighbour saw nothing or the four points are more than
+    ``max_step_mm`` apart (a depth edge): there the truth is not smooth enough to
+    judge a label. Used to count mislabelled ring samples (a sample of ring k whose
+    truth radius is nearer another ring).
+    """
+    from ringscan.pipeline.evaluate.metrics import truth_points
+    from ringscan.pipeline.geometry import _projector_polar
+
+    cam = scan.rig.camera
+    w, h = cam.width, cam.height
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    X, pix = truth_points(scan, view_name)
+    grid = np.full((h * w, 3), np.nan)
+    grid[pix] = X
+    x0 = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 2)
+    y0 = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, h - 2)
+    fx = (uv[:, 0] - x0)[:, None]
+    fy = (uv[:, 1] - y0)[:, None]
+    p00, p10 = grid[y0 * w + x0], grid[y0 * w + x0 + 1]
+    p01, p11 = grid[(y0 + 1) * w + x0], grid[(y0 + 1) * w + x0 + 1]
+    Xi = (1 - fy) * ((1 - fx) * p00 + fx * p10) + fy * ((1 - fx) * p01 + fx * p11)
+    corners = np.stack([p00, p10, p01, p11], 1)
+    spread = np.max(np.linalg.norm(corners - corners.mean(1, keepdims=True), axis=2), axis=1)
+    ok = np.isfinite(spread) & (spread <= max_step_mm)
+    rho = np.full(uv.shape[0], np.nan)
+    if ok.any():
+        rho[ok] = _projector_polar(scan.rig, Xi[ok], scan.patterns.center)
+    return rho

@@ -1,0 +1,195 @@
+"""Pattern codecs (DESIGN §5): parameters, frame lists and the projector frames.
+
+All patterns live on the projector pixel grid (pixel centres at integers). Rings
+are circles of radius rho (projector pixels) around the pattern centre c. Every
+frame is an 8-bit image; edges are antialiased with an exact radial (or angular)
+box filter one pixel wide, so the 50 % level of every edge lies exactly on the
+ideal circle (or ray) and a frame and its inverse cross there.
+
+Codecs:
+
+- ``rings``: one frame ``rings``: ``count`` antialiased lines ``line_width`` px
+  wide at rho_j = rho0 + j * pitch (the paper's single-shot pattern).
+- ``gray-rings``: ``white``, ``black``, then ``gray_<b>``/``gray_<b>_inv`` for
+  b = 0..bits-1 (b = 0 most significant): lit where bit b of gray(k) is 1, with
+  band k = floor((rho - rho0) / pitch), 0 <= k < 2**bits; dark outside.
+- ``phase-rings``: the gray-rings frames plus ``phase_<n>``, n = 0..steps-1:
+  I = 0.5 + 0.5 cos(2 pi (rho - rho0) / pitch - 2 pi n / steps) in the annulus.
+- sectors (``sector_bits`` > 0, multi-frame codecs): ``sector_<b>``/``sector_<b>_inv``,
+  a Gray code over floor((phi + pi) / (2 pi) * 2**sector_bits),
+  phi = atan2(v_p - c_v, u_p - c_u), inside the coded annulus only.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ringscan.pipeline.formats.errors import FormatError
+
+CODECS = ("rings", "gray-rings", "phase-rings")
+
+__all__ = ["CODECS", "PatternSpec", "parse_patterns", "frame_names", "gray_encode", "gray_decode"]
+
+
+def gray_encode(k):
+    """Binary-reflected Gray code of ``k`` (int or integer array)."""
+    return k ^ (k >> 1)
+
+
+def gray_decode(g, bits: int):
+    """Inverse of :func:`gray_encode` for codes of ``bits`` bits."""
+    k = g
+    shift = 1
+    while shift < bits:
+        k = k ^ (k >> shift)
+        shift <<= 1
+    return k
+
+
+@dataclass(frozen=True)
+class PatternSpec:
+    """Parameters of a projected pattern set (scan.json ``patterns``)."""
+
+    codec: str
+    """One of ``rings``, ``gray-rings``, ``phase-rings``."""
+    width: int
+    """Projector width in pixels."""
+    height: int
+    """Projector height in pixels."""
+    center: tuple[float, float]
+    """Pattern centre (c_u, c_v) in projector pixels."""
+    rho0: float
+    """Inner radius in projector pixels: band 0 starts here (ring 0 lies here)."""
+    pitch: float
+    """Projector pixels per band (distance between rings)."""
+    bits: int = 0
+    """Gray-code bits of the band index (gray-rings, phase-rings)."""
+    sector_bits: int = 0
+    """Gray-code bits of the angular sector index; 0 = no sector code."""
+    count: int = 0
+    """Number of rings (single-shot ``rings``)."""
+    line_width: float = 2.0
+    """Width of each ring line in projector pixels (single-shot ``rings``)."""
+    steps: int = 4
+    """Phase steps (``phase-rings``)."""
+
+    @property
+    def n_bands(self) -> int:
+        """Number of coded bands (2**bits), or of rings for the single-shot codec."""
+        return self.count if self.codec == "rings" else 2 ** self.bits
+
+    @property
+    def rho_max(self) -> float:
+        """Outer radius of the coded annulus (projector px)."""
+        if self.codec == "rings":
+            return self.rho0 + (self.count - 1) * self.pitch + 0.5 * self.line_width
+        return self.rho0 + self.n_bands * self.pitch
+
+    def ring_radii(self) -> np.ndarray:
+        """Radii (projector px) of the sampled rings: the lines of ``rings``, or the
+        band boundaries k = 1..2**bits-1 of the binary codecs (index k-1)."""
+        if self.codec == "rings":
+            return self.rho0 + self.pitch * np.arange(self.count)
+        return self.rho0 + self.pitch * np.arange(1, self.n_bands)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["center"] = list(self.center)
+        keep = {"codec", "width", "height", "center", "rho0", "pitch"}
+        if self.codec == "rings":
+            keep |= {"count", "line_width"}
+        else:
+            keep |= {"bits", "sector_bits"}
+            if self.codec == "phase-rings":
+                keep |= {"steps"}
+        return {k: v for k, v in d.items() if k in keep}
+
+
+def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> PatternSpec:
+    """Validate a ``patterns`` dictionary and build a :class:`PatternSpec`.
+
+    Raises:
+        FormatError: naming ``source`` and the field for every problem.
+    """
+    src = source
+    if not isinstance(d, dict):
+        raise FormatError(src, "patterns: expected an object")
+    codec = d.get("codec")
+    if codec not in CODECS:
+        raise FormatError(src, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS)})")
+
+    def num(key, default=None, positive=False):
+        v = d.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise FormatError(src, f"patterns.{key}: expected a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise FormatError(src, f"patterns.{key}: must be > 0, got {v}")
+        return v
+
+    def integer(key, default=None, lo=None, hi=None):
+        v = d.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise FormatError(src, f"patterns.{key}: expected an integer, got {v!r}")
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise FormatError(src, f"patterns.{key}: must be in [{lo}, {hi}], got {v}")
+        return v
+
+    width = integer("width", lo=1, hi=65536)
+    height = integer("height", lo=1, hi=65536)
+    center = d.get("center")
+    if not (isinstance(center, (list, tuple)) and len(center) == 2
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in center)):
+        raise FormatError(src, f"patterns.center: expected [c_u, c_v], got {center!r}")
+    if not (0 <= center[0] <= width - 1 and 0 <= center[1] <= height - 1):
+        raise FormatError(src, f"patterns.center: {list(center)} lies outside the {width}x{height} projector")
+    rho0 = num("rho0")
+    if rho0 < 0:
+        raise FormatError(src, f"patterns.rho0: must be >= 0, got {rho0}")
+    pitch = num("pitch", positive=True)
+    kw = {}
+    if codec == "rings":
+        kw["count"] = integer("count", lo=1, hi=100000)
+        kw["line_width"] = num("line_width", 2.0, positive=True)
+        if kw["line_width"] >= pitch:
+            raise FormatError(src, f"patterns.line_width: {kw['line_width']} px does not fit in pitch {pitch} px (rings would touch)")
+    else:
+        kw["bits"] = integer("bits", lo=1, hi=16)
+        kw["sector_bits"] = integer("sector_bits", 0, lo=0, hi=12)
+        if codec == "phase-rings":
+            kw["steps"] = integer("steps", 4, lo=3, hi=64)
+        if pitch < 1.0:
+            raise FormatError(src, f"patterns.pitch: {pitch} px is below one projector pixel; binary bands cannot be shown")
+    spec = PatternSpec(codec=codec, width=width, height=height, center=(float(center[0]), float(center[1])),
+                       rho0=float(rho0), pitch=float(pitch), **kw)
+    # The coded annulus must reach into the projector image.
+    cu, cv = spec.center
+    far = max(math.hypot(x - cu, y - cv) for x in (0, width - 1) for y in (0, height - 1))
+    if spec.rho0 >= far:
+        raise FormatError(src, f"patterns.rho0: {spec.rho0} px lies outside the projector (farthest corner {far:.1f} px)")
+    if codec == "rings" and spec.ring_radii()[-1] > far:
+        n_in = int(np.sum(spec.ring_radii() <= far))
+        raise FormatError(src, f"patterns.count: only {n_in} of {spec.count} rings fit on the {width}x{height} projector")
+    return spec
+
+
+def frame_names(spec: PatternSpec) -> list[str]:
+    """The frame names of a codec, in projection order."""
+    if spec.codec == "rings":
+        return ["rings"]
+    names = ["white", "black"]
+    for b in range(spec.bits):
+        names += [f"gray_{b}", f"gray_{b}_inv"]
+    for b in range(spec.sector_bits):
+        names += [f"sector_{b}", f"sector_{b}_inv"]
+    if spec.codec == "phase-rings":
+        names += [f"phase_{n}" for n in range(spec.steps)]
+    return names
+
+
+# ----------------------------------------------------------------------------- rendering
+
+

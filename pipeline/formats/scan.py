@@ -1,0 +1,214 @@
+"""The scan folder (DESIGN §6): ``scan.json`` plus one image per frame per view.
+
+::
+
+    {"format": "ringscan.scan/1", "rig": {...} or "rig.json",
+     "patterns": {"codec": "gray-rings", "width": 800, "height": 600,
+                  "center": [400, 300], "rho0": 20.0, "pitch": 4.0, "bits": 7},
+     "views": [{"name": "view_000", "turntable_deg": 0.0,
+                "frames": {"white": "view_000/white.png", ...}}]}
+
+Every path is relative to the scan folder and must stay inside it. Frames are 8- or
+16-bit PNG or TIFF, grey or colour (converted to grey), all of the camera's size.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
+
+SCAN_FORMAT = "ringscan.scan/1"
+
+__all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict"]
+
+
+@dataclass(frozen=True)
+class View:
+    """One view of a scan: a turntable angle and one image file per frame."""
+
+    name: str
+    """Folder-safe view name, e.g. ``view_000``."""
+    turntable_deg: float
+    """Turntable angle of this view in degrees (DESIGN §6)."""
+    frames: dict[str, str]
+    """Frame name -> path relative to the scan folder (POSIX separators)."""
+
+
+@dataclass(frozen=True)
+class Scan:
+    """A loaded, validated scan folder."""
+
+    folder: Path
+    """The scan folder."""
+    rig: Rig
+    """The rig (calibration)."""
+    patterns: PatternSpec
+    """The projected pattern set."""
+    views: tuple[View, ...]
+    """The views in capture order."""
+    rig_ref: str | None = None
+    """The rig file name when scan.json refers to one (``"rig.json"``), else None."""
+    extra: dict = field(default_factory=dict)
+    """Other top-level keys of scan.json, kept as they were (e.g. ``truth``)."""
+
+    @property
+    def path(self) -> Path:
+        return self.folder / "scan.json"
+
+    def frame_path(self, view: View, name: str) -> Path:
+        return self.folder / view.frames[name]
+
+
+def _safe_rel(folder: Path, src: Path, where: str, rel) -> str:
+    if not isinstance(rel, str) or not rel:
+        raise FormatError(src, f"{where}: expected a relative path, got {rel!r}")
+    p = PurePosixPath(rel.replace("\\", "/"))
+    if p.is_absolute() or ".." in p.parts or (len(rel) > 1 and rel[1] == ":"):
+        raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder")
+    full = (folder / p).resolve()
+    root = folder.resolve()
+    if full != root and root not in full.parents:
+        raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder (through a link)")
+    return str(p)
+
+
+def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_incomplete: bool = False) -> Scan:
+    """Read and validate a scan folder (or its scan.json).
+
+    Args:
+        folder: the scan folder, or the path of its scan.json.
+        check_files: also check that every frame file exists.
+        allow_incomplete: accept views that lack frames (a capture in progress).
+
+    Raises:
+        FormatError: naming the file and the field for every problem.
+    """
+    folder = Path(folder)
+    if folder.name == "scan.json" and folder.is_file():
+        folder = folder.parent
+    src = folder / "scan.json"
+    if not folder.is_dir():
+        raise FormatError(folder, "scan folder not found")
+    d = read_json(src)
+    fmt = d.get("format")
+    if fmt != SCAN_FORMAT:
+        raise FormatError(src, f"format: unknown scan format {fmt!r} (this version reads {SCAN_FORMAT!r})")
+
+    rig_d = d.get("rig")
+    rig_ref = None
+    if isinstance(rig_d, str):
+        rig_ref = _safe_rel(folder, src, "rig", rig_d)
+        rig_path = folder / rig_ref
+        rig = parse_rig(read_json(rig_path), source=rig_path)
+    elif isinstance(rig_d, dict):
+        rig = parse_rig(rig_d, source=f"{src} (rig)")
+    else:
+        raise FormatError(src, "rig: expected an object or the name of a rig file")
+
+    patterns = parse_patterns(d.get("patterns"), source=src)
+    light_w = getattr(rig.light, "width", 0)
+    light_h = getattr(rig.light, "height", 0)
+    if light_w and (patterns.width, patterns.height) != (light_w, light_h):
+        raise FormatError(src, f"patterns: {patterns.width}x{patterns.height} does not match the rig's "
+                               f"{light_w}x{light_h} projector")
+    needed = frame_names(patterns)
+
+    views_d = d.get("views")
+    if not isinstance(views_d, list):
+        raise FormatError(src, "views: expected a list")
+    views, names = [], set()
+    for i, vd in enumerate(views_d):
+        where = f"views[{i}]"
+        if not isinstance(vd, dict):
+            raise FormatError(src, f"{where}: expected an object")
+        name = vd.get("name", f"view_{i:03d}")
+        if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in names:
+            raise FormatError(src, f"{where}.name: {name!r} is not a unique folder-safe name")
+        names.add(name)
+        deg = vd.get("turntable_deg", 0.0)
+        if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
+            raise FormatError(src, f"{where}.turntable_deg: expected a finite number, got {deg!r}")
+        fr = vd.get("frames")
+        if not isinstance(fr, dict):
+            raise FormatError(src, f"{where}.frames: expected an object")
+        frames = {k: _safe_rel(folder, src, f"{where}.frames.{k}", v) for k, v in fr.items()}
+        missing = [n for n in needed if n not in frames]
+        if missing and not allow_incomplete:
+            raise FormatError(src, f"{where}.frames: missing frame(s) {', '.join(missing)} of the {patterns.codec} codec")
+        if check_files:
+            for k, rel in frames.items():
+                if not (folder / rel).is_file():
+                    raise FormatError(folder / rel, f"frame {k!r} of {name} not found (listed in scan.json {where}.frames)")
+        views.append(View(name=name, turntable_deg=float(deg), frames=frames))
+    extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views")}
+    return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra)
+
+
+def scan_to_dict(scan: Scan) -> dict:
+    d = {"format": SCAN_FORMAT,
+         "rig": scan.rig_ref if scan.rig_ref else rig_to_dict(scan.rig),
+         "patterns": scan.patterns.to_dict(),
+         "views": [{"name": v.name, "turntable_deg": v.turntable_deg, "frames": dict(v.frames)} for v in scan.views]}
+    d.update(scan.extra)
+    return d
+
+
+def save_scan(scan: Scan) -> None:
+    """Write ``scan.json`` atomically (frames are written by the caller)."""
+    scan.folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(scan.path, scan_to_dict(scan))
+
+
+def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:
+    """Read a view's frames as one (n_frames, H, W) array (uint8 or uint16).
+
+    Frames are read in the order of ``names`` (default: the codec's frame order),
+    ``threads`` at a time (default: the CPU count, at most 8; image decoding
+    releases the GIL, and decoding PNGs costs more than reconstructing them).
+    Raises :class:`FormatError` naming the file for a missing or unreadable frame,
+    frames of different sizes or bit depths, or a size other than the camera's
+    (the first such frame in frame order).
+    """
+    names = frame_names(scan.patterns) if names is None else names
+    cam = scan.rig.camera
+    for n in names:
+        if n not in view.frames:
+            raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
+    paths = [scan.frame_path(view, n) for n in names]
+    threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))
+
+    def read(p):
+        try:
+            return read_image(p)
+        except FormatError as e:
+            return e
+
+    if threads > 1 and len(paths) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(threads, len(paths))) as ex:
+            images = list(ex.map(read, paths))
+    else:
+        images = [read(p) for p in paths]
+    out = None
+    for i, (p, img) in enumerate(zip(paths, images)):
+        if isinstance(img, FormatError):
+            raise img
+        if img.shape != (cam.height, cam.width):
+            raise FormatError(p, f"frame is {img.shape[1]}x{img.shape[0]}, but the camera is {cam.width}x{cam.height}")
+        if out is None:
+            out = np.empty((len(names), cam.height, cam.width), img.dtype)
+        elif img.dtype != out.dtype:
+            raise FormatError(p, f"frame is {img.dtype}, other frames of {view.name} are {out.dtype}")
+        out[i] = img
+    return out

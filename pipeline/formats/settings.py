@@ -1,0 +1,24 @@
+"""TODO docstring (ringscan.pipeline.formats.settings, split from ringscan.pipeline.reconstruct.settings)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+def settings_to_dict(s) -> dict:
+    return dataclasses.asdict(s)
+
+
+def settings_from_dict(cls, d: dict):
+    """Build a (nested) settings dataclass from a dict, rejecting unknown keys."""
+    if d is None:
+        return cls()
+    kwargs = {}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for k, v in d.items():
+        if k not in fields:
+            raise ValueError(f"{cls.__name__}: unknown setting {k!r} (known: {', '.join(fields)})")
+        f = fields[k]
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        kwargs[k] = settings_from_dict(type(sub), v) if dataclasses.is_dataclass(sub) else v
+    return cls(**kwargs)

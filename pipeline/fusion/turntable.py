@@ -1,0 +1,487 @@
+"""Multi-view fusion: turntable views -> one cleaned point cloud in the object frame.
+
+A turntable scan gives one point cloud per view, each in the world frame (DESIGN §2)
+with the object turned by the view's ``turntable_deg``. Fusion
+
+1. turns every view back by ``-turntable_deg`` about the rig's turntable axis
+   (DESIGN §6), which puts all views in the object frame (the pose of angle 0);
+2. cleans each view: non-finite and low-confidence points, a ground clip
+   (the reference plane z = 0; on by default), statistical and radius outlier removal;
+3. estimates normals (or rotates the ones the view carries) and orients them
+   toward the view's camera centre, which turns with the view too;
+4. refines the poses with Open3D: point-to-plane ICP between each view and its
+   next neighbours in turntable order (coarse then fine), a loop-closure edge from
+   the last view back to the first, and multiway pose-graph optimisation with the
+   view nearest angle 0 held fixed (that view's pose does not depend on the axis);
+5. reports each view's residual against all other views before and after the
+   refinement, and the correction applied (mm, degrees);
+6. merges the views and voxel-downsamples them into the fused cloud.
+
+Several poses ("flip and rescan", :func:`fuse_poses`, :func:`fuse_recons`): each
+pose's scan is fused as above into its own object frame; every further pose is
+registered to the first (and, with three or more, to each other) with FPFH features
++ RANSAC on voxel-downsampled copies, then point-to-plane ICP (coarse, fine);
+poses are placed along a spanning tree of the pairs that pass the fitness and
+point-to-plane RMSE checks, a pose graph is optimised when there are more pairs,
+every pose is checked against the others merged, and the clouds are merged in the
+first pose's frame. A pose that cannot be aligned raises :class:`AlignmentError`
+naming it.
+
+Everything returned is an Open3D geometry or a NumPy array, so a user's script can
+carry on with Open3D directly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ringscan.pipeline.formats.rig import Rig, Turntable, turntable_transform
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FuseSettings", "FusionView", "ViewResidual", "FuseResult", "fuse_views"]
+
+REPORT_NAME = "report.json"
+
+
+# ----------------------------------------------------------------------------- settings
+
+
+@dataclass(frozen=True)
+class FuseSettings:
+    """How views are cleaned, registered and merged (lengths in mm)."""
+
+    min_confidence: float = 0.0
+    """Points whose ``confidence`` is below this are dropped before anything else."""
+    ground_clip_mm: float | None = 0.5
+    """Drop points whose world z is below this: the reference plane z = 0 (DESIGN §2),
+    on which the object stands, would otherwise fuse into the object as a disc;
+    None keeps every point."""
+    statistical_neighbors: int = 20
+    """Statistical outlier removal: neighbours averaged per point (0 turns it off)."""
+    statistical_std_ratio: float = 4.0
+    """Statistical outlier removal: drop points whose mean neighbour distance is
+    more than this many standard deviations above the view's average."""
+    radius_mm: float = 1.5
+    """Radius outlier removal: search radius (0 turns it off)."""
+    radius_min_points: int = 3
+    """Radius outlier removal: a point needs this many neighbours within radius_mm."""
+    normal_radius_mm: float = 2.5
+    """Normal estimation: PCA neighbourhood radius; it must span several rings."""
+    normal_max_nn: int = 40
+    """Normal estimation: at most this many neighbours."""
+    refine: bool = True
+    """Refine the turntable poses with ICP and pose-graph optimisation."""
+    icp_voxel_mm: float = 0.6
+    """Views are downsampled to this voxel size for registration."""
+    icp_coarse_mm: float = 3.0
+    """Coarse ICP: largest point-pair distance (covers a few mm of axis error)."""
+    icp_fine_mm: float = 1.0
+    """Fine ICP, information matrices, pose graph and residuals: largest pair distance."""
+    icp_iterations: int = 60
+    """ICP iterations per stage."""
+    neighbor_span: int = 2
+    """Register each view with its next ``neighbor_span`` views in turntable order
+    (1: a chain; 2 also links every other view, which stiffens the graph)."""
+    loop_closure: bool = True
+    """Close the loop: register the last views with the first ones (>= 3 views)."""
+    edge_prune_threshold: float = 0.25
+    """Pose graph: uncertain edges whose line-process weight falls below this are pruned."""
+    min_edge_fitness: float = 0.2
+    """Pairs whose fine ICP overlaps less than this fraction are left out of the graph."""
+    voxel_mm: float = 0.3
+    """Voxel size of the fused cloud (points and normals averaged per voxel; 0 keeps all)."""
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class FusionView:
+    """One view's points in the world frame (DESIGN §2)."""
+
+    name: str
+    """View name (e.g. ``view_000``)."""
+    points: np.ndarray
+    """(N, 3) float64 points in the world frame, mm."""
+    turntable_deg: float
+    """The turntable angle of the view (degrees, right-handed about the axis)."""
+    camera_center: np.ndarray
+    """(3,) camera centre in the world frame (mm); normals are oriented toward it."""
+    normals: np.ndarray | None = None
+    """(N, 3) normals in the world frame, or None to estimate them."""
+    confidence: np.ndarray | None = None
+    """(N,) per-point confidence, or None."""
+
+
+@dataclass(frozen=True)
+class ViewResidual:
+    """How well one view agrees with all the others (object frame)."""
+
+    name: str
+    turntable_deg: float
+    points_in: int
+    """Points given."""
+    points_kept: int
+    """Points left after confidence, ground clip and outlier removal."""
+    fitness_before: float
+    """Fraction of the view's points within icp_fine_mm of another view's points, before refinement."""
+    rmse_before_mm: float
+    """RMS point-to-plane distance of those points to the other views, before refinement."""
+    fitness: float
+    """The same fraction after refinement."""
+    rmse_mm: float
+    """The same RMS distance after refinement."""
+    correction_mm: float
+    """Translation of the refinement at the view's centroid (mm)."""
+    correction_deg: float
+    """Rotation angle of the refinement (degrees)."""
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class FuseResult:
+    """The fused scan. Geometries are Open3D ``PointCloud``s in the object frame."""
+
+    cloud: "o3d.geometry.PointCloud"  # noqa: F821
+    """The fused, voxel-downsampled cloud with oriented normals."""
+    views: list
+    """Each view's cleaned cloud (full resolution, normals oriented) in the object frame."""
+    names: list[str]
+    """View names, in the order of ``views``."""
+    turntable_deg: np.ndarray
+    """(V,) turntable angles."""
+    transforms: np.ndarray
+    """(V, 4, 4) world -> object transforms, refinement included."""
+    corrections: np.ndarray
+    """(V, 4, 4) refinement alone (object frame; identity without refinement)."""
+    camera_centers: np.ndarray
+    """(V, 3) camera centres in the object frame."""
+    residuals: list[ViewResidual]
+    """Per-view residuals and corrections."""
+    rig: Rig | None
+    """The rig the views were taken with."""
+    settings: FuseSettings
+    """The settings used."""
+    point_view: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    """(M,) for each fused point, the index of a view that contributed to it."""
+    point_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    """(M,) mean confidence of the points merged into each fused point."""
+    pose_graph: object = None
+    """The optimised ``o3d.pipelines.registration.PoseGraph`` (None without refinement)."""
+
+    def report(self) -> dict:
+        """A JSON-ready summary: per-view residuals and the resolved settings."""
+        return {
+            "points": len(self.cloud.points),
+            "views": [r.to_dict() for r in self.residuals],
+            "settings": dataclasses.asdict(self.settings),
+            "axis": None if self.rig is None or self.rig.turntable is None else {
+                "axis_point": self.rig.turntable.axis_point.tolist(),
+                "axis_dir": self.rig.turntable.axis_dir.tolist()},
+        }
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+
+
+def _rotation_deg(T: np.ndarray) -> float:
+    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def _as_view(v, i: int) -> FusionView:
+    if isinstance(v, FusionView):
+        vc = v
+    elif isinstance(v, Mapping):
+        unknown = set(v) - {f.name for f in dataclasses.fields(FusionView)}
+        if unknown:
+            raise ValueError(f"views[{i}]: unknown keys {sorted(unknown)}")
+        try:
+            vc = FusionView(**{"name": f"view_{i:03d}", **v})
+        except TypeError as e:
+            raise ValueError(f"views[{i}]: {e}") from None
+    else:
+        raise ValueError(f"views[{i}]: expected a FusionView or a mapping, got {type(v).__name__}")
+    pts = np.asarray(vc.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"views[{i}] ({vc.name}): points must have shape (N, 3), got {pts.shape}")
+    n = len(pts)
+    nrm = None
+    if vc.normals is not None:
+        nrm = np.asarray(vc.normals, dtype=np.float64)
+        if nrm.shape != (n, 3):
+            raise ValueError(f"views[{i}] ({vc.name}): normals must have shape ({n}, 3), got {nrm.shape}")
+    conf = None
+    if vc.confidence is not None:
+        conf = np.asarray(vc.confidence, dtype=np.float64)
+        if conf.shape != (n,):
+            raise ValueError(f"views[{i}] ({vc.name}): confidence must have shape ({n},), got {conf.shape}")
+    cc = np.asarray(vc.camera_center, dtype=np.float64)
+    if cc.shape != (3,) or not np.all(np.isfinite(cc)):
+        raise ValueError(f"views[{i}] ({vc.name}): camera_center must be 3 finite numbers, got {vc.camera_center!r}")
+    th = float(vc.turntable_deg)
+    if not math.isfinite(th):
+        raise ValueError(f"views[{i}] ({vc.name}): turntable_deg is not finite")
+    return FusionView(name=str(vc.name), points=pts, turntable_deg=th, camera_center=cc, normals=nrm, confidence=conf)
+
+
+def check_fuse_settings(s: FuseSettings) -> None:
+    if not isinstance(s, FuseSettings):
+        raise ValueError(f"settings must be a FuseSettings, got {type(s).__name__}")
+    for name in ("icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "normal_radius_mm"):
+        if not getattr(s, name) > 0:
+            raise ValueError(f"FuseSettings.{name} must be > 0, got {getattr(s, name)}")
+    for name in ("voxel_mm", "radius_mm", "min_confidence"):
+        if getattr(s, name) < 0:
+            raise ValueError(f"FuseSettings.{name} must be >= 0, got {getattr(s, name)}")
+    if s.neighbor_span < 1:
+        raise ValueError(f"FuseSettings.neighbor_span must be >= 1, got {s.neighbor_span}")
+    if s.icp_iterations < 1:
+        raise ValueError(f"FuseSettings.icp_iterations must be >= 1, got {s.icp_iterations}")
+
+
+# ----------------------------------------------------------------------------- cleaning
+
+
+def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSettings):
+    """The view's cloud in the object frame, cleaned, with normals toward ``cam``."""
+    keep = np.all(np.isfinite(v.points), axis=1)
+    if v.confidence is not None:
+        keep &= v.confidence >= s.min_confidence
+    if s.ground_clip_mm is not None:
+        keep &= v.points[:, 2] >= s.ground_clip_mm
+    if v.normals is not None:
+        keep &= np.all(np.isfinite(v.normals), axis=1)
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(_apply(T, v.points[keep]))
+    if v.normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(v.normals[keep] @ T[:3, :3].T)
+    conf = (v.confidence[keep] if v.confidence is not None else np.ones(int(keep.sum()))).astype(np.float64)
+    idx = np.arange(len(pcd.points))
+    if len(idx) and s.statistical_neighbors > 0 and len(idx) > s.statistical_neighbors:
+        pcd, kept = pcd.remove_statistical_outlier(nb_neighbors=s.statistical_neighbors,
+                                                   std_ratio=s.statistical_std_ratio)
+        idx = idx[np.asarray(kept, dtype=np.int64)]
+    if len(idx) and s.radius_mm > 0 and s.radius_min_points > 0:
+        pcd, kept = pcd.remove_radius_outlier(nb_points=s.radius_min_points, radius=s.radius_mm)
+        idx = idx[np.asarray(kept, dtype=np.int64)]
+    conf = conf[idx]
+    if len(pcd.points) >= 3:
+        if not pcd.has_normals():
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm,
+                                                                      max_nn=s.normal_max_nn))
+        pcd.normalize_normals()
+        pcd.orient_normals_towards_camera_location(cam)
+    return pcd, conf
+
+
+# ----------------------------------------------------------------------------- registration
+
+
+def _icp_pair(o3d, src, dst, s: FuseSettings):
+    reg = o3d.pipelines.registration
+    est = reg.TransformationEstimationPointToPlane()
+    crit = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=s.icp_iterations)
+    coarse = reg.registration_icp(src, dst, s.icp_coarse_mm, np.eye(4), est, crit)
+    fine = reg.registration_icp(src, dst, s.icp_fine_mm, coarse.transformation, est, crit)
+    info = reg.get_information_matrix_from_point_clouds(src, dst, s.icp_fine_mm, fine.transformation)
+    return fine, info
+
+
+def _pairs(order: np.ndarray, s: FuseSettings) -> list[tuple[int, int, bool]]:
+    """(source, target, uncertain) index pairs along the turntable order."""
+    n = len(order)
+    out, seen = [], set()
+    for a in range(n):
+        for step in range(1, s.neighbor_span + 1):
+            b = a + step
+            if b >= n:
+                if not (s.loop_closure and n >= 3):
+                    continue
+                b -= n
+            i, j = int(order[a]), int(order[b])
+            key = (min(i, j), max(i, j))
+            if i == j or key in seen:
+                continue
+            seen.add(key)
+            # Chain edges (next view, no wrap) are trusted; the rest may be pruned.
+            out.append((i, j, not (step == 1 and a + step < n)))
+    return out
+
+
+def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> list[tuple[float, float]]:
+    """Per view: (fraction of points within ``dist`` of another view, point-to-plane RMS of those)."""
+    moved = [o3d.geometry.PointCloud(d).transform(T) for d, T in zip(downs, transforms)]
+    out = []
+    for i, d in enumerate(moved):
+        others = [e for j, e in enumerate(moved) if j != i and len(e.points)]
+        if len(d.points) == 0 or not others:
+            out.append((0.0, 0.0))
+            continue
+        q_pts = np.concatenate([np.asarray(e.points) for e in others])
+        q_nrm = np.concatenate([np.asarray(e.normals) for e in others])
+        p = np.asarray(d.points)
+        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q_pts))
+        nns.knn_index()
+        idx, d2 = nns.knn_search(o3d.core.Tensor(p), 1)
+        idx = idx.numpy()[:, 0]
+        inl = np.sqrt(d2.numpy()[:, 0]) < dist
+        if not inl.any():
+            out.append((0.0, 0.0))
+            continue
+        r = np.einsum("ij,ij->i", p[inl] - q_pts[idx[inl]], q_nrm[idx[inl]])
+        out.append((float(inl.mean()), float(np.sqrt(np.mean(r * r)))))
+    return out
+
+
+def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: bool):
+    """Pose-graph refinement; returns per-view corrections (object frame) and the graph."""
+    from tqdm import tqdm
+
+    reg = o3d.pipelines.registration
+    n = len(downs)
+    order = np.argsort(np.mod(angles, 360.0), kind="stable")
+    ref = int(np.argmin(np.abs((angles + 180.0) % 360.0 - 180.0)))
+    graph = reg.PoseGraph()
+    for _ in range(n):
+        graph.nodes.append(reg.PoseGraphNode(np.eye(4)))
+    pairs = _pairs(order, s)
+    used = 0
+    for i, j, uncertain in tqdm(pairs, desc="registering views", unit="pair", disable=not progress):
+        if len(downs[i].points) < 10 or len(downs[j].points) < 10:
+            continue
+        fine, info = _icp_pair(o3d, downs[i], downs[j], s)
+        if fine.fitness < s.min_edge_fitness:
+            log.info("views %d -> %d overlap too little (fitness %.2f): edge left out", i, j, fine.fitness)
+            continue
+        log.debug("edge %d -> %d: fitness %.3f, rmse %.3f mm", i, j, fine.fitness, fine.inlier_rmse)
+        graph.edges.append(reg.PoseGraphEdge(i, j, fine.transformation, info, uncertain=uncertain))
+        used += 1
+    if used == 0:
+        log.warning("no pair of views overlaps enough to register: keeping the turntable poses")
+        return [np.eye(4) for _ in range(n)], graph
+    opt = reg.GlobalOptimizationOption(max_correspondence_distance=s.icp_fine_mm,
+                                       edge_prune_threshold=s.edge_prune_threshold,
+                                       preference_loop_closure=1.0, reference_node=ref)
+    reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                            reg.GlobalOptimizationConvergenceCriteria(), opt)
+    # Hold the reference view exactly where the turntable put it.
+    P_ref_inv = np.linalg.inv(np.asarray(graph.nodes[ref].pose))
+    poses = [P_ref_inv @ np.asarray(graph.nodes[i].pose) for i in range(n)]
+    return poses, graph
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = FuseSettings(),
+               progress: bool = False) -> FuseResult:
+    """Fuse turntable views into one cloud in the object frame.
+
+    Args:
+        views: :class:`FusionView`s, or mappings with the same keys (``points``,
+            ``turntable_deg``, ``camera_center``, optional ``name``, ``normals``,
+            ``confidence``), all in the world frame.
+        rig: the rig; its turntable axis turns the views into the object frame. May
+            be None (or have no turntable) only if every view is at angle 0.
+        settings: cleaning, registration and merging settings.
+        progress: show a progress bar during registration.
+
+    Returns:
+        A :class:`FuseResult` whose ``cloud`` is the fused ``o3d.geometry.PointCloud``.
+
+    Raises:
+        ValueError: no views, bad shapes, or turned views without a turntable axis.
+    """
+    import open3d as o3d
+
+    check_fuse_settings(settings)
+    s = settings
+    if isinstance(views, (str, bytes, os.PathLike)) or not isinstance(views, Sequence) or len(views) == 0:
+        raise ValueError("views: expected a non-empty sequence of views")
+    vs = [_as_view(v, i) for i, v in enumerate(views)]
+    angles = np.array([v.turntable_deg for v in vs])
+    turntable = rig.turntable if rig is not None else None
+    if turntable is None:
+        if np.any(np.abs((angles + 180.0) % 360.0 - 180.0) > 1e-9):
+            raise ValueError("views are turned (turntable_deg != 0) but the rig has no turntable axis")
+        turntable = Turntable(axis_point=np.zeros(3), axis_dir=np.array([0.0, 0.0, 1.0]))
+
+    T0 = [turntable_transform(turntable, -v.turntable_deg) for v in vs]
+    clouds, confs, cams = [], [], []
+    for v, T in zip(vs, T0):
+        cam = _apply(T, v.camera_center[None])[0]
+        pcd, conf = _clean_view(o3d, v, T, cam, s)
+        clouds.append(pcd)
+        confs.append(conf)
+        cams.append(cam)
+        log.info("%s: %d of %d points kept", v.name, len(pcd.points), len(v.points))
+    if sum(len(c.points) for c in clouds) == 0:
+        raise ValueError("no points left in any view after cleaning (check min_confidence and ground_clip_mm)")
+
+    downs = [c.voxel_down_sample(s.icp_voxel_mm) for c in clouds]
+    for d, cam in zip(downs, cams):
+        if len(d.points) >= 3:
+            d.normalize_normals()
+            d.orient_normals_towards_camera_location(cam)
+    before = _residuals(o3d, downs, [np.eye(4)] * len(vs), s.icp_fine_mm)
+    graph = None
+    poses = [np.eye(4) for _ in vs]
+    if s.refine and len(vs) >= 2:
+        poses, graph = _refine(o3d, downs, angles, s, progress)
+    after = _residuals(o3d, downs, poses, s.icp_fine_mm) if graph is not None else before
+
+    residuals = []
+    for i, v in enumerate(vs):
+        P = poses[i]
+        c = np.asarray(clouds[i].points).mean(axis=0) if len(clouds[i].points) else np.zeros(3)
+        residuals.append(ViewResidual(
+            name=v.name, turntable_deg=v.turntable_deg, points_in=len(v.points), points_kept=len(clouds[i].points),
+            fitness_before=before[i][0], rmse_before_mm=before[i][1], fitness=after[i][0], rmse_mm=after[i][1],
+            correction_mm=float(np.linalg.norm(_apply(P, c[None])[0] - c)), correction_deg=_rotation_deg(P)))
+        if graph is not None:
+            clouds[i].transform(P)
+            cams[i] = _apply(P, cams[i][None])[0]
+
+    merged = o3d.geometry.PointCloud()
+    labels, conf_all = [], []
+    for i, c in enumerate(clouds):
+        merged += c
+        labels.append(np.full(len(c.points), i, np.int32))
+        conf_all.append(confs[i])
+    labels = np.concatenate(labels)
+    conf_all = np.concatenate(conf_all)
+    if s.voxel_mm > 0 and len(merged.points):
+        lo = merged.get_min_bound() - s.voxel_mm
+        hi = merged.get_max_bound() + s.voxel_mm
+        fused, _, traces = merged.voxel_down_sample_and_trace(s.voxel_mm, lo, hi, False)
+        point_view = np.array([labels[t[0]] for t in traces], np.int32)
+        point_conf = np.array([conf_all[np.asarray(t)].mean() for t in traces], np.float32)
+        fused.normalize_normals()
+    else:
+        fused, point_view, point_conf = merged, labels, conf_all.astype(np.float32)
+    log.info("fused %d views into %d points", len(vs), len(fused.points))
+    return FuseResult(
+        cloud=fused, views=clouds, names=[v.name for v in vs], turntable_deg=angles,
+        transforms=np.stack([P @ T for P, T in zip(poses, T0)]), corrections=np.stack(poses),
+        camera_centers=np.stack(cams), residuals=residuals, rig=rig, settings=s,
+        point_view=point_view, point_confidence=point_conf, pose_graph=graph)
+
+
+# ----------------------------------------------------------------------------- several poses
+
+

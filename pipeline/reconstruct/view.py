@@ -1,0 +1,131 @@
+"""TODO docstring (ringscan.pipeline.reconstruct.view, split from ringscan.pipeline.reconstruct.scan)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.point_filter import mark_isolated_points
+from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
+from ringscan.pipeline.codecs.registry import extract_samples
+from ringscan.pipeline.formats.ply import write_ply
+from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
+from ringscan.pipeline.geometry import camera_model_for, light_model_for
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ViewCloud:
+    """The points of one view (NumPy, world frame)."""
+
+    points: np.ndarray
+    """(n, 3) float32 world points (mm)."""
+    ring: np.ndarray
+    """(n,) int32 ring / band-boundary index (-1 for dense codecs)."""
+    rho: np.ndarray
+    """(n,) float32 ring radius in projector pixels."""
+    confidence: np.ndarray
+    """(n,) float32 in [0, 1]."""
+    uv: np.ndarray
+    """(n, 2) float32 camera pixel of each point."""
+    stats: dict
+    """Counts and seconds per stage."""
+
+
+def reconstruct_view(
+    scan: Scan,
+    view: View,
+    *,
+    settings: ReconstructSettings = ReconstructSettings(),
+    device: str | None = None,
+    frames: np.ndarray | None = None,
+) -> ViewCloud:
+    """Reconstruct one view of a scan into world points.
+
+    Args:
+        scan: a loaded scan.
+        view: one of ``scan.views``.
+        settings: stage settings.
+        device: Warp device ("cpu", "cuda:0", None = best available).
+        frames: the view's frames if already in memory ((n, H, W) in
+            ``frame_names`` order); read from disk otherwise.
+    """
+    init_warp()
+    device = resolve_device(device)
+    threads = settings.threads or os.cpu_count() or 1
+    times = {}
+    t = time.perf_counter()
+    if frames is None:
+        frames = read_view_frames(scan, view)
+    times["read"] = time.perf_counter() - t
+    t = time.perf_counter()
+    fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device)
+    times["upload"] = time.perf_counter() - t
+
+    smp, st = extract_samples(fr, scan, settings, threads)
+    times.update(st.pop("times_s"))
+    # An extractor may decide sectors of its own (single-shot: line orientation
+    # sectors); it says how many bits they carry.
+    sector_bits = int(st.pop("sector_bits", scan.patterns.sector_bits))
+
+    t = time.perf_counter()
+    rig = scan.rig
+    vol = rig.volume
+    cam = camera_model_for(rig)
+    tri = triangulate_rings(smp.uv, smp.rho, smp.sector, smp.confidence, camera=cam, light=light_model_for(rig),
+                            volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
+                            sector_bits=sector_bits, settings=settings.triangulate, threads=threads)
+    wp.synchronize_device(device)
+    times["triangulate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    status_w = mark_isolated_points(tri.points, smp.pixel, tri.status, camera=cam, width=rig.camera.width,
+                                    height=rig.camera.height, isolated_status=STATUS_ISOLATED, settings=settings.filter,
+                                    threads=threads)
+    idx = compact_points(status_w)
+    wp.synchronize_device(device)
+    times["filter"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    idx_np = idx.numpy()
+    status = status_w.numpy()
+    counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
+    cloud = ViewCloud(
+        points=tri.points.numpy()[idx_np],
+        ring=smp.ring.numpy()[idx_np] if smp.ring is not None else np.full(idx_np.size, -1, np.int32),
+        rho=smp.rho.numpy()[idx_np],
+        confidence=tri.confidence.numpy()[idx_np],
+        uv=smp.uv.numpy()[idx_np],
+        stats={},
+    )
+    if settings.min_confidence > 0:
+        keep = cloud.confidence >= settings.min_confidence
+        cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep], cloud.uv[keep], {})
+    times["download"] = time.perf_counter() - t
+    cloud.stats = {
+        "pixels": int(frames.shape[1] * frames.shape[2]),
+        **st,
+        "points": int(cloud.points.shape[0]),
+        "dropped": {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+        "times_s": times,
+    }
+    return cloud
+
+
+def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
+    n = cloud.points.shape[0]
+    write_ply(path, {
+        "x": cloud.points[:, 0].astype(np.float32), "y": cloud.points[:, 1].astype(np.float32),
+        "z": cloud.points[:, 2].astype(np.float32),
+        "ring": cloud.ring.astype(np.int32), "rho": cloud.rho.astype(np.float32),
+        "view": np.full(n, view_index, np.int32), "confidence": cloud.confidence.astype(np.float32),
+        "u": cloud.uv[:, 0].astype(np.float32), "v": cloud.uv[:, 1].astype(np.float32),
+    }, comments=["ringscan point cloud, world frame, mm"])

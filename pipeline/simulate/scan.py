@@ -1,0 +1,122 @@
+"""TODO docstring (ringscan.pipeline.simulate.scan, split from ringscan.pipeline.simulate.virtual_rig)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.rig import Rig, default_rig, turntable_transform
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
+from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene, pose_scene
+from ringscan.pipeline.simulate.truth import TRUTH_DIR, _write_depth, _write_mesh
+from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _mix_seed, view_angles
+
+log = logging.getLogger(__name__)
+
+
+def simulate_scan(
+    out_dir: str | os.PathLike,
+    *,
+    scene: SceneMesh | str | os.PathLike = "sphere",
+    rig: Rig | None = None,
+    patterns: PatternSpec,
+    turntable_deg=(0.0,),
+    views: int | None = None,
+    settings: RenderSettings = RenderSettings(),
+    device: str | None = None,
+    progress: bool = True,
+    size_mm: float = 80.0,
+    up: str = "auto",
+    image_format: str = "png",
+    pose: str | None = None,
+) -> Scan:
+    """Render a whole scan with the virtual rig and write it with its ground truth.
+
+    Args:
+        out_dir: the scan folder (created; files of an earlier scan there are replaced).
+        scene: a :class:`SceneMesh`, a procedural scene name or a mesh file path.
+        rig: the rig (default: :func:`default_rig`).
+        patterns: the pattern set to project.
+        turntable_deg: the views' turntable angles (degrees).
+        views: if given, ``views`` equal steps k * 360 / views instead of ``turntable_deg``.
+        settings: rendering settings.
+        device: Warp device.
+        progress: show a tqdm progress bar.
+        size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
+        image_format: ``png`` or ``tiff`` for the frames.
+        pose: turn the placed scene into this resting pose first (see
+            :func:`ringscan.pipeline.scenes.pose_scene`: ``upright``, ``upside-down``,
+            ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
+            The truth mesh is the posed scene, and scan.json ``truth.pose`` records
+            the transform from the upright scene.
+
+    Returns:
+        The written scan (as :func:`load_scan` reads it back).
+    """
+    from tqdm import tqdm
+
+    if not isinstance(patterns, PatternSpec):
+        raise ValueError(f"patterns: expected a PatternSpec, got {type(patterns).__name__}")
+    if image_format not in ("png", "tiff"):
+        raise ValueError(f"image_format: expected 'png' or 'tiff', got {image_format!r}")
+    rig = default_rig() if rig is None else rig
+    angles = view_angles(views) if views is not None else tuple(float(a) for a in turntable_deg)
+    if not angles:
+        raise ValueError("turntable_deg: no views")
+    for a in angles:
+        turntable_transform(rig.turntable, a)
+    if not isinstance(scene, SceneMesh):
+        scene = make_scene(scene, size_mm=size_mm, up=up)
+    pose_T = None
+    if pose is not None:
+        scene, pose_T = pose_scene(scene, pose)
+    vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=(patterns.width, patterns.height))
+
+    folder = Path(out_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh_rel = f"{TRUTH_DIR}/object.ply"
+    _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
+    truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
+             "settings": settings.to_dict()}
+    if pose_T is not None:
+        truth["pose"] = {"name": str(pose), "transform": pose_T.tolist()}
+    scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
+    save_scan(scan)
+
+    names = frame_names(patterns)
+    frames = {n: render_frame(patterns, n) for n in names}
+    done: list[View] = []
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame", disable=not progress)
+    try:
+        for vi, deg in enumerate(angles):
+            vname = f"view_{vi:03d}"
+            vr.set_turntable(deg)
+            rel = {}
+            for fi, n in enumerate(names):
+                img = vr.render(frames[n], seed=_mix_seed(settings.seed, vi, fi))
+                rel[n] = f"{vname}/{n}.{image_format}"
+                write_image(folder / rel[n], img)
+                bar.update(1)
+            tr = vr.truth()
+            depth_rel, lit_rel = f"{TRUTH_DIR}/{vname}_depth.tiff", f"{TRUTH_DIR}/{vname}_lit.png"
+            _write_depth(folder / depth_rel, tr["depth"])
+            write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
+            truth["views"][vname] = {"depth": depth_rel, "lit": lit_rel}
+            done.append(View(name=vname, turntable_deg=float(deg), frames=rel))
+            snapshot = {**truth, "views": dict(truth["views"])}
+            scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": snapshot})
+            save_scan(scan)
+    finally:
+        bar.close()
+    log.info("simulated %d view(s) x %d frame(s) of %s in %.1f s -> %s", len(angles), len(names), scene.name,
+             time.perf_counter() - t0, folder)
+    return load_scan(folder)

@@ -1,0 +1,337 @@
+"""The virtual rig: renders scans of procedural or loaded meshes, with ground truth (DESIGN §8).
+
+:class:`VirtualRig` ray-traces a scene (``pipeline.scenes``) standing on the
+reference plane z = 0 as the rig's camera sees it under any projector frame
+(``kernels.raytrace``). :func:`simulate_scan` renders every frame of a pattern set
+for one or more turntable views and writes a scan folder (DESIGN §6) plus its
+ground truth:
+
+- ``truth/object.ply``: the placed mesh at turntable angle 0 (object frame = world
+  frame at angle 0);
+- ``truth/<view>_depth.tiff``: float32 camera-frame depth Z_c (mm) of each pixel's
+  centre ray, NaN where the ray meets nothing;
+- ``truth/<view>_lit.png``: 255 where the pixel's centre sees a point lit by the
+  projector image (not shadowed, facing the light), else 0;
+- scan.json ``"truth"``: ``{"mesh", "reference_plane_z", "scene", "size_mm",
+  "views": {name: {"depth", "lit"}}, "settings": {...}}``, plus ``"pose": {"name",
+  "transform"}`` when a pose was given (``transform``: the 4x4 rigid transform from
+  the upright placed scene to the posed one, which ``truth/object.ply`` holds).
+
+Radiometry (per camera pixel, mean over sub-samples):
+``I = albedo * (ambient + max(0, n.l) * lit * E(u_p, v_p))`` with E the emitted
+light: each projector pixel a uniform square of ``(frame / 255)^gamma_light``,
+blurred by a Gaussian (projector defocus; see :meth:`VirtualRig.emitted`), then
+``recorded = full_scale * exposure * (I / (1 + ambient))^(1 / gamma_camera)`` plus
+Gaussian noise, clamped and rounded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ringscan.pipeline.formats.rig import ParallelLight, Rig, Turntable, turntable_transform
+from ringscan.pipeline.simulate.scenes import SceneMesh, corner_normals, make_scene
+
+log = logging.getLogger(__name__)
+
+EMIT_UPSAMPLE = 4
+
+__all__ = ["RenderSettings", "VirtualRig", "view_angles"]
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How the virtual rig renders (saved in scan.json ``truth.settings``)."""
+
+    supersample: int = 2
+    """Sub-samples per pixel side (S x S rays per pixel): antialiases edges and
+    ring boundaries the way a real pixel integrates light; 2 is enough for
+    sub-pixel boundary positions, 1 is fastest."""
+    ambient: float = 0.05
+    """Ambient irradiance relative to the projector's full white on a surface
+    facing it: lights every visible point, shadows included (stray room light)."""
+    albedo: float = 0.8
+    """Diffuse (Lambertian) reflectance of the object and the plane, in (0, 1]."""
+    defocus_px: float = 0.7
+    """Projector defocus: Gaussian blur sigma in projector pixels (0 = sharp)."""
+    noise: float = 1.5
+    """Camera noise: Gaussian sigma in 8-bit grey levels (scaled by 257 for 16-bit)."""
+    bit_depth: int = 8
+    """Recorded bit depth: 8 or 16."""
+    exposure: float = 0.9
+    """Recorded fraction of full scale for full white on an albedo-1 surface facing
+    the light: 0.9 leaves headroom so that lit points never saturate."""
+    seed: int = 0
+    """Noise seed: the same seed, scene and frames give the same images."""
+
+    def __post_init__(self):
+        def bad(field, msg):
+            raise ValueError(f"RenderSettings.{field}: {msg}")
+
+        for name in ("supersample", "bit_depth", "seed"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                bad(name, f"expected an integer, got {v!r}")
+        for name in ("ambient", "albedo", "defocus_px", "noise", "exposure"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+                bad(name, f"expected a finite number, got {v!r}")
+        if not 1 <= self.supersample <= 8:
+            bad("supersample", f"must be in 1..8, got {self.supersample}")
+        if self.bit_depth not in (8, 16):
+            bad("bit_depth", f"must be 8 or 16, got {self.bit_depth}")
+        if not 0 < self.albedo <= 1:
+            bad("albedo", f"must be in (0, 1], got {self.albedo}")
+        if not 0 <= self.ambient <= 1:
+            bad("ambient", f"must be in [0, 1], got {self.ambient}")
+        if self.defocus_px < 0 or self.defocus_px > 50:
+            bad("defocus_px", f"must be in [0, 50] projector pixels, got {self.defocus_px}")
+        if self.noise < 0:
+            bad("noise", f"must be >= 0, got {self.noise}")
+        if not 0 < self.exposure <= 4:
+            bad("exposure", f"must be in (0, 4], got {self.exposure}")
+        if self.seed < 0:
+            bad("seed", f"must be >= 0, got {self.seed}")
+
+    @property
+    def full_scale(self) -> int:
+        """255 or 65535."""
+        return 255 if self.bit_depth == 8 else 65535
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RenderSettings:
+        """Build from a dict (unknown keys are an error naming them)."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        extra = sorted(set(d) - known)
+        if extra:
+            raise ValueError(f"RenderSettings: unknown field(s) {', '.join(extra)}")
+        return cls(**d)
+
+
+def _turn(turntable: Turntable | None, deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of :func:`ringscan.pipeline.rig.turntable_transform`: X' = R X + t."""
+    T = turntable_transform(turntable, deg)
+    return T[:3, :3], T[:3, 3]
+
+
+def view_angles(views: int) -> tuple[float, ...]:
+    """Equal turntable steps: theta_k = k * 360 / views, k = 0..views-1."""
+    if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or views < 1:
+        raise ValueError(f"views: expected a positive integer, got {views!r}")
+    return tuple(k * 360.0 / views for k in range(int(views)))
+
+
+def _pixel_gauss_weights(sigma: float, k: int) -> np.ndarray:
+    """(k, 2 r + 1) float32: weight of projector pixel i0 + j at fine sample m of pixel i0.
+
+    The fine sample sits at x = i0 + (m + 0.5) / k - 0.5; the weight is the Gaussian
+    (sigma) integrated over the pixel square [i0 + j - 0.5, i0 + j + 0.5].
+    """
+    r = int(math.ceil(4.0 * sigma + 1.0))
+    j = np.arange(-r, r + 1)
+    x = (np.arange(k) + 0.5) / k - 0.5
+    cdf = np.vectorize(lambda z: 0.5 * (1.0 + math.erf(z / (sigma * math.sqrt(2.0)))))
+    d = x[:, None] - j[None, :]
+    return (cdf(d + 0.5) - cdf(d - 0.5)).astype(np.float32)
+
+
+def _mix_seed(*parts: int) -> int:
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0]) & 0x7FFFFFFF
+
+
+class VirtualRig:
+    """Renders what the rig's camera sees of a scene under a projector frame.
+
+    Args:
+        rig: the rig (camera, light, turntable).
+        scene: a :class:`SceneMesh`, or a scene name or mesh path for :func:`make_scene`.
+        settings: rendering settings.
+        device: Warp device ("cpu", "cuda:0", None = best available).
+        projector_size: (W_p, H_p) of the frames; default the rig light's size
+            (needed when a parallel light does not state its size).
+
+    The geometry (ray tracing) runs once per turntable angle, lazily; each
+    :meth:`render` is a cheap shading pass.
+    """
+
+    def __init__(self, rig: Rig, scene: SceneMesh | str | os.PathLike, *, settings: RenderSettings = RenderSettings(),
+                 device: str | None = None, projector_size: tuple[int, int] | None = None):
+        from ringscan.kernels import resolve_device
+        from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
+
+        if not isinstance(rig, Rig):
+            raise ValueError(f"rig: expected a Rig, got {type(rig).__name__}")
+        if not isinstance(settings, RenderSettings):
+            raise ValueError(f"settings: expected RenderSettings, got {type(settings).__name__}")
+        if not isinstance(scene, SceneMesh):
+            scene = make_scene(scene)
+        self.rig = rig
+        self.scene = scene
+        self.settings = settings
+        self.device = resolve_device(device)
+        if projector_size is None:
+            projector_size = (getattr(rig.light, "width", 0), getattr(rig.light, "height", 0))
+        pw, ph = (int(x) for x in projector_size)
+        if pw <= 0 or ph <= 0:
+            raise ValueError("projector_size: the rig's light does not state its size; pass projector_size=(W_p, H_p)")
+        lw, lh = getattr(rig.light, "width", 0), getattr(rig.light, "height", 0)
+        if lw and (pw, ph) != (lw, lh):
+            raise ValueError(f"projector_size {pw}x{ph} does not match the rig's {lw}x{lh} light")
+        self.projector_size = (pw, ph)
+        c = rig.camera
+        self._camera = make_camera(c.K, c.dist, c.R, c.t)
+        li = rig.light
+        if isinstance(li, ParallelLight):
+            self._light = make_parallel_light(li.R, li.t, li.pixel_pitch_mm, li.axis_px)
+        else:
+            self._light = make_perspective_light(li.K, li.dist, li.R, li.t)
+        self._corner = corner_normals(scene.vertices, scene.faces)
+        self._deg = 0.0
+        self._geometry = None
+        self._calls = 0
+
+    # -- pose
+
+    @property
+    def turntable_deg(self) -> float:
+        """The current turntable angle (degrees)."""
+        return self._deg
+
+    def set_turntable(self, deg: float) -> None:
+        """Turn the object to ``deg`` about the rig's turntable axis (DESIGN §6).
+
+        The geometry is traced again on the next :meth:`render` or :meth:`truth`.
+        """
+        turntable_transform(self.rig.turntable, deg)  # checks the angle
+        if float(deg) != self._deg:
+            self._deg = float(deg)
+            self._geometry = None
+
+    def object_vertices(self) -> np.ndarray:
+        """The object's vertices in the world frame at the current angle, (N, 3) float64."""
+        R, t = _turn(self.rig.turntable, self._deg)
+        return self.scene.vertices @ R.T + t
+
+    def geometry(self):
+        """The traced view (``kernels.raytrace.ViewGeometry``) at the current angle."""
+        if self._geometry is None:
+            from ringscan.kernels import raytrace
+
+            t0 = time.perf_counter()
+            R, _ = _turn(self.rig.turntable, self._deg)
+            mesh = raytrace.make_trace_mesh(self.object_vertices(), self.scene.faces, self._corner @ R.T,
+                                            device=self.device)
+            c = self.rig.camera
+            self._geometry = raytrace.trace_geometry(
+                mesh, self._camera, self._light, width=c.width, height=c.height, projector_size=self.projector_size,
+                supersample=self.settings.supersample, albedo=self.settings.albedo, ambient=self.settings.ambient)
+            self._mesh = mesh
+            import warp as wp
+
+            wp.synchronize_device(self.device)
+            log.info("traced %s at %.1f deg: %dx%d x %d sub-samples in %.2f s", self.scene.name, self._deg,
+                     c.width, c.height, self.settings.supersample ** 2, time.perf_counter() - t0)
+        return self._geometry
+
+    # -- rendering
+
+    @property
+    def emitted_upsample(self) -> int:
+        """k: :meth:`emitted` samples the projector image k times finer than its pixels."""
+        return EMIT_UPSAMPLE if self.settings.defocus_px > 0 else 1
+
+    def emitted(self, frame: np.ndarray) -> np.ndarray:
+        """The light a projector frame emits, (H_p k, W_p k) float32 in 0..1, k = :attr:`emitted_upsample`.
+
+        Each projector pixel emits ``(value / 255)^gamma_light`` uniformly over its
+        square (a piecewise-constant image); the lens defocus blurs it with a
+        Gaussian of ``settings.defocus_px``. The blurred image is evaluated exactly
+        (the Gaussian integrated over each pixel square, no light from outside the
+        image) at the centres of a grid k = 4 times finer than the projector's, from
+        which the renderer interpolates bilinearly. Without defocus k = 1 and the
+        renderer samples the sharp pixels (nearest).
+        """
+        import cv2
+
+        f = np.asarray(frame)
+        pw, ph = self.projector_size
+        if f.shape != (ph, pw):
+            raise ValueError(f"frame: expected shape ({ph}, {pw}) (the projector's), got {f.shape}")
+        if f.dtype != np.uint8:
+            raise ValueError(f"frame: expected uint8, got {f.dtype}")
+        lut = ((np.arange(256) / 255.0) ** float(self.rig.light.gamma)).astype(np.float32)
+        e = lut[f]
+        if self.settings.defocus_px <= 0:
+            return e
+        k = EMIT_UPSAMPLE
+        w = _pixel_gauss_weights(self.settings.defocus_px, k)
+        tmp = np.empty((ph, pw * k), np.float32)
+        for m in range(k):
+            tmp[:, m::k] = cv2.filter2D(e, cv2.CV_32F, w[m][None, :], borderType=cv2.BORDER_CONSTANT)
+        out = np.empty((ph * k, pw * k), np.float32)
+        for m in range(k):
+            out[m::k, :] = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], borderType=cv2.BORDER_CONSTANT)
+        return out
+
+    def render(self, frame: np.ndarray, *, seed: int | None = None) -> np.ndarray:
+        """The camera image under a projector frame.
+
+        Args:
+            frame: (H_p, W_p) uint8 projector frame.
+            seed: noise seed; None derives one from ``settings.seed`` and a call
+                counter, so successive calls get fresh noise in a repeatable order.
+
+        Returns:
+            (H, W) uint8 (8-bit) or uint16 (16-bit) image.
+        """
+        import warp as wp
+
+        from ringscan.kernels import raytrace
+
+        if seed is None:
+            seed = _mix_seed(self.settings.seed, self._calls, 0x5EED)
+            self._calls += 1
+        elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+        geo = self.geometry()
+        e = wp.array(self.emitted(frame), dtype=float, device=self.device)
+        s = self.settings
+        gamma = float(self.rig.camera.gamma)
+        full_irr = (1.0 + s.ambient) / s.exposure ** gamma
+        k = self.emitted_upsample
+        out = raytrace.shade_frame(geo, e, full_irradiance=full_irr, upsample=k,
+                                   interpolation="linear" if k > 1 else "nearest",
+                                   gamma=gamma, full_scale=s.full_scale,
+                                   noise_sigma=s.noise * s.full_scale / 255.0, seed=int(seed))
+        img = out.numpy()
+        return img.astype(np.uint8) if s.bit_depth == 8 else img
+
+    def truth(self) -> dict:
+        """Ground truth of the current view.
+
+        Returns:
+            ``depth`` (H, W) float32 camera Z_c (mm, NaN = no hit), ``lit`` (H, W) bool,
+            ``points`` (H, W, 3) float32 world points (NaN = no hit), ``normals``
+            (H, W, 3) float32 facet normals facing the camera (NaN = no hit).
+        """
+        geo = self.geometry()
+        return {"depth": geo.depth.numpy(), "lit": geo.lit.numpy().astype(bool),
+                "points": geo.points.numpy(), "normals": geo.normals.numpy()}
+
+
+# ----------------------------------------------------------------------------- truth on disk
+
+
+# ----------------------------------------------------------------------------- scans
+
+

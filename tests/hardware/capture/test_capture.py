@@ -1,0 +1,340 @@
+"""The capture sequence: complete scans, retries, faults, partial scans and resume."""
+
+import dataclasses
+import json
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from ringscan.hardware.capture.sequence import (
+    CaptureSettings,
+    capture_scan,
+    plan_angles,
+    read_capture_state,
+    resume_angle,
+)
+from ringscan.hardware.devices.projector import SerialProjector, VirtualProjector
+from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
+from ringscan.hardware.emulators.rig import EmulatedRig
+from ringscan.hardware.errors import CaptureError
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import frame_names
+from ringscan.pipeline.formats.scan import load_scan
+
+from .conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
+
+FAST = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0, retries=2, retry_delay_s=0.0,
+                       command_timeout_s=0.3)
+SEED = 11
+
+
+def _files(folder):
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def _listed(scan):
+    return sorted([rel for v in scan.views for rel in v.frames.values()] + ["capture.json", "scan.json"])
+
+
+def _virtual(patterns, views=3, **kw):
+    proj = VirtualProjector(pattern_frames(patterns))
+    table = VirtualTurntable()
+    return proj, table, ProbeCamera(proj, table)
+
+
+class _Emulated:
+    """An emulated rig (real renderer) plus the real serial drivers connected to it."""
+
+    def __init__(self, rig, patterns, virtual_rig, start_deg=0.0, **kw):
+        self.emu = EmulatedRig(rig, patterns, virtual_rig=virtual_rig, time_scale=1000.0, seed=SEED,
+                               start_deg=start_deg, **kw)
+        self.names = frame_names(patterns)
+        self.connect(start_deg)
+
+    def connect(self, position_deg):
+        self.turntable = GrblTurntable(self.emu.turntable_port, timeout_s=0.3, poll_s=0.005, boot_timeout_s=0.5,
+                                       position_deg=position_deg)
+        self.projector = SerialProjector(self.emu.projector_port, timeout_s=0.3, expect_names=self.names)
+
+    def devices(self):
+        return dict(camera=self.emu.camera, projector=self.projector, turntable=self.turntable)
+
+    def close(self):
+        self.turntable.close()
+        self.projector.close()
+        self.emu.close()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, rig, patterns, virtual_rig):
+    """An uninterrupted emulated capture: 3 views x 6 frames."""
+    out = tmp_path_factory.mktemp("ref") / "scan"
+    e = _Emulated(rig, patterns, virtual_rig)
+    try:
+        scan = capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
+        sent = bytes(e.emu.turntable.received).replace(b"?", b"")
+        shown = list(e.emu.projector.lines)
+    finally:
+        e.close()
+    return scan, sent, shown
+
+
+def _same_images(a, b):
+    assert [v.name for v in a.views] == [v.name for v in b.views]
+    for va, vb in zip(a.views, b.views):
+        assert va.turntable_deg == vb.turntable_deg and sorted(va.frames) == sorted(vb.frames)
+        for n in va.frames:
+            np.testing.assert_array_equal(read_image(a.frame_path(va, n)), read_image(b.frame_path(vb, n)),
+                                          err_msg=f"{va.name}/{n}")
+
+
+# ----------------------------------------------------------------------------- complete captures
+
+
+def test_sequence_turns_shows_and_grabs_in_order(tmp_path, rig, patterns):
+    proj, table, cam = _virtual(patterns)
+    done = []
+    scan = capture_scan(tmp_path / "s", camera=cam, projector=proj, turntable=table, rig=rig, patterns=patterns,
+                        views=3, settings=FAST, progress=False, on_view=lambda s, v: done.append(v.name))
+    names = frame_names(patterns)
+    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0] and table.moves == [120.0, 240.0]
+    assert done == ["view_000", "view_001", "view_002"]
+    for v in scan.views:
+        assert list(v.frames) == names
+        for j, n in enumerate(names):
+            img = read_image(scan.frame_path(v, n))
+            assert img[0, 0] == j + 1 and img[0, 1] == round(v.turntable_deg / 5)  # frame j at the view's angle
+    assert proj.current_index == -1  # blanked at the end
+    assert _files(scan.folder) == _listed(scan)
+    state = read_capture_state(scan.folder)
+    assert state["status"] == "complete" and state["plan"]["angles"] == [0.0, 120.0, 240.0]
+    assert state["table"] == {"deg": 240.0, "moving_to": None}
+    assert CaptureSettings.from_dict(state["settings"]) == FAST
+    assert state["runs"][0]["frames"] == 18 and state["runs"][0]["result"] == "complete"
+
+
+def test_emulated_rig_capture_is_complete_and_rendered_in_state(reference, rig, patterns, virtual_rig):
+    scan, sent, shown = reference
+    scan = load_scan(scan.folder)  # complete: strict load passes
+    names = frame_names(patterns)
+    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    assert all(list(v.frames) == names for v in scan.views)
+    assert _files(scan.folder) == _listed(scan)
+    # the exact lines the drivers sent through the pty
+    assert sent == (b"\x18G90\nG92 X0.000\nG92 X0.000\n"
+                    b"G1 X120.000 F600\nG4 P0\nG1 X240.000 F600\nG4 P0\n")
+    assert shown[:2 + len(names)] == ["HELLO"] + [f"NAME {i}" for i in range(len(names))] + ["SHOW 0"]
+    assert shown.count("SHOW 3") == 3 and shown[-1] == "BLANK"
+    # each frame is what the virtual rig renders with that frame shown at that angle
+    cam = scan.views[1]
+    virtual_rig.set_turntable(120.0)
+    from ringscan.hardware.devices.virtual import VirtualCamera
+
+    probe = VirtualCamera(virtual_rig, None, None, seed=SEED)
+    for j in (0, 4):
+        want = virtual_rig.render(pattern_frames(patterns)[names[j]], seed=probe._state_seed(j, 120.0))
+        np.testing.assert_array_equal(read_image(scan.frame_path(cam, names[j])), want)
+
+
+# ----------------------------------------------------------------------------- faults and retries
+
+
+def test_projector_faults_are_retried(tmp_path, rig, patterns, caplog):
+    names = frame_names(patterns)
+    from ringscan.hardware.emulators.projector import EmulatedProjector
+
+    with EmulatedProjector(pattern_frames(patterns), link_path=tmp_path / "pj") as emu:
+        proj = SerialProjector(emu.port, timeout_s=0.3, expect_names=names)
+        table = VirtualTurntable()
+        emu.inject("error", on="SHOW 2")
+        emu.inject("silent", on="SHOW 4")
+        with caplog.at_level(logging.WARNING, logger="ringscan.hardware.capture"):
+            scan = capture_scan(tmp_path / "s", camera=ProbeCamera(emu, table), projector=proj, turntable=table,
+                                rig=rig, patterns=patterns, views=2, settings=FAST, progress=False)
+        proj.close()
+    assert "retry 1 of 2" in caplog.text and "display fault" in caplog.text
+    for v in scan.views:
+        for j, n in enumerate(names):
+            assert read_image(scan.frame_path(v, n))[0, 0] == j + 1
+
+
+def test_turntable_error_is_retried(tmp_path, rig, patterns, virtual_rig, reference):
+    e = _Emulated(rig, patterns, virtual_rig)
+    try:
+        e.emu.turntable.inject("error", on="G1", code=20)
+        scan = capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, settings=FAST, progress=False,
+                            **e.devices())
+        assert e.emu.turntable.resets == 2  # connect, then the recovery before the retry
+        assert e.emu.turntable.lines.count("G1 X120.000 F600") == 2
+    finally:
+        e.close()
+    _same_images(scan, reference[0])
+
+
+def test_persistent_fault_stops_with_a_valid_partial_scan_and_resume_completes_it(tmp_path, rig, patterns,
+                                                                                  virtual_rig, reference):
+    out = tmp_path / "s"
+    e = _Emulated(rig, patterns, virtual_rig)
+    try:
+        e.emu.projector.inject("error", on="SHOW", skip=8, times=100)  # 8 frames, then a dead display
+        with pytest.raises(CaptureError, match="after 2 retries.*display fault.*--resume") as ei:
+            capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
+        assert ei.value.cause is not None
+    finally:
+        e.close()
+    with pytest.raises(FormatError, match="missing frame"):
+        load_scan(out)  # incomplete, so a strict load refuses it ...
+    part = load_scan(out, allow_incomplete=True)  # ... but it is valid, and every listed frame is there
+    assert [len(v.frames) for v in part.views] == [6, 2]
+    assert _files(out) == _listed(part)  # nothing written half, nothing unlisted
+    state = read_capture_state(out)
+    assert state["status"] == "stopped" and "display fault" in state["error"]
+    assert state["table"] == {"deg": 120.0, "moving_to": None}
+    # leftovers of a killed writer: a temporary file and a frame written but not yet listed
+    (out / "view_001" / ".gray_1.x1y2.tmp.png").write_bytes(b"\x89PNG half")
+    (out / "view_001" / "gray_1.png").write_bytes(b"junk")
+
+    e = _Emulated(rig, patterns, virtual_rig, start_deg=resume_angle(out))  # the table stayed at 120
+    try:
+        scan = capture_scan(out, rig=rig, patterns=patterns, settings=FAST, resume=True, progress=False,
+                            **e.devices())
+    finally:
+        e.close()
+    assert _files(out) == _listed(scan)
+    state = read_capture_state(out)
+    assert state["status"] == "complete" and [r["frames"] for r in state["runs"]] == [8, 10]
+    _same_images(scan, reference[0])
+
+
+def test_turntable_lost_mid_move_needs_table_at_and_resumes_exactly(tmp_path, rig, patterns, virtual_rig,
+                                                                    reference):
+    out = tmp_path / "s"
+    e = _Emulated(rig, patterns, virtual_rig, folder=tmp_path / "emu")
+    try:
+        e.emu.turntable.inject("vanish", on="G1", skip=1, at_fraction=0.5)  # the move to 240
+        with pytest.raises(CaptureError, match="part way to 240 deg.*--resume --table-at"):
+            capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
+        assert e.emu.turntable.resets == 1  # never retried: the table's angle is unknown
+        state = read_capture_state(out)
+        assert state["table"] == {"deg": 120.0, "moving_to": 240.0} and state["status"] == "stopped"
+        assert [len(v.frames) for v in load_scan(out, allow_incomplete=True).views] == [6, 6]
+        with pytest.raises(CaptureError, match="angle is unknown.*--table-at"):
+            resume_angle(out)
+        with pytest.raises(CaptureError, match="--table-at"):
+            capture_scan(out, settings=FAST, resume=True, progress=False, **e.devices())
+        # the board finishes the move on its own; the user plugs it back and says so
+        deadline = time.monotonic() + 5.0
+        while e.emu.turntable.moving and time.monotonic() < deadline:
+            time.sleep(0.005)
+        e.emu.turntable.replug()
+        assert e.emu.turntable.angle_deg == 240.0
+        e.turntable.close()
+        e.projector.close()
+        e.connect(240.0)
+        scan = capture_scan(out, settings=FAST, resume=True, table_at=240.0, progress=False, **e.devices())
+    finally:
+        e.close()
+    _same_images(scan, reference[0])
+    assert read_capture_state(out)["table"] == {"deg": 240.0, "moving_to": None}
+
+
+def test_turntable_alarm_mid_move_stops_clearly(tmp_path, rig, patterns, virtual_rig):
+    e = _Emulated(rig, patterns, virtual_rig)
+    try:
+        e.emu.turntable.inject("alarm", on="G1", code=1)
+        with pytest.raises(CaptureError, match="ALARM:1 \\(hard limit triggered\\).*part way to 120"):
+            capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, settings=FAST, progress=False,
+                         **e.devices())
+    finally:
+        e.close()
+    part = load_scan(tmp_path / "s", allow_incomplete=True)
+    assert [len(v.frames) for v in part.views] == [6]
+
+
+def test_refused_move_keeps_the_angle_known(tmp_path, rig, patterns):
+    from ringscan.hardware.emulators.grbl import EmulatedTurntable
+
+    with EmulatedTurntable(time_scale=1000.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        table = GrblTurntable(emu.port, timeout_s=0.3, poll_s=0.005)
+        kw = dict(camera=ProbeCamera(proj, emu), projector=proj, turntable=table, settings=FAST, progress=False)
+        emu.inject("error", on="G1 X240", code=33, times=100)
+        with pytest.raises(CaptureError, match="stopped after 2 retries.*error:33 \\(invalid motion target\\)"):
+            capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, **kw)
+        assert emu.lines.count("G1 X240.000 F600") == 3 and emu.resets == 3
+        assert read_capture_state(tmp_path / "s")["table"] == {"deg": 120.0, "moving_to": None}
+        assert resume_angle(tmp_path / "s") == 120.0  # the table did not move: no --table-at needed
+        emu.faults.clear()
+        scan = capture_scan(tmp_path / "s", resume=True, **kw)
+        table.close()
+    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    assert all(read_image(scan.frame_path(v, "white"))[0, 1] == round(v.turntable_deg / 5) for v in scan.views)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_bad_input(tmp_path, rig, patterns):
+    proj, table, cam = _virtual(patterns)
+    kw = dict(camera=cam, projector=proj, turntable=table, settings=FAST, progress=False)
+    with pytest.raises(ValueError, match="needs the rig"):
+        capture_scan(tmp_path / "a", rig=rig, patterns=patterns, **kw)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "x.txt").write_text("x")
+    with pytest.raises(CaptureError, match="not an empty folder"):
+        capture_scan(tmp_path / "b", rig=rig, patterns=patterns, views=2, **kw)
+    with pytest.raises(CaptureError, match="nothing to resume"):
+        capture_scan(tmp_path / "c", resume=True, **kw)
+    other = small_patterns(bits=3)
+    with pytest.raises(ValueError, match="projector"):
+        capture_scan(tmp_path / "d", rig=rig, patterns=dataclasses.replace(patterns, width=800), views=2, **kw)
+    assert not (tmp_path / "d").exists()  # nothing written for bad input
+    with pytest.raises(CaptureError, match="holds 6 frames, the gray-rings codec needs 8"):
+        capture_scan(tmp_path / "e", rig=rig, patterns=other, views=2, **kw)
+
+    scan = capture_scan(tmp_path / "f", rig=rig, patterns=patterns, views=2, **kw)
+    with pytest.raises(CaptureError, match="already holds a scan"):
+        capture_scan(tmp_path / "f", rig=rig, patterns=patterns, views=2, **kw)
+    with pytest.raises(CaptureError, match="rig given differs"):
+        capture_scan(tmp_path / "f", rig=small_rig(160, 128), resume=True, **kw)
+    with pytest.raises(CaptureError, match="2 views at .* ask for"):
+        capture_scan(tmp_path / "f", views=4, resume=True, **kw)
+    assert capture_scan(tmp_path / "f", resume=True, **kw).views == scan.views  # complete: nothing to do
+
+    bad = dict(kw, camera=ProbeCamera(proj, table, width=64, height=48))
+    with pytest.raises(CaptureError, match="camera delivers 64x48 frames, the rig's camera is 320x256"):
+        capture_scan(tmp_path / "g", rig=rig, patterns=patterns, views=2, **bad)
+    assert bad["camera"].grabs == 1  # not retried
+
+    (tmp_path / "h").mkdir()
+    (tmp_path / "h" / "scan.json").write_text(json.dumps({"format": "ringscan.scan/1"}))
+    with pytest.raises(CaptureError, match="no capture.json"):
+        capture_scan(tmp_path / "h", resume=True, **kw)
+
+
+def test_settings_and_plan():
+    s = CaptureSettings(retries=5, image_format="tiff")
+    assert CaptureSettings.from_dict(s.to_dict()) == s
+    with pytest.raises(FormatError, match="unknown key.*settle"):
+        CaptureSettings.from_dict({"settle": 1})
+    with pytest.raises(FormatError, match="retries"):
+        CaptureSettings.from_dict({"retries": -1})
+    with pytest.raises(ValueError, match="image_format"):
+        CaptureSettings(image_format="jpg")
+    with pytest.raises(ValueError, match="turntable_settle_s"):
+        CaptureSettings(turntable_settle_s=float("nan"))
+    assert plan_angles(8) == [0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0]
+    assert plan_angles(7)[1] == 51.429 and plan_angles(3, 10.0, 5.0) == [5.0, 15.0, 25.0]
+    with pytest.raises(ValueError):
+        plan_angles(0)
+
+
+def test_tiff_frames(tmp_path, rig, patterns):
+    proj, table, cam = _virtual(patterns)
+    scan = capture_scan(tmp_path / "s", camera=cam, projector=proj, turntable=table, rig=rig, patterns=patterns,
+                        views=1, settings=dataclasses.replace(FAST, image_format="tiff"), progress=False)
+    assert all(p.endswith(".tiff") for p in scan.views[0].frames.values())
+    assert read_image(scan.frame_path(scan.views[0], "black"))[0, 0] == 2

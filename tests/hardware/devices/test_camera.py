@@ -1,0 +1,162 @@
+"""Cameras: the real OpenCV capture path (from image files), folder replay, the
+emulator's socket camera, and the virtual camera on the real virtual rig."""
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.hardware.devices.camera import CameraDevice, FolderCamera, OpenCVCamera, SocketCamera, open_camera
+from ringscan.hardware.devices.projector import VirtualProjector
+from ringscan.hardware.devices.turntable import VirtualTurntable
+from ringscan.hardware.devices.virtual import VirtualCamera
+from ringscan.hardware.emulators.rig import CameraServer
+from ringscan.hardware.errors import CameraError
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.scan import Scan, View, save_scan
+
+from .conftest import pattern_frames, small_patterns
+
+
+def _sequence(folder, n=4, colour=False):
+    rng = np.random.default_rng(1)
+    imgs = []
+    for i in range(n):
+        img = rng.integers(0, 256, (24, 32, 3) if colour else (24, 32), dtype=np.uint8)
+        cv2.imwrite(str(folder / f"f{i:03d}.png"), img)
+        imgs.append(img)
+    return imgs
+
+
+def test_opencv_image_sequence_in_order(tmp_path):
+    imgs = _sequence(tmp_path)
+    with OpenCVCamera(str(tmp_path / "f%03d.png")) as cam:
+        assert not cam.live and cam.flush_frames == 0
+        for img in imgs:
+            got = cam.grab()
+            assert got.dtype == np.uint8 and got.shape == (24, 32)
+            np.testing.assert_array_equal(got, img)
+        with pytest.raises(CameraError, match="no more frames") as ei:
+            cam.grab()
+        assert not ei.value.retryable
+
+
+def test_opencv_colour_frames_become_grey(tmp_path):
+    imgs = _sequence(tmp_path, n=2, colour=True)
+    with OpenCVCamera(tmp_path / "f%03d.png") as cam:
+        np.testing.assert_array_equal(cam.grab(), cv2.cvtColor(imgs[0], cv2.COLOR_BGR2GRAY))
+
+
+def test_opencv_flush_drops_buffered_frames(tmp_path):
+    imgs = _sequence(tmp_path, n=6)
+    with OpenCVCamera(str(tmp_path / "f%03d.png"), flush_frames=2) as cam:
+        np.testing.assert_array_equal(cam.grab(), imgs[2])   # 0, 1 flushed
+        np.testing.assert_array_equal(cam.grab(), imgs[5])   # 3, 4 flushed
+
+
+def test_opencv_errors(tmp_path):
+    _sequence(tmp_path, n=1)
+    with pytest.raises(CameraError, match="cannot open"):
+        OpenCVCamera(str(tmp_path / "missing_%03d.png"))
+    with OpenCVCamera(str(tmp_path / "f%03d.png")) as cam:
+        with pytest.raises(CameraError, match="no exposure control") as ei:
+            cam.set_exposure(100)
+        assert not ei.value.retryable
+    with pytest.raises(ValueError):
+        OpenCVCamera(str(tmp_path / "f%03d.png"), flush_frames=-1)
+
+
+def test_folder_camera_replays_a_scan_in_capture_order(tmp_path, rig, patterns):
+    frames = []
+    views = []
+    k = 0
+    for vi in range(2):
+        rel = {}
+        for n in ["white", "black", "gray_0", "gray_0_inv", "gray_1", "gray_1_inv"]:
+            img = np.full((rig.camera.height, rig.camera.width), k, np.uint8)
+            rel[n] = f"view_{vi:03d}/{n}.png"
+            write_image(tmp_path / rel[n], img)
+            frames.append(k)
+            k += 1
+        views.append(View(name=f"view_{vi:03d}", turntable_deg=90.0 * vi, frames=rel))
+    save_scan(Scan(folder=tmp_path, rig=rig, patterns=patterns, views=tuple(views)))
+    cam = open_camera(str(tmp_path))
+    assert isinstance(cam, FolderCamera)
+    got = [int(cam.grab()[0, 0]) for _ in frames]
+    assert got == frames
+    with pytest.raises(CameraError, match="all 12 recorded frames replayed"):
+        cam.grab()
+
+
+def test_folder_camera_plain_folder_and_empty(tmp_path):
+    imgs = _sequence(tmp_path, n=3)
+    cam = FolderCamera(tmp_path)
+    for img in imgs:
+        np.testing.assert_array_equal(cam.grab(), img)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CameraError, match="no frames"):
+        FolderCamera(tmp_path / "empty")
+
+
+class _Fixed(CameraDevice):
+    def __init__(self, imgs):
+        self.imgs = list(imgs)
+
+    def _read(self):
+        if not self.imgs:
+            raise CameraError("empty", retryable=False)
+        return self.imgs.pop(0)
+
+
+def test_socket_camera_round_trip(tmp_path):
+    a = np.arange(20 * 30, dtype=np.uint16).reshape(20, 30) * 50
+    b = np.random.default_rng(0).integers(0, 255, (20, 30), dtype=np.uint8)
+    server = CameraServer(_Fixed([a, b]), tmp_path / "cam.sock")
+    try:
+        cam = open_camera(server.spec)
+        assert isinstance(cam, SocketCamera)
+        np.testing.assert_array_equal(cam.grab(), a)
+        got = cam.grab()
+        assert got.dtype == np.uint8
+        np.testing.assert_array_equal(got, b)
+        with pytest.raises(CameraError, match="empty"):
+            cam.grab()
+        cam.close()
+    finally:
+        server.close()
+    with pytest.raises(CameraError, match="ringscan emulate"):
+        SocketCamera(tmp_path / "cam.sock")
+
+
+def test_virtual_camera_follows_projector_and_turntable(virtual_rig, rig):
+    spec = small_patterns()
+    proj = VirtualProjector(pattern_frames(spec))
+    table = VirtualTurntable()
+    cam = VirtualCamera(virtual_rig, proj, table, seed=5)
+    proj.show(0)  # white
+    white = cam.grab()
+    assert white.shape == (rig.camera.height, rig.camera.width) and white.dtype == np.uint8
+    np.testing.assert_array_equal(cam.grab(), white)  # same state, same seed: same image
+    proj.show(1)  # black
+    black = cam.grab()
+    assert white.astype(float).mean() > black.astype(float).mean() + 20
+    proj.show(0)
+    table.move_to(90.0)
+    turned = cam.grab()
+    assert np.mean(np.abs(turned.astype(int) - white.astype(int)) > 12) > 0.02  # the terrain turned (noise: < 1e-4)
+    # it is what the rig renders in that state, with the state's seed
+    virtual_rig.set_turntable(90.0)
+    np.testing.assert_array_equal(turned, virtual_rig.render(proj.current_frame(), seed=cam._state_seed(0, 90.0)))
+    unseeded = VirtualCamera(virtual_rig, proj, table)
+    assert not np.array_equal(unseeded.grab(), unseeded.grab())  # fresh noise
+
+
+def test_drivers_import_no_kernels():
+    code = ("import sys, ringscan.hardware, ringscan.hardware.emulate, ringscan.tools.cmd_capture;"
+            "bad = [m for m in sys.modules if m == 'warp' or m.startswith(('warp.', 'ringscan.kernels', "
+            "'ringscan.pipeline.simulate'))];"
+            "print(bad); sys.exit(1 if bad else 0)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr

@@ -1,0 +1,200 @@
+"""scan.json, rig files and pattern parameters: valid input loads, every kind of
+bad input is a FormatError that names the file and the field."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.patterns import frame_names, gray_decode, gray_encode, parse_patterns
+from ringscan.pipeline.formats.ply import read_ply, write_ply
+from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict, save_rig, turntable_transform
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, read_view_frames, save_scan
+
+GRAY = {"codec": "gray-rings", "width": 64, "height": 48, "center": [31.5, 23.5], "rho0": 2.0, "pitch": 2.0,
+        "bits": 4, "sector_bits": 2}
+
+
+def _rig_dict():
+    return rig_to_dict(default_rig())
+
+
+def test_rig_round_trip(tmp_path):
+    rig = default_rig()
+    save_rig(tmp_path / "rig.json", rig)
+    back = load_rig(tmp_path / "rig.json")
+    assert np.allclose(back.camera.K, rig.camera.K) and np.allclose(back.camera.R, rig.camera.R)
+    assert back.camera.gamma == 2.2 and back.light.pixel_pitch_mm == 0.15
+    # The default camera: 420 mm from (0, 0, 25), 35 degrees off the light axis on the -y side.
+    c = back.camera.center - np.array([0, 0, 25.0])
+    assert math.isclose(np.linalg.norm(c), 420.0, rel_tol=1e-9)
+    assert math.isclose(math.degrees(math.acos(c[2] / 420.0)), 35.0, rel_tol=1e-9) and c[1] < 0 and abs(c[0]) < 1e-9
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda d: d.update(format="ringscan.rig/9"), "unknown rig format"),
+    (lambda d: d["camera"].update(K=[[0, 0, 1], [0, 1, 1], [0, 0, 1]]), "camera.K: singular"),
+    (lambda d: d["camera"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "camera.R: not a rotation"),
+    (lambda d: d["camera"].update(t=[0, float("nan"), 1]), "camera.t: contains non-finite"),
+    (lambda d: d["light"].update(model="laser"), "light.model"),
+    (lambda d: d["light"].update(pixel_pitch_mm=-1), "pixel_pitch_mm: must be > 0"),
+    (lambda d: d["volume"].update(z_max=-10), "z_max must be greater"),
+    (lambda d: d["camera"].update(width=0), "camera.width"),
+    (lambda d: d.pop("camera"), "camera: missing"),
+])
+def test_bad_rig(tmp_path, edit, match):
+    d = _rig_dict()
+    edit(d)
+    p = tmp_path / "rig.json"
+    p.write_text(json.dumps(d, allow_nan=True))
+    with pytest.raises(FormatError, match=match) as e:
+        load_rig(p)
+    assert str(p) in str(e.value)
+
+
+def test_rig_not_json(tmp_path):
+    p = tmp_path / "rig.json"
+    p.write_text("{not json")
+    with pytest.raises(FormatError, match="not valid JSON"):
+        load_rig(p)
+    with pytest.raises(FormatError, match="file not found"):
+        load_rig(tmp_path / "missing.json")
+
+
+def test_turntable_transform_turns_right_handed():
+    rig = default_rig()
+    T = turntable_transform(rig.turntable, 90.0)
+    assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0])  # +x -> +y about +z
+    assert np.allclose(turntable_transform(rig.turntable, 0.0), np.eye(4))
+
+
+def test_patterns_and_gray_code():
+    k = np.arange(1024)
+    assert np.array_equal(gray_decode(gray_encode(k), 10), k)
+    assert np.all(np.bitwise_count(gray_encode(k[1:]) ^ gray_encode(k[:-1])) == 1)
+    spec = parse_patterns(GRAY)
+    names = frame_names(spec)
+    assert names[:2] == ["white", "black"] and len(names) == 2 + 2 * 4 + 2 * 2
+    f, inv = render_frame(spec, "gray_3"), render_frame(spec, "gray_3_inv")
+    # frame + inverse = the coded annulus (one where lit, zero outside)
+    s = f.astype(int) + inv
+    v, u = np.mgrid[0:48, 0:64]
+    rho = np.hypot(u - 31.5, v - 23.5)
+    assert np.all(s[(rho > 3) & (rho < 33)] == 255) and np.all(s[rho < 1.4] == 0)
+    p = parse_patterns(dict(codec="phase-rings", **{k: v for k, v in GRAY.items() if k != "codec"}))
+    assert frame_names(p)[-4:] == ["phase_0", "phase_1", "phase_2", "phase_3"]
+
+
+@pytest.mark.parametrize("edit,match", [
+    ({"codec": "stripes"}, "unknown codec"),
+    ({"center": [100, 5]}, "outside the 64x48 projector"),
+    ({"pitch": 0}, "pitch: must be > 0"),
+    ({"pitch": 0.5}, "below one projector pixel"),
+    ({"bits": 40}, "bits: must be in"),
+    ({"rho0": 500}, "outside the projector"),
+    ({"rho0": -1}, "rho0: must be >= 0"),
+])
+def test_bad_patterns(edit, match):
+    d = dict(GRAY)
+    d.update(edit)
+    with pytest.raises(FormatError, match=match):
+        parse_patterns(d, source="scan.json")
+
+
+def test_rings_that_do_not_fit():
+    with pytest.raises(FormatError, match="only .* rings fit"):
+        parse_patterns({"codec": "rings", "width": 64, "height": 48, "center": [31.5, 23.5], "rho0": 4,
+                        "pitch": 6, "count": 30, "line_width": 2})
+
+
+def _write_scan(tmp_path, *, size=(64, 48), dtype=np.uint8):
+    rig = default_rig()
+    d = rig_to_dict(rig)
+    d["camera"].update(width=size[0], height=size[1])
+    from ringscan.pipeline.formats.rig import parse_rig as pr
+
+    rig = pr(d)
+    spec = parse_patterns({**GRAY, "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8, "pitch": 4})
+    frames = {}
+    for n in frame_names(spec):
+        write_image(tmp_path / "view_000" / f"{n}.png", np.full(size[::-1], 7, dtype))
+        frames[n] = f"view_000/{n}.png"
+    scan = Scan(folder=tmp_path, rig=rig, patterns=spec, views=(View("view_000", 0.0, frames),))
+    save_scan(scan)
+    return scan
+
+
+def test_scan_round_trip(tmp_path):
+    _write_scan(tmp_path)
+    scan = load_scan(tmp_path)
+    st = read_view_frames(scan, scan.views[0])
+    assert st.shape == (2 + 8 + 4, 48, 64) and st.dtype == np.uint8 and np.all(st == 7)
+
+
+def _edit_scan(tmp_path, fn):
+    p = tmp_path / "scan.json"
+    d = json.loads(p.read_text())
+    fn(d)
+    p.write_text(json.dumps(d))
+
+
+@pytest.mark.parametrize("fn,match", [
+    (lambda d: d.update(format="ringscan.scan/2"), "unknown scan format"),
+    (lambda d: d["views"][0]["frames"].update(white="../../etc/passwd"), "leaves the scan folder"),
+    (lambda d: d["views"][0]["frames"].update(white="/abs/white.png"), "leaves the scan folder"),
+    (lambda d: d["views"][0]["frames"].pop("gray_2"), "missing frame\\(s\\) gray_2"),
+    (lambda d: d["views"][0]["frames"].update(black="view_000/nothere.png"), "not found"),
+    (lambda d: d["views"][0].update(turntable_deg="ten"), "turntable_deg"),
+    (lambda d: d.update(rig="missing_rig.json"), "file not found"),
+    (lambda d: d["patterns"].update(width=800), "does not match the rig's 1024x768"),
+])
+def test_bad_scan(tmp_path, fn, match):
+    _write_scan(tmp_path)
+    _edit_scan(tmp_path, fn)
+    with pytest.raises(FormatError, match=match):
+        load_scan(tmp_path)
+
+
+def test_bad_frames(tmp_path):
+    scan = _write_scan(tmp_path)
+    # a frame of another size
+    write_image(tmp_path / "view_000" / "gray_1.png", np.zeros((10, 10), np.uint8))
+    with pytest.raises(FormatError, match="gray_1.png: frame is 10x10, but the camera is 64x48"):
+        read_view_frames(load_scan(tmp_path), scan.views[0])
+    # a corrupt file
+    (tmp_path / "view_000" / "gray_1.png").write_bytes(b"\x89PNG garbage")
+    with pytest.raises(FormatError, match="gray_1.png: not a readable image"):
+        read_view_frames(load_scan(tmp_path), scan.views[0])
+    # a 16-bit frame among 8-bit ones
+    write_image(tmp_path / "view_000" / "gray_1.png", np.zeros((48, 64), np.uint16))
+    with pytest.raises(FormatError, match="uint16, other frames"):
+        read_view_frames(load_scan(tmp_path), scan.views[0])
+
+
+def test_colour_and_16bit_frames_read_as_grey(tmp_path):
+    write_image(tmp_path / "c.png", np.dstack([np.full((4, 5), 10, np.uint8)] * 3))
+    from ringscan.pipeline.formats.images import read_image
+
+    g = read_image(tmp_path / "c.png")
+    assert g.shape == (4, 5) and g.dtype == np.uint8 and np.all(g == 10)
+    write_image(tmp_path / "d.tiff", np.full((4, 5), 4000, np.uint16))
+    assert read_image(tmp_path / "d.tiff").dtype == np.uint16
+
+
+def test_ply_round_trip_and_truncation(tmp_path):
+    xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    write_ply(tmp_path / "a.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "ring": np.arange(100, dtype=np.int32)})
+    d = read_ply(tmp_path / "a.ply")
+    assert np.array_equal(d["x"], xyz[:, 0]) and np.array_equal(d["ring"], np.arange(100))
+    import open3d as o3d
+
+    assert len(o3d.io.read_point_cloud(str(tmp_path / "a.ply")).points) == 100
+    raw = (tmp_path / "a.ply").read_bytes()
+    (tmp_path / "b.ply").write_bytes(raw[:-50])
+    with pytest.raises(FormatError, match="truncated"):
+        read_ply(tmp_path / "b.ply")
+    assert not list(tmp_path.glob(".*tmp*"))  # no temporary files left behind

@@ -1,0 +1,174 @@
+"""Meshing (pipeline/mesh.py): Poisson, TSDF, watertight, export, measurement."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.meshes import read_mesh, write_mesh
+from ringscan.pipeline.fusion.mesh import (
+    MeshSettings,
+    compare_to_truth,
+    mesh_cloud,
+    mesh_fused,
+    orient_normals,
+    poisson_mesh,
+)
+from ringscan.pipeline.fusion.tsdf import tsdf_mesh
+from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh
+
+from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return synthetic_scan()
+
+
+@pytest.fixture(scope="module")
+def fused(scan):
+    obj, rig, angles, views = scan
+    return fuse_views(list(views), rig, settings=FuseSettings(voxel_mm=0.5))
+
+
+@pytest.fixture(scope="module")
+def visible(scan):
+    obj, rig, angles, views = scan
+    return visible_truth(obj, rig, angles, n=4000)
+
+
+def _mesh_to_truth(mesh, obj) -> np.ndarray:
+    o3d.utility.random.seed(0)
+    return point_to_mesh(np.asarray(mesh.sample_points_uniformly(20000).points), obj)
+
+
+def test_poisson_mesh_lies_on_the_truth(scan, fused, visible):
+    obj = scan[0]
+    res = poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=7))
+    assert res.method == "poisson" and res.watertight is None
+    assert _mesh_to_truth(res.mesh, obj).mean() < 0.03
+    # What the views saw is meshed; what they did not see (the base) is trimmed away.
+    assert np.mean(point_to_mesh(visible, res.mesh) < 0.5) > 0.85
+    assert res.info["trimmed_total"] > 0
+    assert res.mesh.has_triangle_normals() and not res.mesh.has_vertex_colors()
+    # Normals point outward: a step along them leaves the object.
+    v = np.asarray(res.mesh.vertices)
+    n = np.asarray(res.mesh.vertex_normals)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj))
+    sd = scene.compute_signed_distance(o3d.core.Tensor((v + 0.5 * n).astype(np.float32))).numpy()
+    assert np.mean(sd > 0.2) > 0.95
+
+
+def test_tsdf_from_views_and_from_a_bare_cloud(scan, fused, visible):
+    obj = scan[0]
+    s = MeshSettings(method="tsdf", tsdf_voxel_mm=0.6)
+    res = mesh_fused(fused, settings=s)
+    assert res.method == "tsdf" and res.info["depth_maps"] == 8
+    assert _mesh_to_truth(res.mesh, obj).mean() < 0.2
+    assert np.mean(point_to_mesh(visible, res.mesh) < 0.5) > 0.85
+    bare = tsdf_mesh(fused.cloud, settings=s)
+    assert bare.info["depth_maps"] >= 8
+    assert _mesh_to_truth(bare.mesh, obj).mean() < 0.2
+
+
+@pytest.mark.parametrize("method", ["poisson", "tsdf"])
+def test_watertight_when_asked(fused, scan, method):
+    res = mesh_fused(fused, settings=MeshSettings(method=method, watertight=True, poisson_depth=6,
+                                                  tsdf_voxel_mm=0.8))
+    assert res.watertight is True
+    assert res.mesh.is_watertight()
+    assert res.info["closed"] and res.info["vertex_manifold"]
+    # Closed over the unseen base too, and still close to the truth on the seen part.
+    assert np.median(_mesh_to_truth(res.mesh, scan[0])) < 0.2
+
+
+@pytest.mark.parametrize("ext", [".ply", ".obj", ".stl"])
+def test_export_and_read_back(tmp_path, ext):
+    mesh = o3d.geometry.TriangleMesh.create_sphere(10.0, resolution=12)
+    path = tmp_path / f"m{ext}"
+    write_mesh(path, mesh)
+    back = o3d.io.read_triangle_mesh(str(path))
+    assert len(back.triangles) == len(mesh.triangles)
+    back.merge_close_vertices(1e-6)
+    assert np.abs(np.linalg.norm(np.asarray(back.vertices), axis=1) - 10.0).max() < 1e-4
+    assert len(read_mesh(path).triangles) == len(mesh.triangles)
+    assert not list(tmp_path.glob(".*tmp*"))  # no temporary file left behind
+
+
+def test_file_errors(tmp_path):
+    mesh = o3d.geometry.TriangleMesh.create_box()
+    with pytest.raises(ValueError, match="unsupported extension"):
+        write_mesh(tmp_path / "m.xyz", mesh)
+    with pytest.raises(ValueError, match="no triangles"):
+        write_mesh(tmp_path / "m.ply", o3d.geometry.TriangleMesh())
+    with pytest.raises(FormatError, match="file not found"):
+        read_mesh(tmp_path / "missing.stl")
+    (tmp_path / "junk.ply").write_text("not a mesh")
+    with pytest.raises(FormatError, match="no triangles"):
+        read_mesh(tmp_path / "junk.ply")
+
+
+def test_bad_clouds_and_settings(fused):
+    bare = o3d.geometry.PointCloud(fused.cloud.points)
+    with pytest.raises(ValueError, match="no normals"):
+        poisson_mesh(bare)
+    with pytest.raises(ValueError, match="too few"):
+        poisson_mesh(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.zeros((3, 3)))))
+    with pytest.raises(ValueError, match="method"):
+        mesh_cloud(fused.cloud, settings=MeshSettings(method="marching"))
+    with pytest.raises(ValueError, match="density_quantile"):
+        poisson_mesh(fused.cloud, settings=MeshSettings(density_quantile=1.5))
+    with pytest.raises(ValueError, match="PointCloud"):
+        poisson_mesh(np.zeros((100, 3)))
+
+
+def test_orient_normals_outward():
+    sphere = o3d.geometry.TriangleMesh.create_sphere(15.0, resolution=30)
+    pc = sphere.sample_points_uniformly(4000)
+    orient_normals(pc)
+    p = np.asarray(pc.points)
+    n = np.asarray(pc.normals)
+    assert np.mean(np.einsum("ij,ij->i", n, p) / np.linalg.norm(p, axis=1) > 0.9) > 0.98
+
+
+def test_compare_to_truth_measures_known_offsets():
+    sphere = o3d.geometry.TriangleMesh.create_sphere(20.0, resolution=60)
+    same = compare_to_truth(sphere, sphere, samples=20000)
+    assert same["chamfer"] < 1e-3 and same["truth_within"] == 1.0
+    bigger = o3d.geometry.TriangleMesh(sphere).scale(1.01, center=(0, 0, 0))  # 0.2 mm out all round
+    f = compare_to_truth(bigger, sphere, samples=20000)
+    assert f["mesh_to_truth_mean"] == pytest.approx(0.2, abs=0.02)
+    assert f["truth_to_mesh_mean"] == pytest.approx(0.2, abs=0.02)
+    assert f["truth_within"] == 1.0
+    assert compare_to_truth(bigger, sphere, samples=20000, within_mm=0.1)["truth_within"] < 0.1
+
+
+def test_fuse_and_mesh_writes_everything(scan, tmp_path):
+    obj, rig, angles, views = scan
+    recon = tmp_path / "recon"
+    recon.mkdir()
+    write_recon(recon, views, rig)
+    truth = tmp_path / "truth.ply"
+    write_mesh(truth, obj)
+    out = tmp_path / "out"
+    rep = fuse_and_mesh(recon, out, fuse_settings=FuseSettings(voxel_mm=0.5),
+                        mesh_settings=MeshSettings(poisson_depth=7), formats=("ply", "obj", ".STL"),
+                        preview=False, truth=truth)
+    for name in ("fused.ply", "mesh.ply", "mesh.obj", "mesh.stl", "fuse_report.json"):
+        assert (out / name).is_file(), name
+    disk = json.loads((out / "fuse_report.json").read_text())
+    assert disk["format"] == "ringscan.fuse/1"
+    assert [v["name"] for v in disk["fusion"]["views"]] == [v.name for v in views]
+    assert disk["settings"]["fuse"]["voxel_mm"] == 0.5 and disk["settings"]["mesh"]["poisson_depth"] == 7
+    assert disk["truth"]["mesh_to_truth_mean"] < 0.03
+    assert rep["mesh"]["triangles"] == len(o3d.io.read_triangle_mesh(str(out / "mesh.ply")).triangles)
+    cloud = o3d.io.read_point_cloud(str(out / "fused.ply"))
+    assert len(cloud.points) == disk["fusion"]["points"] and cloud.has_normals()
+    with pytest.raises(ValueError, match="unsupported extension"):
+        fuse_and_mesh(recon, out, formats=("gltf",), preview=False)

@@ -1,0 +1,120 @@
+"""Scenes: placement on the plane, sizes, closed outward meshes, loaded models, bad input."""
+
+import math
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.simulate.scenes import SCENES, corner_normals, icosphere, load_mesh_file, make_scene
+
+
+def _closed_outward(s):
+    """(closed and consistently oriented, signed volume): every directed edge once, its reverse once."""
+    f = s.faces.astype(np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = s.vertices.shape[0]
+    fwd = np.sort(e[:, 0] * n + e[:, 1])
+    rev = np.sort(e[:, 1] * n + e[:, 0])
+    closed = bool(np.all(np.diff(fwd) > 0) and np.array_equal(fwd, rev))
+    v = s.vertices
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6
+    return closed, vol
+
+
+@pytest.mark.parametrize("name", ["sphere", "cube", "terrain"])
+def test_procedural_scenes_stand_on_the_plane(name):
+    s = make_scene(name, size_mm=60.0)
+    lo, hi = s.vertices.min(0), s.vertices.max(0)
+    assert lo[2] == 0.0
+    assert np.allclose(0.5 * (lo[:2] + hi[:2]), 0.0, atol=1e-9)         # centred on the light axis
+    assert s.faces.dtype == np.int32 and s.vertices.dtype == np.float64
+    watertight, vol = _closed_outward(s)
+    assert watertight and vol > 0                                      # closed, normals outward
+
+
+def test_sphere_is_a_sphere_resting_on_the_origin():
+    s = make_scene("sphere")                                           # default 80 mm: radius 40
+    r = np.linalg.norm(s.vertices - [0, 0, 40.0], axis=1)
+    assert np.allclose(r, 40.0, atol=1e-9)
+    assert s.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-9)
+    _, vol = _closed_outward(s)
+    assert vol == pytest.approx(4 / 3 * math.pi * 40.0 ** 3, rel=1e-3)
+
+
+def test_cube_is_turned_and_sized():
+    s = make_scene("cube", size_mm=50.0)
+    _, vol = _closed_outward(s)
+    assert vol == pytest.approx(50.0 ** 3)
+    assert s.vertices[:, 2].max() == pytest.approx(50.0)
+    v = s.vertices
+    n = np.cross(v[s.faces[:, 1]] - v[s.faces[:, 0]], v[s.faces[:, 2]] - v[s.faces[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    side = np.abs(n[:, 2]) < 1e-9
+    assert side.sum() == 8
+    ang = np.degrees(np.arctan2(n[side, 1], n[side, 0])) % 90.0
+    assert np.allclose(ang, 30.0)                                      # no side face axis-aligned
+
+
+def test_terrain_heights_and_border():
+    s = make_scene("terrain")
+    v = s.vertices
+    assert v[:, 2].max() == pytest.approx(25.0)
+    assert np.ptp(v[:, 0]) == pytest.approx(80.0) and np.ptp(v[:, 1]) == pytest.approx(80.0)
+    border = (np.abs(np.abs(v[:, 0]) - 40.0) < 1e-9) | (np.abs(np.abs(v[:, 1]) - 40.0) < 1e-9)
+    assert border.sum() > 100 and np.all(v[border, 2] == 0.0)         # meets the plane all round
+    assert (v[:, 2] > 5.0).mean() > 0.2                                # and is not flat
+
+
+def test_plane_scene_is_empty():
+    s = make_scene("plane")
+    assert s.is_empty and s.vertices.shape == (0, 3) and s.faces.shape == (0, 3)
+    assert corner_normals(s.vertices, s.faces).shape == (0, 3, 3)
+
+
+def test_corner_normals_sharp_and_smooth():
+    c = make_scene("cube")
+    cn = corner_normals(c.vertices, c.faces)
+    v = c.vertices
+    fn = np.cross(v[c.faces[:, 1]] - v[c.faces[:, 0]], v[c.faces[:, 2]] - v[c.faces[:, 0]])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    assert np.allclose(cn, fn[:, None, :], atol=1e-12)                # 90 deg edges stay sharp
+    vv, ff = icosphere(4)
+    cs = corner_normals(vv, ff)
+    assert np.abs(cs - vv[ff]).max() < 6e-3                           # smooth: close to radial
+
+
+def test_loaded_model_merges_seams_and_stands_up(model_path):
+    p = model_path("odedstein_spot.obj")
+    s = make_scene(p, size_mm=70.0)
+    raw = o3d.io.read_triangle_mesh(str(p))                            # split at texture seams
+    assert s.vertices.shape[0] < 0.2 * len(raw.vertices)              # duplicates merged
+    watertight, vol = _closed_outward(s)
+    assert watertight and vol > 0
+    ext = np.ptp(s.vertices, axis=0)
+    assert ext.max() == pytest.approx(70.0)
+    assert s.vertices[:, 2].min() == 0.0
+    # Y-up model turned to Z-up: the model's y extent is now the height.
+    rv = np.asarray(raw.vertices)
+    k = 70.0 / np.ptp(rv, axis=0).max()
+    assert ext[2] == pytest.approx(np.ptp(rv[:, 1]) * k)
+    assert ext[1] == pytest.approx(np.ptp(rv[:, 2]) * k)
+    z_up = load_mesh_file(p, size_mm=70.0, up="z")
+    assert np.ptp(z_up.vertices[:, 2]) == pytest.approx(np.ptp(rv[:, 2]) * k)
+
+
+def test_bad_scenes(tmp_path):
+    with pytest.raises(ValueError, match="'spere'.*unknown.*sphere"):
+        make_scene("spere")
+    with pytest.raises(FormatError, match="not found"):
+        make_scene(tmp_path / "missing.obj")
+    bad = tmp_path / "bad.obj"
+    bad.write_text("this is not a mesh\n")
+    with pytest.raises(FormatError, match="bad.obj.*no triangles"):
+        make_scene(bad)
+    with pytest.raises(ValueError, match="size_mm"):
+        make_scene("sphere", size_mm=0)
+    with pytest.raises(ValueError, match="up"):
+        load_mesh_file(bad, up="x")
+    assert set(SCENES) == {"plane", "sphere", "cube", "terrain"}

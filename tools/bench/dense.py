@@ -1,0 +1,176 @@
+"""TODO docstring (ringscan.tools.bench.dense, split from ringscan.pipeline.codecs.phase_rings)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.phase import (
+    PhaseSettings,
+    compact_phase_points,
+    decode_phase,
+    response_tables,
+    smooth_phase,
+)
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
+from ringscan.tools.bench.numpy_twins import phase_numpy, points_numpy, smooth_numpy
+
+log = logging.getLogger(__name__)
+
+
+def _best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+DEFAULT_BENCH_PATTERNS = {"codec": "phase-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+                          "rho0": 8.0, "pitch": 8.0, "bits": 6, "sector_bits": 6, "steps": 4}
+
+
+def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None = None, repeats: int = 3,
+                devices=None, out=print) -> dict:
+    """Time the dense stages of one phase-rings view against their NumPy twins.
+
+    Stages: ``decode`` (band + sector Gray codes), ``phase`` (linearise, weighted
+    phase, unwrap), ``smooth`` (smoothing, sector fill, compaction into points),
+    ``triangulate``. The NumPy side runs ``tools.numpy_reference`` decode and
+    triangulation and the twins in this module, on the same frames, in the same
+    run; ratios are NumPy time / Warp time. Prints a table with ``out`` and
+    returns the figures.
+
+    Args:
+        scan_dir: a phase-rings scan folder (default: simulate Spot, or the
+            sphere when ../shared/data is absent, with the default rig).
+        scene: scene of the default scan.
+        repeats: best of this many runs per stage.
+        devices: Warp devices (default: cpu, and cuda:0 when present).
+        out: print function.
+    """
+    from ringscan.kernels import init_warp
+    from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
+    from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+    from ringscan.pipeline.geometry import camera_model_for, light_model_for
+    from ringscan.pipeline.simulate.scan import simulate_scan
+    from ringscan.tools.bench.numpy_twins import decode_numpy, triangulate_numpy
+
+    init_warp()
+    tmp = None
+    if scan_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="ringscan-dense-bench-")
+        if scene is None:
+            shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "models" / "odedstein_spot.obj"
+            scene = str(shared) if shared.is_file() else "sphere"
+        out(f"simulating a phase-rings view of {Path(scene).stem} (default rig, pitch 8, 4 steps, 6 sector bits) ...")
+        scan = simulate_scan(Path(tmp.name) / "scan", scene=scene, patterns=parse_patterns(DEFAULT_BENCH_PATTERNS),
+                             progress=False)
+    else:
+        scan = load_scan(scan_dir)
+    try:
+        spec: PatternSpec = scan.patterns
+        if spec.codec != "phase-rings":
+            raise ValueError(f"bench_dense: the scan's codec is {spec.codec!r}; the dense stages need phase-rings")
+        frames = read_view_frames(scan, scan.views[0])
+        nf, h, w = frames.shape
+        rig = scan.rig
+        ps = PhaseSettings()
+        full = 255 if frames.dtype == np.uint8 else 65535
+        lut, wlut = response_tables(full, camera_gamma=rig.camera.gamma, weighted=ps.weighted)
+        g_light = float(getattr(rig.light, "gamma", 1.0))
+        vol = (rig.volume.z_min, rig.volume.z_max, rig.volume.r_max)
+        kw = dict(bits=spec.bits, sector_bits=spec.sector_bits)
+
+        ref, state = {}, {}
+
+        def np_decode():
+            state["dec"] = decode_numpy(frames, **kw)
+
+        def np_phase():
+            state["ph"] = phase_numpy(frames, state["dec"], steps=spec.steps, lut=lut, wlut=wlut,
+                                      light_gamma=g_light, settings=ps, **kw)
+
+        def np_smooth():
+            sm = smooth_numpy(state["ph"], state["dec"]["sector"], settings=ps)
+            state["pts"] = points_numpy(sm, rho0=spec.rho0, pitch=spec.pitch)
+
+        def np_tri():
+            p = state["pts"]
+            state["tri"] = triangulate_numpy(p["uv"], p["rho"], p["sector"], rig, center=spec.center,
+                                             sector_bits=spec.sector_bits)
+
+        for name, fn in (("decode", np_decode), ("phase", np_phase), ("smooth", np_smooth), ("triangulate", np_tri)):
+            fn()
+            ref[name] = _best(fn, repeats)
+        ref["total"] = sum(ref.values())
+        n_np = int(np.count_nonzero(state["tri"][1] == 0))
+
+        if devices is None:
+            devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+        cpus = os.cpu_count() or 1
+        runs = []
+        for dev in devices:
+            for threads in ([cpus, 1] if dev == "cpu" and cpus > 1 else [cpus]):
+                fr = wp.array(frames, device=dev)
+                lut_w = wp.array(lut, dtype=wp.float32, device=dev)
+                wlut_w = wp.array(wlut, dtype=wp.float32, device=dev)
+                cam, light = camera_model_for(rig), light_model_for(rig)
+                ws = {}
+
+                def wdec():
+                    ws["lab"] = decode_gray_rings(fr, threads=threads, **kw)
+                    wp.synchronize_device(dev)
+
+                def wphase():
+                    ws["ph"] = decode_phase(fr, ws["lab"], steps=spec.steps, lut=lut_w, wlut=wlut_w,
+                                            light_gamma=g_light, settings=ps, threads=threads, **kw)
+                    wp.synchronize_device(dev)
+
+                def wsmooth():
+                    sm = smooth_phase(ws["ph"], ws["lab"].sector, settings=ps, threads=threads)
+                    ws["pts"] = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
+                    wp.synchronize_device(dev)
+
+                def wtri():
+                    p = ws["pts"]
+                    ws["tri"] = triangulate_rings(p.uv, p.rho, p.sector, p.confidence, camera=cam, light=light,
+                                                  volume=vol, center=spec.center, sector_bits=spec.sector_bits,
+                                                  settings=TriangulateSettings(), threads=threads)
+                    wp.synchronize_device(dev)
+
+                stages = (("decode", wdec), ("phase", wphase), ("smooth", wsmooth), ("triangulate", wtri))
+                for _, fn in stages:  # warm up: compile or load the kernels
+                    fn()
+                tm = {name: _best(fn, repeats) for name, fn in stages}
+                tm["total"] = sum(tm.values())
+                n_pts = int(np.count_nonzero(ws["tri"].status.numpy() == 0))
+                runs.append({"device": dev, "threads": threads, "times": tm, "points": n_pts})
+
+        out(f"dense path, one view: {nf} frames of {w}x{h} ({frames.dtype}); points: {n_np} (NumPy), "
+            f"{runs[0]['points']} (Warp); best of {repeats}")
+        header = f"{'stage':<12}{'numpy ms':>10}" + "".join(
+            f"{r['device'] + (' x' + str(r['threads']) if r['device'] == 'cpu' else ''):>14}{'ratio':>8}" for r in runs)
+        out(header)
+        for stage in ("decode", "phase", "smooth", "triangulate", "total"):
+            line = f"{stage:<12}{ref[stage] * 1e3:>10.1f}"
+            for r in runs:
+                line += f"{r['times'][stage] * 1e3:>12.1f}ms{ref[stage] / r['times'][stage]:>7.1f}x"
+            out(line)
+        pps = f"points/s: numpy {n_np / ref['total']:.3g}" + "".join(
+            f", {r['device']}{' x' + str(r['threads']) if r['device'] == 'cpu' else ''} "
+            f"{r['points'] / r['times']['total']:.3g}" for r in runs)
+        out(pps)
+        return {"numpy": ref, "numpy_points": n_np, "warp": runs,
+                "ratio_total": {f"{r['device']}x{r['threads']}": ref["total"] / r["times"]["total"] for r in runs}}
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
