@@ -59,10 +59,10 @@ def main(argv=None) -> int:
     from ringscan.pipeline.formats.atomic import read_json
     from ringscan.pipeline.formats.meshes import read_mesh
     from ringscan.pipeline.formats.patterns import parse_patterns
-    from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth, mesh_cloud
+    from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth
     from ringscan.pipeline.fusion.poses import AlignmentError, PoseSettings, fuse_poses
     from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
-    from ringscan.pipeline.fusion.workflow import load_recon
+    from ringscan.pipeline.fusion.workflow import load_recon, mesh_cloud
     from ringscan.pipeline.reconstruct.scan import reconstruct_scan
     from ringscan.pipeline.simulate.scan import simulate_scan
 

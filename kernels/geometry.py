@@ -2,7 +2,8 @@
 
 Warp structs hold a camera (OpenCV pinhole with k1, k2, p1, p2, k3) and a light
 (parallel or perspective); ``@wp.func`` helpers project, distort, undistort and cast
-rays. Host functions build the structs from plain NumPy values, so this module, like
+rays, and meet a camera ray with a ring's quadric (:func:`ray_ring_roots`, the one
+solve that triangulation and the single-shot labeller both call). Host functions build the structs from plain NumPy values, so this module, like
 all of kernels/, knows nothing of the rig file (pipeline/ converts it).
 """
 
@@ -14,6 +15,7 @@ import warp as wp
 LIGHT_PARALLEL = wp.constant(0)
 LIGHT_PERSPECTIVE = wp.constant(1)
 UNDISTORT_ITERS = wp.constant(12)
+NEWTON_STEPS = wp.constant(4)
 
 __all__ = [
     "LIGHT_PARALLEL",
@@ -30,6 +32,14 @@ __all__ = [
     "light_pixel",
     "light_point_local",
     "direction_to_light",
+    "Volume",
+    "make_volume",
+    "ring_terms",
+    "pattern_offset",
+    "refine_root",
+    "in_volume",
+    "ray_ring_roots",
+    "root_usable",
 ]
 
 
@@ -66,6 +76,15 @@ class LightModel:
     s: float
     a: wp.vec2
     cam: CameraModel
+
+
+@wp.struct
+class Volume:
+    """The rig's working volume (world frame, mm): z_min <= z <= z_max, radius <= r_max."""
+
+    z_min: float
+    z_max: float
+    r_max: float
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -161,65 +180,7 @@ def direction_to_light(light: LightModel, X: wp.vec3):
     return wp.normalize(light.cam.center - X)
 
 
-# ----------------------------------------------------------------------------- host builders
-
-
-def _dist5(dist) -> np.ndarray:
-    d = np.zeros(5)
-    dd = np.asarray(dist if dist is not None else [], float).ravel()
-    d[: dd.size] = dd
-    return d
-
-
-def make_camera(K, dist, R, t) -> CameraModel:
-    """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
-    K = np.asarray(K, float)
-    R = np.asarray(R, float)
-    t = np.asarray(t, float).ravel()
-    if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
-        raise ValueError(f"make_camera: expected K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
-    d = _dist5(dist)
-    c = CameraModel()
-    c.fx, c.fy, c.cx, c.cy, c.skew = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1])
-    c.k1, c.k2, c.p1, c.p2, c.k3 = (float(x) for x in d)
-    c.R = wp.mat33(*R.ravel().tolist())
-    c.t = wp.vec3(*t.tolist())
-    c.center = wp.vec3(*(-R.T @ t).tolist())
-    return c
-
-
-def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
-    """Build a parallel :class:`LightModel` (DESIGN §3)."""
-    li = LightModel()
-    li.model = 0
-    li.R = wp.mat33(*np.asarray(R, float).ravel().tolist())
-    li.t = wp.vec3(*np.asarray(t, float).ravel().tolist())
-    li.s = float(pixel_pitch_mm)
-    li.a = wp.vec2(*np.asarray(axis_px, float).ravel().tolist())
-    li.cam = make_camera(np.eye(3), None, np.eye(3), np.zeros(3))
-    return li
-
-
-def make_perspective_light(K, dist, R, t) -> LightModel:
-    """Build a perspective (projector) :class:`LightModel` (DESIGN §3)."""
-    li = LightModel()
-    li.model = 1
-    li.R = wp.mat33(*np.eye(3).ravel().tolist())
-    li.t = wp.vec3(0.0, 0.0, 0.0)
-    li.s = 1.0
-    li.a = wp.vec2(0.0, 0.0)
-    li.cam = make_camera(K, dist, R, t)
-    return li
-
-
-NEWTON_STEPS = wp.constant(4)
-
-
-@wp.struct
-class Volume:
-    z_min: float
-    z_max: float
-    r_max: float
+# ----------------------------------------------------------------------------- the ring quadric (DESIGN §3, §4)
 
 
 @wp.func
@@ -290,7 +251,107 @@ def in_volume(X: wp.vec3, vol: Volume):
     return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
 
 
+@wp.func
+def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center: wp.vec2):
+    """Both meetings of the ray X(t) = C + t d with the quadric of ring ``rho``.
+
+    The ring's quadric is a^2 + b^2 = rho^2 z^2 in :func:`ring_terms`; along the
+    ray the terms are affine in t, so this is a (t^2) + b t + c = 0, solved in
+    float64 with the stable form. With projector distortion both roots are then
+    refined by :func:`refine_root`. Returns vec3(t1, t2, real) with t1 <= t2 and
+    real = 1 where the ray meets the quadric (0: no real root; t1 = t2 = 0).
+    """
+    P0 = local_frame(light, C)
+    D0 = local_dir(light, d)
+    o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
+    e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
+    c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))
+    q0 = ring_terms(light, o, c2)
+    dq = ring_terms(light, o + e, c2) - q0
+    if light.model == LIGHT_PARALLEL:
+        dq = wp.vec3d(dq[0], dq[1], wp.float64(0.0))
+    r2 = wp.float64(rho) * wp.float64(rho)
+    A = dq[0] * dq[0] + dq[1] * dq[1] - r2 * dq[2] * dq[2]
+    B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
+    Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
+    disc = B * B - wp.float64(4.0) * A * Cc
+    if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
+        return wp.vec3(0.0, 0.0, 0.0)
+    sq = wp.sqrt(disc)
+    qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
+    ta = float(qq / A)
+    tb = float(Cc / qq) if qq != wp.float64(0.0) else ta
+    t1 = wp.min(ta, tb)
+    t2 = wp.max(ta, tb)
+    if has_distortion(light):
+        t1 = refine_root(light, C, d, t1, rho, center)
+        t2 = refine_root(light, C, d, t2, rho, center)
+    return wp.vec3(t1, t2, 1.0)
+
+
+@wp.func
+def root_usable(light: LightModel, X: wp.vec3, t: float, vol: Volume):
+    """A root is kept only in front of the camera (t > 0), inside the working
+    volume and, for a perspective light, in front of the projector (DESIGN §4)."""
+    ok = t > 0.0 and in_volume(X, vol)
+    if light.model != LIGHT_PARALLEL:
+        ok = ok and (light.cam.R * X + light.cam.t)[2] > 0.0
+    return ok
+
+
+# ----------------------------------------------------------------------------- host builders
+
+
+def _dist5(dist) -> np.ndarray:
+    d = np.zeros(5)
+    dd = np.asarray(dist if dist is not None else [], float).ravel()
+    d[: dd.size] = dd
+    return d
+
+
+def make_camera(K, dist, R, t) -> CameraModel:
+    """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
+    K = np.asarray(K, float)
+    R = np.asarray(R, float)
+    t = np.asarray(t, float).ravel()
+    if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(f"make_camera: expected K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
+    d = _dist5(dist)
+    c = CameraModel()
+    c.fx, c.fy, c.cx, c.cy, c.skew = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1])
+    c.k1, c.k2, c.p1, c.p2, c.k3 = (float(x) for x in d)
+    c.R = wp.mat33(*R.ravel().tolist())
+    c.t = wp.vec3(*t.tolist())
+    c.center = wp.vec3(*(-R.T @ t).tolist())
+    return c
+
+
+def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
+    """Build a parallel :class:`LightModel` (DESIGN §3)."""
+    li = LightModel()
+    li.model = 0
+    li.R = wp.mat33(*np.asarray(R, float).ravel().tolist())
+    li.t = wp.vec3(*np.asarray(t, float).ravel().tolist())
+    li.s = float(pixel_pitch_mm)
+    li.a = wp.vec2(*np.asarray(axis_px, float).ravel().tolist())
+    li.cam = make_camera(np.eye(3), None, np.eye(3), np.zeros(3))
+    return li
+
+
+def make_perspective_light(K, dist, R, t) -> LightModel:
+    """Build a perspective (projector) :class:`LightModel` (DESIGN §3)."""
+    li = LightModel()
+    li.model = 1
+    li.R = wp.mat33(*np.eye(3).ravel().tolist())
+    li.t = wp.vec3(0.0, 0.0, 0.0)
+    li.s = 1.0
+    li.a = wp.vec2(0.0, 0.0)
+    li.cam = make_camera(K, dist, R, t)
+    return li
+
+
 def make_volume(z_min: float, z_max: float, r_max: float) -> Volume:
+    """Build a :class:`Volume` (mm)."""
     v = Volume()
     v.z_min, v.z_max, v.r_max = float(z_min), float(z_max), float(r_max)
     return v

@@ -43,19 +43,14 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import (
-    LIGHT_PARALLEL,
     CameraModel,
     LightModel,
     Volume,
     camera_ray,
-    has_distortion,
-    in_volume,
-    local_dir,
-    local_frame,
     make_volume,
     pattern_offset,
-    refine_root,
-    ring_terms,
+    ray_ring_roots,
+    root_usable,
 )
 from ringscan.kernels.launch import default_threads, launch_rows
 
@@ -399,20 +394,6 @@ def ring_roots_kernel(
     i, k = wp.tid()
     d = camera_ray(cam, uv[i][0], uv[i][1])
     C = cam.center
-    r = radii[k]
-    P0 = local_frame(light, C)
-    D0 = local_dir(light, d)
-    o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
-    e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
-    c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))
-    q0 = ring_terms(light, o, c2)
-    dq = ring_terms(light, o + e, c2) - q0
-    if light.model == LIGHT_PARALLEL:
-        dq = wp.vec3d(dq[0], dq[1], wp.float64(0.0))
-    r2 = wp.float64(r) * wp.float64(r)
-    A = dq[0] * dq[0] + dq[1] * dq[1] - r2 * dq[2] * dq[2]
-    B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
-    Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
     zero3 = wp.vec3(0.0, 0.0, 0.0)
     zero2 = wp.vec2(0.0, 0.0)
     points[i, k, 0] = zero3
@@ -420,26 +401,14 @@ def ring_roots_kernel(
     offset[i, k, 0] = zero2
     offset[i, k, 1] = zero2
     valid[i, k] = 0
-    disc = B * B - wp.float64(4.0) * A * Cc
-    if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
+    roots = ray_ring_roots(light, C, d, radii[k], center)
+    if roots[2] == 0.0:
         return
-    sq = wp.sqrt(disc)
-    qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
-    ta = float(qq / A)
-    tb = float(Cc / qq) if qq != wp.float64(0.0) else ta
-    t1 = wp.min(ta, tb)
-    t2 = wp.max(ta, tb)
-    if has_distortion(light):
-        t1 = refine_root(light, C, d, t1, r, center)
-        t2 = refine_root(light, C, d, t2, r, center)
     mask = int(0)
     for m in range(2):
-        t = wp.where(m == 0, t1, t2)
+        t = roots[m]
         X = C + d * t
-        ok = t > 0.0 and in_volume(X, vol)
-        if light.model != LIGHT_PARALLEL:
-            ok = ok and (light.cam.R * X + light.cam.t)[2] > 0.0
-        if ok:
+        if root_usable(light, X, t, vol):
             points[i, k, m] = X
             offset[i, k, m] = pattern_offset(light, X, center)
             mask = mask | (1 << m)

@@ -37,14 +37,10 @@ from ringscan.kernels.geometry import (
     LightModel,
     Volume,
     camera_ray,
-    has_distortion,
-    in_volume,
-    local_dir,
-    local_frame,
     make_volume,
     pattern_offset,
-    refine_root,
-    ring_terms,
+    ray_ring_roots,
+    root_usable,
 )
 from ringscan.kernels.launch import default_threads, launch_spans
 
@@ -164,47 +160,19 @@ def triangulate_kernel(
     d = camera_ray(cam, uv[i][0], uv[i][1])
     C = cam.center
     r = rho[i]
-    # The ray in the light's frame, in float64.
-    P0 = local_frame(light, C)
-    D0 = local_dir(light, d)
-    o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
-    e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
-    c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))
-    q0 = ring_terms(light, o, c2)
-    q1 = ring_terms(light, o + e, c2)
-    # terms are affine in t: q(t) = q0 + t (q1 - q0) (z stays 1 for parallel)
-    dq = q1 - q0
-    if light.model == LIGHT_PARALLEL:
-        dq = wp.vec3d(dq[0], dq[1], wp.float64(0.0))
-    r2 = wp.float64(r) * wp.float64(r)
-    A = dq[0] * dq[0] + dq[1] * dq[1] - r2 * dq[2] * dq[2]
-    B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
-    Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
     points[i] = wp.vec3(0.0, 0.0, 0.0)
     confidence[i] = 0.0
     residual[i] = -1.0
-    disc = B * B - wp.float64(4.0) * A * Cc
-    if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
+    roots = ray_ring_roots(light, C, d, r, center)
+    if roots[2] == 0.0:
         status[i] = STATUS_NO_ROOT
         return
-    sq = wp.sqrt(disc)
-    qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
-    ta = float(qq / A)
-    tb = float(Cc / qq) if qq != wp.float64(0.0) else ta
-    t1 = wp.min(ta, tb)
-    t2 = wp.max(ta, tb)
-    if has_distortion(light):
-        t1 = refine_root(light, C, d, t1, r, center)
-        t2 = refine_root(light, C, d, t2, r, center)
+    t1 = roots[0]
+    t2 = roots[1]
     X1 = C + d * t1
     X2 = C + d * t2
-    ok1 = t1 > 0.0 and in_volume(X1, vol)
-    # For a perspective light the root must also lie in front of the projector.
-    if light.model != LIGHT_PARALLEL:
-        ok1 = ok1 and (light.cam.R * X1 + light.cam.t)[2] > 0.0
-    ok2 = t2 > 0.0 and in_volume(X2, vol)
-    if light.model != LIGHT_PARALLEL:
-        ok2 = ok2 and (light.cam.R * X2 + light.cam.t)[2] > 0.0
+    ok1 = root_usable(light, X1, t1, vol)
+    ok2 = root_usable(light, X2, t2, vol)
     if not ok1 and not ok2:
         status[i] = STATUS_OUTSIDE
         return

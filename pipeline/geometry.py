@@ -1,93 +1,150 @@
-"""TODO docstring (ringscan.pipeline.geometry, split from ringscan.pipeline.formats.rig)."""
+"""Host-side rig geometry (NumPy + OpenCV), written once for the whole pipeline.
+
+The kernels have their own ``@wp.func`` twins in :mod:`ringscan.kernels.geometry`;
+this module is what host code (the single-shot labeller, evaluation, the truth
+helpers, the NumPy reference) uses, and what turns a parsed
+:class:`~ringscan.pipeline.formats.rig.Rig` into the kernels' camera and light
+structs. Camera and projector (perspective light) pixels follow OpenCV's model
+(DESIGN §2), so undistortion and projection are OpenCV's own:
+OpenCV's iterative ``undistortPoints`` (with a stopping criterion) and
+``cv2.projectPoints``.
+"""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.pipeline.formats.patterns import PatternSpec
+from ringscan.kernels.geometry import CameraModel, LightModel, make_camera, make_parallel_light, make_perspective_light
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
 
+__all__ = [
+    "UNDISTORT_CRITERIA",
+    "camera_model_for",
+    "light_model_for",
+    "undistort_normalized",
+    "project_points",
+    "camera_rays",
+    "camera_pixels",
+    "projector_pixels",
+    "projector_offset",
+    "projector_polar",
+    "light_ray",
+    "light_directions",
+    "plane_point",
+]
 
-def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray, *, iters: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (u, v) -> undistorted normalised coordinates (x', y') in float64,
-    by Newton's method on the OpenCV distortion model (as the kernels do)."""
-    K = camera.K
-    yd = (np.asarray(v, np.float64) - K[1, 2]) / K[1, 1]
-    xd = (np.asarray(u, np.float64) - K[0, 2] - K[0, 1] * yd) / K[0, 0]
-    k1, k2, p1, p2, k3 = camera.dist
-    x, y = xd.copy(), yd.copy()
-    for _ in range(iters):
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
-        a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
-        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-        d = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
-        det = a * d - b * b
-        x, y = x - (d * fx - b * fy) / det, y - (a * fy - b * fx) / det
-    return x, y
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+"""Stopping rule of the iterative undistortion: 100 iterations or a step below 1e-14
+(normalised units), far below float32 pixel precision."""
 
 
-def camera_model_for(rig: Rig):
+def camera_model_for(rig: Rig) -> CameraModel:
+    """The kernels' camera struct of ``rig.camera``."""
     c = rig.camera
     return make_camera(c.K, c.dist, c.R, c.t)
 
 
-def light_model_for(rig: Rig):
+def light_model_for(rig: Rig) -> LightModel:
+    """The kernels' light struct of ``rig.light`` (parallel or perspective)."""
     li = rig.light
     if isinstance(li, ParallelLight):
         return make_parallel_light(li.R, li.t, li.pixel_pitch_mm, li.axis_px)
     return make_perspective_light(li.K, li.dist, li.R, li.t)
 
 
-def _camera_rays(rig: Rig, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(centre (3,), unit world directions (n, 3)) of the rays through pixels uv."""
+def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (u, v) -> undistorted normalised coordinates (x', y') in float64.
+
+    ``camera`` is anything with ``K`` (3x3, skew allowed) and ``dist`` (5): a
+    camera or a perspective light. The pixels are first normalised with K's
+    inverse (so a skewed K is exact), then undistorted by OpenCV's iterative
+    solver with :data:`UNDISTORT_CRITERIA`.
+    """
+    u = np.asarray(u, np.float64)
+    v = np.asarray(v, np.float64)
+    shape = np.broadcast_shapes(u.shape, v.shape)
+    u, v = (a.reshape(-1) for a in np.broadcast_arrays(u, v))
+    if u.size == 0:
+        return np.zeros(shape), np.zeros(shape)
+    K = np.asarray(camera.K, np.float64)
+    yd = (v - K[1, 2]) / K[1, 1]
+    xd = (u - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+    dist = np.asarray(camera.dist, np.float64)
+    if not np.any(dist):
+        return xd.reshape(shape), yd.reshape(shape)
+    pts = np.stack([xd, yd], -1).reshape(-1, 1, 2)
+    n = _undistort_iter(pts, np.eye(3), dist).reshape(-1, 2)
+    return n[:, 0].reshape(shape), n[:, 1].reshape(shape)
+
+
+def _undistort_iter(pts: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    # OpenCV 4.x names the criteria overload undistortPointsIter; 5.x adds the
+    # criteria to undistortPoints itself.
+    fn = getattr(cv2, "undistortPointsIter", None)
+    if fn is not None:
+        return fn(pts, K, dist, None, None, UNDISTORT_CRITERIA)
+    return cv2.undistortPoints(pts, K, dist, None, None, None, UNDISTORT_CRITERIA)
+
+
+def project_points(X: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(n, 2) pixels of world points X (n, 3) through a pinhole (OpenCV model)."""
+    X = np.ascontiguousarray(X, np.float64).reshape(-1, 1, 3)
+    if X.shape[0] == 0:
+        return np.zeros((0, 2))
+    rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0]
+    return cv2.projectPoints(X, rvec, np.asarray(t, np.float64), np.asarray(K, np.float64),
+                             np.asarray(dist, np.float64))[0].reshape(-1, 2)
+
+
+def camera_rays(rig: Rig, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre (3,), unit world directions (n, 3)) of the camera rays through pixels uv (n, 2)."""
     cam = rig.camera
     x, y = undistort_normalized(cam, uv[:, 0], uv[:, 1])
     d = np.stack([x, y, np.ones_like(x)], -1) @ cam.R
     return cam.center, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _projector_offset(rig: Rig, spec: PatternSpec, X: np.ndarray) -> np.ndarray:
-    """(n, 2) offset p - c on the projector grid of world points X (n, 3)."""
+def camera_pixels(rig: Rig, X: np.ndarray) -> np.ndarray:
+    """(n, 2) camera pixels of world points X (n, 3)."""
+    cam = rig.camera
+    return project_points(X, cam.R, cam.t, cam.K, cam.dist)
+
+
+def projector_pixels(rig: Rig, X: np.ndarray) -> np.ndarray:
+    """(n, 2) projector pixels (u_p, v_p) that light world points X (n, 3)."""
     li = rig.light
+    X = np.asarray(X, np.float64).reshape(-1, 3)
     if isinstance(li, ParallelLight):
         XL = X @ li.R.T + li.t
-        p = XL[:, :2] / li.pixel_pitch_mm + li.axis_px
-    else:
-        import cv2
-
-        p = cv2.projectPoints(np.ascontiguousarray(X, np.float64).reshape(-1, 1, 3), cv2.Rodrigues(li.R)[0],
-                              li.t.astype(np.float64), li.K, li.dist)[0].reshape(-1, 2)
-    return p - np.asarray(spec.center, np.float64)
+        return XL[:, :2] / li.pixel_pitch_mm + li.axis_px
+    return project_points(X, li.R, li.t, li.K, li.dist)
 
 
-def _light_ray(rig: Rig, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A point and unit direction (world) of the light's ray through projector pixel p."""
+def projector_offset(rig: Rig, X: np.ndarray, center) -> np.ndarray:
+    """(n, 2) offset p - c on the projector grid of world points X (n, 3)."""
+    return projector_pixels(rig, X) - np.asarray(center, np.float64)
+
+
+def projector_polar(rig: Rig, X: np.ndarray, center) -> np.ndarray:
+    """(n,) ring radius rho = |p - c| (projector px) of world points X (n, 3)."""
+    off = projector_offset(rig, X, center)
+    return np.hypot(off[:, 0], off[:, 1])
+
+
+def light_ray(rig: Rig, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A point and unit direction (world) of the light's ray through projector pixel p (2,)."""
     li = rig.light
     if isinstance(li, ParallelLight):
         XL = np.array([li.pixel_pitch_mm * (p[0] - li.axis_px[0]), li.pixel_pitch_mm * (p[1] - li.axis_px[1]), 0.0])
         return li.R.T @ (XL - li.t), li.R.T @ np.array([0.0, 0.0, -1.0])
-    import cv2
-
-    n = cv2.undistortPoints(np.array([[p]], np.float64), li.K, li.dist).ravel()
-    d = li.R.T @ np.array([n[0], n[1], 1.0])
+    x, y = undistort_normalized(li, np.array([p[0]]), np.array([p[1]]))
+    d = li.R.T @ np.array([x[0], y[0], 1.0])
     return li.center, d / np.linalg.norm(d)
 
 
-def _to_camera(rig: Rig, X: np.ndarray) -> np.ndarray:
-    import cv2
-
-    cam = rig.camera
-    return cv2.projectPoints(np.ascontiguousarray(X, np.float64).reshape(-1, 1, 3), cv2.Rodrigues(cam.R)[0],
-                             cam.t.astype(np.float64), cam.K, cam.dist)[0].reshape(-1, 2)
-
-
-def _light_dirs(rig: Rig, X: np.ndarray) -> np.ndarray:
-    """Unit directions from points X toward the light."""
+def light_directions(rig: Rig, X: np.ndarray) -> np.ndarray:
+    """(n, 3) unit directions from points X (n, 3) toward the light."""
     li = rig.light
     if isinstance(li, ParallelLight):
         return np.broadcast_to(li.R.T @ np.array([0.0, 0.0, 1.0]), X.shape)
@@ -95,26 +152,7 @@ def _light_dirs(rig: Rig, X: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _plane_point(rig: Rig, spec: PatternSpec, p) -> np.ndarray:
-    o, d = _light_ray(rig, np.asarray(p, np.float64))
+def plane_point(rig: Rig, p) -> np.ndarray:
+    """Where the light's ray through projector pixel p meets the reference plane z = 0."""
+    o, d = light_ray(rig, np.asarray(p, np.float64))
     return o + (-o[2] / d[2]) * d
-
-
-def _projector_polar(rig: Rig, X: np.ndarray, center) -> np.ndarray:
-    import cv2
-
-    li = rig.light
-    if isinstance(li, ParallelLight):
-        XL = X @ li.R.T + li.t
-        p = XL[:, :2] / li.pixel_pitch_mm + li.axis_px
-    else:
-        p = cv2.projectPoints(X.reshape(-1, 1, 3), cv2.Rodrigues(li.R)[0], li.t, li.K, li.dist)[0].reshape(-1, 2)
-    return np.hypot(p[:, 0] - center[0], p[:, 1] - center[1])
-
-
-def _light_direction(rig: Rig, X: np.ndarray) -> np.ndarray:
-    li = rig.light
-    if isinstance(li, ParallelLight):
-        return np.broadcast_to(li.R.T @ np.array([0.0, 0.0, 1.0]), X.shape)
-    d = li.center - X
-    return d / np.linalg.norm(d, axis=1, keepdims=True)

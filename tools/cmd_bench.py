@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ringscan.tools.bench.core import run_bench
+from ringscan.tools.bench.dense import bench_dense
 
 
 def add_parser(sub):
@@ -22,7 +23,6 @@ def add_parser(sub):
 
 def run(args) -> int:
     if args.dense:
-        from ringscan.tools.bench.dense import bench_dense
 
         bench_dense(scan_dir=args.scan, scene=args.scene, repeats=args.repeats, devices=args.device)
         return 0

@@ -19,6 +19,10 @@ import logging
 from pathlib import Path
 
 from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan, read_capture_state, resume_angle
+from ringscan.hardware.devices.camera import open_camera
+from ringscan.hardware.devices.projector import SerialProjector
+from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
+from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.hardware.errors import CaptureError
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
@@ -127,9 +131,6 @@ def _settings(args, out: Path) -> CaptureSettings:
 
 
 def run(args) -> int:
-    from ringscan.hardware.devices.camera import open_camera
-    from ringscan.hardware.devices.projector import SerialProjector
-    from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
 
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
@@ -167,7 +168,6 @@ def run(args) -> int:
     emu = camera = projector = turntable = None
     try:
         if args.virtual:
-            from ringscan.hardware.emulators.rig import EmulatedRig
 
             if args.turntable or args.projector or args.camera:
                 raise ValueError("--virtual replaces --turntable, --projector and --camera")

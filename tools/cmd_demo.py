@@ -13,6 +13,12 @@ import logging
 import time
 from pathlib import Path
 
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.atomic import atomic_write_json
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import add_device_option
 
 log = logging.getLogger(__name__)
@@ -33,12 +39,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from ringscan.pipeline.evaluate.metrics import evaluate_recon
-    from ringscan.pipeline.formats.atomic import atomic_write_json
-    from ringscan.pipeline.formats.patterns import parse_patterns
-    from ringscan.pipeline.fusion.workflow import fuse_and_mesh
-    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-    from ringscan.pipeline.simulate.scan import simulate_scan
 
     if args.views < 1:
         raise ValueError("--views must be at least 1")

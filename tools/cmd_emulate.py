@@ -11,10 +11,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.pipeline.formats.atomic import atomic_write_json
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict
 from ringscan.tools.cli import add_device_option
+from ringscan.tools.cmd_capture import load_patterns
 
 # The default pattern set: the 28-frame gray-rings set of ``ringscan patterns``'s
 # defaults (7 band bits, 6 sector bits) on the default rig's 1024x768 projector.
@@ -41,8 +43,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from ringscan.hardware.emulators.rig import EmulatedRig
-    from ringscan.tools.cmd_capture import load_patterns
 
     rig = load_rig(args.rig) if args.rig else default_rig()
     patterns = load_patterns(args.patterns) if args.patterns else parse_patterns(DEFAULT_PATTERNS, source="default")

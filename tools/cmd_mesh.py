@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud, write_mesh
-from ringscan.pipeline.fusion.mesh import MeshSettings, mesh_cloud, orient_normals
+from ringscan.pipeline.fusion.mesh import MeshSettings, orient_normals
+from ringscan.pipeline.fusion.workflow import mesh_cloud
 
 
 def add_parser(sub):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ringscan.pipeline.formats.meshes import read_mesh
 from ringscan.pipeline.preview.colour import colorize
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
 
@@ -35,7 +36,6 @@ def run(args) -> int:
     import numpy as np
     import open3d as o3d
 
-    from ringscan.pipeline.formats.meshes import read_mesh
 
     geoms = [read_geometry(f) for f in args.files]
     bar = None

@@ -19,6 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.hardware.errors import CameraError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import frame_names
+from ringscan.pipeline.formats.scan import load_scan
 
 log = logging.getLogger(__name__)
 
@@ -211,8 +214,6 @@ class FolderCamera(CameraDevice):
     """
 
     def __init__(self, folder: str | os.PathLike):
-        from ringscan.pipeline.formats.patterns import frame_names
-        from ringscan.pipeline.formats.scan import load_scan
 
         folder = Path(folder)
         self.source = str(folder)
@@ -229,7 +230,6 @@ class FolderCamera(CameraDevice):
         """Index of the next frame."""
 
     def _read(self) -> np.ndarray:
-        from ringscan.pipeline.formats.images import read_image
 
         if self.position >= len(self.paths):
             raise CameraError(f"all {len(self.paths)} recorded frames replayed", port=self.source, retryable=False)

@@ -1,1 +1,14 @@
-"""ringscan.hardware.emulators."""
+"""Emulators of the rig's devices behind pseudo-terminals and a socket.
+
+``ringscan emulate`` and the tests drive the real drivers against them: a GRBL 1.1
+turntable (:mod:`.grbl`), the serial pattern projector (:mod:`.projector`) and a
+camera server rendering with the virtual rig (:mod:`.rig`). They behave like the
+devices' documentation, faults included (:class:`Fault`).
+"""
+
+from ringscan.hardware.emulators.grbl import EmulatedTurntable
+from ringscan.hardware.emulators.projector import EmulatedProjector
+from ringscan.hardware.emulators.pty_device import FAULT_KINDS, Fault
+from ringscan.hardware.emulators.rig import CameraServer, EmulatedRig
+
+__all__ = ["EmulatedTurntable", "EmulatedProjector", "Fault", "FAULT_KINDS", "CameraServer", "EmulatedRig"]

@@ -9,6 +9,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from ringscan.hardware.emulators.pty_device import Fault, _PtyDevice
+from ringscan.hardware.errors import GRBL_ALARMS, GRBL_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +115,6 @@ class EmulatedTurntable(_PtyDevice):
         self._send("ok\r\n")
 
     def _error(self, code: int) -> None:
-        from ringscan.hardware.errors import GRBL_ERRORS
 
         if self.flavor == "grbl":
             self._send(f"error:{code}\r\n")
@@ -122,7 +122,6 @@ class EmulatedTurntable(_PtyDevice):
             self._send(f"error: {GRBL_ERRORS.get(code, 'Invalid gcode').capitalize()}\r\n")
 
     def _raise_alarm(self, code: int) -> None:
-        from ringscan.hardware.errors import GRBL_ALARMS
 
         now = time.monotonic()
         self._machine = self._machine_at(now)

@@ -31,8 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
 from ringscan.hardware.emulators.grbl import EmulatedTurntable
 from ringscan.hardware.emulators.projector import EmulatedProjector
+from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.patterns import frame_names
 
 log = logging.getLogger(__name__)
 
@@ -121,9 +124,6 @@ class EmulatedRig:
     def __init__(self, rig, patterns, scene=None, *, folder=None, flavor: str = "grbl", time_scale: float = 1.0,
                  start_deg: float = 0.0, seed: int | None = None, size_mm: float = 80.0, device=None,
                  serve_camera: bool = False, virtual_rig=None, latency_s: float = 0.0):
-        from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
-        from ringscan.pipeline.codecs.render import render_frame
-        from ringscan.pipeline.formats.patterns import frame_names
 
         self._own_folder = folder is None
         self.folder = Path(tempfile.mkdtemp(prefix="ringscan-emu-")) if folder is None else Path(folder)

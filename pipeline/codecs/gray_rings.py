@@ -1,8 +1,9 @@
-"""TODO docstring (ringscan.pipeline.codecs.gray_rings, split from ringscan.pipeline.reconstruct.scan)."""
+"""The ``gray-rings`` codec (DESIGN §5): decode the band Gray code per pixel, then
+sample every band boundary to sub-pixel precision where the frame that flips there
+crosses its inverse (``kernels.ring_labels``, ``kernels.ring_sampling``)."""
 
 from __future__ import annotations
 
-import logging
 import time
 
 import numpy as np
@@ -12,12 +13,22 @@ from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.ring_sampling import ring_radii, sample_gray_rings
 from ringscan.pipeline.codecs.samples import Samples
 from ringscan.pipeline.formats.scan import Scan
-from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
-log = logging.getLogger(__name__)
+__all__ = ["extract_gray_rings"]
 
 
-def _extract_gray_rings(frames: wp.array, scan: Scan, settings: ReconstructSettings, threads: int):
+def extract_gray_rings(frames: wp.array, scan: Scan, settings, threads: int) -> tuple[Samples, dict]:
+    """Decode + sampling of one view of a ``gray-rings`` scan.
+
+    Args:
+        frames: (F, H, W) uint8/uint16 Warp stack in the order of the scan's frame names (read).
+        scan: the scan (its patterns give bits, sector bits, rho0 and pitch).
+        settings: the reconstruction settings; their ``decode`` and ``sample`` blocks are used.
+        threads: CPU threads for the row-run kernels.
+
+    Returns:
+        (samples, stats) with stats ``pixels_decoded``, ``samples`` and ``times_s``.
+    """
     spec = scan.patterns
     t0 = time.perf_counter()
     labels = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, settings=settings.decode,

@@ -43,6 +43,7 @@ from ringscan.kernels.phase import (
     smooth_phase,
 )
 from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.pipeline.codecs.samples import Samples
 from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
@@ -167,7 +168,6 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
         ``samples`` (points handed on), ``phase_dropped`` (pixels per reason),
         ``camera_gamma``/``light_gamma`` used and ``times_s``.
     """
-    from ringscan.pipeline.codecs.samples import Samples
 
     spec = scan.patterns
     if spec.codec != "phase-rings":

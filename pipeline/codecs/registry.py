@@ -1,39 +1,36 @@
-"""TODO docstring (ringscan.pipeline.codecs.registry, split from ringscan.pipeline.reconstruct.scan)."""
+"""Codec registry: the decode + sampling stage of each pattern codec.
+
+``EXTRACTORS[codec](frames, scan, settings, threads) -> (Samples, stats)``. Every
+codec module is imported here directly, so an import error inside one surfaces as
+itself, never as "unknown codec".
+"""
 
 from __future__ import annotations
 
-import logging
+from collections.abc import Callable
 
 import warp as wp
 
-from ringscan.pipeline.codecs.gray_rings import _extract_gray_rings
+from ringscan.pipeline.codecs.gray_rings import extract_gray_rings
+from ringscan.pipeline.codecs.phase_rings import extract_phase_rings
+from ringscan.pipeline.codecs.samples import Samples
+from ringscan.pipeline.codecs.single_shot.extract import extract_rings
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.scan import Scan
-from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
-log = logging.getLogger(__name__)
+__all__ = ["EXTRACTORS", "extract_samples"]
 
-
-# codec -> function(frames, scan, settings, threads) -> (Samples, stats), or the
-# "module:function" name of one (imported when first used).
-EXTRACTORS = {
-    "gray-rings": _extract_gray_rings,
-    "phase-rings": "ringscan.pipeline.dense:extract_phase_rings",
-    "rings": "ringscan.pipeline.single_shot:extract_rings",
+EXTRACTORS: dict[str, Callable[..., tuple[Samples, dict]]] = {
+    "gray-rings": extract_gray_rings,
+    "phase-rings": extract_phase_rings,
+    "rings": extract_rings,
 }
+"""codec name -> its decode + sampling function."""
 
 
-def extract_samples(frames: wp.array, scan: Scan, settings: ReconstructSettings, threads: int):
-    """Run the codec's decode and sampling stages on a view's frames."""
+def extract_samples(frames: wp.array, scan: Scan, settings, threads: int) -> tuple[Samples, dict]:
+    """Run the scan's codec's decode and sampling stages on one view's frames."""
     fn = EXTRACTORS.get(scan.patterns.codec)
-    if isinstance(fn, str):
-        import importlib
-
-        mod, name = fn.split(":")
-        try:
-            fn = EXTRACTORS[scan.patterns.codec] = getattr(importlib.import_module(mod), name)
-        except (ImportError, AttributeError):
-            fn = None
     if fn is None:
-        raise FormatError(scan.path, f"patterns.codec: no reconstruction for codec {scan.patterns.codec!r} in this build")
+        raise FormatError(scan.path, f"patterns.codec: no reconstruction for codec {scan.patterns.codec!r}")
     return fn(frames, scan, settings, threads)

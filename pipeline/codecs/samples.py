@@ -1,18 +1,17 @@
-"""TODO docstring (ringscan.pipeline.codecs.samples, split from ringscan.pipeline.reconstruct.scan)."""
+"""The samples type: what every codec's decode + sampling stages hand to triangulation."""
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import warp as wp
 
-log = logging.getLogger(__name__)
+__all__ = ["Samples"]
 
 
 @dataclass
 class Samples:
-    """What a codec's decode + sampling stages hand to triangulation (Warp arrays, length n)."""
+    """Ring samples of one view (Warp arrays of length n, on the frames' device)."""
 
     uv: wp.array
     """vec2 camera pixel coordinates."""
@@ -26,3 +25,6 @@ class Samples:
     """float32 sample confidence."""
     pixel: wp.array
     """int32 linear camera pixel index of each sample."""
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]

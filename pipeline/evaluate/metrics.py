@@ -32,7 +32,7 @@ from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, load_scan
-from ringscan.pipeline.geometry import _light_direction, _projector_polar, undistort_normalized
+from ringscan.pipeline.geometry import light_directions, projector_polar, undistort_normalized
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     # Coverage of the lit, seen surface inside the coded annulus.
     X, _ = truth_points(scan, view_name)
     spec = scan.patterns
-    rho = _projector_polar(scan.rig, X, spec.center)
+    rho = projector_polar(scan.rig, X, spec.center)
     lo = spec.rho0 + (spec.pitch if spec.codec != "rings" else 0.0)
     hi = spec.ring_radii()[-1] if spec.codec == "rings" else spec.rho0 + (spec.n_bands - 1) * spec.pitch
     X = X[(rho >= lo) & (rho <= hi)]
@@ -170,7 +170,7 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
         tp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(X))
         rp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
         dn = np.asarray(tp.compute_point_cloud_distance(rp))
-        light_dir = _light_direction(scan.rig, X)
+        light_dir = light_directions(scan.rig, X)
         cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
         near = dn <= r / np.maximum(cos_t, 0.25)
         obj = np.abs(X[:, 2] - float(scan.extra["truth"].get("reference_plane_z", 0.0))) > 0.5
@@ -221,8 +221,6 @@ def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: flo
     judge a label. Used to count mislabelled ring samples (a sample of ring k whose
     truth radius is nearer another ring).
     """
-    from ringscan.pipeline.evaluate.metrics import truth_points
-    from ringscan.pipeline.geometry import _projector_polar
 
     cam = scan.rig.camera
     w, h = cam.width, cam.height
@@ -242,5 +240,5 @@ def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: flo
     ok = np.isfinite(spread) & (spread <= max_step_mm)
     rho = np.full(uv.shape[0], np.nan)
     if ok.any():
-        rho[ok] = _projector_polar(scan.rig, Xi[ok], scan.patterns.center)
+        rho[ok] = projector_polar(scan.rig, Xi[ok], scan.patterns.center)
     return rho

@@ -53,11 +53,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances, truth_points, truth_surface
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.rig import ParallelLight, Rig, default_rig
+from ringscan.pipeline.geometry import projector_polar
+from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
 log = logging.getLogger(__name__)
@@ -221,9 +225,6 @@ def min_rings(runs: list[dict], targets_mm, min_coverage: float) -> dict:
 
 def _run_one(scan_dir: Path, scene, rig: Rig, spec: PatternSpec, render: RenderSettings, device, region: tuple,
              band_mm: float, settings: SweepSettings) -> dict:
-    from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances, truth_points, truth_surface
-    from ringscan.pipeline.geometry import _projector_polar
-    from ringscan.pipeline.reconstruct.view import reconstruct_view
 
     t0 = time.perf_counter()
     scan = simulate_scan(scan_dir, scene=scene, rig=rig, patterns=spec, settings=render, device=device,
@@ -232,7 +233,7 @@ def _run_one(scan_dir: Path, scene, rig: Rig, spec: PatternSpec, render: RenderS
     cloud = reconstruct_view(scan, view, device=device)
     ev = evaluate_view(scan, view.name, cloud.points)
     Xt, pix = truth_points(scan, view.name)
-    rho = _projector_polar(rig, Xt, spec.center)
+    rho = projector_polar(rig, Xt, spec.center)
     zp = float(scan.extra["truth"].get("reference_plane_z", 0.0))
     keep = (rho >= region[0]) & (rho <= region[1])
     if scan.extra["truth"].get("mesh"):
@@ -293,7 +294,6 @@ def run_sweep(
     """
     from tqdm import tqdm
 
-    from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene
 
     if not isinstance(settings, SweepSettings):
         raise ValueError(f"settings: expected SweepSettings, got {type(settings).__name__}")

@@ -1,4 +1,4 @@
-"""Small, safe file helpers: atomic writes, JSON, images and binary PLY.
+"""Atomic writes and JSON files.
 
 Writes go to a temporary file in the same folder and are moved into place with
 ``os.replace``, so a crash never leaves a half-written file behind: a reader sees
@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.ply import _PLY_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -85,10 +84,3 @@ def read_json(path: str | os.PathLike) -> dict:
     if not isinstance(obj, dict):
         raise FormatError(path, "expected a JSON object at the top level")
     return obj
-
-
-_PLY_NAMES.update({"float32": np.dtype("float32"), "float64": np.dtype("float64"), "int8": np.dtype("int8"),
-                   "uint8": np.dtype("uint8"), "int16": np.dtype("int16"), "uint16": np.dtype("uint16"),
-                   "int32": np.dtype("int32"), "uint32": np.dtype("uint32")})
-
-

@@ -1,32 +1,28 @@
-"""TODO docstring (ringscan.pipeline.formats.ply, split from ringscan.pipeline.formats.atomic)."""
+"""PLY point clouds through plyfile (DESIGN §6 "Outputs").
+
+ringscan writes binary little-endian PLY (x, y, z, then per-point properties such
+as ring, rho, view, confidence); it reads any PLY that plyfile reads: ASCII or
+binary of either endianness, with extra properties and other elements (faces are
+ignored here; meshes go through Open3D, :mod:`ringscan.pipeline.formats.meshes`).
+A file that is not PLY, that is truncated or whose vertex element is missing is
+a :class:`FormatError` naming the file.
+"""
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
 import numpy as np
+import plyfile
 
 from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
 
-log = logging.getLogger(__name__)
+__all__ = ["write_ply", "read_ply", "PLY_DTYPES"]
 
-
-_PLY_TYPES = {
-    np.dtype("float32"): "float",
-    np.dtype("float64"): "double",
-    np.dtype("int32"): "int",
-    np.dtype("uint32"): "uint",
-    np.dtype("int16"): "short",
-    np.dtype("uint16"): "ushort",
-    np.dtype("int8"): "char",
-    np.dtype("uint8"): "uchar",
-}
-
-
-_PLY_NAMES = {v: k for k, v in _PLY_TYPES.items()}
+PLY_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "uint32", "int16", "uint16", "int8", "uint8"))
+"""Property types written as they are; other arrays become float32 (floats) or int32."""
 
 
 def write_ply(path: str | os.PathLike, fields: dict[str, np.ndarray], *, comments: list[str] | None = None) -> None:
@@ -37,6 +33,9 @@ def write_ply(path: str | os.PathLike, fields: dict[str, np.ndarray], *, comment
         fields: vertex properties in order, each a 1D array of one length, e.g.
             ``{"x": ..., "y": ..., "z": ..., "nx": ..., "ring": ..., "view": ...}``.
         comments: header comment lines.
+
+    Raises:
+        ValueError: a field that is not 1D, or fields of different lengths.
     """
     n = None
     cols = []
@@ -48,55 +47,47 @@ def write_ply(path: str | os.PathLike, fields: dict[str, np.ndarray], *, comment
             n = arr.shape[0]
         elif arr.shape[0] != n:
             raise ValueError(f"PLY field {name!r} has {arr.shape[0]} values, expected {n}")
-        if arr.dtype not in _PLY_TYPES:
+        if arr.dtype not in PLY_DTYPES:
             arr = arr.astype(np.float32 if arr.dtype.kind == "f" else np.int32)
         cols.append((name, arr))
     n = n or 0
-    header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {c}" for c in (comments or [])]
-    header.append(f"element vertex {n}")
-    header += [f"property {_PLY_TYPES[a.dtype]} {name}" for name, a in cols]
-    header.append("end_header")
     rec = np.empty(n, dtype=[(name, a.dtype.newbyteorder("<")) for name, a in cols])
     for name, a in cols:
         rec[name] = a
+    el = plyfile.PlyElement.describe(rec, "vertex")
+    ply = plyfile.PlyData([el], text=False, byte_order="<", comments=list(comments or []))
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(rec.tobytes())
+        ply.write(str(tmp))
 
 
 def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read the vertex element of a binary little-endian PLY written by :func:`write_ply`.
+    """Read the vertex element of a PLY file (any encoding plyfile reads).
 
-    Returns a dict of 1D arrays by property name. Faces, if any, are ignored (use
-    Open3D for meshes).
+    Returns a dict of 1D native-endian arrays by property name. List properties
+    and other elements (faces) are left out.
+
+    Raises:
+        FormatError: the file is missing, not PLY, truncated, or has no vertex element.
     """
     path = Path(path)
+    if not path.is_file():
+        raise FormatError(path, "file not found" if not path.exists() else "not a file")
     try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply") or end < 0:
-        raise FormatError(path, "not a PLY file")
-    lines = data[:end].decode("ascii", "replace").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise FormatError(path, "only binary little-endian PLY is supported here; use Open3D for others")
-    props, n, in_vertex = [], 0, False
-    for ln in lines:
-        parts = ln.split()
-        if parts[:2] == ["element", "vertex"]:
-            n, in_vertex = int(parts[2]), True
-        elif parts[:1] == ["element"]:
-            in_vertex = False
-        elif parts[:1] == ["property"] and in_vertex:
-            if parts[1] == "list" or parts[1] not in _PLY_NAMES:
-                raise FormatError(path, f"unsupported vertex property {' '.join(parts[1:])}")
-            props.append((parts[2], _PLY_NAMES[parts[1]].newbyteorder("<")))
-    dt = np.dtype(props)
-    body = data[end + len(b"end_header\n"):]
-    if len(body) < n * dt.itemsize:
-        raise FormatError(path, f"truncated: header says {n} vertices, file holds {len(body) // max(dt.itemsize, 1)}")
-    rec = np.frombuffer(body, dtype=dt, count=n)
-    return {name: rec[name].astype(rec[name].dtype.newbyteorder("=")) for name, _ in props}
+        with open(path, "rb") as f:
+            ply = plyfile.PlyData.read(f)
+    except plyfile.PlyHeaderParseError as e:
+        raise FormatError(path, f"not a PLY file ({e})") from None
+    except (plyfile.PlyElementParseError, ValueError, EOFError, UnicodeDecodeError) as e:
+        raise FormatError(path, f"truncated or corrupt PLY ({e})") from None
+    except OSError as e:
+        raise FormatError(path, f"cannot read: {e.strerror}") from None
+    if "vertex" not in ply:
+        raise FormatError(path, "no vertex element")
+    data = ply["vertex"].data
+    out = {}
+    for name in data.dtype.names:
+        col = data[name]
+        if col.dtype == object:
+            continue
+        out[name] = col.astype(col.dtype.newbyteorder("="))
+    return out

@@ -32,11 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ringscan.pipeline.formats.meshes import open3d_lib
-from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MeshSettings", "MeshResult", "poisson_mesh", "tsdf_mesh", "mesh_cloud", "mesh_fused", "make_watertight", "orient_normals", "clean_mesh", "compare_to_truth"]
+__all__ = ["MeshSettings", "MeshResult", "poisson_mesh", "make_watertight", "orient_normals", "clean_mesh", "compare_to_truth"]
 
 
 # ----------------------------------------------------------------------------- settings
@@ -102,8 +101,6 @@ class MeshResult:
 # ----------------------------------------------------------------------------- helpers
 
 
-
-
 def check_mesh_settings(s: MeshSettings) -> None:
     if not isinstance(s, MeshSettings):
         raise ValueError(f"settings must be a MeshSettings, got {type(s).__name__}")
@@ -135,7 +132,7 @@ def _check_cloud(cloud, *, normals: bool) -> None:
         raise ValueError("cloud has no normals: Poisson needs oriented normals (fuse_views gives them)")
 
 
-def _finish(mesh, s: MeshSettings):
+def finish_mesh(mesh, s: MeshSettings):
     mesh.remove_unreferenced_vertices()
     if s.smooth_iterations > 0 and len(mesh.triangles):
         mesh = mesh.filter_smooth_taubin(number_of_iterations=s.smooth_iterations)
@@ -144,7 +141,7 @@ def _finish(mesh, s: MeshSettings):
     return mesh
 
 
-def _drop_small_components(mesh, min_triangles: int, keep_largest_only: bool = False) -> int:
+def drop_small_components(mesh, min_triangles: int, keep_largest_only: bool = False) -> int:
     if len(mesh.triangles) == 0:
         return 0
     labels, counts, _ = mesh.cluster_connected_triangles()
@@ -160,7 +157,7 @@ def _drop_small_components(mesh, min_triangles: int, keep_largest_only: bool = F
     return int(drop.sum())
 
 
-def _mesh_info(mesh, t0: float, **extra) -> dict:
+def mesh_info(mesh, t0: float, **extra) -> dict:
     info = {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
             "edge_manifold": bool(mesh.is_edge_manifold(allow_boundary_edges=True)),
             "closed": bool(mesh.is_edge_manifold(allow_boundary_edges=False)) if len(mesh.triangles) else False,
@@ -219,7 +216,7 @@ def poisson_mesh(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResul
     s = settings
     t0 = time.perf_counter()
     if s.watertight:
-        return _watertight_poisson(cloud, s, "poisson", t0)
+        return watertight_poisson(cloud, s, "poisson", t0)
     mesh, dens = _poisson(cloud, s)
     drop = np.zeros(len(mesh.vertices), bool)
     if s.density_quantile > 0 and len(dens):
@@ -230,9 +227,9 @@ def poisson_mesh(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResul
         drop |= d > s.trim_distance_mm
     mesh.remove_vertices_by_mask(drop)
     mesh = clean_mesh(mesh)
-    small = _drop_small_components(mesh, s.min_component_triangles) if s.min_component_triangles else 0
-    mesh = _finish(mesh, s)
-    info = _mesh_info(mesh, t0, trimmed_density=n_density, trimmed_total=int(drop.sum()),
+    small = drop_small_components(mesh, s.min_component_triangles) if s.min_component_triangles else 0
+    mesh = finish_mesh(mesh, s)
+    info = mesh_info(mesh, t0, trimmed_density=n_density, trimmed_total=int(drop.sum()),
                       small_piece_triangles_removed=small)
     log.info("Poisson mesh: %d vertices, %d triangles (%d vertices trimmed)", info["vertices"], info["triangles"],
              info["trimmed_total"])
@@ -247,7 +244,7 @@ def _distance_to_points(q: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return np.sqrt(d2.numpy()[:, 0])
 
 
-def _watertight_poisson(cloud, s: MeshSettings, method: str, t0: float) -> MeshResult:
+def watertight_poisson(cloud, s: MeshSettings, method: str, t0: float) -> MeshResult:
     """Untrimmed Poisson in a roomy bounding cube (so that the surface closes inside
     it even where no view looked), cleaned; retried once in a larger cube."""
     scale = max(s.poisson_scale, s.watertight_scale)
@@ -259,7 +256,7 @@ def _watertight_poisson(cloud, s: MeshSettings, method: str, t0: float) -> MeshR
         log.info("Poisson surface not closed in a cube %.1fx the cloud: retrying larger", scale)
         scale *= 1.5
     wt = bool(mesh.is_watertight())
-    info = _mesh_info(mesh, t0, watertight=wt, poisson_scale=scale)
+    info = mesh_info(mesh, t0, watertight=wt, poisson_scale=scale)
     if not wt:
         log.warning("the mesh is not watertight after cleanup (closed %s, vertex manifold %s)",
                     info["closed"], info["vertex_manifold"])
@@ -274,7 +271,7 @@ def make_watertight(mesh):
     Check the result with ``mesh.is_watertight()``.
     """
     mesh = clean_mesh(mesh)
-    _drop_small_components(mesh, 0, keep_largest_only=True)
+    drop_small_components(mesh, 0, keep_largest_only=True)
     mesh.remove_unreferenced_vertices()
     mesh.compute_vertex_normals()
     mesh.compute_triangle_normals()
@@ -285,23 +282,6 @@ def make_watertight(mesh):
 
 
 # ----------------------------------------------------------------------------- front doors
-
-
-def mesh_cloud(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
-    """Mesh a bare oriented cloud with ``settings.method``."""
-    check_mesh_settings(settings)
-    if settings.method == "tsdf":
-        return tsdf_mesh(cloud, settings=settings)
-    return poisson_mesh(cloud, settings=settings)
-
-
-def mesh_fused(result, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
-    """Mesh a :class:`~ringscan.pipeline.fuse.FuseResult`: Poisson on its fused
-    cloud, or TSDF from its views' depth maps."""
-    check_mesh_settings(settings)
-    if settings.method == "tsdf":
-        return tsdf_mesh(result, settings=settings)
-    return poisson_mesh(result.cloud, settings=settings)
 
 
 def orient_normals(cloud, *, k: int = 20):

@@ -9,17 +9,19 @@ import time
 import numpy as np
 
 from ringscan.pipeline.formats.meshes import open3d_lib
+from ringscan.pipeline.formats.rig import look_at
 from ringscan.pipeline.fusion.mesh import (
     MeshResult,
     MeshSettings,
     _check_cloud,
-    _drop_small_components,
-    _finish,
-    _mesh_info,
-    _watertight_poisson,
     check_mesh_settings,
     clean_mesh,
+    drop_small_components,
+    finish_mesh,
+    mesh_info,
+    watertight_poisson,
 )
+from ringscan.pipeline.fusion.turntable import FuseResult
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +173,6 @@ def _depth_camera(pts: np.ndarray, E: np.ndarray, pixel_mm: float, margin: int =
 
 
 def _look_at_E(eye, target, up_hint) -> np.ndarray:
-    from ringscan.pipeline.formats.rig import look_at
 
     R, t = look_at(eye, target, up_hint)
     E = np.eye(4)
@@ -190,7 +191,6 @@ def tsdf_mesh(source, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
             seeing only the points whose normals face it).
         settings: ``tsdf_*``, ``watertight`` and cleanup fields are used.
     """
-    from ringscan.pipeline.fusion.turntable import FuseResult
 
     check_mesh_settings(settings)
     s = settings
@@ -245,10 +245,10 @@ def tsdf_mesh(source, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
         mesh.compute_vertex_normals()
         dense = o3d.geometry.PointCloud(mesh.vertices)
         dense.normals = mesh.vertex_normals
-        return _watertight_poisson(dense, s, "tsdf", t0)
+        return watertight_poisson(dense, s, "tsdf", t0)
     mesh = clean_mesh(mesh)
-    small = _drop_small_components(mesh, s.min_component_triangles) if s.min_component_triangles else 0
-    mesh = _finish(mesh, s)
-    info = _mesh_info(mesh, t0, depth_maps=used, small_piece_triangles_removed=small)
+    small = drop_small_components(mesh, s.min_component_triangles) if s.min_component_triangles else 0
+    mesh = finish_mesh(mesh, s)
+    info = mesh_info(mesh, t0, depth_maps=used, small_piece_triangles_removed=small)
     log.info("TSDF mesh: %d vertices, %d triangles from %d depth maps", info["vertices"], info["triangles"], len(jobs))
     return MeshResult(mesh=mesh, method="tsdf", watertight=None, info=info)

@@ -15,12 +15,16 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import Rig, parse_rig
-from ringscan.pipeline.fusion.mesh import MeshSettings, check_mesh_settings, compare_to_truth, mesh_cloud, mesh_fused
+from ringscan.pipeline.formats.rig import Rig, load_rig, parse_rig
+from ringscan.pipeline.fusion.mesh import MeshResult, MeshSettings, check_mesh_settings, compare_to_truth, poisson_mesh
 from ringscan.pipeline.fusion.poses import MultiPoseResult, PoseSettings, fuse_poses
+from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 from ringscan.pipeline.fusion.turntable import REPORT_NAME, FuseResult, FuseSettings, FusionView, fuse_views
+from ringscan.pipeline.preview.render import render_to_png
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 
 log = logging.getLogger(__name__)
+
 
 
 
@@ -43,7 +47,6 @@ def load_recon(recon_dir: str | os.PathLike) -> tuple[list[FusionView], Rig | No
     if report.get("rig") is not None:
         rig_d = report["rig"]
         if isinstance(rig_d, str):
-            from ringscan.pipeline.formats.rig import load_rig
 
             rig = load_rig(recon_dir / rig_d)
         else:
@@ -104,11 +107,6 @@ def recon_folder(path: str | os.PathLike, *, work_dir: str | os.PathLike | None 
     if (path / "scan.json").is_file():
         if work_dir is None:
             raise ValueError(f"{path} is a scan folder: give a folder to reconstruct it into")
-        try:
-            from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-        except ImportError as e:  # pragma: no cover - only in partial checkouts
-            raise ValueError(f"{path} is a scan folder, but this install cannot reconstruct scans ({e}); "
-                             "run `ringscan reconstruct` first and fuse its output folder") from None
         log.info("reconstructing scan %s into %s", path, work_dir)
         reconstruct_scan(path, work_dir, device=device, progress=progress)
         return Path(work_dir)
@@ -189,9 +187,6 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     Returns:
         The report dictionary (also written to ``fuse_report.json``).
     """
-    from ringscan.pipeline.fusion.poses import PoseSettings
-    from ringscan.pipeline.fusion.turntable import FuseSettings
-    from ringscan.pipeline.fusion.workflow import fuse_recon, fuse_recons
 
     fuse_settings = FuseSettings() if fuse_settings is None else fuse_settings
     pose_settings = PoseSettings() if pose_settings is None else pose_settings
@@ -227,7 +222,6 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
         write_mesh(out_dir / f"mesh{f}", mres.mesh)
         outputs["meshes"].append(f"mesh{f}")
     if preview:
-        from ringscan.pipeline.preview.render import render_to_png
 
         res = render_to_png([mres.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
@@ -252,10 +246,26 @@ def _load_truth(truth):
         return truth
     p = Path(truth)
     if p.is_dir():
-        from ringscan.pipeline.formats.atomic import read_json
 
         t = read_json(p / "scan.json").get("truth")
         if not isinstance(t, dict) or not isinstance(t.get("mesh"), str):
             raise FormatError(p / "scan.json", "truth.mesh: this scan has no ground truth mesh")
         p = p / t["mesh"]
     return read_mesh(p)
+
+
+def mesh_cloud(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
+    """Mesh a bare oriented cloud with ``settings.method``."""
+    check_mesh_settings(settings)
+    if settings.method == "tsdf":
+        return tsdf_mesh(cloud, settings=settings)
+    return poisson_mesh(cloud, settings=settings)
+
+
+def mesh_fused(result, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
+    """Mesh a :class:`~ringscan.pipeline.fuse.FuseResult`: Poisson on its fused
+    cloud, or TSDF from its views' depth maps."""
+    check_mesh_settings(settings)
+    if settings.method == "tsdf":
+        return tsdf_mesh(result, settings=settings)
+    return poisson_mesh(result.cloud, settings=settings)

@@ -28,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud
 from ringscan.pipeline.preview.colour import colorbar
 
 log = logging.getLogger(__name__)
@@ -375,8 +377,6 @@ def read_geometry(path: str | os.PathLike):
     """Read a mesh (PLY/OBJ/STL with faces) or else a point cloud, for rendering."""
     import open3d as o3d
 
-    from ringscan.pipeline.formats.errors import FormatError
-    from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud
 
     path = Path(path)
     if not path.is_file():

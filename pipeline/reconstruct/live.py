@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from ringscan.kernels import resolve_device
+from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.scan import Scan, View
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -68,7 +69,6 @@ class LiveReconstructor:
         self._futures.clear()
         report = None
         if scan is not None:
-            from ringscan.pipeline.formats.patterns import frame_names
 
             need = set(frame_names(scan.patterns))
             names = [v.name for v in scan.views if need.issubset(v.frames)]

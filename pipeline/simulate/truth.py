@@ -11,6 +11,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_path, atomic_write_bytes
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.rig import Turntable
 from ringscan.pipeline.formats.scan import Scan, load_scan
 from ringscan.pipeline.simulate.virtual_rig import _turn
@@ -66,7 +67,6 @@ class Truth:
 
     def lit(self, view: str) -> np.ndarray:
         """(H, W) bool: the pixel's centre sees a point lit by the projector image."""
-        from ringscan.pipeline.formats.images import read_image
 
         return read_image(self._file(view, "lit")) > 0
 

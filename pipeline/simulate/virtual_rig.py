@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ringscan.kernels import raytrace, resolve_device
+from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.pipeline.formats.rig import ParallelLight, Rig, Turntable, turntable_transform
 from ringscan.pipeline.simulate.scenes import SceneMesh, corner_normals, make_scene
 
@@ -166,8 +168,6 @@ class VirtualRig:
 
     def __init__(self, rig: Rig, scene: SceneMesh | str | os.PathLike, *, settings: RenderSettings = RenderSettings(),
                  device: str | None = None, projector_size: tuple[int, int] | None = None):
-        from ringscan.kernels import resolve_device
-        from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 
         if not isinstance(rig, Rig):
             raise ValueError(f"rig: expected a Rig, got {type(rig).__name__}")
@@ -225,7 +225,6 @@ class VirtualRig:
     def geometry(self):
         """The traced view (``kernels.raytrace.ViewGeometry``) at the current angle."""
         if self._geometry is None:
-            from ringscan.kernels import raytrace
 
             t0 = time.perf_counter()
             R, _ = _turn(self.rig.turntable, self._deg)
@@ -296,7 +295,6 @@ class VirtualRig:
         """
         import warp as wp
 
-        from ringscan.kernels import raytrace
 
         if seed is None:
             seed = _mix_seed(self.settings.seed, self._calls, 0x5EED)

@@ -9,8 +9,7 @@ from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
-
-from .test_reconstruct import PROJ, small_rig
+from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
 
 
 @pytest.fixture(scope="module")

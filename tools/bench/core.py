@@ -16,6 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.kernels import init_warp
+from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
+from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+from ringscan.pipeline.geometry import camera_model_for, light_model_for
+from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangulate_numpy
+
 log = logging.getLogger(__name__)
 
 __all__ = ["run_bench", "memory_bandwidth"]
@@ -39,8 +49,6 @@ def memory_bandwidth(nbytes: int = 256 << 20, repeats: int = 5) -> float:
 
 
 def _default_scan(out: Path, scene: str | None, device: str | None):
-    from ringscan.pipeline.formats.patterns import parse_patterns
-    from ringscan.pipeline.simulate.scan import simulate_scan
 
     spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
                            "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6})
@@ -55,13 +63,6 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     """Time decode, sampling and triangulation of one view; print a table with ``out``."""
     import warp as wp
 
-    from ringscan.kernels import init_warp
-    from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
-    from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
-    from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
-    from ringscan.pipeline.formats.scan import load_scan, read_view_frames
-    from ringscan.pipeline.geometry import camera_model_for, light_model_for
-    from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangulate_numpy
 
     init_warp()
     tmp = None

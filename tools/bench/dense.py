@@ -11,16 +11,15 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.phase import (
-    PhaseSettings,
-    compact_phase_points,
-    decode_phase,
-    response_tables,
-    smooth_phase,
-)
+from ringscan.kernels import init_warp
+from ringscan.kernels.phase import PhaseSettings, compact_phase_points, decode_phase, response_tables, smooth_phase
 from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
-from ringscan.tools.bench.numpy_twins import phase_numpy, points_numpy, smooth_numpy
+from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+from ringscan.pipeline.geometry import camera_model_for, light_model_for
+from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy, triangulate_numpy
 
 log = logging.getLogger(__name__)
 
@@ -57,12 +56,6 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
         devices: Warp devices (default: cpu, and cuda:0 when present).
         out: print function.
     """
-    from ringscan.kernels import init_warp
-    from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
-    from ringscan.pipeline.formats.scan import load_scan, read_view_frames
-    from ringscan.pipeline.geometry import camera_model_for, light_model_for
-    from ringscan.pipeline.simulate.scan import simulate_scan
-    from ringscan.tools.bench.numpy_twins import decode_numpy, triangulate_numpy
 
     init_warp()
     tmp = None

@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.ring_lines import detect_ring_lines
+from ringscan.pipeline.codecs.samples import Samples
 from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines
 from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, SingleShotSettings
 
@@ -32,7 +33,6 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
         sector (``SECTOR_BITS`` bits) of the root that the orientation rule
         chose, -1 where it does not decide; stats["sector_bits"] says so.
     """
-    from ringscan.pipeline.codecs.samples import Samples
 
     spec = scan.patterns
     if spec.codec != "rings":

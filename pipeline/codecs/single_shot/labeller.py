@@ -61,12 +61,14 @@ from ringscan.pipeline.codecs.single_shot.settings import PHI_BINS, RingLabellin
 from ringscan.pipeline.formats.patterns import PatternSpec
 from ringscan.pipeline.formats.rig import Rig
 from ringscan.pipeline.geometry import (
-    _camera_rays,
-    _light_dirs,
-    _light_ray,
-    _plane_point,
-    _projector_offset,
-    _to_camera,
+    camera_model_for,
+    camera_pixels,
+    camera_rays,
+    light_directions,
+    light_model_for,
+    light_ray,
+    plane_point,
+    projector_offset,
 )
 
 log = logging.getLogger(__name__)
@@ -83,7 +85,7 @@ def orientation_sign(rig: Rig, spec: PatternSpec) -> int:
     at the pattern centre: the same on every surface that faces both the light
     and the camera (both see it from its front)."""
     c = np.asarray(spec.center, np.float64)
-    q = _to_camera(rig, np.stack([_plane_point(rig, spec, c + e) for e in ((0, 0), (1, 0), (0, 1))]))
+    q = camera_pixels(rig, np.stack([plane_point(rig, c + e) for e in ((0, 0), (1, 0), (0, 1))]))
     det = np.linalg.det(np.stack([q[1] - q[0], q[2] - q[0]], 1))
     if not np.isfinite(det) or det == 0:
         raise ValueError("orientation_sign: the camera does not see the reference plane at the pattern centre")
@@ -93,8 +95,8 @@ def orientation_sign(rig: Rig, spec: PatternSpec) -> int:
 def _pitch_mm(rig: Rig, spec: PatternSpec) -> float:
     """One ring pitch at the object (mm), on the reference plane at the centre."""
     c = np.asarray(spec.center, np.float64)
-    a = _plane_point(rig, spec, c)
-    b = _plane_point(rig, spec, c + np.array([spec.pitch, 0.0]))
+    a = plane_point(rig, c)
+    b = plane_point(rig, c + np.array([spec.pitch, 0.0]))
     return float(np.linalg.norm(b - a))
 
 
@@ -106,8 +108,8 @@ def _plane_ring_spacing_px(rig: Rig, spec: PatternSpec) -> float:
     c = np.asarray(spec.center, np.float64)
     pts = []
     for rr in (r, r + spec.pitch):
-        pts.append(np.stack([_plane_point(rig, spec, c + rr * np.array([math.cos(a), math.sin(a)])) for a in ang]))
-    q0, q1 = _to_camera(rig, pts[0]), _to_camera(rig, pts[1])
+        pts.append(np.stack([plane_point(rig, c + rr * np.array([math.cos(a), math.sin(a)])) for a in ang]))
+    q0, q1 = camera_pixels(rig, pts[0]), camera_pixels(rig, pts[1])
     return float(np.max(np.linalg.norm(q1 - q0, axis=1)))
 
 
@@ -199,7 +201,6 @@ class _Labeller:
 
     def _cam(self):
         if not hasattr(self, "_cam_model"):
-            from ringscan.pipeline.geometry import camera_model_for, light_model_for
 
             self._cam_model = camera_model_for(self.rig)
             self._light_model = light_model_for(self.rig)
@@ -282,7 +283,7 @@ class _Labeller:
         n = np.cross(D, T)
         nl = np.linalg.norm(n, axis=1)
         n = n / np.maximum(nl, 1e-12)[:, None]
-        L = _light_dirs(self.rig, Xa)
+        L = light_directions(self.rig, Xa)
         n = n * np.where(np.sum(n * L, 1) < 0, -1.0, 1.0)[:, None]
         V = self.cam_center - 0.5 * (Xa + Xb)
         V /= np.linalg.norm(V, axis=1, keepdims=True)
@@ -314,13 +315,13 @@ class _Labeller:
         s = self.s
         out = []
         for p, idx in enumerate(self.members):
-            C, d = _camera_rays(self.rig, self.uv[idx])
+            C, d = camera_rays(self.rig, self.uv[idx])
             ok = d[:, 2] < -1e-6
             if ok.sum() < s.min_piece_samples:
                 continue
             t = -C[2] / np.where(ok, d[:, 2], -1.0)
             X = C + t[:, None] * d
-            off = _projector_offset(self.rig, self.spec, X)
+            off = projector_offset(self.rig, X, self.spec.center)
             rho = np.hypot(off[:, 0], off[:, 1])
             j = np.argmin(np.abs(rho[:, None] - self.radii[None]), 1)
             near = ok & (np.abs(rho - self.radii[j]) <= s.plane_tolerance_px)
@@ -380,9 +381,9 @@ class _Labeller:
             if not good or sum(len(x) for x in X) < s.min_piece_samples:
                 continue
             # the pattern axis, at the loop's height, lies inside the loop
-            o, d = _light_ray(self.rig, np.asarray(self.spec.center, np.float64))
+            o, d = light_ray(self.rig, np.asarray(self.spec.center, np.float64))
             Xm = np.concatenate(X).mean(0)
-            ci = _to_camera(self.rig, (o + np.dot(Xm - o, d) * d)[None])[0]
+            ci = camera_pixels(self.rig, (o + np.dot(Xm - o, d) * d)[None])[0]
             poly = q[order].astype(np.float32).reshape(-1, 1, 2)
             if cv2.pointPolygonTest(poly, (float(ci[0]), float(ci[1])), False) < 0:
                 continue

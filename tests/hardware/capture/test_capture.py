@@ -23,8 +23,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.scan import load_scan
-
-from .conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
+from tests.hardware.conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
 
 FAST = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0, retries=2, retry_delay_s=0.0,
                        command_timeout_s=0.3)

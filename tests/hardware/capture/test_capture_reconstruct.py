@@ -10,8 +10,7 @@ from ringscan.hardware.devices.projector import SerialProjector
 from ringscan.hardware.devices.turntable import GrblTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.pipeline.formats.patterns import frame_names
-
-from .conftest import small_patterns, small_rig
+from tests.hardware.conftest import small_patterns, small_rig
 
 
 @pytest.mark.slow

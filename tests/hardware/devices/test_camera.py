@@ -16,8 +16,7 @@ from ringscan.hardware.emulators.rig import CameraServer
 from ringscan.hardware.errors import CameraError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.scan import Scan, View, save_scan
-
-from .conftest import pattern_frames, small_patterns
+from tests.hardware.conftest import pattern_frames, small_patterns
 
 
 def _sequence(folder, n=4, colour=False):
@@ -154,7 +153,7 @@ def test_virtual_camera_follows_projector_and_turntable(virtual_rig, rig):
 
 
 def test_drivers_import_no_kernels():
-    code = ("import sys, ringscan.hardware, ringscan.hardware.emulate, ringscan.tools.cmd_capture;"
+    code = ("import sys, ringscan.hardware, ringscan.hardware.emulators, ringscan.tools.cmd_capture;"
             "bad = [m for m in sys.modules if m == 'warp' or m.startswith(('warp.', 'ringscan.kernels', "
             "'ringscan.pipeline.simulate'))];"
             "print(bad); sys.exit(1 if bad else 0)")

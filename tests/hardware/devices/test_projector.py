@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-import ringscan.hardware.emulate as emulate
+import ringscan.hardware.emulators.projector as emulate
 from ringscan.hardware.devices.projector import SerialProjector, VirtualProjector
 from ringscan.hardware.emulators.projector import EmulatedProjector
 from ringscan.hardware.errors import ProjectorCommandError, ProjectorDisconnected, ProjectorError, ProjectorTimeout

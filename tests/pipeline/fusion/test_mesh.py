@@ -10,17 +10,10 @@ import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import read_mesh, write_mesh
-from ringscan.pipeline.fusion.mesh import (
-    MeshSettings,
-    compare_to_truth,
-    mesh_cloud,
-    mesh_fused,
-    orient_normals,
-    poisson_mesh,
-)
+from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth, orient_normals, poisson_mesh
 from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
-from ringscan.pipeline.fusion.workflow import fuse_and_mesh
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh, mesh_cloud, mesh_fused
 
 from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
 

@@ -190,9 +190,8 @@ def test_simulate_with_a_pose_writes_the_posed_truth(tmp_path, capsys):
     from ringscan.pipeline.formats.meshes import read_mesh
     from ringscan.pipeline.simulate.scan import simulate_scan
     from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-
-    from .test_simulate import small_rig as sim_rig
-    from .test_simulate import small_spec
+    from tests.pipeline.simulate.test_simulate import small_rig as sim_rig
+    from tests.pipeline.simulate.test_simulate import small_spec
 
     kw = dict(scene="cube", rig=sim_rig(), patterns=small_spec(), views=1, settings=RenderSettings(supersample=1),
               device="cpu", progress=False, size_mm=40.0)
