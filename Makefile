@@ -8,12 +8,13 @@ VENV   ?= .venv
 BIN     = $(VENV)/bin
 STAMP   = $(VENV)/.installed
 
-.PHONY: demo test bench setup sysdeps clean
+.PHONY: demo test bench setup sysdeps clean FORCE
 
 demo: setup
 	$(BIN)/ringscan demo --out out/demo
 
 test: setup
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
 
 bench: setup
@@ -24,10 +25,19 @@ setup: sysdeps $(STAMP)
 sysdeps:
 	@bash tools/install_system_deps.sh
 
-$(STAMP): pyproject.toml
+# A strict editable install (import-linter sees the sub-packages only in one) links
+# each module file: a module added or removed needs a reinstall, so the stamp also
+# depends on the list of module files (rewritten only when it changes).
+MODULES := $(sort $(wildcard kernels/*.py pipeline/*.py pipeline/*/*.py pipeline/*/*/*.py hardware/*.py hardware/*/*.py tools/*.py tools/*/*.py))
+
+$(VENV)/.modules: FORCE
+	@mkdir -p $(VENV)
+	@echo '$(MODULES)' | cmp -s - $@ || echo '$(MODULES)' > $@
+
+$(STAMP): pyproject.toml $(VENV)/.modules
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test]' --config-settings editable_mode=strict
 	@touch $(STAMP)
 
 clean:

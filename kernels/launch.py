@@ -1,4 +1,12 @@
-"""TODO docstring (ringscan.kernels.launch, split from ringscan.kernels.ring_labels)."""
+"""Launch helpers shared by every kernel module: the CPU launch pool.
+
+On CUDA a stage is one launch. On Warp's CPU backend a launch runs on one
+thread, so :func:`launch_rows` (row-run kernels over an image) and
+:func:`launch_spans` (1-D kernels over samples or points) cut the work into
+slices and launch them from a small process-wide thread pool: launches release
+the GIL, so the slices use every core. The first launch of a kernel signature runs
+alone on the calling thread (Warp's module loading is not thread-safe).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +15,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
+
+__all__ = ["launch_rows", "launch_spans", "default_threads"]
 
 
 def _row_slices(h: int, n: int) -> list[tuple[int, int]]:

@@ -18,21 +18,7 @@ import numpy as np
 from ringscan.kernels.geometry import CameraModel, LightModel, make_camera, make_parallel_light, make_perspective_light
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
 
-__all__ = [
-    "UNDISTORT_CRITERIA",
-    "camera_model_for",
-    "light_model_for",
-    "undistort_normalized",
-    "project_points",
-    "camera_rays",
-    "camera_pixels",
-    "projector_pixels",
-    "projector_offset",
-    "projector_polar",
-    "light_ray",
-    "light_directions",
-    "plane_point",
-]
+__all__ = ["UNDISTORT_CRITERIA", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point"]
 
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 """Stopping rule of the iterative undistortion: 100 iterations or a step below 1e-14

@@ -25,7 +25,7 @@ from ringscan.pipeline.formats.scan import load_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CameraDevice", "OpenCVCamera", "FolderCamera", "SocketCamera", "open_camera", "to_grey"]
+__all__ = ["IMAGE_SUFFIXES", "to_grey", "CameraDevice", "OpenCVCamera", "FolderCamera", "SocketCamera", "open_camera"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 

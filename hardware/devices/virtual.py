@@ -1,4 +1,7 @@
-"""TODO docstring (ringscan.hardware.devices.virtual, split from ringscan.hardware.devices.camera)."""
+"""The virtual camera: renders each frame with the virtual rig (Warp) for the
+pattern the projector shows and the angle the turntable reached. The virtual rig is
+imported on first use, so the real drivers never load Warp.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +13,8 @@ import numpy as np
 from ringscan.hardware.devices.camera import CameraDevice
 
 log = logging.getLogger(__name__)
+
+__all__ = ["make_virtual_rig", "VirtualCamera"]
 
 
 def make_virtual_rig(rig, scene, *, size_mm: float = 80.0, settings=None, device=None):

@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.hardware.emulators.grbl, split from ringscan.hardware.emulators.rig)."""
+"""A GRBL 1.1 turntable behind a pseudo-terminal: the firmware's line protocol,
+status reports, alarms and resets, moving in simulated time.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +14,8 @@ from ringscan.hardware.emulators.pty_device import Fault, _PtyDevice
 from ringscan.hardware.errors import GRBL_ALARMS, GRBL_ERRORS
 
 log = logging.getLogger(__name__)
+
+__all__ = ["EmulatedTurntable"]
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.hardware.emulators.projector, split from ringscan.hardware.emulators.rig)."""
+"""The serial pattern projector, emulated behind a pseudo-terminal (its line protocol, faults included)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ from ringscan.hardware.devices.projector import IDENT, PROTOCOL_VERSION, FrameSt
 from ringscan.hardware.emulators.pty_device import _PtyDevice
 
 log = logging.getLogger(__name__)
+
+__all__ = ["EmulatedProjector"]
 
 
 class EmulatedProjector(_PtyDevice, FrameStore):

@@ -1,4 +1,7 @@
-"""TODO docstring (ringscan.hardware.emulators.pty_device, split from ringscan.hardware.emulators.rig)."""
+"""A serial device behind a pseudo-terminal: the base of the emulators, with
+injectable faults (:class:`Fault`: an error reply, silence, an alarm, the port
+vanishing, a reset).
+"""
 
 from __future__ import annotations
 
@@ -15,6 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+__all__ = ["FAULT_KINDS", "Fault"]
 
 
 FAULT_KINDS = ("error", "silent", "alarm", "vanish", "reset")

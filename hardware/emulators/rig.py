@@ -39,7 +39,7 @@ from ringscan.pipeline.formats.patterns import frame_names
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EmulatedTurntable", "EmulatedProjector", "CameraServer", "EmulatedRig"]
+__all__ = ["CameraServer", "EmulatedRig"]
 
 
 class CameraServer:

@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.codecs.render, split from ringscan.pipeline.formats.patterns)."""
+"""Projector frames of every codec (DESIGN §5), as 8-bit images with antialiased
+edges: each pixel's value is the lit fraction of its area (rings, bands, sectors).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +9,8 @@ import math
 import numpy as np
 
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, gray_encode
+
+__all__ = ["render_frame", "render_frames"]
 
 
 def _polar(spec: PatternSpec):

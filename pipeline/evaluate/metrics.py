@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["distance_stats", "truth_surface", "truth_points", "evaluate_view", "evaluate_recon", "coverage_radius"]
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "truth_rho_at"]
 
 
 

@@ -20,7 +20,7 @@ from ringscan.pipeline.formats.errors import FormatError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_path", "read_json"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json"]
 
 
 @contextlib.contextmanager

@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.pipeline.formats.images, split from ringscan.pipeline.formats.atomic)."""
+"""Frame images: 8- or 16-bit PNG/TIFF, grey or colour (converted to grey), written atomically."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
 
 log = logging.getLogger(__name__)
+
+__all__ = ["read_image", "write_image"]
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.pipeline.formats.meshes, split from ringscan.pipeline.fusion.mesh)."""
+"""Meshes and point clouds through Open3D: PLY, OBJ and STL by extension."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import write_ply
 
 log = logging.getLogger(__name__)
+
+__all__ = ["MESH_FORMATS", "write_mesh", "read_mesh", "read_cloud", "write_cloud", "open3d_lib"]
 
 
 MESH_FORMATS = (".ply", ".obj", ".stl")

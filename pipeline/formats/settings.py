@@ -1,8 +1,12 @@
-"""TODO docstring (ringscan.pipeline.formats.settings, split from ringscan.pipeline.reconstruct.settings)."""
+"""Settings dataclasses <-> JSON: every stage's frozen dataclass is written next to
+its outputs and read back with unknown keys refused.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+
+__all__ = ["settings_to_dict", "settings_from_dict"]
 
 
 def settings_to_dict(s) -> dict:

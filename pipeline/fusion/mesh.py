@@ -35,7 +35,7 @@ from ringscan.pipeline.formats.meshes import open3d_lib
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MeshSettings", "MeshResult", "poisson_mesh", "make_watertight", "orient_normals", "clean_mesh", "compare_to_truth"]
+__all__ = ["MeshSettings", "MeshResult", "check_mesh_settings", "finish_mesh", "drop_small_components", "mesh_info", "clean_mesh", "poisson_mesh", "watertight_poisson", "make_watertight", "orient_normals", "compare_to_truth"]
 
 
 # ----------------------------------------------------------------------------- settings

@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.fusion.poses, split from ringscan.pipeline.fusion.turntable)."""
+"""Several poses of one object (flip and rescan): align whole turntable scans with
+no known transform (FPFH + RANSAC, then ICP, then a pose graph) into one cloud.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ import numpy as np
 from ringscan.pipeline.fusion.turntable import FuseResult, _apply, _rotation_deg
 
 log = logging.getLogger(__name__)
+
+__all__ = ["PoseSettings", "PoseRegistration", "AlignmentError", "MultiPoseResult", "fuse_poses"]
 
 
 @dataclass(frozen=True)

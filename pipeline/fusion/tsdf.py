@@ -1,4 +1,7 @@
-"""TODO docstring (ringscan.pipeline.fusion.tsdf, split from ringscan.pipeline.fusion.mesh)."""
+"""TSDF meshing: each view's points are splatted into a depth map seen from its own
+camera, the depth maps are integrated into a TSDF volume (Open3D) and the surface
+extracted by marching cubes.
+"""
 
 from __future__ import annotations
 
@@ -24,6 +27,8 @@ from ringscan.pipeline.fusion.mesh import (
 from ringscan.pipeline.fusion.turntable import FuseResult
 
 log = logging.getLogger(__name__)
+
+__all__ = ["tsdf_mesh"]
 
 
 _MAX_SPLAT_PX = 24

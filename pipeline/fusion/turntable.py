@@ -46,7 +46,7 @@ from ringscan.pipeline.formats.rig import Rig, Turntable, turntable_transform
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FuseSettings", "FusionView", "ViewResidual", "FuseResult", "fuse_views"]
+__all__ = ["REPORT_NAME", "FuseSettings", "FusionView", "ViewResidual", "FuseResult", "check_fuse_settings", "fuse_views"]
 
 REPORT_NAME = "report.json"
 

@@ -1,4 +1,8 @@
-"""TODO docstring (ringscan.pipeline.fusion.workflow, split from ringscan.pipeline.fusion.turntable)."""
+"""The fuse-and-mesh workflow behind ``ringscan fuse`` and ``ringscan demo``: read
+reconstruction folders (reconstructing scan folders first), fuse turntable views and
+poses, mesh, compare with the truth when known, write the mesh, a preview PNG and
+``fuse_report.json``.
+"""
 
 from __future__ import annotations
 
@@ -24,6 +28,8 @@ from ringscan.pipeline.preview.render import render_to_png
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 
 log = logging.getLogger(__name__)
+
+__all__ = ["load_recon", "recon_folder", "fuse_recon", "fuse_recons", "FUSE_REPORT_FORMAT", "fuse_and_mesh", "mesh_cloud", "mesh_fused"]
 
 
 

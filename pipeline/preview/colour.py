@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.pipeline.preview.colour, split from ringscan.pipeline.preview.render)."""
+"""Colour maps, colour bars, heat maps and ring overlays for previews."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ import numpy as np
 from ringscan.pipeline.formats.images import write_image
 
 log = logging.getLogger(__name__)
+
+__all__ = ["colorize", "colorbar", "ring_overlay", "heatmap", "depth_heatmap", "error_heatmap"]
 
 
 def _diverging(x: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from ringscan.pipeline.preview.colour import colorbar
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewSettings", "RenderResult", "view_camera", "render_geometries", "render_to_png", "offscreen_available", "colorbar", "read_geometry"]
+__all__ = ["RENDERER_ENV", "ViewSettings", "RenderResult", "view_camera", "offscreen_available", "render_geometries", "render_to_png", "read_geometry"]
 
 RENDERER_ENV = "RINGSCAN_RENDERER"
 _SUN_LUX = 120000.0

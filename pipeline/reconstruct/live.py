@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.reconstruct.live, split from ringscan.pipeline.reconstruct.scan)."""
+"""Reconstruction while capturing: each captured view is reconstructed on a
+background thread while the next one is captured (``ringscan capture --reconstruct``).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
+
+__all__ = ["LiveReconstructor"]
 
 
 class LiveReconstructor:

@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 REPORT_FORMAT = "ringscan.report/1"
 
-__all__ = ["REPORT_FORMAT", "reconstruct_scan", "reconstruct_view"]
+__all__ = ["REPORT_FORMAT", "reconstruct_scan"]
 
 
 def reconstruct_scan(

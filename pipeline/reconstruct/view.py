@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.reconstruct.view, split from ringscan.pipeline.reconstruct.scan)."""
+"""One view: frames -> codec samples -> triangulation -> filtered points (a
+:class:`ViewCloud`), and its PLY.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +23,8 @@ from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
+
+__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply"]
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.pipeline.simulate.scan, split from ringscan.pipeline.simulate.virtual_rig)."""
+"""``ringscan simulate``: render a whole scan folder with the virtual rig, with its ground truth."""
 
 from __future__ import annotations
 
@@ -20,6 +20,8 @@ from ringscan.pipeline.simulate.truth import TRUTH_DIR, _write_depth, _write_mes
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _mix_seed, view_angles
 
 log = logging.getLogger(__name__)
+
+__all__ = ["simulate_scan"]
 
 
 def simulate_scan(

@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.simulate.truth, split from ringscan.pipeline.simulate.virtual_rig)."""
+"""The virtual rig's ground truth, written next to a simulated scan (``truth/``):
+the placed mesh per view, depth and lit masks; :func:`load_truth` reads it back.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +19,8 @@ from ringscan.pipeline.formats.scan import Scan, load_scan
 from ringscan.pipeline.simulate.virtual_rig import _turn
 
 log = logging.getLogger(__name__)
+
+__all__ = ["TRUTH_DIR", "Truth", "load_truth"]
 
 
 TRUTH_DIR = "truth"

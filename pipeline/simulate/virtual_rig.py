@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 EMIT_UPSAMPLE = 4
 
-__all__ = ["RenderSettings", "VirtualRig", "view_angles"]
+__all__ = ["EMIT_UPSAMPLE", "RenderSettings", "view_angles", "VirtualRig"]
 
 
 @dataclass(frozen=True)

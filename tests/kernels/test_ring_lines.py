@@ -7,7 +7,8 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.ring_lines import LineSettings, detect_ring_lines, link_lines, ring_roots, smooth_frame
+from ringscan.kernels.ring_lines import LineSettings, detect_ring_lines, smooth_frame
+from ringscan.kernels.ring_links import link_lines, ring_roots
 from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (100.3, 80.7)

@@ -28,7 +28,7 @@ from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangu
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_bench", "memory_bandwidth"]
+__all__ = ["memory_bandwidth", "run_bench"]
 
 
 def _best(fn, repeats: int) -> float:

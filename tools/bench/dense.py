@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.tools.bench.dense, split from ringscan.pipeline.codecs.phase_rings)."""
+"""``ringscan bench --dense``: the phase-rings stages against their NumPy twins, as ratios in one run."""
 
 from __future__ import annotations
 
@@ -22,6 +22,8 @@ from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy, triangulate_numpy
 
 log = logging.getLogger(__name__)
+
+__all__ = ["DEFAULT_BENCH_PATTERNS", "bench_dense"]
 
 
 def _best(fn, repeats: int) -> float:

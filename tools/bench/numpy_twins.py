@@ -15,7 +15,7 @@ from ringscan.kernels.phase import PhaseSettings
 from ringscan.pipeline.formats.rig import ParallelLight, Rig
 from ringscan.pipeline.geometry import undistort_normalized
 
-__all__ = ["decode_numpy", "sample_numpy", "triangulate_numpy"]
+__all__ = ["decode_numpy", "sample_numpy", "triangulate_numpy", "phase_numpy", "smooth_numpy", "points_numpy"]
 
 
 def _gray_to_binary(g: np.ndarray, bits: int) -> np.ndarray:

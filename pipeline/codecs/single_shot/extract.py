@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.codecs.single_shot.extract, split from ringscan.pipeline.codecs.single_shot.labeller)."""
+"""The ``reconstruct`` hook of the single-shot ``rings`` codec: line detection
+(kernels) + labelling (:mod:`.labeller`) -> samples for triangulation.
+"""
 
 from __future__ import annotations
 
@@ -14,6 +16,8 @@ from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines
 from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, SingleShotSettings
 
 log = logging.getLogger(__name__)
+
+__all__ = ["extract_rings"]
 
 
 def extract_rings(frames: wp.array, scan, settings, threads: int):

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.ring_lines import link_lines, ring_roots
+from ringscan.kernels.ring_links import link_lines, ring_roots
 from ringscan.pipeline.codecs.single_shot.pieces import _closed_loop_order, _inside, build_pieces
 from ringscan.pipeline.codecs.single_shot.settings import PHI_BINS, RingLabelling, SingleShotSettings
 from ringscan.pipeline.formats.patterns import PatternSpec
@@ -74,7 +74,7 @@ from ringscan.pipeline.geometry import (
 log = logging.getLogger(__name__)
 
 
-__all__ = ["SingleShotSettings", "RingLabelling", "build_pieces", "label_ring_lines", "orientation_sign"]
+__all__ = ["orientation_sign", "label_ring_lines"]
 
 
 # ----------------------------------------------------------------------------- rig geometry (NumPy)

@@ -1,4 +1,6 @@
-"""TODO docstring (ringscan.pipeline.codecs.single_shot.pieces, split from ringscan.pipeline.codecs.single_shot.labeller)."""
+"""Line centres -> curves -> pieces: the units that the single-shot labeller gives
+ring labels (cut where two rings' images may meet: forks, junctions, kinks).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import numpy as np
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 
 log = logging.getLogger(__name__)
+
+__all__ = ["Pieces", "build_pieces"]
 
 
 @dataclass

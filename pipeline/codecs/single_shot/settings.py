@@ -1,4 +1,4 @@
-"""TODO docstring (ringscan.pipeline.codecs.single_shot.settings, split from ringscan.pipeline.codecs.single_shot.labeller)."""
+"""Settings and results of the single-shot ``rings`` labeller."""
 
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ import numpy as np
 from ringscan.kernels.ring_lines import LineSettings
 
 log = logging.getLogger(__name__)
+
+__all__ = ["SECTOR_BITS", "PHI_BINS", "SingleShotSettings", "RingLabelling"]
 
 
 SECTOR_BITS = 8
