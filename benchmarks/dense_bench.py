@@ -6,7 +6,7 @@
 
 ``speed``: the dense stages (decode, phase, smooth + compaction, triangulation)
 on the Warp CPU backend (and CUDA where present) against their NumPy twins, in one
-run (``ringscan.pipeline.dense.bench_dense``).
+run (``ringscan.tools.bench.dense.bench_dense``).
 
 ``accuracy``: phase-rings (4 steps, pitch 8, 6 sector bits) on the default rig
 with gamma 2.2 and with gamma 1.0, and gray-rings at pitch 2 px (7 bits): point

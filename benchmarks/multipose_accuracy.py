@@ -6,7 +6,7 @@ one turntable scan covers only the upward-facing surface. This benchmark simulat
 a mesh (default: Keenan Crane's Spot from ../shared/data/models) in several resting
 poses (default ``upright``, ``tetra-1``, ``tetra-2``, ``tetra-3``), each an N-view turntable
 scan, reconstructs and fuses each pose, aligns the poses to the first one
-(FPFH + RANSAC, then ICP; :func:`ringscan.pipeline.fuse.fuse_poses`), meshes
+(FPFH + RANSAC, then ICP; :func:`ringscan.pipeline.fusion.poses.fuse_poses`), meshes
 (Poisson) and measures against the *whole* truth mesh of the first pose:
 
 - mesh -> truth and truth -> mesh mean distance, and the fraction of the truth

@@ -35,6 +35,8 @@ __all__ = [
     "Volume",
     "make_volume",
     "ring_terms",
+    "light_dir_local",
+    "polar_angle",
     "pattern_offset",
     "refine_root",
     "in_volume",
@@ -184,14 +186,8 @@ def direction_to_light(light: LightModel, X: wp.vec3):
 
 
 @wp.func
-def local_frame(light: LightModel, X: wp.vec3):
-    if light.model == LIGHT_PARALLEL:
-        return light.R * X + light.t
-    return light.cam.R * X + light.cam.t
-
-
-@wp.func
-def local_dir(light: LightModel, d: wp.vec3):
+def light_dir_local(light: LightModel, d: wp.vec3):
+    """World direction -> light frame (parallel) or projector frame (perspective)."""
     if light.model == LIGHT_PARALLEL:
         return light.R * d
     return light.cam.R * d
@@ -223,11 +219,30 @@ def has_distortion(light: LightModel):
 @wp.func
 def pattern_offset(light: LightModel, X: wp.vec3, center: wp.vec2):
     """Pixel offset p - c of world point X on the projector grid (with distortion)."""
-    if light.model == LIGHT_PARALLEL:
-        XL = light.R * X + light.t
-        return wp.vec2(XL[0] / light.s + light.a[0] - center[0], XL[1] / light.s + light.a[1] - center[1])
-    p = project_camera(light.cam, X)
+    p = light_pixel(light, X)
     return wp.vec2(p[0] - center[0], p[1] - center[1])
+
+
+@wp.func
+def polar_angle(y: float, x: float):
+    """atan2(y, x) in (-pi, pi] to within 1e-5 rad (Abramowitz & Stegun 4.4.49 on
+    [0, 1] with octant reduction), at a fraction of the cost of the library atan2:
+    the polar angle of a point around the pattern centre (sectors, phase)."""
+    ax = wp.abs(x)
+    ay = wp.abs(y)
+    mx = wp.max(ax, ay)
+    if mx == 0.0:
+        return 0.0
+    a = wp.min(ax, ay) / mx
+    s = a * a
+    r = a * (0.9998660 + s * (-0.3302995 + s * (0.1801410 + s * (-0.0851330 + s * 0.0208351))))
+    if ay > ax:
+        r = 1.5707963267948966 - r
+    if x < 0.0:
+        r = 3.141592653589793 - r
+    if y < 0.0:
+        r = -r
+    return r
 
 
 @wp.func
@@ -261,8 +276,8 @@ def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center
     refined by :func:`refine_root`. Returns vec3(t1, t2, real) with t1 <= t2 and
     real = 1 where the ray meets the quadric (0: no real root; t1 = t2 = 0).
     """
-    P0 = local_frame(light, C)
-    D0 = local_dir(light, d)
+    P0 = light_point_local(light, C)
+    D0 = light_dir_local(light, d)
     o = wp.vec3d(wp.float64(P0[0]), wp.float64(P0[1]), wp.float64(P0[2]))
     e = wp.vec3d(wp.float64(D0[0]), wp.float64(D0[1]), wp.float64(D0[2]))
     c2 = wp.vec2d(wp.float64(center[0]), wp.float64(center[1]))

@@ -6,6 +6,10 @@ thread, so :func:`launch_rows` (row-run kernels over an image) and
 slices and launch them from a small process-wide thread pool: launches release
 the GIL, so the slices use every core. The first launch of a kernel signature runs
 alone on the calling thread (Warp's module loading is not thread-safe).
+
+Device side, :func:`row_run` maps a row-run thread to its pixels. Variable-length
+outputs are counted per item, scanned (:func:`scan_counts`, ``wp.utils.array_scan``)
+and then written at their offsets: deterministic order, no size guesses.
 """
 
 from __future__ import annotations
@@ -16,7 +20,35 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
-__all__ = ["launch_rows", "launch_spans", "default_threads"]
+__all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "scan_counts"]
+
+
+@wp.func
+def row_run(tid: int, w: int, row0: int, chunk: int):
+    """(y, x0, x1) of row-run thread ``tid``: ``chunk`` pixels of one row of a W-wide
+    image, from row ``row0`` on (see :func:`launch_rows`)."""
+    n_chunks = (w + chunk - 1) / chunk
+    y = row0 + tid / n_chunks
+    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
+    return wp.vec3i(y, x0, wp.min(x0 + chunk, w))
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def scan_counts(counts: wp.array) -> tuple[wp.array, int]:
+    """Exclusive prefix sum of per-item ``counts`` (int32, read) and their total.
+
+    Returns (offsets, total): ``offsets`` (same shape, int32) is where each item's
+    outputs start, on the counts' device.
+    """
+    offsets = wp.empty_like(counts)
+    if counts.size == 0:
+        return offsets, 0
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    last = counts.flatten() if counts.ndim > 1 else counts
+    offs = offsets.flatten() if offsets.ndim > 1 else offsets
+    return offsets, int(offs[-1:].numpy()[0] + last[-1:].numpy()[0])
 
 
 def _row_slices(h: int, n: int) -> list[tuple[int, int]]:

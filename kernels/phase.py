@@ -55,7 +55,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.geometry import polar_angle
+from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, gray_to_binary
 
 PHASE_OK = wp.constant(0)
@@ -167,28 +168,6 @@ class PhasePoints:
 
 
 @wp.func
-def phase_atan2(y: float, x: float):
-    """atan2(y, x) in (-pi, pi] to within 1e-5 rad (Abramowitz & Stegun 4.4.49
-    on [0, 1] with octant reduction): 1.6e-6 of a fringe period, far below the
-    phase noise, at a fraction of the cost of the library atan2."""
-    ax = wp.abs(x)
-    ay = wp.abs(y)
-    mx = wp.max(ax, ay)
-    if mx == 0.0:
-        return 0.0
-    a = wp.min(ax, ay) / mx
-    s = a * a
-    r = a * (0.9998660 + s * (-0.3302995 + s * (0.1801410 + s * (-0.0851330 + s * 0.0208351))))
-    if ay > ax:
-        r = 1.5707963267948966 - r
-    if x < 0.0:
-        r = 3.141592653589793 - r
-    if y < 0.0:
-        r = -r
-    return r
-
-
-@wp.func
 def trailing_zeros(k: int):
     """Number of trailing zero bits of k > 0."""
     n = int(0)
@@ -255,12 +234,11 @@ def phase_unwrap_kernel(
     code, weak: (H, W) int32, contrast: (H, W) float32, read (the band decode).
     t_out, modulation: (H, W) float32, status: (H, W) int32, written.
     """
-    tid = wp.tid()
     w = frames.shape[2]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    x1 = wp.min(x0 + chunk, w)
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
     for x in range(x0, x1):
         t_out[y, x] = 0.0
         modulation[y, x] = 0.0
@@ -326,7 +304,7 @@ def phase_unwrap_kernel(
         if q < min_modulation:
             status[y, x] = PHASE_MODULATION
             continue
-        f = phase_atan2(bs, bc) / TWO_PI
+        f = polar_angle(bs, bc) / TWO_PI
         f = f - wp.floor(f)
         # Band code and its two edges.
         k = gray_to_binary(code[y, x], bits)
@@ -386,13 +364,12 @@ def smooth_phase_kernel(
     t_out: (H, W) float32, status_out, sector_out: (H, W) int32, flags: (H*W,)
     int32 (1 where the pixel stays a point, the count for the compaction), written.
     """
-    tid = wp.tid()
     h = t.shape[0]
     w = t.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    x1 = wp.min(x0 + chunk, w)
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
     for x in range(x0, x1):
         st = status[y, x]
         t_out[y, x] = t[y, x]
@@ -474,12 +451,12 @@ def write_points_kernel(
     int32 (exclusive scan of the flags): read.
     uv (n,) vec2, rho/confidence (n,) float32, sector_out/pixel (n,) int32: written.
     """
-    tid = wp.tid()
     w = t.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         if status[y, x] == PHASE_OK:
             i = y * w + x
             o = offsets[i]
@@ -642,9 +619,7 @@ def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads:
     total = 0
     if n:
         flags = phase.flags
-        offsets = wp.empty_like(flags)
-        wp.utils.array_scan(flags, offsets, inclusive=False)
-        total = int(offsets[-1:].numpy()[0] + flags[-1:].numpy()[0])
+        offsets, total = scan_counts(flags)
     out = PhasePoints(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=wp.empty(total, dtype=wp.float32, device=dev),
                       sector=wp.empty(total, dtype=wp.int32, device=dev),
                       confidence=wp.empty(total, dtype=wp.float32, device=dev),

@@ -24,7 +24,7 @@ from typing import Any
 
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.launch import default_threads, launch_rows, row_run
 
 FRAME_WHITE = wp.constant(0)
 FRAME_BLACK = wp.constant(1)
@@ -125,12 +125,11 @@ def decode_gray_rings_kernel(
     code, weak, band, sector: (H, W) int32, written.
     contrast: (H, W) float32, written.
     """
-    tid = wp.tid()
     w = frames.shape[2]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    x1 = wp.min(x0 + chunk, w)
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
     for x in range(x0, x1):
         contrast[y, x] = float(frames[FRAME_WHITE, y, x]) - float(frames[FRAME_BLACK, y, x])
         code[y, x] = 0

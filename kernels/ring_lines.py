@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 
 BORDER = wp.constant(2)
 RESULT = wp.types.vector(length=8, dtype=wp.float32)
@@ -225,12 +225,12 @@ def smooth_rows_kernel(
     weights: (2 * radius + 1,) float32, read.
     out: (H, W) float32 in 8-bit grey levels (``scale`` = 1 or 1/257), written.
     """
-    tid = wp.tid()
     w = frames.shape[2]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         acc = float(0.0)
         for k in range(-radius, radius + 1):
             xx = wp.clamp(x + k, 0, w - 1)
@@ -252,13 +252,12 @@ def smooth_cols_kernel(
     src: (H, W) float32, read. weights: (2 * radius + 1,) float32, read.
     out: (H, W) float32, written.
     """
-    tid = wp.tid()
     h = src.shape[0]
     w = src.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    x1 = wp.min(x0 + chunk, w)
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
     for x in range(x0, x1):
         out[y, x] = 0.0
     for k in range(-radius, radius + 1):
@@ -285,12 +284,12 @@ def count_ridges_kernel(
 
     S: (H, W) float32 smoothed frame, read. counts: (H * W,) int32, written.
     """
-    tid = wp.tid()
     w = S.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, max_tangent_slope, background_px)
         counts[y * w + x] = wp.where(r[0] > 0.0, 1, 0)
 
@@ -321,12 +320,12 @@ def write_ridges_kernel(
     uv, normal (n,) vec2; pixel (n,) int32; contrast, curvature, confidence (n,)
     float32: written.
     """
-    tid = wp.tid()
     w = S.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         i = y * w + x
         if counts[i] > 0:
             r = ridge_at(S, y, x, min_contrast, min_curvature, max_eigen_ratio, max_tangent_slope, background_px)
@@ -425,11 +424,7 @@ def detect_ring_lines(
     counts = wp.zeros(h * w, dtype=wp.int32, device=dev)
     if h * w:
         launch_rows(count_ridges_kernel, h, w, lambda r0, c: [S, *params, r0, c], [counts], dev, threads)
-    offsets = wp.empty_like(counts)
-    total = 0
-    if h * w:
-        wp.utils.array_scan(counts, offsets, inclusive=False)
-        total = int(offsets[-1:].numpy()[0] + counts[-1:].numpy()[0])
+    offsets, total = scan_counts(counts)
     out = RingLines(
         uv=wp.empty(total, dtype=wp.vec2, device=dev),
         normal=wp.empty(total, dtype=wp.vec2, device=dev),

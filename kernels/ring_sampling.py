@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_rows
+from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
 
 __all__ = ["SampleSettings", "RingSamples", "sample_gray_rings", "ring_radii"]
@@ -200,12 +200,12 @@ def count_edges_kernel(
     fraction, slope: (2*H*W,) float32 written at 2*i + d for each found pair d
         (0: +x, 1: +y): the crossing's position along the pair and its confidence.
     """
-    tid = wp.tid()
     w = code.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         i = y * w + x
         n = int(0)
         bitsf = int(0)
@@ -259,12 +259,12 @@ def write_edges_kernel(
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32: written.
     """
-    tid = wp.tid()
     w = code.shape[1]
-    n_chunks = (w + chunk - 1) / chunk
-    y = row0 + tid / n_chunks
-    x0 = (tid - (tid / n_chunks) * n_chunks) * chunk
-    for x in range(x0, wp.min(x0 + chunk, w)):
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    x0 = run[1]
+    x1 = run[2]
+    for x in range(x0, x1):
         i = y * w + x
         if counts[i] > 0:
             o = offsets[i]
@@ -333,11 +333,7 @@ def sample_gray_rings(
                     lambda r0, chunk: [frames, labels.code, labels.weak, labels.contrast, bits, mc, settings.min_slope,
                                        r0, chunk],
                     [counts, found, fraction, slope], dev, threads)
-    offsets = wp.empty_like(counts)
-    total = 0
-    if h * w:
-        wp.utils.array_scan(counts, offsets, inclusive=False)
-        total = int(offsets[-1:].numpy()[0] + counts[-1:].numpy()[0])
+    offsets, total = scan_counts(counts)
     out = RingSamples(
         uv=wp.empty(total, dtype=wp.vec2, device=dev),
         ring=wp.empty(total, dtype=wp.int32, device=dev),

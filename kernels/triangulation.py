@@ -39,10 +39,11 @@ from ringscan.kernels.geometry import (
     camera_ray,
     make_volume,
     pattern_offset,
+    polar_angle,
     ray_ring_roots,
     root_usable,
 )
-from ringscan.kernels.launch import default_threads, launch_spans
+from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
 
 STATUS_OK = wp.constant(0)
 STATUS_NO_ROOT = wp.constant(1)
@@ -93,32 +94,10 @@ class Triangulation:
 
 
 @wp.func
-def fast_atan2(y: float, x: float):
-    """atan2 to within 2.1e-4 rad (a minimax polynomial on [0, 1] and octant
-    folding; tested): the sector test needs far less (12 sector bits make sectors
-    1.5e-3 rad wide, and the tolerance is 0.75 of one)."""
-    ax = wp.abs(x)
-    ay = wp.abs(y)
-    mx = wp.max(ax, ay)
-    if mx == 0.0:
-        return 0.0
-    a = wp.min(ax, ay) / mx
-    s = a * a
-    r = ((-0.0464964749 * s + 0.15931422) * s - 0.327622764) * s * a + a
-    if ay > ax:
-        r = 1.57079637 - r
-    if x < 0.0:
-        r = 3.14159274 - r
-    if y < 0.0:
-        r = -r
-    return r
-
-
-@wp.func
 def sector_residual(light: LightModel, X: wp.vec3, center: wp.vec2, sector: int, n_sectors: int):
     """Distance (in sector widths) of X's polar angle outside decoded ``sector``."""
     off = pattern_offset(light, X, center)
-    phi = fast_atan2(off[1], off[0])
+    phi = polar_angle(off[1], off[0])
     width = 2.0 * PI / float(n_sectors)
     mid = (float(sector) + 0.5) * width - PI
     dphi = phi - mid
@@ -308,9 +287,7 @@ def compact_points(status: wp.array) -> wp.array:
         return wp.empty(0, dtype=wp.int32, device=dev)
     flags = wp.empty(n, dtype=wp.int32, device=dev)
     wp.launch(count_valid_kernel, dim=n, inputs=[status], outputs=[flags], device=dev)
-    offsets = wp.empty_like(flags)
-    wp.utils.array_scan(flags, offsets, inclusive=False)
-    total = int(offsets[-1:].numpy()[0] + flags[-1:].numpy()[0])
+    offsets, total = scan_counts(flags)
     index = wp.empty(total, dtype=wp.int32, device=dev)
     if total:
         wp.launch(compact_kernel, dim=n, inputs=[status, offsets], outputs=[index], device=dev)

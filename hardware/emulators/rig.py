@@ -6,7 +6,7 @@
   ``Run`` during a simulated move and ``Idle`` after it, alarms, ``$X``, ``G90``/
   ``G91``/``G92``/``G0``/``G1``/``G4``, ``M17``/``M18`` on Horus.
 - :class:`EmulatedProjector`: a serial pattern projector (protocol in
-  :mod:`ringscan.hardware.projector`).
+  :mod:`ringscan.hardware.devices.projector`).
 - :class:`CameraServer`: serves a camera on a Unix socket (``SocketCamera``).
 - :class:`EmulatedRig`: all three around the virtual rig's renderer, as
   ``ringscan emulate`` and ``ringscan capture --virtual`` start it.

@@ -290,7 +290,7 @@ def orient_normals(cloud, *, k: int = 20):
     Normals come from PCA over the ``k`` nearest neighbours, are made consistent
     over the cloud (Open3D's tangent-plane propagation) and flipped as a whole when
     most point toward the centroid (right for a single closed object). Clouds from
-    :func:`~ringscan.pipeline.fuse.fuse_views` need none of this: their normals are
+    :func:`~ringscan.pipeline.fusion.turntable.fuse_views` need none of this: their normals are
     oriented toward each view's camera.
     """
     o3d = open3d_lib()

@@ -189,7 +189,7 @@ def tsdf_mesh(source, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
     """TSDF fusion of per-view depth maps (Open3D's sparse voxel-block TSDF).
 
     Args:
-        source: a :class:`~ringscan.pipeline.fuse.FuseResult` (each view's cloud is
+        source: a :class:`~ringscan.pipeline.fusion.turntable.FuseResult` (each view's cloud is
             projected into its own camera: the rig's camera moved into the object
             frame with the view's pose), or an oriented ``o3d.geometry.PointCloud``
             (integrated from ``tsdf_virtual_views`` virtual cameras around it, each

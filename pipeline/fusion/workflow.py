@@ -173,13 +173,13 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
 
     Writes into ``out_dir``: ``fused.ply`` (the fused cloud), ``mesh.<ext>`` for each
     of ``formats`` (ply, obj, stl), ``preview.png`` (when ``preview``; see
-    :mod:`ringscan.pipeline.visualize`) and ``fuse_report.json`` (per-view residuals,
+    :mod:`ringscan.pipeline.preview`) and ``fuse_report.json`` (per-view residuals,
     mesh checks, resolved settings, and the figures against ``truth`` when given).
     A scan folder is reconstructed first into ``out_dir/recon``.
 
     ``recon_dir`` may also be a list of folders: scans of the same object in several
     poses (flip and rescan). The first is the reference pose; each is fused on its
-    own, the others are aligned to it (:func:`ringscan.pipeline.fuse.fuse_poses`,
+    own, the others are aligned to it (:func:`ringscan.pipeline.fusion.poses.fuse_poses`,
     with ``pose_settings``) and everything is merged in its object frame. Scan
     folders are then reconstructed into ``out_dir/recon/pose_<i>``; the report's
     ``fusion.poses`` holds each pose's transform, fitness and inlier RMSE, and
@@ -269,7 +269,7 @@ def mesh_cloud(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
 
 
 def mesh_fused(result, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
-    """Mesh a :class:`~ringscan.pipeline.fuse.FuseResult`: Poisson on its fused
+    """Mesh a :class:`~ringscan.pipeline.fusion.turntable.FuseResult`: Poisson on its fused
     cloud, or TSDF from its views' depth maps."""
     check_mesh_settings(settings)
     if settings.method == "tsdf":

@@ -208,7 +208,7 @@ def _render_open3d(geoms, K, E, s: ViewSettings) -> np.ndarray:
         job = {"settings": dataclasses.asdict(s), "K": np.asarray(K).tolist(), "E": np.asarray(E).tolist(),
                "geoms": items}
         Path(tmp, "job.json").write_text(json.dumps(job))
-        code = f"from ringscan.pipeline.visualize import _child_main; _child_main({tmp!r})"
+        code = f"from ringscan.pipeline.preview.render import _child_main; _child_main({tmp!r})"
         try:
             res = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=s.timeout_s)
         except subprocess.TimeoutExpired:

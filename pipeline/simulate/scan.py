@@ -55,7 +55,7 @@ def simulate_scan(
         size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
         image_format: ``png`` or ``tiff`` for the frames.
         pose: turn the placed scene into this resting pose first (see
-            :func:`ringscan.pipeline.scenes.pose_scene`: ``upright``, ``upside-down``,
+            :func:`ringscan.pipeline.simulate.scenes.pose_scene`: ``upright``, ``upside-down``,
             ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
             The truth mesh is the posed scene, and scan.json ``truth.pose`` records
             the transform from the upright scene.

@@ -121,7 +121,7 @@ class RenderSettings:
 
 
 def _turn(turntable: Turntable | None, deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) of :func:`ringscan.pipeline.rig.turntable_transform`: X' = R X + t."""
+    """(R, t) of :func:`ringscan.pipeline.formats.rig.turntable_transform`: X' = R X + t."""
     T = turntable_transform(turntable, deg)
     return T[:3, :3], T[:3, 3]
 

@@ -13,7 +13,6 @@ from ringscan.kernels.phase import (
     PhaseSettings,
     compact_phase_points,
     decode_phase,
-    phase_atan2,
     response_tables,
     smooth_phase,
 )
@@ -268,25 +267,3 @@ def test_sixteen_bit_frames(device):
     assert ok.sum() > 0.95 * _annulus(spec, rho).sum()
     assert np.abs(ph.t.numpy()[ok] - t_true[ok]).max() < 0.05
     assert math.isfinite(float(ph.modulation.numpy().max()))
-
-
-@wp.kernel
-def _atan2_kernel(y: wp.array(dtype=float), x: wp.array(dtype=float), out: wp.array(dtype=float)):
-    i = wp.tid()
-    out[i] = phase_atan2(y[i], x[i])
-
-
-def test_phase_atan2_matches_the_library(device):
-    rng = np.random.default_rng(0)
-    a = np.concatenate([rng.uniform(-np.pi, np.pi, 20000), np.arange(-4, 5) * np.pi / 4])
-    r = np.concatenate([rng.uniform(1e-3, 10.0, 20000), np.ones(9)])
-    y, x = (r * np.sin(a)).astype(np.float32), (r * np.cos(a)).astype(np.float32)
-    x[-9:] = np.rint(x[-9:])  # exact axes and diagonals
-    y[-9:] = np.rint(y[-9:])
-    out = wp.zeros(a.size, dtype=float, device=device)
-    wp.launch(_atan2_kernel, a.size, inputs=[wp.array(y, device=device), wp.array(x, device=device)], outputs=[out],
-              device=device)
-    got = out.numpy()
-    err = np.angle(np.exp(1j * (got - np.arctan2(y, x))))
-    assert np.abs(err).max() < 2e-5
-    assert np.all(got > -np.pi - 1e-6) and np.all(got <= np.pi + 1e-6)

@@ -119,18 +119,6 @@ def test_bad_input(device):
                           wp.array(rho, device=device), camera=cam, light=light, volume=(0, 1, 1), center=CENTER)
 
 
-def test_fast_atan2_accuracy(device):
-    from tests.kernels.fast_atan2_kernel import run_fast_atan2
-
-    xy = np.random.default_rng(0).normal(size=(20000, 2)).astype(np.float32)
-    xy[:8] = [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [-1, 1e-9]]
-    got = run_fast_atan2(xy, device)
-    ref = np.arctan2(xy[:, 1], xy[:, 0])
-    d = np.abs(got - ref)
-    d = np.minimum(d, 2 * np.pi - d)
-    assert d[1:].max() < 2.1e-4 and got[0] == 0.0
-
-
 def test_cpu_spans_on_several_threads_match_one_thread():
     """On the CPU the samples are cut into spans launched from a thread pool
     (``launch_spans``): every span must land where one launch puts it."""

@@ -45,7 +45,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
 
     Stages: ``decode`` (band + sector Gray codes), ``phase`` (linearise, weighted
     phase, unwrap), ``smooth`` (smoothing, sector fill, compaction into points),
-    ``triangulate``. The NumPy side runs ``tools.numpy_reference`` decode and
+    ``triangulate``. The NumPy side runs ``tools.numpy_twins`` decode and
     triangulation and the twins in this module, on the same frames, in the same
     run; ratios are NumPy time / Warp time. Prints a table with ``out`` and
     returns the figures.

@@ -196,7 +196,7 @@ def phase_numpy(frames: np.ndarray, dec: dict, *, bits: int, sector_bits: int, s
                 wlut: np.ndarray, light_gamma: float = 1.0, settings: PhaseSettings = PhaseSettings()) -> dict:
     """NumPy twin of ``kernels.phase.decode_phase`` (same rules).
 
-    ``dec`` is the band decode as ``tools.numpy_reference.decode_numpy`` returns it
+    ``dec`` is the band decode as ``tools.numpy_twins.decode_numpy`` returns it
     (``code``, ``weak``, ``contrast``). Returns ``t``, ``modulation``, ``status``.
     """
     s = settings

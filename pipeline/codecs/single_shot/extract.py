@@ -25,7 +25,7 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
 
     Args:
         frames: (1, H, W) uint8/uint16 Warp stack (the ``rings`` frame).
-        scan: the :class:`~ringscan.pipeline.scan.Scan`.
+        scan: the :class:`~ringscan.pipeline.formats.scan.Scan`.
         settings: ``ReconstructSettings``; its ``single_shot`` block when it has
             one, else :class:`SingleShotSettings` defaults.
         threads: CPU threads for the row-run kernels.

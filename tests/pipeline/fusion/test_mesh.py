@@ -1,4 +1,4 @@
-"""Meshing (pipeline/mesh.py): Poisson, TSDF, watertight, export, measurement."""
+"""Meshing (pipeline/fusion/mesh.py): Poisson, TSDF, watertight, export, measurement."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fusion of turntable views (pipeline/fuse.py) against a known object."""
+"""Fusion of turntable views (pipeline/fusion/turntable.py) against a known object."""
 
 from __future__ import annotations
 

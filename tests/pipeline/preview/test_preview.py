@@ -1,4 +1,4 @@
-"""Pictures (pipeline/visualize.py): renders checked pixel by pixel against the camera."""
+"""Pictures (pipeline/preview/): renders checked pixel by pixel against the camera."""
 
 from __future__ import annotations
 

@@ -1,0 +1,41 @@
+"""The package layout: every re-exported name resolves, and the formats leaf stays light."""
+
+import importlib
+import pkgutil
+import subprocess
+import sys
+
+import pytest
+
+import ringscan.hardware
+import ringscan.kernels
+import ringscan.pipeline
+import ringscan.tools
+
+PACKAGES = [ringscan.kernels, ringscan.pipeline, ringscan.hardware, ringscan.tools]
+MODULES = sorted(m.name for pkg in PACKAGES for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."))
+
+
+@pytest.mark.parametrize("name", sorted(ringscan.pipeline.__all__))
+def test_pipeline_root_exports_resolve(name):
+    assert getattr(ringscan.pipeline, name) is not None
+
+
+def test_unknown_root_name_is_an_attribute_error():
+    with pytest.raises(AttributeError, match="no attribute 'reconstruct_scna'"):
+        ringscan.pipeline.reconstruct_scna  # noqa: B018
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_every_module_imports_and_its_all_resolves(module):
+    mod = importlib.import_module(module)
+    for name in getattr(mod, "__all__", []):
+        assert hasattr(mod, name), f"{module}.__all__ names {name!r}, which it does not define"
+
+
+def test_formats_and_the_real_drivers_load_no_warp_and_no_open3d():
+    code = ("import sys, ringscan.pipeline.formats, ringscan.hardware.devices.turntable, "
+            "ringscan.hardware.devices.projector, ringscan.hardware.capture;"
+            "bad = [m for m in ('warp', 'open3d') if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
