@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.hardware.devices.base import Device
 from ringscan.hardware.errors import CameraError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
@@ -48,7 +49,7 @@ def to_grey(img: np.ndarray, *, source: str = "camera") -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-class CameraDevice(abc.ABC):
+class CameraDevice(Device):
     """A camera that grabs grey frames on request."""
 
     source = "camera"
@@ -80,14 +81,6 @@ class CameraDevice(abc.ABC):
     def recover(self) -> None:
         """Bring the camera back after a fault (reopen)."""
 
-    def close(self) -> None:
-        """Release the camera."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class OpenCVCamera(CameraDevice):

@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from ringscan.hardware.devices.base import Device
 from ringscan.hardware.devices.serial_link import LineLink
 from ringscan.hardware.errors import ProjectorCommandError, ProjectorDisconnected, ProjectorError, ProjectorTimeout
 
@@ -43,7 +44,7 @@ IDENT = "RINGSCAN-PROJECTOR"
 ERROR_CODES = {1: "unknown command or bad syntax", 2: "index out of range", 3: "display fault"}
 
 
-class ProjectorDevice(abc.ABC):
+class ProjectorDevice(Device):
     """A projector showing preloaded frames by index (index i = the codec's i-th frame)."""
 
     @property
@@ -61,14 +62,6 @@ class ProjectorDevice(abc.ABC):
     def recover(self) -> None:
         """Bring the device back after a fault (reconnect, resynchronise)."""
 
-    def close(self) -> None:
-        """Release the device."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class FrameStore:

@@ -25,6 +25,7 @@ import re
 import time
 from dataclasses import dataclass
 
+from ringscan.hardware.devices.base import Device
 from ringscan.hardware.devices.serial_link import LineLink
 from ringscan.hardware.errors import (
     GRBL_ALARMS,
@@ -92,7 +93,7 @@ def format_angle(deg: float) -> str:
     return "0.000" if s == "-0.000" else s
 
 
-class TurntableDevice(abc.ABC):
+class TurntableDevice(Device):
     """A turntable: moves to absolute angles (degrees, DESIGN §6) and reports where it is."""
 
     @property
@@ -114,14 +115,6 @@ class TurntableDevice(abc.ABC):
     def recover(self) -> None:
         """Bring the device back after a fault whose position is known (reconnect)."""
 
-    def close(self) -> None:
-        """Release the device."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class VirtualTurntable(TurntableDevice):

@@ -33,13 +33,13 @@ def test_module_compiles_for_cuda(name, tmp_path):
         assert wmod.functions or wmod.structs, f"{name} has no Warp code"
         return
     try:
-        paths = wp.compile_aot_module(mod, device=None, arch=90, module_dir=tmp_path, use_ptx=True)
+        wp.compile_aot_module(mod, device=None, arch=90, module_dir=tmp_path, use_ptx=True)
     except RuntimeError as e:
         if "NVRTC" in str(e) or "nvrtc" in str(e):
             pytest.skip(f"NVRTC is not available in this Warp build: {e}")
         raise
-    assert paths and all(p.exists() and p.stat().st_size > 0 for p in paths)
-    ptx = [p for p in paths if p.suffix == ".ptx"]
-    assert ptx, paths
+    # Warp 1.9 returns nothing, later versions the paths: look in the folder
+    ptx = sorted(tmp_path.rglob("*.ptx"))
+    assert ptx and all(p.stat().st_size > 0 for p in ptx), sorted(tmp_path.rglob("*"))
     text = ptx[0].read_text(errors="replace")
     assert ".target sm_90" in text

@@ -28,10 +28,12 @@ from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangu
 
 log = logging.getLogger(__name__)
 
-__all__ = ["memory_bandwidth", "run_bench"]
+__all__ = ["best_of", "memory_bandwidth", "run_bench"]
 
 
-def _best(fn, repeats: int) -> float:
+def best_of(fn, repeats: int) -> float:
+    """The shortest of ``repeats`` wall times of ``fn()`` (seconds): the least
+    disturbed run on a noisy machine."""
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
@@ -44,7 +46,7 @@ def memory_bandwidth(nbytes: int = 256 << 20, repeats: int = 5) -> float:
     """Copy bandwidth in bytes/s (read + write counted), best of ``repeats``."""
     src = np.ones(nbytes, np.uint8)
     dst = np.empty_like(src)
-    t = _best(lambda: np.copyto(dst, src), repeats)
+    t = best_of(lambda: np.copyto(dst, src), repeats)
     return 2 * nbytes / t
 
 
@@ -85,11 +87,11 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     # NumPy reference, same frames, same rules.
     ref = {}
     dec_np = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
-    ref["decode"] = _best(lambda: decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits), repeats)
+    ref["decode"] = best_of(lambda: decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits), repeats)
     smp_np = sample_numpy(frames, dec_np, bits=spec.bits)
-    ref["sample"] = _best(lambda: sample_numpy(frames, dec_np, bits=spec.bits), repeats)
+    ref["sample"] = best_of(lambda: sample_numpy(frames, dec_np, bits=spec.bits), repeats)
     rho_np = (spec.rho0 + smp_np["ring"] * spec.pitch).astype(np.float32)
-    ref["triangulate"] = _best(lambda: triangulate_numpy(smp_np["uv"], rho_np, smp_np["sector"], rig,
+    ref["triangulate"] = best_of(lambda: triangulate_numpy(smp_np["uv"], rho_np, smp_np["sector"], rig,
                                                          center=spec.center, sector_bits=spec.sector_bits), repeats)
     ref["total"] = sum(ref.values())
 
@@ -122,7 +124,7 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
                 wp.synchronize_device(dev)
 
             dec(), smp(), tri()  # warm up: compile or load kernels
-            t = {"decode": _best(dec, repeats), "sample": _best(smp, repeats), "triangulate": _best(tri, repeats)}
+            t = {"decode": best_of(dec, repeats), "sample": best_of(smp, repeats), "triangulate": best_of(tri, repeats)}
             t["total"] = sum(t.values())
             runs.append({"device": dev, "threads": threads, "times": t, "samples": len(state["s"])})
 

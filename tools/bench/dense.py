@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +18,12 @@ from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.bench.core import best_of
 from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy, triangulate_numpy
 
 log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_BENCH_PATTERNS", "bench_dense"]
-
-
-def _best(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 DEFAULT_BENCH_PATTERNS = {"codec": "phase-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
@@ -105,7 +96,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
 
         for name, fn in (("decode", np_decode), ("phase", np_phase), ("smooth", np_smooth), ("triangulate", np_tri)):
             fn()
-            ref[name] = _best(fn, repeats)
+            ref[name] = best_of(fn, repeats)
         ref["total"] = sum(ref.values())
         n_np = int(np.count_nonzero(state["tri"][1] == 0))
 
@@ -145,7 +136,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
                 stages = (("decode", wdec), ("phase", wphase), ("smooth", wsmooth), ("triangulate", wtri))
                 for _, fn in stages:  # warm up: compile or load the kernels
                     fn()
-                tm = {name: _best(fn, repeats) for name, fn in stages}
+                tm = {name: best_of(fn, repeats) for name, fn in stages}
                 tm["total"] = sum(tm.values())
                 n_pts = int(np.count_nonzero(ws["tri"].status.numpy() == 0))
                 runs.append({"device": dev, "threads": threads, "times": tm, "points": n_pts})
