@@ -28,6 +28,8 @@ COMMANDS = [
     "mesh",
     "view",
     "sweep",
+    "calibrate",
+    "import",
     "capture",
     "emulate",
     "bench",

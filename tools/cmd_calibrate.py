@@ -1,0 +1,159 @@
+"""``ringscan calibrate <what> ...``: calibration of a real rig (docs/calibration.md).
+
+Sub-commands register themselves: each ``add_<name>_parser(calsub)`` adds one
+sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
+
+- ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
+from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.rig import parse_rig, save_rig
+
+
+def parse_size(text: str, what: str) -> tuple[int, int]:
+    """'9x7' -> (9, 7); a clear error otherwise."""
+    try:
+        a, b = text.lower().split("x")
+        w, h = int(a), int(b)
+    except ValueError:
+        raise ValueError(f"{what}: expected WxH (e.g. 9x7), got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{what}: sizes must be positive, got {text!r}")
+    return w, h
+
+
+def view_name(path) -> str:
+    """An image's name in messages: its folder and file name (captures share file names)."""
+    return "/".join(Path(path).parts[-2:])
+
+
+def add_board_options(p) -> None:
+    g = p.add_argument_group("board")
+    g.add_argument("--board", default="9x7", metavar="COLSxROWS", help="inner corners of the chessboard (default 9x7)")
+    g.add_argument("--square", type=float, required=True, help="square size in mm (the rig's units)")
+    g.add_argument("--charuco", choices=ARUCO_DICTIONARIES, default=None,
+                   help="a ChArUco board with this ArUco dictionary (--board counts its inner corners)")
+    g.add_argument("--marker", type=float, default=0.0, help="ChArUco marker size in mm (default 0.75 x square)")
+    g.add_argument("--max-tilt", type=float, default=BoardSettings.max_tilt_deg,
+                   help=f"reject views tilted more than this (degrees, default {BoardSettings.max_tilt_deg:g})")
+    g.add_argument("--max-edge-width", type=float, default=BoardSettings.max_edge_width_px,
+                   help=f"reject chessboards with edges wider than this (px, default {BoardSettings.max_edge_width_px:g})")
+
+
+def add_fit_options(p) -> None:
+    g = p.add_argument_group("fit")
+    g.add_argument("--fix-k3", choices=("auto", "yes", "no"), default="auto",
+                   help=f"hold k3 at 0 (auto: below {CameraSettings.k3_min_views} views)")
+    g.add_argument("--fix-tangential", choices=("auto", "yes", "no"), default="auto",
+                   help=f"hold p1, p2 at 0 (auto: below {CameraSettings.tangential_min_views} views)")
+    g.add_argument("--min-views", type=int, default=CameraSettings.min_views,
+                   help=f"fewest usable views (default {CameraSettings.min_views})")
+
+
+def board_from_args(args) -> Board:
+    cols, rows = parse_size(args.board, "--board")
+    return Board(cols=cols, rows=rows, square=args.square, charuco=args.charuco, marker=args.marker)
+
+
+def board_settings_from_args(args) -> BoardSettings:
+    return BoardSettings(max_edge_width_px=args.max_edge_width, max_tilt_deg=args.max_tilt)
+
+
+def camera_settings_from_args(args) -> CameraSettings:
+    tri = {"auto": None, "yes": True, "no": False}
+    return CameraSettings(min_views=args.min_views, fix_k3=tri[args.fix_k3], fix_tangential=tri[args.fix_tangential])
+
+
+def print_views(views) -> None:
+    for v in views:
+        print(f"  {v.name}: {'found' if v.found else v.reason}")
+
+
+def print_calibration(what: str, cal) -> None:
+    print(f"{what}: RMS reprojection error {cal.rms:.3f} px over {len(cal.names)} views; "
+          f"fx {cal.K[0, 0]:.1f} fy {cal.K[1, 1]:.1f} cx {cal.K[0, 2]:.1f} cy {cal.K[1, 2]:.1f}; "
+          f"dist {', '.join(f'{x:.4g}' for x in cal.dist)}; fixed: {', '.join(cal.fixed) or 'none'}")
+    for n, e in zip(cal.names, cal.per_view):
+        flag = "  <- spoils the fit" if n in cal.outliers else ""
+        print(f"  {n}: {e:.3f} px{flag}")
+
+
+# ----------------------------------------------------------------------------- camera
+
+
+def add_camera_parser(calsub) -> None:
+    p = calsub.add_parser("camera", help="camera intrinsics from chessboard or ChArUco images",
+                          description="Detect the board in every image (found, or why not: not found, blurred, too "
+                                      "oblique), calibrate the camera (OpenCV), print the reprojection error overall "
+                                      "and per image, and write the rig file's camera block.")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="board images (8/16-bit PNG/TIFF/JPEG)")
+    add_board_options(p)
+    add_fit_options(p)
+    p.add_argument("--out", default=None, metavar="JSON",
+                   help="write {'camera': block, 'report': ...} here (the camera block of a rig file)")
+    p.add_argument("--rig", default=None, metavar="RIG",
+                   help="update this rig file's camera intrinsics in place (its extrinsics are kept)")
+    p.set_defaults(_calibrate=run_camera)
+
+
+def run_camera(args) -> int:
+    if not args.out and not args.rig:
+        raise ValueError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
+    board = board_from_args(args)
+    bs = board_settings_from_args(args)
+    views, size = [], None
+    for path in args.images:
+        img = read_image(path)
+        s = (img.shape[1], img.shape[0])
+        if size is None:
+            size = s
+        elif s != size:
+            raise FormatError(path, f"image is {s[0]}x{s[1]}, the first image is {size[0]}x{size[1]}")
+        views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
+    print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} images:")
+    print_views(views)
+    cal = calibrate_camera(views, board=board, size=size, settings=camera_settings_from_args(args))
+    print_calibration("camera", cal)
+    block = camera_block(cal)
+    if args.out:
+        atomic_write_json(args.out, {"camera": block, "report": calibration_report(cal)})
+        print(f"wrote {args.out}")
+    if args.rig:
+        d = read_json(args.rig)
+        cam = d.get("camera") if isinstance(d, dict) else None
+        if not isinstance(cam, dict):
+            raise FormatError(args.rig, "camera: missing or not an object")
+        cam.update(block)
+        save_rig(args.rig, parse_rig(d, source=args.rig))
+        print(f"updated the camera of {args.rig}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- dispatch
+
+
+def add_parser(sub):
+    p = sub.add_parser("calibrate", help="calibrate a real rig: camera, projector (procam), response",
+                       description="Calibration of a real rig; see docs/calibration.md.",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    calsub = p.add_subparsers(dest="what", metavar="WHAT")
+    for name, fn in list(globals().items()):
+        if name.startswith("add_") and name.endswith("_parser") and name not in ("add_parser",) and callable(fn):
+            fn(calsub)
+    return p
+
+
+def run(args) -> int:
+    fn = getattr(args, "_calibrate", None)
+    if fn is None:
+        raise ValueError("calibrate: say what to calibrate (e.g. `ringscan calibrate camera --help`)")
+    return int(fn(args) or 0)
