@@ -3,7 +3,12 @@
 Sub-commands register themselves: each ``add_<name>_parser(calsub)`` adds one
 sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 
-- ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images.
+- ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images;
+- ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
+- ``response CAPTURE_DIR...``: the projector's response curve.
+
+New sub-commands are found by name: any module-level ``add_<name>_parser`` function
+is called by :func:`add_parser`, in definition order.
 """
 
 from __future__ import annotations
@@ -11,8 +16,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
+from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
+from ringscan.pipeline.calibrate.procam import (
+    ProcamSettings,
+    calibrate_procam,
+    capture_corners,
+    depth_range,
+    principal_point_inside,
+    procam_rig,
+)
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
@@ -135,6 +151,75 @@ def run_camera(args) -> int:
         cam.update(block)
         save_rig(args.rig, parse_rig(d, source=args.rig))
         print(f"updated the camera of {args.rig}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- procam
+
+
+def add_procam_parser(calsub) -> None:
+    p = calsub.add_parser("procam", help="camera + perspective projector from Gray-code captures of a board",
+                          description="Each CAPTURE_DIR holds graycode_NN frames of the board under the projector's "
+                                      "column/row Gray code (see --layout). The board's corners are found in the white "
+                                      "frame, each corner's projector position comes from a local homography fitted "
+                                      "to the decoded pixels around it (Moreno & Taubin 2012); the projector is "
+                                      "calibrated like a camera, then the pair is stereo-calibrated. Writes a rig "
+                                      "file with the perspective light and a working volume around the boards.")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE_DIR", help="capture folders (one board pose each)")
+    add_board_options(p)
+    add_fit_options(p)
+    p.add_argument("--projector", required=True, metavar="WxH", help="projector size in pixels, e.g. 1024x768")
+    p.add_argument("--layout", choices=LAYOUTS, default="opencv-graycode",
+                   help="frame order: opencv-graycode = column pairs, row pairs, white, black (OpenCV's files); "
+                        "opencv-graycode-wb-first = white, black, then the pairs")
+    p.add_argument("--window", type=int, default=ProcamSettings.window_px,
+                   help=f"local-homography half window in camera px (default {ProcamSettings.window_px})")
+    p.add_argument("--out", required=True, metavar="RIG", help="the rig file to write")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    p.set_defaults(_calibrate=run_procam)
+
+
+def run_procam(args) -> int:
+    board = board_from_args(args)
+    proj_size = parse_size(args.projector, "--projector")
+    settings = ProcamSettings(window_px=args.window, camera=camera_settings_from_args(args),
+                              board=board_settings_from_args(args))
+    caps, size = [], None
+    for folder in args.captures:
+        cap = read_capture(folder, projector=proj_size, layout=args.layout)
+        s = (cap.white.shape[1], cap.white.shape[0])
+        if size is None:
+            size = s
+        elif s != size:
+            raise FormatError(folder, f"frames are {s[0]}x{s[1]}, {args.captures[0]} has {size[0]}x{size[1]}")
+        cc = capture_corners(cap, board=board, name=Path(folder).name, settings=settings)
+        del cap
+        print(f"  {cc.name}: " + ("board found" if cc.camera_view.found else cc.camera_view.reason)
+              + ("" if not cc.camera_view.found else
+                 (f", {len(cc.projector_view.ids)} corners in the projector" if cc.projector_view.found
+                  else f", {cc.projector_view.reason}")))
+        caps.append(cc)
+    res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
+    print_calibration("camera", res.camera)
+    print_calibration("projector", res.projector)
+    print(f"stereo: RMS reprojection error {res.stereo_rms:.3f} px; baseline {np.linalg.norm(res.T):.1f}; "
+          f"T {', '.join(f'{x:.1f}' for x in res.T)}")
+    for n, e in res.stereo_per_view.items():
+        print(f"  {n}: {e:.3f} px")
+    if not principal_point_inside(res.projector.K, proj_size):
+        print(f"note: the projector's principal point ({res.projector.K[0, 2]:.0f}, {res.projector.K[1, 2]:.0f}) "
+              "lies outside its image: rings about it are arcs, and the cone model is ill-conditioned where "
+              "the camera rays graze them (see docs/calibration.md)")
+    near, far = depth_range(res.depths)
+    rig = procam_rig(cam_K=res.camera.K, cam_dist=res.camera.dist, cam_size=size, proj_K=res.projector.K,
+                     proj_dist=res.projector.dist, proj_size=proj_size, R=res.R, T=res.T, z_range=(near, far))
+    save_rig(args.out, rig)
+    print(f"wrote {args.out} (perspective light; working volume {near:.0f}..{far:.0f} along the projector axis)")
+    if args.report:
+        atomic_write_json(args.report, {"camera": calibration_report(res.camera),
+                                        "projector": calibration_report(res.projector),
+                                        "stereo": {"rms_px": res.stereo_rms, "views": res.stereo_per_view,
+                                                   "R": res.R.tolist(), "T": res.T.tolist()}})
     return 0
 
 

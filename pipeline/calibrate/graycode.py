@@ -1,0 +1,280 @@
+"""Column/row Gray-code captures (OpenCV's structured-light layout) -> projector coordinates.
+
+A capture is one folder of frames ``graycode_00.png`` ... of a camera watching a
+projector of W_p x H_p pixels show the binary-reflected Gray code of each column
+(``ceil(log2 W_p)`` bits, most significant first) and each row (``ceil(log2 H_p)``
+bits), every pattern followed by its inverse, plus a white and a black frame.
+Two orders of white/black are read (``LAYOUTS``):
+
+- ``opencv-graycode``: column pairs, row pairs, then white, black: the files of
+  OpenCV's ``GrayCodePattern.generate`` followed by ``getImagesForShadowMasks``, as in
+  ../shared/data/procam (``graycode_40`` white, ``graycode_41`` black);
+- ``opencv-graycode-wb-first``: white, black, then the column and row pairs
+  (DESIGN §6's wording).
+
+Decoding (:func:`decode_graycode`): a pixel is decoded where white - black
+>= ``min_contrast`` and every pattern differs from its inverse by at least
+``min_bit_contrast``; bit = pattern > inverse; Gray -> binary gives the integer
+column c and row r (the plain way: the projector pixel (c, r)).
+
+Sub-pixel (the ringscan way, :func:`subpixel_map`): along the camera axis on which
+a code changes fastest, each step c -> c +- 1 between neighbouring camera pixels is
+a projector pixel boundary (u_p = c +- 0.5); the one bit that flips there crosses
+its inverse, and the zero of (pattern - inverse), interpolated linearly between
+the two pixels, places the boundary to sub-pixel precision in the camera. Each
+pixel's projector coordinate is then interpolated linearly between the boundaries
+on either side of it. Pixels without two consecutive boundaries around them
+(code errors, depth edges, a camera that sees more than one projector pixel per
+camera pixel) keep their integer code and are flagged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ringscan.pipeline.calibrate.errors import CalibrationError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import gray_decode
+
+__all__ = ["LAYOUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "graycode_bits", "read_capture",
+           "decode_graycode", "subpixel_map"]
+
+log = logging.getLogger(__name__)
+
+LAYOUTS = ("opencv-graycode", "opencv-graycode-wb-first")
+"""Known capture layouts (see the module docstring)."""
+
+FRAME_RE = re.compile(r"^graycode_(\d+)\.(png|tif|tiff|bmp|jpg)$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class GrayCodeSettings:
+    """Decoding settings."""
+
+    min_contrast: float = 20.0
+    """Least white - black (8-bit levels) of a decoded pixel."""
+    min_bit_contrast: float = 0.0
+    """Least |pattern - inverse| (8-bit levels) of every bit of a decoded pixel. 0 by
+    default: on a projector pixel boundary the bit that flips there has no contrast
+    by nature, and the sub-pixel stage checks codes against their neighbours."""
+    max_span_px: float = 12.0
+    """Boundaries farther apart than this (camera px) are not interpolated between."""
+
+
+@dataclass
+class GrayCodeCapture:
+    """The frames of one capture, sorted into white, black and pattern/inverse pairs."""
+
+    folder: Path
+    """The capture folder."""
+    white: np.ndarray
+    """(H, W) float32 white frame (8-bit levels)."""
+    black: np.ndarray
+    """(H, W) float32 black frame."""
+    col_pairs: np.ndarray
+    """(col_bits, 2, H, W) float32 column patterns and inverses, MSB first."""
+    row_pairs: np.ndarray
+    """(row_bits, 2, H, W) float32 row patterns and inverses, MSB first."""
+    projector: tuple[int, int]
+    """Projector (width, height)."""
+
+
+@dataclass
+class Decoded:
+    """A decoded capture."""
+
+    col: np.ndarray
+    """(H, W) int32 integer projector column (-1 where not decoded)."""
+    row: np.ndarray
+    """(H, W) int32 integer projector row (-1 where not decoded)."""
+    valid: np.ndarray
+    """(H, W) bool: decoded (enough contrast, every bit clear, code inside the projector)."""
+    contrast: np.ndarray
+    """(H, W) float32 white - black."""
+    u: np.ndarray | None = None
+    """(H, W) float64 sub-pixel projector u (NaN where not decoded)."""
+    v: np.ndarray | None = None
+    """(H, W) float64 sub-pixel projector v."""
+    subpixel: np.ndarray | None = None
+    """(H, W) bool: both u and v were interpolated between boundaries (else integer codes)."""
+
+
+def graycode_bits(projector: tuple[int, int]) -> tuple[int, int]:
+    """Column and row bits of a W_p x H_p projector: ceil(log2 W_p), ceil(log2 H_p)."""
+    w, h = projector
+    if w < 2 or h < 2:
+        raise ValueError(f"projector size must be at least 2x2, got {w}x{h}")
+    return int(math.ceil(math.log2(w))), int(math.ceil(math.log2(h)))
+
+
+def capture_frames(folder: Path) -> list[Path]:
+    """The ``graycode_NN`` frames of a capture folder, in numeric order."""
+    if not folder.is_dir():
+        raise CalibrationError(folder, "capture folder not found")
+    found = []
+    for p in folder.iterdir():
+        m = FRAME_RE.match(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    found.sort()
+    idx = [i for i, _ in found]
+    if idx != list(range(len(idx))):
+        raise CalibrationError(folder, f"graycode_NN frames are not numbered 0..{len(idx) - 1} without gaps")
+    return [p for _, p in found]
+
+
+def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-graycode") -> GrayCodeCapture:
+    """Read one capture folder and sort its frames by ``layout``.
+
+    Raises:
+        CalibrationError: no frames, a frame count that does not fit the projector
+            size, frames of different sizes, or white darker than black (the wrong layout).
+    """
+    folder = Path(folder)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    cb, rb = graycode_bits(projector)
+    want = 2 + 2 * (cb + rb)
+    paths = capture_frames(folder)
+    if len(paths) != want:
+        raise CalibrationError(folder, f"{len(paths)} graycode_NN frames, but a {projector[0]}x{projector[1]} "
+                                       f"projector in layout {layout} has {want} ({cb} column and {rb} row bits, "
+                                       "each with its inverse, white and black): wrong --layout or --projector?")
+    frames = []
+    for p in paths:
+        img = read_image(p)
+        if frames and img.shape != frames[0].shape:
+            raise CalibrationError(p, f"frame is {img.shape[1]}x{img.shape[0]}, {paths[0].name} is "
+                                      f"{frames[0].shape[1]}x{frames[0].shape[0]}")
+        scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
+        frames.append(img.astype(np.float32) * np.float32(scale))
+    fr = np.stack(frames)
+    if layout == "opencv-graycode":
+        pairs, white, black = fr[:-2], fr[-2], fr[-1]
+    else:
+        white, black, pairs = fr[0], fr[1], fr[2:]
+    pairs = pairs.reshape(cb + rb, 2, *fr.shape[1:])
+    cap = GrayCodeCapture(folder=folder, white=white, black=black, col_pairs=pairs[:cb], row_pairs=pairs[cb:],
+                          projector=(int(projector[0]), int(projector[1])))
+    check_layout(cap, layout)
+    return cap
+
+
+def check_layout(cap: GrayCodeCapture, layout: str) -> None:
+    """White must be brighter than black, and brighter than each pattern/inverse pair's dimmer frame.
+
+    A capture read in the wrong layout takes a pattern and its inverse for white and
+    black: then 'white' is darker than 'black' on about half of the lit pixels.
+    """
+    diff = cap.white - cap.black
+    lit = np.abs(diff) >= 20.0
+    n = int(np.count_nonzero(lit))
+    if n < 100:
+        raise CalibrationError(cap.folder, f"white and black differ by 20 levels at only {n} pixels: "
+                                           "no projector light in the capture, or the wrong layout")
+    dark = float(np.count_nonzero(diff[lit] < 0)) / n
+    if dark > 0.05:
+        raise CalibrationError(cap.folder, f"the frame read as white is darker than the one read as black at "
+                                           f"{100 * dark:.0f} % of the lit pixels: not layout {layout!r}?")
+
+
+def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
+    """Integer projector column and row of every camera pixel (the plain decode)."""
+    contrast = cap.white - cap.black
+    valid = contrast >= settings.min_contrast
+
+    def code(pairs):
+        g = np.zeros(contrast.shape, np.int64)
+        ok = np.ones(contrast.shape, bool)
+        for p, inv in pairs:
+            d = p - inv
+            g = (g << 1) | (d > 0)
+            ok &= np.abs(d) >= settings.min_bit_contrast
+        return gray_decode(g, len(pairs)), ok
+
+    col, okc = code(cap.col_pairs)
+    row, okr = code(cap.row_pairs)
+    valid &= okc & okr & (col < cap.projector[0]) & (row < cap.projector[1])
+    col = np.where(valid, col, -1).astype(np.int32)
+    row = np.where(valid, row, -1).astype(np.int32)
+    log.info("%s: %d of %d pixels decoded", cap.folder, int(valid.sum()), valid.size)
+    return Decoded(col=col, row=row, valid=valid, contrast=contrast)
+
+
+def _flip_bit(a: np.ndarray, b: np.ndarray, bits: int) -> np.ndarray:
+    """Index (0 = MSB) of the single Gray bit that differs between codes a and b (|a - b| = 1)."""
+    x = (a ^ (a >> 1)) ^ (b ^ (b >> 1))
+    x = np.maximum(x, 1)
+    return (bits - 1 - np.floor(np.log2(x)).astype(np.int64)).astype(np.int64)
+
+
+def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float):
+    """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across)."""
+    if axis == 0:
+        res, ok = _along_axis(code.T, valid.T, pairs.transpose(0, 1, 3, 2), 1, max_span)
+        return res.T, ok.T
+    H, W = code.shape
+    bits = pairs.shape[0]
+    c0, c1 = code[:, :-1].astype(np.int64), code[:, 1:].astype(np.int64)
+    step = c1 - c0
+    trans = valid[:, :-1] & valid[:, 1:] & (np.abs(step) == 1)
+    yy, xx = np.nonzero(trans)
+    b = _flip_bit(c0[yy, xx], c1[yy, xx], bits)
+    d0 = pairs[b, 0, yy, xx] - pairs[b, 1, yy, xx]
+    d1 = pairs[b, 0, yy, xx + 1] - pairs[b, 1, yy, xx + 1]
+    den = d0 - d1
+    frac = np.where(np.abs(den) > 1e-6, d0 / np.where(den == 0, 1, den), 0.5)
+    pos = np.full((H, W - 1), np.nan)
+    val = np.full((H, W - 1), np.nan)
+    pos[yy, xx] = xx + np.clip(frac, 0.0, 1.0)
+    val[yy, xx] = 0.5 * (c0[yy, xx] + c1[yy, xx])
+    # the last boundary at or left of each pixel, and the first one right of it
+    k = np.where(trans, np.arange(W - 1)[None, :], -1)
+    left = np.maximum.accumulate(k, axis=1)  # boundary index k: between pixels k and k+1
+    kr = np.where(trans, np.arange(W - 1)[None, :], W)
+    right = np.minimum.accumulate(kr[:, ::-1], axis=1)[:, ::-1]
+    # pixel x: left boundary = last k <= x - 1; right boundary = first k >= x
+    lk = np.concatenate([np.full((H, 1), -1), left], axis=1)
+    rk = np.concatenate([right, np.full((H, 1), W)], axis=1)
+    has = (lk >= 0) & (rk < W - 1)
+    lkc, rkc = np.clip(lk, 0, W - 2), np.clip(rk, 0, W - 2)
+    rows = np.arange(H)[:, None]
+    pl, vl = pos[rows, lkc], val[rows, lkc]
+    pr, vr = pos[rows, rkc], val[rows, rkc]
+    x = np.arange(W)[None, :].astype(np.float64)
+    span = pr - pl
+    ok = has & valid & (np.abs(vr - vl) == 1) & (span > 0) & (span <= max_span)
+    ok &= np.abs(code - 0.5 * (vl + vr)) < 1e-9  # the pixel's own code lies between the two boundaries
+    with np.errstate(invalid="ignore", divide="ignore"):
+        res = vl + (x - pl) / span * (vr - vl)
+    out = np.where(ok, res, code.astype(np.float64))
+    return out, ok
+
+
+def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
+    """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``."""
+
+    def axis_of(code):
+        c = code.astype(np.float64)
+        m = dec.valid
+        gx = np.abs(np.diff(c, axis=1))[m[:, 1:] & m[:, :-1]]
+        gy = np.abs(np.diff(c, axis=0))[m[1:, :] & m[:-1, :]]
+        gx = gx[gx <= 2]
+        gy = gy[gy <= 2]
+        return 1 if (gx.mean() if gx.size else 0) >= (gy.mean() if gy.size else 0) else 0
+
+    ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
+    u, oku = _along_axis(dec.col, dec.valid, cap.col_pairs, ax_u, settings.max_span_px)
+    v, okv = _along_axis(dec.row, dec.valid, cap.row_pairs, ax_v, settings.max_span_px)
+    dec.u = np.where(dec.valid, u, np.nan)
+    dec.v = np.where(dec.valid, v, np.nan)
+    dec.subpixel = oku & okv
+    log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated",
+             cap.folder, "x" if ax_u else "y", "x" if ax_v else "y", int(dec.subpixel.sum()), int(dec.valid.sum()))
+    return dec
