@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 import warp as wp
 
+from ringscan.pipeline.codecs.decoded import extract_decoded
 from ringscan.pipeline.codecs.gray_rings import extract_gray_rings
 from ringscan.pipeline.codecs.phase_rings import extract_phase_rings
 from ringscan.pipeline.codecs.samples import Samples
@@ -24,6 +25,7 @@ EXTRACTORS: dict[str, Callable[..., tuple[Samples, dict]]] = {
     "gray-rings": extract_gray_rings,
     "phase-rings": extract_phase_rings,
     "rings": extract_rings,
+    "decoded": extract_decoded,
 }
 """codec name -> its decode + sampling function."""
 

@@ -15,6 +15,11 @@ Codecs:
   band k = floor((rho - rho0) / pitch), 0 <= k < 2**bits; dark outside.
 - ``phase-rings``: the gray-rings frames plus ``phase_<n>``, n = 0..steps-1:
   I = 0.5 + 0.5 cos(2 pi (rho - rho0) / pitch - 2 pi n / steps) in the annulus.
+- ``decoded`` (imported captures, ``ringscan import``): frames ``proj_u``, ``proj_v``
+  (16-bit, fixed point, see :data:`DECODED_SCALE`) and ``contrast`` (16-bit, white -
+  black x 257): each camera pixel's projector position; rho = |p - c| and the polar
+  angle about the centre c (the projector's principal point, which may lie outside
+  the projector image); ``sector_bits`` quantises that angle for the root choice.
 - sectors (``sector_bits`` > 0, multi-frame codecs): ``sector_<b>``/``sector_<b>_inv``,
   a Gray code over floor((phi + pi) / (2 pi) * 2**sector_bits),
   phi = atan2(v_p - c_v, u_p - c_u), inside the coded annulus only.
@@ -31,8 +36,13 @@ import numpy as np
 from ringscan.pipeline.formats.errors import FormatError
 
 CODECS = ("rings", "gray-rings", "phase-rings")
+IMPORTED_CODECS = ("decoded",)
+"""Codecs of imported captures (not projectable): ``decoded`` holds each camera pixel's
+decoded projector position (``ringscan import``)."""
+DECODED_SCALE = 32
+"""``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
 
-__all__ = ["CODECS", "PatternSpec", "parse_patterns", "frame_names", "gray_encode", "gray_decode"]
+__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PatternSpec", "parse_patterns", "frame_names", "gray_encode", "gray_decode"]
 
 
 def gray_encode(k):
@@ -102,6 +112,8 @@ class PatternSpec:
         keep = {"codec", "width", "height", "center", "rho0", "pitch"}
         if self.codec == "rings":
             keep |= {"count", "line_width"}
+        elif self.codec == "decoded":
+            keep |= {"sector_bits"}
         else:
             keep |= {"bits", "sector_bits"}
             if self.codec == "phase-rings":
@@ -119,8 +131,8 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     if not isinstance(d, dict):
         raise FormatError(src, "patterns: expected an object")
     codec = d.get("codec")
-    if codec not in CODECS:
-        raise FormatError(src, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS)})")
+    if codec not in CODECS + IMPORTED_CODECS:
+        raise FormatError(src, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS + IMPORTED_CODECS)})")
 
     def num(key, default=None, positive=False):
         v = d.get(key, default)
@@ -144,7 +156,7 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     if not (isinstance(center, (list, tuple)) and len(center) == 2
             and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in center)):
         raise FormatError(src, f"patterns.center: expected [c_u, c_v], got {center!r}")
-    if not (0 <= center[0] <= width - 1 and 0 <= center[1] <= height - 1):
+    if codec != "decoded" and not (0 <= center[0] <= width - 1 and 0 <= center[1] <= height - 1):
         raise FormatError(src, f"patterns.center: {list(center)} lies outside the {width}x{height} projector")
     rho0 = num("rho0")
     if rho0 < 0:
@@ -156,6 +168,8 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
         kw["line_width"] = num("line_width", 2.0, positive=True)
         if kw["line_width"] >= pitch:
             raise FormatError(src, f"patterns.line_width: {kw['line_width']} px does not fit in pitch {pitch} px (rings would touch)")
+    elif codec == "decoded":
+        kw["sector_bits"] = integer("sector_bits", 8, lo=0, hi=12)
     else:
         kw["bits"] = integer("bits", lo=1, hi=16)
         kw["sector_bits"] = integer("sector_bits", 0, lo=0, hi=12)
@@ -168,7 +182,7 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     # The coded annulus must reach into the projector image.
     cu, cv = spec.center
     far = max(math.hypot(x - cu, y - cv) for x in (0, width - 1) for y in (0, height - 1))
-    if spec.rho0 >= far:
+    if codec != "decoded" and spec.rho0 >= far:
         raise FormatError(src, f"patterns.rho0: {spec.rho0} px lies outside the projector (farthest corner {far:.1f} px)")
     if codec == "rings" and spec.ring_radii()[-1] > far:
         n_in = int(np.sum(spec.ring_radii() <= far))
@@ -180,6 +194,8 @@ def frame_names(spec: PatternSpec) -> list[str]:
     """The frame names of a codec, in projection order."""
     if spec.codec == "rings":
         return ["rings"]
+    if spec.codec == "decoded":
+        return ["proj_u", "proj_v", "contrast"]
     names = ["white", "black"]
     for b in range(spec.bits):
         names += [f"gray_{b}", f"gray_{b}_inv"]
