@@ -1,0 +1,134 @@
+"""How flat is the board? Real captures (../shared/data/procam) reconstructed two ways.
+
+1. Calibrates the rig from capture_1..3 (``ringscan calibrate procam``'s library
+   code), or reads ``--rig``.
+2. The ring way: ``import_captures`` (sub-pixel projector positions) and
+   ``reconstruct_view`` (each camera ray meets the cone of its rho around the
+   projector's principal point; the polar angle picks the root).
+3. The plain OpenCV way: integer column/row codes decoded with NumPy, camera and
+   projector rays triangulated with ``cv2.triangulatePoints`` (same calibration).
+
+For each capture, the points whose camera pixel lies inside the board's outer
+corners are fitted with a plane (least squares); printed: points, RMS residual,
+median |residual|, share within 1 and 3 units, and the ring/plain RMS ratio. Also
+where the cone is ill-conditioned: the triangulation's drops by reason on the board
+and in the whole image, and the median incidence |cos| per image quadrant.
+
+    python benchmarks/procam_plane.py [--data ../shared/data/procam] [--rig RIG.json] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ringscan.pipeline.calibrate.board import Board
+from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
+from ringscan.pipeline.calibrate.importer import import_captures, procam_pose, triangulate_codes
+from ringscan.pipeline.calibrate.procam import (
+    calibrate_procam,
+    capture_corners,
+    depth_range,
+    procam_rig,
+)
+from ringscan.pipeline.formats.rig import load_rig
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.view import reconstruct_view
+
+PROJECTOR = (1024, 768)
+BOARD = Board(9, 7, 75.0)
+
+
+def plane_stats(P: np.ndarray) -> dict:
+    c = P.mean(0)
+    _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+    r = (P - c) @ vt[2]
+    a = np.abs(r)
+    return {"n": len(P), "rms": float(np.sqrt(np.mean(r ** 2))), "median": float(np.median(a)),
+            "within1": float(np.mean(a <= 1.0)), "within3": float(np.mean(a <= 3.0))}
+
+
+def board_mask(corners: np.ndarray, shape) -> np.ndarray:
+    g = corners.reshape(BOARD.rows, BOARD.cols, 2)
+    quad = np.array([g[0, 0], g[0, -1], g[-1, -1], g[-1, 0]], np.float32)
+    m = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(m, np.round(quad).astype(np.int32), 1)
+    return m.astype(bool)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "procam"))
+    ap.add_argument("--rig", default=None, help="a ringscan rig (default: calibrate from the captures)")
+    ap.add_argument("--out", default=None, help="keep the imported scan here")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+    data = Path(args.data)
+    caps = [data / f"capture_{i}" for i in (1, 2, 3)]
+    if not all(c.is_dir() for c in caps):
+        print(f"procam captures not found under {data}", file=sys.stderr)
+        return 2
+    corners, masks = {}, {}
+    cc = []
+    for c in caps:
+        cap = read_capture(c, projector=PROJECTOR)
+        x = capture_corners(cap, board=BOARD, name=c.name)
+        cc.append(x)
+        corners[c.name] = x.camera_view.corners
+        masks[c.name] = board_mask(x.camera_view.corners, cap.white.shape)
+    if args.rig:
+        rig = load_rig(args.rig)
+        print(f"rig: {args.rig}")
+    else:
+        res = calibrate_procam(cc, board=BOARD, camera_size=(1280, 1024), projector_size=PROJECTOR)
+        rig = procam_rig(cam_K=res.camera.K, cam_dist=res.camera.dist, cam_size=(1280, 1024), proj_K=res.projector.K,
+                         proj_dist=res.projector.dist, proj_size=PROJECTOR, R=res.R, T=res.T,
+                         z_range=depth_range(res.depths))
+        print(f"calibrated from capture_1..3: camera fx {res.camera.K[0, 0]:.1f} RMS {res.camera.rms:.3f} px; "
+              f"projector fx {res.projector.K[0, 0]:.1f} RMS {res.projector.rms:.3f} px; "
+              f"stereo RMS {res.stereo_rms:.3f} px")
+    R, T = procam_pose(rig)
+    cam, li = rig.camera, rig.light
+    tmp = tempfile.TemporaryDirectory()
+    out = Path(args.out) if args.out else Path(tmp.name) / "scan"
+    scan, stats = import_captures(caps, out=out, rig=rig, projector=PROJECTOR)
+    print(f"\n{'capture':10} {'method':6} {'points':>8} {'rms':>6} {'median':>7} {'<=1':>6} {'<=3':>6}   ratio")
+    ratios = []
+    for view, c in zip(scan.views, caps):
+        m = masks[c.name]
+        cloud = reconstruct_view(scan, view, settings=ReconstructSettings(), device=args.device)
+        uv = np.round(cloud.uv).astype(int)
+        on = m[uv[:, 1], uv[:, 0]]
+        ring = plane_stats(cloud.points[on].astype(np.float64))
+        dec = decode_graycode(read_capture(c, projector=PROJECTOR))
+        sel = dec.valid & m
+        yy, xx = np.nonzero(sel)
+        X = triangulate_codes(np.stack([xx, yy], 1), np.stack([dec.col[sel], dec.row[sel]], 1), cam_K=cam.K,
+                              cam_dist=cam.dist, proj_K=li.K, proj_dist=li.dist, R=R, T=T)
+        plain = plane_stats(X[np.all(np.isfinite(X), 1)])
+        ratio = ring["rms"] / plain["rms"]
+        ratios.append(ratio)
+        for name, s in (("ring", ring), ("plain", plain)):
+            print(f"{c.name:10} {name:6} {s['n']:8d} {s['rms']:6.3f} {s['median']:7.3f} {100 * s['within1']:5.1f}% "
+                  f"{100 * s['within3']:5.1f}%" + (f"   {ratio:.2f}" if name == "ring" else ""))
+        st = cloud.stats
+        print(f"{'':10} ring drops (whole image): {st['dropped']}; sub-pixel share "
+              f"{100 * stats[c.name]['subpixel_share']:.0f} %")
+        # where is the cone ill-conditioned? confidence = contrast x |cos incidence|
+        H, W = m.shape
+        q = {"upper-left": (uv[:, 0] < W / 2) & (uv[:, 1] < H / 2), "upper-right": (uv[:, 0] >= W / 2) & (uv[:, 1] < H / 2),
+             "lower-left": (uv[:, 0] < W / 2) & (uv[:, 1] >= H / 2),
+             "lower-right": (uv[:, 0] >= W / 2) & (uv[:, 1] >= H / 2)}
+        print(f"{'':10} median confidence by image quadrant: "
+              + ", ".join(f"{k} {np.median(cloud.confidence[v]):.2f}" for k, v in q.items() if v.any()))
+    print(f"\nring/plain plane RMS: {', '.join(f'{r:.2f}' for r in ratios)} (target <= 0.75 on every capture)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
