@@ -3,10 +3,12 @@
 #   libusb-1.0-0                 Open3D loads it at import
 #   libgl1 libegl1 libgomp1      Open3D's and OpenCV's runtime libraries
 #   libvulkan1 mesa-vulkan-drivers  Open3D's offscreen renderer (software Vulkan)
+#   xvfb                         a virtual X server: the display projector's tests show
+#                                patterns on it and read them back
 # Installs the missing ones with apt-get when run as root (or with password-less
 # sudo); otherwise prints the command to run.
 set -u
-pkgs=(libusb-1.0-0 libgl1 libegl1 libgomp1 libvulkan1 mesa-vulkan-drivers)
+pkgs=(libusb-1.0-0 libgl1 libegl1 libgomp1 libvulkan1 mesa-vulkan-drivers xvfb)
 command -v dpkg-query >/dev/null 2>&1 || { echo "ringscan: not a Debian-like system; install the equivalents of: ${pkgs[*]}"; exit 0; }
 missing=()
 for p in "${pkgs[@]}"; do
