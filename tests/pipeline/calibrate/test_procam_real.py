@@ -1,0 +1,112 @@
+"""Calibration of the real procam captures (../shared/data/procam; skipped where absent).
+
+The truth: calibration_result.xml's camera intrinsics (published with the data, and
+agreeing with a fresh calibration) and OpenCV's own stereo calibration.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.calibrate.board import Board, BoardView, detect_board
+from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera
+from ringscan.pipeline.calibrate.errors import CalibrationError
+from ringscan.pipeline.calibrate.graycode import read_capture
+from ringscan.pipeline.calibrate.importer import read_opencv_calibration
+from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners
+
+BOARD = Board(9, 7, 75.0)
+PROJ = (1024, 768)
+
+
+@pytest.fixture(scope="session")
+def procam(shared_data):
+    d = shared_data / "procam"
+    if not (d / "capture_1").is_dir():
+        pytest.skip(f"procam captures not found in {d}")
+    return d
+
+
+@pytest.fixture(scope="session")
+def corners(procam):
+    return [capture_corners(read_capture(procam / f"capture_{i}", projector=PROJ), board=BOARD, name=f"capture_{i}")
+            for i in (1, 2, 3)]
+
+
+@pytest.fixture(scope="session")
+def calibration(corners):
+    return calibrate_procam(corners, board=BOARD, camera_size=(1280, 1024), projector_size=PROJ)
+
+
+def test_board_found_in_every_white_frame(corners):
+    for c in corners:
+        assert c.camera_view.found and len(c.camera_view.ids) == 63
+        assert c.projector_view.found and len(c.projector_view.ids) == 63
+        # projector corners lie on the projector image
+        p = c.projector_view.corners
+        assert p[:, 0].min() > 0 and p[:, 0].max() < 1024 and p[:, 1].min() > 0 and p[:, 1].max() < 768
+
+
+def test_camera_focal_within_one_percent_of_the_published_file(calibration, procam):
+    ref = read_opencv_calibration(procam / "calibration_result.xml")
+    fx, fy = calibration.camera.K[0, 0], calibration.camera.K[1, 1]
+    assert abs(fx / ref["cam_K"][0, 0] - 1) < 0.01
+    assert abs(fy / ref["cam_K"][1, 1] - 1) < 0.01
+    assert "k3" in calibration.camera.fixed and calibration.camera.dist[4] == 0
+
+
+def test_stereo_reprojection_error_at_most_0_4_px(calibration):
+    assert calibration.stereo_rms <= 0.4
+    assert set(calibration.stereo_per_view) == {"capture_1", "capture_2", "capture_3"}
+    # the projector: ~1890 px focal length, principal point below the image
+    assert 1850 < calibration.projector.K[0, 0] < 1930
+    assert calibration.projector.K[1, 2] > 768
+
+
+def test_free_k3_runs_away_with_three_views(corners):
+    views = [c.camera_view for c in corners]
+    free = calibrate_camera(views, board=BOARD, size=(1280, 1024), settings=CameraSettings(fix_k3=False))
+    fixed = calibrate_camera(views, board=BOARD, size=(1280, 1024))
+    assert abs(free.dist[4]) > 100  # what three views cannot pin down
+    assert fixed.dist[4] == 0 and abs(fixed.dist[1]) < 10
+
+
+def test_published_projector_intrinsics_do_not_fit(corners, calibration, procam):
+    """The file's projector K reprojects the decoded corners far worse than ours; halved it is closer."""
+    ref = read_opencv_calibration(procam / "calibration_result.xml")
+
+    def rms(K, dist):
+        errs = []
+        for c in corners:
+            obj = np.concatenate([np.mgrid[0:9, 0:7].T.reshape(-1, 2) * 75.0, np.zeros((63, 1))], 1)
+            ok, rv, tv = cv2.solvePnP(obj, c.projector_view.corners.astype(np.float64), K, dist)
+            p, _ = cv2.projectPoints(obj, rv, tv, K, dist)
+            errs.append(np.sum((p.reshape(-1, 2) - c.projector_view.corners) ** 2, 1))
+        return float(np.sqrt(np.mean(np.concatenate(errs))))
+
+    ours = rms(calibration.projector.K, calibration.projector.dist)
+    theirs = rms(ref["proj_K"], ref["proj_dist"])
+    assert ours < 0.5 < theirs
+
+
+def test_no_board_is_a_clear_error(procam):
+    black = cv2.imread(str(procam / "capture_1" / "graycode_41.png"), cv2.IMREAD_GRAYSCALE)
+    v = detect_board(black, board=BOARD, name="black")
+    assert not v.found and v.reason == "not found"
+    with pytest.raises(CalibrationError, match="no image shows the 9x7 board.*black: not found"):
+        calibrate_camera([v, v], board=BOARD, size=(1280, 1024))
+
+
+def test_too_few_views_is_a_clear_error(corners):
+    with pytest.raises(CalibrationError, match="only 2 usable view"):
+        calibrate_camera([c.camera_view for c in corners[:2]], board=BOARD, size=(1280, 1024))
+    with pytest.raises(CalibrationError, match="projector calibration: only 2 capture"):
+        bad = corners[2].__class__(corners[2].name, corners[2].camera_view, BoardView("x", False, "only 3 corners", None, None))
+        calibrate_procam([corners[0], corners[1], bad], board=BOARD, camera_size=(1280, 1024), projector_size=PROJ)
+
+
+def test_wrong_layout_of_a_real_capture(procam):
+    with pytest.raises(CalibrationError, match="darker"):
+        read_capture(procam / "capture_1", projector=PROJ, layout="opencv-graycode-wb-first")

@@ -1,0 +1,69 @@
+"""``ringscan calibrate`` and ``ringscan import`` end to end (real captures where present)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.pipeline.formats.rig import load_rig
+from ringscan.tools.cli import main
+from tests.pipeline.calibrate.synthetic import write_capture
+
+
+@pytest.fixture(scope="module")
+def procam(shared_data):
+    d = shared_data / "procam"
+    if not (d / "capture_1").is_dir():
+        pytest.skip(f"procam captures not found in {d}")
+    return d
+
+
+def test_camera_without_a_board_exits_2_and_writes_nothing(tmp_path, procam, capsys):
+    out = tmp_path / "cam.json"
+    rc = main(["calibrate", "camera", str(procam / "capture_1" / "graycode_41.png"),
+               str(procam / "capture_2" / "graycode_41.png"), "--square", "75", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no image shows the 9x7 board" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_procam_wrong_layout_exits_2(tmp_path, capsys):
+    write_capture(tmp_path / "c1", projector=(128, 96))
+    rig = tmp_path / "rig.json"
+    rc = main(["calibrate", "procam", str(tmp_path / "c1"), "--square", "75", "--projector", "128x96",
+               "--layout", "opencv-graycode-wb-first", "--out", str(rig)])
+    assert rc == 2 and "not layout 'opencv-graycode-wb-first'" in capsys.readouterr().err
+    assert not rig.exists()
+
+
+@pytest.mark.slow
+def test_procam_then_import_then_reconstruct(tmp_path, procam, capsys):
+    rig = tmp_path / "rig.json"
+    caps = [str(procam / f"capture_{i}") for i in (1, 2, 3)]
+    assert main(["calibrate", "procam", *caps, "--square", "75", "--projector", "1024x768", "--out", str(rig)]) == 0
+    text = capsys.readouterr().out
+    assert "stereo: RMS reprojection error 0.3" in text
+    r = load_rig(rig)
+    assert r.light.model == "perspective" and r.light.K[1, 2] > 768
+    scan = tmp_path / "scan"
+    assert main(["import", caps[2], "--rig", str(rig), "--projector", "1024x768", "--out", str(scan)]) == 0
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(scan), "--out", str(out), "--device", "cpu"]) == 0
+    ply = read_ply(out / "capture_3.ply")
+    assert len(ply["x"]) > 500_000
+    # the board is flat: points in the middle of the board (camera pixels inside its corners) fit a plane
+    u, v = ply["u"], ply["v"]
+    on = (u > 520) & (u < 900) & (v > 350) & (v < 600)
+    P = np.stack([ply["x"][on], ply["y"][on], ply["z"][on]], 1).astype(np.float64)
+    c = P.mean(0)
+    n = np.linalg.svd(P - c, full_matrices=False)[2][2]
+    res = (P - c) @ n
+    assert len(P) > 20_000 and np.sqrt(np.mean(res ** 2)) < 1.5
+
+
+def test_import_opencv_file(tmp_path, procam, capsys):
+    scan = tmp_path / "scan"
+    assert main(["import", str(procam / "capture_1"), "--rig", str(procam / "calibration_result.xml"),
+                 "--projector", "1024x768", "--out", str(scan)]) == 0
+    assert (scan / "scan.json").is_file() and (scan / "capture_1" / "proj_u.png").is_file()
