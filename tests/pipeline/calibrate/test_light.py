@@ -18,6 +18,7 @@ from ringscan.pipeline.calibrate.light import (
     rig_with_light,
 )
 from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, default_rig
 from ringscan.pipeline.geometry import projector_pixels
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
@@ -155,8 +156,6 @@ def test_virtual_rig_light_is_recovered(plane_scans, tmp_path):
     # The plate at 40 mm reconstructed through the calibrated light lies at 40 mm.
     scan40 = dataclasses.replace(plane_scans[1], rig=rig)
     reconstruct_scan(scan40, tmp_path / "rec", progress=False)
-    from ringscan.pipeline.formats.ply import read_ply
-
     z = read_ply(tmp_path / "rec" / "view_000.ply")["z"]
     assert z.size > 5000 and abs(float(np.median(z)) - 40.0) < 0.02, np.median(z)
 
