@@ -29,6 +29,7 @@ from ringscan.pipeline.calibrate.procam import (
     principal_point_inside,
     procam_rig,
 )
+from ringscan.pipeline.calibrate.response import estimate_light_gamma
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
@@ -220,6 +221,39 @@ def run_procam(args) -> int:
                                         "projector": calibration_report(res.projector),
                                         "stereo": {"rms_px": res.stereo_rms, "views": res.stereo_per_view,
                                                    "R": res.R.tolist(), "T": res.T.tolist()}})
+    return 0
+
+
+# ----------------------------------------------------------------------------- response
+
+
+def add_response_parser(calsub) -> None:
+    p = calsub.add_parser("response", help="the projector's response curve (gamma) from a projected grey ramp",
+                          description="FRAMES are camera images of the projector showing uniform grey values "
+                                      "--levels (0..255, one per frame, including 0 and 255). The light's gamma "
+                                      "(emitted = (value/255)^gamma) goes into the rig's light.response.")
+    p.add_argument("frames", nargs="+", metavar="FRAME", help="camera frames of the ramp, in --levels order")
+    p.add_argument("--levels", type=float, nargs="+", required=True, help="projected values 0..255, one per frame")
+    p.add_argument("--rig", required=True, metavar="RIG", help="rig file to update (its camera gamma linearises)")
+    p.set_defaults(_calibrate=run_response)
+
+
+def run_response(args) -> int:
+    if len(args.levels) != len(args.frames):
+        raise ValueError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
+    d = read_json(args.rig)
+    rig = parse_rig(d, source=args.rig)
+    imgs = [read_image(f) for f in args.frames]
+    for f, im in zip(args.frames, imgs):
+        if im.shape != imgs[0].shape or im.dtype != imgs[0].dtype:
+            raise FormatError(f, "frame differs in size or bit depth from the first frame")
+    gamma, curve = estimate_light_gamma(np.stack(imgs), np.asarray(args.levels) / 255.0, camera_gamma=rig.camera.gamma)
+    print(f"light gamma {gamma:.3f} (camera gamma {rig.camera.gamma:g} undone first)")
+    for x, y in curve.items():
+        print(f"  level {255 * x:5.1f}: response {y:.4f} (model {x ** gamma:.4f})")
+    d["light"]["response"] = {"gamma": gamma}
+    save_rig(args.rig, parse_rig(d, source=args.rig))
+    print(f"updated light.response.gamma of {args.rig}")
     return 0
 
 
