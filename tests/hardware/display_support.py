@@ -31,6 +31,7 @@ def virtual_screen() -> str:
     subsystem is brought up on it."""
     if "display" in _XVFB:
         return _XVFB["display"]
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     pytest.importorskip("pygame", reason="pygame-ce is not installed (pip install -e '.[test]' installs it)")
     pytest.importorskip("mss", reason="mss is not installed (pip install -e '.[test]' installs it)")
     exe = shutil.which("Xvfb")
