@@ -5,7 +5,8 @@ sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 
 - ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images;
 - ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
-- ``response CAPTURE_DIR...``: the projector's response curve.
+- ``response CAPTURE_DIR...``: the projector's response curve;
+- ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights.
 
 New sub-commands are found by name: any module-level ``add_<name>_parser`` function
 is called by :func:`add_parser`, in definition order.
@@ -21,6 +22,7 @@ import numpy as np
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
+from ringscan.pipeline.calibrate.light import LightSettings, calibrate_parallel_light, rig_with_light
 from ringscan.pipeline.calibrate.procam import (
     ProcamSettings,
     calibrate_procam,
@@ -33,7 +35,9 @@ from ringscan.pipeline.calibrate.response import estimate_light_gamma
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
-from ringscan.pipeline.formats.rig import parse_rig, save_rig
+from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.tools.cli import add_device_option
 
 
 def parse_size(text: str, what: str) -> tuple[int, int]:
@@ -254,6 +258,50 @@ def run_response(args) -> int:
     d["light"]["response"] = {"gamma": gamma}
     save_rig(args.rig, parse_rig(d, source=args.rig))
     print(f"updated light.response.gamma of {args.rig}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- light (parallel)
+
+
+def add_light_parser(calsub) -> None:
+    p = calsub.add_parser("light", help="the parallel light (axis pixel, pitch, rotation) from plane captures",
+                          description="Each SCAN is a scan folder (gray-rings or phase-rings, with sector bits) of "
+                                      "the flat reference plane, or of a flat plate on it, at a known height (world "
+                                      "z in mm, one per SCAN in --heights; two heights at least). The camera must be "
+                                      "calibrated in the world frame (--rig, or the scans' own rig). Writes that rig "
+                                      "with the fitted parallel light (docs/calibration.md).")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan folders of the plane, one height each")
+    p.add_argument("--heights", type=float, nargs="+", required=True, metavar="MM",
+                   help="the plane's height (world z, mm) in each SCAN, in order")
+    p.add_argument("--rig", default=None, metavar="RIG", help="rig file whose camera to use (default: the first scan's)")
+    p.add_argument("--out", required=True, metavar="RIG", help="rig file to write (the rig with this light)")
+    p.add_argument("--max-residual", type=float, default=LightSettings.max_residual_px, metavar="PX",
+                   help="drop samples whose ring residual exceeds this after the robust fit "
+                        f"(projector px, default {LightSettings.max_residual_px:g})")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    add_device_option(p)
+    p.set_defaults(_calibrate=run_light)
+
+
+def run_light(args) -> int:
+    if len(args.heights) != len(args.scans):
+        raise ValueError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
+    rig = load_rig(args.rig) if args.rig else None
+    scans = [load_scan(s) for s in args.scans]
+    cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
+                                   settings=LightSettings(max_residual_px=args.max_residual))
+    li = cal.light
+    print(f"parallel light: pitch {li.pixel_pitch_mm:.6f} mm/px, axis pixel ({li.axis_px[0]:.2f}, "
+          f"{li.axis_px[1]:.2f}), tilt {cal.tilt_deg:.3f} deg from z, roll {cal.roll_deg:.3f} deg; "
+          f"ring RMS {cal.rms_px:.3f} px")
+    for name, c in cal.captures.items():
+        print(f"  {name} (z = {c['height_mm']:g} mm): {c['samples']} samples ({c['dropped']} dropped), "
+              f"RMS {c['rms_px']:.3f} px, sectors agree {100 * c['sector_agreement']:.1f} %")
+    save_rig(args.out, rig_with_light(rig or scans[0].rig, li))
+    print(f"wrote {args.out}")
+    if args.report:
+        atomic_write_json(args.report, cal.report())
     return 0
 
 
