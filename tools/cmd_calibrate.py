@@ -7,6 +7,7 @@ sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 - ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
 - ``response CAPTURE_DIR...``: the projector's response curve;
 - ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights.
+- ``latency --projector display:N --camera SPEC``: how long after a frame's swap the camera sees it in full.
 
 New sub-commands are found by name: any module-level ``add_<name>_parser`` function
 is called by :func:`add_parser`, in definition order.
@@ -19,6 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.hardware.capture.latency import LatencySettings, latency_frames, measure_latency, write_rig_latency
+from ringscan.hardware.devices.camera import open_camera
+from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
@@ -302,6 +306,62 @@ def run_light(args) -> int:
     print(f"wrote {args.out}")
     if args.report:
         atomic_write_json(args.report, cal.report())
+    return 0
+
+
+# ----------------------------------------------------------------------------- latency (display projector)
+
+
+def add_latency_parser(calsub) -> None:
+    p = calsub.add_parser("latency", help="the projector's latency: how long after a frame's swap the camera sees it",
+                          description="Shows black and white full-screen on the projector's display and grabs with "
+                                      "the camera after delays from 0 upward: the first delay from which every grab "
+                                      "shows the new frame in full (plus a margin of one refresh) goes into the rig "
+                                      "file as light.latency_s, and `ringscan capture --projector display` waits that "
+                                      "long after each frame. Aim the camera at the projected light; use the exposure "
+                                      "and flush of the capture (docs/hardware.md).")
+    p.add_argument("--projector", required=True, metavar="display[:N]",
+                   help="the projector's display: display (= display:0), display:N or display:NAME")
+    p.add_argument("--camera", required=True, metavar="SPEC", help="camera, as for `ringscan capture`")
+    p.add_argument("--rig", default=None, metavar="RIG", help="rig file to write light.latency_s into")
+    p.add_argument("--exposure", type=float, default=None, metavar="E", help="manual camera exposure (backend units)")
+    p.add_argument("--gain", type=float, default=None, metavar="G", help="camera gain (backend units)")
+    p.add_argument("--flush", type=int, default=None, metavar="N",
+                   help="frames dropped before each grab (default 4 for live cameras)")
+    d = LatencySettings()
+    p.add_argument("--trials", type=int, default=d.trials, help=f"switches per delay (default {d.trials})")
+    p.add_argument("--max-delay", type=float, default=d.max_s, metavar="S",
+                   help=f"longest delay tried, s (default {d.max_s:g})")
+    p.add_argument("--rest", type=float, default=d.rest_s, metavar="S",
+                   help=f"time the old frame stays up before a switch, s (default {d.rest_s:g})")
+    p.add_argument("--step", type=float, default=None, metavar="S", help="delay step, s (default half a refresh)")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write every grab's verdict as JSON")
+    p.set_defaults(_calibrate=run_latency)
+
+
+def run_latency(args) -> int:
+    spec = parse_display_spec(args.projector)
+    if spec is None:
+        raise ValueError(f"--projector: expected display, display:N or display:NAME, got {args.projector!r}")
+    settings = LatencySettings(trials=args.trials, max_s=args.max_delay, rest_s=args.rest, step_s=args.step)
+    disp = choose_display(list_displays(), spec)
+    with DisplayProjector(latency_frames(disp.width, disp.height), display=disp.index) as projector, \
+            open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain) as camera:
+        res = measure_latency(projector, camera, settings=settings)
+    print(f"display {disp.describe()}: refresh period {res.frame_period_s * 1e3:.1f} ms, {res.lit_pixels} lit "
+          f"camera pixels")
+    for row in res.delays:
+        seen = " ".join(g["verdict"] + ("+again" if g["regrabs"] else "") for g in row["grabs"])
+        print(f"  {row['delay_s'] * 1e3:6.1f} ms: {seen}")
+    if res.mixed_frames:
+        print(f"{res.mixed_frames} torn frame(s) (part old, part new) seen and grabbed again")
+    print(f"the camera sees a new frame in full {res.measured_s * 1e3:.1f} ms after the swap; latency with margin "
+          f"{res.latency_s * 1e3:.1f} ms")
+    if args.rig:
+        write_rig_latency(args.rig, res.latency_s)
+        print(f"updated light.latency_s of {args.rig}")
+    if args.report:
+        atomic_write_json(args.report, res.to_dict())
     return 0
 
 

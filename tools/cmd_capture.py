@@ -4,6 +4,7 @@
 
     ringscan capture --rig RIG --patterns PATTERNS.json --views N --out SCAN
                      --turntable PORT --projector PORT --camera SPEC
+    ringscan capture ... --projector display:1 --camera SPEC   (a projector plugged in as a screen)
     ringscan capture --rig RIG --patterns PATTERNS.json --views N --out SCAN --virtual SCENE
     ringscan capture --out SCAN --resume [device options as before] [--table-at DEG]
 
@@ -18,12 +19,15 @@ import dataclasses
 import logging
 from pathlib import Path
 
+from ringscan.hardware.capture.latency import read_rig_latency
 from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan, read_capture_state, resume_angle
 from ringscan.hardware.devices.camera import open_camera
+from ringscan.hardware.devices.display import DisplayProjector, parse_display_spec
 from ringscan.hardware.devices.projector import SerialProjector
 from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.hardware.errors import CaptureError
+from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
@@ -82,7 +86,11 @@ def add_parser(sub):
     g = p.add_argument_group("devices")
     g.add_argument("--turntable", metavar="PORT", help="GRBL/Horus turntable serial port (or pyserial URL); "
                                                        "may be left out for a single view")
-    g.add_argument("--projector", metavar="PORT", help="pattern projector serial port (or pyserial URL)")
+    g.add_argument("--projector", metavar="PORT", help="pattern projector serial port (or pyserial URL), or "
+                                                       "display[:N|:NAME] for a projector plugged in as a screen "
+                                                       "(waits the rig's light.latency_s after each frame)")
+    g.add_argument("--centre", action="store_true", help="display projector: show frames smaller than the display "
+                                                         "centred (else a size mismatch is an error)")
     g.add_argument("--camera", metavar="SPEC", help="camera: OpenCV index (0), URL, video or image-sequence "
                                                     "path, folder:SCAN (replay), unix:SOCKET (ringscan emulate)")
     g.add_argument("--baud", type=int, default=115200, help="serial baud rate of both boards (default 115200)")
@@ -142,6 +150,12 @@ def run(args) -> int:
     if args.reconstruct_settings and not args.reconstruct:
         raise ValueError("--reconstruct-settings only applies with --reconstruct")
     settings = _settings(args, out)
+    display = parse_display_spec(args.projector) if args.projector else None
+    if display is not None and args.rig and args.projector_settle is None and read_rig_latency(args.rig) > 0:
+        # the projector's measured latency (ringscan calibrate latency) is the wait after each frame
+        settings = dataclasses.replace(settings, projector_settle_s=read_rig_latency(args.rig))
+    if args.centre and display is None:
+        raise ValueError("--centre only applies with --projector display[:N]")
     live = None
     if args.reconstruct:
         from ringscan.pipeline.reconstruct.live import LiveReconstructor
@@ -189,8 +203,12 @@ def run(args) -> int:
                                       motion_timeout_s=settings.motion_timeout_s, position_deg=table_deg)
         else:
             turntable = VirtualTurntable(table_deg)  # one view: nothing turns
-        projector = SerialProjector(pj_port, baudrate=args.baud, timeout_s=settings.command_timeout_s,
-                                    expect_names=names)
+        if display is not None:
+            projector = DisplayProjector([render_frame(patterns_v, n) for n in names], display=display,
+                                         centre=args.centre)
+        else:
+            projector = SerialProjector(pj_port, baudrate=args.baud, timeout_s=settings.command_timeout_s,
+                                        expect_names=names)
         scan = capture_scan(out, camera=camera, projector=projector, turntable=turntable, rig=rig,
                             patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
                             settings=settings, resume=args.resume, table_at=table_deg if args.resume else None,

@@ -3,13 +3,15 @@
 Writes ``<frame>.png`` for every frame, in projection order, plus ``patterns.json``
 (the scan.json ``patterns`` block) and ``frames.txt`` (the frame names, one a line,
 in projection order) for a real projector. The pattern options are shared with
-``ringscan simulate``.
+``ringscan simulate``. ``--show [DISPLAY]`` puts the frames full-screen on a display
+(a projector plugged in as a screen) and steps through them by hand, for aiming.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from ringscan.hardware.devices.display import VIEWER_KEYS, DisplayProjector, run_viewer
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
 from ringscan.pipeline.formats.images import write_image
@@ -59,18 +61,43 @@ def add_parser(sub):
     p = sub.add_parser("patterns", help="write the projector frames of a pattern codec as PNG",
                        description="Write every frame of a codec as <frame>.png (projection order in "
                                    "frames.txt) plus patterns.json, the scan.json 'patterns' block.")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", default=None, help="output folder")
+    p.add_argument("--show", nargs="?", const="0", default=None, metavar="DISPLAY",
+                   help="show the frames full-screen on this display (index or name; default 0) and step through "
+                        "them with the arrow keys (b black, q quits), to aim the projector and the camera")
+    p.add_argument("--centre", action="store_true", help="with --show: frames smaller than the display are centred")
     add_pattern_options(p)
     return p
 
 
 def run(args) -> int:
+    if args.out is None and args.show is None:
+        raise ValueError("give --out DIR (write the frames), --show [DISPLAY] (show them), or both")
+    if args.centre and args.show is None:
+        raise ValueError("--centre only applies with --show")
     spec = pattern_spec_from_args(args, args.width, args.height, args.center)
-    out = Path(args.out)
     names = frame_names(spec)
+    if args.out is not None:
+        write_frames(spec, names, args.out)
+    if args.show is not None:
+        show_frames(spec, names, args.show, centre=args.centre)
+    return 0
+
+
+def show_frames(spec: PatternSpec, names: list[str], display: str, *, centre: bool = False) -> None:
+    """The frames full-screen on ``display``, stepped through by hand until q or escape."""
+    frames = [render_frame(spec, n) for n in names]
+    keys = ", ".join(f"{k}: {a}" for k, a in VIEWER_KEYS.items())
+    print(f"showing {len(names)} {spec.codec} frame(s) on display {display} ({keys})", flush=True)
+    with DisplayProjector(frames, display=display, centre=centre) as proj:
+        run_viewer(proj, on_show=lambda i: print(f"  {names[i]}" if i >= 0 else "  (black)", flush=True))
+
+
+def write_frames(spec: PatternSpec, names: list[str], out) -> None:
+    """Every frame as <frame>.png in ``out``, plus patterns.json and frames.txt."""
+    out = Path(out)
     for n in names:
         write_image(out / f"{n}.png", render_frame(spec, n))
     atomic_write_json(out / "patterns.json", spec.to_dict())
     atomic_write_bytes(out / "frames.txt", ("\n".join(f"{n}.png" for n in names) + "\n").encode())
     print(f"{len(names)} {spec.codec} frame(s) of {spec.width}x{spec.height} -> {out} (patterns.json, frames.txt)")
-    return 0

@@ -44,7 +44,7 @@ from ringscan.hardware.errors import ProjectorCommandError, ProjectorError
 log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_REFRESH_HZ", "DisplayInfo", "DisplayProjector", "list_displays", "choose_display", "run_viewer",
-           "VIEWER_KEYS"]
+           "VIEWER_KEYS", "parse_display_spec"]
 
 DEFAULT_REFRESH_HZ = 60.0
 """Refresh rate assumed where the display does not report one."""
@@ -110,6 +110,20 @@ def choose_display(displays: list[DisplayInfo], spec: int | str) -> DisplayInfo:
         return part[0]
     what = "several displays match" if part else "no display is called"
     raise ProjectorError(f"{what} {spec!r}; the displays are: {listing}", port="display", retryable=False)
+
+
+def parse_display_spec(spec: str) -> int | str | None:
+    """The display a ``--projector`` value names: ``display`` (display 0), ``display:N``
+    (an index) or ``display:NAME``; None for anything else (a serial port)."""
+    s = str(spec).strip()
+    if s == "display":
+        return 0
+    if not s.startswith("display:"):
+        return None
+    rest = s[len("display:"):].strip()
+    if not rest:
+        raise ValueError(f"--projector {spec!r}: name the display after 'display:' (an index such as 1, or a name)")
+    return int(rest) if rest.isdigit() else rest
 
 
 # ----------------------------------------------------------------------------- the SDL thread

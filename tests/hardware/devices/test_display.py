@@ -8,7 +8,14 @@ import time
 import numpy as np
 import pytest
 
-from ringscan.hardware.devices.display import DisplayInfo, DisplayProjector, choose_display, list_displays, run_viewer
+from ringscan.hardware.devices.display import (
+    DisplayInfo,
+    DisplayProjector,
+    choose_display,
+    list_displays,
+    parse_display_spec,
+    run_viewer,
+)
 from ringscan.hardware.errors import ProjectorCommandError, ProjectorError
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.patterns import CODECS, frame_names, parse_patterns
@@ -140,6 +147,15 @@ def test_choose_display_by_index_name_or_part_of_a_name():
         choose_display(ds, 3)
     with pytest.raises(ValueError):
         choose_display(ds, True)
+
+
+def test_projector_option_values():
+    assert parse_display_spec("display") == 0
+    assert parse_display_spec("display:1") == 1
+    assert parse_display_spec("display:HDMI-1") == "HDMI-1"
+    assert parse_display_spec("/dev/ttyACM0") is None and parse_display_spec("displayport") is None
+    with pytest.raises(ValueError, match="name the display"):
+        parse_display_spec("display:")
 
 
 def test_show_waits_for_the_latency_and_refuses_a_bad_index(screen):
