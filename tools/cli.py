@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from ringscan.pipeline.formats.errors import RingscanError
+from ringscan.pipeline.formats.errors import RingscanError, show_path
 
 log = logging.getLogger("ringscan")
 
@@ -76,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except ValueError as e:
         print(f"ringscan {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the disk, not the input: full, read-only, no permission
+        where = f"{show_path(e.filename)}: " if e.filename else ""
+        print(f"ringscan {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"ringscan {args.command}: interrupted", file=sys.stderr)

@@ -24,7 +24,9 @@ def run(args) -> int:
                             progress=not args.no_progress)
     failed = [s for s in rep["scans"] if s["status"] == "failed"]
     for s in rep["scans"]:
+        redone = "; ".join(f"{n}: {why}" for n, why in s.get("redone", {}).items())
         print(f"{s['scan']}: {s['status']}" + (f" ({s['error']})" if s.get("error") else
-                                                f", {s['points']} points" if "points" in s else ""))
+                                                f", {s['points']} points" if "points" in s else "")
+              + (f" [redone: {redone}]" if redone else ""))
     print(f"{len(rep['scans'])} scan(s), {len(failed)} failed; report: {args.out}/batch_report.json")
     return 1 if failed else 0

@@ -5,6 +5,7 @@ first is the reference pose, the others are aligned to it and merged."""
 
 from __future__ import annotations
 
+from ringscan.pipeline.formats.atomic import check_output_folder
 from ringscan.pipeline.formats.meshes import MESH_FORMATS
 from ringscan.pipeline.fusion.mesh import MeshSettings
 from ringscan.pipeline.fusion.poses import PoseSettings
@@ -30,8 +31,9 @@ def add_parser(sub):
     p.add_argument("--watertight", action="store_true", help="closed manifold mesh (checked with is_watertight)")
     p.add_argument("--formats", default="ply", metavar="LIST",
                    help="mesh formats, comma-separated from ply,obj,stl (default ply)")
-    p.add_argument("--voxel", type=float, default=None, metavar="MM",
-                   help=f"voxel size of the fused cloud (default {FuseSettings.voxel_mm})")
+    p.add_argument("--voxel", default=None, metavar="MM",
+                   help=f"voxel size of the fused cloud, > 0; 'none' keeps every point of every view "
+                        f"(default {FuseSettings.voxel_mm})")
     p.add_argument("--ground-clip", default=None, metavar="MM",
                    help=f"drop points below this world z; 'none' keeps all (default {FuseSettings.ground_clip_mm})")
     p.add_argument("--no-refine", action="store_true", help="trust the turntable axis: no ICP / pose graph")
@@ -63,10 +65,25 @@ def parse_formats(text: str) -> tuple[str, ...]:
     return fmts
 
 
+def parse_voxel(text: str) -> float:
+    """--voxel: a finite number of mm > 0, or 'none' (0.0: keep every point)."""
+    if text.strip().lower() == "none":
+        return 0.0
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (0 < v < float("inf")):
+        raise ValueError(f"--voxel: expected a finite number of mm > 0 (or 'none' to keep every point), got {text!r}")
+    return v
+
+
 def run(args) -> int:
+    check_output_folder(args.out, what="output folder (--out)")
+    voxel = None if args.voxel is None else parse_voxel(args.voxel)
     fkw = {}
-    if args.voxel is not None:
-        fkw["voxel_mm"] = args.voxel
+    if voxel is not None:
+        fkw["voxel_mm"] = voxel
     if args.ground_clip is not None:
         if args.ground_clip.lower() == "none":
             fkw["ground_clip_mm"] = None
@@ -84,8 +101,8 @@ def run(args) -> int:
     if args.tsdf_voxel is not None:
         mkw["tsdf_voxel_mm"] = args.tsdf_voxel
     pkw = {}
-    if args.voxel is not None:
-        pkw["voxel_mm"] = args.voxel
+    if voxel is not None:
+        pkw["voxel_mm"] = voxel
     if args.min_pose_fitness is not None:
         pkw["min_fitness"] = args.min_pose_fitness
     if args.max_pose_rmse is not None:

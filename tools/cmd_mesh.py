@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
+from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_file
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud, write_mesh
-from ringscan.pipeline.fusion.mesh import MeshSettings, orient_normals
+from ringscan.pipeline.fusion.mesh import (
+    MAX_COORDINATE_MM,
+    MIN_MESH_POINTS,
+    MeshSettings,
+    drop_unusable_points,
+    orient_normals,
+)
 from ringscan.pipeline.fusion.workflow import mesh_cloud
 
 
@@ -28,9 +34,8 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    out = Path(args.out)
-    if out.suffix.lower() not in MESH_FORMATS:
-        raise ValueError(f"--out: {out.name}: the extension must be one of {', '.join(MESH_FORMATS)}")
+    out = check_output_file(args.out, extensions=MESH_FORMATS, what="mesh file (--out)")
+    check_no_overwrite([out], [args.cloud])
     kw = {"method": args.method, "watertight": args.watertight}
     if args.poisson_depth is not None:
         kw["poisson_depth"] = args.poisson_depth
@@ -40,9 +45,23 @@ def run(args) -> int:
         kw["tsdf_voxel_mm"] = args.tsdf_voxel
     settings = MeshSettings(**kw)
     cloud = read_cloud(args.cloud)
-    if not cloud.has_normals():
-        orient_normals(cloud)
-    res = mesh_cloud(cloud, settings=settings)
+    n_in = len(cloud.points)
+    cloud, dropped = drop_unusable_points(cloud)
+    if dropped["non_finite"] or dropped["out_of_range"]:
+        print(f"dropped {dropped['non_finite']} of {n_in} points with a NaN or infinite coordinate or normal, and "
+              f"{dropped['out_of_range']} beyond +-{MAX_COORDINATE_MM:g} mm")
+    if len(cloud.points) < MIN_MESH_POINTS:
+        raise FormatError(args.cloud, f"{len(cloud.points)} usable points (of {n_in}): too few to mesh "
+                                      f"(need at least {MIN_MESH_POINTS})")
+    try:
+        if not cloud.has_normals():
+            orient_normals(cloud)
+        res = mesh_cloud(cloud, settings=settings)
+    except ValueError as e:
+        raise FormatError(args.cloud, str(e)) from None
+    if len(res.mesh.triangles) == 0:
+        raise FormatError(args.cloud, f"meshing its {len(cloud.points)} points gave no surface (too few or too "
+                                      f"scattered for {res.method})")
     write_mesh(out, res.mesh)
     wt = "" if res.watertight is None else f", watertight {res.watertight}"
     print(f"{res.method} mesh: {res.info['vertices']} vertices, {res.info['triangles']} triangles{wt}; wrote {out}")

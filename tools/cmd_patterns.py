@@ -9,11 +9,9 @@ in projection order) for a real projector. The pattern options are shared with
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from ringscan.hardware.devices.display import VIEWER_KEYS, DisplayProjector, run_viewer
 from ringscan.pipeline.codecs.render import render_frame
-from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
+from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import CODECS, PatternSpec, frame_names, parse_patterns
 
@@ -95,7 +93,7 @@ def show_frames(spec: PatternSpec, names: list[str], display: str, *, centre: bo
 
 def write_frames(spec: PatternSpec, names: list[str], out) -> None:
     """Every frame as <frame>.png in ``out``, plus patterns.json and frames.txt."""
-    out = Path(out)
+    out = check_output_folder(out, what="patterns folder (--out)")
     for n in names:
         write_image(out / f"{n}.png", render_frame(spec, n))
     atomic_write_json(out / "patterns.json", spec.to_dict())

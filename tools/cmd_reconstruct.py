@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import sys
 
 from ringscan.pipeline.formats.atomic import read_json
-from ringscan.pipeline.formats.settings import settings_from_dict
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.settings import check_finite_settings, settings_from_dict
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.tools.cli import add_device_option
@@ -19,14 +21,29 @@ def add_parser(sub):
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--views", default=None, help="comma-separated view names (default: all)")
     p.add_argument("--settings", default=None, help="JSON file of settings (see settings.json of a run)")
-    p.add_argument("--resume", action="store_true", help="skip views already done in --out")
+    p.add_argument("--resume", action="store_true",
+                   help="keep views already done in --out (same inputs, same settings, files whole); "
+                        "redo the others and say why")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
     return p
 
 
 def load_settings(path) -> ReconstructSettings:
-    return settings_from_dict(ReconstructSettings, read_json(path)) if path else ReconstructSettings()
+    """The settings of a JSON file (a run's settings.json), or the defaults.
+
+    Raises:
+        FormatError: naming the file: unreadable, an unknown setting, a NaN or infinite number.
+    """
+    if not path:
+        return ReconstructSettings()
+    d = read_json(path)
+    try:
+        s = settings_from_dict(ReconstructSettings, d)
+        check_finite_settings(s)
+    except (TypeError, ValueError) as e:
+        raise FormatError(path, str(e)) from None
+    return s
 
 
 def run(args) -> int:
@@ -34,6 +51,18 @@ def run(args) -> int:
                            views=args.views.split(",") if args.views else None, resume=args.resume,
                            progress=not args.no_progress)
     tot = rep["totals"]
+    resumed = rep.get("resume")
+    if resumed:
+        if resumed["kept"]:
+            print(f"kept {len(resumed['kept'])} view(s) done before with the same inputs and settings")
+        for name, why in resumed["redone"].items():
+            print(f"{name}: redone ({why})")
     print(f"{len(rep['views'])} view(s): {tot['samples']} samples -> {tot['points']} points; dropped "
           + json.dumps(tot["dropped"]) + f"; {rep['time_s']:.2f} s on {rep['device']}; report: {args.out}/report.json")
+    if rep["views"] and tot["points"] == 0:
+        reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in rep["views"]))
+        more = f" (and {len(reasons) - 1} other reason(s), see above)" if len(reasons) > 1 else ""
+        print(f"ringscan reconstruct: error: no view of {args.scan} gave any point: {reasons[0]}{more}",
+              file=sys.stderr)
+        return 1
     return 0

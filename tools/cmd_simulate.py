@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 
+from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_folder
+from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.rig import default_rig, load_rig
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.scenes import SCENES
@@ -69,6 +72,15 @@ def build_rig(args):
     return default_rig(gamma=_gamma(2.2 if args.gamma is None else args.gamma), light_model=args.light or "parallel")
 
 
+def _outputs(out: Path, spec, views: int, fmt: str) -> list[Path]:
+    """The files ``simulate`` writes (simulate_scan's layout)."""
+    files = [out / "scan.json", out / "truth" / "object.ply"]
+    for k in range(max(int(views), 0)):
+        files += [out / f"view_{k:03d}" / f"{n}.{fmt}" for n in frame_names(spec)]
+        files += [out / "truth" / f"view_{k:03d}_depth.tiff", out / "truth" / f"view_{k:03d}_lit.png"]
+    return files
+
+
 def _gamma(g: float) -> float:
     if not g > 0:
         raise ValueError(f"--gamma: must be > 0, got {g}")
@@ -76,10 +88,13 @@ def _gamma(g: float) -> float:
 
 
 def run(args) -> int:
+    out = check_output_folder(args.out, what="scan folder (--out)")
     rig = build_rig(args)
     li = rig.light
     width, height = (li.width, li.height) if getattr(li, "width", 0) else (1024, 768)
     spec = pattern_spec_from_args(args, width, height)
+    inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
+    check_no_overwrite(_outputs(out, spec, args.views, args.format), inputs)
     settings = RenderSettings(supersample=args.supersample, ambient=args.ambient, albedo=args.albedo,
                               defocus_px=args.defocus, noise=args.noise, bit_depth=args.bit_depth,
                               exposure=args.exposure, seed=args.seed)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_file
 from ringscan.pipeline.formats.meshes import read_mesh
 from ringscan.pipeline.preview.colour import colorize
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
@@ -36,7 +37,8 @@ def run(args) -> int:
     import numpy as np
     import open3d as o3d
 
-
+    out = check_output_file(args.out, extensions=(".png",), what="picture (--out)")
+    check_no_overwrite([out], [*args.files, *([args.truth] if args.truth else [])])
     geoms = [read_geometry(f) for f in args.files]
     bar = None
     if args.truth:

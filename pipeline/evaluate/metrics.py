@@ -15,11 +15,16 @@ turntable angle) plus the reference plane z = 0. Figures:
   farther apart on the surface, so a point between two sampled rings is covered
   and a ring that was not sampled is not. Reported for the whole view and for the
   object alone (truth points more than 0.5 mm above the plane).
+
+Points with a NaN or infinite coordinate are left out of every figure and
+counted (``non_finite_points``); a cloud with no finite point has no error
+figures (null) and covers nothing.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -39,7 +44,8 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "truth_rho_at"]
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "truth_rho_at",
+           "check_coverage_radius"]
 
 
 
@@ -72,8 +78,9 @@ def truth_surface(scan: Scan, turntable_deg: float):
 
 
 def distance_stats(d: np.ndarray, *, over_mm: float = 1.0) -> dict:
-    """Summary of point-to-surface distances (mm)."""
+    """Summary of point-to-surface distances (mm); NaN distances are left out."""
     d = np.asarray(d, np.float64)
+    d = d[np.isfinite(d)]
     if d.size == 0:
         return {"points": 0, "median_mm": None, "mean_mm": None, "rms_mm": None, "p95_mm": None, "max_mm": None,
                 "frac_over_1mm": None}
@@ -149,14 +156,24 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     """Accuracy and coverage of one view's points against the truth.
 
     Returns the figures (dict), and with ``return_distances`` also each point's
-    distance to the truth surface (mm)."""
+    distance to the truth surface (mm; NaN for a point with a non-finite coordinate).
+
+    Raises:
+        ValueError: ``coverage_radius_mm`` is not a finite number > 0.
+    """
     o3d = open3d_lib()
+    check_coverage_radius(coverage_radius_mm)
     view = next((v for v in scan.views if v.name == view_name), None)
     if view is None:
         raise FormatError(scan.path, f"no view named {view_name!r}")
     mesh = truth_surface(scan, view.turntable_deg)
-    d = point_distances(mesh, points)
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(pts), axis=1)
+    d = np.full(len(pts), np.nan)
+    d[finite] = point_distances(mesh, pts[finite])
+    points = pts[finite]
     out = distance_stats(d)
+    out["non_finite_points"] = int(np.count_nonzero(~finite))
     # Coverage of the lit, seen surface inside the coded annulus.
     X, _ = truth_points(scan, view_name)
     spec = scan.patterns
@@ -183,29 +200,51 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     return (out, d) if return_distances else out
 
 
+def check_coverage_radius(r: float | None) -> None:
+    """None (the default radius) or a finite number of mm > 0; else ValueError."""
+    if r is None:
+        return
+    if isinstance(r, bool) or not isinstance(r, (int, float, np.integer, np.floating)) or not math.isfinite(r) \
+            or r <= 0:
+        raise ValueError(f"coverage radius: expected a finite number of mm > 0, got {r!r}")
+
+
 def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLike | Scan, *,
                    coverage_radius_mm: float | None = None) -> dict:
     """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY."""
+    check_coverage_radius(coverage_radius_mm)
     scan = truth_scan if isinstance(truth_scan, Scan) else load_scan(truth_scan, check_files=False)
     p = Path(cloud_or_dir)
     items = []
     if p.is_dir():
-        rep = read_json(p / "report.json")
-        for v in rep.get("views", []):
+        rpath = p / "report.json"
+        rep = read_json(rpath)
+        views = rep.get("views")
+        if not isinstance(views, list):
+            raise FormatError(rpath, "views: expected a list")
+        for i, v in enumerate(views):
+            if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not isinstance(v.get("ply"), str):
+                raise FormatError(rpath, f"views[{i}]: expected an object with a name and a ply")
             items.append((v["name"], p / v["ply"]))
     else:
         ply = read_ply(p)
         vi = int(ply["view"][0]) if "view" in ply and len(ply["view"]) else 0
+        if not 0 <= vi < len(scan.views):
+            raise FormatError(p, f"its points are of view {vi}, but {scan.path} has {len(scan.views)} view(s)")
         items.append((scan.views[vi].name, p))
     result = {"views": {}}
     all_d = []
     for name, ply_path in items:
         ply = read_ply(ply_path)
+        missing = [k for k in ("x", "y", "z") if k not in ply]
+        if missing:
+            raise FormatError(ply_path, f"vertex property {missing[0]!r} missing")
         pts = np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64)
         result["views"][name], d = evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
                                                  return_distances=True)
         all_d.append(d)
     result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
+    result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
     covs = [v["coverage"] for v in result["views"].values() if v.get("coverage") is not None]
     result["all"]["coverage_mean"] = float(np.mean(covs)) if covs else None
     return result

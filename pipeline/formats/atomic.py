@@ -1,8 +1,15 @@
-"""Atomic writes and JSON files.
+"""Atomic writes, JSON files, and checks of output paths.
 
 Writes go to a temporary file in the same folder and are moved into place with
 ``os.replace``, so a crash never leaves a half-written file behind: a reader sees
-the old file or the new one.
+the old file or the new one. The temporary file is created with mode 0666 less
+the process's umask (the mode any new file gets, 0644 under the usual umask 022);
+a file that is overwritten keeps the mode it had.
+
+A writer that is killed (SIGKILL, power loss) leaves its temporary file
+(``.<name>.<pid>-<random>.tmp<ext>``) behind; :func:`remove_stale_temporaries`
+removes those of processes that no longer run (``ringscan reconstruct``,
+``batch`` and ``fuse`` call it on their output folders).
 """
 
 from __future__ import annotations
@@ -10,8 +17,13 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
-import tempfile
+import re
+import secrets
+import stat
+import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +32,124 @@ from ringscan.pipeline.formats.errors import FormatError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries",
+           "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe"]
+
+_TMP_RE = re.compile(r"^\.(?P<target>.+)\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp(\.[^./]*)?$")
+# Temporary files of ringscan before the writer's process id was part of the name
+# (tempfile.mkstemp: 8 characters of [a-z0-9_]); removed once they are an hour old.
+_OLD_TMP_RE = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp(\.[^./]*)?$")
+_OLD_TMP_AGE_S = 3600.0
+
+
+def _kind(p: Path) -> str:
+    """What an existing non-folder path is, in words."""
+    try:
+        m = p.lstat().st_mode
+    except OSError:
+        return "unreadable"
+    if stat.S_ISLNK(m) and not p.exists():
+        return "a broken symbolic link"
+    try:
+        m = p.stat().st_mode
+    except OSError:
+        return "unreadable"
+    if stat.S_ISREG(m):
+        return "a file"
+    if stat.S_ISDIR(m):
+        return "a folder"
+    if stat.S_ISCHR(m) or stat.S_ISBLK(m):
+        return "a device"
+    if stat.S_ISFIFO(m):
+        return "a pipe"
+    if stat.S_ISSOCK(m):
+        return "a socket"
+    return "not a regular file"
+
+
+def _check_ancestors(p: Path, what: str) -> None:
+    for a in p.parents:
+        if a.is_dir():
+            return
+        if a.exists() or a.is_symlink():
+            raise FormatError(p, f"cannot be the {what}: it lies under {a}, which is {_kind(a)}, not a folder")
+
+
+def check_output_folder(path: str | os.PathLike, *, what: str = "output folder") -> Path:
+    """Check that ``path`` can be an output folder: a folder, or a path that can
+    be created as one (nothing on the way is a file). Returns it as a Path.
+
+    Raises:
+        FormatError: naming the path: it is a file, a device (``/dev/null``), a
+            broken link, or lies under a file.
+    """
+    p = Path(path)
+    if "\0" in str(p):
+        raise FormatError(p, f"cannot be the {what}: the path contains a NUL character")
+    if p.is_dir():
+        return p
+    if p.exists() or p.is_symlink():
+        raise FormatError(p, f"cannot be the {what}: it exists and is {_kind(p)}, not a folder")
+    _check_ancestors(p, what)
+    return p
+
+
+def check_output_file(path: str | os.PathLike, *, extensions: Iterable[str] | None = None,
+                      what: str = "output file") -> Path:
+    """Check that ``path`` can be written as a regular file (new, or a file that is
+    replaced), with one of ``extensions`` (lower case, with the dot) when given.
+
+    Raises:
+        FormatError: naming the path: it is a folder, a device (``/dev/null``), a
+            pipe, lies under a file, or has another extension.
+    """
+    p = Path(path)
+    if "\0" in str(p):
+        raise FormatError(p, f"cannot be the {what}: the path contains a NUL character")
+    if p.is_dir():
+        raise FormatError(p, f"cannot be the {what}: it is a folder")
+    if p.exists() or p.is_symlink():
+        if _kind(p) != "a file":
+            raise FormatError(p, f"cannot be the {what}: it is {_kind(p)}; ringscan writes regular files only")
+    else:
+        _check_ancestors(p, what)
+    if extensions is not None:
+        exts = tuple(extensions)
+        if p.suffix.lower() not in exts:
+            raise FormatError(p, f"cannot be the {what}: the extension must be {' or '.join(exts)}, "
+                                 f"not {p.suffix or '(none)'!r}")
+    return p
+
+
+def check_no_overwrite(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | os.PathLike]) -> None:
+    """Refuse outputs that are (through links too) one of the inputs.
+
+    Raises:
+        FormatError: naming the output and the input it would overwrite.
+    """
+    ins = {}
+    for q in inputs:
+        ins.setdefault(os.path.realpath(q), Path(q))
+    for o in outputs:
+        q = ins.get(os.path.realpath(o))
+        if q is None and Path(o).exists():
+            q = next((i for i in ins.values() if i.exists() and os.path.samefile(i, o)), None)
+        if q is not None:
+            raise FormatError(o, f"writing it would overwrite the input {q}; choose another output")
+
+
+def _new_temporary(path: Path, suffix: str) -> Path:
+    """Create an empty temporary file next to ``path`` (mode 0666 less the umask)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{suffix}"
+        try:
+            fd = os.open(tmp, flags, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"{path.parent}: could not create a temporary file for {path.name}")
 
 
 @contextlib.contextmanager
@@ -29,15 +158,30 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None):
 
     The temporary file keeps the same extension (OpenCV and Open3D pick the
     format from it). On an exception the temporary file is removed and ``path``
-    is left as it was.
+    is left as it was. The new file gets the mode of the file it replaces, or
+    0666 less the umask.
+
+    Raises:
+        FormatError: ``path`` is a folder or not a regular file, or its folder
+            cannot be made (it lies under a file).
     """
     path = Path(path)
+    if path.is_dir():
+        raise FormatError(path, "is a folder, where ringscan writes a file: move it away or choose another output")
+    if (path.exists() or path.is_symlink()) and _kind(path) != "a file":
+        raise FormatError(path, f"is {_kind(path)}, where ringscan writes a file: choose another output")
+    check_output_folder(path.parent, what=f"folder of {path.name}")
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
+    tmp = _new_temporary(path, suffix)
     try:
-        yield Path(tmp)
+        yield tmp
+        try:
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+        except FileNotFoundError:
+            mode = None
+        if mode is not None:
+            os.chmod(tmp, mode)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -47,6 +191,50 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None):
         raise
 
 
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files that killed writers left in ``folder`` (not below it).
+
+    A temporary file of :func:`atomic_path` carries its writer's process id; it is
+    removed when that process no longer runs (a live writer, this process
+    included, keeps its file). Temporary files of older ringscan versions (no
+    process id) are removed once they are an hour old. Returns the removed paths.
+    """
+    folder = Path(folder)
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return removed
+    now = time.time()
+    for e in entries:
+        if not e.name.startswith(".") or ".tmp" not in e.name or not e.is_file(follow_symlinks=False):
+            continue
+        m = _TMP_RE.match(e.name)
+        if m is not None:
+            stale = not _process_alive(int(m["pid"]))
+        else:
+            stale = _OLD_TMP_RE.match(e.name) is not None and now - e.stat().st_mtime > _OLD_TMP_AGE_S
+        if stale:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(e.path)
+                removed.append(Path(e.path))
+    if removed:
+        log.info("%s: removed %d temporary file(s) left by an interrupted run", folder, len(removed))
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
@@ -54,17 +242,31 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 
 def atomic_write_json(path: str | os.PathLike, obj) -> None:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=_json_default) + "\n").encode())
+    """Write ``obj`` as indented JSON to ``path`` atomically.
+
+    The file is strict JSON: NaN and infinite numbers (which JSON has no token for)
+    are written as ``null``.
+    """
+    text = json.dumps(json_safe(obj), indent=2, allow_nan=False)
+    atomic_write_bytes(path, (text + "\n").encode())
 
 
-def _json_default(o):
+def json_safe(o):
+    """``o`` with NumPy values turned into Python ones and NaN/inf into None (JSON null)."""
+    if isinstance(o, dict):
+        return {str(k) if isinstance(k, Path) else k: json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_safe(v) for v in o]
     if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
+        return json_safe(o.tolist())
+    if isinstance(o, (np.bool_, np.integer, np.floating)):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
     if isinstance(o, Path):
         return str(o)
+    if o is None or isinstance(o, (str, int, float, bool)):
+        return o
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
@@ -72,15 +274,26 @@ def read_json(path: str | os.PathLike) -> dict:
     """Read a JSON object, raising :class:`FormatError` naming the file on failure."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise FormatError(path, "file not found") from None
+    except IsADirectoryError:
+        raise FormatError(path, "is a folder, not a JSON file") from None
+    except ValueError:  # an embedded NUL
+        raise FormatError(path, "the path contains a NUL character") from None
     except OSError as e:
         raise FormatError(path, f"cannot read: {e.strerror}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise FormatError(path, f"not a text file: byte 0x{raw[e.start]:02x} at offset {e.start} is not UTF-8 "
+                                "(expected JSON)") from None
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as e:
         raise FormatError(path, f"not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except RecursionError:
+        raise FormatError(path, "not valid JSON (nested too deeply)") from None
     if not isinstance(obj, dict):
         raise FormatError(path, "expected a JSON object at the top level")
     return obj

@@ -25,4 +25,13 @@ class FormatError(RingscanError, ValueError):
     def __init__(self, path: str | os.PathLike | None, message: str):
         self.path = None if path is None else os.fspath(path)
         self.message = message
-        super().__init__(f"{self.path}: {message}" if self.path else message)
+        super().__init__(f"{show_path(self.path)}: {message}" if self.path else message)
+
+
+def show_path(path: str | os.PathLike) -> str:
+    """A path as a message shows it: as it is, or quoted with escapes when it holds
+    characters a terminal cannot show (a NUL, a newline, other control characters)."""
+    p = os.fspath(path)
+    if isinstance(p, bytes):
+        p = os.fsdecode(p)
+    return p if p.isprintable() else repr(p)

@@ -10,11 +10,11 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.ply import write_ply
+from ringscan.pipeline.formats.ply import check_ply, write_ply
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MESH_FORMATS", "write_mesh", "read_mesh", "read_cloud", "write_cloud", "open3d_lib"]
+__all__ = ["MESH_FORMATS", "write_mesh", "read_mesh", "read_cloud", "write_cloud", "drop_non_finite", "open3d_lib"]
 
 
 MESH_FORMATS = (".ply", ".obj", ".stl")
@@ -58,6 +58,8 @@ def read_mesh(path: str | os.PathLike):
     _ext(path, MESH_FORMATS)
     if not path.is_file():
         raise FormatError(path, "file not found")
+    if path.suffix.lower() == ".ply":
+        check_ply(path)  # Open3D reads a truncated PLY up to where it ends, without a word
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
@@ -66,11 +68,14 @@ def read_mesh(path: str | os.PathLike):
 
 
 def read_cloud(path: str | os.PathLike):
-    """Read a point cloud (PLY/PCD/XYZ...) with Open3D; FormatError when missing or empty."""
+    """Read a point cloud (PLY/PCD/XYZ...) with Open3D; FormatError when missing,
+    empty, or (PLY) truncated. Non-finite points are kept (see :func:`drop_non_finite`)."""
     o3d = open3d_lib()
     path = Path(path)
     if not path.is_file():
         raise FormatError(path, "file not found")
+    if path.suffix.lower() == ".ply":
+        check_ply(path)  # Open3D reads a truncated PLY up to where it ends, without a word
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         pcd = o3d.io.read_point_cloud(str(path))
     if len(pcd.points) == 0:
@@ -91,6 +96,31 @@ def write_cloud(path: str | os.PathLike, cloud, *, view: np.ndarray | None = Non
     if confidence is not None and len(confidence) == len(pts):
         f["confidence"] = np.asarray(confidence, np.float32)
     write_ply(path, f, comments=["ringscan fused cloud, object frame, mm"])
+
+
+def drop_non_finite(geom) -> tuple[object, int]:
+    """Remove the points (or mesh vertices, with their triangles) that have a NaN or
+    infinite coordinate or normal.
+
+    Returns:
+        (the geometry, how many points or vertices were removed). A point cloud is
+        returned as a new cloud; a mesh is changed in place.
+    """
+    if hasattr(geom, "triangles"):
+        v = np.asarray(geom.vertices)
+        bad = ~np.all(np.isfinite(v), axis=1)
+        if geom.has_vertex_normals():
+            bad |= ~np.all(np.isfinite(np.asarray(geom.vertex_normals)), axis=1)
+        if bad.any():
+            geom.remove_vertices_by_mask(bad)
+        return geom, int(bad.sum())
+    pts = np.asarray(geom.points)
+    bad = ~np.all(np.isfinite(pts), axis=1)
+    if geom.has_normals():
+        bad |= ~np.all(np.isfinite(np.asarray(geom.normals)), axis=1)
+    if not bad.any():
+        return geom, 0
+    return geom.select_by_index(np.nonzero(~bad)[0].tolist()), int(bad.sum())
 
 
 def open3d_lib():

@@ -19,7 +19,7 @@ import plyfile
 from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
 
-__all__ = ["write_ply", "read_ply", "PLY_DTYPES"]
+__all__ = ["write_ply", "read_ply", "check_ply", "PLY_DTYPES"]
 
 PLY_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "uint32", "int16", "uint16", "int8", "uint8"))
 """Property types written as they are; other arrays become float32 (floats) or int32."""
@@ -70,19 +70,7 @@ def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
         FormatError: the file is missing, not PLY, truncated, or has no vertex element.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(path, "file not found" if not path.exists() else "not a file")
-    try:
-        with open(path, "rb") as f:
-            ply = plyfile.PlyData.read(f)
-    except plyfile.PlyHeaderParseError as e:
-        raise FormatError(path, f"not a PLY file ({e})") from None
-    except (plyfile.PlyElementParseError, ValueError, EOFError, UnicodeDecodeError) as e:
-        raise FormatError(path, f"truncated or corrupt PLY ({e})") from None
-    except OSError as e:
-        raise FormatError(path, f"cannot read: {e.strerror}") from None
-    if "vertex" not in ply:
-        raise FormatError(path, "no vertex element")
+    ply = _read(path, mmap=False)
     data = ply["vertex"].data
     out = {}
     for name in data.dtype.names:
@@ -91,3 +79,36 @@ def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
             continue
         out[name] = col.astype(col.dtype.newbyteorder("="))
     return out
+
+
+def check_ply(path: str | os.PathLike) -> int:
+    """Check that a PLY file is whole; return its number of vertices.
+
+    Cheap for binary files (the data is mapped, not read: a file shorter than its
+    header says is an error); ASCII files are read.
+
+    Raises:
+        FormatError: the file is missing, empty, not PLY, truncated, or has no
+            vertex element.
+    """
+    path = Path(path)
+    return len(_read(path, mmap=True)["vertex"].data)
+
+
+def _read(path: Path, *, mmap: bool):
+    if not path.is_file():
+        raise FormatError(path, "file not found" if not path.exists() else "not a file")
+    if path.stat().st_size == 0:
+        raise FormatError(path, "empty file (0 bytes): not a PLY file")
+    try:
+        with open(path, "rb") as f:
+            ply = plyfile.PlyData.read(f, mmap="c" if mmap else False)
+    except plyfile.PlyHeaderParseError as e:
+        raise FormatError(path, f"not a PLY file ({e})") from None
+    except (plyfile.PlyElementParseError, ValueError, EOFError, UnicodeDecodeError) as e:
+        raise FormatError(path, f"truncated or corrupt PLY ({e})") from None
+    except OSError as e:
+        raise FormatError(path, f"cannot read: {e.strerror}") from None
+    if "vertex" not in ply:
+        raise FormatError(path, "no vertex element")
+    return ply

@@ -144,15 +144,53 @@ class Rig:
 # ----------------------------------------------------------------------------- parsing
 
 
-def _num(src, where, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
+# Sane ranges (docs/formats.md "Rig file: ranges"): a value outside them is a
+# broken or mistyped file, never a rig that works.
+MAX_LENGTH_MM = 1e5
+"""Largest |value| of a length (translations, volume, turntable axis point): 100 m."""
+MAX_PIXELS = 1e6
+"""Largest focal length, |principal point|, |skew| and |axis_px| in pixels."""
+MIN_FOCAL_PX = 1.0
+"""Smallest focal length in pixels."""
+MAX_DISTORTION = 1e3
+"""Largest |distortion coefficient|."""
+PIXEL_PITCH_RANGE_MM = (1e-4, 100.0)
+"""Projector pixel size at the object (parallel light), mm."""
+GAMMA_RANGE = (0.1, 10.0)
+"""Response gamma."""
+MAX_IMAGE_SIZE = 65536
+"""Largest camera or projector width / height in pixels."""
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _num(src, where, v, lo: float | None = None, hi: float | None = None) -> float:
+    if not _is_number(v):
         raise FormatError(src, f"{where}: expected a number, got {v!r}")
     if not math.isfinite(v):
         raise FormatError(src, f"{where}: not finite ({v})")
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise FormatError(src, f"{where}: {v:g} is outside the sane range [{lo:g}, {hi:g}]")
     return float(v)
 
 
-def _arr(src, where, v, shape) -> np.ndarray:
+def _leaves(v):
+    if isinstance(v, np.ndarray):
+        yield from v.ravel().tolist() if v.dtype.kind in "iuf" else [object()]
+    elif isinstance(v, (list, tuple)):
+        for x in v:
+            yield from _leaves(x)
+    else:
+        yield v
+
+
+def _arr(src, where, v, shape, max_abs: float | None = None) -> np.ndarray:
+    bad = next((x for x in _leaves(v) if not _is_number(x)), None) if v is not None else None
+    if v is None or bad is not None:
+        got = "nothing" if v is None else f"{bad!r}"
+        raise FormatError(src, f"{where}: expected numbers of shape {shape}, got {got}")
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -161,6 +199,8 @@ def _arr(src, where, v, shape) -> np.ndarray:
         raise FormatError(src, f"{where}: expected shape {shape}, got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise FormatError(src, f"{where}: contains non-finite values")
+    if max_abs is not None and np.abs(a).max(initial=0.0) > max_abs:
+        raise FormatError(src, f"{where}: {np.abs(a).max():g} is outside the sane range (|value| <= {max_abs:g})")
     return a
 
 
@@ -178,15 +218,23 @@ def _intrinsics(src, where, v) -> np.ndarray:
         raise FormatError(src, f"{where}: singular intrinsics (fx, fy must be > 0)")
     if np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or abs(K[1, 0]) > 1e-12:
         raise FormatError(src, f"{where}: last row must be [0, 0, 1] and K[1][0] must be 0")
+    if not (MIN_FOCAL_PX <= K[0, 0] <= MAX_PIXELS and MIN_FOCAL_PX <= K[1, 1] <= MAX_PIXELS):
+        raise FormatError(src, f"{where}: focal lengths {K[0, 0]:g}, {K[1, 1]:g} px are outside the sane range "
+                               f"[{MIN_FOCAL_PX:g}, {MAX_PIXELS:g}]")
+    if max(abs(K[0, 1]), abs(K[0, 2]), abs(K[1, 2])) > MAX_PIXELS:
+        raise FormatError(src, f"{where}: principal point or skew outside the sane range (|value| <= {MAX_PIXELS:g} px)")
     return K
 
 
 def _dist(src, where, v) -> np.ndarray:
     if v is None:
         return np.zeros(5)
-    a = np.asarray(v, dtype=np.float64).ravel() if isinstance(v, (list, tuple)) else None
+    ok = isinstance(v, (list, tuple)) and all(_is_number(x) for x in v)
+    a = np.asarray(v, dtype=np.float64).ravel() if ok else None
     if a is None or a.size not in (4, 5) or not np.all(np.isfinite(a)):
         raise FormatError(src, f"{where}: expected 4 or 5 finite distortion coefficients (k1, k2, p1, p2[, k3])")
+    if np.abs(a).max() > MAX_DISTORTION:
+        raise FormatError(src, f"{where}: {np.abs(a).max():g} is outside the sane range (|value| <= {MAX_DISTORTION:g})")
     return np.concatenate([a, np.zeros(5 - a.size)])
 
 
@@ -199,13 +247,17 @@ def _gamma(src, where, d) -> float:
     g = _num(src, f"{where}.response.gamma", resp["gamma"])
     if g <= 0:
         raise FormatError(src, f"{where}.response.gamma: must be > 0")
-    return g
+    return _num(src, f"{where}.response.gamma", g, *GAMMA_RANGE)
 
 
-def _size(src, where, d, key) -> int:
+def _size(src, where, d, key, required: bool = True) -> int:
     v = d.get(key)
+    if v is None and not required:
+        return 0
     if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
         raise FormatError(src, f"{where}.{key}: expected a positive integer, got {v!r}")
+    if v > MAX_IMAGE_SIZE:
+        raise FormatError(src, f"{where}.{key}: {v} px is outside the sane range [1, {MAX_IMAGE_SIZE}]")
     return v
 
 
@@ -240,7 +292,7 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
         K=_intrinsics(src, "camera.K", c.get("K")),
         dist=_dist(src, "camera.dist", c.get("dist")),
         R=_rotation(src, "camera.R", c.get("R")),
-        t=_arr(src, "camera.t", c.get("t"), (3,)),
+        t=_arr(src, "camera.t", c.get("t"), (3,), MAX_LENGTH_MM),
         gamma=_gamma(src, "camera", c),
     )
 
@@ -250,13 +302,14 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
         s = _num(src, "light.pixel_pitch_mm", li.get("pixel_pitch_mm"))
         if s <= 0:
             raise FormatError(src, "light.pixel_pitch_mm: must be > 0")
+        s = _num(src, "light.pixel_pitch_mm", s, *PIXEL_PITCH_RANGE_MM)
         light = ParallelLight(
             R=_rotation(src, "light.R", li.get("R", np.eye(3).tolist())),
-            t=_arr(src, "light.t", li.get("t", [0, 0, 0]), (3,)),
+            t=_arr(src, "light.t", li.get("t", [0, 0, 0]), (3,), MAX_LENGTH_MM),
             pixel_pitch_mm=s,
-            axis_px=_arr(src, "light.axis_px", li.get("axis_px"), (2,)),
-            width=int(li.get("width", 0) or 0),
-            height=int(li.get("height", 0) or 0),
+            axis_px=_arr(src, "light.axis_px", li.get("axis_px"), (2,), MAX_PIXELS),
+            width=_size(src, "light", li, "width", required=False),
+            height=_size(src, "light", li, "height", required=False),
             gamma=_gamma(src, "light", li),
         )
     elif model == "perspective":
@@ -266,7 +319,7 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
             K=_intrinsics(src, "light.K", li.get("K")),
             dist=_dist(src, "light.dist", li.get("dist")),
             R=_rotation(src, "light.R", li.get("R")),
-            t=_arr(src, "light.t", li.get("t"), (3,)),
+            t=_arr(src, "light.t", li.get("t"), (3,), MAX_LENGTH_MM),
             gamma=_gamma(src, "light", li),
         )
     else:
@@ -274,9 +327,9 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
 
     v = _obj(src, "", d, "volume")
     volume = Volume(
-        z_min=_num(src, "volume.z_min", v.get("z_min")),
-        z_max=_num(src, "volume.z_max", v.get("z_max")),
-        r_max=_num(src, "volume.r_max", v.get("r_max")),
+        z_min=_num(src, "volume.z_min", v.get("z_min"), -MAX_LENGTH_MM, MAX_LENGTH_MM),
+        z_max=_num(src, "volume.z_max", v.get("z_max"), -MAX_LENGTH_MM, MAX_LENGTH_MM),
+        r_max=_num(src, "volume.r_max", v.get("r_max"), -MAX_LENGTH_MM, MAX_LENGTH_MM),
     )
     if volume.z_max <= volume.z_min:
         raise FormatError(src, "volume: z_max must be greater than z_min")
@@ -290,7 +343,8 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
         n = np.linalg.norm(ad)
         if n < 1e-9:
             raise FormatError(src, "turntable.axis_dir: must not be zero")
-        turntable = Turntable(axis_point=_arr(src, "turntable.axis_point", tt.get("axis_point"), (3,)), axis_dir=ad / n)
+        turntable = Turntable(axis_point=_arr(src, "turntable.axis_point", tt.get("axis_point"), (3,), MAX_LENGTH_MM),
+                              axis_dir=ad / n)
 
     cam_in_front = (camera.R @ np.array([0.0, 0.0, 0.5 * (volume.z_min + volume.z_max)]) + camera.t)[2]
     if cam_in_front <= 0:

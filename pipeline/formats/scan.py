@@ -29,7 +29,8 @@ from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
 
 SCAN_FORMAT = "ringscan.scan/1"
 
-__all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict"]
+__all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict",
+           "check_view_name"]
 
 
 @dataclass(frozen=True)
@@ -69,9 +70,33 @@ class Scan:
         return self.folder / view.frames[name]
 
 
+_NAME_FORBIDDEN = set('/\\<>:"|?*')
+
+
+def check_view_name(name, *, source=None, where: str = "name") -> str:
+    """Check that a view name is safe as a file and folder name (its PLY is
+    ``<name>.ply``, its frames usually live in ``<name>/``): a non-empty string of at
+    most 200 characters, not starting with a dot (no ``.``, ``..`` or hidden files),
+    without control characters or any of ``/ \\ < > : " | ? *``.
+
+    Raises:
+        FormatError: naming ``source`` and ``where``.
+    """
+    if not isinstance(name, str) or not name:
+        raise FormatError(source, f"{where}: expected a non-empty name, got {name!r}")
+    bad = sorted({c for c in name if c in _NAME_FORBIDDEN or not c.isprintable()})
+    if name.startswith(".") or bad or len(name) > 200:
+        why = ("starts with a dot" if name.startswith(".") else
+               f"contains {', '.join(repr(c) for c in bad)}" if bad else "is longer than 200 characters")
+        raise FormatError(source, f"{where}: {name!r} is not a folder-safe name ({why})")
+    return name
+
+
 def _safe_rel(folder: Path, src: Path, where: str, rel) -> str:
     if not isinstance(rel, str) or not rel:
         raise FormatError(src, f"{where}: expected a relative path, got {rel!r}")
+    if "\0" in rel or not rel.isprintable():
+        raise FormatError(src, f"{where}: path {rel!r} contains a control character (a NUL, a newline...)")
     p = PurePosixPath(rel.replace("\\", "/"))
     if p.is_absolute() or ".." in p.parts or (len(rel) > 1 and rel[1] == ":"):
         raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder")
@@ -131,10 +156,10 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
         where = f"views[{i}]"
         if not isinstance(vd, dict):
             raise FormatError(src, f"{where}: expected an object")
-        name = vd.get("name", f"view_{i:03d}")
-        if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in names:
-            raise FormatError(src, f"{where}.name: {name!r} is not a unique folder-safe name")
-        names.add(name)
+        name = check_view_name(vd.get("name", f"view_{i:03d}"), source=src, where=f"{where}.name")
+        if name.casefold() in names:
+            raise FormatError(src, f"{where}.name: {name!r} is not unique (names are compared ignoring case)")
+        names.add(name.casefold())
         deg = vd.get("turntable_deg", 0.0)
         if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
             raise FormatError(src, f"{where}.turntable_deg: expected a finite number, got {deg!r}")
@@ -164,7 +189,13 @@ def scan_to_dict(scan: Scan) -> dict:
 
 
 def save_scan(scan: Scan) -> None:
-    """Write ``scan.json`` atomically (frames are written by the caller)."""
+    """Write ``scan.json`` atomically (frames are written by the caller).
+
+    Raises:
+        FormatError: a view name that is not folder-safe (see :func:`check_view_name`).
+    """
+    for i, v in enumerate(scan.views):
+        check_view_name(v.name, source=scan.path, where=f"views[{i}].name")
     scan.folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(scan.path, scan_to_dict(scan))
 

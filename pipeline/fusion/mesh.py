@@ -32,10 +32,44 @@ from dataclasses import dataclass
 import numpy as np
 
 from ringscan.pipeline.formats.meshes import open3d_lib
+from ringscan.pipeline.formats.settings import check_finite_settings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MeshSettings", "MeshResult", "check_mesh_settings", "finish_mesh", "drop_small_components", "mesh_info", "clean_mesh", "poisson_mesh", "watertight_poisson", "make_watertight", "orient_normals", "compare_to_truth"]
+__all__ = ["MAX_COORDINATE_MM", "MIN_MESH_POINTS", "drop_unusable_points", "MeshSettings", "MeshResult",
+           "check_mesh_settings", "finish_mesh", "drop_small_components", "mesh_info", "clean_mesh", "poisson_mesh", "watertight_poisson", "make_watertight", "orient_normals", "compare_to_truth"]
+
+
+MAX_COORDINATE_MM = 1e6
+"""Points with a coordinate beyond +-this (1 km) are dropped before meshing: no
+turntable scan is that large, such values come from a broken file or
+triangulation, and they wreck the meshing's octree and Qhull's arithmetic."""
+
+MIN_MESH_POINTS = 10
+"""Fewest points a cloud needs to be meshed."""
+
+
+def drop_unusable_points(cloud, *, max_coordinate_mm: float = MAX_COORDINATE_MM):
+    """Drop points that meshing cannot use: a NaN or infinite coordinate or normal,
+    or a coordinate beyond +-``max_coordinate_mm``.
+
+    Returns:
+        (the cloud without them (the same object when none was dropped),
+        {"non_finite": n, "out_of_range": m}).
+    """
+    pts = np.asarray(cloud.points)
+    bad_nf = ~np.all(np.isfinite(pts), axis=1)
+    if cloud.has_normals():
+        bad_nf |= ~np.all(np.isfinite(np.asarray(cloud.normals)), axis=1)
+    with np.errstate(invalid="ignore"):
+        bad_range = ~bad_nf & np.any(np.abs(pts) > max_coordinate_mm, axis=1)
+    counts = {"non_finite": int(bad_nf.sum()), "out_of_range": int(bad_range.sum())}
+    bad = bad_nf | bad_range
+    if bad.any():
+        cloud = cloud.select_by_index(np.nonzero(~bad)[0].tolist())
+        log.info("dropped %d points with a NaN or infinite coordinate and %d beyond +-%g mm", counts["non_finite"],
+                    counts["out_of_range"], max_coordinate_mm)
+    return cloud, counts
 
 
 # ----------------------------------------------------------------------------- settings
@@ -104,6 +138,7 @@ class MeshResult:
 def check_mesh_settings(s: MeshSettings) -> None:
     if not isinstance(s, MeshSettings):
         raise ValueError(f"settings must be a MeshSettings, got {type(s).__name__}")
+    check_finite_settings(s)
     if s.method not in ("poisson", "tsdf"):
         raise ValueError(f"MeshSettings.method must be 'poisson' or 'tsdf', got {s.method!r}")
     if not 1 <= s.poisson_depth <= 12:
@@ -296,9 +331,27 @@ def orient_normals(cloud, *, k: int = 20):
     o3d = open3d_lib()
     if len(cloud.points) < 3:
         raise ValueError(f"cloud has {len(cloud.points)} points: too few to estimate normals")
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
-    cloud.orient_normals_consistent_tangent_plane(k)
     pts = np.asarray(cloud.points)
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("cloud has NaN or infinite coordinates (drop them first: drop_unusable_points)")
+    c = pts - pts.mean(axis=0)
+    lam, vec = np.linalg.eigh(c.T @ c / len(c))
+    spread = np.sqrt(np.maximum(lam, 0.0))
+    if spread[2] == 0.0:
+        raise ValueError(f"all {len(pts)} points of the cloud lie at one place: no surface to mesh")
+    if spread[1] < 1e-9 * spread[2]:
+        raise ValueError(f"the {len(pts)} points of the cloud lie on a line: no surface to mesh")
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
+    if spread[0] < 1e-6 * spread[2]:
+        # Flat (Qhull, behind the tangent-plane propagation, fails on coplanar
+        # points): every normal along the plane's normal, toward +z when it can.
+        n = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+        cloud.orient_normals_to_align_with_direction(n)
+        return cloud
+    try:
+        cloud.orient_normals_consistent_tangent_plane(k)
+    except RuntimeError as e:
+        raise ValueError(f"cannot orient the cloud's normals ({str(e).splitlines()[0][:200]})") from None
     nrm = np.asarray(cloud.normals)
     if np.mean(np.einsum("ij,ij->i", nrm, pts - pts.mean(axis=0)) < 0) > 0.5:
         cloud.normals = o3d.utility.Vector3dVector(-nrm)

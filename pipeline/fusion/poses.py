@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ringscan.pipeline.formats.settings import check_finite_settings
 from ringscan.pipeline.fusion.turntable import FuseResult, _apply, _rotation_deg
 
 log = logging.getLogger(__name__)
@@ -168,6 +169,7 @@ class MultiPoseResult:
 def _check_pose_settings(s: PoseSettings) -> None:
     if not isinstance(s, PoseSettings):
         raise ValueError(f"settings must be a PoseSettings, got {type(s).__name__}")
+    check_finite_settings(s)
     for name in ("global_voxel_mm", "feature_radius_mm", "global_normal_radius_mm", "ransac_distance_mm",
                  "icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "max_rmse_mm"):
         if not getattr(s, name) > 0:

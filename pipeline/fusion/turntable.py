@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ringscan.pipeline.formats.rig import Rig, Turntable, turntable_transform
+from ringscan.pipeline.formats.settings import check_finite_settings
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +243,7 @@ def _as_view(v, i: int) -> FusionView:
 def check_fuse_settings(s: FuseSettings) -> None:
     if not isinstance(s, FuseSettings):
         raise ValueError(f"settings must be a FuseSettings, got {type(s).__name__}")
+    check_finite_settings(s)
     for name in ("icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "normal_radius_mm"):
         if not getattr(s, name) > 0:
             raise ValueError(f"FuseSettings.{name} must be > 0, got {getattr(s, name)}")

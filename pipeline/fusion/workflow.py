@@ -15,17 +15,32 @@ from pathlib import Path
 
 import numpy as np
 
-from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.atomic import (
+    atomic_write_json,
+    check_no_overwrite,
+    check_output_folder,
+    read_json,
+    remove_stale_temporaries,
+)
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import Rig, load_rig, parse_rig
-from ringscan.pipeline.fusion.mesh import MeshResult, MeshSettings, check_mesh_settings, compare_to_truth, poisson_mesh
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.fusion.mesh import (
+    MIN_MESH_POINTS,
+    MeshResult,
+    MeshSettings,
+    check_mesh_settings,
+    compare_to_truth,
+    drop_unusable_points,
+    poisson_mesh,
+)
 from ringscan.pipeline.fusion.poses import MultiPoseResult, PoseSettings, fuse_poses
 from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 from ringscan.pipeline.fusion.turntable import REPORT_NAME, FuseResult, FuseSettings, FusionView, fuse_views
 from ringscan.pipeline.preview.render import render_to_png
-from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan, scan_inputs
 
 log = logging.getLogger(__name__)
 
@@ -203,13 +218,18 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     if multi and rig is not None:
         raise ValueError("rig: a replacement rig applies to a single source only")
     check_mesh_settings(mesh_settings)
-    out_dir = Path(out_dir)
+    out_dir = check_output_folder(out_dir, what="fusion's output folder")
     fmts = []
     for f in formats:
         f = str(f).lower()
         f = f if f.startswith(".") else f".{f}"
         _ext(Path("mesh" + f), MESH_FORMATS)
         fmts.append(f)
+    outputs = [out_dir / n for n in ("fused.ply", "preview.png", "fuse_report.json")]
+    check_no_overwrite([*outputs, *(out_dir / f"mesh{f}" for f in fmts)],
+                       [q for src in sources for q in _source_files(Path(src))]
+                       + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
+    remove_stale_temporaries(out_dir)
     truth_mesh = _load_truth(truth) if truth is not None else None
     t0 = time.perf_counter()
     if multi:
@@ -246,6 +266,18 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     return rep
 
 
+def _source_files(src: Path) -> list[Path]:
+    """The files of a fusion source: a reconstruction folder's report and clouds, or a scan's files."""
+    if (src / REPORT_NAME).is_file():
+        return [src / REPORT_NAME, *src.glob("*.ply")]
+    if (src / "scan.json").is_file():
+        try:
+            return scan_inputs(load_scan(src, check_files=False, allow_incomplete=True))
+        except FormatError:
+            return [src / "scan.json"]
+    return []
+
+
 def _load_truth(truth):
     o3d = open3d_lib()
     if isinstance(truth, o3d.geometry.TriangleMesh):
@@ -261,11 +293,24 @@ def _load_truth(truth):
 
 
 def mesh_cloud(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
-    """Mesh a bare oriented cloud with ``settings.method``."""
+    """Mesh a bare oriented cloud with ``settings.method``.
+
+    Points that meshing cannot use (NaN, infinite, beyond +-``MAX_COORDINATE_MM``)
+    are dropped first and counted in the result's ``info["dropped_points"]``.
+
+    Raises:
+        ValueError: fewer than ``MIN_MESH_POINTS`` usable points.
+    """
     check_mesh_settings(settings)
-    if settings.method == "tsdf":
-        return tsdf_mesh(cloud, settings=settings)
-    return poisson_mesh(cloud, settings=settings)
+    n_in = len(cloud.points)
+    cloud, dropped = drop_unusable_points(cloud)
+    if len(cloud.points) < MIN_MESH_POINTS:
+        raise ValueError(f"the cloud has {len(cloud.points)} usable points (of {n_in}; {dropped['non_finite']} "
+                         f"non-finite, {dropped['out_of_range']} out of range): too few to mesh "
+                         f"(need at least {MIN_MESH_POINTS})")
+    res = tsdf_mesh(cloud, settings=settings) if settings.method == "tsdf" else poisson_mesh(cloud, settings=settings)
+    res.info["dropped_points"] = dropped
+    return res
 
 
 def mesh_fused(result, *, settings: MeshSettings = MeshSettings()) -> MeshResult:

@@ -30,7 +30,8 @@ import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud
+from ringscan.pipeline.formats.meshes import MESH_FORMATS, drop_non_finite, read_cloud
+from ringscan.pipeline.formats.ply import check_ply
 from ringscan.pipeline.preview.colour import colorbar
 
 log = logging.getLogger(__name__)
@@ -97,11 +98,12 @@ def _bounds(geoms) -> tuple[np.ndarray, np.ndarray]:
     hi = np.full(3, -np.inf)
     for g in geoms:
         pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts):
             lo = np.minimum(lo, pts.min(axis=0))
             hi = np.maximum(hi, pts.max(axis=0))
     if not np.all(np.isfinite(lo)):
-        raise ValueError("nothing to render: every geometry is empty")
+        raise ValueError("nothing to render: every geometry is empty (or has no finite point)")
     return lo, hi
 
 
@@ -374,20 +376,38 @@ def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = Vi
 
 
 def read_geometry(path: str | os.PathLike):
-    """Read a mesh (PLY/OBJ/STL with faces) or else a point cloud, for rendering."""
-    import open3d as o3d
+    """Read a mesh (PLY/OBJ/STL with faces) or else a point cloud, for rendering.
 
+    Points (vertices) with a NaN or infinite coordinate are left out, with a
+    warning that counts them.
+
+    Raises:
+        FormatError: naming the file: missing, truncated (PLY), empty, or without
+            a single finite point.
+    """
+    import open3d as o3d
 
     path = Path(path)
     if not path.is_file():
         raise FormatError(path, "file not found")
+    geom = None
     if path.suffix.lower() in MESH_FORMATS:
+        if path.suffix.lower() == ".ply":
+            check_ply(path)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             m = o3d.io.read_triangle_mesh(str(path))
         if len(m.triangles):
-            if not m.has_vertex_normals():
-                m.compute_vertex_normals()
-            return m
-        if path.suffix.lower() != ".ply":
+            geom = m
+        elif path.suffix.lower() != ".ply":
             raise FormatError(path, "no triangles in the file")
-    return read_cloud(path)
+    if geom is None:
+        geom = read_cloud(path)
+    n_in = len(geom.vertices if hasattr(geom, "triangles") else geom.points)
+    geom, dropped = drop_non_finite(geom)
+    if dropped:
+        if dropped == n_in:
+            raise FormatError(path, f"none of its {n_in} points has finite coordinates: nothing to render")
+        log.warning("%s: left out %d of %d points with a NaN or infinite coordinate", path, dropped, n_in)
+    if hasattr(geom, "triangles") and not geom.has_vertex_normals():
+        geom.compute_vertex_normals()
+    return geom

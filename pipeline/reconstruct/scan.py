@@ -10,8 +10,14 @@ quadric (DESIGN §3, §4), keep the valid points in sample order and write
   reason), seconds per stage, the rig, the patterns and the resolved settings;
 - ``<out>/settings.json``: the resolved settings.
 
-The report is rewritten (atomically) after every view, so ``resume=True`` skips
-views that are already done after an interrupted run.
+The report is rewritten (atomically) after every view, so ``resume=True`` keeps
+views that are already done after an interrupted run: done means made from the
+same inputs with the same settings, files whole (:mod:`.freshness` decides);
+every other view is redone and the report's ``resume`` block says why.
+
+A view that gives no point says why in its entry (``no_points``) and in the log
+(no contrast between the white and black frames, no ring line found, every
+sample dropped...).
 """
 
 from __future__ import annotations
@@ -24,19 +30,23 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.kernels import resolve_device
-from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
-from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.atomic import (
+    atomic_write_json,
+    check_no_overwrite,
+    check_output_file,
+    check_output_folder,
+    remove_stale_temporaries,
+)
 from ringscan.pipeline.formats.rig import rig_to_dict
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, read_view_frames
+from ringscan.pipeline.formats.scan import Scan, View, check_view_name, load_scan, read_view_frames
 from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view, write_view_ply
 
 log = logging.getLogger(__name__)
 
-REPORT_FORMAT = "ringscan.report/1"
-
-__all__ = ["REPORT_FORMAT", "reconstruct_scan"]
+__all__ = ["REPORT_FORMAT", "reconstruct_scan", "scan_inputs"]
 
 
 def reconstruct_scan(
@@ -57,30 +67,45 @@ def reconstruct_scan(
         settings: stage settings.
         device: Warp device (None: CUDA when present, else CPU).
         views: names of the views to do (default: all).
-        resume: keep views already finished in an earlier run of the same output.
+        resume: keep views already done in an earlier run into the same folder:
+            made from the same inputs with the same settings, files whole
+            (:func:`~ringscan.pipeline.reconstruct.freshness.check_done`); the
+            report's ``resume`` block lists the views kept and why the others were
+            redone.
         progress: show a progress bar.
 
     Returns:
         The report (also written to ``out_dir/report.json``).
+
+    Raises:
+        FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
+            file), or writing into it would overwrite one of the scan's own files.
     """
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
-    device = resolve_device(device)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_folder(out_dir, what="reconstruction's output folder")
     chosen = list(scan.views) if views is None else [v for v in scan.views if v.name in set(views)]
     if views is not None and len(chosen) != len(set(views)):
         unknown = sorted(set(views) - {v.name for v in scan.views})
         raise ValueError(f"unknown view(s) {', '.join(unknown)} in {scan.path}")
+    for v in chosen:
+        check_view_name(v.name, source=scan.path, where=f"views[{scan.views.index(v)}].name")
     report_path = out / "report.json"
-    done = {}
-    if resume and report_path.is_file():
-        try:
-            old = read_json(report_path)
-            if old.get("format") == REPORT_FORMAT and Path(old.get("scan", "")) == scan.folder.resolve():
-                done = {v["name"]: v for v in old.get("views", []) if (out / v.get("ply", "")).is_file()}
-        except FormatError as e:
-            log.warning("cannot resume from %s (%s): starting again", report_path, e)
+    outputs = [report_path, out / "settings.json", *(out / f"{v.name}.ply" for v in chosen)]
+    for o in outputs:
+        check_output_file(o, what="file the reconstruction writes")
+    check_no_overwrite(outputs, scan_inputs(scan))
+    device = resolve_device(device)
+    out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
+    names = [v.name for v in chosen]
+    if resume:
+        check = check_done(scan, out, settings=settings, views=names)
+        hashes, done = check.hashes, check.kept
+        for n, why in check.redo.items():
+            log.info("%s: not kept from the earlier run (%s)", n, why)
+    else:
+        hashes, done = hash_inputs(scan, settings, views=names), {}
     report = {
         "format": REPORT_FORMAT,
         "scan": str(scan.folder.resolve()),
@@ -89,8 +114,11 @@ def reconstruct_scan(
         "patterns": scan.patterns.to_dict(),
         "rig": rig_to_dict(scan.rig),
         "settings": settings_to_dict(settings),
+        "inputs": hashes.to_dict(),
         "views": [],
     }
+    if resume:
+        report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
     atomic_write_json(out / "settings.json", report["settings"])
     t_all = time.perf_counter()
     from tqdm import tqdm
@@ -118,7 +146,8 @@ def reconstruct_scan(
             prefetch(k)
             frames, read_s = pending.pop(view.name).result()
             prefetch(k + 1)
-            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device)
+            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
+                             hashes.views[view.name])
     finally:
         for f in pending.values():
             f.cancel()
@@ -135,17 +164,29 @@ def _timed_read(scan: Scan, view: View) -> tuple[np.ndarray, float]:
     return frames, time.perf_counter() - t
 
 
-def _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device) -> None:
+def scan_inputs(scan: Scan) -> list[Path]:
+    """The files a scan is made of: scan.json, its rig file, every frame."""
+    files = [scan.path]
+    if scan.rig_ref:
+        files.append(scan.folder / scan.rig_ref)
+    files += [scan.frame_path(v, n) for v in scan.views for n in v.frames]
+    return files
+
+
+def _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
+                     inputs_hash) -> None:
     """Reconstruct one view from its frames; write its PLY and the updated report."""
     cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
     cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
     ply = f"{view.name}.ply"
     write_view_ply(out / ply, cloud, index)
     entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
-             "camera_center": scan.rig.camera.center.tolist(), **cloud.stats}
+             "camera_center": scan.rig.camera.center.tolist(), "inputs_hash": inputs_hash, **cloud.stats}
     report["views"].append(entry)
     log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
              ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
+    if "no_points" in cloud.stats:
+        log.warning("%s of %s: no points: %s", view.name, scan.folder, cloud.stats["no_points"])
     atomic_write_json(report_path, report)
 
 

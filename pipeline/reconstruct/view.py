@@ -17,6 +17,7 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
 from ringscan.pipeline.codecs.registry import extract_samples
+from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.ply import write_ply
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
@@ -24,7 +25,7 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply"]
+__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points"]
 
 
 @dataclass
@@ -121,7 +122,61 @@ def reconstruct_view(
         "dropped": {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
         "times_s": times,
     }
+    if cloud.stats["points"] == 0:
+        cloud.stats["no_points"] = explain_no_points(frames, scan, cloud.stats, settings)
     return cloud
+
+
+def explain_no_points(frames: np.ndarray, scan: Scan, stats: dict,
+                      settings: ReconstructSettings = ReconstructSettings()) -> str:
+    """Why a view gave no point, in one sentence for the user.
+
+    Args:
+        frames: the view's (n, H, W) frames in the codec's frame order.
+        scan: the scan.
+        stats: the view's counts (``pixels_decoded``, ``samples``, ``dropped``, ...).
+        settings: the settings the view was reconstructed with.
+    """
+    frames = np.asarray(frames)
+    names = frame_names(scan.patterns)
+    full = 65535.0 if frames.dtype == np.uint16 else 255.0
+    scale = full / 255.0
+
+    def lighting(lo_mean: float, hi_mean: float) -> str:
+        if hi_mean < 0.05 * full:
+            return "everything is dark: the projector's light did not reach the camera (projector off, lens cap, " \
+                   "exposure too short)"
+        if lo_mean > 0.95 * full:
+            return "everything is saturated: the exposure is too long or the ambient light too strong"
+        return "the projector's light does not change the image (projector off or aimed elsewhere, or the " \
+               "frames are all alike)"
+
+    if "white" in names and "black" in names:
+        white = frames[names.index("white")].astype(np.float32)
+        black = frames[names.index("black")].astype(np.float32)
+        thr = settings.decode.min_contrast * scale
+        lit = int(np.count_nonzero(white - black >= thr))
+        if lit == 0:
+            return (f"no ring found: no contrast between the white and black frames (white - black is below "
+                    f"{thr:g} grey levels at every pixel; white {white.mean():.0f}, black {black.mean():.0f} on "
+                    f"average): {lighting(float(black.mean()), float(white.mean()))}")
+        if stats.get("pixels_decoded", 0) == 0:
+            return (f"no ring found: {lit} pixels have contrast, but none decodes to a ring band (every bit too "
+                    f"weak: check the frame order and the exposure)")
+    elif "rings" in names:
+        f = frames[names.index("rings")].astype(np.float32)
+        lo, hi = (float(x) for x in np.percentile(f, [1.0, 99.0]))
+        if hi - lo < settings.single_shot.lines.min_contrast * scale:
+            return (f"no ring found: the rings frame has no contrast (grey levels {lo:.0f} to {hi:.0f} between the "
+                    f"1st and 99th percentile): {lighting(lo, hi)}")
+        if stats.get("samples", 0) == 0:
+            return (f"no ring found: {stats.get('line_samples', 0)} line centres in {stats.get('pieces', 0)} "
+                    f"pieces, none labelled with a ring (see the labelling counts in the report)")
+    if stats.get("samples", 0) == 0:
+        return f"no ring found: {stats.get('pixels_decoded', 0)} pixels decoded, but no ring edge was sampled"
+    dropped = ", ".join(f"{k} {v}" for k, v in stats.get("dropped", {}).items() if v)
+    return (f"every one of the {stats['samples']} ring samples was dropped ({dropped or 'below min_confidence'}): "
+            f"check the rig's calibration and working volume")
 
 
 def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
