@@ -14,12 +14,22 @@ import warp as wp
 
 LIGHT_PARALLEL = wp.constant(0)
 LIGHT_PERSPECTIVE = wp.constant(1)
-UNDISTORT_ITERS = wp.constant(12)
-NEWTON_STEPS = wp.constant(4)
+UNDISTORT_ITERS = wp.constant(20)
+UNDISTORT_TOL_PX = wp.constant(0.01)
+LENS_SEGMENT_SAMPLES = wp.constant(32)
+LENS_MIN_DET = wp.constant(0.01)
+NEWTON_STEPS = wp.constant(12)
+ROOT_TOL_PX = wp.constant(0.01)
+R2_UNBOUNDED = 1.0e30
 
 __all__ = [
     "LIGHT_PARALLEL",
     "LIGHT_PERSPECTIVE",
+    "UNDISTORT_TOL_PX",
+    "ROOT_TOL_PX",
+    "ROOT_FAILED_1",
+    "ROOT_FAILED_2",
+    "monotonic_radius2",
     "CameraModel",
     "LightModel",
     "make_camera",
@@ -47,7 +57,12 @@ __all__ = [
 
 @wp.struct
 class CameraModel:
-    """An OpenCV pinhole camera: X_c = R X_w + t, distortion (k1, k2, p1, p2, k3)."""
+    """An OpenCV pinhole camera: X_c = R X_w + t, distortion (k1, k2, p1, p2, k3).
+
+    ``r2_max`` is the squared normalised radius x^2 + y^2 up to which the radial
+    distortion r (1 + k1 r^2 + k2 r^4 + k3 r^6) grows with r (1e30 where it
+    always does): beyond it the polynomial folds back, and a point there lands on
+    a pixel that a point inside also lands on (:func:`monotonic_radius2`)."""
 
     fx: float
     fy: float
@@ -62,6 +77,7 @@ class CameraModel:
     R: wp.mat33
     t: wp.vec3
     center: wp.vec3
+    r2_max: float
 
 
 @wp.struct
@@ -103,14 +119,74 @@ def distort(cam: CameraModel, x: float, y: float):
 
 
 @wp.func
+def distortion_jacobian_det(cam: CameraModel, x: float, y: float):
+    """Determinant of d(x'', y'') / d(x, y) at the undistorted point (x, y)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+    dr = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
+    a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
+    b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
+    d = radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
+    return a * d - b * b
+
+
+@wp.func
+def has_tangential(cam: CameraModel):
+    return cam.p1 != 0.0 or cam.p2 != 0.0
+
+
+@wp.func
+def locally_unfolded(cam: CameraModel, x: float, y: float):
+    """The distortion is locally invertible at (x, y): a positive Jacobian and,
+    for a radial-only lens, inside its monotonic radius ``cam.r2_max``."""
+    ok = distortion_jacobian_det(cam, x, y) > 0.0
+    if not has_tangential(cam):
+        ok = ok and x * x + y * y < cam.r2_max
+    return ok
+
+
+@wp.func
+def in_lens_region(cam: CameraModel, x: float, y: float):
+    """(x, y) lies in the fold-free region around the optical axis, where the
+    distortion maps undistorted points one to one onto pixels. Radial-only
+    lens: exactly r^2 < ``cam.r2_max``. With tangential terms the Jacobian
+    determinant (1 on the axis) must stay above ``LENS_MIN_DET`` at (x, y) and at
+    ``LENS_SEGMENT_SAMPLES`` - 1 evenly spaced points on the way from the axis:
+    a sampled test, so it asks for a margin (a lens that squeezes area 100-fold
+    is not a model of anything real), which also catches fold bands too thin to
+    fall on a sample."""
+    ok = locally_unfolded(cam, x, y)
+    if ok and has_tangential(cam):
+        for k in range(1, LENS_SEGMENT_SAMPLES + 1):
+            f = float(k) / float(LENS_SEGMENT_SAMPLES)
+            if distortion_jacobian_det(cam, f * x, f * y) <= LENS_MIN_DET:
+                ok = False
+    return ok
+
+
+@wp.func
 def undistort(cam: CameraModel, xd: float, yd: float):
     """Normalised distorted -> undistorted, by Newton's method on the 2x2 system
-    (float32). Newton converges quadratically, so once a step is below 1e-6
-    (~0.003 px at f = 2600 px) the error left is far below float32's resolution;
-    that stops it after 2-3 steps. A tighter bound is never met in float32 and
-    costs the full UNDISTORT_ITERS steps."""
+    (float32). Returns vec3(x, y, ok).
+
+    Newton converges quadratically, so once a step is below 1e-6 (~0.003 px at
+    f = 2600 px) the error left is far below float32's resolution; that stops it
+    after 2-3 steps. The iteration starts at (xd, yd), or nearer the axis where
+    that point is folded, and a step that would land where the distortion folds
+    (:func:`locally_unfolded`) is halved until it does not, so the iteration
+    cannot converge on the polynomial's far branch. ok = 1 only where the result
+    is a true inverse: in the fold-free region (:func:`in_lens_region`) and
+    distorting back onto the pixel within ``UNDISTORT_TOL_PX``. ok = 0 where the
+    pixel has no such inverse (beyond the image of that region, or the
+    iteration did not converge): such a pixel's ray is unknown and must be
+    dropped, never used."""
     x = xd
     y = yd
+    for _h in range(60):
+        if in_lens_region(cam, x, y):
+            break
+        x = 0.5 * x
+        y = 0.5 * y
     for _i in range(UNDISTORT_ITERS):
         r2 = x * x + y * y
         radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
@@ -119,28 +195,40 @@ def undistort(cam: CameraModel, xd: float, yd: float):
         fy = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y - yd
         a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
         b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
-        c = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
         d = radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
-        det = a * d - b * c
+        det = a * d - b * b
         if wp.abs(det) < 1.0e-12:
             break
         sx = (d * fx - b * fy) / det
-        sy = (a * fy - c * fx) / det
+        sy = (a * fy - b * fx) / det
+        for _h in range(30):
+            if locally_unfolded(cam, x - sx, y - sy):
+                break
+            sx = 0.5 * sx
+            sy = 0.5 * sy
         x = x - sx
         y = y - sy
         if wp.abs(sx) + wp.abs(sy) < 1.0e-6:
             break
-    return wp.vec2(x, y)
+    back = distort(cam, x, y)
+    ex = cam.fx * (back[0] - xd) + cam.skew * (back[1] - yd)
+    ey = cam.fy * (back[1] - yd)
+    ok = float(0.0)
+    if ex * ex + ey * ey <= UNDISTORT_TOL_PX * UNDISTORT_TOL_PX and in_lens_region(cam, x, y):
+        ok = 1.0
+    return wp.vec3(x, y, ok)
 
 
 @wp.func
 def camera_ray(cam: CameraModel, u: float, v: float):
-    """Unit world direction of the ray through pixel (u, v) (origin: cam.center)."""
+    """The ray through pixel (u, v): (unit world direction (origin: cam.center),
+    ok). ok is False where the pixel has no undistorted point (:func:`undistort`):
+    the direction is then meaningless and the pixel must be dropped."""
     yd = (v - cam.cy) / cam.fy
     xd = (u - cam.cx - cam.skew * yd) / cam.fx
     n = undistort(cam, xd, yd)
     dc = wp.vec3(n[0], n[1], 1.0)
-    return wp.normalize(wp.transpose(cam.R) * dc)
+    return wp.normalize(wp.transpose(cam.R) * dc), n[2] > 0.0
 
 
 @wp.func
@@ -246,18 +334,45 @@ def polar_angle(y: float, x: float):
 
 
 @wp.func
+def ring_residual(light: LightModel, C: wp.vec3, d: wp.vec3, t: float, rho: float, center: wp.vec2):
+    """|pixel(X(t)) - c| - rho on the projector grid (with its lens distortion)."""
+    return wp.length(pattern_offset(light, C + d * t, center)) - rho
+
+
+@wp.func
 def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float, center: wp.vec2):
-    """Newton steps on |pixel(X(t)) - c| - rho (projector lens distortion)."""
+    """Newton steps on g(t) = |pixel(X(t)) - c| - rho (projector lens distortion),
+    from the undistorted cone's root t0. Returns (t, converged).
+
+    The derivative is a central difference over h = 0.05 mm (the pattern offset
+    is smooth on that scale, and float32 resolves it); the iteration stops at
+    float32's resolution (|g| < 1e-4 px or a step below 1e-7 of t; 2-4 steps for
+    a usual lens) or after ``NEWTON_STEPS`` steps. converged is True
+    only where |g(t)| <= ``ROOT_TOL_PX`` at the end, the point lies in front of
+    the projector and inside the fold-free region of its lens
+    (:func:`in_lens_region`): anywhere else the root is unknown (or lit by no
+    pixel the model can name) and must be dropped, never kept."""
     t = t0
+    h = wp.max(0.05, 1.0e-4 * wp.abs(t0))
     for _i in range(NEWTON_STEPS):
-        h = wp.max(1.0e-3, 1.0e-5 * wp.abs(t))
-        g0 = wp.length(pattern_offset(light, C + d * t, center)) - rho
-        g1 = wp.length(pattern_offset(light, C + d * (t + h), center)) - rho
-        dg = (g1 - g0) / h
-        if wp.abs(dg) < 1.0e-12:
+        g0 = ring_residual(light, C, d, t, rho, center)
+        if wp.abs(g0) < 1.0e-4:
             break
-        t = t - g0 / dg
-    return t
+        dg = (ring_residual(light, C, d, t + h, rho, center) - ring_residual(light, C, d, t - h, rho, center)) / (2.0 * h)
+        if not (wp.abs(dg) > 1.0e-9):
+            break
+        step = g0 / dg
+        t = t - step
+        if wp.abs(step) < 1.0e-7 * wp.max(1.0, wp.abs(t)):
+            break
+    Xp = light.cam.R * (C + d * t) + light.cam.t
+    ok = False
+    if Xp[2] > 0.0:
+        xn = Xp[0] / Xp[2]
+        yn = Xp[1] / Xp[2]
+        g = ring_residual(light, C, d, t, rho, center)
+        ok = wp.abs(g) <= ROOT_TOL_PX and in_lens_region(light.cam, xn, yn)
+    return t, ok
 
 
 @wp.func
@@ -266,15 +381,25 @@ def in_volume(X: wp.vec3, vol: Volume):
     return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
 
 
+ROOT_FAILED_1 = wp.constant(1)
+ROOT_FAILED_2 = wp.constant(2)
+
+
 @wp.func
 def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center: wp.vec2):
     """Both meetings of the ray X(t) = C + t d with the quadric of ring ``rho``.
 
     The ring's quadric is a^2 + b^2 = rho^2 z^2 in :func:`ring_terms`; along the
     ray the terms are affine in t, so this is a (t^2) + b t + c = 0, solved in
-    float64 with the stable form. With projector distortion both roots are then
-    refined by :func:`refine_root`. Returns vec3(t1, t2, real) with t1 <= t2 and
-    real = 1 where the ray meets the quadric (0: no real root; t1 = t2 = 0).
+    float64 with the stable form. With projector distortion each root in front
+    of the projector is then refined by :func:`refine_root` (a root behind it is
+    on the cone's other nappe, lit by nothing: it is left as it is, and
+    :func:`root_usable` drops it).
+
+    Returns (vec3(t1, t2, real), failed): t1 <= t2 and real = 1 where the ray
+    meets the quadric (0: no real root; t1 = t2 = 0); ``failed`` has bit
+    ``ROOT_FAILED_1`` / ``ROOT_FAILED_2`` set where the refinement of t1 / t2 did
+    not converge: that root's place is unknown.
     """
     P0 = light_point_local(light, C)
     D0 = light_dir_local(light, d)
@@ -290,8 +415,9 @@ def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center
     B = wp.float64(2.0) * (q0[0] * dq[0] + q0[1] * dq[1] - r2 * q0[2] * dq[2])
     Cc = q0[0] * q0[0] + q0[1] * q0[1] - r2 * q0[2] * q0[2]
     disc = B * B - wp.float64(4.0) * A * Cc
+    failed = int(0)
     if disc < wp.float64(0.0) or wp.abs(A) < wp.float64(1.0e-18):
-        return wp.vec3(0.0, 0.0, 0.0)
+        return wp.vec3(0.0, 0.0, 0.0), failed
     sq = wp.sqrt(disc)
     qq = wp.float64(-0.5) * (B + wp.where(B >= wp.float64(0.0), sq, -sq))
     ta = float(qq / A)
@@ -299,9 +425,20 @@ def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center
     t1 = wp.min(ta, tb)
     t2 = wp.max(ta, tb)
     if has_distortion(light):
-        t1 = refine_root(light, C, d, t1, rho, center)
-        t2 = refine_root(light, C, d, t2, rho, center)
-    return wp.vec3(t1, t2, 1.0)
+        if (light.cam.R * (C + d * t1) + light.cam.t)[2] > 0.0:
+            t1, ok1 = refine_root(light, C, d, t1, rho, center)
+            if not ok1:
+                failed = failed | ROOT_FAILED_1
+        if (light.cam.R * (C + d * t2) + light.cam.t)[2] > 0.0:
+            t2, ok2 = refine_root(light, C, d, t2, rho, center)
+            if not ok2:
+                failed = failed | ROOT_FAILED_2
+        if t2 < t1:
+            tt = t1
+            t1 = t2
+            t2 = tt
+            failed = ((failed & ROOT_FAILED_1) << 1) | ((failed & ROOT_FAILED_2) >> 1)
+    return wp.vec3(t1, t2, 1.0), failed
 
 
 @wp.func
@@ -324,6 +461,20 @@ def _dist5(dist) -> np.ndarray:
     return d
 
 
+def monotonic_radius2(dist) -> float:
+    """Squared normalised radius up to which the radial distortion of ``dist``
+    (OpenCV order k1, k2, p1, p2, k3) is monotonic: the least s = r^2 > 0 with
+    d/dr [r (1 + k1 s + k2 s^2 + k3 s^3)] = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 = 0;
+    ``R2_UNBOUNDED`` (1e30) where there is none."""
+    k1, k2, _p1, _p2, k3 = _dist5(dist)
+    coef = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]), "f")
+    if coef.size < 2:
+        return R2_UNBOUNDED
+    roots = np.roots(coef)
+    s = roots.real[(np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots.real))) & (roots.real > 0)]
+    return float(min(s.min(), R2_UNBOUNDED)) if s.size else R2_UNBOUNDED
+
+
 def make_camera(K, dist, R, t) -> CameraModel:
     """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
     K = np.asarray(K, float)
@@ -338,6 +489,7 @@ def make_camera(K, dist, R, t) -> CameraModel:
     c.R = wp.mat33(*R.ravel().tolist())
     c.t = wp.vec3(*t.tolist())
     c.center = wp.vec3(*(-R.T @ t).tolist())
+    c.r2_max = monotonic_radius2(d)
     return c
 
 

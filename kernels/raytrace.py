@@ -13,7 +13,10 @@ Two passes:
   is behind a perspective projector), plus the ambient weight ``albedo * ambient``.
   The centre ray of each pixel gives the truth: camera-frame depth Z_c, world
   point, facet normal and the ``lit`` mask (hit, not shadowed, facing the light,
-  inside the projector image).
+  inside the projector image). A pixel (or sub-pixel position) whose ray the
+  camera model cannot give (no undistorted point inside the region where the
+  lens distortion is monotonic, ``geometry.undistort``) sees nothing: no light,
+  NaN truth. The renderer never draws what a folded lens model would invent.
 - shading, once per frame (:func:`shade_frame`): each pixel's irradiance is the
   mean over its sub-samples of ``ambient weight + direct weight * E(u_p, v_p)``,
   E the emitted projector light, given on a grid k times finer than the projector
@@ -214,11 +217,11 @@ def trace_geometry_kernel(
         for i in range(ss):
             u = float(x) + (float(i) + 0.5) * inv - 0.5
             v = float(y) + (float(j) + 0.5) * inv - 0.5
-            d = camera_ray(cam, u, v)
+            d, ray_ok = camera_ray(cam, u, v)
             h = trace_ray(mesh, has_mesh, corner_n, origin, d)
             k = ((y * width + x) * ss + j) * ss + i
             s = wp.vec3(0.0, 0.0, 0.0)
-            if h.hit != 0:
+            if h.hit != 0 and ray_ok:
                 acc += albedo * ambient
                 p = light_pixel(light, h.point)
                 if p[2] > 0.0:
@@ -228,9 +231,9 @@ def trace_geometry_kernel(
     base[y, x] = acc * inv * inv
 
     nan = wp.nan
-    d = camera_ray(cam, float(x), float(y))
+    d, ray_ok = camera_ray(cam, float(x), float(y))
     h = trace_ray(mesh, has_mesh, corner_n, origin, d)
-    if h.hit != 0:
+    if h.hit != 0 and ray_ok:
         Xc = cam.R * h.point + cam.t
         depth[y, x] = Xc[2]
         points[y, x] = h.point

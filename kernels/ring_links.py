@@ -47,7 +47,8 @@ class RingRoots:
     valid: wp.array
     """(n, k) int32 bit mask: bit 0 = root 0 usable, bit 1 = root 1 usable (in
     front of the camera, inside the working volume, in front of a perspective
-    light)."""
+    light, and, with projector distortion, its refinement converged). 0 where
+    the camera pixel has no undistorted ray (``geometry.undistort``)."""
 
 
 @wp.kernel
@@ -68,7 +69,7 @@ def ring_roots_kernel(
     points (n, k, 2) vec3, offset (n, k, 2) vec2, valid (n, k) int32: written.
     """
     i, k = wp.tid()
-    d = camera_ray(cam, uv[i][0], uv[i][1])
+    d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
     C = cam.center
     zero3 = wp.vec3(0.0, 0.0, 0.0)
     zero2 = wp.vec2(0.0, 0.0)
@@ -77,14 +78,16 @@ def ring_roots_kernel(
     offset[i, k, 0] = zero2
     offset[i, k, 1] = zero2
     valid[i, k] = 0
-    roots = ray_ring_roots(light, C, d, radii[k], center)
+    if not ray_ok:
+        return
+    roots, failed = ray_ring_roots(light, C, d, radii[k], center)
     if roots[2] == 0.0:
         return
     mask = int(0)
     for m in range(2):
         t = roots[m]
         X = C + d * t
-        if root_usable(light, X, t, vol):
+        if (failed & (1 << m)) == 0 and root_usable(light, X, t, vol):
             points[i, k, m] = X
             offset[i, k, m] = pattern_offset(light, X, center)
             mask = mask | (1 << m)

@@ -22,7 +22,12 @@ sectors is dropped as inconsistent.
 Status codes (``status`` array): 0 point, 1 no real root, 2 no root in the
 volume, 3 ambiguous (two roots, no way to choose), 4 sector mismatch, 5 grazing
 (the ray meets the quadric at a glancing angle: a tiny sampling error moves the
-point far along the ray), 6 isolated (set later by ``point_filter``).
+point far along the ray), 6 isolated (set later by ``point_filter``), 7 not
+converged (with projector distortion, the Newton refinement of a root in front
+of the projector did not reach the ring: where that root lies is unknown, so
+neither root can be trusted to be the only one), 8 undistort failed (the
+camera pixel has no undistorted point inside the region where the camera's
+distortion is monotonic: its ray is unknown).
 """
 
 from __future__ import annotations
@@ -52,7 +57,10 @@ STATUS_AMBIGUOUS = wp.constant(3)
 STATUS_SECTOR_MISMATCH = wp.constant(4)
 STATUS_GRAZING = wp.constant(5)
 STATUS_ISOLATED = 6  # given by kernels.point_filter
-STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated")
+STATUS_NOT_CONVERGED = wp.constant(7)
+STATUS_UNDISTORT_FAILED = wp.constant(8)
+STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated",
+                "not_converged", "undistort_failed")
 PI = wp.constant(3.14159265358979)
 
 __all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES"]
@@ -136,15 +144,21 @@ def triangulate_kernel(
     residual (n,) float32: written.
     """
     i = i0 + wp.tid()
-    d = camera_ray(cam, uv[i][0], uv[i][1])
+    d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
     C = cam.center
     r = rho[i]
     points[i] = wp.vec3(0.0, 0.0, 0.0)
     confidence[i] = 0.0
     residual[i] = -1.0
-    roots = ray_ring_roots(light, C, d, r, center)
+    if not ray_ok:
+        status[i] = STATUS_UNDISTORT_FAILED
+        return
+    roots, failed = ray_ring_roots(light, C, d, r, center)
     if roots[2] == 0.0:
         status[i] = STATUS_NO_ROOT
+        return
+    if failed != 0:
+        status[i] = STATUS_NOT_CONVERGED
         return
     t1 = roots[0]
     t2 = roots[1]

@@ -1,5 +1,6 @@
-"""kernels.geometry: the ring quadric solve, root rules and the polar angle,
-against hand-computed geometry and OpenCV (independent code)."""
+"""kernels.geometry: the ring quadric solve, root rules, the polar angle and the
+lens model's inverse (undistortion, distorted projector roots), against
+hand-computed geometry and OpenCV (independent code)."""
 
 import cv2
 import numpy as np
@@ -8,15 +9,20 @@ import warp as wp
 
 from ringscan.kernels import init_warp
 from ringscan.kernels.geometry import (
+    CameraModel,
     LightModel,
     Volume,
+    make_camera,
     make_parallel_light,
     make_perspective_light,
     make_volume,
+    monotonic_radius2,
     polar_angle,
     ray_ring_roots,
     root_usable,
+    undistort,
 )
+from ringscan.pipeline.formats.rig import default_rig
 
 init_warp()
 
@@ -24,10 +30,11 @@ init_warp()
 @wp.kernel
 def _roots_kernel(C: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
                   light: LightModel, center: wp.vec2, vol: Volume,
-                  roots: wp.array(dtype=wp.vec3), usable: wp.array(dtype=wp.vec2i)):
+                  roots: wp.array(dtype=wp.vec3), usable: wp.array(dtype=wp.vec2i), failed: wp.array(dtype=int)):
     i = wp.tid()
-    r = ray_ring_roots(light, C[i], d[i], rho[i], center)
+    r, f = ray_ring_roots(light, C[i], d[i], rho[i], center)
     roots[i] = r
+    failed[i] = f
     u0 = int(0)
     u1 = int(0)
     if r[2] != 0.0:
@@ -44,14 +51,17 @@ def _atan2_kernel(y: wp.array(dtype=float), x: wp.array(dtype=float), out: wp.ar
     out[i] = polar_angle(y[i], x[i])
 
 
-def _roots(light, C, d, rho, center, vol, device):
+def _roots(light, C, d, rho, center, vol, device, with_failed=False):
     n = len(rho)
     roots = wp.zeros(n, dtype=wp.vec3, device=device)
     usable = wp.zeros(n, dtype=wp.vec2i, device=device)
+    failed = wp.zeros(n, dtype=int, device=device)
     wp.launch(_roots_kernel, n, inputs=[wp.array(C, dtype=wp.vec3, device=device),
                                         wp.array(d, dtype=wp.vec3, device=device),
                                         wp.array(rho, dtype=float, device=device), light, wp.vec2(*center), vol],
-              outputs=[roots, usable], device=device)
+              outputs=[roots, usable, failed], device=device)
+    if with_failed:
+        return roots.numpy(), usable.numpy(), failed.numpy()
     return roots.numpy(), usable.numpy()
 
 
@@ -144,3 +154,167 @@ def test_polar_angle_matches_the_library(device):
 def test_perspective_light_rejects_a_wrong_size_matrix(bad):
     with pytest.raises(ValueError, match="make_camera"):
         make_perspective_light(bad, None, np.eye(3), np.zeros(3))
+
+
+# ----------------------------------------------------------------------------- strong distortion against OpenCV
+
+WIDE_K = np.array([[700.0, 0, 639.5], [0, 700.0, 511.5], [0, 0, 1]])
+"""A wide-angle 1280x1024 camera: image corners at normalised radius 1.17."""
+WIDE_LENSES = {
+    # barrel that folds at r = 1.21 (OpenCV's own projection turns back there)
+    # and rises again beyond r = 1.66: pixels past the fold's image have no
+    # true inverse, but Newton can land on the far branch
+    "radial": np.array([-0.35, 0.05, 0.0, 0.0, 0.0]),
+    "tangential": np.array([-0.35, 0.05, 0.01, -0.01, 0.0]),
+}
+
+
+@wp.kernel
+def _undistort_kernel(cam: CameraModel, uv: wp.array(dtype=wp.vec2), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    yd = (uv[i][1] - cam.cy) / cam.fy
+    xd = (uv[i][0] - cam.cx - cam.skew * yd) / cam.fx
+    out[i] = undistort(cam, xd, yd)
+
+
+def _undistort(K, dist, uv, device):
+    cam = make_camera(K, dist, np.eye(3), np.zeros(3))
+    out = wp.zeros(len(uv), dtype=wp.vec3, device=device)
+    wp.launch(_undistort_kernel, len(uv), inputs=[cam, wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device)],
+              outputs=[out], device=device)
+    o = out.numpy().astype(np.float64)
+    return o[:, :2], o[:, 2] > 0
+
+
+def _cv_pixels(xy, K, dist):
+    """OpenCV's projection of normalised undistorted points (x, y, 1)."""
+    P = np.c_[xy, np.ones(len(xy))].astype(np.float64)
+    return cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)[0][:, 0]
+
+
+def _cv_min_det(xy, K, dist, samples=64, h=1e-6):
+    """Least Jacobian determinant (normalised units, 1 on the axis) of OpenCV's
+    projection at ``samples`` points on the segment from the axis to each point:
+    > 0 where the point lies in the fold-free region around the axis."""
+    out = np.full(len(xy), np.inf)
+    for f in np.linspace(1.0 / samples, 1.0, samples):
+        q = xy * f
+        jx = (_cv_pixels(q + [h, 0], K, dist) - _cv_pixels(q - [h, 0], K, dist)) / (2 * h)
+        jy = (_cv_pixels(q + [0, h], K, dist) - _cv_pixels(q - [0, h], K, dist)) / (2 * h)
+        det = (jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0]) / (K[0, 0] * K[1, 1])
+        out = np.minimum(out, det)
+    return out
+
+
+@pytest.mark.parametrize("lens", sorted(WIDE_LENSES))
+def test_undistort_inverts_opencv_inside_the_fold_free_region(device, lens):
+    """Points where the lens is one to one (by OpenCV's projection) come back from
+    their OpenCV pixels, flagged good; deep inside, OpenCV's own iterative
+    undistortion agrees."""
+    dist = WIDE_LENSES[lens]
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1.6, 1.6, (6000, 2))
+    xy = xy[_cv_min_det(xy, WIDE_K, dist) > 0.05][:2000]
+    assert len(xy) > 500
+    uv = _cv_pixels(xy, WIDE_K, dist)
+    got, ok = _undistort(WIDE_K, dist, uv, device)
+    assert ok.all(), f"{np.count_nonzero(~ok)} good pixels flagged"
+    assert np.abs(_cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
+    assert np.abs(got - xy).max() < 2e-4
+    inner = _cv_min_det(xy, WIDE_K, dist) > 0.5
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    pts = uv[inner].reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x; 5.x takes the criteria in undistortPoints
+        ref = cv2.undistortPointsIter(pts, WIDE_K, dist, None, None, crit)[:, 0]
+    else:
+        ref = cv2.undistortPoints(pts, WIDE_K, dist, None, None, None, crit)[:, 0]
+    assert np.abs(got[inner] - ref).max() < 2e-5
+
+
+@pytest.mark.parametrize("lens", sorted(WIDE_LENSES))
+def test_undistort_flags_pixels_without_a_true_inverse(device, lens):
+    """Over the whole image of a strongly distorted lens: every pixel is either
+    flagged or undistorted to a point that OpenCV projects back onto it *and*
+    that lies in the fold-free region (not on the polynomial's far branch, which
+    also projects onto the pixel). Past the image of the fold every pixel is
+    flagged; well inside it none is."""
+    dist = WIDE_LENSES[lens]
+    v, u = np.mgrid[0:1024:8, 0:1280:8]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    got, ok = _undistort(WIDE_K, dist, uv, device)
+    assert 0.1 < np.mean(~ok) < 0.6  # the scene exercises the fold
+    assert np.abs(_cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
+    assert _cv_min_det(got[ok], WIDE_K, dist).min() > 0
+    if lens == "radial":
+        # the largest image radius a point of the fold-free region reaches:
+        # where OpenCV's projection of (r, 0) first turns back
+        r = np.linspace(0, 2.0, 40001)
+        ur = (_cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
+        reach = ur[np.argmax(np.diff(ur) <= 0)]
+        rd = np.hypot(uv[:, 0] - WIDE_K[0, 2], uv[:, 1] - WIDE_K[1, 2]) / WIDE_K[0, 0]
+        assert not ok[rd > reach * 1.0001].any()
+        assert ok[rd < reach * 0.98].all()
+
+
+def test_undistort_default_camera_flags_nothing(device):
+    """The default rig's mild lens: every pixel of its image has a true inverse."""
+    c = default_rig().camera
+    v, u = np.mgrid[0:c.height:16, 0:c.width:16]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    got, ok = _undistort(c.K, c.dist, uv, device)
+    assert ok.all()
+    assert np.abs(_cv_pixels(got, c.K, c.dist) - uv).max() < 0.01
+
+
+def test_monotonic_radius_is_where_opencv_turns_back():
+    for dist in ([-0.35, 0.05, 0, 0, 0], [-0.4, 0, 0, 0, 0], [0.3, -0.2, 0, 0, 0.01]):
+        r = np.linspace(0, 3.0, 300001)
+        u = _cv_pixels(np.c_[r, np.zeros_like(r)], np.eye(3), np.array(dist))[:, 0]
+        turn = r[np.argmax(np.diff(u) <= 0)]
+        assert abs(np.sqrt(monotonic_radius2(dist)) - turn) < 1e-4
+    assert monotonic_radius2([0.02, 0.0, 0.0, 0.0, 0.0]) >= 1e29      # pincushion: never folds
+    assert monotonic_radius2(None) >= 1e29
+
+
+# ----------------------------------------------------------------------------- projector distortion: converged or flagged
+
+STRONG_PROJECTOR = {
+    # no fold, but far from the undistorted cone: 4 fixed Newton steps kept
+    # points tens of px off their ring
+    "steep": np.array([-5.0, 20.0, 0.01, 0.01, 0.0]),
+    # folds at r = 0.167, inside the projector's field
+    "folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0]),
+}
+
+
+@pytest.mark.parametrize("lens", sorted(STRONG_PROJECTOR))
+def test_distorted_projector_roots_are_on_their_ring_or_flagged(device, lens):
+    """Every root of a strongly distorted projector's ring that is not flagged as
+    failed lies, by cv2.projectPoints, on its ring within 0.01 px, and in the
+    lens's fold-free region."""
+    rig = default_rig(light_model="perspective")
+    L = rig.light
+    dist = STRONG_PROJECTOR[lens]
+    light = make_perspective_light(L.K, dist, L.R, L.t)
+    center = (511.5, 383.5)
+    rng = np.random.default_rng(7)
+    n = 3000
+    C = np.tile(rig.camera.center, (n, 1))
+    target = rng.uniform([-80, -80, 0], [80, 80, 60], size=(n, 3))
+    d = target - C
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rho = rng.uniform(20, 450, n)
+    roots, usable, failed = _roots(light, C.astype(np.float32), d.astype(np.float32), rho.astype(np.float32), center,
+                                   make_volume(-1000, 1000, 1000), device, with_failed=True)
+    real = roots[:, 2] == 1.0
+    rvec = cv2.Rodrigues(L.R)[0]
+    kept = 0
+    for m in range(2):
+        good = real & (usable[:, m] == 1) & ((failed & (1 << m)) == 0)
+        X = C[good] + d[good] * roots[good, m:m + 1]
+        p = cv2.projectPoints(X.reshape(-1, 1, 3), rvec, L.t, L.K, dist)[0].reshape(-1, 2)
+        np.testing.assert_allclose(np.hypot(p[:, 0] - center[0], p[:, 1] - center[1]), rho[good], atol=0.01)
+        Xp = X @ L.R.T + L.t
+        assert _cv_min_det(Xp[:, :2] / Xp[:, 2:], np.eye(3), dist).min() > 0
+        kept += good.sum()
+    assert kept > n // 2

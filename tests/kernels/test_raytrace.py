@@ -242,3 +242,36 @@ def test_empty_scene_and_bad_input(device):
     with pytest.raises(ValueError, match="supersample"):
         trace_geometry(mesh, make_camera(*_camera()), _light()[0], width=W, height=H, projector_size=(8, 8),
                        supersample=0)
+
+
+def test_pixels_past_the_lens_fold_see_nothing(device):
+    """A wide barrel lens that folds (k1 = -0.35, k2 = 0.05: OpenCV's projection of
+    (r, 0, 1) turns back at r = 1.21): the renderer shares the reconstruction's
+    undistortion, so a pixel without a true inverse must render as nothing (NaN
+    truth, unlit, black) rather than as the far branch's point, which OpenCV also
+    projects onto the pixel."""
+    K, _, R, t = _camera()
+    Kw = np.array([[87.5, 0, (W - 1) / 2], [0, 87.5, (H - 1) / 2], [0, 0, 1.0]])  # 700 px at 1280 wide, scaled
+    dist = np.array([-0.35, 0.05, 0.0, 0.0, 0.0])
+    geo, _ = _trace(device, make_scene("plane"), cam=(Kw, dist, R, t), ambient=0.3)
+    depth, pts, lit = geo.depth.numpy(), geo.points.numpy().astype(np.float64), geo.lit.numpy()
+    r = np.linspace(0, 2.0, 20001)
+    ur = cv2.projectPoints(np.c_[r, 0 * r, 1 + 0 * r], np.zeros(3), np.zeros(3), np.eye(3), dist)[0][:, 0, 0]
+    turn = np.argmax(np.diff(ur) <= 0)
+    r_fold, reach = r[turn], ur[turn]
+    v, u = np.mgrid[0:H, 0:W]
+    rd = np.hypot(u - Kw[0, 2], v - Kw[1, 2]) / Kw[0, 0]
+    past = rd > reach * 1.001
+    assert past.sum() > 1000 and (~past).sum() > 1000
+    assert np.all(np.isnan(depth[past])) and not lit[past].any()
+    hit = np.isfinite(depth)
+    assert hit[rd < reach * 0.99].all()
+    # every point drawn is the true one: OpenCV maps it back to its pixel, from
+    # inside the fold
+    Xc = pts[hit] @ R.T + t
+    assert np.hypot(Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2]).max() < r_fold
+    uv, _ = cv2.projectPoints(pts[hit], cv2.Rodrigues(R)[0], t, Kw, dist)
+    assert np.abs(uv[:, 0] - np.stack([u[hit], v[hit]], -1)).max() < 0.01
+    # and the frame shows nothing there: no ambient light either
+    img = shade_frame(geo, wp.full((192, 256), 1.0, dtype=float, device=device), full_irradiance=1.3)
+    assert np.all(img.numpy()[past] == 0) and np.all(img.numpy()[rd < reach * 0.99] > 0)

@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.triangulation import TriangulateSettings, compact_points, triangulate_rings
+from ringscan.kernels.triangulation import STATUS_NAMES, TriangulateSettings, compact_points, triangulate_rings
 from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (511.5, 383.5)
@@ -129,3 +129,64 @@ def test_cpu_spans_on_several_threads_match_one_thread():
         np.testing.assert_array_equal(a.numpy(), b.numpy())
     ok = one.status.numpy() == 0
     assert np.linalg.norm(one.points.numpy()[ok] - P[ok], axis=1).max() < 2e-3
+
+
+# ----------------------------------------------------------------------------- lens models that fold or converge slowly
+
+STATUS = {name: i for i, name in enumerate(STATUS_NAMES)}
+
+
+def test_strongly_distorted_projector_points_are_right_or_dropped(device):
+    """A projector lens far from its undistorted cone (k1 = -5, k2 = 20, no fold):
+    a fixed 4 Newton steps kept points tens of millimetres off. Every point kept
+    is the true one; a root that does not converge drops its sample, counted."""
+    dist = np.array([-5.0, 20.0, 0.01, 0.01, 0.0])
+    rig = default_rig(light_model="perspective")
+    c, L = rig.camera, rig.light
+    cam = make_camera(c.K, c.dist, c.R, c.t)
+    light = make_perspective_light(L.K, dist, L.R, L.t)
+    rng = np.random.default_rng(5)
+    n = 6000
+    P = np.c_[rng.uniform(-80, 80, n), rng.uniform(-80, 80, n), rng.uniform(0, 60, n)]
+    pp = cv2.projectPoints(P, cv2.Rodrigues(L.R)[0], L.t, L.K, dist)[0][:, 0]
+    rho = np.hypot(pp[:, 0] - CENTER[0], pp[:, 1] - CENTER[1]).astype(np.float32)
+    sec = np.floor((np.arctan2(pp[:, 1] - CENTER[1], pp[:, 0] - CENTER[0]) + np.pi) / (2 * np.pi) * 2 ** SB)
+    uv = cv2.projectPoints(P, cv2.Rodrigues(c.R)[0], c.t, c.K, c.dist)[0][:, 0].astype(np.float32)
+    T = _run(device, cam, light, uv, rho, sec.astype(np.int32), vol=(-3, 95, 200))
+    st, X = T.status.numpy(), T.points.numpy()
+    ok = st == 0
+    assert ok.mean() > 0.75  # most of the rest: the undistorted cone misses the ray (no_root)
+    assert set(np.unique(st)) <= {STATUS[k] for k in ("ok", "no_root", "outside_volume", "ambiguous",
+                                                        "sector_mismatch", "grazing", "not_converged")}
+    assert np.linalg.norm(X[ok] - P[ok], axis=1).max() < 2e-3
+    assert np.all(X[st == STATUS["not_converged"]] == 0)
+
+
+def test_pixels_without_an_undistorted_ray_are_dropped(device):
+    """A wide camera whose barrel lens folds at r = 1.21: pixels beyond the fold's
+    image have no ray; their samples are dropped as undistort_failed, never
+    triangulated, while the pixels of true points still give them back."""
+    rig, _, light, P, _, rho, sec = _setup("parallel", n=400)
+    c = rig.camera
+    K = np.array([[700.0, 0, 639.5], [0, 700.0, 511.5], [0, 0, 1]])
+    dist = np.array([-0.35, 0.05, 0.0, 0.0, 0.0])
+    cam = make_camera(K, dist, c.R, c.t)
+    uv = cv2.projectPoints(P, cv2.Rodrigues(c.R)[0], c.t, K, dist)[0][:, 0]
+    corners = np.array([[5.0, 5.0], [1275.0, 5.0], [5.0, 1019.0], [1275.0, 1019.0], [1270.0, 900.0]])
+    # r = 1.1-1.2 in normalised units, past the largest radius (0.72) of the fold-free region's image
+    assert np.all(np.hypot(corners[:, 0] - 639.5, corners[:, 1] - 511.5) / 700.0 > 1.0)
+    uv_all = np.concatenate([uv, corners]).astype(np.float32)
+    rho_all = np.concatenate([rho, np.full(5, 200.0, np.float32)])
+    sec_all = np.concatenate([sec, np.zeros(5, np.int32)])
+    T = _run(device, cam, light, uv_all, rho_all, sec_all)
+    st, X = T.status.numpy(), T.points.numpy()
+    assert np.all(st[-5:] == STATUS["undistort_failed"])
+    ok = st[:-5] == 0
+    assert ok.mean() > 0.95
+    assert np.linalg.norm(X[:-5][ok] - P[ok], axis=1).max() < 2e-3
+
+
+def test_status_names_cover_every_code():
+    assert STATUS_NAMES[:7] == ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing",
+                                "isolated")
+    assert STATUS["not_converged"] == 7 and STATUS["undistort_failed"] == 8
