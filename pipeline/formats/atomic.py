@@ -170,7 +170,9 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None):
         raise FormatError(path, "is a folder, where ringscan writes a file: move it away or choose another output")
     if (path.exists() or path.is_symlink()) and _kind(path) != "a file":
         raise FormatError(path, f"is {_kind(path)}, where ringscan writes a file: choose another output")
-    check_output_folder(path.parent, what=f"folder of {path.name}")
+    if "\0" in str(path):
+        raise FormatError(path, "cannot be written: the path contains a NUL character")
+    _check_ancestors(path, "file to write")
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
     tmp = _new_temporary(path, suffix)

@@ -214,15 +214,17 @@ def _rotation(src, where, v) -> np.ndarray:
 
 def _intrinsics(src, where, v) -> np.ndarray:
     K = _arr(src, where, v, (3, 3))
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(np.linalg.det(K)) < 1e-9:
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise FormatError(src, f"{where}: singular intrinsics (fx, fy must be > 0)")
-    if np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or abs(K[1, 0]) > 1e-12:
-        raise FormatError(src, f"{where}: last row must be [0, 0, 1] and K[1][0] must be 0")
     if not (MIN_FOCAL_PX <= K[0, 0] <= MAX_PIXELS and MIN_FOCAL_PX <= K[1, 1] <= MAX_PIXELS):
         raise FormatError(src, f"{where}: focal lengths {K[0, 0]:g}, {K[1, 1]:g} px are outside the sane range "
                                f"[{MIN_FOCAL_PX:g}, {MAX_PIXELS:g}]")
     if max(abs(K[0, 1]), abs(K[0, 2]), abs(K[1, 2])) > MAX_PIXELS:
         raise FormatError(src, f"{where}: principal point or skew outside the sane range (|value| <= {MAX_PIXELS:g} px)")
+    if abs(np.linalg.det(K)) < 1e-9:
+        raise FormatError(src, f"{where}: singular intrinsics (fx, fy must be > 0)")
+    if np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or abs(K[1, 0]) > 1e-12:
+        raise FormatError(src, f"{where}: last row must be [0, 0, 1] and K[1][0] must be 0")
     return K
 
 

@@ -10,8 +10,9 @@ import pytest
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.meshes import read_cloud
 from ringscan.pipeline.formats.patterns import frame_names, gray_decode, gray_encode, parse_patterns
-from ringscan.pipeline.formats.ply import read_ply, write_ply
+from ringscan.pipeline.formats.ply import check_ply, read_ply, write_ply
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict, save_rig, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, read_view_frames, save_scan
 
@@ -45,6 +46,23 @@ def test_rig_round_trip(tmp_path):
     (lambda d: d["volume"].update(z_max=-10), "z_max must be greater"),
     (lambda d: d["camera"].update(width=0), "camera.width"),
     (lambda d: d.pop("camera"), "camera: missing"),
+    # absurd but finite numbers, and numbers given as strings (docs/formats.md, "sane ranges")
+    (lambda d: d["camera"].update(t=[0, 0, 1e300]), "camera.t: 1e\\+300 is outside the sane range"),
+    (lambda d: d["light"].update(pixel_pitch_mm=1e-300), "light.pixel_pitch_mm: 1e-300 is outside the sane range"),
+    (lambda d: d["camera"].update(K=[[1e300, 0, 639.5], [0, 1e300, 511.5], [0, 0, 1]]),
+     "camera.K: focal lengths 1e\\+300, 1e\\+300 px are outside the sane range"),
+    (lambda d: d["camera"].update(K=[["2600", 0, 639.5], [0, 2600, 511.5], [0, 0, 1]]),
+     "camera.K: expected numbers of shape \\(3, 3\\), got '2600'"),
+    (lambda d: d["camera"].update(width="1280"), "camera.width: expected a positive integer, got '1280'"),
+    (lambda d: d["camera"].update(dist=["0.02", 0, 0, 0, 0]), "camera.dist: expected 4 or 5 finite"),
+    (lambda d: d["camera"].update(dist=[1e6, 0, 0, 0, 0]), "camera.dist: 1e\\+06 is outside the sane range"),
+    (lambda d: d["camera"].update(response={"gamma": 1e300}), "camera.response.gamma: 1e\\+300 is outside"),
+    (lambda d: d["light"].update(pixel_pitch_mm="0.15"), "light.pixel_pitch_mm: expected a number, got '0.15'"),
+    (lambda d: d["light"].update(width="650"), "light.width: expected a positive integer, got '650'"),
+    (lambda d: d["light"].update(axis_px=[511.5, 1e300]), "light.axis_px: 1e\\+300 is outside the sane range"),
+    (lambda d: d["volume"].update(r_max=1e300), "volume.r_max: 1e\\+300 is outside the sane range"),
+    (lambda d: d["volume"].update(z_min="0"), "volume.z_min: expected a number, got '0'"),
+    (lambda d: d["camera"].update(width=10**9), "camera.width: 1000000000 px is outside the sane range"),
 ])
 def test_bad_rig(tmp_path, edit, match):
     d = _rig_dict()
@@ -151,12 +169,42 @@ def _edit_scan(tmp_path, fn):
     (lambda d: d["views"][0].update(turntable_deg="ten"), "turntable_deg"),
     (lambda d: d.update(rig="missing_rig.json"), "file not found"),
     (lambda d: d["patterns"].update(width=800), "does not match the rig's 1024x768"),
+    # view names are file names: <name>.ply is written
+    (lambda d: d["views"][0].update(name=".."), r"views\[0\].name: '..' is not a folder-safe name \(starts with a dot"),
+    (lambda d: d["views"][0].update(name="."), "starts with a dot"),
+    (lambda d: d["views"][0].update(name=".hidden"), "starts with a dot"),
+    (lambda d: d["views"][0].update(name="a/b"), r"contains '/'"),
+    (lambda d: d["views"][0].update(name="a:b"), r"contains ':'"),
+    (lambda d: d["views"][0].update(name="v\x00"), r"contains '\\x00'"),
+    (lambda d: d["views"][0].update(name=""), "expected a non-empty name"),
+    (lambda d: d["views"].append({**d["views"][0], "name": "VIEW_000"}), "'VIEW_000' is not unique"),
+    # a NUL (or another control character) in a path names scan.json and the field
+    (lambda d: d["views"][0]["frames"].update(white="view_000/wh\x00ite.png"),
+     r"views\[0\].frames.white: path 'view_000/wh\\x00ite.png' contains a control character"),
+    (lambda d: d.update(rig="ri\x00g.json"), r"rig: path 'ri\\x00g.json' contains a control character"),
 ])
 def test_bad_scan(tmp_path, fn, match):
     _write_scan(tmp_path)
     _edit_scan(tmp_path, fn)
-    with pytest.raises(FormatError, match=match):
+    with pytest.raises(FormatError, match=match) as e:
         load_scan(tmp_path)
+    assert "scan.json" in str(e.value) or "missing_rig.json" in str(e.value) or "nothere.png" in str(e.value)
+
+
+def test_binary_scan_json_names_the_file(tmp_path):
+    _write_scan(tmp_path)
+    (tmp_path / "scan.json").write_bytes(bytes(range(256)))
+    with pytest.raises(FormatError, match=r"scan.json: not a text file: byte 0x80 at offset 128 is not UTF-8"):
+        load_scan(tmp_path)
+
+
+def test_save_scan_refuses_an_unsafe_view_name(tmp_path):
+    scan = _write_scan(tmp_path)
+    import dataclasses
+
+    bad = dataclasses.replace(scan, views=(View("..", 0.0, dict(scan.views[0].frames)),))
+    with pytest.raises(FormatError, match="not a folder-safe name"):
+        save_scan(bad)
 
 
 def test_bad_frames(tmp_path):
@@ -198,3 +246,11 @@ def test_ply_round_trip_and_truncation(tmp_path):
     with pytest.raises(FormatError, match="truncated"):
         read_ply(tmp_path / "b.ply")
     assert not list(tmp_path.glob(".*tmp*"))  # no temporary files left behind
+    # check_ply: whole files only, without reading the data
+    assert check_ply(tmp_path / "a.ply") == 100
+    for cut, match in ((len(raw) - 1, "truncated"), (40, "not a PLY file"), (0, "empty file")):
+        (tmp_path / "c.ply").write_bytes(raw[:cut])
+        with pytest.raises(FormatError, match=match):
+            check_ply(tmp_path / "c.ply")
+        with pytest.raises(FormatError, match=match):
+            read_cloud(tmp_path / "c.ply")  # Open3D alone reads a truncated PLY up to where it ends

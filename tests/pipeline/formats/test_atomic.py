@@ -1,0 +1,160 @@
+"""Atomic writes: the mode a new file gets, the mode an overwritten file keeps,
+leftover temporary files, output paths that cannot be written, strict JSON."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+import time
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from ringscan.pipeline.formats.atomic import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_json,
+    check_no_overwrite,
+    check_output_file,
+    check_output_folder,
+    read_json,
+    remove_stale_temporaries,
+)
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.meshes import write_mesh
+from ringscan.pipeline.formats.ply import write_ply
+
+
+@pytest.fixture(params=[0o022, 0o002], ids=["umask022", "umask002"])
+def umask(request):
+    old = os.umask(request.param)
+    yield request.param
+    os.umask(old)
+
+
+def _mode(p) -> int:
+    return stat.S_IMODE(os.stat(p).st_mode)
+
+
+def _write_every_kind(folder):
+    """One file of every kind ringscan writes, through its writers."""
+    atomic_write_bytes(folder / "a.txt", b"x")
+    atomic_write_json(folder / "a.json", {"a": 1})
+    write_image(folder / "a.png", np.zeros((4, 5), np.uint8))
+    write_ply(folder / "a.ply", {"x": np.zeros(3, np.float32)})
+    write_mesh(folder / "m.stl", o3d.geometry.TriangleMesh.create_tetrahedron())
+    return ["a.txt", "a.json", "a.png", "a.ply", "m.stl"]
+
+
+def test_new_files_get_the_mode_the_umask_gives(tmp_path, umask):
+    for name in _write_every_kind(tmp_path):
+        assert _mode(tmp_path / name) == 0o666 & ~umask, name
+
+
+def test_an_overwritten_file_keeps_its_mode(tmp_path, umask):
+    names = _write_every_kind(tmp_path)
+    for name in names:
+        os.chmod(tmp_path / name, 0o640)
+    _write_every_kind(tmp_path)
+    for name in names:
+        assert _mode(tmp_path / name) == 0o640, name
+    assert not list(tmp_path.glob(".*"))  # no temporary file left
+
+
+def _killed_writer(folder, name: str) -> None:
+    """A process that dies (SIGKILL) in the middle of an atomic write of folder/name."""
+    code = ("import os, signal, sys; from pathlib import Path;"
+            "from ringscan.pipeline.formats.atomic import atomic_path\n"
+            f"with atomic_path(Path({str(folder)!r}) / {name!r}) as tmp:\n"
+            "    tmp.write_bytes(b'half a file')\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True)
+    assert res.returncode == -9, res.stderr
+
+
+def test_a_killed_writers_temporary_file_is_removed(tmp_path):
+    _killed_writer(tmp_path, "report.json")
+    left = list(tmp_path.glob(".report.json.*.tmp.json"))
+    assert len(left) == 1 and not (tmp_path / "report.json").exists()
+    # a live writer's temporary file (this process) and other dot files are kept
+    with atomic_path(tmp_path / "live.json") as live:
+        live.write_bytes(b"{}")
+        (tmp_path / ".hidden").write_text("mine")
+        removed = remove_stale_temporaries(tmp_path)
+        assert removed == left and live.exists()
+    assert not left[0].exists() and (tmp_path / ".hidden").is_file() and (tmp_path / "live.json").is_file()
+    # a temporary file of the earlier naming (tempfile.mkstemp, no process id): removed when old
+    old = tmp_path / ".view_000.ab_cd12x.tmp.ply"
+    old.write_bytes(b"")
+    assert remove_stale_temporaries(tmp_path) == []
+    os.utime(old, (time.time() - 7200, time.time() - 7200))
+    assert remove_stale_temporaries(tmp_path) == [old]
+
+
+def test_output_folder_checks(tmp_path):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    assert check_output_folder(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    with pytest.raises(FormatError, match="afile: cannot be the output folder: it exists and is a file"):
+        check_output_folder(f)
+    with pytest.raises(FormatError, match="sub: cannot be the output folder: it lies under .*afile, which is a file"):
+        check_output_folder(f / "sub")
+    with pytest.raises(FormatError, match="/dev/null: .*is a device"):
+        check_output_folder("/dev/null")
+    (tmp_path / "broken").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(FormatError, match="broken symbolic link"):
+        check_output_folder(tmp_path / "broken")
+
+
+def test_output_file_checks(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    assert check_output_file(tmp_path / "afile") == tmp_path / "afile"  # replaced: fine
+    with pytest.raises(FormatError, match="it is a folder"):
+        check_output_file(tmp_path)
+    with pytest.raises(FormatError, match="/dev/null: .*a device"):
+        check_output_file("/dev/null", extensions=(".png",))
+    with pytest.raises(FormatError, match="lies under"):
+        check_output_file(tmp_path / "afile" / "x.png")
+    with pytest.raises(FormatError, match=r"x.gif: .*extension must be .png, not '.gif'"):
+        check_output_file(tmp_path / "x.gif", extensions=(".png",))
+    # the writers themselves refuse a folder where the file goes, and name it
+    (tmp_path / "report.json").mkdir()
+    with pytest.raises(FormatError, match="report.json: is a folder, where ringscan writes a file"):
+        atomic_write_json(tmp_path / "report.json", {})
+    with pytest.raises(FormatError, match="lies under"):
+        atomic_write_bytes(tmp_path / "afile" / "x.txt", b"")
+
+
+def test_no_overwrite_of_inputs_through_links(tmp_path):
+    (tmp_path / "in.json").write_text("{}")
+    (tmp_path / "link").symlink_to(tmp_path, target_is_directory=True)
+    check_no_overwrite([tmp_path / "out.json"], [tmp_path / "in.json"])
+    with pytest.raises(FormatError, match="would overwrite the input"):
+        check_no_overwrite([tmp_path / "link" / "in.json"], [tmp_path / "in.json"])
+
+
+def test_json_written_is_strict(tmp_path):
+    atomic_write_json(tmp_path / "r.json", {"a": float("nan"), "b": [float("inf"), np.float32("nan"), 1.5],
+                                            "c": np.arange(2), "d": np.int64(3)})
+
+    def no_constants(name):
+        raise AssertionError(f"{name} is not JSON")
+
+    d = json.loads((tmp_path / "r.json").read_text(), parse_constant=no_constants)
+    assert d == {"a": None, "b": [None, None, 1.5], "c": [0, 1], "d": 3}
+
+
+def test_read_json_names_the_file(tmp_path):
+    p = tmp_path / "scan.json"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
+    with pytest.raises(FormatError, match=r"scan.json: not a text file: byte 0x89 at offset 0 is not UTF-8"):
+        read_json(p)
+    with pytest.raises(FormatError, match=r"'.*sc\\x00an.json': the path contains a NUL"):
+        read_json(tmp_path / "sc\0an.json")
+    with pytest.raises(FormatError, match="is a folder"):
+        read_json(tmp_path)
