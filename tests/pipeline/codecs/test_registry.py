@@ -1,0 +1,104 @@
+"""The codec registry: a codec module that fails to import surfaces as its own
+ImportError (never as "no reconstruction for codec"), and an unknown codec is a
+clear FormatError naming the scan."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.pipeline.codecs.registry import EXTRACTORS, extract_samples
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.patterns import CODECS, IMPORTED_CODECS, parse_patterns
+from ringscan.pipeline.formats.rig import default_rig
+from ringscan.pipeline.formats.scan import read_view_frames
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.cli import main
+
+# A meta-path hook that makes one module fail to import the way a broken install
+# does (a shared library that will not load), without touching the checkout.
+BREAK = textwrap.dedent("""
+    import importlib.abc, sys
+
+    class Broken(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name == {target!r}:
+                raise ImportError("libcodec_test.so: cannot open shared object file (simulated)")
+            return None
+
+    sys.meta_path.insert(0, Broken())
+""")
+
+
+def _run_broken(target: str, body: str) -> subprocess.CompletedProcess:
+    code = BREAK.format(target=target) + textwrap.dedent(body)
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+
+
+@pytest.mark.parametrize("target, codec_module", [
+    ("ringscan.kernels.phase", "phase_rings"),            # a dependency of one codec
+    ("ringscan.pipeline.codecs.single_shot.labeller", "single_shot"),
+])
+def test_import_failure_in_a_codec_surfaces_as_itself(target, codec_module):
+    r = _run_broken(target, "import ringscan.pipeline.codecs.registry\n")
+    assert r.returncode != 0
+    assert "ImportError: libcodec_test.so: cannot open shared object file (simulated)" in r.stderr
+    assert codec_module in r.stderr          # the traceback runs through the codec module
+    assert "no reconstruction for codec" not in r.stderr + r.stdout
+
+
+def test_import_failure_reaches_the_command_line_as_itself(tmp_path):
+    """``ringscan reconstruct`` with a codec module that cannot load: the user sees
+    the import error (what to fix), not a claim that the codec is not built in."""
+    r = _run_broken("ringscan.kernels.phase", f"""
+        from ringscan.tools.cli import main
+        raise SystemExit(main(["reconstruct", {str(tmp_path / 'scan')!r}, "--out", {str(tmp_path / 'out')!r}]))
+    """)
+    assert r.returncode != 0
+    assert "libcodec_test.so: cannot open shared object file (simulated)" in r.stderr
+    assert "no reconstruction for codec" not in r.stderr + r.stdout
+
+
+def test_every_known_codec_has_a_reconstruction():
+    assert set(EXTRACTORS) == set(CODECS) | set(IMPORTED_CODECS)
+
+
+@pytest.fixture(scope="module")
+def small_scan(tmp_path_factory):
+    rig = default_rig()
+    cam = dataclasses.replace(rig.camera, width=160, height=128,
+                              K=np.array([[325.0, 0, 79.5], [0, 325.0, 63.5], [0, 0, 1]]))
+    spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+                           "rho0": 8.0, "pitch": 16.0, "bits": 5})
+    return simulate_scan(tmp_path_factory.mktemp("reg") / "scan", scene="plane", rig=dataclasses.replace(rig, camera=cam),
+                         patterns=spec, progress=False, device="cpu")
+
+
+def test_unknown_codec_is_a_format_error_naming_the_scan(small_scan):
+    frames = wp.array(read_view_frames(small_scan, small_scan.views[0]), device="cpu")
+    odd = dataclasses.replace(small_scan, patterns=dataclasses.replace(small_scan.patterns, codec="moire"))
+    with pytest.raises(FormatError, match="no reconstruction for codec 'moire'") as e:
+        extract_samples(frames, odd, ReconstructSettings(), 1)
+    assert e.value.path == os.fspath(small_scan.path)
+
+
+def test_unknown_codec_in_scan_json_is_one_clear_line(small_scan, tmp_path, capsys):
+    meta = json.loads((small_scan.folder / "scan.json").read_text())
+    meta["patterns"]["codec"] = "moire"
+    (small_scan.folder / "scan.json").write_text(json.dumps(meta))
+    try:
+        assert main(["reconstruct", str(small_scan.folder), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    finally:
+        meta["patterns"]["codec"] = "gray-rings"
+        (small_scan.folder / "scan.json").write_text(json.dumps(meta))
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert "scan.json" in err and "unknown codec 'moire'" in err
