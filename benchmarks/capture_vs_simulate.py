@@ -64,7 +64,7 @@ def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, 
 
     settings = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0)
     with EmulatedRig(rig, patterns, scene, time_scale=1000.0, seed=seed, size_mm=size_mm, device=device) as emu:
-        tt = GrblTurntable(emu.turntable_port, poll_s=0.005)
+        tt = GrblTurntable(emu.turntable_port)
         pj = SerialProjector(emu.projector_port, expect_names=frame_names(patterns))
         try:
             return capture_scan(out, camera=emu.camera, projector=pj, turntable=tt, rig=rig, patterns=patterns,

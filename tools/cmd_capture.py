@@ -10,7 +10,9 @@
 
 The frames go to SCAN/view_<k>/<frame>.png as they are grabbed, scan.json is
 rewritten after each one, capture.json keeps the plan, the settings and the
-table's angle; ``--resume`` continues an interrupted capture. See docs/hardware.md.
+table's angle; ``--resume`` continues an interrupted capture. Ctrl-C always stops
+it (exit status 130), even when Python swallowed the interrupt in a finalizer. See
+docs/hardware.md.
 """
 
 from __future__ import annotations
@@ -20,7 +22,13 @@ import logging
 from pathlib import Path
 
 from ringscan.hardware.capture.latency import read_rig_latency
-from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan, read_capture_state, resume_angle
+from ringscan.hardware.capture.sequence import (
+    CaptureSettings,
+    InterruptGuard,
+    capture_scan,
+    read_capture_state,
+    resume_angle,
+)
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, parse_display_spec
 from ringscan.hardware.devices.projector import SerialProjector
@@ -76,7 +84,8 @@ def add_parser(sub):
     p.add_argument("--start", type=float, default=None, metavar="DEG", help="angle of the first view (default 0)")
     p.add_argument("--resume", action="store_true", help="continue the interrupted capture in --out")
     p.add_argument("--table-at", type=float, default=None, metavar="DEG",
-                   help="with --resume: the angle the table stands at now (needed when a move was cut short)")
+                   help="with --resume: the angle the table stands at now (needed when its angle is unknown: a "
+                        "move cut short, an alarm, a table found turning)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--reconstruct", metavar="DIR", default=None,
                    help="reconstruct each view into DIR (as `ringscan reconstruct`) while the next one is captured")
@@ -98,6 +107,9 @@ def add_parser(sub):
                    help="-1 if positive G-code X turns the object clockwise seen from above (default 1)")
     g.add_argument("--exposure", type=float, default=None, metavar="E", help="manual camera exposure (backend units)")
     g.add_argument("--gain", type=float, default=None, metavar="G", help="camera gain (backend units)")
+    g.add_argument("--allow-auto-exposure", action="store_true",
+                   help="go on when the camera cannot switch auto exposure off (--exposure is then only a "
+                        "starting value; frames may be re-levelled between white and black)")
     g.add_argument("--flush", type=int, default=None, metavar="N",
                    help="frames dropped before each grab (default 4 for live cameras, 0 for files)")
 
@@ -139,7 +151,11 @@ def _settings(args, out: Path) -> CaptureSettings:
 
 
 def run(args) -> int:
+    with InterruptGuard():  # a Ctrl-C swallowed in a finalizer still ends the command (exit 130)
+        return _run(args)
 
+
+def _run(args) -> int:
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
     patterns = load_patterns(args.patterns) if args.patterns else None
@@ -149,6 +165,8 @@ def run(args) -> int:
         raise ValueError("--table-at only applies with --resume")
     if args.reconstruct_settings and not args.reconstruct:
         raise ValueError("--reconstruct-settings only applies with --reconstruct")
+    if args.allow_auto_exposure and args.exposure is None:
+        raise ValueError("--allow-auto-exposure only applies with --exposure")
     settings = _settings(args, out)
     display = parse_display_spec(args.projector) if args.projector else None
     if display is not None and args.rig and args.projector_settle is None and read_rig_latency(args.rig) > 0:
@@ -169,14 +187,14 @@ def run(args) -> int:
         saved = load_scan(out, check_files=False, allow_incomplete=True)
         rig_v, patterns_v = rig or saved.rig, patterns or saved.patterns
         n_views = len(read_capture_state(out)["plan"]["angles"])
-        if args.virtual and args.table_at is None:
+        table_at = args.table_at
+        if args.virtual and table_at is None:
             # The virtual world starts afresh with its table where the capture says it
-            # is, so the last confirmed angle is always consistent.
-            table_deg = float(read_capture_state(out)["table"]["deg"])
-        else:
-            table_deg = resume_angle(out, args.table_at)
+            # is, so the last confirmed angle is always right: declare it.
+            table_at = float(read_capture_state(out)["table"]["deg"])
+        table_deg = resume_angle(out, table_at)
     else:
-        rig_v, patterns_v, n_views, table_deg = rig, patterns, args.views, 0.0
+        rig_v, patterns_v, n_views, table_deg, table_at = rig, patterns, args.views, 0.0, None
     names = frame_names(patterns_v)
 
     emu = camera = projector = turntable = None
@@ -196,7 +214,8 @@ def run(args) -> int:
             if missing:
                 raise ValueError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
             tt_port, pj_port = args.turntable, args.projector
-            camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain)
+            camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain,
+                                 allow_auto_exposure=args.allow_auto_exposure)
         if tt_port:
             turntable = GrblTurntable(tt_port, baudrate=args.baud, feed_deg_per_min=settings.feed_deg_per_min,
                                       direction=args.direction, timeout_s=settings.command_timeout_s,
@@ -211,7 +230,7 @@ def run(args) -> int:
                                         expect_names=names)
         scan = capture_scan(out, camera=camera, projector=projector, turntable=turntable, rig=rig,
                             patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
-                            settings=settings, resume=args.resume, table_at=table_deg if args.resume else None,
+                            settings=settings, resume=args.resume, table_at=table_at,
                             progress=not args.no_progress, on_view=live)
     except CaptureError:
         if live is not None:  # keep what was captured reconstructed, then report the fault

@@ -9,13 +9,24 @@ allow_incomplete=True)`` reads it, and every frame it lists is complete on disk.
 
 Next to scan.json, ``capture.json`` keeps the plan (views and angles), the
 settings, the turntable's last confirmed angle (and the target of a move under
-way), the status and a log of runs. ``resume=True`` continues from there: frames
-already listed are kept, the rest captured, none twice.
+way, or that the angle is unknown), the status and a log of runs. ``resume=True``
+continues from there: frames already listed are kept, the rest captured, none
+twice; the record of a run that was killed is brought up to date from scan.json.
+
+A view's ``turntable_deg`` is the angle the table's steps reached (what the
+controller reports after the move), not the angle of the plan: the two differ by up
+to half a motor step.
 
 A device fault is retried (after the device's ``recover()``) up to
 ``settings.retries`` times; then the capture stops with :class:`CaptureError`,
-leaving the partial scan. A turntable fault during a move is never retried: the
-table may have turned partly, and resuming needs its angle (``table_at``).
+leaving the partial scan. A turntable fault that leaves the table's angle unknown
+(anything but a refused line during a move, any alarm) is never retried, and
+resuming needs the angle (``table_at``).
+
+Ctrl-C always stops a capture (:class:`InterruptGuard`): SIGINT sets a flag that is
+checked after every frame and move, so an interrupt that Python swallowed (a
+``KeyboardInterrupt`` raised inside a ``__del__``, such as a Warp array's
+finalizer, is only printed) still stops it.
 """
 
 from __future__ import annotations
@@ -26,6 +37,8 @@ import json
 import logging
 import math
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -44,12 +57,59 @@ from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CAPTURE_FORMAT", "CaptureSettings", "capture_scan", "resume_angle", "read_capture_state",
-           "plan_angles", "view_name"]
+__all__ = ["CAPTURE_FORMAT", "CaptureSettings", "InterruptGuard", "capture_scan", "resume_angle",
+           "read_capture_state", "plan_angles", "view_name"]
 
 CAPTURE_FORMAT = "ringscan.capture/1"
 CAPTURE_FILE = "capture.json"
 IMAGE_FORMATS = ("png", "tiff")
+PLAN_TOLERANCE_DEG = 1.0
+"""How far a view's recorded (reached) angle may lie from its planned angle: a
+reached angle is within half a motor step of the plan (0.056 deg at 8.889 steps/deg,
+0.9 deg for a direct drive at full steps)."""
+
+
+class InterruptGuard:
+    """Ctrl-C that cannot be lost.
+
+    Python ignores an exception raised inside ``__del__`` (it only prints "Exception
+    ignored in ..."), so a SIGINT whose ``KeyboardInterrupt`` lands in a finalizer (a
+    Warp array's, say) would let a capture go on and exit 0. Inside this context
+    manager SIGINT sets :attr:`interrupted` and raises ``KeyboardInterrupt``;
+    :meth:`check` raises it again if it was swallowed, and so does leaving the
+    block. Only the main thread can install the handler; elsewhere it does nothing.
+    """
+
+    def __init__(self):
+        self.interrupted = False
+        """A SIGINT arrived."""
+        self._prev = None
+        self._installed = False
+
+    def _handle(self, signum, frame):
+        self.interrupted = True
+        raise KeyboardInterrupt
+
+    def __enter__(self) -> InterruptGuard:
+        if threading.current_thread() is threading.main_thread():
+            self._prev = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._handle)
+            self._installed = True
+        return self
+
+    def check(self) -> None:
+        """Raise ``KeyboardInterrupt`` if a SIGINT arrived."""
+        if self.interrupted:
+            raise KeyboardInterrupt
+
+    def __exit__(self, exc_type, exc, tb):
+        if self._installed:
+            prev = self._prev if self._prev is not None else signal.default_int_handler
+            signal.signal(signal.SIGINT, prev)
+            self._installed = False
+        if exc_type is None:
+            self.check()
+        return False
 
 
 @dataclass(frozen=True)
@@ -144,6 +204,8 @@ def read_capture_state(folder: str | os.PathLike) -> dict:
     mv = table.get("moving_to")
     if mv is not None and (isinstance(mv, bool) or not isinstance(mv, (int, float))):
         raise FormatError(path, f"table.moving_to: expected a number or null, got {mv!r}")
+    if not isinstance(table.get("known", True), bool):
+        raise FormatError(path, f"table.known: expected true or false, got {table.get('known')!r}")
     if not isinstance(d.get("runs", []), list):
         raise FormatError(path, "runs: expected a list")
     return d
@@ -153,8 +215,9 @@ def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> fl
     """Where the table stands for a resumed capture.
 
     ``table_at`` (the user's word) wins; else the last confirmed angle, unless a
-    move was under way when the capture stopped: then the angle is unknown and
-    this raises CaptureError asking for ``table_at``.
+    move was under way when the capture stopped or the angle became unknown (an
+    alarm, a table found turning): then this raises CaptureError asking for
+    ``table_at``.
     """
     folder = Path(folder)
     _require_capture(folder)
@@ -167,6 +230,10 @@ def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> fl
                            f"to {mv:g} deg when the capture stopped, so its angle is unknown; check where it "
                            f"stands and resume with --table-at DEG (e.g. --table-at {mv:g} if the move finished)",
                            folder=folder)
+    if state["table"].get("known", True) is False:
+        raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable's angle became unknown when the capture "
+                           f"stopped (last confirmed at {state['table']['deg']:g} deg); check where it stands and "
+                           f"resume with --table-at DEG", folder=folder)
     return float(state["table"]["deg"])
 
 
@@ -243,7 +310,7 @@ def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, v
         raise FormatError(src, f"views: {len(scan.views)} views, but the capture plan has {len(angles)}")
     kept = []
     for i, v in enumerate(scan.views):
-        if v.name != view_name(i) or abs(v.turntable_deg - angles[i]) > 1e-9:
+        if v.name != view_name(i) or abs(v.turntable_deg - angles[i]) > PLAN_TOLERANCE_DEG:
             raise FormatError(src, f"views[{i}]: {v.name} at {v.turntable_deg:g} deg does not match the capture "
                                    f"plan ({view_name(i)} at {angles[i]:g} deg)")
         frames = {}
@@ -258,7 +325,28 @@ def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, v
         log.info("capture: removed %d temporary file(s) left by an interrupted write", n)
     scan = dataclasses.replace(scan, views=tuple(kept))
     save_scan(scan)
+    _settle_killed_run(out, state, sum(len(v.frames) for v in kept))
     return scan, state
+
+
+def _settle_killed_run(out: Path, state: dict, listed: int) -> None:
+    """Bring the record of a run that was killed (it never got to say how it ended)
+    up to date from scan.json, which is rewritten after every frame."""
+    runs = state.get("runs") or []
+    if not runs or not isinstance(runs[-1], dict) or runs[-1].get("result") != "running":
+        return
+    run = runs[-1]
+    before = sum(r.get("frames", 0) for r in runs[:-1] if isinstance(r, dict) and isinstance(r.get("frames"), int))
+    mtime = (out / "scan.json").stat().st_mtime
+    run["frames"] = max(listed - before, 0)
+    run["result"] = "killed"
+    run["ended"] = datetime.datetime.fromtimestamp(mtime, datetime.timezone.utc).isoformat(timespec="seconds")
+    state["status"] = "killed"
+    state["error"] = state.get("error") or "the process was killed (no word from it); the record was brought up " \
+                                            "to date from scan.json on resume"
+    atomic_write_json(out / CAPTURE_FILE, state)
+    log.info("capture: the previous run was killed after %d frame(s); its record is brought up to date",
+             run["frames"])
 
 
 def _check_frame_count(projector, patterns: PatternSpec, out: Path) -> None:
@@ -322,8 +410,11 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
         start_deg: angle of the first view (default 0).
         settings: timing and retries.
         resume: continue the capture in ``out``.
-        table_at: when resuming, where the table stands now (default: the last
-            confirmed angle; required when a move was under way).
+        table_at: when resuming, where the table stands now: the user's word, declared
+            to the controller. Default: the last confirmed angle, which needs the
+            turntable to know its angle (``turntable.position_known``); a move under
+            way when the capture stopped, an alarm, or a table found turning makes
+            it unknown, and then the capture stops asking for ``table_at``.
         progress: show a progress bar.
         on_view: called with (scan, view) after each view is complete (e.g. to start
             reconstructing it while the next one is captured).
@@ -334,6 +425,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     Raises:
         CaptureError: a device fault that retries did not cure; the folder holds a
             valid partial scan and ``resume`` continues it.
+        KeyboardInterrupt: Ctrl-C (capture.json says "interrupted").
         FormatError, ValueError: bad input (nothing captured).
     """
     out = Path(out)
@@ -345,6 +437,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     else:
         scan, state = _new_capture(out, rig, patterns, views, step_deg, 0.0 if start_deg is None else start_deg)
         table_deg = 0.0
+    declared = not resume or table_at is not None  # the angle is a definition (or the user's word), not a claim
     names = frame_names(scan.patterns)
     angles = [float(a) for a in state["plan"]["angles"]]
     cam = scan.rig.camera
@@ -356,7 +449,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     state["settings"] = settings.to_dict()
     state["status"] = "running"
     state["error"] = None
-    state["table"] = {"deg": table_deg, "moving_to": None}
+    state["table"] = {"deg": table_deg, "moving_to": None, "known": True}
     state["runs"] = list(state.get("runs", [])) + [run]
 
     def write_state():
@@ -380,48 +473,71 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
                               f"{cam.width}x{cam.height}", port=getattr(camera, "source", None), retryable=False)
         return img
 
+    def declare_start():
+        if not declared and not turntable.position_known:
+            raise TurntableError(f"{turntable.unknown_reason}; the last confirmed angle ({table_deg:g} deg) cannot "
+                                 f"be trusted", port=getattr(turntable, "port", None), retryable=False,
+                                 position_known=False)
+        turntable.set_position(table_deg)
+
+    guard = InterruptGuard()
     try:
-        _with_retries("declaring the table angle", lambda: turntable.set_position(table_deg), settings, devices)
-        _with_retries("enabling the table motor", lambda: turntable.enable_motor(True), settings, devices)
-        for i, angle in enumerate(angles):
-            view = views_list[i] if i < len(views_list) else None
-            if view is not None and all(n in view.frames for n in names):
-                continue
-            if abs(turntable.position_deg - angle) > 1e-9:
-                state["table"]["moving_to"] = angle
-                write_state()
-                _with_retries(f"turning to {angle:g} deg", lambda a=angle: turntable.move_to(a), settings, devices)
-                state["table"] = {"deg": angle, "moving_to": None}
-                write_state()
-                if settings.turntable_settle_s > 0:
-                    time.sleep(settings.turntable_settle_s)
-            if view is None:
-                view = View(name=view_name(i), turntable_deg=angle, frames={})
-                views_list.append(view)
-            frames = dict(view.frames)
-            bar.set_postfix_str(view.name)
-            for j, fname in enumerate(names):
-                if fname in frames:
+        with guard:
+            _with_retries("declaring the table angle", declare_start, settings, devices)
+            _with_retries("enabling the table motor", lambda: turntable.enable_motor(True), settings, devices)
+            for i, angle in enumerate(angles):
+                view = views_list[i] if i < len(views_list) else None
+                if view is not None and all(n in view.frames for n in names):
                     continue
-                img = _with_retries(f"{view.name} frame {fname}", lambda j=j: show_and_grab(j), settings, devices)
-                rel = f"{view.name}/{fname}.{ext}"
-                write_image(out / rel, img)
-                frames[fname] = rel
-                views_list[i] = View(name=view.name, turntable_deg=angle, frames=dict(frames))
-                scan = dataclasses.replace(scan, views=tuple(views_list))
-                save_scan(scan)
-                run["frames"] += 1
-                bar.update(1)
-            if on_view is not None:
-                on_view(scan, views_list[i])
+                # a view begun in an earlier run goes on at the angle its frames were taken at
+                target = view.turntable_deg if view is not None else angle
+                if abs(turntable.position_deg - target) > 1e-6:
+                    state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True}
+                    write_state()
+                    _with_retries(f"turning to {target:g} deg", lambda a=target: turntable.move_to(a), settings,
+                                  devices)
+                    state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}
+                    write_state()
+                    guard.check()
+                    if settings.turntable_settle_s > 0:
+                        time.sleep(settings.turntable_settle_s)
+                if view is None:
+                    view = View(name=view_name(i), turntable_deg=turntable.position_deg, frames={})
+                    views_list.append(view)
+                elif abs(turntable.position_deg - view.turntable_deg) > PLAN_TOLERANCE_DEG:
+                    raise CaptureError(f"{view.name}'s frames were taken at {view.turntable_deg:g} deg, the table "
+                                       f"stands at {turntable.position_deg:g} deg", folder=out)
+                frames = dict(view.frames)
+                bar.set_postfix_str(view.name)
+                for j, fname in enumerate(names):
+                    if fname in frames:
+                        continue
+                    img = _with_retries(f"{view.name} frame {fname}", lambda j=j: show_and_grab(j), settings,
+                                        devices)
+                    rel = f"{view.name}/{fname}.{ext}"
+                    write_image(out / rel, img)
+                    frames[fname] = rel
+                    views_list[i] = View(name=view.name, turntable_deg=view.turntable_deg, frames=dict(frames))
+                    scan = dataclasses.replace(scan, views=tuple(views_list))
+                    save_scan(scan)
+                    run["frames"] += 1
+                    bar.update(1)
+                    guard.check()
+                if on_view is not None:
+                    on_view(scan, views_list[i])
+                    guard.check()
     except DeviceError as e:
         run["result"] = state["status"] = "stopped"
         target = state["table"]["moving_to"]
         if e.position_known:  # the move was refused, or the fault came before or after it
-            state["table"] = {"deg": turntable.position_deg, "moving_to": None}
-        if not e.position_known and target is not None:
-            msg = (f"capture stopped: {e}. The turntable may have stopped part way to {target:g} deg. The scan in "
-                   f"{out} is valid but incomplete; check the table's angle and continue with --resume --table-at DEG")
+            state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}
+        else:
+            state["table"]["known"] = False
+        if not e.position_known:
+            where = (f"The turntable may have stopped part way to {target:g} deg" if target is not None
+                     else "The turntable's angle is unknown")
+            msg = (f"capture stopped: {e}. {where}. The scan in {out} is valid but incomplete; check the table's "
+                   f"angle and continue with --resume --table-at DEG")
         else:
             tried = f" after {settings.retries} retries" if e.retryable and settings.retries else ""
             msg = (f"capture stopped{tried}: {e}. The scan in {out} is valid but incomplete; fix the device "
@@ -431,6 +547,8 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     except KeyboardInterrupt:
         run["result"] = state["status"] = "interrupted"
         state["error"] = "interrupted by the user"
+        if state["table"]["moving_to"] is not None:
+            state["table"]["known"] = False
         raise
     except BaseException as e:
         run["result"] = state["status"] = "stopped"

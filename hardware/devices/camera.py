@@ -95,14 +95,17 @@ class OpenCVCamera(CameraDevice):
             device or stream (at least the driver's buffer), 0 for files.
         width, height: ask the device for this frame size (live devices).
         exposure, gain: manual exposure and gain (see :meth:`set_exposure`).
+        allow_auto_exposure: go on (with a warning) when the backend sets the
+            exposure but cannot switch auto exposure off; by default that is a
+            CameraError, since the camera would re-level between white and black.
 
     Raises:
-        CameraError: the source does not open.
+        CameraError: the source does not open, or a manual exposure cannot be set.
     """
 
     def __init__(self, source: int | str | os.PathLike, *, backend: int | None = None, flush_frames: int | None = None,
                  width: int | None = None, height: int | None = None, exposure: float | None = None,
-                 gain: float | None = None):
+                 gain: float | None = None, allow_auto_exposure: bool = False):
         if isinstance(source, str) and source.strip().isdigit():
             source = int(source)
         self._src = source if isinstance(source, int) else os.fspath(source)
@@ -116,6 +119,7 @@ class OpenCVCamera(CameraDevice):
         self._backend = backend
         self._size = (width, height)
         self._exposure, self._gain = exposure, gain
+        self.allow_auto_exposure = bool(allow_auto_exposure)
         self._cap = None
         self._open()
 
@@ -163,14 +167,25 @@ class OpenCVCamera(CameraDevice):
         """Manual exposure in the backend's units (V4L2: 100 us steps; others: log2 seconds).
 
         Auto exposure is switched off first (V4L2 value 1, older backends 0.25).
+
+        Raises:
+            CameraError: the backend has no exposure control, or it cannot switch
+                auto exposure off (unless ``allow_auto_exposure``).
         """
         import cv2
 
-        if not (self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1) or self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 0.25)):
-            log.debug("camera: backend did not accept switching auto exposure off")
+        auto_off = self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1) or self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 0.25)
+        backend = self._cap.getBackendName()
         if not self._cap.set(cv2.CAP_PROP_EXPOSURE, float(value)):
-            raise CameraError(f"the {self._cap.getBackendName()} backend has no exposure control for this source",
+            raise CameraError(f"the {backend} backend has no exposure control for this source",
                               port=self.source, retryable=False)
+        if not auto_off:
+            why = (f"the {backend} backend cannot switch auto exposure off for this source, so the camera may "
+                   f"re-level between the white and the black frame")
+            if not self.allow_auto_exposure:
+                raise CameraError(f"{why}; switch it off by hand (v4l2-ctl -c auto_exposure=1 on Linux) or accept "
+                                  f"it with --allow-auto-exposure", port=self.source, retryable=False)
+            log.warning("camera %s: %s (accepted: --allow-auto-exposure)", self.source, why)
         self._exposure = value
 
     def set_gain(self, value: float) -> None:
@@ -293,17 +308,19 @@ class SocketCamera(CameraDevice):
 
 
 def open_camera(spec: str, *, flush_frames: int | None = None, exposure: float | None = None,
-                gain: float | None = None) -> CameraDevice:
+                gain: float | None = None, allow_auto_exposure: bool = False) -> CameraDevice:
     """A camera from a command-line spec.
 
     - ``0``, ``1``, ...: an OpenCV device index;
     - ``unix:PATH``: the virtual camera of ``ringscan emulate``;
     - ``folder:PATH`` or a folder: replay a recorded scan (or a folder of images);
-    - anything else: an OpenCV URL, video file or image-sequence pattern.
+    - anything else: an OpenCV URL, video file or image-sequence pattern
+      (``exposure``, ``gain``, ``allow_auto_exposure``: see :class:`OpenCVCamera`).
     """
     spec = str(spec)
     if spec.startswith("unix:"):
         return SocketCamera(spec[5:])
     if spec.startswith("folder:") or Path(spec).is_dir():
         return FolderCamera(spec[7:] if spec.startswith("folder:") else spec)
-    return OpenCVCamera(spec, flush_frames=flush_frames, exposure=exposure, gain=gain)
+    return OpenCVCamera(spec, flush_frames=flush_frames, exposure=exposure, gain=gain,
+                        allow_auto_exposure=allow_auto_exposure)

@@ -1,9 +1,11 @@
 """Emulators of the rig's devices behind pseudo-terminals and a socket.
 
 ``ringscan emulate`` and the tests drive the real drivers against them: a GRBL 1.1
-turntable (:mod:`.grbl`), the serial pattern projector (:mod:`.projector`) and a
+turntable (:mod:`.grbl`: whole motor steps, WCO in only some status reports,
+ALARM:3 on a reset in motion, "Reset to continue" after a limit alarm, feed hold,
+the ``$110`` rate cap), the serial pattern projector (:mod:`.projector`) and a
 camera server rendering with the virtual rig (:mod:`.rig`). They behave like the
-devices' documentation, faults included (:class:`Fault`).
+devices' documentation and firmware, faults included (:class:`Fault`).
 """
 
 from ringscan.hardware.emulators.grbl import EmulatedTurntable

@@ -1,10 +1,32 @@
 """A GRBL 1.1 turntable behind a pseudo-terminal: the firmware's line protocol,
 status reports, alarms and resets, moving in simulated time.
+
+What it does as the firmware does (GRBL 1.1h source and its interface notes):
+
+- positions are whole motor steps (``$100`` steps per degree): a move's target is
+  rounded to a step, and ``MPos`` is steps / ``$100``, printed with 3 decimals;
+- the parser keeps the commanded position; ``G92 X<v>`` sets the work offset from
+  it (WCO = commanded position - v); a reset (Ctrl-X) clears the offset and takes
+  the commanded position from the steps;
+- status reports carry ``WCO`` only now and then: in the first report after a
+  reset or a change of the offset, then every 10th report when idle and every 30th
+  when busy (``Ov`` likewise every 10th / 20th); WPos = MPos - WCO;
+- a G1 runs at its F word, capped at ``$110`` (deg/min); G0 at ``$110``;
+- a reset while the table turns kills the steps: ``ALARM:3`` before the banner,
+  then the Alarm state (``[MSG:'$H'|'$X' to unlock]``) until ``$X``;
+- a reset keeps an Alarm state (reset in Alarm: banner, unlock message, still Alarm);
+- ``ALARM:1`` / ``ALARM:2`` (hard / soft limit) are followed by ``[MSG:Reset to
+  continue]``, and then everything but a reset is ignored (no ``ok``, no status);
+- with homing enabled (``homing_lock``) the board powers up in Alarm (the start-up
+  homing lock) at machine position 0;
+- ``!`` (feed hold) stops a move (``Hold:0``), ``~`` resumes it; a reset in a
+  completed hold keeps the position and raises no alarm.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 from collections import deque
@@ -17,48 +39,66 @@ log = logging.getLogger(__name__)
 
 __all__ = ["EmulatedTurntable"]
 
+# GRBL 1.1h config.h: status reports between WCO / override fields.
+WCO_REFRESH_BUSY, WCO_REFRESH_IDLE = 30, 10
+OVR_REFRESH_BUSY, OVR_REFRESH_IDLE = 20, 10
+CRITICAL_ALARMS = (1, 2)  # hard and soft limit: "[MSG:Reset to continue]"
+
 
 @dataclass
 class _Move:
-    start: float
-    """Machine position at the start."""
-    target: float
-    """Machine position at the end."""
+    start: int
+    """Machine position at the start (steps)."""
+    target: int
+    """Machine position at the end (steps)."""
     t0: float
     t1: float
+    rate: float
+    """deg/min."""
+
+
+def _lround(x: float) -> int:
+    """C's lround (half away from zero), as GRBL's planner rounds a target to steps."""
+    return int(math.floor(abs(x) + 0.5)) * (1 if x >= 0 else -1)
 
 
 class EmulatedTurntable(_PtyDevice):
     """A GRBL-like turntable controller on a pty.
 
     Args:
-        flavor: "grbl" (GRBL 1.1h: ``error:N``, ``ALARM:N``, ``<Idle|MPos:...>``) or
+        flavor: "grbl" (GRBL 1.1h: ``error:N``, ``ALARM:N``, ``<Idle|MPos:...|WCO:...>``) or
             "horus" (Horus 0.2, GRBL 0.9 style: ``error: text``, ``<Idle,MPos:..,WPos:..>``,
             and M17/M18).
         link_path: a stable symlink to create for the port.
         time_scale: simulated moves run this many times faster than real ones.
         start_deg: the table's physical angle at power-up.
-        alarm_on_reset: come up in the Alarm state (as GRBL does with homing
-            enabled) so the host must send ``$X``.
-        max_rate: the G0 rate (deg/min), GRBL's ``$110``.
+        homing_lock: power up in the Alarm state (GRBL with homing enabled, ``$22=1``:
+            the start-up homing lock), so the host must send ``$X``.
+        max_rate: ``$110``, the highest rate (deg/min); G1 feeds above it are capped.
+        steps_per_deg: ``$100``.
     """
 
     BANNERS = {"grbl": "Grbl 1.1h ['$' for help]", "horus": "Horus 0.2 ['$' for help]"}
 
     def __init__(self, *, flavor: str = "grbl", link_path=None, time_scale: float = 1.0, start_deg: float = 0.0,
-                 alarm_on_reset: bool = False, max_rate: float = 3000.0):
+                 homing_lock: bool = False, max_rate: float = 3000.0, steps_per_deg: float = 8.889):
         if flavor not in self.BANNERS:
             raise ValueError(f"flavor must be one of {sorted(self.BANNERS)}, got {flavor!r}")
         if not time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {time_scale}")
+        if not (max_rate > 0 and steps_per_deg > 0):
+            raise ValueError(f"max_rate and steps_per_deg must be > 0, got {max_rate}, {steps_per_deg}")
         self.flavor = flavor
         self.time_scale = float(time_scale)
-        self.alarm_on_reset = alarm_on_reset
-        self.max_rate = float(max_rate)
-        self.settings = {100: 8.889, 110: max_rate, 120: 200.0}
+        self.homing_lock = bool(homing_lock)
+        self.settings = {22: float(self.homing_lock), 100: float(steps_per_deg), 110: float(max_rate), 120: 200.0}
         self.motor_enabled = False
         self.resets = 0
         """Soft resets (Ctrl-X) received."""
+        self.resets_in_motion = 0
+        """Soft resets that stopped a turning table (each answered with ALARM:3)."""
+        self.alarms: list[int] = []
+        """Every alarm code raised, in order."""
         self._mount = float(start_deg)  # physical angle = machine position + mount
         self._buf = bytearray()
         self._power_on()
@@ -66,104 +106,174 @@ class EmulatedTurntable(_PtyDevice):
 
     # ------------------------------------------------------------------ state
 
+    @property
+    def steps_per_deg(self) -> float:
+        return self.settings[100]
+
+    @property
+    def max_rate(self) -> float:
+        return self.settings[110]
+
     def _power_on(self) -> None:
         if hasattr(self, "_moves"):
             self._mount = self._physical(time.monotonic())
-        self._machine = 0.0
-        self._wco = 0.0
+        self._steps = 0
         self._moves: deque[_Move] = deque()
-        self._alarm = self.alarm_on_reset
+        self._held: list[tuple[int, int, float]] | None = None  # (start, target, rate) of moves a feed hold stopped
+        self._alarm = self.homing_lock
+        self._critical = False  # waiting in "[MSG:Reset to continue]"
+        self._lose_ok = False
+        self._buf = bytearray()
+        self._reset_parser()
+
+    def _reset_parser(self) -> None:
+        """gc_init + gc_sync_position: modal state to defaults, no G92 offset, the
+        commanded position taken from the steps."""
         self._absolute = True
         self._motion_mode = 0
         self._feed: float | None = None
+        self._offset = 0.0  # G92 offset = WCO (no G54 offset here)
+        self._gc = self._steps / self.steps_per_deg
         self._queue: deque[str] = deque()
         self._sync = None  # token of a G4 waiting for the planner
         self._silent = False
-        self._buf = bytearray()
+        self._wco_counter = 0  # the next report carries WCO
+        self._ovr_counter = 0
 
-    def _machine_at(self, now: float) -> float:
+    def _steps_at(self, now: float) -> int:
         while self._moves and self._moves[0].t1 <= now:
-            m = self._moves.popleft()
-            self._machine = m.target
+            self._steps = self._moves.popleft().target
         if not self._moves:
-            return self._machine
+            return self._steps
         m = self._moves[0]
         if now <= m.t0:
             return m.start
-        return m.start + (m.target - m.start) * (now - m.t0) / (m.t1 - m.t0)
+        return m.start + int((m.target - m.start) * (now - m.t0) / (m.t1 - m.t0))
 
     def _physical(self, now: float) -> float:
-        return self._machine_at(now) + self._mount
+        return self._steps_at(now) / self.steps_per_deg + self._mount
 
     @property
     def angle_deg(self) -> float:
-        """The table's physical angle now (degrees), mid-move included."""
+        """The table's physical angle now (degrees, to 0.001 as a status report gives
+        it), mid-move included."""
         with self._lock:
-            return self._physical(time.monotonic())
+            return round(self._physical(time.monotonic()), 3) + 0.0
 
     @property
     def moving(self) -> bool:
         with self._lock:
-            self._machine_at(time.monotonic())
+            self._steps_at(time.monotonic())
             return bool(self._moves)
 
     def _state(self) -> str:
         if self._alarm:
             return "Alarm"
-        self._machine_at(time.monotonic())
+        if self._held is not None:
+            return "Hold:0"
+        self._steps_at(time.monotonic())
         return "Run" if self._moves else "Idle"
 
     # ------------------------------------------------------------------ replies
 
     def _ok(self) -> None:
+        if self._lose_ok:  # a lost reply (line noise): the line was executed all the same
+            self._lose_ok = False
+            return
         self._send("ok\r\n")
 
     def _error(self, code: int) -> None:
-
         if self.flavor == "grbl":
             self._send(f"error:{code}\r\n")
         else:
             self._send(f"error: {GRBL_ERRORS.get(code, 'Invalid gcode').capitalize()}\r\n")
 
-    def _raise_alarm(self, code: int) -> None:
+    def _alarm_text(self, code: int) -> str:
+        if self.flavor == "grbl":
+            return f"ALARM:{code}\r\n"
+        return f"ALARM: {GRBL_ALARMS.get(code, 'Hard/soft limit').capitalize()}\r\n"
 
-        now = time.monotonic()
-        self._machine = self._machine_at(now)
+    def _msg(self, text: str) -> str:
+        return f"[MSG:{text}]\r\n" if self.flavor == "grbl" else f"[{text}]\r\n"
+
+    def _raise_alarm(self, code: int) -> None:
+        self._steps = self._steps_at(time.monotonic())
         self._moves.clear()
+        self._held = None
         self._alarm = True
         self._sync = None
         self._queue.clear()
-        if self.flavor == "grbl":
-            self._send(f"ALARM:{code}\r\n")
-        else:
-            self._send(f"ALARM: {GRBL_ALARMS.get(code, 'Hard/soft limit').capitalize()}\r\n")
+        self.alarms.append(code)
+        self._send(self._alarm_text(code))
+        if code in CRITICAL_ALARMS:
+            self._send(self._msg("Reset to continue"))
+            self._critical = True
 
     def _status(self) -> None:
         now = time.monotonic()
-        m = self._machine_at(now)
+        steps = self._steps_at(now)
+        m = steps / self.steps_per_deg
         st = self._state()
-        if self.flavor == "grbl":
-            fs = self._feed if (self._moves and self._feed) else 0
-            self._send(f"<{st}|MPos:{m:.3f},0.000,0.000|FS:{fs:.0f},0|WCO:{self._wco:.3f},0.000,0.000>\r\n")
+        if self.flavor != "grbl":
+            self._send(f"<{st.split(':')[0]},MPos:{m:.3f},0.000,0.000,WPos:{m - self._offset:.3f},0.000,0.000>\r\n")
+            return
+        busy = st.split(":")[0] in ("Run", "Hold", "Jog", "Home")
+        fs = self._moves[0].rate if self._moves else 0.0
+        out = f"<{st}|MPos:{m:.3f},0.000,0.000|FS:{fs:.0f},0"
+        if self._wco_counter > 0:
+            self._wco_counter -= 1
         else:
-            self._send(f"<{st},MPos:{m:.3f},0.000,0.000,WPos:{m - self._wco:.3f},0.000,0.000>\r\n")
+            self._wco_counter = (WCO_REFRESH_BUSY if busy else WCO_REFRESH_IDLE) - 1
+            if self._ovr_counter == 0:
+                self._ovr_counter = 1  # GRBL: the override values come in the next report
+            out += f"|WCO:{self._offset:.3f},0.000,0.000"
+        if self._ovr_counter > 0:
+            self._ovr_counter -= 1
+        else:
+            self._ovr_counter = (OVR_REFRESH_BUSY if busy else OVR_REFRESH_IDLE) - 1
+            out += "|Ov:100,100,100"
+        self._send(out + ">\r\n")
 
     def _soft_reset(self) -> None:
-        self._machine = self._machine_at(time.monotonic())
+        self._steps = self._steps_at(time.monotonic())
         moving = bool(self._moves)
         self._moves.clear()
-        self._queue.clear()
+        self._held = None  # a completed hold: the rest of the move is dropped, no alarm
         self._buf.clear()
-        self._sync = None
-        self._absolute, self._motion_mode = True, 0
         self.resets += 1
-        if moving:
-            self._alarm = True  # GRBL: reset while in motion, position not guaranteed
-        elif self.alarm_on_reset:
+        if moving:  # GRBL: reset while in motion, position not guaranteed
+            self.resets_in_motion += 1
+            self.alarms.append(3)
             self._alarm = True
+            self._send(self._alarm_text(3))
+        self._critical = False
+        self._lose_ok = False
+        self._reset_parser()
         self._send(f"\r\n{self.BANNERS[self.flavor]}\r\n")
-        if self._alarm:
-            self._send("[MSG:'$H'|'$X' to unlock]\r\n" if self.flavor == "grbl" else "['$H'|'$X' to unlock]\r\n")
+        if self._alarm:  # the Alarm state survives a reset
+            self._send(self._msg("'$H'|'$X' to unlock"))
+
+    def _feed_hold(self) -> None:
+        now = time.monotonic()
+        cur = self._steps_at(now)
+        if not self._moves or self._alarm:
+            return
+        first = self._moves[0]
+        self._held = [(cur, first.target, first.rate)] + [(m.start, m.target, m.rate) for m in list(self._moves)[1:]]
+        self._moves.clear()
+        self._steps = cur
+
+    def _cycle_start(self) -> None:
+        if self._held is None:
+            return
+        held, self._held = self._held, None
+        t = time.monotonic()
+        for start, target, rate in held:
+            dur = abs(target - start) / self.steps_per_deg / rate * 60.0 / self.time_scale
+            self._moves.append(_Move(start=start, target=target, t0=t, t1=t + dur, rate=rate))
+            t += dur
+        if self._sync is not None:
+            self._schedule(t - time.monotonic(), self._sync_check)
 
     # ------------------------------------------------------------------ input
 
@@ -173,6 +283,8 @@ class EmulatedTurntable(_PtyDevice):
             if c == b"\x18":
                 self._silent = False
                 self._soft_reset()
+            elif self._critical:
+                continue  # "Reset to continue": everything else is ignored
             elif c == b"?":
                 f = self._take_fault("?")
                 if f is not None and f.kind == "silent":
@@ -182,8 +294,10 @@ class EmulatedTurntable(_PtyDevice):
                     return
                 if not self._silent:
                     self._status()
-            elif c in (b"!", b"~"):
-                continue  # feed hold / cycle start: not modelled
+            elif c == b"!":
+                self._feed_hold()
+            elif c == b"~":
+                self._cycle_start()
             elif c in (b"\n", b"\r"):
                 if self._buf:
                     line = self._buf.decode("ascii", "replace")
@@ -195,7 +309,7 @@ class EmulatedTurntable(_PtyDevice):
                 self._buf += c
 
     def _process_queue(self) -> None:
-        while self._queue and self._sync is None and self._master is not None:
+        while self._queue and self._sync is None and self._master is not None and not self._critical:
             self._line(self._queue.popleft())
 
     def _line(self, raw: str) -> None:
@@ -211,13 +325,25 @@ class EmulatedTurntable(_PtyDevice):
             if f.kind == "reset":
                 self._power_on()
                 self._send(f"\r\n{self.BANNERS[self.flavor]}\r\n")
+                if self._alarm:
+                    self._send(self._msg("'$H'|'$X' to unlock"))
                 return
+            if f.kind == "lose_ok":
+                self._lose_ok = True
         is_motion = self._execute(raw, fault=f)
+        if self._sync is None:
+            self._lose_ok = False  # only this line's reply is lost
         if f is not None and not is_motion:
             if f.kind == "alarm":
                 self._raise_alarm(f.code if f.code is not None else 1)
             elif f.kind == "vanish":
                 self._unplug()
+
+    def _rate(self, motion_mode: int) -> float | None:
+        """deg/min of a move: G0 at $110, G1 at F capped at $110."""
+        if motion_mode == 0:
+            return self.max_rate
+        return None if self._feed is None else min(self._feed, self.max_rate)
 
     def _execute(self, raw: str, *, fault: Fault | None) -> bool:
         """Run one line and answer it; True when it queued a move (faults then strike mid-move)."""
@@ -277,7 +403,8 @@ class EmulatedTurntable(_PtyDevice):
             if "X" not in val:
                 self._error(26)
                 return False
-            self._wco = self._planned_end() - val["X"]
+            self._offset = self._gc - val["X"]  # GRBL: from the commanded position, not the steps
+            self._wco_counter = 0  # the next report carries the new WCO
             self._ok()
             return False
         if dwell:
@@ -285,28 +412,22 @@ class EmulatedTurntable(_PtyDevice):
                 self._error(28)
                 return False
             token = object()
-            self._sync = token
-            end = max([m.t1 for m in self._moves], default=now) + val["P"] / self.time_scale
-
-            def done(token=token):
-                if self._sync is token:
-                    self._sync = None
-                    self._ok()
-                    self._process_queue()
-
-            self._schedule(end - now, done)
+            self._sync = (token, val["P"])
+            end = max([m.t1 for m in self._moves], default=now)
+            self._schedule(end - now, self._sync_check)
             return False
         if "X" in val:
-            rate = self.max_rate if self._motion_mode == 0 else self._feed
+            rate = self._rate(self._motion_mode)
             if rate is None:
                 self._error(22)
                 return False
+            target_deg = (val["X"] + self._offset) if self._absolute else self._gc + val["X"]
             start = self._planned_end()
-            target = (val["X"] + self._wco) if self._absolute else start + val["X"]
+            target = _lround(target_deg * self.steps_per_deg)
+            self._gc = target_deg
             t0 = max([m.t1 for m in self._moves], default=now)
-            dur = abs(target - start) / rate * 60.0 / self.time_scale
-            move = _Move(start=start, target=target, t0=t0, t1=t0 + dur)
-            self._moves.append(move)
+            dur = abs(target - start) / self.steps_per_deg / rate * 60.0 / self.time_scale
+            self._moves.append(_Move(start=start, target=target, t0=t0, t1=t0 + dur, rate=rate))
             self._ok()
             if fault is not None and fault.kind in ("alarm", "vanish"):
                 at = t0 + fault.at_fraction * dur - now
@@ -315,23 +436,49 @@ class EmulatedTurntable(_PtyDevice):
                     self._schedule(at, lambda: self._raise_alarm(code))
                 else:
                     self._schedule(at, self._unplug)
-                return True
             return True
         self._ok()
         return False
 
-    def _planned_end(self) -> float:
-        self._machine_at(time.monotonic())
-        return self._moves[-1].target if self._moves else self._machine
+    def _sync_check(self) -> None:
+        """A G4 answers once the planner is empty (not during a feed hold), after its dwell."""
+        if self._sync is None:
+            return
+        token, dwell = self._sync
+        now = time.monotonic()
+        self._steps_at(now)
+        if self._moves or self._held is not None:
+            if self._moves:
+                self._schedule(self._moves[-1].t1 - now, self._sync_check)
+            return  # held: ~ reschedules it
+
+        def done(token=token):
+            if self._sync is not None and self._sync[0] is token:
+                self._sync = None
+                self._ok()
+                self._lose_ok = False
+                self._process_queue()
+
+        self._schedule(dwell / self.time_scale, done)
+
+    def _planned_end(self) -> int:
+        self._steps_at(time.monotonic())
+        return self._moves[-1].target if self._moves else self._steps
 
     def _dollar(self, s: str) -> None:
         if s == "$X":
             self._alarm = False
-            self._send("[MSG:Caution: Unlocked]\r\n" if self.flavor == "grbl" else "[Caution: Unlocked]\r\n")
+            self._send(self._msg("Caution: Unlocked"))
             self._ok()
         elif s == "$$":
+            if self._moves or self._held is not None:
+                self._error(8)
+                return
             for k, v in sorted(self.settings.items()):
-                self._send(f"${k}={v:.3f}\r\n")
+                line = f"${k}={v:.3f}" if k >= 100 else f"${k}={int(v)}"
+                if self.flavor == "horus":
+                    line += {100: " (x, step/mm)", 110: " (x max rate, mm/min)"}.get(k, "")
+                self._send(line + "\r\n")
             self._ok()
         elif s == "$I":
             self._send("[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\n" if self.flavor == "grbl" else "[0.2.emulated]\r\n")

@@ -26,11 +26,13 @@ class EmulatedProjector(_PtyDevice, FrameStore):
         FrameStore.__init__(self, frames)
         self.latency_s = float(latency_s)
         self.names_supported = names_supported
+        self._lose_reply = False
         self._buf = bytearray()
         _PtyDevice.__init__(self, name="projector", link_path=link_path)
 
     def _power_on(self) -> None:
         self.current_index = -1
+        self._lose_reply = False
         self._buf = bytearray()
 
     def _on_bytes(self, data: bytes) -> None:
@@ -48,10 +50,13 @@ class EmulatedProjector(_PtyDevice, FrameStore):
                 self._buf += c
 
     def _reply(self, text: str, then=None) -> None:
+        lost, self._lose_reply = self._lose_reply, False
+
         def go():
             if then is not None:
                 then()
-            self._send(text + "\n")
+            if not lost:
+                self._send(text + "\n")
 
         if self.latency_s > 0:
             self._schedule(self.latency_s, go)
@@ -72,6 +77,8 @@ class EmulatedProjector(_PtyDevice, FrameStore):
             if f.kind == "reset":
                 self._power_on()
                 return
+            if f.kind == "lose_ok":
+                self._lose_reply = True
         parts = line.split()
         cmd = parts[0].upper()
         n = len(self.images)

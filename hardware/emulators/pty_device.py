@@ -1,6 +1,6 @@
 """A serial device behind a pseudo-terminal: the base of the emulators, with
 injectable faults (:class:`Fault`: an error reply, silence, an alarm, the port
-vanishing, a reset).
+vanishing, a reset, a lost reply).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 __all__ = ["FAULT_KINDS", "Fault"]
 
 
-FAULT_KINDS = ("error", "silent", "alarm", "vanish", "reset")
+FAULT_KINDS = ("error", "silent", "alarm", "vanish", "reset", "lose_ok")
 
 
 @dataclass
@@ -30,7 +30,9 @@ class Fault:
     """A fault waiting for a matching line."""
 
     kind: str
-    """error, silent, alarm, vanish or reset."""
+    """error (refuse the line), silent (swallow it), alarm (mid-move for a motion line),
+    vanish (the port disappears), reset (the board restarts by itself) or lose_ok (the
+    line is executed, its reply is lost on the way)."""
     on: str
     """Matches a line starting with this (case and spaces ignored); ``?`` matches status queries."""
     code: int | None = None

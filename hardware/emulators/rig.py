@@ -119,11 +119,13 @@ class EmulatedRig:
         serve_camera: also serve the camera on ``folder/camera.sock``.
         virtual_rig: an already-built renderer (then rig/scene/size_mm/device are unused).
         latency_s: projector acknowledgement latency.
+        steps_per_deg: the emulated table's ``$100`` (its angles are whole steps).
     """
 
     def __init__(self, rig, patterns, scene=None, *, folder=None, flavor: str = "grbl", time_scale: float = 1.0,
                  start_deg: float = 0.0, seed: int | None = None, size_mm: float = 80.0, device=None,
-                 serve_camera: bool = False, virtual_rig=None, latency_s: float = 0.0):
+                 serve_camera: bool = False, virtual_rig=None, latency_s: float = 0.0,
+                 steps_per_deg: float = 8.889):
 
         self._own_folder = folder is None
         self.folder = Path(tempfile.mkdtemp(prefix="ringscan-emu-")) if folder is None else Path(folder)
@@ -132,7 +134,8 @@ class EmulatedRig:
         self.turntable = self.projector = self.camera_server = None
         try:
             self.turntable = EmulatedTurntable(flavor=flavor, link_path=self.folder / "turntable",
-                                               time_scale=time_scale, start_deg=start_deg)
+                                               time_scale=time_scale, start_deg=start_deg,
+                                               steps_per_deg=steps_per_deg)
             self.projector = EmulatedProjector(frames, link_path=self.folder / "projector", latency_s=latency_s)
             if virtual_rig is None:
                 virtual_rig = make_virtual_rig(rig, scene, size_mm=size_mm, device=device)

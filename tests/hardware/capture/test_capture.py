@@ -1,9 +1,18 @@
-"""The capture sequence: complete scans, retries, faults, partial scans and resume."""
+"""The capture sequence: complete scans, retries, faults, partial scans and resume.
+
+The emulated table moves in whole motor steps (8.889 steps/deg), so the views of a
+3-view capture are recorded at the angles the steps reached: 0, 120.036, 239.96.
+"""
 
 import dataclasses
 import json
 import logging
+import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +27,7 @@ from ringscan.hardware.capture.sequence import (
 from ringscan.hardware.devices.projector import SerialProjector, VirtualProjector
 from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
-from ringscan.hardware.errors import CaptureError
+from ringscan.hardware.errors import CaptureError, ProjectorError
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
@@ -28,6 +37,9 @@ from tests.hardware.conftest import ProbeCamera, pattern_frames, small_patterns,
 FAST = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0, retries=2, retry_delay_s=0.0,
                        command_timeout_s=0.3)
 SEED = 11
+REACHED = [0.0, 120.036, 239.96]  # round(k * 120 * 8.889) / 8.889, as GRBL reports them
+STEP = 1 / 8.889
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _files(folder):
@@ -47,14 +59,14 @@ def _virtual(patterns, views=3, **kw):
 class _Emulated:
     """An emulated rig (real renderer) plus the real serial drivers connected to it."""
 
-    def __init__(self, rig, patterns, virtual_rig, start_deg=0.0, **kw):
-        self.emu = EmulatedRig(rig, patterns, virtual_rig=virtual_rig, time_scale=1000.0, seed=SEED,
+    def __init__(self, rig, patterns, virtual_rig, start_deg=0.0, time_scale=1000.0, **kw):
+        self.emu = EmulatedRig(rig, patterns, virtual_rig=virtual_rig, time_scale=time_scale, seed=SEED,
                                start_deg=start_deg, **kw)
         self.names = frame_names(patterns)
         self.connect(start_deg)
 
     def connect(self, position_deg):
-        self.turntable = GrblTurntable(self.emu.turntable_port, timeout_s=0.3, poll_s=0.005, boot_timeout_s=0.5,
+        self.turntable = GrblTurntable(self.emu.turntable_port, timeout_s=0.3, boot_timeout_s=0.5,
                                        position_deg=position_deg)
         self.projector = SerialProjector(self.emu.projector_port, timeout_s=0.3, expect_names=self.names)
 
@@ -81,10 +93,10 @@ def reference(tmp_path_factory, rig, patterns, virtual_rig):
     return scan, sent, shown
 
 
-def _same_images(a, b):
+def _same_images(a, b, angle_tol=0.0):
     assert [v.name for v in a.views] == [v.name for v in b.views]
     for va, vb in zip(a.views, b.views):
-        assert va.turntable_deg == vb.turntable_deg and sorted(va.frames) == sorted(vb.frames)
+        assert abs(va.turntable_deg - vb.turntable_deg) <= angle_tol and sorted(va.frames) == sorted(vb.frames)
         for n in va.frames:
             np.testing.assert_array_equal(read_image(a.frame_path(va, n)), read_image(b.frame_path(vb, n)),
                                           err_msg=f"{va.name}/{n}")
@@ -110,7 +122,7 @@ def test_sequence_turns_shows_and_grabs_in_order(tmp_path, rig, patterns):
     assert _files(scan.folder) == _listed(scan)
     state = read_capture_state(scan.folder)
     assert state["status"] == "complete" and state["plan"]["angles"] == [0.0, 120.0, 240.0]
-    assert state["table"] == {"deg": 240.0, "moving_to": None}
+    assert state["table"] == {"deg": 240.0, "moving_to": None, "known": True}
     assert CaptureSettings.from_dict(state["settings"]) == FAST
     assert state["runs"][0]["frames"] == 18 and state["runs"][0]["result"] == "complete"
 
@@ -119,22 +131,22 @@ def test_emulated_rig_capture_is_complete_and_rendered_in_state(reference, rig, 
     scan, sent, shown = reference
     scan = load_scan(scan.folder)  # complete: strict load passes
     names = frame_names(patterns)
-    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    assert [v.turntable_deg for v in scan.views] == REACHED  # the angles the steps reached
     assert all(list(v.frames) == names for v in scan.views)
     assert _files(scan.folder) == _listed(scan)
     # the exact lines the drivers sent through the pty
-    assert sent == (b"\x18G90\nG92 X0.000\nG92 X0.000\n"
+    assert sent == (b"\x18$$\nG90\nG92 X0.000\nG92 X0.000\n"
                     b"G1 X120.000 F600\nG4 P0\nG1 X240.000 F600\nG4 P0\n")
     assert shown[:2 + len(names)] == ["HELLO"] + [f"NAME {i}" for i in range(len(names))] + ["SHOW 0"]
     assert shown.count("SHOW 3") == 3 and shown[-1] == "BLANK"
-    # each frame is what the virtual rig renders with that frame shown at that angle
+    # each frame is what the virtual rig renders with that frame shown at the recorded angle
     cam = scan.views[1]
-    virtual_rig.set_turntable(120.0)
+    virtual_rig.set_turntable(cam.turntable_deg)
     from ringscan.hardware.devices.virtual import VirtualCamera
 
     probe = VirtualCamera(virtual_rig, None, None, seed=SEED)
     for j in (0, 4):
-        want = virtual_rig.render(pattern_frames(patterns)[names[j]], seed=probe._state_seed(j, 120.0))
+        want = virtual_rig.render(pattern_frames(patterns)[names[j]], seed=probe._state_seed(j, cam.turntable_deg))
         np.testing.assert_array_equal(read_image(scan.frame_path(cam, names[j])), want)
 
 
@@ -191,12 +203,12 @@ def test_persistent_fault_stops_with_a_valid_partial_scan_and_resume_completes_i
     assert _files(out) == _listed(part)  # nothing written half, nothing unlisted
     state = read_capture_state(out)
     assert state["status"] == "stopped" and "display fault" in state["error"]
-    assert state["table"] == {"deg": 120.0, "moving_to": None}
+    assert state["table"] == {"deg": 120.036, "moving_to": None, "known": True}
     # leftovers of a killed writer: a temporary file and a frame written but not yet listed
     (out / "view_001" / ".gray_1.x1y2.tmp.png").write_bytes(b"\x89PNG half")
     (out / "view_001" / "gray_1.png").write_bytes(b"junk")
 
-    e = _Emulated(rig, patterns, virtual_rig, start_deg=resume_angle(out))  # the table stayed at 120
+    e = _Emulated(rig, patterns, virtual_rig, start_deg=resume_angle(out))  # the table stayed at 120.036
     try:
         scan = capture_scan(out, rig=rig, patterns=patterns, settings=FAST, resume=True, progress=False,
                             **e.devices())
@@ -218,7 +230,8 @@ def test_turntable_lost_mid_move_needs_table_at_and_resumes_exactly(tmp_path, ri
             capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
         assert e.emu.turntable.resets == 1  # never retried: the table's angle is unknown
         state = read_capture_state(out)
-        assert state["table"] == {"deg": 120.0, "moving_to": 240.0} and state["status"] == "stopped"
+        assert state["table"] == {"deg": 120.036, "moving_to": 240.0, "known": False}
+        assert state["status"] == "stopped"
         assert [len(v.frames) for v in load_scan(out, allow_incomplete=True).views] == [6, 6]
         with pytest.raises(CaptureError, match="angle is unknown.*--table-at"):
             resume_angle(out)
@@ -229,15 +242,15 @@ def test_turntable_lost_mid_move_needs_table_at_and_resumes_exactly(tmp_path, ri
         while e.emu.turntable.moving and time.monotonic() < deadline:
             time.sleep(0.005)
         e.emu.turntable.replug()
-        assert e.emu.turntable.angle_deg == 240.0
+        assert e.emu.turntable.angle_deg == REACHED[2]
         e.turntable.close()
         e.projector.close()
         e.connect(240.0)
         scan = capture_scan(out, settings=FAST, resume=True, table_at=240.0, progress=False, **e.devices())
     finally:
         e.close()
-    _same_images(scan, reference[0])
-    assert read_capture_state(out)["table"] == {"deg": 240.0, "moving_to": None}
+    _same_images(scan, reference[0], angle_tol=STEP / 2)  # the user said 240; the steps reached 239.96
+    assert read_capture_state(out)["table"] == {"deg": 240.0, "moving_to": None, "known": True}
 
 
 def test_turntable_alarm_mid_move_stops_clearly(tmp_path, rig, patterns, virtual_rig):
@@ -247,10 +260,181 @@ def test_turntable_alarm_mid_move_stops_clearly(tmp_path, rig, patterns, virtual
         with pytest.raises(CaptureError, match="ALARM:1 \\(hard limit triggered\\).*part way to 120"):
             capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, settings=FAST, progress=False,
                          **e.devices())
+        assert e.emu.turntable.resets == 1 and "$X" not in e.emu.turntable.lines  # not retried, not unlocked
     finally:
         e.close()
     part = load_scan(tmp_path / "s", allow_incomplete=True)
     assert [len(v.frames) for v in part.views] == [6]
+    with pytest.raises(CaptureError, match="--table-at"):
+        resume_angle(tmp_path / "s")
+
+
+def test_an_alarm_while_the_table_stands_stops_the_capture_at_once(tmp_path, rig, patterns):
+    # docs/hardware.md: an alarm stops the capture, with its meaning; no reset, no $X, no retry.
+    from ringscan.hardware.emulators.grbl import EmulatedTurntable
+
+    with EmulatedTurntable(time_scale=1000.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        table = GrblTurntable(emu.port, timeout_s=0.3)
+        emu.inject("alarm", on="G92", code=1)  # the capture's own G92 (the connection's came before)
+        t0 = time.monotonic()
+        with pytest.raises(CaptureError, match="ALARM:1 \\(hard limit triggered\\).*angle is unknown.*--table-at"):
+            capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, camera=ProbeCamera(proj, emu),
+                         projector=proj, turntable=table, settings=FAST, progress=False)
+        assert time.monotonic() - t0 < 1.0
+        assert emu.resets == 1 and "$X" not in emu.lines and emu.lines.count("G92 X0.000") == 2
+        table.close()
+    state = read_capture_state(tmp_path / "s")
+    assert state["status"] == "stopped" and state["table"]["known"] is False
+    with pytest.raises(CaptureError, match="angle became unknown.*--table-at"):
+        resume_angle(tmp_path / "s")
+
+
+def test_a_lost_ok_stops_the_capture_and_a_quick_resume_waits_for_the_table(tmp_path, rig, patterns, virtual_rig,
+                                                                          reference):
+    # Issue: an ok lost after the first G1; the retry reset the moving table, the
+    # reconnect dropped the ALARM:3, unlocked it and declared 120: exit 0, views at
+    # wrong angles. Now the capture stops, and a resume started while the table still
+    # turns waits for it to stop instead of resetting it.
+    out = tmp_path / "s"
+    e = _Emulated(rig, patterns, virtual_rig, time_scale=20.0)  # 120 deg: 0.6 s
+    try:
+        tt = e.emu.turntable
+        tt.inject("lose_ok", on="G1")
+        with pytest.raises(CaptureError, match="part way to 120 deg.*--resume --table-at"):
+            capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
+        assert tt.resets == 1 and tt.resets_in_motion == 0 and "$X" not in tt.lines
+        assert read_capture_state(out)["table"] == {"deg": 0.0, "moving_to": 120.0, "known": False}
+        assert tt.moving  # still turning
+        e.turntable.close()
+        e.projector.close()
+        e.connect(120.0)  # resume --table-at 120 at once
+        assert tt.resets_in_motion == 0 and tt.alarms == [] and tt.angle_deg == REACHED[1]
+        scan = capture_scan(out, settings=FAST, resume=True, table_at=120.0, progress=False, **e.devices())
+    finally:
+        e.close()
+    assert [v.turntable_deg for v in scan.views] == pytest.approx([0.0, 120.0, 240.0], abs=STEP)
+    # view 1 was taken where the table really stood, as in the uninterrupted capture
+    _same_images(dataclasses.replace(scan, views=scan.views[:2]),
+                 dataclasses.replace(reference[0], views=reference[0].views[:2]), angle_tol=STEP / 2)
+
+
+def test_resume_refuses_the_last_angle_when_the_table_was_found_locked(tmp_path, rig, patterns):
+    from ringscan.hardware.emulators.grbl import EmulatedTurntable
+
+    out = tmp_path / "s"
+    with EmulatedTurntable(time_scale=20.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        kw = dict(camera=ProbeCamera(proj, emu), projector=proj, settings=FAST, progress=False)
+        table = GrblTurntable(emu.port, timeout_s=0.3)
+        proj_fault = {"n": 0}
+
+        def show(i, _show=proj.show):
+            proj_fault["n"] += 1
+            if proj_fault["n"] > 8:
+                raise ProjectorError("display fault", retryable=False)
+            _show(i)
+
+        proj.show = show
+        with pytest.raises(CaptureError, match="display fault"):
+            capture_scan(out, rig=rig, patterns=patterns, views=3, turntable=table, **kw)
+        table.close()
+        assert read_capture_state(out)["table"] == {"deg": 120.036, "moving_to": None, "known": True}
+        # meanwhile someone turned the table and reset it in motion: ALARM:3, locked
+        import serial
+
+        with serial.Serial(emu.port, 115200, timeout=0.5) as s:
+            s.write(b"G1 X200 F600\n")
+            assert s.readline() == b"ok\r\n"
+            time.sleep(0.1)
+            s.write(b"\x18")
+            assert s.readline() == b"ALARM:3\r\n"
+        del proj.show  # the display works again
+        table = GrblTurntable(emu.port, timeout_s=0.3, position_deg=resume_angle(out))
+        assert "$X" not in emu.lines
+        with pytest.raises(CaptureError, match="did not see.*120.036 deg.*cannot be trusted.*--table-at"):
+            capture_scan(out, resume=True, turntable=table, **kw)
+        assert read_capture_state(out)["table"]["known"] is False
+        here = emu.angle_deg
+        scan = capture_scan(out, resume=True, turntable=table, table_at=here, **kw)  # the user's word
+        table.close()
+    assert scan.views[1].turntable_deg == 120.036 and len(scan.views) == 3
+    # every frame at the angle its view records
+    for v in scan.views:
+        assert all(read_image(scan.frame_path(v, n))[0, 1] == round(v.turntable_deg / 5) for n in v.frames)
+
+
+class _FinalizerCtrlC(ProbeCamera):
+    """A grab during which Ctrl-C lands in a finalizer (as in a Warp array's __del__):
+    Python only prints "Exception ignored in ..." for the KeyboardInterrupt."""
+
+    def __init__(self, *a, at=3, **kw):
+        super().__init__(*a, **kw)
+        self.at = at
+
+    def _read(self):
+        if self.grabs + 1 == self.at:
+            class Buffer:
+                def __del__(self):
+                    signal.raise_signal(signal.SIGINT)
+
+            Buffer()  # freed at once: the signal handler runs inside __del__
+        return super()._read()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the swallowed interrupt itself
+def test_ctrl_c_in_a_finalizer_still_stops_the_capture(tmp_path, rig, patterns):
+    proj, table, _ = _virtual(patterns)
+    before = signal.getsignal(signal.SIGINT)
+    kw = dict(projector=proj, turntable=table, settings=FAST, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        capture_scan(tmp_path / "s", camera=_FinalizerCtrlC(proj, table, at=3), rig=rig, patterns=patterns,
+                     views=2, **kw)
+    assert signal.getsignal(signal.SIGINT) is before  # the handler is put back
+    state = read_capture_state(tmp_path / "s")
+    assert state["status"] == "interrupted" and state["runs"][0]["frames"] == 3
+    part = load_scan(tmp_path / "s", allow_incomplete=True)
+    assert [len(v.frames) for v in part.views] == [3]
+    scan = capture_scan(tmp_path / "s", camera=ProbeCamera(proj, table), resume=True, **kw)
+    assert [len(v.frames) for v in scan.views] == [6, 6]
+
+
+_KILLED = """
+import os, sys
+from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
+from ringscan.hardware.devices.projector import VirtualProjector
+from ringscan.hardware.devices.turntable import VirtualTurntable
+from tests.hardware.conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
+
+class Killed(ProbeCamera):
+    def _read(self):
+        if self.grabs == int(sys.argv[2]):
+            os._exit(9)  # like SIGKILL: no finally, no word in capture.json
+        return super()._read()
+
+patterns = small_patterns()
+proj, table = VirtualProjector(pattern_frames(patterns)), VirtualTurntable()
+capture_scan(sys.argv[1], camera=Killed(proj, table), projector=proj, turntable=table, rig=small_rig(),
+             patterns=patterns, views=3, progress=False,
+             settings=CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0))
+"""
+
+
+def test_the_record_of_a_killed_run_is_brought_up_to_date_on_resume(tmp_path, rig, patterns):
+    out = tmp_path / "s"
+    r = subprocess.run([sys.executable, "-c", _KILLED, str(out), "8"], cwd=REPO, capture_output=True, text=True,
+                       timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert r.returncode == 9, r.stderr
+    state = read_capture_state(out)
+    assert state["status"] == "running" and state["runs"][0]["frames"] == 6  # out of date: 8 frames listed
+    assert sum(len(v.frames) for v in load_scan(out, allow_incomplete=True).views) == 8
+    proj = VirtualProjector(pattern_frames(patterns))
+    table = VirtualTurntable(resume_angle(out))
+    capture_scan(out, camera=ProbeCamera(proj, table), projector=proj, turntable=table, resume=True,
+                 settings=FAST, progress=False)
+    runs = read_capture_state(out)["runs"]
+    assert [r["result"] for r in runs] == ["killed", "complete"]
+    assert [r["frames"] for r in runs] == [8, 10] and runs[0]["ended"] is not None
 
 
 def test_refused_move_keeps_the_angle_known(tmp_path, rig, patterns):
@@ -258,18 +442,18 @@ def test_refused_move_keeps_the_angle_known(tmp_path, rig, patterns):
 
     with EmulatedTurntable(time_scale=1000.0) as emu:
         proj = VirtualProjector(pattern_frames(patterns))
-        table = GrblTurntable(emu.port, timeout_s=0.3, poll_s=0.005)
+        table = GrblTurntable(emu.port, timeout_s=0.3)
         kw = dict(camera=ProbeCamera(proj, emu), projector=proj, turntable=table, settings=FAST, progress=False)
         emu.inject("error", on="G1 X240", code=33, times=100)
         with pytest.raises(CaptureError, match="stopped after 2 retries.*error:33 \\(invalid motion target\\)"):
             capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, **kw)
         assert emu.lines.count("G1 X240.000 F600") == 3 and emu.resets == 3
-        assert read_capture_state(tmp_path / "s")["table"] == {"deg": 120.0, "moving_to": None}
-        assert resume_angle(tmp_path / "s") == 120.0  # the table did not move: no --table-at needed
+        assert read_capture_state(tmp_path / "s")["table"] == {"deg": 120.036, "moving_to": None, "known": True}
+        assert resume_angle(tmp_path / "s") == 120.036  # the table did not move: no --table-at needed
         emu.faults.clear()
         scan = capture_scan(tmp_path / "s", resume=True, **kw)
         table.close()
-    assert [v.turntable_deg for v in scan.views] == [0.0, 120.0, 240.0]
+    assert [v.turntable_deg for v in scan.views] == REACHED
     assert all(read_image(scan.frame_path(v, "white"))[0, 1] == round(v.turntable_deg / 5) for v in scan.views)
 
 

@@ -67,6 +67,59 @@ def test_opencv_errors(tmp_path):
         OpenCVCamera(str(tmp_path / "f%03d.png"), flush_frames=-1)
 
 
+class _Backend:
+    """A stand-in for cv2.VideoCapture that answers ``set`` as a given backend does
+    (a UVC camera whose driver has no auto exposure switch, say), so the driver's
+    answer to it can be checked without the camera."""
+
+    def __init__(self, accepts):
+        self.accepts = accepts
+        self.values = {}
+
+    def __call__(self, *args):
+        return self
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        if prop in self.accepts:
+            self.values[prop] = value
+            return True
+        return False
+
+    def getBackendName(self):
+        return "UVC-TEST"
+
+    def read(self):
+        return True, np.zeros((4, 4), np.uint8)
+
+    def grab(self):
+        return True
+
+    def release(self):
+        pass
+
+
+def test_auto_exposure_that_cannot_be_switched_off_is_an_error(monkeypatch, caplog):
+    # docs/hardware.md: a backend that cannot do it raises CameraError instead of silently ignoring it
+    backend = _Backend({cv2.CAP_PROP_EXPOSURE, cv2.CAP_PROP_BUFFERSIZE})
+    monkeypatch.setattr(cv2, "VideoCapture", backend)
+    with pytest.raises(CameraError, match="cannot switch auto exposure off.*--allow-auto-exposure") as ei:
+        OpenCVCamera(0, exposure=100)
+    assert not ei.value.retryable
+    with caplog.at_level("WARNING", logger="ringscan.hardware.devices.camera"):
+        cam = open_camera("0", exposure=100, allow_auto_exposure=True)  # accepted, with a warning
+    assert backend.values[cv2.CAP_PROP_EXPOSURE] == 100.0 and "auto exposure" in caplog.text
+    cam.close()
+    backend.accepts.add(cv2.CAP_PROP_AUTO_EXPOSURE)  # a backend that can: manual, no warning
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="ringscan.hardware.devices.camera"):
+        cam = OpenCVCamera(0, exposure=50)
+    assert backend.values[cv2.CAP_PROP_AUTO_EXPOSURE] == 1 and not caplog.text
+    cam.close()
+
+
 def test_folder_camera_replays_a_scan_in_capture_order(tmp_path, rig, patterns):
     frames = []
     views = []
