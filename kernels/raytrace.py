@@ -10,7 +10,9 @@ Two passes:
   infinite). At the nearest hit X the tracer stores the projector pixel (u_p, v_p)
   that lights X and the direct-light weight ``albedo * max(0, n_s . l)`` (zero when
   X faces away from the light, lies in the shadow of the mesh or of the plane, or
-  is behind a perspective projector), plus the ambient weight ``albedo * ambient``.
+  is behind a perspective projector), plus the ambient weight ``albedo * ambient``;
+  the albedo is one number, or per mesh face where the mesh carries a texture
+  (``make_trace_mesh(face_albedo=...)``: a printed chessboard).
   The centre ray of each pixel gives the truth: camera-frame depth Z_c, world
   point, facet normal and the ``lit`` mask (hit, not shadowed, facing the light,
   inside the projector image). A pixel (or sub-pixel position) whose ray the
@@ -64,13 +66,15 @@ DEFAULT_SHADOW_EPS_MM = 2.0e-3
 
 @wp.struct
 class SurfaceHit:
-    """Nearest hit of a ray: ``hit`` 0/1, distance ``t``, point, facet and shading normals."""
+    """Nearest hit of a ray: ``hit`` 0/1, distance ``t``, point, facet and shading normals,
+    and the mesh face hit (-1: the plane)."""
 
     hit: int
     t: float
     point: wp.vec3
     ng: wp.vec3
     ns: wp.vec3
+    face: int
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -82,6 +86,7 @@ def trace_ray(mesh: wp.uint64, has_mesh: int, corner_n: wp.array(dtype=wp.vec3),
     h = SurfaceHit()
     h.hit = 0
     h.t = NO_HIT_T
+    h.face = -1
     # Reference plane z = 0, opaque from both sides.
     if d[2] != 0.0:
         tp = -origin[2] / d[2]
@@ -96,6 +101,7 @@ def trace_ray(mesh: wp.uint64, has_mesh: int, corner_n: wp.array(dtype=wp.vec3),
             h.hit = 1
             h.t = q.t
             h.ng = wp.normalize(q.normal)
+            h.face = q.face
             c = q.face * 3
             w2 = 1.0 - q.u - q.v
             ns = q.u * corner_n[c] + q.v * corner_n[c + 1] + w2 * corner_n[c + 2]
@@ -180,6 +186,7 @@ def trace_geometry_kernel(
     mesh: wp.uint64,
     has_mesh: int,
     corner_n: wp.array(dtype=wp.vec3),
+    face_albedo: wp.array(dtype=float),
     cam: CameraModel,
     light: LightModel,
     proj_w: int,
@@ -199,6 +206,8 @@ def trace_geometry_kernel(
 
     Args:
         corner_n: (3 M,) read: shading normal per face corner (face f, corner k at 3 f + k).
+        face_albedo: (M,) or (0,) read: albedo of each face, replacing ``albedo`` on the
+            mesh (empty: ``albedo`` everywhere; the plane always has ``albedo``).
         samples: (H * W * S * S,) written: (u_p, v_p, albedo * direct factor) per sub-sample,
             at index ((y * W + x) * S + j) * S + i.
         base: (H, W) written: mean over sub-samples of albedo * ambient * hit.
@@ -222,11 +231,14 @@ def trace_geometry_kernel(
             k = ((y * width + x) * ss + j) * ss + i
             s = wp.vec3(0.0, 0.0, 0.0)
             if h.hit != 0 and ray_ok:
-                acc += albedo * ambient
+                alb = albedo
+                if h.face >= 0 and face_albedo.shape[0] > 0:
+                    alb = face_albedo[h.face]
+                acc += alb * ambient
                 p = light_pixel(light, h.point)
                 if p[2] > 0.0:
                     f = direct_light(mesh, has_mesh, light, h, shadow_eps)
-                    s = wp.vec3(p[0], p[1], albedo * f)
+                    s = wp.vec3(p[0], p[1], alb * f)
             samples[k] = s
     base[y, x] = acc * inv * inv
 
@@ -305,6 +317,8 @@ class TraceMesh:
     """The BVH-backed Warp mesh (world frame, float32), or None (plane only)."""
     corner_normals: wp.array
     """(3 M,) vec3 shading normals per face corner (may be empty)."""
+    face_albedo: wp.array
+    """(M,) float32 albedo per face, or empty: the render's one albedo everywhere."""
     points: wp.array | None
     """(N,) vec3 vertex positions kept alive for the mesh."""
     indices: wp.array | None
@@ -340,7 +354,7 @@ class ViewGeometry:
         return self.base.device
 
 
-def make_trace_mesh(vertices, faces, corner_normals, *, device) -> TraceMesh:
+def make_trace_mesh(vertices, faces, corner_normals, *, device, face_albedo=None) -> TraceMesh:
     """Upload a mesh for tracing.
 
     Args:
@@ -348,6 +362,8 @@ def make_trace_mesh(vertices, faces, corner_normals, *, device) -> TraceMesh:
         faces: (M, 3) int vertex indices (M may be 0: no object).
         corner_normals: (M, 3, 3) shading normal per face corner.
         device: Warp device.
+        face_albedo: (M,) albedo of each face in [0, 1] (a printed texture), or None:
+            :func:`trace_geometry`'s one ``albedo`` everywhere.
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
@@ -362,12 +378,18 @@ def make_trace_mesh(vertices, faces, corner_normals, *, device) -> TraceMesh:
         raise ValueError(f"faces: indices must lie in [0, {v.shape[0]}), got [{f.min()}, {f.max()}]")
     if not np.all(np.isfinite(v)):
         raise ValueError("vertices: contain non-finite values")
+    fa = np.zeros(0) if face_albedo is None else np.asarray(face_albedo, np.float64)
+    if face_albedo is not None and (fa.shape != (f.shape[0],) or not np.all((fa >= 0) & (fa <= 1))):
+        raise ValueError(f"face_albedo: expected shape ({f.shape[0]},) with values in [0, 1], got {fa.shape}"
+                         + (f" in [{fa.min():g}, {fa.max():g}]" if fa.size and fa.ndim == 1 else ""))
     normals = wp.array(cn.reshape(-1, 3).astype(np.float32), dtype=wp.vec3, device=device)
+    albedo = wp.array(fa.astype(np.float32), dtype=float, device=device)
     if f.shape[0] == 0:
-        return TraceMesh(mesh=None, corner_normals=normals, points=None, indices=None)
+        return TraceMesh(mesh=None, corner_normals=normals, face_albedo=albedo, points=None, indices=None)
     pts = wp.array(v.astype(np.float32), dtype=wp.vec3, device=device)
     idx = wp.array(f.astype(np.int32).ravel(), dtype=wp.int32, device=device)
-    return TraceMesh(mesh=wp.Mesh(points=pts, indices=idx), corner_normals=normals, points=pts, indices=idx)
+    return TraceMesh(mesh=wp.Mesh(points=pts, indices=idx), corner_normals=normals, face_albedo=albedo, points=pts,
+                     indices=idx)
 
 
 def trace_geometry(
@@ -391,7 +413,8 @@ def trace_geometry(
         width, height: camera image size (pixels).
         projector_size: (W_p, H_p), for the ``lit`` mask.
         supersample: S, sub-samples per pixel side (S * S per pixel).
-        albedo: surface reflectance (0..1], the same everywhere.
+        albedo: surface reflectance (0..1]: of the plane, and of the mesh unless its
+            faces carry their own (``make_trace_mesh(face_albedo=...)``).
         ambient: ambient irradiance relative to the projector's full white.
         shadow_eps: offset (mm) of a shadow ray's origin along the facet normal.
     """
@@ -419,8 +442,8 @@ def trace_geometry(
     wp.launch(
         trace_geometry_kernel,
         dim=shape,
-        inputs=[mesh_id, int(scene.mesh is not None), scene.corner_normals, camera, light, pw, ph,
-                int(supersample), float(albedo), float(ambient), float(shadow_eps)],
+        inputs=[mesh_id, int(scene.mesh is not None), scene.corner_normals, scene.face_albedo, camera, light,
+                pw, ph, int(supersample), float(albedo), float(ambient), float(shadow_eps)],
         outputs=[geo.samples, geo.base, geo.depth, geo.points, geo.normals, geo.lit],
         device=dev,
     )

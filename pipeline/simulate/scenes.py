@@ -13,6 +13,11 @@ Procedural scenes:
   within ~2 micrometres of the true sphere.
 - ``cube``: a closed cube of edge ``size_mm`` turned 30 degrees about z, so no
   face is aligned with the camera or the light axes.
+- ``chessboard``: a printed chessboard of 9 x 6 inner corners on a 2 mm plate lying
+  on the plane (:func:`make_chessboard`; ``size_mm`` is the plate's longer side, the
+  squares ``size_mm / 12``, a one-square white margin all round): the board for
+  ``ringscan calibrate turntable`` on the virtual rig. Its faces carry their own
+  albedo (black squares 0.04, white squares and margin 0.8).
 - ``terrain``: a smooth heightfield (a sum of Gaussian hills and a gentle ripple)
   over a ``size_mm`` square, heights 0 .. 0.3125 * ``size_mm`` (25 mm by default),
   faded to z = 0 all round its border so that it meets the plane, and closed
@@ -54,7 +59,7 @@ from ringscan.pipeline.formats.errors import FormatError
 
 log = logging.getLogger(__name__)
 
-SCENES = ("plane", "sphere", "cube", "terrain")
+SCENES = ("plane", "sphere", "cube", "terrain", "chessboard")
 TETRA_DEG = math.degrees(math.acos(-1.0 / 3.0))   # 109.47: the angle between tetrahedron directions
 POSES = {"upright": (), "upside-down": (("x", 180.0),), "side-x": (("x", 90.0),), "side-y": (("y", 90.0),),
          "tetra-1": (("x", TETRA_DEG),), "tetra-2": (("z", 120.0), ("x", TETRA_DEG)),
@@ -64,6 +69,13 @@ SPHERE_SUBDIVISIONS = 6
 TERRAIN_CELLS = 240
 TERRAIN_HEIGHT_RATIO = 25.0 / 80.0
 CREASE_DEG = 40.0
+CHESSBOARD_CORNERS = (9, 6)
+"""Inner corners (columns, rows) of the ``chessboard`` scene's board."""
+CHESSBOARD_THICKNESS_MM = 2.0
+CHESSBOARD_DARK = 0.04
+"""Albedo of the black squares (printer ink)."""
+CHESSBOARD_LIGHT = 0.8
+"""Albedo of the white squares and the margin (paper)."""
 
 __all__ = [
     "SCENES",
@@ -72,6 +84,7 @@ __all__ = [
     "pose_rotation",
     "pose_scene",
     "make_scene",
+    "make_chessboard",
     "load_mesh_file",
     "icosphere",
     "corner_normals",
@@ -88,6 +101,9 @@ class SceneMesh:
     """(M, 3) int32 vertex indices, counter-clockwise seen from outside."""
     name: str
     """Scene name (``plane``, ``sphere``, ...) or the mesh file's stem."""
+    face_albedo: np.ndarray | None = None
+    """(M,) float64 albedo of each face in [0, 1] (a printed texture), or None: the
+    render settings' one albedo everywhere. The reference plane always has that one."""
 
     @property
     def is_empty(self) -> bool:
@@ -251,6 +267,65 @@ def _terrain(size_mm: float) -> SceneMesh:
     return SceneMesh(vertices=v, faces=np.concatenate(faces).astype(np.int32), name="terrain")
 
 
+def make_chessboard(
+    cols: int = CHESSBOARD_CORNERS[0],
+    rows: int = CHESSBOARD_CORNERS[1],
+    square_mm: float = 80.0 / 12.0,
+    *,
+    margin_mm: float | None = None,
+    thickness_mm: float = CHESSBOARD_THICKNESS_MM,
+    dark: float = CHESSBOARD_DARK,
+    light: float = CHESSBOARD_LIGHT,
+) -> SceneMesh:
+    """A chessboard printed on a flat plate lying on z = 0, centred on the axis.
+
+    The board has (cols + 1) x (rows + 1) squares of ``square_mm`` (so ``cols`` x
+    ``rows`` inner corners, OpenCV's pattern size), square (i, j) black where i + j
+    is even (i along x, j along y), inside a white margin of ``margin_mm`` (default
+    one square). The plate is a closed box ``thickness_mm`` thick; its top is a grid
+    whose cells are the squares, so each face carries one albedo. Inner corner
+    (i, j) lies at x = (i + 1 - (cols + 1) / 2) * square_mm, y = (j + 1 - (rows + 1) / 2)
+    * square_mm, z = thickness_mm.
+    """
+    for name, v in (("cols", cols), ("rows", rows)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
+            raise ValueError(f"make_chessboard: {name} must be an integer >= 2, got {v!r}")
+    margin_mm = square_mm if margin_mm is None else margin_mm
+    for name, v in (("square_mm", square_mm), ("thickness_mm", thickness_mm)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"make_chessboard: {name} must be > 0, got {v!r}")
+    if not (isinstance(margin_mm, (int, float)) and math.isfinite(margin_mm) and margin_mm > 0):
+        raise ValueError(f"make_chessboard: margin_mm must be > 0, got {margin_mm!r}")
+    for name, v in (("dark", dark), ("light", light)):
+        if not (isinstance(v, (int, float)) and 0 <= v <= 1):
+            raise ValueError(f"make_chessboard: {name} albedo must be in [0, 1], got {v!r}")
+    xs = np.concatenate([[-margin_mm], np.arange(cols + 2) * square_mm, [(cols + 1) * square_mm + margin_mm]])
+    ys = np.concatenate([[-margin_mm], np.arange(rows + 2) * square_mm, [(rows + 1) * square_mm + margin_mm]])
+    xs -= 0.5 * (cols + 1) * square_mm
+    ys -= 0.5 * (rows + 1) * square_mm
+    nx, ny = xs.size, ys.size
+    X, Y = np.meshgrid(xs, ys, indexing="xy")
+    top = np.stack([X.ravel(), Y.ravel(), np.full(X.size, float(thickness_mm))], 1)
+    bot = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    cj, ci = np.divmod(np.arange(a.size), nx - 1)
+    i, j = ci - 1, cj - 1
+    square = (i >= 0) & (i <= cols) & (j >= 0) & (j <= rows)
+    cell_albedo = np.where(square & ((i + j) % 2 == 0), float(dark), float(light))
+    nb = top.shape[0]
+    faces = [np.stack([a, b, d], 1), np.stack([a, d, c], 1),                # top, CCW from +z
+             np.stack([a, d, b], 1) + nb, np.stack([a, c, d], 1) + nb]      # bottom, facing -z
+    albedo = [cell_albedo, cell_albedo, np.full(a.size, float(light)), np.full(a.size, float(light))]
+    loop = np.concatenate([idx[0, :-1], idx[:-1, -1], idx[-1, :0:-1], idx[:0:-1, 0]])  # CCW from +z
+    nxt = np.roll(loop, -1)
+    faces += [np.stack([loop, loop + nb, nxt + nb], 1), np.stack([loop, nxt + nb, nxt], 1)]  # walls, outward
+    albedo += [np.full(loop.size, float(light))] * 2
+    return SceneMesh(vertices=np.concatenate([top, bot]), faces=np.concatenate(faces).astype(np.int32),
+                     name="chessboard", face_albedo=np.concatenate(albedo))
+
+
 # ----------------------------------------------------------------------------- public
 
 
@@ -296,7 +371,7 @@ def load_mesh_file(path: str | os.PathLike, *, size_mm: float = 80.0, up: str = 
 
 
 def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto") -> SceneMesh:
-    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``) or load a mesh file.
+    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``) or load a mesh file.
 
     Args:
         name_or_path: a procedural scene name or the path of a mesh file.
@@ -319,6 +394,9 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
         return _cube(size_mm)
     if key == "terrain":
         return _terrain(size_mm)
+    if key == "chessboard":
+        cols, rows = CHESSBOARD_CORNERS
+        return make_chessboard(cols, rows, size_mm / (max(cols, rows) + 3))
     p = Path(key)
     if p.suffix or p.exists() or os.sep in key or "/" in key:
         return load_mesh_file(p, size_mm=size_mm, up=up)
@@ -390,4 +468,4 @@ def pose_scene(scene: SceneMesh, pose: str | None) -> tuple[SceneMesh, np.ndarra
     shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
     T[:3, :3] = R
     T[:3, 3] = shift - R @ c
-    return SceneMesh(vertices=w + shift, faces=scene.faces, name=scene.name), T
+    return SceneMesh(vertices=w + shift, faces=scene.faces, name=scene.name, face_albedo=scene.face_albedo), T

@@ -229,7 +229,7 @@ class VirtualRig:
             t0 = time.perf_counter()
             R, _ = _turn(self.rig.turntable, self._deg)
             mesh = raytrace.make_trace_mesh(self.object_vertices(), self.scene.faces, self._corner @ R.T,
-                                            device=self.device)
+                                            device=self.device, face_albedo=self.scene.face_albedo)
             c = self.rig.camera
             self._geometry = raytrace.trace_geometry(
                 mesh, self._camera, self._light, width=c.width, height=c.height, projector_size=self.projector_size,

@@ -10,7 +10,7 @@ import warp as wp
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
 from ringscan.kernels.raytrace import make_trace_mesh, shade_frame, trace_geometry
 from ringscan.pipeline.formats.rig import look_at
-from ringscan.pipeline.simulate.scenes import corner_normals, icosphere, make_scene
+from ringscan.pipeline.simulate.scenes import corner_normals, icosphere, make_chessboard, make_scene
 
 W, H = 160, 128
 DIST = np.array([0.02, -0.05, 0.001, -0.001, 0.0])
@@ -275,3 +275,34 @@ def test_pixels_past_the_lens_fold_see_nothing(device):
     # and the frame shows nothing there: no ambient light either
     img = shade_frame(geo, wp.full((192, 256), 1.0, dtype=float, device=device), full_irradiance=1.3)
     assert np.all(img.numpy()[past] == 0) and np.all(img.numpy()[rd < reach * 0.99] > 0)
+
+
+def test_face_albedo_prints_a_chessboard(device):
+    """A mesh whose faces carry their own albedo (the chessboard scene): each camera
+    pixel on the board records its square's albedo; the plane keeps the one albedo."""
+    board = make_chessboard(5, 4, 12.0, thickness_mm=1.0, dark=0.1, light=0.7)
+    cn = corner_normals(board.vertices, board.faces)
+    mesh = make_trace_mesh(board.vertices, board.faces, cn, device=device, face_albedo=board.face_albedo)
+    geo = trace_geometry(mesh, make_camera(*_camera()), _light()[0], width=W, height=H, projector_size=(256, 192),
+                         supersample=1, albedo=0.5, ambient=0.0)
+    img = shade_frame(geo, wp.array(np.ones((192, 256), np.float32), device=device), full_irradiance=1.0,
+                      gamma=1.0, full_scale=65535).numpy() / 65535.0
+    pts = geo.points.numpy().astype(np.float64)
+    lit = geo.lit.numpy().astype(bool)
+    top = lit & (np.abs(pts[..., 2] - 1.0) < 1e-3)
+    # Square (i, j) of the 6 x 5 squares, i along x, j along y; black where i + j is even.
+    i = np.floor(pts[..., 0] / 12.0 + 3.0)
+    j = np.floor(pts[..., 1] / 12.0 + 2.5)
+    fx, fy = pts[..., 0] / 12.0 + 3.0 - i, pts[..., 1] / 12.0 + 2.5 - j
+    clear = top & (np.minimum(fx, 1 - fx) > 0.05) & (np.minimum(fy, 1 - fy) > 0.05)   # not on an edge
+    on_board = clear & (i >= 0) & (i <= 5) & (j >= 0) & (j <= 4)
+    dark = on_board & ((i + j) % 2 == 0)
+    assert dark.sum() > 300 and (on_board & ~dark).sum() > 300
+    assert np.abs(img[dark] - 0.1).max() < 1e-3 and np.abs(img[on_board & ~dark] - 0.7).max() < 1e-3
+    assert np.abs(img[clear & ~on_board] - 0.7).max() < 1e-3                  # the white margin
+    plane = lit & (np.abs(pts[..., 2]) < 1e-3)
+    assert plane.sum() > 300 and np.abs(img[plane] - 0.5).max() < 1e-3
+    with pytest.raises(ValueError, match="face_albedo"):
+        make_trace_mesh(board.vertices, board.faces, cn, device=device, face_albedo=board.face_albedo[:-1])
+    with pytest.raises(ValueError, match="face_albedo"):
+        make_trace_mesh(board.vertices, board.faces, cn, device=device, face_albedo=board.face_albedo + 1.0)

@@ -7,7 +7,15 @@ import open3d as o3d
 import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.simulate.scenes import SCENES, corner_normals, icosphere, load_mesh_file, make_scene
+from ringscan.pipeline.simulate.scenes import (
+    SCENES,
+    corner_normals,
+    icosphere,
+    load_mesh_file,
+    make_chessboard,
+    make_scene,
+    pose_scene,
+)
 
 
 def _closed_outward(s):
@@ -23,7 +31,7 @@ def _closed_outward(s):
     return closed, vol
 
 
-@pytest.mark.parametrize("name", ["sphere", "cube", "terrain"])
+@pytest.mark.parametrize("name", ["sphere", "cube", "terrain", "chessboard"])
 def test_procedural_scenes_stand_on_the_plane(name):
     s = make_scene(name, size_mm=60.0)
     lo, hi = s.vertices.min(0), s.vertices.max(0)
@@ -117,4 +125,27 @@ def test_bad_scenes(tmp_path):
         make_scene("sphere", size_mm=0)
     with pytest.raises(ValueError, match="up"):
         load_mesh_file(bad, up="x")
-    assert set(SCENES) == {"plane", "sphere", "cube", "terrain"}
+    assert set(SCENES) == {"plane", "sphere", "cube", "terrain", "chessboard"}
+
+
+def test_chessboard_squares_and_corners():
+    s = make_scene("chessboard", size_mm=96.0)            # 9 x 6 inner corners, squares 96 / 12 = 8 mm
+    lo, hi = s.vertices.min(0), s.vertices.max(0)
+    assert np.allclose(hi - lo, [96.0, 72.0, 2.0])
+    assert s.face_albedo.shape == (s.faces.shape[0],)
+    top = np.flatnonzero(np.all(s.vertices[s.faces][:, :, 2] == 2.0, axis=1))
+    c = s.vertices[s.faces[top]].mean(1)
+    i, j = np.floor(c[:, 0] / 8.0 + 5.0), np.floor(c[:, 1] / 8.0 + 3.5)   # square indices, 10 x 7 squares
+    board = (i >= 0) & (i <= 9) & (j >= 0) & (j <= 6)
+    dark = s.face_albedo[top] < 0.5
+    assert np.array_equal(dark, board & ((i + j) % 2 == 0))
+    assert np.unique(i[board] * 7 + j[board]).size == 70 and dark.sum() == 2 * 35
+    assert np.all(s.face_albedo[~np.isin(np.arange(len(s.faces)), top)] == 0.8)
+    # Inner corner (i, j) where four squares meet, at ((i + 1 - 5) 8, (j + 1 - 3.5) 8, 2).
+    assert np.any(np.all(np.isclose(s.vertices, [(0 + 1 - 5) * 8.0, (0 + 1 - 3.5) * 8.0, 2.0]), axis=1))
+    posed, _ = pose_scene(s, "x:10")
+    assert posed.face_albedo is s.face_albedo
+    with pytest.raises(ValueError, match="cols"):
+        make_chessboard(1, 6, 5.0)
+    with pytest.raises(ValueError, match="dark"):
+        make_chessboard(9, 6, 5.0, dark=2.0)
