@@ -6,7 +6,8 @@ sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 - ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images;
 - ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
 - ``response CAPTURE_DIR...``: the projector's response curve;
-- ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights.
+- ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights;
+- ``turntable SCAN | IMAGES... --angles ...``: the turntable axis from a board at several table angles.
 - ``latency --projector display:N --camera SPEC``: how long after a frame's swap the camera sees it in full.
 
 New sub-commands are found by name: any module-level ``add_<name>_parser`` function
@@ -36,6 +37,12 @@ from ringscan.pipeline.calibrate.procam import (
     procam_rig,
 )
 from ringscan.pipeline.calibrate.response import estimate_light_gamma
+from ringscan.pipeline.calibrate.turntable import (
+    TurntableSettings,
+    board_views_of_scan,
+    calibrate_turntable,
+    rig_with_turntable,
+)
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
@@ -362,6 +369,69 @@ def run_latency(args) -> int:
         print(f"updated light.latency_s of {args.rig}")
     if args.report:
         atomic_write_json(args.report, res.to_dict())
+    return 0
+
+
+# ----------------------------------------------------------------------------- turntable
+
+
+def add_turntable_parser(calsub) -> None:
+    p = calsub.add_parser("turntable", help="the turntable axis from a board seen at several table angles",
+                          description="A board lies (or stands) on the turntable, seen at several table angles. "
+                                      "Give a scan folder whose views show it at their turntable_deg (the --frame "
+                                      "frame of each view is used), or board images with --angles. The camera must "
+                                      "be calibrated in the world frame (--rig, or the scan's rig). Writes that rig "
+                                      "with the fitted turntable axis (docs/calibration.md).")
+    p.add_argument("inputs", nargs="+", metavar="SCAN_OR_IMAGE", help="one scan folder, or board images")
+    p.add_argument("--angles", type=float, nargs="+", default=None, metavar="DEG",
+                   help="table angle of each image (degrees, right-handed about the axis); images only")
+    p.add_argument("--frame", default="white", help="which frame of each scan view shows the board (default white)")
+    add_board_options(p)
+    p.add_argument("--rig", default=None, metavar="RIG",
+                   help="rig file whose camera to use (default: the scan's); its turntable, if any, only tells "
+                        "the rough axis line")
+    p.add_argument("--out", required=True, metavar="RIG", help="rig file to write (the rig with this turntable)")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    p.set_defaults(_calibrate=run_turntable)
+
+
+def run_turntable(args) -> int:
+    board = board_from_args(args)
+    rig = load_rig(args.rig) if args.rig else None
+    prior = (0.0, 0.0, 1.0) if rig is None or rig.turntable is None else tuple(rig.turntable.axis_dir)
+    settings = TurntableSettings(board=board_settings_from_args(args), prior_axis=prior)
+    if len(args.inputs) == 1 and Path(args.inputs[0]).is_dir():
+        if args.angles is not None:
+            raise ValueError("--angles: a scan's views carry their own table angles (turntable_deg)")
+        scan = load_scan(args.inputs[0])
+        rig = scan.rig if rig is None else rig
+        if args.rig is None and rig.turntable is not None:
+            settings = TurntableSettings(board=settings.board, prior_axis=tuple(rig.turntable.axis_dir))
+        views, angles = board_views_of_scan(scan, board=board, frame=args.frame, settings=settings)
+    else:
+        if args.angles is None or len(args.angles) != len(args.inputs):
+            n = 0 if args.angles is None else len(args.angles)
+            raise ValueError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
+        if rig is None:
+            raise ValueError("--rig: images need the rig file of the calibrated camera")
+        views = [detect_board(read_image(path), board=board, name=view_name(path), settings=settings.board)
+                 for path in args.inputs]
+        angles = list(args.angles)
+    print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} views:")
+    print_views(views)
+    cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, settings=settings)
+    tt = cal.turntable
+    print(f"turntable axis: through ({', '.join(f'{x:.3f}' for x in tt.axis_point)}) along "
+          f"({', '.join(f'{x:.5f}' for x in tt.axis_dir)}); RMS reprojection error {cal.rms_px:.3f} px "
+          f"over {len(cal.names)} views")
+    for n, a, e, d in zip(cal.names, cal.angles_deg, cal.per_view_px, cal.angle_error_deg):
+        print(f"  {n} at {a:g} deg: {e:.3f} px, board turned {d:+.3f} deg from the table's angle")
+    for n in cal.outliers:
+        print(f"  {n}: spoils the fit, left out")
+    save_rig(args.out, rig_with_turntable(rig, tt))
+    print(f"wrote {args.out}")
+    if args.report:
+        atomic_write_json(args.report, cal.report())
     return 0
 
 

@@ -141,8 +141,6 @@ def board_views_of_scan(
         if frame not in v.frames:
             raise FormatError(scan.path, f"view {v.name}: no {frame!r} frame (frames: {', '.join(sorted(v.frames))})")
         img = read_image(scan.frame_path(v, frame))
-        if img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         views.append(detect_board(img, board=board, name=v.name, settings=settings.board))
         angles.append(float(v.turntable_deg))
     return views, angles
