@@ -27,7 +27,7 @@ from ringscan.hardware.capture.sequence import (
 from ringscan.hardware.devices.projector import SerialProjector, VirtualProjector
 from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
-from ringscan.hardware.errors import CaptureError, ProjectorError
+from ringscan.hardware.errors import CameraError, CaptureError, ProjectorError
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
@@ -183,6 +183,34 @@ def test_turntable_error_is_retried(tmp_path, rig, patterns, virtual_rig, refere
     finally:
         e.close()
     _same_images(scan, reference[0])
+
+
+def test_faults_outside_a_move_are_retried(tmp_path, rig, patterns):
+    # A camera without a frame (a live camera, the emulator's socket) and a turntable
+    # that does not answer a line while it stands: reconnected and retried.
+    from ringscan.hardware.emulators.grbl import EmulatedTurntable
+
+    class Flaky(ProbeCamera):
+        def _read(self):
+            if self.grabs == 4 and not getattr(self, "failed", False):
+                self.failed = True
+                raise CameraError("camera gave no frame (unplugged or busy?)", port="probe")
+            return super()._read()
+
+    with EmulatedTurntable(time_scale=1000.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        table = GrblTurntable(emu.port, timeout_s=0.3)
+        emu.inject("silent", on="G92")  # the capture's own G92
+        cam = Flaky(proj, emu)
+        scan = capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=2, camera=cam, projector=proj,
+                            turntable=table, settings=FAST, progress=False)
+        table.close()
+        # G92: the connection's, the silent one, the reconnection's, the retry's
+        assert emu.resets == 2 and emu.lines.count("G92 X0.000") == 4
+    assert cam.failed and [len(v.frames) for v in scan.views] == [6, 6]
+    for v in scan.views:
+        for j, n in enumerate(frame_names(patterns)):
+            assert read_image(scan.frame_path(v, n))[0, 0] == j + 1
 
 
 def test_persistent_fault_stops_with_a_valid_partial_scan_and_resume_completes_it(tmp_path, rig, patterns,
