@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_file
+from ringscan.pipeline.formats.atomic import check_output_file
 from ringscan.pipeline.formats.meshes import read_mesh
 from ringscan.pipeline.preview.colour import colorize
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
@@ -38,7 +38,6 @@ def run(args) -> int:
     import open3d as o3d
 
     out = check_output_file(args.out, extensions=(".png",), what="picture (--out)")
-    check_no_overwrite([out], [*args.files, *([args.truth] if args.truth else [])])
     geoms = [read_geometry(f) for f in args.files]
     bar = None
     if args.truth:
@@ -55,6 +54,6 @@ def run(args) -> int:
               f"p95 {np.quantile(dist, 0.95):.4f} mm")
     s = ViewSettings(width=args.width, height=args.height, azimuth_deg=args.azimuth, elevation_deg=args.elevation,
                      point_size=args.point_size, renderer=args.renderer)
-    res = render_to_png(geoms, args.out, settings=s, colorbar_spec=bar)
+    res = render_to_png(geoms, out, settings=s, colorbar_spec=bar)
     print(f"wrote {args.out} ({args.width}x{args.height}, {res.renderer} renderer)")
     return 0

@@ -23,35 +23,20 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image, write_image
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import Camera, ParallelLight, default_rig
 from ringscan.pipeline.formats.scan import Scan, View, load_scan
 from ringscan.pipeline.reconstruct.freshness import check_done, hash_inputs
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
-from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
+from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan, tiny_rig
 
 OTHER = ReconstructSettings(min_confidence=0.5)
 
 
-def tiny_rig():
-    """A 160x128 camera and a 256x192 projector of 0.6 mm pixels: a scan in a second."""
-    rig = default_rig()
-    c = rig.camera
-    K = np.array([[325.0, 0, 79.5], [0, 325.0, 63.5], [0, 0, 1.0]])
-    return dataclasses.replace(
-        rig, camera=Camera(width=160, height=128, K=K, dist=c.dist, R=c.R, t=c.t, gamma=2.2),
-        light=ParallelLight(R=np.eye(3), t=np.zeros(3), pixel_pitch_mm=0.6, axis_px=np.array([127.5, 95.5]),
-                            width=256, height=192))
-
-
 @pytest.fixture(scope="module")
 def tiny_scan_src(tmp_path_factory):
-    spec = parse_patterns({"codec": "gray-rings", "width": 256, "height": 192, "center": [127.5, 95.5],
-                           "rho0": 4.0, "pitch": 3.0, "bits": 3, "sector_bits": 4})
     folder = tmp_path_factory.mktemp("tiny") / "scan"
-    simulate_scan(folder, scene="sphere", size_mm=40.0, rig=tiny_rig(), patterns=spec, turntable_deg=(0.0, 120.0),
-                  progress=False)
+    simulate_tiny_scan(folder, turntable_deg=(0.0, 120.0))
     return folder
 
 
