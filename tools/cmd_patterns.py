@@ -13,25 +13,26 @@ from ringscan.hardware.devices.display import VIEWER_KEYS, DisplayProjector, run
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.patterns import CODECS, PatternSpec, frame_names, parse_patterns
-
-RINGS_DEFAULT_PITCH = 40.0
-DEFAULT_PITCH = 4.0
+from ringscan.pipeline.formats.patterns import CODEC_DEFAULTS, CODECS, PatternSpec, default_patterns, frame_names
 
 
 def add_pattern_options(p, *, size: bool = True) -> None:
-    """The pattern options of ``patterns`` and ``simulate`` (``size``: also --width/--height/--center)."""
+    """The pattern options of ``patterns`` and ``simulate`` (``size``: also --width/--height/--center).
+    An option not given takes its codec's default (``patterns.CODEC_DEFAULTS``)."""
+    gd, rd, pd = CODEC_DEFAULTS["gray-rings"], CODEC_DEFAULTS["rings"], CODEC_DEFAULTS["phase-rings"]
     g = p.add_argument_group("pattern")
     g.add_argument("--codec", choices=CODECS, default="gray-rings", help="pattern codec (default gray-rings)")
-    g.add_argument("--bits", type=int, default=7, help="Gray-code bits of the band index (default 7)")
+    g.add_argument("--bits", type=int, default=None, help=f"Gray-code bits of the band index (default {gd['bits']})")
     g.add_argument("--pitch", type=float, default=None,
-                   help=f"projector px per band (default {DEFAULT_PITCH:g}; {RINGS_DEFAULT_PITCH:g} for rings)")
-    g.add_argument("--rho0", type=float, default=8.0, help="inner radius in projector px (default 8)")
-    g.add_argument("--sector-bits", type=int, default=6,
-                   help="Gray-code bits of the angular sector (default 6; 0 = none; not for rings)")
-    g.add_argument("--count", type=int, default=9, help="rings of the single-shot codec (default 9)")
-    g.add_argument("--line-width", type=float, default=3.0, help="ring line width in px, rings codec (default 3)")
-    g.add_argument("--steps", type=int, default=4, help="phase steps, phase-rings codec (default 4)")
+                   help=f"projector px per band (default {gd['pitch']:g}; {rd['pitch']:g} for rings)")
+    g.add_argument("--rho0", type=float, default=None,
+                   help=f"inner radius in projector px (default {gd['rho0']:g}; the pitch for rings)")
+    g.add_argument("--sector-bits", type=int, default=None,
+                   help=f"Gray-code bits of the angular sector (default {gd['sector_bits']}; 0 = none; not for rings)")
+    g.add_argument("--count", type=int, default=None, help=f"rings of the single-shot codec (default {rd['count']})")
+    g.add_argument("--line-width", type=float, default=None,
+                   help=f"ring line width in px, rings codec (default {rd['line_width']:g})")
+    g.add_argument("--steps", type=int, default=None, help=f"phase steps, phase-rings codec (default {pd['steps']})")
     if size:
         g.add_argument("--width", type=int, default=1024, help="projector width in px (default 1024)")
         g.add_argument("--height", type=int, default=768, help="projector height in px (default 768)")
@@ -41,18 +42,10 @@ def add_pattern_options(p, *, size: bool = True) -> None:
 
 def pattern_spec_from_args(args, width: int, height: int, center=None) -> PatternSpec:
     """A validated :class:`PatternSpec` from the options of :func:`add_pattern_options`."""
-    if center is None:
-        center = [(width - 1) / 2.0, (height - 1) / 2.0]
-    pitch = args.pitch if args.pitch is not None else (RINGS_DEFAULT_PITCH if args.codec == "rings" else DEFAULT_PITCH)
-    d = {"codec": args.codec, "width": int(width), "height": int(height), "center": [float(c) for c in center],
-         "rho0": args.rho0, "pitch": pitch}
-    if args.codec == "rings":
-        d.update(count=args.count, line_width=args.line_width)
-    else:
-        d.update(bits=args.bits, sector_bits=args.sector_bits)
-        if args.codec == "phase-rings":
-            d["steps"] = args.steps
-    return parse_patterns(d, source="command line")
+    return default_patterns(args.codec, width=int(width), height=int(height),
+                            center=None if center is None else [float(c) for c in center],
+                            rho0=args.rho0, pitch=args.pitch, count=args.count, line_width=args.line_width,
+                            bits=args.bits, sector_bits=args.sector_bits, steps=args.steps, source="command line")
 
 
 def add_parser(sub):

@@ -42,7 +42,19 @@ decoded projector position (``ringscan import``)."""
 DECODED_SCALE = 32
 """``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
 
-__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PatternSpec", "parse_patterns", "frame_names", "gray_encode", "gray_decode"]
+__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "CODEC_DEFAULTS", "PatternSpec", "parse_patterns",
+           "default_patterns", "frame_names", "gray_encode", "gray_decode"]
+
+CODEC_DEFAULTS: dict[str, dict] = {
+    "rings": {"count": 9, "pitch": 40.0, "line_width": 3.0},
+    "gray-rings": {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6},
+    "phase-rings": {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4},
+}
+"""Default parameters of each projectable codec (``ringscan patterns`` and
+``simulate`` use them for every option not given). ``rings`` has no fixed
+``rho0``: it defaults to the pitch, so ring 0 is a circle one ring spacing
+across the centre, large enough to be seen as the loop that anchors the labels
+of the rings wholly on an object (docs/single_shot.md)."""
 
 
 def gray_encode(k):
@@ -188,6 +200,30 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
         n_in = int(np.sum(spec.ring_radii() <= far))
         raise FormatError(src, f"patterns.count: only {n_in} of {spec.count} rings fit on the {width}x{height} projector")
     return spec
+
+
+def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center=None, source=None,
+                     **given) -> PatternSpec:
+    """A validated :class:`PatternSpec` of ``codec`` from :data:`CODEC_DEFAULTS`,
+    each overridden by a keyword in ``given`` that is not None (``rho0``,
+    ``pitch``, ``count``, ``line_width``, ``bits``, ``sector_bits``, ``steps``;
+    keywords another codec uses are ignored). ``center`` defaults to the image
+    centre ((W-1)/2, (H-1)/2); ``rings``' ``rho0`` to its pitch.
+
+    Raises:
+        FormatError: naming ``source`` and the field, as :func:`parse_patterns` does.
+    """
+    if codec not in CODEC_DEFAULTS:
+        raise FormatError(source, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS)})")
+    d = dict(CODEC_DEFAULTS[codec])
+    keys = set(d) | {"rho0", "pitch"}
+    d.update({k: v for k, v in given.items() if v is not None and k in keys})
+    if codec == "rings" and d.get("rho0") is None:
+        d["rho0"] = d["pitch"]
+    if center is None:
+        center = [(width - 1) / 2.0, (height - 1) / 2.0]
+    return parse_patterns({"codec": codec, "width": width, "height": height, "center": list(center), **d},
+                          source=source)
 
 
 def frame_names(spec: PatternSpec) -> list[str]:

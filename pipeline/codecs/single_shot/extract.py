@@ -72,4 +72,6 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
              "sector_bits": SECTOR_BITS, **lab.stats, "times_s": {"sample": t1 - t0, "decode": t2 - t1}}
     log.info("rings: %d line centres, %d pieces, %d labelled (%d dropped), %d samples", len(lines),
              lab.stats["pieces"], lab.stats["pieces_labelled"], lab.stats["pieces_dropped"], keep.size)
+    if "object_unlabelled" in lab.stats:
+        log.warning("rings (%s): %s", scan.folder, lab.stats["object_unlabelled"])
     return smp, stats

@@ -165,6 +165,8 @@ class _Labeller:
         self.parent = np.full(self.n_pieces, -1, np.int64)
         self.kind = [""] * self.n_pieces
         self.occupied = np.zeros((self.count, PHI_BINS), np.int64) - 1  # piece holding each (ring, phi bin)
+        self.rejected = np.zeros(self.n_pieces, bool)  # a link into the piece was tried and failed its test
+        self.plane_like = np.zeros(self.n_pieces, bool)  # most of its rays meet z = 0 on a ring's circle
         self.stats = {"pieces": self.n_pieces, "anchors_plane": 0, "anchors_centre": 0, "links_used": 0,
                       "links_rejected": 0, "conflicts": 0}
         self.curve_pieces: dict = {}
@@ -325,6 +327,7 @@ class _Labeller:
             rho = np.hypot(off[:, 0], off[:, 1])
             j = np.argmin(np.abs(rho[:, None] - self.radii[None]), 1)
             near = ok & (np.abs(rho - self.radii[j]) <= s.plane_tolerance_px)
+            self.plane_like[p] = near.sum() >= 0.5 * idx.size
             if near.sum() < s.min_piece_samples:
                 continue
             jj = int(np.bincount(j[near]).argmax())
@@ -436,6 +439,7 @@ class _Labeller:
             pred = self.predict(a, link)
             if pred is None or self.overlaps(b, *pred) or not self.check(a, link, *pred):
                 self.stats["links_rejected"] += 1
+                self.rejected[b] = True
                 continue
             self.assign(b, pred[0], pred[1], "link", a)
             self.stats["links_used"] += 1
@@ -535,7 +539,9 @@ def label_ring_lines(
     root = np.full(n, -1, np.int8)
     phi = np.full(n, np.nan, np.float32)
     stats = {"pieces": 0, "pieces_labelled": 0, "pieces_dropped": 0, "samples_in_pieces": int(np.sum(piece >= 0)),
-             "samples_labelled": 0, "samples_root_undecided": 0, "samples_root_inconsistent": 0}
+             "samples_labelled": 0, "samples_root_undecided": 0, "samples_root_inconsistent": 0,
+             "pieces_dropped_by_reason": {"unreached": 0, "link_rejected": 0, "conflict": 0},
+             "samples_labelled_off_plane": 0, "pieces_off_plane_dropped": 0}
     if n == 0 or piece.max() < 0:
         return RingLabelling(ring, root, phi, piece, curve, stats)
     max_gap = settings.max_gap_px or min(400.0, max(10.0, 3.0 * _plane_ring_spacing_px(rig, patterns)))
@@ -573,7 +579,50 @@ def label_ring_lines(
                   "pieces_dropped": int(lab.n_pieces - labelled.sum()), "samples_labelled": int(np.sum(ring >= 0))})
     stats.update({k: v for k, v in lab.stats.items() if k != "pieces"})
     stats["curves"] = int(curve.max()) + 1
+    stats.update(_dropped_report(lab, bad, ring, settings))
     return RingLabelling(ring, root, phi, piece, curve, stats)
+
+
+def _dropped_report(lab: _Labeller, bad: np.ndarray, ring: np.ndarray, settings: SingleShotSettings) -> dict:
+    """Why pieces were dropped, and whether anything off the reference plane got
+    a label: ``pieces_dropped_by_reason`` ({"unreached": no anchor and no link led
+    to it, "link_rejected": the links into it failed the 3D test, "conflict":
+    dropped by the consistency step}), ``samples_labelled_off_plane`` (labelled
+    samples whose root lies more than ``off_plane_mm`` above z = 0; a sample whose
+    root is undecided counts by its lower meeting), ``pieces_off_plane_dropped``
+    and, when pieces off the plane were dropped and no sample off it got a label,
+    ``object_unlabelled``: one sentence for the user."""
+    reasons = {"unreached": 0, "link_rejected": 0, "conflict": 0}
+    off_dropped = off_samples = 0
+    labelled_off = 0
+    for p, idx in enumerate(lab.members):
+        if lab.state[p] >= 0 and not bad[p]:
+            j = int(lab.state[p])
+            r = lab.choose(p, j, int(lab.out[p]))
+            P = lab.roots(p, j)["P"]
+            z = np.where(r >= 0, P[np.arange(idx.size), np.maximum(r, 0), 2], P[:, :, 2].min(1))
+            labelled_off += int(np.sum((ring[idx] >= 0) & (z > settings.off_plane_mm)))
+            continue
+        why = "conflict" if bad[p] else "link_rejected" if lab.rejected[p] else "unreached"
+        reasons[why] += 1
+        if not lab.plane_like[p]:
+            off_dropped += 1
+            off_samples += idx.size
+    out = {"pieces_dropped_by_reason": reasons, "samples_labelled_off_plane": labelled_off,
+           "pieces_off_plane_dropped": off_dropped}
+    if off_dropped and labelled_off == 0:
+        why = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in reasons.items() if n)
+        hint = []
+        if lab.stats["anchors_centre"] == 0:
+            hint.append("no centre anchor: ring 0 was not seen as one closed loop around the pattern centre (hidden, "
+                        "shadowed, crossed by another line, or too small in the image: a larger rho0 helps)")
+        if reasons["link_rejected"]:
+            hint.append("the links from the rings on the plane failed the 3D test (the object's silhouette lies "
+                        "between them)")
+        out["object_unlabelled"] = (f"no line off the reference plane got a ring label: {off_dropped} piece(s) off the "
+                                    f"plane ({off_samples} line centres) dropped ({why})"
+                                    + (": " + "; ".join(hint) if hint else ""))
+    return out
 
 
 # ----------------------------------------------------------------------------- the reconstruct hook

@@ -109,7 +109,16 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
     pr = tree.query_pairs(settings.junction_px, output_type="ndarray").reshape(-1, 2)
     turn = np.arccos(np.clip(np.abs(np.sum(normal[pr[:, 0]] * normal[pr[:, 1]], 1)), 0.0, 1.0))
     dist = np.linalg.norm(uv[pr[:, 0]] - uv[pr[:, 1]], axis=1)
-    fork[pr[turn > math.radians(settings.junction_deg) + dist / settings.min_curvature_radius_px].ravel()] = True
+    junction = turn > math.radians(settings.junction_deg) + dist / settings.min_curvature_radius_px
+    # A small ring's image (ring 0 of a pattern with a small rho0) bends more
+    # tightly than any junction test allows; a chain that closes on itself, alone,
+    # with nothing inside and all of it on one ellipse is one ring whatever its
+    # curvature: its own bends are neither forks nor junctions.
+    g0 = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr()
+    loop = _clean_loops(uv, g0, tree, settings)
+    fork &= ~loop
+    junction &= ~(loop[pr[:, 0]] & loop[pr[:, 1]])
+    fork[pr[junction].ravel()] = True
     drop = np.zeros(n, bool)
     if fork.any():
         for near in tree.query_ball_point(uv[fork], 2.0):
@@ -144,6 +153,52 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
     gs = sp.coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n)).tocsr()
     piece = _components(gs, (curve >= 0) & ~barrier, settings.min_piece_samples)
     return Pieces(curve, piece, normal * sign[:, None])
+
+
+def _clean_loops(uv: np.ndarray, g, tree, settings: SingleShotSettings) -> np.ndarray:
+    """Centres of chains that are one small ring's whole image: the chain closes
+    around its centroid (no angular gap over ``closed_max_gap_deg``), holds no
+    other centre inside, has no centre of another chain within ``junction_px``
+    of it, and every centre lies within ``loop_fit_px`` of one ellipse fitted to
+    them all (two rings' images joined never fit one ellipse so closely).
+    Returns an (n,) bool mask; only chains that bend more tightly than
+    ``min_curvature_radius_px`` are looked at (larger loops need no rescue)."""
+    import cv2
+    from scipy.sparse.csgraph import connected_components
+
+    n = uv.shape[0]
+    out = np.zeros(n, bool)
+    _, comp = connected_components(g, directed=False)
+    order = np.argsort(comp, kind="stable")
+    bounds = np.flatnonzero(np.diff(comp[order])) + 1
+    for idx in np.split(order, bounds):
+        if idx.size < max(settings.min_piece_samples, 6):
+            continue
+        q = uv[idx]
+        span = q.max(0) - q.min(0)
+        if span.min() > 4.0 * settings.min_curvature_radius_px:
+            continue  # bends gently enough for the junction test
+        if _closed_loop_order(q, settings.closed_max_gap_deg) is None:
+            continue
+        (cx, cy), (w, h), ang = cv2.fitEllipse(q.astype(np.float32).reshape(-1, 1, 2))
+        if not (w > 0 and h > 0):
+            continue
+        t = np.radians(ang)
+        d = q - (cx, cy)
+        x = d[:, 0] * np.cos(t) + d[:, 1] * np.sin(t)
+        y = -d[:, 0] * np.sin(t) + d[:, 1] * np.cos(t)
+        sc = np.hypot(x / (0.5 * w), y / (0.5 * h))
+        if np.max(np.hypot(x, y) * np.abs(1.0 - 1.0 / np.maximum(sc, 1e-9))) > settings.loop_fit_px:
+            continue
+        near = np.unique(np.concatenate(tree.query_ball_point(q, settings.junction_px)))
+        if np.setdiff1d(near, idx).size:
+            continue  # another chain touches it
+        others = np.setdiff1d(np.arange(n), idx)
+        order_q = _closed_loop_order(q, settings.closed_max_gap_deg)
+        if np.any(_inside(uv[others], q[order_q])):
+            continue
+        out[idx] = True
+    return out
 
 
 def _closed_loop_order(q: np.ndarray, max_gap_deg: float) -> np.ndarray | None:

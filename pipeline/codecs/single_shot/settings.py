@@ -47,8 +47,14 @@ class SingleShotSettings:
     """See ``junction_px``: the turn allowed for noise in the normals."""
     min_curvature_radius_px: float = 8.0
     """See ``junction_px``: the tightest curve (camera px) a ring's own image may
-    make; ring 0 of a pattern must appear larger than this to serve as the
-    centre anchor."""
+    make. A ring whose whole image is one small clean loop (ring 0 of a pattern
+    with a small ``rho0``) may bend more tightly: see ``loop_fit_px``."""
+    loop_fit_px: float = 0.35
+    """A chain of centres that closes on itself, alone (no other centre within
+    ``junction_px``, none inside) and bends more tightly than
+    ``min_curvature_radius_px`` allows is still one ring's image when all of its
+    centres lie within this distance (camera px) of one fitted ellipse: its bends
+    are not taken for junctions, so it can serve as the centre anchor."""
     segment_deg: float = 6.0
     """Curves are cut into pieces (the units that get labels) where two centres
     up to ``junction_px`` apart turn by more than this + d /
@@ -92,6 +98,10 @@ class SingleShotSettings:
     """Where a sample's two meetings with its ring lie closer than this (the ray
     nearly grazes the ring's quadric), the orientation does not choose between
     them: the sample's root is left undecided (sector -1)."""
+    off_plane_mm: float = 1.0
+    """A labelled sample whose root lies more than this above the reference plane
+    counts as on the object (report: ``samples_labelled_off_plane``; none of them
+    while pieces off the plane were dropped: ``object_unlabelled``)."""
     min_view_cos: float = 0.05
     """The patch between two linked rings must face the camera at least this much
     (cosine of the angle between its normal and the view direction)."""
@@ -106,8 +116,8 @@ class SingleShotSettings:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"SingleShotSettings.{name}: expected an integer >= 1, got {v!r}")
         for name in ("max_normal_turn_deg", "max_piece_step_px", "fork_px", "junction_px", "junction_deg",
-                     "min_curvature_radius_px", "segment_deg", "segment_curvature_radius_px", "segment_contrast_ratio",
-                     "min_root_separation_mm",
+                     "min_curvature_radius_px", "loop_fit_px", "segment_deg", "segment_curvature_radius_px",
+                     "segment_contrast_ratio", "min_root_separation_mm", "off_plane_mm",
                      "plane_tolerance_px", "bump_contrast",
                      "plane_min_arc_deg", "closed_max_gap_deg", "max_step_pitches"):
             v = getattr(self, name)
