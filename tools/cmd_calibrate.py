@@ -6,6 +6,7 @@ sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 - ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images;
 - ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
 - ``response CAPTURE_DIR...``: the projector's response curve;
+- ``pose IMAGE``: the camera's pose over the reference plane from a board lying on it;
 - ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights;
 - ``turntable SCAN | IMAGES... --angles ...``: the turntable axis from a board at several table angles.
 - ``latency --projector display:N --camera SPEC``: how long after a frame's swap the camera sees it in full.
@@ -27,7 +28,12 @@ from ringscan.hardware.devices.display import DisplayProjector, choose_display, 
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
-from ringscan.pipeline.calibrate.light import LightSettings, calibrate_parallel_light, rig_with_light
+from ringscan.pipeline.calibrate.light import (
+    LightSettings,
+    calibrate_parallel_light,
+    camera_pose_on_plane,
+    rig_with_light,
+)
 from ringscan.pipeline.calibrate.procam import (
     ProcamSettings,
     calibrate_procam,
@@ -269,6 +275,46 @@ def run_response(args) -> int:
     d["light"]["response"] = {"gamma": gamma}
     save_rig(args.rig, parse_rig(d, source=args.rig))
     print(f"updated light.response.gamma of {args.rig}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- pose (the paper's rig)
+
+
+def add_pose_parser(calsub) -> None:
+    p = calsub.add_parser("pose", help="the camera's pose over the reference plane, from a board lying on it",
+                          description="IMAGE shows the board lying flat on the reference plane, where the light "
+                                      "axis will be (roughly). Its pose sets the world frame (origin on the plane "
+                                      "under the middle of the board's corners, x along its columns, z up toward "
+                                      "the camera) and the camera's R, t in the rig file (updated in place; its "
+                                      "intrinsics are used). Then calibrate the light and the turntable in that "
+                                      "frame (docs/calibration.md).")
+    p.add_argument("image", metavar="IMAGE", help="an image of the board lying on the reference plane")
+    add_board_options(p)
+    p.add_argument("--thickness", type=float, default=0.0, metavar="MM",
+                   help="the board's thickness: its printed face lies this far above the plane (default 0)")
+    p.add_argument("--rig", required=True, metavar="RIG", help="rig file to update (its camera's intrinsics are used)")
+    p.set_defaults(_calibrate=run_pose)
+
+
+def run_pose(args) -> int:
+    board = board_from_args(args)
+    d = read_json(args.rig)
+    rig = parse_rig(d, source=args.rig)
+    img = read_image(args.image)
+    cam = rig.camera
+    if img.shape != (cam.height, cam.width):
+        raise FormatError(args.image, f"image is {img.shape[1]}x{img.shape[0]}, the rig's camera is "
+                                      f"{cam.width}x{cam.height}")
+    view = detect_board(img, board=board, name=view_name(args.image), settings=board_settings_from_args(args))
+    R, t, rms = camera_pose_on_plane(view, board=board, camera=cam, thickness_mm=args.thickness)
+    C = -R.T @ t
+    print(f"camera pose: centre ({C[0]:.2f}, {C[1]:.2f}, {C[2]:.2f}) in the board's world frame, "
+          f"{np.degrees(np.arccos(min(1.0, abs(float(R[2, 2]))))):.2f} deg off the plane's normal; "
+          f"RMS reprojection error {rms:.3f} px")
+    d["camera"]["R"], d["camera"]["t"] = R.tolist(), t.tolist()
+    save_rig(args.rig, parse_rig(d, source=args.rig))
+    print(f"updated the camera pose of {args.rig}")
     return 0
 
 

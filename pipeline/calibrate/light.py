@@ -24,6 +24,11 @@ ray through each meets the plane z = h at a world point X. Then:
    by the same amount, so it is the angle at which the fewest samples fall
    outside their decoded sector (the middle of the interval of such angles).
 
+The camera must be calibrated in the world frame first: its intrinsics
+(``ringscan calibrate camera``) and its pose over the reference plane
+(:func:`camera_pose_on_plane`: a board lying on the plane defines the world
+frame, z up).
+
 The fit is ringscan's own design (the paper assumes a known light); its
 figures are reported (:class:`LightCalibration`), and the tests recover a
 tilted, rolled, off-centre virtual light to within 0.5 projector px and 0.2 %
@@ -48,14 +53,15 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
+from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.codecs.registry import extract_samples
-from ringscan.pipeline.formats.rig import ParallelLight, Rig
+from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
-from ringscan.pipeline.geometry import camera_rays
+from ringscan.pipeline.geometry import camera_rays, project_points
 
 __all__ = ["LightSettings", "PlaneSamples", "LightCalibration", "plane_samples", "fit_parallel_light",
-           "calibrate_parallel_light", "rig_with_light", "LIGHT_CODECS"]
+           "calibrate_parallel_light", "rig_with_light", "camera_pose_on_plane", "LIGHT_CODECS"]
 
 log = logging.getLogger(__name__)
 
@@ -396,3 +402,60 @@ def calibrate_parallel_light(
 def rig_with_light(rig: Rig, light: ParallelLight) -> Rig:
     """``rig`` with its light replaced."""
     return dataclasses.replace(rig, light=light)
+
+
+def camera_pose_on_plane(
+    view: BoardView,
+    *,
+    board: Board,
+    camera: Camera,
+    thickness_mm: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The camera's pose in the world frame that a board lying on the reference plane defines.
+
+    World frame (ringscan's choice for the paper's rig): origin on the plane z = 0
+    under the middle of the board's inner corners, x along the board's columns
+    (or against them: a chessboard's corner order is known only up to a half
+    turn), z up from the plane toward the camera (and the light), y = z x x. The
+    board's printed face lies at z = ``thickness_mm`` (the board's thickness).
+    Place the board where the light axis will be, roughly: the working volume's
+    radius is measured from the world z axis.
+
+    Args:
+        view: the board's detection in one image (found).
+        board: the board.
+        camera: the camera, whose intrinsics (K, dist) are used (its pose is not).
+        thickness_mm: the board's thickness above the plane.
+
+    Returns:
+        (R, t, rms): X_c = R X_w + t, and the RMS reprojection error (px).
+
+    Raises:
+        CalibrationError: the view does not show the board.
+    """
+    if not view.found:
+        raise CalibrationError(None, f"camera pose: {view.name}: {view.reason}")
+    if not math.isfinite(thickness_mm):
+        raise ValueError(f"thickness_mm: expected a finite number, got {thickness_mm!r}")
+    obj = board_points(board)[view.ids].astype(np.float64)
+    img = view.corners.astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj.reshape(-1, 1, 3), img.reshape(-1, 1, 2), camera.K, camera.dist,
+                                  flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise CalibrationError(None, f"camera pose: {view.name}: solvePnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj.reshape(-1, 1, 3), img.reshape(-1, 1, 2), camera.K, camera.dist, rvec, tvec)
+    Rb, _ = cv2.Rodrigues(rvec)
+    tb = tvec.ravel()
+    # World axes in board coordinates: x along the columns, z toward the camera's side.
+    cam_b = -Rb.T @ tb
+    zw = np.array([0.0, 0.0, 1.0 if cam_b[2] > 0 else -1.0])
+    xw = np.array([1.0, 0.0, 0.0])
+    M = np.stack([xw, np.cross(zw, xw), zw], 1)          # board <- world rotation
+    centre = np.array([(board.cols - 1) * board.square / 2, (board.rows - 1) * board.square / 2, 0.0])
+    o_b = centre - thickness_mm * zw
+    R = Rb @ M
+    t = Rb @ o_b + tb
+    proj = project_points(obj, Rb, tb, camera.K, camera.dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, 1))))
+    log.info("camera pose from %s: centre (%.2f, %.2f, %.2f) mm, RMS %.3f px", view.name, *(-R.T @ t), rms)
+    return R, t, rms

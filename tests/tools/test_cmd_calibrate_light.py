@@ -9,8 +9,9 @@ import pytest
 
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import ParallelLight, default_rig, load_rig, save_rig
+from ringscan.pipeline.simulate import VirtualRig
 from ringscan.pipeline.simulate.scan import simulate_scan
-from ringscan.pipeline.simulate.scenes import SceneMesh
+from ringscan.pipeline.simulate.scenes import SceneMesh, make_chessboard
 from ringscan.tools.cli import main
 
 LIGHT = ParallelLight(R=cv2.Rodrigues(np.array([0.02, -0.01, math.radians(5.0)]))[0], t=np.zeros(3),
@@ -69,3 +70,26 @@ def test_calibrate_light_bad_input(scans, tmp_path, capsys):
                  "--out", str(out)]) == 2
     assert "nothing" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_calibrate_pose_updates_the_camera(tmp_path, capsys):
+    """A board lying on the plane gives the camera's pose: the default rig's, up to a half turn about z."""
+    truth = default_rig()
+    K = np.array([[1300.0, 0, 319.5], [0, 1300.0, 255.5], [0, 0, 1]])
+    truth = dataclasses.replace(truth, camera=dataclasses.replace(truth.camera, width=640, height=512, K=K))
+    img = VirtualRig(truth, make_chessboard(9, 6, 12.0, thickness_mm=3.0), device="cpu").render(
+        np.full((768, 1024), 255, np.uint8))
+    cv2.imwrite(str(tmp_path / "board.png"), img)
+    start = dataclasses.replace(truth, camera=dataclasses.replace(truth.camera, R=np.eye(3), t=np.array([0, 0, 500.0])))
+    save_rig(tmp_path / "rig.json", start)
+    assert main(["calibrate", "pose", str(tmp_path / "board.png"), "--board", "9x6", "--square", "12",
+                 "--thickness", "3", "--rig", str(tmp_path / "rig.json")]) == 0
+    assert "camera pose: centre" in capsys.readouterr().out
+    cam = load_rig(tmp_path / "rig.json").camera
+    assert np.allclose(cam.R[:, 2], truth.camera.R[:, 2], atol=2e-3)
+    C, C_true = cam.center, truth.camera.center
+    assert abs(C[2] - C_true[2]) < 1.0 and abs(np.hypot(*C[:2]) - np.hypot(*C_true[:2])) < 1.0   # one view
+    cv2.imwrite(str(tmp_path / "small.png"), img[:100, :100])
+    assert main(["calibrate", "pose", str(tmp_path / "small.png"), "--board", "9x6", "--square", "12",
+                 "--rig", str(tmp_path / "rig.json")]) == 2
+    assert "small.png" in capsys.readouterr().err

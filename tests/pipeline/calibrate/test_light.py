@@ -8,11 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
+from ringscan.pipeline.calibrate.board import Board, detect_board
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.light import (
     LightSettings,
     PlaneSamples,
     calibrate_parallel_light,
+    camera_pose_on_plane,
     fit_parallel_light,
     plane_samples,
     rig_with_light,
@@ -22,8 +24,9 @@ from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, default_rig
 from ringscan.pipeline.geometry import projector_pixels
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.simulate import VirtualRig
 from ringscan.pipeline.simulate.scan import simulate_scan
-from ringscan.pipeline.simulate.scenes import SceneMesh
+from ringscan.pipeline.simulate.scenes import SceneMesh, make_chessboard
 
 CENTER = (511.5, 383.5)
 TRUE_R = (cv2.Rodrigues(np.array([0.0, 0.0, math.radians(7.0)]))[0]
@@ -179,3 +182,27 @@ def test_virtual_rig_light_from_phase_rings(tmp_path):
                            progress=False) for h in (0.0, 40.0)]
     cal = calibrate_parallel_light(scans, [0.0, 40.0], device="cpu")
     check_light(cal.light, axis_px=0.5, pitch_rel=0.002, angle_deg=0.1)
+
+
+def test_camera_pose_from_a_board_on_the_plane():
+    """The chessboard scene (a 2 mm plate, inner corners centred on the origin, columns
+    along x; 108 x 72 mm of corners) gives back the rig's camera pose, up to the board's
+    half-turn ambiguity. (A single view of a small board pins the tilt less well: with
+    7 mm squares the plane's normal came out 0.25 deg off.)"""
+    rig = true_rig()
+    K = np.array([[1300.0, 0, 319.5], [0, 1300.0, 255.5], [0, 0, 1]])
+    rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, width=640, height=512, K=K))
+    board = Board(cols=9, rows=6, square=12.0)
+    vr = VirtualRig(rig, make_chessboard(9, 6, 12.0, thickness_mm=2.0), device="cpu")
+    view = detect_board(vr.render(np.full((768, 1024), 255, np.uint8)), board=board, name="board")
+    R, t, rms = camera_pose_on_plane(view, board=board, camera=rig.camera, thickness_mm=2.0)
+    assert rms < 0.5
+    cam = rig.camera
+    assert np.allclose(R[:, 2], cam.R[:, 2], atol=1e-3)        # world z (the plane's normal), seen by the camera
+    half = np.diag([-1.0, -1.0, 1.0])
+    Rw = R.T @ cam.R                                           # world -> truth world: I or the half turn
+    assert min(np.abs(Rw - np.eye(3)).max(), np.abs(Rw - half).max()) < 2e-3
+    C, C_true = -R.T @ t, -cam.R.T @ cam.t
+    assert abs(C[2] - C_true[2]) < 0.3 and abs(np.hypot(C[0], C[1]) - np.hypot(C_true[0], C_true[1])) < 0.3
+    with pytest.raises(CalibrationError, match="not found"):
+        camera_pose_on_plane(dataclasses.replace(view, found=False, reason="not found"), board=board, camera=cam)
