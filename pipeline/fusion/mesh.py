@@ -339,10 +339,10 @@ def orient_normals(cloud, *, k: int = 20):
     spread = np.sqrt(np.maximum(lam, 0.0))
     if spread[2] == 0.0:
         raise ValueError(f"all {len(pts)} points of the cloud lie at one place: no surface to mesh")
-    if spread[1] < 1e-9 * spread[2]:
+    if spread[1] < 1e-6 * spread[2]:
         raise ValueError(f"the {len(pts)} points of the cloud lie on a line: no surface to mesh")
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
-    if spread[0] < 1e-6 * spread[2]:
+    if spread[0] < 1e-4 * spread[2]:
         # Flat (Qhull, behind the tangent-plane propagation, fails on coplanar
         # points): every normal along the plane's normal, toward +z when it can.
         n = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]

@@ -76,3 +76,25 @@ def test_view_errors(tmp_path, capsys):
     assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 2
     assert "no points" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_view_leaves_out_infinite_points(tmp_path, caplog, capsys):
+    pc = _ellipsoid().sample_points_uniformly(3000)
+    pts = np.asarray(pc.points)
+    pts[::15] = np.inf
+    pts[1::15, 2] = np.nan
+    path = tmp_path / "inf.ply"
+    o3d.io.write_point_cloud(str(path), pc)
+    out = tmp_path / "v.png"
+    rc = main(["view", str(path), "--out", str(out), "--width", "120", "--height", "96", "--renderer", "software"])
+    assert rc == 0
+    assert any("left out 400 of 3000 points with a NaN or infinite coordinate" in r.getMessage()
+               for r in caplog.records)
+    img = cv2.imread(str(out))
+    drawn = np.any(img != 255, axis=2)
+    assert 0.05 < drawn.mean() < 0.9  # the object is there, not a blank picture
+    pts[:] = np.inf
+    o3d.io.write_point_cloud(str(path), pc)
+    assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 2
+    assert f"{path}: none of its 3000 points has finite coordinates" in capsys.readouterr().err
+    assert not (tmp_path / "w.png").exists()

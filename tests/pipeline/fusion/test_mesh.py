@@ -10,9 +10,17 @@ import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import read_mesh, write_mesh
-from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth, orient_normals, poisson_mesh
+from ringscan.pipeline.fusion.mesh import (
+    MeshSettings,
+    check_mesh_settings,
+    compare_to_truth,
+    orient_normals,
+    poisson_mesh,
+)
+from ringscan.pipeline.fusion.poses import PoseSettings
+from ringscan.pipeline.fusion.poses import _check_pose_settings as check_pose_settings
 from ringscan.pipeline.fusion.tsdf import tsdf_mesh
-from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
+from ringscan.pipeline.fusion.turntable import FuseSettings, check_fuse_settings, fuse_views
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh, mesh_cloud, mesh_fused
 
 from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
@@ -103,8 +111,17 @@ def test_file_errors(tmp_path):
     with pytest.raises(FormatError, match="file not found"):
         read_mesh(tmp_path / "missing.stl")
     (tmp_path / "junk.ply").write_text("not a mesh")
-    with pytest.raises(FormatError, match="no triangles"):
+    with pytest.raises(FormatError, match="junk.ply: not a PLY file"):
         read_mesh(tmp_path / "junk.ply")
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"),
+                             o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.eye(3))))
+    with pytest.raises(FormatError, match="cloud.ply: no triangles"):
+        read_mesh(tmp_path / "cloud.ply")
+    write_mesh(tmp_path / "box.ply", mesh)
+    raw = (tmp_path / "box.ply").read_bytes()
+    (tmp_path / "box.ply").write_bytes(raw[:-20])  # Open3D alone would read the triangles it can
+    with pytest.raises(FormatError, match="box.ply: truncated"):
+        read_mesh(tmp_path / "box.ply")
 
 
 def test_bad_clouds_and_settings(fused):
@@ -119,6 +136,35 @@ def test_bad_clouds_and_settings(fused):
         poisson_mesh(fused.cloud, settings=MeshSettings(density_quantile=1.5))
     with pytest.raises(ValueError, match="PointCloud"):
         poisson_mesh(np.zeros((100, 3)))
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda: check_fuse_settings(FuseSettings(voxel_mm=float("nan"))), "FuseSettings.voxel_mm must be a finite"),
+    (lambda: check_fuse_settings(FuseSettings(ground_clip_mm=float("inf"))), "FuseSettings.ground_clip_mm"),
+    (lambda: check_mesh_settings(MeshSettings(tsdf_voxel_mm=float("nan"))), "MeshSettings.tsdf_voxel_mm must be"),
+    (lambda: check_mesh_settings(MeshSettings(trim_distance_mm=float("nan"))), "MeshSettings.trim_distance_mm"),
+    (lambda: check_pose_settings(PoseSettings(voxel_mm=float("nan"))), "PoseSettings.voxel_mm must be a finite"),
+])
+def test_nan_settings_are_refused(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_mesh_cloud_drops_unusable_points(fused):
+    pts = np.asarray(fused.cloud.points).copy()
+    nrm = np.asarray(fused.cloud.normals).copy()
+    pts[::20] = np.nan
+    pts[1::20] = 1e12
+    nrm[2::20] = np.inf
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    cloud.normals = o3d.utility.Vector3dVector(nrm)
+    n = len(pts)
+    res = mesh_cloud(cloud, settings=MeshSettings(poisson_depth=7))
+    assert res.info["dropped_points"] == {"non_finite": len(range(0, n, 20)) + len(range(2, n, 20)),
+                                          "out_of_range": len(range(1, n, 20))}
+    assert len(res.mesh.triangles) > 1000 and np.all(np.isfinite(np.asarray(res.mesh.vertices)))
+    with pytest.raises(ValueError, match="too few to mesh"):
+        mesh_cloud(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.full((50, 3), np.nan))))
 
 
 def test_orient_normals_outward():

@@ -1,0 +1,75 @@
+"""``evaluate`` on clouds with NaN or infinite points: they are left out and counted,
+a cloud of nothing but NaN covers nothing, and the JSON written is strict JSON."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.ply import read_ply, write_ply
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.tools.cli import main
+from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+
+@pytest.fixture(scope="module")
+def recon(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    scan = simulate_tiny_scan(root / "scan")
+    reconstruct_scan(scan, root / "rec", device="cpu", progress=False)
+    return scan, root / "rec"
+
+
+def _with_points(path, ply, pts):
+    write_ply(path, {**ply, "x": pts[:, 0].astype(np.float32), "y": pts[:, 1].astype(np.float32),
+                     "z": pts[:, 2].astype(np.float32)})
+    return path
+
+
+def _strict(path):
+    def no_constants(name):
+        raise AssertionError(f"{name} in {path}: not JSON")
+
+    return json.loads(path.read_text(), parse_constant=no_constants)
+
+
+def test_non_finite_points_are_left_out_and_counted(recon, tmp_path):
+    scan, rec = recon
+    ply = read_ply(rec / "view_000.ply")
+    pts = np.stack([ply["x"], ply["y"], ply["z"]], 1).astype(np.float64)
+    good = evaluate_recon(rec / "view_000.ply", scan)["views"]["view_000"]
+    assert good["points"] > 50 and good["coverage"] > 0.2 and good["non_finite_points"] == 0
+    mixed = np.concatenate([pts, np.full((40, 3), np.nan), np.full((10, 3), np.inf)])
+    ply_mixed = {k: np.concatenate([v, v[:50]]) for k, v in ply.items()}
+    ev = evaluate_recon(_with_points(tmp_path / "mixed.ply", ply_mixed, mixed), scan)["views"]["view_000"]
+    assert ev["non_finite_points"] == 50 and ev["points"] == good["points"]
+    for k in ("median_mm", "rms_mm", "p95_mm", "frac_over_1mm", "coverage", "coverage_object"):
+        assert ev[k] == pytest.approx(good[k]), k
+
+
+def test_an_all_nan_cloud_covers_nothing_and_writes_strict_json(recon, tmp_path, capsys):
+    scan, rec = recon
+    ply = read_ply(rec / "view_000.ply")
+    nan = _with_points(tmp_path / "nan.ply", ply, np.full((len(ply["x"]), 3), np.nan))
+    res = evaluate_recon(nan, scan)
+    v = res["views"]["view_000"]
+    assert v["coverage"] == 0.0 and v["median_mm"] is None and v["points"] == 0
+    assert v["non_finite_points"] == len(ply["x"]) and res["all"]["coverage_mean"] == 0.0
+    out = tmp_path / "ev.json"
+    assert main(["evaluate", str(nan), "--truth", str(scan.folder), "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"left out {len(ply['x'])} point(s) with a NaN or infinite coordinate" in text
+    d = _strict(out)
+    assert d["views"]["view_000"]["coverage"] == 0.0 and d["all"]["median_mm"] is None
+
+
+@pytest.mark.parametrize("r", [-1.0, 0.0, float("nan"), float("inf")])
+def test_a_coverage_radius_must_be_a_positive_number(recon, capsys, r):
+    scan, rec = recon
+    with pytest.raises(ValueError, match="coverage radius: expected a finite number of mm > 0"):
+        evaluate_recon(rec, scan, coverage_radius_mm=r)
+    assert main(["evaluate", str(rec), "--truth", str(scan.folder), "--coverage-radius", str(r)]) == 2
+    assert "--coverage-radius: expected a finite number of mm > 0" in capsys.readouterr().err
