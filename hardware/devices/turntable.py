@@ -336,8 +336,9 @@ class GrblTurntable(TurntableDevice):
             self._last_alarm = None
             before = self._probe()
             if before is not None and before.state in TURNING_STATES:
+                found = before.raw
                 before = self._wait_stopped(before)
-                self._lose_position(f"the table was turning ({before.raw}) when ringscan connected, "
+                self._lose_position(f"the table was turning ({found}) when ringscan connected, "
                                     f"so it was not where ringscan had left it")
             if self._last_alarm is not None:
                 self._lose_position(f"the controller reported {self._last_alarm} before ringscan connected")

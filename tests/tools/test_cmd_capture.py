@@ -164,6 +164,8 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "--table-at only applies with --resume" in capsys.readouterr().err
     assert main(["capture", "--out", str(tmp_path / "d"), "--resume"]) == 2
     assert "nothing to resume" in capsys.readouterr().err
+    assert main(_args(files, tmp_path / "c2", "--views", "2", "--allow-auto-exposure", *VIRTUAL)) == 2
+    assert "--allow-auto-exposure only applies with --exposure" in capsys.readouterr().err
     port = str(tmp_path / "no_such_port")
     (tmp_path / "cam").mkdir()
     write_image(tmp_path / "cam" / "0.png", np.zeros((256, 320), np.uint8))
