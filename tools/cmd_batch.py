@@ -1,32 +1,63 @@
-"""``ringscan batch ROOT --out OUT``: reconstruct every scan folder below ROOT (resumable)."""
+"""``ringscan batch ROOT --out OUT``: reconstruct every scan folder below ROOT on worker processes or a
+Ray cluster (resumable; see docs/batch.md)."""
 
 from __future__ import annotations
 
-from ringscan.pipeline.batch import batch_reconstruct
+from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
 from ringscan.tools.cli import add_device_option
 from ringscan.tools.cmd_reconstruct import load_settings
 
 
+def _workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ValueError(f"--workers {text!r}: expected a whole number >= 0 (0: in this process)")
+    return n
+
+
 def add_parser(sub):
-    p = sub.add_parser("batch", help="reconstruct every scan below a folder (resumable)",
+    p = sub.add_parser("batch", help="reconstruct every scan below a folder, in parallel (resumable)",
                        description="Reconstruct each folder with a scan.json below ROOT into the same relative "
-                                   "path below --out. Finished scans are skipped, so rerunning resumes a batch.")
+                                   "path below --out, on worker processes (or a Ray cluster). Finished scans are "
+                                   "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
     p.add_argument("root")
     p.add_argument("--out", required=True)
     p.add_argument("--settings", default=None, help="JSON settings file")
+    p.add_argument("--workers", default=None,
+                   help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
+                        "core; 0: in this process)")
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help="local: a process pool on this machine; ray: a Ray cluster (pip install 'ringscan[ray]')")
+    p.add_argument("--address", default=None,
+                   help="the Ray cluster's address (default: RAY_ADDRESS, else a local cluster)")
+    p.add_argument("--fuse", action="store_true", help="also fuse each scan's views (<out>/<scan>/fused/)")
+    p.add_argument("--mesh", action="store_true", help="also fuse and mesh each scan (<out>/<scan>/mesh/)")
+    p.add_argument("--dry-run", action="store_true", help="list what would run and why; write nothing")
     p.add_argument("--no-progress", action="store_true")
     add_device_option(p)
     return p
 
 
 def run(args) -> int:
-    rep = batch_reconstruct(args.root, args.out, settings=load_settings(args.settings), device=args.device,
+    settings = load_settings(args.settings)
+    if args.dry_run:
+        plans = plan_batch(args.root, args.out, settings=settings)
+        w = max(len(p.scan) for p in plans)
+        for p in plans:
+            print(f"{p.scan:<{w}}  {p.action:<4}  {p.why}" + (f"  ({p.detail})" if p.detail else ""))
+        todo = sum(p.action == "run" for p in plans)
+        print(f"{len(plans)} scan(s): {todo} to run, {len(plans) - todo} done")
+        return 0
+    if args.address and args.backend != "ray":
+        raise ValueError("--address: only with --backend ray")
+    workers = None if args.workers is None else _workers(args.workers)
+    rep = batch_reconstruct(args.root, args.out, settings=settings, device=args.device, workers=workers,
+                            backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
                             progress=not args.no_progress)
-    failed = [s for s in rep["scans"] if s["status"] == "failed"]
-    for s in rep["scans"]:
-        redone = "; ".join(f"{n}: {why}" for n, why in s.get("redone", {}).items())
-        print(f"{s['scan']}: {s['status']}" + (f" ({s['error']})" if s.get("error") else
-                                                f", {s['points']} points" if "points" in s else "")
-              + (f" [redone: {redone}]" if redone else ""))
-    print(f"{len(rep['scans'])} scan(s), {len(failed)} failed; report: {args.out}/batch_report.json")
+    print(format_table(rep["scans"], rep["totals"]))
+    failed = rep["totals"]["status"].get("failed", 0)
+    print(f"report: {args.out}/batch_report.json")
     return 1 if failed else 0

@@ -179,7 +179,9 @@ def _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path
     cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
     cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
     ply = f"{view.name}.ply"
+    t = time.perf_counter()
     write_view_ply(out / ply, cloud, index)
+    cloud.stats["times_s"]["write"] = time.perf_counter() - t
     entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
              "camera_center": scan.rig.camera.center.tolist(), "inputs_hash": inputs_hash, **cloud.stats}
     report["views"].append(entry)

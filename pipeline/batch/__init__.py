@@ -1,0 +1,145 @@
+"""Batch processing of many scan folders (``ringscan batch``): see docs/batch.md.
+
+Every folder below ROOT that holds a scan.json is reconstructed into the same
+relative path below OUT, by a pool of worker processes (:mod:`.local`) or a Ray
+cluster (:mod:`.ray_backend`), each scan by :func:`.worker.process_scan`. A scan
+that is done (every view made from the same inputs with the same settings, files
+whole: :func:`ringscan.pipeline.reconstruct.check_done`) is skipped, so a batch that
+stopped is resumed by running it again; any other is (re)done, its views that are
+done kept, and ``batch_report.json`` says why. A scan that fails, or where no view
+gives a point, is listed in ``OUT/batch_report.json`` and the batch goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+from ringscan.kernels import init_warp
+from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
+from ringscan.pipeline.batch.local import run_inline, run_local
+from ringscan.pipeline.batch.ray_backend import run_ray
+from ringscan.pipeline.batch.report import BATCH_REPORT_FORMAT, TIME_FIELDS, format_table, summarise
+from ringscan.pipeline.batch.worker import ScanJob
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_folder, remove_stale_temporaries
+from ringscan.pipeline.formats.errors import RingscanError
+from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+log = logging.getLogger(__name__)
+
+__all__ = ["find_scans", "iter_scans", "batch_reconstruct", "plan_batch", "default_workers", "ScanPlan",
+           "format_table", "TIME_FIELDS"]
+
+BACKENDS = ("local", "ray")
+
+
+def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
+    """Workers and their devices by default: one per CUDA device where there are GPUs, else one per CPU core."""
+    import warp as wp
+
+    if device in (None, "", "auto") or str(device).startswith("cuda"):
+        init_warp()
+        n = wp.get_cuda_device_count()
+        if n and device in (None, "", "auto"):
+            return n, [f"cuda:{i}" for i in range(n)]
+    return max(1, os.cpu_count() or 1), [device]
+
+
+def _root_and_scans(root) -> tuple[Path, list[Path]]:
+    root = Path(root)
+    if not root.is_dir():
+        raise RingscanError(f"{root}: not a folder" if root.exists() else f"{root}: not found")
+    scans = find_scans(root)
+    if not scans:
+        raise RingscanError(f"{root}: no scan.json found below this folder")
+    return root, scans
+
+
+def plan_batch(root, out_root, *, settings: ReconstructSettings = ReconstructSettings()) -> list[ScanPlan]:
+    """What ``batch_reconstruct`` would do with each scan and why (``--dry-run``); writes nothing."""
+    root, scans = _root_and_scans(root)
+    out_root = Path(out_root)
+    plans = []
+    for folder in scans:
+        rel, out = out_folder(folder, root, out_root)
+        plans.append(plan_scan(folder, rel, out, settings=settings))
+    return plans
+
+
+def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = ReconstructSettings(),
+                      device: str | None = None, workers: int | None = None, backend: str = "local",
+                      address: str | None = None, fuse: bool = False, mesh: bool = False,
+                      progress: bool = True) -> dict:
+    """Reconstruct every scan below ``root`` into ``out_root``; returns the batch report.
+
+    Args:
+        root: a folder of scan folders (or one scan folder).
+        out_root: the output folder; each scan goes to its relative path below it.
+        settings: reconstruction settings.
+        device: Warp device of every worker (None: one CUDA device per worker where
+            there are GPUs, else the CPU).
+        workers: worker processes (None: :func:`default_workers`; 0: in this process).
+        backend: ``local`` (a process pool) or ``ray`` (a Ray cluster).
+        address: the Ray cluster's address (``ray`` backend only).
+        fuse: also fuse each scan's views into ``<out>/fused/fused.ply``.
+        mesh: also fuse and mesh each scan into ``<out>/mesh/``.
+        progress: show a progress bar.
+
+    Returns:
+        The report (also ``out_root/batch_report.json``): ``scans`` (one entry per
+        scan, in the order of :func:`find_scans`) and ``totals``.
+    """
+    from tqdm import tqdm
+
+    if backend not in BACKENDS:
+        raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    if workers is not None and (not isinstance(workers, int) or workers < 0):
+        raise ValueError(f"workers: expected a whole number >= 0, got {workers!r}")
+    root, scans = _root_and_scans(root)
+    out_root = check_output_folder(out_root, what="batch's output folder")
+    out_root.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out_root)
+
+    def jobs():
+        for folder in scans:
+            rel, out = out_folder(folder, root, out_root)
+            yield ScanJob(folder=str(folder), rel=rel, out=str(out), settings=settings, fuse=fuse, mesh=mesh)
+
+    if backend == "ray":
+        n_workers = None
+        results = run_ray(jobs(), address=address, device=device)
+    else:
+        n_workers, devices = default_workers(device)
+        if workers is not None:
+            n_workers = workers
+        if n_workers == 0:
+            results = run_inline(jobs(), device=devices[0])
+        else:
+            devices = [devices[i % len(devices)] for i in range(n_workers)]
+            results = run_local(jobs(), workers=n_workers, devices=devices)
+    report = {"format": BATCH_REPORT_FORMAT, "root": str(root.resolve()), "backend": backend,
+              "workers": n_workers, "settings": settings_to_dict(settings), "scans": []}
+    entries: dict[int, dict] = {}
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(scans), desc="batch", unit="scan", disable=not progress)
+    computed = 0
+    try:
+        for n, entry in results:
+            entries[n] = entry
+            computed += int(entry.get("computed_views", 0))
+            if entry.get("status") == "failed":
+                log.error("%s: %s", entry["scan"], entry.get("error"))
+            bar.update(1)
+            el = time.perf_counter() - t0
+            bar.set_postfix_str(f"{computed / el if el > 0 else 0:.2f} views/s")
+            report["scans"] = [entries[k] for k in sorted(entries)]
+            atomic_write_json(out_root / "batch_report.json", report)
+    finally:
+        bar.close()
+    report["scans"] = [entries[k] for k in sorted(entries)]
+    report["totals"] = summarise(report["scans"], wall_s=time.perf_counter() - t0)
+    atomic_write_json(out_root / "batch_report.json", report)
+    return report

@@ -1,0 +1,52 @@
+"""The batch report (``OUT/batch_report.json``) and its summary table."""
+
+from __future__ import annotations
+
+from ringscan.pipeline.batch.worker import STAGES
+
+__all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS"]
+
+BATCH_REPORT_FORMAT = "ringscan.batch/1"
+
+TIME_FIELDS = ("time_s", "times_s", "wall_s", "views_per_s", "workers", "backend")
+"""Fields of the reports that depend on how the run went (clock, workers), not on its results."""
+
+
+def summarise(entries: list[dict], *, wall_s: float) -> dict:
+    """Totals of a batch: scans per status, views computed, views per second, the per-view time split."""
+    status: dict[str, int] = {}
+    split = dict.fromkeys((*STAGES, "other"), 0.0)
+    computed = 0
+    for e in entries:
+        key = "failed" if e.get("status") == "failed" else e.get("status", "?")
+        status[key] = status.get(key, 0) + 1
+        computed += int(e.get("computed_views", 0))
+        for k, s in e.get("times_s", {}).items():
+            split[k] = split.get(k, 0.0) + float(s)
+    per_view = {k: (s / computed if computed else 0.0) for k, s in split.items()}
+    return {"scans": len(entries), "status": status, "computed_views": computed,
+            "wall_s": wall_s, "views_per_s": computed / wall_s if wall_s > 0 else 0.0,
+            "per_view_s": per_view}
+
+
+def format_table(entries: list[dict], totals: dict) -> str:
+    """A plain-text table: one line per scan, then the totals and the per-view time split."""
+    rows = [("scan", "status", "views", "points", "seconds")]
+    for e in entries:
+        st = e.get("status", "?")
+        if st == "failed":
+            st = f"FAILED: {e.get('error', '')}"
+        rows.append((e["scan"], st, f"{e.get('computed_views', 0)}/{e.get('views', '-')}", str(e.get("points", "-")),
+                     f"{e.get('time_s', 0.0):.2f}"))
+    w = [max(len(r[i]) for r in rows[:200]) for i in range(4)]
+    w[1] = min(w[1], 60)
+    lines = []
+    for r in rows:
+        lines.append(f"{r[0]:<{w[0]}}  {r[1]:<{w[1]}}  {r[2]:>{w[2]}}  {r[3]:>{w[3]}}  {r[4]:>7}")
+    st = ", ".join(f"{n} {k}" for k, n in sorted(totals["status"].items()))
+    lines.append(f"{totals['scans']} scan(s): {st}; {totals['computed_views']} view(s) computed in "
+                 f"{totals['wall_s']:.1f} s ({totals['views_per_s']:.2f} views/s)")
+    if totals["computed_views"]:
+        pv = totals["per_view_s"]
+        lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in (*STAGES, "other")))
+    return "\n".join(lines)

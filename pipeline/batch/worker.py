@@ -1,0 +1,167 @@
+"""One scan of a batch, as a worker runs it: reconstruct (resuming), optionally fuse
+and mesh, and return the scan's entry of the batch report.
+
+The same function runs in the local process pool (:mod:`.local`) and in a Ray task
+(:mod:`.ray_backend`), so both backends write the same bytes. Every file is written
+atomically (``pipeline.formats.atomic``) and a scan is resumed through
+:func:`~ringscan.pipeline.reconstruct.freshness.check_done`: running a scan again
+after its worker died keeps the views it finished and redoes the rest, so a retried
+task cannot leave a half-written or doubled result.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ringscan.kernels import init_warp, resolve_device
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import RingscanError
+from ringscan.pipeline.formats.meshes import write_cloud
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh, fuse_recon
+from ringscan.pipeline.reconstruct.freshness import check_done
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "init_worker", "worker_device", "process_scan"]
+
+STAGES = ("read", "decode", "sample", "triangulate", "write")
+"""The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
+
+FAULT_ENV = "RINGSCAN_BATCH_FAULT"
+"""Fault injection for tests and benchmarks: the path of a marker file. The first
+worker that claims it (renames it away) finishes one view of its scan and then
+kills its own process with SIGKILL, as a crash or an out-of-memory kill would."""
+
+_device: str | None = None
+
+
+@dataclass(frozen=True)
+class ScanJob:
+    """One scan to process."""
+
+    folder: str
+    """The scan folder."""
+    rel: str
+    """Its name in the batch (path relative to the root)."""
+    out: str
+    """Its output folder."""
+    settings: ReconstructSettings = ReconstructSettings()
+    """Reconstruction settings."""
+    fuse: bool = False
+    """Fuse the views into ``out/fused/fused.ply``."""
+    mesh: bool = False
+    """Fuse and mesh into ``out/mesh/`` (fused.ply, mesh.ply, fuse_report.json)."""
+
+
+def init_worker(device: str | None = None, devices=None) -> None:
+    """Start a worker: load Warp (and its kernel cache) once, choose its device.
+
+    Args:
+        device: the device for this worker (None: the best available).
+        devices: a queue of device names, one taken per worker (one CUDA device each).
+    """
+    global _device
+    init_warp()
+    if devices is not None:
+        device = devices.get()
+    _device = resolve_device(device)
+    log.info("batch worker %d on %s", os.getpid(), _device)
+
+
+def worker_device() -> str:
+    """The device of this worker (initialised on first use)."""
+    if _device is None:
+        init_worker()
+    return _device
+
+
+def _maybe_fault(scan, out: Path, settings) -> None:
+    marker = os.environ.get(FAULT_ENV)
+    if not marker:
+        return
+    try:
+        os.rename(marker, marker + ".taken")
+    except OSError:
+        return
+    reconstruct_scan(scan, out, settings=settings, device=worker_device(), views=[scan.views[0].name], resume=True,
+                     progress=False)
+    log.warning("%s: killing this worker (%d) on purpose", FAULT_ENV, os.getpid())
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _split(views: list[dict]) -> dict:
+    tot = dict.fromkeys((*STAGES, "other"), 0.0)
+    for v in views:
+        for k, s in v.get("times_s", {}).items():
+            tot[k if k in STAGES else "other"] += float(s)
+    return tot
+
+
+def process_scan(job: ScanJob) -> dict:
+    """Process one scan; never raises for a bad scan (the entry says ``failed`` and why)."""
+    t = time.perf_counter()
+    out = Path(job.out)
+    entry: dict = {"scan": job.rel, "out": job.out}
+    try:
+        scan = load_scan(job.folder)
+        if not scan.views:
+            raise RingscanError(f"{scan.path}: the scan has no views")
+        check = check_done(scan, out, settings=job.settings)
+        if check.done and check.kept:
+            views = list(check.kept.values())
+            computed: list[dict] = []
+            entry["status"] = "skipped (already done)"
+        else:
+            if check.report is not None:
+                entry["redone"] = check.redo
+            _maybe_fault(scan, out, job.settings)
+            rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
+                                   progress=False)
+            views = rep["views"]
+            kept = set(rep.get("resume", {}).get("kept", []))
+            computed = [v for v in views if v["name"] not in kept]
+            entry["status"] = "done"
+        entry["views"] = len(views)
+        entry["computed_views"] = len(computed)
+        entry["points"] = sum(int(v.get("points", 0)) for v in views)
+        entry["times_s"] = _split(computed)
+        if entry["points"] == 0:
+            reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in views))
+            raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")
+        if job.mesh or job.fuse:
+            entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
+    except (RingscanError, ValueError, OSError, RuntimeError) as e:
+        log.error("%s: %s", job.folder, e)
+        entry.update(status="failed", error=str(e))
+    entry["time_s"] = time.perf_counter() - t
+    return entry
+
+
+def _fuse(out: Path, *, redo: bool, mesh: bool) -> dict:
+    """Fuse (and mesh) a scan's reconstruction, unless its result is there and the reconstruction did not change."""
+    if mesh:
+        folder, files = out / "mesh", ("fuse_report.json", "fused.ply", "mesh.ply")
+    else:
+        folder, files = out / "fused", ("fuse.json", "fused.ply")
+    if not redo and all((folder / f).is_file() for f in files):
+        try:
+            read_json(folder / files[0])
+            return {"fused": "kept", "fused_out": str(folder)}
+        except RingscanError:
+            pass
+    if mesh:
+        fuse_and_mesh(out, folder, preview=False)
+    else:
+        res = fuse_recon(out)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_cloud(folder / "fused.ply", res.cloud, view=res.point_view, confidence=res.point_confidence)
+        atomic_write_json(folder / "fuse.json", {"source": str(out), "fusion": res.report()})
+    return {"fused": "done", "fused_out": str(folder)}
