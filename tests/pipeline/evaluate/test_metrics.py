@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import read_ply, write_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.tools.cli import main
@@ -73,3 +74,15 @@ def test_a_coverage_radius_must_be_a_positive_number(recon, capsys, r):
         evaluate_recon(rec, scan, coverage_radius_mm=r)
     assert main(["evaluate", str(rec), "--truth", str(scan.folder), "--coverage-radius", str(r)]) == 2
     assert "--coverage-radius: expected a finite number of mm > 0" in capsys.readouterr().err
+
+
+def test_clouds_that_do_not_match_the_truth_scan(recon, tmp_path):
+    scan, rec = recon
+    ply = read_ply(rec / "view_000.ply")
+    write_ply(tmp_path / "v5.ply", {**ply, "view": np.full(len(ply["x"]), 5, np.int32)})
+    with pytest.raises(FormatError, match=r"v5.ply: its points are of view 5, but .*scan.json has 1 view\(s\)"):
+        evaluate_recon(tmp_path / "v5.ply", scan)
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "report.json").write_text(json.dumps({"views": [{"name": "view_000"}]}))
+    with pytest.raises(FormatError, match=r"report.json: views\[0\]: expected an object with a name and a ply"):
+        evaluate_recon(tmp_path / "rec", scan)

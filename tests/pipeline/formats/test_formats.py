@@ -63,6 +63,8 @@ def test_rig_round_trip(tmp_path):
     (lambda d: d["volume"].update(r_max=1e300), "volume.r_max: 1e\\+300 is outside the sane range"),
     (lambda d: d["volume"].update(z_min="0"), "volume.z_min: expected a number, got '0'"),
     (lambda d: d["camera"].update(width=10**9), "camera.width: 1000000000 px is outside the sane range"),
+    (lambda d: d["camera"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 1]], t=[0, 0, -1000]),
+     "the working volume is behind the camera"),
 ])
 def test_bad_rig(tmp_path, edit, match):
     d = _rig_dict()
@@ -189,6 +191,20 @@ def test_bad_scan(tmp_path, fn, match):
     with pytest.raises(FormatError, match=match) as e:
         load_scan(tmp_path)
     assert "scan.json" in str(e.value) or "missing_rig.json" in str(e.value) or "nothere.png" in str(e.value)
+
+
+def test_scan_folder_errors(tmp_path):
+    with pytest.raises(FormatError, match="nowhere: scan folder not found"):
+        load_scan(tmp_path / "nowhere")
+    with pytest.raises(FormatError, match="scan.json: file not found"):
+        load_scan(tmp_path)
+    (tmp_path / "scan.json").write_text("[1, 2]")
+    with pytest.raises(FormatError, match="scan.json: expected a JSON object at the top level"):
+        load_scan(tmp_path)
+    _write_scan(tmp_path)
+    _edit_scan(tmp_path, lambda d: d.update(views={"a": 1}))
+    with pytest.raises(FormatError, match="scan.json: views: expected a list"):
+        load_scan(tmp_path)
 
 
 def test_binary_scan_json_names_the_file(tmp_path):

@@ -27,6 +27,7 @@ from ringscan.pipeline.formats.scan import Scan, View, load_scan
 from ringscan.pipeline.reconstruct.freshness import check_done, hash_inputs
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.view import explain_no_points
 from ringscan.tools.cli import main
 from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan, tiny_rig
 
@@ -266,3 +267,23 @@ def test_one_dark_view_is_a_warning_not_a_failure(scan, tmp_path, caplog):
     rep = read_json(tmp_path / "rec" / "report.json")
     assert rep["views"][0]["points"] > 0 and "no_points" not in rep["views"][0]
     assert "everything is dark" in rep["views"][1]["no_points"]
+
+
+def test_explain_no_points_other_cases(scan):
+    rings = dataclasses.replace(scan, patterns=parse_patterns(
+        {"codec": "rings", "width": 256, "height": 192, "center": [127.5, 95.5], "rho0": 8.0, "pitch": 12.0,
+         "count": 5, "line_width": 3.0}))
+    grey = np.full((1, 128, 160), 90, np.uint8)
+    assert "the rings frame has no contrast (grey levels 90 to 90" in explain_no_points(grey, rings, {})
+    lines = grey.copy()
+    lines[0, ::8] = 200
+    why = explain_no_points(lines, rings, {"line_samples": 300, "pieces": 7, "samples": 0})
+    assert why == ("no ring found: 300 line centres in 7 pieces, none labelled with a ring (see the labelling "
+                   "counts in the report)")
+    frames = np.zeros((14, 128, 160), np.uint8)
+    frames[0] = 200  # white lit, black dark: contrast everywhere
+    assert "none decodes to a ring band" in explain_no_points(frames, scan, {"pixels_decoded": 0})
+    why = explain_no_points(frames, scan, {"pixels_decoded": 500, "samples": 40,
+                                           "dropped": {"no_root": 0, "outside_volume": 40}})
+    assert why == ("every one of the 40 ring samples was dropped (outside_volume 40): check the rig's calibration "
+                   "and working volume")
