@@ -11,10 +11,9 @@ from __future__ import annotations
 import json
 import logging
 import time
-from pathlib import Path
 
 from ringscan.pipeline.evaluate.metrics import evaluate_recon
-from ringscan.pipeline.formats.atomic import atomic_write_json
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
@@ -42,7 +41,7 @@ def run(args) -> int:
 
     if args.views < 1:
         raise ValueError("--views must be at least 1")
-    out = Path(args.out)
+    out = check_output_folder(args.out, what="demo's output folder (--out)")
     t0 = time.perf_counter()
     spec = parse_patterns(DEMO_PATTERNS)
     print(f"[1/4] simulating {args.views} view(s) of '{args.scene}' with the virtual rig -> {out / 'scan'}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ringscan.pipeline.evaluate.sweep import SweepSettings, run_sweep
+from ringscan.pipeline.formats.atomic import check_output_folder
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.simulate.scenes import SCENES
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
@@ -67,7 +68,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-
+    check_output_folder(args.out, what="sweep's output folder (--out)")
     settings = SweepSettings(bits=_int_list(args.bits), rho0=args.rho0, radius=args.radius,
                              sector_bits=args.sector_bits, dense=not args.no_dense, dense_pitch=args.dense_pitch,
                              targets_mm=_float_list(args.targets), min_coverage=args.min_coverage)

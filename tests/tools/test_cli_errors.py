@@ -22,6 +22,8 @@ COMMANDS = {
     "fuse": ["fuse", "{tmp}/recon", "--out", "{out}", "--no-progress"],
     "patterns": ["patterns", "--out", "{out}"],
     "evaluate": ["evaluate", "{tmp}/recon", "--truth", "{scan}", "--json", "{out}"],
+    "demo": ["demo", "--out", "{out}", "--device", "cpu"],
+    "sweep": ["sweep", "--scene", "sphere", "--out", "{out}", "--device", "cpu", "--no-progress"],
 }
 
 
