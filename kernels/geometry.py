@@ -26,6 +26,8 @@ __all__ = [
     "LIGHT_PARALLEL",
     "LIGHT_PERSPECTIVE",
     "UNDISTORT_TOL_PX",
+    "LENS_SEGMENT_SAMPLES",
+    "LENS_MIN_DET",
     "ROOT_TOL_PX",
     "ROOT_FAILED_1",
     "ROOT_FAILED_2",

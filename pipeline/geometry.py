@@ -15,10 +15,20 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ringscan.kernels.geometry import CameraModel, LightModel, make_camera, make_parallel_light, make_perspective_light
+from ringscan.kernels.geometry import (
+    LENS_MIN_DET,
+    LENS_SEGMENT_SAMPLES,
+    UNDISTORT_TOL_PX,
+    CameraModel,
+    LightModel,
+    make_camera,
+    make_parallel_light,
+    make_perspective_light,
+    monotonic_radius2,
+)
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
 
-__all__ = ["UNDISTORT_CRITERIA", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point"]
+__all__ = ["UNDISTORT_CRITERIA", "in_lens_region", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point"]
 
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 """Stopping rule of the iterative undistortion: 100 iterations or a step below 1e-14
@@ -45,7 +55,10 @@ def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[
     ``camera`` is anything with ``K`` (3x3, skew allowed) and ``dist`` (5): a
     camera or a perspective light. The pixels are first normalised with K's
     inverse (so a skewed K is exact), then undistorted by OpenCV's iterative
-    solver with :data:`UNDISTORT_CRITERIA`.
+    solver with :data:`UNDISTORT_CRITERIA`. A pixel without a true inverse (the
+    result does not distort back onto it within 0.01 px, or lies past the
+    lens's fold, :func:`in_lens_region`) gives NaN: its ray is unknown, as the
+    kernels' ``undistort`` says for the same pixel.
     """
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
@@ -61,7 +74,51 @@ def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[
         return xd.reshape(shape), yd.reshape(shape)
     pts = np.stack([xd, yd], -1).reshape(-1, 1, 2)
     n = _undistort_iter(pts, np.eye(3), dist).reshape(-1, 2)
+    # OpenCV's iteration reports no failure: keep only true inverses (the rule of
+    # kernels.geometry.undistort: back onto the pixel, inside the fold-free region)
+    back = _cv_distort(n, dist)
+    err = np.hypot(K[0, 0] * (back[:, 0] - xd) + K[0, 1] * (back[:, 1] - yd), K[1, 1] * (back[:, 1] - yd))
+    bad = ~((err <= UNDISTORT_TOL_PX) & in_lens_region(dist, n[:, 0], n[:, 1]))
+    if bad.any():
+        n[bad] = np.nan
     return n[:, 0].reshape(shape), n[:, 1].reshape(shape)
+
+
+def _cv_distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    P = np.c_[xy, np.ones(len(xy))].reshape(-1, 1, 3)
+    return cv2.projectPoints(P, np.zeros(3), np.zeros(3), np.eye(3), dist)[0].reshape(-1, 2)
+
+
+def _distortion_det(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+    b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+    d = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+    return a * d - b * b
+
+
+def in_lens_region(dist, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Where undistorted normalised points (x, y) lie in the lens's fold-free
+    region: the host twin of ``kernels.geometry.in_lens_region`` (radial lens:
+    r^2 below :func:`~ringscan.kernels.geometry.monotonic_radius2`; with
+    tangential terms, a Jacobian determinant above 0.01 at 32 points on the way
+    from the axis). NaN points are outside."""
+    d = np.zeros(5)
+    dd = np.asarray(dist if dist is not None else [], np.float64).ravel()
+    d[: dd.size] = dd
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    with np.errstate(invalid="ignore"):
+        ok = _distortion_det(d, x, y) > 0
+        if d[2] == 0 and d[3] == 0:
+            return ok & (x * x + y * y < monotonic_radius2(d))
+        for k in range(1, LENS_SEGMENT_SAMPLES + 1):
+            f = k / LENS_SEGMENT_SAMPLES
+            ok &= _distortion_det(d, f * x, f * y) > LENS_MIN_DET
+    return ok
 
 
 def _undistort_iter(pts: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
