@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from ringscan.pipeline.batch.worker import STAGES
 
-__all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS"]
+__all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS", "RUN_FIELDS", "read_results"]
 
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
@@ -50,3 +53,29 @@ def format_table(entries: list[dict], totals: dict) -> str:
         pv = totals["per_view_s"]
         lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in (*STAGES, "other")))
     return "\n".join(lines)
+
+
+RUN_FIELDS = ("time_s", "times_s", "resume", "seconds")
+"""Fields of a scan's report.json (and fuse_report.json) that record how a run went (clock times, what a
+resumed run kept), not what it computed; :func:`read_results` leaves them out."""
+
+
+def _strip(obj):
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in RUN_FIELDS}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    return obj
+
+
+def read_results(out_root) -> dict:
+    """Everything a batch wrote below ``out_root``, to compare two runs: relative path -> the file's bytes,
+    or for a JSON report its content without :data:`RUN_FIELDS` (``batch_report.json`` itself is left out)."""
+    out_root = Path(out_root)
+    res = {}
+    for p in sorted(out_root.rglob("*")):
+        if not p.is_file() or p.name == "batch_report.json":
+            continue
+        rel = p.relative_to(out_root).as_posix()
+        res[rel] = _strip(json.loads(p.read_text())) if p.suffix == ".json" else p.read_bytes()
+    return res

@@ -6,19 +6,7 @@ from ringscan.pipeline.batch import batch_reconstruct, find_scans
 from ringscan.pipeline.evaluate.metrics import evaluate_recon
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import RingscanError
-from ringscan.pipeline.formats.patterns import parse_patterns
-from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
-
-
-@pytest.fixture(scope="module")
-def scan_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("batch") / "scans"
-    spec = parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 5, "sector_bits": 4})
-    for name, scene in (("a_sphere", "sphere"), ("b/cube", "cube")):
-        simulate_scan(root / name, scene=scene, rig=small_rig(), patterns=spec, progress=False)
-    return root
 
 
 def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):

@@ -1,0 +1,98 @@
+"""``ringscan batch`` on worker processes: same bytes whatever the workers, a dead worker's scan given again,
+--dry-run's reasons, per-scan fusion and meshing."""
+
+import shutil
+
+import pytest
+
+from ringscan.pipeline.batch import batch_reconstruct, plan_batch
+from ringscan.pipeline.batch.report import read_results
+from ringscan.pipeline.batch.worker import FAULT_ENV, STAGES
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.tools.cli import main
+
+
+@pytest.fixture(scope="module")
+def reference(three_scans, tmp_path_factory):
+    """The three scans done in this process, one after another."""
+    out = tmp_path_factory.mktemp("ref") / "out"
+    rep = batch_reconstruct(three_scans, out, workers=0, device="cpu", progress=False)
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+    return out
+
+
+def test_same_bytes_whatever_the_workers(three_scans, reference, tmp_path):
+    ref = read_results(reference)
+    # PLYs byte for byte; reports without their clock times
+    assert {"a_sphere/view_000.ply", "b/cube/report.json", "c_turn/view_001.ply"} <= set(ref)
+    out = tmp_path / "out"
+    rep = batch_reconstruct(three_scans, out, workers=2, device="cpu", progress=False)
+    assert [s["scan"] for s in rep["scans"]] == ["a_sphere", "b/cube", "c_turn"]  # in folder order, not finish order
+    assert read_results(out) == ref
+    tot = rep["totals"]
+    assert tot["computed_views"] == 4 and tot["status"] == {"done": 3}
+    # the per-view time split: every stage measured
+    assert all(tot["per_view_s"][k] > 0 for k in STAGES)
+    assert read_json(out / "batch_report.json")["totals"]["computed_views"] == 4
+
+
+def test_a_killed_worker_is_replaced_and_its_scan_done_once(three_scans, reference, tmp_path, monkeypatch):
+    marker = tmp_path / "kill-once"
+    marker.write_text("")
+    monkeypatch.setenv(FAULT_ENV, str(marker))
+    out = tmp_path / "out"
+    # c_turn has two views: the worker that takes the marker first finishes one view of its scan, then dies
+    rep = batch_reconstruct(three_scans, out, workers=2, device="cpu", progress=False)
+    assert not marker.exists() and (tmp_path / "kill-once.taken").exists()
+    # the scans in flight were given again: those finished before the pool broke are then found done
+    assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
+    assert "done" in {s["status"] for s in rep["scans"]}
+    assert read_results(out) == read_results(reference)
+
+
+def test_dry_run_says_why(three_scans, reference, tmp_path, capsys):
+    root = tmp_path / "scans"
+    shutil.copytree(three_scans, root, copy_function=shutil.copy)  # frames get new times: changed inputs
+    out = tmp_path / "out"
+    shutil.copytree(reference, out)
+    plans = {p.scan: p for p in plan_batch(root, out)}
+    assert {p.why for p in plans.values()} == {"changed inputs"}
+    batch_reconstruct(root, out, workers=0, device="cpu", progress=False)
+    (out / "c_turn" / "view_001.ply").unlink()
+    shutil.rmtree(out / "b")
+    rep = read_json(out / "a_sphere" / "settings.json")
+    rep["min_confidence"] = 0.5
+    (tmp_path / "s.json").write_text(__import__("json").dumps(rep))
+    plans = {p.scan: (p.action, p.why) for p in plan_batch(root, out)}
+    assert plans == {"a_sphere": ("skip", "done"), "b/cube": ("run", "new"), "c_turn": ("run", "incomplete")}
+    assert main(["batch", str(root), "--out", str(out), "--dry-run", "--settings", str(tmp_path / "s.json")]) == 0
+    text = capsys.readouterr().out
+    assert "a_sphere  run   changed settings" in text and "b/cube    run   new" in text
+    assert "3 scan(s): 3 to run, 0 done" in text
+    assert not (out / "b").exists()  # a dry run writes nothing
+
+
+def test_fuse_and_mesh_in_the_same_run(three_scans, tmp_path):
+    root = tmp_path / "scans"
+    root.mkdir()
+    shutil.copytree(three_scans / "c_turn", root / "c_turn")
+    out = tmp_path / "out"
+    assert main(["batch", str(root), "--out", str(out), "--mesh", "--workers", "0", "--no-progress",
+                 "--device", "cpu"]) == 0
+    mesh = out / "c_turn" / "mesh"
+    rep = read_json(mesh / "fuse_report.json")
+    assert rep["outputs"]["meshes"] == ["mesh.ply"]
+    assert len(read_ply(mesh / "fused.ply")["x"]) > 1000
+    # a rerun keeps the mesh (the reconstruction did not change)
+    before = (mesh / "mesh.ply").stat().st_mtime_ns
+    rep = batch_reconstruct(root, out, workers=0, device="cpu", mesh=True, progress=False)
+    assert rep["scans"][0]["fused"] == "kept" and (mesh / "mesh.ply").stat().st_mtime_ns == before
+
+
+def test_bad_workers_and_backend(scan_root, tmp_path, capsys):
+    assert main(["batch", str(scan_root), "--out", str(tmp_path / "o"), "--workers", "two"]) == 2
+    assert "--workers 'two'" in capsys.readouterr().err
+    assert main(["batch", str(scan_root), "--out", str(tmp_path / "o"), "--address", "x:1"]) == 2
+    with pytest.raises(ValueError, match="backend"):
+        batch_reconstruct(scan_root, tmp_path / "o", backend="spark")
