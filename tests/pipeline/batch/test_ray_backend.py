@@ -1,0 +1,42 @@
+"""The Ray backend on a local cluster (2 CPUs): the local backend's bytes, a worker killed mid-task survived."""
+
+import pytest
+
+from ringscan.pipeline.batch import batch_reconstruct
+from ringscan.pipeline.batch.report import read_results
+from ringscan.pipeline.batch.worker import FAULT_ENV
+
+ray = pytest.importorskip("ray", reason="ray is not installed: pip install 'ringscan[ray]'")
+
+
+def _start_cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+
+
+@pytest.mark.slow
+def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(three_scans, tmp_path, monkeypatch):
+    local = tmp_path / "local"
+    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
+    want = read_results(local)
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    _start_cluster()
+    try:
+        rep = batch_reconstruct(three_scans, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+    finally:
+        ray.shutdown()
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+    assert read_results(tmp_path / "ray") == want
+
+    # A worker killed mid-task (SIGKILL after one view of its scan): Ray retries the task, the scan resumes.
+    # Ray's workers take the driver's environment when the cluster starts: set the switch first.
+    marker = tmp_path / "kill-once"
+    marker.write_text("")
+    monkeypatch.setenv(FAULT_ENV, str(marker))
+    _start_cluster()
+    try:
+        rep = batch_reconstruct(three_scans, tmp_path / "killed", backend="ray", device="cpu", progress=False)
+    finally:
+        ray.shutdown()
+    assert (tmp_path / "kill-once.taken").exists()  # a worker did die
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+    assert read_results(tmp_path / "killed") == want
