@@ -38,5 +38,6 @@ def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(three_scans, tmp
     finally:
         ray.shutdown()
     assert (tmp_path / "kill-once.taken").exists()  # a worker did die
-    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+    # the killed scan's retry keeps the view its first attempt wrote (a one-view scan is then found done)
+    assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
     assert read_results(tmp_path / "killed") == want
