@@ -1,0 +1,251 @@
+"""``ringscan batch`` at scale: 100 small simulated scans, 5 of them corrupted.
+
+Prints:
+
+1. faults: 95 results, 5 clear errors in the batch report, exit status 1;
+2. throughput in one run: ``--workers 1``, ``--workers 2`` and the NumPy reference
+   (tools/bench/numpy_twins.py: read, decode, sample, triangulate) over the same
+   folder one scan after another, in views per second, and their ratios;
+3. the per-view time split (read, decode, sample, triangulate, write) of the batch report;
+4. killed part-way (SIGKILL of the parent; SIGKILL of one worker) and rerun: which
+   scans the rerun processed against those that were unfinished, and whether every
+   result is byte-identical to the uninterrupted run (PLYs byte for byte, reports
+   without their clock times and resume records: ``pipeline.batch.report.read_results``).
+
+Usage::
+
+    python benchmarks/batch_scale.py [--work DIR] [--scans 100] [--views 2]
+
+The scans (320x240 camera, gray-rings, ``--views`` turntable views each) are made
+once into ``--work`` (default /tmp/ringscan_batch_scale) and kept for reruns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ringscan.pipeline.batch import batch_reconstruct, plan_batch
+from ringscan.pipeline.batch.report import read_results
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.rig import default_rig
+from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangulate_numpy
+
+SPEC = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 16.0,
+        "bits": 5, "sector_bits": 4}
+SCENES = ("sphere", "cube")
+CORRUPT = {
+    "s010": "a frame replaced by bytes that are not an image",
+    "s030": "scan.json cut short",
+    "s050": "a frame file missing",
+    "s070": "every frame black (no light reached the camera)",
+    "s090": "a frame of another size",
+}
+
+
+def small_rig():
+    rig = default_rig()
+    cam = dataclasses.replace(rig.camera, width=320, height=240,
+                              K=np.array([[650.0, 0, 159.5], [0, 650.0, 119.5], [0, 0, 1]]))
+    return dataclasses.replace(rig, camera=cam)
+
+
+def _simulate(args):
+    from ringscan.pipeline.simulate.scan import simulate_scan
+
+    folder, i, views = args
+    if (Path(folder) / "scan.json").is_file():
+        return
+    simulate_scan(folder, scene=SCENES[i % 2], rig=small_rig(), patterns=parse_patterns(SPEC),
+                  turntable_deg=tuple(360.0 * k / views + 7.0 * i for k in range(views)), progress=False,
+                  device="cpu")
+
+
+def make_scans(root: Path, n: int, views: int) -> None:
+    todo = [(str(root / f"s{i:03d}"), i, views) for i in range(n) if not (root / f"s{i:03d}" / "scan.json").is_file()]
+    if todo:
+        t = time.perf_counter()
+        with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as ex:
+            list(ex.map(_simulate, todo))
+        print(f"simulated {len(todo)} scans in {time.perf_counter() - t:.0f} s")
+    marker = root / ".corrupted"
+    if marker.exists():
+        return
+    for name, what in CORRUPT.items():
+        s = root / name
+        if not s.is_dir():
+            continue
+        v = s / "view_000"
+        if name == "s010":
+            (v / "white.png").write_bytes(b"not an image at all")
+        elif name == "s030":
+            (s / "scan.json").write_text((s / "scan.json").read_text()[:200])
+        elif name == "s050":
+            (v / "black.png").unlink()
+        elif name == "s070":
+            for vv in s.glob("view_*"):
+                for p in vv.glob("*.png"):
+                    im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+                    cv2.imwrite(str(p), np.zeros_like(im))
+        elif name == "s090":
+            im = cv2.imread(str(v / "white.png"), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(v / "white.png"), cv2.resize(im, (160, 120)))
+    marker.write_text(json.dumps(CORRUPT))
+
+
+def numpy_reference(root: Path) -> tuple[int, float]:
+    """Every view of every scan, one after another, with the NumPy twins (read, decode, sample, triangulate)."""
+    spec = parse_patterns(SPEC)
+    n, t = 0, time.perf_counter()
+    for i in range(1000):
+        folder = root / f"s{i:03d}"
+        if not folder.is_dir():
+            break
+        try:
+            scan = load_scan(folder)
+            for v in scan.views:
+                frames = read_view_frames(scan, v)
+                dec = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
+                smp = sample_numpy(frames, dec, bits=spec.bits)
+                rho = (spec.rho0 + smp["ring"] * spec.pitch).astype(np.float32)
+                triangulate_numpy(smp["uv"], rho, smp["sector"], scan.rig, center=spec.center,
+                                  sector_bits=spec.sector_bits)
+                n += 1
+        except Exception:  # noqa: BLE001 - the corrupted scans fail here too
+            continue
+    return n, time.perf_counter() - t
+
+
+def cli(root: Path, out: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "batch", str(root), "--out", str(out),
+                             "--no-progress", "--device", "cpu", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for_entries(out: Path, n: int, proc: subprocess.Popen) -> None:
+    while proc.poll() is None:
+        try:
+            if len(json.loads((out / "batch_report.json").read_text())["scans"]) >= n:
+                return
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    raise SystemExit(f"the batch ended before {n} scans were done: {proc.stderr.read()[-2000:]}")
+
+
+def children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def rerun_check(root: Path, out: Path, ref: dict, label: str) -> None:
+    unfinished = {p.scan for p in plan_batch(root, out) if p.action == "run"}
+    proc = cli(root, out, "--workers", "2")
+    proc.communicate()
+    rep = json.loads((out / "batch_report.json").read_text())
+    processed = {s["scan"] for s in rep["scans"] if s["status"] != "skipped (already done)"}
+    same = read_results(out) == ref
+    print(f"{label}: {len(unfinished)} scans unfinished (5 of them corrupted), the rerun processed "
+          f"{len(processed)}; same set: {processed == unfinished}; rerun exit status {proc.returncode}; "
+          f"results byte-identical to the uninterrupted run: {same}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", default="/tmp/ringscan_batch_scale")
+    ap.add_argument("--scans", type=int, default=100)
+    ap.add_argument("--views", type=int, default=2)
+    a = ap.parse_args()
+    work = Path(a.work)
+    root = work / "scans"
+    root.mkdir(parents=True, exist_ok=True)
+    make_scans(root, a.scans, a.views)
+    for p in work.glob("out_*"):
+        shutil.rmtree(p)
+    try:
+        load = os.getloadavg()
+        print(f"load average before the runs (1/5/15 min): {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
+              f"on {os.cpu_count()} cores")
+    except OSError:
+        pass
+
+    # 1. faults, through the CLI (exit status)
+    proc = cli(root, work / "out_ref", "--workers", "2")
+    stdout, _ = proc.communicate()
+    rep = json.loads((work / "out_ref" / "batch_report.json").read_text())
+    failed = [s for s in rep["scans"] if s["status"] == "failed"]
+    print(f"\n1. {len(rep['scans'])} scans: {len(rep['scans']) - len(failed)} results, {len(failed)} errors, "
+          f"exit status {proc.returncode}")
+    for s in failed:
+        print(f"   {s['scan']} ({CORRUPT.get(s['scan'], 'NOT CORRUPTED')}): {s['error']}")
+    ref = read_results(work / "out_ref")
+
+    # 2. throughput in one run
+    r1 = batch_reconstruct(root, work / "out_w1", workers=1, device="cpu", progress=False)["totals"]
+    r2 = batch_reconstruct(root, work / "out_w2", workers=2, device="cpu", progress=False)["totals"]
+    n_np, s_np = numpy_reference(root)
+    np_rate = n_np / s_np
+    print(f"\n2. throughput ({r2['computed_views']} views; wall time includes starting the workers):")
+    print(f"   ringscan batch --workers 1: {r1['views_per_s']:.2f} views/s ({r1['wall_s']:.1f} s)")
+    print(f"   ringscan batch --workers 2: {r2['views_per_s']:.2f} views/s ({r2['wall_s']:.1f} s)")
+    print(f"   NumPy reference, one scan after another: {np_rate:.2f} views/s ({n_np} views, {s_np:.1f} s)")
+    print(f"   2 workers / 1 worker: {r2['views_per_s'] / r1['views_per_s']:.2f}x (target >= 1.7x); "
+          f"batch (2 workers) / NumPy: {r2['views_per_s'] / np_rate:.2f}x (target >= 6x)")
+    print(f"   same bytes with 1 and 2 workers as the reference run: "
+          f"{read_results(work / 'out_w1') == ref and read_results(work / 'out_w2') == ref}")
+    try:
+        print(f"   load average after: {os.getloadavg()[0]:.2f}")
+    except OSError:
+        pass
+
+    # 3. the per-view time split
+    pv = r2["per_view_s"]
+    print("\n3. per view (seconds in a worker): " + ", ".join(f"{k} {v * 1000:.1f} ms" for k, v in pv.items()))
+
+    # 4. killed part-way, then rerun
+    out = work / "out_kill_parent"
+    proc = cli(root, out, "--workers", "2")
+    wait_for_entries(out, 35, proc)
+    kids = children(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    time.sleep(2.0)
+    alive = [k for k in kids if Path(f"/proc/{k}").exists()]
+    print(f"\n4. parent killed (SIGKILL) after >= 35 scans; its workers still alive 2 s later: {len(alive)}")
+    rerun_check(root, out, ref, "   after the parent was killed")
+
+    out = work / "out_kill_worker"
+    proc = cli(root, out, "--workers", "2")
+    wait_for_entries(out, 35, proc)
+    workers = [k for k in children(proc.pid)
+               if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text(errors="replace")]
+    os.kill(workers[0], signal.SIGKILL)
+    stdout, stderr = proc.communicate()
+    rep = json.loads((out / "batch_report.json").read_text())
+    failed = [s["scan"] for s in rep["scans"] if s["status"] == "failed"]
+    print(f"   one worker killed (SIGKILL, pid {workers[0]}) after >= 35 scans: the run went on, exit status "
+          f"{proc.returncode}, failed: {failed}; worker died and was replaced: "
+          f"{'a batch worker died' in stderr}")
+    print(f"   results byte-identical to the uninterrupted run: {read_results(out) == ref}")
+    rerun_check(root, out, ref, "   rerun after the worker kill")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
