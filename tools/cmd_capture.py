@@ -17,6 +17,7 @@ docs/hardware.md.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import logging
 from pathlib import Path
@@ -29,6 +30,7 @@ from ringscan.hardware.capture.sequence import (
     read_capture_state,
     resume_angle,
 )
+from ringscan.hardware.capture.session import run_session, wait_for_key, wait_for_serial
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, parse_display_spec
 from ringscan.hardware.devices.projector import SerialProjector
@@ -44,6 +46,9 @@ from ringscan.pipeline.formats.scan import load_scan
 from ringscan.tools.cli import add_device_option
 
 log = logging.getLogger(__name__)
+
+SESSION_POSES = ("upright", "upside-down", "side-x", "side-y", "tetra-1", "tetra-2", "tetra-3")
+"""Default resting poses of the virtual scene in a session (``--virtual-poses``)."""
 
 # Option -> CaptureSettings field.
 SETTING_OPTIONS = {
@@ -91,6 +96,19 @@ def add_parser(sub):
                    help="reconstruct each view into DIR (as `ringscan reconstruct`) while the next one is captured")
     p.add_argument("--reconstruct-settings", metavar="JSON", default=None,
                    help="reconstruction settings file for --reconstruct (as `ringscan reconstruct --settings`)")
+    p.add_argument("--poses", type=int, default=None, metavar="N",
+                   help="a capture session: N poses of one object in a row into --out/pose_<i> (the user turns "
+                        "the object over between poses), each reconstructed live into --out/recon/pose_<i>, then "
+                        "all fused into one mesh in --out/mesh; rerun to resume (see docs/batch.md)")
+    p.add_argument("--trigger", default="key", metavar="key|PORT",
+                   help="with --poses: how the user says the next pose is ready: Enter on stdin (key, default) or "
+                        "a line on a serial port (PORT)")
+    p.add_argument("--max-pose-rmse", type=float, default=None, metavar="MM",
+                   help="with --poses: largest point-to-plane RMSE of a pose's alignment (as `ringscan fuse`; "
+                        "default 0.15 mm; coarse cameras need more)")
+    p.add_argument("--virtual-poses", default=None, metavar="POSE,...",
+                   help="with --poses and --virtual: the scene's resting pose for each pose (as `ringscan simulate "
+                        "--pose`; default upright, upside-down, side-x, side-y, ...)")
 
     g = p.add_argument_group("devices")
     g.add_argument("--turntable", metavar="PORT", help="GRBL/Horus turntable serial port (or pyserial URL); "
@@ -152,7 +170,55 @@ def _settings(args, out: Path) -> CaptureSettings:
 
 def run(args) -> int:
     with InterruptGuard():  # a Ctrl-C swallowed in a finalizer still ends the command (exit 130)
+        if args.poses is not None:
+            return _run_session(args)
+        if args.virtual_poses or args.trigger != "key":
+            raise ValueError("--trigger and --virtual-poses only apply with --poses")
         return _run(args)
+
+
+def _run_session(args) -> int:
+    """``--poses N``: capture N poses (hardware.capture.session), reconstruct each live, fuse them into one mesh."""
+    if args.poses < 1:
+        raise ValueError(f"--poses {args.poses}: expected 1 or more")
+    if args.reconstruct or args.resume or args.table_at is not None:
+        raise ValueError("--poses reconstructs into --out/recon and resumes by itself: no --reconstruct, --resume "
+                         "or --table-at")
+    session = Path(args.out)
+    if session.exists() and not session.is_dir():
+        raise ValueError(f"{session}: exists and is not a folder (the session folder)")
+    poses = args.virtual_poses.split(",") if args.virtual_poses else list(SESSION_POSES)[:args.poses]
+    if args.virtual_poses and not args.virtual:
+        raise ValueError("--virtual-poses only applies with --virtual")
+    if args.virtual and len(poses) < args.poses:
+        raise ValueError(f"--virtual-poses: {len(poses)} poses given for --poses {args.poses}")
+    scene = None
+    if args.virtual:
+        from ringscan.pipeline.simulate.scenes import make_scene, pose_scene
+
+        base = make_scene(args.virtual, size_mm=args.size_mm)
+        scene = [pose_scene(base, p)[0] for p in poses[:args.poses]]
+    recon = session / "recon"
+
+    def capture_pose(i: int, folder: Path, resume: bool) -> None:
+        one = argparse.Namespace(**{**vars(args), "out": str(folder), "resume": resume,
+                                    "reconstruct": str(recon / folder.name), "poses": None})
+        if scene is not None:
+            one.virtual = scene[i]
+        if _run(one) != 0:
+            raise CaptureError(f"pose {i}: the live reconstruction into {recon / folder.name} failed")
+
+    wait = wait_for_key if args.trigger == "key" else wait_for_serial(args.trigger, baudrate=args.baud)
+    folders = run_session(session, args.poses, capture_pose, wait=wait,
+                          labels=poses[:args.poses] if args.virtual else None)
+    from ringscan.pipeline.fusion.poses import PoseSettings
+    from ringscan.pipeline.fusion.workflow import fuse_and_mesh
+
+    ps = PoseSettings() if args.max_pose_rmse is None else PoseSettings(max_rmse_mm=args.max_pose_rmse)
+    rep = fuse_and_mesh([recon / f.name for f in folders], session / "mesh", device=args.device, preview=False,
+                        pose_settings=ps)
+    print(f"fused {args.poses} pose(s): {rep['fusion'].get('points', '?')} points -> {session / 'mesh'}")
+    return 0
 
 
 def _run(args) -> int:

@@ -1,0 +1,42 @@
+"""``ringscan capture --poses N`` on the emulated rig: poses captured in a row, reconstructed live, fused into
+one mesh; a rerun resumes (complete poses kept)."""
+
+import io
+
+import numpy as np
+
+from ringscan.hardware.capture.session import pose_state
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.pipeline.formats.rig import save_rig
+from ringscan.tools.cli import main
+from tests.hardware.conftest import small_patterns, small_rig
+
+
+def test_session_of_two_poses_on_the_virtual_rig(tmp_path, monkeypatch, capsys):
+    save_rig(tmp_path / "rig.json", small_rig())
+    spec = small_patterns(bits=5).to_dict()
+    atomic_write_json(tmp_path / "patterns.json", {**spec, "pitch": 12.0})  # dense rings: enough points to align
+    keys = io.StringIO("\n")  # one Enter: between pose 0 and pose 1
+    monkeypatch.setattr("sys.stdin", keys)
+    out = tmp_path / "session"
+    args = ["capture", "--rig", str(tmp_path / "rig.json"), "--patterns", str(tmp_path / "patterns.json"),
+            "--out", str(out), "--no-progress", "--views", "6", "--poses", "2", "--virtual", "terrain",
+            "--virtual-poses", "upright,tetra-1",
+            "--max-pose-rmse", "0.6", "--seed", "1", "--device", "cpu"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "pose 2 of 2: turn the object over" in err and keys.read() == ""  # asked once, key consumed
+    assert [pose_state(out / f"pose_{i}") for i in range(2)] == ["complete", "complete"]
+    assert read_json(out / "session.json")["labels"] == ["upright", "tetra-1"]
+    for i in range(2):
+        assert len(read_json(out / "recon" / f"pose_{i}" / "report.json")["views"]) == 6
+    rep = read_json(out / "mesh" / "fuse_report.json")
+    assert len(rep["sources"]) == 2 and "poses" in rep["fusion"]
+    fused = read_ply(out / "mesh" / "fused.ply")
+    assert set(np.unique(fused["view"])) == {0, 1}  # both poses in the one cloud
+    # a rerun resumes: both poses complete, nothing captured again, no key asked
+    before = (out / "pose_1" / "scan.json").stat().st_mtime_ns
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    assert main(args) == 0
+    assert (out / "pose_1" / "scan.json").stat().st_mtime_ns == before
