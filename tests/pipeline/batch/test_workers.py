@@ -88,6 +88,11 @@ def test_fuse_and_mesh_in_the_same_run(three_scans, tmp_path):
     before = (mesh / "mesh.ply").stat().st_mtime_ns
     rep = batch_reconstruct(root, out, workers=0, device="cpu", mesh=True, progress=False)
     assert rep["scans"][0]["fused"] == "kept" and (mesh / "mesh.ply").stat().st_mtime_ns == before
+    # --fuse alone: the fused cloud, no mesh
+    rep = batch_reconstruct(root, out, workers=0, device="cpu", fuse=True, progress=False)
+    fused = out / "c_turn" / "fused"
+    assert rep["scans"][0]["fused"] == "done" and read_json(fused / "fuse.json")["source"] == str(out / "c_turn")
+    assert len(read_ply(fused / "fused.ply")["x"]) == len(read_ply(mesh / "fused.ply")["x"])
 
 
 def test_bad_workers_and_backend(scan_root, tmp_path, capsys):
