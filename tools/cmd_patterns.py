@@ -5,6 +5,12 @@ Writes ``<frame>.png`` for every frame, in projection order, plus ``patterns.jso
 in projection order) for a real projector. The pattern options are shared with
 ``ringscan simulate``. ``--show [DISPLAY]`` puts the frames full-screen on a display
 (a projector plugged in as a screen) and steps through them by hand, for aiming.
+
+``--rig RIG`` writes the frames pre-compensated for the rig's light response
+(``light.response.gamma``, from ``ringscan calibrate response``) and takes the
+projector size from the rig; ``--precompensate GAMMA`` gives the gamma by hand.
+The gamma goes into patterns.json (``precompensated_gamma``), so a capture of
+these frames carries it and the phase decoder undoes only what is left.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import CODEC_DEFAULTS, CODECS, PatternSpec, default_patterns, frame_names
+from ringscan.pipeline.formats.rig import load_rig
 
 
 def add_pattern_options(p, *, size: bool = True) -> None:
@@ -33,19 +40,28 @@ def add_pattern_options(p, *, size: bool = True) -> None:
     g.add_argument("--line-width", type=float, default=None,
                    help=f"ring line width in px, rings codec (default {rd['line_width']:g})")
     g.add_argument("--steps", type=int, default=None, help=f"phase steps, phase-rings codec (default {pd['steps']})")
+    g.add_argument("--precompensate", type=float, default=None, metavar="GAMMA",
+                   help="write grey levels pre-compensated for a light of this response gamma "
+                        "(value = 255 v^(1/GAMMA), so the light emits v; default none)")
     if size:
-        g.add_argument("--width", type=int, default=1024, help="projector width in px (default 1024)")
-        g.add_argument("--height", type=int, default=768, help="projector height in px (default 768)")
+        g.add_argument("--width", type=int, default=None,
+                       help="projector width in px (default the rig's projector with --rig, else 1024)")
+        g.add_argument("--height", type=int, default=None,
+                       help="projector height in px (default the rig's projector with --rig, else 768)")
         g.add_argument("--center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
                        help="pattern centre in projector px (default the image centre, (W-1)/2, (H-1)/2)")
 
 
-def pattern_spec_from_args(args, width: int, height: int, center=None) -> PatternSpec:
-    """A validated :class:`PatternSpec` from the options of :func:`add_pattern_options`."""
+def pattern_spec_from_args(args, width: int, height: int, center=None, *,
+                           precompensated_gamma: float | None = None) -> PatternSpec:
+    """A validated :class:`PatternSpec` from the options of :func:`add_pattern_options`
+    (``precompensated_gamma``, where given, stands for ``--precompensate``)."""
+    pre = args.precompensate if precompensated_gamma is None else precompensated_gamma
     return default_patterns(args.codec, width=int(width), height=int(height),
                             center=None if center is None else [float(c) for c in center],
                             rho0=args.rho0, pitch=args.pitch, count=args.count, line_width=args.line_width,
-                            bits=args.bits, sector_bits=args.sector_bits, steps=args.steps, source="command line")
+                            bits=args.bits, sector_bits=args.sector_bits, steps=args.steps,
+                            precompensated_gamma=pre, source="command line")
 
 
 def add_parser(sub):
@@ -57,6 +73,9 @@ def add_parser(sub):
                    help="show the frames full-screen on this display (index or name; default 0) and step through "
                         "them with the arrow keys (b black, q quits), to aim the projector and the camera")
     p.add_argument("--centre", action="store_true", help="with --show: frames smaller than the display are centred")
+    p.add_argument("--rig", default=None, metavar="RIG.json",
+                   help="pre-compensate the frames for this rig's light response (light.response.gamma, "
+                        "'ringscan calibrate response') and take the projector size from it")
     add_pattern_options(p)
     return p
 
@@ -66,7 +85,19 @@ def run(args) -> int:
         raise ValueError("give --out DIR (write the frames), --show [DISPLAY] (show them), or both")
     if args.centre and args.show is None:
         raise ValueError("--centre only applies with --show")
-    spec = pattern_spec_from_args(args, args.width, args.height, args.center)
+    width, height, pre = args.width, args.height, None
+    if args.rig is not None:
+        if args.precompensate is not None:
+            raise ValueError("give --rig (its light's gamma) or --precompensate GAMMA, not both")
+        li = load_rig(args.rig).light
+        pre = float(li.gamma)
+        lw, lh = int(getattr(li, "width", 0)), int(getattr(li, "height", 0))
+        if lw:
+            if (width or lw, height or lh) != (lw, lh):
+                raise ValueError(f"--width/--height {width or lw}x{height or lh} differ from the projector of "
+                                 f"{args.rig} ({lw}x{lh})")
+            width, height = lw, lh
+    spec = pattern_spec_from_args(args, width or 1024, height or 768, args.center, precompensated_gamma=pre)
     names = frame_names(spec)
     if args.out is not None:
         write_frames(spec, names, args.out)
@@ -91,4 +122,7 @@ def write_frames(spec: PatternSpec, names: list[str], out) -> None:
         write_image(out / f"{n}.png", render_frame(spec, n))
     atomic_write_json(out / "patterns.json", spec.to_dict())
     atomic_write_bytes(out / "frames.txt", ("\n".join(f"{n}.png" for n in names) + "\n").encode())
-    print(f"{len(names)} {spec.codec} frame(s) of {spec.width}x{spec.height} -> {out} (patterns.json, frames.txt)")
+    g = spec.precompensated_gamma
+    pre = f", pre-compensated for a light gamma of {g:g}" if g != 1.0 else ""
+    print(f"{len(names)} {spec.codec} frame(s) of {spec.width}x{spec.height}{pre} -> {out} "
+          "(patterns.json, frames.txt)")

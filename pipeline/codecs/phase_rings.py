@@ -19,6 +19,12 @@ Response (gamma) handling, ``PhaseSettings.response``:
   still taken from the rig;
 - ``linear``: no correction.
 
+Frames pre-compensated for the light (``patterns.precompensated_gamma`` g_p,
+``ringscan patterns --rig``) already emit the light the pattern means for a light
+of gamma g_p; the decoder undoes only the residual exponent light gamma / g_p
+(1 when the rig's light gamma is the one compensated for) in the ``rig`` and
+``estimate`` modes.
+
 This module also holds the vectorised NumPy twins of the dense stages
 (:func:`phase_numpy`, :func:`smooth_numpy`, :func:`points_numpy`) that the tests
 cross-check the kernels against and that :func:`bench_dense` times the kernels
@@ -51,7 +57,7 @@ log = logging.getLogger(__name__)
 GAMMA_RANGE = (0.3, 4.0)
 """Search interval of :func:`estimate_camera_gamma`."""
 
-__all__ = ["extract_phase_rings", "phase_settings_of", "view_response", "estimate_camera_gamma", "PhaseSettings"]
+__all__ = ["extract_phase_rings", "phase_settings_of", "view_response", "residual_light_gamma", "estimate_camera_gamma", "PhaseSettings"]
 
 
 def phase_settings_of(settings) -> PhaseSettings:
@@ -64,12 +70,24 @@ def phase_settings_of(settings) -> PhaseSettings:
     return ps
 
 
+def residual_light_gamma(scan: Scan) -> float:
+    """The light exponent left in a scan's frames: the rig's light gamma over the
+    gamma its patterns were pre-compensated for (1.0 when they match)."""
+    light_gamma = float(getattr(scan.rig.light, "gamma", 1.0))
+    pre = float(getattr(scan.patterns, "precompensated_gamma", 1.0))
+    if pre != 1.0 and abs(light_gamma / pre - 1.0) > 0.05:
+        log.warning("the patterns were pre-compensated for a light gamma of %.3g but the rig's light has %.3g: "
+                    "decoding with the residual exponent %.3g", pre, light_gamma, light_gamma / pre)
+    return light_gamma / pre
+
+
 def view_response(frames: np.ndarray | wp.array, scan: Scan, settings: PhaseSettings) -> tuple[float, float]:
-    """(camera gamma, light gamma) used to linearise one view (see the module docstring)."""
+    """(camera gamma, light exponent) used to linearise one view (see the module docstring);
+    the light exponent is :func:`residual_light_gamma`."""
     rig = scan.rig
-    light_gamma = float(getattr(rig.light, "gamma", 1.0))
     if settings.response == "linear":
         return 1.0, 1.0
+    light_gamma = residual_light_gamma(scan)
     if settings.response == "rig":
         return float(rig.camera.gamma), light_gamma
     fr = frames.numpy() if isinstance(frames, wp.array) else np.asarray(frames)
@@ -166,7 +184,8 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
     Returns:
         (Samples, stats) with stats ``pixels_decoded`` (pixels with a phase),
         ``samples`` (points handed on), ``phase_dropped`` (pixels per reason),
-        ``camera_gamma``/``light_gamma`` used and ``times_s``.
+        ``camera_gamma``/``light_gamma`` used (the latter the residual exponent of
+        :func:`residual_light_gamma`), ``precompensated_gamma`` and ``times_s``.
     """
 
     spec = scan.patterns
@@ -199,6 +218,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
         "phase_dropped": {name: int(counts[i]) for i, name in enumerate(PHASE_STATUS_NAMES) if i > 0},
         "camera_gamma": g_cam,
         "light_gamma": g_light,
+        "precompensated_gamma": spec.precompensated_gamma,
         "times_s": {"decode": t1 - t0, "sample": t2 - t1},
     }
     return Samples(uv=pts.uv, rho=pts.rho, ring=None, sector=pts.sector, confidence=pts.confidence,

@@ -1,5 +1,10 @@
 """Projector frames of every codec (DESIGN §5), as 8-bit images with antialiased
 edges: each pixel's value is the lit fraction of its area (rings, bands, sectors).
+
+With ``spec.precompensated_gamma`` g != 1 each value v (0..1, the light the
+pattern means) is written as round(255 * v**(1/g)): a light whose response is
+emitted = (value / 255)**g then emits v. 0 and 1 stay 0 and 255, so white, black
+and the binary bands away from their edges are unchanged.
 """
 
 from __future__ import annotations
@@ -72,7 +77,7 @@ def render_frame(spec: PatternSpec, name: str) -> np.ndarray:
             lo = np.maximum(rho - h, r - w / 2)
             hi = np.minimum(rho + h, r + w / 2)
             img += np.clip(hi - lo, 0, None) / (2 * h)
-        return _to_u8(img)
+        return _to_u8(spec, img)
     n = spec.n_bands
     inside = _band_coverage(rho, spec.rho0, spec.pitch, np.ones(n))
     kind, b, *inv = name.split("_")
@@ -81,15 +86,15 @@ def render_frame(spec: PatternSpec, name: str) -> np.ndarray:
         lit = (gray_encode(np.arange(n)) >> (spec.bits - 1 - b)) & 1
         if inv:
             lit = 1 - lit
-        return _to_u8(_band_coverage(rho, spec.rho0, spec.pitch, lit))
+        return _to_u8(spec, _band_coverage(rho, spec.rho0, spec.pitch, lit))
     if kind == "sector":
         cov = _sector_coverage(phi, rho, spec.sector_bits, b)
         if inv:
             cov = 1.0 - cov
-        return _to_u8(cov * inside)
+        return _to_u8(spec, cov * inside)
     if kind == "phase":
         ph = 2 * math.pi * (rho - spec.rho0) / spec.pitch - 2 * math.pi * b / spec.steps
-        return _to_u8((0.5 + 0.5 * np.cos(ph)) * inside)
+        return _to_u8(spec, (0.5 + 0.5 * np.cos(ph)) * inside)
     raise AssertionError(name)
 
 
@@ -98,5 +103,10 @@ def render_frames(spec: PatternSpec) -> dict[str, np.ndarray]:
     return {name: render_frame(spec, name) for name in frame_names(spec)}
 
 
-def _to_u8(x: np.ndarray) -> np.ndarray:
+def _to_u8(spec: PatternSpec, x: np.ndarray) -> np.ndarray:
+    """Light fractions ``x`` (0..1) as 8-bit frame values, pre-compensated for the spec's gamma."""
+    x = np.clip(x, 0.0, 1.0)
+    g = spec.precompensated_gamma
+    if g != 1.0:
+        x = x ** (1.0 / g)
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)

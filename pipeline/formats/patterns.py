@@ -23,6 +23,13 @@ Codecs:
 - sectors (``sector_bits`` > 0, multi-frame codecs): ``sector_<b>``/``sector_<b>_inv``,
   a Gray code over floor((phi + pi) / (2 pi) * 2**sector_bits),
   phi = atan2(v_p - c_v, u_p - c_u), inside the coded annulus only.
+
+Pre-compensation (``precompensated_gamma`` g, projectable codecs, default 1 = none):
+every frame value v (0..1, the light the pattern means) is written as
+round(255 * v**(1/g)), so that a light of response emitted = (value / 255)**g
+emits v. Full and no light (white, black, binary bands away from their edges) are
+unchanged; antialiased edges and phase fringes change. A decoder that undoes the
+light's response uses the residual exponent light gamma / g.
 """
 
 from __future__ import annotations
@@ -39,10 +46,12 @@ CODECS = ("rings", "gray-rings", "phase-rings")
 IMPORTED_CODECS = ("decoded",)
 """Codecs of imported captures (not projectable): ``decoded`` holds each camera pixel's
 decoded projector position (``ringscan import``)."""
+PRECOMPENSATED_GAMMA_RANGE = (0.1, 10.0)
+"""Accepted ``precompensated_gamma`` (the rig's range of response gammas)."""
 DECODED_SCALE = 32
 """``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
 
-__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "CODEC_DEFAULTS", "PatternSpec", "parse_patterns",
+__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec", "parse_patterns",
            "default_patterns", "frame_names", "gray_encode", "gray_decode"]
 
 CODEC_DEFAULTS: dict[str, dict] = {
@@ -98,6 +107,8 @@ class PatternSpec:
     """Width of each ring line in projector pixels (single-shot ``rings``)."""
     steps: int = 4
     """Phase steps (``phase-rings``)."""
+    precompensated_gamma: float = 1.0
+    """Light gamma the frames were pre-compensated for (value = v**(1/g)); 1 = none."""
 
     @property
     def n_bands(self) -> int:
@@ -130,6 +141,8 @@ class PatternSpec:
             keep |= {"bits", "sector_bits"}
             if self.codec == "phase-rings":
                 keep |= {"steps"}
+        if self.precompensated_gamma != 1.0:
+            keep |= {"precompensated_gamma"}
         return {k: v for k, v in d.items() if k in keep}
 
 
@@ -189,6 +202,14 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
             kw["steps"] = integer("steps", 4, lo=3, hi=64)
         if pitch < 1.0:
             raise FormatError(src, f"patterns.pitch: {pitch} px is below one projector pixel; binary bands cannot be shown")
+    if "precompensated_gamma" in d:
+        if codec in IMPORTED_CODECS:
+            raise FormatError(src, f"patterns.precompensated_gamma: not for the {codec} codec (nothing is projected)")
+        g = num("precompensated_gamma", positive=True)
+        if not (PRECOMPENSATED_GAMMA_RANGE[0] <= g <= PRECOMPENSATED_GAMMA_RANGE[1]):
+            lo, hi = PRECOMPENSATED_GAMMA_RANGE
+            raise FormatError(src, f"patterns.precompensated_gamma: must be in [{lo:g}, {hi:g}], got {g}")
+        kw["precompensated_gamma"] = float(g)
     spec = PatternSpec(codec=codec, width=width, height=height, center=(float(center[0]), float(center[1])),
                        rho0=float(rho0), pitch=float(pitch), **kw)
     # The coded annulus must reach into the projector image.
@@ -206,8 +227,8 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
                      **given) -> PatternSpec:
     """A validated :class:`PatternSpec` of ``codec`` from :data:`CODEC_DEFAULTS`,
     each overridden by a keyword in ``given`` that is not None (``rho0``,
-    ``pitch``, ``count``, ``line_width``, ``bits``, ``sector_bits``, ``steps``;
-    keywords another codec uses are ignored). ``center`` defaults to the image
+    ``pitch``, ``count``, ``line_width``, ``bits``, ``sector_bits``, ``steps``,
+    ``precompensated_gamma``; keywords another codec uses are ignored). ``center`` defaults to the image
     centre ((W-1)/2, (H-1)/2); ``rings``' ``rho0`` to its pitch.
 
     Raises:
@@ -216,7 +237,7 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
     if codec not in CODEC_DEFAULTS:
         raise FormatError(source, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS)})")
     d = dict(CODEC_DEFAULTS[codec])
-    keys = set(d) | {"rho0", "pitch"}
+    keys = set(d) | {"rho0", "pitch", "precompensated_gamma"}
     d.update({k: v for k, v in given.items() if v is not None and k in keys})
     if codec == "rings" and d.get("rho0") is None:
         d["rho0"] = d["pitch"]

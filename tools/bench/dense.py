@@ -14,6 +14,7 @@ from ringscan.kernels import init_warp
 from ringscan.kernels.phase import PhaseSettings, compact_phase_points, decode_phase, response_tables, smooth_phase
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
+from ringscan.pipeline.codecs.phase_rings import residual_light_gamma
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
@@ -72,7 +73,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
         ps = PhaseSettings()
         full = 255 if frames.dtype == np.uint8 else 65535
         lut, wlut = response_tables(full, camera_gamma=rig.camera.gamma, weighted=ps.weighted)
-        g_light = float(getattr(rig.light, "gamma", 1.0))
+        g_light = residual_light_gamma(scan)
         vol = (rig.volume.z_min, rig.volume.z_max, rig.volume.r_max)
         kw = dict(bits=spec.bits, sector_bits=spec.sector_bits)
 

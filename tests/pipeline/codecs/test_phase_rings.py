@@ -118,6 +118,54 @@ def test_response_modes(quiet_phase_scan, tmp_path):
     assert abs(est_rep["views"][0]["camera_gamma"] - 2.2) < 0.05
 
 
+def light_rig(light_gamma):
+    """:func:`crop_rig` (camera gamma 2.2) with a light of response ``light_gamma``."""
+    rig = crop_rig()
+    return dataclasses.replace(rig, light=dataclasses.replace(rig.light, gamma=light_gamma))
+
+
+@pytest.fixture(scope="module")
+def gamma_light_scans(tmp_path_factory):
+    """The sphere of ``small_phase_scan`` under a light of gamma 2.2: frames pre-compensated
+    for it (patterns.precompensated_gamma 2.2) and plain frames."""
+    d = tmp_path_factory.mktemp("lightgamma")
+    return {pre: simulate_scan(d / f"pre{pre}", scene="sphere", rig=light_rig(2.2),
+                               patterns=parse_patterns({**PHASE, "precompensated_gamma": pre} if pre != 1.0 else PHASE),
+                               progress=False)
+            for pre in (2.2, 1.0)}
+
+
+def _reconstruct(scan, out):
+    rep = reconstruct_scan(scan, out, progress=False)
+    return evaluate_recon(out, scan)["views"]["view_000"]["median_mm"], rep["views"][0]
+
+
+def test_precompensated_frames_on_a_gamma_light(small_phase_scan, gamma_light_scans, tmp_path, caplog):
+    """Virtual rig, light gamma 2.2: frames pre-compensated for it and decoded with the matching
+    rig are as accurate as a linear light; plain frames decoded without the light's gamma are not."""
+    linear_med, _ = _reconstruct(small_phase_scan, tmp_path / "linear")  # light gamma 1, plain frames
+    pre = gamma_light_scans[2.2]
+    assert pre.patterns.precompensated_gamma == 2.2 and pre.rig.light.gamma == 2.2
+    pre_med, pre_view = _reconstruct(pre, tmp_path / "pre")
+    assert pre_view["light_gamma"] == 1.0 and pre_view["precompensated_gamma"] == 2.2  # nothing left to undo
+    plain = gamma_light_scans[1.0]
+    blind = dataclasses.replace(plain, rig=light_rig(1.0))  # a rig that does not know the light's gamma
+    blind_med, blind_view = _reconstruct(blind, tmp_path / "blind")
+    assert blind_view["light_gamma"] == 1.0
+    undone_med, undone_view = _reconstruct(plain, tmp_path / "undone")  # plain frames, the rig's gamma undone
+    assert undone_view["light_gamma"] == 2.2
+    print(json.dumps({"linear_light": linear_med, "precompensated": pre_med, "plain_decoded_blind": blind_med,
+                      "plain_gamma_undone_in_decoder": undone_med}))
+    assert abs(pre_med / linear_med - 1.0) <= 0.05, (pre_med, linear_med)
+    assert blind_med >= 1.3 * linear_med, (blind_med, linear_med)
+    assert undone_med <= 1.1 * linear_med, (undone_med, linear_med)
+    # pre-compensated frames decoded with a rig whose light is linear: the residual 1/2.2 is undone, with a warning
+    with caplog.at_level("WARNING"):
+        _, mis_view = _reconstruct(dataclasses.replace(pre, rig=light_rig(1.0)), tmp_path / "mis")
+    assert mis_view["light_gamma"] == pytest.approx(1.0 / 2.2)
+    assert "pre-compensated for a light gamma of 2.2" in caplog.text
+
+
 def test_estimate_camera_gamma(small_phase_scan):
     spec = small_phase_scan.patterns
     fr = read_view_frames(small_phase_scan, small_phase_scan.views[0])
