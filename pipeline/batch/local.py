@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -46,7 +47,7 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
         for d in devices:
             q.put(d)
         return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
-                                   initargs=(None, q)), q
+                                   initargs=(None, q, os.getpid())), q
 
     pool, queue = start_pool()
     try:

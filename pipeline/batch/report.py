@@ -11,7 +11,7 @@ __all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS", "R
 
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
-TIME_FIELDS = ("time_s", "times_s", "wall_s", "views_per_s", "workers", "backend")
+TIME_FIELDS = ("time_s", "times_s", "wall_s", "views_per_s", "first_result_s", "workers", "backend")
 """Fields of the reports that depend on how the run went (clock, workers), not on its results."""
 
 

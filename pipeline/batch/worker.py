@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,14 +62,25 @@ class ScanJob:
     """Fuse and mesh into ``out/mesh/`` (fused.ply, mesh.ply, fuse_report.json)."""
 
 
-def init_worker(device: str | None = None, devices=None) -> None:
+def _exit_with_parent(parent: int) -> None:
+    """Exit this worker when its parent is gone (a SIGKILLed ringscan leaves no worker behind)."""
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent:
+            os._exit(1)
+
+
+def init_worker(device: str | None = None, devices=None, parent: int | None = None) -> None:
     """Start a worker: load Warp (and its kernel cache) once, choose its device.
 
     Args:
         device: the device for this worker (None: the best available).
         devices: a queue of device names, one taken per worker (one CUDA device each).
+        parent: the process id of the parent; the worker exits when the parent is gone.
     """
     global _device
+    if parent is not None:
+        threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
     init_warp()
     if devices is not None:
         device = devices.get()
@@ -139,7 +151,7 @@ def process_scan(job: ScanJob) -> dict:
         if job.mesh or job.fuse:
             entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
     except (RingscanError, ValueError, OSError, RuntimeError) as e:
-        log.error("%s: %s", job.folder, e)
+        log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name
         entry.update(status="failed", error=str(e))
     entry["time_s"] = time.perf_counter() - t
     return entry

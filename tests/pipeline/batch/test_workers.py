@@ -101,3 +101,40 @@ def test_bad_workers_and_backend(scan_root, tmp_path, capsys):
     assert main(["batch", str(scan_root), "--out", str(tmp_path / "o"), "--address", "x:1"]) == 2
     with pytest.raises(ValueError, match="backend"):
         batch_reconstruct(scan_root, tmp_path / "o", backend="spark")
+
+
+def test_workers_exit_when_the_batch_process_is_killed(three_scans, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "batch", str(three_scans), "--out",
+                             str(tmp_path / "out"), "--workers", "2", "--no-progress", "--device", "cpu"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def children():
+        try:
+            return [int(c) for c in Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()]
+        except OSError:
+            return []
+
+    deadline = time.monotonic() + 60
+    while len(kids := children()) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)  # two workers and the resource tracker
+    assert proc.poll() is None, "the batch ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+    def running(pid):
+        try:
+            return "State:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 10
+    while any(running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(running(k) for k in kids)
