@@ -14,13 +14,15 @@ and then written at their offsets: deterministic order, no size guesses.
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
 
-__all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "scan_counts"]
+__all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "cpu_threads", "set_cpu_threads",
+           "scan_counts"]
 
 
 @wp.func
@@ -147,7 +149,23 @@ def launch_spans(kernel, n: int, inputs_fn, outputs, device, threads: int, *, mi
     _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads)
 
 
-def default_threads() -> int:
-    import os
+_cpu_threads: int | None = None
 
-    return max(1, min(8, os.cpu_count() or 1))
+
+def set_cpu_threads(n: int | None) -> None:
+    """Set this process's CPU thread budget for Warp CPU launches and frame reading
+    (None: every core). A batch worker sharing the machine with others sets its share."""
+    global _cpu_threads
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ValueError(f"set_cpu_threads: expected a whole number >= 1 or None, got {n!r}")
+    _cpu_threads = n
+
+
+def cpu_threads() -> int:
+    """This process's CPU thread budget: what :func:`set_cpu_threads` set, else the core count."""
+    return _cpu_threads or os.cpu_count() or 1
+
+
+def default_threads() -> int:
+    """Threads for one stage's CPU launches: the budget, at most 8."""
+    return max(1, min(8, cpu_threads()))

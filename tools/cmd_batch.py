@@ -8,13 +8,14 @@ from ringscan.tools.cli import add_device_option
 from ringscan.tools.cmd_reconstruct import load_settings
 
 
-def _workers(text: str) -> int:
+def _workers(text: str, *, option: str = "--workers") -> int:
     try:
         n = int(text)
     except ValueError:
         n = -1
     if n < 0:
-        raise ValueError(f"--workers {text!r}: expected a whole number >= 0 (0: in this process)")
+        raise ValueError(f"{option} {text!r}: expected a whole number >= 0" + (" (0: in this process)"
+                                                                              if option == "--workers" else ""))
     return n
 
 
@@ -29,6 +30,9 @@ def add_parser(sub):
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
                         "core; 0: in this process)")
+    p.add_argument("--cpu-threads", default=None,
+                   help="CPU threads of each local worker (default: the cores shared out among the workers); "
+                        "results do not depend on it")
     p.add_argument("--backend", choices=("local", "ray"), default="local",
                    help="local: a process pool on this machine; ray: a Ray cluster (pip install 'ringscan[ray]')")
     p.add_argument("--address", default=None,
@@ -54,9 +58,14 @@ def run(args) -> int:
     if args.address and args.backend != "ray":
         raise ValueError("--address: only with --backend ray")
     workers = None if args.workers is None else _workers(args.workers)
+    cpu_threads = None
+    if args.cpu_threads is not None:
+        cpu_threads = _workers(args.cpu_threads, option="--cpu-threads")
+        if cpu_threads < 1:
+            raise ValueError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
     rep = batch_reconstruct(args.root, args.out, settings=settings, device=args.device, workers=workers,
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
-                            progress=not args.no_progress)
+                            cpu_threads=cpu_threads, progress=not args.no_progress)
     print(format_table(rep["scans"], rep["totals"]))
     failed = rep["totals"]["status"].get("failed", 0)
     print(f"report: {args.out}/batch_report.json")

@@ -72,7 +72,7 @@ def plan_batch(root, out_root, *, settings: ReconstructSettings = ReconstructSet
 def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = ReconstructSettings(),
                       device: str | None = None, workers: int | None = None, backend: str = "local",
                       address: str | None = None, fuse: bool = False, mesh: bool = False,
-                      progress: bool = True) -> dict:
+                      cpu_threads: int | None = None, progress: bool = True) -> dict:
     """Reconstruct every scan below ``root`` into ``out_root``; returns the batch report.
 
     Args:
@@ -86,6 +86,8 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
         address: the Ray cluster's address (``ray`` backend only).
         fuse: also fuse each scan's views into ``<out>/fused/fused.ply``.
         mesh: also fuse and mesh each scan into ``<out>/mesh/``.
+        cpu_threads: CPU threads of each local worker (None: the cores shared out
+            among the workers). Results do not depend on it.
         progress: show a progress bar.
 
     Returns:
@@ -98,6 +100,9 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
     if workers is not None and (not isinstance(workers, int) or workers < 0):
         raise ValueError(f"workers: expected a whole number >= 0, got {workers!r}")
+    if cpu_threads is not None and (isinstance(cpu_threads, bool) or not isinstance(cpu_threads, int)
+                                    or cpu_threads < 1):
+        raise ValueError(f"cpu_threads: expected a whole number >= 1, got {cpu_threads!r}")
     root, scans = _root_and_scans(root)
     out_root = check_output_folder(out_root, what="batch's output folder")
     out_root.mkdir(parents=True, exist_ok=True)
@@ -119,7 +124,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
             results = run_inline(jobs(), device=devices[0])
         else:
             devices = [devices[i % len(devices)] for i in range(n_workers)]
-            results = run_local(jobs(), workers=n_workers, devices=devices)
+            results = run_local(jobs(), workers=n_workers, devices=devices, cpu_threads=cpu_threads)
     report = {"format": BATCH_REPORT_FORMAT, "root": str(root.resolve()), "backend": backend,
               "workers": n_workers, "settings": settings_to_dict(settings), "scans": []}
     entries: dict[int, dict] = {}

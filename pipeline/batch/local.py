@@ -28,14 +28,20 @@ MAX_TRIES = 3
 """How many times a scan is given to a worker before a dying worker fails it."""
 
 
-def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None]) -> Iterator[tuple[int, dict]]:
+def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None],
+              cpu_threads: int | None = None) -> Iterator[tuple[int, dict]]:
     """Run ``jobs`` on ``workers`` processes; yield ``(job number, entry)`` as each finishes.
 
     Args:
         jobs: the scans, consumed lazily.
         workers: number of worker processes.
         devices: one device name per worker (None: the best available).
+        cpu_threads: CPU threads of each worker (None: the cores shared out among
+            the workers, at least one each), so that N workers do not fight over
+            the cores that one would use alone.
     """
+    if cpu_threads is None:
+        cpu_threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     ctx = mp.get_context("spawn")
     source = enumerate(jobs)
     in_flight: dict = {}  # future -> (number, job, tries)
@@ -47,7 +53,7 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
         for d in devices:
             q.put(d)
         return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
-                                   initargs=(None, q, os.getpid())), q
+                                   initargs=(None, q, os.getpid(), cpu_threads)), q
 
     pool, queue = start_pool()
     try:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.launch import set_cpu_threads
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
@@ -70,15 +71,19 @@ def _exit_with_parent(parent: int) -> None:
             os._exit(1)
 
 
-def init_worker(device: str | None = None, devices=None, parent: int | None = None) -> None:
+def init_worker(device: str | None = None, devices=None, parent: int | None = None,
+                cpu_threads: int | None = None) -> None:
     """Start a worker: load Warp (and its kernel cache) once, choose its device.
 
     Args:
         device: the device for this worker (None: the best available).
         devices: a queue of device names, one taken per worker (one CUDA device each).
         parent: the process id of the parent; the worker exits when the parent is gone.
+        cpu_threads: this worker's share of the CPU (Warp CPU launches, frame
+            reading); None: every core.
     """
     global _device
+    set_cpu_threads(cpu_threads)
     if parent is not None:
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
     init_warp()

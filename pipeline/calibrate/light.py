@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -50,6 +49,7 @@ import warp as wp
 from scipy.optimize import least_squares
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
@@ -198,7 +198,7 @@ def plane_samples(
         raise CalibrationError(scan.path, f"view {view.name}: frames are {frames.shape[2]}x{frames.shape[1]}, the "
                                           f"camera is {cam.width}x{cam.height}")
     fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device)
-    smp, _ = extract_samples(fr, scan, settings, settings.threads or os.cpu_count() or 1)
+    smp, _ = extract_samples(fr, scan, settings, settings.threads or cpu_threads())
     uv = smp.uv.numpy().astype(np.float64)
     rho = smp.rho.numpy().astype(np.float64)
     sector = smp.sector.numpy().astype(np.int32)

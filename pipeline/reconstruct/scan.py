@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.kernels import resolve_device
+from ringscan.kernels.launch import cpu_threads
 from ringscan.pipeline.formats.atomic import (
     atomic_write_json,
     check_no_overwrite,
@@ -133,7 +134,7 @@ def reconstruct_scan(
 
     def prefetch(k):
         if k < len(todo) and todo[k].name not in pending:
-            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k])
+            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
 
     bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
     try:
@@ -158,9 +159,9 @@ def reconstruct_scan(
     return report
 
 
-def _timed_read(scan: Scan, view: View) -> tuple[np.ndarray, float]:
+def _timed_read(scan: Scan, view: View, threads: int) -> tuple[np.ndarray, float]:
     t = time.perf_counter()
-    frames = read_view_frames(scan, view)
+    frames = read_view_frames(scan, view, threads=threads)
     return frames, time.perf_counter() - t
 
 

@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
 from ringscan.pipeline.codecs.registry import extract_samples
@@ -66,11 +66,11 @@ def reconstruct_view(
     """
     init_warp()
     device = resolve_device(device)
-    threads = settings.threads or os.cpu_count() or 1
+    threads = settings.threads or cpu_threads()
     times = {}
     t = time.perf_counter()
     if frames is None:
-        frames = read_view_frames(scan, view)
+        frames = read_view_frames(scan, view, threads=threads)
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
     fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device)

@@ -42,3 +42,20 @@ def test_scan_counts_of_an_image(device):
 def test_scan_counts_empty(device):
     offsets, total = scan_counts(wp.zeros(0, dtype=wp.int32, device=device))
     assert total == 0 and offsets.shape == (0,)
+
+
+def test_cpu_thread_budget():
+    import os
+
+    from ringscan.kernels.launch import cpu_threads, default_threads, set_cpu_threads
+
+    try:
+        set_cpu_threads(1)
+        assert cpu_threads() == 1 and default_threads() == 1
+        set_cpu_threads(None)
+        assert cpu_threads() == (os.cpu_count() or 1)
+        for bad in (0, -2, 1.5, True, "2"):
+            with pytest.raises(ValueError, match="set_cpu_threads"):
+                set_cpu_threads(bad)
+    finally:
+        set_cpu_threads(None)
