@@ -18,8 +18,10 @@ Usage::
 
 The scans (320x240 camera, gray-rings, ``--views`` turntable views each) are made
 once into ``--work`` (default /tmp/ringscan_batch_scale) and kept for reruns.
-``--camera 640x512 --throughput-only --scans 16 --views 1 --work DIR`` measures part 2 on
-larger views (per-view fixed costs matter less there).
+``--full [--tiff] --scans 8 --views 2 --work DIR`` measures part 2 on full-size views (the default
+rig's 1280x1024 camera, the core accuracy codec: 28 frames a view), where per-view fixed
+costs matter less; part 2 also runs every worker on one thread, which shows how the
+workers themselves scale.
 """
 
 from __future__ import annotations
@@ -49,6 +51,9 @@ from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangu
 
 SPEC = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 16.0,
         "bits": 5, "sector_bits": 4}
+FULL_SPEC = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 4.0,
+             "bits": 7, "sector_bits": 6}
+"""``--full``: the core accuracy configuration (docs/accuracy.md) on the default rig's 1280x1024 camera, 28 frames."""
 SCENES = ("sphere", "cube")
 CORRUPT = {
     "s010": "a frame replaced by bytes that are not an image",
@@ -74,23 +79,25 @@ def small_rig(size=None):
 def _simulate(args):
     from ringscan.pipeline.simulate.scan import simulate_scan
 
-    folder, i, views, size = args
+    folder, i, views, size, spec = args
     if (Path(folder) / "scan.json").is_file():
         return
-    simulate_scan(folder, scene=SCENES[i % 2], rig=small_rig(size), patterns=parse_patterns(SPEC),
+    rig = default_rig() if size is None else small_rig(size)
+    simulate_scan(folder, scene=SCENES[i % 2], rig=rig, patterns=parse_patterns(spec),
                   turntable_deg=tuple(360.0 * k / views + 7.0 * i for k in range(views)), progress=False,
                   device="cpu")
 
 
-def make_scans(root: Path, n: int, views: int, size) -> None:
-    todo = [(str(root / f"s{i:03d}"), i, views, size) for i in range(n) if not (root / f"s{i:03d}" / "scan.json").is_file()]
+def make_scans(root: Path, n: int, views: int, size, spec: dict = SPEC, corrupt: bool = True) -> None:
+    todo = [(str(root / f"s{i:03d}"), i, views, size, spec) for i in range(n)
+            if not (root / f"s{i:03d}" / "scan.json").is_file()]
     if todo:
         t = time.perf_counter()
         with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as ex:
             list(ex.map(_simulate, todo))
         print(f"simulated {len(todo)} scans in {time.perf_counter() - t:.0f} s")
     marker = root / ".corrupted"
-    if marker.exists():
+    if marker.exists() or not corrupt:
         return
     for name, what in CORRUPT.items():
         s = root / name
@@ -114,9 +121,31 @@ def make_scans(root: Path, n: int, views: int, size) -> None:
     marker.write_text(json.dumps(CORRUPT))
 
 
-def numpy_reference(root: Path) -> tuple[int, float]:
+def to_tiff(root: Path) -> None:
+    """Rewrite every scan's frames as uncompressed TIFF (DESIGN §6 allows PNG or TIFF): PNG decoding is
+    the largest part of a view's time; an uncompressed frame is read at the speed of the page cache."""
+    n = 0
+    for sj in sorted(root.glob("*/scan.json")):
+        d = json.loads(sj.read_text())
+        for v in d["views"]:
+            for name, rel in v["frames"].items():
+                if not rel.endswith(".png"):
+                    continue
+                src = sj.parent / rel
+                img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+                dst = src.with_suffix(".tif")
+                cv2.imwrite(str(dst), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])
+                src.unlink()
+                v["frames"][name] = rel[:-4] + ".tif"
+                n += 1
+        sj.write_text(json.dumps(d, indent=2))
+    if n:
+        print(f"rewrote {n} frames as uncompressed TIFF")
+
+
+def numpy_reference(root: Path, spec: dict = SPEC) -> tuple[int, float]:
     """Every view of every scan, one after another, with the NumPy twins (read, decode, sample, triangulate)."""
-    spec = parse_patterns(SPEC)
+    spec = parse_patterns(spec)
     n, t = 0, time.perf_counter()
     for i in range(1000):
         folder = root / f"s{i:03d}"
@@ -174,11 +203,14 @@ def rerun_check(root: Path, out: Path, ref: dict, label: str) -> None:
           f"results byte-identical to the uninterrupted run: {same}")
 
 
-def throughput(root: Path, work: Path, views: int, ref: dict | None) -> dict:
+def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict = SPEC) -> dict:
     """Part 2: 1 worker, 2 workers and the NumPy reference over the same folder, in one run."""
     r1 = batch_reconstruct(root, work / "out_w1", workers=1, device="cpu", progress=False)["totals"]
     r2 = batch_reconstruct(root, work / "out_w2", workers=2, device="cpu", progress=False)["totals"]
-    n_np, s_np = numpy_reference(root)
+    # scaling: every worker held to one thread, so the second worker's gain is the processes' own
+    s1 = batch_reconstruct(root, work / "out_s1", workers=1, cpu_threads=1, device="cpu", progress=False)["totals"]
+    s2 = batch_reconstruct(root, work / "out_s2", workers=2, cpu_threads=1, device="cpu", progress=False)["totals"]
+    n_np, s_np = numpy_reference(root, spec)
     np_rate = n_np / s_np
     print(f"\n2. throughput ({r2['computed_views']} views; wall time includes starting the workers):")
 
@@ -188,6 +220,11 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None) -> dict:
     for n, r in ((1, r1), (2, r2)):
         print(f"   ringscan batch --workers {n}: {r['views_per_s']:.2f} views/s ({r['wall_s']:.1f} s; first scan back "
               f"after {r['first_result_s']:.1f} s; {steady(r):.2f} views/s after it)")
+    for n, r in ((1, s1), (2, s2)):
+        print(f"   ringscan batch --workers {n} --cpu-threads 1: {r['views_per_s']:.2f} views/s ({r['wall_s']:.1f} s; "
+              f"{steady(r):.2f} views/s after the first scan)")
+    print(f"   scaling, one thread per worker: 2 workers / 1 worker {s2['views_per_s'] / s1['views_per_s']:.2f}x, "
+          f"after the first scan {steady(s2) / steady(s1):.2f}x (target >= 1.7x)")
     print(f"   NumPy reference, one scan after another: {np_rate:.2f} views/s ({n_np} views, {s_np:.1f} s)")
     print(f"   2 workers / 1 worker: {r2['views_per_s'] / r1['views_per_s']:.2f}x, after the first scan "
           f"{steady(r2) / steady(r1):.2f}x (target >= 1.7x); batch (2 workers) / NumPy: "
@@ -210,12 +247,19 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=2)
     ap.add_argument("--camera", default="320x240", metavar="WxH", help="camera size (default 320x240)")
     ap.add_argument("--throughput-only", action="store_true", help="only part 2 (throughput)")
+    ap.add_argument("--full", action="store_true",
+                    help="throughput only, on full-size views: the default rig's 1280x1024 camera, gray-rings 7 bits "
+                         "pitch 4 + 6 sector bits (28 frames), no corrupted scans")
+    ap.add_argument("--tiff", action="store_true", help="with --full: frames as uncompressed TIFF instead of PNG")
     a = ap.parse_args()
-    size = tuple(int(x) for x in a.camera.split("x"))
+    size = None if a.full else tuple(int(x) for x in a.camera.split("x"))
+    spec = FULL_SPEC if a.full else SPEC
     work = Path(a.work)
     root = work / "scans"
     root.mkdir(parents=True, exist_ok=True)
-    make_scans(root, a.scans, a.views, size)
+    make_scans(root, a.scans, a.views, size, spec, corrupt=not a.full)
+    if a.full and a.tiff:
+        to_tiff(root)
     for p in work.glob("out_*"):
         shutil.rmtree(p)
     try:
@@ -225,8 +269,8 @@ def main() -> int:
     except OSError:
         pass
 
-    if a.throughput_only:
-        throughput(root, work, a.views, None)
+    if a.throughput_only or a.full:
+        throughput(root, work, a.views, None, spec)
         return 0
     # 1. faults, through the CLI (exit status)
     proc = cli(root, work / "out_ref", "--workers", "2")
