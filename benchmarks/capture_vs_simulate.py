@@ -57,8 +57,8 @@ def capture_emulated(out: Path, rig, patterns, scene, views: int, *, seed: int, 
                      on_view=None):
     """Capture ``views`` views of ``scene`` through the emulated rig and the real drivers."""
     from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
+    from ringscan.hardware.devices.grbl import GrblTurntable
     from ringscan.hardware.devices.projector import SerialProjector
-    from ringscan.hardware.devices.turntable import GrblTurntable
     from ringscan.hardware.emulators.rig import EmulatedRig
     from ringscan.pipeline.formats.patterns import frame_names
 

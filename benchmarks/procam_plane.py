@@ -30,12 +30,7 @@ import numpy as np
 from ringscan.pipeline.calibrate.board import Board
 from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
 from ringscan.pipeline.calibrate.importer import import_captures, procam_pose, triangulate_codes
-from ringscan.pipeline.calibrate.procam import (
-    calibrate_procam,
-    capture_corners,
-    depth_range,
-    procam_rig,
-)
+from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners, depth_range, procam_rig
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view

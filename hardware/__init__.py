@@ -8,8 +8,9 @@ from ringscan.hardware.capture.sequence import (
     resume_angle,
 )
 from ringscan.hardware.devices.camera import CameraDevice, FolderCamera, OpenCVCamera, SocketCamera, open_camera
+from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import ProjectorDevice, SerialProjector, VirtualProjector
-from ringscan.hardware.devices.turntable import GrblTurntable, TurntableDevice, VirtualTurntable
+from ringscan.hardware.devices.turntable import TurntableDevice, VirtualTurntable
 from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
 from ringscan.hardware.errors import (
     CameraError,

@@ -33,8 +33,9 @@ from ringscan.hardware.capture.sequence import (
 from ringscan.hardware.capture.session import run_session, wait_for_key, wait_for_serial
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, parse_display_spec
+from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import SerialProjector
-from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
+from ringscan.hardware.devices.turntable import VirtualTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.hardware.errors import CaptureError
 from ringscan.pipeline.codecs.render import render_frame

@@ -24,8 +24,9 @@ from ringscan.hardware.capture.sequence import (
     read_capture_state,
     resume_angle,
 )
+from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import SerialProjector, VirtualProjector
-from ringscan.hardware.devices.turntable import GrblTurntable, VirtualTurntable
+from ringscan.hardware.devices.turntable import VirtualTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.hardware.errors import CameraError, CaptureError, ProjectorError
 from ringscan.pipeline.formats.errors import FormatError

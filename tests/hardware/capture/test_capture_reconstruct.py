@@ -6,8 +6,8 @@ benchmarks/capture_vs_simulate.py (which runs the issue's 8 views x 28 frames)."
 import pytest
 
 from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
+from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import SerialProjector
-from ringscan.hardware.devices.turntable import GrblTurntable
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.pipeline.formats.patterns import frame_names
 from tests.hardware.conftest import small_patterns, small_rig

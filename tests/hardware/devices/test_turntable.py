@@ -12,13 +12,8 @@ import numpy as np
 import pytest
 import serial
 
-from ringscan.hardware.devices.turntable import (
-    MIN_POLL_S,
-    GrblTurntable,
-    VirtualTurntable,
-    format_angle,
-    parse_status,
-)
+from ringscan.hardware.devices.grbl import MIN_POLL_S, GrblTurntable, format_angle, parse_status
+from ringscan.hardware.devices.turntable import VirtualTurntable
 from ringscan.hardware.emulators.grbl import EmulatedTurntable
 from ringscan.hardware.emulators.projector import EmulatedProjector
 from ringscan.hardware.errors import (

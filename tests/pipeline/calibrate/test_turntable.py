@@ -9,11 +9,7 @@ import pytest
 
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points, detect_board
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.turntable import (
-    TurntableSettings,
-    axis_distance,
-    calibrate_turntable,
-)
+from ringscan.pipeline.calibrate.turntable import TurntableSettings, axis_distance, calibrate_turntable
 from ringscan.pipeline.formats.rig import Turntable, default_rig, turntable_transform
 from ringscan.pipeline.geometry import project_points
 from ringscan.pipeline.simulate import VirtualRig, make_scene
