@@ -5,6 +5,7 @@ vanishing, a reset, a lost reply).
 
 from __future__ import annotations
 
+import abc
 import heapq
 import itertools
 import logging
@@ -52,7 +53,7 @@ def _norm(s: str) -> str:
     return re.sub(r"\s+", "", s).upper()
 
 
-class _PtyDevice:
+class _PtyDevice(abc.ABC):
     """A device on a pseudo-terminal, run by one background thread.
 
     All state changes happen under ``self._lock``; the thread reads the master side
@@ -256,8 +257,9 @@ class _PtyDevice:
                         log.exception("emulated %s timer failed", self.name)
 
     # hooks
+    @abc.abstractmethod
     def _on_bytes(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Handle bytes the host wrote (each emulated device parses its own protocol)."""
 
     def _power_on(self) -> None:
         """Reset the controller state (a power cycle)."""

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ringscan.pipeline.formats.settings import check_finite_settings
-from ringscan.pipeline.fusion.turntable import FuseResult, _apply, _rotation_deg
+from ringscan.pipeline.fusion.turntable import FuseResult, apply_transform, merge_clouds, rotation_deg
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +253,7 @@ def _register_pair(o3d, src: tuple, dst: tuple, s: PoseSettings, name: str):
 
 def _plane_rmse(o3d, src, dst, T: np.ndarray, dist: float) -> float:
     """RMS point-to-plane distance of ``src`` (moved by T) to ``dst`` over pairs within ``dist``."""
-    p = _apply(T, np.asarray(src.points))
+    p = apply_transform(T, np.asarray(src.points))
     q = np.asarray(dst.points)
     if len(p) == 0 or len(q) == 0:
         return float("inf")
@@ -394,32 +394,18 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
             raise AlignmentError(names[i], bad.replace("the reference pose", "the other poses")
                                  + (" after the pose-graph optimisation" if graph is not None else ""))
 
-    regs, moved, labels, confs = [], [], [], []
+    regs, moved, confs = [], [], []
     for i, ((cloud, conf, _), name) in enumerate(zip(items, names)):
         T = transforms[i]
         regs.append(PoseRegistration(name=name, points=len(cloud.points), transform=T, global_fitness=gfits[i],
                                      fitness=fits[i][0], inlier_rmse_mm=fits[i][1], plane_rmse_mm=fits[i][2],
                                      fitness_to_reference=fits[i][3], aligned_with=names[parent[i]],
-                                     rotation_deg=_rotation_deg(T),
+                                     rotation_deg=rotation_deg(T),
                                      translation_mm=float(np.linalg.norm(T[:3, 3]))))
         c = o3d.geometry.PointCloud(cloud).transform(T)  # normals turn with it: still outward
         moved.append(c)
-        labels.append(np.full(len(c.points), i, np.int32))
         confs.append(conf if len(conf) == len(c.points) else np.ones(len(c.points)))
-    merged = o3d.geometry.PointCloud()
-    for c in moved:
-        merged += c
-    labels = np.concatenate(labels)
-    conf_all = np.concatenate(confs)
-    if s.voxel_mm > 0 and len(merged.points):
-        lo = merged.get_min_bound() - s.voxel_mm
-        hi = merged.get_max_bound() + s.voxel_mm
-        out, _, traces = merged.voxel_down_sample_and_trace(s.voxel_mm, lo, hi, False)
-        point_view = np.array([labels[t[0]] for t in traces], np.int32)
-        point_conf = np.array([conf_all[np.asarray(t)].mean() for t in traces], np.float32)
-        out.normalize_normals()
-    else:
-        out, point_view, point_conf = merged, labels, conf_all.astype(np.float32)
+    out, point_view, point_conf = merge_clouds(moved, confs, voxel_mm=s.voxel_mm)
     log.info("merged %d poses into %d points", n, len(out.points))
     return MultiPoseResult(cloud=out, poses=moved, names=names, transforms=np.stack(transforms), registrations=regs,
                            settings=s, fused=[it[2] for it in items if it[2] is not None]

@@ -42,12 +42,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.rig import Rig, Turntable, turntable_transform
 from ringscan.pipeline.formats.settings import check_finite_settings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_NAME", "FuseSettings", "FusionView", "ViewResidual", "FuseResult", "check_fuse_settings", "fuse_views"]
+__all__ = ["REPORT_NAME", "FuseSettings", "FusionView", "ViewResidual", "FuseResult", "check_fuse_settings", "fuse_views",
+           "merge_clouds", "rotation_deg", "apply_transform"]
 
 REPORT_NAME = "report.json"
 
@@ -195,12 +197,12 @@ class FuseResult:
 # ----------------------------------------------------------------------------- geometry helpers
 
 
-def _rotation_deg(T: np.ndarray) -> float:
+def rotation_deg(T: np.ndarray) -> float:
     c = (np.trace(T[:3, :3]) - 1.0) / 2.0
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
-def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def apply_transform(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
@@ -269,7 +271,7 @@ def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSetti
     if v.normals is not None:
         keep &= np.all(np.isfinite(v.normals), axis=1)
     pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(_apply(T, v.points[keep]))
+    pcd.points = o3d.utility.Vector3dVector(apply_transform(T, v.points[keep]))
     if v.normals is not None:
         pcd.normals = o3d.utility.Vector3dVector(v.normals[keep] @ T[:3, :3].T)
     conf = (v.confidence[keep] if v.confidence is not None else np.ones(int(keep.sum()))).astype(np.float64)
@@ -390,6 +392,37 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
 # ----------------------------------------------------------------------------- public API
 
 
+
+def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_mm: float):
+    """Merge clouds (already in one frame) into one, thinned on a voxel grid.
+
+    Args:
+        clouds: Open3D point clouds.
+        confidences: one (n_i,) confidence array per cloud.
+        voxel_mm: voxel size; 0 keeps every point.
+
+    Returns:
+        (cloud, source, confidence): the merged cloud, each point's source cloud
+        index (the first point in its voxel) and its mean confidence over the voxel.
+    """
+    o3d = open3d_lib()
+    merged = o3d.geometry.PointCloud()
+    for c in clouds:
+        merged += c
+    labels = np.concatenate([np.full(len(c.points), i, np.int32) for i, c in enumerate(clouds)] or
+                            [np.zeros(0, np.int32)])
+    conf_all = np.concatenate([np.asarray(c, np.float64) for c in confidences] or [np.zeros(0)])
+    if voxel_mm > 0 and len(merged.points):
+        lo = merged.get_min_bound() - voxel_mm
+        hi = merged.get_max_bound() + voxel_mm
+        out, _, traces = merged.voxel_down_sample_and_trace(voxel_mm, lo, hi, False)
+        source = np.array([labels[t[0]] for t in traces], np.int32)
+        conf = np.array([conf_all[np.asarray(t)].mean() for t in traces], np.float32)
+        out.normalize_normals()
+        return out, source, conf
+    return merged, labels, conf_all.astype(np.float32)
+
+
 def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = FuseSettings(),
                progress: bool = False) -> FuseResult:
     """Fuse turntable views into one cloud in the object frame.
@@ -426,7 +459,7 @@ def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fus
     T0 = [turntable_transform(turntable, -v.turntable_deg) for v in vs]
     clouds, confs, cams = [], [], []
     for v, T in zip(vs, T0):
-        cam = _apply(T, v.camera_center[None])[0]
+        cam = apply_transform(T, v.camera_center[None])[0]
         pcd, conf = _clean_view(o3d, v, T, cam, s)
         clouds.append(pcd)
         confs.append(conf)
@@ -454,28 +487,12 @@ def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fus
         residuals.append(ViewResidual(
             name=v.name, turntable_deg=v.turntable_deg, points_in=len(v.points), points_kept=len(clouds[i].points),
             fitness_before=before[i][0], rmse_before_mm=before[i][1], fitness=after[i][0], rmse_mm=after[i][1],
-            correction_mm=float(np.linalg.norm(_apply(P, c[None])[0] - c)), correction_deg=_rotation_deg(P)))
+            correction_mm=float(np.linalg.norm(apply_transform(P, c[None])[0] - c)), correction_deg=rotation_deg(P)))
         if graph is not None:
             clouds[i].transform(P)
-            cams[i] = _apply(P, cams[i][None])[0]
+            cams[i] = apply_transform(P, cams[i][None])[0]
 
-    merged = o3d.geometry.PointCloud()
-    labels, conf_all = [], []
-    for i, c in enumerate(clouds):
-        merged += c
-        labels.append(np.full(len(c.points), i, np.int32))
-        conf_all.append(confs[i])
-    labels = np.concatenate(labels)
-    conf_all = np.concatenate(conf_all)
-    if s.voxel_mm > 0 and len(merged.points):
-        lo = merged.get_min_bound() - s.voxel_mm
-        hi = merged.get_max_bound() + s.voxel_mm
-        fused, _, traces = merged.voxel_down_sample_and_trace(s.voxel_mm, lo, hi, False)
-        point_view = np.array([labels[t[0]] for t in traces], np.int32)
-        point_conf = np.array([conf_all[np.asarray(t)].mean() for t in traces], np.float32)
-        fused.normalize_normals()
-    else:
-        fused, point_view, point_conf = merged, labels, conf_all.astype(np.float32)
+    fused, point_view, point_conf = merge_clouds(clouds, confs, voxel_mm=s.voxel_mm)
     log.info("fused %d views into %d points", len(vs), len(fused.points))
     return FuseResult(
         cloud=fused, views=clouds, names=[v.name for v in vs], turntable_deg=angles,
