@@ -73,7 +73,9 @@ def reconstruct_view(
         frames = read_view_frames(scan, view, threads=threads)
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device)
+    # On the CPU the Warp array is a view of the frames (kernels only read them): no copy.
+    on_cpu = wp.get_device(device).is_cpu and frames.flags.c_contiguous
+    fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device, copy=not on_cpu)
     times["upload"] = time.perf_counter() - t
 
     smp, st = extract_samples(fr, scan, settings, threads)
