@@ -4,9 +4,15 @@ Each worker is a spawned process started once (:func:`.worker.init_worker` loads
 Warp and its kernel cache and picks the worker's device: one CUDA device per worker
 where there are GPUs), then fed one scan at a time. Scans are fed lazily, at most
 two per worker in flight, so memory is bounded by the scans in flight whatever the
-folder's size. A worker that dies (killed, out of memory) breaks the pool: a new
-pool is started and the scans that were in flight are given once more; a scan
-whose worker dies twice is reported as failed.
+folder's size.
+
+A worker that dies (killed, out of memory, a crash in a library) breaks the whole
+pool, and with it every scan in flight: nothing tells which of them killed it. So a
+new pool is started and those scans are given again *one at a time*, nothing else
+in flight: one that finishes was innocent; one whose worker dies while it runs
+alone is the culprit, given once more alone, and reported as failed after
+:data:`MAX_DEATHS` such deaths. The other scans then go on as before. An innocent
+scan is never failed for sharing a pool with one that crashes.
 """
 
 from __future__ import annotations
@@ -24,8 +30,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run_local"]
 
-MAX_TRIES = 3
-"""How many times a scan is given to a worker before a dying worker fails it."""
+MAX_DEATHS = 2
+"""How many times a scan's worker may die while that scan runs alone before it is reported as failed."""
 
 
 def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None],
@@ -44,8 +50,8 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
         cpu_threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     ctx = mp.get_context("spawn")
     source = enumerate(jobs)
-    in_flight: dict = {}  # future -> (number, job, tries)
-    retry: list = []
+    in_flight: dict = {}  # future -> (number, job, deaths while alone)
+    suspects: list = []  # in flight when a worker died: given again one at a time
     exhausted = False
 
     def start_pool():
@@ -58,44 +64,52 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
     pool, queue = start_pool()
     try:
         while True:
-            while len(in_flight) < 2 * workers and (retry or not exhausted):
-                if retry:
-                    n, job, tries = retry.pop(0)
-                else:
+            if suspects:
+                if not in_flight:
+                    item = suspects.pop(0)
+                    in_flight[pool.submit(process_scan, item[1])] = item
+            else:
+                while len(in_flight) < 2 * workers and not exhausted:
                     try:
                         n, job = next(source)
                     except StopIteration:
                         exhausted = True
                         break
-                    tries = 0
-                in_flight[pool.submit(process_scan, job)] = (n, job, tries + 1)
+                    in_flight[pool.submit(process_scan, job)] = (n, job, 0)
             if not in_flight:
                 return
             done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
-            broken = False
+            alone = len(in_flight) == 1
+            lost = []
             for f in done:
-                n, job, tries = in_flight.pop(f)
+                item = in_flight.pop(f)
                 try:
-                    yield n, f.result()
+                    entry = f.result()
                 except BrokenProcessPool:
-                    broken = True
-                    retry.append((n, job, tries))
-            if broken:
-                # Every scan in flight is lost with the pool; none of them is known to be the one that killed it.
-                for f, item in in_flight.items():
-                    f.cancel()
-                    retry.append(item)
-                in_flight.clear()
-                pool.shutdown(wait=False, cancel_futures=True)
-                queue.close()
-                retry.sort(key=lambda it: it[0])
-                failed = [it for it in retry if it[2] >= MAX_TRIES]
-                retry = [it for it in retry if it[2] < MAX_TRIES]
-                for n, job, tries in failed:
+                    lost.append(item)
+                    continue
+                yield item[0], entry
+            if not lost:
+                continue
+            # The pool is gone with every scan in flight.
+            for f, item in in_flight.items():
+                f.cancel()
+                lost.append(item)
+            in_flight.clear()
+            pool.shutdown(wait=False, cancel_futures=True)
+            queue.close()
+            if alone:  # it ran on its own: this scan killed its worker
+                n, job, deaths = lost[0]
+                lost = [(n, job, deaths + 1)]
+                if deaths + 1 >= MAX_DEATHS:
+                    lost = []
                     yield n, {"scan": job.rel, "out": job.out, "status": "failed",
-                              "error": f"its worker process died {tries} times while processing it"}
-                log.warning("a batch worker died; restarting the pool, %d scan(s) given again", len(retry))
-                pool, queue = start_pool()
+                              "error": f"its worker process died {deaths + 1} times while it ran alone "
+                                       f"(killed, out of memory, or a crash in a library)"}
+            suspects = sorted(suspects + lost, key=lambda it: it[0])
+            log.warning("a batch worker died; restarting the pool, %d scan(s) given again one at a time",
+                        len(suspects))
+            pool, queue = start_pool()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
         queue.close()

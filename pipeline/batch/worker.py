@@ -32,7 +32,7 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "init_worker", "worker_device", "process_scan"]
+__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "init_worker", "worker_device", "process_scan"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
 """The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
@@ -41,6 +41,11 @@ FAULT_ENV = "RINGSCAN_BATCH_FAULT"
 """Fault injection for tests and benchmarks: the path of a marker file. The first
 worker that claims it (renames it away) finishes one view of its scan and then
 kills its own process with SIGKILL, as a crash or an out-of-memory kill would."""
+
+CRASH_ENV = "RINGSCAN_BATCH_CRASH_SCAN"
+"""Fault injection for tests and benchmarks: the name of a scan in the batch (its
+path relative to the root) whose worker kills itself with SIGKILL every time it
+starts that scan, as a scan that crashes a library would."""
 
 _device: str | None = None
 
@@ -100,7 +105,10 @@ def worker_device() -> str:
     return _device
 
 
-def _maybe_fault(scan, out: Path, settings) -> None:
+def _maybe_fault(scan, rel: str, out: Path, settings) -> None:
+    if os.environ.get(CRASH_ENV) == rel:
+        log.warning("%s: killing this worker (%d) on purpose", CRASH_ENV, os.getpid())
+        os.kill(os.getpid(), signal.SIGKILL)
     marker = os.environ.get(FAULT_ENV)
     if not marker:
         return
@@ -139,7 +147,7 @@ def process_scan(job: ScanJob) -> dict:
         else:
             if check.report is not None:
                 entry["redone"] = check.redo
-            _maybe_fault(scan, out, job.settings)
+            _maybe_fault(scan, job.rel, out, job.settings)
             rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
                                    progress=False)
             views = rep["views"]

@@ -7,7 +7,7 @@ import pytest
 
 from ringscan.pipeline.batch import batch_reconstruct, plan_batch
 from ringscan.pipeline.batch.report import read_results
-from ringscan.pipeline.batch.worker import FAULT_ENV, STAGES
+from ringscan.pipeline.batch.worker import CRASH_ENV, FAULT_ENV, STAGES
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.tools.cli import main
@@ -49,6 +49,26 @@ def test_a_killed_worker_is_replaced_and_its_scan_done_once(three_scans, referen
     assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
     assert "done" in {s["status"] for s in rep["scans"]}
     assert read_results(out) == read_results(reference)
+
+
+def test_a_scan_that_always_kills_its_worker_fails_alone(three_scans, reference, tmp_path, monkeypatch):
+    """b/cube kills its worker every time: it shares the pool with the other scans when
+    it first dies, yet only it fails (it is found by running the suspects one at a
+    time); the others give the reference bytes."""
+    from ringscan.pipeline.batch.local import MAX_DEATHS
+
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    monkeypatch.setenv(CRASH_ENV, "b/cube")
+    out = tmp_path / "out"
+    rep = batch_reconstruct(three_scans, out, workers=2, device="cpu", progress=False)
+    by = {s["scan"]: s for s in rep["scans"]}
+    assert by["b/cube"]["status"] == "failed"
+    assert f"died {MAX_DEATHS} times while it ran alone" in by["b/cube"]["error"]
+    assert by["a_sphere"]["status"] in ("done", "skipped (already done)")
+    assert by["c_turn"]["status"] in ("done", "skipped (already done)")
+    ref = {k: v for k, v in read_results(reference).items() if not k.startswith("b/cube")}
+    got = {k: v for k, v in read_results(out).items() if not k.startswith("b/cube")}
+    assert got == ref
 
 
 def test_dry_run_says_why(three_scans, reference, tmp_path, capsys):
