@@ -37,14 +37,22 @@ BACKENDS = ("local", "ray")
 
 
 def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
-    """Workers and their devices by default: one per CUDA device where there are GPUs, else one per CPU core."""
+    """Workers and their devices by default.
+
+    ``None``/``auto``: one worker per CUDA device where there are GPUs, else one per CPU
+    core. ``cuda``: one per CUDA device. ``cuda:N``: one worker, on that device (more
+    processes on one GPU only share it). ``cpu``: one per core.
+    """
     import warp as wp
 
-    if device in (None, "", "auto") or str(device).startswith("cuda"):
+    dev = str(device) if device not in (None, "", "auto") else None
+    if dev is None or dev.startswith("cuda"):
         init_warp()
         n = wp.get_cuda_device_count()
-        if n and device in (None, "", "auto"):
+        if n and dev in (None, "cuda"):
             return n, [f"cuda:{i}" for i in range(n)]
+        if dev is not None and dev != "cuda":
+            return 1, [dev]
     return max(1, os.cpu_count() or 1), [device]
 
 

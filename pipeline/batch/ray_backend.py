@@ -20,7 +20,7 @@ from ringscan.pipeline.batch.worker import ScanJob, init_worker, process_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_ray", "MAX_RETRIES"]
+__all__ = ["run_ray", "task_options", "MAX_RETRIES"]
 
 MAX_RETRIES = 3
 """Retries of a task whose worker process died."""
@@ -34,9 +34,19 @@ def _ray():
     return ray
 
 
+def task_options(resources: dict) -> dict:
+    """Ray options of a scan's task on a cluster with ``resources`` (``ray.cluster_resources()``):
+    one GPU and one CPU where the cluster has GPUs, else one CPU."""
+    return {"num_gpus": 1, "num_cpus": 1} if int(resources.get("GPU", 0)) else {"num_cpus": 1}
+
+
 def _task(job: ScanJob, device: str | None) -> dict:
     init_worker(device)  # once per Ray worker process (init_warp is idempotent)
-    return process_scan(job)
+    entry = process_scan(job)
+    ray = _ray()
+    # what Ray gave the task (its GPU, if any): in the batch report, next to the device the worker used
+    entry["ray_resources"] = {k: float(v) for k, v in ray.get_runtime_context().get_assigned_resources().items()}
+    return entry
 
 
 def run_ray(jobs: Iterable[ScanJob], *, address: str | None = None, device: str | None = None,
@@ -59,8 +69,7 @@ def run_ray(jobs: Iterable[ScanJob], *, address: str | None = None, device: str 
     try:
         res = ray.cluster_resources()
         gpus = int(res.get("GPU", 0))
-        opts = {"num_gpus": 1, "num_cpus": 1} if gpus else {"num_cpus": 1}
-        remote = ray.remote(max_retries=max_retries, retry_exceptions=False, **opts)(_task)
+        remote = ray.remote(max_retries=max_retries, retry_exceptions=False, **task_options(res))(_task)
         limit = in_flight or max(2, 2 * (gpus or int(res.get("CPU", 1))))
         source = enumerate(jobs)
         refs: dict = {}

@@ -41,3 +41,26 @@ def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(three_scans, tmp
     # the killed scan's retry keeps the view its first attempt wrote (a one-view scan is then found done)
     assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
     assert read_results(tmp_path / "killed") == want
+
+
+@pytest.mark.slow
+def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_path, monkeypatch):
+    """A cluster that declares one GPU (Ray lets a node declare GPUs it does not check):
+    every task asks for it and gets it (the batch report says what Ray gave each task),
+    and the scans are done with the bytes of the local backend (no CUDA here: each task
+    falls back to the CPU, as on a node without GPUs)."""
+    from ringscan.pipeline.batch.ray_backend import task_options
+
+    assert task_options({"CPU": 8.0}) == {"num_cpus": 1}
+    assert task_options({"CPU": 8.0, "GPU": 2.0}) == {"num_gpus": 1, "num_cpus": 1}
+    local = tmp_path / "local"
+    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        rep = batch_reconstruct(three_scans, tmp_path / "ray", backend="ray", progress=False)
+    finally:
+        ray.shutdown()
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+    assert all(s["ray_resources"].get("GPU") == 1.0 for s in rep["scans"])
+    assert read_results(tmp_path / "ray") == read_results(local)

@@ -123,6 +123,39 @@ def test_bad_workers_and_backend(scan_root, tmp_path, capsys):
         batch_reconstruct(scan_root, tmp_path / "o", backend="spark")
 
 
+def test_default_workers_one_per_gpu_else_one_per_core(monkeypatch):
+    """Where Warp sees CUDA devices, one worker per device, each given its own; one
+    worker for one device asked for; else one worker per core. (No GPU here: Warp's
+    device count is faked.)"""
+    import os
+
+    import warp as wp
+
+    from ringscan.pipeline.batch import default_workers
+
+    monkeypatch.setattr(wp, "get_cuda_device_count", lambda: 3)
+    assert default_workers(None) == (3, ["cuda:0", "cuda:1", "cuda:2"])
+    assert default_workers("cpu") == (os.cpu_count(), ["cpu"])
+    assert default_workers("cuda") == (3, ["cuda:0", "cuda:1", "cuda:2"])
+    assert default_workers("cuda:1") == (1, ["cuda:1"])  # one device asked for: one worker on it
+    monkeypatch.setattr(wp, "get_cuda_device_count", lambda: 0)
+    assert default_workers(None) == (os.cpu_count(), [None])
+
+
+def test_each_worker_takes_its_own_device(monkeypatch):
+    """init_worker takes one device name from the shared queue (one CUDA device per worker)."""
+    import queue
+
+    from ringscan.pipeline.batch import worker
+
+    q = queue.Queue()
+    for d in ("cpu", "cpu"):
+        q.put(d)
+    monkeypatch.setattr(worker, "_device", None)
+    worker.init_worker(devices=q)
+    assert worker.worker_device() == "cpu" and q.qsize() == 1
+
+
 def test_workers_exit_when_the_batch_process_is_killed(three_scans, tmp_path):
     import os
     import signal
