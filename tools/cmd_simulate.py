@@ -54,7 +54,8 @@ def add_parser(sub):
                    help=f"recorded level of full white (default {d.exposure})")
     s.add_argument("--bit-depth", type=int, choices=(8, 16), default=d.bit_depth, help="frame bit depth (default 8)")
     s.add_argument("--seed", type=int, default=d.seed, help="noise seed (default 0)")
-    s.add_argument("--format", choices=("png", "tiff"), default="png", help="frame file format (default png)")
+    s.add_argument("--image-format", "--format", dest="format", choices=("png", "tiff"), default="png",
+                   help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
     return p

@@ -298,3 +298,17 @@ def test_png_frames_use_the_up_filter_and_round_trip(tmp_path):
     if not hasattr(cv2, "IMWRITE_PNG_FILTER"):
         pytest.skip("this OpenCV (< 4.11) cannot choose the PNG row filter")
     assert np.all(rows[:, 0] == 2)
+
+
+def test_tiff_frames_are_written_uncompressed(tmp_path):
+    """TIFF is the fast-to-read choice (docs/formats.md): no compression, so the file
+    holds every pixel's bytes as they are, and it reads back exactly."""
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 4096, (48, 64)).astype(np.uint16)
+    write_image(tmp_path / "f.tiff", img)
+    from ringscan.pipeline.formats.images import read_image
+
+    assert np.array_equal(read_image(tmp_path / "f.tiff"), img)
+    data = (tmp_path / "f.tiff").read_bytes()
+    assert len(data) >= img.nbytes
+    assert img.tobytes() in data  # the strip is stored as is
