@@ -42,6 +42,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ringscan.kernels.runtime import retain_freed_memory
 from ringscan.pipeline.batch import batch_reconstruct, plan_batch
 from ringscan.pipeline.batch.report import read_results
 from ringscan.pipeline.formats.patterns import parse_patterns
@@ -173,6 +174,7 @@ def numpy_reference(root: Path, spec: dict = SPEC) -> tuple[int, float, float]:
 def _read_views(args) -> tuple[int, float]:
     """Read every ``k``-th view's frames (from view ``i`` on), one thread: (views, seconds)."""
     root, i, k = args
+    retain_freed_memory()  # as in a batch worker
     views = []
     for sj in sorted(Path(root).glob("s*/scan.json")):
         try:
@@ -305,6 +307,8 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=1,
                     help="measure part 2 this many times in turn and print the medians (default 1)")
     a = ap.parse_args()
+    # the NumPy reference runs in this process: the same allocator policy as the batch workers (fair to both)
+    retain_freed_memory()
     size = None if a.full else tuple(int(x) for x in a.camera.split("x"))
     spec = FULL_SPEC if a.full else SPEC
     work = Path(a.work)

@@ -5,6 +5,6 @@ same code runs on "cpu" and "cuda:N". Nothing here imports ringscan.pipeline or
 ringscan.hardware.
 """
 
-from ringscan.kernels.runtime import init_warp, resolve_device
+from ringscan.kernels.runtime import init_warp, resolve_device, retain_freed_memory
 
-__all__ = ["init_warp", "resolve_device"]
+__all__ = ["init_warp", "resolve_device", "retain_freed_memory"]

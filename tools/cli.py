@@ -12,6 +12,7 @@ import importlib
 import logging
 import sys
 
+from ringscan.kernels.runtime import retain_freed_memory
 from ringscan.pipeline.formats.errors import RingscanError, show_path
 
 log = logging.getLogger("ringscan")
@@ -69,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    retain_freed_memory()  # this process is ringscan's: keep freed arrays' pages for the next view
     try:
         return int(args._run(args) or 0)
     except RingscanError as e:

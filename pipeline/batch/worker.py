@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels import init_warp, resolve_device, retain_freed_memory
 from ringscan.kernels.launch import set_cpu_threads
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import RingscanError
@@ -89,6 +89,7 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
     """
     global _device
     set_cpu_threads(cpu_threads)
+    retain_freed_memory()  # a worker process is ringscan's own: keep freed arrays' pages for the next view
     if parent is not None:
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
     init_warp()
