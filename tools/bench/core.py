@@ -50,14 +50,18 @@ def memory_bandwidth(nbytes: int = 256 << 20, repeats: int = 5) -> float:
     return 2 * nbytes / t
 
 
-def _default_scan(out: Path, scene: str | None, device: str | None):
+def default_bench_scene() -> str:
+    """The bench's default scene: Spot from ../shared/data/models (``RINGSCAN_SHARED_DATA``
+    names another data folder), else the procedural sphere."""
+    data = os.environ.get("RINGSCAN_SHARED_DATA") or Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    spot = Path(data) / "models" / "odedstein_spot.obj"
+    return str(spot) if spot.is_file() else "sphere"
 
+
+def _default_scan(out: Path, scene: str | None, device: str | None):
     spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
                            "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6})
-    if scene is None:
-        shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "models" / "odedstein_spot.obj"
-        scene = str(shared) if shared.is_file() else "sphere"
-    return simulate_scan(out, scene=scene, patterns=spec, device=device, progress=False)
+    return simulate_scan(out, scene=scene or default_bench_scene(), patterns=spec, device=device, progress=False)
 
 
 def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats: int = 5, devices=None,
@@ -65,12 +69,12 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     """Time decode, sampling and triangulation of one view; print a table with ``out``."""
     import warp as wp
 
-
     init_warp()
     tmp = None
     if scan_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="ringscan-bench-")
-        out("simulating the default scan (virtual rig, gray-rings 7 bits + 6 sector bits) ...")
+        out(f"simulating a view of {Path(scene or default_bench_scene()).stem} (virtual rig, gray-rings 7 bits + 6 "
+            f"sector bits) ...")
         scan = _default_scan(Path(tmp.name) / "scan", scene, None)
     else:
         scan = load_scan(scan_dir)

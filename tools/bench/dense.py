@@ -19,7 +19,7 @@ from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.simulate.scan import simulate_scan
-from ringscan.tools.bench.core import best_of
+from ringscan.tools.bench.core import best_of, default_bench_scene
 from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy, triangulate_numpy
 
 log = logging.getLogger(__name__)
@@ -56,8 +56,7 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
     if scan_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="ringscan-dense-bench-")
         if scene is None:
-            shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "models" / "odedstein_spot.obj"
-            scene = str(shared) if shared.is_file() else "sphere"
+            scene = default_bench_scene()
         out(f"simulating a phase-rings view of {Path(scene).stem} (default rig, pitch 8, 4 steps, 6 sector bits) ...")
         scan = simulate_scan(Path(tmp.name) / "scan", scene=scene, patterns=parse_patterns(DEFAULT_BENCH_PATTERNS),
                              progress=False)
