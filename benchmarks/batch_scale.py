@@ -243,20 +243,30 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict 
     reading ceiling over the same folder, ``rounds`` times in turn (this machine is shared and noisy:
     the medians are the figures)."""
     cores = os.cpu_count() or 1
-    configs = (("w1", 1, None), ("w2", 2, None), ("s1", 1, 1), ("s2", 2, 1))
+    configs = (("w1", 1, None), ("w2", 2, None), ("s1", 1, 1), ("s2", 2, 1), ("p1", 1, 1))
+    # p1: s1 with the allocator policy off in the worker (RINGSCAN_KEEP_FREED_MB=0, kernels.runtime)
 
     def steady(r):  # views/s once the first scan is back (workers started, Warp and its kernel cache loaded)
         return (r["computed_views"] - views) / max(1e-9, r["wall_s"] - r["first_result_s"])
 
-    runs: dict = {k: [] for k in ("w1", "w2", "s1", "s2", "numpy", "ceiling", "np_read", "np_n")}
+    runs: dict = {k: [] for k in ("w1", "w2", "s1", "s2", "p1", "numpy", "ceiling", "np_read", "np_n",
+                                  "k_s1", "k_p1")}
     last: dict = {}
     for i in range(rounds):
         for key, workers, threads in configs:
             out = work / f"out_{key}"
             shutil.rmtree(out, ignore_errors=True)
-            last[key] = batch_reconstruct(root, out, workers=workers, cpu_threads=threads, device="cpu",
-                                          progress=False)["totals"]
+            if key == "p1":
+                os.environ["RINGSCAN_KEEP_FREED_MB"] = "0"  # inherited by the spawned worker
+            try:
+                last[key] = batch_reconstruct(root, out, workers=workers, cpu_threads=threads, device="cpu",
+                                              progress=False)["totals"]
+            finally:
+                os.environ.pop("RINGSCAN_KEEP_FREED_MB", None)
             runs[key].append(steady(last[key]))
+            if key in ("s1", "p1"):
+                pv = last[key]["per_view_s"]
+                runs[f"k_{key}"].append(sum(pv[k] for k in ("decode", "sample", "triangulate", "other")))
         n_np, s_np, read_np = numpy_reference(root, spec)
         runs["numpy"].append(n_np / s_np)
         runs["np_read"].append(read_np / max(1, n_np))
@@ -276,6 +286,11 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict 
     print(f"   ringscan batch --workers 1 --cpu-threads 1: {med['s1']:.2f} views/s; --workers 2 --cpu-threads 1: "
           f"{med['s2']:.2f}")
     print(f"   scaling, one thread per worker: 2 workers / 1 worker {ratio['s']:.2f}x (target >= 1.7x)")
+    print(f"   allocator policy, one worker with one thread: {med['s1']:.2f} views/s keeping freed memory, "
+          f"{med['p1']:.2f} with RINGSCAN_KEEP_FREED_MB=0; kernel stages (decode, sample, triangulate, filter, "
+          f"up/download) {1000 * med['k_s1']:.0f} ms a view against {1000 * med['k_p1']:.0f} ms")
+    pv = last["s1"]["per_view_s"]
+    print("   per view in that worker: " + ", ".join(f"{k} {1000 * v:.1f} ms" for k, v in pv.items()))
     print(f"   NumPy reference, one scan after another: {med['numpy']:.2f} views/s (per view {1000 * med['np_read']:.0f} "
           f"ms reading frames + {1000 * med['np_n']:.0f} ms computing)")
     print(f"   reading the frames alone, {cores} processes (one per core): {med['ceiling']:.2f} views/s = "

@@ -50,9 +50,12 @@ M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD_MAX = 32 << 20
 """glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit systems."""
+KEEP_FREED_ENV = "RINGSCAN_KEEP_FREED_MB"
+"""Environment variable: the most freed memory ringscan's processes keep, in MiB (0: off)."""
+DEFAULT_KEEP_FREED_MB = 512
 
 
-def retain_freed_memory(limit_mb: int = 512) -> bool:
+def retain_freed_memory(limit_mb: int | None = None) -> bool:
     """Keep freed host memory in this process, up to ``limit_mb``, for the next view.
 
     Every view allocates its per-pixel arrays afresh (Warp CPU arrays, decoded
@@ -66,10 +69,24 @@ def retain_freed_memory(limit_mb: int = 512) -> bool:
 
     Called by the processes ringscan owns (the ``ringscan`` command, batch
     workers, Ray tasks), never on import: a script that uses ringscan as a library
-    keeps its own policy unless it calls this. Returns False where the C library
-    has no ``mallopt`` (not glibc: musl, macOS, Windows) and nothing changed.
+    keeps its own policy unless it calls this.
+
+    Args:
+        limit_mb: the most freed memory kept, in MiB; None: the environment's
+            ``RINGSCAN_KEEP_FREED_MB`` (``0`` turns the policy off), else 512.
+
+    Returns:
+        True where the policy was set; False where it is off or the C library has
+        no ``mallopt`` (not glibc: musl, macOS, Windows): nothing changed.
     """
-    if not sys.platform.startswith("linux"):
+    if limit_mb is None:
+        env = os.environ.get(KEEP_FREED_ENV, "").strip()
+        try:
+            limit_mb = int(env) if env else DEFAULT_KEEP_FREED_MB
+        except ValueError:
+            log.warning("%s=%r is not a whole number of MiB: using %d", KEEP_FREED_ENV, env, DEFAULT_KEEP_FREED_MB)
+            limit_mb = DEFAULT_KEEP_FREED_MB
+    if limit_mb <= 0 or not sys.platform.startswith("linux"):
         return False
     try:
         mallopt = ctypes.CDLL(None).mallopt

@@ -12,7 +12,6 @@ import importlib
 import logging
 import sys
 
-from ringscan.kernels.runtime import retain_freed_memory
 from ringscan.pipeline.formats.errors import RingscanError, show_path
 
 log = logging.getLogger("ringscan")
@@ -70,7 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
-    retain_freed_memory()  # this process is ringscan's: keep freed arrays' pages for the next view
+    # This process is ringscan's: keep freed arrays' pages for the next view. Imported
+    # here, not at the top, so that importing the capture command (real drivers) loads
+    # no kernels and no Warp (tests/hardware/devices/test_camera.py).
+    from ringscan.kernels.runtime import retain_freed_memory
+
+    retain_freed_memory()
     try:
         return int(args._run(args) or 0)
     except RingscanError as e:

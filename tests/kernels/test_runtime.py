@@ -14,6 +14,8 @@ PROBE = textwrap.dedent("""
     from ringscan.kernels.runtime import retain_freed_memory
     if sys.argv[1] == "retain" and not retain_freed_memory():
         sys.exit(3)
+    if sys.argv[1] == "off" and retain_freed_memory():  # RINGSCAN_KEEP_FREED_MB=0
+        sys.exit(4)
 
     def view():  # a view's worth of per-pixel arrays, every page written, then all freed
         arrs = [np.empty(5 << 20, np.uint8) for _ in range(12)]
@@ -29,8 +31,11 @@ PROBE = textwrap.dedent("""
 """)
 
 
-def _faults_per_view(mode: str) -> float:
-    r = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, timeout=120)
+def _faults_per_view(mode: str, env: dict | None = None) -> float:
+    import os
+
+    r = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, **(env or {})})
     if r.returncode == 3:
         pytest.skip("this C library has no mallopt (not glibc): retain_freed_memory changes nothing")
     assert r.returncode == 0, r.stderr
@@ -45,6 +50,9 @@ def test_retained_memory_is_not_faulted_in_again():
     kept = _faults_per_view("retain")
     assert default > 1000  # what the policy is for (about one fault per 4 KiB page given back)
     assert kept < 0.02 * default
+    # RINGSCAN_KEEP_FREED_MB=0 turns it off: the default behaviour again
+    off = _faults_per_view("off", {"RINGSCAN_KEEP_FREED_MB": "0"})
+    assert off > 0.5 * default
 
 
 def test_retain_freed_memory_is_safe_to_call_again():
