@@ -100,10 +100,17 @@ def _safe_rel(folder: Path, src: Path, where: str, rel) -> str:
     p = PurePosixPath(rel.replace("\\", "/"))
     if p.is_absolute() or ".." in p.parts or (len(rel) > 1 and rel[1] == ":"):
         raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder")
-    full = (folder / p).resolve()
-    root = folder.resolve()
-    if full != root and root not in full.parents:
-        raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder (through a link)")
+    # Without ".." the path can only leave the folder through a link: look for one
+    # among its own components (one lstat each) and resolve the whole path only then.
+    cur = folder
+    for part in p.parts:
+        cur = cur / part
+        if cur.is_symlink():
+            full = (folder / p).resolve()
+            root = folder.resolve()
+            if full != root and root not in full.parents:
+                raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder (through a link)")
+            break
     return str(p)
 
 

@@ -193,6 +193,22 @@ def test_bad_scan(tmp_path, fn, match):
     assert "scan.json" in str(e.value) or "missing_rig.json" in str(e.value) or "nothere.png" in str(e.value)
 
 
+def test_frame_paths_through_links(tmp_path):
+    """A link inside the scan folder that stays inside is followed; one that leads out
+    of the folder (a view folder linked to elsewhere) is refused, naming scan.json."""
+    scan_dir = tmp_path / "scan"
+    _write_scan(scan_dir)
+    (scan_dir / "alias").symlink_to(scan_dir / "view_000", target_is_directory=True)
+    _edit_scan(scan_dir, lambda d: d["views"][0]["frames"].update(white="alias/white.png"))
+    assert load_scan(scan_dir).views[0].frames["white"] == "alias/white.png"
+    outside = tmp_path / "elsewhere"
+    (scan_dir / "view_000").rename(outside)
+    (scan_dir / "view_000").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(FormatError, match=r"scan.json: views\[0\].frames.\w+: path '\w+/\w+.png' leaves the "
+                                          r"scan folder \(through a link\)"):
+        load_scan(scan_dir)
+
+
 def test_scan_folder_errors(tmp_path):
     with pytest.raises(FormatError, match="nowhere: scan folder not found"):
         load_scan(tmp_path / "nowhere")
