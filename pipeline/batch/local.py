@@ -61,36 +61,60 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
         return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
                                    initargs=(None, q, os.getpid(), cpu_threads)), q
 
+    pending: list = []  # taken from ``jobs`` but not running: the pool broke as they were given to it
+
+    def next_item():
+        if pending:
+            return pending.pop(0)
+        try:
+            n, job = next(source)
+        except StopIteration:
+            return None
+        return n, job, 0
+
     pool, queue = start_pool()
     try:
         while True:
-            if suspects:
-                if not in_flight:
-                    item = suspects.pop(0)
-                    in_flight[pool.submit(process_scan, item[1])] = item
+            lost: list = []
+            alone = False
+            try:
+                if suspects:
+                    if not in_flight:
+                        item = suspects.pop(0)
+                        try:
+                            in_flight[pool.submit(process_scan, item[1])] = item
+                        except BrokenProcessPool:
+                            suspects.insert(0, item)
+                            raise
+                else:
+                    while len(in_flight) < 2 * workers:
+                        item = next_item()
+                        if item is None:
+                            break
+                        try:
+                            in_flight[pool.submit(process_scan, item[1])] = item
+                        except BrokenProcessPool:
+                            pending.insert(0, item)
+                            raise
+            except BrokenProcessPool:
+                pass  # a worker died between scans: the pool is gone, with whatever was in flight
             else:
-                while len(in_flight) < 2 * workers and not exhausted:
+                if not in_flight:
+                    return
+                done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+                alone = len(in_flight) == 1
+                broken = False
+                for f in done:
+                    item = in_flight.pop(f)
                     try:
-                        n, job = next(source)
-                    except StopIteration:
-                        exhausted = True
-                        break
-                    in_flight[pool.submit(process_scan, job)] = (n, job, 0)
-            if not in_flight:
-                return
-            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
-            alone = len(in_flight) == 1
-            lost = []
-            for f in done:
-                item = in_flight.pop(f)
-                try:
-                    entry = f.result()
-                except BrokenProcessPool:
-                    lost.append(item)
+                        entry = f.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        lost.append(item)
+                        continue
+                    yield item[0], entry
+                if not broken:
                     continue
-                yield item[0], entry
-            if not lost:
-                continue
             # The pool is gone with every scan in flight.
             for f, item in in_flight.items():
                 f.cancel()

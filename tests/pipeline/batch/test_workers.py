@@ -191,3 +191,41 @@ def test_workers_exit_when_the_batch_process_is_killed(three_scans, tmp_path):
     while any(running(k) for k in kids) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(running(k) for k in kids)
+
+
+def test_a_worker_that_dies_between_scans_breaks_nothing(monkeypatch):
+    """The pool can break while no scan is running on the dead worker (killed between two
+    scans): the next submit then fails. The batch starts a new pool and every scan is
+    still done exactly once. (A fake pool: the breakage at that moment cannot be timed
+    with real processes.)"""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ringscan.pipeline.batch import local
+    from ringscan.pipeline.batch.worker import ScanJob
+
+    pools = []
+
+    class FakePool:
+        def __init__(self, *a, **k):
+            self.submitted = 0
+            pools.append(self)
+
+        def submit(self, fn, job):
+            # the first pool breaks at its third submit, as if a worker had just died
+            if len(pools) == 1 and self.submitted == 2:
+                raise BrokenProcessPool("a worker died")
+            self.submitted += 1
+            f = Future()
+            f.set_result({"scan": job.rel, "status": "done"})
+            return f
+
+        def shutdown(self, *a, **k):
+            pass
+
+    monkeypatch.setattr(local, "ProcessPoolExecutor", FakePool)
+    jobs = [ScanJob(folder=f"/x/s{i}", rel=f"s{i}", out=f"/o/s{i}") for i in range(6)]
+    got = list(local.run_local(iter(jobs), workers=2, devices=[None, None]))
+    assert sorted(n for n, _ in got) == list(range(6))  # each scan once
+    assert all(e["status"] == "done" for _, e in got)
+    assert len(pools) == 2
