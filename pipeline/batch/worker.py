@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device, retain_freed_memory
 from ringscan.kernels.launch import set_cpu_threads
-from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remove_stale_temporaries
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
 from ringscan.pipeline.formats.scan import load_scan
@@ -140,6 +140,9 @@ def process_scan(job: ScanJob) -> dict:
         scan = load_scan(job.folder)
         if not scan.views:
             raise RingscanError(f"{scan.path}: the scan has no views")
+        # A worker killed with the pool (another scan crashed it) may have left a temporary file here,
+        # even where this scan then turns out to be done.
+        remove_stale_temporaries(out)
         check = check_done(scan, out, settings=job.settings)
         if check.done and check.kept:
             views = list(check.kept.values())

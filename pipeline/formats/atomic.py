@@ -226,6 +226,8 @@ def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
 
 
 def _process_alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs. A zombie (exited, not yet reaped by its
+    parent: a batch worker just killed, say) does not: it will write nothing more."""
     if pid == os.getpid():
         return True
     try:
@@ -234,7 +236,12 @@ def _process_alive(pid: int) -> bool:
         return False
     except (PermissionError, OverflowError):
         return True
-    return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            state = f.read().rsplit(b")", 1)[1].split()[0]
+    except (OSError, IndexError):  # no /proc (not Linux): it exists, so it runs
+        return True
+    return state not in (b"Z", b"X")
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -9,6 +9,7 @@ import stat
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -94,6 +95,23 @@ def test_a_killed_writers_temporary_file_is_removed(tmp_path):
     assert remove_stale_temporaries(tmp_path) == []
     os.utime(old, (time.time() - 7200, time.time() - 7200))
     assert remove_stale_temporaries(tmp_path) == [old]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="zombies are told apart through /proc (Linux)")
+def test_a_temporary_file_of_a_killed_but_unreaped_writer_is_removed(tmp_path):
+    """A batch worker killed with its pool is a zombie until the pool reaps it; its pid
+    still answers kill(pid, 0), yet it will write nothing more: its file is stale."""
+    child = subprocess.Popen([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])
+    try:
+        deadline = time.time() + 30
+        while Path(f"/proc/{child.pid}/stat").read_bytes().rsplit(b")", 1)[1].split()[0] != b"Z":
+            assert time.time() < deadline, "the child did not die"
+            time.sleep(0.01)
+        tmp = tmp_path / f".report.json.{child.pid}-abcd1234.tmp.json"
+        tmp.write_bytes(b"{")
+        assert remove_stale_temporaries(tmp_path) == [tmp]
+    finally:
+        child.wait()
 
 
 def test_output_folder_checks(tmp_path):
