@@ -140,11 +140,11 @@ def process_scan(job: ScanJob) -> dict:
         scan = load_scan(job.folder)
         if not scan.views:
             raise RingscanError(f"{scan.path}: the scan has no views")
-        # A worker killed with the pool (another scan crashed it) may have left a temporary file here,
-        # even where this scan then turns out to be done.
-        remove_stale_temporaries(out)
         check = check_done(scan, out, settings=job.settings)
         if check.done and check.kept:
+            # A worker killed with the pool (another scan crashed it) may have left a temporary file here
+            # after this scan's last write (reconstruct_scan clears them where the scan is (re)done).
+            remove_stale_temporaries(out)
             views = list(check.kept.values())
             computed: list[dict] = []
             entry["status"] = "skipped (already done)"

@@ -51,15 +51,21 @@ def write_mesh(path: str | os.PathLike, mesh) -> None:
             raise FormatError(path, "Open3D could not write the mesh")
 
 
+def _check_input(path: Path) -> None:
+    """FormatError for a missing file or a truncated PLY (Open3D reads a truncated PLY
+    up to where it ends, without a word)."""
+    if not path.is_file():
+        raise FormatError(path, "file not found")
+    if path.suffix.lower() == ".ply":
+        check_ply(path)
+
+
 def read_mesh(path: str | os.PathLike):
     """Read a PLY/OBJ/STL mesh with Open3D; FormatError when missing or without triangles."""
     o3d = open3d_lib()
     path = Path(path)
     _ext(path, MESH_FORMATS)
-    if not path.is_file():
-        raise FormatError(path, "file not found")
-    if path.suffix.lower() == ".ply":
-        check_ply(path)  # Open3D reads a truncated PLY up to where it ends, without a word
+    _check_input(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
@@ -72,10 +78,7 @@ def read_cloud(path: str | os.PathLike):
     empty, or (PLY) truncated. Non-finite points are kept (see :func:`drop_non_finite`)."""
     o3d = open3d_lib()
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(path, "file not found")
-    if path.suffix.lower() == ".ply":
-        check_ply(path)  # Open3D reads a truncated PLY up to where it ends, without a word
+    _check_input(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         pcd = o3d.io.read_point_cloud(str(path))
     if len(pcd.points) == 0:
