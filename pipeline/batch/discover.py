@@ -85,6 +85,9 @@ def plan_scan(folder: Path, rel: str, out: Path, *, settings: ReconstructSetting
         return ScanPlan(rel, "run", "new")
     reasons = list(dict.fromkeys(check.redo.values()))
     detail = "; ".join(f"{n}: {why}" for n, why in check.redo.items())
+    if not check.finished and not reasons:
+        return ScanPlan(rel, "run", "incomplete", "every view is done; the earlier run stopped before its report was "
+                                                  "finished (the report is written again, no view is redone)")
     if any("settings" in r for r in reasons):
         why = "changed settings"
     elif check.kept:

@@ -132,11 +132,15 @@ class DoneCheck:
     """View name -> why it must be (re)done."""
     report: dict | None = None
     """The earlier report (None when there is none or it cannot be read)."""
+    finished: bool = True
+    """Whether the earlier run wrote its final report (with ``totals``): a run killed
+    after its last view's report but before the final one left every view whole yet
+    the report unfinished; a resumed run keeps the views and finishes the report."""
 
     @property
     def done(self) -> bool:
-        """True when every view asked for is done."""
-        return not self.redo
+        """True when every view asked for is done and the earlier report is finished."""
+        return not self.redo and self.finished
 
 
 def check_done(scan: Scan, out_dir: str | os.PathLike, *, settings, views: list[str] | None = None) -> DoneCheck:
@@ -188,7 +192,7 @@ def check_done(scan: Scan, out_dir: str | os.PathLike, *, settings, views: list[
                 kept[n] = e
             else:
                 redo[n] = why
-    return DoneCheck(hashes, kept=kept, redo=redo, report=old)
+    return DoneCheck(hashes, kept=kept, redo=redo, report=old, finished=isinstance(old.get("totals"), dict))
 
 
 def _check_files(out: Path, name: str, entry: dict) -> str | None:

@@ -86,6 +86,29 @@ def test_resume_keeps_views_made_from_the_same_inputs(scan, tmp_path):
     assert check_done(scan, out, settings=ReconstructSettings()).done
 
 
+def test_a_report_left_unfinished_is_finished_without_redoing_views(scan, tmp_path):
+    """Killed after the last view's report but before the final one (no totals): every
+    view is whole, yet the scan is not done; a resumed run keeps the views and writes
+    the report a finished run writes (a batch worker killed with its pool did this)."""
+    out = tmp_path / "rec"
+    full = reconstruct_scan(scan, out, device="cpu", progress=False)
+    rep = read_json(out / "report.json")
+    del rep["totals"], rep["time_s"]
+    (out / "report.json").write_text(json.dumps(rep))
+    before = {p.name: p.stat().st_mtime_ns for p in out.glob("*.ply")}
+    check = check_done(scan, out, settings=ReconstructSettings())
+    assert not check.done and not check.finished and set(check.kept) == {"view_000", "view_001"} and not check.redo
+    from ringscan.pipeline.batch.discover import plan_scan
+
+    plan = plan_scan(scan.folder, "scan", out, settings=ReconstructSettings())  # what --dry-run says
+    assert (plan.action, plan.why) == ("run", "incomplete") and "no view is redone" in plan.detail
+    again = reconstruct_scan(scan, out, device="cpu", resume=True, progress=False)
+    assert again["resume"] == {"kept": ["view_000", "view_001"], "redone": {}}
+    assert again["totals"] == full["totals"]
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.ply")} == before
+    assert check_done(scan, out, settings=ReconstructSettings()).done
+
+
 @pytest.mark.parametrize("damage", ["empty", "truncated", "missing"])
 def test_a_damaged_ply_is_redone(scan, tmp_path, damage):
     out = tmp_path / "rec"
