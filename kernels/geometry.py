@@ -54,6 +54,8 @@ __all__ = [
     "in_volume",
     "ray_ring_roots",
     "root_usable",
+    "light_pixel_ray",
+    "closest_on_ray",
 ]
 
 
@@ -451,6 +453,35 @@ def root_usable(light: LightModel, X: wp.vec3, t: float, vol: Volume):
     if light.model != LIGHT_PARALLEL:
         ok = ok and (light.cam.R * X + light.cam.t)[2] > 0.0
     return ok
+
+
+@wp.func
+def light_pixel_ray(light: LightModel, u: float, v: float):
+    """The light's ray through projector pixel (u, v) (lens distortion undone).
+
+    Returns (origin, unit direction, ok) in the world frame; ok is False where the
+    projector pixel has no undistorted point (:func:`undistort`)."""
+    if light.model == LIGHT_PARALLEL:
+        XL = wp.vec3(light.s * (u - light.a[0]), light.s * (v - light.a[1]), 0.0)
+        RT = wp.transpose(light.R)
+        return RT * (XL - light.t), RT * wp.vec3(0.0, 0.0, -1.0), True
+    c = light.cam
+    yd = (v - c.cy) / c.fy
+    xd = (u - c.cx - c.skew * yd) / c.fx
+    n = undistort(c, xd, yd)
+    return c.center, wp.normalize(wp.transpose(c.R) * wp.vec3(n[0], n[1], 1.0)), n[2] > 0.0
+
+
+@wp.func
+def closest_on_ray(C: wp.vec3, d: wp.vec3, O: wp.vec3, e: wp.vec3):
+    """Parameter t of the point of the ray C + t d (d unit) nearest the line O + s e
+    (e unit); 0 where the two are parallel."""
+    w = C - O
+    b = wp.dot(d, e)
+    den = 1.0 - b * b
+    if den < 1.0e-12:
+        return 0.0
+    return (b * wp.dot(e, w) - wp.dot(d, w)) / den
 
 
 # ----------------------------------------------------------------------------- host builders

@@ -38,10 +38,14 @@ import warp as wp
 
 from ringscan.kernels.geometry import (
     LIGHT_PARALLEL,
+    NEWTON_STEPS,
     CameraModel,
     LightModel,
     Volume,
     camera_ray,
+    closest_on_ray,
+    light_pixel,
+    light_pixel_ray,
     make_volume,
     pattern_offset,
     polar_angle,
@@ -59,11 +63,21 @@ STATUS_GRAZING = wp.constant(5)
 STATUS_ISOLATED = 6  # given by kernels.point_filter
 STATUS_NOT_CONVERGED = wp.constant(7)
 STATUS_UNDISTORT_FAILED = wp.constant(8)
+STATUS_ILL_CONDITIONED = wp.constant(9)
+STATUS_INCONSISTENT = wp.constant(10)
 STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated",
-                "not_converged", "undistort_failed")
+                "not_converged", "undistort_failed", "ill_conditioned", "inconsistent")
 PI = wp.constant(3.14159265358979)
+CONSTRAINT_RINGS = wp.constant(0)
+CONSTRAINT_ANGLE = wp.constant(1)
+CONSTRAINT_BOTH = wp.constant(2)
+CONSTRAINTS = ("auto", "rings", "angle", "both")
+"""``TriangulateSettings.constraint`` values (auto: both where the samples carry an angle, else rings)."""
+NOMINAL_SIGMA_PX = 0.05
+"""Standard deviation (projector px) assumed for samples whose codec predicts none."""
 
-__all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES"]
+__all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES",
+           "CONSTRAINTS", "NOMINAL_SIGMA_PX"]
 
 
 @dataclass(frozen=True)
@@ -79,9 +93,23 @@ class TriangulateSettings:
     only if the other is farther by at least this many sector widths; otherwise
     the point is dropped as ambiguous."""
     min_incidence_cos: float = 0.03
-    """Least |cos| of the angle between the camera ray and the quadric's normal.
-    The depth error is the sampling error divided by it: below 0.03 (rays within
-    ~2 degrees of grazing the ring's surface) a 0.05 px error costs millimetres."""
+    """Least conditioning of a point, in [0, 1]: with the ring constraint alone,
+    |cos| of the angle between the camera ray and the quadric's normal; with the
+    angle too, the information the projector gives along the camera ray over
+    the most it gives in any direction there (|cos| again for rings alone). The
+    depth error is the sampling error divided by it: below 0.03 (rays within ~2
+    degrees of grazing) a 0.05 px error costs millimetres. Points below it are
+    dropped as ``grazing`` (rings) or ``ill_conditioned`` (angle, both)."""
+    constraint: str = "auto"
+    """Which projector coordinates place a point: ``rings`` (the paper: the ring's
+    cylinder or cone, the sector picks the root), ``angle`` (the polar angle's
+    half-plane alone; for comparison), ``both`` (weighted least squares of both),
+    or ``auto`` (both where a sample carries an angle, rings elsewhere)."""
+    max_residual_px: float = 2.0
+    """With the angle: largest distance (projector px) between the observed
+    projector pixel and the best point's own; above it the two coordinates
+    disagree (a decode error, a reflection, a wrong calibration) and the point
+    is dropped as ``inconsistent``."""
 
 
 @dataclass
@@ -95,7 +123,11 @@ class Triangulation:
     confidence: wp.array
     """float32 sample confidence times |cos| of the ray's incidence on the quadric."""
     residual: wp.array
-    """float32 angular residual in sectors (0 inside the sector; -1 without sectors)."""
+    """float32 consistency residual: for the ring constraint the angular residual in
+    sectors (0 inside the sector; -1 without sectors); with the angle the distance
+    (projector px) between the observed and the point's projector pixel."""
+    sigma: wp.array
+    """float32 predicted standard deviation of the point along the camera ray (mm)."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -116,50 +148,38 @@ def sector_residual(light: LightModel, X: wp.vec3, center: wp.vec2, sector: int,
 # ----------------------------------------------------------------------------- kernels
 
 
-@wp.kernel
-def triangulate_kernel(
-    uv: wp.array(dtype=wp.vec2),
-    rho: wp.array(dtype=wp.float32),
-    sector: wp.array(dtype=wp.int32),
-    sample_conf: wp.array(dtype=wp.float32),
-    cam: CameraModel,
-    light: LightModel,
-    vol: Volume,
-    center: wp.vec2,
-    n_sectors: int,
-    sector_tolerance: float,
-    sector_margin: float,
-    min_incidence_cos: float,
-    i0: int,
-    points: wp.array(dtype=wp.vec3),
-    status: wp.array(dtype=wp.int32),
-    confidence: wp.array(dtype=wp.float32),
-    residual: wp.array(dtype=wp.float32),
-):
-    """Triangulate sample i0 + tid.
+@wp.func
+def ring_slope(light: LightModel, X: wp.vec3, d: wp.vec3, center: wp.vec2):
+    """|d rho / dt| along the unit ray direction d at X (projector px per mm)."""
+    h = 0.01
+    a = wp.length(pattern_offset(light, X + d * h, center))
+    b = wp.length(pattern_offset(light, X - d * h, center))
+    return wp.abs(a - b) / (2.0 * h)
 
-    uv (n,) vec2, rho (n,) float32 projector px, sector (n,) int32 (-1 unknown),
-    sample_conf (n,) float32: read.
-    points (n,) vec3, status (n,) int32, confidence (n,) float32,
-    residual (n,) float32: written.
-    """
-    i = i0 + wp.tid()
-    d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
-    C = cam.center
-    r = rho[i]
-    points[i] = wp.vec3(0.0, 0.0, 0.0)
-    confidence[i] = 0.0
-    residual[i] = -1.0
-    if not ray_ok:
-        status[i] = STATUS_UNDISTORT_FAILED
-        return
+
+@wp.func
+def whitened_offset(light: LightModel, X: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, w_r: float, w_t: float):
+    """The projector-grid offset of X from the observed pixel, in standard
+    deviations: (radial / sigma_rho, tangential / sigma_tan)."""
+    p = light_pixel(light, X)
+    dx = p[0] - p_obs[0]
+    dy = p[1] - p_obs[1]
+    return wp.vec2(w_r * (dx * e_r[0] + dy * e_r[1]), w_t * (dy * e_r[0] - dx * e_r[1]))
+
+
+@wp.func
+def rings_solution(
+    light: LightModel, C: wp.vec3, d: wp.vec3, r: float, s: int, vol: Volume, center: wp.vec2, n_sectors: int,
+    sector_tolerance: float, sector_margin: float, min_incidence_cos: float,
+):
+    """The ring constraint alone: the ray meets the quadric of ring r; the sector
+    picks the root. Returns (X, status, |cos| of incidence, sector residual)."""
+    zero = wp.vec3(0.0, 0.0, 0.0)
     roots, failed = ray_ring_roots(light, C, d, r, center)
     if roots[2] == 0.0:
-        status[i] = STATUS_NO_ROOT
-        return
+        return zero, STATUS_NO_ROOT, 0.0, -1.0
     if failed != 0:
-        status[i] = STATUS_NOT_CONVERGED
-        return
+        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0
     t1 = roots[0]
     t2 = roots[1]
     X1 = C + d * t1
@@ -167,9 +187,7 @@ def triangulate_kernel(
     ok1 = root_usable(light, X1, t1, vol)
     ok2 = root_usable(light, X2, t2, vol)
     if not ok1 and not ok2:
-        status[i] = STATUS_OUTSIDE
-        return
-    s = sector[i]
+        return zero, STATUS_OUTSIDE, 0.0, -1.0
     use_sector = n_sectors > 0 and s >= 0
     X = X1
     res = float(-1.0)
@@ -177,21 +195,17 @@ def triangulate_kernel(
         e1 = wp.where(ok1, sector_residual(light, X1, center, s, n_sectors), 1.0e9)
         e2 = wp.where(ok2, sector_residual(light, X2, center, s, n_sectors), 1.0e9)
         if ok1 and ok2 and wp.abs(e1 - e2) < sector_margin:
-            status[i] = STATUS_AMBIGUOUS
-            return
+            return zero, STATUS_AMBIGUOUS, 0.0, -1.0
         if e2 < e1:
             X = X2
             res = e2
         else:
             res = e1
         if res > sector_tolerance:
-            status[i] = STATUS_SECTOR_MISMATCH
-            residual[i] = res
-            return
+            return zero, STATUS_SECTOR_MISMATCH, 0.0, res
     else:
         if ok1 and ok2:
-            status[i] = STATUS_AMBIGUOUS
-            return
+            return zero, STATUS_AMBIGUOUS, 0.0, -1.0
         if ok2:
             X = X2
     # Incidence: the angle between the ray and the quadric's normal (the
@@ -208,10 +222,153 @@ def triangulate_kernel(
                     wp.length(pattern_offset(light, X + wp.vec3(0.0, 0.0, h), center)) - f0)
     gl = wp.length(g)
     cosi = wp.where(gl > 0.0, wp.abs(wp.dot(g, d)) / gl, 0.0)
-    points[i] = X
-    confidence[i] = sample_conf[i] * cosi
-    status[i] = wp.where(cosi >= min_incidence_cos, STATUS_OK, STATUS_GRAZING)
+    return X, wp.where(cosi >= min_incidence_cos, STATUS_OK, STATUS_GRAZING), cosi, res
+
+
+@wp.func
+def full_solution(
+    light: LightModel, C: wp.vec3, d: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, w_r: float, w_t: float, vol: Volume,
+    min_incidence_cos: float, max_residual_px: float,
+):
+    """Both projector coordinates: the point on the ray whose projector pixel is
+    nearest the observed one, each direction weighted by its standard deviation
+    (Gauss-Newton in t from the ray-ray closest point, through the projector's
+    lens distortion). Returns (X, status, conditioning in [0, 1], residual px,
+    sigma mm along the ray)."""
+    zero = wp.vec3(0.0, 0.0, 0.0)
+    O, e, lok = light_pixel_ray(light, p_obs[0], p_obs[1])
+    if not lok:
+        return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0
+    t = closest_on_ray(C, d, O, e)
+    h = wp.max(0.05, 1.0e-4 * wp.abs(t))
+    converged = bool(False)
+    J = wp.vec2(0.0, 0.0)
+    for _i in range(NEWTON_STEPS):
+        r0 = whitened_offset(light, C + d * t, p_obs, e_r, w_r, w_t)
+        J = (whitened_offset(light, C + d * (t + h), p_obs, e_r, w_r, w_t)
+             - whitened_offset(light, C + d * (t - h), p_obs, e_r, w_r, w_t)) / (2.0 * h)
+        jj = wp.dot(J, J)
+        if not (jj > 1.0e-24):
+            break
+        step = wp.dot(J, r0) / jj
+        t = t - step
+        # 1 % of the point's own standard deviation is as far as refining helps
+        if wp.abs(step) < wp.max(wp.max(1.0e-4, 2.0e-7 * wp.abs(t)), 0.01 / wp.sqrt(jj)):
+            converged = True
+            break
+    X = C + d * t
+    if not converged:
+        # a far-off observation (the coordinates disagree) leaves float32 noise
+        # in the steps: name it for what it is
+        pe = light_pixel(light, X)
+        res_nc = wp.length(wp.vec2(pe[0] - p_obs[0], pe[1] - p_obs[1]))
+        if res_nc > max_residual_px:
+            return zero, STATUS_INCONSISTENT, 0.0, res_nc, 0.0
+        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0
+    if not root_usable(light, X, t, vol):
+        return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0
+    # Conditioning: the information along the ray, |J|^2, against the best any
+    # direction has here (the largest eigenvalue of A A^T, A = d offset / dX).
+    hx = 0.05
+    ax = (whitened_offset(light, X + wp.vec3(hx, 0.0, 0.0), p_obs, e_r, w_r, w_t)
+          - whitened_offset(light, X - wp.vec3(hx, 0.0, 0.0), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
+    ay = (whitened_offset(light, X + wp.vec3(0.0, hx, 0.0), p_obs, e_r, w_r, w_t)
+          - whitened_offset(light, X - wp.vec3(0.0, hx, 0.0), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
+    az = (whitened_offset(light, X + wp.vec3(0.0, 0.0, hx), p_obs, e_r, w_r, w_t)
+          - whitened_offset(light, X - wp.vec3(0.0, 0.0, hx), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
+    m11 = ax[0] * ax[0] + ay[0] * ay[0] + az[0] * az[0]
+    m22 = ax[1] * ax[1] + ay[1] * ay[1] + az[1] * az[1]
+    m12 = ax[0] * ax[1] + ay[0] * ay[1] + az[0] * az[1]
+    half = 0.5 * (m11 + m22)
+    lmax = half + wp.sqrt(wp.max(half * half - (m11 * m22 - m12 * m12), 0.0))
+    Jd = wp.vec2(ax[0] * d[0] + ay[0] * d[1] + az[0] * d[2], ax[1] * d[0] + ay[1] * d[1] + az[1] * d[2])
+    jl = wp.length(Jd)
+    cond = wp.where(lmax > 0.0, wp.min(jl / wp.sqrt(lmax), 1.0), 0.0)
+    sigma = wp.where(jl > 0.0, 1.0 / jl, 1.0e9)
+    p = light_pixel(light, X)
+    res = wp.length(wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1]))
+    status = int(STATUS_OK)
+    if cond < min_incidence_cos:
+        status = STATUS_ILL_CONDITIONED
+    elif res > max_residual_px:
+        status = STATUS_INCONSISTENT
+    return X, status, cond, res, sigma
+
+
+@wp.kernel
+def triangulate_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    rho: wp.array(dtype=wp.float32),
+    phi: wp.array(dtype=wp.float32),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    sector: wp.array(dtype=wp.int32),
+    sample_conf: wp.array(dtype=wp.float32),
+    cam: CameraModel,
+    light: LightModel,
+    vol: Volume,
+    center: wp.vec2,
+    constraint: int,
+    n_sectors: int,
+    sector_tolerance: float,
+    sector_margin: float,
+    min_incidence_cos: float,
+    max_residual_px: float,
+    i0: int,
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    confidence: wp.array(dtype=wp.float32),
+    residual: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+):
+    """Triangulate sample i0 + tid.
+
+    uv (n,) vec2, rho (n,) float32 projector px, phi (n,) float32 rad (NaN: no
+    angle), sigma_rho (n,), sigma_tan (n,) float32 projector px, sector (n,)
+    int32 (-1 unknown), sample_conf (n,) float32: read. With ``constraint``
+    CONSTRAINT_RINGS, or where a sample has no angle, the ring constraint alone;
+    otherwise both coordinates (CONSTRAINT_BOTH) or the angle alone
+    (CONSTRAINT_ANGLE).
+    points (n,) vec3, status (n,) int32, confidence (n,) float32, residual (n,)
+    float32 (sector widths for the ring constraint, projector px otherwise),
+    sigma (n,) float32 mm: written.
+    """
+    i = i0 + wp.tid()
+    d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
+    C = cam.center
+    r = rho[i]
+    f = phi[i]
+    points[i] = wp.vec3(0.0, 0.0, 0.0)
+    confidence[i] = 0.0
+    residual[i] = -1.0
+    sigma[i] = 0.0
+    if not ray_ok:
+        status[i] = STATUS_UNDISTORT_FAILED
+        return
+    st = int(0)
+    X = wp.vec3(0.0, 0.0, 0.0)
+    q = float(0.0)
+    res = float(-1.0)
+    sg = float(0.0)
+    st_t = sigma_tan[i]
+    if constraint != CONSTRAINT_RINGS and f == f and st_t > 0.0:
+        e_r = wp.vec2(wp.cos(f), wp.sin(f))
+        p_obs = wp.vec2(center[0] + r * e_r[0], center[1] + r * e_r[1])
+        w_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / wp.max(sigma_rho[i], 1.0e-6))
+        X, st, q, res, sg = full_solution(light, C, d, p_obs, e_r, w_r, 1.0 / wp.max(st_t, 1.0e-6), vol,
+                                          min_incidence_cos, max_residual_px)
+    else:
+        X, st, q, res = rings_solution(light, C, d, r, sector[i], vol, center, n_sectors, sector_tolerance,
+                                       sector_margin, min_incidence_cos)
+        if st == STATUS_OK or st == STATUS_GRAZING:
+            slope = ring_slope(light, X, d, center)
+            sg = wp.where(slope > 0.0, sigma_rho[i] / slope, 1.0e9)
+    status[i] = st
     residual[i] = res
+    if st == STATUS_OK or st == STATUS_GRAZING or st == STATUS_ILL_CONDITIONED or st == STATUS_INCONSISTENT:
+        points[i] = X
+        confidence[i] = sample_conf[i] * q
+        sigma[i] = sg
 
 
 @wp.kernel
@@ -248,10 +405,15 @@ def triangulate_rings(
     volume: tuple[float, float, float],
     center: tuple[float, float],
     sector_bits: int = 0,
+    phi: wp.array | None = None,
+    sigma_rho: wp.array | None = None,
+    sigma_tan: wp.array | None = None,
     settings: TriangulateSettings = TriangulateSettings(),
     threads: int | None = None,
 ) -> Triangulation:
-    """Triangulate ring samples: each camera ray meets its ring's quadric.
+    """Triangulate samples: each camera ray meets its ring's quadric, or, where a
+    sample carries its polar angle too, the point that fits both projector
+    coordinates best (``settings.constraint``).
 
     Args:
         uv: (n,) vec2 camera pixel coordinates (distorted image).
@@ -262,13 +424,30 @@ def triangulate_rings(
         volume: (z_min, z_max, r_max) of the working volume, world mm.
         center: pattern centre (c_u, c_v) in projector pixels.
         sector_bits: sector Gray-code bits of the scan (0: none).
-        settings: root-choice settings.
+        phi: (n,) float32 polar angle (rad) around the centre, NaN where unknown;
+            None: no sample has one.
+        sigma_rho: (n,) float32 standard deviation of rho (projector px);
+            None: ``NOMINAL_SIGMA_PX``.
+        sigma_tan: (n,) float32 standard deviation of the tangential position
+            rho * phi (projector px); required with ``phi``.
+        settings: root-choice and constraint settings.
         threads: CPU threads; default all cores.
     """
     n = uv.shape[0] if isinstance(uv, wp.array) else None
     if n is None or uv.dtype != wp.vec2:
         raise ValueError("triangulate_rings: uv must be a Warp array of vec2")
-    for name, a, dt in (("rho", rho, wp.float32), ("sector", sector, wp.int32), ("sample_confidence", sample_confidence, wp.float32)):
+    if settings.constraint not in CONSTRAINTS:
+        raise ValueError(f"triangulate_rings: constraint must be one of {', '.join(CONSTRAINTS)}, "
+                         f"not {settings.constraint!r}")
+    if phi is not None and sigma_tan is None:
+        raise ValueError("triangulate_rings: phi needs sigma_tan")
+    if phi is None and settings.constraint in ("angle", "both"):
+        raise ValueError(f"triangulate_rings: constraint {settings.constraint!r} needs samples with an angle "
+                         "(this codec decodes none)")
+    checks = [("rho", rho, wp.float32), ("sector", sector, wp.int32), ("sample_confidence", sample_confidence, wp.float32)]
+    checks += [(k, a, wp.float32) for k, a in (("phi", phi), ("sigma_rho", sigma_rho), ("sigma_tan", sigma_tan))
+               if a is not None]
+    for name, a, dt in checks:
         if not isinstance(a, wp.array) or a.dtype != dt or a.shape != (n,):
             raise ValueError(f"triangulate_rings: {name} must be a ({n},) {dt.__name__} Warp array")
     z_min, z_max, r_max = (float(x) for x in volume)
@@ -280,14 +459,22 @@ def triangulate_rings(
         status=wp.empty(n, dtype=wp.int32, device=dev),
         confidence=wp.empty(n, dtype=wp.float32, device=dev),
         residual=wp.empty(n, dtype=wp.float32, device=dev),
+        sigma=wp.empty(n, dtype=wp.float32, device=dev),
     )
     if n == 0:
         return out
+    if sigma_rho is None:
+        sigma_rho = wp.full(n, NOMINAL_SIGMA_PX, dtype=wp.float32, device=dev)
+    if phi is None:
+        phi = wp.full(n, float("nan"), dtype=wp.float32, device=dev)
+        sigma_tan = wp.zeros(n, dtype=wp.float32, device=dev)
+    constraint = {"auto": 2, "both": 2, "angle": 1, "rings": 0}[settings.constraint]
     vol = make_volume(z_min, z_max, r_max)
     n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
-    args = [uv, rho, sector, sample_confidence, camera, light, vol, wp.vec2(*center), n_sectors,
-            settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos]
-    outputs = [out.points, out.status, out.confidence, out.residual]
+    args = [uv, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, wp.vec2(*center),
+            constraint, n_sectors, settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos,
+            settings.max_residual_px]
+    outputs = [out.points, out.status, out.confidence, out.residual, out.sigma]
     threads = default_threads() if threads is None else threads
     launch_spans(triangulate_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out

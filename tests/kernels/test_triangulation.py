@@ -190,3 +190,131 @@ def test_status_names_cover_every_code():
     assert STATUS_NAMES[:7] == ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing",
                                 "isolated")
     assert STATUS["not_converged"] == 7 and STATUS["undistort_failed"] == 8
+
+
+# ----------------------------------------------------------------------------- both projector coordinates
+
+
+def _run_full(device, cam, light, uv, rho, phi, s_rho, s_tan, sec=None, vol=(-3, 95, 100), **kw):
+    n = len(uv)
+    sec = np.full(n, -1, np.int32) if sec is None else sec
+    return triangulate_rings(wp.array(uv, dtype=wp.vec2, device=device), wp.array(rho, device=device),
+                             wp.array(sec, device=device), wp.ones(n, dtype=wp.float32, device=device),
+                             camera=cam, light=light, volume=vol, center=CENTER,
+                             phi=wp.array(np.asarray(phi, np.float32), device=device),
+                             sigma_rho=wp.array(np.full(n, s_rho, np.float32), device=device),
+                             sigma_tan=wp.array(np.full(n, s_tan, np.float32), device=device), **kw)
+
+
+def _polar(model, P, light_params):
+    L = light_params
+    if model == "parallel":
+        pu = P[:, 0] / L.pixel_pitch_mm + L.axis_px[0]
+        pv = P[:, 1] / L.pixel_pitch_mm + L.axis_px[1]
+    else:
+        pp = cv2.projectPoints(P, cv2.Rodrigues(L.R)[0], L.t, L.K, PROJ_DIST)[0][:, 0]
+        pu, pv = pp[:, 0], pp[:, 1]
+    return np.arctan2(pv - CENTER[1], pu - CENTER[0]).astype(np.float32)
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_both_coordinates_place_every_point_without_a_sector(device, model):
+    """With rho and the polar angle every sample has one answer: no ambiguous
+    root, no sector needed, and the points come back where they were (the
+    projector's lens distortion included)."""
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    phi = _polar(model, P, rig.light)
+    T = _run_full(device, cam, light, uv, rho, phi, 0.05, 0.05)
+    st, X = T.status.numpy(), T.points.numpy()
+    assert np.all(st == 0)
+    assert np.linalg.norm(X - P, axis=1).max() < 2e-3
+    assert np.all(T.residual.numpy() < 0.01)  # projector px
+    # rings alone on the same samples, without a sector: ambiguous roots are dropped
+    R = _run(device, cam, light, uv, rho, np.full_like(sec, -1))
+    assert np.mean(R.status.numpy() == 3) > 0.1
+
+
+def test_both_coordinates_where_the_ring_is_blind(device):
+    """Rays that run along the ring's cylinder (|cos| < 0.05, where the ring
+    alone drops the point as grazing or puts it millimetres off) are placed by
+    the angle, with a small predicted sigma; rings-only drops them."""
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=20000, seed=7)
+    R = _run(device, cam, light, uv, rho, sec)
+    cos = R.confidence.numpy()
+    phi = _polar("parallel", P, rig.light)
+    T = _run_full(device, cam, light, uv, rho, phi, 0.05, 0.05)
+    st = T.status.numpy()
+    blind = (R.status.numpy() == 5)
+    assert blind.sum() > 20
+    assert np.all(st[blind] == 0)
+    assert np.linalg.norm(T.points.numpy()[blind] - P[blind], axis=1).max() < 2e-3
+    sig_rings = 0.05 / np.maximum(cos, 1e-9)  # what the ring alone would give (px over |d rho/dt|), in relative terms
+    assert np.median(T.sigma.numpy()[blind]) < 0.2  # mm: the angle pins the depth there
+    assert np.all(T.confidence.numpy()[blind] > 0.03)
+    assert sig_rings[blind].min() > 0  # the ring constraint had (almost) nothing there
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_predicted_sigma_matches_the_scatter(device, model):
+    """Noise of known standard deviation on rho and on the tangential position:
+    the scatter of the points along the ray matches the predicted sigma."""
+    rig, cam, light, P0, uv0, rho0, _ = _setup(model, n=40, seed=11)
+    phi0 = _polar(model, P0, rig.light)
+    k = 400
+    rng = np.random.default_rng(1)
+    s_rho, s_tan = 0.05, 0.2
+    uv = np.repeat(uv0, k, 0)
+    rho = (np.repeat(rho0, k) + rng.normal(0, s_rho, uv.shape[0])).astype(np.float32)
+    phi = (np.repeat(phi0, k) + rng.normal(0, s_tan, uv.shape[0]) / np.repeat(rho0, k)).astype(np.float32)
+    T = _run_full(device, cam, light, uv, rho, phi, s_rho, s_tan, vol=(-50, 200, 300))
+    st = T.status.numpy().reshape(40, k)
+    X = T.points.numpy().reshape(40, k, 3)
+    sig = T.sigma.numpy().reshape(40, k)
+    good = np.all(st == 0, axis=1)
+    assert good.sum() >= 30
+    spread = np.array([np.linalg.norm(X[i] - X[i].mean(0), axis=1).std() * 0 + np.sqrt(
+        np.sum(np.var(X[i], axis=0))) for i in np.flatnonzero(good)])
+    pred = np.median(sig[good], axis=1)
+    ratio = spread / pred
+    assert 0.8 < np.median(ratio) < 1.25
+
+
+def test_angle_alone_and_inconsistent_angles(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel")
+    phi = _polar("parallel", P, rig.light)
+    A = _run_full(device, cam, light, uv, rho, phi, 0.05, 0.05, settings=TriangulateSettings(constraint="angle"))
+    ok = A.status.numpy() == 0
+    assert ok.mean() > 0.9
+    assert np.linalg.norm(A.points.numpy()[ok] - P[ok], axis=1).max() < 5e-3
+    # an angle 0.3 rad off disagrees with the ring: dropped as inconsistent, never placed silently
+    T = _run_full(device, cam, light, uv, rho, phi + 0.3, 0.05, 0.05)
+    st = T.status.numpy()
+    assert np.mean(st == STATUS["inconsistent"]) > 0.9
+    assert np.all(T.residual.numpy()[st == STATUS["inconsistent"]] > 2.0)
+
+
+def test_rays_along_the_projector_ray_are_ill_conditioned(device):
+    """A camera ray parallel to the light's rays (the camera on the light axis)
+    learns nothing of its depth from the projector: dropped as ill_conditioned."""
+    rig = default_rig(light_model="parallel")
+    L = rig.light
+    light = make_parallel_light(L.R, L.t, L.pixel_pitch_mm, L.axis_px)
+    K = np.array([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]])
+    R = np.diag([1.0, -1.0, -1.0])  # looking down -z, as the light does
+    cam = make_camera(K, None, R, -R @ np.array([5.0, 3.0, 500.0]))
+    P = np.array([[5.0 + 0.01, 3.0, 10.0], [5.0, 3.0 + 0.01, 30.0]])
+    uv = cv2.projectPoints(P, cv2.Rodrigues(R)[0], -R @ np.array([5.0, 3.0, 500.0]), K, None)[0][:, 0]
+    pu = P[:, 0] / L.pixel_pitch_mm + L.axis_px[0]
+    pv = P[:, 1] / L.pixel_pitch_mm + L.axis_px[1]
+    rho = np.hypot(pu - CENTER[0], pv - CENTER[1]).astype(np.float32)
+    phi = np.arctan2(pv - CENTER[1], pu - CENTER[0]).astype(np.float32)
+    T = _run_full(device, cam, light, uv.astype(np.float32), rho, phi, 0.05, 0.05, vol=(-3, 95, 200))
+    assert np.all(np.isin(T.status.numpy(), [STATUS["ill_conditioned"], STATUS["not_converged"]]))
+
+
+def test_constraint_setting_is_checked(device):
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=4)
+    with pytest.raises(ValueError, match="constraint"):
+        _run(device, cam, light, uv, rho, sec, settings=TriangulateSettings(constraint="cones"))
+    with pytest.raises(ValueError, match="needs samples with an angle"):
+        _run(device, cam, light, uv, rho, sec, settings=TriangulateSettings(constraint="both"))
