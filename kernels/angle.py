@@ -1,0 +1,326 @@
+"""The angle code, per sample: the polar angle around the pattern centre from
+phase-shifted angular fringes, unwrapped by the sector code (docs/design.md,
+"Rings and angle"; docs/dense.md, "The angle code").
+
+The frames ``angle_<n>``, n = 0..N-1, show I_n = 0.5 + 0.5 cos(P phi - 2 pi n / N)
+inside the coded annulus, phi = atan2(v_p - c_v, u_p - c_u). The number of
+periods P doubles outward in zones (:func:`angle_zones`) so that one period is
+never shorter than ``min_period_px`` projector pixels at a zone's inner radius:
+the fringes stay resolvable near the centre and sharp far from it. Zone edges
+lie on band centres, away from the ring edges that the gray-rings samples sit on.
+Per sample (a sub-pixel camera position and its decoded rho and sector):
+
+1. The white, black and angle frames are interpolated bilinearly in linear
+   irradiance (the camera's response table), normalised by white and black and
+   raised to 1 / gamma_light (the light's response), as the ring phase does.
+2. The wrapped angular phase psi = P phi mod 2 pi and the modulation q (1 for a
+   perfect fringe) from the classic N-step sums.
+3. Unwrapping by the sector code: with 2^S sectors and P <= 2^(S-1) periods, the
+   sector centre phi_s is within half a sector of phi, well inside the half
+   period a wrong period would need: phi = (psi + 2 pi round((P phi_s - psi) /
+   2 pi)) / P.
+4. The tangential standard deviation rho * sigma_phi, sigma_phi = sqrt(2 / N)
+   sigma_v / (P a), with a the fringe amplitude and sigma_v the camera noise over
+   the pixel's white - black contrast: what the triangulation weights by.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.geometry import polar_angle
+from ringscan.kernels.launch import default_threads, launch_spans
+
+ANGLE_OK = wp.constant(0)
+ANGLE_DARK = wp.constant(1)
+ANGLE_MODULATION = wp.constant(2)
+ANGLE_NO_SECTOR = wp.constant(3)
+ANGLE_STATUS_NAMES = ("ok", "dark", "modulation", "no_sector")
+PI = wp.constant(3.141592653589793)
+TWO_PI = wp.constant(6.283185307179586)
+MAX_ZONES = 16
+
+__all__ = ["AngleSettings", "AngleSamples", "ANGLE_STATUS_NAMES", "angle_zones", "angle_periods", "decode_angle"]
+
+
+@dataclass(frozen=True)
+class AngleSettings:
+    """Settings of the angle decoder."""
+
+    min_contrast: float = 12.0
+    """Least white - black difference at the sample, in 8-bit grey levels (x257 for 16-bit)."""
+    min_modulation: float = 0.3
+    """Least fringe modulation q (linear units, 1 for a perfect fringe): mixed
+    pixels, blur finer than the fringe and zone edges fall below it, and the
+    sample keeps its ring alone."""
+    noise: float = 1.0
+    """Camera noise sigma in 8-bit grey levels, for the predicted standard
+    deviation of the angle (only its ratio to the ring's matters for the
+    weighting; its size sets the reported sigma in mm)."""
+
+    def __post_init__(self):
+        for k in ("min_contrast", "min_modulation", "noise"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"AngleSettings.{k}: must be a finite number >= 0, got {v!r}")
+
+
+@dataclass
+class AngleSamples:
+    """Per-sample angle results (Warp arrays of length n)."""
+
+    phi: wp.array
+    """float32 polar angle (rad, in (-pi, pi]), NaN where status != 0."""
+    sigma_tan: wp.array
+    """float32 standard deviation of the tangential position rho * phi (projector px), 0 where status != 0."""
+    modulation: wp.array
+    """float32 fringe modulation q."""
+    status: wp.array
+    """int32 status code (see ``ANGLE_STATUS_NAMES``)."""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def bilinear(frames: wp.array3d(dtype=Any), f: int, x: float, y: float, lut: wp.array(dtype=wp.float32)):
+    """Linearised value of frame f at camera position (x, y), bilinear."""
+    h = frames.shape[1]
+    w = frames.shape[2]
+    x0 = wp.clamp(int(wp.floor(x)), 0, w - 2)
+    y0 = wp.clamp(int(wp.floor(y)), 0, h - 2)
+    fx = wp.clamp(x - float(x0), 0.0, 1.0)
+    fy = wp.clamp(y - float(y0), 0.0, 1.0)
+    a = lut[int(frames[f, y0, x0])] * (1.0 - fx) + lut[int(frames[f, y0, x0 + 1])] * fx
+    b = lut[int(frames[f, y0 + 1, x0])] * (1.0 - fx) + lut[int(frames[f, y0 + 1, x0 + 1])] * fx
+    return a * (1.0 - fy) + b * fy
+
+
+@wp.func
+def raw_bilinear(frames: wp.array3d(dtype=Any), f: int, x: float, y: float):
+    """Recorded value of frame f at camera position (x, y), bilinear."""
+    h = frames.shape[1]
+    w = frames.shape[2]
+    x0 = wp.clamp(int(wp.floor(x)), 0, w - 2)
+    y0 = wp.clamp(int(wp.floor(y)), 0, h - 2)
+    fx = wp.clamp(x - float(x0), 0.0, 1.0)
+    fy = wp.clamp(y - float(y0), 0.0, 1.0)
+    a = float(frames[f, y0, x0]) * (1.0 - fx) + float(frames[f, y0, x0 + 1]) * fx
+    b = float(frames[f, y0 + 1, x0]) * (1.0 - fx) + float(frames[f, y0 + 1, x0 + 1]) * fx
+    return a * (1.0 - fy) + b * fy
+
+
+@wp.func
+def wrap_angle(a: float):
+    """a wrapped into (-pi, pi]."""
+    return a - TWO_PI * wp.ceil((a - PI) / TWO_PI)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def angle_kernel(
+    frames: wp.array3d(dtype=Any),
+    lut: wp.array(dtype=wp.float32),
+    trig: wp.array(dtype=wp.vec2),
+    zone_rho: wp.array(dtype=wp.float32),
+    zone_periods: wp.array(dtype=wp.int32),
+    uv: wp.array(dtype=wp.vec2),
+    rho: wp.array(dtype=wp.float32),
+    sector: wp.array(dtype=wp.int32),
+    white: int,
+    black: int,
+    angle0: int,
+    steps: int,
+    n_sectors: int,
+    level_scale: float,
+    inv_light_gamma: float,
+    min_contrast: float,
+    min_modulation: float,
+    noise: float,
+    i0: int,
+    phi: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    modulation: wp.array(dtype=wp.float32),
+    status: wp.array(dtype=wp.int32),
+):
+    """Angle of sample i0 + tid.
+
+    frames: (n_frames, H, W) uint8/uint16, read (``white``, ``black`` and the
+        angle frames from index ``angle0``). lut: (full + 1,) float32, read.
+    trig: (steps,) vec2 (cos, sin) of 2 pi n / steps, read.
+    zone_rho: (Z,) float32 inner radius of each zone, ascending; zone_periods:
+        (Z,) int32 its number of periods, read.
+    uv (n,) vec2 camera position, rho (n,) float32, sector (n,) int32, read.
+    phi, sigma_tan, modulation (n,) float32, status (n,) int32, written.
+    """
+    i = i0 + wp.tid()
+    x = uv[i][0]
+    y = uv[i][1]
+    phi[i] = wp.nan
+    sigma_tan[i] = 0.0
+    modulation[i] = 0.0
+    contrast = (raw_bilinear(frames, white, x, y) - raw_bilinear(frames, black, x, y)) / level_scale
+    lw = bilinear(frames, white, x, y, lut)
+    lb = bilinear(frames, black, x, y, lut)
+    span = lw - lb
+    if contrast < min_contrast or span <= 0.0:
+        status[i] = ANGLE_DARK
+        return
+    bc = float(0.0)
+    bs = float(0.0)
+    for n in range(steps):
+        v = wp.clamp((bilinear(frames, angle0 + n, x, y, lut) - lb) / span, 1.0e-6, 1.0)
+        if inv_light_gamma != 1.0:
+            v = wp.pow(v, inv_light_gamma)
+        bc += v * trig[n][0]
+        bs += v * trig[n][1]
+    bc = bc * 2.0 / float(steps)
+    bs = bs * 2.0 / float(steps)
+    amp = wp.sqrt(bc * bc + bs * bs)
+    q = 2.0 * amp
+    modulation[i] = q
+    if q < min_modulation:
+        status[i] = ANGLE_MODULATION
+        return
+    r = rho[i]
+    p = int(zone_periods[0])
+    for z in range(zone_rho.shape[0]):
+        if r >= zone_rho[z]:
+            p = zone_periods[z]
+    psi = polar_angle(bs, bc)
+    a = psi
+    if p > 1:
+        s = sector[i]
+        if s < 0 or n_sectors <= 0:
+            status[i] = ANGLE_NO_SECTOR
+            return
+        phi_s = (float(s) + 0.5) * TWO_PI / float(n_sectors) - PI
+        k = wp.round((float(p) * phi_s - psi) / TWO_PI)
+        a = (psi + TWO_PI * k) / float(p)
+    phi[i] = wrap_angle(a)
+    sigma_v = noise / contrast
+    sigma_tan[i] = r * wp.sqrt(2.0 / float(steps)) * sigma_v / (float(p) * amp)
+    status[i] = ANGLE_OK
+
+
+for _t in (wp.uint8, wp.uint16):
+    wp.overload(angle_kernel, {"frames": wp.array3d(dtype=_t)})
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def angle_zones(*, rho0: float, pitch: float, bands: int, sector_bits: int, min_period_px: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The zones of the angle code: (inner radius of each zone, its periods P).
+
+    P is a power of two, the largest whose period 2 pi rho / P at the zone's
+    inner radius is at least ``min_period_px``, at most 2^(sector_bits - 1) (so the
+    sector code unwraps it with half a period to spare), at least 1. Zones start
+    at ``rho0`` and then at band centres rho0 + (k + 0.5) pitch, k < ``bands``.
+
+    Returns:
+        (rho_start (Z,) float32 ascending, periods (Z,) int32 doubling).
+    """
+    if not (pitch > 0 and rho0 >= 0 and bands >= 1 and min_period_px > 0):
+        raise ValueError(f"angle_zones: need pitch > 0, rho0 >= 0, bands >= 1, min_period_px > 0; got "
+                         f"{pitch}, {rho0}, {bands}, {min_period_px}")
+    if sector_bits < 0:
+        raise ValueError(f"angle_zones: sector_bits must be >= 0, got {sector_bits}")
+    p_max = 2 ** max(sector_bits - 1, 0)
+
+    def fits(rho):  # largest power of two with 2 pi rho / P >= min_period
+        n = 2 * math.pi * rho / min_period_px
+        return 1 if n < 2 else min(p_max, 2 ** int(math.floor(math.log2(n))))
+
+    starts, periods = [float(rho0)], [fits(rho0)]
+    for k in range(bands):
+        r = rho0 + (k + 0.5) * pitch
+        if periods[-1] >= p_max or len(starts) >= MAX_ZONES:
+            break
+        p = fits(r)
+        if p > periods[-1]:
+            starts.append(r)
+            periods.append(p)
+    return np.asarray(starts, np.float32), np.asarray(periods, np.int32)
+
+
+def angle_periods(rho, starts: np.ndarray, periods: np.ndarray) -> np.ndarray:
+    """Periods P at radii ``rho`` (array) for the zones of :func:`angle_zones`."""
+    idx = np.searchsorted(np.asarray(starts, np.float64), np.asarray(rho, np.float64), side="right") - 1
+    return np.asarray(periods)[np.clip(idx, 0, len(periods) - 1)]
+
+
+def decode_angle(
+    frames: wp.array,
+    uv: wp.array,
+    rho: wp.array,
+    sector: wp.array,
+    *,
+    white: int,
+    black: int,
+    angle0: int,
+    steps: int,
+    sector_bits: int,
+    zones: tuple[np.ndarray, np.ndarray],
+    lut: wp.array,
+    light_gamma: float = 1.0,
+    settings: AngleSettings = AngleSettings(),
+    threads: int | None = None,
+) -> AngleSamples:
+    """The polar angle of every sample from the angle frames.
+
+    Args:
+        frames: (n_frames, H, W) uint8/uint16 Warp array of the view (read).
+        uv: (n,) vec2 camera positions of the samples; rho: (n,) float32 their
+            ring radius (projector px); sector: (n,) int32 their sector (-1 unknown).
+        white, black, angle0: frame indices of white, black and ``angle_0``.
+        steps: the number of angle frames N (>= 3).
+        sector_bits: the scan's sector bits S.
+        zones: (rho_start, periods) from :func:`angle_zones`.
+        lut: (full_scale + 1,) float32 Warp array: recorded value -> linear
+            irradiance (``kernels.phase.response_tables``).
+        light_gamma: the light's response exponent (1: linear).
+        settings: thresholds and the noise model.
+        threads: CPU threads; default all cores.
+    """
+    if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError("decode_angle: frames must be a (n, H, W) uint8/uint16 Warp array")
+    n_frames = frames.shape[0]
+    if steps < 3 or angle0 < 0 or angle0 + steps > n_frames or not (0 <= white < n_frames and 0 <= black < n_frames):
+        raise ValueError(f"decode_angle: frames {white}, {black}, {angle0}..{angle0 + steps - 1} are not all among "
+                         f"the {n_frames} frames (steps must be >= 3)")
+    if not isinstance(uv, wp.array) or uv.dtype != wp.vec2:
+        raise ValueError("decode_angle: uv must be a Warp array of vec2")
+    n = uv.shape[0]
+    for name, a, dt in (("rho", rho, wp.float32), ("sector", sector, wp.int32)):
+        if not isinstance(a, wp.array) or a.dtype != dt or a.shape != (n,):
+            raise ValueError(f"decode_angle: {name} must be a ({n},) {dt.__name__} Warp array")
+    starts, periods = (np.asarray(z) for z in zones)
+    if starts.ndim != 1 or starts.shape != periods.shape or starts.size == 0:
+        raise ValueError("decode_angle: zones must be two equal-length non-empty 1-D arrays")
+    dev = frames.device
+    out = AngleSamples(phi=wp.empty(n, dtype=wp.float32, device=dev),
+                       sigma_tan=wp.empty(n, dtype=wp.float32, device=dev),
+                       modulation=wp.empty(n, dtype=wp.float32, device=dev),
+                       status=wp.empty(n, dtype=wp.int32, device=dev))
+    if n == 0:
+        return out
+    full = 255.0 if frames.dtype == wp.uint8 else 65535.0
+    shifts = 2 * np.pi * np.arange(steps) / steps
+    trig = wp.array(np.c_[np.cos(shifts), np.sin(shifts)].astype(np.float32), dtype=wp.vec2, device=dev)
+    args = [frames, lut, trig, wp.array(starts.astype(np.float32), device=dev),
+            wp.array(periods.astype(np.int32), device=dev), uv, rho, sector, int(white), int(black), int(angle0),
+            int(steps), 2 ** sector_bits if sector_bits > 0 else 0, full / 255.0, 1.0 / float(light_gamma),
+            float(settings.min_contrast), float(settings.min_modulation), float(settings.noise)]
+    outputs = [out.phi, out.sigma_tan, out.modulation, out.status]
+    threads = default_threads() if threads is None else threads
+    launch_spans(angle_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
+    return out
