@@ -252,8 +252,9 @@ def full_solution(
             break
         step = wp.dot(J, r0) / jj
         t = t - step
-        # 1 % of the point's own standard deviation is as far as refining helps
-        if wp.abs(step) < wp.max(wp.max(1.0e-4, 2.0e-7 * wp.abs(t)), 0.01 / wp.sqrt(jj)):
+        # 2 % of the point's own standard deviation is as far as refining helps;
+        # float32 coordinates put a floor of ~1e-6 |t| under the steps
+        if wp.abs(step) < wp.max(wp.max(2.0e-4, 1.0e-6 * wp.abs(t)), 0.02 / wp.sqrt(jj)):
             converged = True
             break
     X = C + d * t
