@@ -58,6 +58,7 @@ import warp as wp
 from ringscan.kernels.geometry import polar_angle
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, gray_to_binary
+from ringscan.kernels.samples import Samples
 
 PHASE_OK = wp.constant(0)
 PHASE_DARK = wp.constant(1)
@@ -75,7 +76,6 @@ RESPONSE_FLOOR = 0.02
 __all__ = [
     "PhaseSettings",
     "PhaseMap",
-    "PhasePoints",
     "PHASE_STATUS_NAMES",
     "response_tables",
     "decode_phase",
@@ -143,25 +143,6 @@ class PhaseMap:
     (set by :func:`smooth_phase`), -1 unknown."""
     flags: wp.array | None = None
     """int32 (H*W,) 1 where status is 0 (set by :func:`smooth_phase`)."""
-
-
-@dataclass
-class PhasePoints:
-    """One sample per valid pixel, in raster order (Warp arrays of length n)."""
-
-    uv: wp.array
-    """vec2 pixel centre (x, y)."""
-    rho: wp.array
-    """float32 ring radius rho0 + pitch * t (projector px)."""
-    sector: wp.array
-    """int32 sector, -1 unknown."""
-    confidence: wp.array
-    """float32 modulation clamped to [0, 1]."""
-    pixel: wp.array
-    """int32 linear pixel index y * W + x."""
-
-    def __len__(self) -> int:
-        return self.uv.shape[0]
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -602,7 +583,7 @@ def smooth_phase(
     return out
 
 
-def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads: int | None = None) -> PhasePoints:
+def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads: int | None = None) -> Samples:
     """One point per valid pixel, in raster order (count: the flags that
     :func:`smooth_phase` wrote; scan; write).
 
@@ -610,6 +591,11 @@ def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads:
         phase: a :class:`PhaseMap` with ``sector`` set (:func:`smooth_phase`).
         rho0, pitch: the pattern's inner radius and pitch (projector px).
         threads: CPU threads (row slices); default: all cores.
+
+    Returns:
+        :class:`~ringscan.kernels.samples.Samples`: ``uv`` the pixel centre,
+        ``rho`` = rho0 + pitch * t, ``confidence`` the modulation clamped to
+        [0, 1], ``ring`` None (dense), ``phi``/``sigma_*`` None.
     """
     if phase.sector is None or phase.flags is None:
         raise ValueError("compact_phase_points: the phase map has no sector (run smooth_phase first)")
@@ -620,7 +606,7 @@ def compact_phase_points(phase: PhaseMap, *, rho0: float, pitch: float, threads:
     if n:
         flags = phase.flags
         offsets, total = scan_counts(flags)
-    out = PhasePoints(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=wp.empty(total, dtype=wp.float32, device=dev),
+    out = Samples(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=wp.empty(total, dtype=wp.float32, device=dev), ring=None,
                       sector=wp.empty(total, dtype=wp.int32, device=dev),
                       confidence=wp.empty(total, dtype=wp.float32, device=dev),
                       pixel=wp.empty(total, dtype=wp.int32, device=dev))

@@ -39,7 +39,7 @@ LANES_512 = wp.constant(wp.uint64(0x0200020002000200))
 LANES_513 = wp.constant(wp.uint64(0x0201020102010201))
 LANES_ONE = wp.constant(wp.uint64(0x0001000100010001))
 
-__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings", "gray_frame_index", "sector_frame_index"]
+__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings"]
 
 
 @dataclass(frozen=True)
@@ -70,16 +70,6 @@ class RingLabels:
     """int32 sector index, -1 where not decoded or no sector code."""
     contrast: wp.array
     """float32 white - black."""
-
-
-def gray_frame_index(bit: int) -> int:
-    """Index of frame ``gray_<bit>`` in the stack (its inverse follows it)."""
-    return 2 + 2 * bit
-
-
-def sector_frame_index(bits: int, bit: int) -> int:
-    """Index of frame ``sector_<bit>`` in the stack (its inverse follows it)."""
-    return 2 + 2 * bits + 2 * bit
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -25,8 +25,9 @@ import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
+from ringscan.kernels.samples import Samples
 
-__all__ = ["SampleSettings", "RingSamples", "sample_gray_rings", "ring_radii"]
+__all__ = ["SampleSettings", "sample_gray_rings", "ring_radii"]
 
 
 @dataclass(frozen=True)
@@ -40,29 +41,6 @@ class SampleSettings:
     noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
     band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
     position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
-
-
-@dataclass
-class RingSamples:
-    """Sub-pixel ring samples (Warp arrays of length n on the frames' device)."""
-
-    uv: wp.array
-    """vec2 (u, v) camera pixel coordinates."""
-    ring: wp.array
-    """int32 boundary index k (radius rho0 + k * pitch), 1 <= k < 2**bits."""
-    sector: wp.array
-    """int32 decoded sector at the sample, -1 where unknown."""
-    confidence: wp.array
-    """float32 in [0, 1]: edge slope relative to the contrast."""
-    pixel: wp.array
-    """int32 linear index y * W + x of the first pixel of the pair."""
-
-    def __len__(self) -> int:
-        return self.uv.shape[0]
-
-    def numpy(self) -> dict[str, np.ndarray]:
-        return {"uv": self.uv.numpy(), "ring": self.ring.numpy(), "sector": self.sector.numpy(),
-                "confidence": self.confidence.numpy(), "pixel": self.pixel.numpy()}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -298,7 +276,9 @@ def sample_gray_rings(
     bits: int,
     settings: SampleSettings = SampleSettings(),
     threads: int | None = None,
-) -> RingSamples:
+    rho0: float | None = None,
+    pitch: float | None = None,
+) -> Samples:
     """Sub-pixel samples of every band boundary seen in a gray-rings frame stack.
 
     Args:
@@ -307,9 +287,12 @@ def sample_gray_rings(
         bits: band Gray-code bits.
         settings: sampler thresholds.
         threads: CPU threads (row slices); default: all cores.
+        rho0, pitch: the pattern's inner radius and pitch (projector px); given
+            both, ``rho`` is filled (:func:`ring_radii`), else it is None.
 
     Returns:
-        :class:`RingSamples` on the frames' device, in raster order.
+        :class:`~ringscan.kernels.samples.Samples` on the frames' device, in
+        raster order (``ring`` set, ``phi``/``sigma_*`` None).
     """
     if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
         raise ValueError("sample_gray_rings: frames must be a (n, H, W) uint8/uint16 Warp array")
@@ -334,8 +317,9 @@ def sample_gray_rings(
                                        r0, chunk],
                     [counts, found, fraction, slope], dev, threads)
     offsets, total = scan_counts(counts)
-    out = RingSamples(
+    out = Samples(
         uv=wp.empty(total, dtype=wp.vec2, device=dev),
+        rho=None,
         ring=wp.empty(total, dtype=wp.int32, device=dev),
         sector=wp.empty(total, dtype=wp.int32, device=dev),
         confidence=wp.empty(total, dtype=wp.float32, device=dev),
@@ -346,6 +330,8 @@ def sample_gray_rings(
                     lambda r0, chunk: [labels.code, labels.sector, counts, offsets, found, fraction, slope, bits,
                                        r0, chunk],
                     [out.uv, out.ring, out.sector, out.confidence, out.pixel], dev, threads)
+    if rho0 is not None and pitch is not None:
+        out.rho = ring_radii(out.ring, rho0=rho0, pitch=pitch)
     return out
 
 

@@ -55,7 +55,7 @@ from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.codecs.registry import extract_samples
+from ringscan.pipeline.codecs.registry import REGISTRY, extract_samples
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 from ringscan.pipeline.geometry import camera_rays, project_points
@@ -65,8 +65,9 @@ __all__ = ["LightSettings", "PlaneSamples", "LightCalibration", "plane_samples",
 
 log = logging.getLogger(__name__)
 
-LIGHT_CODECS = ("gray-rings", "phase-rings")
-"""Codecs whose captures calibrate the light: they decode rho and a sector per sample."""
+LIGHT_CODECS = tuple(name for name, codec in REGISTRY.items() if codec.calibrates_light)
+"""Codecs whose captures calibrate the light: projected, and decoded without the rig's
+geometry (``Codec.calibrates_light``): gray-rings and phase-rings."""
 
 
 @dataclass(frozen=True)

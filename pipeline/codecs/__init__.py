@@ -1,3 +1,4 @@
-"""Pattern codecs (DESIGN §5): projector frames (:mod:`.render`), the samples type
-(:mod:`.samples`), and each codec's decode + sampling stage (:mod:`.gray_rings`,
-:mod:`.phase_rings`, :mod:`.single_shot`), looked up in :mod:`.registry`."""
+"""Pattern codecs (DESIGN §5): one module per codec (:mod:`.gray_rings`,
+:mod:`.phase_rings`, :mod:`.rings`, :mod:`.decoded`), each a :class:`.base.Codec`
+(render, extract, explain), looked up by name in :mod:`.registry`; projector frames
+through :mod:`.render`."""

@@ -12,15 +12,17 @@ cone of its own rho and picks the root by the angle (DESIGN §3, §4).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from ringscan.pipeline.codecs.samples import Samples
-from ringscan.pipeline.formats.patterns import DECODED_SCALE
+from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.base import Codec, StageSettings
+from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["extract_decoded", "decoded_samples", "CONTRAST_FULL"]
+__all__ = ["DecodedCodec", "DecodedSettings", "extract_decoded", "decoded_samples", "CONTRAST_FULL"]
 
 CONTRAST_FULL = 64.0
 """White - black (8-bit levels) at which a sample's confidence reaches 1."""
@@ -54,8 +56,13 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
     return uv, rho, sector, conf, pix
 
 
-def extract_decoded(frames: wp.array, scan: Scan, settings, threads: int):
-    """Decode + sampling stage of the ``decoded`` codec (see ``codecs.registry``).
+@dataclass(frozen=True)
+class DecodedSettings:
+    """Settings of the ``decoded`` codec: none (the captures were decoded on import)."""
+
+
+def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, threads: int) -> tuple[Samples, dict]:
+    """Decode + sampling stage of the ``decoded`` codec (:class:`DecodedCodec`).
 
     Args:
         frames: (3, H, W) uint16 Warp array: proj_u, proj_v, contrast.
@@ -83,3 +90,18 @@ def extract_decoded(frames: wp.array, scan: Scan, settings, threads: int):
     stats = {"pixels_decoded": int(pix.size), "samples": int(pix.size),
              "times_s": {"decode": time.perf_counter() - t0}}
     return smp, stats
+
+
+class DecodedCodec(Codec[DecodedSettings]):
+    """Imported captures (``ringscan import``): frames ``proj_u``, ``proj_v``,
+    ``contrast``; one sample per decoded pixel. Not projectable."""
+
+    layout = PATTERN_LAYOUTS["decoded"]
+    settings_type = DecodedSettings
+
+    def settings_from(self, stages: StageSettings) -> DecodedSettings:
+        return DecodedSettings()
+
+    def extract(self, frames: wp.array, scan: Scan, settings: DecodedSettings, *,
+                threads: int) -> tuple[Samples, dict]:
+        return extract_decoded(frames, scan, settings, threads)

@@ -5,25 +5,84 @@ crosses its inverse (``kernels.ring_labels``, ``kernels.ring_sampling``)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.kernels.ring_sampling import ring_radii, sample_gray_rings
-from ringscan.pipeline.codecs.samples import Samples
+from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting
+from ringscan.pipeline.codecs.drawing import band_coverage, polar, sector_coverage, to_u8
+from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names, gray_encode
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["extract_gray_rings"]
+__all__ = ["GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "render_binary_frame", "explain_binary_view"]
 
 
-def extract_gray_rings(frames: wp.array, scan: Scan, settings, threads: int) -> tuple[Samples, dict]:
+@dataclass(frozen=True)
+class GrayRingsSettings:
+    """Settings of the ``gray-rings`` codec."""
+
+    decode: DecodeSettings = field(default_factory=DecodeSettings)
+    """Per-pixel decoding thresholds."""
+    sample: SampleSettings = field(default_factory=SampleSettings)
+    """Sub-pixel edge sampler thresholds."""
+
+
+def render_binary_frame(spec: PatternSpec, name: str) -> np.ndarray:
+    """One frame of the binary codes (``white``, ``black``, ``gray_<b>[_inv]``,
+    ``sector_<b>[_inv]``) as a (height, width) uint8 image."""
+    if name == "white":
+        return np.full((spec.height, spec.width), 255, np.uint8)
+    if name == "black":
+        return np.zeros((spec.height, spec.width), np.uint8)
+    rho, phi = polar(spec)
+    n = spec.n_bands
+    kind, b, *inv = name.split("_")
+    b = int(b)
+    if kind == "gray":
+        lit = (gray_encode(np.arange(n)) >> (spec.bits - 1 - b)) & 1
+        if inv:
+            lit = 1 - lit
+        return to_u8(spec, band_coverage(rho, spec.rho0, spec.pitch, lit))
+    if kind == "sector":
+        inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(n))
+        cov = sector_coverage(phi, rho, spec.sector_bits, b)
+        if inv:
+            cov = 1.0 - cov
+        return to_u8(spec, cov * inside)
+    raise ValueError(f"frame {name!r} is not a binary frame")
+
+
+def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, decode: DecodeSettings) -> str | None:
+    """Why a view of a white/black-framed codec gave no point, from its white and
+    black frames, or None where they do not tell."""
+    frames = np.asarray(frames)
+    names = frame_names(spec)
+    full = 65535.0 if frames.dtype == np.uint16 else 255.0
+    white = frames[names.index("white")].astype(np.float32)
+    black = frames[names.index("black")].astype(np.float32)
+    thr = decode.min_contrast * full / 255.0
+    lit = int(np.count_nonzero(white - black >= thr))
+    if lit == 0:
+        return (f"no ring found: no contrast between the white and black frames (white - black is below "
+                f"{thr:g} grey levels at every pixel; white {white.mean():.0f}, black {black.mean():.0f} on "
+                f"average): {describe_lighting(float(black.mean()), float(white.mean()), full)}")
+    if stats.get("pixels_decoded", 0) == 0:
+        return (f"no ring found: {lit} pixels have contrast, but none decodes to a ring band (every bit too "
+                f"weak: check the frame order and the exposure)")
+    return None
+
+
+def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings, threads: int) -> tuple[Samples, dict]:
     """Decode + sampling of one view of a ``gray-rings`` scan.
 
     Args:
         frames: (F, H, W) uint8/uint16 Warp stack in the order of the scan's frame names (read).
         scan: the scan (its patterns give bits, sector bits, rho0 and pitch).
-        settings: the reconstruction settings; their ``decode`` and ``sample`` blocks are used.
+        settings: the codec's settings.
         threads: CPU threads for the row-run kernels.
 
     Returns:
@@ -35,12 +94,32 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings, threads: int) -> 
                                threads=threads)
     wp.synchronize_device(frames.device)
     t1 = time.perf_counter()
-    samples = sample_gray_rings(frames, labels, bits=spec.bits, settings=settings.sample, threads=threads)
-    rho = ring_radii(samples.ring, rho0=spec.rho0, pitch=spec.pitch)
+    samples = sample_gray_rings(frames, labels, bits=spec.bits, settings=settings.sample, threads=threads,
+                                rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
     band = labels.band.numpy()
     stats = {"pixels_decoded": int(np.count_nonzero(band >= 0)), "samples": len(samples),
              "times_s": {"decode": t1 - t0, "sample": t2 - t1}}
-    return Samples(uv=samples.uv, rho=rho, ring=samples.ring, sector=samples.sector, confidence=samples.confidence,
-                   pixel=samples.pixel), stats
+    return samples, stats
+
+
+class GrayRingsCodec(Codec[GrayRingsSettings]):
+    """Gray-coded ring bands (``bits``), optional Gray-coded sectors (``sector_bits``):
+    frames ``white``, ``black``, ``gray_<b>``/``gray_<b>_inv``, ``sector_<b>``/``sector_<b>_inv``."""
+
+    layout = PATTERN_LAYOUTS["gray-rings"]
+    settings_type = GrayRingsSettings
+
+    def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
+        return render_binary_frame(spec, name)
+
+    def settings_from(self, stages: StageSettings) -> GrayRingsSettings:
+        return GrayRingsSettings(decode=stages.decode, sample=stages.sample)
+
+    def extract(self, frames: wp.array, scan: Scan, settings: GrayRingsSettings, *,
+                threads: int) -> tuple[Samples, dict]:
+        return extract_gray_rings(frames, scan, settings, threads)
+
+    def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: GrayRingsSettings) -> str | None:
+        return explain_binary_view(frames, scan.patterns, stats, settings.decode)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -48,8 +49,12 @@ from ringscan.kernels.phase import (
     response_tables,
     smooth_phase,
 )
-from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.pipeline.codecs.samples import Samples
+from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
+from ringscan.pipeline.codecs.drawing import band_coverage, polar, to_u8
+from ringscan.pipeline.codecs.gray_rings import explain_binary_view, render_binary_frame
+from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
@@ -57,17 +62,22 @@ log = logging.getLogger(__name__)
 GAMMA_RANGE = (0.3, 4.0)
 """Search interval of :func:`estimate_camera_gamma`."""
 
-__all__ = ["extract_phase_rings", "phase_settings_of", "view_response", "residual_light_gamma", "estimate_camera_gamma", "PhaseSettings"]
+__all__ = ["PhaseRingsCodec", "PhaseRingsSettings", "extract_phase_rings", "view_response", "residual_light_gamma",
+           "estimate_camera_gamma", "PhaseSettings"]
 
 
-def phase_settings_of(settings) -> PhaseSettings:
-    """The phase block of a ``ReconstructSettings`` (its ``phase`` field), or the defaults."""
-    ps = getattr(settings, "phase", None)
-    if ps is None:
-        return PhaseSettings()
-    if not isinstance(ps, PhaseSettings):
-        raise ValueError(f"settings.phase: expected PhaseSettings, got {type(ps).__name__}")
-    return ps
+@dataclass(frozen=True)
+class PhaseRingsSettings:
+    """Settings of the ``phase-rings`` codec."""
+
+    decode: DecodeSettings = field(default_factory=DecodeSettings)
+    """Per-pixel decoding thresholds of the band and sector codes."""
+    phase: PhaseSettings = field(default_factory=PhaseSettings)
+    """Phase decoder (response, modulation, unwrapping)."""
+
+    def __post_init__(self):
+        if not isinstance(self.phase, PhaseSettings):
+            raise ValueError(f"settings.phase: expected PhaseSettings, got {type(self.phase).__name__}")
 
 
 def residual_light_gamma(scan: Scan) -> float:
@@ -171,14 +181,14 @@ def estimate_camera_gamma(
     return float(g)
 
 
-def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
-    """Decode + sampling stage of the ``phase-rings`` codec (see ``reconstruct.EXTRACTORS``).
+def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettings,
+                        threads: int) -> tuple[Samples, dict]:
+    """Decode + sampling stage of the ``phase-rings`` codec (:class:`PhaseRingsCodec`).
 
     Args:
         frames: (n, H, W) uint8/uint16 Warp array of one view.
         scan: the scan (patterns, rig).
-        settings: ``ReconstructSettings`` (its ``decode`` block, and its ``phase``
-            block where it has one).
+        settings: the codec's settings.
         threads: CPU threads.
 
     Returns:
@@ -191,7 +201,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
     spec = scan.patterns
     if spec.codec != "phase-rings":
         raise ValueError(f"extract_phase_rings: the scan's codec is {spec.codec!r}, not phase-rings")
-    ps = phase_settings_of(settings)
+    ps = settings.phase
     dev = frames.device
     t0 = time.perf_counter()
     labels = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, settings=settings.decode,
@@ -221,8 +231,36 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings, threads: int):
         "precompensated_gamma": spec.precompensated_gamma,
         "times_s": {"decode": t1 - t0, "sample": t2 - t1},
     }
-    return Samples(uv=pts.uv, rho=pts.rho, ring=None, sector=pts.sector, confidence=pts.confidence,
-                   pixel=pts.pixel), stats
+    return pts, stats
+
+
+class PhaseRingsCodec(Codec[PhaseRingsSettings]):
+    """The ``gray-rings`` frames plus ``phase_<n>``, n = 0..steps-1 (N-step phase
+    shifted radial fringes): one sample per decoded pixel."""
+
+    layout = PATTERN_LAYOUTS["phase-rings"]
+    settings_type = PhaseRingsSettings
+    rig_needs = RigNeeds(response=True)
+
+    def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
+        if not name.startswith("phase_"):
+            return render_binary_frame(spec, name)
+        n = int(name.split("_")[1])
+        rho, _ = polar(spec)
+        inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(spec.n_bands))
+        ph = 2 * math.pi * (rho - spec.rho0) / spec.pitch - 2 * math.pi * n / spec.steps
+        return to_u8(spec, (0.5 + 0.5 * np.cos(ph)) * inside)
+
+    def settings_from(self, stages: StageSettings) -> PhaseRingsSettings:
+        return PhaseRingsSettings(decode=stages.decode, phase=stages.phase)
+
+    def extract(self, frames: wp.array, scan: Scan, settings: PhaseRingsSettings, *,
+                threads: int) -> tuple[Samples, dict]:
+        return extract_phase_rings(frames, scan, settings, threads)
+
+    def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict,
+                          settings: PhaseRingsSettings) -> str | None:
+        return explain_binary_view(frames, scan.patterns, stats, settings.decode)
 
 
 # ----------------------------------------------------------------------------- NumPy twins

@@ -1,5 +1,5 @@
-"""Projector frames of every codec (DESIGN §5), as 8-bit images with antialiased
-edges: each pixel's value is the lit fraction of its area (rings, bands, sectors).
+"""Projector frames of every projectable codec: each codec draws its own
+(:meth:`~ringscan.pipeline.codecs.base.Codec.render_frame`, helpers in :mod:`.drawing`).
 
 With ``spec.precompensated_gamma`` g != 1 each value v (0..1, the light the
 pattern means) is written as round(255 * v**(1/g)): a light whose response is
@@ -9,104 +9,21 @@ and the binary bands away from their edges are unchanged.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, gray_encode
+from ringscan.pipeline.codecs.registry import codec_for
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 
 __all__ = ["render_frame", "render_frames"]
-
-
-def _polar(spec: PatternSpec):
-    v, u = np.mgrid[0:spec.height, 0:spec.width].astype(np.float64)
-    du, dv = u - spec.center[0], v - spec.center[1]
-    return np.hypot(du, dv), np.arctan2(dv, du)
-
-
-def _band_coverage(rho, rho0, pitch, lit, h=0.5):
-    """Fraction of the radial interval [rho-h, rho+h] covered by lit bands.
-
-    ``lit`` is a 0/1 array over bands k = 0..N-1 (band k = [rho0+k p, rho0+(k+1) p)).
-    """
-    lit = np.asarray(lit, np.float64)
-    cum = np.concatenate([[0.0], np.cumsum(lit)]) * pitch
-
-    def F(r):
-        x = (r - rho0) / pitch
-        k = np.clip(np.floor(x), 0, lit.size - 1).astype(np.int64)
-        frac = np.clip(x - k, 0.0, 1.0)
-        val = cum[k] + lit[k] * frac * pitch
-        return np.where(x <= 0, 0.0, np.where(x >= lit.size, cum[-1], val))
-
-    return (F(rho + h) - F(rho - h)) / (2 * h)
-
-
-def _sector_coverage(phi, rho, sector_bits, bit):
-    """Fraction of the angular interval [phi-h, phi+h] (h = 0.5 px / rho) where the
-    sector's Gray code has ``bit`` set."""
-    n = 2 ** sector_bits
-    lit = (gray_encode(np.arange(n)) >> (sector_bits - 1 - bit)) & 1
-    h = np.minimum(0.5 / np.maximum(rho, 1e-6), math.pi / n)
-    width = 2 * math.pi / n
-    t = phi + math.pi  # in [0, 2 pi]
-    lit3 = np.tile(lit, 3).astype(np.float64)  # wrap around once each way
-    cum = np.concatenate([[0.0], np.cumsum(lit3)]) * width
-
-    def F(a):
-        x = (a + 2 * math.pi) / width
-        k = np.clip(np.floor(x), 0, lit3.size - 1).astype(np.int64)
-        return cum[k] + lit3[k] * (x - k) * width
-
-    return (F(t + h) - F(t - h)) / (2 * h)
 
 
 def render_frame(spec: PatternSpec, name: str) -> np.ndarray:
     """Render one projector frame as a (height, width) uint8 image."""
     if name not in frame_names(spec):
         raise ValueError(f"frame {name!r} is not part of the {spec.codec} codec")
-    rho, phi = _polar(spec)
-    if name == "white":
-        return np.full((spec.height, spec.width), 255, np.uint8)
-    if name == "black":
-        return np.zeros((spec.height, spec.width), np.uint8)
-    if name == "rings":
-        img = np.zeros_like(rho)
-        w, h = spec.line_width, 0.5
-        for r in spec.ring_radii():
-            lo = np.maximum(rho - h, r - w / 2)
-            hi = np.minimum(rho + h, r + w / 2)
-            img += np.clip(hi - lo, 0, None) / (2 * h)
-        return _to_u8(spec, img)
-    n = spec.n_bands
-    inside = _band_coverage(rho, spec.rho0, spec.pitch, np.ones(n))
-    kind, b, *inv = name.split("_")
-    b = int(b)
-    if kind == "gray":
-        lit = (gray_encode(np.arange(n)) >> (spec.bits - 1 - b)) & 1
-        if inv:
-            lit = 1 - lit
-        return _to_u8(spec, _band_coverage(rho, spec.rho0, spec.pitch, lit))
-    if kind == "sector":
-        cov = _sector_coverage(phi, rho, spec.sector_bits, b)
-        if inv:
-            cov = 1.0 - cov
-        return _to_u8(spec, cov * inside)
-    if kind == "phase":
-        ph = 2 * math.pi * (rho - spec.rho0) / spec.pitch - 2 * math.pi * b / spec.steps
-        return _to_u8(spec, (0.5 + 0.5 * np.cos(ph)) * inside)
-    raise AssertionError(name)
+    return codec_for(spec.codec).render_frame(spec, name)
 
 
 def render_frames(spec: PatternSpec) -> dict[str, np.ndarray]:
     """All frames of a codec, in projection order."""
     return {name: render_frame(spec, name) for name in frame_names(spec)}
-
-
-def _to_u8(spec: PatternSpec, x: np.ndarray) -> np.ndarray:
-    """Light fractions ``x`` (0..1) as 8-bit frame values, pre-compensated for the spec's gamma."""
-    x = np.clip(x, 0.0, 1.0)
-    g = spec.precompensated_gamma
-    if g != 1.0:
-        x = x ** (1.0 / g)
-    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)

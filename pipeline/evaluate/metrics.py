@@ -148,7 +148,8 @@ def coverage_radius(scan: Scan) -> float:
         d = np.linalg.norm(li.center - np.array([0, 0, 0.5 * (scan.rig.volume.z_min + scan.rig.volume.z_max)]))
         px = d / li.K[0, 0]
     cam_px = np.linalg.norm(scan.rig.camera.center) / scan.rig.camera.K[0, 0]
-    return float(max(spec.pitch * px if spec.codec != "phase-rings" else 0.0, 2.0 * cam_px))
+    # a dense codec has a sample at every pixel: no band spacing at the object
+    return float(max(spec.pitch * px if not spec.layout.dense else 0.0, 2.0 * cam_px))
 
 
 def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_radius_mm: float | None = None,
@@ -178,8 +179,9 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     X, _ = truth_points(scan, view_name)
     spec = scan.patterns
     rho = projector_polar(scan.rig, X, spec.center)
-    lo = spec.rho0 + (spec.pitch if spec.codec != "rings" else 0.0)
-    hi = spec.ring_radii()[-1] if spec.codec == "rings" else spec.rho0 + (spec.n_bands - 1) * spec.pitch
+    # from the first sampled ring to the last (band boundaries 1..2**bits-1 of the binary codecs)
+    radii = spec.ring_radii()
+    lo, hi = radii[0], radii[-1]
     X = X[(rho >= lo) & (rho <= hi)]
     r = coverage_radius(scan) if coverage_radius_mm is None else float(coverage_radius_mm)
     out["coverage_radius_mm"] = r

@@ -42,28 +42,14 @@ import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
 
-CODECS = ("rings", "gray-rings", "phase-rings")
-IMPORTED_CODECS = ("decoded",)
-"""Codecs of imported captures (not projectable): ``decoded`` holds each camera pixel's
-decoded projector position (``ringscan import``)."""
 PRECOMPENSATED_GAMMA_RANGE = (0.1, 10.0)
 """Accepted ``precompensated_gamma`` (the rig's range of response gammas)."""
 DECODED_SCALE = 32
 """``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
 
-__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec", "parse_patterns",
-           "default_patterns", "frame_names", "gray_encode", "gray_decode"]
-
-CODEC_DEFAULTS: dict[str, dict] = {
-    "rings": {"count": 9, "pitch": 40.0, "line_width": 3.0},
-    "gray-rings": {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6},
-    "phase-rings": {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4},
-}
-"""Default parameters of each projectable codec (``ringscan patterns`` and
-``simulate`` use them for every option not given). ``rings`` has no fixed
-``rho0``: it defaults to the pitch, so ring 0 is a circle one ring spacing
-across the centre, large enough to be seen as the loop that anchors the labels
-of the rings wholly on an object (docs/single_shot.md)."""
+__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec",
+           "PatternLayout", "Parameter", "PATTERN_LAYOUTS", "pattern_layout", "parse_patterns", "default_patterns",
+           "frame_names", "gray_encode", "gray_decode"]
 
 
 def gray_encode(k):
@@ -111,39 +97,223 @@ class PatternSpec:
     """Light gamma the frames were pre-compensated for (value = v**(1/g)); 1 = none."""
 
     @property
+    def layout(self) -> PatternLayout:
+        """The data-level description of this spec's codec (:data:`PATTERN_LAYOUTS`)."""
+        return PATTERN_LAYOUTS[self.codec]
+
+    @property
     def n_bands(self) -> int:
         """Number of coded bands (2**bits), or of rings for the single-shot codec."""
-        return self.count if self.codec == "rings" else 2 ** self.bits
+        return self.layout.n_bands(self)
 
     @property
     def rho_max(self) -> float:
         """Outer radius of the coded annulus (projector px)."""
-        if self.codec == "rings":
-            return self.rho0 + (self.count - 1) * self.pitch + 0.5 * self.line_width
-        return self.rho0 + self.n_bands * self.pitch
+        return self.layout.rho_max(self)
 
     def ring_radii(self) -> np.ndarray:
         """Radii (projector px) of the sampled rings: the lines of ``rings``, or the
         band boundaries k = 1..2**bits-1 of the binary codecs (index k-1)."""
-        if self.codec == "rings":
-            return self.rho0 + self.pitch * np.arange(self.count)
-        return self.rho0 + self.pitch * np.arange(1, self.n_bands)
+        return self.layout.ring_radii(self)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["center"] = list(self.center)
-        keep = {"codec", "width", "height", "center", "rho0", "pitch"}
-        if self.codec == "rings":
-            keep |= {"count", "line_width"}
-        elif self.codec == "decoded":
-            keep |= {"sector_bits"}
-        else:
-            keep |= {"bits", "sector_bits"}
-            if self.codec == "phase-rings":
-                keep |= {"steps"}
+        keep = {"codec", "width", "height", "center", "rho0", "pitch"} | {p.name for p in self.layout.parameters}
         if self.precompensated_gamma != 1.0:
             keep |= {"precompensated_gamma"}
         return {k: v for k, v in d.items() if k in keep}
+
+
+# ----------------------------------------------------------------------------- codec layouts
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One codec-specific field of scan.json ``patterns`` (a :class:`PatternSpec` field)."""
+
+    name: str
+    """Field name (also the ``PatternSpec`` attribute)."""
+    kind: type
+    """``int`` or ``float``."""
+    default: int | float | None = None
+    """Value when the field is absent; None = required."""
+    lo: int | float | None = None
+    """Least value (integers: inclusive); for floats only ``positive`` is checked."""
+    hi: int | float | None = None
+    """Largest value (integers: inclusive)."""
+    positive: bool = False
+    """Floats: must be > 0."""
+    doc: str = ""
+    """What it means (``ringscan patterns --help``, docs/formats.md)."""
+
+    def parse(self, d: dict, src) -> int | float:
+        """The checked value of this field in ``d``.
+
+        Raises:
+            FormatError: naming ``src`` and ``patterns.<name>``.
+        """
+        v = d.get(self.name, self.default)
+        if self.kind is int:
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise FormatError(src, f"patterns.{self.name}: expected an integer, got {v!r}")
+            if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):
+                raise FormatError(src, f"patterns.{self.name}: must be in [{self.lo}, {self.hi}], got {v}")
+            return v
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise FormatError(src, f"patterns.{self.name}: expected a finite number, got {v!r}")
+        if self.positive and v <= 0:
+            raise FormatError(src, f"patterns.{self.name}: must be > 0, got {v}")
+        return v
+
+
+class PatternLayout:
+    """The data-level description of one codec: its name, its parameters (with
+    defaults and ranges), its frame names and the checks of its values. It lives
+    here, below the codecs, because reading a scan folder needs the frame names;
+    the codec's behaviour (render, extract, explain) is its ``Codec`` class in
+    ``pipeline.codecs``. A layout's frame list may depend on any of its parameters.
+    """
+
+    name: str = ""
+    """The codec name (scan.json ``patterns.codec``)."""
+    projectable: bool = True
+    """Its frames are projected (False: imported captures, nothing to render)."""
+    dense: bool = False
+    """One sample per decoded pixel (no rings: samples are not one band apart)."""
+    parameters: tuple[Parameter, ...] = ()
+    """Codec-specific fields, in scan.json order (beyond width, height, center, rho0, pitch)."""
+    defaults: dict = {}
+    """Defaults of ``ringscan patterns`` / ``simulate`` for every option not given."""
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        """The frame names, in projection (and file) order."""
+        raise NotImplementedError
+
+    def n_bands(self, spec: PatternSpec) -> int:
+        return 2 ** spec.bits
+
+    def ring_radii(self, spec: PatternSpec) -> np.ndarray:
+        return spec.rho0 + spec.pitch * np.arange(1, self.n_bands(spec))
+
+    def rho_max(self, spec: PatternSpec) -> float:
+        return spec.rho0 + self.n_bands(spec) * spec.pitch
+
+    def fill_defaults(self, d: dict) -> None:
+        """Fill defaults that depend on other values (``default_patterns``)."""
+
+    def check_values(self, kw: dict, pitch: float, src) -> None:
+        """Checks between parameters, before the spec is built (raise FormatError)."""
+
+    def check_fits(self, spec: PatternSpec, far: float, src) -> None:
+        """Checks against the projector image (``far``: centre to farthest corner, px)."""
+
+
+class GrayRingsLayout(PatternLayout):
+    name = "gray-rings"
+    parameters = (
+        Parameter("bits", int, None, 1, 16, doc="Gray-code bits of the band index"),
+        Parameter("sector_bits", int, 0, 0, 12, doc="Gray-code bits of the angular sector; 0 = none"),
+    )
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6}
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        names = ["white", "black"]
+        for b in range(spec.bits):
+            names += [f"gray_{b}", f"gray_{b}_inv"]
+        for b in range(spec.sector_bits):
+            names += [f"sector_{b}", f"sector_{b}_inv"]
+        return names
+
+    def check_values(self, kw: dict, pitch: float, src) -> None:
+        if pitch < 1.0:
+            raise FormatError(src, f"patterns.pitch: {pitch} px is below one projector pixel; binary bands cannot be shown")
+
+
+class PhaseRingsLayout(GrayRingsLayout):
+    name = "phase-rings"
+    dense = True
+    parameters = GrayRingsLayout.parameters + (Parameter("steps", int, 4, 3, 64, doc="phase steps"),)
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4}
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        return super().frame_names(spec) + [f"phase_{n}" for n in range(spec.steps)]
+
+
+class RingsLayout(PatternLayout):
+    name = "rings"
+    parameters = (
+        Parameter("count", int, None, 1, 100000, doc="number of rings"),
+        Parameter("line_width", float, 2.0, positive=True, doc="width of each ring line (projector px)"),
+    )
+    defaults = {"count": 9, "pitch": 40.0, "line_width": 3.0}
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        return ["rings"]
+
+    def n_bands(self, spec: PatternSpec) -> int:
+        return spec.count
+
+    def ring_radii(self, spec: PatternSpec) -> np.ndarray:
+        return spec.rho0 + spec.pitch * np.arange(spec.count)
+
+    def rho_max(self, spec: PatternSpec) -> float:
+        return spec.rho0 + (spec.count - 1) * spec.pitch + 0.5 * spec.line_width
+
+    def fill_defaults(self, d: dict) -> None:
+        # ring 0 one ring spacing across the centre: large enough to be seen as
+        # the loop that anchors the labels (docs/single_shot.md)
+        if d.get("rho0") is None:
+            d["rho0"] = d["pitch"]
+
+    def check_values(self, kw: dict, pitch: float, src) -> None:
+        if kw["line_width"] >= pitch:
+            raise FormatError(src, f"patterns.line_width: {kw['line_width']} px does not fit in pitch {pitch} px (rings would touch)")
+
+    def check_fits(self, spec: PatternSpec, far: float, src) -> None:
+        if spec.ring_radii()[-1] > far:
+            n_in = int(np.sum(spec.ring_radii() <= far))
+            raise FormatError(src, f"patterns.count: only {n_in} of {spec.count} rings fit on the {spec.width}x{spec.height} projector")
+
+
+class DecodedLayout(PatternLayout):
+    name = "decoded"
+    projectable = False
+    dense = True
+    parameters = (Parameter("sector_bits", int, 8, 0, 12, doc="bits of the polar-angle sector for the root choice"),)
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        return ["proj_u", "proj_v", "contrast"]
+
+
+PATTERN_LAYOUTS: dict[str, PatternLayout] = {
+    layout.name: layout for layout in (RingsLayout(), GrayRingsLayout(), PhaseRingsLayout(), DecodedLayout())
+}
+"""codec name -> its data-level description; the behaviour of each is its ``Codec``
+in ``pipeline.codecs`` (``codecs.registry``)."""
+CODECS = tuple(k for k, layout in PATTERN_LAYOUTS.items() if layout.projectable)
+"""The projectable codecs (``ringscan patterns``, ``simulate``, ``capture``)."""
+IMPORTED_CODECS = tuple(k for k, layout in PATTERN_LAYOUTS.items() if not layout.projectable)
+"""Codecs of imported captures (not projectable): ``decoded`` holds each camera pixel's
+decoded projector position (``ringscan import``)."""
+CODEC_DEFAULTS: dict[str, dict] = {k: dict(PATTERN_LAYOUTS[k].defaults) for k in CODECS}
+"""Default parameters of each projectable codec (``ringscan patterns`` and
+``simulate`` use them for every option not given). ``rings`` has no fixed
+``rho0``: it defaults to the pitch, so ring 0 is a circle one ring spacing
+across the centre, large enough to be seen as the loop that anchors the labels
+of the rings wholly on an object (docs/single_shot.md)."""
+
+
+def pattern_layout(codec: str, *, source=None) -> PatternLayout:
+    """The :class:`PatternLayout` of ``codec``.
+
+    Raises:
+        FormatError: an unknown codec, naming ``source``.
+    """
+    layout = PATTERN_LAYOUTS.get(codec) if isinstance(codec, str) else None
+    if layout is None:
+        raise FormatError(source, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(PATTERN_LAYOUTS)})")
+    return layout
 
 
 def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> PatternSpec:
@@ -156,8 +326,7 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     if not isinstance(d, dict):
         raise FormatError(src, "patterns: expected an object")
     codec = d.get("codec")
-    if codec not in CODECS + IMPORTED_CODECS:
-        raise FormatError(src, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS + IMPORTED_CODECS)})")
+    layout = pattern_layout(codec, source=src)
 
     def num(key, default=None, positive=False):
         v = d.get(key, default)
@@ -181,29 +350,16 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     if not (isinstance(center, (list, tuple)) and len(center) == 2
             and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in center)):
         raise FormatError(src, f"patterns.center: expected [c_u, c_v], got {center!r}")
-    if codec != "decoded" and not (0 <= center[0] <= width - 1 and 0 <= center[1] <= height - 1):
+    if layout.projectable and not (0 <= center[0] <= width - 1 and 0 <= center[1] <= height - 1):
         raise FormatError(src, f"patterns.center: {list(center)} lies outside the {width}x{height} projector")
     rho0 = num("rho0")
     if rho0 < 0:
         raise FormatError(src, f"patterns.rho0: must be >= 0, got {rho0}")
     pitch = num("pitch", positive=True)
-    kw = {}
-    if codec == "rings":
-        kw["count"] = integer("count", lo=1, hi=100000)
-        kw["line_width"] = num("line_width", 2.0, positive=True)
-        if kw["line_width"] >= pitch:
-            raise FormatError(src, f"patterns.line_width: {kw['line_width']} px does not fit in pitch {pitch} px (rings would touch)")
-    elif codec == "decoded":
-        kw["sector_bits"] = integer("sector_bits", 8, lo=0, hi=12)
-    else:
-        kw["bits"] = integer("bits", lo=1, hi=16)
-        kw["sector_bits"] = integer("sector_bits", 0, lo=0, hi=12)
-        if codec == "phase-rings":
-            kw["steps"] = integer("steps", 4, lo=3, hi=64)
-        if pitch < 1.0:
-            raise FormatError(src, f"patterns.pitch: {pitch} px is below one projector pixel; binary bands cannot be shown")
+    kw = {p.name: p.parse(d, src) for p in layout.parameters}
+    layout.check_values(kw, pitch, src)
     if "precompensated_gamma" in d:
-        if codec in IMPORTED_CODECS:
+        if not layout.projectable:
             raise FormatError(src, f"patterns.precompensated_gamma: not for the {codec} codec (nothing is projected)")
         g = num("precompensated_gamma", positive=True)
         if not (PRECOMPENSATED_GAMMA_RANGE[0] <= g <= PRECOMPENSATED_GAMMA_RANGE[1]):
@@ -215,11 +371,9 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
     # The coded annulus must reach into the projector image.
     cu, cv = spec.center
     far = max(math.hypot(x - cu, y - cv) for x in (0, width - 1) for y in (0, height - 1))
-    if codec != "decoded" and spec.rho0 >= far:
+    if layout.projectable and spec.rho0 >= far:
         raise FormatError(src, f"patterns.rho0: {spec.rho0} px lies outside the projector (farthest corner {far:.1f} px)")
-    if codec == "rings" and spec.ring_radii()[-1] > far:
-        n_in = int(np.sum(spec.ring_radii() <= far))
-        raise FormatError(src, f"patterns.count: only {n_in} of {spec.count} rings fit on the {width}x{height} projector")
+    layout.check_fits(spec, far, src)
     return spec
 
 
@@ -236,11 +390,11 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
     """
     if codec not in CODEC_DEFAULTS:
         raise FormatError(source, f"patterns.codec: unknown codec {codec!r} (known: {', '.join(CODECS)})")
+    layout = PATTERN_LAYOUTS[codec]
     d = dict(CODEC_DEFAULTS[codec])
     keys = set(d) | {"rho0", "pitch", "precompensated_gamma"}
     d.update({k: v for k, v in given.items() if v is not None and k in keys})
-    if codec == "rings" and d.get("rho0") is None:
-        d["rho0"] = d["pitch"]
+    layout.fill_defaults(d)
     if center is None:
         center = [(width - 1) / 2.0, (height - 1) / 2.0]
     return parse_patterns({"codec": codec, "width": width, "height": height, "center": list(center), **d},
@@ -248,19 +402,8 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
 
 
 def frame_names(spec: PatternSpec) -> list[str]:
-    """The frame names of a codec, in projection order."""
-    if spec.codec == "rings":
-        return ["rings"]
-    if spec.codec == "decoded":
-        return ["proj_u", "proj_v", "contrast"]
-    names = ["white", "black"]
-    for b in range(spec.bits):
-        names += [f"gray_{b}", f"gray_{b}_inv"]
-    for b in range(spec.sector_bits):
-        names += [f"sector_{b}", f"sector_{b}_inv"]
-    if spec.codec == "phase-rings":
-        names += [f"phase_{n}" for n in range(spec.steps)]
-    return names
+    """The frame names of a codec, in projection order (its :class:`PatternLayout`)."""
+    return spec.layout.frame_names(spec)
 
 
 # ----------------------------------------------------------------------------- rendering

@@ -16,8 +16,7 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
-from ringscan.pipeline.codecs.registry import extract_samples
-from ringscan.pipeline.formats.patterns import frame_names
+from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.ply import write_ply
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
@@ -75,42 +74,45 @@ def reconstruct_view(
     t = time.perf_counter()
     # On the CPU the Warp array is a view of the frames (kernels only read them): no copy.
     on_cpu = wp.get_device(device).is_cpu and frames.flags.c_contiguous
-    fr = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device, copy=not on_cpu)
+    frames_w = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device,
+                        copy=not on_cpu)
     times["upload"] = time.perf_counter() - t
 
-    smp, st = extract_samples(fr, scan, settings, threads)
-    times.update(st.pop("times_s"))
-    # An extractor may decide sectors of its own (single-shot: line orientation
+    codec = codec_for(scan.patterns.codec, source=scan.path)
+    samples, codec_stats = codec.extract(frames_w, scan, codec.settings_from(settings), threads=threads)
+    times.update(codec_stats.pop("times_s"))
+    # A codec may decide sectors of its own (single-shot: line orientation
     # sectors); it says how many bits they carry.
-    sector_bits = int(st.pop("sector_bits", scan.patterns.sector_bits))
+    sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
 
     t = time.perf_counter()
     rig = scan.rig
     vol = rig.volume
     cam = camera_model_for(rig)
-    tri = triangulate_rings(smp.uv, smp.rho, smp.sector, smp.confidence, camera=cam, light=light_model_for(rig),
-                            volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
-                            sector_bits=sector_bits, settings=settings.triangulate, threads=threads)
+    triangulated = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=cam,
+                                     light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
+                                     center=scan.patterns.center, sector_bits=sector_bits,
+                                     settings=settings.triangulate, threads=threads)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     t = time.perf_counter()
-    status_w = mark_isolated_points(tri.points, smp.pixel, tri.status, camera=cam, width=rig.camera.width,
-                                    height=rig.camera.height, isolated_status=STATUS_ISOLATED, settings=settings.filter,
-                                    threads=threads)
-    idx = compact_points(status_w)
+    status_dev = mark_isolated_points(triangulated.points, samples.pixel, triangulated.status, camera=cam, width=rig.camera.width,
+                                      height=rig.camera.height, isolated_status=STATUS_ISOLATED,
+                                      settings=settings.filter, threads=threads)
+    idx = compact_points(status_dev)
     wp.synchronize_device(device)
     times["filter"] = time.perf_counter() - t
 
     t = time.perf_counter()
     idx_np = idx.numpy()
-    status = status_w.numpy()
+    status = status_dev.numpy()
     counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
     cloud = ViewCloud(
-        points=tri.points.numpy()[idx_np],
-        ring=smp.ring.numpy()[idx_np] if smp.ring is not None else np.full(idx_np.size, -1, np.int32),
-        rho=smp.rho.numpy()[idx_np],
-        confidence=tri.confidence.numpy()[idx_np],
-        uv=smp.uv.numpy()[idx_np],
+        points=triangulated.points.numpy()[idx_np],
+        ring=samples.ring.numpy()[idx_np] if samples.ring is not None else np.full(idx_np.size, -1, np.int32),
+        rho=samples.rho.numpy()[idx_np],
+        confidence=triangulated.confidence.numpy()[idx_np],
+        uv=samples.uv.numpy()[idx_np],
         stats={},
     )
     if settings.min_confidence > 0:
@@ -119,7 +121,7 @@ def reconstruct_view(
     times["download"] = time.perf_counter() - t
     cloud.stats = {
         "pixels": int(frames.shape[1] * frames.shape[2]),
-        **st,
+        **codec_stats,
         "points": int(cloud.points.shape[0]),
         "dropped": {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
         "times_s": times,
@@ -134,46 +136,16 @@ def explain_no_points(frames: np.ndarray, scan: Scan, stats: dict,
     """Why a view gave no point, in one sentence for the user.
 
     Args:
-        frames: the view's (n, H, W) frames in the codec's frame order.
+        frames: the view's (n, H, W) frames in the codec's frame order (the codec
+            reads them: ``Codec.explain_no_points``).
         scan: the scan.
         stats: the view's counts (``pixels_decoded``, ``samples``, ``dropped``, ...).
         settings: the settings the view was reconstructed with.
     """
-    frames = np.asarray(frames)
-    names = frame_names(scan.patterns)
-    full = 65535.0 if frames.dtype == np.uint16 else 255.0
-    scale = full / 255.0
-
-    def lighting(lo_mean: float, hi_mean: float) -> str:
-        if hi_mean < 0.05 * full:
-            return "everything is dark: the projector's light did not reach the camera (projector off, lens cap, " \
-                   "exposure too short)"
-        if lo_mean > 0.95 * full:
-            return "everything is saturated: the exposure is too long or the ambient light too strong"
-        return "the projector's light does not change the image (projector off or aimed elsewhere, or the " \
-               "frames are all alike)"
-
-    if "white" in names and "black" in names:
-        white = frames[names.index("white")].astype(np.float32)
-        black = frames[names.index("black")].astype(np.float32)
-        thr = settings.decode.min_contrast * scale
-        lit = int(np.count_nonzero(white - black >= thr))
-        if lit == 0:
-            return (f"no ring found: no contrast between the white and black frames (white - black is below "
-                    f"{thr:g} grey levels at every pixel; white {white.mean():.0f}, black {black.mean():.0f} on "
-                    f"average): {lighting(float(black.mean()), float(white.mean()))}")
-        if stats.get("pixels_decoded", 0) == 0:
-            return (f"no ring found: {lit} pixels have contrast, but none decodes to a ring band (every bit too "
-                    f"weak: check the frame order and the exposure)")
-    elif "rings" in names:
-        f = frames[names.index("rings")].astype(np.float32)
-        lo, hi = (float(x) for x in np.percentile(f, [1.0, 99.0]))
-        if hi - lo < settings.single_shot.lines.min_contrast * scale:
-            return (f"no ring found: the rings frame has no contrast (grey levels {lo:.0f} to {hi:.0f} between the "
-                    f"1st and 99th percentile): {lighting(lo, hi)}")
-        if stats.get("samples", 0) == 0:
-            return (f"no ring found: {stats.get('line_samples', 0)} line centres in {stats.get('pieces', 0)} "
-                    f"pieces, none labelled with a ring (see the labelling counts in the report)")
+    codec = codec_for(scan.patterns.codec, source=scan.path)
+    why = codec.explain_no_points(np.asarray(frames), scan, stats, codec.settings_from(settings))
+    if why is not None:
+        return why
     if stats.get("samples", 0) == 0:
         return f"no ring found: {stats.get('pixels_decoded', 0)} pixels decoded, but no ring edge was sampled"
     dropped = ", ".join(f"{k} {v}" for k, v in stats.get("dropped", {}).items() if v)

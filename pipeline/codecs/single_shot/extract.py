@@ -11,28 +11,29 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.ring_lines import detect_ring_lines
-from ringscan.pipeline.codecs.samples import Samples
+from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines
 from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, SingleShotSettings
+from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
 
 __all__ = ["extract_rings"]
 
 
-def extract_rings(frames: wp.array, scan, settings, threads: int):
-    """``reconstruct`` hook for the ``rings`` codec: (Samples, stats) of one view.
+def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
+                  threads: int) -> tuple[Samples, dict]:
+    """Decode + sampling of one view of a ``rings`` scan (``codecs.rings.RingsCodec``).
 
     Args:
         frames: (1, H, W) uint8/uint16 Warp stack (the ``rings`` frame).
         scan: the :class:`~ringscan.pipeline.formats.scan.Scan`.
-        settings: ``ReconstructSettings``; its ``single_shot`` block when it has
-            one, else :class:`SingleShotSettings` defaults.
+        settings: line detection and labelling settings.
         threads: CPU threads for the row-run kernels.
 
     Returns:
-        (``reconstruct.Samples`` of the labelled samples in raster order, stats
-        with pixels_decoded, samples, the labelling counts and times_s
+        (:class:`~ringscan.kernels.samples.Samples` of the labelled samples in raster
+        order, stats with pixels_decoded, samples, the labelling counts and times_s
         {"sample": line detection, "decode": labelling}). ``sector`` holds the
         sector (``SECTOR_BITS`` bits) of the root that the orientation rule
         chose, -1 where it does not decide; stats["sector_bits"] says so.
@@ -43,7 +44,9 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
         raise ValueError(f"extract_rings: codec {spec.codec!r} is not 'rings'")
     if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.shape[0] < 1:
         raise ValueError("extract_rings: frames must be a (1, H, W) Warp array")
-    ss = getattr(settings, "single_shot", None) or SingleShotSettings()
+    if not isinstance(settings, SingleShotSettings):
+        raise ValueError(f"extract_rings: settings must be SingleShotSettings, got {type(settings).__name__}")
+    ss = settings
     dev = frames.device
     t0 = time.perf_counter()
     lines = detect_ring_lines(frames, frame=0, settings=ss.lines, threads=threads)
@@ -58,7 +61,7 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
     sector = np.where(np.isfinite(phi), np.floor((np.nan_to_num(phi) + np.pi) / (2 * np.pi) * n_sec), -1)
     sector = np.clip(sector, -1, n_sec - 1).astype(np.int32)
     rho = (spec.rho0 + spec.pitch * ring).astype(np.float32)
-    smp = Samples(
+    samples = Samples(
         uv=wp.array(d["uv"][keep], dtype=wp.vec2, device=dev),
         rho=wp.array(rho, dtype=wp.float32, device=dev),
         ring=wp.array(ring, dtype=wp.int32, device=dev),
@@ -74,4 +77,4 @@ def extract_rings(frames: wp.array, scan, settings, threads: int):
              lab.stats["pieces"], lab.stats["pieces_labelled"], lab.stats["pieces_dropped"], keep.size)
     if "object_unlabelled" in lab.stats:
         log.warning("rings (%s): %s", scan.folder, lab.stats["object_unlabelled"])
-    return smp, stats
+    return samples, stats

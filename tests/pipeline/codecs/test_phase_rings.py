@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.phase import PhaseSettings
-from ringscan.pipeline.codecs.phase_rings import estimate_camera_gamma, extract_phase_rings, phase_settings_of
+from ringscan.pipeline.codecs.phase_rings import PhaseRingsSettings, estimate_camera_gamma, extract_phase_rings
 from ringscan.pipeline.evaluate.metrics import evaluate_recon, truth_points
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.patterns import parse_patterns
@@ -30,7 +30,7 @@ PHASE = {"codec": "phase-rings", **PROJ, "rho0": 8.0, "pitch": 8.0, "bits": 6, "
 
 @dataclass(frozen=True)
 class _Settings(ReconstructSettings):
-    """ReconstructSettings with a phase block (what reconstruct reads through phase_settings_of)."""
+    """ReconstructSettings with a phase block (the phase-rings codec picks it: ``PhaseRingsCodec.settings_from``)."""
 
     phase: PhaseSettings = field(default_factory=PhaseSettings)
 
@@ -184,16 +184,14 @@ def test_extract_checks_codec_and_settings(small_phase_scan):
     gray = dataclasses.replace(small_phase_scan, patterns=parse_patterns({**PHASE, "codec": "gray-rings"}))
     fr = wp.array(read_view_frames(small_phase_scan, small_phase_scan.views[0]), device="cpu")
     with pytest.raises(ValueError, match="phase-rings"):
-        extract_phase_rings(fr, gray, ReconstructSettings(), 1)
-    assert phase_settings_of(ReconstructSettings()) == PhaseSettings()
-    bad = type("S", (), {"phase": {"response": "rig"}})()
+        extract_phase_rings(fr, gray, PhaseRingsSettings(), 1)
     with pytest.raises(ValueError, match="PhaseSettings"):
-        phase_settings_of(bad)
+        PhaseRingsSettings(phase={"response": "rig"})
 
 
 def test_dark_view_gives_no_points(small_phase_scan):
     fr = wp.array(np.zeros((len(small_phase_scan.views[0].frames), 256, 320), np.uint8), device="cpu")
-    smp, stats = extract_phase_rings(fr, small_phase_scan, ReconstructSettings(), 1)
+    smp, stats = extract_phase_rings(fr, small_phase_scan, PhaseRingsSettings(), 1)
     assert smp.uv.shape == (0,) and stats["samples"] == 0 and stats["pixels_decoded"] == 0
 
 

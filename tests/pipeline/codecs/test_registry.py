@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.pipeline.codecs.registry import EXTRACTORS, extract_samples
+from ringscan.pipeline.codecs.registry import REGISTRY, extract_samples
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.patterns import CODECS, IMPORTED_CODECS, parse_patterns
+from ringscan.pipeline.formats.patterns import CODECS, IMPORTED_CODECS, PATTERN_LAYOUTS, parse_patterns
 from ringscan.pipeline.formats.rig import default_rig
 from ringscan.pipeline.formats.scan import read_view_frames
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -68,7 +68,9 @@ def test_import_failure_reaches_the_command_line_as_itself(tmp_path):
 
 
 def test_every_known_codec_has_a_reconstruction():
-    assert set(EXTRACTORS) == set(CODECS) | set(IMPORTED_CODECS)
+    assert set(REGISTRY) == set(CODECS) | set(IMPORTED_CODECS)
+    for name, codec in REGISTRY.items():
+        assert codec.name == name and codec.layout is PATTERN_LAYOUTS[name]
 
 
 @pytest.fixture(scope="module")

@@ -81,14 +81,7 @@ def truth_rings(scan, view, uv):
 
 def _label(scan, frame=None, settings=SingleShotSettings()):
     frames = read_view_frames(scan, scan.views[0]) if frame is None else frame[None]
-    return extract_rings(wp.array(frames, device="cpu"), scan, _Settings(settings), 2)
-
-
-@dataclasses.dataclass(frozen=True)
-class _Settings:
-    """ReconstructSettings stand-in carrying a single_shot block."""
-
-    single_shot: SingleShotSettings
+    return extract_rings(wp.array(frames, device="cpu"), scan, settings, 2)
 
 
 # ----------------------------------------------------------------------------- labels against the truth
@@ -234,7 +227,7 @@ def test_dark_frame_gives_no_samples(small_scans, tmp_path):
     path = dark.frame_path(dark.views[0], "rings")
     write_image(path, np.full_like(read_image(path), 13))
     smp, stats = extract_rings(wp.array(read_view_frames(dark, dark.views[0]), device="cpu"), dark,
-                               ReconstructSettings(), 2)
+                               SingleShotSettings(), 2)
     assert len(smp.uv) == 0 and smp.ring.shape == (0,) and stats["samples"] == 0 and stats["pieces"] == 0
     cloud = reconstruct_view(dark, dark.views[0], device="cpu")
     assert cloud.points.shape == (0, 3)
@@ -246,9 +239,11 @@ def test_bad_input(small_scans):
     gray = dataclasses.replace(scan, patterns=parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0,
                                                                 "pitch": 4.0, "bits": 7}))
     with pytest.raises(ValueError, match="codec"):
-        extract_rings(frames, gray, ReconstructSettings(), 1)
+        extract_rings(frames, gray, SingleShotSettings(), 1)
     with pytest.raises(ValueError, match="frames"):
-        extract_rings(np.zeros((1, 4, 4), np.uint8), scan, ReconstructSettings(), 1)
+        extract_rings(np.zeros((1, 4, 4), np.uint8), scan, SingleShotSettings(), 1)
+    with pytest.raises(ValueError, match="SingleShotSettings"):
+        extract_rings(frames, scan, ReconstructSettings(), 1)
     with pytest.raises(ValueError, match="rings"):
         label_ring_lines(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), wp.zeros((4, 4), dtype=float),
                          rig=scan.rig, patterns=gray.patterns)

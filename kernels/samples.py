@@ -1,0 +1,54 @@
+"""The one samples type: what every codec's decode + sampling stages hand to
+triangulation (``kernels.triangulation``), and what the kernel samplers
+(``ring_sampling``, ``phase``) return."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+__all__ = ["Samples"]
+
+
+@dataclass
+class Samples:
+    """Samples of one view (Warp arrays of length n, on the frames' device).
+
+    The required fields are what triangulation reads today; the optional ones
+    (None where the codec does not give them) carry the rest of each sample's
+    projector position and its predicted errors.
+    """
+
+    uv: wp.array
+    """vec2 (u, v) camera pixel coordinates."""
+    rho: wp.array | None
+    """float32 ring radius (projector px). None only straight out of
+    ``ring_sampling.sample_gray_rings`` called without ``rho0``/``pitch`` (it
+    knows band indices; ``ring_radii`` maps them)."""
+    ring: wp.array | None
+    """int32 ring / band-boundary index k (radius rho0 + k * pitch), or None for
+    dense codecs (one sample per pixel, no ring)."""
+    sector: wp.array
+    """int32 decoded sector of the polar angle, -1 where unknown."""
+    confidence: wp.array
+    """float32 in [0, 1] (edge slope, fringe modulation or contrast, per codec)."""
+    pixel: wp.array
+    """int32 linear camera pixel index y * W + x of each sample."""
+    phi: wp.array | None = None
+    """float32 polar angle (radians) around the pattern centre on the projector
+    grid, atan2(v_p - c_v, u_p - c_u); None where the codec has no angle."""
+    sigma_rho: wp.array | None = None
+    """float32 predicted standard deviation of ``rho`` (projector px), or None."""
+    sigma_tan: wp.array | None = None
+    """float32 predicted standard deviation of the tangential position
+    rho * phi (projector px), or None."""
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
+        names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan")
+        return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}

@@ -1,0 +1,139 @@
+"""The codec interface: one :class:`Codec` subclass per pattern codec, one module each.
+
+A codec pairs the data-level description of its patterns (a
+:class:`~ringscan.pipeline.formats.patterns.PatternLayout`: parameters, defaults
+and ranges, frame names; it lives in ``formats`` because reading a scan folder
+needs the frame names) with its behaviour: render a projector frame, extract the
+samples of one view with typed settings of its own, explain an empty view, and
+say what it needs from the rig. ``codecs.registry`` maps a codec name to its
+instance; nothing outside ``pipeline.codecs`` branches on a codec's name.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar, Generic, Protocol, TypeVar
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.phase import PhaseSettings
+from ringscan.kernels.ring_labels import DecodeSettings
+from ringscan.kernels.ring_sampling import SampleSettings
+from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
+from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
+from ringscan.pipeline.formats.scan import Scan
+
+__all__ = ["Codec", "RigNeeds", "StageSettings", "describe_lighting"]
+
+S = TypeVar("S")
+
+
+class StageSettings(Protocol):
+    """The per-stage settings blocks a run holds (``reconstruct.ReconstructSettings``
+    has them); each codec picks the blocks it uses into its own typed settings
+    (:meth:`Codec.settings_from`)."""
+
+    @property
+    def decode(self) -> DecodeSettings: ...
+    @property
+    def sample(self) -> SampleSettings: ...
+    @property
+    def phase(self) -> PhaseSettings: ...
+    @property
+    def single_shot(self) -> SingleShotSettings: ...
+
+
+@dataclass(frozen=True)
+class RigNeeds:
+    """What a codec needs from the rig beyond the triangulation (which always needs
+    the camera, the light and the working volume)."""
+
+    geometry_to_decode: bool = False
+    """Decoding itself reads the rig's geometry (camera and light poses): its samples
+    depend on the calibration, so they cannot calibrate the light."""
+    response: bool = False
+    """Decoding reads the camera's and the light's response gammas (``rig.camera.gamma``,
+    ``rig.light.gamma``)."""
+
+
+class Codec(ABC, Generic[S]):
+    """One pattern codec (the model: OpenCV structured_light's ``StructuredLightPattern``).
+
+    Subclasses set :attr:`layout`, :attr:`settings_type` and :attr:`rig_needs` and
+    implement :meth:`settings_from` and :meth:`extract`; a projectable codec also
+    implements :meth:`render_frame`.
+    """
+
+    layout: ClassVar[PatternLayout]
+    """Parameters (defaults, ranges) and frame names (``formats.patterns``)."""
+    settings_type: ClassVar[type]
+    """The frozen dataclass of this codec's settings (``S``)."""
+    rig_needs: ClassVar[RigNeeds] = RigNeeds()
+    """What decoding needs from the rig."""
+
+    @property
+    def name(self) -> str:
+        """The codec name (scan.json ``patterns.codec``)."""
+        return self.layout.name
+
+    @property
+    def calibrates_light(self) -> bool:
+        """Its samples can calibrate the light (projected, decoded without the rig's geometry)."""
+        return self.layout.projectable and not self.rig_needs.geometry_to_decode
+
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        """The frame names, in projection order (may depend on any pattern parameter)."""
+        return self.layout.frame_names(spec)
+
+    def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
+        """One projector frame ``name`` as a (height, width) uint8 image.
+
+        Raises:
+            ValueError: the codec is not projectable.
+        """
+        raise ValueError(f"the {self.name} codec is not projectable: it has no frames to render")
+
+    @abstractmethod
+    def settings_from(self, stages: StageSettings) -> S:
+        """This codec's settings, picked from a run's stage blocks."""
+
+    @abstractmethod
+    def extract(self, frames: wp.array, scan: Scan, settings: S, *, threads: int) -> tuple[Samples, dict]:
+        """Decode + sampling of one view.
+
+        Args:
+            frames: (F, H, W) uint8/uint16 Warp array in :meth:`frame_names` order (read only).
+            scan: the scan (patterns, rig).
+            settings: this codec's settings (:attr:`settings_type`).
+            threads: CPU threads for the row-run kernels.
+
+        Returns:
+            (samples, stats): stats holds at least ``pixels_decoded``, ``samples`` and
+            ``times_s`` (stage -> seconds), and ``sector_bits`` where the codec decides
+            sectors of its own.
+        """
+
+    def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: S) -> str | None:
+        """Why a view gave no point, where the codec can tell from its frames (one
+        sentence for the user), else None (``reconstruct`` then says what the counts say).
+
+        Args:
+            frames: the view's (F, H, W) frames in :meth:`frame_names` order.
+            stats: the view's counts (``pixels_decoded``, ``samples``, ...).
+        """
+        return None
+
+
+def describe_lighting(lo_mean: float, hi_mean: float, full: float) -> str:
+    """Why a view has no contrast, from the mean grey level of its darkest and
+    brightest frames (``full``: 255 or 65535)."""
+    if hi_mean < 0.05 * full:
+        return "everything is dark: the projector's light did not reach the camera (projector off, lens cap, " \
+               "exposure too short)"
+    if lo_mean > 0.95 * full:
+        return "everything is saturated: the exposure is too long or the ambient light too strong"
+    return "the projector's light does not change the image (projector off or aimed elsewhere, or the " \
+           "frames are all alike)"
