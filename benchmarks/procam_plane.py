@@ -2,9 +2,12 @@
 
 1. Calibrates the rig from capture_1..3 (``ringscan calibrate procam``'s library
    code), or reads ``--rig``.
-2. The ring way: ``import_captures`` (sub-pixel projector positions) and
-   ``reconstruct_view`` (each camera ray meets the cone of its rho around the
-   projector's principal point; the polar angle picks the root).
+2. The ringscan way: ``import_captures`` (sub-pixel projector positions) and
+   ``reconstruct_view``, once per constraint (``--constraints``, default
+   ``rings both``): rings = each camera ray meets the cone of its rho around the
+   projector's principal point, the polar angle picks the root (the paper's
+   model); both = the full projector coordinate, each direction weighted by its
+   predicted standard deviation.
 3. The plain OpenCV way: integer column/row codes decoded with NumPy, camera and
    projector rays triangulated with ``cv2.triangulatePoints`` (same calibration).
 
@@ -15,6 +18,7 @@ where the cone is ill-conditioned: the triangulation's drops by reason on the bo
 and in the whole image, and the median incidence |cos| per image quadrant.
 
     python benchmarks/procam_plane.py [--data ../shared/data/procam] [--rig RIG.json] [--out DIR]
+        [--constraints rings both]
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from ringscan.pipeline.calibrate.board import Board
 from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
 from ringscan.pipeline.calibrate.importer import import_captures, procam_pose, triangulate_codes
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners, depth_range, procam_rig
+from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view
@@ -62,6 +67,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rig", default=None, help="a ringscan rig (default: calibrate from the captures)")
     ap.add_argument("--out", default=None, help="keep the imported scan here")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--constraints", nargs="+", default=["rings", "both"], choices=["rings", "angle", "both"],
+                    help="triangulation constraints to compare (default: rings both)")
     args = ap.parse_args(argv)
     data = Path(args.data)
     caps = [data / f"capture_{i}" for i in (1, 2, 3)]
@@ -96,32 +103,30 @@ def main(argv=None) -> int:
     ratios = []
     for view, c in zip(scan.views, caps):
         m = masks[c.name]
-        cloud = reconstruct_view(scan, view, settings=ReconstructSettings(), device=args.device)
-        uv = np.round(cloud.uv).astype(int)
-        on = m[uv[:, 1], uv[:, 0]]
-        ring = plane_stats(cloud.points[on].astype(np.float64))
         dec = decode_graycode(read_capture(c, projector=PROJECTOR))
         sel = dec.valid & m
         yy, xx = np.nonzero(sel)
         X = triangulate_codes(np.stack([xx, yy], 1), np.stack([dec.col[sel], dec.row[sel]], 1), cam_K=cam.K,
                               cam_dist=cam.dist, proj_K=li.K, proj_dist=li.dist, R=R, T=T)
         plain = plane_stats(X[np.all(np.isfinite(X), 1)])
-        ratio = ring["rms"] / plain["rms"]
-        ratios.append(ratio)
-        for name, s in (("ring", ring), ("plain", plain)):
-            print(f"{c.name:10} {name:6} {s['n']:8d} {s['rms']:6.3f} {s['median']:7.3f} {100 * s['within1']:5.1f}% "
-                  f"{100 * s['within3']:5.1f}%" + (f"   {ratio:.2f}" if name == "ring" else ""))
-        st = cloud.stats
-        print(f"{'':10} ring drops (whole image): {st['dropped']}; sub-pixel share "
-              f"{100 * stats[c.name]['subpixel_share']:.0f} %")
-        # where is the cone ill-conditioned? confidence = contrast x |cos incidence|
-        H, W = m.shape
-        q = {"upper-left": (uv[:, 0] < W / 2) & (uv[:, 1] < H / 2), "upper-right": (uv[:, 0] >= W / 2) & (uv[:, 1] < H / 2),
-             "lower-left": (uv[:, 0] < W / 2) & (uv[:, 1] >= H / 2),
-             "lower-right": (uv[:, 0] >= W / 2) & (uv[:, 1] >= H / 2)}
-        print(f"{'':10} median confidence by image quadrant: "
-              + ", ".join(f"{k} {np.median(cloud.confidence[v]):.2f}" for k, v in q.items() if v.any()))
-    print(f"\nring/plain plane RMS: {', '.join(f'{r:.2f}' for r in ratios)} (target <= 0.75 on every capture)")
+        for k in args.constraints:
+            settings = ReconstructSettings(triangulate=TriangulateSettings(constraint=k))
+            cloud = reconstruct_view(scan, view, settings=settings, device=args.device)
+            uv = np.round(cloud.uv).astype(int)
+            on = m[uv[:, 1], uv[:, 0]]
+            ring = plane_stats(cloud.points[on].astype(np.float64))
+            ratio = ring["rms"] / plain["rms"]
+            ratios.append((c.name, k, ratio))
+            print(f"{c.name:10} {k:6} {ring['n']:8d} {ring['rms']:6.3f} {ring['median']:7.3f} "
+                  f"{100 * ring['within1']:5.1f}% {100 * ring['within3']:5.1f}%   {ratio:.2f}   "
+                  f"median sigma {np.median(cloud.sigma[on]):.3f}")
+            st = cloud.stats
+            print(f"{'':10} drops (whole image): { {a: b for a, b in st['dropped'].items() if b} }; sub-pixel share "
+                  f"{100 * stats[c.name]['subpixel_share']:.0f} %")
+        s_ = plain
+        print(f"{c.name:10} {'plain':6} {s_['n']:8d} {s_['rms']:6.3f} {s_['median']:7.3f} {100 * s_['within1']:5.1f}% "
+              f"{100 * s_['within3']:5.1f}%")
+    print("\nringscan/plain plane RMS: " + ", ".join(f"{c} {k} {r:.2f}" for c, k, r in ratios))
     return 0
 
 

@@ -3,14 +3,17 @@ decoded projector position (``ringscan import``, docs/formats.md).
 
 Frames ``proj_u``, ``proj_v`` (16-bit fixed point: value = round((coordinate + 1) *
 ``DECODED_SCALE``), 0 = not decoded) and ``contrast`` (white - black, 16-bit).
-Each decoded pixel becomes one sample: rho = |p - c| around the pattern centre c
-(the projector's principal point) and the sector of its polar angle
-atan2(v_p - c_v, u_p - c_u), so the triangulation meets the camera ray with the
-cone of its own rho and picks the root by the angle (DESIGN §3, §4).
+Each decoded pixel becomes one sample that keeps both projector coordinates: rho =
+|p - c| around the pattern centre c (the projector's principal point) and the polar
+angle phi = atan2(v_p - c_v, u_p - c_u), each with a predicted standard deviation,
+so the triangulation fits the full projector pixel (the camera ray against the
+projector ray, through the projector's lens); with ``--constraint rings`` it meets
+the cone of its own rho and picks the root by the angle's sector (DESIGN §3, §4).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -26,13 +29,37 @@ __all__ = ["DecodedCodec", "DecodedSettings", "extract_decoded", "decoded_sample
 
 CONTRAST_FULL = 64.0
 """White - black (8-bit levels) at which a sample's confidence reaches 1."""
+SIGMA_SUBPIXEL_PX = 0.05
+"""Standard deviation (projector px) of a sub-pixel coordinate at ``CONTRAST_FULL``;
+it grows as 1 / contrast (the crossing of a pattern and its inverse moves by
+noise / slope), with the fixed-point step of the frames as its floor. What the
+calibration adds on a real rig is measured per view by the triangulation
+(``reconstruct.view``: the calibration floor)."""
+SIGMA_INTEGER_PX = 1.0 / math.sqrt(12.0)
+"""Standard deviation of an integer code (a uniform error over one projector pixel)."""
 
 
-def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, center, sector_bits: int):
-    """NumPy samples of decoded maps: (uv (n, 2), rho (n,), sector (n,), confidence (n,), pixel (n,)).
+def coordinate_sigma(x: np.ndarray, contrast: np.ndarray) -> np.ndarray:
+    """Predicted standard deviation (projector px) of decoded coordinates ``x``:
+    integer codes (the importer's fallback, or ``--integer``) are uniform over a
+    pixel; sub-pixel ones follow the contrast."""
+    integer = np.abs(x - np.round(x)) < 0.5 / DECODED_SCALE
+    floor = 1.0 / (DECODED_SCALE * math.sqrt(12.0))
+    sub = np.maximum(SIGMA_SUBPIXEL_PX * CONTRAST_FULL / np.maximum(contrast, 1.0), floor)
+    return np.where(integer, SIGMA_INTEGER_PX, sub)
+
+
+def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, center, sector_bits: int) -> dict:
+    """NumPy samples of decoded maps.
 
     ``u``, ``v``: (H, W) float projector coordinates, NaN where not decoded;
     ``contrast``: (H, W) white - black in 8-bit levels.
+
+    Returns:
+        dict of (n,) arrays: ``uv`` (n, 2) float32 camera pixel, ``rho`` float32,
+        ``phi`` float32 polar angle (rad), ``sector`` int32, ``confidence``
+        float32, ``pixel`` int32, ``sigma_rho`` and ``sigma_tan`` float32 (projector
+        px: the u and v errors turned into the radial and tangential directions).
     """
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
@@ -43,17 +70,26 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
     pix = np.flatnonzero(ok.ravel()).astype(np.int32)
     W = u.shape[1]
     uv = np.stack([pix % W, pix // W], 1).astype(np.float32)
-    du = u.ravel()[pix] - center[0]
-    dv = v.ravel()[pix] - center[1]
-    rho = np.hypot(du, dv).astype(np.float32)
+    up = u.ravel()[pix]
+    vp = v.ravel()[pix]
+    du = up - center[0]
+    dv = vp - center[1]
+    rho = np.hypot(du, dv)
+    phi = np.arctan2(dv, du)
     if sector_bits > 0:
         n = 2 ** sector_bits
-        phi = np.arctan2(dv, du)
         sector = np.clip(np.floor((phi + np.pi) / (2 * np.pi) * n), 0, n - 1).astype(np.int32)
     else:
         sector = np.full(pix.size, -1, np.int32)
-    conf = np.clip(np.asarray(contrast, np.float64).ravel()[pix] / CONTRAST_FULL, 0.0, 1.0).astype(np.float32)
-    return uv, rho, sector, conf, pix
+    con = np.asarray(contrast, np.float64).ravel()[pix]
+    conf = np.clip(con / CONTRAST_FULL, 0.0, 1.0).astype(np.float32)
+    su2 = coordinate_sigma(up, con) ** 2
+    sv2 = coordinate_sigma(vp, con) ** 2
+    c2, s2 = np.cos(phi) ** 2, np.sin(phi) ** 2
+    return {"uv": uv, "rho": rho.astype(np.float32), "phi": phi.astype(np.float32), "sector": sector,
+            "confidence": conf, "pixel": pix,
+            "sigma_rho": np.sqrt(su2 * c2 + sv2 * s2).astype(np.float32),
+            "sigma_tan": np.sqrt(su2 * s2 + sv2 * c2).astype(np.float32)}
 
 
 @dataclass(frozen=True)
@@ -80,13 +116,15 @@ def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, thr
     good = (fr[0] > 0) & (fr[1] > 0)
     u = np.where(good, fr[0] / DECODED_SCALE - 1.0, np.nan)
     v = np.where(good, fr[1] / DECODED_SCALE - 1.0, np.nan)
-    uv, rho, sector, conf, pix = decoded_samples(u, v, fr[2] / 257.0, center=spec.center,
-                                                 sector_bits=spec.sector_bits)
+    d = decoded_samples(u, v, fr[2] / 257.0, center=spec.center, sector_bits=spec.sector_bits)
     dev = frames.device
-    smp = Samples(uv=wp.array(uv, dtype=wp.vec2, device=dev), rho=wp.array(rho, dtype=wp.float32, device=dev),
-                  ring=None, sector=wp.array(sector, dtype=wp.int32, device=dev),
-                  confidence=wp.array(conf, dtype=wp.float32, device=dev),
-                  pixel=wp.array(pix, dtype=wp.int32, device=dev))
+    f32 = {k: wp.array(d[k], dtype=wp.float32, device=dev) for k in ("rho", "phi", "confidence", "sigma_rho",
+                                                                     "sigma_tan")}
+    smp = Samples(uv=wp.array(d["uv"], dtype=wp.vec2, device=dev), rho=f32["rho"], ring=None,
+                  sector=wp.array(d["sector"], dtype=wp.int32, device=dev), confidence=f32["confidence"],
+                  pixel=wp.array(d["pixel"], dtype=wp.int32, device=dev), phi=f32["phi"],
+                  sigma_rho=f32["sigma_rho"], sigma_tan=f32["sigma_tan"])
+    pix = d["pixel"]
     stats = {"pixels_decoded": int(pix.size), "samples": int(pix.size),
              "times_s": {"decode": time.perf_counter() - t0}}
     return smp, stats

@@ -41,6 +41,8 @@ class ViewCloud:
     """(n,) float32 in [0, 1]."""
     uv: np.ndarray
     """(n, 2) float32 camera pixel of each point."""
+    sigma: np.ndarray
+    """(n,) float32 predicted standard deviation of the point along its camera ray (mm)."""
     stats: dict
     """Counts and seconds per stage."""
 
@@ -91,7 +93,8 @@ def reconstruct_view(
     cam = camera_model_for(rig)
     triangulated = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=cam,
                                      light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
-                                     center=scan.patterns.center, sector_bits=sector_bits,
+                                     center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi,
+                                     sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
                                      settings=settings.triangulate, threads=threads)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
@@ -113,17 +116,25 @@ def reconstruct_view(
         rho=samples.rho.numpy()[idx_np],
         confidence=triangulated.confidence.numpy()[idx_np],
         uv=samples.uv.numpy()[idx_np],
+        sigma=triangulated.sigma.numpy()[idx_np],
         stats={},
     )
+    dropped = {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0}
     if settings.min_confidence > 0:
         keep = cloud.confidence >= settings.min_confidence
-        cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep], cloud.uv[keep], {})
+        dropped["below_min_confidence"] = int(keep.size - np.count_nonzero(keep))
+        cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep],
+                          cloud.uv[keep], cloud.sigma[keep], {})
     times["download"] = time.perf_counter() - t
+    with_angle = samples.phi is not None and settings.triangulate.constraint != "rings"
     cloud.stats = {
         "pixels": int(frames.shape[1] * frames.shape[2]),
         **codec_stats,
+        "constraint": ("both" if settings.triangulate.constraint == "auto" else settings.triangulate.constraint)
+        if with_angle else "rings",
         "points": int(cloud.points.shape[0]),
-        "dropped": {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+        "median_sigma_mm": float(np.median(cloud.sigma)) if cloud.sigma.size else None,
+        "dropped": dropped,
         "times_s": times,
     }
     if cloud.stats["points"] == 0:
@@ -161,4 +172,5 @@ def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
         "ring": cloud.ring.astype(np.int32), "rho": cloud.rho.astype(np.float32),
         "view": np.full(n, view_index, np.int32), "confidence": cloud.confidence.astype(np.float32),
         "u": cloud.uv[:, 0].astype(np.float32), "v": cloud.uv[:, 1].astype(np.float32),
+        "sigma": cloud.sigma.astype(np.float32),
     }, comments=["ringscan point cloud, world frame, mm"])
