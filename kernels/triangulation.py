@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import (
@@ -77,7 +78,9 @@ NOMINAL_SIGMA_PX = 0.05
 """Standard deviation (projector px) assumed for samples whose codec predicts none."""
 
 __all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES",
-           "CONSTRAINTS", "NOMINAL_SIGMA_PX"]
+           "CONSTRAINTS", "NOMINAL_SIGMA_PX", "calibration_floor"]
+CHI2_1_MEDIAN = 0.454936423119572
+"""Median of a chi-square variable with one degree of freedom."""
 
 
 @dataclass(frozen=True)
@@ -106,10 +109,11 @@ class TriangulateSettings:
     half-plane alone; for comparison), ``both`` (weighted least squares of both),
     or ``auto`` (both where a sample carries an angle, rings elsewhere)."""
     max_residual_px: float = 2.0
-    """With the angle: largest distance (projector px) between the observed
-    projector pixel and the best point's own; above it the two coordinates
+    """With the angle: largest distance (projector px) of the observed projector
+    pixel from the camera ray's epipolar line; above it the two coordinates
     disagree (a decode error, a reflection, a wrong calibration) and the point
-    is dropped as ``inconsistent``."""
+    is dropped as ``inconsistent`` (``reconstruct`` raises it to 5 calibration
+    floors on a rig that misses by more)."""
 
 
 @dataclass
@@ -125,9 +129,14 @@ class Triangulation:
     residual: wp.array
     """float32 consistency residual: for the ring constraint the angular residual in
     sectors (0 inside the sector; -1 without sectors); with the angle the distance
-    (projector px) between the observed and the point's projector pixel."""
+    (projector px) of the observed projector pixel from the camera ray's epipolar
+    line (the projector-side ray-ray distance)."""
     sigma: wp.array
     """float32 predicted standard deviation of the point along the camera ray (mm)."""
+    residual_var: wp.array
+    """float32 the decode's predicted variance (projector px^2) across the epipolar
+    line (with both coordinates; 0 otherwise): residual^2 / residual_var is the
+    point's chi-square, which :func:`calibration_floor` reads."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -158,13 +167,16 @@ def ring_slope(light: LightModel, X: wp.vec3, d: wp.vec3, center: wp.vec2):
 
 
 @wp.func
-def whitened_offset(light: LightModel, X: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, w_r: float, w_t: float):
-    """The projector-grid offset of X from the observed pixel, in standard
-    deviations: (radial / sigma_rho, tangential / sigma_tan)."""
+def pixel_offset(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
+    """Offset of X's projector pixel from the observed one (projector px)."""
     p = light_pixel(light, X)
-    dx = p[0] - p_obs[0]
-    dy = p[1] - p_obs[1]
-    return wp.vec2(w_r * (dx * e_r[0] + dy * e_r[1]), w_t * (dy * e_r[0] - dx * e_r[1]))
+    return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
+
+
+@wp.func
+def quad(W: wp.vec3, a: wp.vec2, b: wp.vec2):
+    """a^T W b for the symmetric 2x2 W = [[W0, W1], [W1, W2]]."""
+    return a[0] * (W[0] * b[0] + W[1] * b[1]) + a[1] * (W[1] * b[0] + W[2] * b[1])
 
 
 @wp.func
@@ -227,30 +239,47 @@ def rings_solution(
 
 @wp.func
 def full_solution(
-    light: LightModel, C: wp.vec3, d: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, w_r: float, w_t: float, vol: Volume,
-    min_incidence_cos: float, max_residual_px: float,
+    light: LightModel, C: wp.vec3, d: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, info_r: float, info_t: float,
+    floor2: float, vol: Volume, min_incidence_cos: float, max_residual_px: float,
 ):
     """Both projector coordinates: the point on the ray whose projector pixel is
-    nearest the observed one, each direction weighted by its standard deviation
-    (Gauss-Newton in t from the ray-ray closest point, through the projector's
-    lens distortion). Returns (X, status, conditioning in [0, 1], residual px,
-    sigma mm along the ray)."""
+    nearest the observed one in the decode's own metric (Gauss-Newton in t from
+    the ray-ray closest point, through the projector's lens distortion).
+
+    The information matrix is info_r e_r e_r^T + info_t e_t e_t^T (radial and
+    tangential: 1 / sigma^2 each; info_r = 0 for the angle alone), with the
+    calibration floor ``floor2`` (px^2) added as a covariance across the
+    epipolar line (the only direction a calibration error can be seen in).
+    Returns (X, status, conditioning in [0, 1], residual px across the epipolar
+    line, sigma mm along the ray, the decode's variance (px^2) across the line)."""
     zero = wp.vec3(0.0, 0.0, 0.0)
     O, e, lok = light_pixel_ray(light, p_obs[0], p_obs[1])
     if not lok:
-        return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0
+        return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0, 0.0
     t = closest_on_ray(C, d, O, e)
     h = wp.max(0.05, 1.0e-4 * wp.abs(t))
+    e_t = wp.vec2(-e_r[1], e_r[0])
+    W = wp.vec3(info_r * e_r[0] * e_r[0] + info_t * e_t[0] * e_t[0],
+                info_r * e_r[0] * e_r[1] + info_t * e_t[0] * e_t[1],
+                info_r * e_r[1] * e_r[1] + info_t * e_t[1] * e_t[1])
+    if floor2 > 0.0:
+        # Woodbury: (W^-1 + c^2 n n^T)^-1, n across the epipolar line at t
+        J0 = pixel_offset(light, C + d * (t + h), p_obs) - pixel_offset(light, C + d * (t - h), p_obs)
+        jl0 = wp.length(J0)
+        if jl0 > 0.0:
+            n = wp.vec2(-J0[1] / jl0, J0[0] / jl0)
+            Wn = wp.vec2(W[0] * n[0] + W[1] * n[1], W[1] * n[0] + W[2] * n[1])
+            k = floor2 / (1.0 + floor2 * wp.dot(n, Wn))
+            W = wp.vec3(W[0] - k * Wn[0] * Wn[0], W[1] - k * Wn[0] * Wn[1], W[2] - k * Wn[1] * Wn[1])
     converged = bool(False)
-    J = wp.vec2(0.0, 0.0)
+    jj = float(0.0)
     for _i in range(NEWTON_STEPS):
-        r0 = whitened_offset(light, C + d * t, p_obs, e_r, w_r, w_t)
-        J = (whitened_offset(light, C + d * (t + h), p_obs, e_r, w_r, w_t)
-             - whitened_offset(light, C + d * (t - h), p_obs, e_r, w_r, w_t)) / (2.0 * h)
-        jj = wp.dot(J, J)
+        r0 = pixel_offset(light, C + d * t, p_obs)
+        J = (pixel_offset(light, C + d * (t + h), p_obs) - pixel_offset(light, C + d * (t - h), p_obs)) / (2.0 * h)
+        jj = quad(W, J, J)
         if not (jj > 1.0e-24):
             break
-        step = wp.dot(J, r0) / jj
+        step = quad(W, J, r0) / jj
         t = t - step
         # 2 % of the point's own standard deviation is as far as refining helps;
         # float32 coordinates put a floor of ~1e-6 |t| under the steps
@@ -261,39 +290,49 @@ def full_solution(
     if not converged:
         # a far-off observation (the coordinates disagree) leaves float32 noise
         # in the steps: name it for what it is
-        pe = light_pixel(light, X)
-        res_nc = wp.length(wp.vec2(pe[0] - p_obs[0], pe[1] - p_obs[1]))
+        res_nc = wp.length(pixel_offset(light, X, p_obs))
         if res_nc > max_residual_px:
-            return zero, STATUS_INCONSISTENT, 0.0, res_nc, 0.0
-        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0
+            return zero, STATUS_INCONSISTENT, 0.0, res_nc, 0.0, 0.0
+        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0, 0.0
     if not root_usable(light, X, t, vol):
-        return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0
-    # Conditioning: the information along the ray, |J|^2, against the best any
-    # direction has here (the largest eigenvalue of A A^T, A = d offset / dX).
+        return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0, 0.0
+    # Conditioning: the information along the ray against the most any direction
+    # has here: the largest eigenvalue of W M, M = sum of the columns of
+    # d pixel / dX times their transposes.
     hx = 0.05
-    ax = (whitened_offset(light, X + wp.vec3(hx, 0.0, 0.0), p_obs, e_r, w_r, w_t)
-          - whitened_offset(light, X - wp.vec3(hx, 0.0, 0.0), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
-    ay = (whitened_offset(light, X + wp.vec3(0.0, hx, 0.0), p_obs, e_r, w_r, w_t)
-          - whitened_offset(light, X - wp.vec3(0.0, hx, 0.0), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
-    az = (whitened_offset(light, X + wp.vec3(0.0, 0.0, hx), p_obs, e_r, w_r, w_t)
-          - whitened_offset(light, X - wp.vec3(0.0, 0.0, hx), p_obs, e_r, w_r, w_t)) / (2.0 * hx)
-    m11 = ax[0] * ax[0] + ay[0] * ay[0] + az[0] * az[0]
-    m22 = ax[1] * ax[1] + ay[1] * ay[1] + az[1] * az[1]
-    m12 = ax[0] * ax[1] + ay[0] * ay[1] + az[0] * az[1]
-    half = 0.5 * (m11 + m22)
-    lmax = half + wp.sqrt(wp.max(half * half - (m11 * m22 - m12 * m12), 0.0))
-    Jd = wp.vec2(ax[0] * d[0] + ay[0] * d[1] + az[0] * d[2], ax[1] * d[0] + ay[1] * d[1] + az[1] * d[2])
-    jl = wp.length(Jd)
-    cond = wp.where(lmax > 0.0, wp.min(jl / wp.sqrt(lmax), 1.0), 0.0)
-    sigma = wp.where(jl > 0.0, 1.0 / jl, 1.0e9)
-    p = light_pixel(light, X)
-    res = wp.length(wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1]))
+    ax = (pixel_offset(light, X + wp.vec3(hx, 0.0, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(hx, 0.0, 0.0), p_obs)) / (2.0 * hx)
+    ay = (pixel_offset(light, X + wp.vec3(0.0, hx, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(0.0, hx, 0.0), p_obs)) / (2.0 * hx)
+    az = (pixel_offset(light, X + wp.vec3(0.0, 0.0, hx), p_obs) - pixel_offset(light, X - wp.vec3(0.0, 0.0, hx), p_obs)) / (2.0 * hx)
+    m0 = ax[0] * ax[0] + ay[0] * ay[0] + az[0] * az[0]
+    m1 = ax[0] * ax[1] + ay[0] * ay[1] + az[0] * az[1]
+    m2 = ax[1] * ax[1] + ay[1] * ay[1] + az[1] * az[1]
+    tr = W[0] * m0 + 2.0 * W[1] * m1 + W[2] * m2
+    det = (W[0] * W[2] - W[1] * W[1]) * (m0 * m2 - m1 * m1)
+    lmax = 0.5 * tr + wp.sqrt(wp.max(0.25 * tr * tr - det, 0.0))
+    Jd = ax * d[0] + ay * d[1] + az * d[2]
+    info = wp.max(quad(W, Jd, Jd), 0.0)
+    cond = wp.where(lmax > 0.0, wp.min(wp.sqrt(info / lmax), 1.0), 0.0)
+    sigma = wp.where(info > 0.0, 1.0 / wp.sqrt(info), 1.0e9)
+    # The residual across the epipolar line (its direction e at the point): the
+    # one thing the ray and the observation can disagree on; its variance under
+    # the decode's own model, for the chi-square of :func:`calibration_floor`.
+    rv = pixel_offset(light, X, p_obs)
+    el = wp.length(Jd)
+    res = wp.length(rv)
+    var = float(0.0)
+    if el > 0.0:
+        n = wp.vec2(-Jd[1] / el, Jd[0] / el)
+        res = wp.abs(wp.dot(n, rv))
+        if info_r > 0.0:
+            cr = wp.dot(n, e_r)
+            ct = wp.dot(n, e_t)
+            var = cr * cr / info_r + ct * ct / info_t
     status = int(STATUS_OK)
     if cond < min_incidence_cos:
         status = STATUS_ILL_CONDITIONED
     elif res > max_residual_px:
         status = STATUS_INCONSISTENT
-    return X, status, cond, res, sigma
+    return X, status, cond, res, sigma, var
 
 
 @wp.kernel
@@ -315,12 +354,14 @@ def triangulate_kernel(
     sector_margin: float,
     min_incidence_cos: float,
     max_residual_px: float,
+    floor: float,
     i0: int,
     points: wp.array(dtype=wp.vec3),
     status: wp.array(dtype=wp.int32),
     confidence: wp.array(dtype=wp.float32),
     residual: wp.array(dtype=wp.float32),
     sigma: wp.array(dtype=wp.float32),
+    residual_var: wp.array(dtype=wp.float32),
 ):
     """Triangulate sample i0 + tid.
 
@@ -332,7 +373,9 @@ def triangulate_kernel(
     (CONSTRAINT_ANGLE).
     points (n,) vec3, status (n,) int32, confidence (n,) float32, residual (n,)
     float32 (sector widths for the ring constraint, projector px otherwise),
-    sigma (n,) float32 mm: written.
+    sigma (n,) float32 mm, residual_var (n,) float32 (projector px^2: the decode's
+    predicted variance in the residual's direction; 0 for the ring constraint):
+    written.
     """
     i = i0 + wp.tid()
     d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
@@ -343,6 +386,7 @@ def triangulate_kernel(
     confidence[i] = 0.0
     residual[i] = -1.0
     sigma[i] = 0.0
+    residual_var[i] = 0.0
     if not ray_ok:
         status[i] = STATUS_UNDISTORT_FAILED
         return
@@ -351,13 +395,16 @@ def triangulate_kernel(
     q = float(0.0)
     res = float(-1.0)
     sg = float(0.0)
+    rvar = float(0.0)
     st_t = sigma_tan[i]
     if constraint != CONSTRAINT_RINGS and f == f and st_t > 0.0:
         e_r = wp.vec2(wp.cos(f), wp.sin(f))
         p_obs = wp.vec2(center[0] + r * e_r[0], center[1] + r * e_r[1])
-        w_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / wp.max(sigma_rho[i], 1.0e-6))
-        X, st, q, res, sg = full_solution(light, C, d, p_obs, e_r, w_r, 1.0 / wp.max(st_t, 1.0e-6), vol,
-                                          min_incidence_cos, max_residual_px)
+        sr = wp.max(sigma_rho[i], 1.0e-6)
+        st_t = wp.max(st_t, 1.0e-6)
+        info_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / (sr * sr))
+        X, st, q, res, sg, rvar = full_solution(light, C, d, p_obs, e_r, info_r, 1.0 / (st_t * st_t),
+                                                floor * floor, vol, min_incidence_cos, max_residual_px)
     else:
         X, st, q, res = rings_solution(light, C, d, r, sector[i], vol, center, n_sectors, sector_tolerance,
                                        sector_margin, min_incidence_cos)
@@ -366,6 +413,7 @@ def triangulate_kernel(
             sg = wp.where(slope > 0.0, sigma_rho[i] / slope, 1.0e9)
     status[i] = st
     residual[i] = res
+    residual_var[i] = rvar
     if st == STATUS_OK or st == STATUS_GRAZING or st == STATUS_ILL_CONDITIONED or st == STATUS_INCONSISTENT:
         points[i] = X
         confidence[i] = sample_conf[i] * q
@@ -410,6 +458,7 @@ def triangulate_rings(
     sigma_rho: wp.array | None = None,
     sigma_tan: wp.array | None = None,
     settings: TriangulateSettings = TriangulateSettings(),
+    floor: float = 0.0,
     threads: int | None = None,
 ) -> Triangulation:
     """Triangulate samples: each camera ray meets its ring's quadric, or, where a
@@ -432,6 +481,8 @@ def triangulate_rings(
         sigma_tan: (n,) float32 standard deviation of the tangential position
             rho * phi (projector px); required with ``phi``.
         settings: root-choice and constraint settings.
+        floor: calibration floor (projector px, :func:`calibration_floor`): a
+            standard deviation added across the epipolar line to samples with an angle.
         threads: CPU threads; default all cores.
     """
     n = uv.shape[0] if isinstance(uv, wp.array) else None
@@ -454,6 +505,8 @@ def triangulate_rings(
     z_min, z_max, r_max = (float(x) for x in volume)
     if not (z_max > z_min and r_max > 0):
         raise ValueError(f"triangulate_rings: bad volume {volume}")
+    if not (np.isfinite(floor) and floor >= 0):
+        raise ValueError(f"triangulate_rings: floor must be a finite number >= 0, got {floor}")
     dev = uv.device
     out = Triangulation(
         points=wp.empty(n, dtype=wp.vec3, device=dev),
@@ -461,6 +514,7 @@ def triangulate_rings(
         confidence=wp.empty(n, dtype=wp.float32, device=dev),
         residual=wp.empty(n, dtype=wp.float32, device=dev),
         sigma=wp.empty(n, dtype=wp.float32, device=dev),
+        residual_var=wp.empty(n, dtype=wp.float32, device=dev),
     )
     if n == 0:
         return out
@@ -474,8 +528,8 @@ def triangulate_rings(
     n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
     args = [uv, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, wp.vec2(*center),
             constraint, n_sectors, settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos,
-            settings.max_residual_px]
-    outputs = [out.points, out.status, out.confidence, out.residual, out.sigma]
+            settings.max_residual_px, float(floor)]
+    outputs = [out.points, out.status, out.confidence, out.residual, out.sigma, out.residual_var]
     threads = default_threads() if threads is None else threads
     launch_spans(triangulate_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out
@@ -494,3 +548,40 @@ def compact_points(status: wp.array) -> wp.array:
     if total:
         wp.launch(compact_kernel, dim=n, inputs=[status, offsets], outputs=[index], device=dev)
     return index
+
+
+def calibration_floor(tri: Triangulation) -> tuple[float, dict]:
+    """The projector-pixel error the decode's own model does not explain.
+
+    Each sample triangulated with both coordinates has one degree of freedom
+    left: its residual (the distance between the observed projector pixel and the
+    point's own) divided by the decode's predicted standard deviation in that
+    direction is a unit normal variable where the model is right. On a real rig
+    the calibration adds an error of its own, seen across the epipolar line; the
+    floor c is the standard deviation that, added there to every sample's, brings
+    the median chi-square back to its expected value (0 where it already is).
+    Along the epipolar line a calibration error cannot be seen in one view.
+
+    Returns:
+        (c in projector px, {"samples", "residual_px_median", "residual_px_p95",
+        "chi2_median"}); c = 0 and an empty dict without such samples.
+    """
+    res = tri.residual.numpy()
+    var = tri.residual_var.numpy()
+    m = (var > 0) & (res >= 0) & np.isfinite(res)
+    if np.count_nonzero(m) < 20:
+        return 0.0, {}
+    r2 = res[m].astype(np.float64) ** 2
+    v = var[m].astype(np.float64)
+    stats = {"samples": int(m.sum()), "residual_px_median": float(np.median(res[m])),
+             "residual_px_p95": float(np.percentile(res[m], 95)), "chi2_median": float(np.median(r2 / v))}
+    if stats["chi2_median"] <= CHI2_1_MEDIAN:
+        return 0.0, stats
+    lo, hi = 0.0, float(np.sqrt(r2.max())) + 1e-9
+    for _ in range(60):
+        c = 0.5 * (lo + hi)
+        if np.median(r2 / (v + c * c)) > CHI2_1_MEDIAN:
+            lo = c
+        else:
+            hi = c
+    return hi, stats

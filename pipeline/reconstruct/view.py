@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,13 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
-from ringscan.kernels.triangulation import STATUS_ISOLATED, STATUS_NAMES, compact_points, triangulate_rings
+from ringscan.kernels.triangulation import (
+    STATUS_ISOLATED,
+    STATUS_NAMES,
+    calibration_floor,
+    compact_points,
+    triangulate_rings,
+)
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.ply import write_ply
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
@@ -25,6 +32,12 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 log = logging.getLogger(__name__)
 
 __all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points"]
+
+CALIBRATION_WARN_PX = 1.0
+"""Median projector-pixel residual above which a view warns that the rig does not fit its images."""
+FLOOR_OUTLIER = 5.0
+"""With a calibration floor c, a point is inconsistent only beyond this many c (and ``max_residual_px``)."""
+
 
 
 @dataclass
@@ -91,11 +104,26 @@ def reconstruct_view(
     rig = scan.rig
     vol = rig.volume
     cam = camera_model_for(rig)
-    triangulated = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=cam,
-                                     light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
-                                     center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi,
-                                     sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
-                                     settings=settings.triangulate, threads=threads)
+    triangulate = partial(triangulate_rings, samples.uv, samples.rho, samples.sector, samples.confidence,
+                          camera=cam, light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
+                          center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi, threads=threads)
+    triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
+                               settings=settings.triangulate)
+    floor, calibration = calibration_floor(triangulated)
+    if floor > 0:
+        # The rig's calibration misses by more than the decode's own errors:
+        # discount that direction (across the epipolar line) by the miss
+        # (docs/reconstruction.md, "Calibration floor").
+        ts = replace(settings.triangulate,
+                     max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
+        triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan, settings=ts,
+                                   floor=floor)
+    if calibration:
+        calibration["floor_px"] = floor
+        if calibration["residual_px_median"] > CALIBRATION_WARN_PX:
+            log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
+                        "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
+                        view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -134,6 +162,7 @@ def reconstruct_view(
         if with_angle else "rings",
         "points": int(cloud.points.shape[0]),
         "median_sigma_mm": float(np.median(cloud.sigma)) if cloud.sigma.size else None,
+        **({"calibration": calibration} if calibration else {}),
         "dropped": dropped,
         "times_s": times,
     }

@@ -318,3 +318,42 @@ def test_constraint_setting_is_checked(device):
         _run(device, cam, light, uv, rho, sec, settings=TriangulateSettings(constraint="cones"))
     with pytest.raises(ValueError, match="needs samples with an angle"):
         _run(device, cam, light, uv, rho, sec, settings=TriangulateSettings(constraint="both"))
+
+
+def test_calibration_floor_discounts_errors_across_the_epipolar_line(device):
+    """A calibration that misses by 0.5 px across the epipolar lines (what a
+    wrong rig does to a real decode): the floor finds the 0.5 px, and with it the
+    miss no longer leaks into depth through the anisotropic decode weights."""
+    from ringscan.kernels.triangulation import calibration_floor
+
+    rig, cam, light, P, uv, rho, sec = _setup("perspective", n=3000, seed=21)
+    L = rig.light
+    X = P
+    c = rig.camera
+    d = X - c.center
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pa = cv2.projectPoints(X + 0.5 * d, cv2.Rodrigues(L.R)[0], L.t, L.K, PROJ_DIST)[0][:, 0]
+    pb = cv2.projectPoints(X - 0.5 * d, cv2.Rodrigues(L.R)[0], L.t, L.K, PROJ_DIST)[0][:, 0]
+    e = (pa - pb) / np.linalg.norm(pa - pb, axis=1, keepdims=True)
+    n = np.c_[-e[:, 1], e[:, 0]]
+    p = cv2.projectPoints(P, cv2.Rodrigues(L.R)[0], L.t, L.K, PROJ_DIST)[0][:, 0]
+    rng = np.random.default_rng(2)
+    q = p + n * rng.normal(0, 0.5, (len(p), 1))
+    rho_n = np.hypot(q[:, 0] - CENTER[0], q[:, 1] - CENTER[1]).astype(np.float32)
+    phi_n = np.arctan2(q[:, 1] - CENTER[1], q[:, 0] - CENTER[0]).astype(np.float32)
+    kw = dict(vol=(-50, 200, 300))
+    T1 = _run_full(device, cam, light, uv, rho_n, phi_n, 0.02, 0.2, **kw)
+    floor, stats = calibration_floor(T1)
+    assert 0.4 < floor < 0.6
+    assert stats["chi2_median"] > 3  # the model alone (0.02 px radially) cannot explain it
+    T2 = _run_full(device, cam, light, uv, rho_n, phi_n, 0.02, 0.2, floor=floor,
+                   settings=TriangulateSettings(max_residual_px=5 * floor), **kw)
+    ok1 = T1.status.numpy() == 0
+    ok2 = T2.status.numpy() == 0
+    assert ok2.mean() > 0.98
+    e1 = np.linalg.norm(T1.points.numpy()[ok1] - P[ok1], axis=1)
+    e2 = np.linalg.norm(T2.points.numpy()[ok2] - P[ok2], axis=1)
+    assert np.median(e2) < 0.5 * np.median(e1)
+    # a rig that fits: no floor
+    T0 = _run_full(device, cam, light, uv, rho, _polar("perspective", P, rig.light), 0.02, 0.2, **kw)
+    assert calibration_floor(T0)[0] == 0.0
