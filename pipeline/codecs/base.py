@@ -13,18 +13,20 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.phase import PhaseSettings
-from ringscan.kernels.ring_labels import DecodeSettings
-from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
+
+if TYPE_CHECKING:  # the stage blocks' types, for the protocol only: a codec's own module imports what it uses
+    from ringscan.kernels.phase import PhaseSettings
+    from ringscan.kernels.ring_labels import DecodeSettings
+    from ringscan.kernels.ring_sampling import SampleSettings
+    from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 
 __all__ = ["Codec", "RigNeeds", "StageSettings", "describe_lighting"]
 

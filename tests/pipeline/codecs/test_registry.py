@@ -104,3 +104,18 @@ def test_unknown_codec_in_scan_json_is_one_clear_line(small_scan, tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "Traceback" not in err
     assert "scan.json" in err and "unknown codec 'moire'" in err
+
+
+def test_codec_capabilities_come_from_the_codec_objects():
+    from ringscan.pipeline.calibrate.light import LIGHT_CODECS
+    from ringscan.pipeline.codecs.registry import codec_for
+
+    # the single-shot labeller reads the rig's geometry, decoded captures are not projected
+    assert LIGHT_CODECS == ("gray-rings", "phase-rings")
+    spec = parse_patterns({"codec": "decoded", "width": 64, "height": 48, "center": [31.5, 100.0], "rho0": 0.0,
+                           "pitch": 1.0})
+    assert codec_for("decoded").frame_names(spec) == ["proj_u", "proj_v", "contrast"]
+    with pytest.raises(ValueError, match="not projectable"):
+        codec_for("decoded").render_frame(spec, "proj_u")
+    with pytest.raises(FormatError, match="no reconstruction for codec 'moire'"):
+        codec_for("moire")
