@@ -96,13 +96,13 @@ class TriangulateSettings:
     only if the other is farther by at least this many sector widths; otherwise
     the point is dropped as ambiguous."""
     min_incidence_cos: float = 0.03
-    """Least conditioning of a point, in [0, 1]: with the ring constraint alone,
-    |cos| of the angle between the camera ray and the quadric's normal; with the
-    angle too, the information the projector gives along the camera ray over
-    the most it gives in any direction there (|cos| again for rings alone). The
-    depth error is the sampling error divided by it: below 0.03 (rays within ~2
-    degrees of grazing) a 0.05 px error costs millimetres. Points below it are
-    dropped as ``grazing`` (rings) or ``ill_conditioned`` (angle, both)."""
+    """Least conditioning of a point, in [0, 1]: |cos| of the angle between the
+    camera ray and the normal of the ring's surface (the quadric of constant rho)
+    and, with the angle, of the angle's surface (constant phi); with both the
+    better of the two counts. A coordinate's depth error is its sampling error
+    divided by it: below 0.03 (rays within ~2 degrees of grazing) a 0.05 px error
+    costs millimetres. Points below it are dropped as ``grazing`` (rings) or
+    ``ill_conditioned`` (angle, both: every coordinate grazes)."""
     constraint: str = "auto"
     """Which projector coordinates place a point: ``rings`` (the paper: the ring's
     cylinder or cone, the sector picks the root), ``angle`` (the polar angle's
@@ -114,6 +114,13 @@ class TriangulateSettings:
     disagree (a decode error, a reflection, a wrong calibration) and the point
     is dropped as ``inconsistent`` (``reconstruct`` raises it to 5 calibration
     floors on a rig that misses by more)."""
+
+    def __post_init__(self):
+        if self.constraint not in CONSTRAINTS:
+            raise ValueError(f"triangulate.constraint: must be one of {', '.join(CONSTRAINTS)}, "
+                             f"not {self.constraint!r}")
+        if not (self.max_residual_px > 0):
+            raise ValueError(f"triangulate.max_residual_px: must be > 0, got {self.max_residual_px}")
 
 
 @dataclass
@@ -296,22 +303,20 @@ def full_solution(
         return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0, 0.0
     if not root_usable(light, X, t, vol):
         return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0, 0.0
-    # Conditioning: the information along the ray against the most any direction
-    # has here: the largest eigenvalue of W M, M = sum of the columns of
-    # d pixel / dX times their transposes.
+    # Conditioning, of each coordinate on its own: |cos| between the ray and the
+    # normal of the surface of constant rho (the ring's cone) and of constant phi
+    # (the angle's half-plane); the point is ill-conditioned only where both graze.
     hx = 0.05
     ax = (pixel_offset(light, X + wp.vec3(hx, 0.0, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(hx, 0.0, 0.0), p_obs)) / (2.0 * hx)
     ay = (pixel_offset(light, X + wp.vec3(0.0, hx, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(0.0, hx, 0.0), p_obs)) / (2.0 * hx)
     az = (pixel_offset(light, X + wp.vec3(0.0, 0.0, hx), p_obs) - pixel_offset(light, X - wp.vec3(0.0, 0.0, hx), p_obs)) / (2.0 * hx)
-    m0 = ax[0] * ax[0] + ay[0] * ay[0] + az[0] * az[0]
-    m1 = ax[0] * ax[1] + ay[0] * ay[1] + az[0] * az[1]
-    m2 = ax[1] * ax[1] + ay[1] * ay[1] + az[1] * az[1]
-    tr = W[0] * m0 + 2.0 * W[1] * m1 + W[2] * m2
-    det = (W[0] * W[2] - W[1] * W[1]) * (m0 * m2 - m1 * m1)
-    lmax = 0.5 * tr + wp.sqrt(wp.max(0.25 * tr * tr - det, 0.0))
+    g_r = wp.vec3(wp.dot(ax, e_r), wp.dot(ay, e_r), wp.dot(az, e_r))
+    g_t = wp.vec3(wp.dot(ax, e_t), wp.dot(ay, e_t), wp.dot(az, e_t))
+    cos_r = wp.where(wp.length(g_r) > 0.0, wp.abs(wp.dot(g_r, d)) / wp.length(g_r), 0.0)
+    cos_t = wp.where(wp.length(g_t) > 0.0, wp.abs(wp.dot(g_t, d)) / wp.length(g_t), 0.0)
+    cond = wp.where(info_r > 0.0, wp.max(cos_r, cos_t), cos_t)
     Jd = ax * d[0] + ay * d[1] + az * d[2]
     info = wp.max(quad(W, Jd, Jd), 0.0)
-    cond = wp.where(lmax > 0.0, wp.min(wp.sqrt(info / lmax), 1.0), 0.0)
     sigma = wp.where(info > 0.0, 1.0 / wp.sqrt(info), 1.0e9)
     # The residual across the epipolar line (its direction e at the point): the
     # one thing the ray and the observation can disagree on; its variance under

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
 from ringscan.tools.cli import add_device_option
-from ringscan.tools.cmd_reconstruct import load_settings
+from ringscan.tools.cmd_reconstruct import add_constraint_option, load_settings, with_constraint
 
 
 def _workers(text: str, *, option: str = "--workers") -> int:
@@ -27,6 +27,7 @@ def add_parser(sub):
     p.add_argument("root")
     p.add_argument("--out", required=True)
     p.add_argument("--settings", default=None, help="JSON settings file")
+    add_constraint_option(p)
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
                         "core; 0: in this process)")
@@ -46,7 +47,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    settings = load_settings(args.settings)
+    settings = with_constraint(load_settings(args.settings), args.constraint)
     if args.dry_run:
         plans = plan_batch(args.root, args.out, settings=settings)
         w = max(len(p.scan) for p in plans)

@@ -40,6 +40,11 @@ def add_pattern_options(p, *, size: bool = True) -> None:
     g.add_argument("--line-width", type=float, default=None,
                    help=f"ring line width in px, rings codec (default {rd['line_width']:g})")
     g.add_argument("--steps", type=int, default=None, help=f"phase steps, phase-rings codec (default {pd['steps']})")
+    g.add_argument("--angle-steps", type=int, default=None,
+                   help="phase steps of the angle code (angular fringes around the centre, so every point gets "
+                        "both projector coordinates; gray-rings and phase-rings; default 0 = none, else >= 3)")
+    g.add_argument("--angle-period", type=float, default=None, metavar="PX",
+                   help=f"least period of the angular fringes, projector px (default {gd['angle_period']:g})")
     g.add_argument("--precompensate", type=float, default=None, metavar="GAMMA",
                    help="write grey levels pre-compensated for a light of this response gamma "
                         "(value = 255 v^(1/GAMMA), so the light emits v; default none)")
@@ -61,6 +66,8 @@ def pattern_spec_from_args(args, width: int, height: int, center=None, *,
                             center=None if center is None else [float(c) for c in center],
                             rho0=args.rho0, pitch=args.pitch, count=args.count, line_width=args.line_width,
                             bits=args.bits, sector_bits=args.sector_bits, steps=args.steps,
+                            angle_steps=getattr(args, "angle_steps", None),
+                            angle_period=getattr(args, "angle_period", None),
                             precompensated_gamma=pre, source="command line")
 
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 
+from ringscan.kernels.triangulation import CONSTRAINTS
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.settings import check_finite_settings, settings_from_dict
@@ -25,8 +27,25 @@ def add_parser(sub):
                    help="keep views already done in --out (same inputs, same settings, files whole); "
                         "redo the others and say why")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_constraint_option(p)
     add_device_option(p)
     return p
+
+
+def add_constraint_option(p) -> None:
+    """``--constraint``: which projector coordinates place a point (overrides the settings file)."""
+    p.add_argument("--constraint", choices=CONSTRAINTS, default=None,
+                   help="which projector coordinates place each point: both (the ring and the polar angle, "
+                        "weighted by their predicted errors), rings (the paper's ring surfaces alone), angle "
+                        "(the angle alone, for comparison), auto (both where the codec decodes an angle, else "
+                        "rings; the default)")
+
+
+def with_constraint(settings: ReconstructSettings, constraint: str | None) -> ReconstructSettings:
+    """The settings with ``--constraint`` applied (unchanged when it was not given)."""
+    if constraint is None:
+        return settings
+    return replace(settings, triangulate=replace(settings.triangulate, constraint=constraint))
 
 
 def load_settings(path) -> ReconstructSettings:
@@ -47,7 +66,8 @@ def load_settings(path) -> ReconstructSettings:
 
 
 def run(args) -> int:
-    rep = reconstruct_scan(args.scan, args.out, settings=load_settings(args.settings), device=args.device,
+    settings = with_constraint(load_settings(args.settings), args.constraint)
+    rep = reconstruct_scan(args.scan, args.out, settings=settings, device=args.device,
                            views=args.views.split(",") if args.views else None, resume=args.resume,
                            progress=not args.no_progress)
     tot = rep["totals"]

@@ -23,6 +23,7 @@ from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
 if TYPE_CHECKING:  # the stage blocks' types, for the protocol only: a codec's own module imports what it uses
+    from ringscan.kernels.angle import AngleSettings
     from ringscan.kernels.phase import PhaseSettings
     from ringscan.kernels.ring_labels import DecodeSettings
     from ringscan.kernels.ring_sampling import SampleSettings
@@ -46,6 +47,8 @@ class StageSettings(Protocol):
     def phase(self) -> PhaseSettings: ...
     @property
     def single_shot(self) -> SingleShotSettings: ...
+    @property
+    def angle(self) -> AngleSettings: ...
 
 
 @dataclass(frozen=True)

@@ -10,9 +10,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, render_angle_frame, sample_contrast
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting
 from ringscan.pipeline.codecs.drawing import band_coverage, polar, sector_coverage, to_u8
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names, gray_encode
@@ -29,6 +31,9 @@ class GrayRingsSettings:
     """Per-pixel decoding thresholds."""
     sample: SampleSettings = field(default_factory=SampleSettings)
     """Sub-pixel edge sampler thresholds."""
+    angle: AngleSettings = field(default_factory=AngleSettings)
+    """The angle code's decoder (with ``angle_steps`` > 0) and the camera noise of
+    every sample's predicted standard deviation."""
 
 
 def render_binary_frame(spec: PatternSpec, name: str) -> np.ndarray:
@@ -98,24 +103,35 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                 rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
+    contrast = sample_contrast(frames, spec, samples.uv.numpy())
+    rig = scan.rig
+    samples, angle_stats = add_angle(frames, scan, samples, sigma_rho=edge_sigma(contrast, settings.angle.noise),
+                                     settings=settings.angle, camera_gamma=float(rig.camera.gamma),
+                                     light_gamma=float(getattr(rig.light, "gamma", 1.0)) / spec.precompensated_gamma,
+                                     threads=threads)
+    wp.synchronize_device(frames.device)
+    t3 = time.perf_counter()
     band = labels.band.numpy()
-    stats = {"pixels_decoded": int(np.count_nonzero(band >= 0)), "samples": len(samples),
-             "times_s": {"decode": t1 - t0, "sample": t2 - t1}}
+    stats = {"pixels_decoded": int(np.count_nonzero(band >= 0)), "samples": len(samples), **angle_stats,
+             "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
 
 
 class GrayRingsCodec(Codec[GrayRingsSettings]):
-    """Gray-coded ring bands (``bits``), optional Gray-coded sectors (``sector_bits``):
-    frames ``white``, ``black``, ``gray_<b>``/``gray_<b>_inv``, ``sector_<b>``/``sector_<b>_inv``."""
+    """Gray-coded ring bands (``bits``), optional Gray-coded sectors (``sector_bits``)
+    and angle code (``angle_steps``): frames ``white``, ``black``,
+    ``gray_<b>``/``gray_<b>_inv``, ``sector_<b>``/``sector_<b>_inv``, ``angle_<n>``."""
 
     layout = PATTERN_LAYOUTS["gray-rings"]
     settings_type = GrayRingsSettings
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
+        if name.startswith("angle_"):
+            return render_angle_frame(spec, name)
         return render_binary_frame(spec, name)
 
     def settings_from(self, stages: StageSettings) -> GrayRingsSettings:
-        return GrayRingsSettings(decode=stages.decode, sample=stages.sample)
+        return GrayRingsSettings(decode=stages.decode, sample=stages.sample, angle=stages.angle)
 
     def extract(self, frames: wp.array, scan: Scan, settings: GrayRingsSettings, *,
                 threads: int) -> tuple[Samples, dict]:

@@ -49,8 +49,10 @@ from ringscan.kernels.phase import (
     response_tables,
     smooth_phase,
 )
+from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, render_angle_frame, sample_contrast
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
 from ringscan.pipeline.codecs.drawing import band_coverage, polar, to_u8
 from ringscan.pipeline.codecs.gray_rings import explain_binary_view, render_binary_frame
@@ -74,6 +76,9 @@ class PhaseRingsSettings:
     """Per-pixel decoding thresholds of the band and sector codes."""
     phase: PhaseSettings = field(default_factory=PhaseSettings)
     """Phase decoder (response, modulation, unwrapping)."""
+    angle: AngleSettings = field(default_factory=AngleSettings)
+    """The angle code's decoder (with ``angle_steps`` > 0) and the camera noise of
+    every sample's predicted standard deviation."""
 
     def __post_init__(self):
         if not isinstance(self.phase, PhaseSettings):
@@ -219,6 +224,12 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
+    contrast = sample_contrast(frames, spec, pts.uv.numpy())
+    sig = phase_sigma(contrast, pts.confidence.numpy(), settings.angle.noise, pitch=spec.pitch, steps=spec.steps)
+    pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
+                                 light_gamma=g_light, threads=threads)
+    wp.synchronize_device(dev)
+    t3 = time.perf_counter()
     st = sm.status.numpy()
     counts = np.bincount(st.ravel(), minlength=len(PHASE_STATUS_NAMES))
     decoded = int(np.count_nonzero(phase.status.numpy() == 0))
@@ -229,7 +240,8 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
         "camera_gamma": g_cam,
         "light_gamma": g_light,
         "precompensated_gamma": spec.precompensated_gamma,
-        "times_s": {"decode": t1 - t0, "sample": t2 - t1},
+        **angle_stats,
+        "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2},
     }
     return pts, stats
 
@@ -243,6 +255,8 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
     rig_needs = RigNeeds(response=True)
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
+        if name.startswith("angle_"):
+            return render_angle_frame(spec, name)
         if not name.startswith("phase_"):
             return render_binary_frame(spec, name)
         n = int(name.split("_")[1])
@@ -252,7 +266,7 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
         return to_u8(spec, (0.5 + 0.5 * np.cos(ph)) * inside)
 
     def settings_from(self, stages: StageSettings) -> PhaseRingsSettings:
-        return PhaseRingsSettings(decode=stages.decode, phase=stages.phase)
+        return PhaseRingsSettings(decode=stages.decode, phase=stages.phase, angle=stages.angle)
 
     def extract(self, frames: wp.array, scan: Scan, settings: PhaseRingsSettings, *,
                 threads: int) -> tuple[Samples, dict]:

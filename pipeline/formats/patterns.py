@@ -95,6 +95,12 @@ class PatternSpec:
     """Phase steps (``phase-rings``)."""
     precompensated_gamma: float = 1.0
     """Light gamma the frames were pre-compensated for (value = v**(1/g)); 1 = none."""
+    angle_steps: int = 0
+    """Phase steps of the angle code (``angle_<n>`` frames: angular fringes around the
+    centre, gray-rings and phase-rings); 0 = no angle code."""
+    angle_period: float = 12.0
+    """Least period (projector px) of the angular fringes at the inner radius of each
+    zone; the number of periods doubles outward in zones (``kernels.angle.angle_zones``)."""
 
     @property
     def layout(self) -> PatternLayout:
@@ -122,6 +128,8 @@ class PatternSpec:
         keep = {"codec", "width", "height", "center", "rho0", "pitch"} | {p.name for p in self.layout.parameters}
         if self.precompensated_gamma != 1.0:
             keep |= {"precompensated_gamma"}
+        if not self.angle_steps:  # scans without an angle code keep their scan.json as it was
+            keep -= {"angle_steps", "angle_period"}
         return {k: v for k, v in d.items() if k in keep}
 
 
@@ -209,15 +217,34 @@ class PatternLayout:
         """Checks against the projector image (``far``: centre to farthest corner, px)."""
 
 
+ANGLE_PARAMETERS = (
+    Parameter("angle_steps", int, 0, 0, 16, doc="phase steps of the angle code (angle_<n> frames); 0 = none, else >= 3"),
+    Parameter("angle_period", float, 12.0, positive=True,
+              doc="least period (projector px) of the angular fringes at each zone's inner radius"),
+)
+
+
+def angle_frame_names(spec: PatternSpec) -> list[str]:
+    """The frames of the angle code (none without one)."""
+    return [f"angle_{n}" for n in range(spec.angle_steps)]
+
+
+def check_angle_values(kw: dict, src) -> None:
+    if kw["angle_steps"] in (1, 2):
+        raise FormatError(src, f"patterns.angle_steps: {kw['angle_steps']} steps cannot give a phase; use 0 (none) or >= 3")
+    if kw["angle_period"] < 4.0:
+        raise FormatError(src, f"patterns.angle_period: {kw['angle_period']} px is too fine to project (>= 4)")
+
+
 class GrayRingsLayout(PatternLayout):
     name = "gray-rings"
     parameters = (
         Parameter("bits", int, None, 1, 16, doc="Gray-code bits of the band index"),
         Parameter("sector_bits", int, 0, 0, 12, doc="Gray-code bits of the angular sector; 0 = none"),
-    )
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6}
+    ) + ANGLE_PARAMETERS
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "angle_steps": 0, "angle_period": 12.0}
 
-    def frame_names(self, spec: PatternSpec) -> list[str]:
+    def binary_frame_names(self, spec: PatternSpec) -> list[str]:
         names = ["white", "black"]
         for b in range(spec.bits):
             names += [f"gray_{b}", f"gray_{b}_inv"]
@@ -225,19 +252,26 @@ class GrayRingsLayout(PatternLayout):
             names += [f"sector_{b}", f"sector_{b}_inv"]
         return names
 
+    def frame_names(self, spec: PatternSpec) -> list[str]:
+        return self.binary_frame_names(spec) + angle_frame_names(spec)
+
     def check_values(self, kw: dict, pitch: float, src) -> None:
         if pitch < 1.0:
             raise FormatError(src, f"patterns.pitch: {pitch} px is below one projector pixel; binary bands cannot be shown")
+        check_angle_values(kw, src)
 
 
 class PhaseRingsLayout(GrayRingsLayout):
     name = "phase-rings"
     dense = True
     parameters = GrayRingsLayout.parameters + (Parameter("steps", int, 4, 3, 64, doc="phase steps"),)
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4}
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4, "angle_steps": 0,
+                "angle_period": 12.0}
 
     def frame_names(self, spec: PatternSpec) -> list[str]:
-        return super().frame_names(spec) + [f"phase_{n}" for n in range(spec.steps)]
+        # the angle frames last, so every other frame keeps its index with or without them
+        return (self.binary_frame_names(spec) + [f"phase_{n}" for n in range(spec.steps)]
+                + angle_frame_names(spec))
 
 
 class RingsLayout(PatternLayout):
@@ -382,7 +416,7 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
     """A validated :class:`PatternSpec` of ``codec`` from :data:`CODEC_DEFAULTS`,
     each overridden by a keyword in ``given`` that is not None (``rho0``,
     ``pitch``, ``count``, ``line_width``, ``bits``, ``sector_bits``, ``steps``,
-    ``precompensated_gamma``; keywords another codec uses are ignored). ``center`` defaults to the image
+    ``angle_steps``, ``angle_period``, ``precompensated_gamma``; keywords another codec uses are ignored). ``center`` defaults to the image
     centre ((W-1)/2, (H-1)/2); ``rings``' ``rho0`` to its pitch.
 
     Raises:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.point_filter import NeighbourFilterSettings
 from ringscan.kernels.ring_labels import DecodeSettings
@@ -30,6 +31,8 @@ class ReconstructSettings:
     """Phase decoder of the ``phase-rings`` codec (response, modulation, unwrapping)."""
     single_shot: SingleShotSettings = field(default_factory=SingleShotSettings)
     """Line detection and nesting-order labelling of the single-shot ``rings`` codec."""
+    angle: AngleSettings = field(default_factory=AngleSettings)
+    """The angle code's decoder and the camera noise of the predicted standard deviations."""
     min_confidence: float = 0.0
     """Points below this confidence are not written."""
     threads: int = 0

@@ -35,6 +35,11 @@ __all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points
 
 CALIBRATION_WARN_PX = 1.0
 """Median projector-pixel residual above which a view warns that the rig does not fit its images."""
+FLOOR_CHI2 = 9 * 0.455
+"""The floor is applied where the median chi-square of the residuals is above this
+(residuals three times the decode's predicted errors): below it the miss is the
+decode model's own (a virtual rig shows about 1.3), above it the rig's (a real
+calibration shows 80-130)."""
 FLOOR_OUTLIER = 5.0
 """With a calibration floor c, a point is inconsistent only beyond this many c (and ``max_residual_px``)."""
 
@@ -110,7 +115,10 @@ def reconstruct_view(
     triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
                                settings=settings.triangulate)
     floor, calibration = calibration_floor(triangulated)
-    if floor > 0:
+    if calibration:
+        calibration["floor_px"] = floor
+        calibration["floor_applied"] = bool(calibration["chi2_median"] > FLOOR_CHI2)
+    if floor > 0 and calibration["floor_applied"]:
         # The rig's calibration misses by more than the decode's own errors:
         # discount that direction (across the epipolar line) by the miss
         # (docs/reconstruction.md, "Calibration floor").
@@ -118,12 +126,10 @@ def reconstruct_view(
                      max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
         triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan, settings=ts,
                                    floor=floor)
-    if calibration:
-        calibration["floor_px"] = floor
-        if calibration["residual_px_median"] > CALIBRATION_WARN_PX:
-            log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
-                        "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
-                        view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
+    if calibration and calibration["residual_px_median"] > CALIBRATION_WARN_PX:
+        log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
+                    "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
+                    view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     t = time.perf_counter()

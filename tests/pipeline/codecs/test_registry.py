@@ -44,7 +44,7 @@ def _run_broken(target: str, body: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("target, codec_module", [
-    ("ringscan.kernels.phase", "phase_rings"),            # a dependency of one codec
+    ("ringscan.kernels.phase", "angle_code"),             # a dependency of the codecs with an angle code
     ("ringscan.pipeline.codecs.single_shot.labeller", "single_shot"),
 ])
 def test_import_failure_in_a_codec_surfaces_as_itself(target, codec_module):

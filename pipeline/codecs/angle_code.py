@@ -1,0 +1,123 @@
+"""The angle code, an add-on of ``gray-rings`` and ``phase-rings`` (``angle_steps`` > 0):
+frames ``angle_<n>`` of phase-shifted angular fringes around the pattern centre,
+decoded per sample by ``kernels.angle`` so that every sample carries its polar
+angle and both standard deviations (docs/dense.md, "The angle code"; the
+triangulation that uses them: docs/reconstruction.md, "Rings and angle").
+
+Also the ring coordinate's own standard deviation of the two codecs (the edge of a
+band: noise over the slope of a frame and its inverse; the radial phase: the
+N-step formula), which the triangulation weighs against the angle's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, angle_periods, angle_zones, decode_angle
+from ringscan.kernels.phase import response_tables
+from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.drawing import band_coverage, polar, to_u8
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.scan import Scan
+
+__all__ = ["zones_for", "render_angle_frame", "add_angle", "edge_sigma", "phase_sigma", "EDGE_WIDTH_PX"]
+
+EDGE_WIDTH_PX = 1.0
+"""Width (projector px) over which a band edge goes from dark to lit: the frames'
+one-pixel box filter (a defocused projector widens it; the edge's sigma grows with it)."""
+
+
+def zones_for(spec: PatternSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The angle code's zones of a pattern (``kernels.angle.angle_zones``)."""
+    return angle_zones(rho0=spec.rho0, pitch=spec.pitch, bands=spec.n_bands, sector_bits=spec.sector_bits,
+                       min_period_px=spec.angle_period)
+
+
+def render_angle_frame(spec: PatternSpec, name: str) -> np.ndarray:
+    """Frame ``angle_<n>``: 0.5 + 0.5 cos(P phi - 2 pi n / N) inside the coded
+    annulus, P from the pattern's zones; (height, width) uint8."""
+    n = int(name.split("_")[1])
+    if not (spec.angle_steps and 0 <= n < spec.angle_steps):
+        raise ValueError(f"frame {name!r} is not an angle frame of these patterns (angle_steps {spec.angle_steps})")
+    rho, phi = polar(spec)
+    inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(spec.n_bands))
+    P = angle_periods(rho, *zones_for(spec))
+    return to_u8(spec, (0.5 + 0.5 * np.cos(P * phi - 2 * math.pi * n / spec.angle_steps)) * inside)
+
+
+def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = img.shape
+    x = np.clip(uv[:, 0], 0, w - 1.001)
+    y = np.clip(uv[:, 1], 0, h - 1.001)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    a = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
+    b = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
+    return a * (1 - fy) + b * fy
+
+
+def sample_contrast(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.ndarray:
+    """White - black (8-bit levels) at each sample's camera position."""
+    names = frame_names(spec)
+    scale = 257.0 if frames.dtype == wp.uint16 else 1.0
+    white = frames[names.index("white")].numpy().astype(np.float32)
+    black = frames[names.index("black")].numpy().astype(np.float32)
+    return _bilinear(white - black, uv) / scale
+
+
+def edge_sigma(contrast: np.ndarray, noise: float) -> np.ndarray:
+    """Standard deviation (projector px) of a band edge sampled where a frame
+    crosses its inverse: the difference of the two rises by 2 x contrast over
+    ``EDGE_WIDTH_PX`` and carries sqrt(2) x the camera noise."""
+    return np.sqrt(2.0) * noise * EDGE_WIDTH_PX / (2.0 * np.maximum(contrast, 1.0))
+
+
+def phase_sigma(contrast: np.ndarray, modulation: np.ndarray, noise: float, *, pitch: float, steps: int) -> np.ndarray:
+    """Standard deviation (projector px) of rho from the radial phase: the N-step
+    formula, sqrt(2 / N) sigma / amplitude radians of a period of ``pitch`` px."""
+    amp = 0.5 * np.maximum(modulation, 1e-3) * np.maximum(contrast, 1.0)
+    return pitch / (2 * math.pi) * math.sqrt(2.0 / steps) * noise / amp
+
+
+def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.ndarray, settings: AngleSettings,
+              camera_gamma: float, light_gamma: float, threads: int) -> tuple[Samples, dict]:
+    """The samples with their standard deviations, and their polar angle where
+    the pattern has an angle code.
+
+    Args:
+        frames: (F, H, W) the view's frames (read).
+        scan: the scan (patterns).
+        samples: the codec's samples (uv, rho, sector set).
+        sigma_rho: (n,) the ring coordinate's standard deviation (projector px).
+        settings: the angle decoder's settings.
+        camera_gamma, light_gamma: the responses to undo (1: linear).
+        threads: CPU threads.
+
+    Returns:
+        (samples with ``sigma_rho`` and, with an angle code, ``phi`` (NaN where it
+        did not decode) and ``sigma_tan``; stats ``angle_decoded`` and
+        ``angle_dropped`` by reason).
+    """
+    spec = scan.patterns
+    dev = frames.device
+    samples.sigma_rho = wp.array(np.asarray(sigma_rho, np.float32), dtype=wp.float32, device=dev)
+    if not spec.angle_steps or len(samples) == 0:
+        return samples, {}
+    names = frame_names(spec)
+    full = 255 if frames.dtype == wp.uint8 else 65535
+    lut, _ = response_tables(full, camera_gamma=camera_gamma, weighted=False)
+    res = decode_angle(frames, samples.uv, samples.rho, samples.sector, white=names.index("white"),
+                       black=names.index("black"), angle0=names.index("angle_0"), steps=spec.angle_steps,
+                       sector_bits=spec.sector_bits, zones=zones_for(spec),
+                       lut=wp.array(lut, dtype=wp.float32, device=dev), light_gamma=light_gamma,
+                       settings=settings, threads=threads)
+    samples.phi = res.phi
+    samples.sigma_tan = res.sigma_tan
+    st = res.status.numpy()
+    counts = np.bincount(st, minlength=len(ANGLE_STATUS_NAMES))
+    return samples, {"angle_decoded": int(counts[0]),
+                     "angle_dropped": {k: int(counts[i]) for i, k in enumerate(ANGLE_STATUS_NAMES) if i > 0}}
