@@ -104,8 +104,12 @@ class PatternSpec:
 
     @property
     def layout(self) -> PatternLayout:
-        """The data-level description of this spec's codec (:data:`PATTERN_LAYOUTS`)."""
-        return PATTERN_LAYOUTS[self.codec]
+        """The data-level description of this spec's codec (:data:`PATTERN_LAYOUTS`).
+
+        Raises:
+            FormatError: an unknown codec.
+        """
+        return pattern_layout(self.codec)
 
     @property
     def n_bands(self) -> int:

@@ -34,7 +34,8 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
     Returns:
         (:class:`~ringscan.kernels.samples.Samples` of the labelled samples in raster
         order, stats with pixels_decoded, samples, the labelling counts and times_s
-        {"sample": line detection, "decode": labelling}). ``sector`` holds the
+        {"decode": line detection, which reads the frame, "sample": labelling,
+        which makes the samples, as in the other codecs}). ``sector`` holds the
         sector (``SECTOR_BITS`` bits) of the root that the orientation rule
         chose, -1 where it does not decide; stats["sector_bits"] says so.
     """
@@ -72,7 +73,7 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
     stats = {"pixels_decoded": int(keep.size), "samples": int(keep.size), "line_samples": len(lines),
-             "sector_bits": SECTOR_BITS, **lab.stats, "times_s": {"sample": t1 - t0, "decode": t2 - t1}}
+             "sector_bits": SECTOR_BITS, **lab.stats, "times_s": {"decode": t1 - t0, "sample": t2 - t1}}
     log.info("rings: %d line centres, %d pieces, %d labelled (%d dropped), %d samples", len(lines),
              lab.stats["pieces"], lab.stats["pieces_labelled"], lab.stats["pieces_dropped"], keep.size)
     if "object_unlabelled" in lab.stats:
