@@ -22,7 +22,7 @@ except ModuleNotFoundError:  # Python 3.10: import-linter's own TOML reader
 
 REPO = Path(__file__).resolve().parents[1]
 
-# About 1 s per lint-imports run; 11 runs took 10 s on a loaded 2-core machine.
+# About 1 s per lint-imports run; the 10 runs took 10 s on a loaded 2-core machine.
 pytestmark = pytest.mark.slow
 
 # Runs lint-imports on the scratch copy only: the path entries that hold another
