@@ -11,7 +11,7 @@ from ringscan.hardware.devices.camera import CameraDevice, FolderCamera, OpenCVC
 from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import ProjectorDevice, SerialProjector, VirtualProjector
 from ringscan.hardware.devices.turntable import TurntableDevice, VirtualTurntable
-from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
+from ringscan.hardware.emulators.virtual import VirtualCamera, make_virtual_rig
 from ringscan.hardware.errors import (
     CameraError,
     CaptureError,

@@ -23,7 +23,30 @@ The most used functions are re-exported here and imported on first use (so
 from __future__ import annotations
 
 import importlib
+from typing import TYPE_CHECKING
 
+if TYPE_CHECKING:
+    # The re-exports as plain imports, for import-linter (which reads imports under
+    # TYPE_CHECKING too: a module that takes a name from here depends on where it
+    # lives) and for type checkers. At run time __getattr__ loads them on first use.
+    from ringscan.pipeline.batch import batch_reconstruct
+    from ringscan.pipeline.evaluate import evaluate_recon, run_sweep
+    from ringscan.pipeline.formats import (
+        FormatError,
+        RingscanError,
+        load_rig,
+        load_scan,
+        parse_patterns,
+        read_cloud,
+        read_mesh,
+        read_ply,
+        write_ply,
+    )
+    from ringscan.pipeline.fusion import fuse_and_mesh, fuse_poses, fuse_views, mesh_cloud
+    from ringscan.pipeline.reconstruct import LiveReconstructor, ReconstructSettings, reconstruct_scan, reconstruct_view
+    from ringscan.pipeline.simulate import load_truth, simulate_scan
+
+# name -> module; the same names as the TYPE_CHECKING imports above (a test checks it)
 _EXPORTS = {
     "reconstruct_scan": "ringscan.pipeline.reconstruct",
     "reconstruct_view": "ringscan.pipeline.reconstruct",

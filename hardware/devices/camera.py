@@ -1,11 +1,12 @@
-"""Cameras: OpenCV capture, folder replay, the virtual rig's camera, an emulator's socket.
+"""Cameras: OpenCV capture, folder replay, an emulator's socket.
 
 Every camera gives grey frames: 2D uint8 or uint16 arrays (colour is converted
 to grey, ITU-R 601 luma as OpenCV does). :meth:`CameraDevice.grab` first flushes
 frames the driver buffered before the pattern changed, then returns a fresh one.
 
-Only :class:`VirtualCamera` touches the virtual rig's renderer (and so Warp), and
-only through the object it is given; this module imports no kernels.
+The virtual rig's camera (:class:`~ringscan.hardware.emulators.virtual.VirtualCamera`,
+which renders with Warp) is an emulator, not a driver: no module here imports
+kernels or the virtual rig (an import-linter contract checks it).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
+from ringscan.hardware.emulators.virtual import VirtualCamera, make_virtual_rig
 from ringscan.hardware.emulators.grbl import EmulatedTurntable
 from ringscan.hardware.emulators.projector import EmulatedProjector
 from ringscan.pipeline.codecs.render import render_frame

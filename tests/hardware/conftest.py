@@ -73,7 +73,7 @@ def patterns():
 def virtual_rig(rig):
     """The real virtual rig renderer (pipeline.simulate) on the CPU, one ray per pixel;
     terrain scene (not symmetric about the turntable axis)."""
-    from ringscan.hardware.devices.virtual import make_virtual_rig
+    from ringscan.hardware.emulators.virtual import make_virtual_rig
     from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
     return make_virtual_rig(rig, "terrain", device="cpu", settings=RenderSettings(supersample=1))

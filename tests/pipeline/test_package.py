@@ -1,9 +1,11 @@
 """The package layout: every re-exported name resolves, and the formats leaf stays light."""
 
+import ast
 import importlib
 import pkgutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -19,6 +21,15 @@ MODULES = sorted(m.name for pkg in PACKAGES for m in pkgutil.walk_packages(pkg._
 @pytest.mark.parametrize("name", sorted(ringscan.pipeline.__all__))
 def test_pipeline_root_exports_resolve(name):
     assert getattr(ringscan.pipeline, name) is not None
+
+
+def test_lazy_exports_are_the_imports_the_linter_sees():
+    """Every lazily re-exported name is also a TYPE_CHECKING import of the same
+    module, so import-linter sees what a module taking it from here depends on."""
+    tree = ast.parse(Path(ringscan.pipeline.__file__).read_text())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and ast.unparse(n.test) == "TYPE_CHECKING")
+    seen = {alias.name: node.module for node in block.body if isinstance(node, ast.ImportFrom) for alias in node.names}
+    assert seen == ringscan.pipeline._EXPORTS
 
 
 def test_unknown_root_name_is_an_attribute_error():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ringscan.hardware.capture.sequence import read_capture_state
-from ringscan.hardware.devices.virtual import VirtualCamera
+from ringscan.hardware.emulators.virtual import VirtualCamera
 from ringscan.pipeline.formats.atomic import atomic_write_json
 from ringscan.pipeline.formats.images import read_image, write_image
 from ringscan.pipeline.formats.patterns import frame_names

@@ -11,7 +11,7 @@ from ringscan.hardware.capture.latency import read_rig_latency
 from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan, read_capture_state
 from ringscan.hardware.devices.projector import VirtualProjector
 from ringscan.hardware.devices.turntable import VirtualTurntable
-from ringscan.hardware.devices.virtual import VirtualCamera, make_virtual_rig
+from ringscan.hardware.emulators.virtual import VirtualCamera, make_virtual_rig
 from ringscan.pipeline.formats.atomic import atomic_write_json
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names

@@ -143,7 +143,7 @@ def test_emulated_rig_capture_is_complete_and_rendered_in_state(reference, rig, 
     # each frame is what the virtual rig renders with that frame shown at the recorded angle
     cam = scan.views[1]
     virtual_rig.set_turntable(cam.turntable_deg)
-    from ringscan.hardware.devices.virtual import VirtualCamera
+    from ringscan.hardware.emulators.virtual import VirtualCamera
 
     probe = VirtualCamera(virtual_rig, None, None, seed=SEED)
     for j in (0, 4):

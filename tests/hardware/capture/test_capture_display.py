@@ -11,7 +11,7 @@ from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
 from ringscan.hardware.devices.display import DisplayProjector
 from ringscan.hardware.devices.projector import VirtualProjector
 from ringscan.hardware.devices.turntable import VirtualTurntable
-from ringscan.hardware.devices.virtual import VirtualCamera
+from ringscan.hardware.emulators.virtual import VirtualCamera
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
 from tests.hardware.conftest import pattern_frames

@@ -1,6 +1,7 @@
 """The virtual camera: renders each frame with the virtual rig (Warp) for the
-pattern the projector shows and the angle the turntable reached. The virtual rig is
-imported on first use, so the real drivers never load Warp.
+pattern the projector shows and the angle the turntable reached. An emulator (it
+uses the virtual rig, which the real drivers may not import); the virtual rig is
+imported on first use, so importing ringscan.hardware never loads Warp.
 """
 
 from __future__ import annotations
