@@ -224,7 +224,7 @@ def phase_unwrap_kernel(
     status: wp.array2d(dtype=wp.int32),
 ):
     """Wrapped phase, modulation and unwrapped band coordinate of a run of
-    ``chunk`` pixels of one row per thread (see ``ring_labels.launch_rows``).
+    ``chunk`` pixels of one row per thread (see ``kernels.launch.launch_rows``).
 
     frames: (n_frames, H, W) uint8/uint16, read (white, black, gray pairs, ...,
         phase_0 at index ``phase0``).

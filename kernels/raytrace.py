@@ -29,7 +29,7 @@ Two passes:
 
 Normals: the geometric (facet) normal decides whether a point faces the light and
 offsets the shadow ray; the shading normal n_s is interpolated from per-corner
-normals (see ``pipeline.scenes.corner_normals``), so smooth objects shade smoothly.
+normals (see ``pipeline.simulate.scenes.corner_normals``), so smooth objects shade smoothly.
 Both are turned to face the incoming camera ray.
 """
 

@@ -192,7 +192,7 @@ def count_edges_kernel(
 ):
     """Test both pairs of every pixel; count its samples (0, 1 or 2) and keep
     what the write pass needs, so that no pair is evaluated twice. A thread
-    covers ``chunk`` pixels of one row (see ``ring_labels.launch_rows``).
+    covers ``chunk`` pixels of one row (see ``kernels.launch.launch_rows``).
 
     frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
     counts: (H*W,) int32 written (every pixel).

@@ -1,6 +1,6 @@
 """The virtual rig: renders scans of procedural or loaded meshes, with ground truth (DESIGN §8).
 
-:class:`VirtualRig` ray-traces a scene (``pipeline.scenes``) standing on the
+:class:`VirtualRig` ray-traces a scene (``pipeline.simulate.scenes``) standing on the
 reference plane z = 0 as the rig's camera sees it under any projector frame
 (``kernels.raytrace``). :func:`simulate_scan` renders every frame of a pattern set
 for one or more turntable views and writes a scan folder (DESIGN §6) plus its
