@@ -1,5 +1,5 @@
 """Single-shot ``rings`` codec, per pixel: line (ridge) detection with sub-pixel
-centres (DESIGN §5).
+centres (docs/design.md §10).
 
 Line detection (after Steger's curvilinear-structure detector): the frame is
 smoothed with a Gaussian of ``sigma`` camera pixels (separable, two row-run

@@ -1,4 +1,4 @@
-"""Dense sub-pixel ring sampling (DESIGN §5).
+"""Dense sub-pixel ring sampling (docs/design.md §7).
 
 gray-rings: a band boundary k (radius rho0 + k * pitch) runs between two
 neighbouring pixels p, q whose band codes differ in exactly the one bit b that

@@ -1,5 +1,5 @@
-"""The turntable axis from a board seen at several table angles (DESIGN §6's
-``turntable`` block; docs/calibration.md, "The turntable axis").
+"""The turntable axis from a board seen at several table angles (the rig's ``turntable``
+block, docs/design.md §11; docs/calibration.md, "The turntable axis").
 
 A chessboard (or ChArUco board) lies or stands on the turntable and is
 photographed at several table angles theta_k. The camera is calibrated in the world
@@ -15,8 +15,8 @@ frame (intrinsics and pose). Steps:
    unchanged, and the point they all fix;
 4. one joint least-squares fit of every corner in every view: the board's pose at
    table angle 0 (6 parameters) and the axis (direction 2, point 2), each view's
-   board being the angle-0 board turned by theta_k about the axis (DESIGN §6's
-   turntable transform), projected through the calibrated camera. Views whose
+   board being the angle-0 board turned by theta_k about the axis (the
+   turntable transform of docs/design.md §11), projected through the calibrated camera. Views whose
    reprojection error spoils the fit are named and left out, and the fit repeated.
 
 The axis point written is where the axis meets the reference plane z = 0 (or,
