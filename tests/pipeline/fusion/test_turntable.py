@@ -11,7 +11,7 @@ import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.fusion.turntable import FuseSettings, FusionView, fuse_views
-from ringscan.pipeline.fusion.workflow import fuse_recon, load_recon, recon_folder
+from ringscan.pipeline.fusion.recon import fuse_recon, load_recon, recon_folder
 
 from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon, wrong_axis
 
