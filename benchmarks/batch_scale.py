@@ -123,7 +123,7 @@ def make_scans(root: Path, n: int, views: int, size, spec: dict = SPEC, corrupt:
 
 
 def to_tiff(root: Path) -> None:
-    """Rewrite every scan's frames as uncompressed TIFF (DESIGN §6 allows PNG or TIFF): PNG decoding is
+    """Rewrite every scan's frames as uncompressed TIFF (docs/design.md §11 allows PNG or TIFF): PNG decoding is
     the largest part of a view's time; an uncompressed frame is read at the speed of the page cache."""
     n = 0
     for sj in sorted(root.glob("*/scan.json")):

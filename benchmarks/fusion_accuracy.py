@@ -90,7 +90,8 @@ def main(argv=None) -> int:
     from ringscan.pipeline.formats.scan import load_scan
     from ringscan.pipeline.fusion.mesh import MeshSettings
     from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
-    from ringscan.pipeline.fusion.workflow import load_recon, mesh_fused
+    from ringscan.pipeline.fusion.meshing import mesh_fused
+    from ringscan.pipeline.fusion.recon import load_recon
     from ringscan.pipeline.reconstruct.scan import reconstruct_scan
     from ringscan.pipeline.simulate.scan import simulate_scan
 

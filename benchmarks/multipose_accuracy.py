@@ -62,7 +62,8 @@ def main(argv=None) -> int:
     from ringscan.pipeline.fusion.mesh import MeshSettings, compare_to_truth
     from ringscan.pipeline.fusion.poses import AlignmentError, PoseSettings, fuse_poses
     from ringscan.pipeline.fusion.turntable import FuseSettings, fuse_views
-    from ringscan.pipeline.fusion.workflow import load_recon, mesh_cloud
+    from ringscan.pipeline.fusion.meshing import mesh_cloud
+    from ringscan.pipeline.fusion.recon import load_recon
     from ringscan.pipeline.reconstruct.scan import reconstruct_scan
     from ringscan.pipeline.simulate.scan import simulate_scan
 

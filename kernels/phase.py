@@ -1,46 +1,10 @@
-"""Phase-rings, per pixel: wrapped phase, modulation, unwrapping by the band code (DESIGN §5).
+"""Phase-rings, per pixel: linearise, wrapped phase and modulation by weighted least
+squares, unwrapping by the band code anchored at band edges, optional smoothing; then
+count, scan and write one sample per valid pixel (docs/design.md §7, §9).
 
 The phase frames are I_n = 0.5 + 0.5 cos(2 pi t - 2 pi n / N), n = 0..N-1, with
-t = (rho - rho0) / pitch the continuous band coordinate: band k = floor(t) is
-what the gray-rings frames of the same scan code. Per camera pixel:
-
-1. Linearise. A response table maps each recorded value to linear irradiance
-   (the camera's response, e.g. (value / full)^gamma). Where the light's own
-   response is not linear, the values are normalised by the pixel's linearised
-   white and black frames and raised to 1 / gamma_light, which undoes the light's
-   curve exactly for a sharp projector.
-2. Wrapped phase and modulation by weighted least squares: the model
-   L_n = A + B cos(phi - 2 pi n / N) is fitted with weights 1 / (dL/dr)^2, the
-   inverse variance of each linearised sample when the sensor noise is additive
-   in recorded values (a gamma-encoded camera is noisier, in linear terms, where
-   it is bright). With a linear response every weight is 1 and the fit is the
-   classic N-step formula. phi = atan2(B sin phi, B cos phi), f = phi / 2 pi mod 1.
-   The modulation q = 2 B / (L_white - L_black) is 1 for a perfect fringe; mixed
-   pixels (two surfaces, two phases), blur and shadows lower it.
-3. Unwrapping that cannot slip at band edges. The phase wraps (f jumps from 1 to
-   0) exactly where the band code flips, so ``t = k + f`` slips a whole period
-   wherever noise puts the two on different sides of an edge. Instead, the two
-   band-code bits that flip at the pixel's band edges (lower edge k, upper edge
-   k + 1) are read back: |frame - inverse| / (white - black) is near 0 on an edge
-   and near 1 away from it. Where the smaller of the two is below ``edge_ratio``
-   the pixel lies in that edge's transition zone and the expected coordinate is
-   the edge itself (t_b = k or k + 1); elsewhere it is the band's centre
-   (t_b = k + 0.5, and the band code is sure there). The period is then
-   m = round(t_b - f) and t = m + f: the phase decides where in the period the
-   pixel is, the code only which period, and near an edge either of the two bands
-   names the same period. This is the complementary-code idea (a second code
-   whose edges fall at the first one's band centres) with the complementary
-   information taken from the edge bits' own contrast, so it needs no extra
-   frames. A pixel whose band code has a weak bit other than one of its two edge
-   bits (mixed or noisy code) is dropped, and so is a pixel whose phase puts it
-   more than ``slip_tolerance`` bands across an edge on the side its strong edge
-   bit rules out (an unwrapping slip or a mixed pixel).
-4. Optional smoothing (``smooth_radius``): t is averaged with the mean of each
-   opposite pair of neighbours (p + h, p - h) within the window whose mean agrees
-   with t(p) to ``smooth_tolerance`` bands. Pairs keep the average exact where t
-   is linear in the image (a plane) and pairs that straddle a depth edge disagree
-   and are left out. A pixel that has neighbours but no agreeing pair is dropped
-   (a lone slip or an outlier).
+t = (rho - rho0) / pitch the continuous band coordinate; band k = floor(t) is what the
+gray-rings frames of the same scan code. Why each step is as it is: docs/design.md §9.
 
 Status codes per pixel: 0 point, 1 dark (contrast below ``min_contrast``), 2 code
 (band code unreliable), 3 modulation (below ``min_modulation``), 4 slip (phase
@@ -205,7 +169,7 @@ def phase_unwrap_kernel(
     status: wp.array2d(dtype=wp.int32),
 ):
     """Wrapped phase, modulation and unwrapped band coordinate of a run of
-    ``chunk`` pixels of one row per thread (see ``ring_labels.launch_rows``).
+    ``chunk`` pixels of one row per thread (see ``kernels.launch.launch_rows``).
 
     frames: (n_frames, H, W) uint8/uint16, read (white, black, gray pairs, ...,
         phase_0 at index ``phase0``).

@@ -1,36 +1,17 @@
-"""The virtual rig's ray tracer: what the camera sees under a projector frame (DESIGN §8).
+"""The virtual rig's ray tracer: what the camera sees under a projector frame
+(docs/design.md §16).
 
-Two passes:
-
-- geometry, once per view (:func:`trace_geometry`): for every camera pixel and each
-  of ``S x S`` sub-pixel positions (pixel (u, v) covers [u-0.5, u+0.5] x
-  [v-0.5, v+0.5]; sub-sample (i, j) sits at offset ((i + 0.5)/S - 0.5, (j + 0.5)/S - 0.5)),
-  a camera ray (OpenCV model with distortion) is traced against the object mesh
-  (a ``wp.Mesh``) and the reference plane z = 0 (analytic, opaque from both sides,
-  infinite). At the nearest hit X the tracer stores the projector pixel (u_p, v_p)
-  that lights X and the direct-light weight ``albedo * max(0, n_s . l)`` (zero when
-  X faces away from the light, lies in the shadow of the mesh or of the plane, or
-  is behind a perspective projector), plus the ambient weight ``albedo * ambient``;
-  the albedo is one number, or per mesh face where the mesh carries a texture
-  (``make_trace_mesh(face_albedo=...)``: a printed chessboard).
-  The centre ray of each pixel gives the truth: camera-frame depth Z_c, world
-  point, facet normal and the ``lit`` mask (hit, not shadowed, facing the light,
-  inside the projector image). A pixel (or sub-pixel position) whose ray the
-  camera model cannot give (no undistorted point inside the region where the
-  lens distortion is monotonic, ``geometry.undistort``) sees nothing: no light,
-  NaN truth. The renderer never draws what a folded lens model would invent.
-- shading, once per frame (:func:`shade_frame`): each pixel's irradiance is the
-  mean over its sub-samples of ``ambient weight + direct weight * E(u_p, v_p)``,
-  E the emitted projector light, given on a grid k times finer than the projector
-  pixels and sampled bilinearly (or, for sharp pixels, nearest; 0 outside the
-  projector image); then the
-  camera response ``recorded = full_scale * (I / I_full)^(1/gamma)``, Gaussian
-  noise (``wp.randn``, deterministic from a seed), clamping and rounding.
-
-Normals: the geometric (facet) normal decides whether a point faces the light and
-offsets the shadow ray; the shading normal n_s is interpolated from per-corner
-normals (see ``pipeline.scenes.corner_normals``), so smooth objects shade smoothly.
-Both are turned to face the incoming camera ray.
+Two passes: :func:`trace_geometry`, once per view, traces each camera pixel's ``S x S``
+sub-pixel rays (OpenCV model with distortion) against the object mesh (a ``wp.Mesh``)
+and the analytic reference plane z = 0, and stores per sub-sample the projector pixel
+that lights the hit, its direct and ambient weights, and per pixel the truth (depth,
+world point, facet normal, lit mask); :func:`shade_frame`, once per frame, turns those
+into the recorded image (emitted light sampled on a grid finer than the projector
+pixels, camera response, seeded noise, clamping, rounding). A pixel whose ray the
+camera model cannot give sees nothing (docs/design.md §6). The facet normal decides
+what faces the light and offsets the shadow ray; the shading normal is interpolated
+from per-corner normals (``pipeline.simulate.scenes.corner_normals``). The model in
+full, with its figures: docs/virtual_rig.md.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Ring labelling, per pixel: decode gray-rings (and sector) codes (DESIGN §5).
+"""Ring labelling, per pixel: decode gray-rings (and sector) codes (docs/design.md §7).
 
 For every camera pixel the kernel reads the ``white``/``black`` pair and each Gray
 code frame/inverse pair, and writes

@@ -1,5 +1,5 @@
 """Single-shot ``rings`` codec, per pixel: line (ridge) detection with sub-pixel
-centres (DESIGN §5).
+centres (docs/design.md §10).
 
 Line detection (after Steger's curvilinear-structure detector): the frame is
 smoothed with a Gaussian of ``sigma`` camera pixels (separable, two row-run
@@ -219,7 +219,7 @@ def smooth_rows_kernel(
     out: wp.array2d(dtype=wp.float32),
 ):
     """Horizontal Gaussian pass over a run of ``chunk`` pixels of one row
-    (``ring_labels.launch_rows``), edges replicated.
+    (``kernels.launch.launch_rows``), edges replicated.
 
     frames: (n_frames, H, W) uint8/uint16, read (plane ``frame`` only).
     weights: (2 * radius + 1,) float32, read.

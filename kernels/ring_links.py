@@ -1,4 +1,4 @@
-"""Single-shot ``rings`` codec, per sample: ring roots and gap links (DESIGN §3, §5).
+"""Single-shot ``rings`` codec, per sample: ring roots and gap links (docs/design.md §3, §10).
 
 Ring roots (:func:`ring_roots`): for sample i and candidate radius rho_k the
 camera ray meets the ring's quadric (cylinder for a parallel light, cone for a

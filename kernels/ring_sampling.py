@@ -1,4 +1,4 @@
-"""Dense sub-pixel ring sampling (DESIGN §5).
+"""Dense sub-pixel ring sampling (docs/design.md §7).
 
 gray-rings: a band boundary k (radius rho0 + k * pitch) runs between two
 neighbouring pixels p, q whose band codes differ in exactly the one bit b that
@@ -170,7 +170,7 @@ def count_edges_kernel(
 ):
     """Test both pairs of every pixel; count its samples (0, 1 or 2) and keep
     what the write pass needs, so that no pair is evaluated twice. A thread
-    covers ``chunk`` pixels of one row (see ``ring_labels.launch_rows``).
+    covers ``chunk`` pixels of one row (see ``kernels.launch.launch_rows``).
 
     frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
     counts: (H*W,) int32 written (every pixel).

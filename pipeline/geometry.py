@@ -5,7 +5,7 @@ this module is what host code (the single-shot labeller, evaluation, the truth
 helpers, the NumPy reference) uses, and what turns a parsed
 :class:`~ringscan.pipeline.formats.rig.Rig` into the kernels' camera and light
 structs. Camera and projector (perspective light) pixels follow OpenCV's model
-(DESIGN §2), so undistortion and projection are OpenCV's own:
+(docs/design.md §2), so undistortion and projection are OpenCV's own:
 OpenCV's iterative ``undistortPoints`` (with a stopping criterion) and
 ``cv2.projectPoints``.
 """

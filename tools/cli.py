@@ -44,12 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        try:
-            mod = importlib.import_module(f"ringscan.tools.cmd_{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"ringscan.tools.cmd_{name}":
-                continue  # not built yet in this checkout
-            raise
+        mod = importlib.import_module(f"ringscan.tools.cmd_{name}")
         sp = mod.add_parser(sub)
         sp.set_defaults(_run=mod.run)
     return p

@@ -12,7 +12,7 @@ from ringscan.pipeline.fusion.mesh import (
     drop_unusable_points,
     orient_normals,
 )
-from ringscan.pipeline.fusion.workflow import mesh_cloud
+from ringscan.pipeline.fusion.meshing import mesh_cloud
 
 
 def add_parser(sub):

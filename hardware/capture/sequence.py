@@ -1,32 +1,18 @@
 """The capture sequence: turn, show, grab, write, for every view and frame.
 
-For each view the table turns to its angle and settles; for each frame of the
-codec the projector shows it (and acknowledges), the sequence waits the settle
-time, the camera grabs, and the frame is written atomically; then scan.json,
-listing the frames written so far, is rewritten atomically. At every moment the
-folder holds a valid (maybe partial) scan: ``load_scan(folder,
-allow_incomplete=True)`` reads it, and every frame it lists is complete on disk.
+For each view the table turns to its angle and settles; for each frame the projector
+shows it, the camera grabs, the frame is written atomically and scan.json, listing the
+frames written so far, is rewritten atomically: the folder is a valid (maybe partial)
+scan at every moment (docs/design.md §13). ``capture.json`` keeps the plan, the
+settings, the table's last confirmed angle, the status and a log of runs; ``resume=True``
+continues from there, capturing no frame twice (docs/design.md §14). A view's
+``turntable_deg`` is the angle the table reached, not the planned one.
 
-Next to scan.json, ``capture.json`` keeps the plan (views and angles), the
-settings, the turntable's last confirmed angle (and the target of a move under
-way, or that the angle is unknown), the status and a log of runs. ``resume=True``
-continues from there: frames already listed are kept, the rest captured, none
-twice; the record of a run that was killed is brought up to date from scan.json.
-
-A view's ``turntable_deg`` is the angle the table's steps reached (what the
-controller reports after the move), not the angle of the plan: the two differ by up
-to half a motor step.
-
-A device fault is retried (after the device's ``recover()``) up to
-``settings.retries`` times; then the capture stops with :class:`CaptureError`,
-leaving the partial scan. A turntable fault that leaves the table's angle unknown
-(anything but a refused line during a move, any alarm) is never retried, and
-resuming needs the angle (``table_at``).
-
-Ctrl-C always stops a capture (:class:`InterruptGuard`): SIGINT sets a flag that is
-checked after every frame and move, so an interrupt that Python swallowed (a
-``KeyboardInterrupt`` raised inside a ``__del__``, such as a Warp array's
-finalizer, is only printed) still stops it.
+A device fault is retried (after the device's ``recover()``) up to ``settings.retries``
+times, then the capture stops with :class:`CaptureError`, leaving the partial scan; a
+turntable fault that leaves the angle unknown is never retried, and resuming needs the
+user's word (``table_at``). Ctrl-C always stops a capture (:class:`InterruptGuard`).
+Faults and what each does: docs/hardware.md.
 """
 
 from __future__ import annotations
@@ -437,132 +423,169 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     else:
         scan, state = _new_capture(out, rig, patterns, views, step_deg, 0.0 if start_deg is None else start_deg)
         table_deg = 0.0
-    declared = not resume or table_at is not None  # the angle is a definition (or the user's word), not a claim
-    names = frame_names(scan.patterns)
-    angles = [float(a) for a in state["plan"]["angles"]]
-    cam = scan.rig.camera
     _check_frame_count(projector, scan.patterns, out)
-    ext = settings.image_format
-    devices = (turntable, projector, camera)
-
-    run = {"started": _now(), "ended": None, "frames": 0, "result": "running"}
-    state["settings"] = settings.to_dict()
-    state["status"] = "running"
-    state["error"] = None
-    state["table"] = {"deg": table_deg, "moving_to": None, "known": True}
-    state["runs"] = list(state.get("runs", [])) + [run]
-
-    def write_state():
-        atomic_write_json(out / CAPTURE_FILE, state)
-
-    write_state()
-    views_list = list(scan.views)
-    total = len(angles) * len(names)
-    done = sum(len([n for n in names if n in v.frames]) for v in views_list)
-    bar = tqdm(total=total, initial=done, unit="frame", desc=f"capture {out.name}", disable=not progress,
-               dynamic_ncols=True)
-    log.info("capture: %s, %d views x %d frames, %d already captured", out, len(angles), len(names), done)
-
-    def show_and_grab(j: int) -> np.ndarray:
-        projector.show(j)
-        if settings.projector_settle_s > 0:
-            time.sleep(settings.projector_settle_s)
-        img = camera.grab()
-        if img.shape != (cam.height, cam.width):
-            raise CameraError(f"camera delivers {img.shape[1]}x{img.shape[0]} frames, the rig's camera is "
-                              f"{cam.width}x{cam.height}", port=getattr(camera, "source", None), retryable=False)
-        return img
-
-    def declare_start():
-        if not declared and not turntable.position_known:
-            raise TurntableError(f"{turntable.unknown_reason}; the last confirmed angle ({table_deg:g} deg) cannot "
-                                 f"be trusted", port=getattr(turntable, "port", None), retryable=False,
-                                 position_known=False)
-        turntable.set_position(table_deg)
-
-    guard = InterruptGuard()
-    try:
-        with guard:
-            _with_retries("declaring the table angle", declare_start, settings, devices)
-            _with_retries("enabling the table motor", lambda: turntable.enable_motor(True), settings, devices)
-            for i, angle in enumerate(angles):
-                view = views_list[i] if i < len(views_list) else None
-                if view is not None and all(n in view.frames for n in names):
-                    continue
-                # a view begun in an earlier run goes on at the angle its frames were taken at
-                target = view.turntable_deg if view is not None else angle
-                if abs(turntable.position_deg - target) > 1e-6:
-                    state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True}
-                    write_state()
-                    _with_retries(f"turning to {target:g} deg", lambda a=target: turntable.move_to(a), settings,
-                                  devices)
-                    state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}
-                    write_state()
-                    guard.check()
-                    if settings.turntable_settle_s > 0:
-                        time.sleep(settings.turntable_settle_s)
-                if view is None:
-                    view = View(name=view_name(i), turntable_deg=turntable.position_deg, frames={})
-                    views_list.append(view)
-                elif abs(turntable.position_deg - view.turntable_deg) > PLAN_TOLERANCE_DEG:
-                    raise CaptureError(f"{view.name}'s frames were taken at {view.turntable_deg:g} deg, the table "
-                                       f"stands at {turntable.position_deg:g} deg", folder=out)
-                frames = dict(view.frames)
-                bar.set_postfix_str(view.name)
-                for j, fname in enumerate(names):
-                    if fname in frames:
-                        continue
-                    img = _with_retries(f"{view.name} frame {fname}", lambda j=j: show_and_grab(j), settings,
-                                        devices)
-                    rel = f"{view.name}/{fname}.{ext}"
-                    write_image(out / rel, img)
-                    frames[fname] = rel
-                    views_list[i] = View(name=view.name, turntable_deg=view.turntable_deg, frames=dict(frames))
-                    scan = dataclasses.replace(scan, views=tuple(views_list))
-                    save_scan(scan)
-                    run["frames"] += 1
-                    bar.update(1)
-                    guard.check()
-                if on_view is not None:
-                    on_view(scan, views_list[i])
-                    guard.check()
-    except DeviceError as e:
-        run["result"] = state["status"] = "stopped"
-        target = state["table"]["moving_to"]
-        if e.position_known:  # the move was refused, or the fault came before or after it
-            state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}
-        else:
-            state["table"]["known"] = False
-        if not e.position_known:
-            where = (f"The turntable may have stopped part way to {target:g} deg" if target is not None
-                     else "The turntable's angle is unknown")
-            msg = (f"capture stopped: {e}. {where}. The scan in {out} is valid but incomplete; check the table's "
-                   f"angle and continue with --resume --table-at DEG")
-        else:
-            tried = f" after {settings.retries} retries" if e.retryable and settings.retries else ""
-            msg = (f"capture stopped{tried}: {e}. The scan in {out} is valid but incomplete; fix the device "
-                   f"and continue with --resume")
-        state["error"] = msg
-        raise CaptureError(msg, folder=out, cause=e) from e
-    except KeyboardInterrupt:
-        run["result"] = state["status"] = "interrupted"
-        state["error"] = "interrupted by the user"
-        if state["table"]["moving_to"] is not None:
-            state["table"]["known"] = False
-        raise
-    except BaseException as e:
-        run["result"] = state["status"] = "stopped"
-        state["error"] = f"{type(e).__name__}: {e}"
-        raise
-    else:
-        run["result"] = state["status"] = "complete"
-    finally:
-        bar.close()
-        run["ended"] = _now()
-        write_state()
+    run = _CaptureRun(out, scan, state, camera=camera, projector=projector, turntable=turntable, settings=settings,
+                      table_deg=table_deg, declared=not resume or table_at is not None)
+    run.run(progress=progress, on_view=on_view)
     try:
         projector.blank()
     except DeviceError as e:
         log.warning("capture: could not blank the projector at the end: %s", e)
-    log.info("capture: %s complete (%d frames this run)", out, run["frames"])
+    log.info("capture: %s complete (%d frames this run)", out, run.record["frames"])
     return load_scan(out)
+
+
+class _CaptureRun:
+    """One run of the capture sequence over a new or resumed scan folder: the devices,
+    the plan, the scan written so far, and this run's record in capture.json.
+
+    Args:
+        table_deg: where the table stands at the start.
+        declared: ``table_deg`` is a definition (a new capture) or the user's word
+            (``table_at``), not a claim that the turntable must confirm.
+    """
+
+    def __init__(self, out: Path, scan: Scan, state: dict, *, camera, projector, turntable,
+                 settings: CaptureSettings, table_deg: float, declared: bool):
+        self.out, self.scan, self.state, self.settings = out, scan, state, settings
+        self.camera, self.projector, self.turntable = camera, projector, turntable
+        self.devices = (turntable, projector, camera)
+        self.table_deg, self.declared = table_deg, declared
+        self.names = frame_names(scan.patterns)
+        self.angles = [float(a) for a in state["plan"]["angles"]]
+        self.views = list(scan.views)
+        self.record = {"started": _now(), "ended": None, "frames": 0, "result": "running"}
+        state["settings"] = settings.to_dict()
+        state["status"] = "running"
+        state["error"] = None
+        state["table"] = {"deg": table_deg, "moving_to": None, "known": True}
+        state["runs"] = list(state.get("runs", [])) + [self.record]
+        self.bar = None
+        self.guard = InterruptGuard()
+
+    def write_state(self) -> None:
+        atomic_write_json(self.out / CAPTURE_FILE, self.state)
+
+    def run(self, *, progress: bool, on_view) -> None:
+        """Capture every frame not yet on disk, view by view; capture.json says how the run ended."""
+        self.write_state()
+        done = sum(len([n for n in self.names if n in v.frames]) for v in self.views)
+        self.bar = tqdm(total=len(self.angles) * len(self.names), initial=done, unit="frame",
+                        desc=f"capture {self.out.name}", disable=not progress, dynamic_ncols=True)
+        log.info("capture: %s, %d views x %d frames, %d already captured", self.out, len(self.angles),
+                 len(self.names), done)
+        try:
+            with self.guard:
+                self._retry("declaring the table angle", self._declare_start)
+                self._retry("enabling the table motor", lambda: self.turntable.enable_motor(True))
+                for i, angle in enumerate(self.angles):
+                    self._capture_view(i, angle, on_view)
+        except DeviceError as e:
+            raise CaptureError(self._stopped_by(e), folder=self.out, cause=e) from e
+        except KeyboardInterrupt:
+            self.record["result"] = self.state["status"] = "interrupted"
+            self.state["error"] = "interrupted by the user"
+            if self.state["table"]["moving_to"] is not None:
+                self.state["table"]["known"] = False
+            raise
+        except BaseException as e:
+            self.record["result"] = self.state["status"] = "stopped"
+            self.state["error"] = f"{type(e).__name__}: {e}"
+            raise
+        else:
+            self.record["result"] = self.state["status"] = "complete"
+        finally:
+            self.bar.close()
+            self.record["ended"] = _now()
+            self.write_state()
+
+    def _retry(self, what: str, fn: Callable):
+        return _with_retries(what, fn, self.settings, self.devices)
+
+    def _declare_start(self) -> None:
+        """Tell the controller where the table stands (refused when that is a claim it cannot back)."""
+        turntable = self.turntable
+        if not self.declared and not turntable.position_known:
+            raise TurntableError(f"{turntable.unknown_reason}; the last confirmed angle ({self.table_deg:g} deg) "
+                                 f"cannot be trusted", port=getattr(turntable, "port", None), retryable=False,
+                                 position_known=False)
+        turntable.set_position(self.table_deg)
+
+    def _capture_view(self, i: int, angle: float, on_view) -> None:
+        """Turn to view ``i`` and capture its missing frames, writing scan.json after each."""
+        view = self.views[i] if i < len(self.views) else None
+        if view is not None and all(n in view.frames for n in self.names):
+            return
+        # a view begun in an earlier run goes on at the angle its frames were taken at
+        target = view.turntable_deg if view is not None else angle
+        if abs(self.turntable.position_deg - target) > 1e-6:
+            self._turn_to(target)
+        if view is None:
+            view = View(name=view_name(i), turntable_deg=self.turntable.position_deg, frames={})
+            self.views.append(view)
+        elif abs(self.turntable.position_deg - view.turntable_deg) > PLAN_TOLERANCE_DEG:
+            raise CaptureError(f"{view.name}'s frames were taken at {view.turntable_deg:g} deg, the table "
+                               f"stands at {self.turntable.position_deg:g} deg", folder=self.out)
+        frames = dict(view.frames)
+        self.bar.set_postfix_str(view.name)
+        for j, fname in enumerate(self.names):
+            if fname in frames:
+                continue
+            img = self._retry(f"{view.name} frame {fname}", lambda j=j: self._show_and_grab(j))
+            rel = f"{view.name}/{fname}.{self.settings.image_format}"
+            write_image(self.out / rel, img)
+            frames[fname] = rel
+            self.views[i] = View(name=view.name, turntable_deg=view.turntable_deg, frames=dict(frames))
+            self.scan = dataclasses.replace(self.scan, views=tuple(self.views))
+            save_scan(self.scan)
+            self.record["frames"] += 1
+            self.bar.update(1)
+            self.guard.check()
+        if on_view is not None:
+            on_view(self.scan, self.views[i])
+            self.guard.check()
+
+    def _turn_to(self, target: float) -> None:
+        """Move the table, with capture.json naming the target while it moves; then settle."""
+        turntable = self.turntable
+        self.state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True}
+        self.write_state()
+        self._retry(f"turning to {target:g} deg", lambda: turntable.move_to(target))
+        self.state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}
+        self.write_state()
+        self.guard.check()
+        if self.settings.turntable_settle_s > 0:
+            time.sleep(self.settings.turntable_settle_s)
+
+    def _show_and_grab(self, j: int) -> np.ndarray:
+        """Show frame ``j``, wait for the projector, grab one camera image (checked against the rig)."""
+        self.projector.show(j)
+        if self.settings.projector_settle_s > 0:
+            time.sleep(self.settings.projector_settle_s)
+        img = self.camera.grab()
+        cam = self.scan.rig.camera
+        if img.shape != (cam.height, cam.width):
+            raise CameraError(f"camera delivers {img.shape[1]}x{img.shape[0]} frames, the rig's camera is "
+                              f"{cam.width}x{cam.height}", port=getattr(self.camera, "source", None),
+                              retryable=False)
+        return img
+
+    def _stopped_by(self, e: DeviceError) -> str:
+        """Record a run stopped by a device fault; returns the message that says how to go on."""
+        self.record["result"] = self.state["status"] = "stopped"
+        target = self.state["table"]["moving_to"]
+        if e.position_known:  # the move was refused, or the fault came before or after it
+            self.state["table"] = {"deg": self.turntable.position_deg, "moving_to": None, "known": True}
+        else:
+            self.state["table"]["known"] = False
+        if not e.position_known:
+            where = (f"The turntable may have stopped part way to {target:g} deg" if target is not None
+                     else "The turntable's angle is unknown")
+            msg = (f"capture stopped: {e}. {where}. The scan in {self.out} is valid but incomplete; check the "
+                   f"table's angle and continue with --resume --table-at DEG")
+        else:
+            tried = f" after {self.settings.retries} retries" if e.retryable and self.settings.retries else ""
+            msg = (f"capture stopped{tried}: {e}. The scan in {self.out} is valid but incomplete; fix the device "
+                   f"and continue with --resume")
+        self.state["error"] = msg
+        return msg

@@ -15,7 +15,7 @@ __all__ = ["TurntableDevice", "VirtualTurntable"]
 
 
 class TurntableDevice(Device):
-    """A turntable: moves to absolute angles (degrees, DESIGN §6) and reports where it is."""
+    """A turntable: moves to absolute angles (degrees, docs/design.md §11) and reports where it is."""
 
     @property
     @abc.abstractmethod

@@ -105,9 +105,9 @@ class EmulatedRig:
     """A whole virtual rig: emulated turntable and projector on ptys, a virtual camera.
 
     Args:
-        rig: the rig (pipeline.rig.Rig) to render.
+        rig: the rig (pipeline.formats.rig.Rig) to render.
         patterns: the PatternSpec whose frames the projector holds (index = frame order).
-        scene: scene name or mesh path (pipeline.scenes.make_scene), or a mesh.
+        scene: scene name or mesh path (pipeline.simulate.scenes.make_scene), or a mesh.
         folder: where the port symlinks and the camera socket go (default: a new
             temporary folder, removed by :meth:`close`).
         flavor: turntable firmware, "grbl" or "horus".

@@ -22,8 +22,8 @@ def make_virtual_rig(rig, scene, *, size_mm: float = 80.0, settings=None, device
     """The virtual rig's renderer (pipeline.simulate.VirtualRig) for ``rig`` and a scene.
 
     Args:
-        rig: a pipeline.rig.Rig.
-        scene: a scene name or mesh path (pipeline.scenes.make_scene), or a mesh.
+        rig: a pipeline.formats.rig.Rig.
+        scene: a scene name or mesh path (pipeline.simulate.scenes.make_scene), or a mesh.
         size_mm: scene size for make_scene.
         settings: the renderer's RenderSettings (default: its defaults).
         device: Warp device.

@@ -25,7 +25,8 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remov
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
 from ringscan.pipeline.formats.scan import load_scan
-from ringscan.pipeline.fusion.workflow import fuse_and_mesh, fuse_recon
+from ringscan.pipeline.fusion.recon import fuse_recon
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.reconstruct.freshness import check_done
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings

@@ -10,7 +10,7 @@ Two orders of white/black are read (``LAYOUTS``):
   OpenCV's ``GrayCodePattern.generate`` followed by ``getImagesForShadowMasks``, as in
   ../shared/data/procam (``graycode_40`` white, ``graycode_41`` black);
 - ``opencv-graycode-wb-first``: white, black, then the column and row pairs
-  (DESIGN §6's wording).
+  (the layout of docs/design.md §7).
 
 Decoding (:func:`decode_graycode`): a pixel is decoded where white - black
 >= ``min_contrast`` and every pattern differs from its inverse by at least

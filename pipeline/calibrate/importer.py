@@ -1,4 +1,4 @@
-"""Real Gray-code captures -> a ringscan scan folder of the ``decoded`` codec (DESIGN §6).
+"""Real Gray-code captures -> a ringscan scan folder of the ``decoded`` codec (docs/design.md §7).
 
 :func:`import_captures` decodes every capture folder (one view each) to sub-pixel
 projector positions (:mod:`graycode`) and writes them as the ``decoded`` codec's

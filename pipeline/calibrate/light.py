@@ -1,38 +1,13 @@
-"""The paper's parallel light (DESIGN §3) from ring captures of the reference plane
-at two or more known heights (docs/calibration.md, "The parallel light").
+"""The paper's parallel light (docs/design.md §3) from ring captures of the reference
+plane at two or more known heights.
 
-Model: in the light frame ``X_L = R_L X_w`` (``t_L = 0``: the light axis is the
-line through the world origin, so ``axis_px`` is the projector pixel that lights
-the origin) projector pixel p lights the line ``x_L = s (u_p - a_u)``,
-``y_L = s (v_p - a_v)``. A world point X is therefore lit by the pixel
-``p = P R_L X / s + a`` (P keeps x and y): a scaled orthographic projection.
-
-Data: each capture is a scan folder (gray-rings or phase-rings, with sector bits)
-of the flat reference plane, or of a flat plate, at a known height h. The codec's
-decode and sampling stages (the reconstruction's own) give sub-pixel camera
-points with their ring radius rho (and decoded sector); the calibrated camera's
-ray through each meets the plane z = h at a world point X. Then:
-
-1. rings: with ``R_L = R_z(roll) R_tilt`` the ring condition ``|p - c| = rho``
-   does not depend on the roll about the light axis: ``|q + e| = rho`` with
-   ``q = P R_tilt X / s`` and ``a - c = R_z(roll) e``. A robust least-squares fit
-   (soft-L1, then samples off by more than ``max_residual_px`` dropped and the
-   fit repeated) gives the tilt (2), the pitch s and the ring centre e (2). One
-   height pins s and e but not the tilt: that needs two heights or more.
-2. roll: the decoded sector of a sample says in which angular sector of the
-   pattern its projector pixel lies. The roll moves every sample's polar angle
-   by the same amount, so it is the angle at which the fewest samples fall
-   outside their decoded sector (the middle of the interval of such angles).
-
-The camera must be calibrated in the world frame first: its intrinsics
-(``ringscan calibrate camera``) and its pose over the reference plane
-(:func:`camera_pose_on_plane`: a board lying on the plane defines the world
-frame, z up).
-
-The fit is ringscan's own design (the paper assumes a known light); its
-figures are reported (:class:`LightCalibration`), and the tests recover a
-tilted, rolled, off-centre virtual light to within 0.5 projector px and 0.2 %
-in pitch.
+Each capture (a gray-rings or phase-rings scan with sector bits, of the plane or a flat
+plate at a known height) is decoded and sampled by the reconstruction's own stages; the
+calibrated camera's ray through each sample meets its plane at a world point. A robust
+fit of the ring condition gives the tilt, the pitch and the ring centre (it does not
+depend on the roll about the light axis), and the decoded sectors give the roll. The
+camera must be calibrated in the world frame first (:func:`camera_pose_on_plane`). The
+model, the fit and its figures: docs/calibration.md §6 ("The parallel light").
 """
 
 from __future__ import annotations

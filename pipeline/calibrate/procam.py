@@ -215,7 +215,7 @@ def procam_rig(
 ) -> Rig:
     """A ringscan rig of a camera and a perspective projector with X_p = R X_c + T.
 
-    The world frame (DESIGN §2 puts its origin where the light axis meets the
+    The world frame (docs/design.md §2 puts its origin where the light axis meets the
     reference plane, z toward the light) is chosen here: its z axis is the
     projector's optical axis pointing back toward the projector, x along the
     projector's x, and its origin on that axis at projector depth ``z_ref`` = the

@@ -1,6 +1,6 @@
 """The projector's response curve from camera frames of a projected grey ramp.
 
-The light model of DESIGN §6: emitted = (value / full_scale)^gamma. With the
+The light model of docs/design.md §8: emitted = (value / full_scale)^gamma. With the
 camera linearised by its own response (``camera_gamma``: recorded =
 full * (irradiance / full irradiance)^(1/g)), a pixel's level under a uniform
 projected value ``x`` (0..1) is black + (white - black) * x^gamma, so

@@ -1,5 +1,5 @@
-"""The turntable axis from a board seen at several table angles (DESIGN §6's
-``turntable`` block; docs/calibration.md, "The turntable axis").
+"""The turntable axis from a board seen at several table angles (the rig's ``turntable``
+block, docs/design.md §11; docs/calibration.md, "The turntable axis").
 
 A chessboard (or ChArUco board) lies or stands on the turntable and is
 photographed at several table angles theta_k. The camera is calibrated in the world
@@ -15,8 +15,8 @@ frame (intrinsics and pose). Steps:
    unchanged, and the point they all fix;
 4. one joint least-squares fit of every corner in every view: the board's pose at
    table angle 0 (6 parameters) and the axis (direction 2, point 2), each view's
-   board being the angle-0 board turned by theta_k about the axis (DESIGN §6's
-   turntable transform), projected through the calibrated camera. Views whose
+   board being the angle-0 board turned by theta_k about the axis (the
+   turntable transform of docs/design.md §11), projected through the calibrated camera. Views whose
    reprojection error spoils the fit are named and left out, and the fit repeated.
 
 The axis point written is where the axis meets the reference plane z = 0 (or,
@@ -252,6 +252,69 @@ def _unpack(x, d0, e1, e2):
     return cv2.Rodrigues(x[:3])[0], x[3:6].copy(), d, x[8] * e1 + x[9] * e2
 
 
+def _undo_half_turns(Rs: list, ts: list, obj: list, views: list, ang: np.ndarray, prior: np.ndarray, board: Board,
+                     pts: np.ndarray) -> None:
+    """A chessboard's corner order is known only up to a half turn of the board: turn
+    the poses (and corner lists) of the views after the first whose order fits the
+    table's turn worse than the half-turned order does. Edits ``Rs``, ``ts`` and
+    ``obj`` in place (one entry per view with the board)."""
+    W, H = (board.cols - 1) * board.square, (board.rows - 1) * board.square
+    F = np.diag([-1.0, -1.0, 1.0])
+    f = np.array([W, H, 0.0])
+    n = board.n_corners
+    # Which sense the table turns about the prior axis: the one that both orders fit best.
+    best = None
+    for sense in (1.0, -1.0):
+        cost, flips = 0.0, []
+        for k in range(1, len(views)):
+            want = _axis_rotation(sense * prior, ang[k] - ang[0])
+            as_is = _rotation_angle(Rs[k] @ Rs[0].T @ want.T)
+            flipped = _rotation_angle(Rs[k] @ F @ Rs[0].T @ want.T)
+            cost += min(as_is, flipped)
+            flips.append(flipped < as_is)
+        if best is None or cost < best[0] - 1e-6:
+            best = (cost, flips)
+    for k, flip in zip(range(1, len(views)), best[1]):
+        if flip:
+            ts[k] = Rs[k] @ f + ts[k]
+            Rs[k] = Rs[k] @ F
+            obj[k] = pts[n - 1 - views[k].ids]
+            log.debug("%s: corner order turned by 180 deg", views[k].name)
+
+
+def _fit_axis(x0: np.ndarray, d0, e1, e2, obj: list, img: list, ang: np.ndarray, camera: Camera, names: list[str],
+              settings: TurntableSettings) -> tuple:
+    """The least-squares fit of the board at angle 0 and the axis, repeated once or
+    twice with the views that spoil it left out.
+
+    Returns:
+        (fit, residuals of every view, RMS per view (px), mask of the views used,
+        names of the views left out).
+    """
+    use = np.ones(len(obj), bool)
+    outliers: list[str] = []
+    for _ in range(2):
+        idx = np.flatnonzero(use)
+        fit = least_squares(_residuals, x0, x_scale="jac",
+                            args=(d0, e1, e2, [obj[i] for i in idx], [img[i] for i in idx], ang[idx], camera))
+        if not fit.success and fit.status <= 0:
+            raise CalibrationError(None, f"turntable calibration: the fit failed ({fit.message})")
+        res = _residuals(fit.x, d0, e1, e2, obj, img, ang, camera)
+        sizes = np.cumsum([0] + [o.shape[0] for o in obj])
+        per = np.array([math.sqrt(np.mean(res[2 * sizes[k]:2 * sizes[k + 1]] ** 2)) for k in range(len(obj))])
+        lim = max(settings.outlier_factor * float(np.median(per[use])), 0.5)
+        bad = use & (per > lim)
+        if not bad.any() or use.sum() - bad.sum() < settings.min_views:
+            break
+        outliers += [names[k] for k in np.flatnonzero(bad)]
+        log.warning("turntable: view(s) %s spoil the fit (RMS %s px > %.2f px), left out",
+                    ", ".join(names[k] for k in np.flatnonzero(bad)),
+                    ", ".join(f"{per[k]:.2f}" for k in np.flatnonzero(bad)), lim)
+        use &= ~bad
+        x0 = fit.x
+    return fit, res, per, use, outliers
+
+
 def calibrate_turntable(
     views: Sequence[BoardView],
     angles_deg: Sequence[float],
@@ -299,29 +362,7 @@ def calibrate_turntable(
     prior = np.asarray(settings.prior_axis, float)
     prior /= np.linalg.norm(prior)
     if board.charuco is None:
-        # A chessboard's corner order is known only up to a half turn of the board.
-        W, H = (board.cols - 1) * board.square, (board.rows - 1) * board.square
-        F = np.diag([-1.0, -1.0, 1.0])
-        f = np.array([W, H, 0.0])
-        n = board.n_corners
-        # Which sense the table turns about the prior axis: the one that both orders fit best.
-        best = None
-        for sense in (1.0, -1.0):
-            cost, flips = 0.0, []
-            for k in range(1, len(found)):
-                want = _axis_rotation(sense * prior, ang[k] - ang[0])
-                as_is = _rotation_angle(Rs[k] @ Rs[0].T @ want.T)
-                flipped = _rotation_angle(Rs[k] @ F @ Rs[0].T @ want.T)
-                cost += min(as_is, flipped)
-                flips.append(flipped < as_is)
-            if best is None or cost < best[0] - 1e-6:
-                best = (cost, flips)
-        for k, flip in zip(range(1, len(found)), best[1]):
-            if flip:
-                ts[k] = Rs[k] @ f + ts[k]
-                Rs[k] = Rs[k] @ F
-                obj[k] = pts[n - 1 - views[found[k]].ids]
-                log.debug("%s: corner order turned by 180 deg", views[found[k]].name)
+        _undo_half_turns(Rs, ts, obj, [views[i] for i in found], ang, prior, board, pts)
 
     d0, p0 = _initial_axis(Rs, ts, ang, prior)
     # The board at table angle 0: view 0's board turned back by its angle.
@@ -332,27 +373,7 @@ def calibrate_turntable(
     x0 = np.concatenate([cv2.Rodrigues(Rb0)[0].ravel(), tb0, [0.0, 0.0], [np.dot(p0, e1), np.dot(p0, e2)]])
 
     names = [views[i].name for i in found]
-    use = np.ones(len(found), bool)
-    outliers: list[str] = []
-    for _ in range(2):
-        idx = np.flatnonzero(use)
-        fit = least_squares(_residuals, x0, x_scale="jac",
-                            args=(d0, e1, e2, [obj[i] for i in idx], [img[i] for i in idx], ang[idx], camera))
-        if not fit.success and fit.status <= 0:
-            raise CalibrationError(None, f"turntable calibration: the fit failed ({fit.message})")
-        res = _residuals(fit.x, d0, e1, e2, obj, img, ang, camera)
-        sizes = np.cumsum([0] + [o.shape[0] for o in obj])
-        per = np.array([math.sqrt(np.mean(res[2 * sizes[k]:2 * sizes[k + 1]] ** 2)) for k in range(len(found))])
-        lim = max(settings.outlier_factor * float(np.median(per[use])), 0.5)
-        bad = use & (per > lim)
-        if not bad.any() or use.sum() - bad.sum() < settings.min_views:
-            break
-        outliers += [names[k] for k in np.flatnonzero(bad)]
-        log.warning("turntable: view(s) %s spoil the fit (RMS %s px > %.2f px), left out",
-                    ", ".join(names[k] for k in np.flatnonzero(bad)),
-                    ", ".join(f"{per[k]:.2f}" for k in np.flatnonzero(bad)), lim)
-        use &= ~bad
-        x0 = fit.x
+    fit, res, per, use, outliers = _fit_axis(x0, d0, e1, e2, obj, img, ang, camera, names, settings)
 
     Rb, tb, d, p = _unpack(fit.x, d0, e1, e2)
     k_used = np.flatnonzero(use)

@@ -1,4 +1,4 @@
-"""Accuracy against the virtual rig's ground truth (``ringscan evaluate``, DESIGN §8).
+"""Accuracy against the virtual rig's ground truth (``ringscan evaluate``, docs/design.md §16).
 
 For each view the truth surface is the placed object (turned to the view's
 turntable angle) plus the reference plane z = 0. Figures:

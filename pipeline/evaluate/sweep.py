@@ -1,41 +1,13 @@
 """Error and coverage against the number of rings (``ringscan sweep``).
 
-Lee & Krim sample a surface along M ring curves and ask how many rings a surface
-needs. The sweep answers that for a scene on the virtual rig: it simulates and
-reconstructs the scene once per ring count and measures how well the rings
-reconstruct the *surface*, not only how accurate the ring points are.
-
-Runs. Every gray-rings run codes the same annulus rho0 .. ``radius`` (projector
-px) with 2**bits bands, so pitch = (radius - rho0) / 2**bits and the pattern has
-2**bits - 1 rings (band boundaries); ``bits`` 3..8 on the default rig give 7..255
-rings at pitches 64..2 px. An optional phase-rings run at ``dense_pitch`` is the
-limit of a ring through every camera pixel.
-
-Surface from rings. Between rings the surface is interpolated in the camera
-image: a pixel between rings j and j + 1 takes the 3D point interpolated
-between the nearest sample of ring j and the nearest sample of ring j + 1, by
-its image distances to them (:func:`interpolate_surface`). The two bridge the
-pixel only if the pixel lies between them and they lie at most
-``max_gap_bands`` band widths apart in 3D (no bridge over a hole or a missing
-ring). Dense runs give every pixel its own point.
-
-Figures per run (object pixels: the truth sees the object lit more than 0.5 mm
-above the reference plane, inside the annulus that every run codes, from
-rho0 + the largest pitch to radius - the largest pitch):
-
-- ``surface_*``: distance (mm) from each interpolated pixel point to the truth
-  surface (median, 95th percentile, RMS);
-- ``coverage``: the fraction of object pixels that get an interpolated point;
-- ``point_*``: the ring points' own error (median, 95th percentile, fraction
-  over 1 mm), as ``ringscan evaluate`` gives it;
-- ``rings_on_object``: distinct ring labels among the points on the object.
-
-``min_rings``: for each target error e, the fewest rings whose surface p95 is at
-most e with coverage at least ``min_coverage`` (None where no run reaches it).
-
-Outputs in the output folder: ``sweep.json`` (settings, runs, min_rings),
-``sweep.csv`` (one row per run) and ``sweep.png`` (error and coverage against
-the number of rings, drawn with OpenCV).
+For a scene on the virtual rig, simulate and reconstruct once per ring count
+(gray-rings runs over the same annulus with ``bits`` 3..8, and optionally a dense
+phase-rings run), interpolate the surface between rings in the camera image
+(:func:`interpolate_surface`), and measure it against the truth: surface error,
+coverage, the ring points' own error, and ``min_rings``, the fewest rings that reach
+each target error with enough coverage. Writes ``sweep.json``, ``sweep.csv`` and
+``sweep.png``. The runs, the interpolation rule and every figure: docs/dense.md
+("ringscan sweep"); why: docs/design.md §1, §16.
 """
 
 from __future__ import annotations
@@ -86,7 +58,7 @@ class SweepSettings:
     """Outer radius of the coded annulus (projector px), the same for every run:
     pitch = (radius - rho0) / 2**bits. 520 covers a 78 mm radius on the default rig."""
     sector_bits: int = 6
-    """Sector bits of every run (they pick the root, DESIGN §4)."""
+    """Sector bits of every run (they pick the root, docs/design.md §4)."""
     dense: bool = True
     """Add a phase-rings run: the dense limit."""
     dense_pitch: float = 8.0

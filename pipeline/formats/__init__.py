@@ -1,4 +1,4 @@
-"""File formats (DESIGN §6): everything ringscan reads and writes goes through here.
+"""File formats (docs/design.md §11): everything ringscan reads and writes goes through here.
 
 A leaf package: it imports nothing else of ringscan, so the hardware layer, the
 pipeline and the tools all read and write scan folders, rig files, patterns,

@@ -1,4 +1,4 @@
-"""Pattern codecs (DESIGN §5): parameters, frame lists and the projector frames.
+"""Pattern codecs (docs/design.md §7): parameters, frame lists and the projector frames.
 
 All patterns live on the projector pixel grid (pixel centres at integers). Rings
 are circles of radius rho (projector pixels) around the pattern centre c. Every

@@ -1,4 +1,4 @@
-"""PLY point clouds through plyfile (DESIGN §6 "Outputs").
+"""PLY point clouds through plyfile (docs/design.md §11 "Outputs").
 
 ringscan writes binary little-endian PLY (x, y, z, then per-point properties such
 as ring, rho, view, confidence); it reads any PLY that plyfile reads: ASCII or

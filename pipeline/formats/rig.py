@@ -1,4 +1,4 @@
-"""The rig (calibration) file: camera, light, working volume and turntable (DESIGN §6).
+"""The rig (calibration) file: camera, light, working volume and turntable (docs/design.md §11).
 
 A rig file is JSON::
 
@@ -12,7 +12,7 @@ A rig file is JSON::
      "volume": {"z_min": .., "z_max": .., "r_max": ..},
      "turntable": {"axis_point": [3], "axis_dir": [3]}}
 
-Frames (DESIGN §2): world W has its origin where the light axis meets the reference
+Frames (docs/design.md §2): world W has its origin where the light axis meets the reference
 plane, z toward the light. The camera follows OpenCV: ``X_c = R X_w + t``. The light
 frame L is ``X_L = R_L X_w + t_L``.
 """
@@ -360,7 +360,7 @@ def load_rig(path: str | os.PathLike) -> Rig:
 
 
 def rig_to_dict(rig: Rig) -> dict:
-    """The JSON form of a rig (DESIGN §6)."""
+    """The JSON form of a rig (docs/design.md §11)."""
     c = rig.camera
     cam = {"width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
            "R": c.R.tolist(), "t": c.t.tolist()}
@@ -447,7 +447,7 @@ def default_rig(
 
 def turntable_transform(turntable: Turntable | None, deg: float) -> np.ndarray:
     """4x4 transform that turns the object by ``deg`` about the turntable axis
-    (right-handed about ``axis_dir`` through ``axis_point``, DESIGN §6): it takes
+    (right-handed about ``axis_dir`` through ``axis_point``, docs/design.md §11): it takes
     object-frame points (angle 0) to their world pose in a view at ``deg``; with
     ``-deg`` it brings a view's points back into the object frame. A rig without a
     turntable accepts only multiples of 360 degrees.

@@ -1,4 +1,4 @@
-"""The scan folder (DESIGN §6): ``scan.json`` plus one image per frame per view.
+"""The scan folder (docs/design.md §11): ``scan.json`` plus one image per frame per view.
 
 ::
 
@@ -40,7 +40,7 @@ class View:
     name: str
     """Folder-safe view name, e.g. ``view_000``."""
     turntable_deg: float
-    """Turntable angle of this view in degrees (DESIGN §6)."""
+    """Turntable angle of this view in degrees (docs/design.md §11)."""
     frames: dict[str, str]
     """Frame name -> path relative to the scan folder (POSIX separators)."""
 

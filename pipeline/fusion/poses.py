@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ringscan.pipeline.formats.settings import check_finite_settings
-from ringscan.pipeline.fusion.turntable import FuseResult, apply_transform, merge_clouds, rotation_deg
+from ringscan.pipeline.fusion.turntable import (FuseResult, apply_transform, merge_clouds, plane_residuals,
+                                               rotation_deg)
 
 log = logging.getLogger(__name__)
 
@@ -253,19 +254,9 @@ def _register_pair(o3d, src: tuple, dst: tuple, s: PoseSettings, name: str):
 
 def _plane_rmse(o3d, src, dst, T: np.ndarray, dist: float) -> float:
     """RMS point-to-plane distance of ``src`` (moved by T) to ``dst`` over pairs within ``dist``."""
-    p = apply_transform(T, np.asarray(src.points))
-    q = np.asarray(dst.points)
-    if len(p) == 0 or len(q) == 0:
-        return float("inf")
-    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q))
-    nns.knn_index()
-    idx, d2 = nns.knn_search(o3d.core.Tensor(p), 1)
-    idx = idx.numpy()[:, 0]
-    inl = np.sqrt(d2.numpy()[:, 0]) < dist
-    if not inl.any():
-        return float("inf")
-    r = np.einsum("ij,ij->i", p[inl] - q[idx[inl]], np.asarray(dst.normals)[idx[inl]])
-    return float(np.sqrt(np.mean(r * r)))
+    res = plane_residuals(o3d, apply_transform(T, np.asarray(src.points)), np.asarray(dst.points),
+                          np.asarray(dst.normals), dist)
+    return float("inf") if res is None else res[1]
 
 
 def _alignment_ok(fit: float, rmse: float, s: PoseSettings) -> str | None:
@@ -276,6 +267,118 @@ def _alignment_ok(fit: float, rmse: float, s: PoseSettings) -> str | None:
         return (f"failed to align to the reference pose: point-to-plane RMSE {rmse:.3f} mm > max_rmse_mm "
                 f"{s.max_rmse_mm}")
     return None
+
+
+def _prepare_pose(o3d, cloud, name: str, s: PoseSettings, *, check_points: bool) -> tuple:
+    """A pose's registration inputs: (downsampled copy with normals for the global
+    search, its FPFH features, downsampled copy for ICP)."""
+    if check_points and len(cloud.points) < s.min_points:
+        raise AlignmentError(name, f"too few points to align ({len(cloud.points)} < min_points {s.min_points})")
+    g = _oriented_copy(o3d, cloud, s.global_voxel_mm, s.global_normal_radius_mm)
+    f = o3d.pipelines.registration.compute_fpfh_feature(
+        g, o3d.geometry.KDTreeSearchParamHybrid(radius=s.feature_radius_mm, max_nn=s.feature_max_nn))
+    return g, f, _oriented_copy(o3d, cloud, s.icp_voxel_mm, None)
+
+
+def _register_pairs(o3d, prepared: list, names: list[str], s: PoseSettings, progress: bool) -> tuple[list, dict]:
+    """Register every further pose to the reference, and (pose graph) every pair of
+    further poses too: a pose that shares little surface with the reference (upside
+    down under a light along the axis) is placed via another.
+
+    Returns:
+        (edges, failures): edges ``(i, j, T, information, RANSAC fitness)`` of the pairs
+        that pass the checks (T maps pose i onto pose j); per pose, why its first
+        failed pair failed.
+    """
+    from tqdm import tqdm
+
+    n = len(prepared)
+    pairs = [(i, 0) for i in range(1, n)]
+    if s.pose_graph and n >= 3:
+        pairs += [(j, i) for i in range(1, n) for j in range(i + 1, n)]
+    edges, failures = [], {}
+    for i, j in tqdm(pairs, desc="aligning poses", unit="pair", disable=not progress):
+        fine, gfit, info = _register_pair(o3d, prepared[i], prepared[j], s, names[i])
+        T = np.asarray(fine.transformation).copy()
+        prmse = _plane_rmse(o3d, prepared[i][2], prepared[j][2], T, s.icp_fine_mm)
+        log.info("pose %s -> %s: RANSAC fitness %.3f, ICP fitness %.3f, inlier rmse %.4f mm, point-to-plane "
+                 "%.4f mm", names[i], names[j], gfit, fine.fitness, fine.inlier_rmse, prmse)
+        bad = _alignment_ok(float(fine.fitness), prmse, s)
+        if bad:
+            failures.setdefault(i, bad.replace("the reference pose", repr(names[j])))
+            failures.setdefault(j, bad.replace("the reference pose", repr(names[i])))
+            continue
+        edges.append((i, j, T, info, float(gfit)))
+    return edges, failures
+
+
+def _place_poses(edges: list, failures: dict, names: list[str]) -> tuple[list, dict, list]:
+    """Place every pose by a spanning tree of the good pairs, breadth first from the
+    reference; returns (transforms to the reference frame, parent of each pose, the
+    RANSAC fitness of the pair that placed it). A pose the tree does not reach is an
+    :class:`AlignmentError`."""
+    n = len(names)
+    transforms: list = [np.eye(4)] + [None] * (n - 1)
+    parent = {0: 0}
+    gfits = [1.0] * n
+    frontier = [0]
+    while frontier:
+        k = frontier.pop(0)
+        for i, j, T, _, gfit in edges:
+            if j == k and i not in parent:        # T: i -> j
+                transforms[i], parent[i], gfits[i] = transforms[j] @ T, j, gfit
+                frontier.append(i)
+            elif i == k and j not in parent:
+                transforms[j], parent[j], gfits[j] = transforms[i] @ np.linalg.inv(T), i, gfit
+                frontier.append(j)
+    for i in range(1, n):
+        if i not in parent:
+            why = failures.get(i, "no pair with it passed the checks")
+            raise AlignmentError(names[i], why.replace("failed to align to", "failed to align with")
+                                 + ("" if n == 2 else " (nor with any other pose)"))
+    return transforms, parent, gfits
+
+
+def _optimise_pose_graph(o3d, transforms: list, edges: list, parent: dict, s: PoseSettings) -> tuple[list, object]:
+    """Optimise the poses over every good pair (tree edges certain, the others may be
+    pruned), the reference held fixed; returns (transforms, the optimised graph)."""
+    reg = o3d.pipelines.registration
+    graph = reg.PoseGraph()
+    for T in transforms:
+        graph.nodes.append(reg.PoseGraphNode(np.asarray(T)))
+    for i, j, T, info, _ in edges:
+        tree = parent.get(i) == j or parent.get(j) == i
+        graph.edges.append(reg.PoseGraphEdge(i, j, T, info, uncertain=not tree))
+    opt = reg.GlobalOptimizationOption(max_correspondence_distance=s.icp_fine_mm, edge_prune_threshold=0.25,
+                                       preference_loop_closure=1.0, reference_node=0)
+    reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                            reg.GlobalOptimizationConvergenceCriteria(), opt)
+    P0_inv = np.linalg.inv(np.asarray(graph.nodes[0].pose))
+    return [P0_inv @ np.asarray(graph.nodes[i].pose) for i in range(len(transforms))], graph
+
+
+def _check_against_others(o3d, prepared: list, transforms: list, names: list[str], s: PoseSettings, *,
+                          optimised: bool) -> list[tuple]:
+    """Check every further pose against all the other poses, merged; returns per pose
+    (fitness, inlier RMSE, point-to-plane RMSE, fitness to the reference)."""
+    reg = o3d.pipelines.registration
+    n = len(prepared)
+    fits: list[tuple] = [(1.0, 0.0, 0.0, 1.0)] * n
+    moved_icp = [o3d.geometry.PointCloud(p[2]).transform(T) for p, T in zip(prepared, transforms)]
+    for i in range(1, n):
+        others = o3d.geometry.PointCloud()
+        for k, c in enumerate(moved_icp):
+            if k != i:
+                others += c
+        ev = reg.evaluate_registration(moved_icp[i], others, s.icp_fine_mm, np.eye(4))
+        prmse = _plane_rmse(o3d, moved_icp[i], others, np.eye(4), s.icp_fine_mm)
+        ev0 = reg.evaluate_registration(moved_icp[i], moved_icp[0], s.icp_fine_mm, np.eye(4))
+        fits[i] = (float(ev.fitness), float(ev.inlier_rmse), prmse, float(ev0.fitness))
+        bad = _alignment_ok(fits[i][0], prmse, s)
+        if bad:
+            raise AlignmentError(names[i], bad.replace("the reference pose", "the other poses")
+                                 + (" after the pose-graph optimisation" if optimised else ""))
+    return fits
 
 
 def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings: PoseSettings = PoseSettings(),
@@ -300,7 +403,6 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
         ValueError: no poses, bad types, empty clouds, bad settings.
     """
     import open3d as o3d
-    from tqdm import tqdm
 
     _check_pose_settings(settings)
     s = settings
@@ -310,89 +412,14 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
     if len(names) != len(poses):
         raise ValueError(f"names: {len(names)} names for {len(poses)} poses")
     items = [_as_pose_cloud(o3d, p, i, names[i]) for i, p in enumerate(poses)]
-    reg = o3d.pipelines.registration
     n = len(items)
-
-    prepared = []
-    for (cloud, _, _), name in zip(items, names):
-        if n > 1 and len(cloud.points) < s.min_points:
-            raise AlignmentError(name, f"too few points to align ({len(cloud.points)} < min_points {s.min_points})")
-        g = _oriented_copy(o3d, cloud, s.global_voxel_mm, s.global_normal_radius_mm)
-        f = reg.compute_fpfh_feature(g, o3d.geometry.KDTreeSearchParamHybrid(radius=s.feature_radius_mm,
-                                                                            max_nn=s.feature_max_nn))
-        prepared.append((g, f, _oriented_copy(o3d, cloud, s.icp_voxel_mm, None)))
-
-    # Register pairs: every further pose to the reference, and (pose graph) every
-    # pair of further poses too: a pose that shares little surface with the
-    # reference (upside down under a light along the axis) is placed via another.
-    pairs = [(i, 0) for i in range(1, n)]
-    if s.pose_graph and n >= 3:
-        pairs += [(j, i) for i in range(1, n) for j in range(i + 1, n)]
-    edges, failures = [], {}
-    for i, j in tqdm(pairs, desc="aligning poses", unit="pair", disable=not progress):
-        fine, gfit, info = _register_pair(o3d, prepared[i], prepared[j], s, names[i])
-        T = np.asarray(fine.transformation).copy()
-        prmse = _plane_rmse(o3d, prepared[i][2], prepared[j][2], T, s.icp_fine_mm)
-        log.info("pose %s -> %s: RANSAC fitness %.3f, ICP fitness %.3f, inlier rmse %.4f mm, point-to-plane "
-                 "%.4f mm", names[i], names[j], gfit, fine.fitness, fine.inlier_rmse, prmse)
-        bad = _alignment_ok(float(fine.fitness), prmse, s)
-        if bad:
-            failures.setdefault(i, bad.replace("the reference pose", repr(names[j])))
-            failures.setdefault(j, bad.replace("the reference pose", repr(names[i])))
-            continue
-        edges.append((i, j, T, info, float(gfit)))
-
-    # Place every pose by a spanning tree of the good pairs, from the reference.
-    transforms: list = [np.eye(4)] + [None] * (n - 1)
-    parent = {0: 0}
-    gfits = [1.0] * n
-    frontier = [0]
-    while frontier:
-        k = frontier.pop(0)
-        for i, j, T, _, gfit in edges:
-            if j == k and i not in parent:        # T: i -> j
-                transforms[i], parent[i], gfits[i] = transforms[j] @ T, j, gfit
-                frontier.append(i)
-            elif i == k and j not in parent:
-                transforms[j], parent[j], gfits[j] = transforms[i] @ np.linalg.inv(T), i, gfit
-                frontier.append(j)
-    for i in range(1, n):
-        if i not in parent:
-            why = failures.get(i, "no pair with it passed the checks")
-            raise AlignmentError(names[i], why.replace("failed to align to", "failed to align with")
-                                 + ("" if n == 2 else " (nor with any other pose)"))
-
+    prepared = [_prepare_pose(o3d, cloud, name, s, check_points=n > 1) for (cloud, _, _), name in zip(items, names)]
+    edges, failures = _register_pairs(o3d, prepared, names, s, progress)
+    transforms, parent, gfits = _place_poses(edges, failures, names)
     graph = None
     if s.pose_graph and len(edges) > n - 1:
-        graph = reg.PoseGraph()
-        for T in transforms:
-            graph.nodes.append(reg.PoseGraphNode(np.asarray(T)))
-        for i, j, T, info, _ in edges:
-            tree = parent.get(i) == j or parent.get(j) == i
-            graph.edges.append(reg.PoseGraphEdge(i, j, T, info, uncertain=not tree))
-        opt = reg.GlobalOptimizationOption(max_correspondence_distance=s.icp_fine_mm, edge_prune_threshold=0.25,
-                                           preference_loop_closure=1.0, reference_node=0)
-        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
-                                reg.GlobalOptimizationConvergenceCriteria(), opt)
-        P0_inv = np.linalg.inv(np.asarray(graph.nodes[0].pose))
-        transforms = [P0_inv @ np.asarray(graph.nodes[i].pose) for i in range(n)]
-
-    # Final check of every further pose against all the other poses, merged.
-    fits: list[tuple] = [(1.0, 0.0, 0.0, 1.0)] * n  # (fitness, inlier rmse, plane rmse, fitness to the reference)
-    moved_icp = [o3d.geometry.PointCloud(p[2]).transform(T) for p, T in zip(prepared, transforms)]
-    for i in range(1, n):
-        others = o3d.geometry.PointCloud()
-        for k, c in enumerate(moved_icp):
-            if k != i:
-                others += c
-        ev = reg.evaluate_registration(moved_icp[i], others, s.icp_fine_mm, np.eye(4))
-        prmse = _plane_rmse(o3d, moved_icp[i], others, np.eye(4), s.icp_fine_mm)
-        ev0 = reg.evaluate_registration(moved_icp[i], moved_icp[0], s.icp_fine_mm, np.eye(4))
-        fits[i] = (float(ev.fitness), float(ev.inlier_rmse), prmse, float(ev0.fitness))
-        bad = _alignment_ok(fits[i][0], prmse, s)
-        if bad:
-            raise AlignmentError(names[i], bad.replace("the reference pose", "the other poses")
-                                 + (" after the pose-graph optimisation" if graph is not None else ""))
+        transforms, graph = _optimise_pose_graph(o3d, transforms, edges, parent, s)
+    fits = _check_against_others(o3d, prepared, transforms, names, s, optimised=graph is not None)
 
     regs, moved, confs = [], [], []
     for i, ((cloud, conf, _), name) in enumerate(zip(items, names)):

@@ -1,34 +1,13 @@
 """Multi-view fusion: turntable views -> one cleaned point cloud in the object frame.
 
-A turntable scan gives one point cloud per view, each in the world frame (DESIGN §2)
-with the object turned by the view's ``turntable_deg``. Fusion
-
-1. turns every view back by ``-turntable_deg`` about the rig's turntable axis
-   (DESIGN §6), which puts all views in the object frame (the pose of angle 0);
-2. cleans each view: non-finite and low-confidence points, a ground clip
-   (the reference plane z = 0; on by default), statistical and radius outlier removal;
-3. estimates normals (or rotates the ones the view carries) and orients them
-   toward the view's camera centre, which turns with the view too;
-4. refines the poses with Open3D: point-to-plane ICP between each view and its
-   next neighbours in turntable order (coarse then fine), a loop-closure edge from
-   the last view back to the first, and multiway pose-graph optimisation with the
-   view nearest angle 0 held fixed (that view's pose does not depend on the axis);
-5. reports each view's residual against all other views before and after the
-   refinement, and the correction applied (mm, degrees);
-6. merges the views and voxel-downsamples them into the fused cloud.
-
-Several poses ("flip and rescan", :func:`fuse_poses`, :func:`fuse_recons`): each
-pose's scan is fused as above into its own object frame; every further pose is
-registered to the first (and, with three or more, to each other) with FPFH features
-+ RANSAC on voxel-downsampled copies, then point-to-plane ICP (coarse, fine);
-poses are placed along a spanning tree of the pairs that pass the fitness and
-point-to-plane RMSE checks, a pose graph is optimised when there are more pairs,
-every pose is checked against the others merged, and the clouds are merged in the
-first pose's frame. A pose that cannot be aligned raises :class:`AlignmentError`
-naming it.
-
-Everything returned is an Open3D geometry or a NumPy array, so a user's script can
-carry on with Open3D directly.
+:func:`fuse_views` turns every view back by its turntable angle about the rig's axis,
+cleans it (non-finite and low-confidence points, ground clip, outliers), orients its
+normals toward the view's camera, refines the poses (point-to-plane ICP between
+neighbouring views, loop closure, pose graph with the view nearest angle 0 fixed),
+reports each view's residual and correction, and merges and downsamples the views.
+Several poses of one object are aligned in :mod:`.poses`. Why: docs/design.md §17; the
+steps, settings and figures: docs/fusion.md. Everything returned is an Open3D geometry
+or a NumPy array, so a user's script can carry on with Open3D directly.
 """
 
 from __future__ import annotations
@@ -64,7 +43,7 @@ class FuseSettings:
     min_confidence: float = 0.0
     """Points whose ``confidence`` is below this are dropped before anything else."""
     ground_clip_mm: float | None = 0.5
-    """Drop points whose world z is below this: the reference plane z = 0 (DESIGN §2),
+    """Drop points whose world z is below this: the reference plane z = 0 (docs/design.md §2),
     on which the object stands, would otherwise fuse into the object as a disc;
     None keeps every point."""
     statistical_neighbors: int = 20
@@ -108,7 +87,7 @@ class FuseSettings:
 
 @dataclass(frozen=True)
 class FusionView:
-    """One view's points in the world frame (DESIGN §2)."""
+    """One view's points in the world frame (docs/design.md §2)."""
 
     name: str
     """View name (e.g. ``view_000``)."""
@@ -327,6 +306,24 @@ def _pairs(order: np.ndarray, s: FuseSettings) -> list[tuple[int, int, bool]]:
     return out
 
 
+def plane_residuals(o3d, p: np.ndarray, q: np.ndarray, q_normals: np.ndarray,
+                    dist: float) -> tuple[float, float] | None:
+    """Points ``p`` (N, 3) against the cloud ``q`` (M, 3) with unit normals ``q_normals`` (M, 3):
+    (the fraction of ``p`` whose nearest point of ``q`` lies within ``dist``, the RMS point-to-plane
+    distance of those pairs); None when there is no such pair."""
+    if len(p) == 0 or len(q) == 0:
+        return None
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q))
+    nns.knn_index()
+    idx, d2 = nns.knn_search(o3d.core.Tensor(p), 1)
+    idx = idx.numpy()[:, 0]
+    inl = np.sqrt(d2.numpy()[:, 0]) < dist
+    if not inl.any():
+        return None
+    r = np.einsum("ij,ij->i", p[inl] - q[idx[inl]], q_normals[idx[inl]])
+    return float(inl.mean()), float(np.sqrt(np.mean(r * r)))
+
+
 def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> list[tuple[float, float]]:
     """Per view: (fraction of points within ``dist`` of another view, point-to-plane RMS of those)."""
     moved = [o3d.geometry.PointCloud(d).transform(T) for d, T in zip(downs, transforms)]
@@ -338,17 +335,8 @@ def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> l
             continue
         q_pts = np.concatenate([np.asarray(e.points) for e in others])
         q_nrm = np.concatenate([np.asarray(e.normals) for e in others])
-        p = np.asarray(d.points)
-        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q_pts))
-        nns.knn_index()
-        idx, d2 = nns.knn_search(o3d.core.Tensor(p), 1)
-        idx = idx.numpy()[:, 0]
-        inl = np.sqrt(d2.numpy()[:, 0]) < dist
-        if not inl.any():
-            out.append((0.0, 0.0))
-            continue
-        r = np.einsum("ij,ij->i", p[inl] - q_pts[idx[inl]], q_nrm[idx[inl]])
-        out.append((float(inl.mean()), float(np.sqrt(np.mean(r * r)))))
+        res = plane_residuals(o3d, np.asarray(d.points), q_pts, q_nrm, dist)
+        out.append((0.0, 0.0) if res is None else res)
     return out
 
 

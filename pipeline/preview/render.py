@@ -1,4 +1,5 @@
-"""Pictures: offscreen renders of clouds and meshes, ring overlays and heat maps.
+"""Offscreen renders of point clouds and meshes (colour maps, heat maps and ring
+overlays are in :mod:`.colour`).
 
 - :func:`render_geometries` renders Open3D point clouds and meshes to an RGB image
   with Open3D's ``OffscreenRenderer`` (Filament; on a machine without a GPU it runs
@@ -7,9 +8,8 @@
   so renderer="auto" first probes it once in a child process; when the probe fails
   it falls back to a software point-splat renderer written in NumPy (lower quality,
   same camera) and logs a warning. ``RINGSCAN_RENDERER=open3d|software`` forces one.
-- :func:`ring_overlay` draws decoded ring samples (u, v, ring) over a camera image.
-- :func:`heatmap`, :func:`depth_heatmap`, :func:`error_heatmap` colour-map a 2D array
-  (NaN = no data) and add a colour bar with its scale.
+- :func:`render_to_png` writes such a render to a PNG; :func:`read_geometry` reads a
+  cloud or mesh file for it.
 
 Both renderers use one pinhole camera (:func:`view_camera`, OpenCV convention), so
 a point ``X`` of a geometry lands at pixel ``K (R X + t)`` of the render.

@@ -1,33 +1,13 @@
 """When is a reconstruction done? The one place that decides (``reconstruct --resume``,
 ``ringscan batch`` and live reconstruction during a capture all ask here).
 
-A view's result counts as done only when
-
-1. it was made from the same inputs with the same settings: the report records,
-   per view, a content hash (:func:`hash_inputs`) of
-
-   - the rig as parsed (camera, light, volume, turntable; whether scan.json holds
-     it or names a rig file), the patterns block, and the resolved
-     reconstruction settings (all but ``threads``, which does not change a
-     result),
-   - the view's entry in scan.json (name, index, turntable angle, frame paths),
-   - each of its frame files' size and modification time (nanoseconds);
-
-2. its files check out: ``<view>.ply`` exists, is a whole PLY file (not empty,
-   not shorter than its header says) and holds as many points as the report says.
-
-Otherwise the view is redone, and :class:`DoneCheck` says why. A scan is done
-when every view asked for is done.
-
-Why frame sizes and times and not a hash of their bytes: deciding must stay cheap
-for a batch of thousands of scans on a network disk, and it does with one ``stat``
-per frame, where hashing the bytes would read every frame of every scan again just
-to skip it. Every way ringscan (or an ordinary copy, edit or re-capture) changes a
-frame gives it a new modification time; what is missed is a frame replaced by
-another of exactly the same size whose time was set back to the old one (``cp -p``
-or ``rsync -a`` of a different file under the same name). A copy of a scan folder
-that does not keep times (``cp -r``) is redone: the safe direction. To force a
-redo, run without ``--resume`` or delete ``report.json``.
+A view's result is done when it was made from the same inputs with the same settings
+(a per-view content hash, :func:`hash_inputs`: the parsed rig, the patterns, the
+resolved settings but ``threads``, the view's scan.json entry, each frame file's size
+and modification time) and its PLY is whole and holds the points the report says;
+otherwise it is redone and :class:`DoneCheck` says why. A scan is done when every view
+asked for is done. Why sizes and times rather than a hash of the bytes, and what that
+misses: docs/design.md §14.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Per view: read the frames, upload them to the device, decode (per pixel), sample
 the rings to sub-pixel precision, triangulate every sample against its ring's
-quadric (DESIGN §3, §4), keep the valid points in sample order and write
+quadric (docs/design.md §3, §4), keep the valid points in sample order and write
 
 - ``<out>/<view>.ply``: binary PLY in the world frame (mm): x, y, z, ring (band
   boundary or ring index), rho (projector px), view, confidence, u, v (camera px);
@@ -147,8 +147,10 @@ def reconstruct_scan(
             prefetch(k)
             frames, read_s = pending.pop(view.name).result()
             prefetch(k + 1)
-            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
-                             hashes.views[view.name])
+            report["views"].append(_reconstruct_one(scan, view, index=index, frames=frames, read_s=read_s,
+                                                    out_dir=out, settings=settings, device=device,
+                                                    inputs_hash=hashes.views[view.name]))
+            atomic_write_json(report_path, report)
     finally:
         for f in pending.values():
             f.cancel()
@@ -174,23 +176,23 @@ def scan_inputs(scan: Scan) -> list[Path]:
     return files
 
 
-def _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
-                     inputs_hash) -> None:
-    """Reconstruct one view from its frames; write its PLY and the updated report."""
+def _reconstruct_one(scan: Scan, view: View, *, index: int, frames: np.ndarray, read_s: float, out_dir: Path,
+                     settings: ReconstructSettings, device: str, inputs_hash: str) -> dict:
+    """Reconstruct one view from its frames and write its PLY into ``out_dir``; returns the
+    view's report entry."""
     cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
     cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
     ply = f"{view.name}.ply"
     t = time.perf_counter()
-    write_view_ply(out / ply, cloud, index)
+    write_view_ply(out_dir / ply, cloud, index)
     cloud.stats["times_s"]["write"] = time.perf_counter() - t
     entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
              "camera_center": scan.rig.camera.center.tolist(), "inputs_hash": inputs_hash, **cloud.stats}
-    report["views"].append(entry)
     log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
              ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
     if "no_points" in cloud.stats:
         log.warning("%s of %s: no points: %s", view.name, scan.folder, cloud.stats["no_points"])
-    atomic_write_json(report_path, report)
+    return entry
 
 
 def _totals(views: list[dict]) -> dict:

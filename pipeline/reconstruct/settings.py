@@ -24,7 +24,7 @@ class ReconstructSettings:
     sample: SampleSettings = field(default_factory=SampleSettings)
     """Sub-pixel ring sampling thresholds."""
     triangulate: TriangulateSettings = field(default_factory=TriangulateSettings)
-    """Root choice (DESIGN §4)."""
+    """Root choice (docs/design.md §4)."""
     filter: NeighbourFilterSettings = field(default_factory=NeighbourFilterSettings)
     """Image-space neighbour filter (mixed pixels, isolated outliers)."""
     phase: PhaseSettings = field(default_factory=PhaseSettings)

@@ -1,48 +1,11 @@
-"""Scenes for the virtual rig: procedural objects and loaded mesh files (DESIGN §8).
+"""Scenes for the virtual rig: procedural objects (plane, sphere, cube, chessboard,
+terrain), loaded mesh files, and resting poses for "flip and rescan".
 
-Every scene is a triangle mesh in millimetres, in the world frame of DESIGN §2: it
-stands on the reference plane z = 0 (its lowest point at z = 0), centred on the light
-axis (the centre of its bounding box in x and y at x = y = 0). ``size_mm`` is the
-longest side of its axis-aligned bounding box (before the cube's turn about z).
-
-Procedural scenes:
-
-- ``plane``: no object, only the reference plane (which the renderer always adds).
-- ``sphere``: a full sphere of diameter ``size_mm`` resting on the plane at the
-  origin (radius 40 mm by default), an icosphere fine enough that its facets stay
-  within ~2 micrometres of the true sphere.
-- ``cube``: a closed cube of edge ``size_mm`` turned 30 degrees about z, so no
-  face is aligned with the camera or the light axes.
-- ``chessboard``: a printed chessboard of 9 x 6 inner corners on a 2 mm plate lying
-  on the plane (:func:`make_chessboard`; ``size_mm`` is the plate's longer side, the
-  squares ``size_mm / 12``, a one-square white margin all round): the board for
-  ``ringscan calibrate turntable`` on the virtual rig. Its faces carry their own
-  albedo (black squares 0.04, white squares and margin 0.8).
-- ``terrain``: a smooth heightfield (a sum of Gaussian hills and a gentle ripple)
-  over a ``size_mm`` square, heights 0 .. 0.3125 * ``size_mm`` (25 mm by default),
-  faded to z = 0 all round its border so that it meets the plane, and closed
-  underneath by a bottom at z = 0.
-
-A path to an OBJ, PLY, STL (or any mesh Open3D reads) loads that mesh: duplicate
-vertices are merged (OBJ files split them at texture seams), degenerate and
-duplicate triangles dropped; it is turned so its up axis becomes +z (``up="y"``:
-Y-up models, the common convention of OBJ/PLY files, turned +90 degrees about x so
-that model +y -> world +z and model +z -> world -y, toward the default rig's camera;
-``up="z"``: kept as is; ``up="auto"``: z for STL, y otherwise), scaled to
-``size_mm`` on its longest side, set down on the plane and centred on the axis.
-
-Poses (:func:`pose_scene`, "flip and rescan"): a placed scene can be turned into
-another resting pose before it is scanned. The pose turns the object about the
-centre of its bounding box, then sets it down again on z = 0 and centres it on the
-axis (no rescaling). Named poses: ``upright`` (no turn, the default),
-``upside-down`` (180 degrees about x), ``side-x`` (+90 degrees about x: the object's
-+y side faces up), ``side-y`` (+90 degrees about y: its -x side faces up),
-``tetra-1``, ``tetra-2``, ``tetra-3`` (with ``upright``, the four poses that turn up
-the object's directions of a regular tetrahedron: z, then 109.47 degrees about x
-after 0, 120, 240 degrees about z; every surface normal is within 70.5 degrees of
-one of them, so a light along z lights every normal in some pose); or a
-general spec ``AXIS:DEG[,AXIS:DEG...]`` with AXIS one of x, y, z (turns applied
-left to right about the world axes), e.g. ``x:-90`` or ``x:135,z:20``.
+Every scene is a triangle mesh in millimetres in the world frame (docs/design.md §2,
+§16): it stands on the reference plane z = 0 and is centred on the light axis;
+``size_mm`` is the longest side of its axis-aligned bounding box (before the cube's
+turn about z). The scenes, the mesh loading (``up`` axis, scaling) and the named
+poses are described in docs/virtual_rig.md ("Scenes") and docs/fusion.md (``--pose``).
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
-"""The virtual rig: renders scans of procedural or loaded meshes, with ground truth (DESIGN §8).
+"""The virtual rig: renders scans of procedural or loaded meshes, with ground truth (docs/design.md §16).
 
-:class:`VirtualRig` ray-traces a scene (``pipeline.scenes``) standing on the
+:class:`VirtualRig` ray-traces a scene (``pipeline.simulate.scenes``) standing on the
 reference plane z = 0 as the rig's camera sees it under any projector frame
 (``kernels.raytrace``). :func:`simulate_scan` renders every frame of a pattern set
-for one or more turntable views and writes a scan folder (DESIGN §6) plus its
+for one or more turntable views and writes a scan folder (docs/design.md §11) plus its
 ground truth:
 
 - ``truth/object.ply``: the placed mesh at turntable angle 0 (object frame = world
@@ -208,7 +208,7 @@ class VirtualRig:
         return self._deg
 
     def set_turntable(self, deg: float) -> None:
-        """Turn the object to ``deg`` about the rig's turntable axis (DESIGN §6).
+        """Turn the object to ``deg`` about the rig's turntable axis (docs/design.md §11).
 
         The geometry is traced again on the next :meth:`render` or :meth:`truth`.
         """

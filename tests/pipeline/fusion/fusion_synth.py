@@ -2,7 +2,7 @@
 
 A closed, lumpy, asymmetric test object (a sphere with smooth radial bumps) stands
 in the object frame; for every turntable angle theta it is turned by theta about
-the turntable axis (DESIGN §6) and ray-cast from the rig's camera through a pixel
+the turntable axis (docs/design.md §11) and ray-cast from the rig's camera through a pixel
 grid, as a scanner would see it. Points get Gaussian noise along the camera ray.
 Fusing the views with the right axis must give the object back.
 """

@@ -21,7 +21,8 @@ from ringscan.pipeline.fusion.poses import PoseSettings
 from ringscan.pipeline.fusion.poses import _check_pose_settings as check_pose_settings
 from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 from ringscan.pipeline.fusion.turntable import FuseSettings, check_fuse_settings, fuse_views
-from ringscan.pipeline.fusion.workflow import fuse_and_mesh, mesh_cloud, mesh_fused
+from ringscan.pipeline.fusion.meshing import mesh_cloud, mesh_fused
+from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 
 from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
 

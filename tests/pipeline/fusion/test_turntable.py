@@ -10,8 +10,8 @@ import open3d as o3d
 import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.fusion.turntable import FuseSettings, FusionView, fuse_views
-from ringscan.pipeline.fusion.workflow import fuse_recon, load_recon, recon_folder
+from ringscan.pipeline.fusion.recon import fuse_recon, load_recon, recon_folder
+from ringscan.pipeline.fusion.turntable import FuseSettings, FusionView, fuse_views, plane_residuals
 
 from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon, wrong_axis
 
@@ -186,3 +186,19 @@ def test_view_cloud_dataclass_is_frozen(scan):
     assert isinstance(v, FusionView)
     with pytest.raises(dataclasses.FrozenInstanceError):
         v.name = "x"
+
+
+def test_plane_residuals_of_points_off_a_plane():
+    # A grid on z = 0 (normals +z) and points 0.2 mm above half of it, 5 mm above the rest:
+    # the near half pairs within 1 mm, at a point-to-plane distance of exactly 0.2 mm.
+    g = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0)), axis=-1).reshape(-1, 2)
+    q = np.column_stack([g, np.zeros(len(g))])
+    normals = np.tile([0.0, 0.0, 1.0], (len(q), 1))
+    p = q[::2] + [0.3, 0.0, 0.2]
+    p[len(p) // 2:, 2] = 5.0
+    frac, rms = plane_residuals(o3d, p, q, normals, 1.0)
+    assert frac == pytest.approx(0.5)
+    assert rms == pytest.approx(0.2, abs=1e-12)
+    assert plane_residuals(o3d, p + [0.0, 0.0, 10.0], q, normals, 1.0) is None
+    assert plane_residuals(o3d, p[:0], q, normals, 1.0) is None
+
