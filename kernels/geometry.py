@@ -1,4 +1,4 @@
-"""Camera and light geometry shared by every kernel (DESIGN §2, §3).
+"""Camera and light geometry shared by every kernel (docs/design.md §2, §3).
 
 Warp structs hold a camera (OpenCV pinhole with k1, k2, p1, p2, k3) and a light
 (parallel or perspective); ``@wp.func`` helpers project, distort, undistort and cast
@@ -274,7 +274,7 @@ def direction_to_light(light: LightModel, X: wp.vec3):
     return wp.normalize(light.cam.center - X)
 
 
-# ----------------------------------------------------------------------------- the ring quadric (DESIGN §3, §4)
+# --------------------------------------------------------------------------- the ring quadric (docs/design.md §3, §4)
 
 
 @wp.func
@@ -448,7 +448,7 @@ def ray_ring_roots(light: LightModel, C: wp.vec3, d: wp.vec3, rho: float, center
 @wp.func
 def root_usable(light: LightModel, X: wp.vec3, t: float, vol: Volume):
     """A root is kept only in front of the camera (t > 0), inside the working
-    volume and, for a perspective light, in front of the projector (DESIGN §4)."""
+    volume and, for a perspective light, in front of the projector (docs/design.md §4)."""
     ok = t > 0.0 and in_volume(X, vol)
     if light.model != LIGHT_PARALLEL:
         ok = ok and (light.cam.R * X + light.cam.t)[2] > 0.0
@@ -527,7 +527,7 @@ def make_camera(K, dist, R, t) -> CameraModel:
 
 
 def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
-    """Build a parallel :class:`LightModel` (DESIGN §3)."""
+    """Build a parallel :class:`LightModel` (docs/design.md §3)."""
     li = LightModel()
     li.model = 0
     li.R = wp.mat33(*np.asarray(R, float).ravel().tolist())
@@ -539,7 +539,7 @@ def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
 
 
 def make_perspective_light(K, dist, R, t) -> LightModel:
-    """Build a perspective (projector) :class:`LightModel` (DESIGN §3)."""
+    """Build a perspective (projector) :class:`LightModel` (docs/design.md §3)."""
     li = LightModel()
     li.model = 1
     li.R = wp.mat33(*np.eye(3).ravel().tolist())

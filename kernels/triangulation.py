@@ -1,4 +1,4 @@
-"""Triangulation, per point: a camera ray meets the quadric of its ring (DESIGN §3, §4).
+"""Triangulation, per point: a camera ray meets the quadric of its ring (docs/design.md §3, §4).
 
 Both light models give a quadric in the undistorted case:
 
@@ -11,7 +11,7 @@ Both light models give a quadric in the undistorted case:
   |pixel(X(t)) - c| - rho, starting from the undistorted cone.
 
 Along the ray X(t) = C + t d both reduce to a (t^2) + b t + c = 0, solved in
-float64 with the stable form. Root choice follows DESIGN §4: a root is kept only
+float64 with the stable form. Root choice follows docs/design.md §4: a root is kept only
 in front of the camera and inside the working volume; where both are inside, the
 decoded angular sector picks the root whose polar angle (around the pattern
 centre, on the projector grid) lies in that sector; without a sector code the

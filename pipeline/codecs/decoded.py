@@ -8,7 +8,7 @@ Each decoded pixel becomes one sample that keeps both projector coordinates: rho
 angle phi = atan2(v_p - c_v, u_p - c_u), each with a predicted standard deviation,
 so the triangulation fits the full projector pixel (the camera ray against the
 projector ray, through the projector's lens); with ``--constraint rings`` it meets
-the cone of its own rho and picks the root by the angle's sector (DESIGN §3, §4).
+the cone of its own rho and picks the root by the angle's sector (docs/design.md §3, §4).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Drawing helpers of the projector frames (DESIGN §5): 8-bit images with antialiased
+"""Drawing helpers of the projector frames (docs/design.md §7): 8-bit images with antialiased
 edges, each pixel's value the lit fraction of its area (rings, bands, sectors). Each
 codec draws its own frames with them (its ``render_frame``).
 

@@ -1,4 +1,4 @@
-"""The ``gray-rings`` codec (DESIGN §5): decode the band Gray code per pixel, then
+"""The ``gray-rings`` codec (docs/design.md §7): decode the band Gray code per pixel, then
 sample every band boundary to sub-pixel precision where the frame that flips there
 crosses its inverse (``kernels.ring_labels``, ``kernels.ring_sampling``)."""
 

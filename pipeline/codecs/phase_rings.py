@@ -1,4 +1,4 @@
-"""Dense reconstruction with phase-rings: a ring through every pixel (DESIGN §5).
+"""Dense reconstruction with phase-rings: a ring through every pixel (docs/design.md §7).
 
 :func:`extract_phase_rings` is the ``phase-rings`` codec's decode + sampling stage
 for :func:`ringscan.pipeline.reconstruct.reconstruct_scan`: it decodes the band

@@ -1,5 +1,5 @@
 """The paper's single-shot ``rings`` codec: find the ring lines, label each with its
-ring index, hand the samples to triangulation (DESIGN §1, §4, §5).
+ring index, hand the samples to triangulation (docs/design.md §1, §4, §10).
 
 One frame shows ``count`` identical bright rings. Every line centre is found to
 sub-pixel precision (``kernels.ring_lines``); the centres are chained into
