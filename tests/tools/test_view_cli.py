@@ -98,3 +98,22 @@ def test_view_leaves_out_infinite_points(tmp_path, caplog, capsys):
     assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 2
     assert f"{path}: none of its 3000 points has finite coordinates" in capsys.readouterr().err
     assert not (tmp_path / "w.png").exists()
+
+
+def test_view_conditioning_map_of_a_rig(tmp_path, capsys):
+    """``view --conditioning RIG``: the three panels, and the summary says that
+    both coordinates place every lit pixel where rings alone leave gaps."""
+    import json
+
+    from ringscan.pipeline.formats.rig import default_rig, save_rig
+
+    rig_path = tmp_path / "rig.json"
+    save_rig(rig_path, default_rig(light_model="perspective"))
+    out = tmp_path / "cond.png"
+    assert main(["view", "--conditioning", str(rig_path), "--out", str(out), "--step", "16", "--device", "cpu"]) == 0
+    summary = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert summary["both"]["placed"] > 0.999 and summary["rings"]["placed"] < summary["both"]["placed"]
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape[1] > 3 * img.shape[0] / 2  # three panels side by side
+    assert main(["view", "--out", str(tmp_path / "x.png")]) == 2
+    assert "--conditioning" in capsys.readouterr().err
