@@ -88,16 +88,16 @@ def repeated_frames(frames: np.ndarray, levels) -> list[tuple[int, int]]:
     return out
 
 
-def response_problems(curve: dict, gamma: float, *, min_rise: float = 0.01, max_misfit: float = 0.05) -> list[str]:
+def response_problems(curve: dict, gamma: float, *, min_rise: float = 0.0, max_misfit: float = 0.05) -> list[str]:
     """What a fitted response cannot stand behind: a curve that does not rise with the
-    level by at least ``min_rise`` between neighbouring levels (frames in the wrong
+    level by more than ``min_rise`` between neighbouring levels (frames in the wrong
     order, repeated, or not of the ramp), or one that leaves the power law by more
     than ``max_misfit`` (of full light) at some level."""
     out = []
     xs = sorted(curve)
     ys = [0.0] + [curve[x] for x in xs] + [1.0]
     ls = [0.0] + xs + [1.0]
-    flat = [f"{255 * ls[k]:g} -> {255 * ls[k + 1]:g}" for k in range(len(ys) - 1) if not ys[k + 1] - ys[k] >= min_rise]
+    flat = [f"{255 * ls[k]:g} -> {255 * ls[k + 1]:g}" for k in range(len(ys) - 1) if not ys[k + 1] - ys[k] > min_rise]
     if flat:
         out.append(f"the response does not rise between levels {', '.join(flat)} (responses "
                    f"{', '.join(f'{y:.3f}' for y in ys)}): frames repeated, out of order, or not of the ramp")
