@@ -100,7 +100,7 @@ def test_no_board_is_a_clear_error(procam):
 
 
 def test_too_few_views_is_a_clear_error(corners):
-    with pytest.raises(CalibrationError, match="only 2 usable view"):
+    with pytest.raises(CalibrationError, match="only 2 distinct board pose"):
         calibrate_camera([c.camera_view for c in corners[:2]], board=BOARD, size=(1280, 1024))
     with pytest.raises(CalibrationError, match="projector calibration: only 2 capture"):
         bad = corners[2].__class__(corners[2].name, corners[2].camera_view, BoardView("x", False, "only 3 corners", None, None))
