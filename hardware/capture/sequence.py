@@ -204,6 +204,10 @@ def read_capture_state(folder: str | os.PathLike) -> dict:
     mv = table.get("moving_to")
     if mv is not None and (isinstance(mv, bool) or not isinstance(mv, (int, float))):
         raise FormatError(path, f"table.moving_to: expected a number or null, got {mv!r}")
+    reaches = table.get("reaches")
+    if reaches is not None and (isinstance(reaches, bool) or not isinstance(reaches, (int, float))
+                                or not math.isfinite(reaches)):
+        raise FormatError(path, f"table.reaches: expected a finite number or null, got {reaches!r}")
     if not isinstance(table.get("known", True), bool):
         raise FormatError(path, f"table.known: expected true or false, got {table.get('known')!r}")
     if not isinstance(d.get("runs", []), list):
@@ -226,9 +230,12 @@ def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> fl
         return float(table_at)
     mv = state["table"].get("moving_to")
     if mv is not None:
+        # the hint is the angle the motor's whole steps reach, not the one asked for
+        end = state["table"].get("reaches")
+        end = mv if end is None else end
         raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable was moving from {state['table']['deg']:g} "
                            f"to {mv:g} deg when the capture stopped, so its angle is unknown; check where it "
-                           f"stands and resume with --table-at DEG (e.g. --table-at {mv:g} if the move finished)",
+                           f"stands and resume with --table-at DEG (e.g. --table-at {end:g} if the move finished)",
                            folder=folder)
     if state["table"].get("known", True) is False:
         raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable's angle became unknown when the capture "
@@ -492,7 +499,8 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
                 # a view begun in an earlier run goes on at the angle its frames were taken at
                 target = view.turntable_deg if view is not None else angle
                 if abs(turntable.position_deg - target) > 1e-6:
-                    state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True}
+                    state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True,
+                                      "reaches": turntable.reachable_deg(target)}
                     write_state()
                     _with_retries(f"turning to {target:g} deg", lambda a=target: turntable.move_to(a), settings,
                                   devices)
