@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import cv2
 import numpy as np
 import pytest
 
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import load_rig
+from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig
 from ringscan.tools.cli import main
 from tests.pipeline.calibrate.synthetic import write_capture
 
@@ -115,9 +118,7 @@ def test_camera_one_image_three_times_is_refused(tmp_path, procam, capsys):
 
 
 def test_camera_images_of_another_size_than_the_rig_are_refused_unless_forced(tmp_path, procam, capsys):
-    from ringscan.pipeline.formats.rig import default_rig, save_rig  # a 1280x1024 camera; made 640x512 here
-    import dataclasses
-    r = default_rig()
+    r = default_rig()  # a 1280x1024 camera; made 640x512 here
     save_rig(tmp_path / "rig.json", dataclasses.replace(r, camera=dataclasses.replace(r.camera, width=640, height=512)))
     before = (tmp_path / "rig.json").read_bytes()
     whites = [str(procam / f"capture_{i}" / "graycode_40.png") for i in (1, 2, 3)]
@@ -141,13 +142,13 @@ def test_pose_on_a_procam_rig_moves_the_projector_with_the_camera(tmp_path, proc
     assert main(["calibrate", "pose", str(procam / "capture_1" / "graycode_40.png"), "--square", "75",
                  "--rig", str(rig)]) == 0
     r = load_rig(rig)
-    assert abs(baseline(r) - b0) < 1e-6 and abs(b0 - 673.7) < 0.1  # today: 3578
-    # the camera really moved into the board's frame: the board's corners lie on z = 0
+    assert abs(baseline(r) - b0) < 1e-6 and abs(b0 - 673.7) < 0.1  # before: 3578
     assert "baseline 673.7 kept" in capsys.readouterr().out
+    # the camera really moved into the board's frame: it now looks down at the plane z = 0 from above
+    assert (-r.camera.R.T @ r.camera.t)[2] > 1000
 
 
 def _grey(tmp_path, name, value):
-    import cv2
     rng = np.random.default_rng(int(value))
     albedo = rng.uniform(0.5, 0.9, (64, 80))
     irr = (5 + 200 * albedo * (value / 255) ** 2.2) / 255  # a light of gamma 2.2
@@ -157,7 +158,6 @@ def _grey(tmp_path, name, value):
 
 
 def test_response_refuses_repeated_frames_and_bad_levels(tmp_path, capsys):
-    from ringscan.pipeline.formats.rig import default_rig, save_rig
     save_rig(tmp_path / "rig.json", default_rig())
     before = (tmp_path / "rig.json").read_bytes()
     g = {v: _grey(tmp_path, f"g{v}.png", v) for v in (0, 64, 128, 192, 255)}
