@@ -27,6 +27,7 @@ from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
+from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
 from ringscan.pipeline.calibrate.light import (
     LightSettings,
@@ -42,7 +43,7 @@ from ringscan.pipeline.calibrate.procam import (
     principal_point_inside,
     procam_rig,
 )
-from ringscan.pipeline.calibrate.response import estimate_light_gamma
+from ringscan.pipeline.calibrate.response import estimate_light_gamma, repeated_frames, response_problems
 from ringscan.pipeline.calibrate.turntable import (
     TurntableSettings,
     board_views_of_scan,
@@ -97,6 +98,30 @@ def add_fit_options(p) -> None:
                    help=f"fewest usable views (default {CameraSettings.min_views})")
 
 
+def add_force_option(p) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="write the result even where the calibration finds it cannot stand behind it (what it "
+                        "cannot determine is printed as warnings); without it such a result is refused and "
+                        "nothing is written")
+
+
+def refuse_unless_forced(args, problems: list[str], out) -> None:
+    """One line naming every problem and nothing written, unless --force (then warnings)."""
+    if not problems:
+        return
+    if getattr(args, "force", False):
+        for p in problems:
+            print(f"warning: {p}")
+        print("--force: writing it all the same")
+        return
+    raise CalibrationError(None, f"not writing {out}: {'; '.join(problems)} (--force writes it anyway)")
+
+
+def print_duplicates(dups: list[str]) -> None:
+    for d in dups:
+        print(f"  {d}: the same board pose as the earlier view, left out")
+
+
 def board_from_args(args) -> Board:
     cols, rows = parse_size(args.board, "--board")
     return Board(cols=cols, rows=rows, square=args.square, charuco=args.charuco, marker=args.marker)
@@ -140,6 +165,7 @@ def add_camera_parser(calsub) -> None:
                    help="write {'camera': block, 'report': ...} here (the camera block of a rig file)")
     p.add_argument("--rig", default=None, metavar="RIG",
                    help="update this rig file's camera intrinsics in place (its extrinsics are kept)")
+    add_force_option(p)
     p.set_defaults(_calibrate=run_camera)
 
 
@@ -148,6 +174,11 @@ def run_camera(args) -> int:
         raise ValueError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
     board = board_from_args(args)
     bs = board_settings_from_args(args)
+    cs = camera_settings_from_args(args)
+    rig_size = None
+    if args.rig:
+        r = parse_rig(read_json(args.rig), source=args.rig)
+        rig_size = (r.camera.width, r.camera.height)
     views, size = [], None
     for path in args.images:
         img = read_image(path)
@@ -159,8 +190,14 @@ def run_camera(args) -> int:
         views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} images:")
     print_views(views)
-    cal = calibrate_camera(views, board=board, size=size, settings=camera_settings_from_args(args))
+    cal = calibrate_camera(views, board=board, size=size, settings=cs)
     print_calibration("camera", cal)
+    print_duplicates(cal.duplicates)
+    problems = list(cal.problems)
+    if rig_size is not None and size != rig_size:
+        problems.append(f"the images are {size[0]}x{size[1]}, the camera of {args.rig} is "
+                        f"{rig_size[0]}x{rig_size[1]} (its pose and light were calibrated at that size)")
+    refuse_unless_forced(args, problems, args.out or args.rig)
     block = camera_block(cal)
     if args.out:
         atomic_write_json(args.out, {"camera": block, "report": calibration_report(cal)})
@@ -198,6 +235,7 @@ def add_procam_parser(calsub) -> None:
                    help=f"local-homography half window in camera px (default {ProcamSettings.window_px})")
     p.add_argument("--out", required=True, metavar="RIG", help="the rig file to write")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    add_force_option(p)
     p.set_defaults(_calibrate=run_procam)
 
 
@@ -222,12 +260,14 @@ def run_procam(args) -> int:
                   else f", {cc.projector_view.reason}")))
         caps.append(cc)
     res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
+    print_duplicates(res.duplicates)
     print_calibration("camera", res.camera)
     print_calibration("projector", res.projector)
     print(f"stereo: RMS reprojection error {res.stereo_rms:.3f} px; baseline {np.linalg.norm(res.T):.1f}; "
           f"T {', '.join(f'{x:.1f}' for x in res.T)}")
     for n, e in res.stereo_per_view.items():
         print(f"  {n}: {e:.3f} px")
+    refuse_unless_forced(args, res.problems, args.out)
     if not principal_point_inside(res.projector.K, proj_size):
         print(f"note: the projector's principal point ({res.projector.K[0, 2]:.0f}, {res.projector.K[1, 2]:.0f}) "
               "lies outside its image: rings about it are arcs, and the cone model is ill-conditioned where "
@@ -241,7 +281,8 @@ def run_procam(args) -> int:
         atomic_write_json(args.report, {"camera": calibration_report(res.camera),
                                         "projector": calibration_report(res.projector),
                                         "stereo": {"rms_px": res.stereo_rms, "views": res.stereo_per_view,
-                                                   "R": res.R.tolist(), "T": res.T.tolist()}})
+                                                   "R": res.R.tolist(), "T": res.T.tolist()},
+                                        "duplicates": list(res.duplicates), "problems": list(res.problems)})
     return 0
 
 
@@ -256,22 +297,29 @@ def add_response_parser(calsub) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME", help="camera frames of the ramp, in --levels order")
     p.add_argument("--levels", type=float, nargs="+", required=True, help="projected values 0..255, one per frame")
     p.add_argument("--rig", required=True, metavar="RIG", help="rig file to update (its camera gamma linearises)")
+    add_force_option(p)
     p.set_defaults(_calibrate=run_response)
 
 
 def run_response(args) -> int:
     if len(args.levels) != len(args.frames):
         raise ValueError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
+    bad = [v for v in args.levels if not (np.isfinite(v) and 0 <= v <= 255)]
+    if bad:
+        raise ValueError(f"--levels: values must be finite and in 0..255, got {', '.join(f'{v:g}' for v in bad)}")
     d = read_json(args.rig)
     rig = parse_rig(d, source=args.rig)
     imgs = [read_image(f) for f in args.frames]
     for f, im in zip(args.frames, imgs):
         if im.shape != imgs[0].shape or im.dtype != imgs[0].dtype:
             raise FormatError(f, "frame differs in size or bit depth from the first frame")
+    problems = [f"{args.frames[j]} is the same image as {args.frames[i]}, but --levels gives "
+                f"{args.levels[i]:g} and {args.levels[j]:g}" for i, j in repeated_frames(np.stack(imgs), args.levels)]
     gamma, curve = estimate_light_gamma(np.stack(imgs), np.asarray(args.levels) / 255.0, camera_gamma=rig.camera.gamma)
     print(f"light gamma {gamma:.3f} (camera gamma {rig.camera.gamma:g} undone first)")
     for x, y in curve.items():
         print(f"  level {255 * x:5.1f}: response {y:.4f} (model {x ** gamma:.4f})")
+    refuse_unless_forced(args, problems + response_problems(curve, gamma), args.rig)
     d["light"]["response"] = {"gamma": gamma}
     save_rig(args.rig, parse_rig(d, source=args.rig))
     print(f"updated light.response.gamma of {args.rig}")
@@ -313,7 +361,21 @@ def run_pose(args) -> int:
           f"{np.degrees(np.arccos(min(1.0, abs(float(R[2, 2]))))):.2f} deg off the plane's normal; "
           f"RMS reprojection error {rms:.3f} px")
     d["camera"]["R"], d["camera"]["t"] = R.tolist(), t.tolist()
-    save_rig(args.rig, parse_rig(d, source=args.rig))
+    if rig.light.model == "perspective":
+        # A projector calibrated with the camera (calibrate procam) is fixed to it: it
+        # moves with the camera into the board's frame, so the baseline is kept.
+        Rrel = rig.light.R @ cam.R.T
+        Trel = rig.light.t - Rrel @ cam.t
+        d["light"]["R"], d["light"]["t"] = (Rrel @ R).tolist(), (Rrel @ t + Trel).tolist()
+    new = parse_rig(d, source=args.rig)
+    if rig.light.model == "perspective":
+        before = float(np.linalg.norm(-rig.light.R.T @ rig.light.t + cam.R.T @ cam.t))
+        after = float(np.linalg.norm(-new.light.R.T @ new.light.t + new.camera.R.T @ new.camera.t))
+        if abs(after - before) > 1e-6 * max(before, 1.0):
+            raise CalibrationError(args.rig, f"the camera-projector baseline would change from {before:.1f} to "
+                                             f"{after:.1f}; not written")
+        print(f"the projector moves with the camera (baseline {after:.1f} kept)")
+    save_rig(args.rig, new)
     print(f"updated the camera pose of {args.rig}")
     return 0
 
@@ -438,6 +500,7 @@ def add_turntable_parser(calsub) -> None:
                         "the rough axis line")
     p.add_argument("--out", required=True, metavar="RIG", help="rig file to write (the rig with this turntable)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    add_force_option(p)
     p.set_defaults(_calibrate=run_turntable)
 
 
@@ -450,6 +513,11 @@ def run_turntable(args) -> int:
         if args.angles is not None:
             raise ValueError("--angles: a scan's views carry their own table angles (turntable_deg)")
         scan = load_scan(args.inputs[0])
+        if rig is not None and (scan.rig.camera.width, scan.rig.camera.height) != (rig.camera.width,
+                                                                                rig.camera.height):
+            raise FormatError(args.inputs[0], f"the scan's frames are {scan.rig.camera.width}x"
+                                              f"{scan.rig.camera.height}, the camera of {args.rig} is "
+                                              f"{rig.camera.width}x{rig.camera.height}")
         rig = scan.rig if rig is None else rig
         if args.rig is None and rig.turntable is not None:
             settings = TurntableSettings(board=settings.board, prior_axis=tuple(rig.turntable.axis_dir))
@@ -460,12 +528,17 @@ def run_turntable(args) -> int:
             raise ValueError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
         if rig is None:
             raise ValueError("--rig: images need the rig file of the calibrated camera")
-        views = [detect_board(read_image(path), board=board, name=view_name(path), settings=settings.board)
-                 for path in args.inputs]
+        views = []
+        for path in args.inputs:
+            img = read_image(path)
+            if img.shape[:2] != (rig.camera.height, rig.camera.width):
+                raise FormatError(path, f"image is {img.shape[1]}x{img.shape[0]}, the camera of {args.rig} is "
+                                        f"{rig.camera.width}x{rig.camera.height}")
+            views.append(detect_board(img, board=board, name=view_name(path), settings=settings.board))
         angles = list(args.angles)
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} views:")
     print_views(views)
-    cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, settings=settings)
+    cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, volume=rig.volume, settings=settings)
     tt = cal.turntable
     print(f"turntable axis: through ({', '.join(f'{x:.3f}' for x in tt.axis_point)}) along "
           f"({', '.join(f'{x:.5f}' for x in tt.axis_dir)}); RMS reprojection error {cal.rms_px:.3f} px "
@@ -474,6 +547,7 @@ def run_turntable(args) -> int:
         print(f"  {n} at {a:g} deg: {e:.3f} px, board turned {d:+.3f} deg from the table's angle")
     for n in cal.outliers:
         print(f"  {n}: spoils the fit, left out")
+    refuse_unless_forced(args, cal.problems, args.out)
     save_rig(args.out, rig_with_turntable(rig, tt))
     print(f"wrote {args.out}")
     if args.report:

@@ -51,6 +51,9 @@ def add_parser(sub):
                         f"(default {PoseSettings.max_rmse_mm})")
     p.add_argument("--no-pose-graph", action="store_true",
                    help="several poses: align each pose to the first only (no pose graph across poses)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="CPU threads for Open3D's ICP, RANSAC and Poisson (default 1: the same bytes from run to "
+                        "run; 0 = every core, faster, last bits vary; docs/fusion.md)")
     p.add_argument("--no-preview", action="store_true", help="do not render preview.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_device_option(p)
@@ -109,6 +112,8 @@ def run(args) -> int:
         pkw["max_rmse_mm"] = args.max_pose_rmse
     if args.no_pose_graph:
         pkw["pose_graph"] = False
+    if args.threads is not None:
+        fkw["threads"] = mkw["threads"] = pkw["threads"] = args.threads
     sources = args.source[0] if len(args.source) == 1 else list(args.source)
     rep = fuse_and_mesh(sources, args.out, fuse_settings=FuseSettings(**fkw), mesh_settings=MeshSettings(**mkw),
                         formats=parse_formats(args.formats), preview=not args.no_preview, truth=args.truth,

@@ -30,6 +30,9 @@ def add_parser(sub):
                    help=f"trim Poisson vertices below this density quantile (default {MeshSettings.density_quantile})")
     p.add_argument("--tsdf-voxel", type=float, default=None, metavar="MM",
                    help=f"TSDF voxel size (default {MeshSettings.tsdf_voxel_mm})")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="CPU threads for Poisson (default 1: the same bytes from run to run; 0 = every core, "
+                        "faster, last bits vary; docs/fusion.md)")
     return p
 
 
@@ -43,6 +46,8 @@ def run(args) -> int:
         kw["density_quantile"] = args.density_quantile
     if args.tsdf_voxel is not None:
         kw["tsdf_voxel_mm"] = args.tsdf_voxel
+    if args.threads is not None:
+        kw["threads"] = args.threads
     settings = MeshSettings(**kw)
     cloud = read_cloud(args.cloud)
     n_in = len(cloud.points)

@@ -190,6 +190,10 @@ def read_capture_state(folder: str | os.PathLike) -> dict:
     mv = table.get("moving_to")
     if mv is not None and (isinstance(mv, bool) or not isinstance(mv, (int, float))):
         raise FormatError(path, f"table.moving_to: expected a number or null, got {mv!r}")
+    reaches = table.get("reaches")
+    if reaches is not None and (isinstance(reaches, bool) or not isinstance(reaches, (int, float))
+                                or not math.isfinite(reaches)):
+        raise FormatError(path, f"table.reaches: expected a finite number or null, got {reaches!r}")
     if not isinstance(table.get("known", True), bool):
         raise FormatError(path, f"table.known: expected true or false, got {table.get('known')!r}")
     if not isinstance(d.get("runs", []), list):
@@ -212,9 +216,12 @@ def resume_angle(folder: str | os.PathLike, table_at: float | None = None) -> fl
         return float(table_at)
     mv = state["table"].get("moving_to")
     if mv is not None:
+        # the hint is the angle the motor's whole steps reach, not the one asked for
+        end = state["table"].get("reaches")
+        end = mv if end is None else end
         raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable was moving from {state['table']['deg']:g} "
                            f"to {mv:g} deg when the capture stopped, so its angle is unknown; check where it "
-                           f"stands and resume with --table-at DEG (e.g. --table-at {mv:g} if the move finished)",
+                           f"stands and resume with --table-at DEG (e.g. --table-at {end:g} if the move finished)",
                            folder=folder)
     if state["table"].get("known", True) is False:
         raise CaptureError(f"{Path(folder) / CAPTURE_FILE}: the turntable's angle became unknown when the capture "
@@ -548,7 +555,8 @@ class _CaptureRun:
     def _turn_to(self, target: float) -> None:
         """Move the table, with capture.json naming the target while it moves; then settle."""
         turntable = self.turntable
-        self.state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True}
+        self.state["table"] = {"deg": turntable.position_deg, "moving_to": target, "known": True,
+                               "reaches": turntable.reachable_deg(target)}
         self.write_state()
         self._retry(f"turning to {target:g} deg", lambda: turntable.move_to(target))
         self.state["table"] = {"deg": turntable.position_deg, "moving_to": None, "known": True}

@@ -135,6 +135,18 @@ def parse_status(line: str, *, wco: float | None = None) -> GrblStatus | None:
                       substate=int(sub) if sub.isdigit() else None)
 
 
+def _garbled_status(line: str) -> bool:
+    """A status report cut or corrupted on the line (``<Run|MPos:...`` with no closing
+    ``>``): not a message; the report is asked for again."""
+    s = line.strip()
+    return s.startswith("<") and parse_status(s) is None
+
+
+def _lround(x: float) -> int:
+    """C's lround (half away from zero), as GRBL's planner rounds a target to whole steps."""
+    return int(abs(x) + 0.5) * (1 if x >= 0 else -1)
+
+
 def format_angle(deg: float) -> str:
     """An angle as G-code writes it: 3 decimals, never ``-0.000``."""
     s = f"{deg:.3f}"
@@ -319,6 +331,7 @@ class GrblTurntable(TurntableDevice):
         self._link.discard_input()
         self._link.write(STATUS_QUERY)
         deadline = time.monotonic() + self.timeout_s
+        garbled = 0
         while (remaining := deadline - time.monotonic()) > 0:
             line = self._link.read_line(remaining)
             if line is None:
@@ -327,7 +340,15 @@ class GrblTurntable(TurntableDevice):
             st = self._parse(s)
             if st is not None:
                 return st
-            if s.upper().startswith("ALARM"):
+            if _garbled_status(s):  # not "no answer": that would reset a table that may be turning
+                garbled += 1
+                if garbled > 3:
+                    raise TurntableError(f"{garbled} garbled status reports in a row (the last {s!r}); check the "
+                                         f"cable and the baud rate", port=self.port)
+                log.warning("turntable: garbled status report %r; asking again", s)
+                self._link.write(STATUS_QUERY)
+                deadline = time.monotonic() + self.timeout_s
+            elif s.upper().startswith("ALARM"):
                 self._last_alarm = _alarm_message(s)[1]
             elif BANNER_RE.match(s):  # the board just booted (an Arduino resets when its port opens)
                 log.info("turntable: %s booted as the port opened", s)
@@ -485,27 +506,34 @@ class GrblTurntable(TurntableDevice):
         total = self.timeout_s if timeout_s is None else timeout_s
         start = time.monotonic()
         deadline = start + total
-        heard = start
+        asked = None  # when the oldest '?' that no line has followed was sent
         next_poll = start + self.poll_s
         if poll:
             self._link.write(STATUS_QUERY)
+            asked = time.monotonic()
         while True:
             now = time.monotonic()
-            if now >= deadline:
-                raise TurntableTimeout(f"no 'ok' for {line!r} within {total:g} s", port=self.port)
-            if poll and now - heard > self.timeout_s:
-                raise TurntableTimeout(f"controller silent for {self.timeout_s:g} s while waiting for {line!r} "
-                                       f"(no status replies)", port=self.port)
-            wait = deadline - now
+            wait = max(deadline - now, 0.0)
             if poll:
                 wait = min(wait, max(next_poll - now, 0.0))
             reply = self._link.read_line(wait)
             if reply is None:
-                if poll and time.monotonic() >= next_poll:
+                # Silence is judged only after a read found nothing: a host that was not
+                # running for a while (a starved machine) finds the replies that came
+                # meanwhile waiting, and must not take the stall for a silent controller.
+                now = time.monotonic()
+                if now >= deadline:
+                    raise TurntableTimeout(f"no 'ok' for {line!r} within {total:g} s", port=self.port)
+                if poll and asked is not None and now - asked > self.timeout_s:
+                    raise TurntableTimeout(f"controller silent for {self.timeout_s:g} s while waiting for {line!r} "
+                                           f"(no status replies)", port=self.port)
+                if poll and now >= next_poll:
                     self._link.write(STATUS_QUERY)
                     next_poll = time.monotonic() + self.poll_s
+                    if asked is None:
+                        asked = time.monotonic()
                 continue
-            heard = time.monotonic()
+            asked = None
             s = reply.strip()
             if s == "ok":
                 return
@@ -529,14 +557,22 @@ class GrblTurntable(TurntableDevice):
         self._link.write(STATUS_QUERY)
         total = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + total
-        while (remaining := deadline - time.monotonic()) > 0:
-            reply = self._link.read_line(remaining)
+        garbled = 0
+        while True:
+            reply = self._link.read_line(max(deadline - time.monotonic(), 0.0))  # reads at least once
             if reply is None:
                 break
             s = reply.strip()
             st = self._parse(s)
             if st is not None:
                 return st
+            if _garbled_status(s) and garbled < 3:
+                # line noise cut the report: its answer will not come again, so ask again
+                garbled += 1
+                log.warning("turntable: garbled status report %r; asking again", s)
+                self._link.write(STATUS_QUERY)
+                deadline = time.monotonic() + total
+                continue
             if s.upper().startswith("ALARM"):
                 raise self._alarm_line(s)
             if BANNER_RE.match(s):
@@ -604,6 +640,9 @@ class GrblTurntable(TurntableDevice):
                                  retryable=False, position_known=False)
         line = f"G1 X{format_angle(self.direction * deg)} F{self.feed_deg_per_min:g}"
         start = self._position
+        # What came while the table stood (a reset's banner, an alarm) is read before the
+        # G1 is sent: a reset then stopped no move, and the angle stays known.
+        self._drain()
         try:
             self.command(line)
         except TurntableCommandError as e:
@@ -622,6 +661,17 @@ class GrblTurntable(TurntableDevice):
             self._moved_unknown(e, deg)
             raise
         self._position = self._reached(st, deg)
+
+    def reachable_deg(self, deg: float) -> float:
+        """The angle a move to ``deg`` really ends at: GRBL rounds the target to whole
+        motor steps (``$100``), in machine coordinates (work angle + WCO); to 0.001 as
+        a status report gives it."""
+        spd = self.steps_per_deg
+        if not spd or spd <= 0:
+            return float(deg)
+        wco = self._wco or 0.0
+        m = _lround((self.direction * float(deg) + wco) * spd) / spd - wco
+        return round(self.direction * m, 3) + 0.0
 
     def _moved_unknown(self, e: DeviceError, target: float) -> None:
         e.position_known = False

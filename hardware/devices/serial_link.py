@@ -100,6 +100,7 @@ class LineLink:
         if self._ser is None:
             raise self._disconnected_error("port is not open", port=self.port)
         deadline = time.monotonic() + max(timeout_s, 0.0)
+        looked = False
         while True:
             nl = self._buf.find(b"\n")
             if nl >= 0:
@@ -109,10 +110,13 @@ class LineLink:
                 log.debug("%s < %r", self.name, line)
                 return line
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            # Always look at what has arrived at least once: a host that stalled past the
+            # deadline (a starved machine) must still read the reply that came meanwhile.
+            if remaining <= 0 and looked:
                 return None
+            looked = True
             try:
-                self._ser.timeout = min(remaining, 0.5)
+                self._ser.timeout = min(max(remaining, 0.0), 0.5)
                 chunk = self._ser.read(1)
                 if chunk:
                     waiting = self._ser.in_waiting

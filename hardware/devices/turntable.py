@@ -43,6 +43,11 @@ class TurntableDevice(Device):
     def set_position(self, deg: float) -> None:
         """Declare that the table now stands at ``deg`` (no motion)."""
 
+    def reachable_deg(self, deg: float) -> float:
+        """The angle a move to ``deg`` really ends at (a stepper reaches whole steps
+        only); ``deg`` itself where the device does not say."""
+        return float(deg)
+
     def enable_motor(self, on: bool = True) -> None:
         """Energise (or release) the stepper where the controller can; else nothing."""
 

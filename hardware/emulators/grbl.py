@@ -20,7 +20,12 @@ What it does as the firmware does (GRBL 1.1h source and its interface notes):
 - with homing enabled (``homing_lock``) the board powers up in Alarm (the start-up
   homing lock) at machine position 0;
 - ``!`` (feed hold) stops a move (``Hold:0``), ``~`` resumes it; a reset in a
-  completed hold keeps the position and raises no alarm.
+  completed hold keeps the position and raises no alarm;
+- :meth:`EmulatedTurntable.reboot` restarts the board on its own (a brown-out, a USB
+  glitch): the banner arrives unasked, the machine position starts again at 0 while
+  the table stays where it stood (a reset in motion leaves it part way);
+- line noise: the ``garble`` fault cuts a status report (no closing ``>``), the
+  fields GRBL sends there are kept (``|Pn:...`` with pins).
 """
 
 from __future__ import annotations
@@ -209,7 +214,16 @@ class EmulatedTurntable(_PtyDevice):
             self._send(self._msg("Reset to continue"))
             self._critical = True
 
-    def _status(self) -> None:
+    def reboot(self) -> None:
+        """The board restarts by itself now (power or USB glitch): its banner comes
+        unasked; the table stays where its steps left it."""
+        with self._lock:
+            self._power_on()
+            self._send(f"\r\n{self.BANNERS[self.flavor]}\r\n")
+            if self._alarm:
+                self._send(self._msg("'$H'|'$X' to unlock"))
+
+    def _status(self, *, garble: bool = False) -> None:
         now = time.monotonic()
         steps = self._steps_at(now)
         m = steps / self.steps_per_deg
@@ -232,6 +246,9 @@ class EmulatedTurntable(_PtyDevice):
         else:
             self._ovr_counter = (OVR_REFRESH_BUSY if busy else OVR_REFRESH_IDLE) - 1
             out += "|Ov:100,100,100"
+        if garble:  # line noise ate the end of the report
+            self._send(out + "|Pn:PXYZRHSS\r\n")
+            return
         self._send(out + ">\r\n")
 
     def _soft_reset(self) -> None:
@@ -293,7 +310,7 @@ class EmulatedTurntable(_PtyDevice):
                     self._unplug()
                     return
                 if not self._silent:
-                    self._status()
+                    self._status(garble=f is not None and f.kind == "garble")
             elif c == b"!":
                 self._feed_hold()
             elif c == b"~":

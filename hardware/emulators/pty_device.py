@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 __all__ = ["FAULT_KINDS", "Fault"]
 
 
-FAULT_KINDS = ("error", "silent", "alarm", "vanish", "reset", "lose_ok")
+FAULT_KINDS = ("error", "silent", "alarm", "vanish", "reset", "lose_ok", "garble")
 
 
 @dataclass
@@ -33,7 +33,8 @@ class Fault:
     kind: str
     """error (refuse the line), silent (swallow it), alarm (mid-move for a motion line),
     vanish (the port disappears), reset (the board restarts by itself) or lose_ok (the
-    line is executed, its reply is lost on the way)."""
+    line is executed, its reply is lost on the way) or garble (the reply arrives cut:
+    a status report without its closing ``>``; turntable ``?`` only)."""
     on: str
     """Matches a line starting with this (case and spaces ignored); ``?`` matches status queries."""
     code: int | None = None

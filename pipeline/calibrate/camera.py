@@ -5,11 +5,20 @@ three views of a board k3 runs away (to ~950 with k2 ~ -36 on the procam capture
 while the reprojection error hardly moves. :class:`CameraSettings` therefore fixes
 k3 (and, with very few views, the tangential terms) unless enough views are given;
 the choice is reported (``CameraCalibration.fixed``).
+
+A calibration also says what it cannot determine (``CameraCalibration.problems``):
+views that show the same board pose (the same capture given twice, a board that
+did not move) are counted once and left out of the fit, and too few *distinct*
+views is an error; the standard deviations of the intrinsics that the fit itself
+gives (``cv2.calibrateCameraExtended``) are held against
+:class:`CameraSettings`' bounds, and so is the pixel aspect fy / fx. One pose given
+three times fits at 0.35 px RMS with fx 12 % off: the RMS alone says nothing.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -19,9 +28,13 @@ from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
 
 __all__ = ["CameraSettings", "CameraCalibration", "calibrate_camera", "calibration_flags", "view_errors", "camera_block",
-           "calibration_report"]
+           "calibration_report", "distinct_views", "intrinsics_problems", "MIN_VIEWS"]
 
 log = logging.getLogger(__name__)
+
+MIN_VIEWS = 3
+"""Fewest distinct board poses any calibration accepts: two poses leave the focal
+length and the principal point trading against each other (Zhang 2000)."""
 
 
 @dataclass(frozen=True)
@@ -29,7 +42,7 @@ class CameraSettings:
     """Camera (and projector) calibration settings."""
 
     min_views: int = 3
-    """Fewest usable views; fewer is an error."""
+    """Fewest usable *distinct* views (at least :data:`MIN_VIEWS`); fewer is an error."""
     k3_min_views: int = 8
     """k3 is estimated only from this many views up (fixed to 0 below)."""
     tangential_min_views: int = 3
@@ -41,6 +54,32 @@ class CameraSettings:
     outlier_factor: float = 2.0
     """A view whose RMS error exceeds this many times the median view's (and 0.5 px)
     is named as spoiling the fit."""
+    duplicate_px: float = 1.0
+    """Two views whose common corners lie within this RMS distance (px) show the same
+    board pose: the later one is left out (it adds no constraint, only weight)."""
+    max_focal_std: float = 0.02
+    """Largest standard deviation of fx, fy as a fraction of their value (the fit's
+    own estimate); above it the views do not determine the focal length."""
+    max_center_std: float = 0.05
+    """Largest standard deviation of cx, cy as a fraction of the image width, height."""
+    max_aspect: float = 1.25
+    """Largest fy / fx (or fx / fy): cameras and projectors have square pixels to a
+    few percent, so a larger ratio is a fit that ran away."""
+
+    def __post_init__(self):
+        for name in ("min_views", "k3_min_views", "tangential_min_views"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ValueError(f"CameraSettings.{name}: expected an integer, got {v!r}")
+        if self.min_views < MIN_VIEWS:
+            raise ValueError(f"--min-views: expected an integer >= {MIN_VIEWS} (fewer distinct board poses cannot "
+                             f"determine the focal length and principal point), got {self.min_views}")
+        for name in ("outlier_factor", "duplicate_px", "max_focal_std", "max_center_std"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"CameraSettings.{name}: expected a positive number, got {v!r}")
+        if not (isinstance(self.max_aspect, (int, float)) and math.isfinite(self.max_aspect) and self.max_aspect > 1):
+            raise ValueError(f"CameraSettings.max_aspect: expected a number > 1, got {self.max_aspect!r}")
 
 
 @dataclass
@@ -67,6 +106,12 @@ class CameraCalibration:
     """Parameters held fixed (e.g. ['k3'])."""
     outliers: list[str] = field(default_factory=list)
     """Names of views that spoil the fit."""
+    std: np.ndarray = field(default_factory=lambda: np.zeros(9))
+    """(9,) standard deviations of fx, fy, cx, cy, k1, k2, p1, p2, k3 from the fit (0 where held fixed)."""
+    duplicates: list[str] = field(default_factory=list)
+    """Views left out as the same board pose as an earlier view ("name = earlier (d px)")."""
+    problems: list[str] = field(default_factory=list)
+    """What the views do not determine (empty: a calibration to stand behind)."""
 
 
 def calibration_flags(n_views: int, settings: CameraSettings) -> tuple[int, list[str]]:
@@ -98,6 +143,58 @@ def outlier_views(names: list[str], per_view: np.ndarray, settings: CameraSettin
     return [n for n, e in zip(names, per_view) if e > lim]
 
 
+def _same_pose_px(a: BoardView, b: BoardView) -> float | None:
+    """RMS distance (px) between the common corners of two views; None with fewer than 4 in common."""
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    if common.size < 4:
+        return None
+    d = a.corners.reshape(-1, 2)[ia].astype(np.float64) - b.corners.reshape(-1, 2)[ib].astype(np.float64)
+    return float(np.sqrt(np.mean(np.sum(d * d, 1))))
+
+
+def distinct_views(views: list[BoardView], *, tol_px: float) -> tuple[list[int], list[str]]:
+    """Indices of the views that show distinct board poses (the first of each), and
+    a note per view left out ("name = earlier (d px)").
+
+    Two found views show the same pose when their common corners lie within
+    ``tol_px`` RMS of each other (the same image given twice, a board that did not
+    move between shots).
+    """
+    keep: list[int] = []
+    notes: list[str] = []
+    for i, v in enumerate(views):
+        same = None
+        for k in keep:
+            d = _same_pose_px(views[k], v)
+            if d is not None and d <= tol_px:
+                same = (k, d)
+                break
+        if same is None:
+            keep.append(i)
+        else:
+            notes.append(f"{v.name} = {views[same[0]].name} ({same[1]:.2f} px)")
+    return keep, notes
+
+
+def intrinsics_problems(K: np.ndarray, std: np.ndarray, size: tuple[int, int], *, settings: CameraSettings,
+                        what: str) -> list[str]:
+    """What a fit's intrinsics and their standard deviations say the views do not determine."""
+    out = []
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    for name, v, s in (("fx", fx, std[0]), ("fy", fy, std[1])):
+        if not (np.isfinite(s) and s <= settings.max_focal_std * v):
+            out.append(f"{what} {name} {v:.1f} +- {s:.1f} px ({100 * s / v:.1f} % > "
+                       f"{100 * settings.max_focal_std:g} %): the views do not determine the focal length")
+    for name, v, s, n in (("cx", K[0, 2], std[2], size[0]), ("cy", K[1, 2], std[3], size[1])):
+        if not (np.isfinite(s) and s <= settings.max_center_std * n):
+            out.append(f"{what} {name} {v:.1f} +- {s:.1f} px (> {100 * settings.max_center_std:g} % of the "
+                       f"image): the views do not determine the principal point")
+    if max(fx / fy, fy / fx) > settings.max_aspect:
+        out.append(f"{what} fy / fx = {fy / fx:.2f} (fx {fx:.1f}, fy {fy:.1f}): pixels are square to a few "
+                   f"percent; the fit ran away")
+    return out
+
+
 def calibrate_camera(
     views: list[BoardView],
     *,
@@ -115,24 +212,39 @@ def calibrate_camera(
         settings: flags and limits.
         what: "camera" or "projector", for messages.
 
+    Views of the same board pose count once (see :func:`distinct_views`); what the
+    fit leaves undetermined is listed in ``problems`` (the caller decides whether
+    to write such a calibration).
+
     Raises:
-        CalibrationError: no view shows the board, or fewer than ``settings.min_views`` do.
+        CalibrationError: no view shows the board, or fewer than ``settings.min_views``
+            distinct ones do.
     """
     if len(size) != 2 or min(size) <= 0:
         raise ValueError(f"calibrate_camera: size must be (width, height) > 0, got {size}")
-    used = [v for v in views if v.found]
-    if not used:
+    found = [v for v in views if v.found]
+    if not found:
         why = "; ".join(f"{v.name}: {v.reason}" for v in views[:8]) or "no images given"
         raise CalibrationError(None, f"{what} calibration: no image shows the {board.cols}x{board.rows} board ({why})")
+    keep, dups = distinct_views(found, tol_px=settings.duplicate_px)
+    used = [found[i] for i in keep]
     if len(used) < settings.min_views:
-        raise CalibrationError(None, f"{what} calibration: only {len(used)} usable view(s) "
-                                     f"({', '.join(v.name for v in used)}); need at least {settings.min_views}")
+        same = f"; the same board pose: {', '.join(dups)}" if dups else ""
+        raise CalibrationError(None, f"{what} calibration: only {len(used)} distinct board pose(s) "
+                                     f"({', '.join(v.name for v in used)}); need at least {settings.min_views}"
+                                     f"{same}")
+    if dups:
+        log.info("%s: left out as the same board pose as an earlier view: %s", what, ", ".join(dups))
     pts = board_points(board)
     obj = [pts[v.ids].reshape(-1, 1, 3) for v in used]
     img = [v.corners.reshape(-1, 1, 2).astype(np.float32) for v in used]
     flags, fixed = calibration_flags(len(used), settings)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(size), None, None, flags=flags, criteria=crit)
+    rms, K, dist, rvecs, tvecs, std_int, _, _ = cv2.calibrateCameraExtended(obj, img, tuple(size), None, None,
+                                                                            flags=flags, criteria=crit)
+    std = np.full(9, np.nan)
+    si = np.asarray(std_int, float).ravel()[:9]
+    std[:si.size] = si
     dist = np.asarray(dist, float).ravel()[:5]
     dist = np.concatenate([dist, np.zeros(5 - dist.size)])
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist)) and K[0, 0] > 0 and K[1, 1] > 0):
@@ -140,9 +252,11 @@ def calibrate_camera(
     per = view_errors(obj, img, K, dist, rvecs, tvecs)
     names = [v.name for v in used]
     out = outlier_views(names, per, settings)
+    problems = intrinsics_problems(K, std, size, settings=settings, what=what)
     log.info("%s: RMS %.3f px over %d views, fx %.1f fy %.1f, fixed %s", what, rms, len(used), K[0, 0], K[1, 1], fixed)
     return CameraCalibration(K=K, dist=dist, rms=float(rms), size=(int(size[0]), int(size[1])), names=names,
-                             per_view=per, rvecs=list(rvecs), tvecs=list(tvecs), fixed=fixed, outliers=out)
+                             per_view=per, rvecs=list(rvecs), tvecs=list(tvecs), fixed=fixed, outliers=out,
+                             std=std, duplicates=dups, problems=problems)
 
 
 def camera_block(cal: CameraCalibration) -> dict:
@@ -155,4 +269,6 @@ def calibration_report(cal: CameraCalibration) -> dict:
     return {"rms_px": cal.rms, "views": {n: float(e) for n, e in zip(cal.names, cal.per_view)},
             "fixed": list(cal.fixed), "outliers": list(cal.outliers),
             "fx": float(cal.K[0, 0]), "fy": float(cal.K[1, 1]), "cx": float(cal.K[0, 2]), "cy": float(cal.K[1, 2]),
-            "dist": cal.dist.tolist()}
+            "dist": cal.dist.tolist(),
+            "std": {k: float(v) for k, v in zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), cal.std)},
+            "duplicates": list(cal.duplicates), "problems": list(cal.problems)}

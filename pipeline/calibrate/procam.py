@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.board import Board, BoardSettings, BoardView, board_points, detect_board
-from ringscan.pipeline.calibrate.camera import CameraCalibration, CameraSettings, calibrate_camera
+from ringscan.pipeline.calibrate.camera import CameraCalibration, CameraSettings, calibrate_camera, distinct_views
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import (
     Decoded,
@@ -59,6 +59,9 @@ class ProcamSettings:
     """Gray-code decoding settings."""
     board: BoardSettings = field(default_factory=BoardSettings)
     """Board detection settings."""
+    max_stereo_rms_px: float = 2.0
+    """Largest stereo RMS reprojection error of a calibration to stand behind (px):
+    above it the camera's and the projector's fits disagree about the board poses."""
 
 
 @dataclass
@@ -91,6 +94,11 @@ class ProcamCalibration:
     """Capture name -> stereo RMS (px) of that capture (camera and projector errors pooled)."""
     depths: np.ndarray
     """Depths along the projector's axis (projector-frame z) of every board corner used (board units)."""
+    duplicates: list[str] = field(default_factory=list)
+    """Captures left out as the same board pose as an earlier one ("name = earlier (d px)")."""
+    problems: list[str] = field(default_factory=list)
+    """What the captures do not determine: the camera's and the projector's problems and
+    the stereo fit's (empty: a calibration to stand behind)."""
 
 
 def projector_corners(corners: np.ndarray, dec: Decoded, *, settings: ProcamSettings = ProcamSettings()):
@@ -164,9 +172,22 @@ def calibrate_procam(
 ) -> ProcamCalibration:
     """Camera, projector and stereo calibration from the corners of every capture.
 
+    Captures whose camera views show the same board pose (the same folder given
+    twice) count once: the later ones are left out (``duplicates``).
+
     Raises:
-        CalibrationError: no capture shows the board, or too few do.
+        CalibrationError: no capture shows the board, or too few distinct ones do.
     """
+    seen = [c for c in captures if c.camera_view.found]
+    keep, dups = distinct_views([c.camera_view for c in seen], tol_px=settings.camera.duplicate_px)
+    if dups:
+        log.info("procam: left out as the same board pose as an earlier capture: %s", ", ".join(dups))
+        if len(keep) < settings.camera.min_views:
+            raise CalibrationError(None, f"only {len(keep)} distinct board pose(s) "
+                                         f"({', '.join(seen[i].name for i in keep)}); need at least "
+                                         f"{settings.camera.min_views}; the same board pose: {', '.join(dups)}")
+        kept = {id(seen[i]) for i in keep}
+        captures = [c for c in captures if not c.camera_view.found or id(c) in kept]
     cams = [c.camera_view for c in captures]
     cam = calibrate_camera(cams, board=board, size=camera_size, settings=settings.camera, what="camera")
     both = [c for c in captures if c.camera_view.found and c.projector_view.found]
@@ -201,8 +222,12 @@ def calibrate_procam(
         Rb, _ = cv2.Rodrigues(rv)
         depths.append(((o.reshape(-1, 3) @ Rb.T + np.ravel(tv)) @ R.T + T)[:, 2])
     log.info("stereo RMS %.3f px; baseline %.1f", rms, float(np.linalg.norm(T)))
+    problems = cam.problems + proj.problems
+    if not rms <= settings.max_stereo_rms_px:
+        problems.append(f"stereo RMS {rms:.2f} px > {settings.max_stereo_rms_px:g} px: the camera's and the "
+                        f"projector's fits disagree about the board poses")
     return ProcamCalibration(camera=cam, projector=proj, R=np.asarray(R, float), T=T, stereo_rms=float(rms),
-                             stereo_per_view=per, depths=np.concatenate(depths))
+                             stereo_per_view=per, depths=np.concatenate(depths), duplicates=dups, problems=problems)
 
 
 def procam_rig(

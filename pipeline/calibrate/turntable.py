@@ -41,7 +41,7 @@ from ringscan.pipeline.calibrate.board import Board, BoardSettings, BoardView, b
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
-from ringscan.pipeline.formats.rig import Camera, Rig, Turntable, turntable_transform
+from ringscan.pipeline.formats.rig import Camera, Rig, Turntable, Volume, turntable_transform
 from ringscan.pipeline.formats.scan import Scan
 from ringscan.pipeline.geometry import project_points
 
@@ -107,6 +107,8 @@ class TurntableCalibration:
     """Every view's detection (found, or why not)."""
     outliers: list[str] = field(default_factory=list)
     """Views that spoiled the fit and were left out."""
+    problems: list[str] = field(default_factory=list)
+    """Why the result is implausible for the rig it was fitted in (empty: none found)."""
 
     def report(self) -> dict:
         """A JSON-able summary."""
@@ -114,7 +116,7 @@ class TurntableCalibration:
         return {"axis_point": t.axis_point.tolist(), "axis_dir": t.axis_dir.tolist(), "rms_px": self.rms_px,
                 "views": {n: {"angle_deg": float(a), "rms_px": float(e), "angle_error_deg": float(d)}
                           for n, a, e, d in zip(self.names, self.angles_deg, self.per_view_px, self.angle_error_deg)},
-                "outliers": list(self.outliers),
+                "outliers": list(self.outliers), "problems": list(self.problems),
                 "not_used": {v.name: v.reason for v in self.views if not v.found}}
 
 
@@ -321,6 +323,7 @@ def calibrate_turntable(
     *,
     board: Board,
     camera: Camera,
+    volume: Volume | None = None,
     settings: TurntableSettings = TurntableSettings(),
 ) -> TurntableCalibration:
     """The turntable axis from board detections at known table angles (see the module docstring).
@@ -330,6 +333,9 @@ def calibrate_turntable(
         angles_deg: the table angle of each image (degrees, right-handed about the axis).
         board: the board.
         camera: the calibrated camera (intrinsics and its pose in the world frame).
+        volume: the rig's working volume: a board (or axis) found far outside it
+            (a wrong ``--square`` scales every board pose's distance) is listed in
+            ``problems``.
         settings: limits.
 
     Raises:
@@ -394,12 +400,34 @@ def calibrate_turntable(
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = Rb, tb
     tt = Turntable(axis_point=_canonical_point(p, d), axis_dir=d)
+    problems = [] if volume is None else _outside_volume(tt, [Rs[k] @ obj[k].T + ts[k][:, None] for k in k_used],
+                                                         volume)
     cal = TurntableCalibration(turntable=tt, rms_px=rms, names=[names[k] for k in k_used], angles_deg=ang[k_used],
                                per_view_px=per[k_used], angle_error_deg=np.asarray(err)[k_used], board_pose=pose,
-                               views=views, outliers=outliers)
+                               views=views, outliers=outliers, problems=problems)
     log.info("turntable: axis through (%.3f, %.3f, %.3f) along (%.5f, %.5f, %.5f), RMS %.3f px over %d views",
              *tt.axis_point, *tt.axis_dir, rms, len(k_used))
     return cal
+
+
+def _outside_volume(tt: Turntable, corners_world: list[np.ndarray], volume: Volume) -> list[str]:
+    """The board's corners ((3, n) world, per view) and the axis point against the
+    working volume widened by its own height (z) and its radius (r): a board on the
+    table stands in the volume the rig scans."""
+    span = volume.z_max - volume.z_min
+    z_lo, z_hi, r_hi = volume.z_min - span, volume.z_max + span, 2.0 * volume.r_max
+    c = np.concatenate(corners_world, 1)
+    r = np.hypot(c[0], c[1])
+    out = []
+    if c[2].min() < z_lo or c[2].max() > z_hi or r.max() > r_hi:
+        out.append(f"the board is seen at z {c[2].min():.0f}..{c[2].max():.0f}, up to {r.max():.0f} from the "
+                   f"world z axis: far outside the rig's working volume (z {volume.z_min:g}..{volume.z_max:g}, "
+                   f"r {volume.r_max:g}); a wrong --square, or a camera pose from another setup?")
+    ra = float(np.hypot(tt.axis_point[0], tt.axis_point[1]))
+    if ra > r_hi:
+        out.append(f"the axis point lies {ra:.0f} from the world z axis, the working volume's radius is "
+                   f"{volume.r_max:g}")
+    return out
 
 
 def rig_with_turntable(rig: Rig, turntable: Turntable) -> Rig:

@@ -33,6 +33,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.settings import check_finite_settings
+from ringscan.pipeline.fusion.threads import check_threads, open3d_threads, poisson_threads
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,11 @@ class MeshSettings:
     """Connected pieces with fewer triangles than this are removed (0 keeps all)."""
     smooth_iterations: int = 0
     """Taubin smoothing passes after meshing (0: none)."""
+    threads: int = 1
+    """CPU threads of Poisson and the rest of Open3D while meshing: 1 gives the same
+    bytes from run to run; 0 (every core) is faster, and then Poisson's vertex order
+    and last bits vary (a triangle more or less after trimming;
+    :mod:`ringscan.pipeline.fusion.threads`)."""
 
 
 @dataclass
@@ -139,6 +145,7 @@ def check_mesh_settings(s: MeshSettings) -> None:
     if not isinstance(s, MeshSettings):
         raise ValueError(f"settings must be a MeshSettings, got {type(s).__name__}")
     check_finite_settings(s)
+    check_threads("MeshSettings", s.threads)
     if s.method not in ("poisson", "tsdf"):
         raise ValueError(f"MeshSettings.method must be 'poisson' or 'tsdf', got {s.method!r}")
     if not 1 <= s.poisson_depth <= 12:
@@ -231,7 +238,7 @@ def _poisson(cloud, s: MeshSettings, scale: float | None = None):
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             cloud, depth=s.poisson_depth, scale=s.poisson_scale if scale is None else scale,
-            linear_fit=s.poisson_linear_fit)
+            linear_fit=s.poisson_linear_fit, n_threads=poisson_threads(s.threads))
     if not cloud.has_colors():
         # Open3D gives the mesh black vertex colours when the cloud has none.
         mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
@@ -239,6 +246,13 @@ def _poisson(cloud, s: MeshSettings, scale: float | None = None):
 
 
 def poisson_mesh(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
+    """Screened Poisson surface of an oriented cloud (see :func:`_poisson_mesh`), with
+    Open3D on ``settings.threads`` threads."""
+    with open3d_threads(getattr(settings, "threads", 1)):
+        return _poisson_mesh(cloud, settings=settings)
+
+
+def _poisson_mesh(cloud, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
     """Screened Poisson surface of an oriented cloud, trimmed (or watertight).
 
     Args:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ringscan.pipeline.formats.settings import check_finite_settings
+from ringscan.pipeline.fusion.threads import check_threads, open3d_threads
 from ringscan.pipeline.fusion.turntable import (FuseResult, apply_transform, merge_clouds, plane_residuals,
                                                rotation_deg)
 
@@ -74,6 +75,10 @@ class PoseSettings:
     few points fit anywhere): an error."""
     voxel_mm: float = 0.3
     """Voxel size of the merged cloud (points and normals averaged per voxel; 0 keeps all)."""
+    threads: int = 1
+    """CPU threads Open3D may use (RANSAC, ICP, features): 1 gives the same bytes from run
+    to run (RANSAC is seeded, ``seed``); 0 (every core) is faster, and then RANSAC's
+    hypotheses and the ICP sums depend on scheduling (:mod:`ringscan.pipeline.fusion.threads`)."""
 
 
 @dataclass(frozen=True)
@@ -171,6 +176,7 @@ def _check_pose_settings(s: PoseSettings) -> None:
     if not isinstance(s, PoseSettings):
         raise ValueError(f"settings must be a PoseSettings, got {type(s).__name__}")
     check_finite_settings(s)
+    check_threads("PoseSettings", s.threads)
     for name in ("global_voxel_mm", "feature_radius_mm", "global_normal_radius_mm", "ransac_distance_mm",
                  "icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "max_rmse_mm"):
         if not getattr(s, name) > 0:
@@ -383,6 +389,14 @@ def _check_against_others(o3d, prepared: list, transforms: list, names: list[str
 
 def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings: PoseSettings = PoseSettings(),
                progress: bool = False) -> MultiPoseResult:
+    """Align several poses of one object and merge them (see :func:`_fuse_poses`);
+    Open3D runs on ``settings.threads`` threads meanwhile."""
+    with open3d_threads(getattr(settings, "threads", 1)):
+        return _fuse_poses(poses, names=names, settings=settings, progress=progress)
+
+
+def _fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings: PoseSettings = PoseSettings(),
+                progress: bool = False) -> MultiPoseResult:
     """Align the clouds of several poses of one object to the first and merge them.
 
     Args:

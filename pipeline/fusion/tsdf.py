@@ -24,6 +24,7 @@ from ringscan.pipeline.fusion.mesh import (
     mesh_info,
     watertight_poisson,
 )
+from ringscan.pipeline.fusion.threads import open3d_threads
 from ringscan.pipeline.fusion.turntable import FuseResult
 
 log = logging.getLogger(__name__)
@@ -186,6 +187,12 @@ def _look_at_E(eye, target, up_hint) -> np.ndarray:
 
 
 def tsdf_mesh(source, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
+    """TSDF fusion (see :func:`_tsdf_mesh`), with Open3D on ``settings.threads`` threads."""
+    with open3d_threads(getattr(settings, "threads", 1)):
+        return _tsdf_mesh(source, settings=settings)
+
+
+def _tsdf_mesh(source, *, settings: MeshSettings = MeshSettings()) -> MeshResult:
     """TSDF fusion of per-view depth maps (Open3D's sparse voxel-block TSDF).
 
     Args:

@@ -24,6 +24,7 @@ import numpy as np
 from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.rig import Rig, Turntable, turntable_transform
 from ringscan.pipeline.formats.settings import check_finite_settings
+from ringscan.pipeline.fusion.threads import check_threads, open3d_threads
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,10 @@ class FuseSettings:
     """Pairs whose fine ICP overlaps less than this fraction are left out of the graph."""
     voxel_mm: float = 0.3
     """Voxel size of the fused cloud (points and normals averaged per voxel; 0 keeps all)."""
+    threads: int = 1
+    """CPU threads Open3D may use (ICP, normals, outlier removal): 1 gives the same bytes
+    from run to run; 0 (every core) is faster, with the last bits of the ICP poses
+    varying (:mod:`ringscan.pipeline.fusion.threads`)."""
 
 
 # ----------------------------------------------------------------------------- data
@@ -225,6 +230,7 @@ def check_fuse_settings(s: FuseSettings) -> None:
     if not isinstance(s, FuseSettings):
         raise ValueError(f"settings must be a FuseSettings, got {type(s).__name__}")
     check_finite_settings(s)
+    check_threads("FuseSettings", s.threads)
     for name in ("icp_voxel_mm", "icp_coarse_mm", "icp_fine_mm", "normal_radius_mm"):
         if not getattr(s, name) > 0:
             raise ValueError(f"FuseSettings.{name} must be > 0, got {getattr(s, name)}")
@@ -413,6 +419,14 @@ def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_m
 
 def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = FuseSettings(),
                progress: bool = False) -> FuseResult:
+    """Fuse turntable views into one cloud in the object frame (see :func:`_fuse_views`);
+    Open3D runs on ``settings.threads`` threads meanwhile."""
+    with open3d_threads(getattr(settings, "threads", 1)):
+        return _fuse_views(views, rig, settings=settings, progress=progress)
+
+
+def _fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = FuseSettings(),
+                progress: bool = False) -> FuseResult:
     """Fuse turntable views into one cloud in the object frame.
 
     Args:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import cv2
 import numpy as np
 import pytest
 
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import load_rig
+from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig
 from ringscan.tools.cli import main
 from tests.pipeline.calibrate.synthetic import write_capture
 
@@ -67,3 +70,107 @@ def test_import_opencv_file(tmp_path, procam, capsys):
     assert main(["import", str(procam / "capture_1"), "--rig", str(procam / "calibration_result.xml"),
                  "--projector", "1024x768", "--out", str(scan)]) == 0
     assert (scan / "scan.json").is_file() and (scan / "capture_1" / "proj_u.png").is_file()
+
+
+# ----------------------------------------------------------------------------- calibrations that know they are wrong
+
+
+def _procam(procam, tmp_path, *idx, extra=()):
+    rig = tmp_path / "rig.json"
+    rc = main(["calibrate", "procam", *[str(procam / f"capture_{i}") for i in idx], "--square", "75",
+               "--projector", "1024x768", "--out", str(rig), *extra])
+    return rc, rig
+
+
+def test_procam_one_capture_three_times_is_refused(tmp_path, procam, capsys):
+    # Today's OpenCV fit of this: RMS 0.35 px, camera fx 3871 (true 3452), baseline 1431 (true 674).
+    rc, rig = _procam(procam, tmp_path, 1, 1, 1)
+    err = capsys.readouterr().err
+    assert rc == 2 and "only 1 distinct board pose" in err and "capture_1 = capture_1 (0.00 px)" in err
+    assert len(err.strip().splitlines()) == 1 and not rig.exists()
+    rc, rig = _procam(procam, tmp_path, 1, 1, 1, extra=["--force"])  # nothing to stand behind: not even forced
+    assert rc == 2 and not rig.exists()
+    rc, rig = _procam(procam, tmp_path, 1, 2, 2)
+    assert rc == 2 and "only 2 distinct board pose" in capsys.readouterr().err and not rig.exists()
+
+
+def test_procam_min_views_below_three_is_refused(tmp_path, procam, capsys):
+    for n in ("-1", "0", "2"):
+        rc, rig = _procam(procam, tmp_path, 1, 2, extra=["--min-views", n])
+        assert rc == 2 and "--min-views: expected an integer >= 3" in capsys.readouterr().err and not rig.exists()
+
+
+def test_procam_a_repeated_capture_is_left_out(tmp_path, procam, capsys):
+    rc, rig = _procam(procam, tmp_path, 1, 2, 3, 3)
+    out = capsys.readouterr().out
+    assert rc == 0 and "capture_3 = capture_3 (0.00 px): the same board pose as the earlier view, left out" in out
+    # the numbers of capture_1..3 (docs/calibration.md)
+    assert "fx 3451.7 fy 3446.4" in out and "fx 1887.0 fy 1876.6" in out and "baseline 673.7" in out
+    r = load_rig(rig)
+    assert abs(r.camera.K[0, 0] - 3451.7) < 0.1
+
+
+def test_camera_one_image_three_times_is_refused(tmp_path, procam, capsys):
+    w = str(procam / "capture_1" / "graycode_40.png")
+    out = tmp_path / "cam.json"
+    assert main(["calibrate", "camera", w, w, w, "--square", "75", "--out", str(out)]) == 2
+    assert "only 1 distinct board pose" in capsys.readouterr().err and not out.exists()
+
+
+def test_camera_images_of_another_size_than_the_rig_are_refused_unless_forced(tmp_path, procam, capsys):
+    r = default_rig()  # a 1280x1024 camera; made 640x512 here
+    save_rig(tmp_path / "rig.json", dataclasses.replace(r, camera=dataclasses.replace(r.camera, width=640, height=512)))
+    before = (tmp_path / "rig.json").read_bytes()
+    whites = [str(procam / f"capture_{i}" / "graycode_40.png") for i in (1, 2, 3)]
+    argv = ["calibrate", "camera", *whites, "--square", "75", "--rig", str(tmp_path / "rig.json")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "the images are 1280x1024, the camera of" in err and "--force" in err
+    assert (tmp_path / "rig.json").read_bytes() == before
+    assert main(argv + ["--force"]) == 0
+    assert load_rig(tmp_path / "rig.json").camera.width == 1280
+
+
+def test_pose_on_a_procam_rig_moves_the_projector_with_the_camera(tmp_path, procam, capsys):
+    rc, rig = _procam(procam, tmp_path, 1, 2, 3)
+    assert rc == 0
+
+    def baseline(r):
+        return float(np.linalg.norm(-r.light.R.T @ r.light.t + r.camera.R.T @ r.camera.t))
+
+    b0 = baseline(load_rig(rig))
+    assert main(["calibrate", "pose", str(procam / "capture_1" / "graycode_40.png"), "--square", "75",
+                 "--rig", str(rig)]) == 0
+    r = load_rig(rig)
+    assert abs(baseline(r) - b0) < 1e-6 and abs(b0 - 673.7) < 0.1  # before: 3578
+    assert "baseline 673.7 kept" in capsys.readouterr().out
+    # the camera really moved into the board's frame: it now looks down at the plane z = 0 from above
+    assert (-r.camera.R.T @ r.camera.t)[2] > 1000
+
+
+def _grey(tmp_path, name, value):
+    rng = np.random.default_rng(int(value))
+    albedo = rng.uniform(0.5, 0.9, (64, 80))
+    irr = (5 + 200 * albedo * (value / 255) ** 2.2) / 255  # a light of gamma 2.2
+    img = np.clip(np.round(255 * irr ** (1 / 2.2)), 0, 255).astype(np.uint8)  # a camera of gamma 2.2 (the rig's)
+    cv2.imwrite(str(tmp_path / name), img)
+    return str(tmp_path / name)
+
+
+def test_response_refuses_repeated_frames_and_bad_levels(tmp_path, capsys):
+    save_rig(tmp_path / "rig.json", default_rig())
+    before = (tmp_path / "rig.json").read_bytes()
+    g = {v: _grey(tmp_path, f"g{v}.png", v) for v in (0, 64, 128, 192, 255)}
+    rig = ["--rig", str(tmp_path / "rig.json")]
+    # the middle frame given for three levels: today a flat curve and gamma 0.9 written
+    rc = main(["calibrate", "response", g[0], g[128], g[128], g[128], g[255], "--levels", "0", "64", "128", "192",
+               "255", *rig])
+    err = capsys.readouterr().err
+    assert rc == 2 and "is the same image as" in err and "does not rise" in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "rig.json").read_bytes() == before
+    for bad in ("nan", "inf", "-1", "300"):
+        rc = main(["calibrate", "response", *g.values(), "--levels", "0", bad, "128", "192", "255", *rig])
+        assert rc == 2 and "--levels: values must be finite and in 0..255" in capsys.readouterr().err
+    assert (tmp_path / "rig.json").read_bytes() == before
+    assert main(["calibrate", "response", *g.values(), "--levels", "0", "64", "128", "192", "255", *rig]) == 0
+    assert "light gamma 2.2" in capsys.readouterr().out

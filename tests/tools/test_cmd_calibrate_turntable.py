@@ -73,3 +73,34 @@ def test_calibrate_turntable_bad_input(board_scan, tmp_path, capsys):
                  "--out", str(out)]) == 2
     assert "no 'gray_3' frame" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_tenfold_square_is_refused_unless_forced(board_scan, tmp_path, capsys):
+    # --square 10x the real one puts every board pose 10x farther from the camera:
+    # the fit is as good as ever (the same image geometry), the axis lands far outside
+    # the working volume.
+    save_rig(tmp_path / "in.json", rig(default_rig().turntable))
+    out = tmp_path / "rig.json"
+    argv = ["calibrate", "turntable", str(board_scan), "--board", "9x6", "--square", str(800 / 12),
+            "--rig", str(tmp_path / "in.json"), "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "far outside the rig's working volume" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert main(argv + ["--force"]) == 0
+    assert "warning: the board is seen" in capsys.readouterr().out and out.is_file()
+
+
+def test_images_of_another_size_than_the_rig_are_refused(board_scan, tmp_path, capsys):
+    small = rig(None)
+    small = dataclasses.replace(small, camera=dataclasses.replace(small.camera, width=320, height=256))
+    save_rig(tmp_path / "in.json", small)
+    images = [str(board_scan / f"view_00{k}" / "white.png") for k in range(3)]
+    out = tmp_path / "rig.json"
+    assert main(["calibrate", "turntable", *images, "--angles", "0", "60", "120", "--board", "9x6",
+                 "--square", str(80 / 12), "--rig", str(tmp_path / "in.json"), "--out", str(out)]) == 2
+    assert "image is 640x512, the camera of" in capsys.readouterr().err and not out.exists()
+    # a scan whose frames are not the rig's size likewise
+    assert main(["calibrate", "turntable", str(board_scan), "--board", "9x6", "--square", str(80 / 12),
+                 "--rig", str(tmp_path / "in.json"), "--out", str(out)]) == 2
+    assert "the scan's frames are 640x512" in capsys.readouterr().err and not out.exists()

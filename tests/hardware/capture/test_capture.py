@@ -259,10 +259,11 @@ def test_turntable_lost_mid_move_needs_table_at_and_resumes_exactly(tmp_path, ri
             capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
         assert e.emu.turntable.resets == 1  # never retried: the table's angle is unknown
         state = read_capture_state(out)
-        assert state["table"] == {"deg": 120.036, "moving_to": 240.0, "known": False}
+        # the move's end is recorded as the motor's whole steps reach it (239.96, not 240)
+        assert state["table"] == {"deg": 120.036, "moving_to": 240.0, "known": False, "reaches": 239.96}
         assert state["status"] == "stopped"
         assert [len(v.frames) for v in load_scan(out, allow_incomplete=True).views] == [6, 6]
-        with pytest.raises(CaptureError, match="angle is unknown.*--table-at"):
+        with pytest.raises(CaptureError, match="angle is unknown.*--table-at 239.96 if the move finished"):
             resume_angle(out)
         with pytest.raises(CaptureError, match="--table-at"):
             capture_scan(out, settings=FAST, resume=True, progress=False, **e.devices())
@@ -333,7 +334,9 @@ def test_a_lost_ok_stops_the_capture_and_a_quick_resume_waits_for_the_table(tmp_
         with pytest.raises(CaptureError, match="part way to 120 deg.*--resume --table-at"):
             capture_scan(out, rig=rig, patterns=patterns, views=3, settings=FAST, progress=False, **e.devices())
         assert tt.resets == 1 and tt.resets_in_motion == 0 and "$X" not in tt.lines
-        assert read_capture_state(out)["table"] == {"deg": 0.0, "moving_to": 120.0, "known": False}
+        assert read_capture_state(out)["table"] == {"deg": 0.0, "moving_to": 120.0, "known": False, "reaches": 120.036}
+        with pytest.raises(CaptureError, match="--table-at 120.036 if the move finished"):  # reachable, not 120
+            resume_angle(out)
         assert tt.moving  # still turning
         e.turntable.close()
         e.projector.close()
@@ -464,6 +467,32 @@ def test_the_record_of_a_killed_run_is_brought_up_to_date_on_resume(tmp_path, ri
     runs = read_capture_state(out)["runs"]
     assert [r["result"] for r in runs] == ["killed", "complete"]
     assert [r["frames"] for r in runs] == [8, 10] and runs[0]["ended"] is not None
+
+
+def test_a_controller_reset_while_the_table_stands_is_no_cut_short_move(tmp_path, rig, patterns):
+    # The board reboots by itself (power, USB) while the table stands at 120.036: its
+    # banner is read before the G1 to 240 is sent. No move was cut short: the angle is
+    # known, the table is reconnected, the angle declared again and the capture goes on.
+    from ringscan.hardware.emulators.grbl import EmulatedTurntable
+
+    with EmulatedTurntable(time_scale=1000.0) as emu:
+        proj = VirtualProjector(pattern_frames(patterns))
+        table = GrblTurntable(emu.port, timeout_s=0.3)
+
+        def reboot_after_view_1(scan, view):
+            if view.name == "view_001":
+                emu.reboot()
+                time.sleep(0.05)  # the banner arrives while the table stands
+
+        scan = capture_scan(tmp_path / "s", rig=rig, patterns=patterns, views=3, camera=ProbeCamera(proj, emu),
+                            projector=proj, turntable=table, settings=FAST, progress=False,
+                            on_view=reboot_after_view_1)
+        table.close()
+        assert emu.lines.count("G1 X240.000 F600") == 1 and emu.resets_in_motion == 0
+        assert "G92 X120.036" in emu.lines  # the angle the table stood at, declared after the reboot
+    assert [v.turntable_deg for v in scan.views] == REACHED
+    assert all(read_image(scan.frame_path(v, "white"))[0, 1] == round(v.turntable_deg / 5) for v in scan.views)
+    assert read_capture_state(tmp_path / "s")["status"] == "complete"
 
 
 def test_refused_move_keeps_the_angle_known(tmp_path, rig, patterns):

@@ -357,6 +357,89 @@ def test_controller_resetting_by_itself_is_reported(emu):
     tt.close()
 
 
+def test_a_host_stall_during_a_move_is_not_a_silent_controller(tmp_path):
+    # The whole host starved for 3x the reply timeout right after a '?' went out: the
+    # reply (and the move's ok) came meanwhile and are read, not taken for silence.
+    with EmulatedTurntable(time_scale=10.0) as e:  # 90 deg at 600 deg/min: 0.9 s
+        tt = GrblTurntable(e.port, **FAST)
+        write = tt._link.write
+        polls = []
+
+        def stalling_write(data):
+            write(data)
+            if data == b"?":
+                polls.append(time.monotonic())
+                if len(polls) == 2:
+                    time.sleep(3 * FAST["timeout_s"])
+
+        tt._link.write = stalling_write
+        tt.move_to(90.0)
+        assert tt.position_known and tt.position_deg == steps(90.0) and e.angle_deg == steps(90.0)
+        assert len(polls) >= 2
+        tt.close()
+
+
+def test_the_silence_check_still_fires_after_a_stall(tmp_path):
+    # ...and a controller that really stopped answering is still found out.
+    with EmulatedTurntable(time_scale=1.0) as e:
+        tt = GrblTurntable(e.port, feed_deg_per_min=600, **FAST)
+        e.inject("silent", on="?", times=10 ** 6)
+        with pytest.raises(TurntableTimeout, match="silent"):
+            tt.move_to(360.0)
+        tt.close()
+
+
+def test_reachable_angle_is_the_motor_steps_one(emu):
+    tt = GrblTurntable(emu.port, **FAST)
+    assert tt.reachable_deg(120.0) == 120.036 == steps(120.0)
+    assert tt.reachable_deg(240.0) == 239.96 == steps(240.0)
+    tt.move_to(120.0)
+    tt.recover()  # reset, G92 X120.036: the work offset now holds the declared angle's remainder
+    assert tt.reachable_deg(240.0) == 239.96
+    tt.move_to(240.0)
+    assert tt.position_deg == 239.96
+    tt.close()
+
+
+def test_a_reset_while_the_table_stands_leaves_the_angle_known(emu):
+    # The board reboots by itself while idle; the banner is read before the G1 is sent.
+    tt = GrblTurntable(emu.port, **FAST)
+    tt.move_to(120.0)
+    emu.reboot()
+    time.sleep(0.05)
+    with pytest.raises(TurntableDisconnected, match="reset by itself") as ei:
+        tt.move_to(240.0)
+    assert ei.value.position_known and ei.value.retryable  # no move was sent: a retry is safe
+    assert tt.position_known and tt.position_deg == steps(120.0)
+    assert not any(x.startswith("G1 X240") for x in emu.lines)
+    tt.recover()  # what the capture does before its retry
+    tt.move_to(240.0)
+    assert emu.angle_deg == steps(240.0) and tt.position_deg == steps(240.0)
+    tt.close()
+
+
+def test_emulator_garbles_a_status_report(emu):
+    raw = _Raw(emu.port)
+    emu.inject("garble", on="?")
+    raw.send(b"?")
+    line = raw.line()
+    assert line.startswith("<Idle|MPos:0.000") and not line.endswith(">") and parse_status(line) is None
+    assert raw.status().state == "Idle"  # the next one is whole
+    raw.close()
+
+
+def test_emulator_reboot_sends_the_banner_and_keeps_the_table(emu):
+    raw = _Raw(emu.port)
+    raw.send(b"G1 X90 F6000\n")
+    assert raw.line() == "ok"
+    time.sleep(0.1)
+    emu.reboot()
+    assert raw.lines_until(lambda s: s.startswith("Grbl 1.1h"))[-1] == "Grbl 1.1h ['$' for help]"
+    st = raw.status()
+    assert st.state == "Idle" and st.mpos == 0.0 and emu.angle_deg == steps(90.0)
+    raw.close()
+
+
 # ----------------------------------------------------------------------------- connecting to a table in any state
 
 
@@ -382,6 +465,30 @@ def test_a_table_found_turning_is_waited_for_never_reset(tmp_path):
         tt.set_position(90.0)  # --table-at 90
         tt.move_to(180.0)
         assert e.angle_deg == pytest.approx(180.0, abs=STEP)
+        tt.close()
+
+
+def test_a_garbled_status_report_while_waiting_for_a_turning_table_is_asked_again(tmp_path):
+    # Line noise cuts a report while a resume waits for the table to stop: a new '?',
+    # not a failed resume (and never a reset of the turning table).
+    with EmulatedTurntable(time_scale=15.0) as e:
+        _turning(e.port)
+        e.inject("garble", on="?", skip=1)  # the probe's answer is whole, the next one cut
+        tt = GrblTurntable(e.port, position_deg=90.0, **FAST)
+        assert not e.faults  # the garbled report was sent
+        assert not e.moving and e.resets_in_motion == 0 and e.alarms == []
+        assert e.angle_deg == steps(90.0) and not tt.position_known
+        tt.set_position(90.0)
+        tt.move_to(180.0)
+        tt.close()
+
+
+def test_a_garbled_first_report_does_not_get_a_turning_table_reset(tmp_path):
+    with EmulatedTurntable(time_scale=15.0) as e:
+        _turning(e.port)
+        e.inject("garble", on="?")  # the probe's own answer is cut
+        tt = GrblTurntable(e.port, position_deg=90.0, **FAST)
+        assert e.resets_in_motion == 0 and e.alarms == [] and not tt.position_known
         tt.close()
 
 

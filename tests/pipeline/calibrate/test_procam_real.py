@@ -100,7 +100,7 @@ def test_no_board_is_a_clear_error(procam):
 
 
 def test_too_few_views_is_a_clear_error(corners):
-    with pytest.raises(CalibrationError, match="only 2 usable view"):
+    with pytest.raises(CalibrationError, match="only 2 distinct board pose"):
         calibrate_camera([c.camera_view for c in corners[:2]], board=BOARD, size=(1280, 1024))
     with pytest.raises(CalibrationError, match="projector calibration: only 2 capture"):
         bad = corners[2].__class__(corners[2].name, corners[2].camera_view, BoardView("x", False, "only 3 corners", None, None))
@@ -110,3 +110,16 @@ def test_too_few_views_is_a_clear_error(corners):
 def test_wrong_layout_of_a_real_capture(procam):
     with pytest.raises(CalibrationError, match="darker"):
         read_capture(procam / "capture_1", projector=PROJ, layout="opencv-graycode-wb-first")
+
+
+def test_three_distinct_captures_leave_nothing_undetermined(calibration):
+    # the fit's own deviations are far inside the bounds (docs/calibration.md): fx to
+    # 0.4 % (camera) and 0.6 % (projector), the principal points to 2 % of the image
+    assert calibration.problems == [] and calibration.duplicates == []
+    assert calibration.camera.std[0] < 0.005 * calibration.camera.K[0, 0]
+    assert calibration.projector.std[0] < 0.007 * calibration.projector.K[0, 0]
+
+
+def test_one_capture_three_times_is_refused(corners):
+    with pytest.raises(CalibrationError, match="only 1 distinct board pose.*capture_1 = capture_1"):
+        calibrate_procam([corners[0]] * 3, board=BOARD, camera_size=(1280, 1024), projector_size=PROJ)

@@ -38,3 +38,24 @@ def test_binary_levels_only_are_refused():
     fr, lv = ramp(2.2, levels=(0, 1))
     with pytest.raises(CalibrationError, match="at least two grey levels"):
         estimate_light_gamma(fr, lv)
+
+
+def test_a_ramp_has_no_problems_a_repeated_frame_does():
+    from ringscan.pipeline.calibrate.response import repeated_frames, response_problems
+    fr, lv = ramp(2.2)
+    g, curve = estimate_light_gamma(fr, lv)
+    assert repeated_frames(fr, lv) == [] and response_problems(curve, g) == []
+    # the 0.5 frame given for 0.25, 0.5 and 0.75: a flat curve, still a gamma (0.91 in the issue)
+    fr2 = fr[[0, 2, 2, 2, 4]]
+    assert repeated_frames(fr2, lv) == [(1, 2), (1, 3)]
+    g2, curve2 = estimate_light_gamma(fr2, lv)
+    probs = response_problems(curve2, g2)
+    assert any("does not rise" in p for p in probs) and any("not a gamma curve" in p for p in probs)
+
+
+def test_non_finite_levels_are_refused_not_dropped():
+    fr, lv = ramp(2.2)
+    lv = lv.astype(float).copy()
+    lv[1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        estimate_light_gamma(fr, lv)
