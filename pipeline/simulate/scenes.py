@@ -42,7 +42,18 @@ the object's directions of a regular tetrahedron: z, then 109.47 degrees about x
 after 0, 120, 240 degrees about z; every surface normal is within 70.5 degrees of
 one of them, so a light along z lights every normal in some pose); or a
 general spec ``AXIS:DEG[,AXIS:DEG...]`` with AXIS one of x, y, z (turns applied
-left to right about the world axes), e.g. ``x:-90`` or ``x:135,z:20``.
+left to right about the world axes), e.g. ``x:-90`` or ``x:135,z:20``. A model
+that is Y-up (loaded with ``up="y"``) and faces +z in its own frame (a bust, a head)
+stands upright facing the light and camera of a rig looking at a wall with
+``x:-90``: its up turns to world +y, its front to +z.
+
+Placement and wall (:func:`place_scene`, :func:`add_wall`; a rig whose object does
+not stand on its reference plane, such as a projector and camera looking at a bust
+in front of a wall): ``place_scene`` moves the scene so that the centre of its
+bounding box lies at a given world point (the object then floats; nothing holds it
+up); ``add_wall`` adds an opaque wall, the plane z = Z as a square 20 m wide, to the
+scene's mesh (so it is part of the ground truth and lies inside a working volume
+whose floor is the reference plane z = 0, which the renderer still adds behind it).
 """
 
 from __future__ import annotations
@@ -76,6 +87,10 @@ CHESSBOARD_DARK = 0.04
 """Albedo of the black squares (printer ink)."""
 CHESSBOARD_LIGHT = 0.8
 """Albedo of the white squares and the margin (paper)."""
+WALL_HALF_SIZE_MM = 10000.0
+"""Half the side of :func:`add_wall`'s square: wider than any view of a rig within 100 m."""
+WALL_ALBEDO = 0.8
+"""Albedo of the wall's faces when the scene carries per-face albedo (else the render's one albedo)."""
 
 __all__ = [
     "SCENES",
@@ -83,6 +98,9 @@ __all__ = [
     "SceneMesh",
     "pose_rotation",
     "pose_scene",
+    "place_scene",
+    "add_wall",
+    "parse_point",
     "make_scene",
     "make_chessboard",
     "load_mesh_file",
@@ -469,3 +487,67 @@ def pose_scene(scene: SceneMesh, pose: str | None) -> tuple[SceneMesh, np.ndarra
     T[:3, :3] = R
     T[:3, 3] = shift - R @ c
     return SceneMesh(vertices=w + shift, faces=scene.faces, name=scene.name, face_albedo=scene.face_albedo), T
+
+
+# ----------------------------------------------------------------------------- placement and wall
+
+
+def parse_point(text: str, *, what: str = "point") -> tuple[float, float, float]:
+    """``"X,Y,Z"`` (mm) -> a finite 3-tuple.
+
+    Raises:
+        ValueError: naming ``what`` and the bad text.
+    """
+    parts = str(text).split(",")
+    try:
+        xyz = tuple(float(p) for p in parts)
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(math.isfinite(c) for c in xyz):
+        raise ValueError(f"{what}: expected X,Y,Z in mm (three finite numbers), got {text!r}")
+    if max(abs(c) for c in xyz) > 100000.0:
+        raise ValueError(f"{what}: {text!r} lies more than 100 m from the origin")
+    return xyz
+
+
+def place_scene(scene: SceneMesh, at) -> tuple[SceneMesh, np.ndarray]:
+    """Move the scene so that the centre of its bounding box lies at ``at`` (world mm).
+
+    Returns:
+        (moved scene, T): T the 4x4 translation from the scene's frame to the moved one.
+    """
+    at = np.asarray(at, np.float64)
+    if at.shape != (3,) or not np.all(np.isfinite(at)):
+        raise ValueError(f"place_scene: expected a finite (x, y, z) point, got {at!r}")
+    T = np.eye(4)
+    if scene.is_empty:
+        raise ValueError("place_scene: the plane scene has no object to place")
+    v = scene.vertices
+    T[:3, 3] = at - 0.5 * (v.min(0) + v.max(0))
+    return SceneMesh(vertices=v + T[:3, 3], faces=scene.faces, name=scene.name, face_albedo=scene.face_albedo), T
+
+
+def add_wall(scene: SceneMesh, z_mm: float, *, half_size_mm: float = WALL_HALF_SIZE_MM) -> SceneMesh:
+    """The scene plus a wall: the square |x|, |y| <= ``half_size_mm`` of the plane z = ``z_mm``.
+
+    Two triangles, counter-clockwise seen from +z (the renderer turns normals to the
+    camera either way). The object must lie wholly on the +z side of the wall.
+
+    Raises:
+        ValueError: a bad ``z_mm``, or an object reaching through the wall.
+    """
+    if isinstance(z_mm, bool) or not isinstance(z_mm, (int, float)) or not math.isfinite(z_mm):
+        raise ValueError(f"wall: expected a finite z in mm, got {z_mm!r}")
+    if not scene.is_empty and float(scene.vertices[:, 2].min()) < z_mm:
+        raise ValueError(f"wall: the object reaches down to z = {scene.vertices[:, 2].min():.1f} mm, behind the "
+                         f"wall at z = {z_mm:g} mm (place it in front: --place)")
+    h = float(half_size_mm)
+    wv = np.array([[-h, -h, z_mm], [h, -h, z_mm], [h, h, z_mm], [-h, h, z_mm]], np.float64)
+    n = scene.vertices.shape[0]
+    wf = np.array([[0, 1, 2], [0, 2, 3]], np.int32) + n
+    albedo = None
+    if scene.face_albedo is not None:
+        albedo = np.concatenate([scene.face_albedo, np.full(2, WALL_ALBEDO)])
+    return SceneMesh(vertices=np.concatenate([scene.vertices.reshape(-1, 3), wv]),
+                     faces=np.concatenate([scene.faces.reshape(-1, 3), wf]).astype(np.int32),
+                     name=scene.name, face_albedo=albedo)
