@@ -536,8 +536,9 @@ def add_wall(scene: SceneMesh, z_mm: float, *, half_size_mm: float = WALL_HALF_S
     Raises:
         ValueError: a bad ``z_mm``, or an object reaching through the wall.
     """
-    if isinstance(z_mm, bool) or not isinstance(z_mm, (int, float)) or not math.isfinite(z_mm):
-        raise ValueError(f"wall: expected a finite z in mm, got {z_mm!r}")
+    if isinstance(z_mm, bool) or not isinstance(z_mm, (int, float)) or not math.isfinite(z_mm) \
+            or abs(z_mm) > 100000.0:
+        raise ValueError(f"wall: expected a z in mm within 100 m of the reference plane, got {z_mm!r}")
     if not scene.is_empty and float(scene.vertices[:, 2].min()) < z_mm:
         raise ValueError(f"wall: the object reaches down to z = {scene.vertices[:, 2].min():.1f} mm, behind the "
                          f"wall at z = {z_mm:g} mm (place it in front: --place)")

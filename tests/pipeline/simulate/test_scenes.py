@@ -172,6 +172,9 @@ def test_place_and_wall():
     assert np.array_equal(walled.vertices[: s.vertices.shape[0]], placed.vertices)
     with pytest.raises(ValueError, match="behind the wall"):
         add_wall(placed, 280.0)
+    for bad in (float("nan"), -1e300, True):
+        with pytest.raises(ValueError, match="wall: expected"):
+            add_wall(placed, bad)
     board = add_wall(place_scene(make_scene("chessboard", size_mm=60.0), (0, 0, 50))[0], 10.0)
     assert board.face_albedo.shape == (board.faces.shape[0],) and np.all(board.face_albedo[-2:] == 0.8)
     # prepare_scene: pose, then place, then wall; the transform maps the upright scene to the placed one
