@@ -46,10 +46,12 @@ triangulation, not a calibration; a real rig adds calibration error on top.
     python benchmarks/oblique_rig.py --scan-dir DIR --reconstruct-args "--settings S.json"
     python benchmarks/oblique_rig.py --scan-dir DIR --reconstructed RECON_DIR   # measure a reconstruction only
 
-A full-size run (1920x1280, 44 frames) takes a few minutes on two CPU cores;
-``--scale 0.5`` renders with the camera's K and size scaled by 0.5 (then the camera
-sees about 0.65 camera pixels per projector pixel and the sub-pixel decode degrades;
-the import uses the scaled rig written next to the render).
+A full-size run (1920x1280, 44 frames) takes 3.5 minutes on two CPU cores;
+``--scale 0.5`` renders with the camera's K and size scaled by 0.5 (1 minute; the
+import uses the scaled rig written next to the render). Then a camera pixel sees
+about 1.5 projector pixels and the sub-pixel decode degrades (measured: decode ray-ray
+0.30 mm object median instead of 0.05, rings-only 2.3 mm instead of 0.18, integer
+unchanged at 0.70): a smoke run, not figures.
 """
 
 from __future__ import annotations
