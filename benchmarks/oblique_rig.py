@@ -28,6 +28,13 @@ wall, the truth mesh), for each way of getting points:
 - ``truth ray-ray``: the truth projector coordinates of each pixel, the same way (the
   floor set by the triangulation and the truth's pixel-centre convention, not by a decode).
 
+With ``--codec gray-rings`` (or ``phase-rings``) it also simulates ringscan's own codec on
+the same scene (``ringscan simulate`` without ``--captures``: a scan folder; rings centred
+on the projector's principal point as the import's, or ``--ring-center``),
+reconstructs it and prints its points' coverage (camera pixels with a point, and
+``evaluate``'s footprint coverage, the measure for codecs that sample ring boundaries),
+errors and its median's ratio to the integer decode's.
+
 Printed per method: coverage (pixels with a point / lit pixels) on the object and on
 the wall; median and p95 point-to-surface distance to the truth mesh on the object
 (and the median on the wall); the median on the object pixels that both the
@@ -45,6 +52,7 @@ triangulation, not a calibration; a real rig adds calibration error on top.
     python benchmarks/oblique_rig.py --scan-dir DIR                  # reuse DIR's render (and import)
     python benchmarks/oblique_rig.py --scan-dir DIR --reconstruct-args "--settings S.json"
     python benchmarks/oblique_rig.py --scan-dir DIR --reconstructed RECON_DIR   # measure a reconstruction only
+    python benchmarks/oblique_rig.py --scan-dir DIR --codec gray-rings      # + ringscan's own codec, same scene
 
 A full-size run (1920x1280, 44 frames) takes 3.5 minutes on two CPU cores;
 ``--scale 0.5`` renders with the camera's K and size scaled by 0.5 (1 minute; the
@@ -71,13 +79,15 @@ import numpy as np
 
 from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
 from ringscan.pipeline.calibrate.importer import procam_pose, triangulate_codes
-from ringscan.pipeline.evaluate.metrics import point_distances
+from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import load_rig, save_rig
+from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.geometry import camera_rays, projector_pixels
-from ringscan.pipeline.simulate.opencv_graycode import CAPTURE, read_graycode_truth
+from ringscan.pipeline.simulate.opencv_graycode import CAPTURE, OBJECT_MIN_HEIGHT_MM, read_graycode_truth
+from ringscan.pipeline.simulate.truth import load_truth
 
 DATA = Path(os.environ.get("RINGSCAN_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 RIG = DATA / "rigs" / "oblique_projector.json"
@@ -123,8 +133,10 @@ def ray_ray(rig, px: np.ndarray, proj: np.ndarray) -> np.ndarray:
     return to_world(rig, Xc)
 
 
-def grazing_map(rig, truth: dict, mask: np.ndarray) -> np.ndarray:
-    """(H, W) bool: ``mask`` pixels whose camera ray meets its ring's cone at |cos| < GRAZING_COS."""
+def grazing_map(rig, truth: dict, mask: np.ndarray, centre=None) -> np.ndarray:
+    """(H, W) bool: ``mask`` pixels whose camera ray meets its ring's cone at |cos| < GRAZING_COS.
+
+    The rings are centred on ``centre`` (projector px; default the principal point, as imported)."""
     yy, xx = np.nonzero(mask)
     _, d = camera_rays(rig, np.stack([xx, yy], 1).astype(np.float64))
     depth = truth["depth"][yy, xx].astype(np.float64)
@@ -132,7 +144,7 @@ def grazing_map(rig, truth: dict, mask: np.ndarray) -> np.ndarray:
     # the centre ray's point: camera-frame Z = depth along the unit ray's z component
     dz = d @ c.R.T
     X = c.center + d * (depth / dz[:, 2])[:, None]
-    centre = rig.light.K[:2, 2]
+    centre = rig.light.K[:2, 2] if centre is None else np.asarray(centre, np.float64)
 
     def rho(P):
         return np.hypot(*(projector_pixels(rig, P) - centre).T)
@@ -180,6 +192,61 @@ def measure(name: str, px: np.ndarray, P: np.ndarray, truth: dict, mesh, keep_re
     return res
 
 
+def scan_truth(render: Path) -> dict:
+    """depth, lit and object masks of a simulated scan's first view (object: off the wall by 0.5 mm)."""
+    scan = load_scan(render)
+    t = load_truth(scan)
+    view = scan.views[0].name
+    depth, lit = t.depth(view), t.lit(view)
+    H, W = depth.shape
+    yy, xx = np.nonzero(np.isfinite(depth))
+    _, d = camera_rays(scan.rig, np.stack([xx, yy], 1).astype(np.float64))
+    c = scan.rig.camera
+    z = (c.center + d * (depth[yy, xx] / (d @ c.R.T)[:, 2])[:, None])[:, 2]
+    obj = np.zeros((H, W), bool)
+    obj[yy, xx] = z > float(scan.extra["truth"].get("wall_z", 0.0)) + OBJECT_MIN_HEIGHT_MM
+    return {"scan": scan, "view": view, "depth": depth, "lit": lit, "object": obj}
+
+
+def ring_codec(codec: str, *, rs: str, work: Path, rig_path: Path, model: str, extra: list, dev: list, mesh,
+               integer_median: float, centre) -> None:
+    """ringscan's own codec on the same scene: simulate (scan folder), reconstruct, measure."""
+    render = work / f"render_{codec}"
+    if not (render / "scan.json").is_file():
+        run([rs, "simulate", "--rig", str(rig_path), "--scene", model, "--size-mm", str(SIZE_MM), "--up", "y",
+             "--pose", POSE, "--place=" + ",".join(f"{c:g}" for c in PLACE), "--wall", str(WALL_Z),
+             "--codec", codec, "--center", f"{centre[0]:.4f}", f"{centre[1]:.4f}", "--no-progress", "--out",
+             str(render), *dev])
+    else:
+        print(f"reusing the render in {render}")
+    tag = "_".join(a.strip("-").replace("/", "_") for a in extra)[:60]
+    recon = work / (f"recon_{codec}" + (f"_{tag}" if tag else ""))
+    run([rs, "reconstruct", str(render), "--out", str(recon), "--no-progress", *dev, *extra])
+    truth = scan_truth(render)
+    scan = truth["scan"]
+    cl = read_ply(sorted(recon.glob("*.ply"))[0])
+    px = np.stack([np.round(cl["u"]), np.round(cl["v"])], 1).astype(int)
+    P = np.stack([cl["x"], cl["y"], cl["z"]], 1).astype(np.float64)
+    r = measure(f"{codec} reconstruct", px, P, truth, mesh, None)
+    ev = evaluate_view(scan, truth["view"], P[np.all(np.isfinite(P), 1)])
+    lit_obj = truth["lit"] & truth["object"]
+    graz = grazing_map(scan.rig, truth, lit_obj, centre=scan.patterns.center)
+    rest = lit_obj & ~graz
+    rep = json.loads((recon / "report.json").read_text())
+    print(f"\n{codec} on the same scene ({len(scan.views[0].frames)} frames, rings centred on "
+          f"{tuple(round(c, 1) for c in scan.patterns.center)}): {recon} {' '.join(extra)}")
+    print("| method | points | object pixels with a point | object coverage (evaluate, footprint) | "
+          "object median mm | object p95 mm | wall median mm | object median / integer ray-ray |")
+    print("|---|---|---|---|---|---|---|---|")
+    print(f"| {r['name']} | {r['points']} | {100 * r['cov_obj']:.1f} % | {100 * ev['coverage_object']:.1f} % | "
+          f"{r['med_obj']:.4f} | {r['p95_obj']:.4f} | {r['med_wall']:.4f} | {r['med_obj'] / integer_median:.2f}x |")
+    print(f"lit object pixels with |cos| < {GRAZING_COS} to their ring's cone: "
+          f"{100 * graz.sum() / max(1, lit_obj.sum()):.1f} %; object pixels with a point there / elsewhere: "
+          f"{100 * (r['has'] & graz).sum() / max(1, graz.sum()):.1f} % / "
+          f"{100 * (r['has'] & rest).sum() / max(1, rest.sum()):.1f} %")
+    print(f"reconstruct drops: {json.dumps(rep.get('totals', {}).get('dropped', {}))}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work", default=None, help="work folder (default: a temporary one, removed)")
@@ -192,6 +259,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rig", default=str(RIG), help=f"the rig (default {RIG})")
     ap.add_argument("--model", default=str(MODEL), help=f"the object mesh (default {MODEL})")
     ap.add_argument("--scale", type=float, default=1.0, help="camera image scale (default 1: 1920x1280)")
+    ap.add_argument("--codec", action="append", default=[], choices=("gray-rings", "phase-rings"),
+                    help="also simulate ringscan's own codec on the same scene (scan folder) and measure it "
+                         "(repeatable; its reconstruction gets --reconstruct-args too)")
+    ap.add_argument("--ring-center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
+                    help="ring centre of --codec (default the projector's principal point, as the import uses)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
     if not Path(args.rig).is_file() or not Path(args.model).is_file():
@@ -310,6 +382,9 @@ def main(argv=None) -> int:
           f"{np.median(du):.3f} px, p95 {np.percentile(du, 95):.3f}; |dv| median {np.median(dv):.3f} px, p95 "
           f"{np.percentile(dv, 95):.3f}")
     print(f"reconstruct drops: {json.dumps(drops)}")
+    for codec in args.codec:
+        ring_codec(codec, rs=rs, work=work, rig_path=rig_path, model=args.model, extra=extra, dev=dev, mesh=mesh,
+                   integer_median=ref, centre=args.ring_center or tuple(rig.light.K[:2, 2]))
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -49,6 +49,9 @@ def add_parser(sub):
                    help="camera response gamma (default 2.2 for the built-in rig, the rig file's otherwise)")
     p.add_argument("--views", type=int, default=1, help="turntable views at k * 360 / N degrees (default 1)")
     add_pattern_options(p, size=False)
+    p.add_argument("--center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
+                   help="pattern (ring) centre in projector px (default the image centre, (W-1)/2, (H-1)/2; "
+                        "a projector's principal point makes the rings' cones right circular)")
     s = p.add_argument_group("rendering")
     d = RenderSettings()
     s.add_argument("--noise", type=float, default=d.noise,
@@ -137,7 +140,7 @@ def run(args) -> int:
         return _run_graycode(args, out, rig, place)
     li = rig.light
     width, height = (li.width, li.height) if getattr(li, "width", 0) else (1024, 768)
-    spec = pattern_spec_from_args(args, width, height)
+    spec = pattern_spec_from_args(args, width, height, args.center)
     inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
     check_no_overwrite(_outputs(out, spec, args.views, args.format), inputs)
     settings = _settings(args)

@@ -77,6 +77,7 @@ def test_simulate_cli_place_and_wall(tmp_path, capsys):
     out = tmp_path / "scan"
     assert main(["simulate", "--scene", "cube", "--size-mm", "30", "--rig", str(rig), "--bits", "3", "--rho0", "4",
                  "--pitch", "3", "--sector-bits", "0", "--supersample", "1", "--place=-10,5,40", "--wall", "10",
+                 "--center", "120", "90.5",
                  "--out", str(out), "--device", "cpu", "--no-progress"]) == 0
     capsys.readouterr()
     t = load_truth(out)
@@ -85,6 +86,7 @@ def test_simulate_cli_place_and_wall(tmp_path, capsys):
     assert np.all(t.vertices[-4:, 2] == 10.0) and t.faces.shape == (14, 3)
     extra = read_json(out / "scan.json")["truth"]
     assert extra["wall_z"] == 10.0 and extra["pose"]["place"] == [-10.0, 5.0, 40.0]
+    assert load_scan(out).patterns.center == (120.0, 90.5)
 
 
 def test_simulate_cli_opencv_graycode_errors(tmp_path, capsys):
