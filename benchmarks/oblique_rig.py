@@ -7,7 +7,8 @@ scaled to 600 mm, stood up facing the rig, 2.7-3.2 m from the camera (the real
 scan's object stood 2.4-3.3 m off), 0.3 m in front of a wall (the plane z = 500 mm),
 where the camera's rays run nearly along the projector's cones of constant ring radius:
 78 % of its lit pixels meet their cone at |cos| < 0.1 (on the real scan, 75 % of the
-torso's). Moved 300 mm to the right (``PLACE``), the same bust has 2 % there. Steps, each a ``ringscan`` command (printed, so any can be rerun by hand):
+torso's). Moved 300 mm to the right (``PLACE``), the same bust has 2 % there. Steps,
+each a ``ringscan`` command (printed, so any can be rerun by hand):
 
 1. ``ringscan simulate --captures opencv-graycode``: the column/row Gray code of a
    1280x800 projector, as OpenCV's structured-light module writes it (44 frames),
@@ -372,7 +373,7 @@ def main(argv=None) -> int:
               f"{r['med_obj']:.3f} | {r['p95_obj']:.3f} | {r['med_wall']:.3f} | "
               f"{'-' if mb is None else f'{mb:.3f}'} |")
     ref = rows[1]["med_obj"]
-    print(f"\nobject median / integer ray-ray median: "
+    print("\nobject median / integer ray-ray median: "
           + ", ".join(f"{r['name']} {r['med_obj'] / ref:.2f}x" for r in rows))
     print(f"lit object pixels with |cos| < {GRAZING_COS} between the camera ray and the ring cone: {100 * graz:.1f} %")
     print("object coverage where |cos| < 0.1 / elsewhere: " + ", ".join(

@@ -34,7 +34,8 @@ def add_parser(sub):
                         "bounding-box centre, then set down on z = 0")
     p.add_argument("--place", default=None, metavar="X,Y,Z",
                    help="put the centre of the object's bounding box at this world point (mm) instead of "
-                        "standing it on z = 0 at the origin (a rig looking at a wall: see docs/virtual_rig.md); write --place=-50,436,1000 when X is negative")
+                        "standing it on z = 0 at the origin (a rig looking at a wall: see docs/virtual_rig.md); "
+                        "write --place=-50,436,1000 when X is negative")
     p.add_argument("--wall", type=float, default=None, metavar="Z",
                    help="add an opaque wall, the plane z = Z (mm), behind the object, part of the ground truth")
     p.add_argument("--captures", choices=("scan", "opencv-graycode"), default="scan",

@@ -10,11 +10,11 @@ import pytest
 
 from ringscan.pipeline.evaluate.metrics import evaluate_recon, evaluate_view, truth_points
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.ply import read_ply, write_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-from ringscan.tools.cli import main
-from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.cli import main
 from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
 
 
