@@ -9,8 +9,9 @@ from pathlib import Path
 from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_folder
 from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.rig import default_rig, load_rig
+from ringscan.pipeline.simulate.opencv_graycode import graycode_outputs, render_graycode_captures
 from ringscan.pipeline.simulate.scan import simulate_scan
-from ringscan.pipeline.simulate.scenes import SCENES
+from ringscan.pipeline.simulate.scenes import SCENES, parse_point
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import add_device_option
 from ringscan.tools.cmd_patterns import add_pattern_options, pattern_spec_from_args
@@ -31,6 +32,16 @@ def add_parser(sub):
                         "tetra-1, tetra-2, tetra-3 (with upright: the 4 poses that light every normal), or "
                         "AXIS:DEG[,AXIS:DEG...] (e.g. x:-90 or x:135,z:20); the object is turned about its "
                         "bounding-box centre, then set down on z = 0")
+    p.add_argument("--place", default=None, metavar="X,Y,Z",
+                   help="put the centre of the object's bounding box at this world point (mm) instead of "
+                        "standing it on z = 0 at the origin (a rig looking at a wall: see docs/virtual_rig.md); "
+                        "write --place=-50,436,1000 when X is negative")
+    p.add_argument("--wall", type=float, default=None, metavar="Z",
+                   help="add an opaque wall, the plane z = Z (mm), behind the object, part of the ground truth")
+    p.add_argument("--captures", choices=("scan", "opencv-graycode"), default="scan",
+                   help="scan (default): a ringscan scan folder of --codec; opencv-graycode: OpenCV's column/row "
+                        "Gray code for the rig's projector, as capture_0/graycode_NN.png plus rig.json and truth/, "
+                        "for `ringscan import` (the pattern options do not apply)")
     p.add_argument("--out", required=True, help="scan folder to write")
     p.add_argument("--rig", default=None, help="rig file (default: the built-in virtual rig)")
     p.add_argument("--light", choices=("parallel", "perspective"), default=None,
@@ -39,6 +50,9 @@ def add_parser(sub):
                    help="camera response gamma (default 2.2 for the built-in rig, the rig file's otherwise)")
     p.add_argument("--views", type=int, default=1, help="turntable views at k * 360 / N degrees (default 1)")
     add_pattern_options(p, size=False)
+    p.add_argument("--center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
+                   help="pattern (ring) centre in projector px (default the image centre, (W-1)/2, (H-1)/2; "
+                        "a projector's principal point makes the rings' cones right circular)")
     s = p.add_argument_group("rendering")
     d = RenderSettings()
     s.add_argument("--noise", type=float, default=d.noise,
@@ -82,6 +96,37 @@ def _outputs(out: Path, spec, views: int, fmt: str) -> list[Path]:
     return files
 
 
+def _settings(args) -> RenderSettings:
+    return RenderSettings(supersample=args.supersample, ambient=args.ambient, albedo=args.albedo,
+                          defocus_px=args.defocus, noise=args.noise, bit_depth=args.bit_depth,
+                          exposure=args.exposure, seed=args.seed)
+
+
+def _run_graycode(args, out: Path, rig, place) -> int:
+    """``--captures opencv-graycode``: OpenCV's Gray code for the rig's projector, one capture."""
+    li = rig.light
+    if not (getattr(li, "width", 0) and getattr(li, "height", 0)):
+        raise ValueError("--captures opencv-graycode: the rig's light does not state its size (a projector's "
+                         "width and height)")
+    if args.views != 1:
+        raise ValueError(f"--captures opencv-graycode renders one capture; got --views {args.views}")
+    if args.format != "png":
+        raise ValueError("--captures opencv-graycode writes PNG frames (OpenCV's files); drop --image-format")
+    inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
+    check_no_overwrite(graycode_outputs(out, (li.width, li.height)), inputs)
+    t0 = time.perf_counter()
+    doc = render_graycode_captures(out, rig=rig, scene=args.scene, settings=_settings(args), device=args.device,
+                                   progress=not args.no_progress, size_mm=args.size_mm, up=args.up, pose=args.pose,
+                                   place=place, wall_z=args.wall)
+    cap = next(iter(doc["captures"]))
+    print(f"{doc['captures'][cap]['frames']} opencv-graycode frames of {args.scene} for a {li.width}x{li.height} "
+          f"projector ({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in "
+          f"{time.perf_counter() - t0:.1f} s -> {out / cap} (rig {out / 'rig.json'}, truth in {out / 'truth'}); "
+          f"import: ringscan import {out / cap} --rig {out / 'rig.json'} --projector {li.width}x{li.height} "
+          "--out SCAN")
+    return 0
+
+
 def _gamma(g: float) -> float:
     if not g > 0:
         raise ValueError(f"--gamma: must be > 0, got {g}")
@@ -91,18 +136,19 @@ def _gamma(g: float) -> float:
 def run(args) -> int:
     out = check_output_folder(args.out, what="scan folder (--out)")
     rig = build_rig(args)
+    place = parse_point(args.place, what="--place") if args.place is not None else None
+    if args.captures == "opencv-graycode":
+        return _run_graycode(args, out, rig, place)
     li = rig.light
     width, height = (li.width, li.height) if getattr(li, "width", 0) else (1024, 768)
-    spec = pattern_spec_from_args(args, width, height)
+    spec = pattern_spec_from_args(args, width, height, args.center)
     inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
     check_no_overwrite(_outputs(out, spec, args.views, args.format), inputs)
-    settings = RenderSettings(supersample=args.supersample, ambient=args.ambient, albedo=args.albedo,
-                              defocus_px=args.defocus, noise=args.noise, bit_depth=args.bit_depth,
-                              exposure=args.exposure, seed=args.seed)
+    settings = _settings(args)
     t0 = time.perf_counter()
     scan = simulate_scan(args.out, scene=args.scene, rig=rig, patterns=spec, views=args.views, settings=settings,
                          device=args.device, progress=not args.no_progress, size_mm=args.size_mm, up=args.up,
-                         image_format=args.format, pose=args.pose)
+                         image_format=args.format, pose=args.pose, place=place, wall_z=args.wall)
     n_frames = len(scan.views[0].frames) if scan.views else 0
     print(f"{len(scan.views)} view(s) x {n_frames} {spec.codec} frame(s) of {args.scene} "
           f"({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in {time.perf_counter() - t0:.1f} s "

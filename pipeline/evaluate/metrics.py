@@ -14,7 +14,8 @@ turntable angle) plus the reference plane z = 0. Figures:
   for the dense codec, whichever is larger); on a slope the curves lie 1 / cos theta
   farther apart on the surface, so a point between two sampled rings is covered
   and a ring that was not sampled is not. Reported for the whole view and for the
-  object alone (truth points more than 0.5 mm above the plane).
+  object alone (truth points more than 0.5 mm off the plane, and off the wall of a
+  scan simulated with one, truth ``wall_z``).
 
 Points with a NaN or infinite coordinate are left out of every figure and
 counted (``non_finite_points``); a cloud with no finite point has no error
@@ -192,7 +193,10 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
         light_dir = light_directions(scan.rig, X)
         cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
         near = dn <= r / np.maximum(cos_t, 0.25)
-        obj = np.abs(X[:, 2] - float(scan.extra["truth"].get("reference_plane_z", 0.0))) > 0.5
+        tr = scan.extra["truth"]
+        obj = np.abs(X[:, 2] - float(tr.get("reference_plane_z", 0.0))) > 0.5
+        if isinstance(tr.get("wall_z"), (int, float)):          # a simulated wall is not the object
+            obj &= np.abs(X[:, 2] - float(tr["wall_z"])) > 0.5
         out["coverage"] = float(near.mean())
         out["coverage_object"] = float(near[obj].mean()) if obj.any() else None
     else:

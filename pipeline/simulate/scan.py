@@ -15,13 +15,50 @@ from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 from ringscan.pipeline.formats.rig import Rig, default_rig, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
-from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene, pose_scene
+from ringscan.pipeline.simulate.scenes import SceneMesh, add_wall, make_scene, place_scene, pose_scene
 from ringscan.pipeline.simulate.truth import TRUTH_DIR, _write_depth, _write_mesh
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _mix_seed, view_angles
 
 log = logging.getLogger(__name__)
 
-__all__ = ["simulate_scan"]
+__all__ = ["simulate_scan", "prepare_scene"]
+
+
+def prepare_scene(scene: SceneMesh | str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto",
+                  pose: str | None = None, place=None, wall_z: float | None = None) -> tuple[SceneMesh, dict]:
+    """The scene as the virtual rig renders it: made (or loaded), posed, placed, with its wall.
+
+    Args:
+        scene: a :class:`SceneMesh`, a procedural scene name or a mesh file path.
+        size_mm, up: for :func:`make_scene` when ``scene`` is a name or path.
+        pose: see :func:`pose_scene` (None: as made).
+        place: (x, y, z) world mm for the centre of the object's bounding box
+            (:func:`place_scene`); None: standing on z = 0, centred on the light axis.
+        wall_z: add a wall, the plane z = ``wall_z`` (:func:`add_wall`); None: none
+            (the reference plane z = 0 is always there).
+
+    Returns:
+        (scene, truth): ``truth`` the scan.json ``truth`` entries that record it:
+        ``pose`` ({"name", "transform"}: the 4x4 from the upright scene to the posed
+        and placed one) when posed or placed, ``wall_z`` when a wall was added.
+    """
+    if not isinstance(scene, SceneMesh):
+        scene = make_scene(scene, size_mm=size_mm, up=up)
+    info: dict = {}
+    T = np.eye(4)
+    if pose is not None:
+        scene, T = pose_scene(scene, pose)
+    if place is not None:
+        scene, Tp = place_scene(scene, place)
+        T = Tp @ T
+    if pose is not None or place is not None:
+        info["pose"] = {"name": str(pose or "upright"), "transform": T.tolist()}
+        if place is not None:
+            info["pose"]["place"] = [float(c) for c in place]
+    if wall_z is not None:
+        scene = add_wall(scene, float(wall_z))
+        info["wall_z"] = float(wall_z)
+    return scene, info
 
 
 def simulate_scan(
@@ -39,6 +76,8 @@ def simulate_scan(
     up: str = "auto",
     image_format: str = "png",
     pose: str | None = None,
+    place=None,
+    wall_z: float | None = None,
 ) -> Scan:
     """Render a whole scan with the virtual rig and write it with its ground truth.
 
@@ -59,6 +98,8 @@ def simulate_scan(
             ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
             The truth mesh is the posed scene, and scan.json ``truth.pose`` records
             the transform from the upright scene.
+        place, wall_z: see :func:`prepare_scene` (a bust in front of a wall: the
+            object floats at ``place``, the wall, part of the truth mesh, behind it).
 
     Returns:
         The written scan (as :func:`load_scan` reads it back).
@@ -75,11 +116,7 @@ def simulate_scan(
         raise ValueError("turntable_deg: no views")
     for a in angles:
         turntable_transform(rig.turntable, a)
-    if not isinstance(scene, SceneMesh):
-        scene = make_scene(scene, size_mm=size_mm, up=up)
-    pose_T = None
-    if pose is not None:
-        scene, pose_T = pose_scene(scene, pose)
+    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
     vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=(patterns.width, patterns.height))
 
     folder = Path(out_dir)
@@ -88,8 +125,7 @@ def simulate_scan(
     _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
              "settings": settings.to_dict()}
-    if pose_T is not None:
-        truth["pose"] = {"name": str(pose), "transform": pose_T.tolist()}
+    truth.update(placed)
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
 

@@ -6,6 +6,9 @@ Every scene is a triangle mesh in millimetres in the world frame (docs/design.md
 ``size_mm`` is the longest side of its axis-aligned bounding box (before the cube's
 turn about z). The scenes, the mesh loading (``up`` axis, scaling) and the named
 poses are described in docs/virtual_rig.md ("Scenes") and docs/fusion.md (``--pose``).
+:func:`place_scene` moves a scene's bounding-box centre to a world point and
+:func:`add_wall` adds a wall z = Z to it (a rig looking at a bust in front of a wall,
+docs/virtual_rig.md, "The oblique rig").
 """
 
 from __future__ import annotations
@@ -39,6 +42,10 @@ CHESSBOARD_DARK = 0.04
 """Albedo of the black squares (printer ink)."""
 CHESSBOARD_LIGHT = 0.8
 """Albedo of the white squares and the margin (paper)."""
+WALL_HALF_SIZE_MM = 10000.0
+"""Half the side of :func:`add_wall`'s square: wider than any view of a rig within 100 m."""
+WALL_ALBEDO = 0.8
+"""Albedo of the wall's faces when the scene carries per-face albedo (else the render's one albedo)."""
 
 __all__ = [
     "SCENES",
@@ -46,6 +53,9 @@ __all__ = [
     "SceneMesh",
     "pose_rotation",
     "pose_scene",
+    "place_scene",
+    "add_wall",
+    "parse_point",
     "make_scene",
     "make_chessboard",
     "load_mesh_file",
@@ -432,3 +442,68 @@ def pose_scene(scene: SceneMesh, pose: str | None) -> tuple[SceneMesh, np.ndarra
     T[:3, :3] = R
     T[:3, 3] = shift - R @ c
     return SceneMesh(vertices=w + shift, faces=scene.faces, name=scene.name, face_albedo=scene.face_albedo), T
+
+
+# ----------------------------------------------------------------------------- placement and wall
+
+
+def parse_point(text: str, *, what: str = "point") -> tuple[float, float, float]:
+    """``"X,Y,Z"`` (mm) -> a finite 3-tuple.
+
+    Raises:
+        ValueError: naming ``what`` and the bad text.
+    """
+    parts = str(text).split(",")
+    try:
+        xyz = tuple(float(p) for p in parts)
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(math.isfinite(c) for c in xyz):
+        raise ValueError(f"{what}: expected X,Y,Z in mm (three finite numbers), got {text!r}")
+    if max(abs(c) for c in xyz) > 100000.0:
+        raise ValueError(f"{what}: {text!r} lies more than 100 m from the origin")
+    return xyz
+
+
+def place_scene(scene: SceneMesh, at) -> tuple[SceneMesh, np.ndarray]:
+    """Move the scene so that the centre of its bounding box lies at ``at`` (world mm).
+
+    Returns:
+        (moved scene, T): T the 4x4 translation from the scene's frame to the moved one.
+    """
+    at = np.asarray(at, np.float64)
+    if at.shape != (3,) or not np.all(np.isfinite(at)):
+        raise ValueError(f"place_scene: expected a finite (x, y, z) point, got {at!r}")
+    T = np.eye(4)
+    if scene.is_empty:
+        raise ValueError("place_scene: the plane scene has no object to place")
+    v = scene.vertices
+    T[:3, 3] = at - 0.5 * (v.min(0) + v.max(0))
+    return SceneMesh(vertices=v + T[:3, 3], faces=scene.faces, name=scene.name, face_albedo=scene.face_albedo), T
+
+
+def add_wall(scene: SceneMesh, z_mm: float, *, half_size_mm: float = WALL_HALF_SIZE_MM) -> SceneMesh:
+    """The scene plus a wall: the square |x|, |y| <= ``half_size_mm`` of the plane z = ``z_mm``.
+
+    Two triangles, counter-clockwise seen from +z (the renderer turns normals to the
+    camera either way). The object must lie wholly on the +z side of the wall.
+
+    Raises:
+        ValueError: a bad ``z_mm``, or an object reaching through the wall.
+    """
+    if isinstance(z_mm, bool) or not isinstance(z_mm, (int, float)) or not math.isfinite(z_mm) \
+            or abs(z_mm) > 100000.0:
+        raise ValueError(f"wall: expected a z in mm within 100 m of the reference plane, got {z_mm!r}")
+    if not scene.is_empty and float(scene.vertices[:, 2].min()) < z_mm:
+        raise ValueError(f"wall: the object reaches down to z = {scene.vertices[:, 2].min():.1f} mm, behind the "
+                         f"wall at z = {z_mm:g} mm (place it in front: --place)")
+    h = float(half_size_mm)
+    wv = np.array([[-h, -h, z_mm], [h, -h, z_mm], [h, h, z_mm], [-h, h, z_mm]], np.float64)
+    n = scene.vertices.shape[0]
+    wf = np.array([[0, 1, 2], [0, 2, 3]], np.int32) + n
+    albedo = None
+    if scene.face_albedo is not None:
+        albedo = np.concatenate([scene.face_albedo, np.full(2, WALL_ALBEDO)])
+    return SceneMesh(vertices=np.concatenate([scene.vertices.reshape(-1, 3), wv]),
+                     faces=np.concatenate([scene.faces.reshape(-1, 3), wf]).astype(np.int32),
+                     name=scene.name, face_albedo=albedo)

@@ -69,3 +69,37 @@ def test_simulate_cli_errors(tmp_path, capsys):
     assert "supersample" in capsys.readouterr().err
     assert main(["simulate", "--rig", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 2
     assert "none.json" in capsys.readouterr().err
+
+
+def test_simulate_cli_place_and_wall(tmp_path, capsys):
+    """--place moves the object's centre, --wall adds the wall to the truth mesh; both recorded."""
+    rig = _small_rig_file(tmp_path / "rig.json")
+    out = tmp_path / "scan"
+    assert main(["simulate", "--scene", "cube", "--size-mm", "30", "--rig", str(rig), "--bits", "3", "--rho0", "4",
+                 "--pitch", "3", "--sector-bits", "0", "--supersample", "1", "--place=-10,5,40", "--wall", "10",
+                 "--center", "120", "90.5",
+                 "--out", str(out), "--device", "cpu", "--no-progress"]) == 0
+    capsys.readouterr()
+    t = load_truth(out)
+    cube = t.vertices[:-4]
+    assert np.allclose(0.5 * (cube.min(0) + cube.max(0)), [-10.0, 5.0, 40.0])
+    assert np.all(t.vertices[-4:, 2] == 10.0) and t.faces.shape == (14, 3)
+    extra = read_json(out / "scan.json")["truth"]
+    assert extra["wall_z"] == 10.0 and extra["pose"]["place"] == [-10.0, 5.0, 40.0]
+    assert load_scan(out).patterns.center == (120.0, 90.5)
+
+
+def test_simulate_cli_opencv_graycode_errors(tmp_path, capsys):
+    """Bad input for --captures opencv-graycode / --place / --wall: one line, nothing written."""
+    rig = _small_rig_file(tmp_path / "rig.json")
+    base = ["simulate", "--scene", "cube", "--size-mm", "30", "--rig", str(rig), "--device", "cpu", "--no-progress"]
+    cases = [(["--captures", "opencv-graycode", "--views", "2"], "--views 2"),
+             (["--captures", "opencv-graycode", "--image-format", "tiff"], "PNG"),
+             (["--place", "1,2"], "--place: expected X,Y,Z"),
+             (["--place=0,0,20", "--wall", "10"], "behind the wall")]
+    for k, (args, msg) in enumerate(cases):
+        out = tmp_path / f"o{k}"
+        assert main(base + args + ["--out", str(out)]) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1, err
+        assert not out.exists() or not any(out.iterdir()), args

@@ -8,12 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.evaluate.metrics import evaluate_recon, evaluate_view, truth_points
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.ply import read_ply, write_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
 
 
 @pytest.fixture(scope="module")
@@ -86,3 +88,17 @@ def test_clouds_that_do_not_match_the_truth_scan(recon, tmp_path):
     (tmp_path / "rec" / "report.json").write_text(json.dumps({"views": [{"name": "view_000"}]}))
     with pytest.raises(FormatError, match=r"report.json: views\[0\]: expected an object with a name and a ply"):
         evaluate_recon(tmp_path / "rec", scan)
+
+
+def test_a_simulated_wall_is_not_the_object(tmp_path):
+    """A 16 mm cube floating in front of a wall at z = 5 (inside the coded annulus): points on the wall cover the
+    view but not the object; points on the cube cover the object."""
+    scan = simulate_scan(tmp_path / "scan", scene="cube", size_mm=16.0, rig=tiny_rig(), place=(0.0, 0.0, 30.0),
+                         wall_z=5.0, patterns=parse_patterns(TINY_PATTERNS), progress=False)
+    X, _ = truth_points(scan, "view_000")
+    on_wall = np.abs(X[:, 2] - 5.0) < 0.01
+    assert on_wall.sum() > 100 and (~on_wall).sum() > 50
+    wall = evaluate_view(scan, "view_000", X[on_wall], coverage_radius_mm=1.0)
+    assert wall["median_mm"] < 0.01 and 0 < wall["coverage"] < 1 and wall["coverage_object"] == 0.0
+    cube = evaluate_view(scan, "view_000", X[~on_wall], coverage_radius_mm=1.0)
+    assert cube["coverage_object"] == 1.0

@@ -7,13 +7,17 @@ import open3d as o3d
 import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.simulate.scan import prepare_scene
 from ringscan.pipeline.simulate.scenes import (
     SCENES,
+    add_wall,
     corner_normals,
     icosphere,
     load_mesh_file,
     make_chessboard,
     make_scene,
+    parse_point,
+    place_scene,
     pose_scene,
 )
 
@@ -149,3 +153,41 @@ def test_chessboard_squares_and_corners():
         make_chessboard(1, 6, 5.0)
     with pytest.raises(ValueError, match="dark"):
         make_chessboard(9, 6, 5.0, dark=2.0)
+
+
+def test_place_and_wall():
+    """A bust in front of a wall: the bounding-box centre moved to the point, the wall
+    two triangles of the plane z = Z behind it, both recorded as truth."""
+    s = make_scene("cube", size_mm=50.0)
+    placed, T = place_scene(s, (100.0, -20.0, 300.0))
+    lo, hi = placed.vertices.min(0), placed.vertices.max(0)
+    assert np.allclose(0.5 * (lo + hi), [100.0, -20.0, 300.0])
+    assert np.allclose(placed.vertices, s.vertices + T[:3, 3]) and np.allclose(T[:3, :3], np.eye(3))
+    walled = add_wall(placed, 200.0)
+    assert walled.faces.shape[0] == s.faces.shape[0] + 2
+    w = walled.vertices[walled.faces[-2:]].reshape(-1, 3)
+    assert np.all(w[:, 2] == 200.0) and np.ptp(w[:, 0]) >= 10000 and np.ptp(w[:, 1]) >= 10000
+    n = np.cross(w[1] - w[0], w[2] - w[0])
+    assert n[2] > 0                                         # counter-clockwise seen from +z
+    assert np.array_equal(walled.vertices[: s.vertices.shape[0]], placed.vertices)
+    with pytest.raises(ValueError, match="behind the wall"):
+        add_wall(placed, 280.0)
+    for bad in (float("nan"), -1e300, True):
+        with pytest.raises(ValueError, match="wall: expected"):
+            add_wall(placed, bad)
+    board = add_wall(place_scene(make_scene("chessboard", size_mm=60.0), (0, 0, 50))[0], 10.0)
+    assert board.face_albedo.shape == (board.faces.shape[0],) and np.all(board.face_albedo[-2:] == 0.8)
+    # prepare_scene: pose, then place, then wall; the transform maps the upright scene to the placed one
+    sc, info = prepare_scene("cube", size_mm=50.0, pose="x:90", place=(0.0, 0.0, 500.0), wall_z=100.0)
+    T = np.array(info["pose"]["transform"])
+    up = make_scene("cube", size_mm=50.0)
+    assert np.allclose(up.vertices @ T[:3, :3].T + T[:3, 3], sc.vertices[:-4])
+    assert info["wall_z"] == 100.0 and info["pose"]["place"] == [0.0, 0.0, 500.0]
+    assert prepare_scene("cube", size_mm=50.0)[1] == {}
+
+
+@pytest.mark.parametrize("text", ["1,2", "1,2,x", "1,2,nan", "1,2,3,4", "", "1e9,0,0"])
+def test_parse_point_rejects(text):
+    with pytest.raises(ValueError, match="--place"):
+        parse_point(text, what="--place")
+    assert parse_point("-50,436,1000", what="--place") == (-50.0, 436.0, 1000.0)

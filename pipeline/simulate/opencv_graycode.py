@@ -1,0 +1,262 @@
+"""Column/row Gray-code captures as OpenCV writes them, rendered on the virtual rig, with ground truth.
+
+:func:`graycode_patterns` makes the projector frames of OpenCV's structured-light
+module for a W_p x H_p projector (``cv::structured_light::GrayCodePattern::generate``
+then ``getImagesForShadowMasks``): ``ceil(log2 W_p)`` column bits, most significant
+first, each pattern followed by its inverse; then the ``ceil(log2 H_p)`` row bits
+likewise; then white, then black. Bit k of column j is bit k of its binary-reflected
+Gray code j ^ (j >> 1); a pattern is 255 where the bit is 1, 0 elsewhere.
+
+:func:`render_graycode_captures` renders them with :class:`VirtualRig` (the same
+ray tracer, defocus, gamma and noise as ``ringscan simulate``) and writes a folder
+that ``ringscan import`` reads as it reads a real rig's captures::
+
+    OUT/rig.json                        the rig rendered with (import with --rig OUT/rig.json)
+    OUT/capture_0/graycode_00.png ...   the captures (layout opencv-graycode)
+    OUT/truth.json                      what was rendered, and where the truth lies
+    OUT/truth/object.ply                the scene's mesh (object, and wall when there is one), world mm
+    OUT/truth/capture_0_depth.tiff      float32 camera-frame depth Z_c of each pixel's centre ray, NaN = no hit
+    OUT/truth/capture_0_lit.png         255 where the centre ray meets a point the projector lights
+    OUT/truth/capture_0_object.png      255 where the centre ray meets the object (not the wall or the plane)
+    OUT/truth/capture_0_proj_u.tiff     float32 projector u_p of the point the centre ray meets (NaN = no hit)
+    OUT/truth/capture_0_proj_v.tiff     float32 projector v_p likewise
+
+Projector coordinates follow OpenCV's pixel convention (pixel i covers [i - 0.5,
+i + 0.5]; the integer code of a pixel is its centre), which is the one the import
+decodes to. The truth projector coordinates are the OpenCV projection
+(``cv2.projectPoints``, lens distortion included) of the traced surface point:
+code independent of the ray tracer's own projector model.
+
+A pixel is on the object when its centre ray's point lies more than
+``OBJECT_MIN_HEIGHT_MM`` in front of the wall (or of the reference plane z = 0
+without a wall): an object touching the wall loses that thin rim to the wall.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image, write_image
+from ringscan.pipeline.formats.patterns import gray_encode
+from ringscan.pipeline.formats.rig import Rig, save_rig
+from ringscan.pipeline.geometry import projector_pixels
+from ringscan.pipeline.simulate.scan import prepare_scene
+from ringscan.pipeline.simulate.scenes import SceneMesh
+from ringscan.pipeline.simulate.truth import TRUTH_DIR, _write_depth, _write_mesh
+from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _mix_seed
+
+log = logging.getLogger(__name__)
+
+LAYOUT = "opencv-graycode"
+"""The capture layout written (``ringscan import --layout``)."""
+CAPTURE = "capture_0"
+"""The capture folder's name."""
+TRUTH_FORMAT = "ringscan.graycode-truth/1"
+OBJECT_MIN_HEIGHT_MM = 0.5
+"""A traced point is on the object when it lies this far in front of the wall (or plane)."""
+MAX_PROJECTOR_SIDE = 16384
+
+__all__ = ["LAYOUT", "CAPTURE", "OBJECT_MIN_HEIGHT_MM", "graycode_bit_counts", "graycode_patterns",
+           "graycode_frame_names", "graycode_outputs", "render_graycode_captures", "read_graycode_truth"]
+
+
+def graycode_bit_counts(projector: tuple[int, int]) -> tuple[int, int]:
+    """(column bits, row bits) = (ceil(log2 W_p), ceil(log2 H_p)), as OpenCV counts them."""
+    w, h = _check_projector(projector)
+    return int(math.ceil(math.log2(w))), int(math.ceil(math.log2(h)))
+
+
+def _check_projector(projector) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in projector)
+        ok = all(float(x) == int(x) for x in projector)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or not (2 <= w <= MAX_PROJECTOR_SIDE and 2 <= h <= MAX_PROJECTOR_SIDE):
+        raise ValueError(f"projector: expected (width, height), whole numbers in 2..{MAX_PROJECTOR_SIDE}, "
+                         f"got {projector!r}")
+    return w, h
+
+
+def graycode_frame_names(projector: tuple[int, int]) -> list[str]:
+    """``graycode_00`` ... in capture order: 2 (column + row bits) patterns + white + black."""
+    cb, rb = graycode_bit_counts(projector)
+    n = 2 * (cb + rb) + 2
+    return [f"graycode_{i:02d}" for i in range(n)]
+
+
+def graycode_patterns(projector: tuple[int, int]) -> list[np.ndarray]:
+    """The projector frames in capture order, each (H_p, W_p) uint8 (see the module docstring)."""
+    w, h = _check_projector(projector)
+    cb, rb = graycode_bit_counts((w, h))
+    out = []
+    for n_bits, count, across in ((cb, w, True), (rb, h, False)):
+        g = gray_encode(np.arange(count))
+        for k in range(n_bits - 1, -1, -1):             # most significant first
+            line = np.where((g >> k) & 1, 255, 0).astype(np.uint8)
+            pat = np.broadcast_to(line[None, :] if across else line[:, None], (h, w))
+            out += [np.ascontiguousarray(pat), np.ascontiguousarray(255 - pat)]
+    out += [np.full((h, w), 255, np.uint8), np.zeros((h, w), np.uint8)]
+    return out
+
+
+def graycode_outputs(out_dir: str | os.PathLike, projector: tuple[int, int]) -> list[Path]:
+    """Every file :func:`render_graycode_captures` writes (for overwrite checks)."""
+    out = Path(out_dir)
+    files = [out / "rig.json", out / "truth.json", out / TRUTH_DIR / "object.ply"]
+    files += [out / CAPTURE / f"{n}.png" for n in graycode_frame_names(projector)]
+    files += [out / TRUTH_DIR / f"{CAPTURE}_{k}" for k in ("depth.tiff", "lit.png", "object.png", "proj_u.tiff",
+                                                             "proj_v.tiff")]
+    return files
+
+
+def render_graycode_captures(
+    out_dir: str | os.PathLike,
+    *,
+    rig: Rig,
+    scene: SceneMesh | str | os.PathLike = "sphere",
+    projector: tuple[int, int] | None = None,
+    settings: RenderSettings = RenderSettings(),
+    device: str | None = None,
+    progress: bool = True,
+    size_mm: float = 80.0,
+    up: str = "auto",
+    pose: str | None = None,
+    place=None,
+    wall_z: float | None = None,
+) -> dict:
+    """Render one capture of OpenCV's column/row Gray code on the virtual rig, with its ground truth.
+
+    Args:
+        out_dir: the folder to write (see the module docstring); created.
+        rig: the rig; its light is the projector (its width and height are the
+            pattern size).
+        scene, size_mm, up, pose, place, wall_z: the scene
+            (:func:`ringscan.pipeline.simulate.scan.prepare_scene`).
+        projector: (W_p, H_p) expected of the rig's light (None: the light's own);
+            a different size is an error.
+        settings: rendering settings (noise, defocus, supersampling...).
+        device: Warp device.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        The ``truth.json`` document written.
+
+    Raises:
+        ValueError: a light without a size, a ``projector`` that is not the light's,
+            or a bad scene; all before anything is written.
+    """
+    from tqdm import tqdm
+
+    if not isinstance(rig, Rig):
+        raise ValueError(f"rig: expected a Rig, got {type(rig).__name__}")
+    lw, lh = getattr(rig.light, "width", 0), getattr(rig.light, "height", 0)
+    if not (lw and lh):
+        raise ValueError("rig: its light does not state its size (width, height): no projector to show the code")
+    if projector is not None and tuple(_check_projector(projector)) != (lw, lh):
+        pw, ph = _check_projector(projector)
+        raise ValueError(f"projector {pw}x{ph} does not match the rig's {lw}x{lh} projector")
+    if not isinstance(settings, RenderSettings):
+        raise ValueError(f"settings: expected RenderSettings, got {type(settings).__name__}")
+    proj = (int(lw), int(lh))
+    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
+    vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=proj)
+    names = graycode_frame_names(proj)
+    patterns = graycode_patterns(proj)
+
+    out = Path(out_dir)
+    cap_dir = out / CAPTURE
+    cap_dir.mkdir(parents=True, exist_ok=True)
+    (out / TRUTH_DIR).mkdir(parents=True, exist_ok=True)
+    save_rig(out / "rig.json", rig)
+    mesh_rel = f"{TRUTH_DIR}/object.ply"
+    _write_mesh(out / mesh_rel, scene.vertices, scene.faces)
+
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(names), desc=f"simulate {LAYOUT} {scene.name}", unit="frame", disable=not progress)
+    try:
+        for fi, (n, pat) in enumerate(zip(names, patterns)):
+            write_image(cap_dir / f"{n}.png", vr.render(pat, seed=_mix_seed(settings.seed, 0, fi)))
+            bar.update(1)
+    finally:
+        bar.close()
+
+    tr = vr.truth()
+    pts = tr["points"].astype(np.float64)
+    hit = np.all(np.isfinite(pts), axis=-1)
+    floor = float(placed.get("wall_z", 0.0))
+    obj = hit & (np.where(hit, pts[..., 2], -np.inf) > floor + OBJECT_MIN_HEIGHT_MM)
+    uvp = np.full(hit.shape + (2,), np.nan, np.float32)
+    uvp[hit] = projector_pixels(rig, pts[hit]).astype(np.float32)
+    rel = {k: f"{TRUTH_DIR}/{CAPTURE}_{k}.{ext}" for k, ext in
+           (("depth", "tiff"), ("lit", "png"), ("object", "png"), ("proj_u", "tiff"), ("proj_v", "tiff"))}
+    _write_depth(out / rel["depth"], tr["depth"])
+    _write_depth(out / rel["proj_u"], uvp[..., 0])
+    _write_depth(out / rel["proj_v"], uvp[..., 1])
+    write_image(out / rel["lit"], np.where(tr["lit"], 255, 0).astype(np.uint8))
+    write_image(out / rel["object"], np.where(obj, 255, 0).astype(np.uint8))
+    doc = {"format": TRUTH_FORMAT, "layout": LAYOUT, "projector": list(proj),
+           "camera": [rig.camera.width, rig.camera.height], "rig": "rig.json", "mesh": mesh_rel,
+           "scene": scene.name, "size_mm": float(size_mm), "reference_plane_z": 0.0, **placed,
+           "object_min_height_mm": OBJECT_MIN_HEIGHT_MM, "settings": settings.to_dict(),
+           "captures": {CAPTURE: {"frames": len(names), **rel}}}
+    atomic_write_json(out / "truth.json", doc)
+    log.info("rendered %d %s frames of %s in %.1f s -> %s", len(names), LAYOUT, scene.name,
+             time.perf_counter() - t0, out)
+    return doc
+
+
+def read_graycode_truth(folder: str | os.PathLike, capture: str = CAPTURE) -> dict:
+    """The truth of :func:`render_graycode_captures` for one capture.
+
+    Returns:
+        dict: ``doc`` (truth.json), ``depth`` (H, W) float32, ``lit`` and ``object``
+        (H, W) bool, ``proj`` (H, W, 2) float32 projector (u_p, v_p), ``mesh`` (the
+        mesh file's path).
+
+    Raises:
+        FormatError: naming the file that is missing or not what it should be.
+    """
+    import cv2
+
+    folder = Path(folder)
+    doc = read_json(folder / "truth.json")
+    if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
+        raise FormatError(folder / "truth.json", f"not a {TRUTH_FORMAT} file (format {doc.get('format')!r})"
+                          if isinstance(doc, dict) else "not a JSON object")
+    caps = doc.get("captures", {})
+    if capture not in caps:
+        raise FormatError(folder / "truth.json", f"no capture {capture!r} (have {', '.join(caps) or 'none'})")
+    c = caps[capture]
+
+    def path(key):
+        rel = c.get(key)
+        if not isinstance(rel, str) or ".." in Path(rel).parts or os.path.isabs(rel):
+            raise FormatError(folder / "truth.json", f"captures.{capture}.{key}: bad path {rel!r}")
+        p = folder / rel
+        if not p.is_file():
+            raise FormatError(p, "truth file not found (listed in truth.json)")
+        return p
+
+    def tiff(key):
+        p = path(key)
+        a = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if a is None or a.dtype != np.float32 or a.ndim != 2:
+            raise FormatError(p, "not a single-channel float32 TIFF")
+        return a
+
+    out = {"doc": doc, "depth": tiff("depth"), "lit": read_image(path("lit")) > 0,
+           "object": read_image(path("object")) > 0, "proj": np.stack([tiff("proj_u"), tiff("proj_v")], -1),
+           "mesh": folder / doc.get("mesh", f"{TRUTH_DIR}/object.ply")}
+    shapes = {k: out[k].shape[:2] for k in ("depth", "lit", "object", "proj")}
+    if len(set(shapes.values())) != 1:
+        raise FormatError(folder / "truth.json", f"truth images of different sizes: {shapes}")
+    return out

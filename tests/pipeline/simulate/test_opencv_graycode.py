@@ -1,0 +1,160 @@
+"""OpenCV's column/row Gray code on the virtual rig: the patterns, the files, and the round trip
+through ``ringscan import`` against the truth projector coordinates."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import DECODED_SCALE, gray_decode
+from ringscan.pipeline.formats.rig import Camera, default_rig, save_rig
+from ringscan.pipeline.simulate.opencv_graycode import (
+    graycode_bit_counts,
+    graycode_frame_names,
+    graycode_patterns,
+    read_graycode_truth,
+    render_graycode_captures,
+)
+from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+from ringscan.tools.cli import main
+
+PW, PH = 128, 96
+
+
+def small_procam_rig(*, gamma=1.0):
+    """The default perspective rig with a 320x256 camera and a 128x96 projector with lens distortion.
+
+    One projector pixel covers about 1.2 mm on the plane, one camera pixel about
+    0.65 mm: about 1.8 camera pixels per projector pixel, as the sub-pixel decode needs.
+    """
+    rig = default_rig(gamma=gamma, light_model="perspective", turntable=False)
+    c = rig.camera
+    K = np.array([[650.0, 0, 159.5], [0, 650.0, 127.5], [0, 0, 1.0]])
+    cam = Camera(width=320, height=256, K=K, dist=c.dist, R=c.R, t=c.t, gamma=gamma)
+    li = rig.light
+    Kp = li.K.copy()
+    Kp[:2] /= 8.0
+    Kp[0, 2], Kp[1, 2] = (PW - 1) / 2, (PH - 1) / 2
+    light = dataclasses.replace(li, width=PW, height=PH, K=Kp, dist=np.array([-0.08, 0.05, 0.001, 0.0, 0.0]))
+    return dataclasses.replace(rig, camera=cam, light=light)
+
+
+def bits_msb_first(frames, n_bits, first, index):
+    """The Gray code read from pattern/inverse pairs (pattern > inverse), MSB first."""
+    g = np.zeros_like(index)
+    for k in range(n_bits):
+        g = (g << 1) | (frames[first + 2 * k] > frames[first + 2 * k + 1]).astype(np.int64)
+    return gray_decode(g, n_bits)
+
+
+@pytest.mark.parametrize("size", [(PW, PH), (100, 60), (1280, 800)])
+def test_patterns_follow_opencv_layout(size):
+    w, h = size
+    cb, rb = graycode_bit_counts(size)
+    assert (cb, rb) == (int(np.ceil(np.log2(w))), int(np.ceil(np.log2(h))))
+    pats = graycode_patterns(size)
+    names = graycode_frame_names(size)
+    assert len(pats) == len(names) == 2 * (cb + rb) + 2
+    assert names[0] == "graycode_00" and names[-1] == f"graycode_{len(names) - 1:02d}"
+    for p in pats:
+        assert p.shape == (h, w) and p.dtype == np.uint8 and set(np.unique(p)) <= {0, 255}
+    for k in range(0, 2 * (cb + rb), 2):                      # each pattern followed by its inverse
+        assert np.array_equal(pats[k].astype(int) + pats[k + 1], np.full((h, w), 255))
+    assert (pats[-2] == 255).all() and (pats[-1] == 0).all()  # white, then black
+    cols = np.arange(w)[None, :].repeat(h, 0)
+    rows = np.arange(h)[:, None].repeat(w, 1)
+    assert np.array_equal(bits_msb_first(pats, cb, 0, cols), cols)           # columns first, constant down
+    assert np.array_equal(bits_msb_first(pats, rb, 2 * cb, rows), rows)      # then rows, constant across
+
+
+def test_patterns_equal_opencv_files(shared_data):
+    """OpenCV's own GrayCodePattern output for a 1024x768 projector (../shared/data/procam)."""
+    folder = shared_data / "procam" / "graycode_pattern"
+    if not folder.is_dir():
+        pytest.skip(f"OpenCV pattern files not found in {folder}")
+    pats = graycode_patterns((1024, 768))
+    assert len(pats) == len(list(folder.glob("pattern_*.png"))) == 42
+    for i, p in enumerate(pats):
+        assert np.array_equal(cv2.imread(str(folder / f"pattern_{i:02d}.png"), cv2.IMREAD_GRAYSCALE), p), i
+
+
+def test_rendered_frames_are_pairs_and_white_black(tmp_path):
+    """Linear camera and light, no noise: pattern + inverse = white + black at every pixel (to rounding)."""
+    rig = small_procam_rig()
+    st = RenderSettings(noise=0.0, bit_depth=16)
+    render_graycode_captures(tmp_path / "r", rig=rig, scene="sphere", size_mm=40.0, settings=st, progress=False,
+                             device="cpu")
+    files = sorted(p.name for p in (tmp_path / "r" / "capture_0").iterdir())
+    assert files == [f"{n}.png" for n in graycode_frame_names((PW, PH))]
+    fr = np.stack([read_image(tmp_path / "r" / "capture_0" / f).astype(np.float64) for f in files])
+    white, black = fr[-2], fr[-1]
+    lit = read_graycode_truth(tmp_path / "r")["lit"]
+    assert (white[lit] > black[lit]).all()                   # white is the bright one, black the dark one
+    assert np.median(white[lit] - black[lit]) > 10000
+    pair_sum = fr[0:-2:2] + fr[1:-2:2]
+    assert np.abs(pair_sum - (white + black)).max() <= 2.0
+
+
+def test_round_trip_through_import(tmp_path, capsys):
+    """``ringscan simulate --captures opencv-graycode`` then ``ringscan import`` with the same rig:
+    the decoded projector coordinates of the pixels inside the object and the plane
+    (away from silhouettes and shadow edges) match the truth projection of the
+    surface point.
+
+    Tolerance: the integer codes are the projector pixel the pixel centre sees, so
+    within 0.5 px of the truth, plus the projector blur (0.7 px) and the pixel's own
+    footprint (0.5 camera px ~ 0.3 projector px) near a boundary: 1 px bounds them.
+    The sub-pixel positions interpolate boundaries found to a few hundredths of a
+    camera pixel (noise 1.5 levels against a contrast of ~150) and are quantised to
+    1/32 px: their median error must be under 0.1 px and their 95th percentile under
+    0.3 px, 5x better than the integer codes' bound.
+    """
+    rig = small_procam_rig(gamma=2.2)
+    rig_file = tmp_path / "rig.json"
+    save_rig(rig_file, rig)
+    out, scan = tmp_path / "render", tmp_path / "scan"
+    assert main(["simulate", "--rig", str(rig_file), "--scene", "sphere", "--size-mm", "50",
+                 "--captures", "opencv-graycode", "--no-progress", "--device", "cpu", "--out", str(out)]) == 0
+    assert main(["import", str(out / "capture_0"), "--rig", str(out / "rig.json"), "--projector", f"{PW}x{PH}",
+                 "--out", str(scan)]) == 0
+    capsys.readouterr()
+    truth = read_graycode_truth(out)
+    assert truth["doc"]["layout"] == "opencv-graycode" and truth["doc"]["projector"] == [PW, PH]
+    fu = read_image(scan / "capture_0" / "proj_u.png").astype(np.float64)
+    fv = read_image(scan / "capture_0" / "proj_v.png").astype(np.float64)
+    ok = (fu > 0) & (fv > 0)
+    u, v = fu / DECODED_SCALE - 1.0, fv / DECODED_SCALE - 1.0
+    kernel = np.ones((5, 5), np.uint8)
+    inner = {}
+    for name, m in (("object", truth["lit"] & truth["object"]), ("plane", truth["lit"] & ~truth["object"])):
+        inner[name] = cv2.erode(m.astype(np.uint8), kernel).astype(bool)
+        assert inner[name].sum() > 1000, name
+        sel = inner[name]
+        assert ok[sel].mean() > 0.99, name                   # every inner lit pixel decoded
+        e = np.hypot(u[sel & ok] - truth["proj"][..., 0][sel & ok], v[sel & ok] - truth["proj"][..., 1][sel & ok])
+        assert np.percentile(e, 99.5) < 1.0, name
+        assert np.median(e) < 0.1, (name, np.median(e))
+        assert np.percentile(e, 95) < 0.3, (name, np.percentile(e, 95))
+    # unlit and empty pixels: never decoded
+    dark = ~np.isfinite(truth["depth"]) | ~cv2.dilate(truth["lit"].astype(np.uint8), kernel).astype(bool)
+    assert not ok[dark].any()
+
+
+def test_wrong_projector_size_is_one_clear_error(tmp_path, capsys):
+    rig = small_procam_rig()
+    with pytest.raises(ValueError, match=f"projector 64x48 does not match the rig's {PW}x{PH} projector"):
+        render_graycode_captures(tmp_path / "r", rig=rig, projector=(64, 48), progress=False, device="cpu")
+    assert not (tmp_path / "r").exists()                     # nothing written
+    with pytest.raises(ValueError, match="projector: expected"):
+        render_graycode_captures(tmp_path / "r", rig=rig, projector=(1, 48), progress=False, device="cpu")
+    # a capture imported with the wrong --projector: one line naming the folder and the frame count
+    render_graycode_captures(tmp_path / "r", rig=rig, scene="sphere", size_mm=40.0, progress=False, device="cpu",
+                             settings=RenderSettings(supersample=1))
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "r" / "capture_0"), "--rig", str(tmp_path / "r" / "rig.json"),
+                 "--projector", "256x96", "--out", str(tmp_path / "scan")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "capture_0" in err and "30 graycode_NN frames" in err, err
+    assert not (tmp_path / "scan").exists()
