@@ -25,9 +25,12 @@ from ringscan.pipeline.formats.scan import Scan
 
 __all__ = ["zones_for", "render_angle_frame", "add_angle", "edge_sigma", "phase_sigma", "EDGE_WIDTH_PX"]
 
-EDGE_WIDTH_PX = 1.0
-"""Width (projector px) over which a band edge goes from dark to lit: the frames'
-one-pixel box filter (a defocused projector widens it; the edge's sigma grows with it)."""
+EDGE_WIDTH_PX = 3.0
+"""Width (projector px) over which a band edge goes from dark to lit, for the edge's
+predicted standard deviation: the frames' one-pixel box filter widened by the
+projector's defocus (a Gaussian of sigma 0.7 px, the virtual rig's default and a
+sharp real projector's, spreads a box edge's 10-90 % rise over ~2.8 px). With 1 px
+the virtual rig's edges scatter three times their prediction."""
 
 
 def zones_for(spec: PatternSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -76,11 +79,14 @@ def edge_sigma(contrast: np.ndarray, noise: float) -> np.ndarray:
     return np.sqrt(2.0) * noise * EDGE_WIDTH_PX / (2.0 * np.maximum(contrast, 1.0))
 
 
-def phase_sigma(contrast: np.ndarray, modulation: np.ndarray, noise: float, *, pitch: float, steps: int) -> np.ndarray:
+def phase_sigma(contrast: np.ndarray, modulation: np.ndarray, noise: float, *, pitch: float, steps: int,
+                smooth_radius: int = 0) -> np.ndarray:
     """Standard deviation (projector px) of rho from the radial phase: the N-step
-    formula, sqrt(2 / N) sigma / amplitude radians of a period of ``pitch`` px."""
+    formula, sqrt(2 / N) sigma / amplitude radians of a period of ``pitch`` px,
+    over the square root of the pixels the phase smoothing averages (its window,
+    (2 r + 1)^2, where every neighbour pair agrees)."""
     amp = 0.5 * np.maximum(modulation, 1e-3) * np.maximum(contrast, 1.0)
-    return pitch / (2 * math.pi) * math.sqrt(2.0 / steps) * noise / amp
+    return pitch / (2 * math.pi) * math.sqrt(2.0 / steps) * noise / amp / (2 * smooth_radius + 1)
 
 
 def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.ndarray, settings: AngleSettings,

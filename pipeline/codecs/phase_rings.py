@@ -225,7 +225,8 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
     contrast = sample_contrast(frames, spec, pts.uv.numpy())
-    sig = phase_sigma(contrast, pts.confidence.numpy(), settings.angle.noise, pitch=spec.pitch, steps=spec.steps)
+    sig = phase_sigma(contrast, pts.confidence.numpy(), settings.angle.noise, pitch=spec.pitch, steps=spec.steps,
+                      smooth_radius=ps.smooth_radius)
     pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
                                  light_gamma=g_light, threads=threads)
     wp.synchronize_device(dev)
