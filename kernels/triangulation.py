@@ -1,35 +1,24 @@
-"""Triangulation, per point: a camera ray meets the quadric of its ring (docs/design.md §3, §4).
+"""Triangulation, per point: a camera ray meets the surface of its ring, or, where
+the sample carries its polar angle too, the point whose projector pixel fits both
+coordinates best (docs/design.md §3, §4, §18; docs/reconstruction.md).
 
-Both light models give a quadric in the undistorted case:
+- The ring alone: both light models give a quadric (a cylinder for the parallel
+  light, the elliptic cone of the ring for a projector); along the ray it is a
+  quadratic in t, solved in float64 (``geometry.ray_ring_roots``, Newton steps
+  through the projector's distortion); the decoded sector picks the root, and
+  without one two roots in the volume are ambiguous, never guessed.
+- Both coordinates: Gauss-Newton along the ray from the ray-ray closest point on
+  the weighted projector-grid residual (:func:`full_solution`); the calibration
+  floor (:func:`calibration_floor`) discounts the direction across the epipolar line.
 
-- parallel: in the light frame, (x_L - e_u)^2 + (y_L - e_v)^2 = (s rho)^2 with
-  e = s (c - a): a cylinder around the ring's axis;
-- perspective: with X_p the point in the projector frame,
-  (fx X_p + skew Y_p + (cx - c_u) Z_p)^2 + (fy Y_p + (cy - c_v) Z_p)^2 = rho^2 Z_p^2:
-  the elliptic cone of rays whose undistorted pixel lies on |p - c| = rho.
-  With projector distortion each root is refined by Newton steps on
-  |pixel(X(t)) - c| - rho, starting from the undistorted cone.
-
-Along the ray X(t) = C + t d both reduce to a (t^2) + b t + c = 0, solved in
-float64 with the stable form. Root choice follows docs/design.md §4: a root is kept only
-in front of the camera and inside the working volume; where both are inside, the
-decoded angular sector picks the root whose polar angle (around the pattern
-centre, on the projector grid) lies in that sector; without a sector code the
-point is dropped and counted as ambiguous, never guessed. With a sector code a
-root whose polar angle misses its sector by more than ``sector_tolerance``
-sectors is dropped as inconsistent.
-
-Status codes (``status`` array): 0 point, 1 no real root, 2 no root in the
-volume, 3 ambiguous (two roots, no way to choose), 4 sector mismatch, 5 grazing
-(the ray meets the quadric at a glancing angle: a tiny sampling error moves the
-point far along the ray), 6 isolated (set later by ``point_filter``), 7 not
-converged (with projector distortion, the Newton refinement of a root in front
-of the projector did not reach the ring: where that root lies is unknown, so
-neither root can be trusted to be the only one), 8 undistort failed (the
-camera pixel has no undistorted point inside the region where the camera's
-distortion is monotonic: its ray is unknown).
+Status codes (``status`` array, ``STATUS_NAMES``): 0 point, 1 no real root, 2 no
+root in the volume, 3 ambiguous, 4 sector mismatch, 5 grazing (the ray meets the
+ring's surface at a glancing angle), 6 isolated (set later by ``point_filter``), 7
+not converged (a Newton refinement did not reach its target: the point's place is
+unknown), 8 undistort failed (the camera or projector pixel has no undistorted
+point in its lens's fold-free region), 9 ill-conditioned (both coordinates graze),
+10 inconsistent (the two coordinates disagree beyond ``max_residual_px``).
 """
-
 from __future__ import annotations
 
 from dataclasses import dataclass
