@@ -210,18 +210,19 @@ def scan_truth(render: Path) -> dict:
 
 
 def ring_codec(codec: str, *, rs: str, work: Path, rig_path: Path, model: str, extra: list, dev: list, mesh,
-               integer_median: float, centre) -> None:
+               integer_median: float, centre, sim_extra: list = ()) -> None:
     """ringscan's own codec on the same scene: simulate (scan folder), reconstruct, measure."""
-    render = work / f"render_{codec}"
+    sim_tag = "_".join(a.strip("-") for a in sim_extra)[:60]
+    render = work / (f"render_{codec}" + (f"_{sim_tag}" if sim_tag else ""))
     if not (render / "scan.json").is_file():
         run([rs, "simulate", "--rig", str(rig_path), "--scene", model, "--size-mm", str(SIZE_MM), "--up", "y",
              "--pose", POSE, "--place=" + ",".join(f"{c:g}" for c in PLACE), "--wall", str(WALL_Z),
              "--codec", codec, "--center", f"{centre[0]:.4f}", f"{centre[1]:.4f}", "--no-progress", "--out",
-             str(render), *dev])
+             str(render), *dev, *sim_extra])
     else:
         print(f"reusing the render in {render}")
     tag = "_".join(a.strip("-").replace("/", "_") for a in extra)[:60]
-    recon = work / (f"recon_{codec}" + (f"_{tag}" if tag else ""))
+    recon = work / (f"recon_{codec}" + (f"_{sim_tag}" if sim_tag else "") + (f"_{tag}" if tag else ""))
     run([rs, "reconstruct", str(render), "--out", str(recon), "--no-progress", *dev, *extra])
     truth = scan_truth(render)
     scan = truth["scan"]
@@ -265,6 +266,8 @@ def main(argv=None) -> int:
                          "(repeatable; its reconstruction gets --reconstruct-args too)")
     ap.add_argument("--ring-center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
                     help="ring centre of --codec (default the projector's principal point, as the import uses)")
+    ap.add_argument("--simulate-args", default="",
+                    help='extra arguments of `ringscan simulate` for --codec, e.g. "--angle-steps 4 --sector-bits 8"')
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
     if not Path(args.rig).is_file() or not Path(args.model).is_file():
@@ -385,6 +388,7 @@ def main(argv=None) -> int:
     print(f"reconstruct drops: {json.dumps(drops)}")
     for codec in args.codec:
         ring_codec(codec, rs=rs, work=work, rig_path=rig_path, model=args.model, extra=extra, dev=dev, mesh=mesh,
+                   sim_extra=shlex.split(args.simulate_args),
                    integer_median=ref, centre=args.ring_center or tuple(rig.light.K[:2, 2]))
     if tmp is not None:
         tmp.cleanup()
