@@ -88,31 +88,33 @@ class AngleSamples:
 
 
 @wp.func
+def bilinear_taps(frames: wp.array3d(dtype=Any), x: float, y: float):
+    """(x0, y0, fx, fy): the top-left pixel and the weights of (x, y), clamped inside the frame."""
+    x0 = wp.clamp(int(wp.floor(x)), 0, frames.shape[2] - 2)
+    y0 = wp.clamp(int(wp.floor(y)), 0, frames.shape[1] - 2)
+    return wp.vec4(float(x0), float(y0), wp.clamp(x - float(x0), 0.0, 1.0), wp.clamp(y - float(y0), 0.0, 1.0))
+
+
+@wp.func
 def bilinear(frames: wp.array3d(dtype=Any), f: int, x: float, y: float, lut: wp.array(dtype=wp.float32)):
     """Linearised value of frame f at camera position (x, y), bilinear."""
-    h = frames.shape[1]
-    w = frames.shape[2]
-    x0 = wp.clamp(int(wp.floor(x)), 0, w - 2)
-    y0 = wp.clamp(int(wp.floor(y)), 0, h - 2)
-    fx = wp.clamp(x - float(x0), 0.0, 1.0)
-    fy = wp.clamp(y - float(y0), 0.0, 1.0)
-    a = lut[int(frames[f, y0, x0])] * (1.0 - fx) + lut[int(frames[f, y0, x0 + 1])] * fx
-    b = lut[int(frames[f, y0 + 1, x0])] * (1.0 - fx) + lut[int(frames[f, y0 + 1, x0 + 1])] * fx
-    return a * (1.0 - fy) + b * fy
+    k = bilinear_taps(frames, x, y)
+    x0 = int(k[0])
+    y0 = int(k[1])
+    a = lut[int(frames[f, y0, x0])] * (1.0 - k[2]) + lut[int(frames[f, y0, x0 + 1])] * k[2]
+    b = lut[int(frames[f, y0 + 1, x0])] * (1.0 - k[2]) + lut[int(frames[f, y0 + 1, x0 + 1])] * k[2]
+    return a * (1.0 - k[3]) + b * k[3]
 
 
 @wp.func
 def raw_bilinear(frames: wp.array3d(dtype=Any), f: int, x: float, y: float):
     """Recorded value of frame f at camera position (x, y), bilinear."""
-    h = frames.shape[1]
-    w = frames.shape[2]
-    x0 = wp.clamp(int(wp.floor(x)), 0, w - 2)
-    y0 = wp.clamp(int(wp.floor(y)), 0, h - 2)
-    fx = wp.clamp(x - float(x0), 0.0, 1.0)
-    fy = wp.clamp(y - float(y0), 0.0, 1.0)
-    a = float(frames[f, y0, x0]) * (1.0 - fx) + float(frames[f, y0, x0 + 1]) * fx
-    b = float(frames[f, y0 + 1, x0]) * (1.0 - fx) + float(frames[f, y0 + 1, x0 + 1]) * fx
-    return a * (1.0 - fy) + b * fy
+    k = bilinear_taps(frames, x, y)
+    x0 = int(k[0])
+    y0 = int(k[1])
+    a = float(frames[f, y0, x0]) * (1.0 - k[2]) + float(frames[f, y0, x0 + 1]) * k[2]
+    b = float(frames[f, y0 + 1, x0]) * (1.0 - k[2]) + float(frames[f, y0 + 1, x0 + 1]) * k[2]
+    return a * (1.0 - k[3]) + b * k[3]
 
 
 @wp.func
