@@ -1,48 +1,12 @@
 """The paper's single-shot ``rings`` codec: find the ring lines, label each with its
-ring index, hand the samples to triangulation (docs/design.md §1, §4, §10).
+ring index, hand the samples to triangulation.
 
-One frame shows ``count`` identical bright rings. Every line centre is found to
-sub-pixel precision (``kernels.ring_lines``); the centres are chained into
-*curves*, which are cut into smooth *pieces* wherever two rings' images might meet
-(sharp bends, gentle bends with a step in brightness); each piece gets its ring
-index j by image topology (nesting order outward from the centre) checked against
-everything the rig file tells: the calibrated camera and light, the working volume
-and the reference plane z = 0. A piece whose index is not certain is dropped and
-counted, never guessed.
-
-The rule (docs/single_shot.md has the full statement and its limits):
-
-1. **Orientation.** A lit point that the camera sees faces both the light and the
-   camera, so the map from the projector's pixel grid to the camera image keeps
-   its orientation there (the sign ``sigma`` of its Jacobian is the same as on the
-   reference plane). Along a ring piece the polar angle phi of its points on the
-   pattern therefore runs one way, and the side of the piece where the rings grow
-   (its *outward* side) is fixed by that direction: outward is the side s (+-1,
-   along the piece's normal n) with s = sigma * sign(dphi / ds), s measured along
-   the tangent (-n_y, n_x). Of the two places where a camera ray meets a ring's
-   quadric, the two almost always run in opposite directions: once the outward
-   side of a piece is known, so is the root of each of its samples.
-2. **Anchors.** (a) The reference plane: a piece whose rays meet z = 0 on one
-   ring's circle (within ``plane_tolerance_px`` on the pattern) over a contiguous
-   arc of at least ``plane_min_arc_deg`` lies on the plane: that ring is its index
-   (an arc of a piece off the plane cannot keep a constant radius over so wide an
-   arc). (b) The centre: the one closed loop with no other line inside it, around
-   whose inside the pattern axis passes, is ring 0 if all of it has its roots on
-   ring 0 (a loop of ring k >= 1 has rays that pass too far from the axis).
-3. **Nesting.** Across the clean dark gap on a piece's outward side lies the next
-   ring out (j + 1), on its inward side the next ring in (j - 1), when the surface
-   between them is continuous. Labels spread from the anchors along such links,
-   strongest link first; a link is used only when its gap holds no faint line and,
-   in 3D, it is consistent with a continuous lit and visible surface between the
-   two rings: both pieces have their root under their labels, the patch between
-   the two triangulated curves faces both the light and the camera, it spans at
-   most ``max_step_pitches`` ring pitches, and the new piece's arc of its ring does
-   not overlap an arc already given to that ring (the light lights one point per
-   ring and polar angle).
-4. **Consistency.** After the spreading, every link that passes the 3D test under
-   the labels it predicts must agree with the labels given, and the labelled
-   pieces of one curve must agree; a disagreement drops the pieces and everything
-   labelled through them.
+Line centres (``kernels.ring_lines``) are chained into curves and cut into smooth
+pieces; each piece's index comes from its orientation, the anchors (reference
+plane, ring 0), nesting across clean gaps and a final consistency check against the
+rig; a piece whose index is not certain is dropped and counted, never guessed. The
+rule and why: docs/design.md §10; the full statement and its limits:
+docs/single_shot.md.
 """
 
 from __future__ import annotations
