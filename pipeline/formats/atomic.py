@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, read_bounded_bytes
 
 log = logging.getLogger(__name__)
 
@@ -279,19 +280,16 @@ def json_safe(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def read_json(path: str | os.PathLike) -> dict:
-    """Read a JSON object, raising :class:`FormatError` naming the file on failure."""
+def read_json(path: str | os.PathLike, *, max_bytes: int = MAX_JSON_BYTES) -> dict:
+    """Read a JSON object, raising :class:`FormatError` naming the file on failure.
+
+    Only a regular file of at most ``max_bytes`` is read (a FIFO or ``/dev/zero`` is
+    refused before reading: :func:`~.limits.read_bounded_bytes`).
+    """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
-    except IsADirectoryError:
-        raise FormatError(path, "is a folder, not a JSON file") from None
-    except ValueError:  # an embedded NUL
-        raise FormatError(path, "the path contains a NUL character") from None
-    except OSError as e:
-        raise FormatError(path, f"cannot read: {e.strerror}") from None
+    if path.is_dir():
+        raise FormatError(path, "is a folder, not a JSON file")
+    raw = read_bounded_bytes(path, max_bytes, what="file")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -303,6 +301,8 @@ def read_json(path: str | os.PathLike) -> dict:
         raise FormatError(path, f"not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
     except RecursionError:
         raise FormatError(path, "not valid JSON (nested too deeply)") from None
+    except ValueError as e:  # e.g. an integer of more than 4300 digits
+        raise FormatError(path, f"not valid JSON ({str(e).split(';')[0]})") from None
     if not isinstance(obj, dict):
         raise FormatError(path, "expected a JSON object at the top level")
     return obj

@@ -26,7 +26,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import Rig, load_rig, parse_rig
-from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.scan import check_truth, load_scan
 from ringscan.pipeline.fusion.mesh import (
     MIN_MESH_POINTS,
     MeshResult,
@@ -285,10 +285,7 @@ def _load_truth(truth):
     p = Path(truth)
     if p.is_dir():
 
-        t = read_json(p / "scan.json").get("truth")
-        if not isinstance(t, dict) or not isinstance(t.get("mesh"), str):
-            raise FormatError(p / "scan.json", "truth.mesh: this scan has no ground truth mesh")
-        p = p / t["mesh"]
+        p = p / check_truth(load_scan(p, check_files=False, allow_incomplete=True))["mesh"]
     return read_mesh(p)
 
 
