@@ -32,7 +32,8 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "init_worker", "worker_device", "process_scan"]
+__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "init_worker", "worker_device", "process_scan",
+           "failed_entry", "describe_error"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
 """The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
@@ -118,7 +119,7 @@ def _maybe_fault(scan, rel: str, out: Path, settings) -> None:
     except OSError:
         return
     reconstruct_scan(scan, out, settings=settings, device=worker_device(), views=[scan.views[0].name], resume=True,
-                     progress=False)
+                     progress=False, lock=False)
     log.warning("%s: killing this worker (%d) on purpose", FAULT_ENV, os.getpid())
     os.kill(os.getpid(), signal.SIGKILL)
 
@@ -153,7 +154,7 @@ def process_scan(job: ScanJob) -> dict:
                 entry["redone"] = check.redo
             _maybe_fault(scan, job.rel, out, job.settings)
             rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
-                                   progress=False)
+                                   progress=False, lock=False)  # the batch holds its output folder
             views = rep["views"]
             kept = set(rep.get("resume", {}).get("kept", []))
             computed = [v for v in views if v["name"] not in kept]
@@ -167,11 +168,27 @@ def process_scan(job: ScanJob) -> dict:
             raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")
         if job.mesh or job.fuse:
             entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
-    except (RingscanError, ValueError, OSError, RuntimeError) as e:
+    except Exception as e:  # noqa: BLE001 - one scan's failure of any kind (a library's own exception too) fails
+        # that scan alone; the batch goes on
         log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name
-        entry.update(status="failed", error=str(e))
+        entry.update(status="failed", error=describe_error(e))
     entry["time_s"] = time.perf_counter() - t
     return entry
+
+
+def describe_error(e: BaseException) -> str:
+    """One line for a scan's error: ringscan's own errors as they are (they name the file); another
+    exception (a library's: cv2.error, MemoryError, ...) with its type, its message on one line."""
+    text = " ".join(str(e).split())
+    if isinstance(e, (RingscanError, ValueError, OSError)) and text:
+        return text
+    return f"{type(e).__module__.split('.')[0]}.{type(e).__name__}: {text[:500] or '(no message)'}" \
+        if type(e).__module__ not in ("builtins", "__main__") else f"{type(e).__name__}: {text[:500] or '(no message)'}"
+
+
+def failed_entry(job: ScanJob, e: BaseException) -> dict:
+    """A scan's entry in the batch report when it failed with ``e``."""
+    return {"scan": job.rel, "out": job.out, "status": "failed", "error": describe_error(e)}
 
 
 def _fuse(out: Path, *, redo: bool, mesh: bool) -> dict:

@@ -34,7 +34,10 @@ from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, read_bounded_bytes
 log = logging.getLogger(__name__)
 
 __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries",
-           "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe"]
+           "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe", "lock_folder", "LOCK_NAME"]
+
+LOCK_NAME = ".ringscan.lock"
+"""The lock file of an output folder in use (:func:`lock_folder`): it holds the owner's process id."""
 
 _TMP_RE = re.compile(r"^\.(?P<target>.+)\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp(\.[^./]*)?$")
 # Temporary files of ringscan before the writer's process id was part of the name
@@ -243,6 +246,56 @@ def _process_alive(pid: int) -> bool:
     except (OSError, IndexError):  # no /proc (not Linux): it exists, so it runs
         return True
     return state not in (b"Z", b"X")
+
+
+class FolderInUse(FormatError):
+    """An output folder is locked by another ringscan run."""
+
+
+@contextlib.contextmanager
+def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
+    """Hold ``folder`` (an output folder, which must exist) for this run: one run at a time.
+
+    The lock is ``folder/.ringscan.lock``, locked with ``flock`` and holding the owner's
+    process id and command; the kernel drops the lock when its process ends however it
+    ends, so a lock left by a killed run is taken over by the next. The file is removed
+    when the run ends.
+
+    Raises:
+        FolderInUse: (a FormatError) another live process holds the folder; the message
+            names the folder and that process.
+    """
+    import fcntl
+
+    path = Path(folder) / LOCK_NAME
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                owner = os.pread(fd, 200, 0).decode("utf-8", "replace").split()
+            finally:
+                os.close(fd)
+            who = f"{owner[1]}, process {owner[0]}" if len(owner) >= 2 else "another process"
+            raise FolderInUse(folder, f"in use by another ringscan run ({who}); wait for it to end or choose "
+                                      f"another output folder (lock file {LOCK_NAME})") from None
+        # The previous owner may have removed the file between our open and our lock: lock the file that is there.
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {what}\n".encode(), 0)
+        yield path
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        os.close(fd)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -22,6 +22,7 @@ sample dropped...).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -36,6 +37,7 @@ from ringscan.pipeline.formats.atomic import (
     check_no_overwrite,
     check_output_file,
     check_output_folder,
+    lock_folder,
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.rig import rig_to_dict
@@ -59,6 +61,7 @@ def reconstruct_scan(
     views: list[str] | None = None,
     resume: bool = False,
     progress: bool = True,
+    lock: bool = True,
 ) -> dict:
     """Reconstruct every view of a scan; write PLYs, report.json and settings.json.
 
@@ -74,13 +77,17 @@ def reconstruct_scan(
             report's ``resume`` block lists the views kept and why the others were
             redone.
         progress: show a progress bar.
+        lock: hold ``out_dir`` for this run (:func:`~ringscan.pipeline.formats.atomic.lock_folder`):
+            another run into the same folder is refused while this one runs. A batch
+            worker passes False (the batch holds its whole output folder).
 
     Returns:
         The report (also written to ``out_dir/report.json``).
 
     Raises:
         FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
-            file), or writing into it would overwrite one of the scan's own files.
+            file), or writing into it would overwrite one of the scan's own files;
+            another run holds ``out_dir``.
     """
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
@@ -98,65 +105,66 @@ def reconstruct_scan(
     check_no_overwrite(outputs, scan_inputs(scan))
     device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out)
-    names = [v.name for v in chosen]
-    if resume:
-        check = check_done(scan, out, settings=settings, views=names)
-        hashes, done = check.hashes, check.kept
-        for n, why in check.redo.items():
-            log.info("%s: not kept from the earlier run (%s)", n, why)
-    else:
-        hashes, done = hash_inputs(scan, settings, views=names), {}
-    report = {
-        "format": REPORT_FORMAT,
-        "scan": str(scan.folder.resolve()),
-        "codec": scan.patterns.codec,
-        "device": device,
-        "patterns": scan.patterns.to_dict(),
-        "rig": rig_to_dict(scan.rig),
-        "settings": settings_to_dict(settings),
-        "inputs": hashes.to_dict(),
-        "views": [],
-    }
-    if resume:
-        report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
-    atomic_write_json(out / "settings.json", report["settings"])
-    t_all = time.perf_counter()
-    from tqdm import tqdm
+    with lock_folder(out, what="reconstruct") if lock else contextlib.nullcontext():
+        remove_stale_temporaries(out)
+        names = [v.name for v in chosen]
+        if resume:
+            check = check_done(scan, out, settings=settings, views=names)
+            hashes, done = check.hashes, check.kept
+            for n, why in check.redo.items():
+                log.info("%s: not kept from the earlier run (%s)", n, why)
+        else:
+            hashes, done = hash_inputs(scan, settings, views=names), {}
+        report = {
+            "format": REPORT_FORMAT,
+            "scan": str(scan.folder.resolve()),
+            "codec": scan.patterns.codec,
+            "device": device,
+            "patterns": scan.patterns.to_dict(),
+            "rig": rig_to_dict(scan.rig),
+            "settings": settings_to_dict(settings),
+            "inputs": hashes.to_dict(),
+            "views": [],
+        }
+        if resume:
+            report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
+        atomic_write_json(out / "settings.json", report["settings"])
+        t_all = time.perf_counter()
+        from tqdm import tqdm
 
-    todo = [v for v in chosen if v.name not in done]
-    # Read the next view's frames while this one is reconstructed (image decoding
-    # and Warp launches both release the GIL).
-    from concurrent.futures import ThreadPoolExecutor
+        todo = [v for v in chosen if v.name not in done]
+        # Read the next view's frames while this one is reconstructed (image decoding
+        # and Warp launches both release the GIL).
+        from concurrent.futures import ThreadPoolExecutor
 
-    reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
-    pending = {}
+        reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
+        pending = {}
 
-    def prefetch(k):
-        if k < len(todo) and todo[k].name not in pending:
-            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
+        def prefetch(k):
+            if k < len(todo) and todo[k].name not in pending:
+                pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
 
-    bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
-    try:
-        for view in bar:
-            index = scan.views.index(view)
-            if view.name in done:
-                report["views"].append(done[view.name])
-                continue
-            k = todo.index(view)
-            prefetch(k)
-            frames, read_s = pending.pop(view.name).result()
-            prefetch(k + 1)
-            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
-                             hashes.views[view.name])
-    finally:
-        for f in pending.values():
-            f.cancel()
-        reader.shutdown(wait=True)
-    report["totals"] = _totals(report["views"])
-    report["time_s"] = time.perf_counter() - t_all
-    atomic_write_json(report_path, report)
-    return report
+        bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
+        try:
+            for view in bar:
+                index = scan.views.index(view)
+                if view.name in done:
+                    report["views"].append(done[view.name])
+                    continue
+                k = todo.index(view)
+                prefetch(k)
+                frames, read_s = pending.pop(view.name).result()
+                prefetch(k + 1)
+                _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
+                                 hashes.views[view.name])
+        finally:
+            for f in pending.values():
+                f.cancel()
+            reader.shutdown(wait=True)
+        report["totals"] = _totals(report["views"])
+        report["time_s"] = time.perf_counter() - t_all
+        atomic_write_json(report_path, report)
+        return report
 
 
 def _timed_read(scan: Scan, view: View, threads: int) -> tuple[np.ndarray, float]:
