@@ -213,3 +213,21 @@ def test_import_rig_that_is_a_fifo_or_a_device(tmp_path, capsys, capture_and_rig
         err = _err(capsys)
         assert rc == 2 and err.startswith(f"ringscan import: error: {rig}: is a ") and "not a regular file" in err, err
     assert not (tmp_path / "s").exists()
+
+
+def test_import_into_a_folder_another_run_holds_is_refused(tmp_path, capsys, capture_and_rig):
+    import os
+
+    from ringscan.pipeline.formats.atomic import LOCK_NAME, lock_folder
+
+    cap, rig = capture_and_rig
+    out = tmp_path / "scan"
+    out.mkdir()
+    with lock_folder(out, what="reconstruct"):  # flock: a second open of the file conflicts, even in one process
+        rc = main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(out)])
+        assert rc == 2 and _err(capsys) == (f"ringscan import: error: {out}: in use by another ringscan run "
+                                            f"(reconstruct, process {os.getpid()}); wait for it to end or choose "
+                                            f"another output folder (lock file {LOCK_NAME})")
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+    assert main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["c1", "scan.json"]
