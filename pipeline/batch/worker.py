@@ -32,7 +32,7 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "init_worker", "worker_device", "process_scan",
+__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
            "failed_entry", "describe_error"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
@@ -47,6 +47,10 @@ CRASH_ENV = "RINGSCAN_BATCH_CRASH_SCAN"
 """Fault injection for tests and benchmarks: the name of a scan in the batch (its
 path relative to the root) whose worker kills itself with SIGKILL every time it
 starts that scan, as a scan that crashes a library would."""
+
+RAISE_ENV = "RINGSCAN_BATCH_RAISE_SCAN"
+"""Fault injection for tests: the name of a scan in the batch whose worker raises OpenCV's own exception
+(``cv2.error``, not one of ringscan's) when it starts that scan, as a library that fails on a scan would."""
 
 _device: str | None = None
 
@@ -108,6 +112,10 @@ def worker_device() -> str:
 
 
 def _maybe_fault(scan, rel: str, out: Path, settings) -> None:
+    if os.environ.get(RAISE_ENV) == rel:
+        import cv2
+
+        raise cv2.error(f"{RAISE_ENV}: OpenCV's own exception, raised on purpose")
     if os.environ.get(CRASH_ENV) == rel:
         log.warning("%s: killing this worker (%d) on purpose", CRASH_ENV, os.getpid())
         os.kill(os.getpid(), signal.SIGKILL)
@@ -182,8 +190,9 @@ def describe_error(e: BaseException) -> str:
     text = " ".join(str(e).split())
     if isinstance(e, (RingscanError, ValueError, OSError)) and text:
         return text
-    return f"{type(e).__module__.split('.')[0]}.{type(e).__name__}: {text[:500] or '(no message)'}" \
-        if type(e).__module__ not in ("builtins", "__main__") else f"{type(e).__name__}: {text[:500] or '(no message)'}"
+    module = type(e).__module__.split(".")[0]
+    name = type(e).__name__ if module in ("builtins", "__main__") else f"{module}.{type(e).__name__}"
+    return f"{name}: {text[:500] or '(no message)'}"
 
 
 def failed_entry(job: ScanJob, e: BaseException) -> dict:

@@ -121,27 +121,20 @@ def test_a_huge_frame_fails_its_scan_alone(scan_root, tmp_path, workers):
         assert read_json(out / "batch_report.json")["scans"] == rep["scans"]
 
 
-def test_a_library_exception_fails_its_scan_alone(scan_root, tmp_path, monkeypatch):
-    """Any exception of one scan (here OpenCV's own cv2.error, raised inside the reconstruction) fails that
-    scan alone, with its type named (before: it left the worker and aborted the batch)."""
-    import cv2
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_library_exception_fails_its_scan_alone(scan_root, tmp_path, monkeypatch, workers):
+    """Any exception of one scan (here OpenCV's own cv2.error, raised in the worker as it starts the scan) fails
+    that scan alone, its type named, in-process and on the pool (before: it left the worker and aborted the batch,
+    and the report lacked the scans already done)."""
+    from ringscan.pipeline.batch.worker import RAISE_ENV
 
-    from ringscan.pipeline.batch import worker
-
-    real = worker.reconstruct_scan
-
-    def explode(scan, out, **kw):
-        if scan.folder.name == "cube":
-            raise cv2.error("OpenCV(4.x) imgcodecs: error: (-215:Assertion failed)\n pixels <= limit")
-        return real(scan, out, **kw)
-
-    monkeypatch.setattr(worker, "reconstruct_scan", explode)
-    rep = batch_reconstruct(scan_root, tmp_path / "out", workers=0, device="cpu", progress=False)
+    monkeypatch.setenv(RAISE_ENV, "a_sphere")  # spawned workers take the environment
+    rep = batch_reconstruct(scan_root, tmp_path / "out", workers=workers, device="cpu", progress=False)
     status = {s["scan"]: s for s in rep["scans"]}
-    assert status["a_sphere"]["status"] == "done"
-    assert status["b/cube"] == {**status["b/cube"], "status": "failed",
-                                "error": "cv2.error: OpenCV(4.x) imgcodecs: error: (-215:Assertion failed) "
-                                         "pixels <= limit"}
+    assert status["b/cube"]["status"] == "done"
+    assert status["a_sphere"]["status"] == "failed"
+    assert status["a_sphere"]["error"] == f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"
+    assert read_json(tmp_path / "out" / "batch_report.json")["scans"] == rep["scans"]
 
 
 def test_one_run_at_a_time_on_an_output_folder(scan_root, tmp_path, capsys):
