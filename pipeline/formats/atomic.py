@@ -33,7 +33,7 @@ from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, read_bounded_bytes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries",
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries", "FolderInUse",
            "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe", "lock_folder", "LOCK_NAME"]
 
 LOCK_NAME = ".ringscan.lock"
@@ -280,6 +280,15 @@ def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
             who = f"{owner[1]}, process {owner[0]}" if len(owner) >= 2 else "another process"
             raise FolderInUse(folder, f"in use by another ringscan run ({who}); wait for it to end or choose "
                                       f"another output folder (lock file {LOCK_NAME})") from None
+        except OSError as e:  # a file system without locks (ENOLCK, EOPNOTSUPP): run unguarded, say so
+            os.close(fd)
+            log.warning("%s: cannot lock this folder (%s): a second run into it would not be refused", folder,
+                        e.strerror)
+            with contextlib.suppress(OSError):
+                if path.stat().st_size == 0:  # ours, just created
+                    path.unlink()
+            yield None
+            return
         # The previous owner may have removed the file between our open and our lock: lock the file that is there.
         try:
             same = os.path.samestat(os.fstat(fd), os.stat(path))
