@@ -89,6 +89,12 @@ def reconstruct_scan(
             file), or writing into it would overwrite one of the scan's own files;
             another run holds ``out_dir``.
     """
+    with contextlib.ExitStack() as held:
+        return _reconstruct(scan, out_dir, settings=settings, device=device, views=views, resume=resume,
+                            progress=progress, held=held if lock else None)
+
+
+def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, held) -> dict:
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
     out = check_output_folder(out_dir, what="reconstruction's output folder")
@@ -105,66 +111,67 @@ def reconstruct_scan(
     check_no_overwrite(outputs, scan_inputs(scan))
     device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
-    with lock_folder(out, what="reconstruct") if lock else contextlib.nullcontext():
-        remove_stale_temporaries(out)
-        names = [v.name for v in chosen]
-        if resume:
-            check = check_done(scan, out, settings=settings, views=names)
-            hashes, done = check.hashes, check.kept
-            for n, why in check.redo.items():
-                log.info("%s: not kept from the earlier run (%s)", n, why)
-        else:
-            hashes, done = hash_inputs(scan, settings, views=names), {}
-        report = {
-            "format": REPORT_FORMAT,
-            "scan": str(scan.folder.resolve()),
-            "codec": scan.patterns.codec,
-            "device": device,
-            "patterns": scan.patterns.to_dict(),
-            "rig": rig_to_dict(scan.rig),
-            "settings": settings_to_dict(settings),
-            "inputs": hashes.to_dict(),
-            "views": [],
-        }
-        if resume:
-            report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
-        atomic_write_json(out / "settings.json", report["settings"])
-        t_all = time.perf_counter()
-        from tqdm import tqdm
+    if held is not None:
+        held.enter_context(lock_folder(out, what="reconstruct"))
+    remove_stale_temporaries(out)
+    names = [v.name for v in chosen]
+    if resume:
+        check = check_done(scan, out, settings=settings, views=names)
+        hashes, done = check.hashes, check.kept
+        for n, why in check.redo.items():
+            log.info("%s: not kept from the earlier run (%s)", n, why)
+    else:
+        hashes, done = hash_inputs(scan, settings, views=names), {}
+    report = {
+        "format": REPORT_FORMAT,
+        "scan": str(scan.folder.resolve()),
+        "codec": scan.patterns.codec,
+        "device": device,
+        "patterns": scan.patterns.to_dict(),
+        "rig": rig_to_dict(scan.rig),
+        "settings": settings_to_dict(settings),
+        "inputs": hashes.to_dict(),
+        "views": [],
+    }
+    if resume:
+        report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
+    atomic_write_json(out / "settings.json", report["settings"])
+    t_all = time.perf_counter()
+    from tqdm import tqdm
 
-        todo = [v for v in chosen if v.name not in done]
-        # Read the next view's frames while this one is reconstructed (image decoding
-        # and Warp launches both release the GIL).
-        from concurrent.futures import ThreadPoolExecutor
+    todo = [v for v in chosen if v.name not in done]
+    # Read the next view's frames while this one is reconstructed (image decoding
+    # and Warp launches both release the GIL).
+    from concurrent.futures import ThreadPoolExecutor
 
-        reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
-        pending = {}
+    reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
+    pending = {}
 
-        def prefetch(k):
-            if k < len(todo) and todo[k].name not in pending:
-                pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
+    def prefetch(k):
+        if k < len(todo) and todo[k].name not in pending:
+            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
 
-        bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
-        try:
-            for view in bar:
-                index = scan.views.index(view)
-                if view.name in done:
-                    report["views"].append(done[view.name])
-                    continue
-                k = todo.index(view)
-                prefetch(k)
-                frames, read_s = pending.pop(view.name).result()
-                prefetch(k + 1)
-                _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
-                                 hashes.views[view.name])
-        finally:
-            for f in pending.values():
-                f.cancel()
-            reader.shutdown(wait=True)
-        report["totals"] = _totals(report["views"])
-        report["time_s"] = time.perf_counter() - t_all
-        atomic_write_json(report_path, report)
-        return report
+    bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
+    try:
+        for view in bar:
+            index = scan.views.index(view)
+            if view.name in done:
+                report["views"].append(done[view.name])
+                continue
+            k = todo.index(view)
+            prefetch(k)
+            frames, read_s = pending.pop(view.name).result()
+            prefetch(k + 1)
+            _reconstruct_one(scan, view, index, frames, read_s, out, report, report_path, settings, device,
+                             hashes.views[view.name])
+    finally:
+        for f in pending.values():
+            f.cancel()
+        reader.shutdown(wait=True)
+    report["totals"] = _totals(report["views"])
+    report["time_s"] = time.perf_counter() - t_all
+    atomic_write_json(report_path, report)
+    return report
 
 
 def _timed_read(scan: Scan, view: View, threads: int) -> tuple[np.ndarray, float]:
