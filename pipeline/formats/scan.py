@@ -24,13 +24,14 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
 
 SCAN_FORMAT = "ringscan.scan/1"
 
 __all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict",
-           "check_view_name", "check_truth"]
+           "check_view_name", "check_truth", "check_view_frames"]
 
 
 @dataclass(frozen=True)
@@ -246,6 +247,24 @@ def save_scan(scan: Scan) -> None:
         check_view_name(v.name, source=scan.path, where=f"views[{i}].name")
     scan.folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(scan.path, scan_to_dict(scan))
+
+
+def check_view_frames(scan: Scan, view: View) -> None:
+    """Check a view's frame files from their headers, without decoding them: regular image
+    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size.
+    A reconstruction calls it for every view before it writes anything.
+
+    Raises:
+        FormatError: naming the frame file.
+    """
+    cam = scan.rig.camera
+    for n in frame_names(scan.patterns):
+        if n not in view.frames:
+            raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
+        p = scan.frame_path(view, n)
+        w, h = check_image_header(p)
+        if (w, h) != (cam.width, cam.height):
+            raise FormatError(p, f"frame is {w}x{h}, but the camera is {cam.width}x{cam.height}")
 
 
 def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:

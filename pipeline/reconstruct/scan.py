@@ -41,7 +41,14 @@ from ringscan.pipeline.formats.atomic import (
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.rig import rig_to_dict
-from ringscan.pipeline.formats.scan import Scan, View, check_view_name, load_scan, read_view_frames
+from ringscan.pipeline.formats.scan import (
+    Scan,
+    View,
+    check_view_frames,
+    check_view_name,
+    load_scan,
+    read_view_frames,
+)
 from ringscan.pipeline.formats.settings import settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -109,6 +116,8 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
     for o in outputs:
         check_output_file(o, what="file the reconstruction writes")
     check_no_overwrite(outputs, scan_inputs(scan))
+    for v in chosen:
+        check_view_frames(scan, v)  # every frame's header, before anything is written
     device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
     if held is not None:

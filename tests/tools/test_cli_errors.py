@@ -192,3 +192,21 @@ def test_calibrate_out_must_not_overwrite_a_scan_json(tmp_path, capsys, tiny_sca
                     "--report", str(tmp_path / "r.json")], capsys)
     assert rc == 2 and err.endswith("r.json: given to both --out and --report: one would overwrite the other"), err
     assert target.read_bytes() == before and not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("w,bits", [(60000, 8), (30000, 16)])
+def test_a_huge_image_is_one_line_before_decoding(tmp_path, capsys, tiny_scan, w, bits):
+    """A PNG of a few bytes whose header says 60000x60000 (before: a cv2.error traceback) or 30000x30000 16-bit
+    (before: 20 GB in `calibrate camera`, then the OOM killer): refused from its header."""
+    from tests.pipeline.formats.test_limits import png_header_only
+
+    frame = tiny_scan / "view_000" / "gray_1.png"
+    png_header_only(frame, w, w, bits)
+    want = f"{frame}: image is {w}x{w} ({w * w / 1e6:.0f} megapixels): larger than ringscan reads"
+    rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu", "--no-progress"],
+                   capsys)
+    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {want}"), err
+    assert not (tmp_path / "o").exists()  # every frame's header checked before anything is written
+    rc, err = _run(["calibrate", "camera", str(frame), "--square", "5", "--out", str(tmp_path / "cam.json")], capsys)
+    assert rc == 2 and err.startswith(f"ringscan calibrate: error: {want}"), err
+    assert not (tmp_path / "cam.json").exists()
