@@ -17,7 +17,7 @@ import os
 import time
 from pathlib import Path
 
-from ringscan.kernels import init_warp
+from ringscan.kernels import init_warp, resolve_device
 from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
 from ringscan.pipeline.batch.local import run_inline, run_local
 from ringscan.pipeline.batch.ray_backend import init_ray, run_ray
@@ -137,6 +137,8 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
     out_root = check_output_folder(out_root, what="batch's output folder")
     for folder in scans:
         out_folder(folder, root, out_root)  # every scan's output folder has a name below out_root
+    if backend == "local" and device not in (None, "", "auto", "cpu"):
+        resolve_device(device)  # an unknown device is the command's error, not every scan's (Ray: on the nodes)
     ray_started = init_ray(address) if backend == "ray" else False  # fails fast, before anything is written
     try:
         out_root.mkdir(parents=True, exist_ok=True)

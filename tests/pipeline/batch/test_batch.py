@@ -169,3 +169,10 @@ def test_one_run_at_a_time_on_an_output_folder(scan_root, tmp_path, capsys):
     assert (out / LOCK_NAME).read_text().split() == [str(holder.pid), "batch"]
     assert main(["batch", str(scan_root), "--out", str(out), "--workers", "0", "--no-progress", "--device", "cpu"]) == 0
     assert not (out / LOCK_NAME).exists()  # removed when the run ends
+
+
+def test_an_unknown_device_is_the_commands_error_not_every_scans(scan_root, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["batch", str(scan_root), "--out", str(out), "--device", "bogus", "--no-progress"]) == 2
+    assert "ringscan batch: error: device 'bogus': unknown (known: cpu" in capsys.readouterr().err
+    assert not out.exists()  # before: every scan 'failed' as if its worker had crashed, exit 1
