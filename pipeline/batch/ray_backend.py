@@ -58,7 +58,7 @@ def check_address(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None
         with socket.create_connection((host, int(port)), timeout=timeout_s):
             pass
     except OSError as e:
-        why = "no answer within {timeout_s:g} s" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        why = f"no answer within {timeout_s:g} s" if isinstance(e, TimeoutError) else (e.strerror or str(e))
         raise RingscanError(f"--address {address}: no Ray cluster answers there ({why})") from None
 
 
