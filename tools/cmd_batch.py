@@ -48,16 +48,19 @@ def add_parser(sub):
 
 def run(args) -> int:
     settings = with_constraint(load_settings(args.settings), args.constraint)
+    if args.address and args.backend != "ray":
+        raise ValueError("--address: only with --backend ray")
     if args.dry_run:
-        plans = plan_batch(args.root, args.out, settings=settings)
+        skipped: list = []
+        plans = plan_batch(args.root, args.out, settings=settings, skipped=skipped)
         w = max(len(p.scan) for p in plans)
         for p in plans:
             print(f"{p.scan:<{w}}  {p.action:<4}  {p.why}" + (f"  ({p.detail})" if p.detail else ""))
         todo = sum(p.action == "run" for p in plans)
         print(f"{len(plans)} scan(s): {todo} to run, {len(plans) - todo} done")
+        for s in skipped:
+            print(f"not searched: {s['path']}: {s['why']}")
         return 0
-    if args.address and args.backend != "ray":
-        raise ValueError("--address: only with --backend ray")
     workers = None if args.workers is None else _workers(args.workers)
     cpu_threads = None
     if args.cpu_threads is not None:
@@ -68,6 +71,8 @@ def run(args) -> int:
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
                             cpu_threads=cpu_threads, progress=not args.no_progress)
     print(format_table(rep["scans"], rep["totals"]))
+    for s in rep.get("not_searched", []):
+        print(f"not searched: {s['path']}: {s['why']}")
     failed = rep["totals"]["status"].get("failed", 0)
     print(f"report: {args.out}/batch_report.json")
     return 1 if failed else 0

@@ -18,6 +18,8 @@ is called by :func:`add_parser`, in definition order.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -50,24 +52,66 @@ from ringscan.pipeline.calibrate.turntable import (
     calibrate_turntable,
     rig_with_turntable,
 )
-from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.reconstruct.scan import scan_inputs
 from ringscan.tools.cli import add_device_option
 
 
+MAX_SIZE = 65536
+"""Largest width or height ``parse_size`` accepts (the rig file's limit)."""
+
+MAX_WINDOW_PX = 200
+"""Largest ``calibrate procam --window`` (camera px): a homography is fitted to the (2w+1)^2 pixels around each
+corner, so the time grows with its square (100000 ran for minutes)."""
+
+
 def parse_size(text: str, what: str) -> tuple[int, int]:
-    """'9x7' -> (9, 7); a clear error otherwise."""
+    """'9x7' -> (9, 7); a clear error otherwise (each side 1..65536)."""
+    if not isinstance(text, str):  # argparse gives `--board=--` as an empty list
+        text = " ".join(map(str, text)) if isinstance(text, (list, tuple)) else str(text)
+        text = text or "--"
+    shown = text if len(text) <= 40 else text[:37] + "..."
     try:
         a, b = text.lower().split("x")
+        if not (a.strip().isdigit() and b.strip().isdigit()) or len(a.strip()) > 6 or len(b.strip()) > 6:
+            raise ValueError
         w, h = int(a), int(b)
     except ValueError:
-        raise ValueError(f"{what}: expected WxH (e.g. 9x7), got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise ValueError(f"{what}: sizes must be positive, got {text!r}")
+        raise ValueError(f"{what}: expected WxH (e.g. 9x7), got {shown!r}") from None
+    if not (0 < w <= MAX_SIZE and 0 < h <= MAX_SIZE):
+        raise ValueError(f"{what}: sizes must be from 1 to {MAX_SIZE}, got {shown!r}")
     return w, h
+
+
+def check_outputs(outputs: dict, inputs) -> None:
+    """Refuse output files (option -> path; None: not given) that are the same file, that would overwrite an input,
+    or that cannot be written as files, before anything is computed.
+
+    Raises:
+        FormatError: naming the output.
+    """
+    given = {opt: p for opt, p in outputs.items() if p}
+    seen: dict = {}
+    for opt, p in given.items():
+        check_output_file(p, what=f"file {opt} writes")
+        key = os.path.realpath(p)
+        if key in seen:
+            raise FormatError(p, f"given to both {seen[key]} and {opt}: one would overwrite the other")
+        seen[key] = opt
+    check_no_overwrite(list(given.values()), [str(i) for i in inputs])
+
+
+def folder_files(folders) -> list[Path]:
+    """The regular files directly in each folder (a capture's frames): outputs must not overwrite them."""
+    out = []
+    for f in folders:
+        with contextlib.suppress(OSError):
+            out += [Path(e.path) for e in os.scandir(f) if e.is_file()]
+    return out
 
 
 def view_name(path) -> str:
@@ -124,10 +168,17 @@ def print_duplicates(dups: list[str]) -> None:
 
 def board_from_args(args) -> Board:
     cols, rows = parse_size(args.board, "--board")
-    return Board(cols=cols, rows=rows, square=args.square, charuco=args.charuco, marker=args.marker)
+    try:
+        return Board(cols=cols, rows=rows, square=args.square, charuco=args.charuco, marker=args.marker)
+    except ValueError as e:
+        raise ValueError(f"--board/--square/--marker: {e}") from None
 
 
 def board_settings_from_args(args) -> BoardSettings:
+    if not 0 < args.max_edge_width <= 1000:
+        raise ValueError(f"--max-edge-width: expected px from 0 to 1000, got {args.max_edge_width:g}")
+    if not 0 < args.max_tilt <= 90:
+        raise ValueError(f"--max-tilt: expected degrees from 0 to 90, got {args.max_tilt:g}")
     return BoardSettings(max_edge_width_px=args.max_edge_width, max_tilt_deg=args.max_tilt)
 
 
@@ -174,6 +225,7 @@ def run_camera(args) -> int:
         raise ValueError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
     board = board_from_args(args)
     bs = board_settings_from_args(args)
+    check_outputs({"--out": args.out, "--rig": args.rig}, args.images)
     cs = camera_settings_from_args(args)
     rig_size = None
     if args.rig:
@@ -242,6 +294,9 @@ def add_procam_parser(calsub) -> None:
 def run_procam(args) -> int:
     board = board_from_args(args)
     proj_size = parse_size(args.projector, "--projector")
+    if not 1 <= args.window <= MAX_WINDOW_PX:
+        raise ValueError(f"--window: expected camera px from 1 to {MAX_WINDOW_PX}, got {args.window}")
+    check_outputs({"--out": args.out, "--report": args.report}, folder_files(args.captures))
     settings = ProcamSettings(window_px=args.window, camera=camera_settings_from_args(args),
                               board=board_settings_from_args(args))
     caps, size = [], None
@@ -408,6 +463,8 @@ def run_light(args) -> int:
         raise ValueError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
     rig = load_rig(args.rig) if args.rig else None
     scans = [load_scan(s) for s in args.scans]
+    check_outputs({"--out": args.out, "--report": args.report},
+                  [*(f for s in scans for f in scan_inputs(s)), *([args.rig] if args.rig else [])])
     cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
                                    settings=LightSettings(max_residual_px=args.max_residual))
     li = cal.light
@@ -507,6 +564,9 @@ def add_turntable_parser(calsub) -> None:
 def run_turntable(args) -> int:
     board = board_from_args(args)
     rig = load_rig(args.rig) if args.rig else None
+    inputs = [*(scan_inputs(load_scan(args.inputs[0])) if len(args.inputs) == 1 and Path(args.inputs[0]).is_dir()
+                else args.inputs), *([args.rig] if args.rig else [])]
+    check_outputs({"--out": args.out, "--report": args.report}, inputs)
     prior = (0.0, 0.0, 1.0) if rig is None or rig.turntable is None else tuple(rig.turntable.axis_dir)
     settings = TurntableSettings(board=board_settings_from_args(args), prior_axis=prior)
     if len(args.inputs) == 1 and Path(args.inputs[0]).is_dir():

@@ -223,7 +223,27 @@ def _run_session(args) -> int:
     return 0
 
 
+MAX_TABLE_DEG = 3600.0
+"""Largest turntable angle accepted from the command line (``--table-at``, ``--start``): ten turns either way."""
+MAX_STEP_DEG = 360.0
+"""Largest angle between views (``--step``): one turn either way."""
+
+
+def check_angles(args) -> None:
+    """``--table-at``, ``--start`` and ``--step`` finite and within range, before anything moves (NaN or 1e300 would
+    reach the table's controller as a move, or ``G92 Xnan``).
+
+    Raises:
+        ValueError: naming the option, e.g. ``--table-at: expected degrees from -3600 to 3600, got 1e+300``.
+    """
+    for opt, value, limit in (("--table-at", args.table_at, MAX_TABLE_DEG), ("--start", args.start, MAX_TABLE_DEG),
+                              ("--step", args.step, MAX_STEP_DEG)):
+        if value is not None and not -limit <= value <= limit:  # NaN fails too
+            raise ValueError(f"{opt}: expected degrees from {-limit:g} to {limit:g}, got {value:g}")
+
+
 def _run(args) -> int:
+    check_angles(args)
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
     patterns = load_patterns(args.patterns) if args.patterns else None

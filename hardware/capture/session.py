@@ -53,11 +53,23 @@ def wait_for_serial(port: str, *, baudrate: int = 115200, timeout_s: float | Non
     """A trigger that waits for a line on a serial port (pyserial URL or device) before each pose."""
     import serial
 
+    def open_port():
+        try:
+            return serial.serial_for_url(port, baudrate=baudrate, timeout=timeout_s)
+        except (OSError, ValueError, serial.SerialException) as e:  # e.g. /dev/null: "Inappropriate ioctl"
+            raise CaptureError(f"--trigger {port}: cannot open it as a serial port: {e}") from None
+
+    open_port().close()  # checked now, before the first pose is captured
+
     def wait(index: int, total: int) -> None:
         print(f"pose {index + 1} of {total}: turn the object over, then press the trigger", file=sys.stderr,
               flush=True)
-        with serial.serial_for_url(port, baudrate=baudrate, timeout=timeout_s) as link:
-            if not link.readline():
+        with open_port() as link:
+            try:
+                line = link.readline()
+            except (OSError, serial.SerialException) as e:
+                raise CaptureError(f"--trigger {port}: {e}") from None
+            if not line:
                 raise CaptureError(f"{port}: no trigger within {timeout_s} s before pose {index + 1}")
 
     return wait

@@ -17,13 +17,18 @@ import os
 import time
 from pathlib import Path
 
-from ringscan.kernels import init_warp
+from ringscan.kernels import init_warp, resolve_device
 from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
 from ringscan.pipeline.batch.local import run_inline, run_local
-from ringscan.pipeline.batch.ray_backend import run_ray
+from ringscan.pipeline.batch.ray_backend import init_ray, run_ray
 from ringscan.pipeline.batch.report import BATCH_REPORT_FORMAT, TIME_FIELDS, format_table, summarise
 from ringscan.pipeline.batch.worker import ScanJob
-from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_folder, remove_stale_temporaries
+from ringscan.pipeline.formats.atomic import (
+    atomic_write_json,
+    check_output_folder,
+    lock_folder,
+    remove_stale_temporaries,
+)
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.settings import settings_to_dict
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -56,19 +61,29 @@ def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
     return max(1, os.cpu_count() or 1), [device]
 
 
-def _root_and_scans(root) -> tuple[Path, list[Path]]:
+def _root_and_scans(root, skipped: list | None = None) -> tuple[Path, list[Path]]:
     root = Path(root)
     if not root.is_dir():
         raise RingscanError(f"{root}: not a folder" if root.exists() else f"{root}: not found")
-    scans = find_scans(root)
+    notes: list = []
+    scans = find_scans(root, skipped=notes)
+    for path, why in notes:
+        log.warning("%s: %s", path, why)
+    if skipped is not None:
+        skipped.extend({"path": path, "why": why} for path, why in notes)
     if not scans:
-        raise RingscanError(f"{root}: no scan.json found below this folder")
+        raise RingscanError(f"{root}: no scan.json found below this folder"
+                            + (f" ({len(notes)} path(s) not searched, see above)" if notes else ""))
     return root, scans
 
 
-def plan_batch(root, out_root, *, settings: ReconstructSettings = ReconstructSettings()) -> list[ScanPlan]:
-    """What ``batch_reconstruct`` would do with each scan and why (``--dry-run``); writes nothing."""
-    root, scans = _root_and_scans(root)
+def plan_batch(root, out_root, *, settings: ReconstructSettings = ReconstructSettings(),
+               skipped: list | None = None) -> list[ScanPlan]:
+    """What ``batch_reconstruct`` would do with each scan and why (``--dry-run``); writes nothing.
+
+    ``skipped``, when given, receives what the search passed over (see the report's ``not_searched``).
+    """
+    root, scans = _root_and_scans(root, skipped)
     out_root = Path(out_root)
     plans = []
     for folder in scans:
@@ -100,10 +115,16 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
 
     Returns:
         The report (also ``out_root/batch_report.json``): ``scans`` (one entry per
-        scan, in the order of :func:`find_scans`) and ``totals``.
-    """
-    from tqdm import tqdm
+        scan, in the order of :func:`find_scans`), ``not_searched`` (paths below
+        ``root`` the search passed over and why: a link loop, a scan folder inside a
+        scan folder) and ``totals``.
 
+    Raises:
+        FormatError: ``out_root`` cannot be an output folder, or another run holds it
+            (:func:`~ringscan.pipeline.formats.atomic.lock_folder`).
+        RingscanError: no scan below ``root``; the Ray cluster at ``address`` does not
+            answer. Nothing is written then.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
     if workers is not None and (not isinstance(workers, int) or workers < 0):
@@ -111,9 +132,31 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
     if cpu_threads is not None and (isinstance(cpu_threads, bool) or not isinstance(cpu_threads, int)
                                     or cpu_threads < 1):
         raise ValueError(f"cpu_threads: expected a whole number >= 1, got {cpu_threads!r}")
-    root, scans = _root_and_scans(root)
+    skipped: list = []
+    root, scans = _root_and_scans(root, skipped)
     out_root = check_output_folder(out_root, what="batch's output folder")
-    out_root.mkdir(parents=True, exist_ok=True)
+    for folder in scans:
+        out_folder(folder, root, out_root)  # every scan's output folder has a name below out_root
+    if backend == "local" and device not in (None, "", "auto", "cpu"):
+        resolve_device(device)  # an unknown device is the command's error, not every scan's (Ray: on the nodes)
+    ray_started = init_ray(address) if backend == "ray" else False  # fails fast, before anything is written
+    try:
+        out_root.mkdir(parents=True, exist_ok=True)
+        with lock_folder(out_root, what="batch"):
+            return _batch(root, scans, skipped, out_root, settings=settings, device=device, workers=workers,
+                          backend=backend, address=address, fuse=fuse, mesh=mesh, cpu_threads=cpu_threads,
+                          progress=progress)
+    finally:
+        if ray_started:
+            import ray
+
+            ray.shutdown()
+
+
+def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend, address, fuse, mesh, cpu_threads,
+           progress) -> dict:
+    from tqdm import tqdm
+
     remove_stale_temporaries(out_root)
 
     def jobs():
@@ -134,7 +177,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
             devices = [devices[i % len(devices)] for i in range(n_workers)]
             results = run_local(jobs(), workers=n_workers, devices=devices, cpu_threads=cpu_threads)
     report = {"format": BATCH_REPORT_FORMAT, "root": str(root.resolve()), "backend": backend,
-              "workers": n_workers, "settings": settings_to_dict(settings), "scans": []}
+              "workers": n_workers, "settings": settings_to_dict(settings), "not_searched": skipped, "scans": []}
     entries: dict[int, dict] = {}
     t0 = time.perf_counter()
     bar = tqdm(total=len(scans), desc="batch", unit="scan", disable=not progress)

@@ -15,16 +15,24 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 __all__ = ["find_scans", "iter_scans", "out_folder", "ScanPlan", "plan_scan"]
 
 
-def iter_scans(root: str | os.PathLike) -> Iterator[Path]:
+def iter_scans(root: str | os.PathLike, *, skipped: list | None = None) -> Iterator[Path]:
     """Scan folders (holding scan.json) below ``root``, one at a time, in sorted order.
 
     The walk is lazy (a folder of a million scans is never listed whole in memory
     beyond one folder's entries). Symbolic links to folders are followed (a batch
     folder of links to scans kept elsewhere works); a folder reached twice through
-    links is listed once. A scan folder's own subfolders are not searched.
+    links is listed once. A scan folder's own subfolders are not searched for scans.
+
+    Args:
+        root: the folder to search.
+        skipped: when given, ``(path, why)`` is appended for what the walk passes over
+            that could hold scans: a symbolic link loop or a broken link, a folder it
+            cannot list, a scan.json nested inside a scan folder (not processed).
     """
     root = Path(root)
+    note = skipped.append if skipped is not None else (lambda item: None)
     if (root / "scan.json").is_file():
+        _note_nested(root, note)
         yield root
         return
     seen: set[str] = set()
@@ -35,26 +43,60 @@ def iter_scans(root: str | os.PathLike) -> Iterator[Path]:
             return
         seen.add(real)
         if (folder / "scan.json").is_file():
+            _note_nested(folder, note)
             yield folder
             return
         try:
-            names = sorted(e.name for e in os.scandir(folder) if e.is_dir(follow_symlinks=True))
-        except OSError:
+            entries = sorted(os.scandir(folder), key=lambda e: e.name)
+        except OSError as e:
+            note((str(folder), f"cannot list this folder: {e.strerror}"))
             return
-        for name in names:
-            yield from walk(folder / name)
+        for e in entries:
+            try:
+                is_dir = e.is_dir(follow_symlinks=True)
+            except OSError as err:  # ELOOP: a link loop
+                note((e.path, f"cannot follow this link: {(err.strerror or str(err)).lower()}"))
+                continue
+            if is_dir:
+                yield from walk(folder / e.name)
+            elif e.is_symlink() and not os.path.exists(e.path):
+                note((e.path, "a broken symbolic link"))
 
     yield from walk(root)
 
 
-def find_scans(root: str | os.PathLike) -> list[Path]:
+def _note_nested(scan: Path, note, *, max_depth: int = 8) -> None:
+    """Note the scan.json files inside a scan folder's subfolders (links not followed): a batch does not process
+    them (a scan folder's frames live in its subfolders), so it says so."""
+    def walk(folder: Path, depth: int) -> None:
+        try:
+            subs = sorted(e.name for e in os.scandir(folder) if e.is_dir(follow_symlinks=False))
+        except OSError:
+            return
+        for name in subs:
+            sub = folder / name
+            if (sub / "scan.json").is_file():
+                note((str(sub), f"a scan folder inside the scan folder {scan}: not processed (a scan folder's "
+                                "subfolders are not searched; give it as a ROOT of its own)"))
+            elif depth < max_depth:
+                walk(sub, depth + 1)
+
+    walk(scan, 1)
+
+
+def find_scans(root: str | os.PathLike, *, skipped: list | None = None) -> list[Path]:
     """Scan folders (holding scan.json) below ``root``, sorted (see :func:`iter_scans`)."""
-    return sorted(iter_scans(root))
+    return sorted(iter_scans(root, skipped=skipped))
 
 
 def out_folder(folder: Path, root: Path, out_root: Path) -> tuple[str, Path]:
     """A scan's name in the batch (its path relative to ``root``) and its output folder."""
-    rel = folder.relative_to(root) if folder != root else Path(folder.name)
+    # the root itself is named by its real name: a ROOT given as ``.`` or ``SCAN/view_000/..`` has none of its own,
+    # and ``out_root / ".."`` would write above the output folder
+    rel = folder.relative_to(root) if folder != root else Path(Path(os.path.abspath(folder)).resolve().name)
+    if not rel.parts or any(p in ("", ".", "..") for p in rel.parts):
+        raise RingscanError(f"{folder}: cannot name its output folder below {out_root} (give the scan folder by "
+                            "its own name)")
     return rel.as_posix(), out_root / rel
 
 

@@ -14,13 +14,15 @@ shared file system); nothing is shipped to the workers but the job's paths.
 from __future__ import annotations
 
 import logging
+import socket
 from collections.abc import Iterable, Iterator
 
-from ringscan.pipeline.batch.worker import ScanJob, init_worker, process_scan
+from ringscan.pipeline.batch.worker import ScanJob, failed_entry, init_worker, process_scan
+from ringscan.pipeline.formats.errors import RingscanError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_ray", "task_options", "MAX_RETRIES"]
+__all__ = ["run_ray", "task_options", "init_ray", "check_address", "MAX_RETRIES", "CONNECT_TIMEOUT_S"]
 
 MAX_RETRIES = 3
 """Retries of a task whose worker process died."""
@@ -30,8 +32,50 @@ def _ray():
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the Ray backend needs Ray: pip install 'ringscan[ray]'") from None
+        raise RingscanError("the Ray backend needs Ray: pip install 'ringscan[ray]'") from None
     return ray
+
+
+CONNECT_TIMEOUT_S = 5.0
+"""How long a cluster address given with ``--address`` may take to accept a connection
+before the batch stops (Ray itself would retry for minutes)."""
+
+
+def check_address(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Fail fast when nothing listens at a cluster address (``host:port`` or ``ray://host:port``).
+
+    Raises:
+        RingscanError: ``--address 127.0.0.1:1: no Ray cluster answers there (Connection refused)``; a malformed address.
+    """
+    if address in ("auto", "local"):
+        return
+    hostport = address[len("ray://"):] if address.startswith("ray://") else address
+    host, _, port = hostport.rpartition(":")
+    host = host.strip("[]")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise RingscanError(f"--address {address!r}: expected HOST:PORT or ray://HOST:PORT (or auto)")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except OSError as e:
+        why = f"no answer within {timeout_s:g} s" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        raise RingscanError(f"--address {address}: no Ray cluster answers there ({why})") from None
+
+
+def init_ray(address: str | None = None) -> bool:
+    """Join the cluster at ``address`` (None: ``RAY_ADDRESS``, else a new local one) unless this
+    process already has; returns whether it joined (and so should leave: ``ray.shutdown()``).
+
+    Raises:
+        RingscanError: Ray is not installed; nothing answers at the address (:func:`check_address`).
+    """
+    ray = _ray()
+    if ray.is_initialized():
+        return False
+    if address:
+        check_address(address)
+    ray.init(address=address, log_to_driver=False, configure_logging=False)
+    return True
 
 
 def task_options(resources: dict) -> dict:
@@ -41,7 +85,10 @@ def task_options(resources: dict) -> dict:
 
 
 def _task(job: ScanJob, device: str | None) -> dict:
-    init_worker(device)  # once per Ray worker process (init_warp is idempotent)
+    try:
+        init_worker(device)  # once per Ray worker process (init_warp is idempotent)
+    except Exception as e:  # noqa: BLE001 - one scan's failure, whatever raised it, fails that scan alone
+        return failed_entry(job, e)
     entry = process_scan(job)
     ray = _ray()
     # what Ray gave the task (its GPU, if any): in the batch report, next to the device the worker used
@@ -62,10 +109,7 @@ def run_ray(jobs: Iterable[ScanJob], *, address: str | None = None, device: str 
         max_retries: retries of a task whose worker died.
     """
     ray = _ray()
-    started = False
-    if not ray.is_initialized():
-        ray.init(address=address, log_to_driver=False, configure_logging=False)
-        started = True
+    started = init_ray(address)
     try:
         res = ray.cluster_resources()
         gpus = int(res.get("GPU", 0))
@@ -89,10 +133,16 @@ def run_ray(jobs: Iterable[ScanJob], *, address: str | None = None, device: str 
                 n, job = refs.pop(r)
                 try:
                     yield n, ray.get(r)
-                except ray.exceptions.RayError as e:
-                    log.error("%s: %s", job.folder, e)
+                except ray.exceptions.RayTaskError as e:  # raised in the task (not retried: retry_exceptions=False)
+                    cause = getattr(e, "cause", None) or e
+                    log.debug("%s: %s", job.folder, e)
+                    yield n, failed_entry(job, cause)
+                except ray.exceptions.RayError as e:  # the task's worker died (retried up to max_retries times)
+                    log.debug("%s: %s", job.folder, e)
+                    first = str(e).strip().splitlines()[0] if str(e).strip() else ""
                     yield n, {"scan": job.rel, "out": job.out, "status": "failed",
-                              "error": f"Ray task failed after {max_retries} retries: {type(e).__name__}"}
+                              "error": f"its Ray task failed ({type(e).__name__}: {first[:300]}); Ray gives a task "
+                                       f"whose worker dies up to {max_retries} more tries"}
     finally:
         if started:
             ray.shutdown()

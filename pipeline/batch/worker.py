@@ -33,7 +33,8 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "init_worker", "worker_device", "process_scan"]
+__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
+           "failed_entry", "describe_error"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
 """The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
@@ -47,6 +48,10 @@ CRASH_ENV = "RINGSCAN_BATCH_CRASH_SCAN"
 """Fault injection for tests and benchmarks: the name of a scan in the batch (its
 path relative to the root) whose worker kills itself with SIGKILL every time it
 starts that scan, as a scan that crashes a library would."""
+
+RAISE_ENV = "RINGSCAN_BATCH_RAISE_SCAN"
+"""Fault injection for tests: the name of a scan in the batch whose worker raises OpenCV's own exception
+(``cv2.error``, not one of ringscan's) when it starts that scan, as a library that fails on a scan would."""
 
 _device: str | None = None
 
@@ -108,6 +113,10 @@ def worker_device() -> str:
 
 
 def _maybe_fault(scan, rel: str, out: Path, settings) -> None:
+    if os.environ.get(RAISE_ENV) == rel:
+        import cv2
+
+        raise cv2.error(f"{RAISE_ENV}: OpenCV's own exception, raised on purpose")
     if os.environ.get(CRASH_ENV) == rel:
         log.warning("%s: killing this worker (%d) on purpose", CRASH_ENV, os.getpid())
         os.kill(os.getpid(), signal.SIGKILL)
@@ -119,7 +128,7 @@ def _maybe_fault(scan, rel: str, out: Path, settings) -> None:
     except OSError:
         return
     reconstruct_scan(scan, out, settings=settings, device=worker_device(), views=[scan.views[0].name], resume=True,
-                     progress=False)
+                     progress=False, lock=False)
     log.warning("%s: killing this worker (%d) on purpose", FAULT_ENV, os.getpid())
     os.kill(os.getpid(), signal.SIGKILL)
 
@@ -154,7 +163,7 @@ def process_scan(job: ScanJob) -> dict:
                 entry["redone"] = check.redo
             _maybe_fault(scan, job.rel, out, job.settings)
             rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
-                                   progress=False)
+                                   progress=False, lock=False)  # the batch holds its output folder
             views = rep["views"]
             kept = set(rep.get("resume", {}).get("kept", []))
             computed = [v for v in views if v["name"] not in kept]
@@ -168,11 +177,28 @@ def process_scan(job: ScanJob) -> dict:
             raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")
         if job.mesh or job.fuse:
             entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
-    except (RingscanError, ValueError, OSError, RuntimeError) as e:
+    except Exception as e:  # noqa: BLE001 - one scan's failure of any kind (a library's own exception too) fails
+        # that scan alone; the batch goes on
         log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name
-        entry.update(status="failed", error=str(e))
+        entry.update(status="failed", error=describe_error(e))
     entry["time_s"] = time.perf_counter() - t
     return entry
+
+
+def describe_error(e: BaseException) -> str:
+    """One line for a scan's error: ringscan's own errors as they are (they name the file); another
+    exception (a library's: cv2.error, MemoryError, ...) with its type, its message on one line."""
+    text = " ".join(str(e).split())
+    if isinstance(e, (RingscanError, ValueError, OSError)) and text:
+        return text
+    module = type(e).__module__.split(".")[0]
+    name = type(e).__name__ if module in ("builtins", "__main__") else f"{module}.{type(e).__name__}"
+    return f"{name}: {text[:500] or '(no message)'}"
+
+
+def failed_entry(job: ScanJob, e: BaseException) -> dict:
+    """A scan's entry in the batch report when it failed with ``e``."""
+    return {"scan": job.rel, "out": job.out, "status": "failed", "error": describe_error(e)}
 
 
 def _fuse(out: Path, *, redo: bool, mesh: bool) -> dict:

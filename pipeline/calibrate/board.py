@@ -29,6 +29,15 @@ ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_5X5_5
 """ArUco dictionaries accepted for ChArUco boards."""
 
 
+MIN_SQUARE_MM = 0.01
+"""Smallest board square accepted (mm): a typo guard, like the largest."""
+MAX_SQUARE_MM = 10000.0
+"""Largest board square accepted (mm): 10 m (1e308 made OpenCV fail deep inside)."""
+
+MAX_EDGE_WIDTH_MEASURED = 9999.0
+"""What ``cv2.estimateChessboardSharpness`` returns when it cannot measure an edge."""
+
+
 @dataclass(frozen=True)
 class Board:
     """A planar calibration board."""
@@ -47,8 +56,12 @@ class Board:
     def __post_init__(self):
         if self.cols < 2 or self.rows < 2:
             raise ValueError(f"board: need at least 2x2 inner corners, got {self.cols}x{self.rows}")
-        if not (self.square > 0 and math.isfinite(self.square)):
-            raise ValueError(f"board: square size must be > 0, got {self.square}")
+        if not (MIN_SQUARE_MM <= self.square <= MAX_SQUARE_MM):  # NaN fails too
+            raise ValueError(f"board: square size must be a number of mm from {MIN_SQUARE_MM:g} to {MAX_SQUARE_MM:g}, "
+                             f"got {self.square:g}")
+        if not (0 <= self.marker < self.square):
+            raise ValueError(f"board: marker size must be from 0 (0.75 x square) to below the square size "
+                             f"{self.square:g}, got {self.marker:g}")
         if self.charuco is not None and self.charuco not in ARUCO_DICTIONARIES:
             raise ValueError(f"board: unknown ArUco dictionary {self.charuco!r} (known: {', '.join(ARUCO_DICTIONARIES)})")
 
@@ -160,6 +173,9 @@ def detect_board(
             sharp = float(cv2.estimateChessboardSharpness(img, (board.cols, board.rows), corners.reshape(-1, 1, 2))[0][0])
         except cv2.error:
             sharp = float("nan")
+        if math.isfinite(sharp) and sharp >= MAX_EDGE_WIDTH_MEASURED:
+            return BoardView(name, False, "blurred (OpenCV could not measure the width of the board's edges: no "
+                                          "sharp edge along its squares)", None, None, float("nan"))
         if math.isfinite(sharp) and sharp > settings.max_edge_width_px:
             return BoardView(name, False, f"blurred (edges {sharp:.1f} px wide > {settings.max_edge_width_px:g})",
                              None, None, sharp)

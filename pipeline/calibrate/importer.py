@@ -16,6 +16,7 @@ working volume of such a rig and by ``benchmarks/procam_plane.py``.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,13 +26,16 @@ import numpy as np
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, read_capture, subpixel_map
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
+from ringscan.pipeline.formats.atomic import check_output_folder, lock_folder
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, check_regular_file
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, parse_patterns
 from ringscan.pipeline.formats.rig import PerspectiveLight, Rig
-from ringscan.pipeline.formats.scan import Scan, View, save_scan
+from ringscan.pipeline.formats.scan import Scan, View, check_view_name, save_scan
 
-__all__ = ["ImportSettings", "read_opencv_calibration", "triangulate_codes", "import_captures", "encode_decoded",
-           "procam_pose"]
+__all__ = ["ImportSettings", "read_opencv_calibration", "triangulate_codes", "import_captures", "check_import_names",
+           "encode_decoded", "procam_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -67,8 +71,7 @@ def read_opencv_calibration(path) -> dict:
         cam_size ((W, H) from ``img_shape`` when present, else None).
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(path, "calibration file not found")
+    check_regular_file(path, what="calibration file", max_bytes=MAX_JSON_BYTES)  # a FIFO would block OpenCV
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     if not fs.isOpened():
         raise CalibrationError(path, "not an OpenCV FileStorage file (XML/YAML)")
@@ -135,6 +138,27 @@ def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray) -> tuple[
     return fu, fv, fc
 
 
+def check_import_names(captures: list) -> list[str]:
+    """The view name of each capture folder: its own name (``.`` and ``DIR/sub/..`` by their real name),
+    checked as a view name (:func:`~ringscan.pipeline.formats.scan.check_view_name`) and unique (ignoring
+    case), before anything is decoded or written.
+
+    Raises:
+        FormatError: naming the capture folder: a name that is not folder-safe, or two captures with one name.
+    """
+    names, seen = [], {}
+    for folder in captures:
+        name = Path(os.path.abspath(folder)).resolve().name
+        check_view_name(name, source=folder, where="the capture folder's name (the view's name)")
+        key = name.casefold()
+        if key in seen:
+            raise FormatError(folder, f"has the name {name!r} of the capture {seen[key]}: two views of one name "
+                                      "(give capture folders of different names)")
+        seen[key] = folder
+        names.append(name)
+    return names
+
+
 def import_captures(
     captures: list,
     *,
@@ -165,9 +189,12 @@ def import_captures(
         raise ValueError("import_captures: give exactly one of rig and opencv")
     if not captures:
         raise ValueError("import_captures: no capture folders")
-    out = Path(out)
+    names = check_import_names(captures)
+    out = check_output_folder(out, what="scan folder (--out)")
+    if (out / "scan.json").exists():
+        raise FormatError(out, "already holds a scan (scan.json); choose another folder (import writes a new scan)")
     decs, stats = [], {}
-    for folder in captures:
+    for folder, name in zip(captures, names):
         cap = read_capture(folder, projector=projector, layout=layout)
         dec = decode_graycode(cap, settings=settings.graycode)
         if settings.integer_only:
@@ -176,16 +203,16 @@ def import_captures(
             dec.subpixel = np.zeros_like(dec.valid)
         else:
             subpixel_map(cap, dec, settings=settings.graycode)
-        decs.append((Path(folder), dec))
-        stats[Path(folder).name] = {"decoded": int(dec.valid.sum()),
+        decs.append((Path(folder), name, dec))
+        stats[name] = {"decoded": int(dec.valid.sum()),
                                     "subpixel_share": float(dec.subpixel.sum() / max(1, dec.valid.sum()))}
         del cap
-    H, W = decs[0][1].valid.shape
+    H, W = decs[0][2].valid.shape
     if rig is None:
         size = opencv["cam_size"] or (W, H)
         if depth is None:
             zs = []
-            for _, dec in decs:
+            for _, _, dec in decs:
                 yy, xx = np.nonzero(dec.valid[::8, ::8])
                 X = triangulate_codes(np.stack([xx * 8, yy * 8], 1), np.stack([dec.col[::8, ::8][yy, xx],
                                                                              dec.row[::8, ::8][yy, xx]], 1),
@@ -211,18 +238,21 @@ def import_captures(
     center = (float(li.K[0, 2]), float(li.K[1, 2]))
     spec = parse_patterns({"codec": "decoded", "width": li.width, "height": li.height, "center": list(center),
                            "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits}, source="import")
-    views = []
-    for folder, dec in decs:
-        name = folder.name
-        fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
-        frames = {}
-        for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
-            rel = f"{name}/{key}.png"
-            write_image(out / rel, img)
-            frames[key] = rel
-        views.append(View(name=name, turntable_deg=0.0, frames=frames))
-    scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views),
-                extra={"imported": {"layout": layout, "captures": [str(f) for f, _ in decs], "stats": stats}})
-    save_scan(scan)
+    out.mkdir(parents=True, exist_ok=True)
+    with lock_folder(out, what="import"):
+        if (out / "scan.json").exists():  # written by another import between the check above and the lock
+            raise FormatError(out, "already holds a scan (scan.json); choose another folder")
+        views = []
+        for folder, name, dec in decs:
+            fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+            frames = {}
+            for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
+                rel = f"{name}/{key}.png"
+                write_image(out / rel, img)
+                frames[key] = rel
+            views.append(View(name=name, turntable_deg=0.0, frames=frames))
+        scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views),
+                    extra={"imported": {"layout": layout, "captures": [str(f) for f, _, _ in decs], "stats": stats}})
+        save_scan(scan)
     log.info("imported %d capture(s) into %s", len(views), out)
     return scan, stats

@@ -34,10 +34,11 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
-from ringscan.pipeline.formats.scan import Scan, load_scan
+from ringscan.pipeline.formats.scan import Scan, check_truth, load_scan
 from ringscan.pipeline.geometry import light_directions, projector_polar, undistort_normalized
 
 log = logging.getLogger(__name__)
@@ -55,9 +56,7 @@ def truth_surface(scan: Scan, turntable_deg: float):
     """Open3D triangle mesh of the truth for a view: the object at the view's
     angle plus a reference-plane quad, in world coordinates."""
     o3d = open3d_lib()
-    truth = scan.extra.get("truth")
-    if not isinstance(truth, dict) or "mesh" not in truth:
-        raise FormatError(scan.path, "truth: this scan has no ground truth (simulate it with `ringscan simulate`)")
+    truth = check_truth(scan)
     mesh_path = scan.folder / truth["mesh"]
     if not mesh_path.is_file():
         raise FormatError(mesh_path, "truth mesh not found")
@@ -67,8 +66,8 @@ def truth_surface(scan: Scan, turntable_deg: float):
     if len(V):
         T = turntable_transform(scan.rig.turntable, turntable_deg)
         V = V @ T[:3, :3].T + T[:3, 3]
-    zp = float(truth.get("reference_plane_z", 0.0))
-    if truth.get("reference_plane", True):
+    zp = truth["reference_plane_z"]
+    if truth["reference_plane"]:
         r = 4.0 * scan.rig.volume.r_max
         PV = np.array([[-r, -r, zp], [r, -r, zp], [r, r, zp], [-r, r, zp]])
         PF = np.array([[0, 1, 2], [0, 2, 3]]) + len(V)
@@ -120,15 +119,21 @@ def truth_points(scan: Scan, view_name: str) -> tuple[np.ndarray, np.ndarray]:
     """World points of the pixels that saw the surface lit, and their pixel index."""
     import cv2
 
-    truth = scan.extra.get("truth", {})
-    tv = truth.get("views", {}).get(view_name)
+    tv = check_truth(scan)["views"].get(view_name)
     if not tv:
         raise FormatError(scan.path, f"truth.views: no ground truth for view {view_name!r}")
     dpath = scan.folder / tv["depth"]
+    check_image_header(dpath)
     depth = cv2.imread(str(dpath), cv2.IMREAD_UNCHANGED)
-    if depth is None:
-        raise FormatError(dpath, "cannot read truth depth")
+    if depth is None or depth.ndim != 2 or depth.dtype != np.float32:
+        raise FormatError(dpath, "cannot read truth depth (expected a single-channel float32 TIFF)")
+    if depth.shape != (scan.rig.camera.height, scan.rig.camera.width):
+        raise FormatError(dpath, f"truth depth is {depth.shape[1]}x{depth.shape[0]}, but the camera is "
+                                 f"{scan.rig.camera.width}x{scan.rig.camera.height}")
     lit = read_image(scan.folder / tv["lit"]) > 0
+    if lit.shape != depth.shape:
+        raise FormatError(scan.folder / tv["lit"], f"truth lit mask is {lit.shape[1]}x{lit.shape[0]}, but the "
+                                                   f"depth is {depth.shape[1]}x{depth.shape[0]}")
     ok = lit & np.isfinite(depth)
     vv, uu = np.nonzero(ok)
     cam = scan.rig.camera
@@ -194,7 +199,7 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
         cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
         near = dn <= r / np.maximum(cos_t, 0.25)
         tr = scan.extra["truth"]
-        obj = np.abs(X[:, 2] - float(tr.get("reference_plane_z", 0.0))) > 0.5
+        obj = np.abs(X[:, 2] - check_truth(scan)["reference_plane_z"]) > 0.5
         if isinstance(tr.get("wall_z"), (int, float)):          # a simulated wall is not the object
             obj &= np.abs(X[:, 2] - float(tr["wall_z"])) > 0.5
         out["coverage"] = float(near.mean())
@@ -220,6 +225,7 @@ def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLik
     """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY."""
     check_coverage_radius(coverage_radius_mm)
     scan = truth_scan if isinstance(truth_scan, Scan) else load_scan(truth_scan, check_files=False)
+    check_truth(scan)
     p = Path(cloud_or_dir)
     items = []
     if p.is_dir():

@@ -29,11 +29,15 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, read_bounded_bytes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries",
-           "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_json", "read_json", "remove_stale_temporaries", "FolderInUse",
+           "check_output_folder", "check_output_file", "check_no_overwrite", "json_safe", "lock_folder", "LOCK_NAME"]
+
+LOCK_NAME = ".ringscan.lock"
+"""The lock file of an output folder in use (:func:`lock_folder`): it holds the owner's process id."""
 
 _TMP_RE = re.compile(r"^\.(?P<target>.+)\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp(\.[^./]*)?$")
 # Temporary files of ringscan before the writer's process id was part of the name
@@ -244,6 +248,65 @@ def _process_alive(pid: int) -> bool:
     return state not in (b"Z", b"X")
 
 
+class FolderInUse(FormatError):
+    """An output folder is locked by another ringscan run."""
+
+
+@contextlib.contextmanager
+def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
+    """Hold ``folder`` (an output folder, which must exist) for this run: one run at a time.
+
+    The lock is ``folder/.ringscan.lock``, locked with ``flock`` and holding the owner's
+    process id and command; the kernel drops the lock when its process ends however it
+    ends, so a lock left by a killed run is taken over by the next. The file is removed
+    when the run ends.
+
+    Raises:
+        FolderInUse: (a FormatError) another live process holds the folder; the message
+            names the folder and that process.
+    """
+    import fcntl
+
+    path = Path(folder) / LOCK_NAME
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                owner = os.pread(fd, 200, 0).decode("utf-8", "replace").split()
+            finally:
+                os.close(fd)
+            who = f"{owner[1]}, process {owner[0]}" if len(owner) >= 2 else "another process"
+            raise FolderInUse(folder, f"in use by another ringscan run ({who}); wait for it to end or choose "
+                                      f"another output folder (lock file {LOCK_NAME})") from None
+        except OSError as e:  # a file system without locks (ENOLCK, EOPNOTSUPP): run unguarded, say so
+            os.close(fd)
+            log.warning("%s: cannot lock this folder (%s): a second run into it would not be refused", folder,
+                        e.strerror)
+            with contextlib.suppress(OSError):
+                if path.stat().st_size == 0:  # ours, just created
+                    path.unlink()
+            yield None
+            return
+        # The previous owner may have removed the file between our open and our lock: lock the file that is there.
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {what}\n".encode(), 0)
+        yield path
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        os.close(fd)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
@@ -279,19 +342,16 @@ def json_safe(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def read_json(path: str | os.PathLike) -> dict:
-    """Read a JSON object, raising :class:`FormatError` naming the file on failure."""
+def read_json(path: str | os.PathLike, *, max_bytes: int = MAX_JSON_BYTES) -> dict:
+    """Read a JSON object, raising :class:`FormatError` naming the file on failure.
+
+    Only a regular file of at most ``max_bytes`` is read (a FIFO or ``/dev/zero`` is
+    refused before reading: :func:`~.limits.read_bounded_bytes`).
+    """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
-    except IsADirectoryError:
-        raise FormatError(path, "is a folder, not a JSON file") from None
-    except ValueError:  # an embedded NUL
-        raise FormatError(path, "the path contains a NUL character") from None
-    except OSError as e:
-        raise FormatError(path, f"cannot read: {e.strerror}") from None
+    if path.is_dir():
+        raise FormatError(path, "is a folder, not a JSON file")
+    raw = read_bounded_bytes(path, max_bytes, what="file")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -303,6 +363,8 @@ def read_json(path: str | os.PathLike) -> dict:
         raise FormatError(path, f"not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
     except RecursionError:
         raise FormatError(path, "not valid JSON (nested too deeply)") from None
+    except ValueError as e:  # e.g. an integer of more than 4300 digits
+        raise FormatError(path, f"not valid JSON ({str(e).split(';')[0]})") from None
     if not isinstance(obj, dict):
         raise FormatError(path, "expected a JSON object at the top level")
     return obj

@@ -10,6 +10,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import check_image_header
 
 log = logging.getLogger(__name__)
 
@@ -19,16 +20,20 @@ __all__ = ["read_image", "write_image", "png_params", "tiff_params"]
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an 8- or 16-bit PNG/TIFF as a 2D grey array (uint8 or uint16).
 
-    Colour images are converted to grey (ITU-R 601 luma, as OpenCV does).
+    Colour images are converted to grey (ITU-R 601 luma, as OpenCV does). The file's
+    header is checked before it is decoded (:func:`~.limits.check_image_header`: a
+    regular file of at most 200 megapixels).
     """
     import cv2
 
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(path, "image file not found")
+    check_image_header(path)
     # (OpenCV >= 4.10 can decode into a given array, but a file it cannot decode
     # then leaves the array as it was with no sign of failure: not used.)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # a header this reads as small, a decoder that disagrees
+        img = None
     if img is None:
         raise FormatError(path, "not a readable image (corrupt file or unsupported format)")
     if img.ndim == 3:

@@ -24,13 +24,14 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
 
 SCAN_FORMAT = "ringscan.scan/1"
 
 __all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict",
-           "check_view_name"]
+           "check_view_name", "check_truth", "check_view_frames"]
 
 
 @dataclass(frozen=True)
@@ -186,6 +187,47 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
     return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra)
 
 
+def check_truth(scan: Scan) -> dict:
+    """The scan's ``truth`` block (the virtual rig's ground truth), checked: ``mesh`` a path
+    inside the scan folder; ``views`` an object of ``{"depth": path, "lit": path}`` inside
+    it; ``reference_plane_z`` a finite number; ``reference_plane`` true or false.
+
+    Returns:
+        A checked copy: mesh, views, reference_plane_z, reference_plane, settings, scene.
+
+    Raises:
+        FormatError: naming scan.json and the field (no truth block, a wrong type, a path
+            that leaves the scan folder).
+    """
+    src = scan.path
+    t = scan.extra.get("truth")
+    if not isinstance(t, dict):
+        raise FormatError(src, "no 'truth' block: this scan has no ground truth (simulate it with `ringscan simulate`)")
+    out = {"mesh": _safe_rel(scan.folder, src, "truth.mesh", t.get("mesh"))}
+    views = t.get("views", {})
+    if not isinstance(views, dict):
+        raise FormatError(src, f"truth.views: expected an object {{view: {{\"depth\": path, \"lit\": path}}}}, "
+                               f"got {views!r:.60}")
+    out["views"] = {}
+    for name, v in views.items():
+        if not isinstance(v, dict):
+            raise FormatError(src, f"truth.views.{name}: expected an object {{\"depth\": path, \"lit\": path}}")
+        out["views"][name] = {k: _safe_rel(scan.folder, src, f"truth.views.{name}.{k}", v.get(k))
+                              for k in ("depth", "lit")}
+    z = t.get("reference_plane_z", 0.0)
+    if isinstance(z, bool) or not isinstance(z, (int, float)) or not math.isfinite(z):
+        raise FormatError(src, f"truth.reference_plane_z: expected a finite number, got {z!r:.60}")
+    out["reference_plane_z"] = float(z)
+    plane = t.get("reference_plane", True)
+    if not isinstance(plane, bool):
+        raise FormatError(src, f"truth.reference_plane: expected true or false, got {plane!r:.60}")
+    out["reference_plane"] = plane
+    settings = t.get("settings", {})
+    out["settings"] = dict(settings) if isinstance(settings, dict) else {}
+    out["scene"] = str(t.get("scene", ""))
+    return out
+
+
 def scan_to_dict(scan: Scan) -> dict:
     d = {"format": SCAN_FORMAT,
          "rig": scan.rig_ref if scan.rig_ref else rig_to_dict(scan.rig),
@@ -205,6 +247,24 @@ def save_scan(scan: Scan) -> None:
         check_view_name(v.name, source=scan.path, where=f"views[{i}].name")
     scan.folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(scan.path, scan_to_dict(scan))
+
+
+def check_view_frames(scan: Scan, view: View) -> None:
+    """Check a view's frame files from their headers, without decoding them: regular image
+    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size.
+    A reconstruction calls it for every view before it writes anything.
+
+    Raises:
+        FormatError: naming the frame file.
+    """
+    cam = scan.rig.camera
+    for n in frame_names(scan.patterns):
+        if n not in view.frames:
+            raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
+        p = scan.frame_path(view, n)
+        w, h = check_image_header(p)
+        if (w, h) != (cam.width, cam.height):
+            raise FormatError(p, f"frame is {w}x{h}, but the camera is {cam.width}x{cam.height}")
 
 
 def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:

@@ -16,12 +16,11 @@ from ringscan.pipeline.formats.atomic import (
     atomic_write_json,
     check_no_overwrite,
     check_output_folder,
-    read_json,
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
-from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.scan import check_truth, load_scan
 from ringscan.pipeline.fusion.mesh import MeshResult, MeshSettings, check_mesh_settings, compare_to_truth
 from ringscan.pipeline.fusion.meshing import mesh_cloud, mesh_fused
 from ringscan.pipeline.fusion.poses import PoseSettings
@@ -157,8 +156,6 @@ def _load_truth(truth):
         return truth
     p = Path(truth)
     if p.is_dir():
-        t = read_json(p / "scan.json").get("truth")
-        if not isinstance(t, dict) or not isinstance(t.get("mesh"), str):
-            raise FormatError(p / "scan.json", "truth.mesh: this scan has no ground truth mesh")
-        p = p / t["mesh"]
+
+        p = p / check_truth(load_scan(p, check_files=False, allow_incomplete=True))["mesh"]
     return read_mesh(p)

@@ -22,6 +22,7 @@ sample dropped...).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -36,10 +37,18 @@ from ringscan.pipeline.formats.atomic import (
     check_no_overwrite,
     check_output_file,
     check_output_folder,
+    lock_folder,
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.rig import rig_to_dict
-from ringscan.pipeline.formats.scan import Scan, View, check_view_name, load_scan, read_view_frames
+from ringscan.pipeline.formats.scan import (
+    Scan,
+    View,
+    check_view_frames,
+    check_view_name,
+    load_scan,
+    read_view_frames,
+)
 from ringscan.pipeline.formats.settings import settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -59,6 +68,7 @@ def reconstruct_scan(
     views: list[str] | None = None,
     resume: bool = False,
     progress: bool = True,
+    lock: bool = True,
 ) -> dict:
     """Reconstruct every view of a scan; write PLYs, report.json and settings.json.
 
@@ -74,14 +84,24 @@ def reconstruct_scan(
             report's ``resume`` block lists the views kept and why the others were
             redone.
         progress: show a progress bar.
+        lock: hold ``out_dir`` for this run (:func:`~ringscan.pipeline.formats.atomic.lock_folder`):
+            another run into the same folder is refused while this one runs. A batch
+            worker passes False (the batch holds its whole output folder).
 
     Returns:
         The report (also written to ``out_dir/report.json``).
 
     Raises:
         FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
-            file), or writing into it would overwrite one of the scan's own files.
+            file), or writing into it would overwrite one of the scan's own files;
+            another run holds ``out_dir``.
     """
+    with contextlib.ExitStack() as held:
+        return _reconstruct(scan, out_dir, settings=settings, device=device, views=views, resume=resume,
+                            progress=progress, held=held if lock else None)
+
+
+def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, held) -> dict:
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
     out = check_output_folder(out_dir, what="reconstruction's output folder")
@@ -96,8 +116,12 @@ def reconstruct_scan(
     for o in outputs:
         check_output_file(o, what="file the reconstruction writes")
     check_no_overwrite(outputs, scan_inputs(scan))
+    for v in chosen:
+        check_view_frames(scan, v)  # every frame's header, before anything is written
     device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
+    if held is not None:
+        held.enter_context(lock_folder(out, what="reconstruct"))
     remove_stale_temporaries(out)
     names = [v.name for v in chosen]
     if resume:

@@ -14,8 +14,9 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import atomic_path, atomic_write_bytes
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.rig import Turntable
-from ringscan.pipeline.formats.scan import Scan, load_scan
+from ringscan.pipeline.formats.scan import Scan, check_truth, load_scan
 from ringscan.pipeline.simulate.virtual_rig import _turn
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,7 @@ class Truth:
         p = self._file(view, "depth")
         if not p.is_file():
             raise FormatError(p, "truth depth file not found")
+        check_image_header(p)
         d = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if d is None or d.dtype != np.float32 or d.ndim != 2:
             raise FormatError(p, "not a single-channel float32 TIFF")
@@ -120,14 +122,8 @@ def load_truth(scan: Scan | str | os.PathLike) -> Truth:
 
     if not isinstance(scan, Scan):
         scan = load_scan(scan, check_files=False, allow_incomplete=True)
-    src = scan.path
-    t = scan.extra.get("truth")
-    if not isinstance(t, dict):
-        raise FormatError(src, "no 'truth' block: not a scan written by the virtual rig")
-    mesh_rel = t.get("mesh")
-    if not isinstance(mesh_rel, str) or ".." in Path(mesh_rel).parts or os.path.isabs(mesh_rel):
-        raise FormatError(src, f"truth.mesh: bad path {mesh_rel!r}")
-    mp = scan.folder / mesh_rel
+    t = check_truth(scan)
+    mp = scan.folder / t["mesh"]
     if not mp.is_file():
         raise FormatError(mp, "truth mesh not found (listed in scan.json truth.mesh)")
     if _mesh_is_empty(mp):
@@ -138,18 +134,5 @@ def load_truth(scan: Scan | str | os.PathLike) -> Truth:
         faces = np.asarray(m.triangles, np.int64).astype(np.int32)
         if faces.shape[0] == 0:
             raise FormatError(mp, "truth mesh holds no triangles")
-    views = t.get("views", {})
-    if not isinstance(views, dict) or not all(
-            isinstance(v, dict) and isinstance(v.get("depth"), str) and isinstance(v.get("lit"), str)
-            for v in views.values()):
-        raise FormatError(src, "truth.views: expected {view: {\"depth\": path, \"lit\": path}}")
-    for name, v in views.items():
-        for key in ("depth", "lit"):
-            if ".." in Path(v[key]).parts or os.path.isabs(v[key]):
-                raise FormatError(src, f"truth.views.{name}.{key}: path {v[key]!r} leaves the scan folder")
-    z = t.get("reference_plane_z", 0.0)
-    if isinstance(z, bool) or not isinstance(z, (int, float)):
-        raise FormatError(src, f"truth.reference_plane_z: expected a number, got {z!r}")
-    return Truth(folder=scan.folder, vertices=vertices, faces=faces, reference_plane_z=float(z),
-                 turntable=scan.rig.turntable, views=dict(views), settings=dict(t.get("settings", {})),
-                 scene=str(t.get("scene", "")))
+    return Truth(folder=scan.folder, vertices=vertices, faces=faces, reference_plane_z=t["reference_plane_z"],
+                 turntable=scan.rig.turntable, views=t["views"], settings=t["settings"], scene=t["scene"])

@@ -111,3 +111,102 @@ def test_settings_file_errors_name_the_file(tmp_path, capsys, tiny_scan):
     s.write_text('{"min_confidence": NaN}')
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--settings", str(s)], capsys)
     assert rc == 2 and "min_confidence must be a finite number" in err and str(s) in err
+
+
+def _in_thread(fn, timeout=60.0):
+    """fn() in a thread, so that a read that blocks (a FIFO) fails the test instead of hanging it."""
+    import threading
+
+    box = {}
+    t = threading.Thread(target=lambda: box.setdefault("rc", fn()), daemon=True)
+    t.start()
+    t.join(timeout)
+    return box.get("rc", "hung")
+
+
+def test_fifo_and_device_inputs_are_refused_without_blocking(tmp_path, capsys, tiny_scan):
+    """A rig or settings file that is a FIFO (read: blocks forever) or /dev/zero (never ends): one line, exit 2."""
+    import os
+
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)
+    out = tmp_path / "o"
+    cases = [["batch", str(tiny_scan), "--out", str(out), "--settings", str(fifo), "--dry-run"],
+             ["batch", str(tiny_scan), "--out", str(out), "--settings", str(fifo), "--workers", "0"],
+             ["reconstruct", str(tiny_scan), "--out", str(out), "--settings", "/dev/zero"],
+             ["patterns", "--rig", str(fifo), "--out", str(out)]]
+    for argv in cases:
+        rc = _in_thread(lambda: main(argv))
+        if rc == "hung":
+            with open(fifo, "wb") as f:  # let the blocked reader go
+                f.write(b"{}")
+        err = capsys.readouterr().err.strip()
+        assert rc == 2, (argv, rc, err)
+        assert len(err.splitlines()) == 1 and "not a regular file: ringscan reads regular files only" in err, err
+        assert not out.exists()
+    # a scan whose rig file is a FIFO
+    d = json.loads((tiny_scan / "scan.json").read_text())
+    os.mkfifo(tiny_scan / "rig.json")
+    d["rig"] = "rig.json"
+    (tiny_scan / "scan.json").write_text(json.dumps(d))
+    rc = _in_thread(lambda: main(["reconstruct", str(tiny_scan), "--out", str(out), "--device", "cpu"]))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == (f"ringscan reconstruct: error: {tiny_scan / 'rig.json'}: is a pipe (FIFO), not a "
+                               "regular file: ringscan reads regular files only"), err
+
+
+def test_a_5000_digit_number_in_a_rig_names_the_file(tmp_path, capsys, tiny_scan):
+    d = json.loads((tiny_scan / "scan.json").read_text())
+    text = json.dumps(d).replace('"width": 160', '"width": ' + "9" * 5000, 1)
+    assert text != json.dumps(d)
+    (tiny_scan / "scan.json").write_text(text)
+    rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu"], capsys)
+    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: not valid JSON "
+                                      "(Exceeds the limit (4300 digits) for integer string conversion")
+
+
+@pytest.mark.parametrize("mesh", ["../outside.ply", "/etc/passwd", 5, None])
+def test_evaluate_truth_mesh_outside_the_scan_or_not_a_path(tmp_path, capsys, tiny_scan, mesh):
+    recon = tmp_path / "recon"
+    assert main(["reconstruct", str(tiny_scan), "--out", str(recon), "--device", "cpu", "--no-progress"]) == 0
+    capsys.readouterr()
+    (tmp_path / "outside.ply").write_text("ply\n")
+    d = json.loads((tiny_scan / "scan.json").read_text())
+    d["truth"]["mesh"] = mesh
+    (tiny_scan / "scan.json").write_text(json.dumps(d))
+    rc, err = _run(["evaluate", str(recon), "--truth", str(tiny_scan)], capsys)
+    want = (f"path {mesh!r} leaves the scan folder" if isinstance(mesh, str) else
+            f"expected a relative path, got {mesh!r}")
+    assert rc == 2 and err == f"ringscan evaluate: error: {tiny_scan / 'scan.json'}: truth.mesh: {want}", err
+
+
+@pytest.mark.parametrize("what", ["light", "turntable"])
+def test_calibrate_out_must_not_overwrite_a_scan_json(tmp_path, capsys, tiny_scan, what):
+    target = tiny_scan / "scan.json"
+    before = target.read_bytes()
+    extra = ["--heights", "0"] if what == "light" else ["--square", "5"]
+    rc, err = _run(["calibrate", what, str(tiny_scan), *extra, "--out", str(target)], capsys)
+    assert rc == 2 and err == (f"ringscan calibrate: error: {target}: writing it would overwrite the input {target}; "
+                               "choose another output"), err
+    rc, err = _run(["calibrate", what, str(tiny_scan), *extra, "--out", str(tmp_path / "r.json"),
+                    "--report", str(tmp_path / "r.json")], capsys)
+    assert rc == 2 and err.endswith("r.json: given to both --out and --report: one would overwrite the other"), err
+    assert target.read_bytes() == before and not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("w,bits", [(60000, 8), (30000, 16)])
+def test_a_huge_image_is_one_line_before_decoding(tmp_path, capsys, tiny_scan, w, bits):
+    """A PNG of a few bytes whose header says 60000x60000 (before: a cv2.error traceback) or 30000x30000 16-bit
+    (before: 20 GB in `calibrate camera`, then the OOM killer): refused from its header."""
+    from tests.pipeline.formats.test_limits import png_header_only
+
+    frame = tiny_scan / "view_000" / "gray_1.png"
+    png_header_only(frame, w, w, bits)
+    want = f"{frame}: image is {w}x{w} ({w * w / 1e6:.0f} megapixels): larger than ringscan reads"
+    rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu", "--no-progress"],
+                   capsys)
+    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {want}"), err
+    assert not (tmp_path / "o").exists()  # every frame's header checked before anything is written
+    rc, err = _run(["calibrate", "camera", str(frame), "--square", "5", "--out", str(tmp_path / "cam.json")], capsys)
+    assert rc == 2 and err.startswith(f"ringscan calibrate: error: {want}"), err
+    assert not (tmp_path / "cam.json").exists()

@@ -234,3 +234,28 @@ def test_live_reconstructor_partial_scan_resume_and_failure(reference, tmp_path)
     live(scan, scan.views[1])
     assert live.finish() is None
     assert "white.png" in live.error and "failed" in live.error and str(bad) in live.error
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--resume", "--table-at", "1e300"], "--table-at: expected degrees from -3600 to 3600, got 1e+300"),
+    (["--resume", "--table-at=-1e300"], "--table-at: expected degrees from -3600 to 3600, got -1e+300"),
+    (["--resume", "--table-at", "1e15"], "--table-at: expected degrees from -3600 to 3600, got 1e+15"),
+    (["--resume", "--table-at", "nan"], "--table-at: expected degrees from -3600 to 3600, got nan"),
+    (["--resume", "--table-at", "inf"], "--table-at: expected degrees from -3600 to 3600, got inf"),
+    (["--views", "2", "--step", "1e300"], "--step: expected degrees from -360 to 360, got 1e+300"),
+    (["--views", "2", "--start", "nan"], "--start: expected degrees from -3600 to 3600, got nan"),
+])
+def test_table_angles_checked_before_anything_moves(files, reference, tmp_path, capsys, extra, message):
+    import shutil
+
+    out = tmp_path / "scan"
+    if "--resume" in extra:
+        shutil.copytree(reference.folder, out)
+        before = (out / "capture.json").read_bytes()
+    rc = main(_args(files, out, *extra, *VIRTUAL))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == f"ringscan capture: error: {message}", err
+    if "--resume" in extra:
+        assert (out / "capture.json").read_bytes() == before  # no angle recorded
+    else:
+        assert not out.exists()

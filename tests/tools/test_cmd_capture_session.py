@@ -40,3 +40,14 @@ def test_session_of_two_poses_on_the_virtual_rig(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr("sys.stdin", io.StringIO(""))
     assert main(args) == 0
     assert (out / "pose_1" / "scan.json").stat().st_mtime_ns == before
+
+
+def test_a_trigger_that_is_not_a_serial_port_is_named_before_the_first_pose(tmp_path, capsys):
+    from ringscan.tools.cli import main
+
+    out = tmp_path / "session"
+    rc = main(["capture", "--out", str(out), "--poses", "2", "--trigger", "/dev/null", "--views", "2",
+               "--virtual", "terrain", "--device", "cpu", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("ringscan capture: error: --trigger /dev/null: cannot open it as a serial port: ")
+    assert len(err.splitlines()) == 1 and not out.exists()

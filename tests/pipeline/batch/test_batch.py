@@ -57,3 +57,122 @@ def test_find_scans_follows_links_once(scan_root, tmp_path):
     found = [p.relative_to(root).as_posix() for p in find_scans(root)]
     assert found == ["all/b/cube", "one"] or found == ["all/a_sphere", "all/b/cube"]
     assert len(found) == 2  # a_sphere once, however many links reach it
+
+
+def _copy(scan_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "root"
+    shutil.copytree(scan_root, root)
+    return root
+
+
+def test_link_loop_and_nested_scan_reported_by_the_batch(scan_root, tmp_path, capsys):
+    import os
+    import shutil
+
+    root = _copy(scan_root, tmp_path)
+    os.symlink("loop", root / "b" / "loop")
+    shutil.copytree(scan_root / "a_sphere", root / "a_sphere" / "nested")
+    out = tmp_path / "out"
+    rc = main(["batch", str(root), "--out", str(out), "--workers", "0", "--no-progress", "--device", "cpu"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    rep = read_json(out / "batch_report.json")
+    assert [s["scan"] for s in rep["scans"]] == ["a_sphere", "b/cube"]  # the loop hides b/cube no more
+    assert [s["path"] for s in rep["not_searched"]] == [str(root / "a_sphere" / "nested"), str(root / "b" / "loop")]
+    assert f"not searched: {root / 'b' / 'loop'}: cannot follow this link: too many levels of symbolic links" in text
+    assert f"not searched: {root / 'a_sphere' / 'nested'}: a scan folder inside the scan folder" in text
+
+
+def test_root_given_through_dot_dot_writes_inside_out(scan_root, tmp_path):
+    out = tmp_path / "x" / "inner"
+    rep = batch_reconstruct(f"{scan_root / 'a_sphere' / 'view_000'}/..", out, workers=0, device="cpu",
+                            progress=False)
+    assert [s["scan"] for s in rep["scans"]] == ["a_sphere"]
+    assert sorted(p.name for p in (tmp_path / "x").iterdir()) == ["inner"]  # nothing written above OUT
+    assert (out / "a_sphere" / "view_000.ply").is_file() and (out / "batch_report.json").is_file()
+
+
+def _huge_png(path, w=60000, h=60000):
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_huge_frame_fails_its_scan_alone(scan_root, tmp_path, workers):
+    """A 60000x60000 PNG (a few bytes on disk) as a frame: refused before decoding, that scan fails, named;
+    the other is done and in the report; a rerun does the same (before: a cv2.error aborted the whole batch)."""
+    root = _copy(scan_root, tmp_path)
+    frame = root / "b" / "cube" / "view_000" / "gray_1.png"
+    _huge_png(frame)
+    out = tmp_path / "out"
+    for _ in range(2):
+        rep = batch_reconstruct(root, out, workers=workers, device="cpu", progress=False)
+        status = {s["scan"]: s for s in rep["scans"]}
+        assert status["b/cube"]["status"] == "failed"
+        assert status["b/cube"]["error"].startswith(f"{frame}: image is 60000x60000 (3600 megapixels): larger than")
+        assert status["a_sphere"]["status"] in ("done", "skipped (already done)")
+        assert read_json(out / "batch_report.json")["scans"] == rep["scans"]
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_library_exception_fails_its_scan_alone(scan_root, tmp_path, monkeypatch, workers):
+    """Any exception of one scan (here OpenCV's own cv2.error, raised in the worker as it starts the scan) fails
+    that scan alone, its type named, in-process and on the pool (before: it left the worker and aborted the batch,
+    and the report lacked the scans already done)."""
+    from ringscan.pipeline.batch.worker import RAISE_ENV
+
+    monkeypatch.setenv(RAISE_ENV, "a_sphere")  # spawned workers take the environment
+    rep = batch_reconstruct(scan_root, tmp_path / "out", workers=workers, device="cpu", progress=False)
+    status = {s["scan"]: s for s in rep["scans"]}
+    assert status["b/cube"]["status"] == "done"
+    assert status["a_sphere"]["status"] == "failed"
+    assert status["a_sphere"]["error"] == f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"
+    assert read_json(tmp_path / "out" / "batch_report.json")["scans"] == rep["scans"]
+
+
+def test_one_run_at_a_time_on_an_output_folder(scan_root, tmp_path, capsys):
+    """A second batch, reconstruct or import into a folder that a live run holds is refused with one line;
+    a lock left by a dead process is taken over."""
+    import subprocess
+    import sys
+
+    from ringscan.pipeline.formats.atomic import LOCK_NAME
+
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
+                               "from ringscan.pipeline.formats.atomic import lock_folder\n"
+                               f"with lock_folder({str(out)!r}, what='batch'):\n"
+                               "    print('held', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for argv in (["batch", str(scan_root), "--out", str(out), "--workers", "0"],
+                     ["reconstruct", str(scan_root / "a_sphere"), "--out", str(out)]):
+            rc = main([*argv, "--no-progress", "--device", "cpu"])
+            err = capsys.readouterr().err.strip()
+            assert rc == 2, err
+            assert err == (f"ringscan {argv[0]}: error: {out}: in use by another ringscan run (batch, process "
+                           f"{holder.pid}); wait for it to end or choose another output folder (lock file "
+                           f"{LOCK_NAME})")
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder was killed: its lock file is left, its lock is gone; the next run takes it over
+    assert (out / LOCK_NAME).read_text().split() == [str(holder.pid), "batch"]
+    assert main(["batch", str(scan_root), "--out", str(out), "--workers", "0", "--no-progress", "--device", "cpu"]) == 0
+    assert not (out / LOCK_NAME).exists()  # removed when the run ends
+
+
+def test_an_unknown_device_is_the_commands_error_not_every_scans(scan_root, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["batch", str(scan_root), "--out", str(out), "--device", "bogus", "--no-progress"]) == 2
+    assert "ringscan batch: error: device 'bogus': unknown (known: cpu" in capsys.readouterr().err
+    assert not out.exists()  # before: every scan 'failed' as if its worker had crashed, exit 1

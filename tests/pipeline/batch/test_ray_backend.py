@@ -65,3 +65,54 @@ def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_pat
     assert [s["status"] for s in rep["scans"]] == ["done"] * 3
     assert all(s["ray_resources"].get("GPU") == 1.0 for s in rep["scans"])
     assert read_results(tmp_path / "ray") == read_results(local)
+
+
+def test_an_unreachable_address_fails_fast_and_writes_nothing(scan_root, tmp_path, capsys):
+    import time
+
+    from ringscan.tools.cli import main
+
+    out = tmp_path / "out"
+    t = time.perf_counter()
+    rc = main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--address", "127.0.0.1:1",
+               "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == ("ringscan batch: error: --address 127.0.0.1:1: no Ray cluster answers there "
+                               "(Connection refused)")
+    assert time.perf_counter() - t < 30 and not out.exists()
+    rc = main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--address", "nohost", "--no-progress"])
+    assert rc == 2 and "expected HOST:PORT or ray://HOST:PORT" in capsys.readouterr().err
+    assert not out.exists() and not ray.is_initialized()
+
+
+@pytest.mark.slow
+def test_ray_a_huge_frame_or_a_library_error_fails_its_scan_alone(scan_root, tmp_path, monkeypatch):
+    """On Ray as on the local pool: a frame of 60000x60000 px fails its scan alone, named, without a word of
+    retries (none happened); so does a scan whose worker raises OpenCV's own exception; a task that cannot start
+    its worker (a device that does not exist) names the error."""
+    import shutil
+
+    from ringscan.pipeline.batch.worker import RAISE_ENV
+    from tests.pipeline.batch.test_batch import _huge_png
+
+    root = tmp_path / "root"
+    shutil.copytree(scan_root, root)
+    shutil.copytree(scan_root / "a_sphere", root / "c_raises")
+    frame = root / "b" / "cube" / "view_000" / "gray_1.png"
+    _huge_png(frame)
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    monkeypatch.setenv(RAISE_ENV, "c_raises")  # Ray's workers take the driver's environment when the cluster starts
+    _start_cluster()
+    try:
+        rep = batch_reconstruct(root, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+        bad = batch_reconstruct(scan_root, tmp_path / "bad", backend="ray", device="nodevice:7", progress=False)
+    finally:
+        ray.shutdown()
+    status = {s["scan"]: s for s in rep["scans"]}
+    assert status["a_sphere"]["status"] == "done"
+    assert status["b/cube"]["status"] == "failed"
+    assert status["b/cube"]["error"].startswith(f"{frame}: image is 60000x60000 (3600 megapixels)")
+    assert status["c_raises"] == {**status["c_raises"], "status": "failed",
+                                  "error": f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"}
+    for s in bad["scans"]:
+        assert s["status"] == "failed" and "nodevice:7" in s["error"] and "retries" not in s["error"], s

@@ -176,3 +176,28 @@ def test_read_json_names_the_file(tmp_path):
         read_json(tmp_path / "sc\0an.json")
     with pytest.raises(FormatError, match="is a folder"):
         read_json(tmp_path)
+
+
+def test_lock_folder_one_holder_at_a_time_and_a_dead_holder_taken_over(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from ringscan.pipeline.formats.atomic import LOCK_NAME, FolderInUse, lock_folder
+
+    lock = tmp_path / LOCK_NAME
+    with lock_folder(tmp_path, what="batch") as p:
+        assert p == lock and lock.read_text() == f"{os.getpid()} batch\n"
+        with pytest.raises(FolderInUse, match=rf"in use by another ringscan run \(batch, process {os.getpid()}\)"):
+            with lock_folder(tmp_path, what="import"):
+                pass
+    assert not lock.exists()
+    # a holder killed with SIGKILL leaves its file; the kernel dropped its lock: taken over
+    proc = subprocess.Popen([sys.executable, "-c", "import os, signal\n"
+                             "from ringscan.pipeline.formats.atomic import lock_folder\n"
+                             f"with lock_folder({str(tmp_path)!r}, what='reconstruct'):\n"
+                             "    os.kill(os.getpid(), signal.SIGKILL)"])
+    assert proc.wait() == -9 and lock.read_text().split() == [str(proc.pid), "reconstruct"]
+    with lock_folder(tmp_path, what="batch"):
+        assert lock.read_text() == f"{os.getpid()} batch\n"
+    assert not lock.exists()

@@ -14,7 +14,7 @@ from ringscan.pipeline.formats.meshes import read_cloud
 from ringscan.pipeline.formats.patterns import frame_names, gray_decode, gray_encode, parse_patterns
 from ringscan.pipeline.formats.ply import check_ply, read_ply, write_ply
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict, save_rig, turntable_transform
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, read_view_frames, save_scan
+from ringscan.pipeline.formats.scan import Scan, View, check_truth, load_scan, read_view_frames, save_scan
 
 GRAY = {"codec": "gray-rings", "width": 64, "height": 48, "center": [31.5, 23.5], "rho0": 2.0, "pitch": 2.0,
         "bits": 4, "sector_bits": 2}
@@ -328,3 +328,44 @@ def test_tiff_frames_are_written_uncompressed(tmp_path):
     data = (tmp_path / "f.tiff").read_bytes()
     assert len(data) >= img.nbytes
     assert img.tobytes() in data  # the strip is stored as is
+
+
+GOOD_TRUTH = {"mesh": "truth/object.ply", "views": {"view_000": {"depth": "truth/d.tiff", "lit": "truth/l.png"}},
+              "reference_plane_z": 0.0}
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda t: t.update(mesh=5), r"truth.mesh: expected a relative path, got 5"),
+    (lambda t: t.update(mesh=None), r"truth.mesh: expected a relative path, got None"),
+    (lambda t: t.update(mesh=["a.ply"]), r"truth.mesh: expected a relative path, got \['a.ply'\]"),
+    (lambda t: t.update(mesh="../outside.ply"), r"truth.mesh: path '../outside.ply' leaves the scan folder"),
+    (lambda t: t.update(mesh="/etc/outside.ply"), r"truth.mesh: path '/etc/outside.ply' leaves the scan folder"),
+    (lambda t: t.update(views=None), r"truth.views: expected an object"),
+    (lambda t: t.update(views=[1]), r"truth.views: expected an object"),
+    (lambda t: t["views"].update(view_000=7), r"truth.views.view_000: expected an object"),
+    (lambda t: t["views"]["view_000"].update(depth=7), r"truth.views.view_000.depth: expected a relative path, got 7"),
+    (lambda t: t["views"]["view_000"].update(lit="../x.png"), r"truth.views.view_000.lit: path '../x.png' leaves"),
+    (lambda t: t.update(reference_plane_z="0"), r"truth.reference_plane_z: expected a finite number, got '0'"),
+    (lambda t: t.update(reference_plane="no"), r"truth.reference_plane: expected true or false"),
+])
+def test_bad_truth_block(tmp_path, edit, match):
+    scan = _write_scan(tmp_path)
+    t = json.loads(json.dumps(GOOD_TRUTH))
+    edit(t)
+    scan = Scan(folder=scan.folder, rig=scan.rig, patterns=scan.patterns, views=scan.views, extra={"truth": t})
+    with pytest.raises(FormatError, match=r"scan.json: " + match):
+        check_truth(scan)
+
+
+def test_truth_mesh_through_a_link_out_of_the_folder(tmp_path):
+    scan = _write_scan(tmp_path / "scan")
+    (tmp_path / "outside.ply").write_text("ply\n")
+    (tmp_path / "scan" / "truth").symlink_to(tmp_path)
+    scan = Scan(folder=scan.folder, rig=scan.rig, patterns=scan.patterns, views=scan.views,
+                extra={"truth": {**GOOD_TRUTH, "mesh": "truth/outside.ply"}})
+    with pytest.raises(FormatError, match=r"truth.mesh: path 'truth/outside.ply' leaves the scan folder \(through a"):
+        check_truth(scan)
+    scan = Scan(folder=scan.folder, rig=scan.rig, patterns=scan.patterns, views=scan.views, extra={"truth": GOOD_TRUTH})
+    (tmp_path / "scan" / "truth").unlink()
+    t = check_truth(scan)
+    assert t["mesh"] == "truth/object.ply" and t["views"] == GOOD_TRUTH["views"] and t["reference_plane"] is True

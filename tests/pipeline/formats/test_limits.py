@@ -1,0 +1,142 @@
+"""Bounded reads (pipeline/formats/limits.py): only regular files, bounded sizes, image
+headers checked before decoding."""
+
+from __future__ import annotations
+
+import os
+import struct
+import threading
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats.atomic import read_json
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.limits import check_image_header, image_header_size, read_bounded_text
+
+
+def png_header_only(path, w, h, bit_depth=8):
+    """A PNG whose IHDR claims w x h (grey) and whose data is a few bytes: small on disk, huge decoded."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def tiff_header_only(path, w, h, big_endian=False):
+    bo = ">" if big_endian else "<"
+    entries = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 1, 8), (277, 3, 1, 1)]
+    ifd = struct.pack(bo + "H", len(entries)) + b"".join(
+        struct.pack(bo + "HHI", t, typ, n) + (struct.pack(bo + "HH", v, 0) if typ == 3 else struct.pack(bo + "I", v))
+        for t, typ, n, v in entries) + struct.pack(bo + "I", 0)
+    path.write_bytes((b"MM" if big_endian else b"II") + struct.pack(bo + "HI", 42, 8) + ifd)
+    return path
+
+
+def _in_thread(fn, timeout=10.0):
+    """Run fn in a thread; its result or exception, or 'hung' when it does not return in time."""
+    box = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # noqa: BLE001 - handed to the test
+            box["error"] = e
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive():
+        return "hung"
+    return box.get("error", box.get("value"))
+
+
+def test_a_fifo_is_refused_without_blocking(tmp_path):
+    fifo = tmp_path / "rig.json"
+    os.mkfifo(fifo)
+    got = _in_thread(lambda: read_json(fifo))
+    if got == "hung":  # unblock the thread so the test run can end
+        with open(fifo, "wb") as f:
+            f.write(b"{}")
+    assert isinstance(got, FormatError), got
+    assert str(got) == f"{fifo}: is a pipe (FIFO), not a regular file: ringscan reads regular files only"
+
+
+def test_a_device_is_refused_before_reading():
+    got = _in_thread(lambda: read_json("/dev/zero"))
+    assert isinstance(got, FormatError) and "/dev/zero: is a device, not a regular file" in str(got), got
+
+
+def test_size_bound(tmp_path):
+    p = tmp_path / "s.json"
+    p.write_text('{"a": "' + "x" * 100 + '"}')
+    assert read_json(p, max_bytes=200) == {"a": "x" * 100}
+    with pytest.raises(FormatError, match=r"s.json: 109 bytes: larger than the 50 bytes a file may have"):
+        read_json(p, max_bytes=50)
+    assert read_bounded_text(p, 109) == p.read_text()
+    with pytest.raises(FormatError, match="larger than the 108 bytes"):
+        read_bounded_text(p, 108)
+
+
+def test_a_5000_digit_number_names_the_file(tmp_path):
+    p = tmp_path / "rig.json"
+    p.write_text('{"camera": {"width": ' + "9" * 5000 + "}}")
+    with pytest.raises(FormatError, match=r"rig.json: not valid JSON \(Exceeds the limit"):
+        read_json(p)
+
+
+@pytest.mark.parametrize("w,h,bits", [(60000, 60000, 8), (30000, 30000, 8), (30000, 30000, 16), (70000, 10, 8)])
+def test_huge_png_refused_before_decoding(tmp_path, w, h, bits):
+    p = png_header_only(tmp_path / "f.png", w, h, bits)
+    assert p.stat().st_size < 200
+    assert image_header_size(p) == (w, h)
+    with pytest.raises(FormatError, match=rf"f.png: image is {w}x{h} \(\d+ megapixels\): larger than ringscan reads "
+                                          r"\(at most 65536 px a side, 200 megapixels\)"):
+        read_image(p)
+
+
+@pytest.mark.parametrize("big_endian", [False, True])
+def test_huge_tiff_refused_before_decoding(tmp_path, big_endian):
+    p = tiff_header_only(tmp_path / "f.tiff", 40000, 40000, big_endian)
+    assert image_header_size(p) == (40000, 40000)
+    with pytest.raises(FormatError, match=r"image is 40000x40000"):
+        read_image(p)
+
+
+@pytest.mark.parametrize("ext", [".png", ".tiff", ".jpg", ".bmp"])
+def test_real_images_pass_with_their_size(tmp_path, ext):
+    img = (np.arange(37 * 23) % 251).astype(np.uint8).reshape(23, 37)
+    p = tmp_path / f"f{ext}"
+    assert cv2.imwrite(str(p), img)
+    assert check_image_header(p) == (37, 23)
+    assert read_image(p).shape == (23, 37)
+
+
+def test_16bit_tiff_and_float_tiff_headers(tmp_path):
+    p = tmp_path / "d.tiff"
+    cv2.imwrite(str(p), np.zeros((9, 13), np.float32))
+    assert image_header_size(p) == (13, 9)
+    cv2.imwrite(str(p), np.zeros((9, 13), np.uint16))
+    assert image_header_size(p) == (13, 9)
+
+
+def test_not_an_image_and_not_a_regular_file(tmp_path):
+    p = tmp_path / "f.png"
+    p.write_bytes(b"P5\n30000 30000\n255\n")  # a PGM: a header this does not read
+    with pytest.raises(FormatError, match="f.png: not a readable image"):
+        read_image(p)
+    with pytest.raises(FormatError, match="is a folder, not a regular file"):
+        read_image(tmp_path)
+    fifo = tmp_path / "frame.png"
+    p.unlink()
+    os.mkfifo(fifo)
+    got = _in_thread(lambda: read_image(fifo))
+    if got == "hung":
+        with open(fifo, "wb"):
+            pass
+    assert isinstance(got, FormatError) and "is a pipe (FIFO)" in str(got), got
