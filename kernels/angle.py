@@ -4,7 +4,8 @@ phase-shifted angular fringes, unwrapped by the sector code (docs/design.md,
 
 The frames ``angle_<n>``, n = 0..N-1, show I_n = 0.5 + 0.5 cos(P phi - 2 pi n / N)
 inside the coded annulus, phi = atan2(v_p - c_v, u_p - c_u). The number of
-periods P doubles outward in zones (:func:`angle_zones`) so that one period is
+periods P doubles outward in zones (``formats.patterns.angle_zones``, a part of the
+pattern's definition the decoder is given as arrays) so that one period is
 never shorter than ``min_period_px`` projector pixels at a zone's inner radius:
 the fringes stay resolvable near the centre and sharp far from it. Zone edges
 lie on band centres, away from the ring edges that the gray-rings samples sit on.
@@ -43,9 +44,8 @@ ANGLE_NO_SECTOR = wp.constant(3)
 ANGLE_STATUS_NAMES = ("ok", "dark", "modulation", "no_sector")
 PI = wp.constant(3.141592653589793)
 TWO_PI = wp.constant(6.283185307179586)
-MAX_ZONES = 16
 
-__all__ = ["AngleSettings", "AngleSamples", "ANGLE_STATUS_NAMES", "angle_zones", "angle_periods", "decode_angle"]
+__all__ = ["AngleSettings", "AngleSamples", "ANGLE_STATUS_NAMES", "decode_angle"]
 
 
 @dataclass(frozen=True)
@@ -219,47 +219,6 @@ for _t in (wp.uint8, wp.uint16):
 # ----------------------------------------------------------------------------- host
 
 
-def angle_zones(*, rho0: float, pitch: float, bands: int, sector_bits: int, min_period_px: float
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """The zones of the angle code: (inner radius of each zone, its periods P).
-
-    P is a power of two, the largest whose period 2 pi rho / P at the zone's
-    inner radius is at least ``min_period_px``, at most 2^(sector_bits - 1) (so the
-    sector code unwraps it with half a period to spare), at least 1. Zones start
-    at ``rho0`` and then at band centres rho0 + (k + 0.5) pitch, k < ``bands``.
-
-    Returns:
-        (rho_start (Z,) float32 ascending, periods (Z,) int32 doubling).
-    """
-    if not (pitch > 0 and rho0 >= 0 and bands >= 1 and min_period_px > 0):
-        raise ValueError(f"angle_zones: need pitch > 0, rho0 >= 0, bands >= 1, min_period_px > 0; got "
-                         f"{pitch}, {rho0}, {bands}, {min_period_px}")
-    if sector_bits < 0:
-        raise ValueError(f"angle_zones: sector_bits must be >= 0, got {sector_bits}")
-    p_max = 2 ** max(sector_bits - 1, 0)
-
-    def fits(rho):  # largest power of two with 2 pi rho / P >= min_period
-        n = 2 * math.pi * rho / min_period_px
-        return 1 if n < 2 else min(p_max, 2 ** int(math.floor(math.log2(n))))
-
-    starts, periods = [float(rho0)], [fits(rho0)]
-    for k in range(bands):
-        r = rho0 + (k + 0.5) * pitch
-        if periods[-1] >= p_max or len(starts) >= MAX_ZONES:
-            break
-        p = fits(r)
-        if p > periods[-1]:
-            starts.append(r)
-            periods.append(p)
-    return np.asarray(starts, np.float32), np.asarray(periods, np.int32)
-
-
-def angle_periods(rho, starts: np.ndarray, periods: np.ndarray) -> np.ndarray:
-    """Periods P at radii ``rho`` (array) for the zones of :func:`angle_zones`."""
-    idx = np.searchsorted(np.asarray(starts, np.float64), np.asarray(rho, np.float64), side="right") - 1
-    return np.asarray(periods)[np.clip(idx, 0, len(periods) - 1)]
-
-
 def decode_angle(
     frames: wp.array,
     uv: wp.array,
@@ -286,7 +245,7 @@ def decode_angle(
         white, black, angle0: frame indices of white, black and ``angle_0``.
         steps: the number of angle frames N (>= 3).
         sector_bits: the scan's sector bits S.
-        zones: (rho_start, periods) from :func:`angle_zones`.
+        zones: (rho_start, periods) from ``pipeline.formats.patterns.angle_zones``.
         lut: (full_scale + 1,) float32 Warp array: recorded value -> linear
             irradiance (``kernels.phase.response_tables``).
         light_gamma: the light's response exponent (1: linear).

@@ -1,6 +1,6 @@
 """The angle code, an add-on of ``gray-rings`` and ``phase-rings`` (``angle_steps`` > 0):
-frames ``angle_<n>`` of phase-shifted angular fringes around the pattern centre,
-decoded per sample by ``kernels.angle`` so that every sample carries its polar
+frames ``angle_<n>`` of phase-shifted angular fringes around the pattern centre
+(drawn by ``codecs.drawing``), decoded per sample by ``kernels.angle`` so that every sample carries its polar
 angle and both standard deviations (docs/dense.md, "The angle code"; the
 triangulation that uses them: docs/reconstruction.md, "Rings and angle").
 
@@ -16,14 +16,13 @@ import math
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, angle_periods, angle_zones, decode_angle
+from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
 from ringscan.kernels.phase import response_tables
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.drawing import band_coverage, polar, to_u8
-from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["zones_for", "render_angle_frame", "add_angle", "edge_sigma", "phase_sigma", "EDGE_WIDTH_PX"]
+__all__ = ["add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -31,24 +30,6 @@ predicted standard deviation: the frames' one-pixel box filter widened by the
 projector's defocus (a Gaussian of sigma 0.7 px, the virtual rig's default and a
 sharp real projector's, spreads a box edge's 10-90 % rise over ~2.8 px). With 1 px
 the virtual rig's edges scatter three times their prediction."""
-
-
-def zones_for(spec: PatternSpec) -> tuple[np.ndarray, np.ndarray]:
-    """The angle code's zones of a pattern (``kernels.angle.angle_zones``)."""
-    return angle_zones(rho0=spec.rho0, pitch=spec.pitch, bands=spec.n_bands, sector_bits=spec.sector_bits,
-                       min_period_px=spec.angle_period)
-
-
-def render_angle_frame(spec: PatternSpec, name: str) -> np.ndarray:
-    """Frame ``angle_<n>``: 0.5 + 0.5 cos(P phi - 2 pi n / N) inside the coded
-    annulus, P from the pattern's zones; (height, width) uint8."""
-    n = int(name.split("_")[1])
-    if not (spec.angle_steps and 0 <= n < spec.angle_steps):
-        raise ValueError(f"frame {name!r} is not an angle frame of these patterns (angle_steps {spec.angle_steps})")
-    rho, phi = polar(spec)
-    inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(spec.n_bands))
-    P = angle_periods(rho, *zones_for(spec))
-    return to_u8(spec, (0.5 + 0.5 * np.cos(P * phi - 2 * math.pi * n / spec.angle_steps)) * inside)
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -118,7 +99,7 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.n
     lut, _ = response_tables(full, camera_gamma=camera_gamma, weighted=False)
     res = decode_angle(frames, samples.uv, samples.rho, samples.sector, white=names.index("white"),
                        black=names.index("black"), angle0=names.index("angle_0"), steps=spec.angle_steps,
-                       sector_bits=spec.sector_bits, zones=zones_for(spec),
+                       sector_bits=spec.sector_bits, zones=spec_angle_zones(spec),
                        lut=wp.array(lut, dtype=wp.float32, device=dev), light_gamma=light_gamma,
                        settings=settings, threads=threads)
     samples.phi = res.phi

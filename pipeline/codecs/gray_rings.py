@@ -14,13 +14,13 @@ from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, render_angle_frame, sample_contrast
+from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, sample_contrast
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting
-from ringscan.pipeline.codecs.drawing import band_coverage, polar, sector_coverage, to_u8
-from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names, gray_encode
+from ringscan.pipeline.codecs.drawing import draw_frame
+from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "render_binary_frame", "explain_binary_view"]
+__all__ = ["GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view"]
 
 
 @dataclass(frozen=True)
@@ -34,31 +34,6 @@ class GrayRingsSettings:
     angle: AngleSettings = field(default_factory=AngleSettings)
     """The angle code's decoder (with ``angle_steps`` > 0) and the camera noise of
     every sample's predicted standard deviation."""
-
-
-def render_binary_frame(spec: PatternSpec, name: str) -> np.ndarray:
-    """One frame of the binary codes (``white``, ``black``, ``gray_<b>[_inv]``,
-    ``sector_<b>[_inv]``) as a (height, width) uint8 image."""
-    if name == "white":
-        return np.full((spec.height, spec.width), 255, np.uint8)
-    if name == "black":
-        return np.zeros((spec.height, spec.width), np.uint8)
-    rho, phi = polar(spec)
-    n = spec.n_bands
-    kind, b, *inv = name.split("_")
-    b = int(b)
-    if kind == "gray":
-        lit = (gray_encode(np.arange(n)) >> (spec.bits - 1 - b)) & 1
-        if inv:
-            lit = 1 - lit
-        return to_u8(spec, band_coverage(rho, spec.rho0, spec.pitch, lit))
-    if kind == "sector":
-        inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(n))
-        cov = sector_coverage(phi, rho, spec.sector_bits, b)
-        if inv:
-            cov = 1.0 - cov
-        return to_u8(spec, cov * inside)
-    raise ValueError(f"frame {name!r} is not a binary frame")
 
 
 def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, decode: DecodeSettings) -> str | None:
@@ -126,9 +101,7 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
     settings_type = GrayRingsSettings
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
-        if name.startswith("angle_"):
-            return render_angle_frame(spec, name)
-        return render_binary_frame(spec, name)
+        return draw_frame(spec, name)
 
     def settings_from(self, stages: StageSettings) -> GrayRingsSettings:
         return GrayRingsSettings(decode=stages.decode, sample=stages.sample, angle=stages.angle)

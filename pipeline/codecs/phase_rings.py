@@ -52,10 +52,10 @@ from ringscan.kernels.phase import (
 from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, render_angle_frame, sample_contrast
+from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, sample_contrast
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
-from ringscan.pipeline.codecs.drawing import band_coverage, polar, to_u8
-from ringscan.pipeline.codecs.gray_rings import explain_binary_view, render_binary_frame
+from ringscan.pipeline.codecs.drawing import draw_frame
+from ringscan.pipeline.codecs.gray_rings import explain_binary_view
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
@@ -256,15 +256,7 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
     rig_needs = RigNeeds(response=True)
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
-        if name.startswith("angle_"):
-            return render_angle_frame(spec, name)
-        if not name.startswith("phase_"):
-            return render_binary_frame(spec, name)
-        n = int(name.split("_")[1])
-        rho, _ = polar(spec)
-        inside = band_coverage(rho, spec.rho0, spec.pitch, np.ones(spec.n_bands))
-        ph = 2 * math.pi * (rho - spec.rho0) / spec.pitch - 2 * math.pi * n / spec.steps
-        return to_u8(spec, (0.5 + 0.5 * np.cos(ph)) * inside)
+        return draw_frame(spec, name)
 
     def settings_from(self, stages: StageSettings) -> PhaseRingsSettings:
         return PhaseRingsSettings(decode=stages.decode, phase=stages.phase, angle=stages.angle)

@@ -8,7 +8,7 @@ import warp as wp
 
 from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings, describe_lighting
-from ringscan.pipeline.codecs.drawing import polar, to_u8
+from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.codecs.single_shot.extract import extract_rings
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
@@ -26,14 +26,7 @@ class RingsCodec(Codec[SingleShotSettings]):
     rig_needs = RigNeeds(geometry_to_decode=True)
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
-        rho, _ = polar(spec)
-        img = np.zeros_like(rho)
-        w, h = spec.line_width, 0.5
-        for r in spec.ring_radii():
-            lo = np.maximum(rho - h, r - w / 2)
-            hi = np.minimum(rho + h, r + w / 2)
-            img += np.clip(hi - lo, 0, None) / (2 * h)
-        return to_u8(spec, img)
+        return draw_frame(spec, name)
 
     def settings_from(self, stages: StageSettings) -> SingleShotSettings:
         return stages.single_shot

@@ -44,11 +44,13 @@ from ringscan.pipeline.formats.errors import FormatError
 
 PRECOMPENSATED_GAMMA_RANGE = (0.1, 10.0)
 """Accepted ``precompensated_gamma`` (the rig's range of response gammas)."""
+MAX_ANGLE_ZONES = 16
+"""Most zones of the angle code (P doubles from one to the next)."""
 DECODED_SCALE = 32
 """``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
 
 __all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec",
-           "PatternLayout", "Parameter", "PATTERN_LAYOUTS", "pattern_layout", "parse_patterns", "default_patterns",
+           "PatternLayout", "Parameter", "PATTERN_LAYOUTS", "angle_zones", "angle_periods", "spec_angle_zones", "pattern_layout", "parse_patterns", "default_patterns",
            "frame_names", "gray_encode", "gray_decode"]
 
 
@@ -100,7 +102,7 @@ class PatternSpec:
     centre, gray-rings and phase-rings); 0 = no angle code."""
     angle_period: float = 12.0
     """Least period (projector px) of the angular fringes at the inner radius of each
-    zone; the number of periods doubles outward in zones (``kernels.angle.angle_zones``)."""
+    zone; the number of periods doubles outward in zones (:func:`angle_zones`)."""
 
     @property
     def layout(self) -> PatternLayout:
@@ -238,6 +240,53 @@ def check_angle_values(kw: dict, src) -> None:
         raise FormatError(src, f"patterns.angle_steps: {kw['angle_steps']} steps cannot give a phase; use 0 (none) or >= 3")
     if kw["angle_period"] < 4.0:
         raise FormatError(src, f"patterns.angle_period: {kw['angle_period']} px is too fine to project (>= 4)")
+
+
+def angle_zones(*, rho0: float, pitch: float, bands: int, sector_bits: int, min_period_px: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The zones of the angle code: (inner radius of each zone, its periods P).
+
+    P is a power of two, the largest whose period 2 pi rho / P at the zone's
+    inner radius is at least ``min_period_px``, at most 2^(sector_bits - 1) (so the
+    sector code unwraps it with half a period to spare), at least 1. Zones start
+    at ``rho0`` and then at band centres rho0 + (k + 0.5) pitch, k < ``bands``.
+
+    Returns:
+        (rho_start (Z,) float32 ascending, periods (Z,) int32 doubling).
+    """
+    if not (pitch > 0 and rho0 >= 0 and bands >= 1 and min_period_px > 0):
+        raise ValueError(f"angle_zones: need pitch > 0, rho0 >= 0, bands >= 1, min_period_px > 0; got "
+                         f"{pitch}, {rho0}, {bands}, {min_period_px}")
+    if sector_bits < 0:
+        raise ValueError(f"angle_zones: sector_bits must be >= 0, got {sector_bits}")
+    p_max = 2 ** max(sector_bits - 1, 0)
+
+    def fits(rho):  # largest power of two with 2 pi rho / P >= min_period
+        n = 2 * math.pi * rho / min_period_px
+        return 1 if n < 2 else min(p_max, 2 ** int(math.floor(math.log2(n))))
+
+    starts, periods = [float(rho0)], [fits(rho0)]
+    for k in range(bands):
+        r = rho0 + (k + 0.5) * pitch
+        if periods[-1] >= p_max or len(starts) >= MAX_ANGLE_ZONES:
+            break
+        p = fits(r)
+        if p > periods[-1]:
+            starts.append(r)
+            periods.append(p)
+    return np.asarray(starts, np.float32), np.asarray(periods, np.int32)
+
+
+def angle_periods(rho, starts: np.ndarray, periods: np.ndarray) -> np.ndarray:
+    """Periods P at radii ``rho`` (array) for the zones of :func:`angle_zones`."""
+    idx = np.searchsorted(np.asarray(starts, np.float64), np.asarray(rho, np.float64), side="right") - 1
+    return np.asarray(periods)[np.clip(idx, 0, len(periods) - 1)]
+
+
+def spec_angle_zones(spec: "PatternSpec") -> tuple[np.ndarray, np.ndarray]:
+    """The angle code's zones of a pattern (:func:`angle_zones` of its annulus, sector bits and ``angle_period``)."""
+    return angle_zones(rho0=spec.rho0, pitch=spec.pitch, bands=spec.n_bands, sector_bits=spec.sector_bits,
+                       min_period_px=spec.angle_period)
 
 
 class GrayRingsLayout(PatternLayout):

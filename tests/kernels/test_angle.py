@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, angle_periods, angle_zones, decode_angle
+from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
 from ringscan.kernels.phase import response_tables
+from ringscan.pipeline.formats.patterns import angle_periods, angle_zones
 
 STATUS = {n: i for i, n in enumerate(ANGLE_STATUS_NAMES)}
 C = (200.3, 150.7)
