@@ -4,7 +4,7 @@ Ray cluster (resumable; see docs/batch.md)."""
 from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 from ringscan.tools.cmd_reconstruct import load_settings
 
 
@@ -14,7 +14,7 @@ def _workers(text: str, *, option: str = "--workers") -> int:
     except ValueError:
         n = -1
     if n < 0:
-        raise ValueError(f"{option} {text!r}: expected a whole number >= 0" + (" (0: in this process)"
+        raise UsageError(f"{option} {text!r}: expected a whole number >= 0" + (" (0: in this process)"
                                                                               if option == "--workers" else ""))
     return n
 
@@ -24,9 +24,10 @@ def add_parser(sub):
                        description="Reconstruct each folder with a scan.json below ROOT into the same relative "
                                    "path below --out, on worker processes (or a Ray cluster). Finished scans are "
                                    "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
-    p.add_argument("root")
-    p.add_argument("--out", required=True)
-    p.add_argument("--settings", default=None, help="JSON settings file")
+    p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth")
+    p.add_argument("--out", required=True, help="output root: each scan's results go to the same relative path below it")
+    p.add_argument("--settings", default=None, metavar="JSON",
+                   help="reconstruction settings file, as for `ringscan reconstruct --settings` (default: built in)")
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
                         "core; 0: in this process)")
@@ -40,7 +41,7 @@ def add_parser(sub):
     p.add_argument("--fuse", action="store_true", help="also fuse each scan's views (<out>/<scan>/fused/)")
     p.add_argument("--mesh", action="store_true", help="also fuse and mesh each scan (<out>/<scan>/mesh/)")
     p.add_argument("--dry-run", action="store_true", help="list what would run and why; write nothing")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
     return p
 
@@ -56,13 +57,13 @@ def run(args) -> int:
         print(f"{len(plans)} scan(s): {todo} to run, {len(plans) - todo} done")
         return 0
     if args.address and args.backend != "ray":
-        raise ValueError("--address: only with --backend ray")
+        raise UsageError("--address: only with --backend ray")
     workers = None if args.workers is None else _workers(args.workers)
     cpu_threads = None
     if args.cpu_threads is not None:
         cpu_threads = _workers(args.cpu_threads, option="--cpu-threads")
         if cpu_threads < 1:
-            raise ValueError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
+            raise UsageError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
     rep = batch_reconstruct(args.root, args.out, settings=settings, device=args.device, workers=workers,
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
                             cpu_threads=cpu_threads, progress=not args.no_progress)

@@ -52,9 +52,10 @@ from ringscan.pipeline.calibrate.turntable import (
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.progress import progress_bar, progress_step
 from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def parse_size(text: str, what: str) -> tuple[int, int]:
@@ -63,9 +64,9 @@ def parse_size(text: str, what: str) -> tuple[int, int]:
         a, b = text.lower().split("x")
         w, h = int(a), int(b)
     except ValueError:
-        raise ValueError(f"{what}: expected WxH (e.g. 9x7), got {text!r}") from None
+        raise UsageError(f"{what}: expected WxH (e.g. 9x7), got {text!r}") from None
     if w <= 0 or h <= 0:
-        raise ValueError(f"{what}: sizes must be positive, got {text!r}")
+        raise UsageError(f"{what}: sizes must be positive, got {text!r}")
     return w, h
 
 
@@ -145,11 +146,12 @@ def add_camera_parser(calsub) -> None:
 
 def run_camera(args) -> int:
     if not args.out and not args.rig:
-        raise ValueError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
+        raise UsageError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
     board = board_from_args(args)
     bs = board_settings_from_args(args)
     views, size = [], None
-    for path in args.images:
+    for path in progress_bar(args.images, desc="detecting the board", unit="image", disable=args.no_progress,
+                             leave=False):
         img = read_image(path)
         s = (img.shape[1], img.shape[0])
         if size is None:
@@ -159,7 +161,8 @@ def run_camera(args) -> int:
         views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} images:")
     print_views(views)
-    cal = calibrate_camera(views, board=board, size=size, settings=camera_settings_from_args(args))
+    with progress_step("fitting the camera", enabled=not args.no_progress):
+        cal = calibrate_camera(views, board=board, size=size, settings=camera_settings_from_args(args))
     print_calibration("camera", cal)
     block = camera_block(cal)
     if args.out:
@@ -207,7 +210,8 @@ def run_procam(args) -> int:
     settings = ProcamSettings(window_px=args.window, camera=camera_settings_from_args(args),
                               board=board_settings_from_args(args))
     caps, size = [], None
-    for folder in args.captures:
+    for folder in progress_bar(args.captures, desc="decoding captures", unit="capture", disable=args.no_progress,
+                               leave=False):
         cap = read_capture(folder, projector=proj_size, layout=args.layout)
         s = (cap.white.shape[1], cap.white.shape[0])
         if size is None:
@@ -221,7 +225,8 @@ def run_procam(args) -> int:
                  (f", {len(cc.projector_view.ids)} corners in the projector" if cc.projector_view.found
                   else f", {cc.projector_view.reason}")))
         caps.append(cc)
-    res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
+    with progress_step("fitting the camera and projector", enabled=not args.no_progress):
+        res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
     print_calibration("camera", res.camera)
     print_calibration("projector", res.projector)
     print(f"stereo: RMS reprojection error {res.stereo_rms:.3f} px; baseline {np.linalg.norm(res.T):.1f}; "
@@ -261,7 +266,7 @@ def add_response_parser(calsub) -> None:
 
 def run_response(args) -> int:
     if len(args.levels) != len(args.frames):
-        raise ValueError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
+        raise UsageError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
     d = read_json(args.rig)
     rig = parse_rig(d, source=args.rig)
     imgs = [read_image(f) for f in args.frames]
@@ -343,11 +348,12 @@ def add_light_parser(calsub) -> None:
 
 def run_light(args) -> int:
     if len(args.heights) != len(args.scans):
-        raise ValueError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
+        raise UsageError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
     rig = load_rig(args.rig) if args.rig else None
     scans = [load_scan(s) for s in args.scans]
-    cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
-                                   settings=LightSettings(max_residual_px=args.max_residual))
+    with progress_step(f"fitting the light to {len(scans)} plane scan(s)", enabled=not args.no_progress):
+        cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
+                                       settings=LightSettings(max_residual_px=args.max_residual))
     li = cal.light
     print(f"parallel light: pitch {li.pixel_pitch_mm:.6f} mm/px, axis pixel ({li.axis_px[0]:.2f}, "
           f"{li.axis_px[1]:.2f}), tilt {cal.tilt_deg:.3f} deg from z, roll {cal.roll_deg:.3f} deg; "
@@ -395,7 +401,7 @@ def add_latency_parser(calsub) -> None:
 def run_latency(args) -> int:
     spec = parse_display_spec(args.projector)
     if spec is None:
-        raise ValueError(f"--projector: expected display, display:N or display:NAME, got {args.projector!r}")
+        raise UsageError(f"--projector: expected display, display:N or display:NAME, got {args.projector!r}")
     settings = LatencySettings(trials=args.trials, max_s=args.max_delay, rest_s=args.rest, step_s=args.step)
     disp = choose_display(list_displays(), spec)
     with DisplayProjector(latency_frames(disp.width, disp.height), display=disp.index) as projector, \
@@ -448,7 +454,7 @@ def run_turntable(args) -> int:
     settings = TurntableSettings(board=board_settings_from_args(args), prior_axis=prior)
     if len(args.inputs) == 1 and Path(args.inputs[0]).is_dir():
         if args.angles is not None:
-            raise ValueError("--angles: a scan's views carry their own table angles (turntable_deg)")
+            raise UsageError("--angles: a scan's views carry their own table angles (turntable_deg)")
         scan = load_scan(args.inputs[0])
         rig = scan.rig if rig is None else rig
         if args.rig is None and rig.turntable is not None:
@@ -457,15 +463,16 @@ def run_turntable(args) -> int:
     else:
         if args.angles is None or len(args.angles) != len(args.inputs):
             n = 0 if args.angles is None else len(args.angles)
-            raise ValueError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
+            raise UsageError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
         if rig is None:
-            raise ValueError("--rig: images need the rig file of the calibrated camera")
+            raise UsageError("--rig: images need the rig file of the calibrated camera")
         views = [detect_board(read_image(path), board=board, name=view_name(path), settings=settings.board)
                  for path in args.inputs]
         angles = list(args.angles)
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} views:")
     print_views(views)
-    cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, settings=settings)
+    with progress_step("fitting the turntable axis", enabled=not args.no_progress):
+        cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, settings=settings)
     tt = cal.turntable
     print(f"turntable axis: through ({', '.join(f'{x:.3f}' for x in tt.axis_point)}) along "
           f"({', '.join(f'{x:.5f}' for x in tt.axis_dir)}); RMS reprojection error {cal.rms_px:.3f} px "
@@ -498,5 +505,5 @@ def add_parser(sub):
 def run(args) -> int:
     fn = getattr(args, "_calibrate", None)
     if fn is None:
-        raise ValueError("calibrate: say what to calibrate (e.g. `ringscan calibrate camera --help`)")
+        raise UsageError("calibrate: say what to calibrate (e.g. `ringscan calibrate camera --help`)")
     return int(fn(args) or 0)

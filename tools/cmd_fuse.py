@@ -11,7 +11,7 @@ from ringscan.pipeline.fusion.mesh import MeshSettings
 from ringscan.pipeline.fusion.poses import PoseSettings
 from ringscan.pipeline.fusion.turntable import FuseSettings
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def add_parser(sub):
@@ -61,7 +61,7 @@ def parse_formats(text: str) -> tuple[str, ...]:
     fmts = tuple("." + f.strip().lower().lstrip(".") for f in text.split(",") if f.strip())
     bad = [f for f in fmts if f not in MESH_FORMATS]
     if not fmts or bad:
-        raise ValueError(f"--formats: expected some of ply, obj, stl, got {text!r}")
+        raise UsageError(f"--formats: expected some of ply, obj, stl, got {text!r}")
     return fmts
 
 
@@ -74,7 +74,7 @@ def parse_voxel(text: str) -> float:
     except ValueError:
         v = float("nan")
     if not (0 < v < float("inf")):
-        raise ValueError(f"--voxel: expected a finite number of mm > 0 (or 'none' to keep every point), got {text!r}")
+        raise UsageError(f"--voxel: expected a finite number of mm > 0 (or 'none' to keep every point), got {text!r}")
     return v
 
 
@@ -91,7 +91,7 @@ def run(args) -> int:
             try:
                 fkw["ground_clip_mm"] = float(args.ground_clip)
             except ValueError:
-                raise ValueError(f"--ground-clip: expected a number of mm or 'none', "
+                raise UsageError(f"--ground-clip: expected a number of mm or 'none', "
                                  f"got {args.ground_clip!r}") from None
     if args.no_refine:
         fkw["refine"] = False

@@ -12,7 +12,7 @@ from ringscan.pipeline.formats.rig import default_rig, load_rig
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.scenes import SCENES
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 from ringscan.tools.cmd_patterns import add_pattern_options, pattern_spec_from_args
 
 
@@ -65,7 +65,7 @@ def build_rig(args):
     """The rig of the command line: --rig, or the built-in one with --light/--gamma."""
     if args.rig:
         if args.light:
-            raise ValueError("--light applies to the built-in rig only (the rig file sets its light)")
+            raise UsageError("--light applies to the built-in rig only (the rig file sets its light)")
         rig = load_rig(args.rig)
         if args.gamma is not None:
             rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, gamma=_gamma(args.gamma)))
@@ -84,7 +84,7 @@ def _outputs(out: Path, spec, views: int, fmt: str) -> list[Path]:
 
 def _gamma(g: float) -> float:
     if not g > 0:
-        raise ValueError(f"--gamma: must be > 0, got {g}")
+        raise UsageError(f"--gamma: must be > 0, got {g}")
     return float(g)
 
 

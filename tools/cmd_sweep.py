@@ -7,7 +7,7 @@ from ringscan.pipeline.formats.atomic import check_output_folder
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.simulate.scenes import SCENES
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -20,14 +20,14 @@ def _int_list(text: str) -> tuple[int, ...]:
             return tuple(range(a, b + 1))
         return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise ValueError(f"--bits: expected a range like 3:8 or a list like 3,5,7, got {text!r}") from None
+        raise UsageError(f"--bits: expected a range like 3:8 or a list like 3,5,7, got {text!r}") from None
 
 
 def _float_list(text: str) -> tuple[float, ...]:
     try:
         return tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise ValueError(f"--targets: expected numbers like 0.5,0.1, got {text!r}") from None
+        raise UsageError(f"--targets: expected numbers like 0.5,0.1, got {text!r}") from None
 
 
 def add_parser(sub):

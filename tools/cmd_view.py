@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from ringscan.pipeline.formats.atomic import check_output_file
-from ringscan.pipeline.formats.meshes import read_mesh
+from ringscan.pipeline.formats.progress import progress_step
+from ringscan.pipeline.fusion.workflow import load_truth_mesh
 from ringscan.pipeline.preview.colour import colorize
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
 
@@ -26,8 +27,9 @@ def add_parser(sub):
     p.add_argument("--point-size", type=float, default=d.point_size, help=f"point size in px (default {d.point_size})")
     p.add_argument("--renderer", choices=("auto", "open3d", "software"), default="auto",
                    help="auto: Open3D, or software when Open3D cannot start (default auto)")
-    p.add_argument("--truth", default=None, metavar="MESH",
-                   help="colour the first file by distance to this mesh (mm), with a colour bar")
+    p.add_argument("--truth", default=None, metavar="MESH_OR_SCAN",
+                   help="colour the first file by distance to this truth mesh, or to a simulated scan's truth "
+                        "mesh (mm), with a colour bar")
     p.add_argument("--max-error", type=float, default=None, metavar="MM",
                    help="top of the --truth colour scale (default: 99th percentile)")
     return p
@@ -41,7 +43,7 @@ def run(args) -> int:
     geoms = [read_geometry(f) for f in args.files]
     bar = None
     if args.truth:
-        truth = read_mesh(args.truth)
+        truth = load_truth_mesh(args.truth)
         g = geoms[0]
         pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points, np.float32)
         scene = o3d.t.geometry.RaycastingScene()
@@ -54,6 +56,8 @@ def run(args) -> int:
               f"p95 {np.quantile(dist, 0.95):.4f} mm")
     s = ViewSettings(width=args.width, height=args.height, azimuth_deg=args.azimuth, elevation_deg=args.elevation,
                      point_size=args.point_size, renderer=args.renderer)
-    res = render_to_png(geoms, out, settings=s, colorbar_spec=bar)
-    print(f"wrote {args.out} ({args.width}x{args.height}, {res.renderer} renderer)")
+    with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
+        res = render_to_png(geoms, out, settings=s, colorbar_spec=bar)
+    w, h = res.png_size
+    print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer)")
     return 0

@@ -45,13 +45,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ringscan.hardware.errors import CameraError, CaptureError, DeviceError, ProjectorError, TurntableError
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.progress import progress_bar
 from ringscan.pipeline.formats.rig import Rig, rig_to_dict
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
 
@@ -459,8 +459,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
     views_list = list(scan.views)
     total = len(angles) * len(names)
     done = sum(len([n for n in names if n in v.frames]) for v in views_list)
-    bar = tqdm(total=total, initial=done, unit="frame", desc=f"capture {out.name}", disable=not progress,
-               dynamic_ncols=True)
+    bar = progress_bar(total=total, initial=done, unit="frame", desc=f"capture {out.name}", disable=not progress)
     log.info("capture: %s, %d views x %d frames, %d already captured", out, len(angles), len(names), done)
 
     def show_and_grab(j: int) -> np.ndarray:

@@ -102,7 +102,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
         The report (also ``out_root/batch_report.json``): ``scans`` (one entry per
         scan, in the order of :func:`find_scans`) and ``totals``.
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     if backend not in BACKENDS:
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
@@ -137,7 +137,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
               "workers": n_workers, "settings": settings_to_dict(settings), "scans": []}
     entries: dict[int, dict] = {}
     t0 = time.perf_counter()
-    bar = tqdm(total=len(scans), desc="batch", unit="scan", disable=not progress)
+    bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     computed = 0
     first = None
     try:

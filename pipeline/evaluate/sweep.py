@@ -292,7 +292,7 @@ def run_sweep(
     Returns:
         The sweep result (also written to ``sweep.json``).
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
 
     if not isinstance(settings, SweepSettings):
@@ -319,7 +319,7 @@ def run_sweep(
     runs = []
     t_all = time.perf_counter()
     try:
-        for spec in tqdm(specs, desc=f"sweep {mesh.name}", unit="run", disable=not progress, leave=False):
+        for spec in progress_bar(specs, desc=f"sweep {mesh.name}", unit="run", disable=not progress, leave=False):
             name = f"{spec.codec}_{spec.bits}bits_pitch{spec.pitch:g}"
             r = _run_one(scans_root / name, mesh, rig, spec, render, device, region, _band_mm(rig, spec.pitch),
                          settings)

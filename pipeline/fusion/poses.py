@@ -300,7 +300,7 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
         ValueError: no poses, bad types, empty clouds, bad settings.
     """
     import open3d as o3d
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     _check_pose_settings(settings)
     s = settings
@@ -329,7 +329,7 @@ def fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings:
     if s.pose_graph and n >= 3:
         pairs += [(j, i) for i in range(1, n) for j in range(i + 1, n)]
     edges, failures = [], {}
-    for i, j in tqdm(pairs, desc="aligning poses", unit="pair", disable=not progress):
+    for i, j in progress_bar(pairs, desc="aligning poses", unit="pair", disable=not progress):
         fine, gfit, info = _register_pair(o3d, prepared[i], prepared[j], s, names[i])
         T = np.asarray(fine.transformation).copy()
         prmse = _plane_rmse(o3d, prepared[i][2], prepared[j][2], T, s.icp_fine_mm)

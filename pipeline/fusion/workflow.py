@@ -25,6 +25,7 @@ from ringscan.pipeline.formats.atomic import (
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
 from ringscan.pipeline.formats.ply import read_ply
+from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import Rig, load_rig, parse_rig
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.fusion.mesh import (
@@ -44,7 +45,8 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan, scan_inputs
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_recon", "recon_folder", "fuse_recon", "fuse_recons", "FUSE_REPORT_FORMAT", "fuse_and_mesh", "mesh_cloud", "mesh_fused"]
+__all__ = ["load_recon", "recon_folder", "fuse_recon", "fuse_recons", "FUSE_REPORT_FORMAT", "fuse_and_mesh", "mesh_cloud", "mesh_fused",
+           "load_truth_mesh"]
 
 
 
@@ -230,7 +232,7 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
                        [q for src in sources for q in _source_files(Path(src))]
                        + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
     remove_stale_temporaries(out_dir)
-    truth_mesh = _load_truth(truth) if truth is not None else None
+    truth_mesh = load_truth_mesh(truth) if truth is not None else None
     t0 = time.perf_counter()
     if multi:
         fused = fuse_recons(sources, settings=fuse_settings, pose_settings=pose_settings, work_dir=out_dir / "recon",
@@ -240,7 +242,8 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
                            progress=progress)
     t_fuse = time.perf_counter() - t0
     # TSDF from several poses integrates the merged cloud (virtual views), not the per-view depth maps.
-    mres = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
+    with progress_step(f"{mesh_settings.method} meshing", enabled=progress):
+        mres = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_cloud(out_dir / "fused.ply", fused.cloud, view=fused.point_view, confidence=fused.point_confidence)
     outputs = {"cloud": "fused.ply", "meshes": []}
@@ -248,8 +251,8 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
         write_mesh(out_dir / f"mesh{f}", mres.mesh)
         outputs["meshes"].append(f"mesh{f}")
     if preview:
-
-        res = render_to_png([mres.mesh], out_dir / "preview.png")
+        with progress_step("rendering preview.png", enabled=progress):
+            res = render_to_png([mres.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
         outputs["preview_renderer"] = res.renderer
     rep = {"format": FUSE_REPORT_FORMAT, "source": str(Path(sources[0]).resolve()),
@@ -278,7 +281,14 @@ def _source_files(src: Path) -> list[Path]:
     return []
 
 
-def _load_truth(truth):
+def load_truth_mesh(truth):
+    """The truth mesh of ``--truth``: an ``o3d.geometry.TriangleMesh``, a mesh file
+    (PLY/OBJ/STL), or a simulated scan folder (its ``truth.mesh`` in scan.json, the
+    object in its own frame).
+
+    Raises:
+        FormatError: naming the file: unreadable, or a scan without a truth mesh.
+    """
     o3d = open3d_lib()
     if isinstance(truth, o3d.geometry.TriangleMesh):
         return truth

@@ -88,6 +88,8 @@ class RenderResult:
     """4x4 extrinsics (object -> camera, OpenCV: x right, y down, z forward)."""
     renderer: str
     """"open3d" or "software"."""
+    png_size: tuple[int, int] | None = None
+    """(width, height) of the PNG :func:`render_to_png` wrote, colour bar included."""
 
 
 # ----------------------------------------------------------------------------- camera
@@ -366,6 +368,7 @@ def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = Vi
         bar = colorbar(res.image.shape[0], **colorbar_spec, background=settings.background)
         bgr = np.concatenate([bgr, bar], axis=1)
     write_image(path, np.ascontiguousarray(bgr))
+    res.png_size = (int(bgr.shape[1]), int(bgr.shape[0]))
     return res
 
 

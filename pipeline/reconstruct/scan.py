@@ -122,7 +122,7 @@ def reconstruct_scan(
         report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
     atomic_write_json(out / "settings.json", report["settings"])
     t_all = time.perf_counter()
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     todo = [v for v in chosen if v.name not in done]
     # Read the next view's frames while this one is reconstructed (image decoding
@@ -136,7 +136,7 @@ def reconstruct_scan(
         if k < len(todo) and todo[k].name not in pending:
             pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
 
-    bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
+    bar = progress_bar(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
     try:
         for view in bar:
             index = scan.views.index(view)
