@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
 from ringscan.tools.cli import UsageError, add_device_option
-from ringscan.tools.cmd_reconstruct import load_settings
+from ringscan.tools.cmd_reconstruct import add_settings_options, settings_from_args
 
 
 def _workers(text: str, *, option: str = "--workers") -> int:
@@ -26,8 +26,7 @@ def add_parser(sub):
                                    "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
     p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth")
     p.add_argument("--out", required=True, help="output root: each scan's results go to the same relative path below it")
-    p.add_argument("--settings", default=None, metavar="JSON",
-                   help="reconstruction settings file, as for `ringscan reconstruct --settings` (default: built in)")
+    add_settings_options(p)
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
                         "core; 0: in this process)")
@@ -35,7 +34,7 @@ def add_parser(sub):
                    help="CPU threads of each local worker (default: the cores shared out among the workers); "
                         "results do not depend on it")
     p.add_argument("--backend", choices=("local", "ray"), default="local",
-                   help="local: a process pool on this machine; ray: a Ray cluster (pip install 'ringscan[ray]')")
+                   help="local: a process pool on this machine; ray: a Ray cluster (needs Ray: pip install ray)")
     p.add_argument("--address", default=None,
                    help="the Ray cluster's address (default: RAY_ADDRESS, else a local cluster)")
     p.add_argument("--fuse", action="store_true", help="also fuse each scan's views (<out>/<scan>/fused/)")
@@ -47,7 +46,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    settings = load_settings(args.settings)
+    settings = settings_from_args(args)
     if args.dry_run:
         plans = plan_batch(args.root, args.out, settings=settings)
         w = max(len(p.scan) for p in plans)

@@ -141,6 +141,8 @@ def run(args) -> int:
     outs = rep["outputs"]
     files = [outs["cloud"], *outs["meshes"], *([outs["preview"]] if "preview" in outs else []), "fuse_report.json"]
     print(f"wrote {args.out}/: {', '.join(files)}")
+    if outs.get("removed"):
+        print(f"removed {', '.join(outs['removed'])}: left in {args.out}/ by an earlier run, not asked for this time")
     if args.watertight and not m["watertight"]:
         print("warning: the mesh is not watertight (see fuse_report.json mesh checks)")
         return 1

@@ -192,6 +192,9 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     of ``formats`` (ply, obj, stl), ``preview.png`` (when ``preview``; see
     :mod:`ringscan.pipeline.preview`) and ``fuse_report.json`` (per-view residuals,
     mesh checks, resolved settings, and the figures against ``truth`` when given).
+    A ``mesh.<ext>`` in another format (or a ``preview.png`` with ``preview`` off)
+    that an earlier run left in ``out_dir`` is removed, and named in the report's
+    ``outputs.removed``: the folder then holds what this run made, nothing older.
     A scan folder is reconstructed first into ``out_dir/recon``.
 
     ``recon_dir`` may also be a list of folders: scans of the same object in several
@@ -228,9 +231,9 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
         _ext(Path("mesh" + f), MESH_FORMATS)
         fmts.append(f)
     outputs = [out_dir / n for n in ("fused.ply", "preview.png", "fuse_report.json")]
-    check_no_overwrite([*outputs, *(out_dir / f"mesh{f}" for f in fmts)],
-                       [q for src in sources for q in _source_files(Path(src))]
-                       + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
+    input_files = ([q for src in sources for q in _source_files(Path(src))]
+                   + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
+    check_no_overwrite([*outputs, *(out_dir / f"mesh{f}" for f in fmts)], input_files)
     remove_stale_temporaries(out_dir)
     truth_mesh = load_truth_mesh(truth) if truth is not None else None
     t0 = time.perf_counter()
@@ -255,6 +258,20 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
             res = render_to_png([mres.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
         outputs["preview_renderer"] = res.renderer
+    # A rerun into the same folder writes exactly what it is asked for: the earlier
+    # run's meshes in other formats (and its preview, with preview off) would sit
+    # beside the new mesh as if made from it. They are removed and named.
+    written = {out_dir / "fused.ply", out_dir / "fuse_report.json", *(out_dir / m for m in outputs["meshes"]),
+               *([out_dir / "preview.png"] if preview else [])}
+    inputs = {Path(q).resolve() for q in input_files}
+    removed = []
+    for stale in [*(out_dir / f"mesh{f}" for f in MESH_FORMATS), out_dir / "preview.png"]:
+        if stale not in written and stale.is_file() and stale.resolve() not in inputs:
+            stale.unlink()
+            removed.append(stale.name)
+            log.info("removed %s, left by an earlier run (not asked for this time)", stale)
+    if removed:
+        outputs["removed"] = removed
     rep = {"format": FUSE_REPORT_FORMAT, "source": str(Path(sources[0]).resolve()),
            "fusion": fused.report(), "mesh": {"method": mres.method, "watertight": mres.watertight, **mres.info},
            "settings": {"fuse": dataclasses.asdict(fuse_settings), "mesh": dataclasses.asdict(mesh_settings)},

@@ -40,7 +40,7 @@ from ringscan.pipeline.formats.atomic import (
 )
 from ringscan.pipeline.formats.rig import rig_to_dict
 from ringscan.pipeline.formats.scan import Scan, View, check_view_name, load_scan, read_view_frames
-from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view, write_view_ply
@@ -79,9 +79,12 @@ def reconstruct_scan(
         The report (also written to ``out_dir/report.json``).
 
     Raises:
+        ValueError: a setting of the wrong type or not finite, naming it.
         FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
             file), or writing into it would overwrite one of the scan's own files.
     """
+    check_settings_types(settings)
+    check_finite_settings(settings)
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
     out = check_output_folder(out_dir, what="reconstruction's output folder")

@@ -113,15 +113,19 @@ def reconstruct_view(
         uv=smp.uv.numpy()[idx_np],
         stats={},
     )
+    low_confidence = 0
     if settings.min_confidence > 0:
         keep = cloud.confidence >= settings.min_confidence
+        low_confidence = int(keep.size - np.count_nonzero(keep))
         cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep], cloud.uv[keep], {})
     times["download"] = time.perf_counter() - t
     cloud.stats = {
         "pixels": int(frames.shape[1] * frames.shape[2]),
         **st,
         "points": int(cloud.points.shape[0]),
-        "dropped": {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+        # every sample not written, by reason: the kernels' statuses, then min_confidence
+        "dropped": {**{name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+                    "low_confidence": low_confidence},
         "times_s": times,
     }
     if cloud.stats["points"] == 0:
