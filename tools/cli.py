@@ -157,7 +157,12 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"ringscan {name}: error: {e} (see `ringscan {name} --help`)", file=sys.stderr)
         return EXIT_USAGE
-    except (RingscanError, ValueError) as e:
+    except ValueError as e:
+        # A library check of an option's value names the option first (`--projector 'display:': ...`):
+        # a usage error too. Everything else is the input or the data.
+        print(f"ringscan {name}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE if not isinstance(e, RingscanError) and str(e).startswith("--") else EXIT_FAILED
+    except RingscanError as e:
         print(f"ringscan {name}: error: {e}", file=sys.stderr)
         return EXIT_FAILED
     except OSError as e:  # the disk, not the input: full, read-only, no permission

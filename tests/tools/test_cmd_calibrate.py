@@ -19,21 +19,21 @@ def procam(shared_data):
     return d
 
 
-def test_camera_without_a_board_exits_2_and_writes_nothing(tmp_path, procam, capsys):
+def test_camera_without_a_board_exits_1_and_writes_nothing(tmp_path, procam, capsys):
     out = tmp_path / "cam.json"
     rc = main(["calibrate", "camera", str(procam / "capture_1" / "graycode_41.png"),
                str(procam / "capture_2" / "graycode_41.png"), "--square", "75", "--out", str(out)])
     err = capsys.readouterr().err
-    assert rc == 2 and "no image shows the 9x7 board" in err and "Traceback" not in err
+    assert rc == 1 and "no image shows the 9x7 board" in err and "Traceback" not in err
     assert not out.exists()
 
 
-def test_procam_wrong_layout_exits_2(tmp_path, capsys):
+def test_procam_wrong_layout_exits_1(tmp_path, capsys):
     write_capture(tmp_path / "c1", projector=(128, 96))
     rig = tmp_path / "rig.json"
     rc = main(["calibrate", "procam", str(tmp_path / "c1"), "--square", "75", "--projector", "128x96",
                "--layout", "opencv-graycode-wb-first", "--out", str(rig)])
-    assert rc == 2 and "not layout 'opencv-graycode-wb-first'" in capsys.readouterr().err
+    assert rc == 1 and "not layout 'opencv-graycode-wb-first'" in capsys.readouterr().err
     assert not rig.exists()
 
 

@@ -65,15 +65,16 @@ def test_view_cloud_with_truth_colours(tmp_path, capsys):
     assert "distance to truth: mean" in text
     img = cv2.imread(str(out))
     assert img.shape == (120, 160 + 110, 3)  # colour bar appended
+    assert f"wrote {out} ({160 + 110}x120, software renderer)" in text  # the size of the PNG written
     obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
     assert np.ptp(obj[:, 2] - obj[:, 0]) > 100  # both ends of the colour map appear
 
 
 def test_view_errors(tmp_path, capsys):
-    assert main(["view", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["view", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.png")]) == 1
     assert "missing.ply: file not found" in capsys.readouterr().err
     (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
-    assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 1
     assert "no points" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
 
@@ -95,6 +96,22 @@ def test_view_leaves_out_infinite_points(tmp_path, caplog, capsys):
     assert 0.05 < drawn.mean() < 0.9  # the object is there, not a blank picture
     pts[:] = np.inf
     o3d.io.write_point_cloud(str(path), pc)
-    assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 2
+    assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 1
     assert f"{path}: none of its 3000 points has finite coordinates" in capsys.readouterr().err
     assert not (tmp_path / "w.png").exists()
+
+
+def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+    scan = simulate_tiny_scan(tmp_path / "scan")
+    truth_mesh = o3d.io.read_triangle_mesh(str(scan.folder / scan.extra["truth"]["mesh"]))
+    pc = truth_mesh.sample_points_uniformly(2000)
+    cloud = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(cloud), pc)
+    out = tmp_path / "t.png"
+    assert main(["view", str(cloud), "--out", str(out), "--width", "80", "--height", "60", "--renderer", "software",
+                 "--truth", str(scan.folder)]) == 0
+    text = capsys.readouterr().out
+    mean = float(text.split("distance to truth: mean ")[1].split(" mm")[0])
+    assert mean < 1e-3  # points sampled on the truth: on it
