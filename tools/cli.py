@@ -42,6 +42,7 @@ COMMANDS = {
     "capture": "capture a scan from a turntable rig (or the emulated virtual rig)",
     "emulate": "run an emulated rig (turntable, projector, camera) to try captures",
     "bench": "time decode, sampling and triangulation against NumPy",
+    "schema": "print the JSON Schema of a settings file",
 }
 
 

@@ -37,7 +37,8 @@ def add_parser(sub):
                        description="Simulate the scene on the virtual rig with gray-rings patterns of 2**bits - 1 "
                                    "rings over one annulus (and a dense phase-rings run), reconstruct each, "
                                    "interpolate the surface between the rings and write sweep.csv, sweep.json and "
-                                   "sweep.png (surface error and coverage against the number of rings) into --out.")
+                                   "sweep.png and sweep.svg (surface error and coverage against the number of rings, "
+                                   "with the targets and the least coverage as dashed lines) into --out.")
     p.add_argument("--scene", default="sphere",
                    help=f"{'|'.join(SCENES)} or the path of an OBJ/PLY/STL mesh (default sphere)")
     p.add_argument("--out", required=True, help="output folder")
@@ -89,5 +90,5 @@ def run(args) -> int:
     for t, n in res["min_rings"].items():
         print(f"surface p95 <= {t} mm with coverage >= {settings.min_coverage:.0%}: "
               + (f"{n} rings" if n else "not reached in this sweep"))
-    print(f"{args.out}/sweep.csv, sweep.json, sweep.png ({res['time_s']:.0f} s)")
+    print(f"{args.out}/sweep.csv, sweep.json, sweep.png, sweep.svg ({res['time_s']:.0f} s)")
     return 0

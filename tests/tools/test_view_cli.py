@@ -113,5 +113,58 @@ def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
     assert main(["view", str(cloud), "--out", str(out), "--width", "80", "--height", "60", "--renderer", "software",
                  "--truth", str(scan.folder)]) == 0
     text = capsys.readouterr().out
-    mean = float(text.split("distance to truth: mean ")[1].split(" mm")[0])
-    assert mean < 1e-3  # points sampled on the truth: on it
+    obj = text.split("distance to truth, object (")[1]
+    n_obj = int(obj.split(" points")[0])
+    n_floor = int(text.split("; floor (")[1].split(" points")[0])
+    assert n_obj + n_floor == 2000 and n_obj > 1900  # the sphere rests on the floor: a few points touch it
+    assert float(obj.split("mean ")[1].split(" mm")[0]) < 1e-3  # points sampled on the truth: on it
+
+
+@pytest.fixture(scope="module")
+def tiny_recon(tmp_path_factory):
+    from ringscan.pipeline.reconstruct import reconstruct_scan
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+    root = tmp_path_factory.mktemp("tiny")
+    scan = simulate_tiny_scan(root / "scan")
+    reconstruct_scan(scan, root / "recon", device="cpu", progress=False)
+    return scan, root / "recon"
+
+
+def test_a_views_cloud_is_seen_from_its_own_camera(tiny_recon, tmp_path, capsys):
+    from ringscan.pipeline.formats.ply import read_ply
+
+    scan, recon = tiny_recon
+    out = tmp_path / "own.png"
+    cam = scan.rig.camera
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--width", str(cam.width),
+                 "--renderer", "software", "--point-size", "1"]) == 0
+    assert f"({cam.width}x{cam.height}, software renderer, seen from view_000's camera)" in capsys.readouterr().out
+    img = cv2.imread(str(out))
+    drawn = np.any(img != 255, axis=2)
+    ply = read_ply(recon / "view_000.ply")
+    seen = np.zeros_like(drawn)
+    seen[np.clip(np.rint(ply["v"]).astype(int), 0, cam.height - 1),
+         np.clip(np.rint(ply["u"]).astype(int), 0, cam.width - 1)] = True
+    near = cv2.dilate(seen.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    # The render lands on the pixels the camera saw the points at (lens distortion aside).
+    assert drawn.sum() > 0.5 * seen.sum()
+    assert (drawn & near).sum() / drawn.sum() > 0.95
+    # Shaded by the estimated normals: not one flat colour.
+    assert np.std(img[drawn].astype(float).mean(axis=1)) > 5
+
+
+def test_view_colours_a_cloud_by_a_field_with_a_colour_bar(tiny_recon, tmp_path, capsys):
+    _, recon = tiny_recon
+    out = tmp_path / "conf.png"
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--width", "160", "--camera", "orbit",
+                 "--height", "120", "--renderer", "software", "--color-by", "confidence"]) == 0
+    img = cv2.imread(str(out))
+    assert img.shape == (120, 160 + 110, 3)
+    obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
+    assert np.ptp(obj[:, 2] - obj[:, 0]) > 60  # several colours of the map
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "nope"])
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "error"]) == 2
+    assert "--color-by error needs --truth" in capsys.readouterr().err
