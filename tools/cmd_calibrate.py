@@ -265,6 +265,9 @@ def add_response_parser(calsub) -> None:
 
 
 def run_response(args) -> int:
+    for f in args.frames:
+        if not Path(f).exists() and any(c in f for c in "*?["):
+            raise FormatError(f, "no file matches this pattern (the shell passed it on as it was)")
     if len(args.levels) != len(args.frames):
         raise UsageError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
     d = read_json(args.rig)

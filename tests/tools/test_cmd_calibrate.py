@@ -67,3 +67,17 @@ def test_import_opencv_file(tmp_path, procam, capsys):
     assert main(["import", str(procam / "capture_1"), "--rig", str(procam / "calibration_result.xml"),
                  "--projector", "1024x768", "--out", str(scan)]) == 0
     assert (scan / "scan.json").is_file() and (scan / "capture_1" / "proj_u.png").is_file()
+
+
+def test_response_with_a_pattern_that_matched_nothing_says_so(tmp_path, capsys):
+    from ringscan.pipeline.formats.rig import default_rig, save_rig
+
+    rig = tmp_path / "rig.json"
+    save_rig(rig, default_rig())
+    before = rig.read_bytes()
+    pattern = str(tmp_path / "ramp" / "*.png")  # what the shell passes on when the glob matches nothing
+    rc = main(["calibrate", "response", pattern, "--levels", "0", "128", "255", "--rig", str(rig)])
+    assert rc == 1
+    assert capsys.readouterr().err.strip() == (f"ringscan calibrate response: error: {pattern}: no file matches this "
+                                               "pattern (the shell passed it on as it was)")
+    assert rig.read_bytes() == before
