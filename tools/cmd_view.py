@@ -8,7 +8,7 @@ from ringscan.pipeline.formats.atomic import check_output_file
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, own_camera, shade_cloud
 from ringscan.pipeline.preview.colour import colorize
-from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
+from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png, view_camera
 from ringscan.tools.cli import UsageError
 
 FLOOR_MM = 0.5
@@ -99,11 +99,11 @@ def run(args) -> int:
                      azimuth_deg=d.azimuth_deg if args.azimuth is None else args.azimuth,
                      elevation_deg=d.elevation_deg if args.elevation is None else args.elevation,
                      point_size=args.point_size, renderer=args.renderer)
-    camera = cam.scaled(s.width, s.height) if cam is not None else None
+    camera = cam.scaled(s.width, s.height) if cam is not None else view_camera(geoms, settings=s)
+    eye = -camera[1][:3, :3].T @ camera[1][:3, 3]
     for g in geoms:
         if not hasattr(g, "triangles"):
-            # Toward the camera where it is known; else outward from the cloud's centre.
-            shade_cloud(g, towards=cam.centre() if cam is not None else None)
+            shade_cloud(g, towards=eye)  # normals face the camera: lit where it looks
     bar = None
     g = geoms[0]
     if field == "error":
