@@ -6,9 +6,10 @@ fit), reports through these two helpers rather than tqdm directly, so that:
 
 - on a terminal (stderr is a TTY) the user sees tqdm bars (or an elapsed-time
   line for a single step);
-- elsewhere (a log file, CI, a pipe) no ``\\r`` frames are written: one plain
-  line per step goes to the ``ringscan.progress`` logger at INFO level (the
-  ``ringscan`` command shows it unless ``-q`` or ``--no-progress``).
+- elsewhere (a log file, CI, a pipe) no ``\\r`` frames are written: plain lines
+  go to the ``ringscan.progress`` logger at INFO level (the ``ringscan`` command
+  shows them unless ``-q`` or ``--no-progress``): a loop's first and last steps
+  and at most one line every ``LOG_INTERVAL_S`` between; a single step's start and end.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ log = logging.getLogger("ringscan.progress")
 
 REFRESH_S = 0.5
 """How often a single step's elapsed time is redrawn on a terminal."""
+LOG_INTERVAL_S = 5.0
+"""Off a terminal, the least time between two progress lines of one loop (its first
+and last steps are always logged), so that a log holds no more than a line every
+few seconds."""
 
 
 def on_terminal() -> bool:
@@ -42,6 +47,7 @@ class _LineBar:
         self.total = total if total is not None else (len(iterable) if hasattr(iterable, "__len__") else None)
         self.desc, self.unit, self.n, self.postfix = desc, unit, initial, ""
         self.t0 = time.perf_counter()
+        self.logged_at = None
 
     def __iter__(self) -> Iterator:
         for item in self.iterable:
@@ -56,6 +62,11 @@ class _LineBar:
 
     def update(self, n: int = 1) -> None:
         self.n += n
+        now = time.perf_counter()
+        last = self.total is not None and self.n >= self.total
+        if not last and self.logged_at is not None and now - self.logged_at < LOG_INTERVAL_S:
+            return
+        self.logged_at = now
         of = f"/{self.total}" if self.total is not None else ""
         extra = f" ({self.postfix})" if self.postfix else ""
         log.info("%s: %d%s %s(s), %.1f s%s", self.desc, self.n, of, self.unit, time.perf_counter() - self.t0, extra)
@@ -70,7 +81,7 @@ class _LineBar:
 def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str = "", unit: str = "it",
                  disable: bool = False, leave: bool = True, initial: int = 0):
     """A tqdm bar on a terminal; elsewhere an object with the same ``update``,
-    ``set_postfix_str``, ``close`` and iteration that logs one line per step.
+    ``set_postfix_str``, ``close`` and iteration that logs plain lines (first, last, and one every ``LOG_INTERVAL_S``).
 
     Args:
         iterable: what to iterate over (or None, and call ``update``).
