@@ -81,7 +81,8 @@ class _LineBar:
 def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str = "", unit: str = "it",
                  disable: bool = False, leave: bool = True, initial: int = 0):
     """A tqdm bar on a terminal; elsewhere an object with the same ``update``,
-    ``set_postfix_str``, ``close`` and iteration that logs plain lines (first, last, and one every ``LOG_INTERVAL_S``).
+    ``set_postfix_str``, ``close`` and iteration that logs plain lines (the first
+    and last steps, and one every ``LOG_INTERVAL_S`` between).
 
     Args:
         iterable: what to iterate over (or None, and call ``update``).
