@@ -25,7 +25,8 @@ def add_parser(sub):
                                    "path below --out, on worker processes (or a Ray cluster). Finished scans are "
                                    "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
     p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth")
-    p.add_argument("--out", required=True, help="output root: each scan's results go to the same relative path below it")
+    p.add_argument("--out", required=True,
+                   help="output root: each scan's results go to the same relative path below it")
     add_settings_options(p)
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "

@@ -30,7 +30,8 @@ def _ray():
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the Ray backend needs Ray: pip install ray (or '.[ray]' in ringscan's source tree)") from None
+        raise RuntimeError("the Ray backend needs Ray: pip install ray "
+                           "(or '.[ray]' in ringscan's source tree)") from None
     return ray
 
 

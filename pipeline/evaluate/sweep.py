@@ -382,7 +382,8 @@ def sweep_figure(runs: list[dict], *, title: str = "", targets_mm=(), min_covera
     c_med, c_p95, c_cov = "tab:blue", "tab:red", "tab:green"
 
     def series(axis, key, color, marker, label):
-        pts = [(x, r[key]) for r, x in zip(ring_rows, xs) if r.get(key) is not None and (key == "coverage" or r[key] > 0)]
+        pts = [(x, r[key]) for r, x in zip(ring_rows, xs)
+               if r.get(key) is not None and (key == "coverage" or r[key] > 0)]
         if pts:
             axis.plot(*zip(*pts), color=color, marker=marker, lw=2, label=label)
         for r in dense:

@@ -97,7 +97,8 @@ def simulate_scan(
     frames = {n: render_frame(patterns, n) for n in names}
     done: list[View] = []
     t0 = time.perf_counter()
-    bar = progress_bar(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame", disable=not progress)
+    bar = progress_bar(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame",
+                       disable=not progress)
     try:
         for vi, deg in enumerate(angles):
             vname = f"view_{vi:03d}"

@@ -107,7 +107,8 @@ def test_settings_file_errors_name_the_file(tmp_path, capsys, tiny_scan):
     s = tmp_path / "s.json"
     s.write_text(json.dumps({"min_confidnce": 0.5}))
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--settings", str(s)], capsys)
-    assert rc == 1 and err.startswith(f"ringscan reconstruct: error: {s}: min_confidnce: unknown setting of ReconstructSettings")
+    assert rc == 1
+    assert err.startswith(f"ringscan reconstruct: error: {s}: min_confidnce: unknown setting of ReconstructSettings")
     s.write_text('{"min_confidence": NaN}')
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--settings", str(s)], capsys)
     assert rc == 1 and "min_confidence must be a finite number" in err and str(s) in err
