@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import importlib
 import json
+
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_file
+from ringscan.pipeline.formats.settings import settings_json_schema
 
 # What each name describes: (the dataclass's module, its name, where the file is used).
 SCHEMAS = {
@@ -24,11 +28,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    import importlib
-
-    from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_file
-    from ringscan.pipeline.formats.settings import settings_json_schema
-
     module, name, _ = SCHEMAS[args.what]
     schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
               **settings_json_schema(getattr(importlib.import_module(module), name))}

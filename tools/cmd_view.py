@@ -4,8 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
+from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
 from ringscan.pipeline.formats.atomic import check_output_file
 from ringscan.pipeline.formats.progress import progress_step
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.fusion.workflow import load_truth_mesh
 from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, own_camera, shade_cloud
 from ringscan.pipeline.preview.colour import colorize
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png, view_camera
@@ -59,12 +64,6 @@ def add_parser(sub):
 
 def _truth_distances(args, g, cam):
     """Distance of each point of ``g`` to the truth, and a mask of the floor's points (or None)."""
-    import numpy as np
-
-    from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
-    from ringscan.pipeline.formats.scan import load_scan
-    from ringscan.pipeline.fusion.workflow import load_truth_mesh
-
     pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points, np.float64)
     if Path(args.truth).is_dir():
         scan = load_scan(args.truth, check_files=False)
@@ -76,8 +75,6 @@ def _truth_distances(args, g, cam):
 
 
 def run(args) -> int:
-    import numpy as np
-
     out = check_output_file(args.out, extensions=(".png",), what="picture (--out)")
     field = args.color_by or ("error" if args.truth else "none")
     if field == "error" and not args.truth:

@@ -33,7 +33,7 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
-from ringscan.pipeline.formats.meshes import open3d_lib
+from ringscan.pipeline.formats.meshes import open3d_lib, read_mesh
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, load_scan
@@ -245,8 +245,6 @@ def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh) -> dict:
         cloud_or_dir: a reconstruction folder (report.json + PLYs) or one PLY.
         truth_mesh: an ``o3d.geometry.TriangleMesh`` or a mesh file (PLY/OBJ/STL).
     """
-    from ringscan.pipeline.formats.meshes import read_mesh
-
     mesh = read_mesh(truth_mesh) if isinstance(truth_mesh, (str, os.PathLike)) else truth_mesh
     p = Path(cloud_or_dir)
     items = _recon_views(p) if p.is_dir() else [(p.stem, p)]
