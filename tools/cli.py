@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from ringscan.pipeline.formats.errors import RingscanError, show_path
@@ -165,6 +166,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE if not isinstance(e, RingscanError) and str(e).startswith("--") else EXIT_FAILED
     except RingscanError as e:
         print(f"ringscan {name}: error: {e}", file=sys.stderr)
+        return EXIT_FAILED
+    except BrokenPipeError:  # the reader went away (`ringscan schema settings | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_FAILED
     except OSError as e:  # the disk, not the input: full, read-only, no permission
         where = f"{show_path(e.filename)}: " if e.filename else ""

@@ -108,6 +108,19 @@ def test_exit_status_usage_error_is_2(tmp_path, capsys):
     assert not (tmp_path / "d").exists()
 
 
+def test_schema_prints_the_settings_files_json_schema(capsys, tmp_path):
+    import json
+
+    assert main(["schema", "settings"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    assert schema["properties"]["min_confidence"]["type"] == "number"
+    assert schema["properties"]["decode"]["$ref"] == "#/$defs/DecodeSettings"
+    assert main(["schema", "capture-settings", "--out", str(tmp_path / "c.json")]) == 0
+    cap = json.loads((tmp_path / "c.json").read_text())
+    assert cap["properties"]["retries"]["type"] == "integer"
+    assert cap["properties"]["retries"]["description"].startswith("Further attempts")
+
+
 def test_no_command_is_a_usage_error(capsys):
     assert main([]) == 2
     assert "usage: ringscan" in capsys.readouterr().err
