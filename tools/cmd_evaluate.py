@@ -8,6 +8,7 @@ from pathlib import Path
 from ringscan.pipeline.evaluate.metrics import evaluate_against_mesh, evaluate_recon
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file
 from ringscan.pipeline.formats.progress import progress_step
+from ringscan.pipeline.preview.plots import PLOT_FORMATS, error_histogram_figure, save_figure
 from ringscan.tools.cli import UsageError
 
 
@@ -25,6 +26,9 @@ def add_parser(sub):
                         "width; scan-folder truth only)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures to this JSON file")
     p.add_argument("--json", dest="report", help=argparse.SUPPRESS)  # the old spelling (calibrate says --report)
+    p.add_argument("--plot", default=None, metavar="PNG_OR_SVG",
+                   help="also draw the histogram of the point-to-surface distances (all points, each view, the "
+                        "median and p95) into this PNG or SVG file")
     return p
 
 
@@ -36,6 +40,8 @@ def run(args) -> int:
     r = args.coverage_radius
     if r is not None and not (r > 0 and r != float("inf")):
         raise UsageError(f"--coverage-radius: expected a finite number of mm > 0, got {r}")
+    if args.plot:
+        check_output_file(args.plot, extensions=PLOT_FORMATS, what="plot (--plot)")
     if args.report:
         out = check_output_file(args.report, what="JSON file (--report)")
         cloud = Path(args.cloud)
@@ -44,10 +50,11 @@ def run(args) -> int:
         check_no_overwrite([out], [*inputs, *truth_inputs])
     if Path(args.truth).is_dir():
         with progress_step("evaluating against the scan's truth", enabled=not args.no_progress):
-            res = evaluate_recon(args.cloud, args.truth, coverage_radius_mm=args.coverage_radius)
+            res, dists = evaluate_recon(args.cloud, args.truth, coverage_radius_mm=args.coverage_radius,
+                                        return_distances=True)
     else:
         with progress_step("evaluating against the truth mesh", enabled=not args.no_progress):
-            res = evaluate_against_mesh(args.cloud, args.truth)
+            res, dists = evaluate_against_mesh(args.cloud, args.truth, return_distances=True)
     print(f"{'view':<12}{'points':>9}{'median mm':>11}{'rms mm':>9}{'p95 mm':>9}{'>1mm %':>8}{'cover %':>9}{'object %':>9}")
     for name, v in res["views"].items():
         print(f"{name:<12}{v['points']:>9}{_fmt(v['median_mm']):>11}{_fmt(v['rms_mm']):>9}{_fmt(v['p95_mm']):>9}"
@@ -59,4 +66,7 @@ def run(args) -> int:
         print(f"left out {a['non_finite_points']} point(s) with a NaN or infinite coordinate")
     if args.report:
         atomic_write_json(args.report, res)
+    if args.plot:
+        save_figure(error_histogram_figure(dists, title=f"{Path(args.cloud).name}: distance to the truth"), args.plot)
+        print(f"wrote {args.plot}")
     return 0

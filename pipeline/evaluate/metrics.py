@@ -232,7 +232,7 @@ def _ply_points(ply_path: Path) -> np.ndarray:
     return np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64)
 
 
-def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh) -> dict:
+def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh, *, return_distances: bool = False):
     """Distances of a reconstruction's points to a truth mesh in the same frame.
 
     For a cloud and a mesh that share a frame (a fused cloud and its object, or a
@@ -244,12 +244,15 @@ def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh) -> dict:
     Args:
         cloud_or_dir: a reconstruction folder (report.json + PLYs) or one PLY.
         truth_mesh: an ``o3d.geometry.TriangleMesh`` or a mesh file (PLY/OBJ/STL).
+        return_distances: also return each view's point distances ({name: (N,) mm, NaN
+            for a non-finite point}).
     """
     mesh = read_mesh(truth_mesh) if isinstance(truth_mesh, (str, os.PathLike)) else truth_mesh
     p = Path(cloud_or_dir)
     items = _recon_views(p) if p.is_dir() else [(p.stem, p)]
     result = {"views": {}}
     all_d = []
+    dists = {}
     for name, ply_path in items:
         pts = _ply_points(ply_path)
         finite = np.all(np.isfinite(pts), axis=1)
@@ -257,15 +260,20 @@ def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh) -> dict:
         d[finite] = point_distances(mesh, pts[finite])
         result["views"][name] = {**distance_stats(d), "non_finite_points": int((~finite).sum()), "coverage": None}
         all_d.append(d)
+        dists[name] = d
     result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
     result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
     result["all"]["coverage_mean"] = None
-    return result
+    return (result, dists) if return_distances else result
 
 
 def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLike | Scan, *,
-                   coverage_radius_mm: float | None = None) -> dict:
-    """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY."""
+                   coverage_radius_mm: float | None = None, return_distances: bool = False):
+    """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY.
+
+    Returns the figures (dict), and with ``return_distances`` also each view's point
+    distances to its truth surface ({name: (N,) mm, NaN for a non-finite point}).
+    """
     check_coverage_radius(coverage_radius_mm)
     scan = truth_scan if isinstance(truth_scan, Scan) else load_scan(truth_scan, check_files=False)
     p = Path(cloud_or_dir)
@@ -280,16 +288,18 @@ def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLik
         items.append((scan.views[vi].name, p))
     result = {"views": {}}
     all_d = []
+    dists = {}
     for name, ply_path in items:
         pts = _ply_points(ply_path)
         result["views"][name], d = evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
                                                  return_distances=True)
         all_d.append(d)
+        dists[name] = d
     result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
     result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
     covs = [v["coverage"] for v in result["views"].values() if v.get("coverage") is not None]
     result["all"]["coverage_mean"] = float(np.mean(covs)) if covs else None
-    return result
+    return (result, dists) if return_distances else result
 
 
 def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: float = 0.5) -> np.ndarray:

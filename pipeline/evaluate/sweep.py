@@ -55,11 +55,12 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances, truth_points, truth_surface
-from ringscan.pipeline.formats.atomic import atomic_path, atomic_write_bytes, atomic_write_json
+from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.rig import ParallelLight, Rig, default_rig
 from ringscan.pipeline.geometry import projector_polar
+from ringscan.pipeline.preview.plots import figure_to_image, new_figure, save_figure
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene
@@ -72,7 +73,7 @@ OBJECT_HEIGHT_MM = 0.5
 CSV_FIELDS = ("codec", "bits", "pitch", "rings", "rings_on_object", "points", "surface_median_mm", "surface_p95_mm",
               "surface_rms_mm", "coverage", "point_median_mm", "point_p95_mm", "point_frac_over_1mm", "time_s")
 
-__all__ = ["SweepSettings", "run_sweep", "interpolate_surface", "plot_sweep", "sweep_figure", "figure_to_image", "min_rings", "SWEEP_FORMAT"]
+__all__ = ["SweepSettings", "run_sweep", "interpolate_surface", "plot_sweep", "sweep_figure", "min_rings", "SWEEP_FORMAT"]
 
 
 @dataclass(frozen=True)
@@ -352,8 +353,7 @@ def run_sweep(
     fig = sweep_figure(runs, title=f"{mesh.name}: surface error and coverage vs rings",
                        targets_mm=settings.targets_mm, min_coverage=settings.min_coverage)
     write_image(out / "sweep.png", figure_to_image(fig))
-    with atomic_path(out / "sweep.svg") as tmp:
-        fig.savefig(tmp, format="svg")
+    save_figure(fig, out / "sweep.svg")
     return result
 
 
@@ -366,13 +366,9 @@ def sweep_figure(runs: list[dict], *, title: str = "", targets_mm=(), min_covera
     axis) and coverage (right axis) against the number of rings (log scale), with
     the error targets and the least coverage as dashed lines. Dense runs are drawn
     at the right, labelled ``dense``."""
-    import matplotlib
+    from matplotlib.ticker import PercentFormatter
 
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
-
-    dpi = 100
-    fig = Figure(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi, layout="constrained")
+    fig = new_figure(size)
     ax = fig.add_subplot()
     cov_ax = ax.twinx()
     ring_rows = sorted((r for r in runs if r.get("rings")), key=lambda r: r["rings"])
@@ -412,7 +408,7 @@ def sweep_figure(runs: list[dict], *, title: str = "", targets_mm=(), min_covera
     ax.set_ylabel("surface error, mm (log scale)")
     cov_ax.set_ylabel("coverage", color=c_cov)
     cov_ax.set_ylim(0.0, 1.05)
-    cov_ax.yaxis.set_major_formatter(matplotlib.ticker.PercentFormatter(1.0))
+    cov_ax.yaxis.set_major_formatter(PercentFormatter(1.0))
     cov_ax.tick_params(axis="y", colors=c_cov)
     ax.grid(True, which="major", color="0.9")
     handles = [*ax.get_legend_handles_labels()[0], *cov_ax.get_legend_handles_labels()[0]]
@@ -421,16 +417,6 @@ def sweep_figure(runs: list[dict], *, title: str = "", targets_mm=(), min_covera
     if title:
         ax.set_title(title)
     return fig
-
-
-def figure_to_image(fig) -> np.ndarray:
-    """A matplotlib figure as a BGR uint8 image (OpenCV's order, for write_image)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    rgba = np.asarray(canvas.buffer_rgba())
-    return np.ascontiguousarray(rgba[:, :, 2::-1])
 
 
 def plot_sweep(runs: list[dict], *, title: str = "", targets_mm=(), min_coverage: float | None = None,

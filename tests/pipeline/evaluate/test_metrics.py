@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.evaluate.metrics import evaluate_against_mesh, evaluate_recon
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import read_ply, write_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
@@ -86,3 +86,22 @@ def test_clouds_that_do_not_match_the_truth_scan(recon, tmp_path):
     (tmp_path / "rec" / "report.json").write_text(json.dumps({"views": [{"name": "view_000"}]}))
     with pytest.raises(FormatError, match=r"report.json: views\[0\]: expected an object with a name and a ply"):
         evaluate_recon(tmp_path / "rec", scan)
+
+
+def test_evaluate_plot_and_a_truth_mesh(recon, tmp_path, capsys):
+    scan, rec = recon
+    plot = tmp_path / "err.svg"
+    assert main(["evaluate", str(rec), "--truth", str(scan.folder), "--report", str(tmp_path / "e.json"),
+                 "--plot", str(plot), "--no-progress"]) == 0
+    assert f"wrote {plot}" in capsys.readouterr().out
+    assert "<svg" in plot.read_text()
+    by_scan = json.loads((tmp_path / "e.json").read_text())
+    # The same cloud against the bare object mesh (same frame at table angle 0): distances only, no coverage.
+    res, dists = evaluate_against_mesh(rec, scan.folder / scan.extra["truth"]["mesh"], return_distances=True)
+    assert set(dists) == set(res["views"]) == set(by_scan["views"])
+    assert res["all"]["coverage_mean"] is None and res["all"]["points"] == by_scan["all"]["points"]
+    # the object mesh has no floor: floor points lie farther from it than from the scan's truth (object + plane)
+    assert res["all"]["median_mm"] >= by_scan["all"]["median_mm"]
+    assert main(["evaluate", str(rec), "--truth", str(scan.folder / scan.extra["truth"]["mesh"]),
+                 "--plot", str(tmp_path / "x.gif")]) == 1
+    assert "x.gif" in capsys.readouterr().err
