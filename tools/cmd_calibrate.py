@@ -26,7 +26,13 @@ from ringscan.hardware.capture.latency import LatencySettings, latency_frames, m
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
-from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
+from ringscan.pipeline.calibrate.camera import (
+    CameraSettings,
+    calibrate_camera,
+    calibration_report,
+    camera_block,
+    reprojection_residuals,
+)
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
 from ringscan.pipeline.calibrate.light import (
     LightSettings,
@@ -49,12 +55,13 @@ from ringscan.pipeline.calibrate.turntable import (
     calibrate_turntable,
     rig_with_turntable,
 )
-from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_file, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.progress import progress_bar, progress_step
 from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.preview.plots import PLOT_FORMATS, residuals_figure, save_figure
 from ringscan.tools.cli import UsageError, add_device_option
 
 
@@ -141,12 +148,17 @@ def add_camera_parser(calsub) -> None:
                    help="write {'camera': block, 'report': ...} here (the camera block of a rig file)")
     p.add_argument("--rig", default=None, metavar="RIG",
                    help="update this rig file's camera intrinsics in place (its extrinsics are kept)")
+    p.add_argument("--plot", default=None, metavar="PNG_OR_SVG",
+                   help="also draw the reprojection residuals (per view, and every corner's across the image) "
+                        "into this PNG or SVG file")
     p.set_defaults(_calibrate=run_camera)
 
 
 def run_camera(args) -> int:
     if not args.out and not args.rig:
         raise UsageError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
+    if args.plot:
+        check_output_file(args.plot, extensions=PLOT_FORMATS, what="plot (--plot)")
     board = board_from_args(args)
     bs = board_settings_from_args(args)
     views, size = [], None
@@ -165,6 +177,12 @@ def run_camera(args) -> int:
         cal = calibrate_camera(views, board=board, size=size, settings=camera_settings_from_args(args))
     print_calibration("camera", cal)
     block = camera_block(cal)
+    if args.plot:
+        fig = residuals_figure(dict(zip(cal.names, cal.per_view)), reprojection_residuals(views, board, cal),
+                               image_size=size, outliers=cal.outliers,
+                               title=f"camera: RMS reprojection error {cal.rms:.3f} px over {len(cal.names)} views")
+        save_figure(fig, args.plot)
+        print(f"wrote {args.plot}")
     if args.out:
         atomic_write_json(args.out, {"camera": block, "report": calibration_report(cal)})
         print(f"wrote {args.out}")

@@ -15,7 +15,8 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import atomic_path
 from ringscan.pipeline.formats.errors import FormatError
 
-__all__ = ["PLOT_FORMATS", "new_figure", "figure_to_image", "save_figure", "error_histogram_figure"]
+__all__ = ["PLOT_FORMATS", "new_figure", "figure_to_image", "save_figure", "error_histogram_figure",
+           "residuals_figure"]
 
 PLOT_FORMATS = (".png", ".svg")
 """File formats :func:`save_figure` writes (by extension)."""
@@ -94,4 +95,52 @@ def error_histogram_figure(distances: dict, *, title: str = "", max_mm: float | 
     ax.legend(fontsize=8, loc="upper right", ncols=2 if len(finite) > 8 else 1)
     if title:
         ax.set_title(title)
+    return fig
+
+
+def residuals_figure(per_view: dict, residuals: dict, *, image_size: tuple[int, int], outliers=(), title: str = "",
+                     size: tuple[int, int] = (1200, 560)):
+    """A calibration's reprojection residuals: each view's RMS as a bar (views that
+    spoil the fit in red), and every corner's residual as an arrow across the image
+    (scaled up, the scale in the key).
+
+    Args:
+        per_view: {view name: RMS px}.
+        residuals: {view name: (corners (N, 2) px, residuals (N, 2) px)}.
+        image_size: (width, height) of the camera image, px.
+        outliers: names of the views drawn in red.
+    """
+    fig = new_figure(size)
+    bars, field = fig.subplots(1, 2, width_ratios=[1, 1.4])
+    names = list(per_view)
+    vals = [float(per_view[n]) for n in names]
+    # one colour per view, the same for its bar and its arrows; the views that spoil the fit in red
+    colours = ["tab:red" if n in set(outliers) else f"C{k % 10}" for k, n in enumerate(names)]
+    colour_of = dict(zip(names, colours))
+    bars.barh(range(len(names)), vals, color=colours)
+    bars.set_yticks(range(len(names)), names, fontsize=8 if len(names) < 30 else 6)
+    bars.invert_yaxis()
+    if vals:
+        med = float(np.median(vals))
+        bars.axvline(med, color="k", ls="--", lw=1)
+        bars.annotate(f"median {med:.3f} px", (med, 1.0), xycoords=("data", "axes fraction"),
+                      textcoords="offset points", xytext=(3, -12), fontsize=8)
+    bars.set_xlabel("RMS reprojection error per view, px")
+    w, h = image_size
+    every = np.concatenate([r for _, r in residuals.values()]) if residuals else np.zeros((0, 2))
+    norm = np.linalg.norm(every, axis=1) if len(every) else np.zeros(0)
+    typical = float(np.quantile(norm, 0.95)) if len(norm) else 1.0
+    scale = 0.04 * max(w, h) / max(typical, 1e-9)  # the 95th percentile residual is drawn 4 % of the image long
+    for name, (c, r) in residuals.items():
+        colour = colour_of.get(name, "tab:gray")
+        field.quiver(c[:, 0], c[:, 1], r[:, 0] * scale, r[:, 1] * scale, angles="xy", scale_units="xy", scale=1,
+                     color=colour, width=0.002)
+    field.set_xlim(0, w)
+    field.set_ylim(h, 0)
+    field.set_aspect("equal")
+    field.set_xlabel("image x, px")
+    field.set_ylabel("image y, px")
+    field.set_title(f"residuals across the image, drawn x{scale:.0f} (p95 {typical:.3f} px)", fontsize=10)
+    if title:
+        fig.suptitle(title)
     return fig

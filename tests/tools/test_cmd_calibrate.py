@@ -81,3 +81,27 @@ def test_response_with_a_pattern_that_matched_nothing_says_so(tmp_path, capsys):
     assert capsys.readouterr().err.strip() == (f"ringscan calibrate response: error: {pattern}: no file matches this "
                                                "pattern (the shell passed it on as it was)")
     assert rig.read_bytes() == before
+
+
+def test_camera_plot_draws_the_residuals_of_the_fit(tmp_path, procam, capsys):
+    import cv2
+
+    from ringscan.pipeline.calibrate.board import Board, detect_board
+    from ringscan.pipeline.calibrate.camera import calibrate_camera, reprojection_residuals
+    from ringscan.pipeline.formats.images import read_image
+
+    images = [procam / f"capture_{i}" / "graycode_40.png" for i in (1, 2, 3)]  # the white frames
+    plot = tmp_path / "res.png"
+    assert main(["calibrate", "camera", *map(str, images), "--square", "75", "--out", str(tmp_path / "c.json"),
+                 "--plot", str(plot), "--no-progress"]) == 0
+    assert f"wrote {plot}" in capsys.readouterr().out
+    assert cv2.imread(str(plot)).shape == (560, 1200, 3)
+    # The residuals drawn are the fit's: their RMS per view is OpenCV's per-view error.
+    board = Board(9, 7, 75.0)
+    views = [detect_board(read_image(p), board=board, name=f"v{i}") for i, p in enumerate(images)]
+    cal = calibrate_camera(views, board=board, size=(1280, 1024))
+    res = reprojection_residuals(views, board, cal)
+    assert list(res) == cal.names
+    for name, e in zip(cal.names, cal.per_view):
+        corners, r = res[name]
+        assert len(corners) == 63 and np.sqrt(np.mean(np.sum(r ** 2, axis=1))) == pytest.approx(e, rel=1e-6)
