@@ -22,7 +22,8 @@ def add_parser(sub):
                                    "and write a scan folder (scan.json, <view>/<frame>.png) plus truth/ "
                                    "(object.ply, <view>_depth.tiff, <view>_lit.png).")
     p.add_argument("--scene", default="sphere",
-                   help=f"{'|'.join(SCENES)} or the path of an OBJ/PLY/STL mesh (default sphere)")
+                   help=f"{'|'.join(SCENES)}, plate:H (a flat plate at height H mm) or the path of an "
+                        f"OBJ/PLY/STL mesh (default sphere)")
     p.add_argument("--size-mm", type=float, default=80.0, help="longest side of the object in mm (default 80)")
     p.add_argument("--up", choices=("auto", "y", "z"), default="auto",
                    help="up axis of a mesh file (default auto: z for STL, y otherwise)")

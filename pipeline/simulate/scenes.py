@@ -8,6 +8,9 @@ longest side of its axis-aligned bounding box (before the cube's turn about z).
 Procedural scenes:
 
 - ``plane``: no object, only the reference plane (which the renderer always adds).
+- ``plate:H``: a flat plate whose top lies at z = H mm, 2 m square (it hides the
+  reference plane from every camera): the plane at a known height that ``ringscan
+  calibrate light`` needs (``plane`` is the height 0).
 - ``sphere``: a full sphere of diameter ``size_mm`` resting on the plane at the
   origin (radius 40 mm by default), an icosphere fine enough that its facets stay
   within ~2 micrometres of the true sphere.
@@ -370,6 +373,23 @@ def load_mesh_file(path: str | os.PathLike, *, size_mm: float = 80.0, up: str = 
     return SceneMesh(vertices=v, faces=f, name=path.stem)
 
 
+PLATE_HALF_MM = 1000.0
+"""Half the side of the ``plate:H`` scene: wider than any camera's view of it."""
+
+
+def _plate(key: str) -> SceneMesh:
+    """``plate:H``: a flat plate, top at z = H mm."""
+    try:
+        h = float(key.split(":", 1)[1])
+    except ValueError:
+        h = float("nan")
+    if not (math.isfinite(h) and h > 0):
+        raise ValueError(f"scene {key!r}: expected plate:H with a height H > 0 in mm (plane is the height 0)")
+    r = PLATE_HALF_MM
+    v = np.array([[-r, -r, h], [r, -r, h], [r, r, h], [-r, r, h]], float)
+    return SceneMesh(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3]], np.int32), name=f"plate_{h:g}mm")
+
+
 def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto") -> SceneMesh:
     """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``) or load a mesh file.
 
@@ -388,6 +408,8 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
     key = os.fspath(name_or_path)
     if key == "plane":
         return SceneMesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int32), name="plane")
+    if key.startswith("plate:"):
+        return _plate(key)
     if key == "sphere":
         return _sphere(size_mm)
     if key == "cube":
