@@ -55,7 +55,7 @@ def estimate_light_gamma(frames: np.ndarray, levels, *, camera_gamma: float = 1.
         raise CalibrationError(None, f"response: only {int(np.count_nonzero(ok))} pixels with contrast (need 100)")
     y = {}
     for x, f in zip(lv[mid], lin[mid]):
-        y[float(x)] = float(np.median(((f - black) / (white - black))[ok]))
+        y[float(x)] = float(np.median((f[ok] - black[ok]) / (white[ok] - black[ok])))  # only pixels with contrast
     xs = np.log(np.array(list(y)))
     ys = np.log(np.clip(np.array(list(y.values())), 1e-6, None))
     gamma = float(np.sum(xs * ys) / np.sum(xs * xs))
