@@ -57,6 +57,8 @@ def add_parser(sub):
                    help="a truth mesh, or a simulated scan folder (its object placed at the view's table angle, "
                         "with its floor): colour the first file by distance to it (mm); with a scan the floor "
                         "points are reported apart")
+    p.add_argument("--no-scale-bar", action="store_true",
+                   help="no scale bar (a round number of mm, true at the points' median depth, lower left)")
     p.add_argument("--max-error", type=float, default=None, metavar="MM",
                    help="top of the error colour scale (default: 99th percentile)")
     return p
@@ -130,8 +132,10 @@ def run(args) -> int:
         bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
                "label": {"height": "z (mm)", "rho": "rho (px)"}.get(field, field)}
     with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
-        res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar)
+        res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar,
+                            scale_bar=not args.no_scale_bar)
     w, h = res.png_size
     seen = f", seen from {cam.view}'s camera" if cam is not None else ""
-    print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer{seen})")
+    sb = f", scale bar {res.scale_bar_mm:g} mm" if res.scale_bar_mm else ""
+    print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer{seen}{sb})")
     return 0

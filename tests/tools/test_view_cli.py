@@ -65,7 +65,7 @@ def test_view_cloud_with_truth_colours(tmp_path, capsys):
     assert "distance to truth: mean" in text
     img = cv2.imread(str(out))
     assert img.shape == (120, 160 + 110, 3)  # colour bar appended
-    assert f"wrote {out} ({160 + 110}x120, software renderer)" in text  # the size of the PNG written
+    assert f"wrote {out} ({160 + 110}x120, software renderer, scale bar " in text  # the size of the PNG written
     obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
     assert np.ptp(obj[:, 2] - obj[:, 0]) > 100  # both ends of the colour map appear
 
@@ -138,7 +138,7 @@ def test_a_views_cloud_is_seen_from_its_own_camera(tiny_recon, tmp_path, capsys)
     out = tmp_path / "own.png"
     cam = scan.rig.camera
     assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--width", str(cam.width),
-                 "--renderer", "software", "--point-size", "1"]) == 0
+                 "--renderer", "software", "--point-size", "1", "--no-scale-bar"]) == 0
     assert f"({cam.width}x{cam.height}, software renderer, seen from view_000's camera)" in capsys.readouterr().out
     img = cv2.imread(str(out))
     drawn = np.any(img != 255, axis=2)
@@ -168,3 +168,23 @@ def test_view_colours_a_cloud_by_a_field_with_a_colour_bar(tiny_recon, tmp_path,
         main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "nope"])
     assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "error"]) == 2
     assert "--color-by error needs --truth" in capsys.readouterr().err
+
+
+def test_scale_bar_is_a_round_length_true_at_the_points_depth(tmp_path, capsys):
+    from ringscan.pipeline.preview.render import scale_bar_mm
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([[0.0, 0, 500], [10, 0, 500], [0, 10, 500]])))
+    K = np.array([[1000.0, 0, 479.5], [0, 1000.0, 359.5], [0, 0, 1]])
+    assert scale_bar_mm([pc], K, np.eye(4), 960) == (50.0, 100.0)  # 2 px/mm at 500 mm: 96 mm wanted -> 50 mm
+    mesh = _ellipsoid()  # 40 mm long
+    path = tmp_path / "e.stl"
+    write_mesh(path, mesh)
+    with_bar, without = tmp_path / "a.png", tmp_path / "b.png"
+    args = ["view", str(path), "--width", "320", "--height", "240", "--renderer", "software"]
+    assert main([*args, "--out", str(with_bar)]) == 0
+    mm = float(capsys.readouterr().out.split("scale bar ")[1].split(" mm")[0])
+    assert mm in (1, 2, 5, 10, 20, 50)
+    assert main([*args, "--out", str(without), "--no-scale-bar"]) == 0
+    a, b = cv2.imread(str(with_bar)), cv2.imread(str(without))
+    corner = (slice(240 - 30, 240), slice(0, 100))  # the lower left corner, clear of the object
+    assert (a[corner] < 128).any() and (b[corner] == 255).all()
