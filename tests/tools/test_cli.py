@@ -59,6 +59,17 @@ def test_every_command_is_listed_and_builds():
     assert built == set(COMMANDS)
 
 
+def test_every_command_module_is_in_the_listing():
+    # `ringscan --help` lists the commands from cli.COMMANDS without importing them: a new
+    # tools/cmd_<name>.py needs its line there.
+    import pkgutil
+
+    import ringscan.tools
+
+    modules = {m.name[4:] for m in pkgutil.iter_modules(ringscan.tools.__path__) if m.name.startswith("cmd_")}
+    assert modules == set(COMMANDS)
+
+
 def test_every_option_has_help():
     missing = []
     for path, sp in _walk(build_parser("*")):
