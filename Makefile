@@ -28,7 +28,7 @@ sysdeps:
 # A strict editable install (import-linter sees the sub-packages only in one) links
 # each module file: a module added or removed needs a reinstall, so the stamp also
 # depends on the list of module files (rewritten only when it changes).
-MODULES := $(sort $(wildcard kernels/*.py pipeline/*.py pipeline/*/*.py pipeline/*/*/*.py hardware/*.py hardware/*/*.py tools/*.py tools/*/*.py))
+MODULES := $(sort $(wildcard src/ringscan/*.py kernels/*.py pipeline/*.py pipeline/*/*.py pipeline/*/*/*.py hardware/*.py hardware/*/*.py tools/*.py tools/*/*.py))
 
 $(VENV)/.modules: FORCE
 	@mkdir -p $(VENV)

@@ -3,10 +3,12 @@ host allocator's policy for processes ringscan owns."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
 import sys
+import tempfile
 
 import warp as wp
 
@@ -22,8 +24,40 @@ def init_warp() -> None:
     verbose = os.environ.get("RINGSCAN_WARP_VERBOSE", "") != ""
     wp.config.quiet = not verbose
     wp.config.log_level = logging.INFO if verbose else logging.ERROR
-    wp.init()
+    with contextlib.nullcontext() if verbose else _native_stderr_to_log():
+        wp.init()
     _initialised = True
+
+
+@contextlib.contextmanager
+def _native_stderr_to_log():
+    """Send what Warp's native library prints on stderr during start-up to the log.
+
+    On a machine without CUDA, ``wp.init()`` prints "Warp CUDA warning: Could not
+    find or load the NVIDIA CUDA driver" with C ``fprintf`` (out of reach of
+    ``wp.config.quiet``): expected there, so it is logged at INFO (``ringscan -v``
+    shows it); anything else it prints is logged as a warning.
+    """
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no file descriptor 2 to borrow
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", "replace")
+    for line in text.splitlines():
+        if line.strip():
+            log.log(logging.INFO if "CUDA driver" in line else logging.WARNING, "%s", line.strip())
 
 
 def resolve_device(device: str | None) -> str:

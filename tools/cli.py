@@ -1,8 +1,14 @@
 """The ``ringscan`` command line.
 
 Each sub-command lives in its own module ``ringscan.tools.cmd_<name>`` with two
-functions: ``add_parser(subparsers)`` and ``run(args) -> int``. The device is chosen
-here, once, at the edge (``--device``), and handed down.
+functions: ``add_parser(subparsers)`` and ``run(args) -> int``. Only the module of
+the command given is imported (``ringscan --help`` loads no Warp, Open3D or SciPy).
+The device is chosen here, once, at the edge (``--device``), and handed down.
+
+The conventions every command follows (docs/cli.md) are set here: ``-v``/``-q``
+before or after the command, ``--no-progress`` everywhere, progress bars only on a
+terminal, and the exit status: 0 success, 1 a run that failed on its input or data,
+2 a usage error, 130 interrupted.
 """
 
 from __future__ import annotations
@@ -10,43 +16,89 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from ringscan.pipeline.formats.errors import RingscanError, show_path
 
 log = logging.getLogger("ringscan")
 
-# Sub-commands in the order `ringscan --help` lists them.
-COMMANDS = [
-    "demo",
-    "patterns",
-    "simulate",
-    "reconstruct",
-    "batch",
-    "evaluate",
-    "fuse",
-    "mesh",
-    "view",
-    "sweep",
-    "calibrate",
-    "import",
-    "capture",
-    "emulate",
-    "bench",
-]
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+# Sub-commands in the order `ringscan --help` lists them, with that listing's line
+# (the command's module is imported only when it is the one given).
+COMMANDS = {
+    "demo": "simulate, reconstruct, evaluate, fuse, mesh and preview a default scan",
+    "patterns": "write the projector frames of a pattern codec as PNG",
+    "simulate": "render a scan of a virtual object (with ground truth)",
+    "reconstruct": "reconstruct a scan folder into per-view point clouds",
+    "batch": "reconstruct every scan below a folder, in parallel (resumable)",
+    "evaluate": "point-to-surface error and coverage against ground truth",
+    "fuse": "fuse turntable views into one cloud and mesh it",
+    "mesh": "mesh a point cloud (Poisson or TSDF) into PLY, OBJ or STL",
+    "view": "render point clouds and meshes to a PNG (offscreen)",
+    "sweep": "error and coverage against the number of rings (the minimum ring count)",
+    "calibrate": "calibrate a real rig: camera, projector (procam), response, light, turntable",
+    "import": "real Gray-code captures -> a scan folder (decoded projector positions)",
+    "capture": "capture a scan from a turntable rig (or the emulated virtual rig)",
+    "emulate": "run an emulated rig (turntable, projector, camera) to try captures",
+    "bench": "time decode, sampling and triangulation against NumPy",
+    "schema": "print the JSON Schema of a settings file",
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+class UsageError(ValueError):
+    """Options that do not fit together or a value an option cannot take: exit status 2."""
+
+
+def _version() -> str:
+    from ringscan import __version__
+
+    return __version__
+
+
+def _add_common(p: argparse.ArgumentParser, level: int, *, leaf: bool) -> None:
+    """-v/-q on every parser (each level counts into its own attribute, summed in
+    main: argparse's sub-parsers would otherwise overwrite the level above);
+    --no-progress on every command that runs something."""
+    p.add_argument("-v", "--verbose", action="count", default=0, dest=f"_verbose_{level}",
+                   help="more log output (-vv: debug); allowed before or after the command")
+    p.add_argument("-q", "--quiet", action="count", default=0, dest=f"_quiet_{level}",
+                   help="only errors (no progress, no warnings); allowed before or after the command")
+    if leaf and "--no-progress" not in p._option_string_actions:
+        p.add_argument("--no-progress", action="store_true",
+                       help="no progress bars or progress lines (bars are drawn only on a terminal)")
+
+
+def _add_common_below(sub: argparse._SubParsersAction, level: int) -> None:
+    for sp in set(sub.choices.values()):
+        nested = [a for a in sp._actions if isinstance(a, argparse._SubParsersAction)]
+        _add_common(sp, level, leaf=not nested)
+        for n in nested:
+            _add_common_below(n, level + 1)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; ``command`` (or every command when "*") gets its full options,
+    the others only their line in the listing."""
     p = argparse.ArgumentParser(
         prog="ringscan",
         description="Structured-light 3D scanning with concentric ring patterns.",
+        epilog="Conventions shared by every command (verbosity, progress, exit status): docs/cli.md. "
+               "`ringscan COMMAND --help` for a command's options.",
     )
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    p.add_argument("--version", action="version", version=f"ringscan {_version()}",
+                   help="print the version and exit")
+    _add_common(p, 0, leaf=False)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name, line in COMMANDS.items():
+        if command not in (name, "*"):
+            sub.add_parser(name, help=line, add_help=False)
+            continue
         mod = importlib.import_module(f"ringscan.tools.cmd_{name}")
         sp = mod.add_parser(sub)
         sp.set_defaults(_run=mod.run)
+    _add_common_below(sub, 1)
     return p
 
 
@@ -56,36 +108,74 @@ def add_device_option(p: argparse.ArgumentParser) -> None:
                    help='Warp device: "cpu", "cuda", "cuda:N" (default: CUDA when present, else cpu)')
 
 
+def _command_of(argv: list[str]) -> str | None:
+    """The command named in argv: the first word that is not an option (the
+    top-level options take no value)."""
+    for a in argv:
+        if a == "--":
+            return None
+        if not a.startswith("-"):
+            return a
+    return None
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    verbose = sum(v for k, v in vars(args).items() if k.startswith("_verbose_"))
+    quiet = sum(v for k, v in vars(args).items() if k.startswith("_quiet_"))
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")  # a no-op where set up
+    logging.getLogger("ringscan").setLevel(level)
+    # Progress lines (off a terminal) are shown unless -q or --no-progress.
+    show = not quiet and not getattr(args, "no_progress", False)
+    logging.getLogger("ringscan.progress").setLevel(logging.INFO if show else logging.ERROR)
+    args.verbose, args.quiet = verbose, quiet
+    if quiet and hasattr(args, "no_progress"):
+        args.no_progress = True
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = _command_of(argv)
+    parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
-    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    _setup_logging(args)
     if not getattr(args, "_run", None):
-        parser.print_help()
-        return 2
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
     # This process is ringscan's: keep freed arrays' pages for the next view. Imported
     # here, not at the top, so that importing the capture command (real drivers) loads
     # no kernels and no Warp (tests/hardware/devices/test_camera.py).
     from ringscan.kernels.runtime import retain_freed_memory
 
     retain_freed_memory()
+    name = " ".join([args.command, *([args.what] if getattr(args, "what", None) else [])])
     try:
         return int(args._run(args) or 0)
-    except RingscanError as e:
-        print(f"ringscan {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    except UsageError as e:
+        print(f"ringscan {name}: error: {e} (see `ringscan {name} --help`)", file=sys.stderr)
+        return EXIT_USAGE
     except ValueError as e:
-        print(f"ringscan {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        # A library check of an option's value names the option first (`--projector 'display:': ...`):
+        # a usage error too. Everything else is the input or the data.
+        print(f"ringscan {name}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE if not isinstance(e, RingscanError) and str(e).startswith("--") else EXIT_FAILED
+    except RingscanError as e:
+        print(f"ringscan {name}: error: {e}", file=sys.stderr)
+        return EXIT_FAILED
+    except BrokenPipeError:  # the reader went away (`ringscan schema settings | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_FAILED
     except OSError as e:  # the disk, not the input: full, read-only, no permission
         where = f"{show_path(e.filename)}: " if e.filename else ""
-        print(f"ringscan {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
-        return 2
+        print(f"ringscan {name}: error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_FAILED
     except KeyboardInterrupt:
-        print(f"ringscan {args.command}: interrupted", file=sys.stderr)
-        return 130
+        print(f"ringscan {name}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Through the module's installed name, so that the UsageError the commands raise is this one.
+    from ringscan.tools.cli import main as _main
+
+    sys.exit(_main())

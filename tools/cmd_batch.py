@@ -4,8 +4,8 @@ Ray cluster (resumable; see docs/batch.md)."""
 from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
-from ringscan.tools.cli import add_device_option
-from ringscan.tools.cmd_reconstruct import add_constraint_option, load_settings, with_constraint
+from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cmd_reconstruct import add_constraint_option, add_settings_options, settings_from_args
 
 
 def _workers(text: str, *, option: str = "--workers") -> int:
@@ -14,7 +14,7 @@ def _workers(text: str, *, option: str = "--workers") -> int:
     except ValueError:
         n = -1
     if n < 0:
-        raise ValueError(f"{option} {text!r}: expected a whole number >= 0" + (" (0: in this process)"
+        raise UsageError(f"{option} {text!r}: expected a whole number >= 0" + (" (0: in this process)"
                                                                               if option == "--workers" else ""))
     return n
 
@@ -24,9 +24,10 @@ def add_parser(sub):
                        description="Reconstruct each folder with a scan.json below ROOT into the same relative "
                                    "path below --out, on worker processes (or a Ray cluster). Finished scans are "
                                    "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
-    p.add_argument("root")
-    p.add_argument("--out", required=True)
-    p.add_argument("--settings", default=None, help="JSON settings file")
+    p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth")
+    p.add_argument("--out", required=True,
+                   help="output root: each scan's results go to the same relative path below it")
+    add_settings_options(p)
     add_constraint_option(p)
     p.add_argument("--workers", default=None,
                    help="worker processes (default: one per CUDA device where there are GPUs, else one per CPU "
@@ -35,21 +36,21 @@ def add_parser(sub):
                    help="CPU threads of each local worker (default: the cores shared out among the workers); "
                         "results do not depend on it")
     p.add_argument("--backend", choices=("local", "ray"), default="local",
-                   help="local: a process pool on this machine; ray: a Ray cluster (pip install 'ringscan[ray]')")
+                   help="local: a process pool on this machine; ray: a Ray cluster (needs Ray: pip install ray)")
     p.add_argument("--address", default=None,
                    help="the Ray cluster's address (default: RAY_ADDRESS, else a local cluster)")
     p.add_argument("--fuse", action="store_true", help="also fuse each scan's views (<out>/<scan>/fused/)")
     p.add_argument("--mesh", action="store_true", help="also fuse and mesh each scan (<out>/<scan>/mesh/)")
     p.add_argument("--dry-run", action="store_true", help="list what would run and why; write nothing")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
     return p
 
 
 def run(args) -> int:
-    settings = with_constraint(load_settings(args.settings), args.constraint)
+    settings = settings_from_args(args)
     if args.address and args.backend != "ray":
-        raise ValueError("--address: only with --backend ray")
+        raise UsageError("--address: only with --backend ray")
     if args.dry_run:
         skipped: list = []
         plans = plan_batch(args.root, args.out, settings=settings, skipped=skipped)
@@ -66,7 +67,7 @@ def run(args) -> int:
     if args.cpu_threads is not None:
         cpu_threads = _workers(args.cpu_threads, option="--cpu-threads")
         if cpu_threads < 1:
-            raise ValueError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
+            raise UsageError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
     rep = batch_reconstruct(args.root, args.out, settings=settings, device=args.device, workers=workers,
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
                             cpu_threads=cpu_threads, progress=not args.no_progress)

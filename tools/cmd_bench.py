@@ -13,7 +13,8 @@ def add_parser(sub):
                                    "same stage, in one run, and prints the ratios and the memory-bandwidth floor.")
     p.add_argument("--scan", default=None, help="a gray-rings scan folder (default: simulate the default scan)")
     p.add_argument("--scene", default=None, help="scene for the default scan (default: Spot from ../shared, or sphere)")
-    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=5, metavar="N",
+                   help="timed runs of each stage; the shortest is reported (default 5)")
     p.add_argument("--device", action="append", default=None, help="device(s) to time (repeatable); default cpu (+cuda)")
     p.add_argument("--dense", action="store_true",
                    help="time the dense phase-rings path instead (decode, phase, smoothing, triangulation; "

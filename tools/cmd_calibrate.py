@@ -28,7 +28,13 @@ from ringscan.hardware.capture.latency import LatencySettings, latency_frames, m
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
-from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, calibration_report, camera_block
+from ringscan.pipeline.calibrate.camera import (
+    CameraSettings,
+    calibrate_camera,
+    calibration_report,
+    camera_block,
+    reprojection_residuals,
+)
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
 from ringscan.pipeline.calibrate.light import (
@@ -55,10 +61,12 @@ from ringscan.pipeline.calibrate.turntable import (
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.progress import progress_bar, progress_step
 from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.preview.plots import PLOT_FORMATS, residuals_figure, save_figure
 from ringscan.pipeline.reconstruct.scan import scan_inputs
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 MAX_SIZE = 65536
@@ -81,9 +89,9 @@ def parse_size(text: str, what: str) -> tuple[int, int]:
             raise ValueError
         w, h = int(a), int(b)
     except ValueError:
-        raise ValueError(f"{what}: expected WxH (e.g. 9x7), got {shown!r}") from None
+        raise UsageError(f"{what}: expected WxH (e.g. 9x7), got {shown!r}") from None
     if not (0 < w <= MAX_SIZE and 0 < h <= MAX_SIZE):
-        raise ValueError(f"{what}: sizes must be from 1 to {MAX_SIZE}, got {shown!r}")
+        raise UsageError(f"{what}: sizes must be from 1 to {MAX_SIZE}, got {shown!r}")
     return w, h
 
 
@@ -216,23 +224,29 @@ def add_camera_parser(calsub) -> None:
                    help="write {'camera': block, 'report': ...} here (the camera block of a rig file)")
     p.add_argument("--rig", default=None, metavar="RIG",
                    help="update this rig file's camera intrinsics in place (its extrinsics are kept)")
+    p.add_argument("--plot", default=None, metavar="PNG_OR_SVG",
+                   help="also draw the reprojection residuals (per view, and every corner's across the image) "
+                        "into this PNG or SVG file")
     add_force_option(p)
     p.set_defaults(_calibrate=run_camera)
 
 
 def run_camera(args) -> int:
     if not args.out and not args.rig:
-        raise ValueError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
+        raise UsageError("calibrate camera: give --out JSON or --rig RIG (where the camera block goes)")
+    if args.plot:
+        check_output_file(args.plot, extensions=PLOT_FORMATS, what="plot (--plot)")
     board = board_from_args(args)
     bs = board_settings_from_args(args)
-    check_outputs({"--out": args.out, "--rig": args.rig}, args.images)
+    check_outputs({"--out": args.out, "--rig": args.rig, "--plot": args.plot}, args.images)
     cs = camera_settings_from_args(args)
     rig_size = None
     if args.rig:
         r = parse_rig(read_json(args.rig), source=args.rig)
         rig_size = (r.camera.width, r.camera.height)
     views, size = [], None
-    for path in args.images:
+    for path in progress_bar(args.images, desc="detecting the board", unit="image", disable=args.no_progress,
+                             leave=False):
         img = read_image(path)
         s = (img.shape[1], img.shape[0])
         if size is None:
@@ -242,7 +256,8 @@ def run_camera(args) -> int:
         views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} images:")
     print_views(views)
-    cal = calibrate_camera(views, board=board, size=size, settings=cs)
+    with progress_step("fitting the camera", enabled=not args.no_progress):
+        cal = calibrate_camera(views, board=board, size=size, settings=cs)
     print_calibration("camera", cal)
     print_duplicates(cal.duplicates)
     problems = list(cal.problems)
@@ -251,6 +266,12 @@ def run_camera(args) -> int:
                         f"{rig_size[0]}x{rig_size[1]} (its pose and light were calibrated at that size)")
     refuse_unless_forced(args, problems, args.out or args.rig)
     block = camera_block(cal)
+    if args.plot:
+        fig = residuals_figure(dict(zip(cal.names, cal.per_view)), reprojection_residuals(views, board, cal),
+                               image_size=size, outliers=cal.outliers,
+                               title=f"camera: RMS reprojection error {cal.rms:.3f} px over {len(cal.names)} views")
+        save_figure(fig, args.plot)
+        print(f"wrote {args.plot}")
     if args.out:
         atomic_write_json(args.out, {"camera": block, "report": calibration_report(cal)})
         print(f"wrote {args.out}")
@@ -300,7 +321,8 @@ def run_procam(args) -> int:
     settings = ProcamSettings(window_px=args.window, camera=camera_settings_from_args(args),
                               board=board_settings_from_args(args))
     caps, size = [], None
-    for folder in args.captures:
+    for folder in progress_bar(args.captures, desc="decoding captures", unit="capture", disable=args.no_progress,
+                               leave=False):
         cap = read_capture(folder, projector=proj_size, layout=args.layout)
         s = (cap.white.shape[1], cap.white.shape[0])
         if size is None:
@@ -314,7 +336,8 @@ def run_procam(args) -> int:
                  (f", {len(cc.projector_view.ids)} corners in the projector" if cc.projector_view.found
                   else f", {cc.projector_view.reason}")))
         caps.append(cc)
-    res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
+    with progress_step("fitting the camera and projector", enabled=not args.no_progress):
+        res = calibrate_procam(caps, board=board, camera_size=size, projector_size=proj_size, settings=settings)
     print_duplicates(res.duplicates)
     print_calibration("camera", res.camera)
     print_calibration("projector", res.projector)
@@ -357,11 +380,14 @@ def add_response_parser(calsub) -> None:
 
 
 def run_response(args) -> int:
+    for f in args.frames:
+        if not Path(f).exists() and any(c in f for c in "*?["):
+            raise FormatError(f, "no file matches this pattern (the shell passed it on as it was)")
     if len(args.levels) != len(args.frames):
-        raise ValueError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
+        raise UsageError(f"--levels: {len(args.levels)} values for {len(args.frames)} frames")
     bad = [v for v in args.levels if not (np.isfinite(v) and 0 <= v <= 255)]
     if bad:
-        raise ValueError(f"--levels: values must be finite and in 0..255, got {', '.join(f'{v:g}' for v in bad)}")
+        raise UsageError(f"--levels: values must be finite and in 0..255, got {', '.join(f'{v:g}' for v in bad)}")
     d = read_json(args.rig)
     rig = parse_rig(d, source=args.rig)
     imgs = [read_image(f) for f in args.frames]
@@ -460,13 +486,14 @@ def add_light_parser(calsub) -> None:
 
 def run_light(args) -> int:
     if len(args.heights) != len(args.scans):
-        raise ValueError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
+        raise UsageError(f"--heights: {len(args.heights)} height(s) for {len(args.scans)} scan(s); give one per scan")
     rig = load_rig(args.rig) if args.rig else None
     scans = [load_scan(s) for s in args.scans]
     check_outputs({"--out": args.out, "--report": args.report},
                   [*(f for s in scans for f in scan_inputs(s)), *([args.rig] if args.rig else [])])
-    cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
-                                   settings=LightSettings(max_residual_px=args.max_residual))
+    with progress_step(f"fitting the light to {len(scans)} plane scan(s)", enabled=not args.no_progress):
+        cal = calibrate_parallel_light(scans, args.heights, rig=rig, device=args.device,
+                                       settings=LightSettings(max_residual_px=args.max_residual))
     li = cal.light
     print(f"parallel light: pitch {li.pixel_pitch_mm:.6f} mm/px, axis pixel ({li.axis_px[0]:.2f}, "
           f"{li.axis_px[1]:.2f}), tilt {cal.tilt_deg:.3f} deg from z, roll {cal.roll_deg:.3f} deg; "
@@ -514,7 +541,7 @@ def add_latency_parser(calsub) -> None:
 def run_latency(args) -> int:
     spec = parse_display_spec(args.projector)
     if spec is None:
-        raise ValueError(f"--projector: expected display, display:N or display:NAME, got {args.projector!r}")
+        raise UsageError(f"--projector: expected display, display:N or display:NAME, got {args.projector!r}")
     settings = LatencySettings(trials=args.trials, max_s=args.max_delay, rest_s=args.rest, step_s=args.step)
     disp = choose_display(list_displays(), spec)
     with DisplayProjector(latency_frames(disp.width, disp.height), display=disp.index) as projector, \
@@ -571,7 +598,7 @@ def run_turntable(args) -> int:
     settings = TurntableSettings(board=board_settings_from_args(args), prior_axis=prior)
     if len(args.inputs) == 1 and Path(args.inputs[0]).is_dir():
         if args.angles is not None:
-            raise ValueError("--angles: a scan's views carry their own table angles (turntable_deg)")
+            raise UsageError("--angles: a scan's views carry their own table angles (turntable_deg)")
         scan = load_scan(args.inputs[0])
         if rig is not None and (scan.rig.camera.width, scan.rig.camera.height) != (rig.camera.width,
                                                                                 rig.camera.height):
@@ -585,9 +612,9 @@ def run_turntable(args) -> int:
     else:
         if args.angles is None or len(args.angles) != len(args.inputs):
             n = 0 if args.angles is None else len(args.angles)
-            raise ValueError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
+            raise UsageError(f"--angles: {n} angle(s) for {len(args.inputs)} image(s); give one per image")
         if rig is None:
-            raise ValueError("--rig: images need the rig file of the calibrated camera")
+            raise UsageError("--rig: images need the rig file of the calibrated camera")
         views = []
         for path in args.inputs:
             img = read_image(path)
@@ -598,7 +625,8 @@ def run_turntable(args) -> int:
         angles = list(args.angles)
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} views:")
     print_views(views)
-    cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, volume=rig.volume, settings=settings)
+    with progress_step("fitting the turntable axis", enabled=not args.no_progress):
+        cal = calibrate_turntable(views, angles, board=board, camera=rig.camera, volume=rig.volume, settings=settings)
     tt = cal.turntable
     print(f"turntable axis: through ({', '.join(f'{x:.3f}' for x in tt.axis_point)}) along "
           f"({', '.join(f'{x:.5f}' for x in tt.axis_dir)}); RMS reprojection error {cal.rms_px:.3f} px "
@@ -632,5 +660,5 @@ def add_parser(sub):
 def run(args) -> int:
     fn = getattr(args, "_calibrate", None)
     if fn is None:
-        raise ValueError("calibrate: say what to calibrate (e.g. `ringscan calibrate camera --help`)")
+        raise UsageError("calibrate: say what to calibrate (e.g. `ringscan calibrate camera --help`)")
     return int(fn(args) or 0)

@@ -44,7 +44,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.formats.scan import load_scan
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +143,12 @@ def add_parser(sub):
                    help="emulated table moves this many times faster than a real one (default 100)")
     add_device_option(v)
 
-    s = p.add_argument_group("settings (defaults: --settings file, else the resumed capture's, else built in)")
-    s.add_argument("--settings", metavar="JSON", help="capture settings file (keys of CaptureSettings)")
+    s = p.add_argument_group("settings (defaults: --capture-settings file, else the resumed capture's, else built in)")
+    s.add_argument("--capture-settings", dest="settings", metavar="JSON",
+                   help="capture settings file (keys of CaptureSettings; --reconstruct-settings is the "
+                        "reconstruction's)")
+    # The old spelling, hidden: --settings is the reconstruction's settings in reconstruct and batch.
+    s.add_argument("--settings", dest="settings", help=argparse.SUPPRESS)
     s.add_argument("--turntable-settle", type=float, metavar="S", help="wait after a move, s (default 0.5; 0 virtual)")
     s.add_argument("--projector-settle", type=float, metavar="S", help="wait after a frame's ack, s (default 0.05; 0 virtual)")
     s.add_argument("--feed", type=float, metavar="DEG_PER_MIN", help="table speed, deg/min (default 600)")
@@ -175,25 +179,25 @@ def run(args) -> int:
         if args.poses is not None:
             return _run_session(args)
         if args.virtual_poses or args.trigger != "key":
-            raise ValueError("--trigger and --virtual-poses only apply with --poses")
+            raise UsageError("--trigger and --virtual-poses only apply with --poses")
         return _run(args)
 
 
 def _run_session(args) -> int:
     """``--poses N``: capture N poses (hardware.capture.session), reconstruct each live, fuse them into one mesh."""
     if args.poses < 1:
-        raise ValueError(f"--poses {args.poses}: expected 1 or more")
+        raise UsageError(f"--poses {args.poses}: expected 1 or more")
     if args.reconstruct or args.resume or args.table_at is not None:
-        raise ValueError("--poses reconstructs into --out/recon and resumes by itself: no --reconstruct, --resume "
+        raise UsageError("--poses reconstructs into --out/recon and resumes by itself: no --reconstruct, --resume "
                          "or --table-at")
     session = Path(args.out)
     if session.exists() and not session.is_dir():
         raise ValueError(f"{session}: exists and is not a folder (the session folder)")
     poses = args.virtual_poses.split(",") if args.virtual_poses else list(SESSION_POSES)[:args.poses]
     if args.virtual_poses and not args.virtual:
-        raise ValueError("--virtual-poses only applies with --virtual")
+        raise UsageError("--virtual-poses only applies with --virtual")
     if args.virtual and len(poses) < args.poses:
-        raise ValueError(f"--virtual-poses: {len(poses)} poses given for --poses {args.poses}")
+        raise UsageError(f"--virtual-poses: {len(poses)} poses given for --poses {args.poses}")
     scene = None
     if args.virtual:
         from ringscan.pipeline.simulate.scenes import make_scene, pose_scene
@@ -248,20 +252,20 @@ def _run(args) -> int:
     rig = load_rig(args.rig) if args.rig else None
     patterns = load_patterns(args.patterns) if args.patterns else None
     if not args.resume and (rig is None or patterns is None or args.views is None):
-        raise ValueError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
+        raise UsageError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
     if args.table_at is not None and not args.resume:
-        raise ValueError("--table-at only applies with --resume")
+        raise UsageError("--table-at only applies with --resume")
     if args.reconstruct_settings and not args.reconstruct:
-        raise ValueError("--reconstruct-settings only applies with --reconstruct")
+        raise UsageError("--reconstruct-settings only applies with --reconstruct")
     if args.allow_auto_exposure and args.exposure is None:
-        raise ValueError("--allow-auto-exposure only applies with --exposure")
+        raise UsageError("--allow-auto-exposure only applies with --exposure")
     settings = _settings(args, out)
     display = parse_display_spec(args.projector) if args.projector else None
     if display is not None and args.rig and args.projector_settle is None and read_rig_latency(args.rig) > 0:
         # the projector's measured latency (ringscan calibrate latency) is the wait after each frame
         settings = dataclasses.replace(settings, projector_settle_s=read_rig_latency(args.rig))
     if args.centre and display is None:
-        raise ValueError("--centre only applies with --projector display[:N]")
+        raise UsageError("--centre only applies with --projector display[:N]")
     live = None
     if args.reconstruct:
         from ringscan.pipeline.reconstruct.live import LiveReconstructor
@@ -290,7 +294,7 @@ def _run(args) -> int:
         if args.virtual:
 
             if args.turntable or args.projector or args.camera:
-                raise ValueError("--virtual replaces --turntable, --projector and --camera")
+                raise UsageError("--virtual replaces --turntable, --projector and --camera")
             emu = EmulatedRig(rig_v, patterns_v, args.virtual, flavor=args.flavor, time_scale=args.time_scale,
                               start_deg=table_deg, seed=args.seed, size_mm=args.size_mm, device=args.device)
             tt_port, pj_port = emu.turntable_port, emu.projector_port
@@ -300,7 +304,7 @@ def _run(args) -> int:
             if not args.turntable and n_views > 1:
                 missing.insert(0, "--turntable")
             if missing:
-                raise ValueError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
+                raise UsageError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
             tt_port, pj_port = args.turntable, args.projector
             camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain,
                                  allow_auto_exposure=args.allow_auto_exposure)

@@ -11,7 +11,7 @@ from ringscan.pipeline.fusion.mesh import MeshSettings
 from ringscan.pipeline.fusion.poses import PoseSettings
 from ringscan.pipeline.fusion.turntable import FuseSettings
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def add_parser(sub):
@@ -64,7 +64,7 @@ def parse_formats(text: str) -> tuple[str, ...]:
     fmts = tuple("." + f.strip().lower().lstrip(".") for f in text.split(",") if f.strip())
     bad = [f for f in fmts if f not in MESH_FORMATS]
     if not fmts or bad:
-        raise ValueError(f"--formats: expected some of ply, obj, stl, got {text!r}")
+        raise UsageError(f"--formats: expected some of ply, obj, stl, got {text!r}")
     return fmts
 
 
@@ -77,7 +77,7 @@ def parse_voxel(text: str) -> float:
     except ValueError:
         v = float("nan")
     if not (0 < v < float("inf")):
-        raise ValueError(f"--voxel: expected a finite number of mm > 0 (or 'none' to keep every point), got {text!r}")
+        raise UsageError(f"--voxel: expected a finite number of mm > 0 (or 'none' to keep every point), got {text!r}")
     return v
 
 
@@ -94,7 +94,7 @@ def run(args) -> int:
             try:
                 fkw["ground_clip_mm"] = float(args.ground_clip)
             except ValueError:
-                raise ValueError(f"--ground-clip: expected a number of mm or 'none', "
+                raise UsageError(f"--ground-clip: expected a number of mm or 'none', "
                                  f"got {args.ground_clip!r}") from None
     if args.no_refine:
         fkw["refine"] = False
@@ -146,6 +146,8 @@ def run(args) -> int:
     outs = rep["outputs"]
     files = [outs["cloud"], *outs["meshes"], *([outs["preview"]] if "preview" in outs else []), "fuse_report.json"]
     print(f"wrote {args.out}/: {', '.join(files)}")
+    if outs.get("removed"):
+        print(f"removed {', '.join(outs['removed'])}: left in {args.out}/ by an earlier run, not asked for this time")
     if args.watertight and not m["watertight"]:
         print("warning: the mesh is not watertight (see fuse_report.json mesh checks)")
         return 1

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ringscan.pipeline.calibrate.graycode import LAYOUTS
 from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, read_opencv_calibration
+from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.tools.cmd_calibrate import parse_size
 
@@ -46,8 +47,9 @@ def run(args) -> int:
     else:
         kw["rig"] = load_rig(rig_path)
     settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer)
-    scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
-                                  depth=tuple(args.depth) if args.depth else None, settings=settings, **kw)
+    with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
+        scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
+                                      depth=tuple(args.depth) if args.depth else None, settings=settings, **kw)
     for name, st in stats.items():
         print(f"  {name}: {st['decoded']} pixels decoded, {100 * st['subpixel_share']:.0f} % with sub-pixel "
               "projector positions")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_file
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, read_cloud, write_mesh
+from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.fusion.mesh import (
     MAX_COORDINATE_MM,
     MIN_MESH_POINTS,
@@ -61,7 +62,8 @@ def run(args) -> int:
     try:
         if not cloud.has_normals():
             orient_normals(cloud)
-        res = mesh_cloud(cloud, settings=settings)
+        with progress_step(f"{settings.method} meshing {len(cloud.points)} points", enabled=not args.no_progress):
+            res = mesh_cloud(cloud, settings=settings)
     except ValueError as e:
         raise FormatError(args.cloud, str(e)) from None
     if len(res.mesh.triangles) == 0:

@@ -15,12 +15,15 @@ these frames carries it and the phase decoder undoes only what is left.
 
 from __future__ import annotations
 
+import argparse
+
 from ringscan.hardware.devices.display import VIEWER_KEYS, DisplayProjector, run_viewer
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import CODEC_DEFAULTS, CODECS, PatternSpec, default_patterns, frame_names
 from ringscan.pipeline.formats.rig import load_rig
+from ringscan.tools.cli import UsageError
 
 
 def add_pattern_options(p, *, size: bool = True) -> None:
@@ -53,8 +56,10 @@ def add_pattern_options(p, *, size: bool = True) -> None:
                        help="projector width in px (default the rig's projector with --rig, else 1024)")
         g.add_argument("--height", type=int, default=None,
                        help="projector height in px (default the rig's projector with --rig, else 768)")
-        g.add_argument("--center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
-                       help="pattern centre in projector px (default the image centre, (W-1)/2, (H-1)/2)")
+        g.add_argument("--ring-centre", dest="center", type=float, nargs=2, default=None, metavar=("CU", "CV"),
+                       help="the rings' centre in projector px (default the image centre, (W-1)/2, (H-1)/2)")
+        # The old spelling, hidden: --centre is the display's centring flag (patterns --show, capture).
+        g.add_argument("--center", dest="center", type=float, nargs=2, help=argparse.SUPPRESS)
 
 
 def pattern_spec_from_args(args, width: int, height: int, center=None, *,
@@ -89,19 +94,19 @@ def add_parser(sub):
 
 def run(args) -> int:
     if args.out is None and args.show is None:
-        raise ValueError("give --out DIR (write the frames), --show [DISPLAY] (show them), or both")
+        raise UsageError("give --out DIR (write the frames), --show [DISPLAY] (show them), or both")
     if args.centre and args.show is None:
-        raise ValueError("--centre only applies with --show")
+        raise UsageError("--centre only applies with --show")
     width, height, pre = args.width, args.height, None
     if args.rig is not None:
         if args.precompensate is not None:
-            raise ValueError("give --rig (its light's gamma) or --precompensate GAMMA, not both")
+            raise UsageError("give --rig (its light's gamma) or --precompensate GAMMA, not both")
         li = load_rig(args.rig).light
         pre = float(li.gamma)
         lw, lh = int(getattr(li, "width", 0)), int(getattr(li, "height", 0))
         if lw:
             if (width or lw, height or lh) != (lw, lh):
-                raise ValueError(f"--width/--height {width or lw}x{height or lh} differ from the projector of "
+                raise UsageError(f"--width/--height {width or lw}x{height or lh} differ from the projector of "
                                  f"{args.rig} ({lw}x{lh})")
             width, height = lw, lh
     spec = pattern_spec_from_args(args, width or 1024, height or 768, args.center, precompensated_gamma=pre)

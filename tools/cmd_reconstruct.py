@@ -9,10 +9,10 @@ from dataclasses import replace
 from ringscan.kernels.triangulation import CONSTRAINTS
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.settings import check_finite_settings, settings_from_dict
+from ringscan.pipeline.formats.settings import apply_setting, check_finite_settings, settings_from_dict
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def add_parser(sub):
@@ -22,7 +22,7 @@ def add_parser(sub):
     p.add_argument("scan", help="scan folder (with scan.json)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--views", default=None, help="comma-separated view names (default: all)")
-    p.add_argument("--settings", default=None, help="JSON file of settings (see settings.json of a run)")
+    add_settings_options(p)
     p.add_argument("--resume", action="store_true",
                    help="keep views already done in --out (same inputs, same settings, files whole); "
                         "redo the others and say why")
@@ -33,12 +33,12 @@ def add_parser(sub):
 
 
 def add_constraint_option(p) -> None:
-    """``--constraint``: which projector coordinates place a point (overrides the settings file)."""
+    """``--constraint``: which projector coordinates place a point (over the settings file and --set)."""
     p.add_argument("--constraint", choices=CONSTRAINTS, default=None,
                    help="which projector coordinates place each point: both (the ring and the polar angle, "
                         "weighted by their predicted errors), rings (the paper's ring surfaces alone), angle "
                         "(the angle alone, for comparison), auto (both where the codec decodes an angle, else "
-                        "rings; the default)")
+                        "rings; the default); over the settings file's triangulate.constraint")
 
 
 def with_constraint(settings: ReconstructSettings, constraint: str | None) -> ReconstructSettings:
@@ -48,26 +48,66 @@ def with_constraint(settings: ReconstructSettings, constraint: str | None) -> Re
     return replace(settings, triangulate=replace(settings.triangulate, constraint=constraint))
 
 
-def load_settings(path) -> ReconstructSettings:
-    """The settings of a JSON file (a run's settings.json), or the defaults.
+def add_settings_options(p, *, file_option: str = "--settings") -> None:
+    """The reconstruction settings options of reconstruct and batch: a file, then
+    --set for any setting and --min-confidence (the most used)."""
+    p.add_argument(file_option, dest="settings", default=None, metavar="JSON",
+                   help="reconstruction settings file: any subset of a run's settings.json (default: built in)")
+    p.add_argument("--set", dest="set_settings", action="append", default=[], metavar="KEY=VALUE",
+                   help="one reconstruction setting, over the file's: KEY is its path in settings.json "
+                        "(min_confidence, decode.min_contrast, triangulate.sector_margin, ...), VALUE JSON; "
+                        "repeatable (docs/reconstruction.md)")
+    p.add_argument("--min-confidence", type=float, default=None, metavar="C",
+                   help=f"points whose confidence is below C (0..1) are not written; counted as low_confidence in "
+                        f"report.json's dropped (default {ReconstructSettings.min_confidence}: all written)")
+
+
+def load_settings(path, *, sets=(), min_confidence: float | None = None) -> ReconstructSettings:
+    """The settings of a JSON file (a run's settings.json) or the defaults, with
+    ``--set KEY=VALUE`` assignments and ``--min-confidence`` applied over them.
 
     Raises:
-        FormatError: naming the file: unreadable, an unknown setting, a NaN or infinite number.
+        FormatError: naming the file: unreadable, an unknown setting, a value of the wrong type, a NaN or
+            infinite number.
+        UsageError: the same found in a --set or --min-confidence.
     """
-    if not path:
-        return ReconstructSettings()
-    d = read_json(path)
+    d = read_json(path) if path else {}
+    if not isinstance(d, dict):
+        raise FormatError(path, f"expected an object of settings, got {type(d).__name__}")
+    try:
+        settings_from_dict(ReconstructSettings, d)  # the file on its own first: its errors name it
+    except (TypeError, ValueError) as e:
+        raise FormatError(path, str(e)) from None
+    try:
+        for a in sets:
+            apply_setting(d, a)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if min_confidence is not None:
+        d["min_confidence"] = min_confidence
     try:
         s = settings_from_dict(ReconstructSettings, d)
         check_finite_settings(s)
     except (TypeError, ValueError) as e:
-        raise FormatError(path, str(e)) from None
+        if path and not sets and min_confidence is None:
+            raise FormatError(path, str(e)) from None
+        raise UsageError(f"{'--set' if sets else '--min-confidence'}: {e}") from None
+    if not 0 <= s.min_confidence <= 1:
+        why = f"expected a confidence in 0..1, got {s.min_confidence}"
+        if min_confidence is not None or any(a.split("=")[0].strip() == "min_confidence" for a in sets):
+            raise UsageError(f"--min-confidence: {why}")
+        raise FormatError(path, f"min_confidence: {why}")
     return s
 
 
+def settings_from_args(args) -> ReconstructSettings:
+    """The settings of reconstruct's and batch's options: the file, --set, --min-confidence, then --constraint."""
+    settings = load_settings(args.settings, sets=args.set_settings, min_confidence=args.min_confidence)
+    return with_constraint(settings, getattr(args, "constraint", None))
+
+
 def run(args) -> int:
-    settings = with_constraint(load_settings(args.settings), args.constraint)
-    rep = reconstruct_scan(args.scan, args.out, settings=settings, device=args.device,
+    rep = reconstruct_scan(args.scan, args.out, settings=settings_from_args(args), device=args.device,
                            views=args.views.split(",") if args.views else None, resume=args.resume,
                            progress=not args.no_progress)
     tot = rep["totals"]

@@ -13,7 +13,7 @@ from ringscan.pipeline.simulate.opencv_graycode import graycode_outputs, render_
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.scenes import SCENES, parse_point
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 from ringscan.tools.cmd_patterns import add_pattern_options, pattern_spec_from_args
 
 
@@ -23,7 +23,8 @@ def add_parser(sub):
                                    "and write a scan folder (scan.json, <view>/<frame>.png) plus truth/ "
                                    "(object.ply, <view>_depth.tiff, <view>_lit.png).")
     p.add_argument("--scene", default="sphere",
-                   help=f"{'|'.join(SCENES)} or the path of an OBJ/PLY/STL mesh (default sphere)")
+                   help=f"{'|'.join(SCENES)}, plate:H (a flat plate at height H mm) or the path of an "
+                        f"OBJ/PLY/STL mesh (default sphere)")
     p.add_argument("--size-mm", type=float, default=80.0, help="longest side of the object in mm (default 80)")
     p.add_argument("--up", choices=("auto", "y", "z"), default="auto",
                    help="up axis of a mesh file (default auto: z for STL, y otherwise)")
@@ -79,7 +80,7 @@ def build_rig(args):
     """The rig of the command line: --rig, or the built-in one with --light/--gamma."""
     if args.rig:
         if args.light:
-            raise ValueError("--light applies to the built-in rig only (the rig file sets its light)")
+            raise UsageError("--light applies to the built-in rig only (the rig file sets its light)")
         rig = load_rig(args.rig)
         if args.gamma is not None:
             rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, gamma=_gamma(args.gamma)))
@@ -129,7 +130,7 @@ def _run_graycode(args, out: Path, rig, place) -> int:
 
 def _gamma(g: float) -> float:
     if not g > 0:
-        raise ValueError(f"--gamma: must be > 0, got {g}")
+        raise UsageError(f"--gamma: must be > 0, got {g}")
     return float(g)
 
 

@@ -7,7 +7,7 @@ from ringscan.pipeline.formats.atomic import check_output_folder
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.simulate.scenes import SCENES
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import UsageError, add_device_option
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -20,14 +20,14 @@ def _int_list(text: str) -> tuple[int, ...]:
             return tuple(range(a, b + 1))
         return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise ValueError(f"--bits: expected a range like 3:8 or a list like 3,5,7, got {text!r}") from None
+        raise UsageError(f"--bits: expected a range like 3:8 or a list like 3,5,7, got {text!r}") from None
 
 
 def _float_list(text: str) -> tuple[float, ...]:
     try:
         return tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise ValueError(f"--targets: expected numbers like 0.5,0.1, got {text!r}") from None
+        raise UsageError(f"--targets: expected numbers like 0.5,0.1, got {text!r}") from None
 
 
 def add_parser(sub):
@@ -37,7 +37,8 @@ def add_parser(sub):
                        description="Simulate the scene on the virtual rig with gray-rings patterns of 2**bits - 1 "
                                    "rings over one annulus (and a dense phase-rings run), reconstruct each, "
                                    "interpolate the surface between the rings and write sweep.csv, sweep.json and "
-                                   "sweep.png (surface error and coverage against the number of rings) into --out.")
+                                   "sweep.png and sweep.svg (surface error and coverage against the number of rings, "
+                                   "with the targets and the least coverage as dashed lines) into --out.")
     p.add_argument("--scene", default="sphere",
                    help=f"{'|'.join(SCENES)} or the path of an OBJ/PLY/STL mesh (default sphere)")
     p.add_argument("--out", required=True, help="output folder")
@@ -89,5 +90,5 @@ def run(args) -> int:
     for t, n in res["min_rings"].items():
         print(f"surface p95 <= {t} mm with coverage >= {settings.min_coverage:.0%}: "
               + (f"{n} rings" if n else "not reached in this sweep"))
-    print(f"{args.out}/sweep.csv, sweep.json, sweep.png ({res['time_s']:.0f} s)")
+    print(f"{args.out}/sweep.csv, sweep.json, sweep.png, sweep.svg ({res['time_s']:.0f} s)")
     return 0

@@ -2,23 +2,39 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
 from ringscan.pipeline.evaluate.conditioning import ConditioningSettings
+from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
 from ringscan.pipeline.formats.atomic import check_output_file
-from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.meshes import read_mesh
+from ringscan.pipeline.formats.progress import progress_step
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.fusion.workflow import load_truth_mesh
+from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, own_camera, shade_cloud
 from ringscan.pipeline.preview.colour import colorize
-from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png
-from ringscan.tools.cli import add_device_option
+from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png, view_camera
+from ringscan.tools.cli import UsageError, add_device_option
+
+FLOOR_MM = 0.5
+"""--truth SCAN: points within this height of the reference plane are the floor, reported apart
+(the same split as evaluate's object coverage)."""
 
 
 def add_parser(sub):
     p = sub.add_parser("view", help="render point clouds and meshes to a PNG (offscreen)",
                        description="Renders each FILE (a mesh when it has faces, else a point cloud) into one "
                                    "picture with Open3D's offscreen renderer (software point splats when it "
-                                   "cannot start). With --truth the first file is coloured by its distance to "
-                                   "the truth mesh and a colour bar is added.")
+                                   "cannot start). Point clouds without normals get estimated ones, so they are "
+                                   "shaded. A single view's PLY from `reconstruct` is seen from the camera that "
+                                   "took it (its report.json holds the rig), so it looks like the camera's photo; "
+                                   "--azimuth/--elevation or --camera orbit frame everything from outside instead. "
+                                   "--color-by colours the first file by a field, with a colour bar; with --truth "
+                                   "it is coloured by its distance to the truth. --conditioning draws a rig's "
+                                   "conditioning map instead of FILEs.")
     p.add_argument("files", nargs="*", metavar="FILE", help="PLY/OBJ/STL mesh or point cloud files")
-    p.add_argument("--out", required=True, metavar="PNG", help="output PNG (SVG too with --conditioning)")
+    p.add_argument("--out", required=True, metavar="PNG", help="output PNG (or SVG with --conditioning)")
     c = p.add_argument_group("conditioning map (instead of FILEs)")
     c.add_argument("--conditioning", default=None, metavar="SCAN_OR_RIG",
                    help="per camera pixel, the predicted depth sigma of rings alone, the angle alone and both, "
@@ -35,18 +51,32 @@ def add_parser(sub):
     add_device_option(p)
     d = ViewSettings()
     p.add_argument("--width", type=int, default=d.width, help=f"image width (default {d.width})")
-    p.add_argument("--height", type=int, default=d.height, help=f"image height (default {d.height})")
-    p.add_argument("--azimuth", type=float, default=d.azimuth_deg,
-                   help=f"view direction about z, degrees (default {d.azimuth_deg})")
-    p.add_argument("--elevation", type=float, default=d.elevation_deg,
-                   help=f"view direction above the x-y plane, degrees (default {d.elevation_deg})")
+    p.add_argument("--height", type=int, default=None,
+                   help=f"image height (default {d.height}; with the view's own camera, its aspect ratio)")
+    p.add_argument("--camera", choices=("auto", "own", "orbit"), default="auto",
+                   help="own: the camera that took a view's PLY; orbit: --azimuth/--elevation around the "
+                        "objects; auto: own for a single view's PLY, else orbit (default auto)")
+    p.add_argument("--azimuth", type=float, default=None,
+                   help=f"orbit camera: view direction about z, degrees (default {d.azimuth_deg})")
+    p.add_argument("--elevation", type=float, default=None,
+                   help=f"orbit camera: view direction above the x-y plane, degrees (default {d.elevation_deg})")
     p.add_argument("--point-size", type=float, default=d.point_size, help=f"point size in px (default {d.point_size})")
     p.add_argument("--renderer", choices=("auto", "open3d", "software"), default="auto",
                    help="auto: Open3D, or software when Open3D cannot start (default auto)")
-    p.add_argument("--truth", default=None, metavar="MESH",
-                   help="colour the first file by distance to this mesh (mm), with a colour bar")
+    p.add_argument("--color-by", choices=("none", *CLOUD_FIELDS, "error"), default=None,
+                   help="colour the first file by this field, with a colour bar: height (z, mm), a PLY property "
+                        "(confidence, rho, ring, view), or error (distance to --truth, mm; the default with "
+                        "--truth); default none")
+    p.add_argument("--cmap", default="turbo", choices=("turbo", "viridis", "inferno", "jet"),
+                   help="colour map of --color-by (default turbo)")
+    p.add_argument("--truth", default=None, metavar="MESH_OR_SCAN",
+                   help="a truth mesh, or a simulated scan folder (its object placed at the view's table angle, "
+                        "with its floor): colour the first file by distance to it (mm); with a scan the floor "
+                        "points are reported apart")
+    p.add_argument("--no-scale-bar", action="store_true",
+                   help="no scale bar (a round number of mm, true at the points' median depth, lower left)")
     p.add_argument("--max-error", type=float, default=None, metavar="MM",
-                   help="top of the --truth colour scale (default: 99th percentile)")
+                   help="top of the error colour scale (default: 99th percentile)")
     return p
 
 
@@ -57,9 +87,12 @@ def run_conditioning(args) -> int:
     from ringscan.pipeline.evaluate.conditioning import compute_conditioning, plot_conditioning
     from ringscan.pipeline.formats.patterns import default_patterns
     from ringscan.pipeline.formats.rig import load_rig
-    from ringscan.pipeline.formats.scan import load_scan
 
     out = check_output_file(args.out, extensions=(".png", ".svg"), what="picture (--out)")
+    if args.step < 1:
+        raise UsageError(f"--step {args.step}: expected a whole number >= 1")
+    if not (args.sigma_rho > 0 and args.sigma_tan > 0):
+        raise UsageError("--sigma-rho, --sigma-tan: expected standard deviations > 0 (projector px)")
     src = args.conditioning
     if os.path.isdir(src):
         scan = load_scan(src, check_files=False)
@@ -70,41 +103,93 @@ def run_conditioning(args) -> int:
         spec = default_patterns("gray-rings", width=size[0], height=size[1], source=src)
     settings = ConditioningSettings(plane_z=args.plane_z, step=args.step, sigma_rho_px=args.sigma_rho,
                                     sigma_tan_px=args.sigma_tan)
-    cmap = compute_conditioning(rig, center=spec.center, rho_range=(spec.rho0, spec.rho_max),
-                                sector_bits=spec.sector_bits, settings=settings, device=args.device)
-    plot_conditioning(cmap, out, title=f"{src}: plane z = {cmap.plane_z:g} mm")
+    with progress_step("conditioning map", enabled=not args.no_progress):
+        cmap = compute_conditioning(rig, center=spec.center, rho_range=(spec.rho0, spec.rho_max),
+                                    sector_bits=spec.sector_bits, settings=settings, device=args.device)
+        plot_conditioning(cmap, out, title=f"{src}: plane z = {cmap.plane_z:g} mm")
     print(json.dumps(cmap.summary()))
     print(f"wrote {args.out}")
     return 0
 
 
+def _truth_distances(args, g, cam):
+    """Distance of each point of ``g`` to the truth, and a mask of the floor's points (or None)."""
+    pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points, np.float64)
+    if Path(args.truth).is_dir():
+        scan = load_scan(args.truth, check_files=False)
+        mesh = truth_surface(scan, cam.turntable_deg if cam is not None else 0.0)
+        zp = float(scan.extra["truth"].get("reference_plane_z", 0.0))
+        floor = np.abs(pts[:, 2] - zp) <= FLOOR_MM if scan.extra["truth"].get("reference_plane", True) else None
+        return point_distances(mesh, pts), floor
+    return point_distances(load_truth_mesh(args.truth), pts), None
+
+
 def run(args) -> int:
     if args.conditioning:
         if args.files:
-            raise FormatError(args.files[0], "give either FILEs or --conditioning, not both")
+            raise UsageError(f"give either FILEs ({args.files[0]}) or --conditioning, not both")
         return run_conditioning(args)
     if not args.files:
-        raise FormatError(None, "view: give FILEs to render, or --conditioning SCAN_OR_RIG")
-    import numpy as np
-    import open3d as o3d
-
+        raise UsageError("give FILEs to render, or --conditioning SCAN_OR_RIG")
     out = check_output_file(args.out, extensions=(".png",), what="picture (--out)")
+    field = args.color_by or ("error" if args.truth else "none")
+    if field == "error" and not args.truth:
+        raise UsageError("--color-by error needs --truth MESH_OR_SCAN")
+    orbit_asked = args.azimuth is not None or args.elevation is not None
+    if args.camera == "own" and orbit_asked:
+        raise UsageError("--azimuth/--elevation frame the orbit camera, not --camera own")
     geoms = [read_geometry(f) for f in args.files]
-    bar = None
-    if args.truth:
-        truth = read_mesh(args.truth)
-        g = geoms[0]
-        pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points, np.float32)
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(truth))
-        dist = scene.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float64)
-        vmax = args.max_error if args.max_error else max(float(np.quantile(dist, 0.99)), 1e-6)
-        geoms[0] = colorize(g, dist, vmin=0.0, vmax=vmax, cmap="turbo")
-        bar = {"vmin": 0.0, "vmax": vmax, "cmap": "turbo", "label": "dist (mm)"}
-        print(f"distance to truth: mean {dist.mean():.4f} mm, median {np.median(dist):.4f} mm, "
-              f"p95 {np.quantile(dist, 0.95):.4f} mm")
-    s = ViewSettings(width=args.width, height=args.height, azimuth_deg=args.azimuth, elevation_deg=args.elevation,
+    cam = None
+    if args.camera == "own" or (args.camera == "auto" and not orbit_asked and len(args.files) == 1):
+        cam = own_camera(args.files[0])
+        if cam is None and args.camera == "own":
+            raise UsageError(f"--camera own: {args.files[0]} is not a view's PLY with a report.json beside it")
+        if cam is not None and hasattr(geoms[0], "triangles"):
+            cam = None
+    d = ViewSettings()
+    height = args.height or (round(args.width * cam.height / cam.width) if cam is not None else d.height)
+    s = ViewSettings(width=args.width, height=height,
+                     azimuth_deg=d.azimuth_deg if args.azimuth is None else args.azimuth,
+                     elevation_deg=d.elevation_deg if args.elevation is None else args.elevation,
                      point_size=args.point_size, renderer=args.renderer)
-    res = render_to_png(geoms, out, settings=s, colorbar_spec=bar)
-    print(f"wrote {args.out} ({args.width}x{args.height}, {res.renderer} renderer)")
+    camera = cam.scaled(s.width, s.height) if cam is not None else view_camera(geoms, settings=s)
+    eye = -camera[1][:3, :3].T @ camera[1][:3, 3]
+    for g in geoms:
+        if not hasattr(g, "triangles"):
+            shade_cloud(g, towards=eye)  # normals face the camera: lit where it looks
+    bar = None
+    g = geoms[0]
+    if field == "error":
+        dist, floor = _truth_distances(args, g, cam)
+        obj = dist if floor is None else dist[~floor]
+        vmax = args.max_error if args.max_error else max(float(np.quantile(obj if len(obj) else dist, 0.99)), 1e-6)
+        geoms[0] = colorize(g, dist, vmin=0.0, vmax=vmax, cmap=args.cmap)
+        bar = {"vmin": 0.0, "vmax": vmax, "cmap": args.cmap, "label": "dist (mm)"}
+        if floor is None:
+            print(f"distance to truth: mean {dist.mean():.4f} mm, median {np.median(dist):.4f} mm, "
+                  f"p95 {np.quantile(dist, 0.95):.4f} mm")
+        else:
+            stats = (f"mean {obj.mean():.4f} mm, median {np.median(obj):.4f} mm, p95 {np.quantile(obj, 0.95):.4f} mm"
+                     if len(obj) else "no point")
+            fl = dist[floor]
+            print(f"distance to truth, object ({len(obj)} points): {stats}; floor ({int(floor.sum())} points within "
+                  f"{FLOOR_MM} mm of the reference plane): " + (f"mean {fl.mean():.4f} mm" if len(fl) else "none"))
+    elif field != "none":
+        vals = cloud_field(args.files[0], field, g) if not hasattr(g, "triangles") else None
+        if vals is None:
+            if field != "height":
+                raise UsageError(f"--color-by {field}: {args.files[0]} is a mesh; a mesh has only height")
+            vals = np.asarray(g.vertices)[:, 2].astype(np.float64)
+        fin = vals[np.isfinite(vals)]
+        lo, hi = (float(np.quantile(fin, 0.01)), float(np.quantile(fin, 0.99))) if len(fin) else (0.0, 1.0)
+        geoms[0] = colorize(g, vals, vmin=lo, vmax=hi, cmap=args.cmap)
+        bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
+               "label": {"height": "z (mm)", "rho": "rho (px)"}.get(field, field)}
+    with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
+        res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar,
+                            scale_bar=not args.no_scale_bar)
+    w, h = res.png_size
+    seen = f", seen from {cam.view}'s camera" if cam is not None else ""
+    sb = f", scale bar {res.scale_bar_mm:g} mm" if res.scale_bar_mm else ""
+    print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer{seen}{sb})")
     return 0

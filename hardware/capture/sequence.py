@@ -31,13 +31,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ringscan.hardware.errors import CameraError, CaptureError, DeviceError, ProjectorError, TurntableError
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
+from ringscan.pipeline.formats.progress import progress_bar
 from ringscan.pipeline.formats.rig import Rig, rig_to_dict
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
 
@@ -477,8 +477,8 @@ class _CaptureRun:
         """Capture every frame not yet on disk, view by view; capture.json says how the run ended."""
         self.write_state()
         done = sum(len([n for n in self.names if n in v.frames]) for v in self.views)
-        self.bar = tqdm(total=len(self.angles) * len(self.names), initial=done, unit="frame",
-                        desc=f"capture {self.out.name}", disable=not progress, dynamic_ncols=True)
+        self.bar = progress_bar(total=len(self.angles) * len(self.names), initial=done, unit="frame",
+                                desc=f"capture {self.out.name}", disable=not progress)
         log.info("capture: %s, %d views x %d frames, %d already captured", self.out, len(self.angles),
                  len(self.names), done)
         try:

@@ -48,7 +48,7 @@ __all__ = ["DEFAULT_REFRESH_HZ", "DisplayInfo", "DisplayProjector", "list_displa
 
 DEFAULT_REFRESH_HZ = 60.0
 """Refresh rate assumed where the display does not report one."""
-INSTALL_HINT = "pip install 'ringscan[display]'"
+INSTALL_HINT = "pip install pygame-ce (or '.[display]' in ringscan's source tree)"
 PUMP_INTERVAL_S = 0.05
 """Longest time the SDL thread leaves the window's events unhandled."""
 _WINDOWPOS_CENTERED_DISPLAY = 0x2FFF0000  # SDL_WINDOWPOS_CENTERED_DISPLAY(i) = this | i

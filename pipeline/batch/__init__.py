@@ -155,7 +155,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
 
 def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend, address, fuse, mesh, cpu_threads,
            progress) -> dict:
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     remove_stale_temporaries(out_root)
 
@@ -180,7 +180,7 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
               "workers": n_workers, "settings": settings_to_dict(settings), "not_searched": skipped, "scans": []}
     entries: dict[int, dict] = {}
     t0 = time.perf_counter()
-    bar = tqdm(total=len(scans), desc="batch", unit="scan", disable=not progress)
+    bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     computed = 0
     first = None
     try:

@@ -1,4 +1,4 @@
-"""The Ray backend (``ringscan batch --backend ray``; ``pip install ringscan[ray]``).
+"""The Ray backend (``ringscan batch --backend ray``; ``pip install '.[ray]'`` in the source tree).
 
 Each scan is one Ray task running :func:`.worker.process_scan`, the function the
 local pool runs, so the outputs are the same bytes. A task asks for one GPU where
@@ -32,7 +32,8 @@ def _ray():
     try:
         import ray
     except ImportError:
-        raise RingscanError("the Ray backend needs Ray: pip install 'ringscan[ray]'") from None
+        raise RingscanError("the Ray backend needs Ray: pip install ray "
+                            "(or '.[ray]' in ringscan's source tree)") from None
     return ray
 
 

@@ -27,8 +27,9 @@ import numpy as np
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
 
-__all__ = ["CameraSettings", "CameraCalibration", "calibrate_camera", "calibration_flags", "view_errors", "camera_block",
-           "calibration_report", "distinct_views", "intrinsics_problems", "MIN_VIEWS"]
+__all__ = ["CameraSettings", "CameraCalibration", "calibrate_camera", "calibration_flags", "view_errors",
+           "reprojection_residuals", "camera_block", "calibration_report", "distinct_views", "intrinsics_problems",
+           "MIN_VIEWS"]
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +136,26 @@ def view_errors(obj: list[np.ndarray], img: list[np.ndarray], K, dist, rvecs, tv
         proj, _ = cv2.projectPoints(o.astype(np.float64), r, t, K, dist)
         out.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - p.reshape(-1, 2)) ** 2, 1)))))
     return np.asarray(out)
+
+
+def reprojection_residuals(views: list[BoardView], board: Board, cal: CameraCalibration) -> dict:
+    """Each calibrated view's corners and their reprojection residuals.
+
+    Returns:
+        {view name: (corners (N, 2) px, residuals (N, 2) px: projected - detected)},
+        in ``cal.names`` order.
+    """
+    by_name = {v.name: v for v in views if v.found}
+    pts = board_points(board)
+    out = {}
+    for name, r, t in zip(cal.names, cal.rvecs, cal.tvecs):
+        v = by_name.get(name)
+        if v is None:
+            continue
+        proj, _ = cv2.projectPoints(pts[v.ids].reshape(-1, 1, 3).astype(np.float64), r, t, cal.K, cal.dist)
+        c = v.corners.reshape(-1, 2).astype(np.float64)
+        out[name] = (c, proj.reshape(-1, 2) - c)
+    return out
 
 
 def outlier_views(names: list[str], per_view: np.ndarray, settings: CameraSettings) -> list[str]:

@@ -64,7 +64,7 @@ def estimate_light_gamma(frames: np.ndarray, levels, *, camera_gamma: float = 1.
     y = {}
     for x in np.unique(lv[mid]):  # frames of one level are averaged, none is dropped
         f = lin[lv == x].mean(0)
-        y[float(x)] = float(np.median(((f - black) / (white - black))[ok]))
+        y[float(x)] = float(np.median((f[ok] - black[ok]) / (white[ok] - black[ok])))  # only pixels with contrast
     xs = np.log(np.array(list(y)))
     ys = np.log(np.clip(np.array(list(y.values())), 1e-6, None))
     gamma = float(np.sum(xs * ys) / np.sum(xs * xs))

@@ -35,7 +35,7 @@ from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header
-from ringscan.pipeline.formats.meshes import open3d_lib
+from ringscan.pipeline.formats.meshes import open3d_lib, read_mesh
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, check_truth, load_scan
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "truth_rho_at",
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at",
            "check_coverage_radius"]
 
 
@@ -220,24 +220,78 @@ def check_coverage_radius(r: float | None) -> None:
         raise ValueError(f"coverage radius: expected a finite number of mm > 0, got {r!r}")
 
 
+def _recon_views(p: Path) -> list[tuple[str, Path]]:
+    """(view name, PLY) of each view of a reconstruction folder's report.json."""
+    rpath = p / "report.json"
+    rep = read_json(rpath)
+    views = rep.get("views")
+    if not isinstance(views, list):
+        raise FormatError(rpath, "views: expected a list")
+    items = []
+    for i, v in enumerate(views):
+        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not isinstance(v.get("ply"), str):
+            raise FormatError(rpath, f"views[{i}]: expected an object with a name and a ply")
+        items.append((v["name"], p / v["ply"]))
+    return items
+
+
+def _ply_points(ply_path: Path) -> np.ndarray:
+    ply = read_ply(ply_path)
+    missing = [k for k in ("x", "y", "z") if k not in ply]
+    if missing:
+        raise FormatError(ply_path, f"vertex property {missing[0]!r} missing")
+    return np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64)
+
+
+def evaluate_against_mesh(cloud_or_dir: str | os.PathLike, truth_mesh, *, return_distances: bool = False):
+    """Distances of a reconstruction's points to a truth mesh in the same frame.
+
+    For a cloud and a mesh that share a frame (a fused cloud and its object, or a
+    real scan and a CAD model aligned to it): point-to-surface distances only, no
+    coverage (a bare mesh says nothing about which pixels saw it). A simulated scan
+    folder as the truth (:func:`evaluate_recon`) also gives the coverage and places
+    the object at each view's table angle.
+
+    Args:
+        cloud_or_dir: a reconstruction folder (report.json + PLYs) or one PLY.
+        truth_mesh: an ``o3d.geometry.TriangleMesh`` or a mesh file (PLY/OBJ/STL).
+        return_distances: also return each view's point distances ({name: (N,) mm, NaN
+            for a non-finite point}).
+    """
+    mesh = read_mesh(truth_mesh) if isinstance(truth_mesh, (str, os.PathLike)) else truth_mesh
+    p = Path(cloud_or_dir)
+    items = _recon_views(p) if p.is_dir() else [(p.stem, p)]
+    result = {"views": {}}
+    all_d = []
+    dists = {}
+    for name, ply_path in items:
+        pts = _ply_points(ply_path)
+        finite = np.all(np.isfinite(pts), axis=1)
+        d = np.full(len(pts), np.nan)
+        d[finite] = point_distances(mesh, pts[finite])
+        result["views"][name] = {**distance_stats(d), "non_finite_points": int((~finite).sum()), "coverage": None}
+        all_d.append(d)
+        dists[name] = d
+    result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
+    result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
+    result["all"]["coverage_mean"] = None
+    return (result, dists) if return_distances else result
+
+
 def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLike | Scan, *,
-                   coverage_radius_mm: float | None = None) -> dict:
-    """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY."""
+                   coverage_radius_mm: float | None = None, return_distances: bool = False):
+    """Evaluate a reconstruction folder (report.json + PLYs) or one view's PLY.
+
+    Returns the figures (dict), and with ``return_distances`` also each view's point
+    distances to its truth surface ({name: (N,) mm, NaN for a non-finite point}).
+    """
     check_coverage_radius(coverage_radius_mm)
     scan = truth_scan if isinstance(truth_scan, Scan) else load_scan(truth_scan, check_files=False)
     check_truth(scan)
     p = Path(cloud_or_dir)
     items = []
     if p.is_dir():
-        rpath = p / "report.json"
-        rep = read_json(rpath)
-        views = rep.get("views")
-        if not isinstance(views, list):
-            raise FormatError(rpath, "views: expected a list")
-        for i, v in enumerate(views):
-            if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not isinstance(v.get("ply"), str):
-                raise FormatError(rpath, f"views[{i}]: expected an object with a name and a ply")
-            items.append((v["name"], p / v["ply"]))
+        items = _recon_views(p)
     else:
         ply = read_ply(p)
         vi = int(ply["view"][0]) if "view" in ply and len(ply["view"]) else 0
@@ -246,20 +300,18 @@ def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLik
         items.append((scan.views[vi].name, p))
     result = {"views": {}}
     all_d = []
+    dists = {}
     for name, ply_path in items:
-        ply = read_ply(ply_path)
-        missing = [k for k in ("x", "y", "z") if k not in ply]
-        if missing:
-            raise FormatError(ply_path, f"vertex property {missing[0]!r} missing")
-        pts = np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64)
+        pts = _ply_points(ply_path)
         result["views"][name], d = evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
                                                  return_distances=True)
         all_d.append(d)
+        dists[name] = d
     result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
     result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
     covs = [v["coverage"] for v in result["views"].values() if v.get("coverage") is not None]
     result["all"]["coverage_mean"] = float(np.mean(covs)) if covs else None
-    return result
+    return (result, dists) if return_distances else result
 
 
 def truth_rho_at(scan: Scan, view_name: str, uv: np.ndarray, *, max_step_mm: float = 0.5) -> np.ndarray:

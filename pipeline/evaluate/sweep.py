@@ -6,8 +6,8 @@ phase-rings run), interpolate the surface between rings in the camera image
 (:func:`interpolate_surface`), and measure it against the truth: surface error,
 coverage, the ring points' own error, and ``min_rings``, the fewest rings that reach
 each target error with enough coverage. Writes ``sweep.json``, ``sweep.csv`` and
-``sweep.png``. The runs, the interpolation rule and every figure: docs/dense.md
-("ringscan sweep"); why: docs/design.md §1, §16.
+``sweep.png`` / ``sweep.svg`` (matplotlib). The runs, the interpolation rule and every
+figure: docs/dense.md ("ringscan sweep"); why: docs/design.md §1, §16.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.rig import ParallelLight, Rig, default_rig
 from ringscan.pipeline.geometry import projector_polar
+from ringscan.pipeline.preview.plots import figure_to_image, new_figure, save_figure
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene
@@ -43,7 +44,7 @@ OBJECT_HEIGHT_MM = 0.5
 CSV_FIELDS = ("codec", "bits", "pitch", "rings", "rings_on_object", "points", "surface_median_mm", "surface_p95_mm",
               "surface_rms_mm", "coverage", "point_median_mm", "point_p95_mm", "point_frac_over_1mm", "time_s")
 
-__all__ = ["SweepSettings", "run_sweep", "interpolate_surface", "plot_sweep", "min_rings", "SWEEP_FORMAT"]
+__all__ = ["SweepSettings", "run_sweep", "interpolate_surface", "plot_sweep", "sweep_figure", "min_rings", "SWEEP_FORMAT"]
 
 
 @dataclass(frozen=True)
@@ -264,7 +265,7 @@ def run_sweep(
     Returns:
         The sweep result (also written to ``sweep.json``).
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
 
     if not isinstance(settings, SweepSettings):
@@ -291,7 +292,7 @@ def run_sweep(
     runs = []
     t_all = time.perf_counter()
     try:
-        for spec in tqdm(specs, desc=f"sweep {mesh.name}", unit="run", disable=not progress, leave=False):
+        for spec in progress_bar(specs, desc=f"sweep {mesh.name}", unit="run", disable=not progress, leave=False):
             name = f"{spec.codec}_{spec.bits}bits_pitch{spec.pitch:g}"
             r = _run_one(scans_root / name, mesh, rig, spec, render, device, region, _band_mm(rig, spec.pitch),
                          settings)
@@ -320,102 +321,77 @@ def run_sweep(
     for r in runs:
         w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in CSV_FIELDS})
     atomic_write_bytes(out / "sweep.csv", buf.getvalue().encode())
-    write_image(out / "sweep.png", plot_sweep(runs, title=f"{mesh.name}: surface error and coverage vs rings"))
+    fig = sweep_figure(runs, title=f"{mesh.name}: surface error and coverage vs rings",
+                       targets_mm=settings.targets_mm, min_coverage=settings.min_coverage)
+    write_image(out / "sweep.png", figure_to_image(fig))
+    save_figure(fig, out / "sweep.svg")
     return result
 
 
 # ----------------------------------------------------------------------------- plot
 
 
-def _nice_log_ticks(lo: float, hi: float) -> list[float]:
-    ticks = []
-    for e in range(int(math.floor(math.log10(lo))), int(math.ceil(math.log10(hi))) + 1):
-        for m in (1, 2, 5):
-            v = m * 10.0 ** e
-            if lo <= v <= hi:
-                ticks.append(v)
-    return ticks
+def sweep_figure(runs: list[dict], *, title: str = "", targets_mm=(), min_coverage: float | None = None,
+                 size: tuple[int, int] = (960, 600)):
+    """The sweep's matplotlib figure: surface error (median, p95; log scale, left
+    axis) and coverage (right axis) against the number of rings (log scale), with
+    the error targets and the least coverage as dashed lines. Dense runs are drawn
+    at the right, labelled ``dense``."""
+    from matplotlib.ticker import PercentFormatter
 
-
-def plot_sweep(runs: list[dict], *, title: str = "", size: tuple[int, int] = (960, 600)) -> np.ndarray:
-    """Draw error (log scale, left axis) and coverage (right axis) against the
-    number of rings (log scale) as a BGR uint8 image. Dense runs are drawn at the
-    right edge, labelled ``dense``."""
-    import cv2
-
-    W, H = size
-    img = np.full((H, W, 3), 255, np.uint8)
-    L, R, T, B = 90, 90, 50, 70
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    black, grey = (0, 0, 0), (210, 210, 210)
-    c_med, c_p95, c_cov = (200, 90, 20), (30, 30, 200), (40, 150, 40)
+    fig = new_figure(size)
+    ax = fig.add_subplot()
+    cov_ax = ax.twinx()
     ring_rows = sorted((r for r in runs if r.get("rings")), key=lambda r: r["rings"])
     dense = [r for r in runs if not r.get("rings")]
-    xs = [math.log2(r["rings"]) for r in ring_rows]
-    x_lo = (min(xs) if xs else 0.0) - 0.5
-    x_hi = (max(xs) if xs else 1.0) + (1.5 if dense else 0.5)
-    errs = [v for r in runs for v in (r.get("surface_median_mm"), r.get("surface_p95_mm")) if v]
-    e_lo = min(errs) / 1.5 if errs else 1e-3
-    e_hi = max(errs) * 1.5 if errs else 1.0
-    e_lo, e_hi = max(e_lo, 1e-5), max(e_hi, e_lo * 10)
+    xs = [float(r["rings"]) for r in ring_rows]
+    xd = (max(xs) * 4.0 if xs else 1.0) if dense else None
+    c_med, c_p95, c_cov = "tab:blue", "tab:red", "tab:green"
 
-    def px(x):
-        return int(round(L + (x - x_lo) / (x_hi - x_lo) * (W - L - R)))
-
-    def py_err(e):
-        return int(round(H - B - (math.log10(e) - math.log10(e_lo)) / (math.log10(e_hi) - math.log10(e_lo)) * (H - T - B)))
-
-    def py_cov(c):
-        return int(round(H - B - c * (H - T - B)))
-
-    for e in _nice_log_ticks(e_lo, e_hi):
-        y = py_err(e)
-        cv2.line(img, (L, y), (W - R, y), grey, 1)
-        cv2.putText(img, f"{e:g}", (8, y + 5), font, 0.45, black, 1, cv2.LINE_AA)
-    for c in (0.0, 0.25, 0.5, 0.75, 1.0):
-        y = py_cov(c)
-        cv2.putText(img, f"{int(c * 100)}%", (W - R + 8, y + 5), font, 0.45, c_cov, 1, cv2.LINE_AA)
-    for r, x in zip(ring_rows, xs):
-        cv2.line(img, (px(x), T), (px(x), H - B), grey, 1)
-        cv2.putText(img, str(r["rings"]), (px(x) - 12, H - B + 20), font, 0.45, black, 1, cv2.LINE_AA)
-    if dense:
-        xd = x_hi - 0.5
-        cv2.line(img, (px(xd), T), (px(xd), H - B), grey, 1)
-        cv2.putText(img, "dense", (px(xd) - 22, H - B + 20), font, 0.45, black, 1, cv2.LINE_AA)
-    cv2.rectangle(img, (L, T), (W - R, H - B), black, 1)
-
-    def series(key, color, yfun, marker):
-        pts = [(px(x), yfun(r[key])) for r, x in zip(ring_rows, xs) if r.get(key) is not None and (key == "coverage" or r[key] > 0)]
-        for a, b in zip(pts[:-1], pts[1:]):
-            cv2.line(img, a, b, color, 2, cv2.LINE_AA)
-        for p in pts:
-            marker(p, color)
+    def series(axis, key, color, marker, label):
+        pts = [(x, r[key]) for r, x in zip(ring_rows, xs)
+               if r.get(key) is not None and (key == "coverage" or r[key] > 0)]
+        if pts:
+            axis.plot(*zip(*pts), color=color, marker=marker, lw=2, label=label)
         for r in dense:
             v = r.get(key)
             if v is not None and (key == "coverage" or v > 0):
-                marker((px(x_hi - 0.5), yfun(v)), color)
+                axis.plot([xd], [v], color=color, marker=marker, ls="none", ms=9, mfc="white", mew=2)
 
-    def dot(p, color):
-        cv2.circle(img, p, 5, color, -1, cv2.LINE_AA)
+    series(ax, "surface_p95_mm", c_p95, "s", "surface error p95")
+    series(ax, "surface_median_mm", c_med, "o", "surface error median")
+    series(cov_ax, "coverage", c_cov, "^", "coverage (right axis)")
+    for t in targets_mm:
+        ax.axhline(float(t), color="0.35", ls="--", lw=1)
+        ax.annotate(f"target {float(t):g} mm", (0.005, float(t)), xycoords=("axes fraction", "data"),
+                    textcoords="offset points", xytext=(2, 2), fontsize=8, color="0.3")
+    if min_coverage is not None:
+        cov_ax.axhline(float(min_coverage), color=c_cov, ls=":", lw=1)
+        cov_ax.annotate(f"least coverage {100 * float(min_coverage):g} %", (0.995, float(min_coverage)),
+                        xycoords=("axes fraction", "data"), textcoords="offset points", xytext=(-2, 2),
+                        ha="right", fontsize=8, color=c_cov)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ticks = [*xs, *([xd] if xd else [])]
+    ax.set_xticks(ticks, [*(f"{int(x)}" for x in xs), *(["dense"] if xd else [])])
+    ax.minorticks_off()
+    ax.set_xlabel("number of rings (log scale)")
+    ax.set_ylabel("surface error, mm (log scale)")
+    cov_ax.set_ylabel("coverage", color=c_cov)
+    cov_ax.set_ylim(0.0, 1.05)
+    cov_ax.yaxis.set_major_formatter(PercentFormatter(1.0))
+    cov_ax.tick_params(axis="y", colors=c_cov)
+    ax.grid(True, which="major", color="0.9")
+    handles = [*ax.get_legend_handles_labels()[0], *cov_ax.get_legend_handles_labels()[0]]
+    if handles:
+        ax.legend(handles=handles, loc="lower left", fontsize=9)
+    if title:
+        ax.set_title(title)
+    return fig
 
-    def square(p, color):
-        cv2.rectangle(img, (p[0] - 4, p[1] - 4), (p[0] + 4, p[1] + 4), color, -1)
 
-    def tri(p, color):
-        pts = np.array([[p[0], p[1] - 6], [p[0] - 5, p[1] + 4], [p[0] + 5, p[1] + 4]], np.int32)
-        cv2.fillPoly(img, [pts], color, cv2.LINE_AA)
-
-    series("surface_p95_mm", c_p95, py_err, square)
-    series("surface_median_mm", c_med, py_err, dot)
-    series("coverage", c_cov, py_cov, tri)
-    cv2.putText(img, title, (L, 20), font, 0.6, black, 1, cv2.LINE_AA)
-    cv2.putText(img, "number of rings (log scale)", (W // 2 - 110, H - 20), font, 0.5, black, 1, cv2.LINE_AA)
-    cv2.putText(img, "surface error, mm", (8, T - 20), font, 0.45, black, 1, cv2.LINE_AA)
-    cv2.putText(img, "coverage", (W - R + 8, T - 20), font, 0.45, c_cov, 1, cv2.LINE_AA)
-    ly = H - B - 60  # legend in the lower left, where the curves seldom go
-    for label, color, marker in (("surface error p95", c_p95, square), ("surface error median", c_med, dot),
-                                 ("coverage (right axis)", c_cov, tri)):
-        marker((L + 16, ly - 4), color)
-        cv2.putText(img, label, (L + 28, ly), font, 0.45, black, 1, cv2.LINE_AA)
-        ly += 20
-    return img
+def plot_sweep(runs: list[dict], *, title: str = "", targets_mm=(), min_coverage: float | None = None,
+               size: tuple[int, int] = (960, 600)) -> np.ndarray:
+    """:func:`sweep_figure` as a BGR uint8 image of ``size`` (width, height)."""
+    return figure_to_image(sweep_figure(runs, title=title, targets_mm=targets_mm, min_coverage=min_coverage,
+                                        size=size))

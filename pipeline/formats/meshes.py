@@ -49,6 +49,26 @@ def write_mesh(path: str | os.PathLike, mesh) -> None:
             ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_vertex_colors=mesh.has_vertex_colors(), **kw)
         if not ok:
             raise FormatError(path, "Open3D could not write the mesh")
+        if ext == ".obj":
+            _name_obj_object(tmp, path.stem)
+
+
+def _name_obj_object(obj: Path, name: str) -> None:
+    """Open3D names the OBJ's object after the file it writes, here the temporary
+    one: put the real name in that comment line, in place (padded to the same length)."""
+    with open(obj, "r+b") as fh:
+        head = fh.read(512)
+        key = b"# object name: "
+        i = head.find(key)
+        if i < 0:
+            return
+        j = head.find(b"\n", i)
+        if j < 0:
+            return
+        old = head[i + len(key):j]
+        new = name.encode("utf-8", "replace")[:len(old)]
+        fh.seek(i + len(key))
+        fh.write(new.ljust(len(old)))
 
 
 def _check_input(path: Path) -> None:

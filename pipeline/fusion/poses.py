@@ -296,14 +296,14 @@ def _register_pairs(o3d, prepared: list, names: list[str], s: PoseSettings, prog
         that pass the checks (T maps pose i onto pose j); per pose, why its first
         failed pair failed.
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     n = len(prepared)
     pairs = [(i, 0) for i in range(1, n)]
     if s.pose_graph and n >= 3:
         pairs += [(j, i) for i in range(1, n) for j in range(i + 1, n)]
     edges, failures = [], {}
-    for i, j in tqdm(pairs, desc="aligning poses", unit="pair", disable=not progress):
+    for i, j in progress_bar(pairs, desc="aligning poses", unit="pair", disable=not progress):
         fine, gfit, info = _register_pair(o3d, prepared[i], prepared[j], s, names[i])
         T = np.asarray(fine.transformation).copy()
         prmse = _plane_rmse(o3d, prepared[i][2], prepared[j][2], T, s.icp_fine_mm)

@@ -348,7 +348,7 @@ def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> l
 
 def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: bool):
     """Pose-graph refinement; returns per-view corrections (object frame) and the graph."""
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     reg = o3d.pipelines.registration
     n = len(downs)
@@ -359,7 +359,7 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
         graph.nodes.append(reg.PoseGraphNode(np.eye(4)))
     pairs = _pairs(order, s)
     used = 0
-    for i, j, uncertain in tqdm(pairs, desc="registering views", unit="pair", disable=not progress):
+    for i, j, uncertain in progress_bar(pairs, desc="registering views", unit="pair", disable=not progress):
         if len(downs[i].points) < 10 or len(downs[j].points) < 10:
             continue
         fine, info = _icp_pair(o3d, downs[i], downs[j], s)

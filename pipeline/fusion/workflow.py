@@ -20,6 +20,7 @@ from ringscan.pipeline.formats.atomic import (
 )
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, _ext, open3d_lib, read_mesh, write_cloud, write_mesh
+from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.scan import check_truth, load_scan
 from ringscan.pipeline.fusion.mesh import MeshResult, MeshSettings, check_mesh_settings, compare_to_truth
 from ringscan.pipeline.fusion.meshing import mesh_cloud, mesh_fused
@@ -31,7 +32,7 @@ from ringscan.pipeline.reconstruct.scan import scan_inputs
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FUSE_REPORT_FORMAT", "fuse_and_mesh"]
+__all__ = ["FUSE_REPORT_FORMAT", "fuse_and_mesh", "load_truth_mesh"]
 
 
 FUSE_REPORT_FORMAT = "ringscan.fuse/1"
@@ -47,6 +48,9 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     of ``formats`` (ply, obj, stl), ``preview.png`` (when ``preview``; see
     :mod:`ringscan.pipeline.preview`) and ``fuse_report.json`` (per-view residuals,
     mesh checks, resolved settings, and the figures against ``truth`` when given).
+    A ``mesh.<ext>`` in another format (or a ``preview.png`` with ``preview`` off)
+    that an earlier run left in ``out_dir`` is removed, and named in the report's
+    ``outputs.removed``: the folder then holds what this run made, nothing older.
     A scan folder is reconstructed first into ``out_dir/recon``.
 
     ``recon_dir`` may also be a list of folders: scans of the same object in several
@@ -77,11 +81,11 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     out_dir = check_output_folder(out_dir, what="fusion's output folder")
     mesh_exts = _mesh_extensions(formats)
     fixed_outputs = [out_dir / n for n in ("fused.ply", "preview.png", "fuse_report.json")]
-    check_no_overwrite([*fixed_outputs, *(out_dir / f"mesh{ext}" for ext in mesh_exts)],
-                       [q for src in sources for q in _source_files(Path(src))]
-                       + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
+    input_files = ([q for src in sources for q in _source_files(Path(src))]
+                   + ([Path(truth)] if isinstance(truth, (str, os.PathLike)) else []))
+    check_no_overwrite([*fixed_outputs, *(out_dir / f"mesh{ext}" for ext in mesh_exts)], input_files)
     remove_stale_temporaries(out_dir)
-    truth_mesh = _load_truth(truth) if truth is not None else None
+    truth_mesh = load_truth_mesh(truth) if truth is not None else None
 
     t0 = time.perf_counter()
     if multi:
@@ -92,8 +96,10 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
                            progress=progress)
     t_fuse = time.perf_counter() - t0
     # TSDF from several poses integrates the merged cloud (virtual views), not the per-view depth maps.
-    meshed = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
-    outputs = _write_outputs(out_dir, fused, meshed, mesh_exts, preview=preview)
+    with progress_step(f"{mesh_settings.method} meshing", enabled=progress):
+        meshed = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
+    outputs = _write_outputs(out_dir, fused, meshed, mesh_exts, preview=preview, progress=progress)
+    _remove_stale_outputs(out_dir, outputs, input_files, preview=preview)
 
     report = {"format": FUSE_REPORT_FORMAT, "source": str(Path(sources[0]).resolve()),
               "fusion": fused.report(),
@@ -121,7 +127,8 @@ def _mesh_extensions(formats) -> list[str]:
     return exts
 
 
-def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str], *, preview: bool) -> dict:
+def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str], *, preview: bool,
+                   progress: bool) -> dict:
     """Write the fused cloud, one mesh file per extension and the preview; returns the
     report's ``outputs`` entry (file names relative to ``out_dir``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -131,10 +138,29 @@ def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str
         write_mesh(out_dir / f"mesh{ext}", meshed.mesh)
         outputs["meshes"].append(f"mesh{ext}")
     if preview:
-        rendered = render_to_png([meshed.mesh], out_dir / "preview.png")
+        with progress_step("rendering preview.png", enabled=progress):
+            rendered = render_to_png([meshed.mesh], out_dir / "preview.png")
         outputs["preview"] = "preview.png"
         outputs["preview_renderer"] = rendered.renderer
     return outputs
+
+
+def _remove_stale_outputs(out_dir: Path, outputs: dict, input_files: list[Path], *, preview: bool) -> None:
+    """A rerun into the same folder holds exactly what it was asked for: the earlier
+    run's meshes in other formats (and its preview, with preview off) would sit
+    beside the new mesh as if made from it. They are removed and named in
+    ``outputs["removed"]`` (never an input)."""
+    written = {out_dir / "fused.ply", out_dir / "fuse_report.json", *(out_dir / m for m in outputs["meshes"]),
+               *([out_dir / "preview.png"] if preview else [])}
+    inputs = {Path(q).resolve() for q in input_files}
+    removed = []
+    for stale in [*(out_dir / f"mesh{ext}" for ext in MESH_FORMATS), out_dir / "preview.png"]:
+        if stale not in written and stale.is_file() and stale.resolve() not in inputs:
+            stale.unlink()
+            removed.append(stale.name)
+            log.info("removed %s, left by an earlier run (not asked for this time)", stale)
+    if removed:
+        outputs["removed"] = removed
 
 
 def _source_files(src: Path) -> list[Path]:
@@ -149,8 +175,14 @@ def _source_files(src: Path) -> list[Path]:
     return []
 
 
-def _load_truth(truth):
-    """The truth mesh: a TriangleMesh as it is, a mesh file, or a simulated scan folder's truth mesh."""
+def load_truth_mesh(truth):
+    """The truth mesh of ``--truth``: an ``o3d.geometry.TriangleMesh``, a mesh file
+    (PLY/OBJ/STL), or a simulated scan folder (its ``truth.mesh`` in scan.json, the
+    object in its own frame).
+
+    Raises:
+        FormatError: naming the file: unreadable, or a scan without a truth mesh.
+    """
     o3d = open3d_lib()
     if isinstance(truth, o3d.geometry.TriangleMesh):
         return truth

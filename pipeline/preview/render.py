@@ -88,6 +88,10 @@ class RenderResult:
     """4x4 extrinsics (object -> camera, OpenCV: x right, y down, z forward)."""
     renderer: str
     """"open3d" or "software"."""
+    png_size: tuple[int, int] | None = None
+    """(width, height) of the PNG :func:`render_to_png` wrote, colour bar included."""
+    scale_bar_mm: float | None = None
+    """The length of the scale bar :func:`render_to_png` drew, mm (None: none drawn)."""
 
 
 # ----------------------------------------------------------------------------- camera
@@ -353,19 +357,57 @@ def render_geometries(geoms, *, settings: ViewSettings = ViewSettings(), camera=
     return RenderResult(image=img, K=K, E=E, renderer=which)
 
 
+def scale_bar_mm(geoms, K: np.ndarray, E: np.ndarray, width: int) -> tuple[float, float]:
+    """A scale bar for a render: (length in mm, a 1-2-5 number, and its length in
+    pixels), about a fifth of the image wide at the median depth of the geometries'
+    points (a perspective render: true at that depth only)."""
+    pts = np.concatenate([np.asarray(g.vertices if hasattr(g, "triangles") else g.points) for g in geoms])
+    z = (pts @ E[:3, :3].T + E[:3, 3])[:, 2]
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        return 0.0, 0.0
+    px_per_mm = float(K[0, 0]) / float(np.median(z))
+    want = 0.2 * width / px_per_mm
+    e = math.floor(math.log10(want))
+    mm = max(m * 10.0 ** e for m in (1, 2, 5) if m * 10.0 ** e <= want)
+    return mm, mm * px_per_mm
+
+
+def _draw_scale_bar(bgr: np.ndarray, mm: float, px: float) -> None:
+    """Draw a scale bar of ``px`` pixels labelled ``mm`` in the lower left corner (in place)."""
+    import cv2
+
+    h, w = bgr.shape[:2]
+    if not (2 <= px <= w - 20) or h < 40:
+        return
+    ink = (0, 0, 0) if bgr[-30:, :int(px) + 20].mean() > 127 else (255, 255, 255)
+    x0, y = 12, h - 14
+    x1 = x0 + int(round(px))
+    cv2.line(bgr, (x0, y), (x1, y), ink, 2)
+    for x in (x0, x1):
+        cv2.line(bgr, (x, y - 5), (x, y + 5), ink, 1)
+    cv2.putText(bgr, f"{mm:g} mm", (x0, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, ink, 1, cv2.LINE_AA)
+
+
 def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = ViewSettings(), camera=None,
-                  colorbar_spec: dict | None = None) -> RenderResult:
+                  colorbar_spec: dict | None = None, scale_bar: bool = False) -> RenderResult:
     """Render (see :func:`render_geometries`) and write a PNG atomically.
 
     ``colorbar_spec`` ({"vmin", "vmax", "cmap", "label"}) appends a colour bar, for
-    geometries painted with :func:`colorize`.
+    geometries painted with :func:`colorize`. ``scale_bar`` draws a bar of a round
+    number of millimetres in the lower left corner, true at the median depth of the
+    points (:func:`scale_bar_mm`).
     """
     res = render_geometries(geoms, settings=settings, camera=camera)
-    bgr = res.image[:, :, ::-1]
+    bgr = np.ascontiguousarray(res.image[:, :, ::-1])
+    if scale_bar:
+        res.scale_bar_mm, px = scale_bar_mm(_as_geometries(geoms), res.K, res.E, settings.width)
+        _draw_scale_bar(bgr, res.scale_bar_mm, px)
     if colorbar_spec:
         bar = colorbar(res.image.shape[0], **colorbar_spec, background=settings.background)
         bgr = np.concatenate([bgr, bar], axis=1)
     write_image(path, np.ascontiguousarray(bgr))
+    res.png_size = (int(bgr.shape[1]), int(bgr.shape[0]))
     return res
 
 

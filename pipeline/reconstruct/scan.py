@@ -49,7 +49,7 @@ from ringscan.pipeline.formats.scan import (
     load_scan,
     read_view_frames,
 )
-from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view, write_view_ply
@@ -92,10 +92,13 @@ def reconstruct_scan(
         The report (also written to ``out_dir/report.json``).
 
     Raises:
+        ValueError: a setting of the wrong type or not finite, naming it.
         FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
             file), or writing into it would overwrite one of the scan's own files;
             another run holds ``out_dir``.
     """
+    check_settings_types(settings)
+    check_finite_settings(settings)
     with contextlib.ExitStack() as held:
         return _reconstruct(scan, out_dir, settings=settings, device=device, views=views, resume=resume,
                             progress=progress, held=held if lock else None)
@@ -146,7 +149,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
         report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
     atomic_write_json(out / "settings.json", report["settings"])
     t_all = time.perf_counter()
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     todo = [v for v in chosen if v.name not in done]
     # Read the next view's frames while this one is reconstructed (image decoding
@@ -160,7 +163,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
         if k < len(todo) and todo[k].name not in pending:
             pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
 
-    bar = tqdm(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
+    bar = progress_bar(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
     try:
         for view in bar:
             index = scan.views.index(view)

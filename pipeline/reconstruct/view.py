@@ -153,10 +153,10 @@ def reconstruct_view(
         sigma=triangulated.sigma.numpy()[idx_np],
         stats={},
     )
-    dropped = {name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0}
+    low_confidence = 0
     if settings.min_confidence > 0:
         keep = cloud.confidence >= settings.min_confidence
-        dropped["below_min_confidence"] = int(keep.size - np.count_nonzero(keep))
+        low_confidence = int(keep.size - np.count_nonzero(keep))
         cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep],
                           cloud.uv[keep], cloud.sigma[keep], {})
     times["download"] = time.perf_counter() - t
@@ -169,7 +169,9 @@ def reconstruct_view(
         "points": int(cloud.points.shape[0]),
         "median_sigma_mm": float(np.median(cloud.sigma)) if cloud.sigma.size else None,
         **({"calibration": calibration} if calibration else {}),
-        "dropped": dropped,
+        # every sample not written, by reason: the kernels' statuses, then min_confidence
+        "dropped": {**{name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+                    "low_confidence": low_confidence},
         "times_s": times,
     }
     if cloud.stats["points"] == 0:

@@ -145,7 +145,7 @@ def render_graycode_captures(
             a different size is an error.
         settings: rendering settings (noise, defocus, supersampling...).
         device: Warp device.
-        progress: show a tqdm progress bar.
+        progress: show progress (a bar on a terminal, log lines elsewhere).
 
     Returns:
         The ``truth.json`` document written.
@@ -154,7 +154,7 @@ def render_graycode_captures(
         ValueError: a light without a size, a ``projector`` that is not the light's,
             or a bad scene; all before anything is written.
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     if not isinstance(rig, Rig):
         raise ValueError(f"rig: expected a Rig, got {type(rig).__name__}")
@@ -181,7 +181,7 @@ def render_graycode_captures(
     _write_mesh(out / mesh_rel, scene.vertices, scene.faces)
 
     t0 = time.perf_counter()
-    bar = tqdm(total=len(names), desc=f"simulate {LAYOUT} {scene.name}", unit="frame", disable=not progress)
+    bar = progress_bar(total=len(names), desc=f"simulate {LAYOUT} {scene.name}", unit="frame", disable=not progress)
     try:
         for fi, (n, pat) in enumerate(zip(names, patterns)):
             write_image(cap_dir / f"{n}.png", vr.render(pat, seed=_mix_seed(settings.seed, 0, fi)))

@@ -90,7 +90,7 @@ def simulate_scan(
         views: if given, ``views`` equal steps k * 360 / views instead of ``turntable_deg``.
         settings: rendering settings.
         device: Warp device.
-        progress: show a tqdm progress bar.
+        progress: show a progress bar.
         size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
         image_format: ``png`` or ``tiff`` for the frames.
         pose: turn the placed scene into this resting pose first (see
@@ -104,7 +104,7 @@ def simulate_scan(
     Returns:
         The written scan (as :func:`load_scan` reads it back).
     """
-    from tqdm import tqdm
+    from ringscan.pipeline.formats.progress import progress_bar
 
     if not isinstance(patterns, PatternSpec):
         raise ValueError(f"patterns: expected a PatternSpec, got {type(patterns).__name__}")
@@ -133,7 +133,8 @@ def simulate_scan(
     frames = {n: render_frame(patterns, n) for n in names}
     done: list[View] = []
     t0 = time.perf_counter()
-    bar = tqdm(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame", disable=not progress)
+    bar = progress_bar(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame",
+                       disable=not progress)
     try:
         for vi, deg in enumerate(angles):
             vname = f"view_{vi:03d}"

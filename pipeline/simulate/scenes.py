@@ -4,7 +4,8 @@ terrain), loaded mesh files, and resting poses for "flip and rescan".
 Every scene is a triangle mesh in millimetres in the world frame (docs/design.md §2,
 §16): it stands on the reference plane z = 0 and is centred on the light axis;
 ``size_mm`` is the longest side of its axis-aligned bounding box (before the cube's
-turn about z). The scenes, the mesh loading (``up`` axis, scaling) and the named
+turn about z). The scenes (among them ``plate:H``, a flat plate at height H for
+``ringscan calibrate light``), the mesh loading (``up`` axis, scaling) and the named
 poses are described in docs/virtual_rig.md ("Scenes") and docs/fusion.md (``--pose``).
 :func:`place_scene` moves a scene's bounding-box centre to a world point and
 :func:`add_wall` adds a wall z = Z to it (a rig looking at a bust in front of a wall,
@@ -343,6 +344,23 @@ def load_mesh_file(path: str | os.PathLike, *, size_mm: float = 80.0, up: str = 
     return SceneMesh(vertices=v, faces=f, name=path.stem)
 
 
+PLATE_HALF_MM = 1000.0
+"""Half the side of the ``plate:H`` scene: wider than any camera's view of it."""
+
+
+def _plate(key: str) -> SceneMesh:
+    """``plate:H``: a flat plate, top at z = H mm."""
+    try:
+        h = float(key.split(":", 1)[1])
+    except ValueError:
+        h = float("nan")
+    if not (math.isfinite(h) and h > 0):
+        raise ValueError(f"scene {key!r}: expected plate:H with a height H > 0 in mm (plane is the height 0)")
+    r = PLATE_HALF_MM
+    v = np.array([[-r, -r, h], [r, -r, h], [r, r, h], [-r, r, h]], float)
+    return SceneMesh(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3]], np.int32), name=f"plate_{h:g}mm")
+
+
 def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto") -> SceneMesh:
     """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``) or load a mesh file.
 
@@ -361,6 +379,8 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
     key = os.fspath(name_or_path)
     if key == "plane":
         return SceneMesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int32), name="plane")
+    if key.startswith("plate:"):
+        return _plate(key)
     if key == "sphere":
         return _sphere(size_mm)
     if key == "cube":

@@ -1,4 +1,4 @@
-"""Bad input on the command line: one line naming the path, exit status 2, no traceback
+"""Bad input on the command line: one line naming the path, exit status 1, no traceback
 (docs/bad_input.md lists every case)."""
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def test_out_that_cannot_be_written(tmp_path, capsys, tiny_scan, command, where)
         out = tmp_path
         argv[-1] = str(out)
     rc, err = _run(argv, capsys)
-    assert rc == 2, err
+    assert rc == 1, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert err.startswith(f"ringscan {command}: error: {out}: "), err
     assert afile.read_text() == "I am a file"
@@ -63,7 +63,7 @@ def test_a_folder_where_a_file_goes(tmp_path, capsys, tiny_scan):
         out = tmp_path / f"out_{name}"
         (out / name).mkdir(parents=True)
         rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(out), "--device", "cpu", "--no-progress"], capsys)
-        assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {out / name}: ") and "a folder" in err, err
+        assert rc == 1 and err.startswith(f"ringscan reconstruct: error: {out / name}: ") and "a folder" in err, err
         assert sorted(p.name for p in out.iterdir()) == [name]  # refused before writing anything
 
 
@@ -71,9 +71,9 @@ def test_view_out_a_folder_or_another_extension(tmp_path, capsys):
     cloud = tmp_path / "c.ply"
     o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.eye(3))))
     rc, err = _run(["view", str(cloud), "--out", str(tmp_path)], capsys)
-    assert rc == 2 and err == f"ringscan view: error: {tmp_path}: cannot be the picture (--out): it is a folder"
+    assert rc == 1 and err == f"ringscan view: error: {tmp_path}: cannot be the picture (--out): it is a folder"
     rc, err = _run(["view", str(cloud), "--out", str(tmp_path / "x.gif")], capsys)
-    assert rc == 2 and "x.gif: cannot be the picture (--out): the extension must be .png, not '.gif'" in err
+    assert rc == 1 and "x.gif: cannot be the picture (--out): the extension must be .png, not '.gif'" in err
 
 
 def test_binary_scan_json_and_a_nul_in_a_path(tmp_path, capsys, tiny_scan):
@@ -81,11 +81,11 @@ def test_binary_scan_json_and_a_nul_in_a_path(tmp_path, capsys, tiny_scan):
     d["views"][0]["frames"]["white"] = "view_000/wh\u0000ite.png"
     (tiny_scan / "scan.json").write_text(json.dumps(d))
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu"], capsys)
-    assert rc == 2 and err == (f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: views[0].frames.white: path "
+    assert rc == 1 and err == (f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: views[0].frames.white: path "
                                "'view_000/wh\\x00ite.png' contains a control character (a NUL, a newline...)")
     (tiny_scan / "scan.json").write_bytes(b"\x00\x01\xff\xfe" * 10)
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu"], capsys)
-    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: not a text file")
+    assert rc == 1 and err.startswith(f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: not a text file")
 
 
 def test_simulate_does_not_overwrite_its_own_input(tmp_path, capsys, tiny_scan):
@@ -93,7 +93,7 @@ def test_simulate_does_not_overwrite_its_own_input(tmp_path, capsys, tiny_scan):
     before = scene.read_bytes()
     rc, err = _run(["simulate", "--scene", str(scene), "--out", str(tiny_scan), "--device", "cpu", "--no-progress"],
                    capsys)
-    assert rc == 2 and "would overwrite the input" in err and str(scene) in err
+    assert rc == 1 and "would overwrite the input" in err and str(scene) in err
     assert scene.read_bytes() == before
 
 
@@ -107,10 +107,11 @@ def test_settings_file_errors_name_the_file(tmp_path, capsys, tiny_scan):
     s = tmp_path / "s.json"
     s.write_text(json.dumps({"min_confidnce": 0.5}))
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--settings", str(s)], capsys)
-    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {s}: ReconstructSettings: unknown setting")
+    assert rc == 1
+    assert err.startswith(f"ringscan reconstruct: error: {s}: min_confidnce: unknown setting of ReconstructSettings")
     s.write_text('{"min_confidence": NaN}')
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--settings", str(s)], capsys)
-    assert rc == 2 and "min_confidence must be a finite number" in err and str(s) in err
+    assert rc == 1 and "min_confidence must be a finite number" in err and str(s) in err
 
 
 def _in_thread(fn, timeout=60.0):
@@ -125,7 +126,7 @@ def _in_thread(fn, timeout=60.0):
 
 
 def test_fifo_and_device_inputs_are_refused_without_blocking(tmp_path, capsys, tiny_scan):
-    """A rig or settings file that is a FIFO (read: blocks forever) or /dev/zero (never ends): one line, exit 2."""
+    """A rig or settings file that is a FIFO (read: blocks forever) or /dev/zero (never ends): one line, exit 1."""
     import os
 
     fifo = tmp_path / "fifo.json"
@@ -141,7 +142,7 @@ def test_fifo_and_device_inputs_are_refused_without_blocking(tmp_path, capsys, t
             with open(fifo, "wb") as f:  # let the blocked reader go
                 f.write(b"{}")
         err = capsys.readouterr().err.strip()
-        assert rc == 2, (argv, rc, err)
+        assert rc == 1, (argv, rc, err)
         assert len(err.splitlines()) == 1 and "not a regular file: ringscan reads regular files only" in err, err
         assert not out.exists()
     # a scan whose rig file is a FIFO
@@ -151,7 +152,7 @@ def test_fifo_and_device_inputs_are_refused_without_blocking(tmp_path, capsys, t
     (tiny_scan / "scan.json").write_text(json.dumps(d))
     rc = _in_thread(lambda: main(["reconstruct", str(tiny_scan), "--out", str(out), "--device", "cpu"]))
     err = capsys.readouterr().err.strip()
-    assert rc == 2 and err == (f"ringscan reconstruct: error: {tiny_scan / 'rig.json'}: is a pipe (FIFO), not a "
+    assert rc == 1 and err == (f"ringscan reconstruct: error: {tiny_scan / 'rig.json'}: is a pipe (FIFO), not a "
                                "regular file: ringscan reads regular files only"), err
 
 
@@ -161,7 +162,7 @@ def test_a_5000_digit_number_in_a_rig_names_the_file(tmp_path, capsys, tiny_scan
     assert text != json.dumps(d)
     (tiny_scan / "scan.json").write_text(text)
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu"], capsys)
-    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: not valid JSON "
+    assert rc == 1 and err.startswith(f"ringscan reconstruct: error: {tiny_scan / 'scan.json'}: not valid JSON "
                                       "(Exceeds the limit (4300 digits) for integer string conversion")
 
 
@@ -177,7 +178,7 @@ def test_evaluate_truth_mesh_outside_the_scan_or_not_a_path(tmp_path, capsys, ti
     rc, err = _run(["evaluate", str(recon), "--truth", str(tiny_scan)], capsys)
     want = (f"path {mesh!r} leaves the scan folder" if isinstance(mesh, str) else
             f"expected a relative path, got {mesh!r}")
-    assert rc == 2 and err == f"ringscan evaluate: error: {tiny_scan / 'scan.json'}: truth.mesh: {want}", err
+    assert rc == 1 and err == f"ringscan evaluate: error: {tiny_scan / 'scan.json'}: truth.mesh: {want}", err
 
 
 @pytest.mark.parametrize("what", ["light", "turntable"])
@@ -186,11 +187,11 @@ def test_calibrate_out_must_not_overwrite_a_scan_json(tmp_path, capsys, tiny_sca
     before = target.read_bytes()
     extra = ["--heights", "0"] if what == "light" else ["--square", "5"]
     rc, err = _run(["calibrate", what, str(tiny_scan), *extra, "--out", str(target)], capsys)
-    assert rc == 2 and err == (f"ringscan calibrate: error: {target}: writing it would overwrite the input {target}; "
+    assert rc == 1 and err == (f"ringscan calibrate {what}: error: {target}: writing it would overwrite the input {target}; "
                                "choose another output"), err
     rc, err = _run(["calibrate", what, str(tiny_scan), *extra, "--out", str(tmp_path / "r.json"),
                     "--report", str(tmp_path / "r.json")], capsys)
-    assert rc == 2 and err.endswith("r.json: given to both --out and --report: one would overwrite the other"), err
+    assert rc == 1 and err.endswith("r.json: given to both --out and --report: one would overwrite the other"), err
     assert target.read_bytes() == before and not (tmp_path / "r.json").exists()
 
 
@@ -205,8 +206,8 @@ def test_a_huge_image_is_one_line_before_decoding(tmp_path, capsys, tiny_scan, w
     want = f"{frame}: image is {w}x{w} ({w * w / 1e6:.0f} megapixels): larger than ringscan reads"
     rc, err = _run(["reconstruct", str(tiny_scan), "--out", str(tmp_path / "o"), "--device", "cpu", "--no-progress"],
                    capsys)
-    assert rc == 2 and err.startswith(f"ringscan reconstruct: error: {want}"), err
+    assert rc == 1 and err.startswith(f"ringscan reconstruct: error: {want}"), err
     assert not (tmp_path / "o").exists()  # every frame's header checked before anything is written
     rc, err = _run(["calibrate", "camera", str(frame), "--square", "5", "--out", str(tmp_path / "cam.json")], capsys)
-    assert rc == 2 and err.startswith(f"ringscan calibrate: error: {want}"), err
+    assert rc == 1 and err.startswith(f"ringscan calibrate camera: error: {want}"), err
     assert not (tmp_path / "cam.json").exists()

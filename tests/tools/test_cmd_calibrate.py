@@ -22,21 +22,21 @@ def procam(shared_data):
     return d
 
 
-def test_camera_without_a_board_exits_2_and_writes_nothing(tmp_path, procam, capsys):
+def test_camera_without_a_board_exits_1_and_writes_nothing(tmp_path, procam, capsys):
     out = tmp_path / "cam.json"
     rc = main(["calibrate", "camera", str(procam / "capture_1" / "graycode_41.png"),
                str(procam / "capture_2" / "graycode_41.png"), "--square", "75", "--out", str(out)])
     err = capsys.readouterr().err
-    assert rc == 2 and "no image shows the 9x7 board" in err and "Traceback" not in err
+    assert rc == 1 and "no image shows the 9x7 board" in err and "Traceback" not in err
     assert not out.exists()
 
 
-def test_procam_wrong_layout_exits_2(tmp_path, capsys):
+def test_procam_wrong_layout_exits_1(tmp_path, capsys):
     write_capture(tmp_path / "c1", projector=(128, 96))
     rig = tmp_path / "rig.json"
     rc = main(["calibrate", "procam", str(tmp_path / "c1"), "--square", "75", "--projector", "128x96",
                "--layout", "opencv-graycode-wb-first", "--out", str(rig)])
-    assert rc == 2 and "not layout 'opencv-graycode-wb-first'" in capsys.readouterr().err
+    assert rc == 1 and "not layout 'opencv-graycode-wb-first'" in capsys.readouterr().err
     assert not rig.exists()
 
 
@@ -86,12 +86,12 @@ def test_procam_one_capture_three_times_is_refused(tmp_path, procam, capsys):
     # Today's OpenCV fit of this: RMS 0.35 px, camera fx 3871 (true 3452), baseline 1431 (true 674).
     rc, rig = _procam(procam, tmp_path, 1, 1, 1)
     err = capsys.readouterr().err
-    assert rc == 2 and "only 1 distinct board pose" in err and "capture_1 = capture_1 (0.00 px)" in err
+    assert rc == 1 and "only 1 distinct board pose" in err and "capture_1 = capture_1 (0.00 px)" in err
     assert len(err.strip().splitlines()) == 1 and not rig.exists()
     rc, rig = _procam(procam, tmp_path, 1, 1, 1, extra=["--force"])  # nothing to stand behind: not even forced
-    assert rc == 2 and not rig.exists()
+    assert rc == 1 and not rig.exists()
     rc, rig = _procam(procam, tmp_path, 1, 2, 2)
-    assert rc == 2 and "only 2 distinct board pose" in capsys.readouterr().err and not rig.exists()
+    assert rc == 1 and "only 2 distinct board pose" in capsys.readouterr().err and not rig.exists()
 
 
 def test_procam_min_views_below_three_is_refused(tmp_path, procam, capsys):
@@ -113,7 +113,7 @@ def test_procam_a_repeated_capture_is_left_out(tmp_path, procam, capsys):
 def test_camera_one_image_three_times_is_refused(tmp_path, procam, capsys):
     w = str(procam / "capture_1" / "graycode_40.png")
     out = tmp_path / "cam.json"
-    assert main(["calibrate", "camera", w, w, w, "--square", "75", "--out", str(out)]) == 2
+    assert main(["calibrate", "camera", w, w, w, "--square", "75", "--out", str(out)]) == 1
     assert "only 1 distinct board pose" in capsys.readouterr().err and not out.exists()
 
 
@@ -123,7 +123,7 @@ def test_camera_images_of_another_size_than_the_rig_are_refused_unless_forced(tm
     before = (tmp_path / "rig.json").read_bytes()
     whites = [str(procam / f"capture_{i}" / "graycode_40.png") for i in (1, 2, 3)]
     argv = ["calibrate", "camera", *whites, "--square", "75", "--rig", str(tmp_path / "rig.json")]
-    assert main(argv) == 2
+    assert main(argv) == 1
     err = capsys.readouterr().err
     assert "the images are 1280x1024, the camera of" in err and "--force" in err
     assert (tmp_path / "rig.json").read_bytes() == before
@@ -166,7 +166,7 @@ def test_response_refuses_repeated_frames_and_bad_levels(tmp_path, capsys):
     rc = main(["calibrate", "response", g[0], g[128], g[128], g[128], g[255], "--levels", "0", "64", "128", "192",
                "255", *rig])
     err = capsys.readouterr().err
-    assert rc == 2 and "is the same image as" in err and "does not rise" in err and len(err.strip().splitlines()) == 1
+    assert rc == 1 and "is the same image as" in err and "does not rise" in err and len(err.strip().splitlines()) == 1
     assert (tmp_path / "rig.json").read_bytes() == before
     for bad in ("nan", "inf", "-1", "300"):
         rc = main(["calibrate", "response", *g.values(), "--levels", "0", bad, "128", "192", "255", *rig])
@@ -200,20 +200,22 @@ def capture_and_rig(tmp_path):
     return tmp_path / "caps" / "c1", tmp_path / "rig.json"
 
 
-@pytest.mark.parametrize("extra,message", [
+@pytest.mark.parametrize("extra,message,code", [
     (["--square", "1e308"], "--board/--square/--marker: board: square size must be a number of mm from 0.01 to 10000, "
-                            "got 1e+308"),
-    (["--square", "nan"], "square size must be a number of mm from 0.01 to 10000, got nan"),
-    (["--square", "5", "--board=--"], "--board: expected WxH (e.g. 9x7), got '--'"),
-    (["--square", "5", "--projector=--"], "--projector: expected WxH (e.g. 9x7), got '--'"),
-    (["--square", "5", "--projector", "5x" + "9" * 5000], "--projector: expected WxH (e.g. 9x7), got '5x999999999"),
-    (["--square", "5", "--window", "100000"], "--window: expected camera px from 1 to 200, got 100000"),
-    (["--square", "5", "--max-tilt", "nan"], "--max-tilt: expected degrees from 0 to 90, got nan"),
-    (["--square", "5", "--report", "{out}"], "{out}: given to both --out and --report: one would overwrite the other"),
+                            "got 1e+308", 2),
+    (["--square", "nan"], "square size must be a number of mm from 0.01 to 10000, got nan", 2),
+    (["--square", "5", "--board=--"], "--board: expected WxH (e.g. 9x7), got '--'", 2),
+    (["--square", "5", "--projector=--"], "--projector: expected WxH (e.g. 9x7), got '--'", 2),
+    (["--square", "5", "--projector", "5x" + "9" * 5000], "--projector: expected WxH (e.g. 9x7), got '5x999999999", 2),
+    (["--square", "5", "--window", "100000"], "--window: expected camera px from 1 to 200, got 100000", 2),
+    (["--square", "5", "--max-tilt", "nan"], "--max-tilt: expected degrees from 0 to 90, got nan", 2),
+    # output files that cannot be written: the run's input, not its options (exit 1, docs/cli.md)
+    (["--square", "5", "--report", "{out}"], "{out}: given to both --out and --report: one would overwrite the other",
+     1),
     (["--square", "5", "--out", "{frame}"], "{frame}: writing it would overwrite the input {frame}; choose another "
-                                            "output"),
+                                            "output", 1),
 ])
-def test_procam_bad_options_refused_before_anything(tmp_path, capsys, extra, message):
+def test_procam_bad_options_refused_before_anything(tmp_path, capsys, extra, message, code):
     frame = tmp_path / "c1" / "graycode_28.png"
     write_capture(tmp_path / "c1")
     before = frame.read_bytes()
@@ -221,7 +223,8 @@ def test_procam_bad_options_refused_before_anything(tmp_path, capsys, extra, mes
     extra = [a.format(out=out, frame=frame) for a in extra]
     rc = main(["calibrate", "procam", str(tmp_path / "c1"), "--projector", "128x96", "--out", str(out), *extra])
     err = _err(capsys)
-    assert rc == 2 and err.startswith("ringscan calibrate: error: ") and message.format(out=out, frame=frame) in err, err
+    assert rc == code and err.startswith("ringscan calibrate procam: error: "), err
+    assert message.format(out=out, frame=frame) in err, err
     assert not out.exists() and frame.read_bytes() == before
 
 
@@ -229,10 +232,10 @@ def test_camera_out_must_not_overwrite_an_image_or_its_rig(tmp_path, capsys, cap
     cap, rig = capture_and_rig
     img = cap / "graycode_28.png"
     before = img.read_bytes()
-    assert main(["calibrate", "camera", str(img), "--square", "5", "--out", str(img)]) == 2
-    assert _err(capsys) == (f"ringscan calibrate: error: {img}: writing it would overwrite the input {img}; "
+    assert main(["calibrate", "camera", str(img), "--square", "5", "--out", str(img)]) == 1
+    assert _err(capsys) == (f"ringscan calibrate camera: error: {img}: writing it would overwrite the input {img}; "
                             "choose another output")
-    assert main(["calibrate", "camera", str(img), "--square", "5", "--out", str(rig), "--rig", str(rig)]) == 2
+    assert main(["calibrate", "camera", str(img), "--square", "5", "--out", str(rig), "--rig", str(rig)]) == 1
     assert _err(capsys).endswith(f"{rig}: given to both --out and --rig: one would overwrite the other")
     assert img.read_bytes() == before
 
@@ -284,13 +287,13 @@ def test_import_view_names_checked_before_anything_is_written(tmp_path, capsys, 
         out = tmp_path / f"out_{len(why)}"
         rc = main(["import", str(folder), "--rig", str(rig), "--projector", "128x96", "--out", str(out)])
         err = _err(capsys)
-        assert rc == 2 and f"is not a folder-safe name ({why})" in err, err
+        assert rc == 1 and f"is not a folder-safe name ({why})" in err, err
         assert not out.exists()
     other = tmp_path / "x" / "c1"
     shutil.copytree(cap, other)
     out = tmp_path / "two"
     rc = main(["import", str(cap), str(other), "--rig", str(rig), "--projector", "128x96", "--out", str(out)])
-    assert rc == 2 and _err(capsys) == (f"ringscan import: error: {other}: has the name 'c1' of the capture {cap}: two "
+    assert rc == 1 and _err(capsys) == (f"ringscan import: error: {other}: has the name 'c1' of the capture {cap}: two "
                                         "views of one name (give capture folders of different names)")
     assert not out.exists()
 
@@ -302,7 +305,7 @@ def test_import_into_an_existing_scan_is_refused(tmp_path, capsys, capture_and_r
     capsys.readouterr()
     before = (out / "scan.json").read_bytes()
     rc = main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(out)])
-    assert rc == 2 and _err(capsys) == (f"ringscan import: error: {out}: already holds a scan (scan.json); choose "
+    assert rc == 1 and _err(capsys) == (f"ringscan import: error: {out}: already holds a scan (scan.json); choose "
                                         "another folder (import writes a new scan)")
     assert (out / "scan.json").read_bytes() == before
 
@@ -318,7 +321,7 @@ def test_import_rig_that_is_a_fifo_or_a_device(tmp_path, capsys, capture_and_rig
             os.mkfifo(rig)
         rc = main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(tmp_path / "s")])
         err = _err(capsys)
-        assert rc == 2 and err.startswith(f"ringscan import: error: {rig}: is a ") and "not a regular file" in err, err
+        assert rc == 1 and err.startswith(f"ringscan import: error: {rig}: is a ") and "not a regular file" in err, err
     assert not (tmp_path / "s").exists()
 
 
@@ -332,9 +335,45 @@ def test_import_into_a_folder_another_run_holds_is_refused(tmp_path, capsys, cap
     out.mkdir()
     with lock_folder(out, what="reconstruct"):  # flock: a second open of the file conflicts, even in one process
         rc = main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(out)])
-        assert rc == 2 and _err(capsys) == (f"ringscan import: error: {out}: in use by another ringscan run "
+        assert rc == 1 and _err(capsys) == (f"ringscan import: error: {out}: in use by another ringscan run "
                                             f"(reconstruct, process {os.getpid()}); wait for it to end or choose "
                                             f"another output folder (lock file {LOCK_NAME})")
         assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
     assert main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["c1", "scan.json"]
+def test_response_with_a_pattern_that_matched_nothing_says_so(tmp_path, capsys):
+    from ringscan.pipeline.formats.rig import default_rig, save_rig
+
+    rig = tmp_path / "rig.json"
+    save_rig(rig, default_rig())
+    before = rig.read_bytes()
+    pattern = str(tmp_path / "ramp" / "*.png")  # what the shell passes on when the glob matches nothing
+    rc = main(["calibrate", "response", pattern, "--levels", "0", "128", "255", "--rig", str(rig)])
+    assert rc == 1
+    assert capsys.readouterr().err.strip() == (f"ringscan calibrate response: error: {pattern}: no file matches this "
+                                               "pattern (the shell passed it on as it was)")
+    assert rig.read_bytes() == before
+
+
+def test_camera_plot_draws_the_residuals_of_the_fit(tmp_path, procam, capsys):
+    import cv2
+
+    from ringscan.pipeline.calibrate.board import Board, detect_board
+    from ringscan.pipeline.calibrate.camera import calibrate_camera, reprojection_residuals
+    from ringscan.pipeline.formats.images import read_image
+
+    images = [procam / f"capture_{i}" / "graycode_40.png" for i in (1, 2, 3)]  # the white frames
+    plot = tmp_path / "res.png"
+    assert main(["calibrate", "camera", *map(str, images), "--square", "75", "--out", str(tmp_path / "c.json"),
+                 "--plot", str(plot), "--no-progress"]) == 0
+    assert f"wrote {plot}" in capsys.readouterr().out
+    assert cv2.imread(str(plot)).shape == (560, 1200, 3)
+    # The residuals drawn are the fit's: their RMS per view is OpenCV's per-view error.
+    board = Board(9, 7, 75.0)
+    views = [detect_board(read_image(p), board=board, name=f"v{i}") for i, p in enumerate(images)]
+    cal = calibrate_camera(views, board=board, size=(1280, 1024))
+    res = reprojection_residuals(views, board, cal)
+    assert list(res) == cal.names
+    for name, e in zip(cal.names, cal.per_view):
+        corners, r = res[name]
+        assert len(corners) == 63 and np.sqrt(np.mean(np.sum(r ** 2, axis=1))) == pytest.approx(e, rel=1e-6)

@@ -162,7 +162,7 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "missing --turntable, --projector" in capsys.readouterr().err
     assert main(_args(files, tmp_path / "c", "--views", "2", "--table-at", "5", *VIRTUAL)) == 2
     assert "--table-at only applies with --resume" in capsys.readouterr().err
-    assert main(["capture", "--out", str(tmp_path / "d"), "--resume"]) == 2
+    assert main(["capture", "--out", str(tmp_path / "d"), "--resume"]) == 1
     assert "nothing to resume" in capsys.readouterr().err
     assert main(_args(files, tmp_path / "c2", "--views", "2", "--allow-auto-exposure", *VIRTUAL)) == 2
     assert "--allow-auto-exposure only applies with --exposure" in capsys.readouterr().err
@@ -170,13 +170,13 @@ def test_cli_errors(files, tmp_path, capsys):
     (tmp_path / "cam").mkdir()
     write_image(tmp_path / "cam" / "0.png", np.zeros((256, 320), np.uint8))
     assert main(_args(files, tmp_path / "e", "--views", "2", "--turntable", port, "--projector", port,
-                      "--camera", str(tmp_path / "cam"))) == 2
+                      "--camera", str(tmp_path / "cam"))) == 1
     err = capsys.readouterr().err
     assert "no_such_port" in err and "cannot open" in err
     assert not (tmp_path / "e").exists()
     bad = tmp_path / "settings.json"
     atomic_write_json(bad, {"retries": "x"})
-    assert main(_args(files, tmp_path / "f", "--views", "2", "--settings", str(bad), *VIRTUAL)) == 2
+    assert main(_args(files, tmp_path / "f", "--views", "2", "--settings", str(bad), *VIRTUAL)) == 1
     assert "settings.json: settings: retries" in capsys.readouterr().err
 
 
@@ -200,7 +200,7 @@ def test_capture_reconstructs_while_capturing(files, reference, tmp_path, capsys
     assert main(_args(files, tmp_path / "x", "--views", "2", *VIRTUAL, "--reconstruct-settings", "s.json")) == 2
     assert "--reconstruct-settings only applies with --reconstruct" in capsys.readouterr().err
     (tmp_path / "afile").write_text("")
-    assert main(_args(files, tmp_path / "y", "--views", "2", *VIRTUAL, "--reconstruct", str(tmp_path / "afile"))) == 2
+    assert main(_args(files, tmp_path / "y", "--views", "2", *VIRTUAL, "--reconstruct", str(tmp_path / "afile"))) == 1
     assert "afile: exists and is not a folder" in capsys.readouterr().err
     assert not (tmp_path / "y").exists()  # refused before anything was captured
 

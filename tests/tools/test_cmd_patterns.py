@@ -45,7 +45,7 @@ def test_patterns_rig_precompensates(tmp_path, capsys):
     assert "not both" in capsys.readouterr().err
     assert main(["patterns", *PAT, "--rig", str(rig), "--width", "800", "--out", str(tmp_path / "x")]) == 2
     assert "differ from the projector" in capsys.readouterr().err
-    assert main(["patterns", *PAT, "--precompensate", "0", "--out", str(tmp_path / "x")]) == 2
+    assert main(["patterns", *PAT, "--precompensate", "0", "--out", str(tmp_path / "x")]) == 1
     assert "patterns.precompensated_gamma: must be > 0" in capsys.readouterr().err
 
 

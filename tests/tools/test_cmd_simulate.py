@@ -61,13 +61,13 @@ def test_simulate_cli(tmp_path, capsys):
 
 def test_simulate_cli_errors(tmp_path, capsys):
     rig = _small_rig_file(tmp_path / "rig.json")
-    assert main(["simulate", "--scene", "blob", "--rig", str(rig), "--out", str(tmp_path / "o")]) == 2
+    assert main(["simulate", "--scene", "blob", "--rig", str(rig), "--out", str(tmp_path / "o")]) == 1
     assert "'blob'" in capsys.readouterr().err
     assert main(["simulate", "--rig", str(rig), "--light", "perspective", "--out", str(tmp_path / "o")]) == 2
     assert "--light" in capsys.readouterr().err
-    assert main(["simulate", "--rig", str(rig), "--supersample", "0", "--out", str(tmp_path / "o")]) == 2
+    assert main(["simulate", "--rig", str(rig), "--supersample", "0", "--out", str(tmp_path / "o")]) == 1
     assert "supersample" in capsys.readouterr().err
-    assert main(["simulate", "--rig", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["simulate", "--rig", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 1
     assert "none.json" in capsys.readouterr().err
 
 

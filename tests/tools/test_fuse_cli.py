@@ -58,15 +58,15 @@ def test_mesh_command_watertight_from_a_bare_cloud(recon, tmp_path, capsys):
 
 
 def test_fuse_and_mesh_errors(tmp_path, capsys):
-    assert main(["fuse", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["fuse", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 1
     assert "not found" in capsys.readouterr().err
-    assert main(["fuse", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert main(["fuse", str(tmp_path), "--out", str(tmp_path / "o")]) == 1
     assert "neither a reconstruction folder" in capsys.readouterr().err
     assert main(["fuse", str(tmp_path), "--out", str(tmp_path / "o"), "--formats", "gltf"]) == 2
     assert "--formats" in capsys.readouterr().err
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(50, 3))))
     o3d.io.write_point_cloud(str(tmp_path / "c.ply"), pc)
-    assert main(["mesh", str(tmp_path / "c.ply"), "--out", str(tmp_path / "m.gltf")]) == 2
+    assert main(["mesh", str(tmp_path / "c.ply"), "--out", str(tmp_path / "m.gltf")]) == 1
     assert "extension" in capsys.readouterr().err
 
 
@@ -99,3 +99,29 @@ def test_two_fuse_runs_of_two_poses_give_the_same_bytes(tmp_path):
 
     reps = [without_times(json.loads((o / "fuse_report.json").read_text())) for o in outs]
     assert reps[0]["fusion"] == reps[1]["fusion"] and reps[0]["mesh"] == reps[1]["mesh"]
+def test_fuse_rerun_removes_and_names_the_meshes_it_does_not_rewrite(recon, tmp_path, capsys):
+    folder, _ = recon
+    out = tmp_path / "out"
+    args = ["fuse", str(folder), "--out", str(out), "--voxel", "1", "--poisson-depth", "6", "--no-progress"]
+    assert main([*args, "--formats", "ply,obj,stl"]) == 0
+    head = (out / "mesh.obj").read_text().splitlines()[:4]
+    assert "# object name: mesh" in [ln.rstrip() for ln in head]  # not the temporary file's name
+    assert not any(".tmp" in ln for ln in head)
+    capsys.readouterr()
+    assert main([*args, "--formats", "ply", "--no-preview"]) == 0
+    text = capsys.readouterr().out
+    assert "removed mesh.obj, mesh.stl, preview.png: left in" in text
+    assert sorted(p.name for p in out.iterdir() if p.is_file()) == ["fuse_report.json", "fused.ply", "mesh.ply"]
+    rep = json.loads((out / "fuse_report.json").read_text())
+    assert rep["outputs"]["removed"] == ["mesh.obj", "mesh.stl", "preview.png"]
+
+
+def test_fuse_rerun_keeps_a_truth_file_in_its_folder(recon, tmp_path, capsys):
+    folder, obj = recon
+    out = tmp_path / "out"
+    out.mkdir()
+    truth = out / "mesh.stl"  # the truth given lies where an earlier run's mesh would
+    o3d.io.write_triangle_mesh(str(truth), obj)
+    assert main(["fuse", str(folder), "--out", str(out), "--voxel", "1", "--poisson-depth", "6", "--no-progress",
+                 "--no-preview", "--truth", str(truth)]) == 0
+    assert truth.is_file()

@@ -65,15 +65,16 @@ def test_view_cloud_with_truth_colours(tmp_path, capsys):
     assert "distance to truth: mean" in text
     img = cv2.imread(str(out))
     assert img.shape == (120, 160 + 110, 3)  # colour bar appended
+    assert f"wrote {out} ({160 + 110}x120, software renderer, scale bar " in text  # the size of the PNG written
     obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
     assert np.ptp(obj[:, 2] - obj[:, 0]) > 100  # both ends of the colour map appear
 
 
 def test_view_errors(tmp_path, capsys):
-    assert main(["view", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["view", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.png")]) == 1
     assert "missing.ply: file not found" in capsys.readouterr().err
     (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
-    assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["view", str(tmp_path / "empty.ply"), "--out", str(tmp_path / "x.png")]) == 1
     assert "no points" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
 
@@ -95,7 +96,7 @@ def test_view_leaves_out_infinite_points(tmp_path, caplog, capsys):
     assert 0.05 < drawn.mean() < 0.9  # the object is there, not a blank picture
     pts[:] = np.inf
     o3d.io.write_point_cloud(str(path), pc)
-    assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 2
+    assert main(["view", str(path), "--out", str(tmp_path / "w.png"), "--renderer", "software"]) == 1
     assert f"{path}: none of its 3000 points has finite coordinates" in capsys.readouterr().err
     assert not (tmp_path / "w.png").exists()
 
@@ -117,3 +118,90 @@ def test_view_conditioning_map_of_a_rig(tmp_path, capsys):
     assert img is not None and img.shape[1] > 3 * img.shape[0] / 2  # three panels side by side
     assert main(["view", "--out", str(tmp_path / "x.png")]) == 2
     assert "--conditioning" in capsys.readouterr().err
+def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+    scan = simulate_tiny_scan(tmp_path / "scan")
+    truth_mesh = o3d.io.read_triangle_mesh(str(scan.folder / scan.extra["truth"]["mesh"]))
+    pc = truth_mesh.sample_points_uniformly(2000)
+    cloud = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(cloud), pc)
+    out = tmp_path / "t.png"
+    assert main(["view", str(cloud), "--out", str(out), "--width", "80", "--height", "60", "--renderer", "software",
+                 "--truth", str(scan.folder)]) == 0
+    text = capsys.readouterr().out
+    obj = text.split("distance to truth, object (")[1]
+    n_obj = int(obj.split(" points")[0])
+    n_floor = int(text.split("; floor (")[1].split(" points")[0])
+    assert n_obj + n_floor == 2000 and n_obj > 1900  # the sphere rests on the floor: a few points touch it
+    assert float(obj.split("mean ")[1].split(" mm")[0]) < 1e-3  # points sampled on the truth: on it
+
+
+@pytest.fixture(scope="module")
+def tiny_recon(tmp_path_factory):
+    from ringscan.pipeline.reconstruct import reconstruct_scan
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+    root = tmp_path_factory.mktemp("tiny")
+    scan = simulate_tiny_scan(root / "scan")
+    reconstruct_scan(scan, root / "recon", device="cpu", progress=False)
+    return scan, root / "recon"
+
+
+def test_a_views_cloud_is_seen_from_its_own_camera(tiny_recon, tmp_path, capsys):
+    from ringscan.pipeline.formats.ply import read_ply
+
+    scan, recon = tiny_recon
+    out = tmp_path / "own.png"
+    cam = scan.rig.camera
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--width", str(cam.width),
+                 "--renderer", "software", "--point-size", "1", "--no-scale-bar"]) == 0
+    assert f"({cam.width}x{cam.height}, software renderer, seen from view_000's camera)" in capsys.readouterr().out
+    img = cv2.imread(str(out))
+    drawn = np.any(img != 255, axis=2)
+    ply = read_ply(recon / "view_000.ply")
+    seen = np.zeros_like(drawn)
+    seen[np.clip(np.rint(ply["v"]).astype(int), 0, cam.height - 1),
+         np.clip(np.rint(ply["u"]).astype(int), 0, cam.width - 1)] = True
+    near = cv2.dilate(seen.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    # The render lands on the pixels the camera saw the points at (lens distortion aside).
+    assert drawn.sum() > 0.5 * seen.sum()
+    assert (drawn & near).sum() / drawn.sum() > 0.95
+    # Shaded by the estimated normals: not one flat colour.
+    assert np.std(img[drawn].astype(float).mean(axis=1)) > 5
+
+
+def test_view_colours_a_cloud_by_a_field_with_a_colour_bar(tiny_recon, tmp_path, capsys):
+    _, recon = tiny_recon
+    out = tmp_path / "conf.png"
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--width", "160", "--camera", "orbit",
+                 "--height", "120", "--renderer", "software", "--color-by", "confidence"]) == 0
+    img = cv2.imread(str(out))
+    assert img.shape == (120, 160 + 110, 3)
+    obj = img[:, :160][np.any(img[:, :160] != 255, axis=2)].astype(int)
+    assert np.ptp(obj[:, 2] - obj[:, 0]) > 60  # several colours of the map
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "nope"])
+    assert main(["view", str(recon / "view_000.ply"), "--out", str(out), "--color-by", "error"]) == 2
+    assert "--color-by error needs --truth" in capsys.readouterr().err
+
+
+def test_scale_bar_is_a_round_length_true_at_the_points_depth(tmp_path, capsys):
+    from ringscan.pipeline.preview.render import scale_bar_mm
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([[0.0, 0, 500], [10, 0, 500], [0, 10, 500]])))
+    K = np.array([[1000.0, 0, 479.5], [0, 1000.0, 359.5], [0, 0, 1]])
+    assert scale_bar_mm([pc], K, np.eye(4), 960) == (50.0, 100.0)  # 2 px/mm at 500 mm: 96 mm wanted -> 50 mm
+    mesh = _ellipsoid()  # 40 mm long
+    path = tmp_path / "e.stl"
+    write_mesh(path, mesh)
+    with_bar, without = tmp_path / "a.png", tmp_path / "b.png"
+    args = ["view", str(path), "--width", "320", "--height", "240", "--renderer", "software"]
+    assert main([*args, "--out", str(with_bar)]) == 0
+    mm = float(capsys.readouterr().out.split("scale bar ")[1].split(" mm")[0])
+    assert mm in (1, 2, 5, 10, 20, 50)
+    assert main([*args, "--out", str(without), "--no-scale-bar"]) == 0
+    a, b = cv2.imread(str(with_bar)), cv2.imread(str(without))
+    corner = (slice(240 - 30, 240), slice(0, 100))  # the lower left corner, clear of the object
+    assert (a[corner] < 128).any() and (b[corner] == 255).all()

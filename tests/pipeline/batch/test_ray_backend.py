@@ -6,7 +6,7 @@ from ringscan.pipeline.batch import batch_reconstruct
 from ringscan.pipeline.batch.report import read_results
 from ringscan.pipeline.batch.worker import FAULT_ENV
 
-ray = pytest.importorskip("ray", reason="ray is not installed: pip install 'ringscan[ray]'")
+ray = pytest.importorskip("ray", reason="ray is not installed: pip install '.[ray]'")
 
 
 def _start_cluster():

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from ringscan.pipeline.evaluate.metrics import evaluate_recon, evaluate_view, truth_points
+from ringscan.pipeline.evaluate.metrics import evaluate_against_mesh, evaluate_recon, evaluate_view, truth_points
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.ply import read_ply, write_ply
@@ -102,3 +102,20 @@ def test_a_simulated_wall_is_not_the_object(tmp_path):
     assert wall["median_mm"] < 0.01 and 0 < wall["coverage"] < 1 and wall["coverage_object"] == 0.0
     cube = evaluate_view(scan, "view_000", X[~on_wall], coverage_radius_mm=1.0)
     assert cube["coverage_object"] == 1.0
+def test_evaluate_plot_and_a_truth_mesh(recon, tmp_path, capsys):
+    scan, rec = recon
+    plot = tmp_path / "err.svg"
+    assert main(["evaluate", str(rec), "--truth", str(scan.folder), "--report", str(tmp_path / "e.json"),
+                 "--plot", str(plot), "--no-progress"]) == 0
+    assert f"wrote {plot}" in capsys.readouterr().out
+    assert "<svg" in plot.read_text()
+    by_scan = json.loads((tmp_path / "e.json").read_text())
+    # The same cloud against the bare object mesh (same frame at table angle 0): distances only, no coverage.
+    res, dists = evaluate_against_mesh(rec, scan.folder / scan.extra["truth"]["mesh"], return_distances=True)
+    assert set(dists) == set(res["views"]) == set(by_scan["views"])
+    assert res["all"]["coverage_mean"] is None and res["all"]["points"] == by_scan["all"]["points"]
+    # the object mesh has no floor: floor points lie farther from it than from the scan's truth (object + plane)
+    assert res["all"]["median_mm"] >= by_scan["all"]["median_mm"]
+    assert main(["evaluate", str(rec), "--truth", str(scan.folder / scan.extra["truth"]["mesh"]),
+                 "--plot", str(tmp_path / "x.gif")]) == 1
+    assert "x.gif" in capsys.readouterr().err

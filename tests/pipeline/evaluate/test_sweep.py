@@ -7,7 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.evaluate.sweep import SweepSettings, interpolate_surface, min_rings, plot_sweep, run_sweep
+from ringscan.pipeline.evaluate.sweep import (
+    SweepSettings,
+    interpolate_surface,
+    min_rings,
+    plot_sweep,
+    run_sweep,
+    sweep_figure,
+)
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.rig import default_rig, save_rig
 from ringscan.tools.cli import main
@@ -104,6 +111,13 @@ def test_min_rings_and_settings():
         SweepSettings(rho0=10.0, radius=5.0)
     img = plot_sweep(runs, title="t")
     assert img.shape == (600, 960, 3) and img.dtype == np.uint8 and (img < 128).any()
+    # the error targets and the least coverage are drawn as horizontal lines at their values
+    fig = sweep_figure(runs, targets_mm=(0.5, 0.1), min_coverage=0.9)
+    err_ax, cov_ax = fig.axes
+    flat = {float(ln.get_ydata()[0]) for ln in err_ax.get_lines() if len(set(ln.get_ydata())) == 1
+            and len(ln.get_ydata()) == 2}
+    assert flat == {0.5, 0.1}
+    assert [float(ln.get_ydata()[0]) for ln in cov_ax.get_lines() if len(ln.get_ydata()) == 2] == [0.9]
 
 
 @pytest.fixture(scope="module")
@@ -137,6 +151,7 @@ def test_sweep_files(sweep_result):
     assert float(rows[1]["surface_median_mm"]) == pytest.approx(res["runs"][1]["surface_median_mm"])
     img = cv2.imread(str(out / "sweep.png"))
     assert img is not None and img.shape == (600, 960, 3)
+    assert (out / "sweep.svg").read_text().lstrip().startswith("<?xml") and "<svg" in (out / "sweep.svg").read_text()
     assert set(res["min_rings"]) == {"0.5", "0.2", "0.1", "0.05"}
     assert not (out / "scans").exists()
 

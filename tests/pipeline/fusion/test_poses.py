@@ -181,7 +181,7 @@ def test_cli_fuses_several_sources(tmp_path, capsys):
     rc = main(["fuse", str(tmp_path / "a"), str(tmp_path / "bad"), "--out", str(out2), "--no-preview",
                "--no-progress", "--device", "cpu"])
     err = capsys.readouterr().err
-    assert rc == 2 and f"pose '{tmp_path / 'bad'}'" in err and "failed to align" in err
+    assert rc == 1 and f"pose '{tmp_path / 'bad'}'" in err and "failed to align" in err
     assert not (out2 / "fused.ply").exists()
 
 

@@ -191,3 +191,12 @@ def test_parse_point_rejects(text):
     with pytest.raises(ValueError, match="--place"):
         parse_point(text, what="--place")
     assert parse_point("-50,436,1000", what="--place") == (-50.0, 436.0, 1000.0)
+def test_plate_scene_is_a_plane_at_a_height():
+    s = make_scene("plate:40")
+    assert s.name == "plate_40mm" and np.all(s.vertices[:, 2] == 40.0)
+    a, b, c = s.vertices[s.faces[0]]
+    n = np.cross(b - a, c - a)
+    assert n[2] > 0 and np.ptp(s.vertices[:, 0]) >= 2000.0  # faces up; wider than any camera's view
+    for bad in ("plate:0", "plate:-5", "plate:x", "plate:nan"):
+        with pytest.raises(ValueError, match="plate:H"):
+            make_scene(bad)

@@ -1,0 +1,39 @@
+"""``ringscan schema settings|capture-settings``: the JSON Schema of a settings file."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_file
+from ringscan.pipeline.formats.settings import settings_json_schema
+
+# What each name describes: (the dataclass's module, its name, where the file is used).
+SCHEMAS = {
+    "settings": ("ringscan.pipeline.reconstruct.settings", "ReconstructSettings",
+                 "reconstruction settings: reconstruct/batch --settings, a run's settings.json"),
+    "capture-settings": ("ringscan.hardware.capture.sequence", "CaptureSettings",
+                         "capture settings: capture --capture-settings"),
+}
+
+
+def add_parser(sub):
+    p = sub.add_parser("schema", help="print the JSON Schema of a settings file",
+                       description="Prints the JSON Schema (draft 2020-12, from pydantic) of a settings file, "
+                                   "every field with its type, default and description, for editors and other "
+                                   "tools. " + "; ".join(f"{k}: {v[2]}" for k, v in SCHEMAS.items()) + ".")
+    p.add_argument("what", choices=list(SCHEMAS), help="which file")
+    p.add_argument("--out", default=None, metavar="JSON", help="write it to this file (default: print it)")
+    return p
+
+
+def run(args) -> int:
+    module, name, _ = SCHEMAS[args.what]
+    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
+              **settings_json_schema(getattr(importlib.import_module(module), name))}
+    if args.out:
+        atomic_write_json(check_output_file(args.out, extensions=(".json",), what="schema file (--out)"), schema)
+        print(f"wrote {args.out}")
+    else:
+        print(json.dumps(schema, indent=2))
+    return 0
