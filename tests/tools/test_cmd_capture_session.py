@@ -49,5 +49,5 @@ def test_a_trigger_that_is_not_a_serial_port_is_named_before_the_first_pose(tmp_
     rc = main(["capture", "--out", str(out), "--poses", "2", "--trigger", "/dev/null", "--views", "2",
                "--virtual", "terrain", "--device", "cpu", "--no-progress"])
     err = capsys.readouterr().err.strip()
-    assert rc == 2 and err.startswith("ringscan capture: error: --trigger /dev/null: cannot open it as a serial port: ")
+    assert rc == 1 and err.startswith("ringscan capture: error: --trigger /dev/null: cannot open it as a serial port: ")
     assert len(err.splitlines()) == 1 and not out.exists()

@@ -93,13 +93,15 @@ def test_simulate_cli_opencv_graycode_errors(tmp_path, capsys):
     """Bad input for --captures opencv-graycode / --place / --wall: one line, nothing written."""
     rig = _small_rig_file(tmp_path / "rig.json")
     base = ["simulate", "--scene", "cube", "--size-mm", "30", "--rig", str(rig), "--device", "cpu", "--no-progress"]
-    cases = [(["--captures", "opencv-graycode", "--views", "2"], "--views 2"),
-             (["--captures", "opencv-graycode", "--image-format", "tiff"], "PNG"),
-             (["--place", "1,2"], "--place: expected X,Y,Z"),
-             (["--place=0,0,20", "--wall", "10"], "behind the wall")]
-    for k, (args, msg) in enumerate(cases):
+    # options that do not go together: a usage error (2); a scene that, as placed, reaches behind the wall: the
+    # scene's own size decides, the run's input (1)
+    cases = [(["--captures", "opencv-graycode", "--views", "2"], "--views 2", 2),
+             (["--captures", "opencv-graycode", "--image-format", "tiff"], "PNG", 2),
+             (["--place", "1,2"], "--place: expected X,Y,Z", 2),
+             (["--place=0,0,20", "--wall", "10"], "behind the wall", 1)]
+    for k, (args, msg, code) in enumerate(cases):
         out = tmp_path / f"o{k}"
-        assert main(base + args + ["--out", str(out)]) == 2, args
+        assert main(base + args + ["--out", str(out)]) == code, args
         err = capsys.readouterr().err.strip()
         assert msg in err and len(err.splitlines()) == 1, err
         assert not out.exists() or not any(out.iterdir()), args
