@@ -46,7 +46,8 @@ def check_address(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None
     """Fail fast when nothing listens at a cluster address (``host:port`` or ``ray://host:port``).
 
     Raises:
-        RingscanError: ``--address 127.0.0.1:1: no Ray cluster answers there (Connection refused)``; a malformed address.
+        RingscanError: ``--address 127.0.0.1:1: no Ray cluster answers there (Connection refused)``.
+        ValueError: a malformed address (named ``--address`` first: the command's usage error).
     """
     if address in ("auto", "local"):
         return
@@ -54,7 +55,7 @@ def check_address(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None
     host, _, port = hostport.rpartition(":")
     host = host.strip("[]")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise RingscanError(f"--address {address!r}: expected HOST:PORT or ray://HOST:PORT (or auto)")
+        raise ValueError(f"--address {address!r}: expected HOST:PORT or ray://HOST:PORT (or auto)")
     try:
         with socket.create_connection((host, int(port)), timeout=timeout_s):
             pass

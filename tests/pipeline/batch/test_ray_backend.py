@@ -77,11 +77,11 @@ def test_an_unreachable_address_fails_fast_and_writes_nothing(scan_root, tmp_pat
     rc = main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--address", "127.0.0.1:1",
                "--no-progress"])
     err = capsys.readouterr().err.strip()
-    assert rc == 2 and err == ("ringscan batch: error: --address 127.0.0.1:1: no Ray cluster answers there "
+    assert rc == 1 and err == ("ringscan batch: error: --address 127.0.0.1:1: no Ray cluster answers there "
                                "(Connection refused)")
     assert time.perf_counter() - t < 30 and not out.exists()
     rc = main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--address", "nohost", "--no-progress"])
-    assert rc == 2 and "expected HOST:PORT or ray://HOST:PORT" in capsys.readouterr().err
+    assert rc == 2 and "expected HOST:PORT or ray://HOST:PORT" in capsys.readouterr().err  # malformed: usage
     assert not out.exists() and not ray.is_initialized()
 
 
