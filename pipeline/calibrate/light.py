@@ -24,6 +24,7 @@ import warp as wp
 from scipy.optimize import least_squares
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.ring_labels import DecodeSettings
@@ -55,6 +56,8 @@ class LightSettings:
     """Sub-pixel ring sampling thresholds (gray-rings)."""
     phase: PhaseSettings = field(default_factory=PhaseSettings)
     """Phase decoder settings (phase-rings)."""
+    angle: AngleSettings = field(default_factory=AngleSettings)
+    """The angle code's decoder, where the captures have one (the fit uses the rings)."""
     min_confidence: float = 0.2
     """Samples below this decoding confidence are not used."""
     max_samples: int = 200_000
