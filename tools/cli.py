@@ -30,6 +30,8 @@ COMMANDS = [
     "sweep",
     "calibrate",
     "import",
+    "pack",
+    "unpack",
     "capture",
     "emulate",
     "bench",
