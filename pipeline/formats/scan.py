@@ -40,7 +40,7 @@ so that scans of image files stay readable by earlier versions."""
 SCAN_FORMATS = (SCAN_FORMAT, SCAN_FORMAT_PACKED)
 
 __all__ = ["SCAN_FORMAT", "SCAN_FORMAT_PACKED", "View", "Scan", "load_scan", "save_scan", "read_view_frames",
-           "read_view_frame", "scan_to_dict", "check_view_name", "packed_view"]
+           "read_view_frame", "frame_files", "scan_to_dict", "check_view_name", "packed_view"]
 
 
 @dataclass(frozen=True)
@@ -319,6 +319,18 @@ def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int) -> n
     if (info.height, info.width) != (cam.height, cam.width):
         raise FormatError(meta, f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
     return read_store(info, names, threads=max(1, int(threads)))
+
+
+def frame_files(scan: Scan, view: View) -> dict[str, Path]:
+    """Frame name -> the file holding it: the image file, or for a packed view the frame's
+    chunk file in the store (the store folder when its metadata cannot be read)."""
+    if view.packed is None:
+        return {n: scan.frame_path(view, n) for n in view.frames}
+    try:
+        info = open_store(scan.folder / view.packed)
+    except FormatError:
+        return {n: scan.folder / view.packed for n in view.frames}
+    return {n: info.chunk_path(info.index(n)) if n in info.names else info.path for n in view.frames}
 
 
 def read_view_frame(scan: Scan, view: View, name: str) -> np.ndarray:
