@@ -65,3 +65,29 @@ def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_pat
     assert [s["status"] for s in rep["scans"]] == ["done"] * 3
     assert all(s["ray_resources"].get("GPU") == 1.0 for s in rep["scans"])
     assert read_results(tmp_path / "ray") == read_results(local)
+
+
+@pytest.mark.slow
+def test_ray_tasks_read_packed_scans_to_the_same_bytes(three_scans, tmp_path, monkeypatch):
+    import shutil
+
+    from ringscan.pipeline.formats.packing import pack_scan
+
+    local = tmp_path / "local"
+    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
+    packed = tmp_path / "packed"
+    shutil.copytree(three_scans, packed)
+    for scan in sorted(packed.glob("*/scan.json")):
+        assert pack_scan(scan.parent).converted
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    _start_cluster()
+    try:
+        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+    finally:
+        ray.shutdown()
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+
+    def plys(folder):
+        return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+
+    assert plys(tmp_path / "ray") == plys(local) and len(plys(local)) == 4
