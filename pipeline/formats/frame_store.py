@@ -222,14 +222,13 @@ def read_store(path: str | os.PathLike | StoreInfo, names: Sequence[str] | None 
             raise FormatError(info.path / "zarr.json", f"frame {n!r} is not in the frame store")
     out = np.empty((len(names), info.height, info.width), info.dtype)
     jobs = [(info.chunk_path(info.index(n)), out[i]) for i, n in enumerate(names)]
-    if threads > 1 and len(jobs) > 1:
-        from concurrent.futures import ThreadPoolExecutor
+    # Decoded on pool threads even for threads=1: numcodecs' Blosc then decodes each
+    # frame on its calling thread alone (on the main thread it would start Blosc's own
+    # threads), so ``threads`` is the number of cores used.
+    from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(max_workers=min(threads, len(jobs))) as ex:
-            list(ex.map(lambda j: _decode_into(*j), jobs))
-    else:
-        for j in jobs:
-            _decode_into(*j)
+    with ThreadPoolExecutor(max_workers=max(1, min(int(threads), len(jobs)))) as ex:
+        list(ex.map(lambda j: _decode_into(*j), jobs))
     return out
 
 
