@@ -53,7 +53,8 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 from ringscan.pipeline.formats.rig import Rig, rig_to_dict
-from ringscan.pipeline.formats.frame_store import STORE_NAME, create_store, is_store, open_store, write_frame
+from ringscan.pipeline.formats.frame_store import (STORE_NAME, create_store, is_store, open_store,
+                                                   remove_stale_chunk_temporaries, write_frame)
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
 
 log = logging.getLogger(__name__)
@@ -361,6 +362,7 @@ def _view_store(path: Path, names: list[str], img: np.ndarray, camera):
         info = open_store(path)
         if info.names != tuple(names) or (info.height, info.width) != img.shape:
             raise FormatError(path / "zarr.json", "a frame store of other frames is in the way of this view's")
+        remove_stale_chunk_temporaries(info)
         return info
     return create_store(path, names, height=img.shape[0], width=img.shape[1], dtype=img.dtype)
 

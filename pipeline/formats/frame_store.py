@@ -50,7 +50,8 @@ _TMP_DIR_RE = re.compile(r"^\..+\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp$")
 _DTYPES = {"uint8": np.uint8, "uint16": np.uint16}
 
 __all__ = ["STORE_FORMAT", "STORE_NAME", "BLOSC", "StoreInfo", "open_store", "read_store", "write_store",
-           "create_store", "write_frame", "missing_frames", "is_store", "remove_stale_stores"]
+           "create_store", "write_frame", "missing_frames", "is_store", "remove_stale_stores",
+           "remove_stale_chunk_temporaries"]
 
 
 @dataclass(frozen=True)
@@ -287,6 +288,15 @@ def remove_stale_stores(folder: str | os.PathLike) -> list[Path]:
             shutil.rmtree(e.path, ignore_errors=True)
             removed.append(Path(e.path))
     return removed
+
+
+def remove_stale_chunk_temporaries(info: StoreInfo) -> int:
+    """Remove the temporary chunk files that killed writers left in a store (a capture
+    that resumes). Returns how many."""
+    from ringscan.pipeline.formats.atomic import remove_stale_temporaries
+
+    return sum(len(remove_stale_temporaries(info.path / "c" / str(i) / "0")) for i in range(len(info.names))
+               if (info.path / "c" / str(i) / "0").is_dir())
 
 
 def write_store(path: str | os.PathLike, frames: np.ndarray, names: Sequence[str]) -> StoreInfo:

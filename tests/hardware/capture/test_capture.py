@@ -581,9 +581,12 @@ def test_packed_frames_are_appended_and_a_killed_capture_resumes(tmp_path, rig, 
     store = open_store(out / "view_001" / "frames.zarr")
     assert missing_frames(store) == frame_names(patterns)[2:]  # the frames so far, whole
     assert read_view_frames(part, part.views[1], list(part.views[1].frames))[:, 0, 0].tolist() == [1, 2]
-    # a chunk written by a killed run but not listed is captured again
+    # a chunk written by a killed run but not listed is captured again; a killed writer's temporary goes
     (store.chunk_path(2)).parent.mkdir(parents=True)
     store.chunk_path(2).write_bytes(b"junk")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = store.chunk_path(2).parent / f".0.{int(dead.stdout)}-0123abcd.tmp"
+    stale.write_bytes(b"half a chunk")
     scan = capture_scan(out, camera=ProbeCamera(proj, table), resume=True, **kw)
     assert json.loads((out / "scan.json").read_text())["format"] == "ringscan.scan/2"
     assert [len(v.frames) for v in scan.views] == [6, 6, 6] and all(v.packed for v in scan.views)
@@ -592,3 +595,4 @@ def test_packed_frames_are_appended_and_a_killed_capture_resumes(tmp_path, rig, 
         assert frames[:, 0, 0].tolist() == [j + 1 for j in range(6)]
         assert len(set(frames[:, 0, 1].tolist())) == 1  # every frame of a view at one table angle
     assert read_capture_state(out)["status"] == "complete"
+    assert not stale.exists()
