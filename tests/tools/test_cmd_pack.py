@@ -62,6 +62,16 @@ def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path,
     assert load_scan(root / "bad").views[0].packed is None  # nothing of the bad scan changed
     assert not (root / "bad" / "view_000" / "frames.zarr").exists()
     assert load_scan(root / "good").views[0].packed
+    # a damaged store: reconstruct names the chunk in one line, writes no PLY
+    chunk = root / "good" / "view_000" / "frames.zarr" / "c" / "3" / "0" / "0"
+    intact = chunk.read_bytes()
+    chunk.write_bytes(intact[:-5] + bytes([intact[-5] ^ 1]) + intact[-4:])
+    assert main(["reconstruct", str(root / "good"), "--out", str(tmp_path / "rec"), "--device", "cpu",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(chunk) in err and "CRC32C" in err
+    assert not list((tmp_path / "rec").glob("*.ply"))
+    chunk.write_bytes(intact)
     assert main(["unpack", str(root / "good"), "--image-format", "tiff"]) == 0
     s = load_scan(root / "good")
     assert s.views[0].packed is None and s.views[0].frames["white"] == "view_000/white.tiff"
