@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from functools import partial
 from pathlib import Path
 
 from ringscan.pipeline.batch.discover import iter_scans
@@ -20,29 +21,68 @@ def add_parser(sub):
                                    "status 1 when a scan failed (named in one line each).")
     p.add_argument("root", metavar="SCAN_OR_ROOT")
     p.add_argument("--keep", action="store_true", help="leave the image files in place")
+    add_workers_option(p)
     return p
 
 
-def run_each(root: str, convert, verb: str) -> int:
-    """Run ``convert(folder)`` on every scan below ``root``; one line per scan."""
+def add_workers_option(p) -> None:
+    p.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="scans converted at a time, on N processes (default 1)")
+
+
+def _attempt(convert, folder: Path):
+    """``convert(folder)``, or the error's one line (errors cross the process boundary as text)."""
+    try:
+        return convert(folder), None
+    except RingscanError as e:
+        return None, str(e)
+
+
+def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
+    """Run ``convert(folder)`` on every scan below ``root`` (``workers`` scans at a time,
+    on processes); one line per scan, in the order they finish."""
     if not Path(root).is_dir():
         raise FormatError(root, "not a folder")
+    if workers < 1:
+        raise ValueError(f"--workers: expected 1 or more, got {workers}")
     failed = total = 0
-    for folder in iter_scans(root):
-        total += 1
-        try:
-            r = convert(folder)
-        except RingscanError as e:
+
+    def report(folder, r, err):
+        nonlocal failed
+        if err is not None:
             failed += 1
-            print(f"{folder}: failed: {e}", file=sys.stderr)
-            continue
+            print(f"{folder}: failed: {err}", file=sys.stderr)
+            return
         size = (f", {r.bytes_before / 1e6:.1f} -> {r.bytes_after / 1e6:.1f} MB" if r.converted else "")
         print(f"{folder}: {len(r.converted)} view(s) {verb}, {len(r.already)} already{size}"
-              + (f", {r.removed} old file(s) removed" if r.removed else ""))
+              + (f", {r.removed} old file(s) removed" if r.removed else ""), flush=True)
+
+    if workers == 1:
+        for folder in iter_scans(root):
+            total += 1
+            report(folder, *_attempt(convert, folder))
+    else:
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+        from multiprocessing import get_context
+
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as ex:
+            running = {}
+            scans = iter_scans(root)
+            while True:
+                for folder in scans:  # a bounded window: a root of a million scans is never listed whole
+                    total += 1
+                    running[ex.submit(_attempt, convert, folder)] = folder
+                    if len(running) >= 2 * workers:
+                        break
+                if not running:
+                    break
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done:
+                    report(running.pop(f), *f.result())
     if total == 0:
         raise FormatError(root, "no scan folder (with a scan.json) found")
     return 1 if failed else 0
 
 
 def run(args) -> int:
-    return run_each(args.root, lambda f: pack_scan(f, keep=args.keep), "packed")
+    return run_each(args.root, partial(pack_scan, keep=args.keep), "packed", workers=args.workers)

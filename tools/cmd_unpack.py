@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 from ringscan.pipeline.formats.packing import unpack_scan
-from ringscan.tools.cmd_pack import run_each
+from ringscan.tools.cmd_pack import add_workers_option, run_each
 
 
 def add_parser(sub):
@@ -16,8 +18,10 @@ def add_parser(sub):
     p.add_argument("--image-format", choices=("png", "tiff"), default="png",
                    help="frame files to write (default png; tiff: uncompressed)")
     p.add_argument("--keep", action="store_true", help="leave the frame stores in place")
+    add_workers_option(p)
     return p
 
 
 def run(args) -> int:
-    return run_each(args.root, lambda f: unpack_scan(f, image_format=args.image_format, keep=args.keep), "unpacked")
+    return run_each(args.root, partial(unpack_scan, image_format=args.image_format, keep=args.keep), "unpacked",
+                    workers=args.workers)

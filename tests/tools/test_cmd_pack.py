@@ -78,3 +78,22 @@ def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path,
     assert np.array_equal(read_view_frames(s, s.views[0]), frames_before)
     assert main(["pack", str(tmp_path / "nothing")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_pack_and_unpack_a_root_on_worker_processes(tmp_path, capsys):
+    root = tmp_path / "root"
+    frames = {}
+    for name in ("a", "b", "c"):
+        s = simulate_tiny_scan(root / name)
+        frames[name] = read_view_frames(s, s.views[0])
+    (root / "b" / "view_000" / "white.png").write_bytes(b"broken")
+    assert main(["pack", str(root), "--workers", "2"]) == 1
+    out, err = capsys.readouterr()
+    assert sorted(line.split(":")[0] for line in out.splitlines()) == [str(root / "a"), str(root / "c")]
+    assert err.count("\n") == 1 and str(root / "b" / "view_000" / "white.png") in err
+    assert main(["unpack", str(root), "--workers", "2"]) == 0
+    for name in ("a", "c"):
+        s = load_scan(root / name)
+        assert s.views[0].packed is None and np.array_equal(read_view_frames(s, s.views[0]), frames[name])
+    assert main(["pack", str(root), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err
