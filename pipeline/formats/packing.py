@@ -32,7 +32,8 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.frame_store import (STORE_NAME, is_store, open_store, read_store,
                                                    remove_stale_stores, write_store)
 from ringscan.pipeline.formats.images import read_image, write_image
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, read_view_frames, save_scan
+from ringscan.pipeline.formats.scan import (Scan, View, check_view_name, load_scan, packed_view, read_view_frames,
+                                           save_scan)
 
 log = logging.getLogger(__name__)
 
@@ -113,9 +114,10 @@ def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
     """
     scan = load_scan(folder)
     res = PackResult(folder=scan.folder)
-    for v in scan.views:
+    for i, v in enumerate(scan.views):
         if v.packed is None:
-            for rel in v.frames.values():
+            for n, rel in v.frames.items():
+                check_view_name(n, source=scan.path, where=f"views[{i}].frames: frame name")  # scan/2 asks it
                 _check_grey_png(scan.folder / rel)
     views = list(scan.views)
     folders = [_view_folder(v) for v in views]

@@ -222,6 +222,8 @@ def _parse_packed(folder: Path, src: Path, where: str, vd: dict, fmt: str) -> tu
     if (not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names)
             or len(set(names)) != len(names)):
         raise FormatError(src, f"{where}.packed.frames: expected a list of distinct frame names")
+    for i, n in enumerate(names):  # `ringscan unpack` writes <view folder>/<name>.png
+        check_view_name(n, source=src, where=f"{where}.packed.frames[{i}]")
     return store, {n: store for n in names}
 
 

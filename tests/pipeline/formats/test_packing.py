@@ -127,6 +127,17 @@ def test_a_bad_frame_is_named_and_nothing_is_written(tmp_path):
     assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
 
 
+def test_a_frame_name_that_is_no_file_name_is_refused_before_anything_is_written(tmp_path):
+    _scan(tmp_path, views=1)
+    d = json.loads((tmp_path / "scan.json").read_text())
+    d["views"][0]["frames"]["sub/extra"] = d["views"][0]["frames"]["white"]
+    (tmp_path / "scan.json").write_text(json.dumps(d))
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
+    with pytest.raises(FormatError, match="frame name: 'sub/extra' is not a folder-safe name"):
+        pack_scan(tmp_path)
+    assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
+
+
 def test_colour_png_is_refused(tmp_path):
     _scan(tmp_path, views=1)
     p = tmp_path / "view_0" / "white.png"
@@ -154,6 +165,7 @@ def test_packed_scan_json_is_checked(tmp_path):
     bad(lambda e: e.update(format=SCAN_FORMAT), "packed frames need format")
     bad(lambda e: e["views"][0].update(frames={}), "both frames and packed")
     bad(lambda e: e["views"][0]["packed"].update(store="../x.zarr"), "leaves the scan folder")
+    bad(lambda e: e["views"][0]["packed"].update(frames=["../../evil"]), r"packed.frames\[0\]: '../../evil' is not")
     bad(lambda e: e["views"][0]["packed"].update(store="view_0/other.zarr"), "frame store of view_0 not found",
         path=tmp_path / "view_0" / "other.zarr")
     names = d["views"][0]["packed"]["frames"]
