@@ -408,6 +408,9 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
     def rel(f, k, kr=None):  # median over rounds of the per-round ratio to PNG as another program writes it
         return float(np.median([a / b for a, b in zip(runs[f][k], ref[kr or k])]))
 
+    def rel_to(f, k, kr):  # median over rounds of the per-round ratio of two figures of one format
+        return float(np.median([a / b for a, b in zip(runs[f][k], runs[f][kr])]))
+
     size0 = _frames_bytes(roots["png-opencv"])
     tag = f"median of {rounds} rounds" if rounds > 1 else "one round"
     print(f"\n2. per frame format ({views} views x {len(list(base.glob('*/scan.json')))} scans, full size, 28 frames a "
@@ -421,7 +424,7 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
         size = _frames_bytes(roots[f])
         print(f"   | {f} | {size / 1e6:.1f} MB ({size / size0:.2f}x) | {1000 * m['read1']:.0f} ms "
               f"({m['read1'] / m['floor']:.1f}x the copy) | {m['w1']:.2f} | {m['w2']:.2f} | {m['ceiling']:.2f} | "
-              f"{m['numpy']:.2f} | {m['kernels']:.2f} | {float(np.median([a / b for a, b in zip(runs[f]['w2'], runs[f]['numpy'])])):.2f}x | "
+              f"{m['numpy']:.2f} | {m['kernels']:.2f} | {rel_to(f, 'w2', 'numpy'):.2f}x | "
               f"{rel(f, 'w2'):.2f}x | {same.get(f)} |")
     try:
         print(f"   load average after: {os.getloadavg()[0]:.2f}")

@@ -15,7 +15,7 @@ def add_parser(sub):
     p = sub.add_parser("pack", help="pack scans' image frames into one frame store per view (lossless)",
                        description="Pack the PNG/TIFF frames of a scan folder, or of every scan folder below "
                                    "ROOT, into one frame store per view (<view>/frames.zarr, a Zarr v3 array: "
-                                   "about the PNGs' size, ~10x faster to read; docs/formats.md). Each view's "
+                                   "about the PNGs' size, 6-11x faster to read than PNG; docs/formats.md). Each view's "
                                    "store is read back and compared frame by frame before scan.json names it "
                                    "and the image files are removed. Rerunning resumes a killed run. Exit "
                                    "status 1 when a scan failed (named in one line each).")

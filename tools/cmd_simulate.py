@@ -57,7 +57,7 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=d.seed, help="noise seed (default 0)")
     s.add_argument("--image-format", "--format", dest="format", choices=("png", "tiff", "packed"),
                    default="png", help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to "
-                                       "read; packed: one frame store per view, about the PNGs' size, ~10x faster)")
+                                       "read; packed: one frame store per view, about the PNGs' size, 6-11x faster)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
     return p

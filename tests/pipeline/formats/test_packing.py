@@ -58,7 +58,8 @@ def test_pack_and_unpack_are_lossless(tmp_path, dtype, ext):
     assert r.converted == ["view_0", "view_1"] and r.removed == 2 * len(truth) // 2
     d = json.loads((tmp_path / "scan.json").read_text())
     assert d["format"] == SCAN_FORMAT_PACKED
-    assert d["views"][1]["packed"] == {"store": "view_1/frames.zarr", "frames": list(load_scan(tmp_path).views[1].frames)}
+    names = list(load_scan(tmp_path).views[1].frames)
+    assert d["views"][1]["packed"] == {"store": "view_1/frames.zarr", "frames": names}
     assert not [f for f in _files(tmp_path) if f.endswith(("." + ext))]  # originals gone
     _check_frames(tmp_path, truth)
     scan = load_scan(tmp_path)
