@@ -30,20 +30,25 @@ COMMANDS = [
     "sweep",
     "calibrate",
     "import",
+    "pack",
+    "unpack",
     "capture",
     "emulate",
     "bench",
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every sub-command, or of ``command`` alone (a known name): a
+    process that runs one command then imports that command's module only (the others
+    pull in SciPy, pygame, Open3D ...: seconds of start-up)."""
     p = argparse.ArgumentParser(
         prog="ringscan",
         description="Structured-light 3D scanning with concentric ring patterns.",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name in ([command] if command in COMMANDS else COMMANDS):
         mod = importlib.import_module(f"ringscan.tools.cmd_{name}")
         sp = mod.add_parser(sub)
         sp.set_defaults(_run=mod.run)
@@ -57,7 +62,9 @@ def add_device_option(p: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The global options take no value: the first other word names the command.
+    parser = build_parser(next((a for a in argv if not a.startswith("-")), None))
     args = parser.parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

@@ -152,8 +152,9 @@ def add_parser(sub):
     s.add_argument("--motion-timeout", type=float, metavar="S", help="extra time allowed per move, s (default 30)")
     s.add_argument("--retries", type=int, metavar="N", help="retries of a failed device operation (default 3)")
     s.add_argument("--retry-delay", type=float, metavar="S", help="pause before a retry, s (default 0.5)")
-    s.add_argument("--image-format", choices=("png", "tiff"),
-                   help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read)")
+    s.add_argument("--image-format", "--frames", dest="image_format", choices=("png", "tiff", "packed"),
+                   help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read; packed: "
+                        "one frame store per view, frames appended as they arrive, about the PNGs' size)")
     return p
 
 
