@@ -306,13 +306,23 @@ def save_scan(scan: Scan) -> None:
 
 def check_view_frames(scan: Scan, view: View) -> None:
     """Check a view's frame files from their headers, without decoding them: regular image
-    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size.
+    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size;
+    a packed view's store from its metadata (every frame there, the camera's size).
     A reconstruction calls it for every view before it writes anything.
 
     Raises:
         FormatError: naming the frame file.
     """
     cam = scan.rig.camera
+    if view.packed is not None:  # one store: its metadata says the size of every frame
+        info = open_store(scan.folder / view.packed)
+        missing = [n for n in frame_names(scan.patterns) if n not in info.names]
+        if missing:
+            raise FormatError(scan.folder / view.packed / "zarr.json", f"frame {missing[0]!r} is not in the store")
+        if (info.width, info.height) != (cam.width, cam.height):
+            raise FormatError(scan.folder / view.packed / "zarr.json",
+                              f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+        return
     for n in frame_names(scan.patterns):
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
