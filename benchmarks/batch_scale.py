@@ -18,6 +18,9 @@ Usage::
 
 The scans (320x240 camera, gray-rings, ``--views`` turntable views each) are made
 once into ``--work`` (default /tmp/ringscan_batch_scale) and kept for reruns.
+``--full --formats --scans 6 --views 2`` measures part 2 per frame format (PNG as OpenCV writes it by
+default, ringscan's PNG, uncompressed TIFF, the packed frame store) on copies of the same scans, and one
+view's reading time on one thread against copying its frames in memory.
 ``--full [--tiff] [--rounds 3] --scans 16 --views 3 --work DIR`` measures part 2 on full-size views (the default
 rig's 1280x1024 camera, the core accuracy codec: 28 frames a view), where per-view fixed
 costs matter less; part 2 also runs every worker on one thread, which shows how the
@@ -308,6 +311,127 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict 
     return last["w2"]
 
 
+FORMATS = ("png-opencv", "png", "tiff", "packed")
+"""``--formats``: PNG as another program writes it (OpenCV's default parameters), ringscan's PNG
+(pipeline.formats.images.png_params), uncompressed TIFF, and the packed frame store."""
+
+
+def make_format_copies(work: Path, base: Path) -> dict[str, Path]:
+    """Copies of the ringscan-PNG scans below ``base`` in every format of :data:`FORMATS` (made once)."""
+    from ringscan.pipeline.formats.packing import pack_scan
+
+    roots = {"png": base}
+    for fmt in FORMATS[:1] + FORMATS[2:]:
+        root = work / f"scans_{fmt}"
+        roots[fmt] = root
+        if (root / ".done").exists():
+            continue
+        shutil.rmtree(root, ignore_errors=True)
+        shutil.copytree(base, root)
+        if fmt == "png-opencv":
+            for p in root.glob("*/view_*/*.png"):
+                cv2.imwrite(str(p), cv2.imread(str(p), cv2.IMREAD_UNCHANGED))  # OpenCV's defaults
+        elif fmt == "tiff":
+            to_tiff(root)
+        else:
+            for sj in sorted(root.glob("*/scan.json")):
+                pack_scan(sj.parent)
+        (root / ".done").write_text("")
+    return roots
+
+
+def _frames_bytes(root: Path) -> int:
+    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file() and "truth" not in p.parts
+               and p.name != "scan.json" and not p.name.startswith("."))
+
+
+def _one_view_read(root: Path, reps: int = 5) -> tuple[float, float]:
+    """Best-of-``reps`` seconds to read the first view's frames on one thread, and to copy them in memory."""
+    import numcodecs.blosc
+
+    numcodecs.blosc.use_threads = False  # Blosc on this thread alone
+    scan = load_scan(sorted(root.glob("*/scan.json"))[0].parent)
+    ts = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        a = read_view_frames(scan, scan.views[0], threads=1)
+        ts.append(time.perf_counter() - t)
+    b = np.empty_like(a)
+    tc = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        np.copyto(b, a)
+        tc.append(time.perf_counter() - t)
+    numcodecs.blosc.use_threads = None
+    return min(ts), min(tc)
+
+
+def _plys(out: Path) -> dict:
+    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*.ply"))}
+
+
+def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int = 1) -> None:
+    """Part 2 per frame format (:data:`FORMATS`), the formats in turn in each round; medians printed."""
+    cores = os.cpu_count() or 1
+    roots = make_format_copies(work, base)
+
+    def steady(r):
+        return (r["computed_views"] - views) / max(1e-9, r["wall_s"] - r["first_result_s"])
+
+    keys = ("w1", "w2", "ceiling", "numpy", "kernels", "read1", "floor")
+    runs = {f: {k: [] for k in keys} for f in FORMATS}
+    same = {}
+    for i in range(rounds):
+        for fmt in FORMATS:
+            r = runs[fmt]
+            for key, workers in (("w1", 1), ("w2", 2)):
+                out = work / f"out_{fmt}_{key}"
+                shutil.rmtree(out, ignore_errors=True)
+                tot = batch_reconstruct(roots[fmt], out, workers=workers, device="cpu", progress=False)["totals"]
+                r[key].append(steady(tot))
+                if key == "w1":
+                    pv = tot["per_view_s"]
+                    r["kernels"].append(1.0 / sum(pv[k] for k in ("decode", "sample", "triangulate", "other")))
+            same[fmt] = _plys(work / f"out_{fmt}_w2") == _plys(work / f"out_{FORMATS[0]}_w2")
+            n_np, s_np, _ = numpy_reference(roots[fmt], spec)
+            r["numpy"].append(n_np / s_np)
+            r["ceiling"].append(read_ceiling(roots[fmt], cores))
+            t1, tf = _one_view_read(roots[fmt])
+            r["read1"].append(t1)
+            r["floor"].append(tf)
+            print(f"   round {i + 1} {fmt}: 1 worker {r['w1'][-1]:.2f}, 2 workers {r['w2'][-1]:.2f} views/s; "
+                  f"NumPy {r['numpy'][-1]:.2f}; ceiling {r['ceiling'][-1]:.2f}; one view read on one thread "
+                  f"{1000 * t1:.0f} ms (copy {1000 * tf:.1f} ms)", flush=True)
+    med = {f: {k: float(np.median(v)) for k, v in runs[f].items()} for f in FORMATS}
+    ref = runs["png-opencv"]
+
+    def rel(f, k, kr=None):  # median over rounds of the per-round ratio to PNG as another program writes it
+        return float(np.median([a / b for a, b in zip(runs[f][k], ref[kr or k])]))
+
+    def rel_to(f, k, kr):  # median over rounds of the per-round ratio of two figures of one format
+        return float(np.median([a / b for a, b in zip(runs[f][k], runs[f][kr])]))
+
+    size0 = _frames_bytes(roots["png-opencv"])
+    tag = f"median of {rounds} rounds" if rounds > 1 else "one round"
+    print(f"\n2. per frame format ({views} views x {len(list(base.glob('*/scan.json')))} scans, full size, 28 frames a "
+          f"view; views/s once the first scan is back; {tag}; {cores} cores):")
+    print("   | format | frames on disk | 1 view read, 1 thread | batch 1 worker | batch 2 workers | reading "
+          "ceiling | NumPy reference | kernels only (1 worker) | 2 workers / NumPy | 2 workers vs PNG (OpenCV) "
+          "| same PLYs |")
+    print("   |---|---|---|---|---|---|---|---|---|---|---|")
+    for f in FORMATS:
+        m = med[f]
+        size = _frames_bytes(roots[f])
+        print(f"   | {f} | {size / 1e6:.1f} MB ({size / size0:.2f}x) | {1000 * m['read1']:.0f} ms "
+              f"({m['read1'] / m['floor']:.1f}x the copy) | {m['w1']:.2f} | {m['w2']:.2f} | {m['ceiling']:.2f} | "
+              f"{m['numpy']:.2f} | {m['kernels']:.2f} | {rel_to(f, 'w2', 'numpy'):.2f}x | "
+              f"{rel(f, 'w2'):.2f}x | {same.get(f)} |")
+    try:
+        print(f"   load average after: {os.getloadavg()[0]:.2f}")
+    except OSError:
+        pass
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default="/tmp/ringscan_batch_scale")
@@ -319,6 +443,9 @@ def main() -> int:
                     help="throughput only, on full-size views: the default rig's 1280x1024 camera, gray-rings 7 bits "
                          "pitch 4 + 6 sector bits (28 frames), no corrupted scans")
     ap.add_argument("--tiff", action="store_true", help="with --full: frames as uncompressed TIFF instead of PNG")
+    ap.add_argument("--formats", action="store_true",
+                    help="with --full: part 2 per frame format (PNG as OpenCV writes it by default, ringscan's PNG, "
+                         "uncompressed TIFF, packed), on copies of the scans")
     ap.add_argument("--rounds", type=int, default=1,
                     help="measure part 2 this many times in turn and print the medians (default 1)")
     a = ap.parse_args()
@@ -341,6 +468,9 @@ def main() -> int:
     except OSError:
         pass
 
+    if a.full and a.formats:
+        formats_compare(work, root, a.views, spec, rounds=a.rounds)
+        return 0
     if a.throughput_only or a.full:
         throughput(root, work, a.views, None, spec, rounds=a.rounds)
         return 0

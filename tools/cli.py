@@ -40,6 +40,8 @@ COMMANDS = {
     "sweep": "error and coverage against the number of rings (the minimum ring count)",
     "calibrate": "calibrate a real rig: camera, projector (procam), response, light, turntable",
     "import": "real Gray-code captures -> a scan folder (decoded projector positions)",
+    "pack": "pack a scan's frames into one compressed frame store per view (lossless, checked)",
+    "unpack": "unpack a scan's frame stores back into image files",
     "capture": "capture a scan from a turntable rig (or the emulated virtual rig)",
     "emulate": "run an emulated rig (turntable, projector, camera) to try captures",
     "bench": "time decode, sampling and triangulation against NumPy",

@@ -156,8 +156,9 @@ def add_parser(sub):
     s.add_argument("--motion-timeout", type=float, metavar="S", help="extra time allowed per move, s (default 30)")
     s.add_argument("--retries", type=int, metavar="N", help="retries of a failed device operation (default 3)")
     s.add_argument("--retry-delay", type=float, metavar="S", help="pause before a retry, s (default 0.5)")
-    s.add_argument("--image-format", choices=("png", "tiff"),
-                   help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read)")
+    s.add_argument("--image-format", "--frames", dest="image_format", choices=("png", "tiff", "packed"),
+                   help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read; packed: "
+                        "one frame store per view, frames appended as they arrive, about the PNGs' size)")
     return p
 
 
@@ -251,78 +252,17 @@ def _run(args) -> int:
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
     patterns = load_patterns(args.patterns) if args.patterns else None
-    if not args.resume and (rig is None or patterns is None or args.views is None):
-        raise UsageError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
-    if args.table_at is not None and not args.resume:
-        raise UsageError("--table-at only applies with --resume")
-    if args.reconstruct_settings and not args.reconstruct:
-        raise UsageError("--reconstruct-settings only applies with --reconstruct")
-    if args.allow_auto_exposure and args.exposure is None:
-        raise UsageError("--allow-auto-exposure only applies with --exposure")
-    settings = _settings(args, out)
-    display = parse_display_spec(args.projector) if args.projector else None
-    if display is not None and args.rig and args.projector_settle is None and read_rig_latency(args.rig) > 0:
-        # the projector's measured latency (ringscan calibrate latency) is the wait after each frame
-        settings = dataclasses.replace(settings, projector_settle_s=read_rig_latency(args.rig))
-    if args.centre and display is None:
-        raise UsageError("--centre only applies with --projector display[:N]")
-    live = None
-    if args.reconstruct:
-        from ringscan.pipeline.reconstruct.live import LiveReconstructor
-        from ringscan.tools.cmd_reconstruct import load_settings
-
-        live = LiveReconstructor(args.reconstruct, settings=load_settings(args.reconstruct_settings),
-                                 device=args.device)
-    if args.resume:
-        if not (out / "scan.json").is_file():
-            raise FormatError(out / "scan.json", "nothing to resume (no scan.json)")
-        saved = load_scan(out, check_files=False, allow_incomplete=True)
-        rig_v, patterns_v = rig or saved.rig, patterns or saved.patterns
-        n_views = len(read_capture_state(out)["plan"]["angles"])
-        table_at = args.table_at
-        if args.virtual and table_at is None:
-            # The virtual world starts afresh with its table where the capture says it
-            # is, so the last confirmed angle is always right: declare it.
-            table_at = float(read_capture_state(out)["table"]["deg"])
-        table_deg = resume_angle(out, table_at)
-    else:
-        rig_v, patterns_v, n_views, table_deg, table_at = rig, patterns, args.views, 0.0, None
-    names = frame_names(patterns_v)
-
-    emu = camera = projector = turntable = None
+    _check_options(args, rig, patterns)
+    settings, display = _capture_settings(args, out)
+    live = _live_reconstructor(args)
+    plan = _plan(args, out, rig, patterns)
+    names = frame_names(plan.patterns)
+    devices = _Devices()
     try:
-        if args.virtual:
-
-            if args.turntable or args.projector or args.camera:
-                raise UsageError("--virtual replaces --turntable, --projector and --camera")
-            emu = EmulatedRig(rig_v, patterns_v, args.virtual, flavor=args.flavor, time_scale=args.time_scale,
-                              start_deg=table_deg, seed=args.seed, size_mm=args.size_mm, device=args.device)
-            tt_port, pj_port = emu.turntable_port, emu.projector_port
-            camera = emu.camera
-        else:
-            missing = [o for o, v in (("--projector", args.projector), ("--camera", args.camera)) if not v]
-            if not args.turntable and n_views > 1:
-                missing.insert(0, "--turntable")
-            if missing:
-                raise UsageError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
-            tt_port, pj_port = args.turntable, args.projector
-            camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain,
-                                 allow_auto_exposure=args.allow_auto_exposure)
-        if tt_port:
-            turntable = GrblTurntable(tt_port, baudrate=args.baud, feed_deg_per_min=settings.feed_deg_per_min,
-                                      direction=args.direction, timeout_s=settings.command_timeout_s,
-                                      motion_timeout_s=settings.motion_timeout_s, position_deg=table_deg)
-        else:
-            turntable = VirtualTurntable(table_deg)  # one view: nothing turns
-        if display is not None:
-            projector = DisplayProjector([render_frame(patterns_v, n) for n in names], display=display,
-                                         centre=args.centre)
-        else:
-            projector = SerialProjector(pj_port, baudrate=args.baud, timeout_s=settings.command_timeout_s,
-                                        expect_names=names)
-        scan = capture_scan(out, camera=camera, projector=projector, turntable=turntable, rig=rig,
-                            patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
-                            settings=settings, resume=args.resume, table_at=table_at,
+        devices.open(args, plan, settings=settings, display=display, names=names)
+        scan = capture_scan(out, camera=devices.camera, projector=devices.projector, turntable=devices.turntable,
+                            rig=rig, patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
+                            settings=settings, resume=args.resume, table_at=plan.table_at,
                             progress=not args.no_progress, on_view=live)
     except CaptureError:
         if live is not None:  # keep what was captured reconstructed, then report the fault
@@ -332,19 +272,130 @@ def _run(args) -> int:
                 log.warning("reconstructing the partial scan failed: %s", e)
         raise
     finally:
-        for dev in (turntable, projector, camera, emu):
+        devices.close()
+    print(f"captured {len(scan.views)} view(s) x {len(names)} frame(s) -> {out}")
+    return 0 if live is None else _finish_live(args, out, live, scan)
+
+
+def _check_options(args, rig, patterns: PatternSpec | None) -> None:
+    """Options that only go together, refused before anything is opened."""
+    if not args.resume and (rig is None or patterns is None or args.views is None):
+        raise UsageError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
+    if args.table_at is not None and not args.resume:
+        raise UsageError("--table-at only applies with --resume")
+    if args.reconstruct_settings and not args.reconstruct:
+        raise UsageError("--reconstruct-settings only applies with --reconstruct")
+    if args.allow_auto_exposure and args.exposure is None:
+        raise UsageError("--allow-auto-exposure only applies with --exposure")
+
+
+def _capture_settings(args, out: Path):
+    """The capture settings and the display spec (None: a serial projector)."""
+    settings = _settings(args, out)
+    display = parse_display_spec(args.projector) if args.projector else None
+    if display is not None and args.rig and args.projector_settle is None and read_rig_latency(args.rig) > 0:
+        # the projector's measured latency (ringscan calibrate latency) is the wait after each frame
+        settings = dataclasses.replace(settings, projector_settle_s=read_rig_latency(args.rig))
+    if args.centre and display is None:
+        raise UsageError("--centre only applies with --projector display[:N]")
+    return settings, display
+
+
+def _live_reconstructor(args):
+    """``--reconstruct``: the reconstructor fed each view as it is captured (None without it)."""
+    if not args.reconstruct:
+        return None
+    from ringscan.pipeline.reconstruct.live import LiveReconstructor
+    from ringscan.tools.cmd_reconstruct import load_settings
+
+    return LiveReconstructor(args.reconstruct, settings=load_settings(args.reconstruct_settings), device=args.device)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """What this run captures: the new capture's options, or what the folder being resumed says."""
+
+    rig: object
+    """The rig the devices are opened for."""
+    patterns: PatternSpec
+    """The patterns projected."""
+    views: int
+    """Number of views in the plan."""
+    table_deg: float
+    """Where the table stands at the start."""
+    table_at: float | None
+    """The table angle declared to ``capture_scan`` on a resume (``--table-at``, or the virtual table's)."""
+
+
+def _plan(args, out: Path, rig, patterns: PatternSpec | None) -> _Plan:
+    if not args.resume:
+        return _Plan(rig, patterns, args.views, 0.0, None)
+    if not (out / "scan.json").is_file():
+        raise FormatError(out / "scan.json", "nothing to resume (no scan.json)")
+    saved = load_scan(out, check_files=False, allow_incomplete=True)
+    n_views = len(read_capture_state(out)["plan"]["angles"])
+    table_at = args.table_at
+    if args.virtual and table_at is None:
+        # The virtual world starts afresh with its table where the capture says it
+        # is, so the last confirmed angle is always right: declare it.
+        table_at = float(read_capture_state(out)["table"]["deg"])
+    return _Plan(rig or saved.rig, patterns or saved.patterns, n_views, resume_angle(out, table_at), table_at)
+
+
+class _Devices:
+    """The devices of one capture, opened one after the other; :meth:`close` closes whichever
+    were opened, also when opening one of them failed."""
+
+    def __init__(self):
+        self.emu = self.camera = self.projector = self.turntable = None
+
+    def open(self, args, plan: _Plan, *, settings: CaptureSettings, display, names: list[str]) -> None:
+        if args.virtual:
+            if args.turntable or args.projector or args.camera:
+                raise UsageError("--virtual replaces --turntable, --projector and --camera")
+            self.emu = EmulatedRig(plan.rig, plan.patterns, args.virtual, flavor=args.flavor,
+                                   time_scale=args.time_scale, start_deg=plan.table_deg, seed=args.seed,
+                                   size_mm=args.size_mm, device=args.device)
+            tt_port, pj_port = self.emu.turntable_port, self.emu.projector_port
+            self.camera = self.emu.camera
+        else:
+            missing = [o for o, v in (("--projector", args.projector), ("--camera", args.camera)) if not v]
+            if not args.turntable and plan.views > 1:
+                missing.insert(0, "--turntable")
+            if missing:
+                raise UsageError(f"missing {', '.join(missing)} (or use --virtual SCENE for the emulated rig)")
+            tt_port, pj_port = args.turntable, args.projector
+            self.camera = open_camera(args.camera, flush_frames=args.flush, exposure=args.exposure, gain=args.gain,
+                                      allow_auto_exposure=args.allow_auto_exposure)
+        if tt_port:
+            self.turntable = GrblTurntable(tt_port, baudrate=args.baud, feed_deg_per_min=settings.feed_deg_per_min,
+                                           direction=args.direction, timeout_s=settings.command_timeout_s,
+                                           motion_timeout_s=settings.motion_timeout_s, position_deg=plan.table_deg)
+        else:
+            self.turntable = VirtualTurntable(plan.table_deg)  # one view: nothing turns
+        if display is not None:
+            self.projector = DisplayProjector([render_frame(plan.patterns, n) for n in names], display=display,
+                                              centre=args.centre)
+        else:
+            self.projector = SerialProjector(pj_port, baudrate=args.baud, timeout_s=settings.command_timeout_s,
+                                             expect_names=names)
+
+    def close(self) -> None:
+        for dev in (self.turntable, self.projector, self.camera, self.emu):
             if dev is not None:
                 try:
                     dev.close()
                 except Exception as e:  # closing must not hide the real error
                     log.warning("closing %s failed: %s", type(dev).__name__, e)
-    print(f"captured {len(scan.views)} view(s) x {len(names)} frame(s) -> {out}")
-    if live is not None:
-        rep = live.finish(scan)
-        if rep is None:
-            log.error("%s; run `ringscan reconstruct %s --out %s --resume` once the cause is fixed", live.error, out,
-                      args.reconstruct)
-            return 1
-        t = rep["totals"]
-        print(f"reconstructed {len(rep['views'])} view(s): {t['points']} points -> {args.reconstruct}")
+
+
+def _finish_live(args, out: Path, live, scan) -> int:
+    """Reconstruct the views the live reconstructor has not done yet; 1 if it failed."""
+    rep = live.finish(scan)
+    if rep is None:
+        log.error("%s; run `ringscan reconstruct %s --out %s --resume` once the cause is fixed", live.error, out,
+                  args.reconstruct)
+        return 1
+    t = rep["totals"]
+    print(f"reconstructed {len(rep['views'])} view(s): {t['points']} points -> {args.reconstruct}")
     return 0

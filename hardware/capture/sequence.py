@@ -39,7 +39,9 @@ from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 from ringscan.pipeline.formats.progress import progress_bar
 from ringscan.pipeline.formats.rig import Rig, rig_to_dict
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
+from ringscan.pipeline.formats.frame_store import (STORE_NAME, create_store, is_store, open_store,
+                                                   remove_stale_chunk_temporaries, write_frame)
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +50,9 @@ __all__ = ["CAPTURE_FORMAT", "CaptureSettings", "InterruptGuard", "capture_scan"
 
 CAPTURE_FORMAT = "ringscan.capture/1"
 CAPTURE_FILE = "capture.json"
-IMAGE_FORMATS = ("png", "tiff")
+IMAGE_FORMATS = ("png", "tiff", "packed")
+"""Frame files: PNG, uncompressed TIFF, or ``packed``: one frame store per view (``<view>/frames.zarr``),
+frames appended as they arrive."""
 PLAN_TOLERANCE_DEG = 1.0
 """How far a view's recorded (reached) angle may lie from its planned angle: a
 reached angle is within half a motor step of the plan (0.056 deg at 8.889 steps/deg,
@@ -307,12 +311,15 @@ def _open_for_resume(out: Path, rig: Rig | None, patterns: PatternSpec | None, v
             raise FormatError(src, f"views[{i}]: {v.name} at {v.turntable_deg:g} deg does not match the capture "
                                    f"plan ({view_name(i)} at {angles[i]:g} deg)")
         frames = {}
+        store = open_store(out / v.packed) if v.packed is not None and is_store(out / v.packed) else None
         for k, rel in v.frames.items():
-            if (out / rel).is_file():
+            if (store.chunk_path(store.index(k)).is_file() if store is not None and k in store.names
+                    else v.packed is None and (out / rel).is_file()):
                 frames[k] = rel
             else:
                 log.warning("capture: %s frame %s listed but missing on disk; it will be captured again", v.name, k)
-        kept.append(View(name=v.name, turntable_deg=v.turntable_deg, frames=frames))
+        view = View(name=v.name, turntable_deg=v.turntable_deg, frames=frames)
+        kept.append(packed_view(view, v.packed, list(frames)) if v.packed is not None and frames else view)
     n = _clean_temp_files(out)
     if n:
         log.info("capture: removed %d temporary file(s) left by an interrupted write", n)
@@ -340,6 +347,17 @@ def _settle_killed_run(out: Path, state: dict, listed: int) -> None:
     atomic_write_json(out / CAPTURE_FILE, state)
     log.info("capture: the previous run was killed after %d frame(s); its record is brought up to date",
              run["frames"])
+
+
+def _view_store(path: Path, names: list[str], img: np.ndarray, camera):
+    """The frame store of a view being captured: a new one, or the one a killed run left."""
+    if is_store(path):
+        info = open_store(path)
+        if info.names != tuple(names) or (info.height, info.width) != img.shape:
+            raise FormatError(path / "zarr.json", "a frame store of other frames is in the way of this view's")
+        remove_stale_chunk_temporaries(info)
+        return info
+    return create_store(path, names, height=img.shape[0], width=img.shape[1], dtype=img.dtype)
 
 
 def _check_frame_count(projector, patterns: PatternSpec, out: Path) -> None:
@@ -534,15 +552,26 @@ class _CaptureRun:
             raise CaptureError(f"{view.name}'s frames were taken at {view.turntable_deg:g} deg, the table "
                                f"stands at {self.turntable.position_deg:g} deg", folder=self.out)
         frames = dict(view.frames)
+        store = None
         self.bar.set_postfix_str(view.name)
         for j, fname in enumerate(self.names):
             if fname in frames:
                 continue
             img = self._retry(f"{view.name} frame {fname}", lambda j=j: self._show_and_grab(j))
-            rel = f"{view.name}/{fname}.{self.settings.image_format}"
-            write_image(self.out / rel, img)
-            frames[fname] = rel
-            self.views[i] = View(name=view.name, turntable_deg=view.turntable_deg, frames=dict(frames))
+            if self.settings.image_format == "packed":
+                if store is None:  # made with every frame's name (a resumed view keeps its own)
+                    store = _view_store(self.out / view.name / STORE_NAME, self.names, img, self.camera)
+                if img.dtype != store.dtype:
+                    raise CameraError(f"camera delivers {img.dtype} frames, {store.path} holds {store.dtype}",
+                                      port=getattr(self.camera, "source", None), retryable=False)
+                write_frame(store, fname, img)
+                frames[fname] = f"{view.name}/{STORE_NAME}"
+                self.views[i] = packed_view(view, frames[fname], [n for n in self.names if n in frames])
+            else:
+                rel = f"{view.name}/{fname}.{self.settings.image_format}"
+                write_image(self.out / rel, img)
+                frames[fname] = rel
+                self.views[i] = View(name=view.name, turntable_deg=view.turntable_deg, frames=dict(frames))
             self.scan = dataclasses.replace(self.scan, views=tuple(self.views))
             save_scan(self.scan)
             self.record["frames"] += 1

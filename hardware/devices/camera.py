@@ -23,7 +23,7 @@ from ringscan.hardware.devices.base import Device
 from ringscan.hardware.errors import CameraError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
-from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.scan import load_scan, read_view_frame
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +229,8 @@ class FolderCamera(CameraDevice):
         if (folder / "scan.json").is_file():
             scan = load_scan(folder)
             names = frame_names(scan.patterns)
-            self.paths = [scan.frame_path(v, n) for v in scan.views for n in names]
+            # A frame is read when it is replayed (image file or packed store alike).
+            self.paths = [(lambda v=v, n=n: read_view_frame(scan, v, n)) for v in scan.views for n in names]
         else:
             self.paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) \
                 if folder.is_dir() else []
@@ -242,7 +243,8 @@ class FolderCamera(CameraDevice):
 
         if self.position >= len(self.paths):
             raise CameraError(f"all {len(self.paths)} recorded frames replayed", port=self.source, retryable=False)
-        img = read_image(self.paths[self.position])
+        src = self.paths[self.position]
+        img = src() if callable(src) else read_image(src)
         self.position += 1
         return img
 

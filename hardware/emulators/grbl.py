@@ -67,6 +67,29 @@ def _lround(x: float) -> int:
     return int(math.floor(abs(x) + 0.5)) * (1 if x >= 0 else -1)
 
 
+
+class _Refused(Exception):
+    """A line the firmware answers with ``error:<code>``."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
+def _parse_words(s: str) -> tuple[list[float], list[float], dict[str, float]]:
+    """A line without spaces and comments -> its G words, its M words and the other words by letter."""
+    words = re.findall(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))", s)
+    if "".join(a + b for a, b in words) != s:
+        raise _Refused(1 if not re.match(r"^[A-Z]", s) else 2)
+    gs = [float(v) for k, v in words if k == "G"]
+    ms = [float(v) for k, v in words if k == "M"]
+    val = {k: float(v) for k, v in words if k not in "GM"}
+    for k in val:
+        if k not in "XFPN":
+            raise _Refused(20)
+    return gs, ms, val
+
+
 class EmulatedTurntable(_PtyDevice):
     """A GRBL-like turntable controller on a pty.
 
@@ -375,17 +398,32 @@ class EmulatedTurntable(_PtyDevice):
         if self._alarm:
             self._error(9)
             return False
-        words = re.findall(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))", s)
-        if "".join(a + b for a, b in words) != s:
-            self._error(1 if not re.match(r"^[A-Z]", s) else 2)
-            return False
-        gs = [float(v) for k, v in words if k == "G"]
-        ms = [float(v) for k, v in words if k == "M"]
-        val = {k: float(v) for k, v in words if k not in "GM"}
-        for k in val:
-            if k not in "XFPN":
-                self._error(20)
+        try:
+            gs, ms, val = _parse_words(s)
+            dwell, g92 = self._apply_g_words(gs)
+            self._apply_m_words(ms)
+            if "F" in val:
+                if val["F"] <= 0:
+                    raise _Refused(4)
+                self._feed = val["F"]
+            now = time.monotonic()
+            if g92:
+                self._set_work_offset(val)
                 return False
+            if dwell:
+                self._queue_dwell(val, now)
+                return False
+            if "X" in val:
+                self._queue_move(val["X"], now, fault=fault)
+                return True
+        except _Refused as e:
+            self._error(e.code)
+            return False
+        self._ok()
+        return False
+
+    def _apply_g_words(self, gs: list[float]) -> tuple[bool, bool]:
+        """Set the modes the G words set, in order; return whether the line is a dwell (G4) and a G92."""
         dwell = False
         g92 = False
         for g in gs:
@@ -400,62 +438,55 @@ class EmulatedTurntable(_PtyDevice):
             elif g in (17.0, 21.0, 54.0, 94.0):
                 pass
             else:
-                self._error(20)
-                return False
+                raise _Refused(20)
+        return dwell, g92
+
+    def _apply_m_words(self, ms: list[float]) -> None:
         for m in ms:
             if m in (17.0, 18.0) and self.flavor == "horus":
                 self.motor_enabled = m == 17.0
             elif m in (2.0, 30.0):
                 pass
             else:
-                self._error(20)
-                return False
-        if "F" in val:
-            if val["F"] <= 0:
-                self._error(4)
-                return False
-            self._feed = val["F"]
-        now = time.monotonic()
-        if g92:
-            if "X" not in val:
-                self._error(26)
-                return False
-            self._offset = self._gc - val["X"]  # GRBL: from the commanded position, not the steps
-            self._wco_counter = 0  # the next report carries the new WCO
-            self._ok()
-            return False
-        if dwell:
-            if "P" not in val:
-                self._error(28)
-                return False
-            token = object()
-            self._sync = (token, val["P"])
-            end = max([m.t1 for m in self._moves], default=now)
-            self._schedule(end - now, self._sync_check)
-            return False
-        if "X" in val:
-            rate = self._rate(self._motion_mode)
-            if rate is None:
-                self._error(22)
-                return False
-            target_deg = (val["X"] + self._offset) if self._absolute else self._gc + val["X"]
-            start = self._planned_end()
-            target = _lround(target_deg * self.steps_per_deg)
-            self._gc = target_deg
-            t0 = max([m.t1 for m in self._moves], default=now)
-            dur = abs(target - start) / self.steps_per_deg / rate * 60.0 / self.time_scale
-            self._moves.append(_Move(start=start, target=target, t0=t0, t1=t0 + dur, rate=rate))
-            self._ok()
-            if fault is not None and fault.kind in ("alarm", "vanish"):
-                at = t0 + fault.at_fraction * dur - now
-                if fault.kind == "alarm":
-                    code = fault.code if fault.code is not None else 1
-                    self._schedule(at, lambda: self._raise_alarm(code))
-                else:
-                    self._schedule(at, self._unplug)
-            return True
+                raise _Refused(20)
+
+    def _set_work_offset(self, val: dict[str, float]) -> None:
+        """``G92 X<v>``."""
+        if "X" not in val:
+            raise _Refused(26)
+        self._offset = self._gc - val["X"]  # GRBL: from the commanded position, not the steps
+        self._wco_counter = 0  # the next report carries the new WCO
         self._ok()
-        return False
+
+    def _queue_dwell(self, val: dict[str, float], now: float) -> None:
+        """``G4 P<s>``: answered by :meth:`_sync_check` once the moves before it are done."""
+        if "P" not in val:
+            raise _Refused(28)
+        token = object()
+        self._sync = (token, val["P"])
+        end = max([m.t1 for m in self._moves], default=now)
+        self._schedule(end - now, self._sync_check)
+
+    def _queue_move(self, x: float, now: float, *, fault: Fault | None) -> None:
+        """A move to ``X`` after the moves queued; an ``alarm`` or ``vanish`` fault strikes part way through it."""
+        rate = self._rate(self._motion_mode)
+        if rate is None:
+            raise _Refused(22)
+        target_deg = (x + self._offset) if self._absolute else self._gc + x
+        start = self._planned_end()
+        target = _lround(target_deg * self.steps_per_deg)
+        self._gc = target_deg
+        t0 = max([m.t1 for m in self._moves], default=now)
+        dur = abs(target - start) / self.steps_per_deg / rate * 60.0 / self.time_scale
+        self._moves.append(_Move(start=start, target=target, t0=t0, t1=t0 + dur, rate=rate))
+        self._ok()
+        if fault is not None and fault.kind in ("alarm", "vanish"):
+            at = t0 + fault.at_fraction * dur - now
+            if fault.kind == "alarm":
+                code = fault.code if fault.code is not None else 1
+                self._schedule(at, lambda: self._raise_alarm(code))
+            else:
+                self._schedule(at, self._unplug)
 
     def _sync_check(self) -> None:
         """A G4 answers once the planner is empty (not during a feed hold), after its dwell."""

@@ -48,96 +48,116 @@ def run_local(jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None
     """
     if cpu_threads is None:
         cpu_threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-    ctx = mp.get_context("spawn")
-    source = enumerate(jobs)
-    in_flight: dict = {}  # future -> (number, job, deaths while alone)
-    suspects: list = []  # in flight when a worker died: given again one at a time
-    exhausted = False
+    yield from _LocalRun(jobs, workers=workers, devices=devices, cpu_threads=cpu_threads).results()
 
-    def start_pool():
-        q = ctx.Queue()
-        for d in devices:
-            q.put(d)
-        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
-                                   initargs=(None, q, os.getpid(), cpu_threads)), q
 
-    pending: list = []  # taken from ``jobs`` but not running: the pool broke as they were given to it
+class _LocalRun:
+    """One run of the local backend: the pool, the scans in flight, and the scans given
+    again one at a time after a worker died (the module docstring tells the rule)."""
 
-    def next_item():
-        if pending:
-            return pending.pop(0)
+    def __init__(self, jobs: Iterable[ScanJob], *, workers: int, devices: list[str | None], cpu_threads: int):
+        self.workers, self.devices, self.cpu_threads = workers, devices, cpu_threads
+        self.ctx = mp.get_context("spawn")
+        self.source = enumerate(jobs)
+        self.in_flight: dict = {}  # future -> (number, job, deaths while alone)
+        self.suspects: list = []  # in flight when a worker died: given again one at a time
+        self.pending: list = []  # taken from ``jobs`` but not running: the pool broke as they were given to it
+        self.pool = self.queue = None
+
+    def results(self) -> Iterator[tuple[int, dict]]:
+        """Feed the pool, yield each scan's entry as it finishes, restart the pool when a worker dies."""
+        self.pool, self.queue = self._new_pool()
         try:
-            n, job = next(source)
+            while True:
+                try:
+                    self._submit()
+                except BrokenProcessPool:  # a worker died between scans: the pool is gone, with whatever was in flight
+                    lost, alone = [], False
+                else:
+                    if not self.in_flight:
+                        return
+                    alone = len(self.in_flight) == 1
+                    lost = yield from self._collect()
+                    if not lost:
+                        continue
+                yield from self._restart(lost, alone=alone)
+        finally:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.queue.close()
+
+    def _new_pool(self):
+        q = self.ctx.Queue()
+        for d in self.devices:
+            q.put(d)
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=self.ctx, initializer=init_worker,
+                                   initargs=(None, q, os.getpid(), self.cpu_threads)), q
+
+    def _next_item(self):
+        if self.pending:
+            return self.pending.pop(0)
+        try:
+            n, job = next(self.source)
         except StopIteration:
             return None
         return n, job, 0
 
-    pool, queue = start_pool()
-    try:
-        while True:
-            lost: list = []
-            alone = False
+    def _submit(self) -> None:
+        """Give the pool work: the next suspect alone once nothing else runs, else new scans up
+        to two per worker. Raises BrokenProcessPool (the scan kept to be given again) if a worker died."""
+        if self.suspects:
+            if not self.in_flight:
+                item = self.suspects.pop(0)
+                try:
+                    self.in_flight[self.pool.submit(process_scan, item[1])] = item
+                except BrokenProcessPool:
+                    self.suspects.insert(0, item)
+                    raise
+            return
+        while len(self.in_flight) < 2 * self.workers:
+            item = self._next_item()
+            if item is None:
+                break
             try:
-                if suspects:
-                    if not in_flight:
-                        item = suspects.pop(0)
-                        try:
-                            in_flight[pool.submit(process_scan, item[1])] = item
-                        except BrokenProcessPool:
-                            suspects.insert(0, item)
-                            raise
-                else:
-                    while len(in_flight) < 2 * workers:
-                        item = next_item()
-                        if item is None:
-                            break
-                        try:
-                            in_flight[pool.submit(process_scan, item[1])] = item
-                        except BrokenProcessPool:
-                            pending.insert(0, item)
-                            raise
+                self.in_flight[self.pool.submit(process_scan, item[1])] = item
             except BrokenProcessPool:
-                pass  # a worker died between scans: the pool is gone, with whatever was in flight
-            else:
-                if not in_flight:
-                    return
-                done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
-                alone = len(in_flight) == 1
-                broken = False
-                for f in done:
-                    item = in_flight.pop(f)
-                    try:
-                        entry = f.result()
-                    except BrokenProcessPool:
-                        broken = True
-                        lost.append(item)
-                        continue
-                    yield item[0], entry
-                if not broken:
-                    continue
-            # The pool is gone with every scan in flight.
-            for f, item in in_flight.items():
-                f.cancel()
-                lost.append(item)
-            in_flight.clear()
-            pool.shutdown(wait=False, cancel_futures=True)
-            queue.close()
-            if alone:  # it ran on its own: this scan killed its worker
-                n, job, deaths = lost[0]
-                lost = [(n, job, deaths + 1)]
-                if deaths + 1 >= MAX_DEATHS:
-                    lost = []
-                    yield n, {"scan": job.rel, "out": job.out, "status": "failed",
-                              "error": f"its worker process died {deaths + 1} times while it ran alone "
-                                       f"(killed, out of memory, or a crash in a library)"}
-            suspects = sorted(suspects + lost, key=lambda it: it[0])
-            log.warning("a batch worker died; restarting the pool, %d scan(s) given again one at a time",
-                        len(suspects))
-            pool, queue = start_pool()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-        queue.close()
+                self.pending.insert(0, item)
+                raise
 
+    def _collect(self):
+        """Wait for the first scans to finish and yield their entries; return the scans the pool broke under."""
+        done, _ = wait(self.in_flight, return_when=FIRST_COMPLETED)
+        lost: list = []
+        for f in done:
+            item = self.in_flight.pop(f)
+            try:
+                entry = f.result()
+            except BrokenProcessPool:
+                lost.append(item)
+                continue
+            yield item[0], entry
+        return lost
+
+    def _restart(self, lost: list, *, alone: bool) -> Iterator[tuple[int, dict]]:
+        """The pool is gone with every scan in flight: count a death against a scan that ran
+        alone (yield it as failed after MAX_DEATHS), queue the rest as suspects, start a new pool."""
+        for f, item in self.in_flight.items():
+            f.cancel()
+            lost.append(item)
+        self.in_flight.clear()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.queue.close()
+        if alone:  # it ran on its own: this scan killed its worker
+            n, job, deaths = lost[0]
+            lost = [(n, job, deaths + 1)]
+            if deaths + 1 >= MAX_DEATHS:
+                lost = []
+                yield n, {"scan": job.rel, "out": job.out, "status": "failed",
+                          "error": f"its worker process died {deaths + 1} times while it ran alone "
+                                   f"(killed, out of memory, or a crash in a library)"}
+        self.suspects = sorted(self.suspects + lost, key=lambda it: it[0])
+        log.warning("a batch worker died; restarting the pool, %d scan(s) given again one at a time",
+                    len(self.suspects))
+        self.pool, self.queue = self._new_pool()
 
 def run_inline(jobs: Iterable[ScanJob], *, device: str | None,
                call: Callable[[ScanJob], dict] = process_scan) -> Iterator[tuple[int, dict]]:

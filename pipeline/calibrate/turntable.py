@@ -40,9 +40,8 @@ from scipy.optimize import least_squares
 from ringscan.pipeline.calibrate.board import Board, BoardSettings, BoardView, board_points, detect_board
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.rig import Camera, Rig, Turntable, Volume, turntable_transform
-from ringscan.pipeline.formats.scan import Scan
+from ringscan.pipeline.formats.scan import Scan, read_view_frame
 from ringscan.pipeline.geometry import project_points
 
 __all__ = ["TurntableSettings", "TurntableCalibration", "board_views_of_scan", "calibrate_turntable",
@@ -142,7 +141,7 @@ def board_views_of_scan(
     for v in scan.views:
         if frame not in v.frames:
             raise FormatError(scan.path, f"view {v.name}: no {frame!r} frame (frames: {', '.join(sorted(v.frames))})")
-        img = read_image(scan.frame_path(v, frame))
+        img = read_view_frame(scan, v, frame)
         views.append(detect_board(img, board=board, name=v.name, settings=settings.board))
         angles.append(float(v.turntable_deg))
     return views, angles

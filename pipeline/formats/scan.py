@@ -9,7 +9,12 @@
                 "frames": {"white": "view_000/white.png", ...}}]}
 
 Every path is relative to the scan folder and must stay inside it. Frames are 8- or
-16-bit PNG or TIFF, grey or colour (converted to grey), all of the camera's size.
+16-bit PNG or TIFF, grey or colour (converted to grey), all of the camera's size; or
+a view's frames are one packed frame store (``ringscan.scan/2``, see
+:mod:`ringscan.pipeline.formats.frame_store`)::
+
+     "views": [{"name": "view_000", "turntable_deg": 0.0,
+                "packed": {"store": "view_000/frames.zarr", "frames": ["white", ...]}}]
 """
 
 from __future__ import annotations
@@ -23,15 +28,21 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.frame_store import open_store, read_store
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
 
 SCAN_FORMAT = "ringscan.scan/1"
+SCAN_FORMAT_PACKED = "ringscan.scan/2"
+"""scan/1 plus views whose frames are a packed frame store; written only when a view is packed,
+so that scans of image files stay readable by earlier versions."""
+SCAN_FORMATS = (SCAN_FORMAT, SCAN_FORMAT_PACKED)
 
-__all__ = ["SCAN_FORMAT", "View", "Scan", "load_scan", "save_scan", "read_view_frames", "scan_to_dict",
-           "check_view_name", "check_truth", "check_view_frames"]
+__all__ = ["SCAN_FORMAT", "SCAN_FORMAT_PACKED", "View", "Scan", "load_scan", "save_scan", "read_view_frames",
+           "read_view_frame", "frame_files", "scan_to_dict", "check_view_name", "check_truth", "check_view_frames",
+           "packed_view"]
 
 
 @dataclass(frozen=True)
@@ -43,7 +54,11 @@ class View:
     turntable_deg: float
     """Turntable angle of this view in degrees (docs/design.md §11)."""
     frames: dict[str, str]
-    """Frame name -> path relative to the scan folder (POSIX separators)."""
+    """Frame name -> path relative to the scan folder (POSIX separators); for a packed
+    view, every frame maps to the store folder, in store order."""
+    packed: str | None = None
+    """The packed frame store (path relative to the scan folder) holding this view's
+    frames, or None for image files."""
 
 
 @dataclass(frozen=True)
@@ -134,8 +149,9 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
         raise FormatError(folder, "scan folder not found")
     d = read_json(src)
     fmt = d.get("format")
-    if fmt != SCAN_FORMAT:
-        raise FormatError(src, f"format: unknown scan format {fmt!r} (this version reads {SCAN_FORMAT!r})")
+    if fmt not in SCAN_FORMATS:
+        raise FormatError(src, f"format: unknown scan format {fmt!r} (this version reads "
+                               f"{' and '.join(map(repr, SCAN_FORMATS))})")
 
     rig_d = d.get("rig")
     rig_ref = None
@@ -171,18 +187,26 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
         deg = vd.get("turntable_deg", 0.0)
         if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
             raise FormatError(src, f"{where}.turntable_deg: expected a finite number, got {deg!r}")
-        fr = vd.get("frames")
-        if not isinstance(fr, dict):
-            raise FormatError(src, f"{where}.frames: expected an object")
-        frames = {k: _safe_rel(folder, src, f"{where}.frames.{k}", v) for k, v in fr.items()}
+        store = None
+        if "packed" in vd:
+            store, frames = _parse_packed(folder, src, where, vd, fmt)
+        else:
+            fr = vd.get("frames")
+            if not isinstance(fr, dict):
+                raise FormatError(src, f"{where}.frames: expected an object")
+            frames = {k: _safe_rel(folder, src, f"{where}.frames.{k}", v) for k, v in fr.items()}
         missing = [n for n in needed if n not in frames]
         if missing and not allow_incomplete:
             raise FormatError(src, f"{where}.frames: missing frame(s) {', '.join(missing)} of the {patterns.codec} codec")
-        if check_files:
+        if check_files and store is not None:
+            if not (folder / store / "zarr.json").is_file():
+                raise FormatError(folder / store, f"frame store of {name} not found (listed in scan.json "
+                                                  f"{where}.packed.store)")
+        elif check_files:
             for k, rel in frames.items():
                 if not (folder / rel).is_file():
                     raise FormatError(folder / rel, f"frame {k!r} of {name} not found (listed in scan.json {where}.frames)")
-        views.append(View(name=name, turntable_deg=float(deg), frames=frames))
+        views.append(View(name=name, turntable_deg=float(deg), frames=frames, packed=store))
     extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views")}
     return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra)
 
@@ -228,11 +252,42 @@ def check_truth(scan: Scan) -> dict:
     return out
 
 
+def _parse_packed(folder: Path, src: Path, where: str, vd: dict, fmt: str) -> tuple[str, dict[str, str]]:
+    if fmt != SCAN_FORMAT_PACKED:
+        raise FormatError(src, f"{where}.packed: packed frames need format {SCAN_FORMAT_PACKED!r}, not {fmt!r}")
+    if "frames" in vd:
+        raise FormatError(src, f"{where}: both frames and packed (a view's frames are files or one store)")
+    pk = vd["packed"]
+    if not isinstance(pk, dict):
+        raise FormatError(src, f"{where}.packed: expected an object with store and frames")
+    store = _safe_rel(folder, src, f"{where}.packed.store", pk.get("store"))
+    names = pk.get("frames")
+    if (not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names)
+            or len(set(names)) != len(names)):
+        raise FormatError(src, f"{where}.packed.frames: expected a list of distinct frame names")
+    for i, n in enumerate(names):  # `ringscan unpack` writes <view folder>/<name>.png
+        check_view_name(n, source=src, where=f"{where}.packed.frames[{i}]")
+    return store, {n: store for n in names}
+
+
+def _view_to_dict(v: View) -> dict:
+    if v.packed is not None:
+        return {"name": v.name, "turntable_deg": v.turntable_deg,
+                "packed": {"store": v.packed, "frames": list(v.frames)}}
+    return {"name": v.name, "turntable_deg": v.turntable_deg, "frames": dict(v.frames)}
+
+
+def packed_view(view: View, store: str, names: list[str]) -> View:
+    """``view`` with its frames in the store ``store`` (relative to the scan folder)."""
+    return View(name=view.name, turntable_deg=view.turntable_deg, frames={n: store for n in names}, packed=store)
+
+
 def scan_to_dict(scan: Scan) -> dict:
-    d = {"format": SCAN_FORMAT,
+    packed = any(v.packed is not None for v in scan.views)
+    d = {"format": SCAN_FORMAT_PACKED if packed else SCAN_FORMAT,
          "rig": scan.rig_ref if scan.rig_ref else rig_to_dict(scan.rig),
          "patterns": scan.patterns.to_dict(),
-         "views": [{"name": v.name, "turntable_deg": v.turntable_deg, "frames": dict(v.frames)} for v in scan.views]}
+         "views": [_view_to_dict(v) for v in scan.views]}
     d.update(scan.extra)
     return d
 
@@ -251,13 +306,23 @@ def save_scan(scan: Scan) -> None:
 
 def check_view_frames(scan: Scan, view: View) -> None:
     """Check a view's frame files from their headers, without decoding them: regular image
-    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size.
+    files within the size limits (:func:`~.limits.check_image_header`), of the camera's size;
+    a packed view's store from its metadata (every frame there, the camera's size).
     A reconstruction calls it for every view before it writes anything.
 
     Raises:
         FormatError: naming the frame file.
     """
     cam = scan.rig.camera
+    if view.packed is not None:  # one store: its metadata says the size of every frame
+        info = open_store(scan.folder / view.packed)
+        missing = [n for n in frame_names(scan.patterns) if n not in info.names]
+        if missing:
+            raise FormatError(scan.folder / view.packed / "zarr.json", f"frame {missing[0]!r} is not in the store")
+        if (info.width, info.height) != (cam.width, cam.height):
+            raise FormatError(scan.folder / view.packed / "zarr.json",
+                              f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+        return
     for n in frame_names(scan.patterns):
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
@@ -275,13 +340,17 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
     releases the GIL, and decoding PNGs costs more than reconstructing them).
     Raises :class:`FormatError` naming the file for a missing or unreadable frame,
     frames of different sizes or bit depths, or a size other than the camera's
-    (the first such frame in frame order).
+    (the first such frame in frame order). A packed view is read from its frame
+    store, ``threads`` frames decoded at a time, every chunk's checksum checked; its
+    frame names (as scan.json lists them), size and dtype must match.
     """
     names = frame_names(scan.patterns) if names is None else names
     cam = scan.rig.camera
     for n in names:
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
+    if view.packed is not None:
+        return _read_packed(scan, view, names, threads=min(8, os.cpu_count() or 1) if threads is None else threads)
     paths = [scan.frame_path(view, n) for n in names]
     threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))
 
@@ -310,3 +379,37 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
             raise FormatError(p, f"frame is {img.dtype}, other frames of {view.name} are {out.dtype}")
         out[i] = img
     return out
+
+
+def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int) -> np.ndarray:
+    info = open_store(scan.folder / view.packed)
+    meta = info.path / "zarr.json"
+    # scan.json lists the store's frames in store order (only those captured so far, during a capture)
+    if [n for n in info.names if n in view.frames] != list(view.frames):
+        raise FormatError(meta, f"frames {', '.join(info.names)} do not match scan.json's list for {view.name} "
+                                f"({', '.join(view.frames)})")
+    cam = scan.rig.camera
+    if (info.height, info.width) != (cam.height, cam.width):
+        raise FormatError(meta, f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+    return read_store(info, names, threads=max(1, int(threads)))
+
+
+def frame_files(scan: Scan, view: View) -> dict[str, Path]:
+    """Frame name -> the file holding it: the image file, or for a packed view the frame's
+    chunk file in the store (the store folder when its metadata cannot be read)."""
+    if view.packed is None:
+        return {n: scan.frame_path(view, n) for n in view.frames}
+    try:
+        info = open_store(scan.folder / view.packed)
+    except FormatError:
+        return {n: scan.folder / view.packed for n in view.frames}
+    return {n: info.chunk_path(info.index(n)) if n in info.names else info.path for n in view.frames}
+
+
+def read_view_frame(scan: Scan, view: View, name: str) -> np.ndarray:
+    """Read one frame of a view (an image file or a frame of its store) as a 2D array."""
+    if view.packed is None:
+        if name not in view.frames:
+            raise FormatError(scan.path, f"view {view.name}: frame {name!r} is not listed")
+        return read_image(scan.frame_path(view, name))
+    return read_view_frames(scan, view, [name], threads=1)[0]

@@ -23,7 +23,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.ply import check_ply
 from ringscan.pipeline.formats.rig import rig_to_dict
-from ringscan.pipeline.formats.scan import Scan
+from ringscan.pipeline.formats.scan import Scan, frame_files
 from ringscan.pipeline.formats.settings import settings_to_dict
 
 __all__ = ["REPORT_FORMAT", "HASH_RECIPE", "InputHashes", "DoneCheck", "hash_inputs", "check_done"]
@@ -94,7 +94,8 @@ def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None) -> Inpu
             continue
         entry = {"name": v.name, "index": index, "turntable_deg": v.turntable_deg,
                  "frames": {n: v.frames.get(n) for n in names}}
-        files = {n: _frame_stat(scan.frame_path(v, n)) if n in v.frames else None for n in names}
+        where = frame_files(scan, v)  # a packed view's frames: their chunk files
+        files = {n: _frame_stat(where[n]) if n in v.frames else None for n in names}
         per_view[v.name] = _digest({**base, "view": entry, "files": files})
     return InputHashes(rig=base["rig"], patterns=base["patterns"], settings=base["settings"], views=per_view,
                        scan=_digest({**base, "views": per_view}))

@@ -14,7 +14,8 @@ from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 from ringscan.pipeline.formats.rig import Rig, default_rig, turntable_transform
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, save_scan
+from ringscan.pipeline.formats.frame_store import STORE_NAME, create_store, write_frame
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
 from ringscan.pipeline.simulate.scenes import SceneMesh, add_wall, make_scene, place_scene, pose_scene
 from ringscan.pipeline.simulate.truth import TRUTH_DIR, _write_depth, _write_mesh
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _mix_seed, view_angles
@@ -92,7 +93,8 @@ def simulate_scan(
         device: Warp device.
         progress: show a progress bar.
         size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
-        image_format: ``png`` or ``tiff`` for the frames.
+        image_format: ``png`` or ``tiff`` for the frames, or ``packed``: one frame store per view
+            (``<view>/frames.zarr``, frames appended as they are rendered).
         pose: turn the placed scene into this resting pose first (see
             :func:`ringscan.pipeline.simulate.scenes.pose_scene`: ``upright``, ``upside-down``,
             ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
@@ -108,8 +110,8 @@ def simulate_scan(
 
     if not isinstance(patterns, PatternSpec):
         raise ValueError(f"patterns: expected a PatternSpec, got {type(patterns).__name__}")
-    if image_format not in ("png", "tiff"):
-        raise ValueError(f"image_format: expected 'png' or 'tiff', got {image_format!r}")
+    if image_format not in ("png", "tiff", "packed"):
+        raise ValueError(f"image_format: expected 'png', 'tiff' or 'packed', got {image_format!r}")
     rig = default_rig() if rig is None else rig
     angles = view_angles(views) if views is not None else tuple(float(a) for a in turntable_deg)
     if not angles:
@@ -139,18 +141,25 @@ def simulate_scan(
         for vi, deg in enumerate(angles):
             vname = f"view_{vi:03d}"
             vr.set_turntable(deg)
-            rel = {}
+            rel, store = {}, None
+            if image_format == "packed":
+                store = create_store(folder / vname / STORE_NAME, names, height=rig.camera.height,
+                                     width=rig.camera.width, dtype=np.uint16 if settings.bit_depth == 16 else np.uint8)
             for fi, n in enumerate(names):
                 img = vr.render(frames[n], seed=_mix_seed(settings.seed, vi, fi))
-                rel[n] = f"{vname}/{n}.{image_format}"
-                write_image(folder / rel[n], img)
+                if store is not None:
+                    write_frame(store, n, img)
+                else:
+                    rel[n] = f"{vname}/{n}.{image_format}"
+                    write_image(folder / rel[n], img)
                 bar.update(1)
             tr = vr.truth()
             depth_rel, lit_rel = f"{TRUTH_DIR}/{vname}_depth.tiff", f"{TRUTH_DIR}/{vname}_lit.png"
             _write_depth(folder / depth_rel, tr["depth"])
             write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
             truth["views"][vname] = {"depth": depth_rel, "lit": lit_rel}
-            done.append(View(name=vname, turntable_deg=float(deg), frames=rel))
+            view = View(name=vname, turntable_deg=float(deg), frames=rel)
+            done.append(packed_view(view, f"{vname}/{STORE_NAME}", names) if store is not None else view)
             snapshot = {**truth, "views": dict(truth["views"])}
             scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": snapshot})
             save_scan(scan)

@@ -579,3 +579,49 @@ def test_tiff_frames(tmp_path, rig, patterns):
                         views=1, settings=dataclasses.replace(FAST, image_format="tiff"), progress=False)
     assert all(p.endswith(".tiff") for p in scan.views[0].frames.values())
     assert read_image(scan.frame_path(scan.views[0], "black"))[0, 0] == 2
+
+
+class _Dies(ProbeCamera):
+    """Stops the capture at grab ``at`` as a kill would (no word in capture.json)."""
+
+    def __init__(self, *a, at, **kw):
+        super().__init__(*a, **kw)
+        self.at = at
+
+    def _read(self):
+        if self.grabs == self.at:
+            raise SystemExit(9)
+        return super()._read()
+
+
+def test_packed_frames_are_appended_and_a_killed_capture_resumes(tmp_path, rig, patterns):
+    from ringscan.pipeline.formats.frame_store import missing_frames, open_store
+    from ringscan.pipeline.formats.scan import read_view_frames
+
+    out = tmp_path / "s"
+    proj, table, _ = _virtual(patterns)
+    kw = dict(projector=proj, turntable=table, settings=dataclasses.replace(FAST, image_format="packed"),
+              progress=False)
+    with pytest.raises(SystemExit):
+        capture_scan(out, camera=_Dies(proj, table, at=8), rig=rig, patterns=patterns, views=3, **kw)
+    part = load_scan(out, allow_incomplete=True)
+    assert [v.packed for v in part.views] == ["view_000/frames.zarr", "view_001/frames.zarr"]
+    assert [len(v.frames) for v in part.views] == [6, 2]
+    store = open_store(out / "view_001" / "frames.zarr")
+    assert missing_frames(store) == frame_names(patterns)[2:]  # the frames so far, whole
+    assert read_view_frames(part, part.views[1], list(part.views[1].frames))[:, 0, 0].tolist() == [1, 2]
+    # a chunk written by a killed run but not listed is captured again; a killed writer's temporary goes
+    (store.chunk_path(2)).parent.mkdir(parents=True)
+    store.chunk_path(2).write_bytes(b"junk")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = store.chunk_path(2).parent / f".0.{int(dead.stdout)}-0123abcd.tmp"
+    stale.write_bytes(b"half a chunk")
+    scan = capture_scan(out, camera=ProbeCamera(proj, table), resume=True, **kw)
+    assert json.loads((out / "scan.json").read_text())["format"] == "ringscan.scan/2"
+    assert [len(v.frames) for v in scan.views] == [6, 6, 6] and all(v.packed for v in scan.views)
+    for v in scan.views:
+        frames = read_view_frames(scan, v)
+        assert frames[:, 0, 0].tolist() == [j + 1 for j in range(6)]
+        assert len(set(frames[:, 0, 1].tolist())) == 1  # every frame of a view at one table angle
+    assert read_capture_state(out)["status"] == "complete"
+    assert not stale.exists()

@@ -116,3 +116,29 @@ def test_ray_a_huge_frame_or_a_library_error_fails_its_scan_alone(scan_root, tmp
                                   "error": f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"}
     for s in bad["scans"]:
         assert s["status"] == "failed" and "nodevice:7" in s["error"] and "retries" not in s["error"], s
+
+
+@pytest.mark.slow
+def test_ray_tasks_read_packed_scans_to_the_same_bytes(three_scans, tmp_path, monkeypatch):
+    import shutil
+
+    from ringscan.pipeline.formats.packing import pack_scan
+
+    local = tmp_path / "local"
+    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
+    packed = tmp_path / "packed"
+    shutil.copytree(three_scans, packed)
+    for scan in sorted(packed.glob("*/scan.json")):
+        assert pack_scan(scan.parent).converted
+    monkeypatch.delenv(FAULT_ENV, raising=False)
+    _start_cluster()
+    try:
+        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+    finally:
+        ray.shutdown()
+    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+
+    def plys(folder):
+        return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+
+    assert plys(tmp_path / "ray") == plys(local) and len(plys(local)) == 4

@@ -163,7 +163,7 @@ def _edit_scan(tmp_path, fn):
 
 
 @pytest.mark.parametrize("fn,match", [
-    (lambda d: d.update(format="ringscan.scan/2"), "unknown scan format"),
+    (lambda d: d.update(format="ringscan.scan/9"), "unknown scan format"),
     (lambda d: d["views"][0]["frames"].update(white="../../etc/passwd"), "leaves the scan folder"),
     (lambda d: d["views"][0]["frames"].update(white="/abs/white.png"), "leaves the scan folder"),
     (lambda d: d["views"][0]["frames"].pop("gray_2"), "missing frame\\(s\\) gray_2"),

@@ -23,7 +23,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image, write_image
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.scan import Scan, View, load_scan
+from ringscan.pipeline.formats.scan import Scan, View, load_scan, read_view_frames
 from ringscan.pipeline.reconstruct.freshness import check_done, hash_inputs
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -139,6 +139,22 @@ def test_a_changed_frame_redoes_its_view_only(scan, tmp_path):
     rep = reconstruct_scan(scan, out, device="cpu", resume=True, progress=False)
     assert rep["resume"]["kept"] == ["view_001"]
     _consistent(out)
+
+
+def test_a_changed_frame_of_a_packed_view_redoes_its_view_only(scan, tmp_path):
+    from ringscan.pipeline.formats.frame_store import open_store, write_frame
+    from ringscan.pipeline.formats.packing import pack_scan
+
+    pack_scan(scan.folder)
+    scan = load_scan(scan.folder)
+    out = tmp_path / "rec"
+    reconstruct_scan(scan, out, device="cpu", progress=False)
+    assert check_done(scan, out, settings=ReconstructSettings()).done
+    info = open_store(scan.folder / scan.views[1].packed)
+    img = read_view_frames(scan, scan.views[1], ["gray_2"])[0]
+    write_frame(info, "gray_2", np.ascontiguousarray(img[:, ::-1]))  # one chunk rewritten in place
+    check = check_done(scan, out, settings=ReconstructSettings())
+    assert check.redo == {"view_001": "its frames or its entry in scan.json changed"}
 
 
 def test_a_changed_rig_redoes_every_view(scan, tmp_path):

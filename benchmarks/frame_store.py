@@ -1,0 +1,138 @@
+"""The packed frame store's container and codec: Zarr v3 (ringscan's store) against Blosc2's own format.
+
+For one view's 28 frames (a full-size simulated view, and 28 frames of a real capture
+from shared/data/procam), prints per candidate: size on disk, and the best-of-N time to
+read all frames into memory on one thread (files read from the page cache, decoded),
+next to PNG as OpenCV writes it by default and to copying the frames in memory (the
+floor). Blosc2's own format needs ``pip install blosc2`` (not a ringscan dependency).
+
+Usage::
+
+    python benchmarks/frame_store.py [--scan SCAN_FOLDER] [--procam ../shared/data/procam/capture_1]
+
+``--scan``: a full-size scan folder with PNG frames (default: one view simulated with
+``ringscan simulate`` into /tmp/ringscan_frame_store, kept for reruns).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ringscan.pipeline.formats import frame_store as fs
+from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+
+REPS = 7
+
+
+def best(f, reps: int = REPS) -> float:
+    ts = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        f()
+        ts.append(time.perf_counter() - t)
+    return min(ts)
+
+
+def size_of(p: Path) -> int:
+    return p.stat().st_size if p.is_file() else sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+
+def blosc2_candidates(frames: np.ndarray, tmp: Path) -> list[tuple[str, Path, callable]]:
+    """Blosc2's own format (.b2nd, one chunk per frame): the codecs worth comparing."""
+    try:
+        import blosc2
+    except ImportError:
+        print("   (blosc2 not installed: Blosc2's own format skipped)")
+        return []
+    blosc2.set_nthreads(1)
+    out = []
+    F, C = blosc2.Filter, blosc2.Codec
+    for label, codec, level, filt in (("zstd 5, bit-shuffle", C.ZSTD, 5, F.BITSHUFFLE),
+                                      ("zstd 1, no filter", C.ZSTD, 1, F.NOFILTER),
+                                      ("zstd 1, shuffle + byte-delta", C.ZSTD, 1, F.BYTEDELTA),
+                                      ("lz4hc 5, bit-shuffle", C.LZ4HC, 5, F.BITSHUFFLE),
+                                      ("lz4 1, bit-shuffle", C.LZ4, 1, F.BITSHUFFLE)):
+        path = tmp / f"b2_{codec.name}_{level}_{filt.name}.b2nd"
+        filters = [F.SHUFFLE, F.BYTEDELTA] if filt == F.BYTEDELTA else [filt]
+        blosc2.asarray(frames, chunks=(1,) + frames.shape[1:], urlpath=str(path), mode="w",
+                       cparams={"codec": codec, "clevel": level, "filters": filters, "nthreads": 1},
+                       dparams={"nthreads": 1})
+
+        def read(path=path):
+            return blosc2.open(str(path), mode="r", dparams={"nthreads": 1})[:]
+
+        assert np.array_equal(read(), frames)
+        out.append((f"Blosc2 .b2nd, {label}", path, read))
+    return out
+
+
+def measure(label: str, frames: np.ndarray, png_read) -> None:
+    import numcodecs.blosc
+
+    numcodecs.blosc.use_threads = False  # Blosc on the calling thread alone
+    tmp = Path(tempfile.mkdtemp(prefix="ringscan_fs_"))
+    try:
+        copy = np.empty_like(frames)
+        floor = best(lambda: np.copyto(copy, frames))
+        pngs = [cv2.imencode(".png", f)[1] for f in frames]  # OpenCV's default PNG parameters
+        for i, b in enumerate(pngs):
+            (tmp / f"{i}.png").write_bytes(b.tobytes())
+        t_png = best(lambda: [cv2.imread(str(tmp / f"{i}.png"), cv2.IMREAD_UNCHANGED) for i in range(len(pngs))], 3)
+        size_png = sum(len(b) for b in pngs)
+        info = fs.write_store(tmp / "frames.zarr", frames, [f"f{i}" for i in range(len(frames))])
+        rows = [("PNG, OpenCV's default parameters", size_png, t_png)]
+        rows.append(("Zarr v3 (ringscan): Blosc zstd 5, bit-shuffle, CRC32C", size_of(tmp / "frames.zarr"),
+                     best(lambda: fs.read_store(info))))
+        if png_read is not None:
+            rows.append(("ringscan's PNG (read_view_frames, 1 thread)", png_read[0], best(png_read[1], 3)))
+        for name, path, read in blosc2_candidates(frames, tmp):
+            rows.append((name, size_of(path), best(read)))
+        print(f"\n{label}: {frames.shape[0]} frames {frames.shape[2]}x{frames.shape[1]} {frames.dtype}, "
+              f"{frames.nbytes / 1e6:.1f} MB in memory; copying them in memory {1000 * floor:.1f} ms")
+        print("   | container, codec | size | vs PNG (OpenCV) | read, 1 thread | vs PNG | vs the copy |")
+        print("   |---|---|---|---|---|---|")
+        for name, size, t in rows:
+            print(f"   | {name} | {size / 1e6:.1f} MB | {size / size_png:.2f}x | {1000 * t:.1f} ms | "
+                  f"{t_png / t:.1f}x faster | {t / floor:.1f}x |")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        numcodecs.blosc.use_threads = None
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scan", default=None, help="a full-size scan folder with PNG frames")
+    ap.add_argument("--procam", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "procam"
+                                            / "capture_1"))
+    a = ap.parse_args()
+    scan_dir = Path(a.scan) if a.scan else Path("/tmp/ringscan_frame_store/scan")
+    if not (scan_dir / "scan.json").is_file():
+        print(f"simulating one full-size view into {scan_dir} ...", flush=True)
+        subprocess.run([sys.executable, "-m", "ringscan.tools.cli", "simulate", "--out", str(scan_dir),
+                        "--no-progress", "--device", "cpu"], check=True)
+    scan = load_scan(scan_dir)
+    view = scan.views[0]
+    frames = read_view_frames(scan, view, threads=1)
+    png_size = sum(size_of(scan.frame_path(view, n)) for n in view.frames) if view.packed is None else None
+    measure(f"simulated view ({scan_dir})", frames,
+            (png_size, lambda: read_view_frames(scan, view, threads=1)) if png_size else None)
+    procam = sorted(Path(a.procam).glob("graycode_*.png"))[:28]
+    if len(procam) == 28:
+        measure(f"real capture ({a.procam}, graycode_00..27)",
+                np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in procam]), None)
+    else:
+        print(f"\n(real captures not found at {a.procam}: skipped)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

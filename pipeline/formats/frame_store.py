@@ -1,0 +1,335 @@
+"""The packed frame store: a view's frames as one Zarr v3 array (docs/formats.md).
+
+::
+
+    view_000/frames.zarr/zarr.json      the array's metadata (shape, dtype, codecs, frame names)
+    view_000/frames.zarr/c/<i>/0/0      frame i: Blosc (zstd 5, bit-shuffle) + CRC32C
+
+One array of shape (n_frames, H, W), uint8 or uint16, one chunk per frame, each
+chunk compressed losslessly with Blosc (zstd level 5 after a bit-shuffle) and
+ending in its CRC32C (Zarr's ``crc32c`` codec). Any Zarr v3 reader opens it
+(zarr-python, tensorstore, zarrs ...); the frame names are the array attribute
+``ringscan.frames``. ringscan reads and writes the chunks itself: the reader checks
+every chunk's checksum and refuses a missing chunk (which a generic Zarr reader
+would silently fill with zeros), and decodes straight into the output array.
+
+Stores are written whole into a temporary folder and renamed into place
+(:func:`write_store`), or created empty and filled frame by frame
+(:func:`create_store`, :func:`write_frame`; each chunk written atomically), so a
+killed writer leaves either nothing, or a store whose written frames are whole.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import secrets
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ringscan.pipeline.formats.atomic import _process_alive, atomic_write_bytes, atomic_write_json
+from ringscan.pipeline.formats.errors import FormatError
+
+STORE_FORMAT = "ringscan.frames/1"
+"""The ``ringscan.format`` attribute of a store's zarr.json."""
+STORE_NAME = "frames.zarr"
+"""The store's folder name inside a view folder."""
+BLOSC = {"cname": "zstd", "clevel": 5, "shuffle": "bitshuffle", "blocksize": 0}
+"""The Blosc settings every frame is written with (docs/formats.md has the measurements)."""
+MAX_FRAMES = 4096
+"""The most frames a store may hold (a bound on bad input)."""
+MAX_SIDE = 65536
+"""The largest frame side (the rig's bound on camera sizes)."""
+
+_TMP_DIR_RE = re.compile(r"^\..+\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp$")
+_DTYPES = {"uint8": np.uint8, "uint16": np.uint16}
+
+__all__ = ["STORE_FORMAT", "STORE_NAME", "BLOSC", "StoreInfo", "open_store", "read_store", "write_store",
+           "create_store", "write_frame", "missing_frames", "is_store", "remove_stale_stores",
+           "remove_stale_chunk_temporaries"]
+
+
+@dataclass(frozen=True)
+class StoreInfo:
+    """A store's checked metadata."""
+
+    path: Path
+    """The store folder."""
+    names: tuple[str, ...]
+    """Frame names in store order (index i is chunk ``c/i/0/0``)."""
+    height: int
+    """Frame height in pixels."""
+    width: int
+    """Frame width in pixels."""
+    dtype: np.dtype
+    """uint8 or uint16."""
+
+    def chunk_path(self, index: int) -> Path:
+        return self.path / "c" / str(index) / "0" / "0"
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+
+def is_store(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder with a zarr.json (a store, checked or not)."""
+    return (Path(path) / "zarr.json").is_file()
+
+
+def _codecs(dtype: np.dtype) -> list[dict]:
+    return [{"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "blosc", "configuration": {**BLOSC, "typesize": int(np.dtype(dtype).itemsize)}},
+            {"name": "crc32c"}]
+
+
+def _metadata(names: Sequence[str], height: int, width: int, dtype) -> dict:
+    return {"zarr_format": 3, "node_type": "array", "shape": [len(names), int(height), int(width)],
+            "data_type": np.dtype(dtype).name,
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [1, int(height), int(width)]}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": 0, "codecs": _codecs(dtype), "dimension_names": ["frame", "y", "x"],
+            "attributes": {"ringscan": {"format": STORE_FORMAT, "frames": list(names)}}}
+
+
+def _check_new(names: Sequence[str], height: int, width: int, dtype) -> np.dtype:
+    dt = np.dtype(dtype)
+    if dt.name not in _DTYPES:
+        raise ValueError(f"frame store: frames must be uint8 or uint16, not {dt}")
+    if not names or len(set(names)) != len(names) or len(names) > MAX_FRAMES:
+        raise ValueError(f"frame store: need 1 to {MAX_FRAMES} distinct frame names, got {list(names)!r}")
+    if not (0 < height <= MAX_SIDE and 0 < width <= MAX_SIDE):
+        raise ValueError(f"frame store: frame size {width}x{height} out of range")
+    return dt
+
+
+def open_store(path: str | os.PathLike) -> StoreInfo:
+    """Read and check a store's zarr.json.
+
+    Raises:
+        FormatError: naming the zarr.json for a missing file, a layout other than
+            the one described in the module docstring, or bad frame names.
+    """
+    path = Path(path)
+    meta = path / "zarr.json"
+    if not meta.is_file():
+        raise FormatError(meta, "frame store metadata not found")
+    if meta.stat().st_size > 1 << 20:
+        raise FormatError(meta, "frame store metadata larger than 1 MiB")
+    try:
+        d = json.loads(meta.read_bytes())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise FormatError(meta, f"not valid JSON ({e})") from None
+    if not isinstance(d, dict) or d.get("zarr_format") != 3 or d.get("node_type") != "array":
+        raise FormatError(meta, "not a Zarr v3 array")
+    shape = d.get("shape")
+    if (not isinstance(shape, list) or len(shape) != 3
+            or not all(isinstance(s, int) and not isinstance(s, bool) for s in shape)):
+        raise FormatError(meta, f"shape: expected [frames, height, width], got {shape!r}")
+    n, h, w = shape
+    if not (0 < n <= MAX_FRAMES and 0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
+        raise FormatError(meta, f"shape: {shape} out of range")
+    dt = d.get("data_type")
+    if dt not in _DTYPES:
+        raise FormatError(meta, f"data_type: expected uint8 or uint16, got {dt!r}")
+    grid = d.get("chunk_grid")
+    if grid != {"name": "regular", "configuration": {"chunk_shape": [1, h, w]}}:
+        raise FormatError(meta, f"chunk_grid: expected one chunk per frame ([1, {h}, {w}]), got {grid!r}")
+    keys = d.get("chunk_key_encoding")
+    if keys != {"name": "default", "configuration": {"separator": "/"}}:
+        raise FormatError(meta, f"chunk_key_encoding: expected the default with '/', got {keys!r}")
+    codecs = d.get("codecs")
+    names_ok = isinstance(codecs, list) and [c.get("name") if isinstance(c, dict) else None for c in codecs]
+    if names_ok != ["bytes", "blosc", "crc32c"]:
+        raise FormatError(meta, "codecs: expected bytes, blosc, crc32c (ringscan reads only stores laid out "
+                                f"as it writes them), got {names_ok or codecs!r}")
+    endian = (codecs[0].get("configuration") or {}).get("endian", "little")
+    if endian != "little" and dt != "uint8":
+        raise FormatError(meta, f"codecs: bytes codec with {endian!r} byte order (need little)")
+    attrs = (d.get("attributes") or {}).get("ringscan") if isinstance(d.get("attributes"), dict) else None
+    if not isinstance(attrs, dict) or attrs.get("format") != STORE_FORMAT:
+        raise FormatError(meta, f"attributes.ringscan.format: expected {STORE_FORMAT!r}")
+    names = attrs.get("frames")
+    if (not isinstance(names, list) or len(names) != n or not all(isinstance(x, str) and x for x in names)
+            or len(set(names)) != n):
+        raise FormatError(meta, f"attributes.ringscan.frames: expected {n} distinct frame names (one per frame)")
+    return StoreInfo(path=path, names=tuple(names), height=h, width=w, dtype=np.dtype(_DTYPES[dt]))
+
+
+def missing_frames(info: StoreInfo) -> list[str]:
+    """The frames of a store whose chunk file is not there (a capture in progress)."""
+    return [n for i, n in enumerate(info.names) if not info.chunk_path(i).is_file()]
+
+
+def _blosc():
+    from numcodecs import Blosc
+
+    return Blosc
+
+
+def _encode(img: np.ndarray) -> bytes:
+    import crc32c
+
+    Blosc = _blosc()
+    c = Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=Blosc.BITSHUFFLE, blocksize=BLOSC["blocksize"])
+    data = c.encode(np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<")))
+    return bytes(data) + crc32c.crc32c(data).to_bytes(4, "little")
+
+
+def _decode_into(path: Path, out: np.ndarray) -> None:
+    """Decode chunk file ``path`` into ``out`` (one frame), checking its CRC32C and size."""
+    import crc32c
+
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise FormatError(path, "frame missing from the frame store") from None
+    if len(raw) < 20 or len(raw) > out.nbytes + (1 << 20):
+        raise FormatError(path, f"frame chunk of {len(raw)} bytes (damaged store)")
+    body = memoryview(raw)[:-4]
+    if crc32c.crc32c(body) != int.from_bytes(raw[-4:], "little"):
+        raise FormatError(path, "frame chunk fails its CRC32C checksum (damaged store)")
+    # The Blosc header's byte count (bytes 4..8) must be exactly one frame.
+    if int.from_bytes(raw[4:8], "little") != out.nbytes:
+        raise FormatError(path, f"frame chunk holds {int.from_bytes(raw[4:8], 'little')} bytes, "
+                                f"not one {out.shape[1]}x{out.shape[0]} {out.dtype} frame")
+    try:
+        _blosc()().decode(body, out=out.view(out.dtype.newbyteorder("<")))
+    except Exception as e:  # numcodecs raises RuntimeError/ValueError for a bad stream
+        raise FormatError(path, f"frame chunk does not decode ({e})") from None
+
+
+def read_store(path: str | os.PathLike | StoreInfo, names: Sequence[str] | None = None, *,
+               threads: int = 1) -> np.ndarray:
+    """Read frames of a store as one (len(names), H, W) array.
+
+    Args:
+        path: the store folder (or its :class:`StoreInfo`).
+        names: the frames to read, in this order (default: all, in store order).
+        threads: frames decoded at a time (Blosc releases the GIL).
+
+    Raises:
+        FormatError: naming the file: bad metadata, an unknown frame name, a missing
+            chunk, a chunk that fails its checksum or does not decode.
+    """
+    info = path if isinstance(path, StoreInfo) else open_store(path)
+    names = list(info.names) if names is None else list(names)
+    for n in names:
+        if n not in info.names:
+            raise FormatError(info.path / "zarr.json", f"frame {n!r} is not in the frame store")
+    out = np.empty((len(names), info.height, info.width), info.dtype)
+    jobs = [(info.chunk_path(info.index(n)), out[i]) for i, n in enumerate(names)]
+    # Decoded on pool threads even for threads=1: numcodecs' Blosc then decodes each
+    # frame on its calling thread alone (on the main thread it would start Blosc's own
+    # threads), so ``threads`` is the number of cores used.
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, min(int(threads), len(jobs)))) as ex:
+        list(ex.map(lambda j: _decode_into(*j), jobs))
+    return out
+
+
+def create_store(path: str | os.PathLike, names: Sequence[str], *, height: int, width: int,
+                 dtype=np.uint8) -> StoreInfo:
+    """Create an empty store for ``names`` (frames filled in later by :func:`write_frame`).
+
+    An existing store with the same names, size and dtype is kept as it is (a
+    capture that resumes); a different one is an error.
+    """
+    path = Path(path)
+    dt = _check_new(names, height, width, dtype)
+    if is_store(path):
+        info = open_store(path)
+        if (info.names, info.height, info.width, info.dtype) != (tuple(names), height, width, dt):
+            raise FormatError(path / "zarr.json", "a different frame store is already there")
+        return info
+    path.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(path / "zarr.json", _metadata(names, height, width, dt))
+    return StoreInfo(path=path, names=tuple(names), height=int(height), width=int(width), dtype=dt)
+
+
+def write_frame(info: StoreInfo, name: str, img: np.ndarray) -> None:
+    """Write one frame of a store (atomically: a killed writer leaves the old chunk or none)."""
+    if img.shape != (info.height, info.width) or img.dtype != info.dtype:
+        raise ValueError(f"frame {name!r}: {img.shape} {img.dtype} does not fit the store "
+                         f"({info.height}, {info.width}) {info.dtype}")
+    p = info.chunk_path(info.index(name))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(p, _encode(img))
+
+
+def _temporary_folder(path: Path) -> Path:
+    """A new empty folder beside ``path``, named as atomic writes name their files
+    (``.<name>.<pid>-<hex>.tmp``) so that :func:`remove_stale_stores` finds it."""
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp"
+        try:
+            tmp.mkdir()
+        except FileExistsError:
+            continue
+        return tmp
+    raise FileExistsError(f"{path.parent}: could not create a temporary folder for {path.name}")
+
+
+def remove_stale_stores(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary store folders that killed writers left in ``folder``."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return removed
+    for e in entries:
+        m = _TMP_DIR_RE.match(e.name)
+        if m and e.is_dir(follow_symlinks=False) and not _process_alive(int(m["pid"])):
+            shutil.rmtree(e.path, ignore_errors=True)
+            removed.append(Path(e.path))
+    return removed
+
+
+def remove_stale_chunk_temporaries(info: StoreInfo) -> int:
+    """Remove the temporary chunk files that killed writers left in a store (a capture
+    that resumes). Returns how many."""
+    from ringscan.pipeline.formats.atomic import remove_stale_temporaries
+
+    return sum(len(remove_stale_temporaries(info.path / "c" / str(i) / "0")) for i in range(len(info.names))
+               if (info.path / "c" / str(i) / "0").is_dir())
+
+
+def write_store(path: str | os.PathLike, frames: np.ndarray, names: Sequence[str]) -> StoreInfo:
+    """Write a whole store at once: into a temporary folder beside ``path``, read
+    back and compared frame by frame, then renamed into place (replacing a store
+    that is there). Returns the new store's info.
+
+    Args:
+        frames: (n, H, W) uint8 or uint16, in the order of ``names``.
+    """
+    path = Path(path)
+    if frames.ndim != 3 or frames.shape[0] != len(names):
+        raise ValueError(f"frame store: {frames.shape} frames for {len(names)} names")
+    _check_new(names, frames.shape[1], frames.shape[2], frames.dtype)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary_folder(path)
+    try:
+        info = create_store(tmp, names, height=frames.shape[1], width=frames.shape[2], dtype=frames.dtype)
+        for n, img in zip(names, frames):
+            write_frame(info, n, img)
+        back = read_store(info)
+        if not np.array_equal(back, frames):
+            raise FormatError(path, "frame store does not read back as written")
+        if path.exists():
+            old = _temporary_folder(path)
+            os.rmdir(old)
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return StoreInfo(path=path, names=tuple(names), height=frames.shape[1], width=frames.shape[2],
+                     dtype=frames.dtype)

@@ -1,0 +1,183 @@
+"""Packing a scan's frames into stores and back: lossless, checked before removal, resumable."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats import frame_store
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.packing import pack_scan, unpack_scan
+from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import default_rig, parse_rig, rig_to_dict
+from ringscan.pipeline.formats.scan import SCAN_FORMAT, SCAN_FORMAT_PACKED, Scan, View, load_scan, \
+    read_view_frame, read_view_frames, save_scan
+
+SPEC = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 4.0,
+        "bits": 3, "sector_bits": 2}
+W, H = 40, 30
+
+
+def _scan(folder, *, dtype=np.uint8, views=2, ext="png"):
+    d = rig_to_dict(default_rig())
+    d["camera"].update(width=W, height=H)
+    spec = parse_patterns(SPEC)
+    rng = np.random.default_rng(3)
+    hi = np.iinfo(dtype).max
+    truth, vs = {}, []
+    for k in range(views):
+        frames = {}
+        for n in frame_names(spec):
+            img = rng.integers(0, hi + 1, size=(H, W), dtype=np.int64).astype(dtype)
+            write_image(folder / f"view_{k}" / f"{n}.{ext}", img)
+            frames[n] = f"view_{k}/{n}.{ext}"
+            truth[(k, n)] = img
+        vs.append(View(f"view_{k}", 10.0 * k, frames))
+    save_scan(Scan(folder=folder, rig=parse_rig(d), patterns=spec, views=tuple(vs)))
+    return truth
+
+
+def _files(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+
+
+def _check_frames(folder, truth):
+    scan = load_scan(folder)
+    for k, v in enumerate(scan.views):
+        names = list(v.frames)
+        got = read_view_frames(scan, v, names, threads=1)
+        assert all(np.array_equal(g, truth[(k, n)]) for g, n in zip(got, names))
+
+
+@pytest.mark.parametrize("dtype, ext", [(np.uint8, "png"), (np.uint16, "png"), (np.uint16, "tiff")])
+def test_pack_and_unpack_are_lossless(tmp_path, dtype, ext):
+    truth = _scan(tmp_path, dtype=dtype, ext=ext)
+    r = pack_scan(tmp_path)
+    assert r.converted == ["view_0", "view_1"] and r.removed == 2 * len(truth) // 2
+    d = json.loads((tmp_path / "scan.json").read_text())
+    assert d["format"] == SCAN_FORMAT_PACKED
+    names = list(load_scan(tmp_path).views[1].frames)
+    assert d["views"][1]["packed"] == {"store": "view_1/frames.zarr", "frames": names}
+    assert not [f for f in _files(tmp_path) if f.endswith(("." + ext))]  # originals gone
+    _check_frames(tmp_path, truth)
+    scan = load_scan(tmp_path)
+    assert np.array_equal(read_view_frame(scan, scan.views[1], "gray_1"), truth[(1, "gray_1")])
+    assert pack_scan(tmp_path).already == ["view_0", "view_1"]  # nothing to do again
+    r = unpack_scan(tmp_path, image_format=ext)
+    assert r.converted == ["view_0", "view_1"]
+    assert json.loads((tmp_path / "scan.json").read_text())["format"] == SCAN_FORMAT
+    assert not (tmp_path / "view_0" / "frames.zarr").exists()
+    _check_frames(tmp_path, truth)
+
+
+def test_keep_leaves_the_originals_and_a_later_pack_removes_them_after_comparing(tmp_path):
+    # --keep leaves the state a pack killed after rewriting scan.json leaves: store + old files
+    truth = _scan(tmp_path, views=1)
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path) if f.endswith(".png")}
+    pack_scan(tmp_path, keep=True)
+    assert {f: (tmp_path / f).read_bytes() for f in before} == before
+    assert load_scan(tmp_path).views[0].packed == "view_0/frames.zarr"
+    # a leftover that differs from its frame is named and kept
+    bad = tmp_path / "view_0" / "gray_2.png"
+    write_image(bad, truth[(0, "gray_2")] ^ 1)
+    with pytest.raises(FormatError, match="differs from frame 'gray_2'") as e:
+        pack_scan(tmp_path)
+    assert e.value.path == str(bad) and bad.is_file()
+    write_image(bad, truth[(0, "gray_2")])
+    r = pack_scan(tmp_path)
+    assert r.removed == len(before) and not [f for f in _files(tmp_path) if f.endswith(".png")]
+    _check_frames(tmp_path, truth)
+
+
+def test_a_killed_pack_leaves_the_originals_and_resumes(tmp_path, monkeypatch):
+    truth = _scan(tmp_path)
+    scan_json = (tmp_path / "scan.json").read_bytes()
+    before = _files(tmp_path)
+    calls = []
+
+    def killed(info, name, img, real=frame_store.write_frame):
+        calls.append(name)
+        if len(calls) == 20:  # in the second view
+            raise KeyboardInterrupt
+        real(info, name, img)
+
+    monkeypatch.setattr(frame_store, "write_frame", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pack_scan(tmp_path)
+    scan = load_scan(tmp_path)
+    assert scan.views[0].packed and scan.views[1].packed is None  # view 0 done, view 1 untouched
+    assert all((tmp_path / r).is_file() for r in scan.views[1].frames.values())
+    assert [f for f in _files(tmp_path) if f.startswith("view_1/")] == [f for f in before if f.startswith("view_1/")]
+    monkeypatch.undo()
+    r = pack_scan(tmp_path)
+    assert r.converted == ["view_1"] and r.already == ["view_0"]
+    _check_frames(tmp_path, truth)
+    assert scan_json != (tmp_path / "scan.json").read_bytes()
+
+
+def test_a_bad_frame_is_named_and_nothing_is_written(tmp_path):
+    _scan(tmp_path, views=1)
+    bad = tmp_path / "view_0" / "sector_1.png"
+    bad.write_bytes(bad.read_bytes()[:100])
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
+    with pytest.raises(FormatError) as e:
+        pack_scan(tmp_path)
+    assert e.value.path == str(bad)
+    assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
+
+
+def test_a_frame_name_that_is_no_file_name_is_refused_before_anything_is_written(tmp_path):
+    _scan(tmp_path, views=1)
+    d = json.loads((tmp_path / "scan.json").read_text())
+    d["views"][0]["frames"]["sub/extra"] = d["views"][0]["frames"]["white"]
+    (tmp_path / "scan.json").write_text(json.dumps(d))
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
+    with pytest.raises(FormatError, match="frame name: 'sub/extra' is not a folder-safe name"):
+        pack_scan(tmp_path)
+    assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
+
+
+def test_colour_png_is_refused(tmp_path):
+    _scan(tmp_path, views=1)
+    p = tmp_path / "view_0" / "white.png"
+    cv2.imwrite(str(p), np.zeros((H, W, 3), np.uint8))
+    with pytest.raises(FormatError, match="colour frame") as e:
+        pack_scan(tmp_path)
+    assert e.value.path == str(p)
+
+
+def test_packed_scan_json_is_checked(tmp_path):
+    truth = _scan(tmp_path, views=1)
+    pack_scan(tmp_path)
+    src = tmp_path / "scan.json"
+    d = json.loads(src.read_text())
+
+    def bad(edit, match, path=src):
+        e2 = json.loads(json.dumps(d))
+        edit(e2)
+        src.write_text(json.dumps(e2))
+        with pytest.raises(FormatError, match=match) as e:
+            scan = load_scan(tmp_path)
+            read_view_frames(scan, scan.views[0])
+        assert e.value.path == str(path)
+
+    bad(lambda e: e.update(format=SCAN_FORMAT), "packed frames need format")
+    bad(lambda e: e["views"][0].update(frames={}), "both frames and packed")
+    bad(lambda e: e["views"][0]["packed"].update(store="../x.zarr"), "leaves the scan folder")
+    bad(lambda e: e["views"][0]["packed"].update(frames=["../../evil"]), r"packed.frames\[0\]: '../../evil' is not")
+    bad(lambda e: e["views"][0]["packed"].update(store="view_0/other.zarr"), "frame store of view_0 not found",
+        path=tmp_path / "view_0" / "other.zarr")
+    names = d["views"][0]["packed"]["frames"]
+    bad(lambda e: e["views"][0]["packed"].update(frames=names[::-1]), "do not match scan.json's list",
+        path=tmp_path / "view_0" / "frames.zarr" / "zarr.json")
+    src.write_text(json.dumps(d))
+    d2 = json.loads(src.read_text())
+    d2["rig"]["camera"].update(width=W + 2)
+    src.write_text(json.dumps(d2))
+    with pytest.raises(FormatError, match=f"frames are {W}x{H}, but the camera is {W + 2}x{H}"):
+        scan = load_scan(tmp_path)
+        read_view_frames(scan, scan.views[0])
+    src.write_text(json.dumps(d))
+    _check_frames(tmp_path, truth)

@@ -1,0 +1,38 @@
+"""A ``ringscan`` process imports the module of the command it runs, not every command's."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from ringscan.tools.cli import COMMANDS, build_parser, main
+
+REPO = Path(__file__).resolve().parents[2]
+
+_PROBE = """
+import sys
+from ringscan.tools.cli import main
+try:
+    main(sys.argv[1:])
+except SystemExit:
+    pass
+print("MODULES", " ".join(sorted(m for m in sys.modules if m.startswith("ringscan.tools.cmd_"))))
+"""
+
+
+def _modules(*argv):
+    r = subprocess.run([sys.executable, "-c", _PROBE, *argv], capture_output=True, text=True, timeout=300, cwd=REPO)
+    return r.stdout.split("MODULES", 1)[1].split()
+
+
+def test_one_command_imports_its_module_only():
+    assert _modules("-v", "pack", "--help") == ["ringscan.tools.cmd_pack"]
+    # an unknown command still lists them all
+    assert len(_modules("nonsense")) > 10
+
+
+def test_full_parser_lists_every_command(capsys):
+    p = build_parser()
+    sub = next(a for a in p._actions if a.dest == "command")
+    assert set(sub.choices) == set(COMMANDS)
+    assert main(["-v"]) == 2  # no command: the full help
+    assert "reconstruct" in capsys.readouterr().out

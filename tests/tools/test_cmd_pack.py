@@ -1,0 +1,99 @@
+"""``ringscan pack`` / ``unpack``, and packed scans through simulate, reconstruct, batch and evaluate."""
+
+import shutil
+
+import numpy as np
+
+from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.scan import load_scan, read_view_frames
+from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.tools.cli import main
+from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
+
+
+def _plys(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+
+
+def test_packed_scans_reconstruct_to_the_same_bytes(tmp_path, capsys):
+    root = tmp_path / "scans"
+    png = simulate_tiny_scan(root / "a_png", turntable_deg=(0.0, 90.0))
+    # the virtual rig writing a store directly, and `ringscan pack` of a copy of the PNG scan
+    packed = simulate_scan(root / "b_sim", scene="sphere", size_mm=40.0, rig=tiny_rig(),
+                           patterns=parse_patterns(TINY_PATTERNS), turntable_deg=(0.0, 90.0), progress=False,
+                           image_format="packed")
+    assert [v.packed for v in packed.views] == ["view_000/frames.zarr", "view_001/frames.zarr"]
+    shutil.copytree(root / "a_png", root / "c_pack")
+    assert main(["pack", str(root / "c_pack")]) == 0
+    assert "2 view(s) packed" in capsys.readouterr().out
+    for name in ("b_sim", "c_pack"):
+        s = load_scan(root / name)
+        for v, pv in zip(s.views, png.views):
+            assert np.array_equal(read_view_frames(s, v), read_view_frames(png, pv))
+    # one process per scan, and a batch on worker processes
+    for name in ("a_png", "b_sim", "c_pack"):
+        assert main(["reconstruct", str(root / name), "--out", str(tmp_path / "rec" / name), "--device", "cpu",
+                     "--no-progress"]) == 0
+    assert main(["batch", str(root), "--out", str(tmp_path / "batch"), "--workers", "1", "--device", "cpu"]) == 0
+    ref = _plys(tmp_path / "rec" / "a_png")
+    assert len(ref) == 2 and all(len(b) > 1000 for b in ref.values())
+    for name in ("b_sim", "c_pack"):
+        assert _plys(tmp_path / "rec" / name) == ref
+    for name in ("a_png", "b_sim", "c_pack"):
+        assert _plys(tmp_path / "batch" / name) == ref
+    # evaluate reads the packed scan (and its truth beside the store) as it reads the PNG scan
+    for name in ("a_png", "b_sim"):
+        assert main(["evaluate", str(tmp_path / "rec" / name), "--truth", str(root / name),
+                     "--json", str(tmp_path / f"ev_{name}.json")]) == 0
+    assert (tmp_path / "ev_a_png.json").read_text() == (tmp_path / "ev_b_sim.json").read_text()
+
+
+def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path, capsys):
+    root = tmp_path / "root"
+    good = simulate_tiny_scan(root / "good")
+    simulate_tiny_scan(root / "bad")
+    frames_before = read_view_frames(good, good.views[0])
+    broken = root / "bad" / "view_000" / "gray_1.png"
+    broken.write_bytes(b"not a png")
+    assert main(["pack", str(root)]) == 1
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and str(broken) in err and "Traceback" not in err
+    assert "good: 1 view(s) packed" in out
+    assert load_scan(root / "bad").views[0].packed is None  # nothing of the bad scan changed
+    assert not (root / "bad" / "view_000" / "frames.zarr").exists()
+    assert load_scan(root / "good").views[0].packed
+    # a damaged store: reconstruct names the chunk in one line, writes no PLY
+    chunk = root / "good" / "view_000" / "frames.zarr" / "c" / "3" / "0" / "0"
+    intact = chunk.read_bytes()
+    chunk.write_bytes(intact[:-5] + bytes([intact[-5] ^ 1]) + intact[-4:])
+    assert main(["reconstruct", str(root / "good"), "--out", str(tmp_path / "rec"), "--device", "cpu",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(chunk) in err and "CRC32C" in err
+    assert not list((tmp_path / "rec").glob("*.ply"))
+    chunk.write_bytes(intact)
+    assert main(["unpack", str(root / "good"), "--image-format", "tiff"]) == 0
+    s = load_scan(root / "good")
+    assert s.views[0].packed is None and s.views[0].frames["white"] == "view_000/white.tiff"
+    assert np.array_equal(read_view_frames(s, s.views[0]), frames_before)
+    assert main(["pack", str(tmp_path / "nothing")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_pack_and_unpack_a_root_on_worker_processes(tmp_path, capsys):
+    root = tmp_path / "root"
+    frames = {}
+    for name in ("a", "b", "c"):
+        s = simulate_tiny_scan(root / name)
+        frames[name] = read_view_frames(s, s.views[0])
+    (root / "b" / "view_000" / "white.png").write_bytes(b"broken")
+    assert main(["pack", str(root), "--workers", "2"]) == 1
+    out, err = capsys.readouterr()
+    assert sorted(line.split(":")[0] for line in out.splitlines()) == [str(root / "a"), str(root / "c")]
+    assert err.count("\n") == 1 and str(root / "b" / "view_000" / "white.png") in err
+    assert main(["unpack", str(root), "--workers", "2"]) == 0
+    for name in ("a", "c"):
+        s = load_scan(root / name)
+        assert s.views[0].packed is None and np.array_equal(read_view_frames(s, s.views[0]), frames[name])
+    assert main(["pack", str(root), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err
