@@ -19,7 +19,8 @@ def add_parser(sub):
                                    "store is read back and compared frame by frame before scan.json names it "
                                    "and the image files are removed. Rerunning resumes a killed run. Exit "
                                    "status 1 when a scan failed (named in one line each).")
-    p.add_argument("root", metavar="SCAN_OR_ROOT")
+    p.add_argument("root", metavar="SCAN_OR_ROOT",
+                   help="a scan folder, or a folder whose scans (found as `ringscan batch` finds them) are packed")
     p.add_argument("--keep", action="store_true", help="leave the image files in place")
     add_workers_option(p)
     return p

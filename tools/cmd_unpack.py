@@ -14,7 +14,7 @@ def add_parser(sub):
                                    "folder below ROOT, back as <view>/<frame>.png (or .tiff), checked frame by "
                                    "frame before scan.json names them and the store is removed. Rerunning "
                                    "resumes a killed run. Exit status 1 when a scan failed.")
-    p.add_argument("root", metavar="SCAN_OR_ROOT")
+    p.add_argument("root", metavar="SCAN_OR_ROOT", help="a scan folder, or a folder whose packed scans are unpacked")
     p.add_argument("--image-format", choices=("png", "tiff"), default="png",
                    help="frame files to write (default png; tiff: uncompressed)")
     p.add_argument("--keep", action="store_true", help="leave the frame stores in place")

@@ -67,7 +67,7 @@ def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path,
     intact = chunk.read_bytes()
     chunk.write_bytes(intact[:-5] + bytes([intact[-5] ^ 1]) + intact[-4:])
     assert main(["reconstruct", str(root / "good"), "--out", str(tmp_path / "rec"), "--device", "cpu",
-                 "--no-progress"]) == 2
+                 "--no-progress"]) == 1  # a damaged input: a failed run (docs/cli.md)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(chunk) in err and "CRC32C" in err
     assert not list((tmp_path / "rec").glob("*.ply"))
@@ -76,7 +76,7 @@ def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path,
     s = load_scan(root / "good")
     assert s.views[0].packed is None and s.views[0].frames["white"] == "view_000/white.tiff"
     assert np.array_equal(read_view_frames(s, s.views[0]), frames_before)
-    assert main(["pack", str(tmp_path / "nothing")]) == 2
+    assert main(["pack", str(tmp_path / "nothing")]) == 1  # an input that is not there: a failed run
     assert "not a folder" in capsys.readouterr().err
 
 
