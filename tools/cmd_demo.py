@@ -24,7 +24,8 @@ from ringscan.tools.cli import UsageError, add_device_option
 log = logging.getLogger(__name__)
 
 DEMO_PATTERNS = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
-                 "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6}
+                 "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8,
+                 "angle_steps": 4}
 
 
 def add_parser(sub):

@@ -45,7 +45,8 @@ def add_pattern_options(p, *, size: bool = True) -> None:
     g.add_argument("--steps", type=int, default=None, help=f"phase steps, phase-rings codec (default {pd['steps']})")
     g.add_argument("--angle-steps", type=int, default=None,
                    help="phase steps of the angle code (angular fringes around the centre, so every point gets "
-                        "both projector coordinates; gray-rings and phase-rings; default 0 = none, else >= 3)")
+                        f"both projector coordinates; gray-rings and phase-rings; default {gd['angle_steps']}; "
+                        "0 = none (rings alone, the paper's patterns), else >= 3)")
     g.add_argument("--angle-period", type=float, default=None, metavar="PX",
                    help=f"least period of the angular fringes, projector px (default {gd['angle_period']:g})")
     g.add_argument("--precompensate", type=float, default=None, metavar="GAMMA",

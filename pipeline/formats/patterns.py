@@ -295,7 +295,7 @@ class GrayRingsLayout(PatternLayout):
         Parameter("bits", int, None, 1, 16, doc="Gray-code bits of the band index"),
         Parameter("sector_bits", int, 0, 0, 12, doc="Gray-code bits of the angular sector; 0 = none"),
     ) + ANGLE_PARAMETERS
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "angle_steps": 0, "angle_period": 12.0}
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8, "angle_steps": 4, "angle_period": 12.0}
 
     def binary_frame_names(self, spec: PatternSpec) -> list[str]:
         names = ["white", "black"]
@@ -318,7 +318,7 @@ class PhaseRingsLayout(GrayRingsLayout):
     name = "phase-rings"
     dense = True
     parameters = GrayRingsLayout.parameters + (Parameter("steps", int, 4, 3, 64, doc="phase steps"),)
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6, "steps": 4, "angle_steps": 0,
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8, "steps": 4, "angle_steps": 4,
                 "angle_period": 12.0}
 
     def frame_names(self, spec: PatternSpec) -> list[str]:
