@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import os
+from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -181,7 +182,7 @@ class Parameter:
         return v
 
 
-class PatternLayout:
+class PatternLayout(ABC):
     """The data-level description of one codec: its name, its parameters (with
     defaults and ranges), its frame names and the checks of its values. It lives
     here, below the codecs, because reading a scan folder needs the frame names;
@@ -200,9 +201,9 @@ class PatternLayout:
     defaults: dict = {}
     """Defaults of ``ringscan patterns`` / ``simulate`` for every option not given."""
 
+    @abstractmethod
     def frame_names(self, spec: PatternSpec) -> list[str]:
         """The frame names, in projection (and file) order."""
-        raise NotImplementedError
 
     def n_bands(self, spec: PatternSpec) -> int:
         return 2 ** spec.bits
