@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, read_bounded_bytes
+from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, mode_kind, read_bounded_bytes
 
 log = logging.getLogger(__name__)
 
@@ -58,17 +58,7 @@ def _kind(p: Path) -> str:
         m = p.stat().st_mode
     except OSError:
         return "unreadable"
-    if stat.S_ISREG(m):
-        return "a file"
-    if stat.S_ISDIR(m):
-        return "a folder"
-    if stat.S_ISCHR(m) or stat.S_ISBLK(m):
-        return "a device"
-    if stat.S_ISFIFO(m):
-        return "a pipe"
-    if stat.S_ISSOCK(m):
-        return "a socket"
-    return "not a regular file"
+    return "a file" if stat.S_ISREG(m) else mode_kind(m)
 
 
 def _check_ancestors(p: Path, what: str) -> None:

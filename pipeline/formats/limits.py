@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ringscan.pipeline.formats.errors import FormatError
 
-__all__ = ["MAX_JSON_BYTES", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "check_regular_file", "read_bounded_bytes",
+__all__ = ["MAX_JSON_BYTES", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "mode_kind", "check_regular_file", "read_bounded_bytes",
            "read_bounded_text", "image_header_size", "check_image_header"]
 
 MAX_JSON_BYTES = 64 * 1024 * 1024
@@ -32,7 +32,8 @@ MAX_IMAGE_PIXELS = 200_000_000
 the largest industrial camera sensors are ~150 MP)."""
 
 
-def _kind(mode: int) -> str:
+def mode_kind(mode: int) -> str:
+    """What a file of this ``st_mode`` is, in words, when it is not a regular file."""
     if stat.S_ISDIR(mode):
         return "a folder"
     if stat.S_ISFIFO(mode):
@@ -60,7 +61,7 @@ def check_regular_file(path: str | os.PathLike, *, what: str = "file", max_bytes
     except OSError as e:
         raise FormatError(p, f"cannot read: {e.strerror}") from None
     if not stat.S_ISREG(st.st_mode):
-        raise FormatError(p, f"is {_kind(st.st_mode)}, not a regular file: ringscan reads regular files only")
+        raise FormatError(p, f"is {mode_kind(st.st_mode)}, not a regular file: ringscan reads regular files only")
     if max_bytes is not None and st.st_size > max_bytes:
         raise FormatError(p, f"{st.st_size} bytes: larger than the {max_bytes} bytes a {what} may have")
     return st.st_size
