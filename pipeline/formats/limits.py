@@ -17,8 +17,8 @@ from pathlib import Path
 
 from ringscan.pipeline.formats.errors import FormatError
 
-__all__ = ["MAX_JSON_BYTES", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "mode_kind", "check_regular_file", "read_bounded_bytes",
-           "read_bounded_text", "image_header_size", "check_image_header"]
+__all__ = ["MAX_JSON_BYTES", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "mode_kind", "check_regular_file",
+           "read_bounded_bytes", "read_bounded_text", "image_header_size", "check_image_header"]
 
 MAX_JSON_BYTES = 64 * 1024 * 1024
 """Largest JSON file read (scan.json, rig files, settings, reports): 64 MiB (a scan.json
