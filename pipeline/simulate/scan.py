@@ -22,7 +22,23 @@ from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _
 
 log = logging.getLogger(__name__)
 
-__all__ = ["simulate_scan", "prepare_scene"]
+__all__ = ["simulate_scan", "prepare_scene", "add_camera2"]
+
+
+def add_camera2(rig: Rig) -> Rig:
+    """The rig with a second camera: camera 1 turned by 180 degrees about the light axis (the world
+    z axis, docs/design.md §2), so that the two stand symmetric about it, looking at the same point
+    from opposite sides (the default rig: 482 mm apart, 70 degrees between their axes).
+
+    Raises:
+        ValueError: the rig has a second camera already.
+    """
+    if rig.camera2 is not None:
+        raise ValueError("add_camera2: the rig has a second camera already")
+    c = rig.camera
+    flip = np.diag([-1.0, -1.0, 1.0])  # 180 degrees about world z
+    cam2 = dataclasses.replace(c, R=c.R @ flip, t=c.t.copy())
+    return dataclasses.replace(rig, camera2=cam2)
 
 
 def prepare_scene(scene: SceneMesh | str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto",
