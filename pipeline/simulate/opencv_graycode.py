@@ -271,8 +271,8 @@ def render_graycode_captures(
     if not isinstance(settings, RenderSettings):
         raise ValueError(f"settings: expected RenderSettings, got {type(settings).__name__}")
     proj = (int(lw), int(lh))
-    if not hasattr(rig.light, "K"):
-        raise ValueError("rig: the virtual rig renders with a calibrated perspective projector (the light's K, R, t)")
+    if getattr(rig.light, "model", "") == "uncalibrated":
+        raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
     scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
     two = rig.camera2 is not None
     cams = [(1, rig)] + ([(2, dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))] if two else [])
@@ -335,12 +335,13 @@ def render_graycode_captures(
 
         _write_storage(out / IMAGE_LIST, write_list)
         write_stereo_calibration(out / STEREO_FILE, rig)
-        write_procam_calibration(out / PROCAM_FILE, rig)
         T1 = np.eye(4)
         T1[:3, :3], T1[:3, 3] = rig.camera.R, rig.camera.t
         doc.update({"camera2": [rig.camera2.width, rig.camera2.height], "image_list": IMAGE_LIST,
-                    "stereo_calibration": STEREO_FILE, "procam_calibration": PROCAM_FILE,
-                    "camera1_from_world": T1.tolist()})
+                    "stereo_calibration": STEREO_FILE, "camera1_from_world": T1.tolist()})
+        if hasattr(rig.light, "K"):  # a perspective projector (a parallel light has no OpenCV procam file)
+            write_procam_calibration(out / PROCAM_FILE, rig)
+            doc["procam_calibration"] = PROCAM_FILE
     atomic_write_json(out / "truth.json", doc)
     log.info("rendered %d %s frames x %d camera(s) of %s in %.1f s -> %s", n_frames, LAYOUT, len(cams), scene.name,
              time.perf_counter() - t0, out)
