@@ -181,7 +181,7 @@ def _fit_hint(n: int) -> str:
     if n < 6 or n % 2:
         return ""
     bits = (n - 2) // 2
-    return f"; {n} frames fit {bits} column + row bits (e.g. a 1024x768 projector has 10 + 10, 1280x800 11 + 10)"
+    return f" ({n} frames fit {bits} column + row bits; a 1024x768 projector has 10 + 10, 1280x800 11 + 10)"
 
 
 def _sample_frames(folder: Path, entries: list[str], *, projector, layout) -> tuple[tuple[Path, ...], ...]:
@@ -356,7 +356,7 @@ def check_capture_sizes(files: CaptureFiles) -> list[tuple[int, int]]:
         for p in frames[1:]:
             wh = check_image_header(p)
             if wh != first:
-                cam = f" (camera {c})" if len(files.cameras) > 1 else ""
+                cam = f" (camera {c})" if len(files.cameras) > 1 and files.kind != "pattern" else ""
                 raise CalibrationError(p, f"frame is {wh[0]}x{wh[1]}, {frames[0].name}{cam} is {first[0]}x{first[1]}: "
                                           "every frame of a camera must have one size")
         sizes.append(first)
