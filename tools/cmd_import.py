@@ -89,7 +89,8 @@ def run(args) -> int:
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
         scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
                                       depth=tuple(args.depth) if args.depth else None, settings=settings,
-                                      camera=args.camera, sources={"rig": rig_path, "projector_rig": args.projector_rig},
+                                      camera=args.camera,
+                                      sources={"rig": rig_path, "projector_rig": args.projector_rig},
                                       **kw)
     two = scan.rig.camera2 is not None
     for name, st in stats.items():

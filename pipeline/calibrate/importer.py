@@ -320,7 +320,8 @@ def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray) -> tuple[
 
 def check_import_names(captures: list) -> list[str]:
     """The view name of each capture: a folder's own name (``.`` and ``DIR/sub/..`` by their real name),
-    an image list's name without its suffix (``capture_0.yml``: ``capture_0``), checked as a view name (:func:`~ringscan.pipeline.formats.scan.check_view_name`) and unique (ignoring
+    an image list's name without its suffix (``capture_0.yml``: ``capture_0``), checked as a view name
+    (:func:`~ringscan.pipeline.formats.scan.check_view_name`) and unique (ignoring
     case), before anything is decoded or written.
 
     Raises:
@@ -476,10 +477,10 @@ def import_captures(
     else:
         for f in files:
             if len(f.cameras) == 2 and rig_cams == 1:
-                raise CalibrationError(f.source, f"holds two cameras' frames, but the rig{f' {rig_src}' if rig_src else ''} "
-                                                 "has one camera: give --camera 1 (or 2) to import one camera's "
-                                                 "frames, or a two-camera rig (a stereo calibration file) for a "
-                                                 "two-camera scan")
+                named = f" {rig_src}" if rig_src else ""
+                raise CalibrationError(f.source, f"holds two cameras' frames, but the rig{named} has one camera: "
+                                                 "give --camera 1 (or 2) to import one camera's frames, or a "
+                                                 "two-camera rig (a stereo calibration file) for a two-camera scan")
             if len(f.cameras) == 1 and rig_cams == 2:
                 if stereo is not None and f.kind == "graycode":  # a one-camera capture: a procam file was meant
                     raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
@@ -578,7 +579,8 @@ def import_captures(
                 raise CalibrationError(None, "import: too few decoded pixels to find the working depth; give --depth")
             depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
         rig = procam_rig(cam_K=opencv["cam_K"], cam_dist=opencv["cam_dist"], cam_size=size, proj_K=opencv["proj_K"],
-                         proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"], z_range=depth)
+                         proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"],
+                         z_range=depth)
     elif stereo is not None:
         if depth is None:
             if len(sel) == 2:

@@ -163,7 +163,8 @@ def simulate_scan(
     frames = {n: render_frame(patterns, n) for n in names}
     done: list[View] = []
     t0 = time.perf_counter()
-    bar = progress_bar(total=len(angles) * len(names) * (2 if vr2 is not None else 1), desc=f"simulate {scene.name}", unit="frame",
+    n_cams = 2 if vr2 is not None else 1
+    bar = progress_bar(total=len(angles) * len(names) * n_cams, desc=f"simulate {scene.name}", unit="frame",
                        disable=not progress)
     try:
         for vi, deg in enumerate(angles):

@@ -16,7 +16,6 @@ from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import has_calibrated_light
 from ringscan.pipeline.formats.scan import as_camera2, load_scan, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
-from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import main
 from tests.pipeline.simulate.test_opencv_graycode import PH, PW, small_stereo_rig
 
@@ -67,7 +66,8 @@ def test_two_camera_import_from_folder_and_list(rendered, tmp_path, capsys):
         assert np.array_equal(read_image(a / va.frames[k]), read_image(b / vb.frames[k]))
         assert np.array_equal(read_image(a / va.camera2.frames[k]), read_image(b / vb.camera2.frames[k]))
     r = sa.rig
-    assert r.light.model == "uncalibrated" and not has_calibrated_light(r) and (r.light.width, r.light.height) == (PW, PH)
+    assert r.light.model == "uncalibrated" and not has_calibrated_light(r)
+    assert (r.light.width, r.light.height) == (PW, PH)
     assert np.allclose(r.camera.R, np.eye(3)) and np.allclose(r.camera.t, 0)
     R = rig.camera2.R @ rig.camera.R.T
     assert np.allclose(r.camera2.R, R) and np.allclose(r.camera2.t, rig.camera2.t - R @ rig.camera.t)
@@ -200,3 +200,37 @@ def test_bad_input_one_line_each_nothing_written(rendered, tmp_path, capsys):
     assert main(["import", str(gc), "--rig", procam, "--projector-rig", procam, "--projector", PROJ,
                  "--out", str(scan)]) == 2
     assert "--projector-rig goes with a camera-camera" in capsys.readouterr().err and not scan.exists()
+
+
+def test_jpeg_frames_and_a_list_with_absolute_paths(rendered, tmp_path, capsys):
+    """OpenCV's sample stores JPEGs: the same capture as .jpg (quality 95) imports with both cameras, and an
+    image list of absolute paths elsewhere finds them."""
+    out, _ = rendered
+    jpg = tmp_path / "jpg"
+    jpg.mkdir()
+    for p in (out / "capture_0").glob("*.png"):
+        cv2.imwrite(str(jpg / (p.stem + ".jpg")), read_image(p), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    lst = tmp_path / "lists" / "statue.yml"
+    lst.parent.mkdir()
+    fs = cv2.FileStorage(str(lst), cv2.FILE_STORAGE_WRITE)
+    for c in (1, 2):
+        fs.startWriteStruct(f"cam{c}", cv2.FileNode_SEQ)
+        for k in range(1, 31):
+            fs.write("", str(jpg / f"pattern_cam{c}_im{k}.jpg"))
+        fs.endWriteStruct()
+    fs.release()
+    for cap, name in ((jpg, "jpg"), (lst, "statue")):
+        scan = tmp_path / f"s_{name}"
+        assert main(["import", str(cap), "--rig", str(out / "calibrationParameters.yml"), "--projector", PROJ,
+                     "--out", str(scan)]) == 0
+        capsys.readouterr()
+        s = load_scan(scan)
+        assert [v.name for v in s.views] == [name] and s.views[0].camera2 is not None
+        truth = read_graycode_truth(out, camera=2)
+        u, v = _decoded(s, s.views[0], camera=2)
+        inner = cv2.erode((truth["lit"] & np.isfinite(truth["depth"])).astype(np.uint8),
+                          np.ones((5, 5), np.uint8)).astype(bool)
+        sel = inner & np.isfinite(u)
+        assert sel.sum() > 0.98 * inner.sum()
+        e = np.hypot(u[sel] - truth["proj"][..., 0][sel], v[sel] - truth["proj"][..., 1][sel])
+        assert np.median(e) < 0.1, np.median(e)
