@@ -63,7 +63,18 @@ def add_parser(sub):
 
 
 def _is_opencv(path: Path) -> bool:
-    return path.suffix.lower() in OPENCV_SUFFIXES
+    """An OpenCV FileStorage calibration: XML/YAML, or JSON with OpenCV's keys and no ringscan ``format``."""
+    if path.suffix.lower() in OPENCV_SUFFIXES:
+        return True
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return False
+    from ringscan.pipeline.formats.atomic import read_json
+
+    try:
+        d = read_json(path)
+    except Exception:  # load_rig names what is wrong with it
+        return False
+    return isinstance(d, dict) and "format" not in d and any(k in d for k in ("cam_int", "cam1_intrinsics"))
 
 
 def run(args) -> int:

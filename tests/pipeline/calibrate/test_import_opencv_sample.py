@@ -234,3 +234,22 @@ def test_jpeg_frames_and_a_list_with_absolute_paths(rendered, tmp_path, capsys):
         assert sel.sum() > 0.98 * inner.sum()
         e = np.hypot(u[sel] - truth["proj"][..., 0][sel], v[sel] - truth["proj"][..., 1][sel])
         assert np.median(e) < 0.1, np.median(e)
+
+
+def test_stereo_file_as_filestorage_json(rendered, tmp_path, capsys):
+    """cv::FileStorage writes JSON too: --rig stereo.json (no ringscan 'format') is read as the OpenCV file."""
+    out, _ = rendered
+    src = cv2.FileStorage(str(out / "calibrationParameters.yml"), cv2.FILE_STORAGE_READ)
+    js = cv2.FileStorage(str(tmp_path / "stereo.json"), cv2.FILE_STORAGE_WRITE)
+    for k in ("cam1_intrinsics", "cam1_distorsion", "cam2_intrinsics", "cam2_distorsion", "R", "T"):
+        js.write(k, src.getNode(k).mat())
+    js.release()
+    src.release()
+    a, b = read_stereo_calibration(out / "calibrationParameters.yml"), read_stereo_calibration(tmp_path / "stereo.json")
+    assert b["cam1_size"] is None and all(np.allclose(a[k], b[k]) for k in ("cam1_K", "cam2_dist", "R", "T"))
+    scan = tmp_path / "s"
+    assert main(["import", str(out / "capture_0"), "--rig", str(tmp_path / "stereo.json"), "--projector", PROJ,
+                 "--out", str(scan)]) == 0
+    capsys.readouterr()
+    r = load_scan(scan).rig
+    assert (r.camera2.width, r.camera2.height) == (320, 256)     # the sizes from the frames when the file has none
