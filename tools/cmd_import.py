@@ -41,7 +41,7 @@ def add_parser(sub):
                         "opencv-graycode-wb-first = white, black, then the pairs. Frames: PNG, TIFF, JPEG or BMP")
     p.add_argument("--rig", required=True,
                    help="a ringscan rig (JSON: one camera and a perspective light, or two cameras), or an OpenCV "
-                        "calibration file (XML/YAML): camera-projector (cam_int, cam_dist, proj_int, proj_dist, "
+                        "calibration file (cv::FileStorage XML/YAML/JSON): camera-projector (cam_int, cam_dist, proj_int, proj_dist, "
                         "rotation, translation) or camera-camera as OpenCV's structured-light sample has it "
                         "(cam1_intrinsics, cam1_distorsion, cam1_size, cam2_..., R, T)")
     p.add_argument("--projector-rig", default=None, metavar="PROCAM",
