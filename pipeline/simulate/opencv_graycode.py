@@ -276,6 +276,7 @@ def render_graycode_captures(
     scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
     two = rig.camera2 is not None
     cams = [(1, rig)] + ([(2, dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))] if two else [])
+    renderers = {c: VirtualRig(crig, scene, settings=settings, device=device, projector_size=proj) for c, crig in cams}
     patterns = graycode_patterns(proj)
 
     out = Path(out_dir)
@@ -294,8 +295,8 @@ def render_graycode_captures(
     captures: dict = {"frames": n_frames}
     lists = {}
     try:
-        for c, crig in cams:
-            vr = VirtualRig(crig, scene, settings=settings, device=device, projector_size=proj)
+        for c, _ in cams:
+            vr = renderers.pop(c)
             names = graycode_frame_names(proj, camera=c if two else None)
             for fi, (n, pat) in enumerate(zip(names, patterns)):
                 seed = _mix_seed(settings.seed, 0, fi) if c == 1 else _mix_seed(settings.seed, 0, fi, c)
