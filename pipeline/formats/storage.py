@@ -195,8 +195,12 @@ def check_location(url: str, options: dict | None = None, *, what: str = "output
     bucket = path.split("/")[0]
     if not bucket:
         raise StorageError(url, f"cannot be the {what}: no bucket in the URL")
-    with _mapped(url):
+    try:
         fs.info(bucket)  # a missing bucket, refused credentials or a silent endpoint: here, not mid-batch
+    except FileNotFoundError:
+        raise StorageError(url, f"cannot be the {what}: bucket {bucket!r} not found") from None
+    except Exception as e:  # noqa: BLE001 - the storage library's errors share no base class
+        raise storage_error(url, e) from None
 
 
 def _listing(fs, path: str, url: str) -> dict[str, dict]:
