@@ -193,6 +193,7 @@ def _process(job: ScanJob, st, entry: dict) -> None:
     entry["computed_views"] = len(computed)
     entry["points"] = sum(int(v.get("points", 0)) for v in views)
     entry["times_s"] = _split(computed)
+    st.commit()  # on object storage: the reconstruction stored, as it is on disk by now
     if entry["points"] == 0:
         reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in views))
         raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")

@@ -470,8 +470,9 @@ class Staged:
         return (json.dumps(fix(obj), indent=2, allow_nan=False) + "\n").encode()
 
     def commit(self) -> int:
-        """Store the results: upload every new or changed file of a staged output folder, each as one whole
-        object, the reports after the files they list and ``report.json`` last; in a local output folder,
+        """Store the results: upload every new or changed file of a staged output folder (since it was staged
+        or last committed), each as one whole object, the reports after the files they list and
+        ``report.json`` last; in a local output folder,
         name the scan's URL instead of its staging folder in the reports. Returns the objects uploaded.
 
         Raises:
@@ -494,10 +495,12 @@ class Staged:
             data = p.read_bytes()
             if p.suffix == ".json":
                 data = self._json_for_upload(data)
-            if self._out_digests.get(rel) == hashlib.md5(data).hexdigest():
+            digest = hashlib.md5(data).hexdigest()
+            if self._out_digests.get(rel) == digest:
                 continue
             with _mapped(join_location(self.out_location, rel)):
                 fs.pipe_file(f"{root}/{rel}", data)
+            self._out_digests[rel] = digest
             sent += 1
         return sent
 

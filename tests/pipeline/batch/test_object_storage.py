@@ -201,8 +201,15 @@ def test_bucket_deleted_mid_batch(s3, scan_root, local_run, monkeypatch):
     fs.mkdir("gone-in")
     upload(fs, scan_root, "s3://gone-in/root")
     commits.clear()
-    monkeypatch.setattr(storage.Staged, "commit",
-                        lambda self: (real(self), commits.append(1), fs.rm("gone-out", recursive=True))[0])
+
+    def commit_then_delete_out(self):
+        n = real(self)
+        commits.append(self.out_location)
+        if len(commits) == 1:
+            fs.rm("gone-out", recursive=True)
+        return n
+
+    monkeypatch.setattr(storage.Staged, "commit", commit_then_delete_out)
     with pytest.raises(StorageError) as e:
         batch_reconstruct("s3://gone-in/root", "s3://gone-out/run2", workers=0, device="cpu", progress=False,
                           storage_options=options)
