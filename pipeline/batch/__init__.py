@@ -16,7 +16,6 @@ import functools
 import logging
 import os
 import time
-from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
@@ -31,8 +30,14 @@ from ringscan.pipeline.formats.atomic import (
 )
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.settings import settings_to_dict
-from ringscan.pipeline.formats.storage import check_location, find_scan_urls, is_url, join_location, local_path, \
-    write_json_to
+from ringscan.pipeline.formats.storage import (
+    check_location,
+    find_scan_urls,
+    is_url,
+    join_location,
+    local_path,
+    write_json_to,
+)
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
@@ -206,7 +211,8 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
         else:
             devices = [devices[i % len(devices)] for i in range(n_workers)]
             results = run_local(jobs(), workers=n_workers, devices=devices, cpu_threads=cpu_threads)
-    report = {"format": BATCH_REPORT_FORMAT, "root": root if is_url(root) else str(root.resolve()), "backend": backend,
+    report = {"format": BATCH_REPORT_FORMAT, "root": root if is_url(root) else str(root.resolve()),
+              "backend": backend,
               "workers": n_workers, "settings": settings_to_dict(settings), "not_searched": skipped, "scans": []}
     entries: dict[int, dict] = {}
     t0 = time.perf_counter()

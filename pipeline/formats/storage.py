@@ -502,6 +502,8 @@ class Staged:
                 fs.pipe_file(f"{root}/{rel}", data)
             self._out_digests[rel] = digest
             sent += 1
+        if sent:
+            log.info("%s: %d object(s) stored", self.out_location, sent)
         return sent
 
 
