@@ -42,7 +42,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ringscan.pipeline.formats.atomic import _process_alive, atomic_write_bytes
-from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.errors import FormatError, RingscanError
 from ringscan.pipeline.formats.limits import MAX_JSON_BYTES
 
 log = logging.getLogger(__name__)
@@ -553,5 +553,9 @@ def stage(scan, out=None, *, options: dict | None = None, outputs: bool = True) 
         raise
     except FormatError as e:
         raise type(e)(st.rename(e.path) if e.path else None, st.rename(e.message)) from None
+    except (RingscanError, ValueError) as e:  # e.g. "unknown view(s) ... in <scan.json>": the URL, not the stage
+        if type(e) in (RingscanError, ValueError) and str(tmp) in str(e):
+            raise type(e)(st.rename(str(e))) from None
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -261,3 +261,24 @@ def test_storage_options_parse():
         "key": "abc"}
     assert storage.is_url("s3://b/p") and storage.is_url("gs://b") and not storage.is_url("file:///tmp/x")
     assert not storage.is_url("/tmp/x") and str(storage.local_path("file:///tmp/x")) == "/tmp/x"
+
+
+def test_storage_errors_in_one_line():
+    """What the storage libraries raise, as one line naming the URL (refused credentials cannot be
+    produced by moto's server without its IAM emulation: the mapping is checked here)."""
+    url = "s3://b/scan"
+    cases = [(FileNotFoundError("The specified bucket does not exist"), "s3://b/scan: bucket not found"),
+             (FileNotFoundError("b/scan/scan.json"), "s3://b/scan: not found"),
+             (PermissionError("The AWS Access Key Id you provided does not exist in our records."),
+              "s3://b/scan: access denied: check the credentials and the bucket's permissions (The AWS Access Key "
+              "Id you provided does not exist in our records.)"),
+             (ConnectionRefusedError("[Errno 111] Connection\nrefused"),
+              "s3://b/scan: cannot reach the storage service ([Errno 111] Connection refused)")]
+    for exc, line in cases:
+        assert str(storage.storage_error(url, exc)) == line
+    try:
+        from botocore.exceptions import NoCredentialsError
+    except ImportError:
+        return
+    assert str(storage.storage_error(url, NoCredentialsError())).startswith("s3://b/scan: no credentials found: set "
+                                                                            "AWS_ACCESS_KEY_ID")
