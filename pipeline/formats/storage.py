@@ -47,7 +47,7 @@ from ringscan.pipeline.formats.limits import MAX_JSON_BYTES
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAX_OBJECT_BYTES", "S3_DEFAULTS", "StorageError", "is_url", "local_path", "join_location",
+__all__ = ["MAX_OBJECT_BYTES", "S3_DEFAULTS", "LIST_THREADS", "StorageError", "is_url", "local_path", "join_location",
            "parse_storage_options", "filesystem", "storage_error", "check_location", "find_scan_urls",
            "write_json_to", "Staged", "stage"]
 
@@ -239,38 +239,50 @@ def _size(info: dict) -> int:
     return int(info.get("size", info.get("Size", 0)) or 0)
 
 
+LIST_THREADS = 16
+"""Folders (prefixes) listed at a time while a batch searches object storage for scans."""
+
+
 def find_scan_urls(root: str, options: dict | None = None, *, skipped: list | None = None) -> list[str]:
     """Scan folders (holding scan.json) below the URL ``root``, sorted, as :func:`.batch.discover.iter_scans`
-    finds them on disk: one listing per folder, a scan folder's subfolders not searched (nor listed: a
-    scan.json nested there is not noted, to save a listing per scan).
+    finds them on disk: one listing per folder (:data:`LIST_THREADS` at a time, a level of the tree after
+    another), a scan folder's subfolders not searched (nor listed: a scan.json nested there is not noted, to
+    save a listing per scan).
 
     Raises:
         StorageError: the root cannot be listed (bucket not found, access denied, endpoint unreachable).
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     fs, path = filesystem(root, options)
     note = skipped.append if skipped is not None else (lambda item: None)
     scheme = _URL_RE.match(root)["scheme"]
     found: list[str] = []
 
-    def walk(folder: str, depth: int) -> None:
-        url = f"{scheme}://{folder}"
+    def ls(folder: str):
         try:
-            with _mapped(url):
-                entries = fs.ls(folder, detail=True)
+            with _mapped(f"{scheme}://{folder}"):
+                return fs.ls(folder, detail=True)
         except StorageError as e:
-            if depth == 0:
-                raise
-            note((url, f"cannot list this folder: {e.message}"))
-            return
-        names = {posixpath.basename(e["name"].rstrip("/")): e for e in entries}
-        if "scan.json" in names and names["scan.json"].get("type") == "file":
-            found.append(url)
-            return
-        for n in sorted(names):
-            if names[n].get("type") == "directory" and depth < 64:
-                walk(f"{folder}/{n}", depth + 1)
+            return e
 
-    walk(path, 0)
+    level, depth = [path], 0
+    with ThreadPoolExecutor(max_workers=LIST_THREADS) as ex:
+        while level and depth <= 64:
+            below = []
+            for folder, entries in zip(level, ex.map(ls, level)):
+                url = f"{scheme}://{folder}"
+                if isinstance(entries, StorageError):
+                    if depth == 0:
+                        raise entries
+                    note((url, f"cannot list this folder: {entries.message}"))
+                    continue
+                names = {posixpath.basename(e["name"].rstrip("/")): e for e in entries}
+                if "scan.json" in names and names["scan.json"].get("type") == "file":
+                    found.append(url)
+                    continue
+                below += [f"{folder}/{n}" for n in sorted(names) if names[n].get("type") == "directory"]
+            level, depth = below, depth + 1
     return sorted(found)
 
 
