@@ -444,8 +444,7 @@ class Staged:
     # -- the results
     def _stage_out(self) -> None:
         fs, root = filesystem(self.out_location, self.options)
-        objects = {r: i for r, i in _listing(fs, root, self.out_location).items()
-                   if not any(p.startswith(".") for p in r.split("/"))}
+        objects = {r: i for r, i in _listing(fs, root, self.out_location).items() if _is_result(r)}
         self.out_dir.mkdir(parents=True)
         self._download(fs, root, sorted(objects), self.out_dir, self.out_location, limit=MAX_OBJECT_BYTES,
                        what="result", infos=objects, digests=self._out_digests)
@@ -517,6 +516,18 @@ class Staged:
         if sent:
             log.info("%s: %d object(s) stored", self.out_location, sent)
         return sent
+
+
+RESULT_FOLDERS = ("fused", "mesh")
+"""Subfolders of a scan's results (``--fuse``, ``--mesh``); with the PLYs and JSON files beside them, the only
+objects of an output folder that are staged (an output URL given as a whole bucket stages no more)."""
+
+
+def _is_result(rel: str) -> bool:
+    parts = rel.split("/")
+    if any(p.startswith(".") for p in parts) or not rel.endswith((".ply", ".json")):
+        return False
+    return len(parts) == 1 or (len(parts) == 2 and parts[0] in RESULT_FOLDERS)
 
 
 def _clean_rel(rel: str) -> str | None:

@@ -254,6 +254,11 @@ def test_command_line_errors_are_one_line(s3, scan_root, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_file_urls_are_local_folders(scan_root, local_run):
+    plans = plan_batch(f"file://{scan_root}", f"file://{local_run}")
+    assert [(p.scan, p.action, p.why) for p in plans] == [("a_sphere", "skip", "done"), ("b/cube", "skip", "done")]
+
+
 def test_storage_options_parse():
     assert storage.parse_storage_options(["endpoint_url=http://h:9000", "anon=true", "config_kwargs.retries."
                                           "max_attempts=2", "key=abc"]) == {
