@@ -141,10 +141,15 @@ def filesystem(url: str, options: dict | None = None):
     if fs is None:
         try:
             fs = fsspec.filesystem(scheme, **opts)
-        except ImportError as e:
-            raise StorageError(url, f"{' '.join(str(e).split())} (pip install 'ringscan[cloud]')") from None
+        except ImportError as e:  # fsspec names the package of the protocol (gcsfs, adlfs)
+            hint = "pip install 'ringscan[cloud]'" if scheme in ("s3", "s3a") else "ringscan[cloud] installs s3fs only"
+            raise StorageError(url, f"{' '.join(str(e).split())} ({hint})") from None
         except (TypeError, ValueError) as e:
-            raise StorageError(url, f"bad storage options for {scheme}:// ({' '.join(str(e).split())})") from None
+            text = " ".join(str(e).split())
+            if text.startswith("Protocol not known"):
+                raise StorageError(url, f"unknown protocol {scheme}:// (fsspec knows s3://, gs://, az://, "
+                                        "file://, ...)") from None
+            raise StorageError(url, f"bad storage options for {scheme}:// ({text})") from None
         _filesystems[key] = fs
     return fs, fs._strip_protocol(url).rstrip("/")
 
