@@ -287,3 +287,20 @@ def test_storage_errors_in_one_line():
         return
     assert str(storage.storage_error(url, NoCredentialsError())).startswith("s3://b/scan: no credentials found: set "
                                                                             "AWS_ACCESS_KEY_ID")
+
+
+@pytest.mark.slow
+def test_ray_tasks_read_and_write_s3(s3, scans_bucket, local_run):
+    """Ray tasks (a local cluster) stage their scans from S3 as local workers do: the storage options travel
+    with each task, no shared disk; the same PLYs."""
+    ray = pytest.importorskip("ray", reason="ray is not installed: pip install '.[ray]'")
+    options, fs = s3
+    fs.mkdir("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        rep = batch_reconstruct(scans_bucket, "s3://ray/run", backend="ray", device="cpu", progress=False,
+                                storage_options=options)
+    finally:
+        ray.shutdown()
+    assert [s["status"] for s in rep["scans"]] == ["done", "done"]
+    assert {k: v for k, v in objects(fs, "s3://ray/run").items() if k.endswith(".ply")} == plys(local_run)
