@@ -496,8 +496,12 @@ class Staged:
         """
         if self.out_dir is None or not self._renames():
             return 0
-        files = [p for p in sorted(self.out_dir.rglob("*")) if p.is_file()
-                 and not any(part.startswith(".") for part in p.relative_to(self.out_dir).parts)]
+        if not self.out_dir.is_dir():
+            return 0
+        # the files a reconstruction and a fusion write, nothing else of the folder (a local one may hold more)
+        found = list(self.out_dir.iterdir()) + [p for d in RESULT_FOLDERS if (self.out_dir / d).is_dir()
+                                                 for p in (self.out_dir / d).iterdir()]
+        files = sorted(p for p in found if p.is_file() and _is_result(p.relative_to(self.out_dir).as_posix()))
         files.sort(key=lambda p: (p.suffix == ".json", p.parent == self.out_dir and p.name == "report.json"))
         if not self.remote_out:  # a staged scan, local results: the reports name the scan's URL
             for p in files:
