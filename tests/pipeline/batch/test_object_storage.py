@@ -126,6 +126,20 @@ def test_packed_scan_through_s3_local_results(s3, scan_root, local_run, tmp_path
     assert json.loads((tmp_path / "out" / "report.json").read_text())["scan"] == "s3://packed/a_sphere"
 
 
+def test_fused_through_s3(s3, scans_bucket, scan_root, tmp_path):
+    """--fuse through S3: fused/ stored with the local bytes; a rerun keeps it."""
+    options, fs = s3
+    fs.mkdir("fused")
+    local = process_scan(ScanJob(folder=str(scan_root / "a_sphere"), rel="a", out=str(tmp_path / "a"), fuse=True))
+    job = ScanJob(folder=f"{scans_bucket}/a_sphere", rel="a", out="s3://fused/a", fuse=True, storage_options=options)
+    entry = process_scan(job)
+    assert (local["fused"], entry["fused"], entry["fused_out"]) == ("done", "done", "s3://fused/a/fused")
+    assert fs.cat_file("fused/a/fused/fused.ply") == (tmp_path / "a" / "fused" / "fused.ply").read_bytes()
+    assert json.loads(fs.cat_file("fused/a/fused/fuse.json"))["source"] == "s3://fused/a"
+    again = process_scan(job)
+    assert (again["status"], again["fused"]) == ("skipped (already done)", "kept")
+
+
 def test_bad_scans_on_s3_named_by_url(s3, scan_root, tmp_path, monkeypatch):
     """The loader's checks name the URL: a missing frame; a frame larger than ringscan reads (refused before
     it is downloaded); a missing bucket."""
