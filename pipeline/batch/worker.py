@@ -34,11 +34,15 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
+__all__ = ["ScanJob", "STAGES", "STORAGE_STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
            "failed_entry", "describe_error"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
 """The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
+
+STORAGE_STAGES = ("fetch", "store")
+"""A scan's seconds on object storage (downloading its objects, uploading its results), in its ``times_s``
+only where the scan or its output folder is a URL."""
 
 FAULT_ENV = "RINGSCAN_BATCH_FAULT"
 """Fault injection for tests and benchmarks: the path of a marker file. The first
@@ -156,6 +160,8 @@ def process_scan(job: ScanJob) -> dict:
         with stage(job.folder, job.out, options=job.storage_options) as st:
             _process(job, st, entry)
             st.commit()
+            if st.remote_scan or st.remote_out:  # object storage: the scan's downloads and uploads
+                entry["times_s"].update(st.seconds)
     except Exception as e:  # noqa: BLE001 - one scan's failure of any kind (a library's own exception too) fails
         # that scan alone; the batch goes on
         log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name

@@ -38,6 +38,7 @@ import re
 import secrets
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -332,6 +333,8 @@ class Staged:
         """Where the scan is read: the scan folder, or its staged copy."""
         self.out_dir = (tmp / "out" if self.remote_out else local_path(out)) if out is not None else None
         """Where the results are written: the output folder, or its staged copy (:meth:`commit` uploads it)."""
+        self.seconds = {"fetch": 0.0, "store": 0.0}
+        """Seconds spent downloading (the scan's objects, the earlier results) and uploading (the results)."""
         self._objects: dict[str, dict] = {}  # the scan's objects: relative path -> info
         self._out_digests: dict[str, str] = {}  # the output objects downloaded: relative path -> MD5
 
@@ -350,6 +353,13 @@ class Staged:
                                                                 f"{what} may have")
         if not rels:
             return
+        t = time.perf_counter()
+        try:
+            self._fetch(fs, root, rels, dest, base_url, limit=limit, what=what, infos=infos, digests=digests)
+        finally:
+            self.seconds["fetch"] += time.perf_counter() - t
+
+    def _fetch(self, fs, root, rels, dest, base_url, *, limit, what, infos, digests) -> None:
         keys = [f"{root}/{r}" for r in rels]
         with _mapped(join_location(base_url, rels[0])):
             got = fs.cat(keys, on_error="return") if len(keys) > 1 else {keys[0]: fs.cat_file(keys[0])}
@@ -486,17 +496,15 @@ class Staged:
         return (json.dumps(fix(obj), indent=2, allow_nan=False) + "\n").encode()
 
     def commit(self) -> int:
-        """Store the results: upload every new or changed file of a staged output folder (since it was staged
-        or last committed), each as one whole object, the reports after the files they list and
-        ``report.json`` last; in a local output folder,
-        name the scan's URL instead of its staging folder in the reports. Returns the objects uploaded.
+        """Store the results: upload every result file of a staged output folder that is new or changed (since
+        it was staged or last committed), each as one whole object, the reports after the files they list and
+        ``report.json`` last; in a local output folder, name the scan's URL instead of its staging folder in
+        the reports. Returns the objects uploaded; ``seconds["store"]`` counts the time.
 
         Raises:
             StorageError: naming the object's URL (the bucket went away, access denied, ...).
         """
-        if self.out_dir is None or not self._renames():
-            return 0
-        if not self.out_dir.is_dir():
+        if self.out_dir is None or not self._renames() or not self.out_dir.is_dir():
             return 0
         # the files a reconstruction and a fusion write, nothing else of the folder (a local one may hold more)
         found = list(self.out_dir.iterdir()) + [p for d in RESULT_FOLDERS if (self.out_dir / d).is_dir()
@@ -510,21 +518,29 @@ class Staged:
             return 0
         fs, root = filesystem(self.out_location, self.options)
         sent = 0
-        for p in files:
-            rel = p.relative_to(self.out_dir).as_posix()
-            data = p.read_bytes()
-            if p.suffix == ".json":
-                data = self._json_for_upload(data)
-            digest = hashlib.md5(data).hexdigest()
-            if self._out_digests.get(rel) == digest:
-                continue
-            with _mapped(join_location(self.out_location, rel)):
-                fs.pipe_file(f"{root}/{rel}", data)
-            self._out_digests[rel] = digest
-            sent += 1
+        t = time.perf_counter()
+        try:
+            for p in files:
+                sent += self._store(fs, root, p)
+        finally:
+            self.seconds["store"] += time.perf_counter() - t
         if sent:
             log.info("%s: %d object(s) stored", self.out_location, sent)
         return sent
+
+    def _store(self, fs, root: str, p: Path) -> int:
+        """Upload one result file unless the store holds these bytes already; returns 1 if it was sent."""
+        rel = p.relative_to(self.out_dir).as_posix()
+        data = p.read_bytes()
+        if p.suffix == ".json":
+            data = self._json_for_upload(data)
+        digest = hashlib.md5(data).hexdigest()
+        if self._out_digests.get(rel) == digest:
+            return 0
+        with _mapped(join_location(self.out_location, rel)):
+            fs.pipe_file(f"{root}/{rel}", data)
+        self._out_digests[rel] = digest
+        return 1
 
 
 RESULT_FOLDERS = ("fused", "mesh")

@@ -86,6 +86,8 @@ def test_same_plys_through_s3_and_a_rerun_skips(s3, scans_bucket, local_run):
     report = json.loads(got["a_sphere/report.json"])
     assert report["scan"] == "s3://scans/root/a_sphere"  # the URL, not the staging folder
     assert report["totals"]["points"] > 0
+    per_view = rep["totals"]["per_view_s"]  # the time on object storage, beside the stages
+    assert per_view["fetch"] > 0 and per_view["store"] > 0 and per_view["read"] > 0
     assert json.loads(got["batch_report.json"])["root"] == "s3://scans/root"
     assert not any(k.startswith(".") or "/." in k for k in got)  # no temporary object, no lock
     # a rerun decides from the listing and the results: nothing computed, no frame downloaded
