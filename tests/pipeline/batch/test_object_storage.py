@@ -32,8 +32,9 @@ def s3():
         env.setenv(k, v)
     env.delenv("AWS_PROFILE", raising=False)
     try:
-        port = server._server.server_port
-        options = {"endpoint_url": f"http://127.0.0.1:{port}", "key": "testing", "secret": "testing"}
+        host, port = (server.get_host_and_port() if hasattr(server, "get_host_and_port")  # moto >= 5.0.x
+                      else ("127.0.0.1", server._server.server_port))
+        options = {"endpoint_url": f"http://{host}:{port}", "key": "testing", "secret": "testing"}
         yield options, s3fs.S3FileSystem(**options, use_listings_cache=False, skip_instance_cache=True)
     finally:
         env.undo()
