@@ -326,7 +326,10 @@ class Staged:
     """A scan and its output folder, local or staged from object storage (made by :func:`stage`)."""
 
     def __init__(self, scan: str, out: str | None, options: dict | None, tmp: Path | None):
-        self.scan_location, self.out_location, self.options = os.fspath(scan), out, options
+        scan = os.fspath(scan)
+        if is_url(scan) and scan.rstrip("/").endswith("/scan.json"):  # the scan.json named, as locally
+            scan = scan.rstrip("/")[:-len("/scan.json")]
+        self.scan_location, self.out_location, self.options = scan, out, options
         self.remote_scan = is_url(self.scan_location)
         self.remote_out = out is not None and is_url(out)
         self.scan_dir = tmp / "scan" if self.remote_scan else local_path(self.scan_location)

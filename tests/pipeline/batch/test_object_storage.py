@@ -239,7 +239,7 @@ def test_reconstruct_command_through_s3(s3, scans_bucket, local_run, capsys):
     fs.mkdir("cli")
     opts = ["--storage-option", f"endpoint_url={options['endpoint_url']}", "--storage-option", "key=testing",
             "--storage-option", "secret=testing"]
-    assert main(["reconstruct", f"{scans_bucket}/b/cube", "--out", "s3://cli/cube", "--device", "cpu",
+    assert main(["reconstruct", f"{scans_bucket}/b/cube/scan.json", "--out", "s3://cli/cube", "--device", "cpu",
                  "--no-progress", *opts]) == 0
     assert fs.cat_file("cli/cube/view_000.ply") == (local_run / "b" / "cube" / "view_000.ply").read_bytes()
     assert "report: s3://cli/cube/report.json" in capsys.readouterr().out
