@@ -335,19 +335,22 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
     rng = np.random.default_rng(settings.seed)
     sub = np.sort(rng.choice(n, settings.max_points, replace=False)) if n > settings.max_points else np.arange(n)
 
-    starts = [("rig", R0, t0 / max(np.linalg.norm(t0), 1e-300))] if np.linalg.norm(t0) > 0 else []
+    # two starts: the matches' own essential matrix, and the rig's pose (kept only where clearly better)
+    starts = []
     f1 = 0.5 * (K1[0, 0] + K1[1, 1])
     E, mask = cv2.findEssentialMat(n1[sub], n2[sub], np.eye(3), method=cv2.RANSAC, prob=0.999,
                                    threshold=settings.ransac_px / f1)
     if E is not None and E.shape == (3, 3):
         _, Re, te, _ = cv2.recoverPose(E, n1[sub], n2[sub], np.eye(3), mask=mask)
         starts.append(("essential", Re, te.ravel() / np.linalg.norm(te)))
+    if np.linalg.norm(t0) > 0:
+        starts.append(("rig", R0, t0 / np.linalg.norm(t0)))
     if not starts:
         raise CalibrationError(None, "the matches determine no pose (no essential matrix) and the rig has none")
     best = None
     for name, Rs, ds in starts:
         R, d, cost = _adjust(Rs, ds, p1[sub], p2[sub], K1, K2, settings)
-        if best is None or cost < best[3] - 1e-9 * abs(cost):
+        if best is None or cost < best[3] * (1 - 1e-6):
             best = (name, R, d, cost)
     name, R, d, _ = best
     # the epipolar geometry does not see the sign of t: take the one that puts the points in front
