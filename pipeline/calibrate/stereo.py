@@ -40,12 +40,15 @@ from scipy.optimize import least_squares
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.formats.atomic import atomic_path
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig
+from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
 __all__ = ["RefineSettings", "ResidualStats", "Refinement", "refine_extrinsics", "refine_procam_rig",
            "refine_stereo_rig", "relative_pose", "ProjectorSettings", "ProjectorFit", "fit_projector",
            "triangulate_pair", "procam_rig_from_fit", "epipolar_distances", "reprojection_errors",
-           "write_opencv_procam", "write_opencv_stereo", "rotation_angle_deg"]
+           "write_opencv_procam", "write_opencv_stereo", "rotation_angle_deg", "decoded_pairs"]
 
 log = logging.getLogger(__name__)
 
@@ -394,21 +397,31 @@ def refine_stereo_rig(rig: Rig, uv1, uv2, *, baseline_mm: float | None = None,
     return replace(rig, camera2=new2), ref
 
 
-def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = None,
+def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = None, move: str | None = None,
                       settings: RefineSettings = RefineSettings()) -> tuple[Rig, Refinement]:
-    """A camera-projector rig with the camera's pose re-estimated from camera-projector matches.
+    """A rig with the pose between (first) camera and projector re-estimated from camera-projector matches.
 
-    The projector keeps its pose, so the world frame (tied to the light axis,
-    docs/design.md §2) and the working volume stay; the camera moves.
+    Args:
+        move: "camera" (default for one-camera rigs): the projector keeps its pose, so the world
+            frame (tied to the light axis, docs/design.md §2) and the working volume stay;
+            "projector" (default for two-camera rigs, whose world frame is camera 1's): the cameras stay.
     """
     li = rig.light
     if not isinstance(li, PerspectiveLight):
         raise CalibrationError(None, "the rig's light is not a calibrated perspective projector; refining the "
                                      "camera-projector pose needs one")
+    two = getattr(rig, "camera2", None) is not None
+    move = move or ("projector" if two else "camera")
+    if move not in ("camera", "projector"):
+        raise ValueError(f"refine_procam_rig: move must be 'camera' or 'projector', got {move!r}")
+    if move == "camera" and two:
+        raise ValueError("refine_procam_rig: a two-camera rig keeps its cameras (move='projector')")
     ref = refine_extrinsics(rig.camera, li, uv_cam, uv_proj, baseline_mm=baseline_mm, settings=settings)
+    c = rig.camera
+    if move == "projector":
+        return replace(rig, light=replace(li, R=ref.R @ c.R, t=ref.R @ c.t + ref.t)), ref
     # X_p = R X_c + t  =>  X_c = R^T (X_p - t) = R^T R_p X_w + R^T (t_p - t)
-    cam = replace(rig.camera, R=ref.R.T @ li.R, t=ref.R.T @ (li.t - ref.t))
-    return replace(rig, camera=cam), ref
+    return replace(rig, camera=replace(c, R=ref.R.T @ li.R, t=ref.R.T @ (li.t - ref.t))), ref
 
 
 # ----------------------------------------------------------------------------- projector from points
@@ -705,6 +718,31 @@ def procam_rig_from_fit(camera: Camera, light: PerspectiveLight, points_world, *
     near, far = depth_range(np.percentile(z, [1, 99]), margin=margin)
     return procam_rig(cam_K=camera.K, cam_dist=camera.dist, cam_size=(camera.width, camera.height), proj_K=light.K,
                       proj_dist=light.dist, proj_size=(light.width, light.height), R=R, T=T, z_range=(near, far))
+
+
+def decoded_pairs(scan: Scan, view: View, *, max_pairs: int = 200_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Camera pixels and their projector pixels of one view of a ``decoded``-codec scan
+    (imported Gray code: the frames hold each pixel's projector coordinates).
+
+    Returns:
+        ((n, 2) camera pixels, (n, 2) projector pixels (u_p, v_p)), at most ``max_pairs``
+        of them (a seeded random subset).
+
+    Raises:
+        FormatError: the scan is of another codec, or its frames cannot be read.
+    """
+    if scan.patterns.codec != "decoded":
+        raise FormatError(scan.path, f"codec {scan.patterns.codec!r}: camera-projector pairs are read from "
+                                     "imported (decoded) scans; a two-camera scan gives them by matching")
+    fr = read_view_frames(scan, view, ["proj_u", "proj_v"])
+    ok = (fr[0] > 0) & (fr[1] > 0)
+    yy, xx = np.nonzero(ok)
+    if yy.size > max_pairs:
+        pick = np.sort(np.random.default_rng(seed).choice(yy.size, max_pairs, replace=False))
+        yy, xx = yy[pick], xx[pick]
+    uv = np.stack([xx, yy], 1).astype(np.float64)
+    proj = np.stack([fr[0][yy, xx], fr[1][yy, xx]], 1).astype(np.float64) / DECODED_SCALE - 1.0
+    return uv, proj
 
 
 # ----------------------------------------------------------------------------- OpenCV FileStorage
