@@ -713,7 +713,7 @@ def load_scan_with_rig(args):
             if (a is None) != (b is None):
                 has = "two cameras" if rig.camera2 is not None else "one camera"
                 raise FormatError(args.rig, f"has {has}, the scan {args.scan} "
-                                            f"{'two' if own.camera2 is not None else 'one'}")
+                                            f"{'two cameras' if own.camera2 is not None else 'one camera'}")
             if a is not None and (a.width, a.height) != (b.width, b.height):
                 raise FormatError(args.rig, f"{what} is {a.width}x{a.height}, the scan's frames are "
                                             f"{b.width}x{b.height}")
@@ -804,7 +804,7 @@ def run_refine(args) -> int:
     if pair == "cameras" and rig.camera2 is None:
         raise FormatError(args.rig or scan.path, "has one camera: --pair cameras needs a two-camera rig")
     if pair == "projector" and not isinstance(rig.light, PerspectiveLight):
-        raise FormatError(args.rig or scan.path, f"its projector is {rig.light.model}, not calibrated: refining it "
+        raise FormatError(args.rig or scan.path, f"its projector is not calibrated (model {rig.light.model!r}): refining it "
                                                  "needs a perspective projector (a two-camera rig's projector: "
                                                  "`ringscan calibrate projector-from-scan`)")
     uv1, uv2, proj = gather_matches(scan, views, args, need=pair)
@@ -850,9 +850,9 @@ def add_projector_from_scan_parser(calsub) -> None:
 
 def run_projector_from_scan(args) -> int:
     size = parse_size(args.projector, "--projector") if args.projector is not None else None
-    match_outputs(args)
     if args.principal_point is not None and not all(np.isfinite(args.principal_point)):
         raise UsageError("--principal-point: expected two finite numbers")
+    match_outputs(args)
     scan, views = load_scan_with_rig(args)
     rig = scan.rig
     if rig.camera2 is None:
