@@ -205,7 +205,7 @@ class RefineSettings:
     """Robust loss of the bundle adjustment (scipy.optimize.least_squares: linear, soft_l1, huber, cauchy)."""
     loss_scale_px: float = 1.0
     """Residual (px) where the robust loss starts to down-weight a match."""
-    max_points: int = 20000
+    max_points: int = 200_000
     """Most matches the adjustment uses (a seeded random subset; residuals are reported over all)."""
     min_points: int = 50
     """Fewest matches to refine from."""
