@@ -26,7 +26,8 @@ from ringscan.kernels.geometry import (
     make_perspective_light,
     monotonic_radius2,
 )
-from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig, UncalibratedLight
 
 __all__ = ["UNDISTORT_CRITERIA", "in_lens_region", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point"]
 
@@ -42,11 +43,24 @@ def camera_model_for(rig: Rig) -> CameraModel:
 
 
 def light_model_for(rig: Rig) -> LightModel:
-    """The kernels' light struct of ``rig.light`` (parallel or perspective)."""
+    """The kernels' light struct of ``rig.light`` (parallel or perspective).
+
+    Raises:
+        FormatError: the rig's projector is not calibrated (a two-camera rig's
+            ``uncalibrated`` light): nothing can be triangulated with it.
+    """
     li = rig.light
+    _check_calibrated(rig)
     if isinstance(li, ParallelLight):
         return make_parallel_light(li.R, li.t, li.pixel_pitch_mm, li.axis_px)
     return make_perspective_light(li.K, li.dist, li.R, li.t)
+
+
+def _check_calibrated(rig: Rig) -> None:
+    if isinstance(rig.light, UncalibratedLight):
+        raise FormatError(None, "the rig's projector is not calibrated (light model 'uncalibrated'): triangulate "
+                                "camera to camera (--rays camera-camera), or calibrate the projector "
+                                "(ringscan calibrate projector-from-scan, docs/calibration.md)")
 
 
 def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +171,7 @@ def camera_pixels(rig: Rig, X: np.ndarray) -> np.ndarray:
 def projector_pixels(rig: Rig, X: np.ndarray) -> np.ndarray:
     """(n, 2) projector pixels (u_p, v_p) that light world points X (n, 3)."""
     li = rig.light
+    _check_calibrated(rig)
     X = np.asarray(X, np.float64).reshape(-1, 3)
     if isinstance(li, ParallelLight):
         XL = X @ li.R.T + li.t
@@ -178,6 +193,7 @@ def projector_polar(rig: Rig, X: np.ndarray, center) -> np.ndarray:
 def light_ray(rig: Rig, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A point and unit direction (world) of the light's ray through projector pixel p (2,)."""
     li = rig.light
+    _check_calibrated(rig)
     if isinstance(li, ParallelLight):
         XL = np.array([li.pixel_pitch_mm * (p[0] - li.axis_px[0]), li.pixel_pitch_mm * (p[1] - li.axis_px[1]), 0.0])
         return li.R.T @ (XL - li.t), li.R.T @ np.array([0.0, 0.0, -1.0])
@@ -189,6 +205,7 @@ def light_ray(rig: Rig, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def light_directions(rig: Rig, X: np.ndarray) -> np.ndarray:
     """(n, 3) unit directions from points X (n, 3) toward the light."""
     li = rig.light
+    _check_calibrated(rig)
     if isinstance(li, ParallelLight):
         return np.broadcast_to(li.R.T @ np.array([0.0, 0.0, 1.0]), X.shape)
     d = li.center - X

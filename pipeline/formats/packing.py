@@ -101,6 +101,13 @@ def _remove_leftover_images(scan: Scan, view: View, *, keep: bool) -> int:
     return len(found)
 
 
+def _refuse_two_cameras(scan) -> None:
+    # Checked before anything is written: half a two-camera scan converted would be worse than none.
+    if any(v.camera2 is not None for v in scan.views):
+        raise FormatError(scan.path, "a two-camera scan: pack and unpack convert one-camera scans only for now "
+                                     "(camera 2's frames would be left behind); the scan is unchanged")
+
+
 def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
     """Pack every view of a scan whose frames are image files into ``<view folder>/frames.zarr``.
 
@@ -113,6 +120,7 @@ def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
             different sizes, a damaged store; the views before it stay packed.
     """
     scan = load_scan(folder)
+    _refuse_two_cameras(scan)
     res = PackResult(folder=scan.folder)
     for i, v in enumerate(scan.views):
         if v.packed is None:
@@ -177,6 +185,7 @@ def unpack_scan(folder: str | os.PathLike, *, image_format: str = "png", keep: b
     if image_format not in ("png", "tiff"):
         raise ValueError(f"image_format: expected 'png' or 'tiff', got {image_format!r}")
     scan = load_scan(folder)
+    _refuse_two_cameras(scan)
     res = PackResult(folder=scan.folder)
     views = list(scan.views)
     for i, v in enumerate(views):

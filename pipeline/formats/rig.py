@@ -8,7 +8,9 @@ A rig file is JSON::
      "light": {"model": "parallel", "R": 3x3, "t": [3], "pixel_pitch_mm": s,
                "axis_px": [a_u, a_v]}
            or {"model": "perspective", "width": .., "height": .., "K": .., "dist": ..,
-               "R": .., "t": ..},
+               "R": .., "t": ..}
+           or {"model": "uncalibrated", "width": .., "height": ..}   (two-camera rigs only),
+     "camera2": {...as camera...}                                    (optional: a second camera),
      "volume": {"z_min": .., "z_max": .., "r_max": ..},
      "turntable": {"axis_point": [3], "axis_dir": [3]}}
 
@@ -30,7 +32,8 @@ from ringscan.pipeline.formats.errors import FormatError
 
 RIG_FORMAT = "ringscan.rig/1"
 
-__all__ = ["RIG_FORMAT", "Camera", "ParallelLight", "PerspectiveLight", "Volume", "Turntable", "Rig", "load_rig", "parse_rig", "save_rig", "rig_to_dict", "default_rig", "look_at", "turntable_transform"]
+__all__ = ["RIG_FORMAT", "Camera", "ParallelLight", "PerspectiveLight", "UncalibratedLight", "Volume", "Turntable", "Rig", "load_rig", "parse_rig", "save_rig", "rig_to_dict", "default_rig", "look_at", "turntable_transform",
+           "has_calibrated_light"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +110,20 @@ class PerspectiveLight:
 
 
 @dataclass(frozen=True)
+class UncalibratedLight:
+    """A projector whose geometry is not known: the pattern's size only. Allowed in
+    two-camera rigs, which triangulate camera to camera (docs/formats.md)."""
+
+    width: int
+    """Projector width in pixels."""
+    height: int
+    """Projector height in pixels."""
+    gamma: float = 1.0
+    """Light response: emitted = (value / full_scale)^gamma; 1 = linear."""
+    model: str = field(default="uncalibrated", init=False)
+
+
+@dataclass(frozen=True)
 class Volume:
     """The rig's working volume in the world frame; roots outside it are rejected."""
 
@@ -130,12 +147,18 @@ class Turntable:
 
 @dataclass(frozen=True)
 class Rig:
-    """A whole rig: camera, light, working volume and optional turntable."""
+    """A whole rig: camera, light, working volume, optional turntable and second camera."""
 
     camera: Camera
-    light: ParallelLight | PerspectiveLight
+    """The camera (camera 1 of a two-camera rig)."""
+    light: ParallelLight | PerspectiveLight | UncalibratedLight
+    """The light; ``UncalibratedLight`` only when ``camera2`` is present."""
     volume: Volume
+    """The working volume (world frame)."""
     turntable: Turntable | None = None
+    """The turntable, if any."""
+    camera2: Camera | None = None
+    """The second camera of a two-camera rig (same world frame), or None."""
 
     def to_dict(self) -> dict:
         return rig_to_dict(self)
@@ -287,16 +310,9 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
     if d.get("units", "mm") != "mm":
         raise FormatError(src, f"units: only 'mm' is supported, got {d.get('units')!r}")
 
-    c = _obj(src, "", d, "camera")
-    camera = Camera(
-        width=_size(src, "camera", c, "width"),
-        height=_size(src, "camera", c, "height"),
-        K=_intrinsics(src, "camera.K", c.get("K")),
-        dist=_dist(src, "camera.dist", c.get("dist")),
-        R=_rotation(src, "camera.R", c.get("R")),
-        t=_arr(src, "camera.t", c.get("t"), (3,), MAX_LENGTH_MM),
-        gamma=_gamma(src, "camera", c),
-    )
+    camera = _camera(src, "camera", _obj(src, "", d, "camera"))
+    c2 = _obj(src, "", d, "camera2", required=False)
+    camera2 = None if c2 is None else _camera(src, "camera2", c2)
 
     li = _obj(src, "", d, "light")
     model = li.get("model")
@@ -324,8 +340,14 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
             t=_arr(src, "light.t", li.get("t"), (3,), MAX_LENGTH_MM),
             gamma=_gamma(src, "light", li),
         )
+    elif model == "uncalibrated":
+        if camera2 is None:
+            raise FormatError(src, "light.model: 'uncalibrated' needs a second camera (camera2): a one-camera rig "
+                                   "triangulates with the projector, so the projector must be calibrated")
+        light = UncalibratedLight(width=_size(src, "light", li, "width"), height=_size(src, "light", li, "height"),
+                                  gamma=_gamma(src, "light", li))
     else:
-        raise FormatError(src, f"light.model: expected 'parallel' or 'perspective', got {model!r}")
+        raise FormatError(src, f"light.model: expected 'parallel', 'perspective' or 'uncalibrated', got {model!r}")
 
     v = _obj(src, "", d, "volume")
     volume = Volume(
@@ -348,10 +370,33 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
         turntable = Turntable(axis_point=_arr(src, "turntable.axis_point", tt.get("axis_point"), (3,), MAX_LENGTH_MM),
                               axis_dir=ad / n)
 
-    cam_in_front = (camera.R @ np.array([0.0, 0.0, 0.5 * (volume.z_min + volume.z_max)]) + camera.t)[2]
-    if cam_in_front <= 0:
-        raise FormatError(src, "camera: the working volume is behind the camera (check R and t: X_c = R X_w + t)")
-    return Rig(camera=camera, light=light, volume=volume, turntable=turntable)
+    for name, cam in (("camera", camera), ("camera2", camera2)):
+        if cam is None:
+            continue
+        cam_in_front = (cam.R @ np.array([0.0, 0.0, 0.5 * (volume.z_min + volume.z_max)]) + cam.t)[2]
+        if cam_in_front <= 0:
+            raise FormatError(src, f"{name}: the working volume is behind the camera "
+                                   "(check R and t: X_c = R X_w + t)")
+    if camera2 is not None and np.linalg.norm(camera.center - camera2.center) < 1e-3:
+        raise FormatError(src, "camera2: at the same place as camera (no baseline: check camera2.R and t)")
+    return Rig(camera=camera, light=light, volume=volume, turntable=turntable, camera2=camera2)
+
+
+def _camera(src, where: str, c: dict) -> Camera:
+    return Camera(
+        width=_size(src, where, c, "width"),
+        height=_size(src, where, c, "height"),
+        K=_intrinsics(src, f"{where}.K", c.get("K")),
+        dist=_dist(src, f"{where}.dist", c.get("dist")),
+        R=_rotation(src, f"{where}.R", c.get("R")),
+        t=_arr(src, f"{where}.t", c.get("t"), (3,), MAX_LENGTH_MM),
+        gamma=_gamma(src, where, c),
+    )
+
+
+def has_calibrated_light(rig: Rig) -> bool:
+    """Whether the rig's projector geometry is known (it can be triangulated with)."""
+    return not isinstance(rig.light, UncalibratedLight)
 
 
 def load_rig(path: str | os.PathLike) -> Rig:
@@ -361,27 +406,34 @@ def load_rig(path: str | os.PathLike) -> Rig:
 
 def rig_to_dict(rig: Rig) -> dict:
     """The JSON form of a rig (docs/design.md §11)."""
-    c = rig.camera
-    cam = {"width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
-           "R": c.R.tolist(), "t": c.t.tolist()}
-    if c.gamma != 1.0:
-        cam["response"] = {"gamma": c.gamma}
     li = rig.light
     if isinstance(li, ParallelLight):
         light = {"model": "parallel", "R": li.R.tolist(), "t": li.t.tolist(),
                  "pixel_pitch_mm": li.pixel_pitch_mm, "axis_px": li.axis_px.tolist()}
         if li.width:
             light["width"], light["height"] = li.width, li.height
+    elif isinstance(li, UncalibratedLight):
+        light = {"model": "uncalibrated", "width": li.width, "height": li.height}
     else:
         light = {"model": "perspective", "width": li.width, "height": li.height, "K": li.K.tolist(),
                  "dist": li.dist.tolist(), "R": li.R.tolist(), "t": li.t.tolist()}
     if li.gamma != 1.0:
         light["response"] = {"gamma": li.gamma}
-    d = {"format": RIG_FORMAT, "units": "mm", "camera": cam, "light": light,
+    d = {"format": RIG_FORMAT, "units": "mm", "camera": _camera_dict(rig.camera), "light": light,
          "volume": {"z_min": rig.volume.z_min, "z_max": rig.volume.z_max, "r_max": rig.volume.r_max}}
     if rig.turntable is not None:
         d["turntable"] = {"axis_point": rig.turntable.axis_point.tolist(), "axis_dir": rig.turntable.axis_dir.tolist()}
+    if rig.camera2 is not None:
+        d["camera2"] = _camera_dict(rig.camera2)
     return d
+
+
+def _camera_dict(c: Camera) -> dict:
+    cam = {"width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
+           "R": c.R.tolist(), "t": c.t.tolist()}
+    if c.gamma != 1.0:
+        cam["response"] = {"gamma": c.gamma}
+    return cam
 
 
 def save_rig(path: str | os.PathLike, rig: Rig) -> None:

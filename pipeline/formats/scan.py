@@ -15,13 +15,19 @@ a view's frames are one packed frame store (``ringscan.scan/2``, see
 
      "views": [{"name": "view_000", "turntable_deg": 0.0,
                 "packed": {"store": "view_000/frames.zarr", "frames": ["white", ...]}}]
+
+A two-camera rig (``camera2`` in the rig) adds camera 2's frames of a view under the
+view's ``camera2`` key, as files or as a store (docs/formats.md)::
+
+     "views": [{"name": "view_000", "frames": {...},
+                "camera2": {"frames": {"white": "view_000/cam2/white.png", ...}}}]
 """
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -42,7 +48,7 @@ SCAN_FORMATS = (SCAN_FORMAT, SCAN_FORMAT_PACKED)
 
 __all__ = ["SCAN_FORMAT", "SCAN_FORMAT_PACKED", "View", "Scan", "load_scan", "save_scan", "read_view_frames",
            "read_view_frame", "frame_files", "scan_to_dict", "check_view_name", "check_truth", "check_view_frames",
-           "packed_view"]
+           "packed_view", "as_camera2"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +65,9 @@ class View:
     packed: str | None = None
     """The packed frame store (path relative to the scan folder) holding this view's
     frames, or None for image files."""
+    camera2: View | None = None
+    """Camera 2's frames of this view (a two-camera rig; same name and frame names,
+    its own files or store), or None. Read them with ``as_camera2(scan)``."""
 
 
 @dataclass(frozen=True)
@@ -187,28 +196,61 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
         deg = vd.get("turntable_deg", 0.0)
         if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
             raise FormatError(src, f"{where}.turntable_deg: expected a finite number, got {deg!r}")
-        store = None
-        if "packed" in vd:
-            store, frames = _parse_packed(folder, src, where, vd, fmt)
-        else:
-            fr = vd.get("frames")
-            if not isinstance(fr, dict):
-                raise FormatError(src, f"{where}.frames: expected an object")
-            frames = {k: _safe_rel(folder, src, f"{where}.frames.{k}", v) for k, v in fr.items()}
-        missing = [n for n in needed if n not in frames]
-        if missing and not allow_incomplete:
-            raise FormatError(src, f"{where}.frames: missing frame(s) {', '.join(missing)} of the {patterns.codec} codec")
-        if check_files and store is not None:
-            if not (folder / store / "zarr.json").is_file():
-                raise FormatError(folder / store, f"frame store of {name} not found (listed in scan.json "
-                                                  f"{where}.packed.store)")
-        elif check_files:
-            for k, rel in frames.items():
-                if not (folder / rel).is_file():
-                    raise FormatError(folder / rel, f"frame {k!r} of {name} not found (listed in scan.json {where}.frames)")
-        views.append(View(name=name, turntable_deg=float(deg), frames=frames, packed=store))
+        parse = dict(folder=folder, src=src, fmt=fmt, name=name, needed=needed, codec=patterns.codec,
+                     check_files=check_files, allow_incomplete=allow_incomplete)
+        frames, store = _parse_frames(vd, where, **parse)
+        second = None
+        if "camera2" in vd:
+            c2 = vd["camera2"]
+            if rig.camera2 is None:
+                raise FormatError(src, f"{where}.camera2: the rig has one camera (no camera2): a two-camera view "
+                                       "needs a two-camera rig")
+            if not isinstance(c2, dict):
+                raise FormatError(src, f"{where}.camera2: expected an object with frames or packed")
+            f2, s2 = _parse_frames(c2, f"{where}.camera2", **{**parse, "name": f"{name} (camera 2)"})
+            second = View(name=name, turntable_deg=float(deg), frames=f2, packed=s2)
+        views.append(View(name=name, turntable_deg=float(deg), frames=frames, packed=store, camera2=second))
     extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views")}
     return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra)
+
+
+def _parse_frames(vd: dict, where: str, *, folder: Path, src: Path, fmt: str, name: str, needed: list[str],
+                  codec: str, check_files: bool, allow_incomplete: bool) -> tuple[dict[str, str], str | None]:
+    """One camera's frames of a view: (frame name -> path, store or None)."""
+    store = None
+    if "packed" in vd:
+        store, frames = _parse_packed(folder, src, where, vd, fmt)
+    else:
+        fr = vd.get("frames")
+        if not isinstance(fr, dict):
+            raise FormatError(src, f"{where}.frames: expected an object")
+        frames = {k: _safe_rel(folder, src, f"{where}.frames.{k}", v) for k, v in fr.items()}
+    missing = [n for n in needed if n not in frames]
+    if missing and not allow_incomplete:
+        raise FormatError(src, f"{where}.frames: missing frame(s) {', '.join(missing)} of the {codec} codec")
+    if check_files and store is not None:
+        if not (folder / store / "zarr.json").is_file():
+            raise FormatError(folder / store, f"frame store of {name} not found (listed in scan.json "
+                                              f"{where}.packed.store)")
+    elif check_files:
+        for k, rel in frames.items():
+            if not (folder / rel).is_file():
+                raise FormatError(folder / rel, f"frame {k!r} of {name} not found (listed in scan.json {where}.frames)")
+    return frames, store
+
+
+def as_camera2(scan: Scan) -> Scan:
+    """The same scan seen from camera 2: the rig's cameras swapped, so that every
+    one-camera function (frame checks, reading, decoding) works on camera 2's frames
+    (``view.camera2``) unchanged.
+
+    Raises:
+        FormatError: the rig has no second camera.
+    """
+    rig = scan.rig
+    if rig.camera2 is None:
+        raise FormatError(scan.path, "the rig has one camera (no camera2)")
+    return replace(scan, rig=replace(rig, camera=rig.camera2, camera2=rig.camera))
 
 
 def check_truth(scan: Scan) -> dict:
@@ -271,19 +313,27 @@ def _parse_packed(folder: Path, src: Path, where: str, vd: dict, fmt: str) -> tu
 
 
 def _view_to_dict(v: View) -> dict:
+    d = {"name": v.name, "turntable_deg": v.turntable_deg, **_frames_to_dict(v)}
+    if v.camera2 is not None:
+        d["camera2"] = _frames_to_dict(v.camera2)
+    return d
+
+
+def _frames_to_dict(v: View) -> dict:
     if v.packed is not None:
-        return {"name": v.name, "turntable_deg": v.turntable_deg,
-                "packed": {"store": v.packed, "frames": list(v.frames)}}
-    return {"name": v.name, "turntable_deg": v.turntable_deg, "frames": dict(v.frames)}
+        return {"packed": {"store": v.packed, "frames": list(v.frames)}}
+    return {"frames": dict(v.frames)}
 
 
 def packed_view(view: View, store: str, names: list[str]) -> View:
-    """``view`` with its frames in the store ``store`` (relative to the scan folder)."""
-    return View(name=view.name, turntable_deg=view.turntable_deg, frames={n: store for n in names}, packed=store)
+    """``view`` with its frames in the store ``store`` (relative to the scan folder); camera 2's
+    frames (if any) as they were."""
+    return View(name=view.name, turntable_deg=view.turntable_deg, frames={n: store for n in names}, packed=store,
+                camera2=view.camera2)
 
 
 def scan_to_dict(scan: Scan) -> dict:
-    packed = any(v.packed is not None for v in scan.views)
+    packed = any(v.packed is not None or (v.camera2 is not None and v.camera2.packed is not None) for v in scan.views)
     d = {"format": SCAN_FORMAT_PACKED if packed else SCAN_FORMAT,
          "rig": scan.rig_ref if scan.rig_ref else rig_to_dict(scan.rig),
          "patterns": scan.patterns.to_dict(),
@@ -322,6 +372,8 @@ def check_view_frames(scan: Scan, view: View) -> None:
         if (info.width, info.height) != (cam.width, cam.height):
             raise FormatError(scan.folder / view.packed / "zarr.json",
                               f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+        if view.camera2 is not None:
+            check_view_frames(as_camera2(scan), view.camera2)
         return
     for n in frame_names(scan.patterns):
         if n not in view.frames:
@@ -330,6 +382,8 @@ def check_view_frames(scan: Scan, view: View) -> None:
         w, h = check_image_header(p)
         if (w, h) != (cam.width, cam.height):
             raise FormatError(p, f"frame is {w}x{h}, but the camera is {cam.width}x{cam.height}")
+    if view.camera2 is not None:
+        check_view_frames(as_camera2(scan), view.camera2)
 
 
 def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:

@@ -96,6 +96,10 @@ def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None) -> Inpu
                  "frames": {n: v.frames.get(n) for n in names}}
         where = frame_files(scan, v)  # a packed view's frames: their chunk files
         files = {n: _frame_stat(where[n]) if n in v.frames else None for n in names}
+        if v.camera2 is not None:  # camera 2's frames are inputs too
+            entry["camera2"] = {n: v.camera2.frames.get(n) for n in names}
+            where2 = frame_files(scan, v.camera2)
+            files["camera2"] = {n: _frame_stat(where2[n]) if n in v.camera2.frames else None for n in names}
         per_view[v.name] = _digest({**base, "view": entry, "files": files})
     return InputHashes(rig=base["rig"], patterns=base["patterns"], settings=base["settings"], views=per_view,
                        scan=_digest({**base, "views": per_view}))
