@@ -86,9 +86,12 @@ __all__ = [
 class MatchSettings:
     """How a camera-1 sample finds its camera-2 position."""
 
-    radius_px: float = 4.0
-    """Search radius in projector pixels (also the grid's cell size): the
-    neighbours of a query are the camera-2 samples within it."""
+    cell_px: float = 4.0
+    """The grid's cell size in projector pixels: the search grows ring of cells
+    by ring of cells until it has found the nearest ``neighbours``."""
+    radius_px: float = 16.0
+    """Largest search radius in projector pixels: wide enough for the samples'
+    spacing (a camera pixel is ~4 projector pixels on a coarse camera)."""
     neighbours: int = 8
     """How many nearest camera-2 samples (in projector space) the local affine
     fit uses, at most ``MAX_NEIGHBOURS``."""
@@ -115,8 +118,8 @@ class MatchSettings:
     image (a discontinuity)."""
 
     def __post_init__(self):
-        if not (self.radius_px > 0):
-            raise ValueError(f"match.radius_px: must be > 0, got {self.radius_px}")
+        if not (self.cell_px > 0 and self.radius_px >= self.cell_px):
+            raise ValueError(f"match: need 0 < cell_px <= radius_px, got {self.cell_px}, {self.radius_px}")
         if not (2 <= self.min_neighbours <= self.neighbours <= MAX_NEIGHBOURS):
             raise ValueError(f"match: need 2 <= min_neighbours <= neighbours <= {MAX_NEIGHBOURS}, "
                              f"got {self.min_neighbours}, {self.neighbours}")
@@ -330,6 +333,7 @@ def match_kernel(
     cell: float,
     nx: int,
     ny: int,
+    rings: int,
     k_max: int,
     k_min: int,
     line_ratio: float,
@@ -361,39 +365,45 @@ def match_kernel(
     if not (q[0] == q[0] and q[1] == q[1]):
         status[i] = MATCH_NO_COORDINATE
         return
-    # the k nearest camera-2 samples within one cell size, sorted by (distance, index)
+    # the k nearest camera-2 samples within ``rings`` cells, sorted by (distance,
+    # index)
     nd = VecKf()
     ni = VecKi()
     n = int(0)
-    r2max = cell * cell
+    r2max = float(rings) * cell * float(rings) * cell
     cx = int(wp.floor(q[0] / cell))
     cy = int(wp.floor(q[1] / cell))
-    for gy in range(cy - 1, cy + 2):
-        for gx in range(cx - 1, cx + 2):
-            if gx >= 0 and gy >= 0 and gx < nx and gy < ny:
-                ci = gy * nx + gx
-                for s in range(offsets[ci], offsets[ci] + counts[ci]):
-                    j = items[s]
-                    dp = proj2[j] - q
-                    d2 = wp.dot(dp, dp)
-                    if d2 <= r2max:
-                        pos = int(-1)
-                        if n < k_max:
-                            pos = n
-                            n += 1
-                        elif key_less(d2, j, nd[k_max - 1], ni[k_max - 1]):
-                            pos = k_max - 1
-                        if pos >= 0:
-                            nd[pos] = d2
-                            ni[pos] = j
-                            while pos > 0 and key_less(nd[pos], ni[pos], nd[pos - 1], ni[pos - 1]):
-                                td = nd[pos]
-                                nd[pos] = nd[pos - 1]
-                                nd[pos - 1] = td
-                                ti = ni[pos]
-                                ni[pos] = ni[pos - 1]
-                                ni[pos - 1] = ti
-                                pos -= 1
+    for rr in range(rings + 1):
+        # rings 0 .. rr - 1 cover every sample within (rr - 1) * cell of q
+        covered = float(rr - 1) * cell
+        if rr > 0 and n == k_max and nd[k_max - 1] <= covered * covered:
+            break
+        for gy in range(cy - rr, cy + rr + 1):
+            for gx in range(cx - rr, cx + rr + 1):
+                if wp.max(wp.abs(gx - cx), wp.abs(gy - cy)) == rr and gx >= 0 and gy >= 0 and gx < nx and gy < ny:
+                    ci = gy * nx + gx
+                    for s in range(offsets[ci], offsets[ci] + counts[ci]):
+                        j = items[s]
+                        dp = proj2[j] - q
+                        d2 = wp.dot(dp, dp)
+                        if d2 <= r2max:
+                            pos = int(-1)
+                            if n < k_max:
+                                pos = n
+                                n += 1
+                            elif key_less(d2, j, nd[k_max - 1], ni[k_max - 1]):
+                                pos = k_max - 1
+                            if pos >= 0:
+                                nd[pos] = d2
+                                ni[pos] = j
+                                while pos > 0 and key_less(nd[pos], ni[pos], nd[pos - 1], ni[pos - 1]):
+                                    td = nd[pos]
+                                    nd[pos] = nd[pos - 1]
+                                    nd[pos - 1] = td
+                                    ti = ni[pos]
+                                    ni[pos] = ni[pos - 1]
+                                    ni[pos - 1] = ti
+                                    pos -= 1
     if n < k_min:
         status[i] = MATCH_TOO_FEW
         return
@@ -710,7 +720,8 @@ def match_by_projector(
                   fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
     if n == 0:
         return out
-    cell = float(settings.radius_px)
+    cell = float(settings.cell_px)
+    rings = int(np.ceil(settings.radius_px / cell))
     nx = int(np.ceil(W / cell))
     ny = int(np.ceil(Hh / cell))
     counts = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
@@ -723,7 +734,7 @@ def match_by_projector(
         wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
                   device=dev)
     s = settings
-    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, cell, nx, ny, int(s.neighbours),
+    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, cell, nx, ny, rings, int(s.neighbours),
             int(s.min_neighbours), float(s.line_ratio), float(s.max_offset_px), float(s.max_extrapolation),
             float(s.max_fit_px), float(s.max_gain)]
     outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.fit_px, out.status]
