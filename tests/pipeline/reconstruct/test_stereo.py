@@ -90,7 +90,8 @@ def test_uncalibrated_projector_works_camera_to_camera(stereo_scan, tmp_path):
     scan = load_scan(folder)
     rep = reconstruct_scan(scan, tmp_path / "rec", progress=False)
     assert rep["views"][0]["rays"] == "camera-camera"
-    assert evaluate_recon(tmp_path / "rec", scan)["all"]["median_mm"] < 0.05
+    # evaluated against the calibrated twin (evaluate reads the projector for its coverage mask)
+    assert evaluate_recon(tmp_path / "rec", stereo_scan)["all"]["median_mm"] < 0.05
     with pytest.raises(FormatError, match="not calibrated"):
         reconstruct_view(scan, scan.views[0], settings=_rays("all"), device="cpu")
     with pytest.raises(FormatError, match="not calibrated"):
@@ -100,8 +101,15 @@ def test_uncalibrated_projector_works_camera_to_camera(stereo_scan, tmp_path):
 def test_rotated_extrinsics_warn(stereo_scan, tmp_path, caplog):
     rig = stereo_scan.rig
     c2 = rig.camera2
+    # the camera-1-to-camera-2 rotation off by 2 degrees, its translation kept (as in
+    # an OpenCV stereo file whose R does not fit): X2 = dR R_rel X1 + T_rel
+    c1 = rig.camera
     dR = cv2.Rodrigues(np.array([0.0, np.radians(2.0), 0.0]))[0]
-    bad = dataclasses.replace(stereo_scan, rig=dataclasses.replace(rig, camera2=dataclasses.replace(c2, R=dR @ c2.R)))
+    R_rel = c2.R @ c1.R.T
+    T_rel = c2.t - R_rel @ c1.t
+    R_bad = dR @ R_rel
+    c2_bad = dataclasses.replace(c2, R=R_bad @ c1.R, t=R_bad @ c1.t + T_rel)
+    bad = dataclasses.replace(stereo_scan, rig=dataclasses.replace(rig, camera2=c2_bad))
     m = match_view(stereo_scan, stereo_scan.views[0], device="cpu")
     good_d = np.median(epipolar_distances(rig, m.uv1, m.uv2))
     bad_d = np.median(epipolar_distances(bad.rig, m.uv1, m.uv2))
