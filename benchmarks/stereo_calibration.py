@@ -16,9 +16,14 @@
    imported (``decoded`` scan); refine (camera against the projector) from the
    calibration published with the data and from a fresh ``calibrate procam`` of the
    same captures: epipolar distance before and after.
-3. A two-camera scan through ``match_view`` (``--scan``), when that is available.
+3. A virtual two-camera scan (tests/pipeline/reconstruct/two_camera_scan.py: a
+   320x256 camera pair 70 deg apart around an 80 mm sphere on the reference plane,
+   the default rig's perspective projector, rings + angle) matched by ``match_view``:
+   refine from camera 2 turned by 2 deg, and projector-from-scan from the true and
+   from the refined rig; the 3D error is the median distance of the two-camera
+   points from the sphere or the plane, whichever is nearer.
 
-    python benchmarks/stereo_calibration.py [--noise 0.1 0.3] [--points 200000] [--data DIR] [--scan SCAN]
+    python benchmarks/stereo_calibration.py [--noise 0.1 0.3] [--points 200000] [--data DIR] [--no-scan]
 """
 
 from __future__ import annotations
@@ -136,20 +141,51 @@ def real(data: Path) -> None:
                   f"{ref.problems or 'none'}")
 
 
-def scan_matches(scan_dir: str) -> None:
-    try:
-        from ringscan.pipeline.reconstruct.stereo import match_view
-    except ImportError:
-        print(f"two-camera scan {scan_dir}: match_view is not available in this build")
-        return
-    scan = load_scan(scan_dir)
-    rig = scan.rig
-    ms = [match_view(scan, v) for v in scan.views if v.camera2 is not None]
-    u1 = np.concatenate([m.uv1 for m in ms])
-    u2 = np.concatenate([m.uv2 for m in ms])
-    ref = refine_extrinsics(rig.camera, rig.camera2, u1, u2)
-    print(f"two-camera scan {scan_dir}: {len(u1)} matches; epipolar median {ref.epipolar_before.median_px:.3f} -> "
-          f"{ref.epipolar_after.median_px:.3f} px; pose changed {ref.rotation_change_deg:.3f} deg")
+def virtual_scan() -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
+    from two_camera_scan import simulate_two_camera_scan, two_camera_rig
+
+    from ringscan.pipeline.formats.ply import read_ply
+    from ringscan.pipeline.formats.rig import default_rig
+    from ringscan.pipeline.reconstruct.stereo import match_view
+
+    rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
+    with tempfile.TemporaryDirectory() as tmp:
+        scan = simulate_two_camera_scan(Path(tmp) / "scan", rig=rig)
+        m = match_view(scan, scan.views[0], device="cpu")
+        ply = read_ply(Path(tmp) / "scan" / "truth" / "object.ply")
+    V = np.stack([ply["x"], ply["y"], ply["z"]], 1)
+    cen = V.mean(0)
+    rad = float(np.linalg.norm(V - cen, axis=1).mean())
+    c1, c2, li = rig.camera, rig.camera2, rig.light
+    n1 = cv2.undistortPoints(m.uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
+    n2 = cv2.undistortPoints(m.uv2.reshape(-1, 1, 2), c2.K, c2.dist).reshape(-1, 2)
+
+    def points(R, t):
+        return (triangulate_pair(R, t, n1, n2) - c1.t) @ c1.R
+
+    def err3(X):
+        return float(np.median(np.minimum(np.abs(np.linalg.norm(X - cen, axis=1) - rad), np.abs(X[:, 2]))))
+
+    print(f"virtual two-camera scan (match_view): {len(m)} matches")
+    Rt, tt = relative_pose(c1, c2)
+    ref = refine_extrinsics(c1, turned(c2, 2.0), m.uv1, m.uv2)
+    true = refine_extrinsics(c1, c2, m.uv1, m.uv2)
+    for name, R, t, epi in (("turned 2 deg", ref.R0, ref.t0, ref.epipolar_before),
+                            ("refined", ref.R, ref.t, ref.epipolar_after), ("true rig", Rt, tt, true.epipolar_before)):
+        de, dt = pose_error(R, t, Rt, tt)
+        print(f"    {name:13s} epipolar median {epi.median_px:7.3f} p95 {epi.p95_px:7.3f} px | pose error {de:7.4f} deg "
+              f"{dt:7.3f} mm | 3D median error {err3(points(R, t)):8.4f} mm")
+    print(f"    refined pose's own std: rotation {ref.rotation_std_deg:.4f} deg, direction {ref.direction_std_deg:.4f} "
+          f"deg; problems: {ref.problems or 'none'}")
+    for name, R, t in (("true rig", Rt, tt), ("refined rig", ref.R, ref.t)):
+        fit = fit_projector(points(R, t), m.proj, size=(li.width, li.height))
+        K, Kt = fit.light.K, li.K
+        print(f"  projector-from-scan ({name}): RMS {fit.rms_px:.3f} px; fx {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, "
+              f"fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, cx {K[0, 2] - Kt[0, 2]:+.2f} px, cy {K[1, 2] - Kt[1, 2]:+.2f} "
+              f"px; pose {rotation_angle_deg(fit.light.R @ li.R.T):.4f} deg, "
+              f"{np.linalg.norm(fit.light.center - li.center):.3f} mm; std fx {fit.std['fx']:.2f} px, rotation "
+              f"{fit.std['rotation_deg']:.4f} deg; problems: {fit.problems or 'none'}")
 
 
 def run() -> None:
@@ -157,7 +193,7 @@ def run() -> None:
     ap.add_argument("--noise", type=float, nargs="+", default=[0.1, 0.3], help="pixel noise per coordinate")
     ap.add_argument("--points", type=int, default=200_000, help="surface points drawn (a dense scan gives millions of matches)")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "procam"))
-    ap.add_argument("--scan", default=None, help="a two-camera scan folder to refine through match_view")
+    ap.add_argument("--no-scan", action="store_true", help="skip the virtual two-camera scan")
     args = ap.parse_args()
     for noise in args.noise:
         synthetic(noise, args.points)
@@ -165,8 +201,8 @@ def run() -> None:
         real(Path(args.data))
     else:
         print(f"real captures: {args.data} not found, skipped")
-    if args.scan:
-        scan_matches(args.scan)
+    if not args.no_scan:
+        virtual_scan()
 
 
 if __name__ == "__main__":

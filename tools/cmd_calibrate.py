@@ -773,8 +773,9 @@ def print_refinement(what: str, ref) -> None:
     print(f"                     after:  {ref.epipolar_after.line()}")
     print(f"  reprojection error before: {ref.reprojection_before.line()}")
     print(f"                     after:  {ref.reprojection_after.line()}")
-    print(f"  rotation changed by {ref.rotation_change_deg:.3f} deg, baseline direction by "
-          f"{ref.direction_change_deg:.3f} deg; baseline {ref.baseline_mm:.2f} mm")
+    print(f"  rotation changed by {ref.rotation_change_deg:.3f} deg (+- {ref.rotation_std_deg:.4f}), baseline "
+          f"direction by {ref.direction_change_deg:.3f} deg (+- {ref.direction_std_deg:.4f}); baseline "
+          f"{ref.baseline_mm:.2f} mm")
 
 
 def add_refine_parser(calsub) -> None:

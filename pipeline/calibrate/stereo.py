@@ -204,7 +204,12 @@ class RefineSettings:
     loss: str = "soft_l1"
     """Robust loss of the bundle adjustment (scipy.optimize.least_squares: linear, soft_l1, huber, cauchy)."""
     loss_scale_px: float = 1.0
-    """Residual (px) where the robust loss starts to down-weight a match."""
+    """Residual (px) where the robust loss starts to down-weight a match in the first pass
+    (the second pass takes 3 standard deviations of the matches' residuals, up to this)."""
+    min_loss_scale_px: float = 0.01
+    """Smallest robust-loss scale of the second pass (px)."""
+    max_rotation_std_deg: float = 0.05
+    """Largest standard deviation of the refined rotation (degrees, its worst axis) to stand behind."""
     max_points: int = 200_000
     """Most matches the adjustment uses (a seeded random subset; residuals are reported over all)."""
     min_points: int = 50
@@ -217,7 +222,7 @@ class RefineSettings:
     """Seed of the subset."""
 
     def __post_init__(self):
-        for name in ("ransac_px", "loss_scale_px"):
+        for name in ("ransac_px", "loss_scale_px", "min_loss_scale_px", "max_rotation_std_deg"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"RefineSettings.{name}: expected a positive number, got {v!r}")
@@ -261,6 +266,13 @@ class Refinement:
     """Matches within 3 robust-loss scales of the refined geometry."""
     start: str
     """Which start won: 'essential' (from the matches alone) or 'rig' (the input pose)."""
+    rotation_std_deg: float = math.nan
+    """Standard deviation of the refined rotation about its worst-determined axis (degrees), from the
+    adjustment's Jacobian and the matches' residuals (noise only: systematic match errors come on top)."""
+    direction_std_deg: float = math.nan
+    """... of the baseline direction (degrees)."""
+    loss_scale_px: float = math.nan
+    """The robust loss's scale of the last pass (px)."""
     problems: list[str] = field(default_factory=list)
     """What the matches do not determine (empty: a pose to stand behind)."""
 
@@ -272,6 +284,8 @@ class Refinement:
                                     "after": self.reprojection_after.to_dict()},
                 "rotation_change_deg": self.rotation_change_deg, "direction_change_deg": self.direction_change_deg,
                 "matches_used": self.used, "inliers": self.inliers, "start": self.start,
+                "rotation_std_deg": self.rotation_std_deg, "direction_std_deg": self.direction_std_deg,
+                "loss_scale_px": self.loss_scale_px,
                 "problems": list(self.problems)}
 
 
@@ -283,24 +297,56 @@ def _tangent_basis(d):
 
 
 def _adjust(R0, d0, p1, p2, K1, K2, settings: RefineSettings):
-    """Bundle adjustment with the points eliminated: rotation vector + baseline direction (2 dof)."""
-    e1, e2 = _tangent_basis(d0)
-    rv0, _ = cv2.Rodrigues(R0)
+    """Bundle adjustment with the points eliminated: rotation vector + baseline direction (2 dof).
 
-    def unpack(x):
-        R, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
-        d = d0 + x[3] * e1 + x[4] * e2
-        return R, d / np.linalg.norm(d)
+    Two passes: the first with ``loss_scale_px`` (to converge from a start pixels off), the
+    second with the robust loss's scale at 3 standard deviations of the matches' own residuals
+    (1.4826 x their median absolute value, at least ``min_loss_scale_px``), so that the few bad
+    matches of a decode whose noise is hundredths of a pixel do not pull the pose.
 
-    def fun(x):
-        R, d = unpack(x)
-        return _sampson(_fundamental(R, d, K1, K2), p1, p2)
+    Returns:
+        (R, unit baseline direction, cost, the scale of the last pass, (5, 5) covariance of
+        the rotation vector and the direction's two tangent offsets, in radians).
+    """
+    scale = settings.loss_scale_px
+    for rnd in range(2):
+        e1, e2 = _tangent_basis(d0)
+        rv0, _ = cv2.Rodrigues(R0)
 
-    x0 = np.concatenate([rv0.ravel(), [0.0, 0.0]])
-    res = least_squares(fun, x0, loss=settings.loss, f_scale=settings.loss_scale_px, method="trf",
-                        max_nfev=settings.max_nfev, x_scale="jac")
-    R, d = unpack(res.x)
-    return R, d, float(res.cost)
+        def unpack(x, e1=e1, e2=e2, d0=d0):
+            R, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
+            d = d0 + x[3] * e1 + x[4] * e2
+            return R, d / np.linalg.norm(d)
+
+        def fun(x, unpack=unpack):
+            R, d = unpack(x)
+            return _sampson(_fundamental(R, d, K1, K2), p1, p2)
+
+        x0 = np.concatenate([rv0.ravel(), [0.0, 0.0]])
+        res = least_squares(fun, x0, loss=settings.loss, f_scale=scale, method="trf",
+                            max_nfev=settings.max_nfev, x_scale="jac")
+        R0, d0 = unpack(res.x)
+        if rnd == 0:
+            sigma = 1.4826 * float(np.median(np.abs(res.fun)))
+            scale = min(settings.loss_scale_px, max(settings.min_loss_scale_px, 3.0 * sigma))
+    # covariance from the last pass's Jacobian (robust weights as least_squares applied them)
+    r = res.fun
+    w = np.sqrt(np.where(np.abs(r) <= scale, 1.0, scale / np.maximum(np.abs(r), 1e-300)))
+    J = res.jac * w[:, None]
+    dof = max(1, r.size - 5)
+    s2 = float(np.sum((r * w) ** 2)) / dof
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((5, 5), np.inf)
+    return R0, d0, float(res.cost), scale, cov
+
+
+def _robust_cost(R, d, p1, p2, K1, K2, loss: str, scale: float) -> float:
+    z = (_sampson(_fundamental(R, d, K1, K2), p1, p2) / scale) ** 2
+    rho = {"linear": z, "soft_l1": 2 * (np.sqrt(1 + z) - 1), "huber": np.where(z <= 1, z, 2 * np.sqrt(z) - 1),
+           "cauchy": np.log1p(z), "arctan": np.arctan(z)}[loss]
+    return 0.5 * scale ** 2 * float(np.sum(rho))
 
 
 def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
@@ -352,10 +398,19 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
         raise CalibrationError(None, "the matches determine no pose (no essential matrix) and the rig has none")
     best = None
     for name, Rs, ds in starts:
-        R, d, cost = _adjust(Rs, ds, p1[sub], p2[sub], K1, K2, settings)
-        if best is None or cost < best[3] * (1 - 1e-6):
-            best = (name, R, d, cost)
-    name, R, d, _ = best
+        R, d, cost, scale, cov = _adjust(Rs, ds, p1[sub], p2[sub], K1, K2, settings)
+        # costs compare only at one scale: evaluate each end at the first end's
+        if best is not None:
+            loss_scale = best[4]
+            cost = _robust_cost(R, d, p1[sub], p2[sub], K1, K2, settings.loss, loss_scale)
+            best_cost = _robust_cost(best[1], best[2], p1[sub], p2[sub], K1, K2, settings.loss, loss_scale)
+            if cost < best_cost * (1 - 1e-6):
+                best = (name, R, d, cost, scale, cov)
+        else:
+            best = (name, R, d, cost, scale, cov)
+    name, R, d, _, scale, cov = best
+    rot_std = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(cov[:3, :3]), 0.0)))
+    dir_std = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(cov[3:, 3:]), 0.0)))
     # the epipolar geometry does not see the sign of t: take the one that puts the points in front
     _, front_p = reprojection_errors(R, d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
     _, front_m = reprojection_errors(R, -d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
@@ -372,6 +427,10 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
     if front.mean() < settings.min_front:
         problems.append(f"only {100 * front.mean():.0f} % of the matches lie in front of both devices under the "
                         "refined pose: the matches do not determine it (too few, or mostly wrong)")
+    if not rot_std.max() <= settings.max_rotation_std_deg:
+        problems.append(f"the matches fix the rotation only to +- {rot_std.max():.3f} deg (> "
+                        f"{settings.max_rotation_std_deg:g}) about its worst axis: too narrow a view of too shallow "
+                        "a scene; scan an object with more depth, wider in the image")
     if inl < max(settings.min_points, 0.5 * n):
         problems.append(f"only {inl} of {n} matches fit the refined pose within {3 * settings.loss_scale_px:g} px")
     dirc = math.degrees(math.acos(min(1.0, abs(float(np.dot(t / np.linalg.norm(t), t0 / np.linalg.norm(t0)))))
@@ -379,7 +438,9 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
     out = Refinement(R=R, t=t, R0=R0, t0=t0, baseline_mm=base, epipolar_before=ResidualStats.of(epi0),
                      epipolar_after=ResidualStats.of(epi1), reprojection_before=ResidualStats.of(rep0),
                      reprojection_after=ResidualStats.of(rep1), rotation_change_deg=rotation_angle_deg(R @ R0.T),
-                     direction_change_deg=dirc, used=int(sub.size), inliers=inl, start=name, problems=problems)
+                     direction_change_deg=dirc, used=int(sub.size), inliers=inl, start=name,
+                     rotation_std_deg=float(rot_std.max()), direction_std_deg=float(dir_std.max()),
+                     loss_scale_px=float(scale), problems=problems)
     log.info("refine: epipolar median %.3f -> %.3f px; rotation changed %.3f deg (start: %s)",
              out.epipolar_before.median_px, out.epipolar_after.median_px, out.rotation_change_deg, name)
     return out

@@ -218,3 +218,46 @@ def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatc
     assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out)]) == 1
     _one_line_error(capsys, "nearly on one plane", "principal point")
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- through match_view
+
+
+@pytest.fixture(scope="module")
+def virtual_two_camera(tmp_path_factory):
+    """A two-camera scan of the virtual rig (a sphere on the plane) with a perspective projector."""
+    from ringscan.pipeline.formats.rig import default_rig
+
+    from ..pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, two_camera_rig
+
+    rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
+    folder = tmp_path_factory.mktemp("virtual2") / "scan"
+    simulate_two_camera_scan(folder, rig=rig)
+    return folder, rig
+
+
+def test_refine_and_projector_from_a_matched_scan(virtual_two_camera, tmp_path, capsys):
+    folder, rig = virtual_two_camera
+    bad = tmp_path / "bad.json"
+    save_rig(bad, replace(rig, camera2=turned(rig.camera2, 2.0)))
+    out = tmp_path / "fixed.json"
+    assert main(["calibrate", "refine", str(folder), "--rig", str(bad), "--out", str(out), "--device", "cpu",
+                 "--report", str(tmp_path / "rep.json"), "-q"]) == 0
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    fixed = load_rig(out)
+    # the true rig's own residual over the same matches
+    assert main(["calibrate", "refine", str(folder), "--out", str(tmp_path / "true.json"), "--device", "cpu",
+                 "--report", str(tmp_path / "true_rep.json"), "-q"]) == 0
+    true_med = json.loads((tmp_path / "true_rep.json").read_text())["epipolar_px"]["before"]["median_px"]
+    assert rep["epipolar_px"]["before"]["median_px"] > 1.0  # the turned rig does not fit
+    assert abs(rep["epipolar_px"]["after"]["median_px"] - true_med) < 0.1
+    assert rotation_angle_deg(fixed.camera2.R @ rig.camera2.R.T) < 0.1
+    capsys.readouterr()
+    procam = tmp_path / "procam.json"
+    assert main(["calibrate", "projector-from-scan", str(folder), "--rig", str(out), "--out", str(procam),
+                 "--device", "cpu", "-q"]) == 0
+    got = load_rig(procam)
+    R, T = procam_pose(got)
+    Rt, Tt = relative_pose(rig.camera, rig.light)
+    assert abs(got.light.K[0, 0] / rig.light.K[0, 0] - 1) < 0.01
+    assert rotation_angle_deg(R @ Rt.T) < 0.2 and np.linalg.norm(T - Tt) < 3.0
