@@ -132,10 +132,12 @@ def real(data: Path) -> None:
         uv = np.concatenate([p[0] for p in pairs])
         pr = np.concatenate([p[1] for p in pairs])
         print(f"real captures ({data}), {len(uv)} decoded pixels of {len(scan.views)} captures")
-        for name, rig in (("published calibration_result.xml", scan.rig), ("fresh calibrate procam", load_rig(tmp / "mt.json"))):
+        rigs = (("published calibration_result.xml", scan.rig), ("fresh calibrate procam", load_rig(tmp / "mt.json")))
+        for name, rig in rigs:
             ref = refine_extrinsics(rig.camera, rig.light, uv, pr)
-            print(f"  {name}: epipolar median {ref.epipolar_before.median_px:.3f} -> {ref.epipolar_after.median_px:.3f} "
-                  f"px, p95 {ref.epipolar_before.p95_px:.3f} -> {ref.epipolar_after.p95_px:.3f} px; reprojection "
+            print(f"  {name}: epipolar median {ref.epipolar_before.median_px:.3f} -> "
+                  f"{ref.epipolar_after.median_px:.3f} px, p95 {ref.epipolar_before.p95_px:.3f} -> "
+                  f"{ref.epipolar_after.p95_px:.3f} px; reprojection "
                   f"median {ref.reprojection_before.median_px:.3f} -> {ref.reprojection_after.median_px:.3f} px; "
                   f"pose changed {ref.rotation_change_deg:.3f} deg (start: {ref.start}); problems: "
                   f"{ref.problems or 'none'}")
@@ -174,16 +176,16 @@ def virtual_scan() -> None:
     for name, R, t, epi in (("turned 2 deg", ref.R0, ref.t0, ref.epipolar_before),
                             ("refined", ref.R, ref.t, ref.epipolar_after), ("true rig", Rt, tt, true.epipolar_before)):
         de, dt = pose_error(R, t, Rt, tt)
-        print(f"    {name:13s} epipolar median {epi.median_px:7.3f} p95 {epi.p95_px:7.3f} px | pose error {de:7.4f} deg "
-              f"{dt:7.3f} mm | 3D median error {err3(points(R, t)):8.4f} mm")
+        print(f"    {name:13s} epipolar median {epi.median_px:7.3f} p95 {epi.p95_px:7.3f} px | pose error "
+              f"{de:7.4f} deg {dt:7.3f} mm | 3D median error {err3(points(R, t)):8.4f} mm")
     print(f"    refined pose's own std: rotation {ref.rotation_std_deg:.4f} deg, direction {ref.direction_std_deg:.4f} "
           f"deg; problems: {ref.problems or 'none'}")
     for name, R, t in (("true rig", Rt, tt), ("refined rig", ref.R, ref.t)):
         fit = fit_projector(points(R, t), m.proj, size=(li.width, li.height))
         K, Kt = fit.light.K, li.K
         print(f"  projector-from-scan ({name}): RMS {fit.rms_px:.3f} px; fx {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, "
-              f"fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, cx {K[0, 2] - Kt[0, 2]:+.2f} px, cy {K[1, 2] - Kt[1, 2]:+.2f} "
-              f"px; pose {rotation_angle_deg(fit.light.R @ li.R.T):.4f} deg, "
+              f"fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, cx {K[0, 2] - Kt[0, 2]:+.2f} px, "
+              f"cy {K[1, 2] - Kt[1, 2]:+.2f} px; pose {rotation_angle_deg(fit.light.R @ li.R.T):.4f} deg, "
               f"{np.linalg.norm(fit.light.center - li.center):.3f} mm; std fx {fit.std['fx']:.2f} px, rotation "
               f"{fit.std['rotation_deg']:.4f} deg; problems: {fit.problems or 'none'}")
 
@@ -191,7 +193,8 @@ def virtual_scan() -> None:
 def run() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.1, 0.3], help="pixel noise per coordinate")
-    ap.add_argument("--points", type=int, default=200_000, help="surface points drawn (a dense scan gives millions of matches)")
+    ap.add_argument("--points", type=int, default=200_000,
+                    help="surface points drawn (a dense scan gives millions of matches)")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "procam"))
     ap.add_argument("--no-scan", action="store_true", help="skip the virtual two-camera scan")
     args = ap.parse_args()

@@ -58,7 +58,6 @@ from ringscan.pipeline.calibrate.procam import (
 from ringscan.pipeline.calibrate.stereo import (
     MAX_MATCHES,
     ProjectorSettings,
-    RefineSettings,
     decoded_pairs,
     fit_projector,
     procam_rig_from_fit,
@@ -805,9 +804,9 @@ def run_refine(args) -> int:
     if pair == "cameras" and rig.camera2 is None:
         raise FormatError(args.rig or scan.path, "has one camera: --pair cameras needs a two-camera rig")
     if pair == "projector" and not isinstance(rig.light, PerspectiveLight):
-        raise FormatError(args.rig or scan.path, f"its projector is not calibrated (model {rig.light.model!r}): refining it "
-                                                 "needs a perspective projector (a two-camera rig's projector: "
-                                                 "`ringscan calibrate projector-from-scan`)")
+        raise FormatError(args.rig or scan.path, f"its projector is not calibrated (model {rig.light.model!r}): "
+                                                 "refining it needs a perspective projector (a two-camera rig's "
+                                                 "projector: `ringscan calibrate projector-from-scan`)")
     uv1, uv2, proj = gather_matches(scan, views, args, need=pair)
     with progress_step("refining", enabled=not args.no_progress):
         if pair == "cameras":

@@ -229,7 +229,8 @@ class RefineSettings:
         if self.loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
             raise ValueError(f"RefineSettings.loss: unknown loss {self.loss!r}")
         if not (isinstance(self.min_points, int) and 8 <= self.min_points <= self.max_points):
-            raise ValueError(f"RefineSettings.min_points: expected 8 <= min_points <= max_points, got {self.min_points}")
+            raise ValueError(f"RefineSettings.min_points: expected 8 <= min_points <= max_points, "
+                             f"got {self.min_points}")
         if not 0 < self.min_front <= 1:
             raise ValueError(f"RefineSettings.min_front: expected a share in (0, 1], got {self.min_front}")
 
