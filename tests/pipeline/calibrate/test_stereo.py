@@ -18,6 +18,7 @@ from ringscan.pipeline.calibrate.stereo import (
     procam_rig_from_fit,
     refine_extrinsics,
     refine_procam_rig,
+    refine_stereo_rig,
     relative_pose,
     rotation_angle_deg,
     triangulate_pair,
@@ -226,3 +227,17 @@ def test_opencv_writers_refuse_the_wrong_rig(tmp_path):
     with pytest.raises(CalibrationError, match="one camera"):
         write_opencv_stereo(tmp_path / "s.yml", rig)
     assert not (tmp_path / "s.yml").exists()
+
+
+def test_stereo_rig_refine_keeps_camera_1_and_a_two_camera_rig_moves_its_projector(seen):
+    _, u1, u2, up = seen
+    cam1, cam2, proj = oblique_devices()
+    rig = Rig(camera=cam1, camera2=rotated(cam2, 2.0), light=rotated(proj, 1.0), volume=Volume(0.0, 2000.0, 3000.0))
+    out, _ = refine_stereo_rig(rig, u1, u2)
+    assert out.camera is cam1 and out.light is rig.light
+    assert rotation_angle_deg(out.camera2.R @ cam2.R.T) < 0.01 and np.linalg.norm(out.camera2.center - cam2.center) < 0.3
+    out, _ = refine_procam_rig(out, u1, up)  # two cameras: the projector moves, the cameras stay
+    assert out.camera is cam1
+    assert rotation_angle_deg(out.light.R @ proj.R.T) < 0.01 and np.linalg.norm(out.light.center - proj.center) < 0.3
+    with pytest.raises(CalibrationError, match="one camera"):
+        refine_stereo_rig(Rig(camera=cam1, light=proj, volume=rig.volume), u1, u2)
