@@ -17,7 +17,8 @@ ring's surface at a glancing angle), 6 isolated (set later by ``point_filter``),
 not converged (a Newton refinement did not reach its target: the point's place is
 unknown), 8 undistort failed (the camera or projector pixel has no undistorted
 point in its lens's fold-free region), 9 ill-conditioned (both coordinates graze),
-10 inconsistent (the two coordinates disagree beyond ``max_residual_px``).
+10 inconsistent (the two coordinates disagree beyond ``max_residual_px``), 11
+unmatched (two cameras: camera 2 has no sample of the same projector coordinate).
 """
 from __future__ import annotations
 
@@ -55,8 +56,9 @@ STATUS_NOT_CONVERGED = wp.constant(7)
 STATUS_UNDISTORT_FAILED = wp.constant(8)
 STATUS_ILL_CONDITIONED = wp.constant(9)
 STATUS_INCONSISTENT = wp.constant(10)
+STATUS_UNMATCHED = 11  # given by pipeline.reconstruct.stereo: camera 2 has no match for the sample
 STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated",
-                "not_converged", "undistort_failed", "ill_conditioned", "inconsistent")
+                "not_converged", "undistort_failed", "ill_conditioned", "inconsistent", "unmatched")
 PI = wp.constant(3.14159265358979)
 CONSTRAINT_RINGS = wp.constant(0)
 CONSTRAINT_ANGLE = wp.constant(1)
@@ -67,6 +69,7 @@ NOMINAL_SIGMA_PX = 0.05
 """Standard deviation (projector px) assumed for samples whose codec predicts none."""
 
 __all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES",
+           "STATUS_UNMATCHED",
            "CONSTRAINTS", "NOMINAL_SIGMA_PX", "calibration_floor"]
 CHI2_1_MEDIAN = 0.454936423119572
 """Median of a chi-square variable with one degree of freedom."""

@@ -10,6 +10,8 @@ sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 - ``light SCAN... --heights ...``: the parallel light from ring captures of a plane at known heights;
 - ``turntable SCAN | IMAGES... --angles ...``: the turntable axis from a board at several table angles.
 - ``latency --projector display:N --camera SPEC``: how long after a frame's swap the camera sees it in full.
+- ``refine SCAN``: the extrinsics re-estimated from a scan's own matches (two cameras, or camera and projector);
+- ``projector-from-scan SCAN``: the projector fitted to a two-camera scan's points (a procam rig).
 
 New sub-commands are found by name: any module-level ``add_<name>_parser`` function
 is called by :func:`add_parser`, in definition order.
@@ -19,9 +21,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ringscan.hardware.capture.latency import LatencySettings, latency_frames, measure_latency, write_rig_latency
@@ -51,6 +55,20 @@ from ringscan.pipeline.calibrate.procam import (
     principal_point_inside,
     procam_rig,
 )
+from ringscan.pipeline.calibrate.stereo import (
+    MAX_MATCHES,
+    ProjectorSettings,
+    decoded_pairs,
+    fit_projector,
+    procam_rig_from_fit,
+    refine_procam_rig,
+    refine_stereo_rig,
+    relative_pose,
+    reprojection_errors,
+    triangulate_pair,
+    write_opencv_procam,
+    write_opencv_stereo,
+)
 from ringscan.pipeline.calibrate.response import estimate_light_gamma, repeated_frames, response_problems
 from ringscan.pipeline.calibrate.turntable import (
     TurntableSettings,
@@ -62,7 +80,7 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwri
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.progress import progress_bar, progress_step
-from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
+from ringscan.pipeline.formats.rig import PerspectiveLight, load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.preview.plots import PLOT_FORMATS, residuals_figure, save_figure
 from ringscan.pipeline.reconstruct.scan import scan_inputs
@@ -640,6 +658,250 @@ def run_turntable(args) -> int:
     print(f"wrote {args.out}")
     if args.report:
         atomic_write_json(args.report, cal.report())
+    return 0
+
+
+# ----------------------------------------------------------------------------- refine, projector-from-scan
+
+OPENCV_EXTENSIONS = (".yml", ".yaml", ".xml")
+"""What ``--opencv`` may end in (OpenCV FileStorage picks the format from it)."""
+
+
+def add_scan_match_options(p, *, out_help: str) -> None:
+    p.add_argument("scan", metavar="SCAN", help="the scan folder whose matches to use")
+    p.add_argument("--rig", default=None, metavar="RIG",
+                   help="the rig file (ringscan JSON) to start from (default: the scan's own rig.json)")
+    p.add_argument("--out", required=True, metavar="RIG2", help=out_help)
+    p.add_argument("--opencv", default=None, metavar="FILE.yml",
+                   help="where to write it as OpenCV FileStorage as well (default: --out with .yml)")
+    p.add_argument("--view", action="append", default=None, metavar="NAME",
+                   help="use this view's matches (repeatable; default: every view)")
+    p.add_argument("--max-matches", type=int, default=200_000, metavar="N",
+                   help="use at most N matches over all views (a seeded random subset; default 200000)")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    add_force_option(p)
+    add_device_option(p)
+
+
+def match_outputs(args) -> dict:
+    """The output files of a refine / projector-from-scan run, checked before anything is read."""
+    if not 100 <= args.max_matches <= MAX_MATCHES:
+        raise UsageError(f"--max-matches: expected 100 to {MAX_MATCHES}, got {args.max_matches}")
+    check_output_file(args.out, extensions=(".json",), what="rig file --out writes")
+    yml = args.opencv or str(Path(args.out).with_suffix(".yml"))
+    check_output_file(yml, extensions=OPENCV_EXTENSIONS, what="OpenCV file --opencv writes")
+    outs = {"--out": args.out, "--opencv": yml, "--report": args.report}
+    if getattr(args, "stereo_out", None):
+        check_output_file(args.stereo_out, extensions=(".json",), what="rig file --stereo-out writes")
+        outs["--stereo-out"] = args.stereo_out
+    scan = Path(args.scan)
+    check_outputs(outs, [scan / "scan.json", scan / "rig.json", *([args.rig] if args.rig else [])])
+    return outs
+
+
+def load_scan_with_rig(args):
+    """The scan, with the rig of --rig in place of its own (same cameras' image sizes), and the views to use."""
+    if args.rig and Path(args.rig).suffix.lower() in OPENCV_EXTENSIONS:
+        raise FormatError(args.rig, "an OpenCV FileStorage file; --rig takes a ringscan rig (JSON): import the "
+                                    "calibration first (docs/calibration.md)")
+    scan = load_scan(args.scan)
+    if args.rig:
+        rig = load_rig(args.rig)
+        own = scan.rig
+        for what, a, b in (("camera", rig.camera, own.camera), ("camera2", rig.camera2, own.camera2)):
+            if (a is None) != (b is None):
+                has = "two cameras" if rig.camera2 is not None else "one camera"
+                raise FormatError(args.rig, f"has {has}, the scan {args.scan} "
+                                            f"{'two cameras' if own.camera2 is not None else 'one camera'}")
+            if a is not None and (a.width, a.height) != (b.width, b.height):
+                raise FormatError(args.rig, f"{what} is {a.width}x{a.height}, the scan's frames are "
+                                            f"{b.width}x{b.height}")
+        scan = dataclasses.replace(scan, rig=rig)
+    views = list(scan.views)
+    if args.view:
+        names = {v.name: v for v in views}
+        missing = [n for n in args.view if n not in names]
+        if missing:
+            raise FormatError(scan.path, f"no view {missing[0]!r} (views: {', '.join(sorted(names))})")
+        views = [names[n] for n in dict.fromkeys(args.view)]
+    return scan, views
+
+
+def view_matches(scan, view, *, device):
+    """(uv1, uv2, proj) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``)."""
+    from ringscan.pipeline.reconstruct.stereo import match_view
+
+    m = match_view(scan, view, device=device)
+    return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float)
+
+
+def gather_matches(scan, views, args, *, need: str):
+    """Matches of every view, subsampled to --max-matches: (uv1, uv2 or None, proj).
+
+    ``need``: "cameras" (a two-camera scan's matches) or "projector" (camera-projector pairs:
+    a two-camera scan's, or an imported one-camera scan's decoded pixels)."""
+    two = [v for v in views if v.camera2 is not None]
+    if need == "cameras" and len(two) < len(views):
+        one = next(v for v in views if v.camera2 is None)
+        raise FormatError(scan.path, f"view {one.name} has one camera's frames; matching cameras needs both")
+    per = max(1, args.max_matches // max(1, len(views)))
+    u1s, u2s, ps = [], [], []
+    for v in progress_bar(views, desc="matching", unit="view", disable=args.no_progress, leave=False):
+        if v.camera2 is not None:
+            u1, u2, pr = view_matches(scan, v, device=args.device)
+        else:
+            u1, pr = decoded_pairs(scan, v, max_pairs=per)
+            u2 = None
+        if u1.shape[0] > per:
+            pick = np.sort(np.random.default_rng(len(u1s)).choice(u1.shape[0], per, replace=False))
+            u1, pr = u1[pick], pr[pick]
+            u2 = None if u2 is None else u2[pick]
+        print(f"  {v.name}: {u1.shape[0]} matches")
+        u1s.append(u1)
+        ps.append(pr)
+        if u2 is not None:
+            u2s.append(u2)
+    uv1, proj = np.concatenate(u1s), np.concatenate(ps)
+    uv2 = np.concatenate(u2s) if len(u2s) == len(u1s) else None
+    return uv1, uv2, proj
+
+
+def print_refinement(what: str, ref) -> None:
+    print(f"{what}: {ref.used} matches used, {ref.inliers} fit within 3 px (start: {ref.start})")
+    print(f"  epipolar distance  before: {ref.epipolar_before.line()}")
+    print(f"                     after:  {ref.epipolar_after.line()}")
+    print(f"  reprojection error before: {ref.reprojection_before.line()}")
+    print(f"                     after:  {ref.reprojection_after.line()}")
+    print(f"  rotation changed by {ref.rotation_change_deg:.3f} deg (+- {ref.rotation_std_deg:.4f}), baseline "
+          f"direction by {ref.direction_change_deg:.3f} deg (+- {ref.direction_std_deg:.4f}); baseline "
+          f"{ref.baseline_mm:.2f} mm")
+
+
+def add_refine_parser(calsub) -> None:
+    p = calsub.add_parser("refine", help="re-estimate the extrinsics from a scan's own matches",
+                          description="Matches the scan's pixels (two cameras by equal projector coordinate, or an "
+                                      "imported camera-projector scan's decoded pixels) without the rig's extrinsics, "
+                                      "then re-estimates the second device's pose: an essential matrix (RANSAC) and a "
+                                      "bundle adjustment over the matches, keeping the rig's baseline length (or "
+                                      "--baseline). Prints the epipolar distance and the reprojection error before and "
+                                      "after; writes the rig (JSON) and the pair as OpenCV FileStorage.")
+    add_scan_match_options(p, out_help="the refined rig file to write (JSON)")
+    p.add_argument("--pair", choices=("auto", "cameras", "projector"), default="auto",
+                   help="what to refine: camera 2 against camera 1, or the projector against camera 1 (auto: the "
+                        "cameras of a two-camera rig, the projector of a one-camera rig)")
+    p.add_argument("--baseline", type=float, default=None, metavar="MM",
+                   help="the baseline length in mm (a measured one; default: the rig's)")
+    p.set_defaults(_calibrate=run_refine)
+
+
+def run_refine(args) -> int:
+    if args.baseline is not None and not (np.isfinite(args.baseline) and 0 < args.baseline <= 1e5):
+        raise UsageError(f"--baseline: expected mm from 0 to 100000, got {args.baseline:g}")
+    outs = match_outputs(args)
+    scan, views = load_scan_with_rig(args)
+    rig = scan.rig
+    pair = args.pair if args.pair != "auto" else ("cameras" if rig.camera2 is not None else "projector")
+    if pair == "cameras" and rig.camera2 is None:
+        raise FormatError(args.rig or scan.path, "has one camera: --pair cameras needs a two-camera rig")
+    if pair == "projector" and not isinstance(rig.light, PerspectiveLight):
+        raise FormatError(args.rig or scan.path, f"its projector is not calibrated (model {rig.light.model!r}): "
+                                                 "refining it needs a perspective projector (a two-camera rig's "
+                                                 "projector: `ringscan calibrate projector-from-scan`)")
+    uv1, uv2, proj = gather_matches(scan, views, args, need=pair)
+    with progress_step("refining", enabled=not args.no_progress):
+        if pair == "cameras":
+            new, ref = refine_stereo_rig(rig, uv1, uv2, baseline_mm=args.baseline)
+        else:
+            new, ref = refine_procam_rig(rig, uv1, proj, baseline_mm=args.baseline)
+    print_refinement("camera 2 against camera 1" if pair == "cameras" else "projector against camera 1"
+                     if rig.camera2 is not None else "camera against the projector", ref)
+    refuse_unless_forced(args, ref.problems, args.out)
+    save_rig(args.out, new)
+    if pair == "cameras":
+        write_opencv_stereo(outs["--opencv"], new)
+    else:
+        write_opencv_procam(outs["--opencv"], new)
+    print(f"wrote {args.out} and {outs['--opencv']}")
+    if args.report:
+        atomic_write_json(args.report, {"pair": pair, **ref.report()})
+    return 0
+
+
+def add_projector_from_scan_parser(calsub) -> None:
+    p = calsub.add_parser("projector-from-scan", help="the projector fitted to a two-camera scan's points",
+                          description="Triangulates the two cameras' matches with the rig (its projector may be "
+                                      "uncalibrated), then fits a perspective projector (intrinsics, k1, k2, pose) "
+                                      "to the points and their projector pixels: a normalised DLT, then OpenCV's "
+                                      "calibrateCamera on the non-planar point set. Prints the RMS reprojection "
+                                      "error, the fit's standard deviations and its condition, and refuses a fit "
+                                      "the points do not determine (a flat scene: give --principal-point). Writes a "
+                                      "one-camera procam rig (camera 1 and the projector), as JSON and OpenCV "
+                                      "FileStorage.")
+    add_scan_match_options(p, out_help="the procam rig file to write (JSON: camera 1 and the fitted projector)")
+    p.add_argument("--stereo-out", default=None, metavar="RIG3",
+                   help="also write the two-camera rig with the fitted projector (for three-ray triangulation)")
+    p.add_argument("--projector", default=None, metavar="WxH",
+                   help="the projector's size in pixels (default: the rig's)")
+    p.add_argument("--principal-point", nargs=2, type=float, default=None, metavar=("CX", "CY"),
+                   help="hold the projector's principal point here (px): lets a nearly flat scene fit the focal "
+                        "length")
+    p.set_defaults(_calibrate=run_projector_from_scan)
+
+
+def run_projector_from_scan(args) -> int:
+    size = parse_size(args.projector, "--projector") if args.projector is not None else None
+    if args.principal_point is not None and not all(np.isfinite(args.principal_point)):
+        raise UsageError("--principal-point: expected two finite numbers")
+    match_outputs(args)
+    scan, views = load_scan_with_rig(args)
+    rig = scan.rig
+    if rig.camera2 is None:
+        raise FormatError(args.rig or scan.path, "has one camera: projector-from-scan needs a two-camera rig "
+                                                 "(camera2) and a two-camera scan")
+    if size is None:
+        size = (getattr(rig.light, "width", 0), getattr(rig.light, "height", 0))
+        if not min(size) > 0:
+            raise UsageError("--projector: the rig does not give the projector's size; give --projector WxH")
+    uv1, uv2, proj = gather_matches(scan, views, args, need="cameras")
+    c1, c2 = rig.camera, rig.camera2
+    R, t = relative_pose(c1, c2)
+    n1 = cv2.undistortPoints(uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
+    n2 = cv2.undistortPoints(uv2.reshape(-1, 1, 2), c2.K, c2.dist).reshape(-1, 2)
+    err, front = reprojection_errors(R, t, c1, c2, uv1, uv2, n1, n2)
+    print(f"two-camera points: reprojection error median {np.median(err):.3f} px, p95 "
+          f"{np.percentile(err, 95):.3f} px over {err.size} matches")
+    problems = []
+    if not np.median(err) <= 1.0:
+        problems.append(f"the rig's cameras do not fit the matches (reprojection median {np.median(err):.2f} px > "
+                        "1 px): run `ringscan calibrate refine` first")
+    keep = front & (err <= 3.0)
+    Xc = triangulate_pair(R, t, n1[keep], n2[keep])
+    Xw = (Xc - c1.t) @ c1.R
+    pp = tuple(args.principal_point) if args.principal_point is not None else None
+    with progress_step("fitting the projector", enabled=not args.no_progress):
+        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(principal_point=pp))
+    K = fit.light.K
+    sd = fit.std
+    print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
+          f"{fit.residuals.line()}")
+    print(f"  fx {K[0, 0]:.2f} +- {sd['fx']:.2f}, fy {K[1, 1]:.2f} +- {sd['fy']:.2f}, cx {K[0, 2]:.2f} +- "
+          f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {fit.light.dist[0]:.4f}, k2 "
+          f"{fit.light.dist[1]:.4f}; fixed: {', '.join(fit.fixed)}")
+    print(f"  pose +- {sd['rotation_deg']:.4f} deg, +- {sd['position']:.3f} mm; condition {fit.condition:.3g}; "
+          f"point set thickness {fit.thickness:.3f}")
+    refuse_unless_forced(args, problems + fit.problems, args.out)
+    procam = procam_rig_from_fit(c1, fit.light, Xw)
+    save_rig(args.out, procam)
+    yml = args.opencv or str(Path(args.out).with_suffix(".yml"))
+    write_opencv_procam(yml, procam)
+    print(f"wrote {args.out} and {yml} (camera 1 and the projector)")
+    if args.stereo_out:
+        save_rig(args.stereo_out, dataclasses.replace(rig, light=fit.light))
+        print(f"wrote {args.stereo_out} (both cameras and the projector)")
+    if args.report:
+        atomic_write_json(args.report, {"two_camera_reprojection_px": {"median": float(np.median(err)),
+                                                                       "p95": float(np.percentile(err, 95))},
+                                        "projector": fit.report(), "problems": problems + fit.problems})
     return 0
 
 

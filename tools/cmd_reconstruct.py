@@ -11,7 +11,7 @@ from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.settings import apply_setting, check_finite_settings, settings_from_dict
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.settings import RAYS, ReconstructSettings
 from ringscan.tools.cli import UsageError, add_device_option
 
 
@@ -53,19 +53,28 @@ def storage_options_from_args(args) -> dict | None:
 
 
 def add_constraint_option(p) -> None:
-    """``--constraint``: which projector coordinates place a point (over the settings file and --set)."""
+    """``--constraint`` (which projector coordinates place a point) and ``--rays``
+    (two cameras: which rays), over the settings file and --set."""
     p.add_argument("--constraint", choices=CONSTRAINTS, default=None,
                    help="which projector coordinates place each point: both (the ring and the polar angle, "
                         "weighted by their predicted errors), rings (the paper's ring surfaces alone), angle "
                         "(the angle alone, for comparison), auto (both where the codec decodes an angle, else "
                         "rings; the default); over the settings file's triangulate.constraint")
+    p.add_argument("--rays", choices=RAYS, default=None,
+                   help="two-camera scans: which rays place each point: camera-camera (the cameras matched by "
+                        "projector coordinate; the projector needs no calibration), camera-projector (camera 1 "
+                        "and the projector, camera 2 unused), all (both cameras and the calibrated projector), "
+                        "auto (all where the projector is calibrated, else camera-camera; the default); "
+                        "over the settings file's stereo.rays")
 
 
-def with_constraint(settings: ReconstructSettings, constraint: str | None) -> ReconstructSettings:
-    """The settings with ``--constraint`` applied (unchanged when it was not given)."""
-    if constraint is None:
-        return settings
-    return replace(settings, triangulate=replace(settings.triangulate, constraint=constraint))
+def with_constraint(settings: ReconstructSettings, constraint: str | None, rays: str | None = None) -> ReconstructSettings:
+    """The settings with ``--constraint`` and ``--rays`` applied (unchanged where not given)."""
+    if constraint is not None:
+        settings = replace(settings, triangulate=replace(settings.triangulate, constraint=constraint))
+    if rays is not None:
+        settings = replace(settings, stereo=replace(settings.stereo, rays=rays))
+    return settings
 
 
 def add_settings_options(p, *, file_option: str = "--settings") -> None:
@@ -123,7 +132,23 @@ def load_settings(path, *, sets=(), min_confidence: float | None = None) -> Reco
 def settings_from_args(args) -> ReconstructSettings:
     """The settings of reconstruct's and batch's options: the file, --set, --min-confidence, then --constraint."""
     settings = load_settings(args.settings, sets=args.set_settings, min_confidence=args.min_confidence)
-    return with_constraint(settings, getattr(args, "constraint", None))
+    return with_constraint(settings, getattr(args, "constraint", None), getattr(args, "rays", None))
+
+
+def print_calibration_checks(views: list[dict]) -> None:
+    """One line per view with its calibration check (report.json ``calibration_check``),
+    and a warning line where the rig file does not fit the images."""
+    for v in views:
+        c = v.get("calibration_check")
+        if not c:
+            continue
+        what = ("epipolar distance of the camera matches" if c["kind"] == "epipolar"
+                else "ray-ray residual (projector px)")
+        print(f"{v['name']}: {v.get('rays', 'camera-projector')}: {what}: median {c['median_px']:.2f} px, "
+              f"p95 {c['p95_px']:.2f} px ({c['samples']} samples)")
+        if not c["fits"]:
+            print(f"{v['name']}: warning: the rig file does not fit the images (median above 1 px): check the "
+                  "calibration (docs/calibration.md)")
 
 
 def run(args) -> int:
@@ -147,6 +172,7 @@ def run(args) -> int:
             print(f"kept {len(resumed['kept'])} view(s) done before with the same inputs and settings")
         for name, why in resumed["redone"].items():
             print(f"{name}: redone ({why})")
+    print_calibration_checks(rep["views"])
     print(f"{len(rep['views'])} view(s): {tot['samples']} samples -> {tot['points']} points; dropped "
           + json.dumps(tot["dropped"]) + f"; {rep['time_s']:.2f} s on {rep['device']}; report: {args.out}/report.json")
     if rep["views"] and tot["points"] == 0:

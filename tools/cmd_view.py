@@ -32,7 +32,7 @@ def add_parser(sub):
                                    "--azimuth/--elevation or --camera orbit frame everything from outside instead. "
                                    "--color-by colours the first file by a field, with a colour bar; with --truth "
                                    "it is coloured by its distance to the truth. --conditioning draws a rig's "
-                                   "conditioning map instead of FILEs.")
+                                   "conditioning map instead of FILEs; --residuals a view's residual map.")
     p.add_argument("files", nargs="*", metavar="FILE", help="PLY/OBJ/STL mesh or point cloud files")
     p.add_argument("--out", required=True, metavar="PNG", help="output PNG (or SVG with --conditioning)")
     c = p.add_argument_group("conditioning map (instead of FILEs)")
@@ -48,6 +48,11 @@ def add_parser(sub):
                    help=f"standard deviation of the ring coordinate, projector px (default {cd.sigma_rho_px:g})")
     c.add_argument("--sigma-tan", type=float, default=cd.sigma_tan_px, metavar="PX",
                    help=f"standard deviation of the angle's tangential position, projector px (default {cd.sigma_tan_px:g})")
+    r = p.add_argument_group("residual map (instead of FILEs)")
+    r.add_argument("--residuals", default=None, metavar="VIEW_PLY",
+                   help="a view's PLY from `ringscan reconstruct`: each point's residual (two cameras: RMS "
+                        "reprojection px; one camera: the projector-side residual) at its camera-1 pixel, with "
+                        "the view's calibration check from the report.json beside it")
     add_device_option(p)
     d = ViewSettings()
     p.add_argument("--width", type=int, default=d.width, help=f"image width (default {d.width})")
@@ -112,6 +117,43 @@ def run_conditioning(args) -> int:
     return 0
 
 
+def run_residuals(args) -> int:
+    import json
+
+    from ringscan.pipeline.evaluate.residuals import plot_residuals, residual_map
+    from ringscan.pipeline.formats.atomic import read_json
+    from ringscan.pipeline.formats.errors import FormatError
+    from ringscan.pipeline.formats.ply import read_ply
+
+    out = check_output_file(args.out, extensions=(".png", ".svg"), what="picture (--out)")
+    src = Path(args.residuals)
+    fields = read_ply(src)
+    width = height = None
+    check = None
+    unit = "px"
+    rep_path = src.parent / "report.json"
+    if rep_path.is_file():
+        rep = read_json(rep_path)
+        cam = (rep.get("rig") or {}).get("camera") or {}
+        width, height = cam.get("width"), cam.get("height")
+        view = next((v for v in rep.get("views", []) if v.get("name") == src.stem), {})
+        check = view.get("calibration_check")
+        if view.get("rays", "camera-projector") == "camera-projector" and view.get("constraint") == "rings":
+            unit = "sectors"
+    if not (isinstance(width, int) and isinstance(height, int)):
+        if "u" not in fields or "v" not in fields or fields["u"].size == 0:
+            raise FormatError(src, "no points with camera pixels (u, v): not a view's PLY from ringscan reconstruct")
+        width, height = int(np.ceil(fields["u"].max())) + 1, int(np.ceil(fields["v"].max())) + 1
+    try:
+        rmap = residual_map(fields, width=width, height=height, check=check)
+    except ValueError as e:
+        raise FormatError(src, str(e)) from None
+    plot_residuals(rmap, out, title=str(src), unit=unit)
+    print(json.dumps(rmap.summary))
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _truth_distances(args, g, cam):
     """Distance of each point of ``g`` to the truth, and a mask of the floor's points (or None)."""
     pts = np.asarray(g.vertices if hasattr(g, "triangles") else g.points, np.float64)
@@ -125,12 +167,18 @@ def _truth_distances(args, g, cam):
 
 
 def run(args) -> int:
+    if args.conditioning and args.residuals:
+        raise UsageError("give --conditioning or --residuals, not both")
     if args.conditioning:
         if args.files:
             raise UsageError(f"give either FILEs ({args.files[0]}) or --conditioning, not both")
         return run_conditioning(args)
+    if args.residuals:
+        if args.files:
+            raise UsageError(f"give either FILEs ({args.files[0]}) or --residuals, not both")
+        return run_residuals(args)
     if not args.files:
-        raise UsageError("give FILEs to render, or --conditioning SCAN_OR_RIG")
+        raise UsageError("give FILEs to render, --conditioning SCAN_OR_RIG or --residuals VIEW_PLY")
     out = check_output_file(args.out, extensions=(".png",), what="picture (--out)")
     field = args.color_by or ("error" if args.truth else "none")
     if field == "error" and not args.truth:

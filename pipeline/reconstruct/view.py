@@ -16,18 +16,23 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
+from ringscan.kernels.stereo import polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
     STATUS_NAMES,
+    STATUS_UNMATCHED,
     calibration_floor,
     compact_points,
     triangulate_rings,
 )
 from ringscan.pipeline.codecs.registry import codec_for
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import write_ply
-from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
+from ringscan.pipeline.formats.rig import has_calibrated_light
+from ringscan.pipeline.formats.scan import Scan, View, as_camera2, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_samples
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +68,11 @@ class ViewCloud:
     """(n,) float32 predicted standard deviation of the point along its camera ray (mm)."""
     stats: dict
     """Counts and seconds per stage."""
+    residual: np.ndarray | None = None
+    """(n,) float32 each point's residual: two cameras, the RMS reprojection error
+    of its rays (px); camera-projector, the projector-side residual
+    (``kernels.triangulation.Triangulation.residual``: px with the angle,
+    sector widths with the rings alone). None: not recorded."""
 
 
 def reconstruct_view(
@@ -109,6 +119,10 @@ def reconstruct_view(
     rig = scan.rig
     vol = rig.volume
     cam = camera_model_for(rig)
+    rays = view_rays(scan, view, settings)
+    if rays in ("camera-camera", "all"):
+        return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
+                       **_stereo_points(scan, view, settings, device, threads, samples, sector_bits, times))
     triangulate = partial(triangulate_rings, samples.uv, samples.rho, samples.sector, samples.confidence,
                           camera=cam, light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
                           center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi, threads=threads)
@@ -132,8 +146,122 @@ def reconstruct_view(
                     view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
+    check = {}
+    if calibration:
+        check = {"kind": "ray-ray", "samples": calibration["samples"], "median_px": calibration["residual_px_median"],
+                 "p95_px": calibration["residual_px_p95"],
+                 "fits": bool(calibration["residual_px_median"] <= CALIBRATION_WARN_PX)}
+    return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
+                   points=triangulated.points, status=triangulated.status, confidence=triangulated.confidence,
+                   sigma=triangulated.sigma, residual=triangulated.residual,
+                   extra={**({"calibration": calibration} if calibration else {}),
+                          **({"calibration_check": check} if check else {})})
+
+
+def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
+    """The rays that place the view's points (``stereo.rays`` resolved):
+    ``camera-projector``, ``camera-camera`` or ``all``.
+
+    Raises:
+        FormatError: two-camera rays asked of a one-camera view.
+    """
+    rays = settings.stereo.rays
+    two = view.camera2 is not None and scan.rig.camera2 is not None
+    if not two:
+        if rays in ("camera-camera", "all"):
+            raise FormatError(scan.path, f"view {view.name}: --rays {rays} needs a two-camera view (a rig with "
+                                         "camera2 and the view's camera-2 frames); this one has one camera")
+        return "camera-projector"
+    if rays == "auto":
+        return "all" if has_calibrated_light(scan.rig) else "camera-camera"
+    return rays
+
+
+def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, samples,
+                   sector_bits: int, times: dict) -> dict:
+    """Camera 1's samples matched in camera 2 and triangulated from two or three
+    rays; with ``auto`` on a calibrated rig, the samples camera 2 does not match
+    fall back to camera-projector. Returns _finish's per-sample arrays."""
+    rig = scan.rig
+    vol = rig.volume
     t = time.perf_counter()
-    status_dev = mark_isolated_points(triangulated.points, samples.pixel, triangulated.status, camera=cam, width=rig.camera.width,
+    samples2, _, _ = decode_view(as_camera2(scan), view.camera2, settings=settings, device=device, threads=threads)
+    times["decode_camera2"] = time.perf_counter() - t
+    t = time.perf_counter()
+    matches = match_samples(scan, samples, samples2, settings=settings, threads=threads)
+    times["match"] = time.perf_counter() - t
+    t = time.perf_counter()
+    st = settings.stereo
+    use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
+    light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
+    n = len(samples)
+    f32 = partial(wp.array, dtype=wp.float32, device=device)
+    v2 = partial(wp.array, dtype=wp.vec2, device=device)
+    kw = {}
+    if use_light:
+        proj = v2(matches.proj.astype(np.float32))
+        kw = dict(light=light, proj=proj,
+                  proj_info=polar_information(proj, f32(matches.sigma_rho.astype(np.float32)),
+                                              f32(matches.sigma_tan.astype(np.float32)), center=scan.patterns.center))
+    tri = triangulate_rays(v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32)),
+                           f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
+                           camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
+                           volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
+                           max_residual_px=st.max_residual_px, threads=threads, **kw)
+    points = np.zeros((n, 3), np.float32)
+    status = np.full(n, STATUS_UNMATCHED, np.int32)
+    confidence = np.zeros(n, np.float32)
+    sigma = np.zeros(n, np.float32)
+    residual = np.full(n, -1.0, np.float32)
+    extra = {}
+    if st.rays == "auto" and use_light:
+        # camera 1's samples without a match in camera 2 (hidden from it): camera-projector
+        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=camera_model_for(rig),
+                               light=light, volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
+                               sector_bits=sector_bits, phi=samples.phi, sigma_rho=samples.sigma_rho,
+                               sigma_tan=samples.sigma_tan, settings=settings.triangulate, threads=threads)
+        points, status = tp.points.numpy(), tp.status.numpy()
+        confidence, sigma, residual = tp.confidence.numpy(), tp.sigma.numpy(), tp.residual.numpy()
+        extra["fallback_camera_projector"] = int(n - len(matches))
+    i = matches.index
+    tst = tri.status.numpy()
+    points[i] = tri.points.numpy()
+    status[i] = tst
+    confidence[i] = np.where(tst == 0, samples.confidence.numpy()[i], 0.0)
+    sigma[i] = tri.sigma.numpy()
+    residual[i] = tri.residual.numpy()
+    check = epipolar_check(rig, matches)
+    if check:
+        check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
+                 "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}
+        if not check["fits"]:
+            log.warning("%s: the rig file does not fit the images: camera 2's matches lie %.2f px from their "
+                        "epipolar lines (median; p95 %.2f px; above %.1f px): check the cameras' calibration "
+                        "(ringscan calibrate refine, docs/calibration.md)", view.name, check["median_px"],
+                        check["p95_px"], EPIPOLAR_WARN_PX)
+    ok = tst == 0
+    extra["stereo"] = {**matches.stats, "three_rays": bool(use_light),
+                       "residual_px_median": float(np.median(tri.residual.numpy()[ok])) if ok.any() else None}
+    if "fallback_camera_projector" in extra:
+        extra["stereo"]["fallback_camera_projector"] = extra.pop("fallback_camera_projector")
+    if check:
+        extra["calibration_check"] = check
+    wp.synchronize_device(device)
+    times["triangulate"] = time.perf_counter() - t
+    return dict(points=wp.array(points, dtype=wp.vec3, device=device), status=wp.array(status, dtype=wp.int32, device=device),
+                confidence=wp.array(confidence, dtype=wp.float32, device=device),
+                sigma=wp.array(sigma, dtype=wp.float32, device=device),
+                residual=wp.array(residual, dtype=wp.float32, device=device), extra=extra)
+
+
+def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, frames: np.ndarray,
+            samples, codec_stats: dict, times: dict, *, rays: str, points, status, confidence, sigma, residual,
+            extra: dict) -> ViewCloud:
+    """Filter, compact and count a view's per-sample results into its cloud."""
+    rig = scan.rig
+    cam = camera_model_for(rig)
+    t = time.perf_counter()
+    status_dev = mark_isolated_points(points, samples.pixel, status, camera=cam, width=rig.camera.width,
                                       height=rig.camera.height, isolated_status=STATUS_ISOLATED,
                                       settings=settings.filter, threads=threads)
     idx = compact_points(status_dev)
@@ -145,32 +273,37 @@ def reconstruct_view(
     status = status_dev.numpy()
     counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
     cloud = ViewCloud(
-        points=triangulated.points.numpy()[idx_np],
+        points=points.numpy()[idx_np],
         ring=samples.ring.numpy()[idx_np] if samples.ring is not None else np.full(idx_np.size, -1, np.int32),
         rho=samples.rho.numpy()[idx_np],
-        confidence=triangulated.confidence.numpy()[idx_np],
+        confidence=confidence.numpy()[idx_np],
         uv=samples.uv.numpy()[idx_np],
-        sigma=triangulated.sigma.numpy()[idx_np],
+        sigma=sigma.numpy()[idx_np],
         stats={},
+        residual=residual.numpy()[idx_np],
     )
     low_confidence = 0
     if settings.min_confidence > 0:
         keep = cloud.confidence >= settings.min_confidence
         low_confidence = int(keep.size - np.count_nonzero(keep))
         cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep],
-                          cloud.uv[keep], cloud.sigma[keep], {})
+                          cloud.uv[keep], cloud.sigma[keep], {}, cloud.residual[keep])
     times["download"] = time.perf_counter() - t
     with_angle = samples.phi is not None and settings.triangulate.constraint != "rings"
+    two = rays != "camera-projector"
     cloud.stats = {
         "pixels": int(frames.shape[1] * frames.shape[2]),
         **codec_stats,
         "constraint": ("both" if settings.triangulate.constraint == "auto" else settings.triangulate.constraint)
         if with_angle else "rings",
+        "rays": rays,
         "points": int(cloud.points.shape[0]),
         "median_sigma_mm": float(np.median(cloud.sigma)) if cloud.sigma.size else None,
-        **({"calibration": calibration} if calibration else {}),
+        "median_residual": float(np.median(cloud.residual)) if cloud.residual.size else None,
+        **extra,
         # every sample not written, by reason: the kernels' statuses, then min_confidence
-        "dropped": {**{name: int(counts[i]) for i, name in enumerate(STATUS_NAMES) if i > 0},
+        "dropped": {**{name: int(counts[i]) for i, name in enumerate(STATUS_NAMES)
+                       if i > 0 and (two or i != STATUS_UNMATCHED)},
                     "low_confidence": low_confidence},
         "times_s": times,
     }
@@ -210,4 +343,5 @@ def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
         "view": np.full(n, view_index, np.int32), "confidence": cloud.confidence.astype(np.float32),
         "u": cloud.uv[:, 0].astype(np.float32), "v": cloud.uv[:, 1].astype(np.float32),
         "sigma": cloud.sigma.astype(np.float32),
+        **({"residual": cloud.residual.astype(np.float32)} if cloud.residual is not None else {}),
     }, comments=["ringscan point cloud, world frame, mm"])

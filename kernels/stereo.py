@@ -1,0 +1,815 @@
+"""Two cameras: matching by equal projector coordinate, and triangulation of two
+or three rays (docs/reconstruction.md "Two cameras", docs/design.md §19).
+
+- Matching. Each camera decodes the projector coordinate p = (u_p, v_p) of its
+  samples; a camera-1 sample (the query) is matched to the camera-2 position x2
+  where camera 2's projector-coordinate field equals the query's p. Camera 2's
+  samples (a dense per-pixel map or scattered ring-edge samples: both are just
+  (x2, p, sigma) triples here) are binned by p into a grid of square cells
+  (count, scan, write); each query takes its ``k`` nearest samples in projector
+  space and fits the local affine map x2 = x2m + A (p - pm) by weighted least
+  squares (weights 1 / sigma_p^2), evaluated at the query's p. Where the
+  neighbours lie on a line in projector space (ring edges: samples along one
+  ring) the map is fitted along that line only (pseudo-inverse), and the query
+  must lie on it. A neighbourhood that straddles a depth discontinuity is one
+  no single affine map fits: its fit residual (camera px) or its gain (camera
+  px per projector px) is too large, and the query is dropped. No extrinsics are
+  used, so the matches can re-estimate them.
+- Triangulation. Gauss-Newton on the weighted reprojection error of the point in
+  camera 1, camera 2 and (optionally) the calibrated projector, from the
+  midpoint of the two camera rays, through each lens's distortion
+  (``geometry.project_camera``, ``geometry.light_pixel``).
+
+Status codes of the triangulation are those of ``kernels.triangulation``
+(``STATUS_NAMES``); the matching has its own (``MATCH_STATUS_NAMES``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.geometry import (
+    NEWTON_STEPS,
+    CameraModel,
+    LightModel,
+    Volume,
+    camera_ray,
+    closest_on_ray,
+    direction_to_light,
+    in_volume,
+    light_pixel,
+    make_volume,
+    project_camera,
+)
+from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
+from ringscan.kernels.triangulation import (
+    STATUS_ILL_CONDITIONED,
+    STATUS_INCONSISTENT,
+    STATUS_NOT_CONVERGED,
+    STATUS_OK,
+    STATUS_OUTSIDE,
+    STATUS_UNDISTORT_FAILED,
+    quad,
+)
+
+MAX_NEIGHBOURS = 16
+"""Largest ``MatchSettings.neighbours`` (the kernel's fixed local arrays)."""
+VecKi = wp.types.vector(length=MAX_NEIGHBOURS, dtype=wp.int32)
+VecKf = wp.types.vector(length=MAX_NEIGHBOURS, dtype=wp.float32)
+
+MATCH_OK = wp.constant(0)
+MATCH_NO_COORDINATE = wp.constant(1)
+MATCH_TOO_FEW = wp.constant(2)
+MATCH_EXTRAPOLATED = wp.constant(3)
+MATCH_DISCONTINUITY = wp.constant(4)
+MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
+SIGMA_FLOOR_PX = wp.constant(1.0e-3)
+"""Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
+
+__all__ = [
+    "MatchSettings",
+    "Matches",
+    "RayTriangulation",
+    "MATCH_STATUS_NAMES",
+    "MAX_NEIGHBOURS",
+    "projector_coordinates",
+    "match_by_projector",
+    "triangulate_rays",
+    "polar_information",
+]
+
+
+@dataclass(frozen=True)
+class MatchSettings:
+    """How a camera-1 sample finds its camera-2 position."""
+
+    cell_px: float = 4.0
+    """The grid's cell size in projector pixels: the search grows ring of cells
+    by ring of cells until it has found the nearest ``neighbours``."""
+    radius_px: float = 16.0
+    """Largest search radius in projector pixels: wide enough for the samples'
+    spacing (a camera pixel is ~4 projector pixels on a coarse camera)."""
+    neighbours: int = 8
+    """How many nearest camera-2 samples (in projector space) the local affine
+    fit uses, at most ``MAX_NEIGHBOURS``."""
+    min_neighbours: int = 4
+    """Fewest neighbours a fit needs (a line fit needs 2, an affine map 3; more
+    gives the residual that detects a discontinuity)."""
+    line_ratio: float = 0.02
+    """Where the neighbours' spread across their main direction (variance) is
+    below this fraction of the spread along it, they lie on a line (a ring
+    edge) and the map is fitted along the line only."""
+    max_offset_px: float = 0.1
+    """On a line fit: the farthest (projector px) the query may lie off the
+    neighbours' curve (a quadratic through them: a ring edge's arc); the map
+    across it is unknown, so each 0.1 px off costs ~0.1 camera px."""
+    max_extrapolation: float = 2.0
+    """The farthest the query may lie from the neighbours' weighted mean, in
+    their standard deviations along each fitted direction."""
+    max_fit_px: float = 0.5
+    """Largest RMS residual (camera-2 px) of the affine fit: above it the
+    neighbours straddle a depth discontinuity (or a decode error)."""
+    max_gain: float = 20.0
+    """Largest camera-2 px per projector px of the fitted map (Frobenius norm /
+    sqrt 2): beyond it neighbours close in projector space are far apart in the
+    image (a discontinuity)."""
+
+    def __post_init__(self):
+        if not (self.cell_px > 0 and self.radius_px >= self.cell_px):
+            raise ValueError(f"match: need 0 < cell_px <= radius_px, got {self.cell_px}, {self.radius_px}")
+        if not (2 <= self.min_neighbours <= self.neighbours <= MAX_NEIGHBOURS):
+            raise ValueError(f"match: need 2 <= min_neighbours <= neighbours <= {MAX_NEIGHBOURS}, "
+                             f"got {self.min_neighbours}, {self.neighbours}")
+        for name in ("line_ratio", "max_offset_px", "max_extrapolation", "max_fit_px", "max_gain"):
+            if not (getattr(self, name) > 0):
+                raise ValueError(f"match.{name}: must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class Matches:
+    """Per query (Warp arrays of length n, the queries' device)."""
+
+    uv2: wp.array
+    """vec2 camera-2 pixel (distorted image) where the field equals the query's p; 0 where status != 0."""
+    sigma2: wp.array
+    """float32 predicted standard deviation of uv2 (camera-2 px): the camera-2
+    samples' noise through the fit."""
+    sigma1: wp.array
+    """float32 the query's own projector-coordinate noise as camera-1 px (its
+    sigma times the fitted gain: both cameras see the surface at similar scales)."""
+    gain: wp.array
+    """float32 fitted camera-2 px per projector px."""
+    fit_px: wp.array
+    """float32 RMS residual of the neighbours' fit (camera-2 px)."""
+    status: wp.array
+    """int32 ``MATCH_STATUS_NAMES`` index."""
+
+
+@dataclass
+class RayTriangulation:
+    """Per match (Warp arrays of length n)."""
+
+    points: wp.array
+    """vec3 world point (mm); zero where the status is not ok, inconsistent or ill-conditioned."""
+    status: wp.array
+    """int32 status (``kernels.triangulation.STATUS_NAMES``)."""
+    residual: wp.array
+    """float32 RMS over the rays of each ray's reprojection error (each in its own pixels); -1 where no point."""
+    chi2: wp.array
+    """float32 weighted chi-square (sum of squared residuals over their predicted sigmas)."""
+    sigma: wp.array
+    """float32 predicted standard deviation of the point along camera 1's ray (mm)."""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@wp.func
+def cell_of(p: wp.vec2, cell: float, nx: int, ny: int):
+    """Grid cell (cx, cy) of projector point p; (-1, -1) outside the grid (or NaN)."""
+    fx = p[0] / cell
+    fy = p[1] / cell
+    if not (fx >= 0.0 and fy >= 0.0 and fx < float(nx) and fy < float(ny)):
+        return wp.vec2i(-1, -1)
+    return wp.vec2i(int(fx), int(fy))
+
+
+@wp.func
+def key_less(da: float, ia: int, db: float, ib: int):
+    """(da, ia) < (db, ib): distance first, the sample index breaks ties (a deterministic neighbour set)."""
+    return da < db or (da == db and ia < ib)
+
+
+@wp.func
+def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H: wp.mat33, g: wp.vec3):
+    """Add one 2-D observation (residual r, Jacobian columns j*, information W) to H and g."""
+    H = H + wp.mat33(quad(W, jx, jx), quad(W, jx, jy), quad(W, jx, jz),
+                     quad(W, jy, jx), quad(W, jy, jy), quad(W, jy, jz),
+                     quad(W, jz, jx), quad(W, jz, jy), quad(W, jz, jz))
+    g = g + wp.vec3(quad(W, jx, r), quad(W, jy, r), quad(W, jz, r))
+    return H, g
+
+
+@wp.func
+def cam_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
+    p = project_camera(cam, X)
+    return wp.vec2(p[0] - uv[0], p[1] - uv[1])
+
+
+@wp.func
+def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
+    p = light_pixel(light, X)
+    return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
+
+
+@wp.func
+def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
+                      W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
+    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
+    the Jacobian by central differences over h mm. Returns (H, g, chi2 term, |r| px)."""
+    r = wp.vec2(0.0, 0.0)
+    jx = wp.vec2(0.0, 0.0)
+    jy = wp.vec2(0.0, 0.0)
+    jz = wp.vec2(0.0, 0.0)
+    ex = wp.vec3(h, 0.0, 0.0)
+    ey = wp.vec3(0.0, h, 0.0)
+    ez = wp.vec3(0.0, 0.0, h)
+    if is_light != 0:
+        r = light_residual(light, X, obs)
+        jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
+        jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
+        jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
+    else:
+        r = cam_residual(cam, X, obs)
+        jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
+        jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
+        jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
+    H, g = block_terms(r, jx, jy, jz, W, H, g)
+    return H, g, quad(W, r, r), wp.length(r)
+
+
+@wp.func
+def curve_offset(proj2: wp.array(dtype=wp.vec2), sigma2: wp.array(dtype=wp.float32), ni: VecKi, n: int,
+                 pm: wp.vec2, v1: wp.vec2, v2: wp.vec2, sq: float, aq: float):
+    """How far (projector px) the query lies across the neighbours' curve: the
+    neighbours' across-coordinate a = (p - pm).v2 fitted as a quadratic in the
+    along-coordinate s = (p - pm).v1 (a ring edge is an arc: a straight line
+    would leave its sagitta, 0.4 px over 8 px of a 20 px ring), evaluated at the
+    query's (sq, aq). With fewer than 4 neighbours a straight line."""
+    M = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    b = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(n):
+        j = ni[k]
+        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+        w = 1.0 / (sg * sg)
+        dp = proj2[j] - pm
+        s = wp.dot(dp, v1)
+        f = wp.vec3(1.0, s, wp.where(n >= 4, s * s, 0.0))
+        M += w * wp.outer(f, f)
+        b += w * wp.dot(dp, v2) * f
+    if n < 4:
+        M[2, 2] = 1.0
+    if not (wp.abs(wp.determinant(M)) > 0.0):
+        return 1.0e9
+    c = wp.inverse(M) * b
+    return aq - (c[0] + c[1] * sq + c[2] * sq * sq)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def polar_coordinates_kernel(
+    rho: wp.array(dtype=wp.float32),
+    phi: wp.array(dtype=wp.float32),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    center: wp.vec2,
+    proj: wp.array(dtype=wp.vec2),
+    sigma: wp.array(dtype=wp.float32),
+):
+    """p = c + rho (cos phi, sin phi) and its isotropic sigma sqrt((s_rho^2 + s_tan^2) / 2).
+
+    rho, phi, sigma_rho, sigma_tan (n,) float32: read. proj (n,) vec2 (NaN where
+    phi is NaN), sigma (n,) float32: written."""
+    i = wp.tid()
+    r = rho[i]
+    f = phi[i]
+    proj[i] = wp.vec2(center[0] + r * wp.cos(f), center[1] + r * wp.sin(f))
+    sr = sigma_rho[i]
+    st = sigma_tan[i]
+    sigma[i] = wp.sqrt(0.5 * (sr * sr + st * st))
+
+
+@wp.kernel
+def count_cells_kernel(
+    proj: wp.array(dtype=wp.vec2),
+    cell: float,
+    nx: int,
+    ny: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    """counts[cy * nx + cx] += 1 for each sample's cell. proj (m,) read; counts (nx * ny,) written (zeroed first)."""
+    j = wp.tid()
+    c = cell_of(proj[j], cell, nx, ny)
+    if c[0] >= 0:
+        wp.atomic_add(counts, c[1] * nx + c[0], 1)
+
+
+@wp.kernel
+def write_cells_kernel(
+    proj: wp.array(dtype=wp.vec2),
+    cell: float,
+    nx: int,
+    ny: int,
+    offsets: wp.array(dtype=wp.int32),
+    cursor: wp.array(dtype=wp.int32),
+    items: wp.array(dtype=wp.int32),
+):
+    """items[offsets[c] + k] = j for the samples of cell c (order within a cell
+    arbitrary: the neighbour search sorts by distance and index). proj (m,),
+    offsets (nx * ny,) read; cursor (nx * ny,) zeroed, items (binned,) written."""
+    j = wp.tid()
+    c = cell_of(proj[j], cell, nx, ny)
+    if c[0] >= 0:
+        ci = c[1] * nx + c[0]
+        k = wp.atomic_add(cursor, ci, 1)
+        items[offsets[ci] + k] = j
+
+
+@wp.kernel
+def match_kernel(
+    query: wp.array(dtype=wp.vec2),
+    query_sigma: wp.array(dtype=wp.float32),
+    proj2: wp.array(dtype=wp.vec2),
+    uv2: wp.array(dtype=wp.vec2),
+    sigma2: wp.array(dtype=wp.float32),
+    offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    items: wp.array(dtype=wp.int32),
+    cell: float,
+    nx: int,
+    ny: int,
+    rings: int,
+    k_max: int,
+    k_min: int,
+    line_ratio: float,
+    max_offset: float,
+    max_extrapolation: float,
+    max_fit: float,
+    max_gain: float,
+    i0: int,
+    out_uv: wp.array(dtype=wp.vec2),
+    out_sigma2: wp.array(dtype=wp.float32),
+    out_sigma1: wp.array(dtype=wp.float32),
+    out_gain: wp.array(dtype=wp.float32),
+    out_fit: wp.array(dtype=wp.float32),
+    status: wp.array(dtype=wp.int32),
+):
+    """Match query i0 + tid.
+
+    query (n,) vec2 projector px, query_sigma (n,) float32; proj2, uv2 (m,) vec2,
+    sigma2 (m,) float32 (camera 2's samples); offsets, counts (nx * ny,) int32,
+    items (binned,) int32 (the grid): read. out_uv (n,) vec2, out_sigma2,
+    out_sigma1, out_gain, out_fit (n,) float32, status (n,) int32: written."""
+    i = i0 + wp.tid()
+    q = query[i]
+    out_uv[i] = wp.vec2(0.0, 0.0)
+    out_sigma2[i] = 0.0
+    out_sigma1[i] = 0.0
+    out_gain[i] = 0.0
+    out_fit[i] = -1.0
+    if not (q[0] == q[0] and q[1] == q[1]):
+        status[i] = MATCH_NO_COORDINATE
+        return
+    # the k nearest camera-2 samples within ``rings`` cells, sorted by (distance,
+    # index)
+    nd = VecKf()
+    ni = VecKi()
+    n = int(0)
+    r2max = float(rings) * cell * float(rings) * cell
+    cx = int(wp.floor(q[0] / cell))
+    cy = int(wp.floor(q[1] / cell))
+    for rr in range(rings + 1):
+        # rings 0 .. rr - 1 cover every sample within (rr - 1) * cell of q
+        covered = float(rr - 1) * cell
+        if rr > 0 and n == k_max and nd[k_max - 1] <= covered * covered:
+            break
+        for gy in range(cy - rr, cy + rr + 1):
+            for gx in range(cx - rr, cx + rr + 1):
+                if wp.max(wp.abs(gx - cx), wp.abs(gy - cy)) == rr and gx >= 0 and gy >= 0 and gx < nx and gy < ny:
+                    ci = gy * nx + gx
+                    for s in range(offsets[ci], offsets[ci] + counts[ci]):
+                        j = items[s]
+                        dp = proj2[j] - q
+                        d2 = wp.dot(dp, dp)
+                        if d2 <= r2max:
+                            pos = int(-1)
+                            if n < k_max:
+                                pos = n
+                                n += 1
+                            elif key_less(d2, j, nd[k_max - 1], ni[k_max - 1]):
+                                pos = k_max - 1
+                            if pos >= 0:
+                                nd[pos] = d2
+                                ni[pos] = j
+                                while pos > 0 and key_less(nd[pos], ni[pos], nd[pos - 1], ni[pos - 1]):
+                                    td = nd[pos]
+                                    nd[pos] = nd[pos - 1]
+                                    nd[pos - 1] = td
+                                    ti = ni[pos]
+                                    ni[pos] = ni[pos - 1]
+                                    ni[pos - 1] = ti
+                                    pos -= 1
+    if n < k_min:
+        status[i] = MATCH_TOO_FEW
+        return
+    # weighted means, then the centred moments (projector: S; image x projector: B)
+    sw = float(0.0)
+    pm = wp.vec2(0.0, 0.0)
+    xm = wp.vec2(0.0, 0.0)
+    for a in range(n):
+        j = ni[a]
+        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+        w = 1.0 / (sg * sg)
+        sw += w
+        pm += w * proj2[j]
+        xm += w * uv2[j]
+    pm = pm / sw
+    xm = xm / sw
+    S = wp.mat22(0.0, 0.0, 0.0, 0.0)
+    B = wp.mat22(0.0, 0.0, 0.0, 0.0)
+    for a in range(n):
+        j = ni[a]
+        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+        w = 1.0 / (sg * sg)
+        dp = proj2[j] - pm
+        dx = uv2[j] - xm
+        S += w * wp.outer(dp, dp)
+        B += w * wp.outer(dx, dp)
+    # eigen-decomposition of the projector spread (symmetric 2x2)
+    C = S / sw
+    tr = C[0, 0] + C[1, 1]
+    df = 0.5 * (C[0, 0] - C[1, 1])
+    rt = wp.sqrt(df * df + C[0, 1] * C[0, 1])
+    l1 = 0.5 * tr + rt
+    l2 = 0.5 * tr - rt
+    v1 = wp.vec2(1.0, 0.0)
+    if rt > 0.0:
+        v1 = wp.normalize(wp.vec2(C[0, 1], l1 - C[0, 0]))
+        if wp.abs(C[0, 1]) < 1.0e-12 * (l1 + 1.0e-30):
+            v1 = wp.where(C[0, 0] >= C[1, 1], wp.vec2(1.0, 0.0), wp.vec2(0.0, 1.0))
+    v2 = wp.vec2(-v1[1], v1[0])
+    if not (l1 > 1.0e-12):
+        status[i] = MATCH_EXTRAPOLATED
+        return
+    dq = q - pm
+    a1 = wp.dot(dq, v1)
+    a2 = wp.dot(dq, v2)
+    full = l2 >= line_ratio * l1 and n >= 3
+    if wp.abs(a1) > max_extrapolation * wp.sqrt(l1):
+        status[i] = MATCH_EXTRAPOLATED
+        return
+    if full:
+        if wp.abs(a2) > max_extrapolation * wp.sqrt(l2):
+            status[i] = MATCH_EXTRAPOLATED
+            return
+    elif wp.abs(curve_offset(proj2, sigma2, ni, n, pm, v1, v2, a1, a2)) > max_offset:
+        # the query is off the neighbours' curve: the map across it is unknown
+        status[i] = MATCH_EXTRAPOLATED
+        return
+    # S^+ (in the eigenbasis): both directions, or the line's alone
+    Sp = wp.outer(v1, v1) / (l1 * sw)
+    if full:
+        Sp = Sp + wp.outer(v2, v2) / (l2 * sw)
+    A = B * Sp
+    x = xm + A * dq
+    g2 = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1]
+    gain = wp.where(full, wp.sqrt(0.5 * g2), wp.sqrt(g2))
+    # residuals of the fit: a neighbourhood across a depth edge fits no one map
+    chi = float(0.0)
+    ss = float(0.0)
+    for a in range(n):
+        j = ni[a]
+        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+        r = uv2[j] - (xm + A * (proj2[j] - pm))
+        ss += wp.dot(r, r)
+        chi += wp.dot(r, r) / (sg * sg)
+    fit = wp.sqrt(ss / float(n))
+    out_fit[i] = fit
+    out_gain[i] = gain
+    if fit > max_fit or gain > max_gain:
+        status[i] = MATCH_DISCONTINUITY
+        return
+    # the intercept's variance: the samples' projector noise through the map
+    # (gain^2 sigma^2), scaled up by the fit's own scatter where that is larger
+    npar = wp.where(full, 3, 2)
+    scale = float(1.0)
+    if n > npar and gain > 0.0:
+        scale = wp.max(1.0, chi / (2.0 * float(n - npar) * gain * gain))
+    var = 1.0 / sw + a1 * a1 / (l1 * sw)
+    if full:
+        var += a2 * a2 / (l2 * sw)
+    out_uv[i] = x
+    out_sigma2[i] = wp.max(gain * wp.sqrt(scale * var), SIGMA_FLOOR_PX)
+    out_sigma1[i] = wp.max(gain * query_sigma[i], SIGMA_FLOOR_PX)
+    status[i] = MATCH_OK
+
+
+@wp.kernel
+def triangulate_rays_kernel(
+    uv1: wp.array(dtype=wp.vec2),
+    uv2: wp.array(dtype=wp.vec2),
+    sigma1: wp.array(dtype=wp.float32),
+    sigma2: wp.array(dtype=wp.float32),
+    proj: wp.array(dtype=wp.vec2),
+    proj_info: wp.array(dtype=wp.vec3),
+    cam1: CameraModel,
+    cam2: CameraModel,
+    light: LightModel,
+    use_light: int,
+    vol: Volume,
+    min_sin: float,
+    max_residual_px: float,
+    i0: int,
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    residual: wp.array(dtype=wp.float32),
+    chi2: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+):
+    """Triangulate match i0 + tid from camera 1, camera 2 and, with ``use_light``,
+    the projector.
+
+    uv1, uv2 (n,) vec2 camera pixels (distorted), sigma1, sigma2 (n,) float32
+    px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
+    (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. points
+    (n,) vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written."""
+    i = i0 + wp.tid()
+    points[i] = wp.vec3(0.0, 0.0, 0.0)
+    residual[i] = -1.0
+    chi2[i] = 0.0
+    sigma[i] = 0.0
+    d1, ok1 = camera_ray(cam1, uv1[i][0], uv1[i][1])
+    d2, ok2 = camera_ray(cam2, uv2[i][0], uv2[i][1])
+    if not ok1 or not ok2:
+        status[i] = STATUS_UNDISTORT_FAILED
+        return
+    C1 = cam1.center
+    C2 = cam2.center
+    t1 = closest_on_ray(C1, d1, C2, d2)
+    t2 = closest_on_ray(C2, d2, C1, d1)
+    X = 0.5 * (C1 + d1 * t1 + C2 + d2 * t2)
+    s1 = wp.max(sigma1[i], SIGMA_FLOOR_PX)
+    s2 = wp.max(sigma2[i], SIGMA_FLOOR_PX)
+    W1 = wp.vec3(1.0 / (s1 * s1), 0.0, 1.0 / (s1 * s1))
+    W2 = wp.vec3(1.0 / (s2 * s2), 0.0, 1.0 / (s2 * s2))
+    WL = wp.vec3(0.0, 0.0, 0.0)
+    pL = wp.vec2(0.0, 0.0)
+    if use_light != 0:
+        WL = proj_info[i]
+        pL = proj[i]
+    converged = bool(False)
+    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    chi = float(0.0)
+    ss = float(0.0)
+    for _it in range(NEWTON_STEPS):
+        h = wp.max(0.01, 1.0e-4 * wp.length(X))
+        H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        g = wp.vec3(0.0, 0.0, 0.0)
+        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
+        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
+        chi = c1 + c2
+        ss = r1 * r1 + r2 * r2
+        if use_light != 0:
+            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
+            chi += c3
+            ss += r3 * r3
+        if not (wp.abs(wp.determinant(H)) > 0.0):
+            break
+        step = wp.inverse(H) * g
+        X = X - step
+        # 2 % of the point's own standard deviation along the step is as far as refining helps
+        sd = wp.sqrt(wp.max(wp.dot(step, wp.inverse(H) * step), 0.0)) / wp.max(wp.length(step), 1.0e-30)
+        if wp.length(step) < wp.max(1.0e-4, 0.02 * sd):
+            converged = True
+            break
+    if not converged:
+        status[i] = STATUS_NOT_CONVERGED
+        return
+    # the residual at the solution
+    h = wp.max(0.01, 1.0e-4 * wp.length(X))
+    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    g = wp.vec3(0.0, 0.0, 0.0)
+    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
+    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
+    chi = c1 + c2
+    ss = r1 * r1 + r2 * r2
+    nr = float(2.0)
+    if use_light != 0:
+        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
+        chi += c3
+        ss += r3 * r3
+        nr = 3.0
+    # in front of both cameras (and the projector), inside the volume
+    z1 = (cam1.R * X + cam1.t)[2]
+    z2 = (cam2.R * X + cam2.t)[2]
+    front = z1 > 0.0 and z2 > 0.0
+    if use_light != 0:
+        front = front and light_pixel(light, X)[2] > 0.0
+    if not front or not in_volume(X, vol):
+        status[i] = STATUS_OUTSIDE
+        return
+    # conditioning: the widest angle between camera 1's ray and another ray
+    sn = wp.length(wp.cross(d1, d2))
+    if use_light != 0:
+        sn = wp.max(sn, wp.length(wp.cross(d1, direction_to_light(light, X))))
+    cov = wp.inverse(H)
+    var = wp.dot(d1, cov * d1)
+    rms = wp.sqrt(ss / nr)
+    points[i] = X
+    residual[i] = rms
+    chi2[i] = chi
+    sigma[i] = wp.where(var > 0.0, wp.sqrt(var), 1.0e9)
+    st = int(STATUS_OK)
+    if sn < min_sin:
+        st = STATUS_ILL_CONDITIONED
+    elif rms > max_residual_px:
+        st = STATUS_INCONSISTENT
+    status[i] = st
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def _check(name: str, a, n: int | None, dtype, fn: str) -> int:
+    if not isinstance(a, wp.array) or a.dtype != dtype or a.ndim != 1 or (n is not None and a.shape[0] != n):
+        shape = f"({n},)" if n is not None else "1-D"
+        raise ValueError(f"{fn}: {name} must be a {shape} {dtype.__name__} Warp array")
+    return a.shape[0]
+
+
+def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,
+                          center: tuple[float, float]) -> tuple[wp.array, wp.array]:
+    """Samples' polar projector coordinates -> projector pixels.
+
+    Args:
+        rho, phi, sigma_rho, sigma_tan: (n,) float32 (phi NaN where unknown).
+        center: the pattern centre (c_u, c_v), projector px.
+
+    Returns:
+        (proj (n,) vec2: c + rho (cos phi, sin phi), NaN where phi is; sigma (n,)
+        float32: the isotropic sqrt((sigma_rho^2 + sigma_tan^2) / 2)), on rho's device.
+    """
+    n = _check("rho", rho, None, wp.float32, "projector_coordinates")
+    for name, a in (("phi", phi), ("sigma_rho", sigma_rho), ("sigma_tan", sigma_tan)):
+        _check(name, a, n, wp.float32, "projector_coordinates")
+    dev = rho.device
+    proj = wp.empty(n, dtype=wp.vec2, device=dev)
+    sigma = wp.empty(n, dtype=wp.float32, device=dev)
+    if n:
+        wp.launch(polar_coordinates_kernel, dim=n, inputs=[rho, phi, sigma_rho, sigma_tan, wp.vec2(*center)],
+                  outputs=[proj, sigma], device=dev)
+    return proj, sigma
+
+
+def polar_information(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,
+                      center: tuple[float, float]) -> wp.array:
+    """Information matrices (W00, W01, W11; 1/px^2) of projector pixels whose
+    errors are radial (sigma_rho) and tangential (sigma_tan) about ``center``.
+
+    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32 -> (n,) vec3 (host
+    arithmetic: a small array, once per view)."""
+    n = _check("proj", proj, None, wp.vec2, "polar_information")
+    _check("sigma_rho", sigma_rho, n, wp.float32, "polar_information")
+    _check("sigma_tan", sigma_tan, n, wp.float32, "polar_information")
+    p = proj.numpy().astype(np.float64)
+    off = p - np.asarray(center, float)
+    r = np.hypot(off[:, 0], off[:, 1])
+    c = np.where(r > 0, off[:, 0] / np.where(r > 0, r, 1), 1.0)
+    s = np.where(r > 0, off[:, 1] / np.where(r > 0, r, 1), 0.0)
+    ir = 1.0 / np.maximum(sigma_rho.numpy().astype(np.float64), 1e-3) ** 2
+    it = 1.0 / np.maximum(sigma_tan.numpy().astype(np.float64), 1e-3) ** 2
+    W = np.stack([ir * c * c + it * s * s, (ir - it) * c * s, ir * s * s + it * c * c], axis=1)
+    return wp.array(W.astype(np.float32), dtype=wp.vec3, device=proj.device)
+
+
+def match_by_projector(
+    query: wp.array,
+    query_sigma: wp.array,
+    proj2: wp.array,
+    uv2: wp.array,
+    sigma2: wp.array,
+    *,
+    projector_size: tuple[int, int],
+    settings: MatchSettings = MatchSettings(),
+    threads: int | None = None,
+) -> Matches:
+    """Camera-2 positions of equal projector coordinate (no extrinsics used).
+
+    Args:
+        query: (n,) vec2 projector pixels of camera 1's samples (NaN: none).
+        query_sigma: (n,) float32 their standard deviations (projector px).
+        proj2: (m,) vec2 projector pixels of camera 2's samples.
+        uv2: (m,) vec2 camera-2 pixels of those samples.
+        sigma2: (m,) float32 standard deviations of proj2 (projector px).
+        projector_size: (width, height) of the projector grid; samples outside are not binned.
+        settings: :class:`MatchSettings`.
+        threads: CPU threads; default all cores.
+
+    Returns:
+        :class:`Matches` on the queries' device.
+    """
+    fn = "match_by_projector"
+    n = _check("query", query, None, wp.vec2, fn)
+    _check("query_sigma", query_sigma, n, wp.float32, fn)
+    m = _check("proj2", proj2, None, wp.vec2, fn)
+    _check("uv2", uv2, m, wp.vec2, fn)
+    _check("sigma2", sigma2, m, wp.float32, fn)
+    W, Hh = (int(x) for x in projector_size)
+    if W < 1 or Hh < 1:
+        raise ValueError(f"{fn}: bad projector_size {projector_size}")
+    dev = query.device
+    if proj2.device != dev:
+        raise ValueError(f"{fn}: camera 2's samples are on {proj2.device}, the queries on {dev}")
+    out = Matches(uv2=wp.empty(n, dtype=wp.vec2, device=dev), sigma2=wp.empty(n, dtype=wp.float32, device=dev),
+                  sigma1=wp.empty(n, dtype=wp.float32, device=dev), gain=wp.empty(n, dtype=wp.float32, device=dev),
+                  fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
+    if n == 0:
+        return out
+    cell = float(settings.cell_px)
+    rings = int(np.ceil(settings.radius_px / cell))
+    nx = int(np.ceil(W / cell))
+    ny = int(np.ceil(Hh / cell))
+    counts = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
+    if m:
+        wp.launch(count_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny], outputs=[counts], device=dev)
+    offsets, total = scan_counts(counts)
+    items = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
+    if total:
+        cursor = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
+        wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
+                  device=dev)
+    s = settings
+    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, cell, nx, ny, rings, int(s.neighbours),
+            int(s.min_neighbours), float(s.line_ratio), float(s.max_offset_px), float(s.max_extrapolation),
+            float(s.max_fit_px), float(s.max_gain)]
+    outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.fit_px, out.status]
+    threads = default_threads() if threads is None else threads
+    launch_spans(match_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
+    return out
+
+
+def triangulate_rays(
+    uv1: wp.array,
+    uv2: wp.array,
+    sigma1: wp.array,
+    sigma2: wp.array,
+    *,
+    camera1: CameraModel,
+    camera2: CameraModel,
+    volume: tuple[float, float, float],
+    light: LightModel | None = None,
+    proj: wp.array | None = None,
+    proj_info: wp.array | None = None,
+    min_sin: float = 0.03,
+    max_residual_px: float = 2.0,
+    threads: int | None = None,
+) -> RayTriangulation:
+    """Points from two camera rays, or three rays with the calibrated projector.
+
+    Args:
+        uv1, uv2: (n,) vec2 camera-1 and camera-2 pixels (distorted images).
+        sigma1, sigma2: (n,) float32 their standard deviations (px).
+        camera1, camera2: :class:`~ringscan.kernels.geometry.CameraModel` each.
+        volume: (z_min, z_max, r_max) of the working volume, world mm.
+        light: the calibrated projector (or parallel light) for a third ray; None: two rays.
+        proj: (n,) vec2 projector pixels (with ``light``).
+        proj_info: (n,) vec3 their information matrices (with ``light``; :func:`polar_information`).
+        min_sin: least sine of the widest angle between camera 1's ray and another
+            ray: below it the point is ``ill_conditioned``.
+        max_residual_px: largest RMS reprojection error (px): above it ``inconsistent``.
+        threads: CPU threads; default all cores.
+    """
+    fn = "triangulate_rays"
+    n = _check("uv1", uv1, None, wp.vec2, fn)
+    _check("uv2", uv2, n, wp.vec2, fn)
+    _check("sigma1", sigma1, n, wp.float32, fn)
+    _check("sigma2", sigma2, n, wp.float32, fn)
+    if (light is None) != (proj is None) or (light is None) != (proj_info is None):
+        raise ValueError(f"{fn}: light, proj and proj_info go together")
+    if light is not None:
+        _check("proj", proj, n, wp.vec2, fn)
+        _check("proj_info", proj_info, n, wp.vec3, fn)
+    z_min, z_max, r_max = (float(x) for x in volume)
+    if not (z_max > z_min and r_max > 0):
+        raise ValueError(f"{fn}: bad volume {volume}")
+    if not (0 <= min_sin < 1) or not (max_residual_px > 0):
+        raise ValueError(f"{fn}: need 0 <= min_sin < 1 and max_residual_px > 0")
+    dev = uv1.device
+    out = RayTriangulation(points=wp.empty(n, dtype=wp.vec3, device=dev),
+                           status=wp.empty(n, dtype=wp.int32, device=dev),
+                           residual=wp.empty(n, dtype=wp.float32, device=dev),
+                           chi2=wp.empty(n, dtype=wp.float32, device=dev),
+                           sigma=wp.empty(n, dtype=wp.float32, device=dev))
+    if n == 0:
+        return out
+    use_light = 1 if light is not None else 0
+    if light is None:
+        # an unused struct: the kernel reads no field of it
+        from_cam = LightModel()
+        from_cam.model = 1
+        from_cam.cam = camera1
+        from_cam.R = wp.mat33(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+        light = from_cam
+        proj = wp.zeros(1, dtype=wp.vec2, device=dev)
+        proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
+    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, camera1, camera2, light, use_light,
+            make_volume(z_min, z_max, r_max), float(min_sin), float(max_residual_px)]
+    outputs = [out.points, out.status, out.residual, out.chi2, out.sigma]
+    threads = default_threads() if threads is None else threads
+    launch_spans(triangulate_rays_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
+    return out

@@ -1,0 +1,130 @@
+"""Two cameras end to end on the virtual rig: both cameras decode, camera 1's samples
+are matched in camera 2 by projector coordinate (checked against the truth of the
+rendered sphere), the points of camera-camera, camera-projector and all three rays
+against the truth mesh, the uncalibrated projector, and the epipolar check of a rig
+whose extrinsics are off."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.pipeline.formats.scan import load_scan, save_scan
+from ringscan.pipeline.geometry import project_points
+from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings
+from ringscan.pipeline.reconstruct.stereo import epipolar_distances, match_view
+from ringscan.pipeline.reconstruct.view import reconstruct_view
+from ringscan.pipeline.simulate.truth import load_truth
+from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+
+
+def _rays(r):
+    return ReconstructSettings(stereo=StereoSettings(rays=r))
+
+
+@pytest.fixture(scope="module")
+def stereo_scan(tmp_path_factory):
+    return simulate_two_camera_scan(tmp_path_factory.mktemp("stereo") / "scan")
+
+
+def test_matches_land_where_camera_2_sees_the_point(stereo_scan):
+    scan = stereo_scan
+    m = match_view(scan, scan.views[0], device="cpu")
+    assert len(m) > 0.5 * m.stats["samples_camera1"] and m.stats["matches"] == len(m)
+    # truth: camera 1's depth map (bilinear at uv1) -> the point -> camera 2
+    rig = scan.rig
+    depth = load_truth(scan).depth("view_000")
+    u, v = m.uv1[:, 0], m.uv1[:, 1]
+    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
+    fy, fx = v - i0, u - j0
+    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
+         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
+    keep = np.isfinite(z)
+    c = rig.camera
+    x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
+    X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R  # R^T (X_c - t)
+    uv2 = project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
+    err = np.linalg.norm(m.uv2[keep] - uv2, axis=1)
+    assert keep.mean() > 0.95 and np.median(err) < 0.1, np.median(err)  # camera px (0.65 mm pixels)
+    # the rig fits: the matches lie on their epipolar lines
+    assert np.median(epipolar_distances(rig, m.uv1, m.uv2)) < 0.1
+    assert np.all(m.sigma1 > 0) and np.all(m.sigma2 > 0) and np.all(m.sigma_proj > 0)
+    assert m.proj.shape == (len(m), 2) and m.uv1.shape == m.uv2.shape
+
+
+def test_camera_camera_camera_projector_and_all_three(stereo_scan, tmp_path):
+    out = {}
+    for rays in ("camera-projector", "camera-camera", "all", "auto"):
+        rep = reconstruct_scan(stereo_scan, tmp_path / rays, settings=_rays(rays), progress=False)
+        v = rep["views"][0]
+        assert v["rays"] == (rays if rays != "auto" else "all")
+        ev = evaluate_recon(tmp_path / rays, stereo_scan)
+        out[rays] = (ev["all"]["median_mm"], ev["views"]["view_000"]["coverage"], v)
+    for rays, (med, cov, v) in out.items():
+        assert med < 0.05, (rays, med)
+        assert v["calibration_check"]["fits"], v["calibration_check"]
+    cc, al, au = out["camera-camera"][2], out["all"][2], out["auto"][2]
+    assert cc["calibration_check"]["kind"] == "epipolar" and cc["calibration_check"]["median_px"] < 0.3
+    assert out["camera-projector"][2]["calibration_check"]["kind"] == "ray-ray"
+    assert cc["dropped"]["unmatched"] > 0 and au["dropped"]["unmatched"] == 0  # auto falls back
+    assert out["auto"][1] > out["camera-camera"][1]
+    assert out["all"][0] <= 1.1 * out["camera-camera"][0]
+    ply = read_ply(tmp_path / "all" / "view_000.ply")
+    assert "residual" in ply and np.median(ply["residual"]) < 0.5
+
+
+def test_uncalibrated_projector_works_camera_to_camera(stereo_scan, tmp_path):
+    folder = tmp_path / "scan"
+    import shutil
+    shutil.copytree(stereo_scan.folder, folder)
+    from ringscan.pipeline.formats.rig import UncalibratedLight
+    scan = load_scan(folder)
+    li = scan.rig.light
+    save_scan(dataclasses.replace(scan, rig=dataclasses.replace(scan.rig, light=UncalibratedLight(
+        width=li.width, height=li.height, gamma=li.gamma)), rig_ref=None))
+    scan = load_scan(folder)
+    rep = reconstruct_scan(scan, tmp_path / "rec", progress=False)
+    assert rep["views"][0]["rays"] == "camera-camera"
+    # evaluated against the calibrated twin (evaluate reads the projector for its coverage mask)
+    assert evaluate_recon(tmp_path / "rec", stereo_scan)["all"]["median_mm"] < 0.05
+    with pytest.raises(FormatError, match="not calibrated"):
+        reconstruct_view(scan, scan.views[0], settings=_rays("all"), device="cpu")
+    with pytest.raises(FormatError, match="not calibrated"):
+        reconstruct_view(scan, scan.views[0], settings=_rays("camera-projector"), device="cpu")
+
+
+def test_rotated_extrinsics_warn(stereo_scan, tmp_path, caplog):
+    rig = stereo_scan.rig
+    c2 = rig.camera2
+    # the camera-1-to-camera-2 rotation off by 2 degrees, its translation kept (as in
+    # an OpenCV stereo file whose R does not fit): X2 = dR R_rel X1 + T_rel
+    c1 = rig.camera
+    dR = cv2.Rodrigues(np.array([0.0, np.radians(2.0), 0.0]))[0]
+    R_rel = c2.R @ c1.R.T
+    T_rel = c2.t - R_rel @ c1.t
+    R_bad = dR @ R_rel
+    c2_bad = dataclasses.replace(c2, R=R_bad @ c1.R, t=R_bad @ c1.t + T_rel)
+    bad = dataclasses.replace(stereo_scan, rig=dataclasses.replace(rig, camera2=c2_bad))
+    m = match_view(stereo_scan, stereo_scan.views[0], device="cpu")
+    good_d = np.median(epipolar_distances(rig, m.uv1, m.uv2))
+    bad_d = np.median(epipolar_distances(bad.rig, m.uv1, m.uv2))
+    assert good_d < 0.3 and bad_d > 3.0, (good_d, bad_d)
+    with caplog.at_level("WARNING"):
+        cloud = reconstruct_view(bad, bad.views[0], settings=_rays("camera-camera"), device="cpu")
+    chk = cloud.stats["calibration_check"]
+    assert not chk["fits"] and chk["median_px"] > 3.0
+    assert "does not fit the images" in caplog.text
+
+
+def test_one_camera_view_refuses_two_camera_rays(tmp_path):
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    scan = simulate_tiny_scan(tmp_path / "tiny")
+    with pytest.raises(FormatError, match="needs a two-camera view"):
+        reconstruct_view(scan, scan.views[0], settings=_rays("camera-camera"), device="cpu")
+    with pytest.raises(FormatError, match="not a two-camera view"):
+        match_view(scan, scan.views[0], device="cpu")

@@ -1,0 +1,263 @@
+"""``ringscan calibrate refine`` and ``projector-from-scan`` on scans of a known rig.
+
+The camera-projector scans are imported-style (``decoded`` codec) scans rendered
+exactly here: every camera pixel's ray meets a wavy surface and the projector
+pixel there is written in the codec's 1/32 px fixed point. Two-camera matching
+(``match_view``) is stood in for by exact matches of the same rig (monkeypatched),
+so these tests check the commands, not the matcher.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
+from ringscan.pipeline.calibrate.stereo import relative_pose, rotation_angle_deg
+from ringscan.pipeline.formats.images import write_image
+from ringscan.pipeline.formats.patterns import DECODED_SCALE, frame_names, parse_patterns
+from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, Volume, load_rig, save_rig
+from ringscan.pipeline.formats.scan import Scan, View, save_scan
+from ringscan.tools import cmd_calibrate
+from ringscan.tools.cli import main
+
+from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
+
+
+def turned(dev, deg: float):
+    rv = np.array([0.3, -0.8, 0.5])
+    rv *= math.radians(deg) / np.linalg.norm(rv)
+    Rd, _ = cv2.Rodrigues(rv)
+    return replace(dev, R=Rd @ dev.R, t=Rd @ dev.t)
+
+
+def surface_z(x, y):
+    return 300 + 150 * np.sin(x / 300.0) * np.cos(y / 250.0)
+
+
+def decoded_frames(cam, proj, step: int = 1):
+    """proj_u, proj_v, contrast frames of the camera seeing the wavy surface under the projector."""
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    pix = np.stack([xs.ravel(), ys.ravel()], 1)
+    n = cv2.undistortPoints(pix.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+    d = np.concatenate([n, np.ones((n.shape[0], 1))], 1) @ cam.R  # world directions
+    C = cam.center
+    s = (300.0 - C[2]) / d[:, 2]
+    for _ in range(30):  # fixed point on the surface (slopes are small)
+        X = C + s[:, None] * d
+        s = (surface_z(X[:, 0], X[:, 1]) - C[2]) / d[:, 2]
+    X = C + s[:, None] * d
+    up, _ = cv2.projectPoints((X @ proj.R.T + proj.t).reshape(-1, 1, 3), np.zeros(3), np.zeros(3), proj.K, proj.dist)
+    up = up.reshape(-1, 2)
+    ok = (up[:, 0] >= 0) & (up[:, 0] <= proj.width - 1) & (up[:, 1] >= 0) & (up[:, 1] <= proj.height - 1)
+    fu = np.where(ok, np.round((up[:, 0] + 1) * DECODED_SCALE), 0).astype(np.uint16).reshape(cam.height, cam.width)
+    fv = np.where(ok, np.round((up[:, 1] + 1) * DECODED_SCALE), 0).astype(np.uint16).reshape(cam.height, cam.width)
+    return {"proj_u": fu, "proj_v": fv, "contrast": np.where(ok, 200 * 257, 0).astype(np.uint16).reshape(fu.shape)}
+
+
+def write_scan(folder, rig: Rig, frames: dict | None = None, frames2: dict | None = None) -> None:
+    spec = parse_patterns({"codec": "decoded", "width": 1280, "height": 800, "center": [661.5, 758.8],
+                           "rho0": 0.0, "pitch": 1.0, "sector_bits": 8}, source="test")
+    views = []
+    for name in ("v1",):
+        rel, rel2 = {}, {}
+        for k in frame_names(spec):
+            img = frames[k] if frames else np.zeros((rig.camera.height, rig.camera.width), np.uint16)
+            write_image(folder / name / f"{k}.png", img)
+            rel[k] = f"{name}/{k}.png"
+            if rig.camera2 is not None:
+                c2 = rig.camera2
+                img2 = frames2[k] if frames2 else np.zeros((c2.height, c2.width), np.uint16)
+                write_image(folder / name / "cam2" / f"{k}.png", img2)
+                rel2[k] = f"{name}/cam2/{k}.png"
+        cam2 = View(name=name, turntable_deg=0.0, frames=rel2) if rel2 else None
+        views.append(View(name=name, turntable_deg=0.0, frames=rel, camera2=cam2))
+    save_scan(Scan(folder=folder, rig=rig, patterns=spec, views=tuple(views)))
+
+
+VOLUME = Volume(z_min=0.0, z_max=2000.0, r_max=3000.0)
+
+
+@pytest.fixture(scope="module")
+def procam_scan(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("procam")
+    cam1, _, proj = oblique_devices()
+    rig = Rig(camera=cam1, light=proj, volume=VOLUME)
+    write_scan(folder, rig, decoded_frames(cam1, proj))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def stereo_scan(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("stereo")
+    cam1, cam2, _ = oblique_devices()
+    write_scan(folder, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(width=1280, height=800),
+                           volume=VOLUME))
+    return folder
+
+
+@pytest.fixture
+def matched(monkeypatch):
+    """match_view stood in for by exact (0.1 px noise) matches of the true rig."""
+    X, u1, u2, up = observe(20000, noise_px=0.1, seed=5)
+    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, *, device: (u1, u2, up))
+
+
+def test_refine_a_procam_scan_brings_the_camera_back(procam_scan, tmp_path, capsys):
+    cam1, _, proj = oblique_devices()
+    bad = tmp_path / "bad.json"
+    save_rig(bad, Rig(camera=turned(cam1, 2.0), light=proj, volume=VOLUME))
+    out = tmp_path / "fixed.json"
+    assert main(["calibrate", "refine", str(procam_scan), "--rig", str(bad), "--out", str(out),
+                 "--report", str(tmp_path / "rep.json"), "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "camera against the projector" in text and "epipolar distance  before" in text
+    rig = load_rig(out)
+    assert rotation_angle_deg(rig.camera.R @ cam1.R.T) < 0.01
+    assert np.linalg.norm(rig.camera.center - cam1.center) < 0.5
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert rep["epipolar_px"]["before"]["median_px"] > 20 and rep["epipolar_px"]["after"]["median_px"] < 0.05
+    R, T = procam_pose(rig)
+    d = read_opencv_calibration(tmp_path / "fixed.yml")
+    assert np.allclose(d["R"], R) and np.allclose(d["T"], T)
+
+
+def test_refine_a_stereo_scan_brings_camera_2_back(stereo_scan, tmp_path, matched, capsys):
+    cam1, cam2, _ = oblique_devices()
+    bad = tmp_path / "bad.json"
+    save_rig(bad, Rig(camera=cam1, camera2=turned(cam2, 2.0), light=UncalibratedLight(1280, 800), volume=VOLUME))
+    out = tmp_path / "fixed.json"
+    assert main(["calibrate", "refine", str(stereo_scan), "--rig", str(bad), "--out", str(out),
+                 "--opencv", str(tmp_path / "cv.yaml"), "-q"]) == 0
+    assert "camera 2 against camera 1" in capsys.readouterr().out
+    rig = load_rig(out)
+    assert rotation_angle_deg(rig.camera2.R @ cam2.R.T) < 0.01
+    assert rig.camera.R.tolist() == cam1.R.tolist()
+    fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_READ)
+    assert np.allclose(fs.getNode("R").mat(), relative_pose(rig.camera, rig.camera2)[0])
+    fs.release()
+    assert not (tmp_path / "fixed.yml").exists()
+
+
+def test_projector_from_scan_writes_a_procam_rig(stereo_scan, tmp_path, matched, capsys):
+    out = tmp_path / "procam.json"
+    assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out), "--stereo-out",
+                 str(tmp_path / "three.json"), "-q"]) == 0
+    assert "projector: RMS reprojection error" in capsys.readouterr().out
+    cam1, _, proj = oblique_devices()
+    rig = load_rig(out)
+    R, T = procam_pose(rig)
+    Rt, Tt = relative_pose(cam1, proj)
+    assert rotation_angle_deg(R @ Rt.T) < 0.1 and np.linalg.norm(T - Tt) < 1.0
+    assert abs(rig.light.K[0, 0] / proj.K[0, 0] - 1) < 0.005
+    assert np.allclose(read_opencv_calibration(tmp_path / "procam.yml")["R"], R)
+    three = load_rig(tmp_path / "three.json")
+    assert three.camera2 is not None and np.linalg.norm(three.light.center - proj.center) < 1.0
+
+
+def _one_line_error(capsys, *words):
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in err, err
+    return err
+
+
+def test_bad_input_one_line_nothing_written(procam_scan, stereo_scan, tmp_path, capsys):
+    out = tmp_path / "o.json"
+    cam1, cam2, proj = oblique_devices()
+    stereo_rig = tmp_path / "stereo.json"
+    save_rig(stereo_rig, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(1280, 800), volume=VOLUME))
+    scan_json = procam_scan / "scan.json"
+    cases = [
+        # a procam rig where a two-camera one is needed
+        (["calibrate", "projector-from-scan", str(procam_scan), "--out", str(out)], 1, ["one camera", "two-camera"]),
+        # a two-camera rig for a one-camera scan
+        (["calibrate", "refine", str(procam_scan), "--rig", str(stereo_rig), "--out", str(out)], 1,
+         ["two cameras", "the scan"]),
+        (["calibrate", "refine", str(stereo_scan), "--pair", "projector", "--out", str(out)], 1,
+         ["not calibrated", "projector-from-scan"]),
+        (["calibrate", "refine", str(procam_scan), "--pair", "cameras", "--out", str(out)], 1, ["one camera"]),
+        (["calibrate", "refine", str(tmp_path / "nothing"), "--out", str(out)], 1, ["nothing"]),
+        (["calibrate", "refine", str(procam_scan), "--rig", str(tmp_path / "x.yml"), "--out", str(out)], 1,
+         ["OpenCV", "JSON"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(out), "--opencv", str(tmp_path / "x.txt")], 1,
+         [".txt"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(tmp_path / "x.yml")], 1, [".json"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(scan_json)], 1, ["overwrite"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(out), "--view", "nope"], 1, ["nope", "v1"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(out), "--max-matches", "5"], 2, ["--max-matches"]),
+        (["calibrate", "refine", str(procam_scan), "--out", str(out), "--baseline", "-3"], 2, ["--baseline"]),
+        (["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out), "--projector", "12"], 2,
+         ["--projector"]),
+    ]
+    (tmp_path / "x.yml").write_text("%YAML:1.0\n")
+    before = scan_json.read_bytes()
+    for argv, rc, words in cases:
+        assert main(argv) == rc, argv
+        _one_line_error(capsys, *words)
+        assert not out.exists() and not out.with_suffix(".yml").exists()
+    assert scan_json.read_bytes() == before
+
+
+def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatch, capsys):
+    cam1, cam2, proj = oblique_devices()
+    rng = np.random.default_rng(2)
+    X = np.stack([rng.uniform(-800, 800, 8000), rng.uniform(0, 1200, 8000), np.full(8000, 250.0)], 1)
+    from ..pipeline.calibrate.stereo_truth import project
+
+    (u1, o1), (u2, o2), (up, op) = project(cam1, X), project(cam2, X), project(proj, X)
+    ok = o1 & o2 & op
+    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, *, device: (u1[ok], u2[ok], up[ok]))
+    out = tmp_path / "p.json"
+    assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out)]) == 1
+    _one_line_error(capsys, "nearly on one plane", "principal point")
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- through match_view
+
+
+@pytest.fixture(scope="module")
+def virtual_two_camera(tmp_path_factory):
+    """A two-camera scan of the virtual rig (a sphere on the plane) with a perspective projector."""
+    from ringscan.pipeline.formats.rig import default_rig
+
+    from ..pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, two_camera_rig
+
+    rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
+    folder = tmp_path_factory.mktemp("virtual2") / "scan"
+    simulate_two_camera_scan(folder, rig=rig)
+    return folder, rig
+
+
+def test_refine_and_projector_from_a_matched_scan(virtual_two_camera, tmp_path, capsys):
+    folder, rig = virtual_two_camera
+    bad = tmp_path / "bad.json"
+    save_rig(bad, replace(rig, camera2=turned(rig.camera2, 2.0)))
+    out = tmp_path / "fixed.json"
+    assert main(["calibrate", "refine", str(folder), "--rig", str(bad), "--out", str(out), "--device", "cpu",
+                 "--report", str(tmp_path / "rep.json"), "-q"]) == 0
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    fixed = load_rig(out)
+    # the true rig's own residual over the same matches
+    assert main(["calibrate", "refine", str(folder), "--out", str(tmp_path / "true.json"), "--device", "cpu",
+                 "--report", str(tmp_path / "true_rep.json"), "-q"]) == 0
+    true_med = json.loads((tmp_path / "true_rep.json").read_text())["epipolar_px"]["before"]["median_px"]
+    assert rep["epipolar_px"]["before"]["median_px"] > 1.0  # the turned rig does not fit
+    assert abs(rep["epipolar_px"]["after"]["median_px"] - true_med) < 0.1
+    assert rotation_angle_deg(fixed.camera2.R @ rig.camera2.R.T) < 0.1
+    capsys.readouterr()
+    procam = tmp_path / "procam.json"
+    assert main(["calibrate", "projector-from-scan", str(folder), "--rig", str(out), "--out", str(procam),
+                 "--device", "cpu", "-q"]) == 0
+    got = load_rig(procam)
+    R, T = procam_pose(got)
+    Rt, Tt = relative_pose(rig.camera, rig.light)
+    assert abs(got.light.K[0, 0] / rig.light.K[0, 0] - 1) < 0.01
+    assert rotation_angle_deg(R @ Rt.T) < 0.2 and np.linalg.norm(T - Tt) < 3.0

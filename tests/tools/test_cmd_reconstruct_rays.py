@@ -1,0 +1,58 @@
+"""``ringscan reconstruct --rays`` on a two-camera scan: the rays chosen, the
+calibration check printed per view and written to report.json, the per-point
+residual in the PLY; two-camera rays on a one-camera scan: one line, exit 1."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats.ply import read_ply
+from ringscan.tools.cli import main
+from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+
+
+@pytest.fixture(scope="module")
+def stereo_folder(tmp_path_factory):
+    return simulate_two_camera_scan(tmp_path_factory.mktemp("stereo") / "scan").folder
+
+
+def test_rays_camera_camera_prints_the_epipolar_check(stereo_folder, tmp_path, capsys):
+    out = tmp_path / "rec"
+    assert main(["reconstruct", str(stereo_folder), "--out", str(out), "--rays", "camera-camera", "--device", "cpu",
+                 "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "view_000: camera-camera: epipolar distance of the camera matches: median" in text
+    assert "does not fit" not in text
+    rep = json.loads((out / "report.json").read_text())
+    v = rep["views"][0]
+    assert v["rays"] == "camera-camera" and v["calibration_check"]["kind"] == "epipolar"
+    assert v["calibration_check"]["median_px"] < 0.3 and v["calibration_check"]["fits"]
+    assert rep["settings"]["stereo"]["rays"] == "camera-camera"
+    ply = read_ply(out / "view_000.ply")
+    assert np.all(ply["residual"] >= 0) and np.median(ply["residual"]) < 0.5
+    # the residual map of that view, with its check
+    assert main(["view", "--residuals", str(out / "view_000.ply"), "--out", str(tmp_path / "res.png")]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    summ = json.loads(lines[0])
+    assert summ["points"] == ply["residual"].size and summ["calibration_check"]["kind"] == "epipolar"
+    assert abs(summ["median"] - np.median(ply["residual"])) < 1e-6
+    assert (tmp_path / "res.png").stat().st_size > 1000
+
+
+def test_two_camera_rays_on_a_one_camera_scan_is_one_line(tmp_path, capsys):
+    scan = simulate_tiny_scan(tmp_path / "tiny")
+    assert main(["reconstruct", str(scan.folder), "--out", str(tmp_path / "rec"), "--rays", "all", "--device", "cpu",
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "needs a two-camera view" in err and "Traceback" not in err, err
+    assert not (tmp_path / "rec" / "view_000.ply").exists()
+
+
+def test_rays_is_a_choice(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["reconstruct", "x", "--out", "y", "--rays", "both"])
+    assert e.value.code == 2
