@@ -117,11 +117,16 @@ def _start_watchdog(ray) -> subprocess.Popen | None:
 
 
 def _stop_watchdog() -> None:
-    """Close the watchdog's pipe: it ends what is left of a local cluster and exits (not waited for)."""
+    """Close the watchdog's pipe: it ends what is left of a local cluster and exits (waited for a
+    few seconds: after ``ray.shutdown()`` there is nothing left, and it exits at once)."""
     global _watchdog
     if _watchdog is not None:
-        _watchdog.stdin.close()
-        _watchdog = None
+        dog, _watchdog = _watchdog, None
+        dog.stdin.close()
+        try:
+            dog.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            log.debug("the Ray watchdog (%d) is still ending the local cluster's processes", dog.pid)
 
 
 def task_options(resources: dict) -> dict:
