@@ -212,11 +212,14 @@ def _pattern_models():
                 kind = Annotated[float, Field(gt=0, description=p.doc)] if p.positive else \
                     Annotated[float, Field(description=p.doc)]
             fields[p.name] = (kind, ... if p.default is None else p.default)
+        config = _OPEN
         if layout.projectable:
             fields["precompensated_gamma"] = (float, Field(
                 None, ge=PRECOMPENSATED_GAMMA_RANGE[0], le=PRECOMPENSATED_GAMMA_RANGE[1],
                 description="gamma the frames were pre-compensated for"))
-        models.append(create_model(f"Patterns_{codec.replace('-', '_')}", __config__=_OPEN, **fields))
+        else:  # nothing is projected: nothing to pre-compensate
+            config = ConfigDict(**_OPEN, json_schema_extra={"not": {"required": ["precompensated_gamma"]}})
+        models.append(create_model(f"Patterns_{codec.replace('-', '_')}", __config__=config, **fields))
     return tuple(models)
 
 

@@ -199,6 +199,9 @@ def test_imported_scans_validate(tmp_path, capsys):
     capsys.readouterr()
     d = _scan_json(scan)
     assert d["patterns"]["codec"] == "decoded" and _errors(SCAN, d) == []
+    d["patterns"]["precompensated_gamma"] = 2.2  # nothing is projected: refused
+    assert _errors(SCAN, d)
+    del d["patterns"]["precompensated_gamma"]
     rig = d["rig"] if isinstance(d["rig"], dict) else json.loads((scan / d["rig"]).read_text())
     assert _errors(RIG, rig) == []
     assert _errors(RIG, json.loads((out / "rig.json").read_text())) == []
