@@ -40,7 +40,8 @@ __all__ = ["rig_json_schema", "scan_json_schema", "DRAFT"]
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
 
-_OPEN = ConfigDict(extra="allow", regex_engine="python-re")  # the loaders accept (and ignore or keep) unknown keys
+# the loaders accept (and ignore or keep) unknown keys; Python's re for the path patterns' look-aheads
+_OPEN = ConfigDict(extra="allow", regex_engine="python-re")
 
 # ----------------------------------------------------------------------------- rig
 
@@ -141,7 +142,7 @@ class Turntable(BaseModel):
 class Rig(BaseModel):
     """A ringscan rig file (docs/formats.md, docs/design.md §11)."""
 
-    model_config = ConfigDict(extra="allow", regex_engine="python-re", title="ringscan rig",
+    model_config = ConfigDict(**_OPEN, title="ringscan rig",
                               json_schema_extra={"if": {"properties": {"light": {"properties": {
                                   "model": {"const": "uncalibrated"}}}}, "required": ["light"]},
                                   "then": {"required": ["camera2"],
@@ -181,13 +182,13 @@ def _frames_or_packed(title: str):
 class CameraFrames(BaseModel):
     """Camera 2's frames of a view (two-camera rigs): its own files or store, the same frame names."""
 
-    model_config = ConfigDict(extra="allow", regex_engine="python-re", json_schema_extra=_frames_or_packed("CameraFrames"))
+    model_config = ConfigDict(**_OPEN, json_schema_extra=_frames_or_packed("CameraFrames"))
     frames: dict[str, RelPath] = Field(None, description="frame name -> image file")
     packed: Packed = Field(None, description="camera 2's frames as one frame store (format scan/2)")
 
 
 class View(BaseModel):
-    model_config = ConfigDict(extra="allow", regex_engine="python-re", json_schema_extra=_frames_or_packed("View"))
+    model_config = ConfigDict(**_OPEN, json_schema_extra=_frames_or_packed("View"))
     name: ViewName = Field(None, description="default view_<index> (3 digits)")
     turntable_deg: float = Field(0.0, description="turntable angle of this view (degrees)")
     frames: dict[str, RelPath] = Field(None, description="frame name -> image file (PNG or TIFF)")
@@ -247,10 +248,11 @@ class Truth(BaseModel):
 class Scan(BaseModel):
     """A ringscan scan.json (docs/formats.md, docs/design.md §11)."""
 
-    model_config = ConfigDict(extra="allow", regex_engine="python-re", title="ringscan scan.json", json_schema_extra={
+    model_config = ConfigDict(**_OPEN, title="ringscan scan.json", json_schema_extra={
         # packed views need format scan/2 (views' own or camera 2's)
         "if": {"properties": {"views": {"contains": {"anyOf": [
-            {"required": ["packed"]}, {"properties": {"camera2": {"required": ["packed"]}}, "required": ["camera2"]}]}}},
+            {"required": ["packed"]},
+            {"properties": {"camera2": {"required": ["packed"]}}, "required": ["camera2"]}]}}},
             "required": ["views"]},
         "then": {"properties": {"format": {"const": SCAN_FORMAT_PACKED}}}})
     format: Literal[SCAN_FORMAT, SCAN_FORMAT_PACKED]  # type: ignore[valid-type]
