@@ -1,4 +1,4 @@
-"""``ringscan schema settings|capture-settings``: the JSON Schema of a settings file."""
+"""``ringscan schema settings|capture-settings|rig|scan``: the JSON Schema of a settings, rig or scan file."""
 
 from __future__ import annotations
 
@@ -14,14 +14,16 @@ SCHEMAS = {
                  "reconstruction settings: reconstruct/batch --settings, a run's settings.json"),
     "capture-settings": ("ringscan.hardware.capture.sequence", "CaptureSettings",
                          "capture settings: capture --capture-settings"),
+    "rig": ("ringscan.pipeline.formats.schemas", "rig_json_schema", "a rig file: --rig, calibrate's output"),
+    "scan": ("ringscan.pipeline.formats.schemas", "scan_json_schema", "a scan folder's scan.json"),
 }
 
 
 def add_parser(sub):
-    p = sub.add_parser("schema", help="print the JSON Schema of a settings file",
-                       description="Prints the JSON Schema (draft 2020-12, from pydantic) of a settings file, "
-                                   "every field with its type, default and description, for editors and other "
-                                   "tools. " + "; ".join(f"{k}: {v[2]}" for k, v in SCHEMAS.items()) + ".")
+    p = sub.add_parser("schema", help="print the JSON Schema of a settings, rig or scan file",
+                       description="Prints the JSON Schema (draft 2020-12, from pydantic) of a settings, rig or "
+                                   "scan file, every field with its type, default and description, for editors "
+                                   "and other tools. " + "; ".join(f"{k}: {v[2]}" for k, v in SCHEMAS.items()) + ".")
     p.add_argument("what", choices=list(SCHEMAS), help="which file")
     p.add_argument("--out", default=None, metavar="JSON", help="write it to this file (default: print it)")
     return p
@@ -29,8 +31,11 @@ def add_parser(sub):
 
 def run(args) -> int:
     module, name, _ = SCHEMAS[args.what]
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
-              **settings_json_schema(getattr(importlib.import_module(module), name))}
+    obj = getattr(importlib.import_module(module), name)
+    if isinstance(obj, type):  # a settings dataclass
+        schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", **settings_json_schema(obj)}
+    else:  # a file's schema function (formats.schemas)
+        schema = obj()
     if args.out:
         atomic_write_json(check_output_file(args.out, extensions=(".json",), what="schema file (--out)"), schema)
         print(f"wrote {args.out}")

@@ -20,7 +20,7 @@ import time
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
 from ringscan.pipeline.batch.local import run_inline, run_local
-from ringscan.pipeline.batch.ray_backend import init_ray, run_ray
+from ringscan.pipeline.batch.ray_backend import init_ray, run_ray, shutdown_ray
 from ringscan.pipeline.batch.report import BATCH_REPORT_FORMAT, TIME_FIELDS, format_table, summarise
 from ringscan.pipeline.batch.worker import ScanJob
 from ringscan.pipeline.formats.atomic import (
@@ -179,9 +179,7 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
             return run()
     finally:
         if ray_started:
-            import ray
-
-            ray.shutdown()
+            shutdown_ray()
 
 
 def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend, address, fuse, mesh, cpu_threads,

@@ -16,7 +16,10 @@ workers but the job's paths or URLs (and its storage options).
 from __future__ import annotations
 
 import logging
+import os
 import socket
+import subprocess
+import sys
 from collections.abc import Iterable, Iterator
 
 from ringscan.pipeline.batch.worker import ScanJob, failed_entry, init_worker, process_scan
@@ -24,7 +27,7 @@ from ringscan.pipeline.formats.errors import RingscanError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_ray", "task_options", "init_ray", "check_address", "MAX_RETRIES", "CONNECT_TIMEOUT_S"]
+__all__ = ["run_ray", "task_options", "init_ray", "shutdown_ray", "check_address", "MAX_RETRIES", "CONNECT_TIMEOUT_S"]
 
 MAX_RETRIES = 3
 """Retries of a task whose worker process died."""
@@ -68,18 +71,64 @@ def check_address(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None
 
 def init_ray(address: str | None = None) -> bool:
     """Join the cluster at ``address`` (None: ``RAY_ADDRESS``, else a new local one) unless this
-    process already has; returns whether it joined (and so should leave: ``ray.shutdown()``).
+    process already has; returns whether it joined (and so should leave: :func:`shutdown_ray`).
+
+    A local cluster it starts ends with this process, however this process ends (SIGKILL
+    included): a watchdog (:mod:`.ray_watchdog`) ends the cluster's processes within seconds.
 
     Raises:
         RingscanError: Ray is not installed; nothing answers at the address (:func:`check_address`).
     """
+    global _watchdog
     ray = _ray()
     if ray.is_initialized():
         return False
     if address:
         check_address(address)
-    ray.init(address=address, log_to_driver=False, configure_logging=False)
+    _watchdog = _start_watchdog(ray)  # before ray.init: a kill while the cluster starts is covered too
+    try:
+        ray.init(address=address, log_to_driver=False, configure_logging=False)
+    except BaseException:
+        _stop_watchdog()
+        raise
     return True
+
+
+def shutdown_ray() -> None:
+    """Leave the cluster :func:`init_ray` joined (a local one it started stops) and let the watchdog go."""
+    try:
+        _ray().shutdown()
+    finally:
+        _stop_watchdog()
+
+
+_watchdog: subprocess.Popen | None = None
+
+
+def _start_watchdog(ray) -> subprocess.Popen | None:
+    """Start :mod:`.ray_watchdog` on this process (Linux: it reads /proc); None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "ray_watchdog.py")
+    ray_dir = os.path.dirname(os.path.abspath(ray.__file__))
+    # stdin: a pipe only this process writes to (its end is close-on-exec, so Ray's processes do not hold it);
+    # a session of its own: a Ctrl-C or hang-up on this terminal leaves it to clean up after us
+    return subprocess.Popen([sys.executable, "-I", "-S", script, str(os.getpid()), ray_dir],
+                            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+def _stop_watchdog() -> None:
+    """Close the watchdog's pipe: it ends what is left of a local cluster and exits (waited for a
+    few seconds: after ``ray.shutdown()`` there is nothing left, and it exits at once)."""
+    global _watchdog
+    if _watchdog is not None:
+        dog, _watchdog = _watchdog, None
+        dog.stdin.close()
+        try:
+            dog.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            log.debug("the Ray watchdog (%d) is still ending the local cluster's processes", dog.pid)
 
 
 def task_options(resources: dict) -> dict:
@@ -149,4 +198,4 @@ def run_ray(jobs: Iterable[ScanJob], *, address: str | None = None, device: str 
                                        f"whose worker dies up to {max_retries} more tries"}
     finally:
         if started:
-            ray.shutdown()
+            shutdown_ray()

@@ -142,3 +142,99 @@ def test_ray_tasks_read_packed_scans_to_the_same_bytes(three_scans, tmp_path, mo
         return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
 
     assert plys(tmp_path / "ray") == plys(local) and len(plys(local)) == 4
+
+
+def _descendants(pid):
+    """Every process below ``pid`` (children, theirs, ...)."""
+    from pathlib import Path
+
+    found, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            found += kids
+            todo += kids
+    return found
+
+
+def _alive(pid):
+    from pathlib import Path
+
+    try:
+        return "State:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+
+
+def _holds_session_file(pid, session_re):
+    import os
+
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return False
+    for fd in fds:
+        try:
+            if session_re.search(os.readlink(f"/proc/{pid}/fd/{fd}")):
+                return True
+        except OSError:
+            pass
+    return False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="reads /proc (Linux)")
+def test_a_killed_batch_leaves_no_ray_process_behind(three_scans, tmp_path):
+    """`batch --backend ray` starts a local cluster; SIGKILL the batch while its tasks run: within 10 s no
+    process of that Ray session is left (Ray alone leaves its two agents for a minute or more)."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RINGSCAN_BATCH_FAULT")}
+    proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "batch", str(three_scans), "--out",
+                             str(tmp_path / "out"), "--backend", "ray", "--no-progress", "--device", "cpu"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    try:
+        def names(pids):
+            out = {}
+            for p in pids:
+                try:
+                    out[p] = open(f"/proc/{p}/cmdline", "rb").read().split(b"\0")[0].decode(errors="replace")
+                except OSError:
+                    pass
+            return out
+
+        # kill once the raylet has started its agents and a worker (the tasks are starting: the batch is running)
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and time.monotonic() < deadline:
+            seen = names(_descendants(proc.pid))
+            tags = set(seen.values())
+            if {"ray::DashboardAgent", "ray::RuntimeEnvAgent"} <= tags and tags & {"ray::IDLE", "ray::_task"}:
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the batch ended before it could be killed"
+        assert time.monotonic() < deadline, f"no Ray worker started: {sorted(tags)}"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        session = re.compile(rf"/session_[^/]*_{proc.pid}(/|$)")  # the session Ray named after the batch
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            left = {p: n for p, n in seen.items() if _alive(p)}
+            left |= {int(p): "?" for p in os.listdir("/proc")
+                     if p.isdigit() and int(p) != os.getpid() and _holds_session_file(int(p), session)}
+            if not left:
+                break
+            time.sleep(0.2)
+        assert not left, f"still running 10 s after the batch was killed: {left}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

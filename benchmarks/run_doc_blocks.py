@@ -1,0 +1,323 @@
+"""Run the command blocks of README.md and docs/calibration.md as written, so they cannot rot.
+
+    python benchmarks/run_doc_blocks.py                # every block that can run here (several minutes)
+    python benchmarks/run_doc_blocks.py --pip          # also README's install block (a fresh venv: needs PyPI)
+    python benchmarks/run_doc_blocks.py --only suite   # only those the test suite runs too
+    python benchmarks/run_doc_blocks.py --keep DIR     # keep the scratch folders in DIR
+    python benchmarks/run_doc_blocks.py --match TEXT   # only the blocks holding TEXT
+
+Every fenced ``sh``/``python`` block of the two files is listed in :data:`BLOCKS` with
+where it runs:
+
+- ``suite``: cheap enough for the test suite (``tests/tools/test_doc_blocks.py`` and
+  ``tests/tools/test_docs_commands.py`` run it as written; the test named in the entry);
+- ``script``: runs here, as written, but too slow for the suite (tens of seconds to minutes
+  on a 2-core machine) or it needs the package index; this script runs it;
+- ``no``: cannot run without hardware or your own photos (the reason says which); the
+  block next to it that does the same on the virtual rig is run instead.
+
+A block that is in neither file's list, or a list entry whose block is gone or changed,
+fails ``tests/tools/test_doc_blocks.py``: a new block must be classified.
+
+A shell block runs in ``bash -e -o pipefail`` with this Python's ``bin`` folder first on
+``PATH`` (so ``ringscan``, ``python`` and ``pip`` are this environment's), in a scratch
+folder ``work/`` whose sibling ``shared`` is the repository's ``../shared`` (the docs name
+``../shared/data/...``); ``--device`` is not added (CUDA when present, as a user gets).
+A python block runs with this Python in the same folder. Inputs a block expects from
+an earlier step are made by the entry's ``setup`` (named in the entry), never faked:
+e.g. README's Python snippet runs on a tiny simulated scan in the demo's layout.
+Output: one line per block: ran (seconds) / FAILED (the last lines of its output) /
+not run (why).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ("README.md", "docs/calibration.md")
+LANGS = ("sh", "bash", "python")
+"""Fence languages of command blocks (an untagged block is output or a file, not commands)."""
+
+
+@dataclass(frozen=True)
+class Block:
+    doc: str
+    """The file (relative to the repository)."""
+    match: str
+    """Text found in this block alone (its identity; a changed block must still contain it)."""
+    where: str
+    """``suite``, ``script`` or ``no`` (module docstring)."""
+    reason: str = ""
+    """Why not in the suite (``script``) or not at all (``no``); for ``suite``: the test that runs it."""
+    setup: str = ""
+    """Name of the function below that makes the block's inputs in the scratch folder."""
+    drop_lines: dict = field(default_factory=dict)
+    """Lines left out when run (a substring of the line -> why): lines that need hardware."""
+    cwd: str = "work"
+    """``work`` (the scratch folder), ``copy`` (a copy of the source tree: the install block) or ``repo``
+    (the repository itself: the make block)."""
+
+
+BLOCKS = [
+    # README.md
+    Block("README.md", "make demo    #", "script",
+          "`make demo` is the main job at full size (~90 s; it writes out/demo/) and `make test` is the test "
+          "suite itself (CI's own command, .ci/run): neither can run inside the suite. This script runs the "
+          "block in the repository, as README says, `make test` only with --make-test", cwd="repo"),
+    Block("README.md", "pip install .                 #", "script",
+          "installs ringscan and its dependencies from the package index into a fresh virtual environment "
+          "(network, minutes); run with --pip", cwd="copy"),
+    Block("README.md", "report = reconstruct_scan(\"out/demo/scan\"", "suite",
+          "tests/tools/test_doc_blocks.py::test_readme_python_block_runs_as_written", setup="demo_scan"),
+    # docs/calibration.md
+    Block("docs/calibration.md", "ringscan calibrate camera shots/*.png --board 9x7", "script",
+          "~25 s (board detection in three 1280x1024 photos, twice); `shots/` are your photos: here the white "
+          "frames of the shared procam captures, the same board", setup="shots_and_rig"),
+    Block("docs/calibration.md", "ringscan calibrate procam ../shared/data/procam/capture_{1,2,3}", "script",
+          "~30 s (the real captures' board corners and Gray code); the same fit with the same inputs is checked "
+          "in tests/tools/test_cmd_calibrate.py (test_procam_a_repeated_capture_is_left_out) and "
+          "tests/pipeline/calibrate/test_procam_real.py", setup="shared"),
+    Block("docs/calibration.md", "ringscan import ../shared/data/procam/capture_{1,2,3}", "script",
+          "~50 s (decoding three real captures of 42 frames, reconstructing 2.7 million points)",
+          setup="shared_procam_rig"),
+    Block("docs/calibration.md", "ringscan calibrate response ramp/*.png", "suite",
+          "tests/tools/test_docs_commands.py::test_calibration_md_grey_ramp_runs_as_written (after the python "
+          "block that makes ramp/)", setup="ramp"),
+    Block("docs/calibration.md", "vr = VirtualRig(rig, \"plane\")", "suite",
+          "tests/tools/test_docs_commands.py::test_calibration_md_grey_ramp_runs_as_written"),
+    Block("docs/calibration.md", "ringscan patterns --codec phase-rings --rig rig.json --out pat", "suite",
+          "tests/tools/test_doc_blocks.py::test_calibration_precompensated_patterns_block_runs_as_written",
+          setup="default_rig",
+          drop_lines={"ringscan capture ": "needs a camera, a projector and a turntable (the `...` are their "
+                                           "ports: docs/hardware.md)"}),
+    Block("docs/calibration.md", "ringscan calibrate pose board_on_plane.png", "no",
+          "needs your rig: photos of a board (shots/, board_on_plane.png) and captures of the bare plane and a "
+          "plate (cal/z0, cal/z40); the next block does the same on the virtual rig and runs in the suite"),
+    Block("docs/calibration.md", "ringscan simulate --scene plate:40 --out cal/z40", "suite",
+          "tests/tools/test_docs_commands.py::test_calibration_md_plane_scans_run_as_written"),
+    Block("docs/calibration.md", "ringscan calibrate turntable scans/board", "no",
+          "needs your rig: a scan folder or photos of a board on the table (scans/board, tt/*.png); the next "
+          "block does the same on the virtual rig"),
+    Block("docs/calibration.md", "ringscan simulate --scene chessboard --views 8", "script",
+          "~60 s (eight 1280x1024 views rendered, then the axis fit)"),
+]
+
+
+# ----------------------------------------------------------------------------- blocks of a file
+
+
+def command_blocks(path: Path) -> list[tuple[int, str, str]]:
+    """The fenced command blocks of a Markdown file: (first line number, language, text)."""
+    out, lang, start, lines = [], None, 0, []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        s = line.strip()
+        if s.startswith("```"):
+            if lang is None:
+                lang, start, lines = s[3:].strip() or "-", n + 1, []
+            else:
+                if lang in LANGS:
+                    out.append((start, lang, "\n".join(lines) + "\n"))
+                lang = None
+        elif lang is not None:
+            lines.append(line)
+    return out
+
+
+def untagged_commands(path: Path) -> list[int]:
+    """Line numbers of ``ringscan``/``make``/``pip`` command lines inside untagged or other blocks
+    (a command block without ``sh``: it would escape the list)."""
+    bad, lang = [], None
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        s = line.strip()
+        if s.startswith("```"):
+            lang = (s[3:].strip() or "-") if lang is None else None
+        elif lang is not None and lang not in LANGS and re.match(r"(\$ )?(ringscan|make|pip) ", s):
+            bad.append(n)
+    return bad
+
+
+def classify() -> list[tuple[Block, int, str, str]]:
+    """Every command block of :data:`DOCS` with its entry: (entry, line, language, text).
+
+    Raises:
+        ValueError: a block with no entry or several, an entry that matches no block.
+    """
+    out, used = [], set()
+    for doc in DOCS:
+        for line, lang, text in command_blocks(ROOT / doc):
+            hits = [b for b in BLOCKS if b.doc == doc and b.match in text]
+            if len(hits) != 1:
+                raise ValueError(f"{doc}:{line}: a {lang} block with {len(hits)} entries in "
+                                 f"benchmarks/run_doc_blocks.py BLOCKS (want 1): {text.strip()[:80]!r}")
+            out.append((hits[0], line, lang, text))
+            used.add(id(hits[0]))
+        bad = untagged_commands(ROOT / doc)
+        if bad:
+            raise ValueError(f"{doc}:{bad[0]}: a command line in a block without the sh language tag")
+    gone = [b for b in BLOCKS if id(b) not in used]
+    if gone:
+        raise ValueError(f"{gone[0].doc}: no block contains {gone[0].match!r} any more")
+    return out
+
+
+# ----------------------------------------------------------------------------- inputs (setup)
+
+
+def _shared(work: Path) -> None:
+    """``work/../shared`` -> the repository's ``../shared`` (the docs name ``../shared/data/...``)."""
+    link = work.parent / "shared"
+    if not link.exists():
+        link.symlink_to((ROOT.parent / "shared").resolve(), target_is_directory=True)
+
+
+def setup_shared(work: Path) -> None:
+    _shared(work)
+
+
+def setup_shared_procam_rig(work: Path) -> None:
+    """The shared captures and the rig that the block before (§3) writes."""
+    _shared(work)
+    run_bash("ringscan calibrate procam ../shared/data/procam/capture_{1,2,3} --board 9x7 --square 75 "
+             "--projector 1024x768 --layout opencv-graycode --out rig.json", work, check=True)
+
+
+def setup_shots_and_rig(work: Path) -> None:
+    """``shots/``: the shared captures' white frames (photos of the 9x7 board); ``rig.json`` for the
+    second line (a rig whose camera it updates: the default rig's, 1280x1024 as these photos)."""
+    _shared(work)
+    (work / "shots").mkdir(exist_ok=True)
+    for i in (1, 2, 3):
+        shutil.copyfile(work.parent / "shared" / "data" / "procam" / f"capture_{i}" / "graycode_40.png",
+                        work / "shots" / f"capture_{i}.png")
+    setup_default_rig(work)
+
+
+def setup_ramp(work: Path) -> None:
+    """``ramp/*.png`` and ``rig.json``: the section's own Python block (the virtual rig's grey ramp), as written."""
+    (text,) = [t for b, _, _, t in classify() if b.match == 'vr = VirtualRig(rig, "plane")']
+    subprocess.run([sys.executable, "-c", text], cwd=work, env=_env(), check=True, capture_output=True)
+
+
+def setup_default_rig(work: Path) -> None:
+    from ringscan.pipeline.formats.rig import default_rig, save_rig
+
+    save_rig(work / "rig.json", default_rig())
+
+
+def setup_demo_scan(work: Path) -> None:
+    """``out/demo/scan`` as `ringscan demo` lays it out (a scan folder with ``view_000``), at the size of
+    the tests' tiny scan (160x128 camera, one view): the snippet's own steps run on it unchanged."""
+    sys.path.insert(0, str(ROOT))
+    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+
+    simulate_tiny_scan(work / "out" / "demo" / "scan")
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    return env
+
+
+def run_bash(text: str, cwd: Path, *, env: dict | None = None, check: bool = False, timeout: float = 3600):
+    return subprocess.run(["bash", "-e", "-o", "pipefail", "-c", text], cwd=cwd, env=env or _env(),
+                          capture_output=True, text=True, check=check, timeout=timeout)
+
+
+def runnable_text(block: Block, text: str) -> str:
+    """The block without its dropped lines (and their continuations)."""
+    joined = re.sub(r"\\\n", "", text).splitlines()
+    return "\n".join(ln for ln in joined if not any(k in ln for k in block.drop_lines)) + "\n"
+
+
+def run_block(block: Block, lang: str, text: str, work: Path, *, env: dict | None = None,
+              timeout: float = 3600) -> subprocess.CompletedProcess:
+    """Run one block as written in ``work`` (made first by its setup)."""
+    work.mkdir(parents=True, exist_ok=True)
+    if block.setup:
+        globals()[f"setup_{block.setup}"](work)
+    text = runnable_text(block, text)
+    if lang == "python":
+        return subprocess.run([sys.executable, "-c", text], cwd=work, env=env or _env(), capture_output=True,
+                              text=True, timeout=timeout)
+    return run_bash(text, work, env=env, timeout=timeout)
+
+
+def _source_copy(dest: Path) -> Path:
+    """The tracked files of the repository (what a user gets in a release archive)."""
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    for rel in filter(None, files.decode().split("\0")):
+        src = ROOT / rel
+        if src.is_file():
+            (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / rel)
+    return dest
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", choices=("suite", "script", "all"), default="all", help="which blocks to run")
+    ap.add_argument("--pip", action="store_true", help="also run README's install block (a fresh venv; PyPI)")
+    ap.add_argument("--make-test", action="store_true", help="let README's make block run `make test` too")
+    ap.add_argument("--keep", metavar="DIR", help="make the scratch folders in DIR and keep them")
+    ap.add_argument("--match", metavar="TEXT", help="only the blocks whose text holds TEXT")
+    args = ap.parse_args(argv)
+    base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="doc_blocks_"))
+    failed = 0
+    try:
+        for i, (block, line, lang, text) in enumerate(classify()):
+            name = f"{block.doc}:{line}"
+            if args.match and args.match not in text:
+                continue
+            if block.where == "no" or (args.only != "all" and block.where != args.only):
+                print(f"{name}: not run ({block.where}: {block.reason})")
+                continue
+            env = None
+            work = base / f"block_{i:02d}" / "work"
+            if block.cwd == "copy":  # the install block: a fresh venv, a copy of the tree (pip wheel writes dist/)
+                if not args.pip:
+                    print(f"{name}: not run (needs --pip: {block.reason})")
+                    continue
+                work = _source_copy(base / f"block_{i:02d}" / "src")
+                venv = base / f"block_{i:02d}" / "venv"
+                subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+                env = dict(os.environ, PATH=f"{venv / 'bin'}{os.pathsep}{os.environ.get('PATH', '')}",
+                           VIRTUAL_ENV=str(venv))
+            elif block.cwd == "repo":
+                work = ROOT
+                if not args.make_test:
+                    print(f"{name}: `make test` left out (the suite itself; --make-test runs it)")
+                    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith("make test")) + "\n"
+            for key, why in block.drop_lines.items():
+                print(f"{name}: a line with {key.strip()!r} left out: {why}")
+            t = time.perf_counter()
+            r = run_block(block, lang, text, work, env=env)
+            dt = time.perf_counter() - t
+            if r.returncode == 0:
+                print(f"{name}: ran in {dt:.1f} s ({block.where})")
+            else:
+                failed += 1
+                tail = "\n    ".join((r.stdout + r.stderr).strip().splitlines()[-8:])
+                print(f"{name}: FAILED (exit {r.returncode}, {dt:.1f} s)\n    {tail}")
+    finally:
+        if not args.keep:
+            shutil.rmtree(base, ignore_errors=True)
+    print(f"{failed} block(s) failed" if failed else "every block that can run here ran")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""Every command block of README.md and docs/calibration.md is accounted for: run here as written (the
+cheap ones), run by ``benchmarks/run_doc_blocks.py`` (the slow ones and the install), or named as
+needing hardware or your photos, with the reason (the list and its reasons: that script's BLOCKS)."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("run_doc_blocks", ROOT / "benchmarks" / "run_doc_blocks.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("run_doc_blocks", mod)  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+DB = _script()
+CLASSIFIED = DB.classify()
+
+
+def _block(match):
+    (hit,) = [c for c in CLASSIFIED if c[0].match == match]
+    return hit
+
+
+def test_every_command_block_is_listed_with_where_it_runs():
+    docs = {b.doc for b, *_ in CLASSIFIED}
+    assert docs == set(DB.DOCS) and len(CLASSIFIED) >= 13
+    for b, line, lang, text in CLASSIFIED:
+        assert b.where in ("suite", "script", "no") and b.reason, f"{b.doc}:{line}"
+        if b.where == "suite":  # the test that runs it exists
+            path, name = b.reason.split(" ")[0].split("::")
+            assert re.search(rf"^def {name}\(", (ROOT / path).read_text(), re.M), b.reason
+        for key in b.drop_lines:
+            assert key in text, (b.doc, line, key)
+
+
+def test_a_new_block_must_be_listed(tmp_path, monkeypatch):
+    """A block added to a doc without an entry (or an entry whose block is gone) fails the list."""
+    readme = (ROOT / "README.md").read_text()
+    fake = tmp_path / "README.md"
+    fake.write_text(readme + "\n```sh\nringscan view out/demo/mesh/mesh.ply\n```\n")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "calibration.md").write_text((ROOT / "docs" / "calibration.md").read_text())
+    monkeypatch.setattr(DB, "ROOT", tmp_path)
+    with pytest.raises(ValueError, match=r"README.md:\d+: a sh block with 0 entries"):
+        DB.classify()
+    fake.write_text(readme + "\n```\nringscan view out/demo/mesh/mesh.ply\n```\n")  # a command without the tag
+    with pytest.raises(ValueError, match="without the sh language tag"):
+        DB.classify()
+    start = readme.index("```sh\nmake demo")
+    fake.write_text(readme[:start] + readme[readme.index("```", start + 5) + 3:])  # the block removed
+    with pytest.raises(ValueError, match="no block contains 'make demo    #'"):
+        DB.classify()
+
+
+def test_readme_python_block_runs_as_written(tmp_path):
+    """README's Python snippet, unchanged, on a scan in the demo's layout (out/demo/scan, view_000)."""
+    block, line, lang, text = _block('report = reconstruct_scan("out/demo/scan"')
+    r = DB.run_block(block, lang, text, tmp_path / "work", timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    totals, count = r.stdout.strip().splitlines()[-2:]
+    n = int(count.split()[0])
+    assert count == f"{n} points in view_000" and n > 100 and f"'points': {n}" in totals
+    assert (tmp_path / "work" / "out" / "python_recon" / "view_000.ply").is_file()
+
+
+def test_calibration_precompensated_patterns_block_runs_as_written(tmp_path):
+    """docs/calibration.md §5 (pre-compensated patterns): the patterns line as written; the capture line
+    needs a rig (left out, named in the list)."""
+    block, line, lang, text = _block("ringscan patterns --codec phase-rings --rig rig.json --out pat")
+    assert "ringscan capture " not in DB.runnable_text(block, text)
+    r = DB.run_block(block, lang, text, tmp_path / "work", timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    import json
+
+    spec = json.loads((tmp_path / "work" / "pat" / "patterns.json").read_text())
+    assert spec["codec"] == "phase-rings" and (spec["width"], spec["height"]) == (1024, 768)  # the rig's projector
