@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.calibrate.graycode import LAYOUTS
+from ringscan.pipeline.calibrate.graycode import LAYOUTS, GrayCodeSettings
 from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, read_opencv_calibration
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import load_rig
+from ringscan.tools.cli import UsageError
 from ringscan.tools.cmd_calibrate import parse_size
 
 
@@ -33,6 +34,9 @@ def add_parser(sub):
                    help="working depths along the projector axis for an OpenCV file (default: from the captures)")
     p.add_argument("--sector-bits", type=int, default=ImportSettings.sector_bits,
                    help=f"polar-angle sector bits for the root choice (default {ImportSettings.sector_bits})")
+    p.add_argument("--min-contrast", type=float, default=GrayCodeSettings.min_contrast, metavar="LEVELS",
+                   help="least white - black of a decoded pixel, 8-bit grey levels "
+                        f"(default {GrayCodeSettings.min_contrast:g}; docs/calibration.md)")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
     p.add_argument("--out", required=True, metavar="SCAN", help="the scan folder to write")
     return p
@@ -46,7 +50,10 @@ def run(args) -> int:
         kw["opencv"] = read_opencv_calibration(rig_path)
     else:
         kw["rig"] = load_rig(rig_path)
-    settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer)
+    if not (args.min_contrast >= 0 and args.min_contrast < 255):
+        raise UsageError(f"--min-contrast {args.min_contrast:g}: expected grey levels from 0 to below 255")
+    settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer,
+                              graycode=GrayCodeSettings(min_contrast=args.min_contrast))
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
         scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
                                       depth=tuple(args.depth) if args.depth else None, settings=settings, **kw)

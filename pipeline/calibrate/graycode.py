@@ -58,7 +58,12 @@ class GrayCodeSettings:
     """Decoding settings."""
 
     min_contrast: float = 20.0
-    """Least white - black (8-bit levels) of a decoded pixel."""
+    """Least white - black (8-bit levels) of a decoded pixel. On the virtual rig
+    (noise 1.5) every bit still reads right at 10 levels, and the dim parts of an
+    object (grazing light) decode there; on the real procam captures the pixels
+    between 10 and 20 levels (the board's black squares) read wrong codes in bulk
+    (plain decode's board RMS 1.29 -> 13.97, docs/calibration.md), so 20 stays the
+    default and ``ringscan import --min-contrast`` lowers it for a clean rig."""
     min_bit_contrast: float = 0.0
     """Least |pattern - inverse| (8-bit levels) of every bit of a decoded pixel. 0 by
     default: on a projector pixel boundary the bit that flips there has no contrast

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import decode_graycode, graycode_bits, read_capture, subpixel_map
+from ringscan.pipeline.calibrate.graycode import (GrayCodeSettings, decode_graycode, graycode_bits, read_capture,
+                                                 subpixel_map)
 from tests.pipeline.calibrate.synthetic import write_capture
 
 PROJ = (128, 96)
@@ -63,3 +66,30 @@ def test_wrong_layout_is_a_clear_error(capture, tmp_path):
         read_capture(folder, projector=(1024, 768))
     with pytest.raises(CalibrationError, match="capture folder not found"):
         read_capture(tmp_path / "nothing", projector=PROJ)
+
+
+@pytest.mark.parametrize("contrast, decoded", [(16.0, True), (3.0, False)])
+def test_dim_but_clean_pixels_decode_right_with_a_lower_threshold(tmp_path, contrast, decoded):
+    """A dim capture (white - black 16 grey levels, camera noise 1.5), decoded with
+    ``min_contrast`` 10 (``ringscan import --min-contrast 10``), reads every bit
+    right: a bit away from its edge differs from its inverse by the full contrast,
+    7.5 noise sigmas of the difference. The default (20) keeps a few per cent of it; well
+    below the threshold (3 levels) almost nothing decodes: codes are not read from noise."""
+    u, v = write_capture(tmp_path / "clean", projector=PROJ, noise=0.0, levels=(20.0, 220.0))
+    cap = read_capture(tmp_path / "clean", projector=PROJ)
+    rng = np.random.default_rng(7)
+
+    def dim(f):  # the same lit fractions at the dim contrast, with fresh camera noise, rounded
+        return np.clip(np.round(20.0 + contrast * (f - 20.0) / 200.0 + rng.normal(0, 1.5, f.shape)), 0, 255)
+
+    cap = dataclasses.replace(cap, white=dim(cap.white), black=dim(cap.black), col_pairs=dim(cap.col_pairs),
+                              row_pairs=dim(cap.row_pairs))
+    dec = decode_graycode(cap, settings=GrayCodeSettings(min_contrast=10.0))
+    if not decoded:
+        assert dec.valid.mean() < 0.002
+        return
+    assert decode_graycode(cap).valid.mean() < 0.1
+    assert dec.valid.mean() > 0.99
+    inner = (np.abs(u - np.round(u)) < 0.3) & (np.abs(v - np.round(v)) < 0.3) & dec.valid
+    assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
+    assert np.mean(dec.row[inner] == np.round(v[inner])) > 0.999
