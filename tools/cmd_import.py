@@ -35,8 +35,9 @@ def add_parser(sub):
     p.add_argument("--sector-bits", type=int, default=ImportSettings.sector_bits,
                    help=f"polar-angle sector bits for the root choice (default {ImportSettings.sector_bits})")
     p.add_argument("--min-contrast", type=float, default=GrayCodeSettings.min_contrast, metavar="LEVELS",
-                   help="least white - black of a decoded pixel, 8-bit grey levels "
-                        f"(default {GrayCodeSettings.min_contrast:g}; docs/calibration.md)")
+                   help="least white - black of a pixel decoded on contrast alone, 8-bit grey levels (default "
+                        f"{GrayCodeSettings.min_contrast:g}; dimmer pixels down to {GrayCodeSettings.dim_contrast:g} "
+                        "only where the patterns visibly modulate them; docs/calibration.md)")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
     p.add_argument("--out", required=True, metavar="SCAN", help="the scan folder to write")
     return p

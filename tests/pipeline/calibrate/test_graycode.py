@@ -68,27 +68,32 @@ def test_wrong_layout_is_a_clear_error(capture, tmp_path):
         read_capture(tmp_path / "nothing", projector=PROJ)
 
 
-@pytest.mark.parametrize("contrast, decoded", [(16.0, True), (3.0, False)])
-def test_dim_but_clean_pixels_decode_right_with_a_lower_threshold(tmp_path, contrast, decoded):
-    """A dim capture (white - black 16 grey levels, camera noise 1.5), decoded with
-    ``min_contrast`` 10 (``ringscan import --min-contrast 10``), reads every bit
-    right: a bit away from its edge differs from its inverse by the full contrast,
-    7.5 noise sigmas of the difference. The default (20) keeps a few per cent of it; well
-    below the threshold (3 levels) almost nothing decodes: codes are not read from noise."""
+@pytest.mark.parametrize("case", ["dim", "stray", "dark"])
+def test_dim_pixels_decode_where_the_patterns_reach_them(tmp_path, case):
+    """A dim capture (white - black 16 grey levels, below ``min_contrast`` 20; camera
+    noise 1.5) whose patterns modulate every pixel reads its codes right: a bit away
+    from its edge differs from its inverse by the whole contrast, 7.5 noise sigmas.
+    The same white - black from stray light, with patterns that hardly change the
+    pixel (a real board's black squares beside white ones), gains nothing over
+    contrast alone; nor does a pixel at 3 levels."""
     u, v = write_capture(tmp_path / "clean", projector=PROJ, noise=0.0, levels=(20.0, 220.0))
     cap = read_capture(tmp_path / "clean", projector=PROJ)
     rng = np.random.default_rng(7)
+    contrast = 3.0 if case == "dark" else 16.0
+    depth = 0.15 if case == "stray" else 1.0   # how much of the contrast the patterns carry
 
-    def dim(f):  # the same lit fractions at the dim contrast, with fresh camera noise, rounded
-        return np.clip(np.round(20.0 + contrast * (f - 20.0) / 200.0 + rng.normal(0, 1.5, f.shape)), 0, 255)
+    def dim(f, depth=1.0):  # the same lit fractions at the dim contrast, with fresh camera noise, rounded
+        lit = 0.5 + depth * ((f - 20.0) / 200.0 - 0.5)
+        return np.clip(np.round(20.0 + contrast * lit + rng.normal(0, 1.5, f.shape)), 0, 255)
 
-    cap = dataclasses.replace(cap, white=dim(cap.white), black=dim(cap.black), col_pairs=dim(cap.col_pairs),
-                              row_pairs=dim(cap.row_pairs))
-    dec = decode_graycode(cap, settings=GrayCodeSettings(min_contrast=10.0))
-    if not decoded:
-        assert dec.valid.mean() < 0.002
+    cap = dataclasses.replace(cap, white=dim(cap.white), black=dim(cap.black), col_pairs=dim(cap.col_pairs, depth),
+                              row_pairs=dim(cap.row_pairs, depth))
+    dec = decode_graycode(cap)
+    alone = decode_graycode(cap, settings=GrayCodeSettings(dim_contrast=20.0)).valid  # on contrast alone
+    assert alone.mean() < 0.1   # noise lifts a few pixels over 20
+    if case != "dim":
+        assert (dec.valid & ~alone).mean() < 0.002
         return
-    assert decode_graycode(cap).valid.mean() < 0.1
     assert dec.valid.mean() > 0.99
     inner = (np.abs(u - np.round(u)) < 0.3) & (np.abs(v - np.round(v)) < 0.3) & dec.valid
     assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
