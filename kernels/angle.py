@@ -44,8 +44,8 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import polar_angle
-from ringscan.kernels.ring_labels import gray_to_binary
 from ringscan.kernels.launch import default_threads, launch_spans
+from ringscan.kernels.ring_labels import gray_to_binary
 
 ANGLE_OK = wp.constant(0)
 ANGLE_DARK = wp.constant(1)
