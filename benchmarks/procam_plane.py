@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.board import Board
-from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
-from ringscan.pipeline.calibrate.importer import import_captures, procam_pose, triangulate_codes
+from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, read_capture
+from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, procam_pose, triangulate_codes
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners, depth_range, procam_rig
 from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.formats.rig import load_rig
@@ -69,6 +69,9 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--constraints", nargs="+", default=["rings", "both"], choices=["rings", "angle", "both"],
                     help="triangulation constraints to compare (default: rings both)")
+    ap.add_argument("--min-contrast", type=float, default=GrayCodeSettings.min_contrast,
+                    help="the import's least white - black (8-bit levels; default the import's); "
+                         "the plain decode keeps its own default")
     args = ap.parse_args(argv)
     data = Path(args.data)
     caps = [data / f"capture_{i}" for i in (1, 2, 3)]
@@ -98,7 +101,9 @@ def main(argv=None) -> int:
     cam, li = rig.camera, rig.light
     tmp = tempfile.TemporaryDirectory()
     out = Path(args.out) if args.out else Path(tmp.name) / "scan"
-    scan, stats = import_captures(caps, out=out, rig=rig, projector=PROJECTOR)
+    scan, stats = import_captures(caps, out=out, rig=rig, projector=PROJECTOR,
+                                  settings=ImportSettings(graycode=GrayCodeSettings(min_contrast=args.min_contrast)))
+    print(f"import min_contrast {args.min_contrast:g}")
     print(f"\n{'capture':10} {'method':6} {'points':>8} {'rms':>6} {'median':>7} {'<=1':>6} {'<=3':>6}   ratio")
     ratios = []
     for view, c in zip(scan.views, caps):

@@ -108,6 +108,10 @@ BLOCKS = [
     Block("docs/calibration.md", "ringscan calibrate turntable scans/board", "no",
           "needs your rig: a scan folder or photos of a board on the table (scans/board, tt/*.png); the next "
           "block does the same on the virtual rig"),
+    Block("docs/calibration.md", "ringscan import data/images_list.yml --rig data/calibrationParameters.yml", "no",
+          "needs your captures from OpenCV's structured-light sample (data/: not in ../shared); the same commands "
+          "run on virtual captures in OpenCV's layout in tests/pipeline/calibrate/test_import_opencv_sample.py "
+          "and benchmarks/opencv_sample_virtual.py"),
     Block("docs/calibration.md", "ringscan simulate --scene chessboard --views 8", "script",
           "~60 s (eight 1280x1024 views rendered, then the axis fit)"),
 ]

@@ -20,6 +20,15 @@ Per sample (a sub-pixel camera position and its decoded rho and sector):
    sector centre phi_s is within half a sector of phi, well inside the half
    period a wrong period would need: phi = (psi + 2 pi round((P phi_s - psi) /
    2 pi)) / P.
+   A sample whose sector did not decode (a weak sector bit at both pixels of its
+   edge: it lies on a sector edge, or finer sectors than the camera resolves)
+   reads the sector frames again at its own position, but only the coarse code
+   unwrapping needs: the top m = log2(P) + 1 bits, 2P sectors half a period wide
+   (the top bits of a reflected Gray code are the Gray code of the coarse sector).
+   All strong: the coarse sector's centre is the reference, a quarter period from
+   phi at most. Exactly one weak, and its two readings name neighbouring coarse
+   sectors: the sample lies on their shared edge, which is the reference (either
+   neighbour unwraps it alike; half a period spare). Otherwise: no sector.
 4. The tangential standard deviation rho * sigma_phi, sigma_phi = sqrt(2 / N)
    sigma_v / (P a), with a the fringe amplitude and sigma_v the camera noise over
    the pixel's white - black contrast: what the triangulation weights by.
@@ -36,6 +45,7 @@ import warp as wp
 
 from ringscan.kernels.geometry import polar_angle
 from ringscan.kernels.launch import default_threads, launch_spans
+from ringscan.kernels.ring_labels import gray_to_binary
 
 ANGLE_OK = wp.constant(0)
 ANGLE_DARK = wp.constant(1)
@@ -54,6 +64,10 @@ class AngleSettings:
 
     min_contrast: float = 12.0
     """Least white - black difference at the sample, in 8-bit grey levels (x257 for 16-bit)."""
+    bit_margin: float = 0.12
+    """A sector bit re-read at a sample's own position (where its pixels' sector
+    did not decode) is weak when |frame - inverse| < bit_margin x (white - black),
+    as the band decode's ``bit_margin``."""
     min_modulation: float = 0.3
     """Least fringe modulation q (linear units, 1 for a perfect fringe): mixed
     pixels, blur finer than the fringe and zone edges fall below it, and the
@@ -64,7 +78,7 @@ class AngleSettings:
     weighting; its size sets the reported sigma in mm)."""
 
     def __post_init__(self):
-        for k in ("min_contrast", "min_modulation", "noise"):
+        for k in ("min_contrast", "bit_margin", "min_modulation", "noise"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"AngleSettings.{k}: must be a finite number >= 0, got {v!r}")
@@ -118,6 +132,40 @@ def raw_bilinear(frames: wp.array3d(dtype=Any), f: int, x: float, y: float):
 
 
 @wp.func
+def coarse_sector_reference(frames: wp.array3d(dtype=Any), sector0: int, bits: int, x: float, y: float,
+                            margin: float):
+    """(reference angle, 1) from the top ``bits`` sector bits read at (x, y): the
+    coarse sector's centre where every bit is strong, the edge between two
+    neighbouring coarse sectors where exactly one is weak; (0, 0) otherwise.
+    ``margin``: the weak threshold in recorded levels."""
+    g = int(0)
+    weak = int(0)
+    flip = int(0)
+    for b in range(bits):
+        d = raw_bilinear(frames, sector0 + 2 * b, x, y) - raw_bilinear(frames, sector0 + 2 * b + 1, x, y)
+        g = g * 2
+        if d > 0.0:
+            g = g + 1
+        if wp.abs(d) < margin:
+            weak = weak + 1
+            flip = 1 << (bits - 1 - b)
+    n = 1 << bits
+    width = TWO_PI / float(n)
+    s0 = gray_to_binary(g, bits)
+    if weak == 0:
+        return wp.vec2((float(s0) + 0.5) * width - PI, 1.0)
+    if weak == 1:
+        s1 = gray_to_binary(g ^ flip, bits)
+        lo = wp.min(s0, s1)
+        hi = wp.max(s0, s1)
+        if hi - lo == 1:
+            return wp.vec2(float(hi) * width - PI, 1.0)
+        if lo == 0 and hi == n - 1:
+            return wp.vec2(-PI, 1.0)
+    return wp.vec2(0.0, 0.0)
+
+
+@wp.func
 def wrap_angle(a: float):
     """a wrapped into (-pi, pi]."""
     return a - TWO_PI * wp.ceil((a - PI) / TWO_PI)
@@ -141,9 +189,11 @@ def angle_kernel(
     angle0: int,
     steps: int,
     n_sectors: int,
+    sector0: int,
     level_scale: float,
     inv_light_gamma: float,
     min_contrast: float,
+    bit_margin: float,
     min_modulation: float,
     noise: float,
     i0: int,
@@ -154,8 +204,10 @@ def angle_kernel(
 ):
     """Angle of sample i0 + tid.
 
-    frames: (n_frames, H, W) uint8/uint16, read (``white``, ``black`` and the
-        angle frames from index ``angle0``). lut: (full + 1,) float32, read.
+    frames: (n_frames, H, W) uint8/uint16, read (``white``, ``black``, the
+        angle frames from index ``angle0`` and, for samples without a sector,
+        the sector frame pairs from ``sector0``; -1: none). lut: (full + 1,)
+        float32, read.
     trig: (steps,) vec2 (cos, sin) of 2 pi n / steps, read.
     zone_rho: (Z,) float32 inner radius of each zone, ascending; zone_periods:
         (Z,) int32 its number of periods, read.
@@ -200,10 +252,22 @@ def angle_kernel(
     a = psi
     if p > 1:
         s = sector[i]
-        if s < 0 or n_sectors <= 0:
+        if n_sectors <= 0:
             status[i] = ANGLE_NO_SECTOR
             return
         phi_s = (float(s) + 0.5) * TWO_PI / float(n_sectors) - PI
+        if s < 0:
+            if sector0 < 0:
+                status[i] = ANGLE_NO_SECTOR
+                return
+            m = int(1)
+            while (1 << (m - 1)) < p:
+                m = m + 1
+            ref = coarse_sector_reference(frames, sector0, m, x, y, bit_margin * contrast * level_scale)
+            if ref[1] == 0.0:
+                status[i] = ANGLE_NO_SECTOR
+                return
+            phi_s = ref[0]
         k = wp.round((float(p) * phi_s - psi) / TWO_PI)
         a = (psi + TWO_PI * k) / float(p)
     phi[i] = wrap_angle(a)
@@ -233,6 +297,7 @@ def decode_angle(
     zones: tuple[np.ndarray, np.ndarray],
     lut: wp.array,
     light_gamma: float = 1.0,
+    sector0: int = -1,
     settings: AngleSettings = AngleSettings(),
     threads: int | None = None,
 ) -> AngleSamples:
@@ -249,6 +314,9 @@ def decode_angle(
         lut: (full_scale + 1,) float32 Warp array: recorded value -> linear
             irradiance (``kernels.phase.response_tables``).
         light_gamma: the light's response exponent (1: linear).
+        sector0: frame index of ``sector_0`` (its inverse follows, then the
+            next bit's pair): samples without a sector re-read the coarse
+            sector code there; -1: none (they get no angle where P > 1).
         settings: thresholds and the noise model.
         threads: CPU threads; default all cores.
     """
@@ -260,6 +328,9 @@ def decode_angle(
                          f"the {n_frames} frames (steps must be >= 3)")
     if not isinstance(uv, wp.array) or uv.dtype != wp.vec2:
         raise ValueError("decode_angle: uv must be a Warp array of vec2")
+    if sector0 >= 0 and (sector_bits <= 0 or sector0 + 2 * sector_bits > n_frames):
+        raise ValueError(f"decode_angle: sector frames {sector0}..{sector0 + 2 * sector_bits - 1} are not all among "
+                         f"the {n_frames} frames")
     n = uv.shape[0]
     for name, a, dt in (("rho", rho, wp.float32), ("sector", sector, wp.int32)):
         if not isinstance(a, wp.array) or a.dtype != dt or a.shape != (n,):
@@ -279,8 +350,9 @@ def decode_angle(
     trig = wp.array(np.c_[np.cos(shifts), np.sin(shifts)].astype(np.float32), dtype=wp.vec2, device=dev)
     args = [frames, lut, trig, wp.array(starts.astype(np.float32), device=dev),
             wp.array(periods.astype(np.int32), device=dev), uv, rho, sector, int(white), int(black), int(angle0),
-            int(steps), 2 ** sector_bits if sector_bits > 0 else 0, full / 255.0, 1.0 / float(light_gamma),
-            float(settings.min_contrast), float(settings.min_modulation), float(settings.noise)]
+            int(steps), 2 ** sector_bits if sector_bits > 0 else 0, int(sector0), full / 255.0,
+            1.0 / float(light_gamma), float(settings.min_contrast), float(settings.bit_margin),
+            float(settings.min_modulation), float(settings.noise)]
     outputs = [out.phi, out.sigma_tan, out.modulation, out.status]
     threads = default_threads() if threads is None else threads
     launch_spans(angle_kernel, n, lambda i0: args + [i0], outputs, dev, threads)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.calibrate.graycode import CAPTURE_INPUTS, LAYOUTS
+from ringscan.pipeline.calibrate.graycode import CAPTURE_INPUTS, LAYOUTS, GrayCodeSettings
 from ringscan.pipeline.calibrate.importer import (
     ImportSettings,
     import_captures,
@@ -57,6 +57,10 @@ def add_parser(sub):
                         "1's axis (camera-camera); default: from a plain triangulation of the captures")
     p.add_argument("--sector-bits", type=int, default=ImportSettings.sector_bits,
                    help=f"polar-angle sector bits for the root choice (default {ImportSettings.sector_bits})")
+    p.add_argument("--min-contrast", type=float, default=GrayCodeSettings.min_contrast, metavar="LEVELS",
+                   help="least white - black of a pixel decoded on contrast alone, 8-bit grey levels (default "
+                        f"{GrayCodeSettings.min_contrast:g}; dimmer pixels down to {GrayCodeSettings.dim_contrast:g} "
+                        "only where the patterns visibly modulate them; docs/calibration.md)")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
     p.add_argument("--out", required=True, metavar="SCAN", help="the scan folder to write")
     return p
@@ -96,7 +100,10 @@ def run(args) -> int:
                              "to add to it")
         pr = Path(args.projector_rig)
         kw["projector_rig"] = read_opencv_calibration(pr) if _is_opencv(pr) else load_rig(pr)
-    settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer)
+    if not (args.min_contrast >= 0 and args.min_contrast < 255):
+        raise UsageError(f"--min-contrast {args.min_contrast:g}: expected grey levels from 0 to below 255")
+    settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer,
+                              graycode=GrayCodeSettings(min_contrast=args.min_contrast))
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
         scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
                                       depth=tuple(args.depth) if args.depth else None, settings=settings,

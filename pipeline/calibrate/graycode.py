@@ -22,8 +22,9 @@ PNG, TIFF, JPEG and BMP frames are read. Two orders of white/black are read (``L
   (the layout of docs/design.md §7).
 
 Decoding (:func:`decode_graycode`): a pixel is decoded where white - black
->= ``min_contrast`` and every pattern differs from its inverse by at least
-``min_bit_contrast``; bit = pattern > inverse; Gray -> binary gives the integer
+>= ``min_contrast`` (or, dimmer, >= ``dim_contrast`` with at most two bits weak)
+and every pattern differs from its inverse by at least ``min_bit_contrast``;
+bit = pattern > inverse; Gray -> binary gives the integer
 column c and row r (the plain way: the projector pixel (c, r)).
 
 Sub-pixel (the ringscan way, :func:`subpixel_map`): along the camera axis on which
@@ -60,6 +61,12 @@ log = logging.getLogger(__name__)
 LAYOUTS = ("opencv-graycode", "opencv-graycode-wb-first")
 """Known capture layouts (see the module docstring)."""
 
+DIM_BIT_FRACTION = 0.4
+"""A dim pixel's bit is weak below this fraction of its white - black (``GrayCodeSettings.dim_contrast``)."""
+DIM_MAX_WEAK = 2
+"""Most weak bits of a dim pixel that is decoded: on a projector pixel's corner the column and the row bit that
+flip there are weak by nature; more mean the patterns hardly reach the pixel."""
+
 CAPTURE_INPUTS = (
     "a folder of graycode_NN.<ext> (from 00, one camera)",
     "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2)",
@@ -83,7 +90,17 @@ class GrayCodeSettings:
     """Decoding settings."""
 
     min_contrast: float = 20.0
-    """Least white - black (8-bit levels) of a decoded pixel."""
+    """Least white - black (8-bit levels) of a pixel decoded on contrast alone."""
+    dim_contrast: float = 10.0
+    """Least white - black (8-bit levels) of a dim pixel (below ``min_contrast``),
+    decoded only where the patterns visibly modulate it: at most ``DIM_MAX_WEAK``
+    of its bits differ from their inverse by less than ``DIM_BIT_FRACTION`` of its
+    contrast (the flipping column and row bits of a pixel on a projector pixel's
+    corner). On the virtual rig (camera noise 1.5) the dim parts of an object
+    (grazing light) pass and read right; on real captures the pixels between 10
+    and 20 levels whose white - black comes from stray light (the procam board's
+    black squares beside white ones) have most bits weak and stay out (docs/calibration.md).
+    Set it to ``min_contrast`` or above to decode on contrast alone."""
     min_bit_contrast: float = 0.0
     """Least |pattern - inverse| (8-bit levels) of every bit of a decoded pixel. 0 by
     default: on a projector pixel boundary the bit that flips there has no contrast
@@ -442,7 +459,7 @@ def check_layout(cap: GrayCodeCapture, layout: str) -> None:
 def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
     """Integer projector column and row of every camera pixel (the plain decode)."""
     contrast = cap.white - cap.black
-    valid = contrast >= settings.min_contrast
+    weak = np.zeros(contrast.shape, np.int32)
 
     def code(pairs):
         g = np.zeros(contrast.shape, np.int64)
@@ -451,10 +468,12 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
             d = p - inv
             g = (g << 1) | (d > 0)
             ok &= np.abs(d) >= settings.min_bit_contrast
+            weak[...] += np.abs(d) < DIM_BIT_FRACTION * contrast
         return gray_decode(g, len(pairs)), ok
 
     col, okc = code(cap.col_pairs)
     row, okr = code(cap.row_pairs)
+    valid = (contrast >= settings.min_contrast) | ((contrast >= settings.dim_contrast) & (weak <= DIM_MAX_WEAK))
     valid &= okc & okr & (col < cap.projector[0]) & (row < cap.projector[1])
     col = np.where(valid, col, -1).astype(np.int32)
     row = np.where(valid, row, -1).astype(np.int32)

@@ -101,6 +101,7 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.n
                        black=names.index("black"), angle0=names.index("angle_0"), steps=spec.angle_steps,
                        sector_bits=spec.sector_bits, zones=spec_angle_zones(spec),
                        lut=wp.array(lut, dtype=wp.float32, device=dev), light_gamma=light_gamma,
+                       sector0=names.index("sector_0") if spec.sector_bits else -1,
                        settings=settings, threads=threads)
     samples.phi = res.phi
     samples.sigma_tan = res.sigma_tan

@@ -138,3 +138,71 @@ def test_bad_input(device):
         decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                      wp.array(r[:3].astype(np.float32), device=device), wp.array(sector, device=device), white=0,
                      black=1, angle0=2, steps=4, sector_bits=SB, zones=zones, lut=wp.array(_lut(1.0), device=device))
+
+
+def _sector_frames(ss=4, contrast=200.0):
+    """sector_<b>, sector_<b>_inv pairs of the SB-bit Gray code of the polar angle,
+    each pixel the lit fraction of its area (ss x ss sub-samples), as drawn."""
+    h, w = 300, 400
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    ys = y[..., None, None] + o[:, None]
+    xs = x[..., None, None] + o[None, :]
+    rho = np.hypot(xs - C[0], ys - C[1])
+    lit = (rho >= RHO0) & (rho < RHO0 + BANDS * PITCH)
+    s = np.floor((np.arctan2(ys - C[1], xs - C[0]) + np.pi) / (2 * np.pi) * 2 ** SB).astype(np.int64) % 2 ** SB
+    g = s ^ (s >> 1)
+    out = []
+    for b in range(SB):
+        on = ((g >> (SB - 1 - b)) & 1).astype(bool)
+        for f in (on & lit, ~on & lit):
+            out.append(np.round(20.0 + contrast * f.mean(axis=(2, 3))).astype(np.uint8))
+    return np.stack(out)
+
+
+def test_unknown_sector_unwraps_from_the_coarse_code_at_the_sample(device):
+    """Samples whose pixels' sector did not decode (on a sector edge, or finer sectors
+    than the camera resolves) re-read the coarse sector bits at their own position:
+    on a sector edge the shared edge unwraps them, and they come back without a slip."""
+    zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
+    frames, _, _ = _frames(zones=zones)
+    stack = np.concatenate([frames, _sector_frames()])
+    sector0 = frames.shape[0]
+    rng = np.random.default_rng(5)
+    n = 3000
+    r = rng.uniform(RHO0 + 2, RHO0 + BANDS * PITCH - 2, n)
+    P = angle_periods(r, *zones)
+    # on the edges of the coarse sectors (2P of them), within a tenth of a pixel
+    k = rng.integers(0, 2 * P)
+    a = np.angle(np.exp(1j * (k * np.pi / P - np.pi + rng.uniform(-0.1, 0.1, n) / r)))
+    pts = np.c_[C[0] + r * np.cos(a), C[1] + r * np.sin(a)]
+    inside = (pts[:, 0] > 1) & (pts[:, 0] < 398) & (pts[:, 1] > 1) & (pts[:, 1] < 298)
+    edge = np.min(np.abs(r[:, None] - zones[0][None, 1:]), axis=1) < 1.5
+    keep = inside & ~edge & (P > 1)
+    pts, r, a = pts[keep], r[keep], a[keep]
+    unknown = np.full(len(r), -1)
+    A = decode_angle(wp.array(stack, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
+                     wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
+                     white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
+                     lut=wp.array(_lut(1.0), device=device), sector0=sector0)
+    st = A.status.numpy()
+    assert np.mean(st == STATUS["ok"]) > 0.99
+    ok = st == STATUS["ok"]
+    err_tan = np.abs(np.angle(np.exp(1j * (A.phi.numpy()[ok] - a[ok])))) * r[ok]
+    assert err_tan.max() < 0.3   # no period slip (a period is >= 12 px)
+    # without the sector frames they have no angle, as before
+    B = _decode(device, frames, pts, r, unknown, zones, _lut(1.0))
+    assert np.all(B.status.numpy() == STATUS["no_sector"])
+    # the coarse code unreadable (every sector frame equal to its inverse): no angle, no guess
+    flat = stack.copy()
+    flat[sector0:] = 120
+    C2 = decode_angle(wp.array(flat, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
+                      wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
+                      white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
+                      lut=wp.array(_lut(1.0), device=device), sector0=sector0)
+    assert np.all(C2.status.numpy() == STATUS["no_sector"])
+    with pytest.raises(ValueError, match="sector frames"):
+        decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
+                     wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
+                     white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
+                     lut=wp.array(_lut(1.0), device=device), sector0=sector0)

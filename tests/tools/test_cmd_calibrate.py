@@ -105,7 +105,7 @@ def test_procam_a_repeated_capture_is_left_out(tmp_path, procam, capsys):
     out = capsys.readouterr().out
     assert rc == 0 and "capture_3 = capture_3 (0.00 px): the same board pose as the earlier view, left out" in out
     # the numbers of capture_1..3 (docs/calibration.md)
-    assert "fx 3451.7 fy 3446.4" in out and "fx 1887.0 fy 1876.6" in out and "baseline 673.7" in out
+    assert "fx 3451.7 fy 3446.4" in out and "fx 1887.1 fy 1876.6" in out and "baseline 673.7" in out
     r = load_rig(rig)
     assert abs(r.camera.K[0, 0] - 3451.7) < 0.1
 
@@ -377,3 +377,19 @@ def test_camera_plot_draws_the_residuals_of_the_fit(tmp_path, procam, capsys):
     for name, e in zip(cal.names, cal.per_view):
         corners, r = res[name]
         assert len(corners) == 63 and np.sqrt(np.mean(np.sum(r ** 2, axis=1))) == pytest.approx(e, rel=1e-6)
+
+
+def test_import_min_contrast(tmp_path, capsys, capture_and_rig):
+    """--min-contrast sets the decode's threshold; out of range it is a usage error (exit 2)
+    and nothing is written."""
+    cap, rig = capture_and_rig
+    out = tmp_path / "s"
+    assert main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--min-contrast", "5",
+                 "--out", str(out)]) == 0
+    assert "pixels decoded" in capsys.readouterr().out
+    for bad in ("-1", "255", "nan"):
+        out = tmp_path / f"bad_{bad}"
+        rc = main(["import", str(cap), "--rig", str(rig), "--projector", "128x96", "--min-contrast", bad,
+                   "--out", str(out)])
+        assert rc == 2 and "--min-contrast" in _err(capsys)
+        assert not out.exists()

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import decode_graycode, graycode_bits, read_capture, subpixel_map
+from ringscan.pipeline.calibrate.graycode import (GrayCodeSettings, decode_graycode, graycode_bits, read_capture,
+                                                 subpixel_map)
 from tests.pipeline.calibrate.synthetic import write_capture
 
 PROJ = (128, 96)
@@ -63,3 +66,35 @@ def test_wrong_layout_is_a_clear_error(capture, tmp_path):
         read_capture(folder, projector=(1024, 768))
     with pytest.raises(CalibrationError, match="capture folder not found"):
         read_capture(tmp_path / "nothing", projector=PROJ)
+
+
+@pytest.mark.parametrize("case", ["dim", "stray", "dark"])
+def test_dim_pixels_decode_where_the_patterns_reach_them(tmp_path, case):
+    """A dim capture (white - black 16 grey levels, below ``min_contrast`` 20; camera
+    noise 1.5) whose patterns modulate every pixel reads its codes right: a bit away
+    from its edge differs from its inverse by the whole contrast, 7.5 noise sigmas.
+    The same white - black from stray light, with patterns that hardly change the
+    pixel (a real board's black squares beside white ones), gains nothing over
+    contrast alone; nor does a pixel at 3 levels."""
+    u, v = write_capture(tmp_path / "clean", projector=PROJ, noise=0.0, levels=(20.0, 220.0))
+    cap = read_capture(tmp_path / "clean", projector=PROJ)
+    rng = np.random.default_rng(7)
+    contrast = 3.0 if case == "dark" else 16.0
+    depth = 0.15 if case == "stray" else 1.0   # how much of the contrast the patterns carry
+
+    def dim(f, depth=1.0):  # the same lit fractions at the dim contrast, with fresh camera noise, rounded
+        lit = 0.5 + depth * ((f - 20.0) / 200.0 - 0.5)
+        return np.clip(np.round(20.0 + contrast * lit + rng.normal(0, 1.5, f.shape)), 0, 255)
+
+    cap = dataclasses.replace(cap, white=dim(cap.white), black=dim(cap.black), col_pairs=dim(cap.col_pairs, depth),
+                              row_pairs=dim(cap.row_pairs, depth))
+    dec = decode_graycode(cap)
+    alone = decode_graycode(cap, settings=GrayCodeSettings(dim_contrast=20.0)).valid  # on contrast alone
+    assert alone.mean() < 0.1   # noise lifts a few pixels over 20
+    if case != "dim":
+        assert (dec.valid & ~alone).mean() < 0.002
+        return
+    assert dec.valid.mean() > 0.99
+    inner = (np.abs(u - np.round(u)) < 0.3) & (np.abs(v - np.round(v)) < 0.3) & dec.valid
+    assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
+    assert np.mean(dec.row[inner] == np.round(v[inner])) > 0.999
