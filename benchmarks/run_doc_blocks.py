@@ -112,6 +112,12 @@ BLOCKS = [
           "needs your captures from OpenCV's structured-light sample (data/: not in ../shared); the same commands "
           "run on virtual captures in OpenCV's layout in tests/pipeline/calibrate/test_import_opencv_sample.py "
           "and benchmarks/opencv_sample_virtual.py"),
+    Block("docs/calibration.md", "ringscan calibrate refine scan --out rig_refined.json", "script",
+          "minutes (a two-camera scan rendered at full size, both cameras decoded and matched); `scan` is your "
+          "two-camera scan: here the virtual rig's (`ringscan simulate --camera2 --light perspective`)",
+          setup="stereo_scan"),
+    Block("docs/calibration.md", "ringscan calibrate projector-from-scan scan --rig rig_refined.json", "script",
+          "as the block before (it refines the rig first, as the page does)", setup="stereo_scan_refined"),
     Block("docs/calibration.md", "ringscan simulate --scene chessboard --views 8", "script",
           "~60 s (eight 1280x1024 views rendered, then the axis fit)"),
 ]
@@ -216,6 +222,17 @@ def setup_default_rig(work: Path) -> None:
     from ringscan.pipeline.formats.rig import default_rig, save_rig
 
     save_rig(work / "rig.json", default_rig())
+
+
+def setup_stereo_scan(work: Path) -> None:
+    """``scan``: a two-camera scan of the virtual rig with a perspective projector (docs/virtual_rig.md)."""
+    run_bash("ringscan simulate --camera2 --light perspective --out scan --no-progress", work, env=_env(),
+             check=True)
+
+
+def setup_stereo_scan_refined(work: Path) -> None:
+    setup_stereo_scan(work)
+    run_bash("ringscan calibrate refine scan --out rig_refined.json", work, env=_env(), check=True)
 
 
 def setup_demo_scan(work: Path) -> None:
