@@ -203,11 +203,17 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
         kw = dict(light=light, proj=proj,
                   proj_info=polar_information(proj, f32(matches.sigma_rho.astype(np.float32)),
                                               f32(matches.sigma_tan.astype(np.float32)), center=scan.patterns.center))
+    check = epipolar_check(rig, matches)
+    max_res = st.max_residual_px
+    if check and not check["fits"]:
+        # a rig that misses: its points miss by the miss; the cloud is still made
+        # (and the view warns), an outlier is a point beyond 5 times the miss
+        max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
     tri = triangulate_rays(v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32)),
                            f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
-                           max_residual_px=st.max_residual_px, threads=threads, **kw)
+                           max_residual_px=max_res, threads=threads, **kw)
     points = np.zeros((n, 3), np.float32)
     status = np.full(n, STATUS_UNMATCHED, np.int32)
     confidence = np.zeros(n, np.float32)
@@ -230,7 +236,6 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     confidence[i] = np.where(tst == 0, samples.confidence.numpy()[i], 0.0)
     sigma[i] = tri.sigma.numpy()
     residual[i] = tri.residual.numpy()
-    check = epipolar_check(rig, matches)
     if check:
         check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
                  "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}

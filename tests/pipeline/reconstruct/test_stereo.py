@@ -118,6 +118,8 @@ def test_rotated_extrinsics_warn(stereo_scan, tmp_path, caplog):
         cloud = reconstruct_view(bad, bad.views[0], settings=_rays("camera-camera"), device="cpu")
     chk = cloud.stats["calibration_check"]
     assert not chk["fits"] and chk["median_px"] > 3.0
+    # the cloud is still made (worse), not dropped as inconsistent
+    assert cloud.stats["points"] > 0.5 * cloud.stats["stereo"]["matches"]
     assert "does not fit the images" in caplog.text
 
 
