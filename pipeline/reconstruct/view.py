@@ -36,7 +36,7 @@ from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, 
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points"]
+__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points", "view_rays", "check_rays"]
 
 CALIBRATION_WARN_PX = 1.0
 """Median projector-pixel residual above which a view warns that the rig does not fit its images."""
@@ -175,6 +175,19 @@ def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
     if rays == "auto":
         return "all" if has_calibrated_light(scan.rig) else "camera-camera"
     return rays
+
+
+def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
+    """Every view's rays can be had: two-camera rays need two-camera views, the
+    projector's ray a calibrated projector (checked before anything is written).
+
+    Raises:
+        FormatError: naming the view and what is missing.
+    """
+    for view in views:
+        rays = view_rays(scan, view, settings)
+        if rays != "camera-camera" and not has_calibrated_light(scan.rig):
+            light_model_for(scan.rig)  # raises: the projector is not calibrated (its own message)
 
 
 def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, samples,
