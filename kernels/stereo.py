@@ -7,11 +7,11 @@ or three rays (docs/reconstruction.md "Two cameras", docs/design.md §19).
   samples (a dense per-pixel map or scattered ring-edge samples: both are just
   (x2, p, sigma) triples here) are binned by p into a grid of square cells
   (count, scan, write); each query takes its ``k`` nearest samples in projector
-  space and fits the local affine map x2 = x2m + A (p - pm) by weighted least
+  space (searching ring by ring of cells out to a radius) and fits the local affine map x2 = x2m + A (p - pm) by weighted least
   squares (weights 1 / sigma_p^2), evaluated at the query's p. Where the
   neighbours lie on a line in projector space (ring edges: samples along one
   ring) the map is fitted along that line only (pseudo-inverse), and the query
-  must lie on it. A neighbourhood that straddles a depth discontinuity is one
+  must lie on their curve (a quadratic through them: a ring edge is an arc). A neighbourhood that straddles a depth discontinuity is one
   no single affine map fits: its fit residual (camera px) or its gain (camera
   px per projector px) is too large, and the query is dropped. No extrinsics are
   used, so the matches can re-estimate them.
