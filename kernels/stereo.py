@@ -4,17 +4,18 @@ or three rays (docs/reconstruction.md "Two cameras", docs/design.md §19).
 - Matching. Each camera decodes the projector coordinate p = (u_p, v_p) of its
   samples; a camera-1 sample (the query) is matched to the camera-2 position x2
   where camera 2's projector-coordinate field equals the query's p. Camera 2's
-  samples (a dense per-pixel map or scattered ring-edge samples: both are just
-  (x2, p, sigma) triples here) are binned by p into a grid of square cells
-  (count, scan, write); each query takes its ``k`` nearest samples in projector
-  space (searching ring by ring of cells out to a radius) and fits the local affine map x2 = x2m + A (p - pm) by weighted least
-  squares (weights 1 / sigma_p^2), evaluated at the query's p. Where the
-  neighbours lie on a line in projector space (ring edges: samples along one
-  ring) the map is fitted along that line only (pseudo-inverse), and the query
-  must lie on their curve (a quadratic through them: a ring edge is an arc). A neighbourhood that straddles a depth discontinuity is one
-  no single affine map fits: its fit residual (camera px) or its gain (camera
-  px per projector px) is too large, and the query is dropped. No extrinsics are
-  used, so the matches can re-estimate them.
+  samples (a dense per-pixel map or scattered ring-edge samples: both are just (x2,
+  p, sigma) triples here) are binned by p into a grid of square cells (count, scan,
+  write); each query takes its ``k`` nearest samples in projector space (searching
+  ring by ring of cells out to a radius) and fits the local affine map x2 = x2m + A
+  (p - pm) by weighted least squares (weights 1 / sigma_p^2), evaluated at the
+  query's p. Where the neighbours lie on a line in projector space (ring edges:
+  samples along one ring) the map is fitted along that line only (pseudo-inverse),
+  and the query must lie on their curve (a quadratic through them: a ring edge is an
+  arc). A neighbourhood that straddles a depth discontinuity is one no single affine
+  map fits: its fit residual (camera px) or its gain (camera px per projector px) is
+  too large, and the query is dropped. No extrinsics are used, so the matches can
+  re-estimate them.
 - Triangulation. Gauss-Newton on the weighted reprojection error of the point in
   camera 1, camera 2 and (optionally) the calibrated projector, from the
   midpoint of the two camera rays, through each lens's distortion

@@ -235,10 +235,11 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector
-        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=camera_model_for(rig),
-                               light=light, volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
-                               sector_bits=sector_bits, phi=samples.phi, sigma_rho=samples.sigma_rho,
-                               sigma_tan=samples.sigma_tan, settings=settings.triangulate, threads=threads)
+        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence,
+                               camera=camera_model_for(rig), light=light, volume=(vol.z_min, vol.z_max, vol.r_max),
+                               center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi,
+                               sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
+                               settings=settings.triangulate, threads=threads)
         points, status = tp.points.numpy(), tp.status.numpy()
         confidence, sigma, residual = tp.confidence.numpy(), tp.sigma.numpy(), tp.residual.numpy()
         extra["fallback_camera_projector"] = int(n - len(matches))
@@ -266,7 +267,8 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
         extra["calibration_check"] = check
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
-    return dict(points=wp.array(points, dtype=wp.vec3, device=device), status=wp.array(status, dtype=wp.int32, device=device),
+    return dict(points=wp.array(points, dtype=wp.vec3, device=device),
+                status=wp.array(status, dtype=wp.int32, device=device),
                 confidence=wp.array(confidence, dtype=wp.float32, device=device),
                 sigma=wp.array(sigma, dtype=wp.float32, device=device),
                 residual=wp.array(residual, dtype=wp.float32, device=device), extra=extra)
