@@ -5,7 +5,13 @@ from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
 from ringscan.tools.cli import UsageError, add_device_option
-from ringscan.tools.cmd_reconstruct import add_constraint_option, add_settings_options, settings_from_args
+from ringscan.tools.cmd_reconstruct import (
+    add_constraint_option,
+    add_settings_options,
+    add_storage_option,
+    settings_from_args,
+    storage_options_from_args,
+)
 
 
 def _workers(text: str, *, option: str = "--workers") -> int:
@@ -24,9 +30,10 @@ def add_parser(sub):
                        description="Reconstruct each folder with a scan.json below ROOT into the same relative "
                                    "path below --out, on worker processes (or a Ray cluster). Finished scans are "
                                    "skipped, so rerunning resumes a batch. Exit status 1 when a scan failed.")
-    p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth")
+    p.add_argument("root", help="folder searched for scan folders (each with a scan.json), at any depth; or a URL "
+                                "(s3://bucket/prefix, gs://...: docs/batch.md, \"Scans on S3\")")
     p.add_argument("--out", required=True,
-                   help="output root: each scan's results go to the same relative path below it")
+                   help="output root (a folder or a URL): each scan's results go to the same relative path below it")
     add_settings_options(p)
     add_constraint_option(p)
     p.add_argument("--workers", default=None,
@@ -43,6 +50,7 @@ def add_parser(sub):
     p.add_argument("--mesh", action="store_true", help="also fuse and mesh each scan (<out>/<scan>/mesh/)")
     p.add_argument("--dry-run", action="store_true", help="list what would run and why; write nothing")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_storage_option(p)
     add_device_option(p)
     return p
 
@@ -51,9 +59,10 @@ def run(args) -> int:
     settings = settings_from_args(args)
     if args.address and args.backend != "ray":
         raise UsageError("--address: only with --backend ray")
+    storage = storage_options_from_args(args)
     if args.dry_run:
         skipped: list = []
-        plans = plan_batch(args.root, args.out, settings=settings, skipped=skipped)
+        plans = plan_batch(args.root, args.out, settings=settings, skipped=skipped, storage_options=storage)
         w = max(len(p.scan) for p in plans)
         for p in plans:
             print(f"{p.scan:<{w}}  {p.action:<4}  {p.why}" + (f"  ({p.detail})" if p.detail else ""))
@@ -70,10 +79,10 @@ def run(args) -> int:
             raise UsageError(f"--cpu-threads {args.cpu_threads!r}: expected a whole number >= 1")
     rep = batch_reconstruct(args.root, args.out, settings=settings, device=args.device, workers=workers,
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
-                            cpu_threads=cpu_threads, progress=not args.no_progress)
+                            cpu_threads=cpu_threads, progress=not args.no_progress, storage_options=storage)
     print(format_table(rep["scans"], rep["totals"]))
     for s in rep.get("not_searched", []):
         print(f"not searched: {s['path']}: {s['why']}")
     failed = rep["totals"]["status"].get("failed", 0)
-    print(f"report: {args.out}/batch_report.json")
+    print(f"report: {args.out.rstrip('/')}/batch_report.json")
     return 1 if failed else 0

@@ -1,36 +1,60 @@
-"""``ringscan import CAPTURE_DIR... --layout opencv-graycode --rig RIG --projector WxH --out SCAN``.
+"""``ringscan import CAPTURE... --rig RIG --projector WxH --out SCAN``.
 
 Real column/row Gray-code captures become a scan folder of the ``decoded`` codec
 (docs/formats.md, docs/calibration.md): every camera pixel's sub-pixel projector
-position, which ``ringscan reconstruct`` triangulates through the cone model.
+position, which ``ringscan reconstruct`` triangulates through the cone model. A
+capture of two cameras (OpenCV's structured-light sample: pattern_camN_imK frames or
+an image list) with a camera-camera calibration becomes a two-camera scan.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.calibrate.graycode import LAYOUTS
-from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, read_opencv_calibration
+from ringscan.pipeline.calibrate.graycode import CAPTURE_INPUTS, LAYOUTS
+from ringscan.pipeline.calibrate.importer import (
+    ImportSettings,
+    import_captures,
+    opencv_calibration_kind,
+    read_opencv_calibration,
+    read_stereo_calibration,
+)
 from ringscan.pipeline.formats.progress import progress_step
-from ringscan.pipeline.formats.rig import load_rig
+from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
+from ringscan.tools.cli import UsageError
 from ringscan.tools.cmd_calibrate import parse_size
+
+OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
 
 
 def add_parser(sub):
     p = sub.add_parser("import", help="real Gray-code captures -> a scan folder (decoded projector positions)",
-                       description="Decode each CAPTURE_DIR (graycode_NN frames, one view each) to sub-pixel "
-                                   "projector positions and write a scan folder that `ringscan reconstruct` "
-                                   "triangulates through the cone (perspective light) model.")
-    p.add_argument("captures", nargs="+", metavar="CAPTURE_DIR", help="capture folders")
+                       description="Decode each CAPTURE (one view each) to sub-pixel projector positions and write a "
+                                   "scan folder that `ringscan reconstruct` triangulates. A CAPTURE is "
+                                   + "; or ".join(CAPTURE_INPUTS) + ". Two cameras' frames with a two-camera rig "
+                                   "(an OpenCV stereo calibration file) give a two-camera scan.")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders or image lists (YAML/XML/JSON)")
     p.add_argument("--layout", choices=LAYOUTS, default="opencv-graycode",
-                   help="frame order: opencv-graycode = column pairs, row pairs, white, black (OpenCV's files); "
-                        "opencv-graycode-wb-first = white, black, then the pairs")
+                   help="frame order of every capture (the names may be graycode_NN from 00, pattern_camN_imK from 1 "
+                        "as OpenCV's sample writes them, or an image list's order): opencv-graycode = column "
+                        "pattern/inverse pairs (MSB first), row pairs, white, black (OpenCV's files; default); "
+                        "opencv-graycode-wb-first = white, black, then the pairs. Frames: PNG, TIFF, JPEG or BMP")
     p.add_argument("--rig", required=True,
-                   help="a ringscan rig (JSON) with a perspective light, or an OpenCV calibration file (XML/YAML: "
-                        "cam_int, cam_dist, proj_int, proj_dist, rotation, translation)")
+                   help="a ringscan rig (JSON: one camera and a perspective light, or two cameras), or an OpenCV "
+                        "calibration file (cv::FileStorage XML/YAML/JSON): camera-projector (cam_int, cam_dist, proj_int, proj_dist, "
+                        "rotation, translation) or camera-camera as OpenCV's structured-light sample has it "
+                        "(cam1_intrinsics, cam1_distorsion, cam1_size, cam2_..., R, T)")
+    p.add_argument("--projector-rig", default=None, metavar="PROCAM",
+                   help="with a camera-camera --rig: the projector's calibration against camera 1 (an OpenCV "
+                        "camera-projector file or a ringscan rig), for a two-camera rig with a calibrated projector "
+                        "(default: the projector stays uncalibrated)")
+    p.add_argument("--camera", type=int, choices=(1, 2), default=None,
+                   help="import only this camera's frames of two-camera captures: a one-camera scan (the rig must "
+                        "calibrate the projector)")
     p.add_argument("--projector", required=True, metavar="WxH", help="projector size, e.g. 1024x768")
     p.add_argument("--depth", type=float, nargs=2, default=None, metavar=("NEAR", "FAR"),
-                   help="working depths along the projector axis for an OpenCV file (default: from the captures)")
+                   help="working depths for an OpenCV file: along the projector axis (camera-projector) or camera "
+                        "1's axis (camera-camera); default: from a plain triangulation of the captures")
     p.add_argument("--sector-bits", type=int, default=ImportSettings.sector_bits,
                    help=f"polar-angle sector bits for the root choice (default {ImportSettings.sector_bits})")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
@@ -38,22 +62,62 @@ def add_parser(sub):
     return p
 
 
+def _is_opencv(path: Path) -> bool:
+    """An OpenCV FileStorage calibration: XML/YAML, or JSON with OpenCV's keys and no ringscan ``format``."""
+    if path.suffix.lower() in OPENCV_SUFFIXES:
+        return True
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return False
+    from ringscan.pipeline.formats.atomic import read_json
+
+    try:
+        d = read_json(path)
+    except Exception:  # load_rig names what is wrong with it
+        return False
+    return isinstance(d, dict) and "format" not in d and any(k in d for k in ("cam_int", "cam1_intrinsics"))
+
+
 def run(args) -> int:
     proj = parse_size(args.projector, "--projector")
+    if args.depth is not None and not (0 < args.depth[0] < args.depth[1]):
+        raise UsageError(f"--depth: expected 0 < NEAR < FAR, got {args.depth[0]:g} {args.depth[1]:g}")
     rig_path = Path(args.rig)
     kw = {}
-    if rig_path.suffix.lower() in (".xml", ".yml", ".yaml"):
-        kw["opencv"] = read_opencv_calibration(rig_path)
+    if _is_opencv(rig_path):
+        if opencv_calibration_kind(rig_path) == "stereo":
+            kw["stereo"] = read_stereo_calibration(rig_path)
+        else:
+            kw["opencv"] = read_opencv_calibration(rig_path)
     else:
         kw["rig"] = load_rig(rig_path)
+    if args.projector_rig is not None:
+        if "stereo" not in kw:
+            raise UsageError("--projector-rig goes with a camera-camera (stereo) --rig: the projector's calibration "
+                             "to add to it")
+        pr = Path(args.projector_rig)
+        kw["projector_rig"] = read_opencv_calibration(pr) if _is_opencv(pr) else load_rig(pr)
     settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer)
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
         scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
-                                      depth=tuple(args.depth) if args.depth else None, settings=settings, **kw)
+                                      depth=tuple(args.depth) if args.depth else None, settings=settings,
+                                      camera=args.camera,
+                                      sources={"rig": rig_path, "projector_rig": args.projector_rig},
+                                      **kw)
+    two = scan.rig.camera2 is not None
     for name, st in stats.items():
-        print(f"  {name}: {st['decoded']} pixels decoded, {100 * st['subpixel_share']:.0f} % with sub-pixel "
-              "projector positions")
+        print(f"  {name}: {'camera 1: ' if two else ''}{st['decoded']} pixels decoded, "
+              f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions")
+        if "camera2" in st:
+            c2 = st["camera2"]
+            print(f"  {name}: camera 2: {c2['decoded']} pixels decoded, {100 * c2['subpixel_share']:.0f} % with "
+                  "sub-pixel projector positions")
     li = scan.rig.light
-    print(f"wrote {args.out}: {len(scan.views)} view(s), codec decoded, centre = the projector's principal point "
-          f"({li.K[0, 2]:.1f}, {li.K[1, 2]:.1f})")
+    if not has_calibrated_light(scan.rig):
+        v = scan.rig.volume
+        print(f"wrote {args.out}: {len(scan.views)} view(s), two cameras, codec decoded, projector {li.width}x"
+              f"{li.height} uncalibrated (world = camera 1's frame, working depth {v.z_min:.0f}..{v.z_max:.0f}); "
+              "reconstruct camera to camera (--rays camera-camera)")
+    else:
+        print(f"wrote {args.out}: {len(scan.views)} view(s), {'two cameras, ' if two else ''}codec decoded, "
+              f"centre = the projector's principal point ({li.K[0, 2]:.1f}, {li.K[1, 2]:.1f})")
     return 0

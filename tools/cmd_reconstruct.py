@@ -19,8 +19,9 @@ def add_parser(sub):
     p = sub.add_parser("reconstruct", help="reconstruct a scan folder into per-view point clouds",
                        description="Decode, sample and triangulate every view of a scan; write <view>.ply, "
                                    "report.json and settings.json into --out.")
-    p.add_argument("scan", help="scan folder (with scan.json)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("scan", help="scan folder (with scan.json); or a URL: s3://bucket/prefix, gs://... "
+                                "(docs/batch.md, \"Scans on S3\")")
+    p.add_argument("--out", required=True, help="output folder, or a URL")
     p.add_argument("--views", default=None, help="comma-separated view names (default: all)")
     add_settings_options(p)
     p.add_argument("--resume", action="store_true",
@@ -28,8 +29,27 @@ def add_parser(sub):
                         "redo the others and say why")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_constraint_option(p)
+    add_storage_option(p)
     add_device_option(p)
     return p
+
+
+def add_storage_option(p) -> None:
+    """``--storage-option KEY=VALUE``: fsspec options for scans and outputs given as URLs."""
+    p.add_argument("--storage-option", dest="storage_options", action="append", default=[], metavar="KEY=VALUE",
+                   help="an fsspec/s3fs option for URLs (s3://, gs://): endpoint_url=http://host:9000, "
+                        "key=..., secret=..., anon=true, config_kwargs.connect_timeout=5; VALUE JSON or text; "
+                        "repeatable (docs/batch.md)")
+
+
+def storage_options_from_args(args) -> dict | None:
+    """The ``--storage-option`` assignments as one dict (None when none were given)."""
+    from ringscan.pipeline.formats.storage import parse_storage_options
+
+    try:
+        return parse_storage_options(args.storage_options) or None
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def add_constraint_option(p) -> None:
@@ -133,9 +153,19 @@ def print_calibration_checks(views: list[dict]) -> None:
 
 
 def run(args) -> int:
-    rep = reconstruct_scan(args.scan, args.out, settings=settings_from_args(args), device=args.device,
-                           views=args.views.split(",") if args.views else None, resume=args.resume,
-                           progress=not args.no_progress)
+    from ringscan.pipeline.formats.scan import load_scan
+    from ringscan.pipeline.formats.storage import stage
+
+    settings = settings_from_args(args)
+    views = args.views.split(",") if args.views else None
+    # a scan or output folder given as a URL is staged: frames downloaded, results uploaded whole at the end
+    with stage(args.scan, args.out, options=storage_options_from_args(args), outputs=args.resume) as st:
+        scan = load_scan(st.scan_dir, check_files=not st.remote_scan)
+        st.check_scan(scan)
+        st.fetch_frames(scan, views)
+        rep = reconstruct_scan(scan, st.out_dir, settings=settings, device=args.device, views=views,
+                               resume=args.resume, progress=not args.no_progress)
+        st.commit()
     tot = rep["totals"]
     resumed = rep.get("resume")
     if resumed:

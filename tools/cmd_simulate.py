@@ -9,9 +9,14 @@ from pathlib import Path
 from ringscan.pipeline.formats.atomic import check_no_overwrite, check_output_folder
 from ringscan.pipeline.formats.frame_store import STORE_NAME
 from ringscan.pipeline.formats.patterns import frame_names
-from ringscan.pipeline.formats.rig import default_rig, load_rig
-from ringscan.pipeline.simulate.opencv_graycode import graycode_outputs, render_graycode_captures
-from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.pipeline.formats.rig import default_rig, has_calibrated_light, load_rig
+from ringscan.pipeline.simulate.opencv_graycode import (
+    IMAGE_LIST,
+    STEREO_FILE,
+    graycode_outputs,
+    render_graycode_captures,
+)
+from ringscan.pipeline.simulate.scan import CAMERA2_DIR, add_camera2, simulate_scan
 from ringscan.pipeline.simulate.scenes import SCENES, parse_point
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import UsageError, add_device_option
@@ -48,6 +53,10 @@ def add_parser(sub):
     p.add_argument("--rig", default=None, help="rig file (default: the built-in virtual rig)")
     p.add_argument("--light", choices=("parallel", "perspective"), default=None,
                    help="light model of the built-in rig (default parallel)")
+    p.add_argument("--camera2", action="store_true",
+                   help="add a second camera: camera 1 turned 180 degrees about the light axis (world z), so the two "
+                        "stand symmetric about it; both cameras' frames and truth are written (camera 2's in "
+                        "<view>/cam2/, truth/<view>_cam2_*); a rig file with camera2 renders both without it")
     p.add_argument("--gamma", type=float, default=None,
                    help="camera response gamma (default 2.2 for the built-in rig, the rig file's otherwise)")
     p.add_argument("--views", type=int, default=1, help="turntable views at k * 360 / N degrees (default 1)")
@@ -79,26 +88,41 @@ def add_parser(sub):
 
 
 def build_rig(args):
-    """The rig of the command line: --rig, or the built-in one with --light/--gamma."""
+    """The rig of the command line: --rig, or the built-in one with --light/--gamma; --camera2 adds camera 2."""
     if args.rig:
         if args.light:
             raise UsageError("--light applies to the built-in rig only (the rig file sets its light)")
         rig = load_rig(args.rig)
         if args.gamma is not None:
-            rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, gamma=_gamma(args.gamma)))
-        return rig
-    return default_rig(gamma=_gamma(2.2 if args.gamma is None else args.gamma), light_model=args.light or "parallel")
+            g = _gamma(args.gamma)
+            rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, gamma=g),
+                                      camera2=None if rig.camera2 is None else
+                                      dataclasses.replace(rig.camera2, gamma=g))
+    else:
+        rig = default_rig(gamma=_gamma(2.2 if args.gamma is None else args.gamma),
+                          light_model=args.light or "parallel")
+    if getattr(args, "camera2", False):
+        if rig.camera2 is not None:
+            raise UsageError(f"--camera2: the rig file {args.rig} has a second camera already (drop --camera2)")
+        rig = add_camera2(rig)
+    if not has_calibrated_light(rig):
+        raise UsageError(f"--rig {args.rig}: its projector is uncalibrated ('uncalibrated' light): the virtual rig "
+                         "needs the projector's geometry to render")
+    return rig
 
 
-def _outputs(out: Path, spec, views: int, fmt: str) -> list[Path]:
+def _outputs(out: Path, spec, views: int, fmt: str, cameras: int = 1) -> list[Path]:
     """The files ``simulate`` writes (simulate_scan's layout)."""
     files = [out / "scan.json", out / "truth" / "object.ply"]
     for k in range(max(int(views), 0)):
-        if fmt == "packed":
-            files.append(out / f"view_{k:03d}" / STORE_NAME / "zarr.json")
-        else:
-            files += [out / f"view_{k:03d}" / f"{n}.{fmt}" for n in frame_names(spec)]
-        files += [out / "truth" / f"view_{k:03d}_depth.tiff", out / "truth" / f"view_{k:03d}_lit.png"]
+        for c in range(1, cameras + 1):
+            sub = out / f"view_{k:03d}" / (CAMERA2_DIR if c == 2 else "")
+            pre = f"view_{k:03d}_{'cam2_' if c == 2 else ''}"
+            if fmt == "packed":
+                files.append(sub / STORE_NAME / "zarr.json")
+            else:
+                files += [sub / f"{n}.{fmt}" for n in frame_names(spec)]
+            files += [out / "truth" / f"{pre}depth.tiff", out / "truth" / f"{pre}lit.png"]
     return files
 
 
@@ -119,12 +143,20 @@ def _run_graycode(args, out: Path, rig, place) -> int:
     if args.format != "png":
         raise ValueError("--captures opencv-graycode writes PNG frames (OpenCV's files); drop --image-format")
     inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
-    check_no_overwrite(graycode_outputs(out, (li.width, li.height)), inputs)
+    two = rig.camera2 is not None
+    check_no_overwrite(graycode_outputs(out, (li.width, li.height), cameras=2 if two else 1), inputs)
     t0 = time.perf_counter()
     doc = render_graycode_captures(out, rig=rig, scene=args.scene, settings=_settings(args), device=args.device,
                                    progress=not args.no_progress, size_mm=args.size_mm, up=args.up, pose=args.pose,
                                    place=place, wall_z=args.wall)
     cap = next(iter(doc["captures"]))
+    if two:
+        print(f"{doc['captures'][cap]['frames']} opencv-graycode frames x 2 cameras of {args.scene} for a "
+              f"{li.width}x{li.height} projector ({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in "
+              f"{time.perf_counter() - t0:.1f} s -> {out / cap} (pattern_camN_imK; image list {out / IMAGE_LIST}, "
+              f"stereo calibration {out / STEREO_FILE}, truth in {out / 'truth'}); import: ringscan import "
+              f"{out / IMAGE_LIST} --rig {out / STEREO_FILE} --projector {li.width}x{li.height} --out SCAN")
+        return 0
     print(f"{doc['captures'][cap]['frames']} opencv-graycode frames of {args.scene} for a {li.width}x{li.height} "
           f"projector ({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in "
           f"{time.perf_counter() - t0:.1f} s -> {out / cap} (rig {out / 'rig.json'}, truth in {out / 'truth'}); "
@@ -149,14 +181,15 @@ def run(args) -> int:
     width, height = (li.width, li.height) if getattr(li, "width", 0) else (1024, 768)
     spec = pattern_spec_from_args(args, width, height, args.center)
     inputs = [p for p in (args.rig, args.scene) if p and Path(p).is_file()]
-    check_no_overwrite(_outputs(out, spec, args.views, args.format), inputs)
+    check_no_overwrite(_outputs(out, spec, args.views, args.format, 2 if rig.camera2 is not None else 1), inputs)
     settings = _settings(args)
     t0 = time.perf_counter()
     scan = simulate_scan(args.out, scene=args.scene, rig=rig, patterns=spec, views=args.views, settings=settings,
                          device=args.device, progress=not args.no_progress, size_mm=args.size_mm, up=args.up,
                          image_format=args.format, pose=args.pose, place=place, wall_z=args.wall)
     n_frames = len(scan.views[0].frames) if scan.views else 0
-    print(f"{len(scan.views)} view(s) x {n_frames} {spec.codec} frame(s) of {args.scene} "
+    print(f"{len(scan.views)} view(s) x {n_frames} {spec.codec} frame(s){' x 2 cameras' if rig.camera2 else ''} "
+          f"of {args.scene} "
           f"({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in {time.perf_counter() - t0:.1f} s "
           f"-> {scan.folder} (truth in {scan.folder / 'truth'})")
     return 0

@@ -12,10 +12,10 @@ gives a point, is listed in ``OUT/batch_report.json`` and the batch goes on.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
-from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.pipeline.batch.discover import ScanPlan, find_scans, iter_scans, out_folder, plan_scan
@@ -24,13 +24,20 @@ from ringscan.pipeline.batch.ray_backend import init_ray, run_ray
 from ringscan.pipeline.batch.report import BATCH_REPORT_FORMAT, TIME_FIELDS, format_table, summarise
 from ringscan.pipeline.batch.worker import ScanJob
 from ringscan.pipeline.formats.atomic import (
-    atomic_write_json,
     check_output_folder,
     lock_folder,
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.formats.storage import (
+    check_location,
+    find_scan_urls,
+    is_url,
+    join_location,
+    local_path,
+    write_json_to,
+)
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
@@ -61,11 +68,19 @@ def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
     return max(1, os.cpu_count() or 1), [device]
 
 
-def _root_and_scans(root, skipped: list | None = None) -> tuple[Path, list[Path]]:
-    root = Path(root)
+def _root_and_scans(root, skipped: list | None = None, storage_options: dict | None = None):
+    notes: list = []
+    if is_url(root):
+        root = str(root).rstrip("/")
+        scans = find_scan_urls(root, storage_options, skipped=notes)
+        if skipped is not None:
+            skipped.extend({"path": path, "why": why} for path, why in notes)
+        if not scans:
+            raise RingscanError(f"{root}: no scan.json found below this location")
+        return root, scans
+    root = local_path(root)
     if not root.is_dir():
         raise RingscanError(f"{root}: not a folder" if root.exists() else f"{root}: not found")
-    notes: list = []
     scans = find_scans(root, skipped=notes)
     for path, why in notes:
         log.warning("%s: %s", path, why)
@@ -78,24 +93,26 @@ def _root_and_scans(root, skipped: list | None = None) -> tuple[Path, list[Path]
 
 
 def plan_batch(root, out_root, *, settings: ReconstructSettings = ReconstructSettings(),
-               skipped: list | None = None) -> list[ScanPlan]:
+               skipped: list | None = None, storage_options: dict | None = None) -> list[ScanPlan]:
     """What ``batch_reconstruct`` would do with each scan and why (``--dry-run``); writes nothing.
 
     ``skipped``, when given, receives what the search passed over (see the report's ``not_searched``).
+    ``storage_options``: fsspec options where ``root`` or ``out_root`` is a URL.
     """
-    root, scans = _root_and_scans(root, skipped)
-    out_root = Path(out_root)
+    root, scans = _root_and_scans(root, skipped, storage_options)
+    out_root = out_root.rstrip("/") if is_url(out_root) else local_path(out_root)
     plans = []
     for folder in scans:
         rel, out = out_folder(folder, root, out_root)
-        plans.append(plan_scan(folder, rel, out, settings=settings))
+        plans.append(plan_scan(folder, rel, out, settings=settings, storage_options=storage_options))
     return plans
 
 
 def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = ReconstructSettings(),
                       device: str | None = None, workers: int | None = None, backend: str = "local",
                       address: str | None = None, fuse: bool = False, mesh: bool = False,
-                      cpu_threads: int | None = None, progress: bool = True) -> dict:
+                      cpu_threads: int | None = None, progress: bool = True,
+                      storage_options: dict | None = None) -> dict:
     """Reconstruct every scan below ``root`` into ``out_root``; returns the batch report.
 
     Args:
@@ -112,6 +129,9 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
         cpu_threads: CPU threads of each local worker (None: the cores shared out
             among the workers). Results do not depend on it.
         progress: show a progress bar.
+        storage_options: fsspec options (credentials, ``endpoint_url`` ...) where ``root`` or ``out_root``
+            is a URL (``s3://bucket/prefix``, ``gs://``...; docs/batch.md, "Scans on S3"). On object storage
+            OUT is not locked (one run at a time is the user's to keep) and every result is one whole object.
 
     Returns:
         The report (also ``out_root/batch_report.json``): ``scans`` (one entry per
@@ -123,7 +143,10 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
         FormatError: ``out_root`` cannot be an output folder, or another run holds it
             (:func:`~ringscan.pipeline.formats.atomic.lock_folder`).
         RingscanError: no scan below ``root``; the Ray cluster at ``address`` does not
-            answer. Nothing is written then.
+            answer; a bucket that is not there, credentials refused, a storage endpoint
+            that does not answer (:class:`~ringscan.pipeline.formats.storage.StorageError`).
+            Nothing is written then. The output bucket going away mid-batch stops the batch
+            with a StorageError naming the URL.
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
@@ -133,19 +156,27 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
                                     or cpu_threads < 1):
         raise ValueError(f"cpu_threads: expected a whole number >= 1, got {cpu_threads!r}")
     skipped: list = []
-    root, scans = _root_and_scans(root, skipped)
-    out_root = check_output_folder(out_root, what="batch's output folder")
+    root, scans = _root_and_scans(root, skipped, storage_options)
+    remote_out = is_url(out_root)
+    if remote_out:
+        out_root = str(out_root).rstrip("/")
+        check_location(out_root, storage_options, what="batch's output folder")
+    else:
+        out_root = check_output_folder(local_path(out_root), what="batch's output folder")
     for folder in scans:
         out_folder(folder, root, out_root)  # every scan's output folder has a name below out_root
     if backend == "local" and device not in (None, "", "auto", "cpu"):
         resolve_device(device)  # an unknown device is the command's error, not every scan's (Ray: on the nodes)
     ray_started = init_ray(address) if backend == "ray" else False  # fails fast, before anything is written
+    run = functools.partial(_batch, root, scans, skipped, out_root, settings=settings, device=device,
+                            workers=workers, backend=backend, address=address, fuse=fuse, mesh=mesh,
+                            cpu_threads=cpu_threads, progress=progress, storage_options=storage_options)
     try:
+        if remote_out:  # no lock on object storage (docs/batch.md)
+            return run()
         out_root.mkdir(parents=True, exist_ok=True)
         with lock_folder(out_root, what="batch"):
-            return _batch(root, scans, skipped, out_root, settings=settings, device=device, workers=workers,
-                          backend=backend, address=address, fuse=fuse, mesh=mesh, cpu_threads=cpu_threads,
-                          progress=progress)
+            return run()
     finally:
         if ray_started:
             import ray
@@ -154,15 +185,19 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
 
 
 def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend, address, fuse, mesh, cpu_threads,
-           progress) -> dict:
+           progress, storage_options) -> dict:
     from ringscan.pipeline.formats.progress import progress_bar
 
-    remove_stale_temporaries(out_root)
+    remote_out = is_url(out_root)
+    if not remote_out:
+        remove_stale_temporaries(out_root)
+    report_path = join_location(out_root, "batch_report.json") if remote_out else out_root / "batch_report.json"
 
     def jobs():
         for folder in scans:
             rel, out = out_folder(folder, root, out_root)
-            yield ScanJob(folder=str(folder), rel=rel, out=str(out), settings=settings, fuse=fuse, mesh=mesh)
+            yield ScanJob(folder=str(folder), rel=rel, out=str(out), settings=settings, fuse=fuse, mesh=mesh,
+                          storage_options=storage_options)
 
     if backend == "ray":
         n_workers = None
@@ -176,7 +211,8 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
         else:
             devices = [devices[i % len(devices)] for i in range(n_workers)]
             results = run_local(jobs(), workers=n_workers, devices=devices, cpu_threads=cpu_threads)
-    report = {"format": BATCH_REPORT_FORMAT, "root": str(root.resolve()), "backend": backend,
+    report = {"format": BATCH_REPORT_FORMAT, "root": root if is_url(root) else str(root.resolve()),
+              "backend": backend,
               "workers": n_workers, "settings": settings_to_dict(settings), "not_searched": skipped, "scans": []}
     entries: dict[int, dict] = {}
     t0 = time.perf_counter()
@@ -194,11 +230,11 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
             el = time.perf_counter() - t0
             bar.set_postfix_str(f"{computed / el if el > 0 else 0:.2f} views/s")
             report["scans"] = [entries[k] for k in sorted(entries)]
-            atomic_write_json(out_root / "batch_report.json", report)
+            write_json_to(report_path, report, storage_options)
     finally:
         bar.close()
     report["scans"] = [entries[k] for k in sorted(entries)]
     report["totals"] = summarise(report["scans"], wall_s=time.perf_counter() - t0)
     report["totals"]["first_result_s"] = first  # starting the workers (Warp, kernel cache) and the first scan
-    atomic_write_json(out_root / "batch_report.json", report)
+    write_json_to(report_path, report, storage_options)
     return report

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.storage import is_url, join_location, stage
 from ringscan.pipeline.reconstruct.freshness import check_done
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
@@ -89,14 +90,21 @@ def find_scans(root: str | os.PathLike, *, skipped: list | None = None) -> list[
     return sorted(iter_scans(root, skipped=skipped))
 
 
-def out_folder(folder: Path, root: Path, out_root: Path) -> tuple[str, Path]:
-    """A scan's name in the batch (its path relative to ``root``) and its output folder."""
+def out_folder(folder, root, out_root):
+    """A scan's name in the batch (its path relative to ``root``) and its output folder (a URL below a URL)."""
+    if isinstance(folder, str) and is_url(folder):
+        rel = folder[len(root):].strip("/") if folder != root else folder.rstrip("/").rsplit("/", 1)[-1]
+        if not rel or any(p in ("", ".", "..") for p in rel.split("/")):
+            raise RingscanError(f"{folder}: cannot name its output folder below {out_root}")
+        return rel, (join_location(out_root, rel) if is_url(out_root) else Path(out_root) / rel)
     # the root itself is named by its real name: a ROOT given as ``.`` or ``SCAN/view_000/..`` has none of its own,
     # and ``out_root / ".."`` would write above the output folder
     rel = folder.relative_to(root) if folder != root else Path(Path(os.path.abspath(folder)).resolve().name)
     if not rel.parts or any(p in ("", ".", "..") for p in rel.parts):
         raise RingscanError(f"{folder}: cannot name its output folder below {out_root} (give the scan folder by "
                             "its own name)")
+    if is_url(out_root):
+        return rel.as_posix(), join_location(out_root, rel.as_posix())
     return rel.as_posix(), out_root / rel
 
 
@@ -114,16 +122,21 @@ class ScanPlan:
     """The views to redo and why, or the error."""
 
 
-def plan_scan(folder: Path, rel: str, out: Path, *, settings: ReconstructSettings) -> ScanPlan:
-    """Decide, as a run would (:func:`~ringscan.pipeline.reconstruct.freshness.check_done`), what to do with a scan."""
+def plan_scan(folder, rel: str, out, *, settings: ReconstructSettings,
+              storage_options: dict | None = None) -> ScanPlan:
+    """Decide, as a run would (:func:`~ringscan.pipeline.reconstruct.freshness.check_done`), what to do with a scan
+    (on object storage: from its listing and its results, without downloading its frames)."""
     try:
-        scan = load_scan(folder)
-        check = check_done(scan, out, settings=settings)
+        with stage(folder, out, options=storage_options) as st:
+            scan = load_scan(st.scan_dir, check_files=not st.remote_scan)
+            st.check_scan(scan)
+            check = check_done(scan, st.out_dir, settings=settings, stat=st.stat)
+            had_report = (st.out_dir / "report.json").exists()
     except (RingscanError, ValueError, OSError) as e:
         return ScanPlan(rel, "run", "unreadable", str(e))
     if check.done and check.kept:
         return ScanPlan(rel, "skip", "done")
-    if check.report is None and not (out / "report.json").exists():
+    if check.report is None and not had_report:
         return ScanPlan(rel, "run", "new")
     reasons = list(dict.fromkeys(check.redo.values()))
     detail = "; ".join(f"{n}: {why}" for n, why in check.redo.items())

@@ -8,7 +8,9 @@ and the scan resumes through the freshness check (views finished by the dead
 attempt are kept, the rest redone), so each result is written whole, once.
 
 Scan folders and the output folder must be at the same path on every node (a
-shared file system); nothing is shipped to the workers but the job's paths.
+shared file system), or URLs of object storage every node reaches (each task then
+stages its scan: :mod:`ringscan.pipeline.formats.storage`); nothing is shipped to the
+workers but the job's paths or URLs (and its storage options).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ringscan.pipeline.batch.worker import STAGES
+from ringscan.pipeline.batch.worker import STAGES, STORAGE_STAGES
 
 __all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS", "RUN_FIELDS", "read_results"]
 
@@ -51,7 +51,8 @@ def format_table(entries: list[dict], totals: dict) -> str:
                  f"{totals['wall_s']:.1f} s ({totals['views_per_s']:.2f} views/s)")
     if totals["computed_views"]:
         pv = totals["per_view_s"]
-        lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in (*STAGES, "other")))
+        keys = (*STAGES, "other", *(k for k in STORAGE_STAGES if k in pv))
+        lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in keys))
     return "\n".join(lines)
 
 

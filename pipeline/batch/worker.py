@@ -25,6 +25,7 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remov
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.storage import stage
 from ringscan.pipeline.fusion.recon import fuse_recon
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.reconstruct.freshness import check_done
@@ -33,11 +34,15 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ScanJob", "STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
+__all__ = ["ScanJob", "STAGES", "STORAGE_STAGES", "FAULT_ENV", "CRASH_ENV", "RAISE_ENV", "init_worker", "worker_device", "process_scan",
            "failed_entry", "describe_error"]
 
 STAGES = ("read", "decode", "sample", "triangulate", "write")
 """The per-view time split the batch report sums (the rest of a view's stages are listed as ``other``)."""
+
+STORAGE_STAGES = ("fetch", "store")
+"""A scan's seconds on object storage (downloading its objects, uploading its results), in its ``times_s``
+only where the scan or its output folder is a URL."""
 
 FAULT_ENV = "RINGSCAN_BATCH_FAULT"
 """Fault injection for tests and benchmarks: the path of a marker file. The first
@@ -72,6 +77,8 @@ class ScanJob:
     """Fuse the views into ``out/fused/fused.ply``."""
     mesh: bool = False
     """Fuse and mesh into ``out/mesh/`` (fused.ply, mesh.ply, fuse_report.json)."""
+    storage_options: dict | None = None
+    """fsspec options of ``folder`` and ``out`` where they are URLs (``s3://``, ``gs://``: docs/batch.md)."""
 
 
 def _exit_with_parent(parent: int) -> None:
@@ -142,47 +149,64 @@ def _split(views: list[dict]) -> dict:
 
 
 def process_scan(job: ScanJob) -> dict:
-    """Process one scan; never raises for a bad scan (the entry says ``failed`` and why)."""
+    """Process one scan; never raises for a bad scan (the entry says ``failed`` and why).
+
+    A scan or output folder given as a URL is staged (:func:`~ringscan.pipeline.formats.storage.stage`): the
+    frames are downloaded only when a view is computed, the results uploaded whole once the scan is done.
+    """
     t = time.perf_counter()
-    out = Path(job.out)
     entry: dict = {"scan": job.rel, "out": job.out}
     try:
-        scan = load_scan(job.folder)
-        if not scan.views:
-            raise RingscanError(f"{scan.path}: the scan has no views")
-        check = check_done(scan, out, settings=job.settings)
-        if check.done and check.kept:
-            # A worker killed with the pool (another scan crashed it) may have left a temporary file here
-            # after this scan's last write (reconstruct_scan clears them where the scan is (re)done).
-            remove_stale_temporaries(out)
-            views = list(check.kept.values())
-            computed: list[dict] = []
-            entry["status"] = "skipped (already done)"
-        else:
-            if check.report is not None:
-                entry["redone"] = check.redo
-            _maybe_fault(scan, job.rel, out, job.settings)
-            rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
-                                   progress=False, lock=False)  # the batch holds its output folder
-            views = rep["views"]
-            kept = set(rep.get("resume", {}).get("kept", []))
-            computed = [v for v in views if v["name"] not in kept]
-            entry["status"] = "done"
-        entry["views"] = len(views)
-        entry["computed_views"] = len(computed)
-        entry["points"] = sum(int(v.get("points", 0)) for v in views)
-        entry["times_s"] = _split(computed)
-        if entry["points"] == 0:
-            reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in views))
-            raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")
-        if job.mesh or job.fuse:
-            entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
+        with stage(job.folder, job.out, options=job.storage_options) as st:
+            _process(job, st, entry)
+            st.commit()
+            if st.remote_scan or st.remote_out:  # object storage: the scan's downloads and uploads
+                entry["times_s"].update(st.seconds)
     except Exception as e:  # noqa: BLE001 - one scan's failure of any kind (a library's own exception too) fails
         # that scan alone; the batch goes on
         log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name
         entry.update(status="failed", error=describe_error(e))
     entry["time_s"] = time.perf_counter() - t
     return entry
+
+
+def _process(job: ScanJob, st, entry: dict) -> None:
+    out = st.out_dir
+    scan = load_scan(st.scan_dir, check_files=not st.remote_scan)
+    st.check_scan(scan)
+    if not scan.views:
+        raise RingscanError(f"{job.folder}/scan.json: the scan has no views")
+    check = check_done(scan, out, settings=job.settings, stat=st.stat)
+    if check.done and check.kept:
+        # A worker killed with the pool (another scan crashed it) may have left a temporary file here
+        # after this scan's last write (reconstruct_scan clears them where the scan is (re)done).
+        remove_stale_temporaries(out)
+        views = list(check.kept.values())
+        computed: list[dict] = []
+        entry["status"] = "skipped (already done)"
+    else:
+        if check.report is not None:
+            entry["redone"] = check.redo
+        st.fetch_frames(scan)
+        _maybe_fault(scan, job.rel, out, job.settings)
+        rep = reconstruct_scan(scan, out, settings=job.settings, device=worker_device(), resume=True,
+                               progress=False, lock=False)  # the batch holds its output folder
+        views = rep["views"]
+        kept = set(rep.get("resume", {}).get("kept", []))
+        computed = [v for v in views if v["name"] not in kept]
+        entry["status"] = "done"
+    entry["views"] = len(views)
+    entry["computed_views"] = len(computed)
+    entry["points"] = sum(int(v.get("points", 0)) for v in views)
+    entry["times_s"] = _split(computed)
+    st.commit()  # on object storage: the reconstruction stored, as it is on disk by now
+    if entry["points"] == 0:
+        reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in views))
+        raise RingscanError(f"no view gave any point: {'; '.join(reasons)}")
+    if job.mesh or job.fuse:
+        entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
+        if st.remote_out:
+            entry["fused_out"] = job.out.rstrip("/") + "/" + ("mesh" if job.mesh else "fused")
 
 
 def describe_error(e: BaseException) -> str:

@@ -1,10 +1,19 @@
 """Column/row Gray-code captures (OpenCV's structured-light layout) -> projector coordinates.
 
-A capture is one folder of frames ``graycode_00.png`` ... of a camera watching a
-projector of W_p x H_p pixels show the binary-reflected Gray code of each column
+A capture is the frames of a camera (or of two cameras) watching a projector of
+W_p x H_p pixels show the binary-reflected Gray code of each column
 (``ceil(log2 W_p)`` bits, most significant first) and each row (``ceil(log2 H_p)``
 bits), every pattern followed by its inverse, plus a white and a black frame.
-Two orders of white/black are read (``LAYOUTS``):
+Three ways of naming the frames are read (:func:`list_capture`, ``CAPTURE_INPUTS``):
+
+- a folder of ``graycode_00.png`` ... (numbered from 0; one camera);
+- a folder of ``pattern_cam1_im1.png`` ... ``pattern_cam2_im44.png`` (OpenCV's
+  structured-light sample, ``cap_pattern``: numbered from 1, one or two cameras);
+- an image list as ``cv::FileStorage`` writes it (YAML, XML or JSON:
+  ``cam1: [paths...]`` and optionally ``cam2: [...]``, in capture order; paths
+  relative to the list's folder, or absolute), as OpenCV's sample reads it.
+
+PNG, TIFF, JPEG and BMP frames are read. Two orders of white/black are read (``LAYOUTS``):
 
 - ``opencv-graycode``: column pairs, row pairs, then white, black: the files of
   OpenCV's ``GrayCodePattern.generate`` followed by ``getImagesForShadowMasks``, as in
@@ -42,15 +51,31 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 
-__all__ = ["LAYOUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "graycode_bits", "read_capture",
-           "decode_graycode", "subpixel_map"]
+__all__ = ["LAYOUTS", "CAPTURE_INPUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
+           "graycode_bits", "list_capture", "check_capture_sizes", "read_capture", "read_capture_files",
+           "decode_graycode", "subpixel_map", "open_filestorage"]
 
 log = logging.getLogger(__name__)
 
 LAYOUTS = ("opencv-graycode", "opencv-graycode-wb-first")
 """Known capture layouts (see the module docstring)."""
 
-FRAME_RE = re.compile(r"^graycode_(\d+)\.(png|tif|tiff|bmp|jpg)$", re.IGNORECASE)
+CAPTURE_INPUTS = (
+    "a folder of graycode_NN.<ext> (from 00, one camera)",
+    "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2)",
+    "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths], cam2: [paths])",
+)
+"""What ``ringscan import`` takes as a capture (one view each); <ext> is png, tif(f), jpg/jpeg or bmp."""
+
+IMAGE_EXT = r"(png|tif|tiff|bmp|jpg|jpeg)"
+FRAME_RE = re.compile(rf"^graycode_(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
+SAMPLE_RE = re.compile(rf"^pattern_cam(\d+)_im(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
+LIST_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
+"""An image-list capture is a file with one of these suffixes."""
+MAX_LIST_BYTES = 16 * 1024 * 1024
+"""Largest image-list file read."""
+MAX_FRAMES = 4096
+"""Most frames per camera in one capture (2 x 2 x 16 bits + 2 is 66)."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +138,22 @@ def graycode_bits(projector: tuple[int, int]) -> tuple[int, int]:
     return int(math.ceil(math.log2(w))), int(math.ceil(math.log2(h)))
 
 
+@dataclass(frozen=True)
+class CaptureFiles:
+    """The frame files of one capture, per camera, in capture order (:func:`list_capture`)."""
+
+    source: Path
+    """The capture folder or the image-list file."""
+    kind: str
+    """``graycode`` (graycode_NN names), ``pattern`` (pattern_camN_imK names) or ``list`` (an image list)."""
+    cameras: tuple[tuple[Path, ...], ...]
+    """Camera 1's frames, then camera 2's (when the capture has two cameras)."""
+
+    def frames_of(self, camera: int) -> tuple[Path, ...]:
+        """The frames of camera 1 or 2."""
+        return self.cameras[camera - 1]
+
+
 def capture_frames(folder: Path) -> list[Path]:
     """The ``graycode_NN`` frames of a capture folder, in numeric order."""
     if not folder.is_dir():
@@ -129,8 +170,201 @@ def capture_frames(folder: Path) -> list[Path]:
     return [p for _, p in found]
 
 
+def _want(projector, layout) -> tuple[int, str]:
+    cb, rb = graycode_bits(projector)
+    return 2 + 2 * (cb + rb), (f"a {projector[0]}x{projector[1]} projector in layout {layout} has {2 + 2 * (cb + rb)} "
+                               f"({cb} column and {rb} row bits, each with its inverse, white and black)")
+
+
+def _fit_hint(n: int) -> str:
+    """What projector a frame count fits: n = 2 (column + row bits) + 2."""
+    if n < 6 or n % 2:
+        return ""
+    bits = (n - 2) // 2
+    return f" ({n} frames fit {bits} column + row bits; a 1024x768 projector has 10 + 10, 1280x800 11 + 10)"
+
+
+def _sample_frames(folder: Path, entries: list[str], *, projector, layout) -> tuple[tuple[Path, ...], ...]:
+    """pattern_camN_imK frames of a folder, per camera, numbered from 1."""
+    cams: dict[int, list[tuple[int, Path]]] = {}
+    for name in entries:
+        m = SAMPLE_RE.match(name)
+        if m:
+            cams.setdefault(int(m.group(1)), []).append((int(m.group(2)), folder / name))
+    others = sorted(c for c in cams if c not in (1, 2))
+    if others:
+        raise CalibrationError(folder, f"frames of camera {others[0]} (pattern_cam{others[0]}_imK): ringscan reads "
+                                       "cameras 1 and 2")
+    if 1 not in cams:
+        raise CalibrationError(folder, "camera 1's frames are missing: only pattern_cam2_imK frames (a capture needs "
+                                       "camera 1's frames, and camera 2's for a two-camera scan)")
+    want, what = _want(projector, layout)
+    out = []
+    for c in sorted(cams):
+        found = sorted(cams[c])
+        idx = [i for i, _ in found]
+        if len(set(idx)) != len(idx):
+            dup = next(i for i in idx if idx.count(i) > 1)
+            raise CalibrationError(folder, f"two files for frame pattern_cam{c}_im{dup} (one extension each, please)")
+        if len(found) != want:
+            raise CalibrationError(folder, f"{len(found)} pattern_cam{c}_imK frames, but {what}: wrong --projector?"
+                                           f"{_fit_hint(len(found))}")
+        if idx != list(range(1, want + 1)):
+            gap = next(k for k in range(1, want + 1) if k not in idx)
+            raise CalibrationError(folder, f"pattern_cam{c}_imK frames are not numbered 1..{want}: "
+                                           f"pattern_cam{c}_im{gap} is missing")
+        out.append(tuple(p for _, p in found))
+    return tuple(out)
+
+
+def open_filestorage(path, *, what: str, max_bytes: int = MAX_LIST_BYTES):
+    """Open an OpenCV FileStorage file (YAML, XML or JSON) for reading: a regular file of at most
+    ``max_bytes``, parsed by OpenCV.
+
+    Raises:
+        CalibrationError: naming the file: not found, not a regular file, too large, or not
+            FileStorage (with OpenCV's line and reason).
+    """
+    import cv2
+
+    from ringscan.pipeline.formats.limits import check_regular_file
+
+    path = Path(path)
+    check_regular_file(path, what=what, max_bytes=max_bytes)  # a FIFO would block OpenCV
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except Exception as e:  # cv2.error, or SystemError wrapping it (OpenCV 5)
+        msg = str(e.__cause__ or e)
+        m = re.search(r"\((\d+)\): ([^'\n]*)", msg)
+        why = f": line {m.group(1)}: {m.group(2).strip()}" if m else ""
+        raise CalibrationError(path, f"not an OpenCV FileStorage file (YAML, XML or JSON as cv::FileStorage "
+                                     f"writes it){why}") from None
+    if not fs.isOpened():
+        raise CalibrationError(path, "not an OpenCV FileStorage file (YAML, XML or JSON as cv::FileStorage writes it)")
+    return fs
+
+
+def _list_frames(path: Path, *, projector, layout) -> tuple[tuple[Path, ...], ...]:
+    """The frames of an image list: ``cam1: [...]``, optionally ``cam2: [...]``."""
+    fs = open_filestorage(path, what="image list")
+    try:
+        keys = list(fs.root().keys())
+        lists = {}
+        for c in (1, 2):
+            node = fs.getNode(f"cam{c}")
+            if node.empty() or node.isNone():
+                continue
+            if not node.isSeq():
+                raise CalibrationError(path, f"cam{c}: expected a list of image paths")
+            if node.size() > MAX_FRAMES:
+                raise CalibrationError(path, f"cam{c}: {node.size()} entries (at most {MAX_FRAMES} are read)")
+            items = []
+            for i in range(node.size()):
+                it = node.at(i)
+                if not it.isString() or not it.string():
+                    raise CalibrationError(path, f"cam{c}[{i}]: expected an image path (a string)")
+                items.append(it.string())
+            lists[c] = items
+    finally:
+        fs.release()
+    if 1 not in lists:
+        got = ", ".join(keys[:5]) or "nothing"
+        raise CalibrationError(path, f"no cam1 list (an image list has cam1: [paths...] and optionally cam2: "
+                                     f"[paths...]; this file has {got})" if 2 not in lists else
+                                     "camera 1's frames are missing: a cam2 list but no cam1 list")
+    want, what = _want(projector, layout)
+    out = []
+    for c, items in sorted(lists.items()):
+        if len(items) != want:
+            raise CalibrationError(path, f"cam{c} lists {len(items)} frames, but {what}: wrong --projector?"
+                                         f"{_fit_hint(len(items))}")
+        paths = []
+        for i, rel in enumerate(items):
+            if "\0" in rel:
+                raise CalibrationError(path, f"cam{c}[{i}]: the path contains a NUL character")
+            p = Path(rel)
+            p = p if p.is_absolute() else path.parent / p
+            if not p.is_file():
+                why = "not found" if not p.exists() else "not a regular file"
+                raise CalibrationError(path, f"cam{c}[{i}]: {rel} {why} ({p}; paths are relative to the list's "
+                                             "folder)")
+            if not re.search(rf"\.{IMAGE_EXT}$", p.name, re.IGNORECASE):
+                raise CalibrationError(path, f"cam{c}[{i}]: {rel} is not a PNG, TIFF, JPEG or BMP file name")
+            paths.append(p)
+        out.append(tuple(paths))
+    return tuple(out)
+
+
+def list_capture(path, *, projector: tuple[int, int], layout: str = "opencv-graycode") -> CaptureFiles:
+    """The frame files of one capture: a folder of ``graycode_NN`` or ``pattern_camN_imK`` frames, or an
+    image list (see the module docstring), checked: names, frame counts against the projector size,
+    every listed file there. Nothing is decoded.
+
+    Raises:
+        CalibrationError: naming the folder or file: not found, no frames of a known name (the
+            names found), both kinds of names, a count that does not fit the projector, a gap in the
+            numbering, camera 1's frames missing, a listed file that does not exist, an image list
+            that is not FileStorage.
+    """
+    path = Path(path)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    if path.is_file() or (path.suffix.lower() in LIST_SUFFIXES and not path.is_dir()):
+        if path.suffix.lower() not in LIST_SUFFIXES:
+            raise CalibrationError(path, "a capture is a folder of frames or an image list (.yml, .yaml, .xml, "
+                                         ".json), not this file")
+        return CaptureFiles(source=path, kind="list", cameras=_list_frames(path, projector=projector, layout=layout))
+    if not path.is_dir():
+        raise CalibrationError(path, "capture folder not found")
+    entries = sorted(p.name for p in path.iterdir())
+    n_gc = sum(1 for e in entries if FRAME_RE.match(e))
+    n_sample = sum(1 for e in entries if SAMPLE_RE.match(e))
+    if n_gc and n_sample:
+        raise CalibrationError(path, f"both graycode_NN ({n_gc}) and pattern_camN_imK ({n_sample}) frames: one "
+                                     "capture per folder")
+    if n_sample:
+        return CaptureFiles(source=path, kind="pattern",
+                            cameras=_sample_frames(path, entries, projector=projector, layout=layout))
+    if not n_gc:
+        imgs = [e for e in entries if re.search(rf"\.{IMAGE_EXT}$", e, re.IGNORECASE)]
+        lists = [e for e in entries if Path(e).suffix.lower() in LIST_SUFFIXES]
+        seen = (f"; found {len(imgs)} image(s) of other names, e.g. {', '.join(imgs[:3])}" if imgs else
+                "; it holds no PNG, TIFF, JPEG or BMP image")
+        hint = f" (to import an image list, give the list: {path / lists[0]})" if lists else ""
+        raise CalibrationError(path, "no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext> "
+                                     f"(OpenCV's sample, from 1){seen}{hint}")
+    paths = capture_frames(path)
+    want, what = _want(projector, layout)
+    if len(paths) != want:
+        raise CalibrationError(path, f"{len(paths)} graycode_NN frames, but {what}: wrong --layout or "
+                                     f"--projector?{_fit_hint(len(paths))}")
+    return CaptureFiles(source=path, kind="graycode", cameras=(tuple(paths),))
+
+
+def check_capture_sizes(files: CaptureFiles) -> list[tuple[int, int]]:
+    """Each camera's frame size (width, height), from the files' headers (nothing decoded).
+
+    Raises:
+        FormatError / CalibrationError: naming the file: unreadable header, too large, or a frame of
+            another size than the camera's first frame.
+    """
+    from ringscan.pipeline.formats.limits import check_image_header
+
+    sizes = []
+    for c, frames in enumerate(files.cameras, start=1):
+        first = check_image_header(frames[0])
+        for p in frames[1:]:
+            wh = check_image_header(p)
+            if wh != first:
+                cam = f" (camera {c})" if len(files.cameras) > 1 and files.kind != "pattern" else ""
+                raise CalibrationError(p, f"frame is {wh[0]}x{wh[1]}, {frames[0].name}{cam} is {first[0]}x{first[1]}: "
+                                          "every frame of a camera must have one size")
+        sizes.append(first)
+    return sizes
+
+
 def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-graycode") -> GrayCodeCapture:
-    """Read one capture folder and sort its frames by ``layout``.
+    """Read one capture folder of ``graycode_NN`` frames and sort its frames by ``layout``.
 
     Raises:
         CalibrationError: no frames, a frame count that does not fit the projector
@@ -146,6 +380,26 @@ def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-gr
         raise CalibrationError(folder, f"{len(paths)} graycode_NN frames, but a {projector[0]}x{projector[1]} "
                                        f"projector in layout {layout} has {want} ({cb} column and {rb} row bits, "
                                        "each with its inverse, white and black): wrong --layout or --projector?")
+    return read_capture_files(paths, projector=projector, layout=layout, source=folder)
+
+
+def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "opencv-graycode",
+                       source=None) -> GrayCodeCapture:
+    """Read one camera's frames of a capture (in capture order) and sort them by ``layout``.
+
+    Raises:
+        CalibrationError: a frame count that does not fit the projector size, frames of
+            different sizes, or white darker than black (the wrong layout), naming ``source``.
+    """
+    paths = [Path(p) for p in paths]
+    source = Path(source) if source is not None else (paths[0].parent if paths else None)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    cb, rb = graycode_bits(projector)
+    want = 2 + 2 * (cb + rb)
+    if len(paths) != want:
+        raise CalibrationError(source, f"{len(paths)} frames, but a {projector[0]}x{projector[1]} projector in "
+                                       f"layout {layout} has {want}")
     frames = []
     for p in paths:
         img = read_image(p)
@@ -155,12 +409,13 @@ def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-gr
         scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
         frames.append(img.astype(np.float32) * np.float32(scale))
     fr = np.stack(frames)
+    del frames
     if layout == "opencv-graycode":
         pairs, white, black = fr[:-2], fr[-2], fr[-1]
     else:
         white, black, pairs = fr[0], fr[1], fr[2:]
     pairs = pairs.reshape(cb + rb, 2, *fr.shape[1:])
-    cap = GrayCodeCapture(folder=folder, white=white, black=black, col_pairs=pairs[:cb], row_pairs=pairs[cb:],
+    cap = GrayCodeCapture(folder=source, white=white, black=black, col_pairs=pairs[:cb], row_pairs=pairs[cb:],
                           projector=(int(projector[0]), int(projector[1])))
     check_layout(cap, layout)
     return cap

@@ -1,16 +1,23 @@
 """Real Gray-code captures -> a ringscan scan folder of the ``decoded`` codec (docs/design.md §7).
 
-:func:`import_captures` decodes every capture folder (one view each) to sub-pixel
+:func:`import_captures` decodes every capture (one view each: a folder of frames or an
+image list, :func:`~ringscan.pipeline.calibrate.graycode.list_capture`) to sub-pixel
 projector positions (:mod:`graycode`) and writes them as the ``decoded`` codec's
 frames (docs/formats.md), with the rig; ``ringscan reconstruct`` then meets each
 pixel's camera ray with the cone of its rho = |p - c| around the projector's
-principal point and picks the root by its polar angle.
+principal point and picks the root by its polar angle. A capture of two cameras
+(OpenCV's structured-light sample) becomes a two-camera scan: camera 1's decoded
+frames are the view's, camera 2's go under the view's ``camera2``.
 
-:func:`read_opencv_calibration` reads an OpenCV calibration file (cam_int,
-cam_dist, proj_int, proj_dist, rotation (or 'roration'), translation;
-X_proj = R X_cam + T) into a rig; :func:`triangulate_codes` is the plain way
-(camera and projector rays through ``cv2.triangulatePoints``), used for the
-working volume of such a rig and by ``benchmarks/procam_plane.py``.
+:func:`read_opencv_calibration` reads an OpenCV camera-projector calibration file
+(cam_int, cam_dist, proj_int, proj_dist, rotation (or 'roration'), translation;
+X_proj = R X_cam + T); :func:`read_stereo_calibration` a camera-camera one as
+OpenCV's structured-light sample has it (cam1_intrinsics, cam1_distorsion,
+cam1_size, the same for cam2, R, T, RT_cam1_2_cam2; X_cam2 = R X_cam1 + T), which
+:func:`stereo_rig` turns into a two-camera rig in camera 1's frame.
+:func:`triangulate_codes` is the plain way (two views' rays through
+``cv2.triangulatePoints``), used for the working volume of such rigs and by
+``benchmarks/procam_plane.py``.
 """
 
 from __future__ import annotations
@@ -24,18 +31,42 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, read_capture, subpixel_map
+from ringscan.pipeline.calibrate.graycode import (
+    LIST_SUFFIXES,
+    GrayCodeSettings,
+    check_capture_sizes,
+    decode_graycode,
+    list_capture,
+    open_filestorage,
+    read_capture_files,
+    subpixel_map,
+)
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.formats.atomic import check_output_folder, lock_folder
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.limits import MAX_JSON_BYTES, check_regular_file
+from ringscan.pipeline.formats.limits import MAX_JSON_BYTES
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, parse_patterns
-from ringscan.pipeline.formats.rig import PerspectiveLight, Rig
+from ringscan.pipeline.formats.rig import (
+    Camera,
+    PerspectiveLight,
+    Rig,
+    UncalibratedLight,
+    Volume,
+    has_calibrated_light,
+    parse_rig,
+    rig_to_dict,
+)
 from ringscan.pipeline.formats.scan import Scan, View, check_view_name, save_scan
 
-__all__ = ["ImportSettings", "read_opencv_calibration", "triangulate_codes", "import_captures", "check_import_names",
-           "encode_decoded", "procam_pose"]
+__all__ = ["ImportSettings", "read_opencv_calibration", "read_stereo_calibration", "opencv_calibration_kind",
+           "stereo_rig", "triangulate_codes", "import_captures", "check_import_names", "encode_decoded",
+           "procam_pose", "CAMERA2_DIR"]
+
+CAMERA2_DIR = "cam2"
+"""Camera 2's decoded frames of a view go to ``<view>/cam2/`` in the scan folder."""
+STEREO_KEYS = ("cam1_intrinsics", "cam2_intrinsics")
+PROCAM_KEYS = ("cam_int", "proj_int")
 
 log = logging.getLogger(__name__)
 
@@ -63,19 +94,59 @@ def _mat(fs, path, *names):
     raise CalibrationError(path, f"missing {' or '.join(names)}")
 
 
+def _has(fs, name) -> bool:
+    node = fs.getNode(name)
+    return not (node.empty() or node.isNone())
+
+
+def _stereo_message(path) -> str:
+    return (f"a camera-camera (stereo) calibration ({', '.join(STEREO_KEYS)}, R, T): it does not calibrate the "
+            "projector, which a one-camera import needs. Import both cameras' captures with it (pattern_cam1/"
+            "pattern_cam2 frames or an image list: `ringscan import CAPTURE --rig "
+            f"{Path(path).name} --projector WxH --out SCAN`) for a two-camera scan, add the projector's calibration "
+            "with --projector-rig PROCAM, or calibrate the projector from that scan with `ringscan calibrate "
+            "projector-from-scan` (docs/calibration.md)")
+
+
+def opencv_calibration_kind(path) -> str:
+    """``procam`` (cam_int, proj_int, ...) or ``stereo`` (cam1_intrinsics, cam2_intrinsics, R, T) of an
+    OpenCV FileStorage calibration file.
+
+    Raises:
+        CalibrationError: naming the file: not FileStorage, or neither kind (with the keys it has).
+    """
+    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
+    try:
+        if all(_has(fs, k) for k in PROCAM_KEYS):
+            return "procam"
+        if any(_has(fs, k) for k in STEREO_KEYS):
+            return "stereo"
+        if any(_has(fs, k) for k in PROCAM_KEYS):
+            return "procam"  # read_opencv_calibration names what is missing
+        keys = ", ".join(list(fs.root().keys())[:8]) or "nothing"
+    finally:
+        fs.release()
+    raise CalibrationError(path, f"neither a camera-projector calibration (cam_int, cam_dist, proj_int, proj_dist, "
+                                 f"rotation, translation) nor a camera-camera one (cam1_intrinsics, cam1_distorsion, "
+                                 f"cam2_..., R, T); it has {keys}")
+
+
 def read_opencv_calibration(path) -> dict:
-    """An OpenCV FileStorage calibration (XML/YAML) as arrays.
+    """An OpenCV FileStorage camera-projector calibration (XML/YAML) as arrays.
 
     Returns:
         dict with cam_K, cam_dist, proj_K, proj_dist, R, T (X_proj = R X_cam + T) and
         cam_size ((W, H) from ``img_shape`` when present, else None).
+
+    Raises:
+        CalibrationError: naming the file; a camera-camera (stereo) file is named for what
+            it is, with what to do instead.
     """
     path = Path(path)
-    check_regular_file(path, what="calibration file", max_bytes=MAX_JSON_BYTES)  # a FIFO would block OpenCV
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CalibrationError(path, "not an OpenCV FileStorage file (XML/YAML)")
+    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
     try:
+        if not _has(fs, "cam_int") and any(_has(fs, k) for k in STEREO_KEYS):
+            raise CalibrationError(path, _stereo_message(path))
         out = {"cam_K": _mat(fs, path, "cam_int"), "cam_dist": _mat(fs, path, "cam_dist").ravel(),
                "proj_K": _mat(fs, path, "proj_int"), "proj_dist": _mat(fs, path, "proj_dist").ravel(),
                "R": _mat(fs, path, "rotation", "roration"), "T": _mat(fs, path, "translation").ravel()}
@@ -95,6 +166,115 @@ def read_opencv_calibration(path) -> dict:
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-4:
         raise CalibrationError(path, "rotation: not a rotation matrix")
     return out
+
+
+def _size_node(fs, path, name):
+    """(W, H) of a cv::Size node ([w, h]) or a 2-element matrix; None when absent."""
+    node = fs.getNode(name)
+    if node.empty() or node.isNone():
+        return None
+    if node.isSeq():
+        vals = [node.at(i).real() for i in range(node.size())]
+    else:
+        m = node.mat()
+        vals = [] if m is None else list(np.asarray(m, float).ravel())
+    if len(vals) != 2 or not all(np.isfinite(vals)) or any(v != int(v) or not 0 < v <= 65536 for v in vals):
+        raise CalibrationError(path, f"{name}: expected an image size [width, height], got {vals}")
+    return int(vals[0]), int(vals[1])
+
+
+def _dist5(path, name, d) -> np.ndarray:
+    """OpenCV distortion -> (k1, k2, p1, p2, k3): 4 or 5 coefficients, or more when the rest are 0."""
+    d = np.asarray(d, float).ravel()
+    if d.size < 4 or not np.all(np.isfinite(d)):
+        raise CalibrationError(path, f"{name}: expected 4 or more finite distortion coefficients, got {d.size}")
+    if d.size > 5 and np.any(d[5:] != 0):
+        raise CalibrationError(path, f"{name}: {d.size} coefficients (OpenCV's rational or thin-prism model): ringscan "
+                                     "reads k1, k2, p1, p2, k3 only")
+    return np.concatenate([d[:5], np.zeros(max(0, 5 - d.size))])
+
+
+def read_stereo_calibration(path) -> dict:
+    """An OpenCV FileStorage camera-camera calibration as OpenCV's structured-light sample has it.
+
+    Keys: ``cam1_intrinsics``, ``cam1_distorsion`` (sic; ``cam1_distortion`` too), optional
+    ``cam1_size`` ([width, height]), the same for cam2, and ``R``, ``T`` (X_cam2 = R X_cam1 + T)
+    or ``RT_cam1_2_cam2`` ([R | T], 3x4 or 4x4) when R, T are absent.
+
+    Returns:
+        dict with cam1_K, cam1_dist (5), cam1_size ((W, H) or None), cam2_K, cam2_dist, cam2_size, R, T.
+
+    Raises:
+        CalibrationError: naming the file and the key; a camera-projector file is named for what it is.
+    """
+    path = Path(path)
+    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
+    try:
+        if _has(fs, "cam_int") and not any(_has(fs, k) for k in STEREO_KEYS):
+            raise CalibrationError(path, "a camera-projector calibration (cam_int, proj_int, ...), not a camera-camera "
+                                         "one: give it as --projector-rig, or alone for a one-camera import")
+        out = {}
+        for c in (1, 2):
+            out[f"cam{c}_K"] = _mat(fs, path, f"cam{c}_intrinsics")
+            out[f"cam{c}_dist"] = _dist5(path, f"cam{c}_distorsion",
+                                         _mat(fs, path, f"cam{c}_distorsion", f"cam{c}_distortion"))
+            out[f"cam{c}_size"] = _size_node(fs, path, f"cam{c}_size")
+        rt = _mat(fs, path, "RT_cam1_2_cam2") if _has(fs, "RT_cam1_2_cam2") else None
+        if rt is not None and rt.shape not in ((3, 4), (4, 4)):
+            raise CalibrationError(path, f"RT_cam1_2_cam2: expected a 3x4 or 4x4 [R | T], got shape {rt.shape}")
+        if _has(fs, "R") or _has(fs, "T") or rt is None:
+            out["R"], out["T"] = _mat(fs, path, "R"), _mat(fs, path, "T").ravel()
+        else:
+            out["R"], out["T"] = rt[:3, :3].copy(), rt[:3, 3].copy()
+    finally:
+        fs.release()
+    for k in ("cam1_K", "cam2_K", "R"):
+        if out[k].shape != (3, 3) or not np.all(np.isfinite(out[k])):
+            raise CalibrationError(path, f"{k}: expected a finite 3x3 matrix, got shape {out[k].shape}")
+    if out["T"].shape != (3,) or not np.all(np.isfinite(out["T"])):
+        raise CalibrationError(path, f"T: expected 3 finite values, got shape {out['T'].shape}")
+    R = out["R"]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
+        raise CalibrationError(path, "R: not a rotation matrix")
+    if np.linalg.norm(out["T"]) <= 0:
+        raise CalibrationError(path, "T: zero (the cameras at one place: no baseline)")
+    if rt is not None and (np.abs(rt[:3, :3] - R).max() > 1e-4 or np.abs(rt[:3, 3] - out["T"]).max()
+                           > 1e-4 * max(1.0, np.linalg.norm(out["T"]))):
+        log.warning("%s: RT_cam1_2_cam2 differs from R, T; R, T are used", path)
+    return out
+
+
+def stereo_rig(cal: dict, *, projector: tuple[int, int], z_range: tuple[float, float],
+               light: PerspectiveLight | None = None, r_max: float | None = None) -> Rig:
+    """A two-camera rig of :func:`read_stereo_calibration`'s arrays, in camera 1's frame (R = I, t = 0).
+
+    Args:
+        cal: cam1_K, cam1_dist, cam1_size, cam2_K, cam2_dist, cam2_size, R, T (X_cam2 = R X_cam1 + T);
+            the sizes must be known ((W, H)).
+        projector: the projector's (width, height).
+        z_range: (near, far) depths along camera 1's optical axis: the working volume.
+        light: the projector in camera 1's frame (X_p = R X_cam1 + t), or None for an
+            ``UncalibratedLight`` of ``projector``'s size.
+        r_max: largest distance from camera 1's axis in the volume (default: 1.5x the far
+            plane's half-diagonal of camera 1's image).
+    """
+    near, far = float(z_range[0]), float(z_range[1])
+    if not (0 < near < far):
+        raise ValueError(f"stereo_rig: z_range must be 0 < near < far, got {z_range}")
+    K1 = np.asarray(cal["cam1_K"], float)
+    w1, h1 = cal["cam1_size"]
+    w2, h2 = cal["cam2_size"]
+    if r_max is None:
+        corners = np.array([[0, 0], [w1 - 1, 0], [0, h1 - 1], [w1 - 1, h1 - 1]], float)
+        rays = np.linalg.solve(K1, np.concatenate([corners, np.ones((4, 1))], 1).T).T
+        r_max = 1.5 * far * float(np.max(np.hypot(rays[:, 0], rays[:, 1])))
+    cam1 = Camera(width=int(w1), height=int(h1), K=K1, dist=np.asarray(cal["cam1_dist"], float).ravel()[:5],
+                  R=np.eye(3), t=np.zeros(3))
+    cam2 = Camera(width=int(w2), height=int(h2), K=np.asarray(cal["cam2_K"], float),
+                  dist=np.asarray(cal["cam2_dist"], float).ravel()[:5], R=np.asarray(cal["R"], float),
+                  t=np.asarray(cal["T"], float).ravel())
+    li = light if light is not None else UncalibratedLight(width=int(projector[0]), height=int(projector[1]))
+    return Rig(camera=cam1, light=li, volume=Volume(z_min=near, z_max=far, r_max=float(r_max)), camera2=cam2)
 
 
 def procam_pose(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
@@ -139,8 +319,9 @@ def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray) -> tuple[
 
 
 def check_import_names(captures: list) -> list[str]:
-    """The view name of each capture folder: its own name (``.`` and ``DIR/sub/..`` by their real name),
-    checked as a view name (:func:`~ringscan.pipeline.formats.scan.check_view_name`) and unique (ignoring
+    """The view name of each capture: a folder's own name (``.`` and ``DIR/sub/..`` by their real name),
+    an image list's name without its suffix (``capture_0.yml``: ``capture_0``), checked as a view name
+    (:func:`~ringscan.pipeline.formats.scan.check_view_name`) and unique (ignoring
     case), before anything is decoded or written.
 
     Raises:
@@ -148,8 +329,11 @@ def check_import_names(captures: list) -> list[str]:
     """
     names, seen = [], {}
     for folder in captures:
-        name = Path(os.path.abspath(folder)).resolve().name
-        check_view_name(name, source=folder, where="the capture folder's name (the view's name)")
+        real = Path(os.path.abspath(folder)).resolve()
+        is_list = real.suffix.lower() in LIST_SUFFIXES and not real.is_dir()
+        name = real.stem if is_list else real.name
+        check_view_name(name, source=folder, where="the image list's name (the view's name)" if is_list else
+                        "the capture folder's name (the view's name)")
         key = name.casefold()
         if key in seen:
             raise FormatError(folder, f"has the name {name!r} of the capture {seen[key]}: two views of one name "
@@ -159,60 +343,230 @@ def check_import_names(captures: list) -> list[str]:
     return names
 
 
+def _stereo_depths(d1, d2, cal: dict, projector, step: int = 4) -> np.ndarray:
+    """Camera-1 depths of pixels matched between the cameras by their integer projector code
+    (camera 2's pixels of one code averaged): the plain way, for the working volume."""
+    wp_, hp_ = projector
+    n = int(wp_) * int(hp_)
+    v2 = d2.valid
+    y2, x2 = np.nonzero(v2)
+    code2 = d2.row[v2].astype(np.int64) * wp_ + d2.col[v2]
+    cnt = np.bincount(code2, minlength=n)
+    sx = np.bincount(code2, weights=x2, minlength=n)
+    sy = np.bincount(code2, weights=y2, minlength=n)
+    v1 = d1.valid[::step, ::step]
+    yy, xx = np.nonzero(v1)
+    code1 = d1.row[::step, ::step][yy, xx].astype(np.int64) * wp_ + d1.col[::step, ::step][yy, xx]
+    ok = cnt[code1] > 0
+    c = code1[ok]
+    p1 = np.stack([xx[ok] * step, yy[ok] * step], 1).astype(np.float64)
+    p2 = np.stack([sx[c] / cnt[c], sy[c] / cnt[c]], 1)
+    X = triangulate_codes(p1, p2, cam_K=cal["cam1_K"], cam_dist=cal["cam1_dist"], proj_K=cal["cam2_K"],
+                          proj_dist=cal["cam2_dist"], R=cal["R"], T=cal["T"])
+    z2 = (X @ np.asarray(cal["R"]).T + np.asarray(cal["T"]).ravel())[:, 2] if len(X) else np.zeros(0)
+    z1 = X[:, 2] if len(X) else np.zeros(0)
+    return z1[np.isfinite(z1) & (z1 > 0) & (z2 > 0)]
+
+
+def _procam_light(projector_rig, path, cam1_K, projector) -> PerspectiveLight:
+    """The projector of a camera-projector calibration (OpenCV arrays or a ringscan rig) in camera 1's frame."""
+    if isinstance(projector_rig, Rig):
+        li = projector_rig.light
+        if not isinstance(li, PerspectiveLight):
+            raise CalibrationError(path, "--projector-rig: its light is not a calibrated perspective projector")
+        R, T = procam_pose(projector_rig)
+        K, dist, size, camK = li.K, li.dist, (li.width, li.height), projector_rig.camera.K
+    else:
+        R, T = projector_rig["R"], projector_rig["T"]
+        K, dist, size, camK = projector_rig["proj_K"], projector_rig["proj_dist"], tuple(projector), \
+            projector_rig["cam_K"]
+    if tuple(size) != tuple(projector):
+        raise CalibrationError(path, f"its projector is {size[0]}x{size[1]}, --projector says "
+                                     f"{projector[0]}x{projector[1]}")
+    rel = abs(camK[0, 0] - cam1_K[0, 0]) / cam1_K[0, 0]
+    if rel > 0.01:
+        log.warning("%s: its camera (fx %.1f) is not camera 1 of the stereo calibration (fx %.1f, %.1f %% apart); "
+                    "the projector's pose is taken relative to camera 1", path, camK[0, 0], cam1_K[0, 0], 100 * rel)
+    return PerspectiveLight(width=int(projector[0]), height=int(projector[1]), K=np.asarray(K, float),
+                            dist=np.asarray(dist, float).ravel()[:5], R=np.asarray(R, float),
+                            t=np.asarray(T, float).ravel())
+
+
+def _one_camera(rig: Rig, camera: int, source) -> Rig:
+    """Camera ``camera`` of a two-camera rig with the rig's projector: a one-camera rig."""
+    if not has_calibrated_light(rig):
+        raise CalibrationError(source, "the rig's projector is not calibrated (a two-camera rig): a one-camera import "
+                                       "needs it. Import both cameras for a two-camera scan, or calibrate the "
+                                       "projector from such a scan (`ringscan calibrate projector-from-scan`)")
+    cam = rig.camera if camera == 1 else rig.camera2
+    return Rig(camera=cam, light=rig.light, volume=rig.volume, turntable=rig.turntable)
+
+
 def import_captures(
     captures: list,
     *,
     out,
     rig: Rig | None = None,
     opencv: dict | None = None,
+    stereo: dict | None = None,
+    projector_rig: dict | Rig | None = None,
     projector: tuple[int, int],
     layout: str = "opencv-graycode",
     depth: tuple[float, float] | None = None,
+    camera: int | None = None,
     settings: ImportSettings = ImportSettings(),
+    sources: dict | None = None,
 ) -> tuple[Scan, dict]:
-    """Decode capture folders into a scan folder of the ``decoded`` codec.
+    """Decode captures into a scan folder of the ``decoded`` codec.
+
+    Every input is checked before anything is decoded or written: the captures' names,
+    frame counts and sizes (from the files' headers), the cameras they hold against the
+    rig's, the projector size.
 
     Args:
-        captures: capture folders, one view each.
-        out: the scan folder to write (frames, rig.json, scan.json last).
-        rig: a ringscan rig with a perspective light, or
-        opencv: the arrays of :func:`read_opencv_calibration` (then the working
-            volume comes from ``depth``, or from a plain triangulation of the captures).
+        captures: capture folders or image lists, one view each
+            (:func:`~ringscan.pipeline.calibrate.graycode.list_capture`).
+        out: the scan folder to write (frames, scan.json last).
+        rig: a ringscan rig with a perspective light (one camera), or with ``camera2``
+            (a two-camera rig, its light perspective or uncalibrated); or
+        opencv: the arrays of :func:`read_opencv_calibration` (one camera and the projector); or
+        stereo: the arrays of :func:`read_stereo_calibration` (two cameras; the rig's world
+            is camera 1's frame), with
+        projector_rig: the projector's calibration for ``stereo`` (arrays of
+            :func:`read_opencv_calibration` or a ringscan rig; camera 1 and the projector),
+            or None: the projector stays uncalibrated.
         projector: projector (width, height).
         layout: the captures' frame order (``graycode.LAYOUTS``).
-        depth: (near, far) depths along the projector axis of the working volume.
+        depth: (near, far) working depths (along the projector axis for ``opencv``, along
+            camera 1's axis for ``stereo``); None: from a plain triangulation of the captures.
+        camera: import only this camera's frames (1 or 2) of two-camera captures: a one-camera
+            scan (the rig must then calibrate the projector). None: every camera the captures hold.
+        settings: decoding settings.
+        sources: the calibration files' paths for messages (``rig``, ``projector_rig``).
 
     Returns:
-        (the scan, stats per view: decoded pixels and the share with sub-pixel positions).
+        (the scan, stats per view: decoded pixels and the share with sub-pixel positions,
+        and ``camera2``'s likewise).
     """
-    if (rig is None) == (opencv is None):
-        raise ValueError("import_captures: give exactly one of rig and opencv")
+    if sum(x is not None for x in (rig, opencv, stereo)) != 1:
+        raise ValueError("import_captures: give exactly one of rig, opencv and stereo")
+    if projector_rig is not None and stereo is None:
+        raise ValueError("import_captures: projector_rig goes with stereo")
+    if camera not in (None, 1, 2):
+        raise ValueError(f"import_captures: camera must be 1 or 2, got {camera!r}")
     if not captures:
         raise ValueError("import_captures: no capture folders")
+    sources = sources or {}
+    rig_src = sources.get("rig")
     names = check_import_names(captures)
     out = check_output_folder(out, what="scan folder (--out)")
     if (out / "scan.json").exists():
         raise FormatError(out, "already holds a scan (scan.json); choose another folder (import writes a new scan)")
+    files = [list_capture(c, projector=projector, layout=layout) for c in captures]
+
+    # which cameras: the rig's against the captures'
+    rig_cams = 2 if stereo is not None or (rig is not None and rig.camera2 is not None) else 1
+    if camera is not None:
+        for f in files:
+            if len(f.cameras) < camera:
+                raise CalibrationError(f.source, f"camera {camera}'s frames are missing (--camera {camera}): the "
+                                                 "capture holds camera 1's only")
+        sel = (camera,)
+        if stereo is not None and projector_rig is None:
+            raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
+    else:
+        for f in files:
+            if len(f.cameras) == 2 and rig_cams == 1:
+                named = f" {rig_src}" if rig_src else ""
+                raise CalibrationError(f.source, f"holds two cameras' frames, but the rig{named} has one camera: "
+                                                 "give --camera 1 (or 2) to import one camera's frames, or a "
+                                                 "two-camera rig (a stereo calibration file) for a two-camera scan")
+            if len(f.cameras) == 1 and rig_cams == 2:
+                if stereo is not None and f.kind == "graycode":  # a one-camera capture: a procam file was meant
+                    raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
+                what = {"graycode": "name its frames pattern_cam1_imK and pattern_cam2_imK",
+                        "pattern": "pattern_cam2_imK frames", "list": "a cam2 list"}[f.kind]
+                raise CalibrationError(f.source, "camera 2's frames are missing: the rig has two cameras, the capture "
+                                                 f"holds camera 1's only ({what}); or give --camera 1 with a "
+                                                 "calibrated projector")
+        sel = (1, 2) if rig_cams == 2 else (1,)
+
+    # frame sizes (headers only): one size per camera across the captures, and the rig's
+    sizes: dict[int, tuple[int, int]] = {}
+    for f in files:
+        got = check_capture_sizes(f)
+        for c in sel:
+            wh = got[c - 1]
+            if c in sizes and wh != sizes[c]:
+                raise CalibrationError(f.frames_of(c)[0], f"frame is {wh[0]}x{wh[1]}, camera {c}'s frames of "
+                                                          f"{files[0].source} are {sizes[c][0]}x{sizes[c][1]}")
+            sizes.setdefault(c, wh)
+    if rig is not None:
+        rig_size = {1: (rig.camera.width, rig.camera.height)}
+        if rig.camera2 is not None:
+            rig_size[2] = (rig.camera2.width, rig.camera2.height)
+    elif stereo is not None:
+        rig_size = {c: stereo[f"cam{c}_size"] for c in (1, 2) if stereo[f"cam{c}_size"] is not None}
+    else:
+        rig_size = {1: opencv["cam_size"]} if opencv["cam_size"] else {}
+    for c in sel:
+        rc = rig_size.get(c if rig_cams == 2 else 1)
+        if rc is not None and tuple(rc) != sizes[c]:
+            src = next(f.frames_of(c)[0] for f in files)
+            raise CalibrationError(src, f"camera {c}'s frames are {sizes[c][0]}x{sizes[c][1]}, the rig's camera"
+                                        f"{' 2' if rig_cams == 2 and c == 2 else ''} is {rc[0]}x{rc[1]}"
+                                        f"{f' ({rig_src})' if rig_src else ''}")
+    if rig is not None:
+        li = rig.light
+        if not isinstance(li, (PerspectiveLight, UncalibratedLight)):
+            raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
+        if (li.width, li.height) != tuple(projector):
+            raise CalibrationError(rig_src, f"import: --projector {projector[0]}x{projector[1]} does not match the "
+                                            f"rig's {li.width}x{li.height} projector")
+        if camera is not None and rig.camera2 is not None:
+            rig = _one_camera(rig, camera, rig_src)
+        elif rig.camera2 is None and not has_calibrated_light(rig):
+            raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
+    light = None
+    if stereo is not None:
+        if stereo["cam1_size"] is None or stereo["cam2_size"] is None:
+            stereo = {**stereo, "cam1_size": stereo["cam1_size"] or sizes.get(1, sizes[sel[0]]),
+                      "cam2_size": stereo["cam2_size"] or sizes.get(2, sizes[sel[0]])}
+        if projector_rig is not None:
+            light = _procam_light(projector_rig, sources.get("projector_rig"), stereo["cam1_K"], projector)
+
+    # decode
     decs, stats = [], {}
-    for folder, name in zip(captures, names):
-        cap = read_capture(folder, projector=projector, layout=layout)
-        dec = decode_graycode(cap, settings=settings.graycode)
-        if settings.integer_only:
-            dec.u = np.where(dec.valid, dec.col, np.nan)
-            dec.v = np.where(dec.valid, dec.row, np.nan)
-            dec.subpixel = np.zeros_like(dec.valid)
-        else:
-            subpixel_map(cap, dec, settings=settings.graycode)
-        decs.append((Path(folder), name, dec))
-        stats[name] = {"decoded": int(dec.valid.sum()),
-                                    "subpixel_share": float(dec.subpixel.sum() / max(1, dec.valid.sum()))}
-        del cap
-    H, W = decs[0][2].valid.shape
-    if rig is None:
-        size = opencv["cam_size"] or (W, H)
+    for f, name in zip(files, names):
+        per_cam = {}
+        for c in sel:
+            cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source)
+            dec = decode_graycode(cap, settings=settings.graycode)
+            if settings.integer_only:
+                dec.u = np.where(dec.valid, dec.col, np.nan)
+                dec.v = np.where(dec.valid, dec.row, np.nan)
+                dec.subpixel = np.zeros_like(dec.valid)
+            else:
+                subpixel_map(cap, dec, settings=settings.graycode)
+            per_cam[c] = dec
+            del cap
+        decs.append((f, name, per_cam))
+        st = {}
+        for c, dec in per_cam.items():
+            s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / max(1, dec.valid.sum()))}
+            if len(sel) == 2 and c == 2:
+                st["camera2"] = s
+            else:
+                st.update(s)
+        stats[name] = st
+
+    # the rig
+    if opencv is not None:
+        dec0 = [d[sel[0]] for _, _, d in decs]
+        size = opencv["cam_size"] or sizes[sel[0]]
         if depth is None:
             zs = []
-            for _, _, dec in decs:
+            for dec in dec0:
                 yy, xx = np.nonzero(dec.valid[::8, ::8])
                 X = triangulate_codes(np.stack([xx * 8, yy * 8], 1), np.stack([dec.col[::8, ::8][yy, xx],
                                                                              dec.row[::8, ::8][yy, xx]], 1),
@@ -225,34 +579,62 @@ def import_captures(
                 raise CalibrationError(None, "import: too few decoded pixels to find the working depth; give --depth")
             depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
         rig = procam_rig(cam_K=opencv["cam_K"], cam_dist=opencv["cam_dist"], cam_size=size, proj_K=opencv["proj_K"],
-                         proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"], z_range=depth)
+                         proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"],
+                         z_range=depth)
+    elif stereo is not None:
+        if depth is None:
+            if len(sel) == 2:
+                z = np.concatenate([_stereo_depths(d[1], d[2], stereo, projector) for _, _, d in decs])
+            else:
+                z = np.zeros(0)
+                for _, _, d in decs:  # one camera with the projector: camera 1 - projector
+                    dec = d[sel[0]]
+                    yy, xx = np.nonzero(dec.valid[::8, ::8])
+                    X = triangulate_codes(np.stack([xx * 8, yy * 8], 1),
+                                          np.stack([dec.col[::8, ::8][yy, xx], dec.row[::8, ::8][yy, xx]], 1),
+                                          cam_K=stereo[f"cam{sel[0]}_K"], cam_dist=stereo[f"cam{sel[0]}_dist"],
+                                          proj_K=light.K, proj_dist=light.dist, R=light.R, T=light.t)
+                    z = np.concatenate([z, X[:, 2][np.isfinite(X[:, 2]) & (X[:, 2] > 0)]])
+            if z.size < 100:
+                raise CalibrationError(rig_src, "import: too few pixels matched between the cameras to find the "
+                                                "working depth (a calibration that does not fit the captures?); give "
+                                                "--depth NEAR FAR")
+            depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
+        rig = stereo_rig(stereo, projector=projector, z_range=depth, light=light)
+        if camera is not None:
+            rig = _one_camera(rig, camera, rig_src)
+    rig = parse_rig(rig_to_dict(rig), source=rig_src or "the imported rig")  # the checks a saved rig gets
     li = rig.light
-    if not isinstance(li, PerspectiveLight):
-        raise CalibrationError(None, "import: the rig's light must be perspective (a real projector)")
-    if (li.width, li.height) != tuple(projector):
-        raise CalibrationError(None, f"import: --projector {projector[0]}x{projector[1]} does not match the rig's "
-                                     f"{li.width}x{li.height} projector")
-    if (rig.camera.width, rig.camera.height) != (W, H):
-        raise CalibrationError(captures[0], f"frames are {W}x{H}, the rig's camera is "
-                                            f"{rig.camera.width}x{rig.camera.height}")
-    center = (float(li.K[0, 2]), float(li.K[1, 2]))
+    if (rig.camera.width, rig.camera.height) != sizes[sel[0]]:
+        raise CalibrationError(files[0].source, f"frames are {sizes[sel[0]][0]}x{sizes[sel[0]][1]}, the rig's camera "
+                                                f"is {rig.camera.width}x{rig.camera.height}")
+    center = (float(li.K[0, 2]), float(li.K[1, 2])) if has_calibrated_light(rig) else \
+        ((li.width - 1) / 2.0, (li.height - 1) / 2.0)
     spec = parse_patterns({"codec": "decoded", "width": li.width, "height": li.height, "center": list(center),
                            "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits}, source="import")
+
     out.mkdir(parents=True, exist_ok=True)
     with lock_folder(out, what="import"):
         if (out / "scan.json").exists():  # written by another import between the check above and the lock
             raise FormatError(out, "already holds a scan (scan.json); choose another folder")
         views = []
-        for folder, name, dec in decs:
-            fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+        for f, name, per_cam in decs:
             frames = {}
-            for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
-                rel = f"{name}/{key}.png"
-                write_image(out / rel, img)
-                frames[key] = rel
-            views.append(View(name=name, turntable_deg=0.0, frames=frames))
-        scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views),
-                    extra={"imported": {"layout": layout, "captures": [str(f) for f, _, _ in decs], "stats": stats}})
+            for c, dec in per_cam.items():
+                sub = f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2) else name
+                frames[c] = {}
+                fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+                for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
+                    rel = f"{sub}/{key}.png"
+                    write_image(out / rel, img)
+                    frames[c][key] = rel
+            second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
+            views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
+        imported = {"layout": layout, "captures": [str(f.source) for f, _, _ in decs],
+                    "kinds": [f.kind for f, _, _ in decs], "stats": stats}
+        if camera is not None:
+            imported["camera"] = camera
+        scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views), extra={"imported": imported})
         save_scan(scan)
     log.info("imported %d capture(s) into %s", len(views), out)
     return scan, stats

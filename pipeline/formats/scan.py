@@ -256,7 +256,7 @@ def as_camera2(scan: Scan) -> Scan:
 def check_truth(scan: Scan) -> dict:
     """The scan's ``truth`` block (the virtual rig's ground truth), checked: ``mesh`` a path
     inside the scan folder; ``views`` an object of ``{"depth": path, "lit": path}`` inside
-    it; ``reference_plane_z`` a finite number; ``reference_plane`` true or false.
+    it (and camera 2's likewise under ``camera2``); ``reference_plane_z`` a finite number; ``reference_plane`` true or false.
 
     Returns:
         A checked copy: mesh, views, reference_plane_z, reference_plane, settings, scene.
@@ -280,6 +280,12 @@ def check_truth(scan: Scan) -> dict:
             raise FormatError(src, f"truth.views.{name}: expected an object {{\"depth\": path, \"lit\": path}}")
         out["views"][name] = {k: _safe_rel(scan.folder, src, f"truth.views.{name}.{k}", v.get(k))
                               for k in ("depth", "lit")}
+        if "camera2" in v:  # camera 2's truth of a two-camera scan
+            c2 = v["camera2"]
+            if not isinstance(c2, dict):
+                raise FormatError(src, f"truth.views.{name}.camera2: expected an object {{\"depth\": path, \"lit\": path}}")
+            out["views"][name]["camera2"] = {k: _safe_rel(scan.folder, src, f"truth.views.{name}.camera2.{k}",
+                                                          c2.get(k)) for k in ("depth", "lit")}
     z = t.get("reference_plane_z", 0.0)
     if isinstance(z, bool) or not isinstance(z, (int, float)) or not math.isfinite(z):
         raise FormatError(src, f"truth.reference_plane_z: expected a finite number, got {z!r:.60}")

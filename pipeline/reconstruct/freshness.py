@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,7 +73,8 @@ def _frame_stat(path: Path):
     return [st.st_size, st.st_mtime_ns]
 
 
-def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None) -> InputHashes:
+def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None,
+                stat: Callable[[Path], list | None] | None = None) -> InputHashes:
     """Hash the inputs of a reconstruction of ``scan`` with ``settings`` (see the module docstring).
 
     Args:
@@ -80,7 +82,11 @@ def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None) -> Inpu
         settings: the resolved settings (a dataclass, e.g. ``ReconstructSettings``).
         views: names of the views asked for (default: all); ``views`` of the result
             holds those only.
+        stat: a frame file -> ``[size, modification time in ns]`` (None when missing);
+            default ``os.stat``. A scan on object storage, staged without its frames,
+            gives its objects' sizes and times (``formats.storage``).
     """
+    stat = _frame_stat if stat is None else stat
     sd = settings_to_dict(settings)
     for k in _IGNORED_SETTINGS:
         sd.pop(k, None)
@@ -95,11 +101,11 @@ def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None) -> Inpu
         entry = {"name": v.name, "index": index, "turntable_deg": v.turntable_deg,
                  "frames": {n: v.frames.get(n) for n in names}}
         where = frame_files(scan, v)  # a packed view's frames: their chunk files
-        files = {n: _frame_stat(where[n]) if n in v.frames else None for n in names}
+        files = {n: stat(where[n]) if n in v.frames else None for n in names}
         if v.camera2 is not None:  # camera 2's frames are inputs too
             entry["camera2"] = {n: v.camera2.frames.get(n) for n in names}
             where2 = frame_files(scan, v.camera2)
-            files["camera2"] = {n: _frame_stat(where2[n]) if n in v.camera2.frames else None for n in names}
+            files["camera2"] = {n: stat(where2[n]) if n in v.camera2.frames else None for n in names}
         per_view[v.name] = _digest({**base, "view": entry, "files": files})
     return InputHashes(rig=base["rig"], patterns=base["patterns"], settings=base["settings"], views=per_view,
                        scan=_digest({**base, "views": per_view}))
@@ -128,7 +134,8 @@ class DoneCheck:
         return not self.redo and self.finished
 
 
-def check_done(scan: Scan, out_dir: str | os.PathLike, *, settings, views: list[str] | None = None) -> DoneCheck:
+def check_done(scan: Scan, out_dir: str | os.PathLike, *, settings, views: list[str] | None = None,
+               stat: Callable[[Path], list | None] | None = None) -> DoneCheck:
     """Which views of ``scan`` are done in ``out_dir`` (``report.json`` + PLYs), and why the others are not.
 
     Args:
@@ -136,11 +143,12 @@ def check_done(scan: Scan, out_dir: str | os.PathLike, *, settings, views: list[
         out_dir: the reconstruction folder.
         settings: the resolved settings of the run that asks.
         views: names of the views asked for (default: all).
+        stat: how a frame file's size and time are found (see :func:`hash_inputs`).
 
     Returns:
         A :class:`DoneCheck`; ``.done`` is True when nothing needs to be redone.
     """
-    hashes = hash_inputs(scan, settings, views=views)
+    hashes = hash_inputs(scan, settings, views=views, stat=stat)
     names = [v.name for v in scan.views if v.name in hashes.views]
     out = Path(out_dir)
     rpath = out / "report.json"

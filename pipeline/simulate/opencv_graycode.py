@@ -21,6 +21,21 @@ that ``ringscan import`` reads as it reads a real rig's captures::
     OUT/truth/capture_0_proj_u.tiff     float32 projector u_p of the point the centre ray meets (NaN = no hit)
     OUT/truth/capture_0_proj_v.tiff     float32 projector v_p likewise
 
+A rig with a second camera (``rig.camera2``; :func:`~ringscan.pipeline.simulate.scan.add_camera2`
+makes one) renders both cameras, as OpenCV's structured-light sample stores them::
+
+    OUT/capture_0/pattern_cam1_im1.png ... pattern_cam2_imN.png   (from 1; same frame order)
+    OUT/capture_0.yml                   the image list (cam1: [...], cam2: [...], relative paths)
+    OUT/calibrationParameters.yml       the camera-camera calibration as the sample has it
+                                        (cam1_intrinsics, cam1_distorsion, cam1_size, cam2_...,
+                                        R, T, RT_cam1_2_cam2; X_cam2 = R X_cam1 + T)
+    OUT/procam.yml                      camera 1 and the projector (cam_int, cam_dist, proj_int,
+                                        proj_dist, rotation, translation, img_shape), for comparison
+    OUT/truth/capture_0_cam2_*.tiff/png camera 2's truth, as camera 1's
+
+truth.json then records ``camera1_from_world`` (the 4x4 from the rendered world to camera
+1's frame, the world of an imported stereo rig) and the files above.
+
 Projector coordinates follow OpenCV's pixel convention (pixel i covers [i - 0.5,
 i + 0.5]; the integer code of a pixel is its centre), which is the one the import
 decodes to. The truth projector coordinates are the OpenCV projection
@@ -34,6 +49,7 @@ without a wall): an object touching the wall loses that thin rim to the wall.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -64,8 +80,17 @@ OBJECT_MIN_HEIGHT_MM = 0.5
 """A traced point is on the object when it lies this far in front of the wall (or plane)."""
 MAX_PROJECTOR_SIDE = 16384
 
-__all__ = ["LAYOUT", "CAPTURE", "OBJECT_MIN_HEIGHT_MM", "graycode_bit_counts", "graycode_patterns",
-           "graycode_frame_names", "graycode_outputs", "render_graycode_captures", "read_graycode_truth"]
+STEREO_FILE = "calibrationParameters.yml"
+"""The camera-camera calibration file of a two-camera rendering (OpenCV's sample's name)."""
+PROCAM_FILE = "procam.yml"
+"""Camera 1 and the projector, as ``ringscan import --rig`` reads an OpenCV procam file."""
+IMAGE_LIST = f"{CAPTURE}.yml"
+"""The image list of a two-camera rendering (``ringscan import OUT/capture_0.yml``)."""
+
+__all__ = ["LAYOUT", "CAPTURE", "STEREO_FILE", "PROCAM_FILE", "IMAGE_LIST", "OBJECT_MIN_HEIGHT_MM",
+           "graycode_bit_counts", "graycode_patterns", "graycode_frame_names", "graycode_outputs",
+           "render_graycode_captures", "read_graycode_truth", "write_stereo_calibration",
+           "write_procam_calibration"]
 
 
 def graycode_bit_counts(projector: tuple[int, int]) -> tuple[int, int]:
@@ -86,10 +111,13 @@ def _check_projector(projector) -> tuple[int, int]:
     return w, h
 
 
-def graycode_frame_names(projector: tuple[int, int]) -> list[str]:
-    """``graycode_00`` ... in capture order: 2 (column + row bits) patterns + white + black."""
+def graycode_frame_names(projector: tuple[int, int], *, camera: int | None = None) -> list[str]:
+    """The frame names in capture order (2 (column + row bits) patterns + white + black):
+    ``graycode_00`` ..., or with ``camera`` OpenCV's sample's ``pattern_cam<camera>_im1`` ..."""
     cb, rb = graycode_bit_counts(projector)
     n = 2 * (cb + rb) + 2
+    if camera is not None:
+        return [f"pattern_cam{camera}_im{i + 1}" for i in range(n)]
     return [f"graycode_{i:02d}" for i in range(n)]
 
 
@@ -108,14 +136,90 @@ def graycode_patterns(projector: tuple[int, int]) -> list[np.ndarray]:
     return out
 
 
-def graycode_outputs(out_dir: str | os.PathLike, projector: tuple[int, int]) -> list[Path]:
+def graycode_outputs(out_dir: str | os.PathLike, projector: tuple[int, int], *, cameras: int = 1) -> list[Path]:
     """Every file :func:`render_graycode_captures` writes (for overwrite checks)."""
     out = Path(out_dir)
     files = [out / "rig.json", out / "truth.json", out / TRUTH_DIR / "object.ply"]
-    files += [out / CAPTURE / f"{n}.png" for n in graycode_frame_names(projector)]
-    files += [out / TRUTH_DIR / f"{CAPTURE}_{k}" for k in ("depth.tiff", "lit.png", "object.png", "proj_u.tiff",
-                                                             "proj_v.tiff")]
+    keys = ("depth.tiff", "lit.png", "object.png", "proj_u.tiff", "proj_v.tiff")
+    if cameras == 1:
+        files += [out / CAPTURE / f"{n}.png" for n in graycode_frame_names(projector)]
+        files += [out / TRUTH_DIR / f"{CAPTURE}_{k}" for k in keys]
+        return files
+    files += [out / IMAGE_LIST, out / STEREO_FILE, out / PROCAM_FILE]
+    for c in (1, 2):
+        files += [out / CAPTURE / f"{n}.png" for n in graycode_frame_names(projector, camera=c)]
+        files += [out / TRUTH_DIR / f"{CAPTURE}_{'cam2_' if c == 2 else ''}{k}" for k in keys]
     return files
+
+
+def _write_storage(path: Path, write) -> None:
+    """An OpenCV FileStorage file, written atomically (``write(fs)`` fills it)."""
+    import cv2
+
+    from ringscan.pipeline.formats.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        try:
+            write(fs)
+        finally:
+            fs.release()
+
+
+def _write_seq(fs, name: str, values, flow: bool = False) -> None:
+    import cv2
+
+    fs.startWriteStruct(name, cv2.FileNode_SEQ | (cv2.FileNode_FLOW if flow else 0))
+    for v in values:
+        fs.write("", v)
+    fs.endWriteStruct()
+
+
+def _relative_pose(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """(R, T) with X_cam2 = R X_cam1 + T."""
+    c1, c2 = rig.camera, rig.camera2
+    R = c2.R @ c1.R.T
+    return R, c2.t - R @ c1.t
+
+
+def write_stereo_calibration(path: str | os.PathLike, rig: Rig) -> None:
+    """The rig's two cameras as OpenCV's structured-light sample's calibration file (see the module docstring)."""
+    if rig.camera2 is None:
+        raise ValueError("write_stereo_calibration: the rig has one camera")
+    R, T = _relative_pose(rig)
+
+    def write(fs):
+        for c, cam in ((1, rig.camera), (2, rig.camera2)):
+            fs.write(f"cam{c}_intrinsics", np.asarray(cam.K, np.float64))
+            fs.write(f"cam{c}_distorsion", np.asarray(cam.dist, np.float64).reshape(1, -1))
+            _write_seq(fs, f"cam{c}_size", [int(cam.width), int(cam.height)], flow=True)
+        fs.write("R", R)
+        fs.write("T", T.reshape(3, 1))
+        fs.write("RT_cam1_2_cam2", np.hstack([R, T.reshape(3, 1)]))
+
+    _write_storage(Path(path), write)
+
+
+def write_procam_calibration(path: str | os.PathLike, rig: Rig) -> None:
+    """Camera 1 and the rig's perspective projector as an OpenCV camera-projector file (cam_int, cam_dist,
+    proj_int, proj_dist, rotation, translation with X_proj = R X_cam + T, img_shape [H, W])."""
+    li = rig.light
+    if not hasattr(li, "K"):
+        raise ValueError("write_procam_calibration: the rig's light is not a perspective projector")
+    c = rig.camera
+    R = li.R @ c.R.T
+    T = li.t - R @ c.t
+
+    def write(fs):
+        fs.write("img_shape", np.array([[c.height, c.width]], np.float64))
+        fs.write("cam_int", np.asarray(c.K, np.float64))
+        fs.write("cam_dist", np.asarray(c.dist, np.float64).reshape(1, -1))
+        fs.write("proj_int", np.asarray(li.K, np.float64))
+        fs.write("proj_dist", np.asarray(li.dist, np.float64).reshape(1, -1))
+        fs.write("rotation", R)
+        fs.write("translation", T.reshape(3, 1))
+
+    _write_storage(Path(path), write)
 
 
 def render_graycode_captures(
@@ -167,9 +271,12 @@ def render_graycode_captures(
     if not isinstance(settings, RenderSettings):
         raise ValueError(f"settings: expected RenderSettings, got {type(settings).__name__}")
     proj = (int(lw), int(lh))
+    if getattr(rig.light, "model", "") == "uncalibrated":
+        raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
     scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
-    vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=proj)
-    names = graycode_frame_names(proj)
+    two = rig.camera2 is not None
+    cams = [(1, rig)] + ([(2, dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))] if two else [])
+    renderers = {c: VirtualRig(crig, scene, settings=settings, device=device, projector_size=proj) for c, crig in cams}
     patterns = graycode_patterns(proj)
 
     out = Path(out_dir)
@@ -181,41 +288,69 @@ def render_graycode_captures(
     _write_mesh(out / mesh_rel, scene.vertices, scene.faces)
 
     t0 = time.perf_counter()
-    bar = progress_bar(total=len(names), desc=f"simulate {LAYOUT} {scene.name}", unit="frame", disable=not progress)
+    n_frames = len(patterns)
+    bar = progress_bar(total=n_frames * len(cams), desc=f"simulate {LAYOUT} {scene.name}", unit="frame",
+                       disable=not progress)
+    floor = float(placed.get("wall_z", 0.0))
+    captures: dict = {"frames": n_frames}
+    lists = {}
     try:
-        for fi, (n, pat) in enumerate(zip(names, patterns)):
-            write_image(cap_dir / f"{n}.png", vr.render(pat, seed=_mix_seed(settings.seed, 0, fi)))
-            bar.update(1)
+        for c, _ in cams:
+            vr = renderers.pop(c)
+            names = graycode_frame_names(proj, camera=c if two else None)
+            for fi, (n, pat) in enumerate(zip(names, patterns)):
+                seed = _mix_seed(settings.seed, 0, fi) if c == 1 else _mix_seed(settings.seed, 0, fi, c)
+                write_image(cap_dir / f"{n}.png", vr.render(pat, seed=seed))
+                bar.update(1)
+            lists[c] = [f"{CAPTURE}/{n}.png" for n in names]
+            tr = vr.truth()
+            pts = tr["points"].astype(np.float64)
+            hit = np.all(np.isfinite(pts), axis=-1)
+            obj = hit & (np.where(hit, pts[..., 2], -np.inf) > floor + OBJECT_MIN_HEIGHT_MM)
+            uvp = np.full(hit.shape + (2,), np.nan, np.float32)
+            uvp[hit] = projector_pixels(rig, pts[hit]).astype(np.float32)
+            pre = f"{TRUTH_DIR}/{CAPTURE}_{'cam2_' if c == 2 else ''}"
+            rel = {k: f"{pre}{k}.{ext}" for k, ext in
+                   (("depth", "tiff"), ("lit", "png"), ("object", "png"), ("proj_u", "tiff"), ("proj_v", "tiff"))}
+            _write_depth(out / rel["depth"], tr["depth"])
+            _write_depth(out / rel["proj_u"], uvp[..., 0])
+            _write_depth(out / rel["proj_v"], uvp[..., 1])
+            write_image(out / rel["lit"], np.where(tr["lit"], 255, 0).astype(np.uint8))
+            write_image(out / rel["object"], np.where(obj, 255, 0).astype(np.uint8))
+            if c == 1:
+                captures.update(rel)
+            else:
+                captures["camera2"] = rel
+            del vr
     finally:
         bar.close()
-
-    tr = vr.truth()
-    pts = tr["points"].astype(np.float64)
-    hit = np.all(np.isfinite(pts), axis=-1)
-    floor = float(placed.get("wall_z", 0.0))
-    obj = hit & (np.where(hit, pts[..., 2], -np.inf) > floor + OBJECT_MIN_HEIGHT_MM)
-    uvp = np.full(hit.shape + (2,), np.nan, np.float32)
-    uvp[hit] = projector_pixels(rig, pts[hit]).astype(np.float32)
-    rel = {k: f"{TRUTH_DIR}/{CAPTURE}_{k}.{ext}" for k, ext in
-           (("depth", "tiff"), ("lit", "png"), ("object", "png"), ("proj_u", "tiff"), ("proj_v", "tiff"))}
-    _write_depth(out / rel["depth"], tr["depth"])
-    _write_depth(out / rel["proj_u"], uvp[..., 0])
-    _write_depth(out / rel["proj_v"], uvp[..., 1])
-    write_image(out / rel["lit"], np.where(tr["lit"], 255, 0).astype(np.uint8))
-    write_image(out / rel["object"], np.where(obj, 255, 0).astype(np.uint8))
     doc = {"format": TRUTH_FORMAT, "layout": LAYOUT, "projector": list(proj),
            "camera": [rig.camera.width, rig.camera.height], "rig": "rig.json", "mesh": mesh_rel,
            "scene": scene.name, "size_mm": float(size_mm), "reference_plane_z": 0.0, **placed,
            "object_min_height_mm": OBJECT_MIN_HEIGHT_MM, "settings": settings.to_dict(),
-           "captures": {CAPTURE: {"frames": len(names), **rel}}}
+           "captures": {CAPTURE: captures}}
+    if two:
+        def write_list(fs):
+            for c in (1, 2):
+                _write_seq(fs, f"cam{c}", lists[c])
+
+        _write_storage(out / IMAGE_LIST, write_list)
+        write_stereo_calibration(out / STEREO_FILE, rig)
+        T1 = np.eye(4)
+        T1[:3, :3], T1[:3, 3] = rig.camera.R, rig.camera.t
+        doc.update({"camera2": [rig.camera2.width, rig.camera2.height], "image_list": IMAGE_LIST,
+                    "stereo_calibration": STEREO_FILE, "camera1_from_world": T1.tolist()})
+        if hasattr(rig.light, "K"):  # a perspective projector (a parallel light has no OpenCV procam file)
+            write_procam_calibration(out / PROCAM_FILE, rig)
+            doc["procam_calibration"] = PROCAM_FILE
     atomic_write_json(out / "truth.json", doc)
-    log.info("rendered %d %s frames of %s in %.1f s -> %s", len(names), LAYOUT, scene.name,
+    log.info("rendered %d %s frames x %d camera(s) of %s in %.1f s -> %s", n_frames, LAYOUT, len(cams), scene.name,
              time.perf_counter() - t0, out)
     return doc
 
 
-def read_graycode_truth(folder: str | os.PathLike, capture: str = CAPTURE) -> dict:
-    """The truth of :func:`render_graycode_captures` for one capture.
+def read_graycode_truth(folder: str | os.PathLike, capture: str = CAPTURE, *, camera: int = 1) -> dict:
+    """The truth of :func:`render_graycode_captures` for one capture, seen by camera 1 or 2.
 
     Returns:
         dict: ``doc`` (truth.json), ``depth`` (H, W) float32, ``lit`` and ``object``
@@ -236,6 +371,12 @@ def read_graycode_truth(folder: str | os.PathLike, capture: str = CAPTURE) -> di
     if capture not in caps:
         raise FormatError(folder / "truth.json", f"no capture {capture!r} (have {', '.join(caps) or 'none'})")
     c = caps[capture]
+    if camera == 2:
+        if not isinstance(c.get("camera2"), dict):
+            raise FormatError(folder / "truth.json", f"captures.{capture}: no camera2 (a one-camera rendering)")
+        c = c["camera2"]
+    elif camera != 1:
+        raise ValueError(f"camera must be 1 or 2, got {camera!r}")
 
     def path(key):
         rel = c.get(key)

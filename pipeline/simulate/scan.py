@@ -13,7 +13,7 @@ import numpy as np
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
-from ringscan.pipeline.formats.rig import Rig, default_rig, turntable_transform
+from ringscan.pipeline.formats.rig import Rig, default_rig, has_calibrated_light, turntable_transform
 from ringscan.pipeline.formats.frame_store import STORE_NAME, create_store, write_frame
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
 from ringscan.pipeline.simulate.scenes import SceneMesh, add_wall, make_scene, place_scene, pose_scene
@@ -22,7 +22,26 @@ from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig, _
 
 log = logging.getLogger(__name__)
 
-__all__ = ["simulate_scan", "prepare_scene"]
+CAMERA2_DIR = "cam2"
+"""Camera 2's frames of a view go to ``<view>/cam2/`` (a two-camera rig)."""
+
+__all__ = ["simulate_scan", "prepare_scene", "add_camera2"]
+
+
+def add_camera2(rig: Rig) -> Rig:
+    """The rig with a second camera: camera 1 turned by 180 degrees about the light axis (the world
+    z axis, docs/design.md §2), so that the two stand symmetric about it, looking at the same point
+    from opposite sides (the default rig: 482 mm apart, 70 degrees between their axes).
+
+    Raises:
+        ValueError: the rig has a second camera already.
+    """
+    if rig.camera2 is not None:
+        raise ValueError("add_camera2: the rig has a second camera already")
+    c = rig.camera
+    flip = np.diag([-1.0, -1.0, 1.0])  # 180 degrees about world z
+    cam2 = dataclasses.replace(c, R=c.R @ flip, t=c.t.copy())
+    return dataclasses.replace(rig, camera2=cam2)
 
 
 def prepare_scene(scene: SceneMesh | str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto",
@@ -95,6 +114,9 @@ def simulate_scan(
         size_mm, up: passed to :func:`make_scene` when ``scene`` is a name or path.
         image_format: ``png`` or ``tiff`` for the frames, or ``packed``: one frame store per view
             (``<view>/frames.zarr``, frames appended as they are rendered).
+            A rig with ``camera2`` (:func:`add_camera2`) renders camera 2 too: its frames in
+            ``<view>/cam2/``, the view's ``camera2`` in scan.json, its truth as
+            ``truth/<view>_cam2_depth.tiff`` and ``_cam2_lit.png`` (``truth.views.<view>.camera2``).
         pose: turn the placed scene into this resting pose first (see
             :func:`ringscan.pipeline.simulate.scenes.pose_scene`: ``upright``, ``upside-down``,
             ``side-x``, ``side-y`` or ``AXIS:DEG[,AXIS:DEG...]``); None keeps it as it is.
@@ -118,8 +140,14 @@ def simulate_scan(
         raise ValueError("turntable_deg: no views")
     for a in angles:
         turntable_transform(rig.turntable, a)
+    if not has_calibrated_light(rig):
+        raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
     scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
     vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=(patterns.width, patterns.height))
+    vr2 = None
+    if rig.camera2 is not None:  # camera 2 sees the same scene under the same frames
+        vr2 = VirtualRig(dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera), scene, settings=settings,
+                         device=device, projector_size=(patterns.width, patterns.height))
 
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -135,31 +163,44 @@ def simulate_scan(
     frames = {n: render_frame(patterns, n) for n in names}
     done: list[View] = []
     t0 = time.perf_counter()
-    bar = progress_bar(total=len(angles) * len(names), desc=f"simulate {scene.name}", unit="frame",
+    n_cams = 2 if vr2 is not None else 1
+    bar = progress_bar(total=len(angles) * len(names) * n_cams, desc=f"simulate {scene.name}", unit="frame",
                        disable=not progress)
     try:
         for vi, deg in enumerate(angles):
             vname = f"view_{vi:03d}"
-            vr.set_turntable(deg)
-            rel, store = {}, None
-            if image_format == "packed":
-                store = create_store(folder / vname / STORE_NAME, names, height=rig.camera.height,
-                                     width=rig.camera.width, dtype=np.uint16 if settings.bit_depth == 16 else np.uint8)
-            for fi, n in enumerate(names):
-                img = vr.render(frames[n], seed=_mix_seed(settings.seed, vi, fi))
-                if store is not None:
-                    write_frame(store, n, img)
-                else:
-                    rel[n] = f"{vname}/{n}.{image_format}"
-                    write_image(folder / rel[n], img)
-                bar.update(1)
-            tr = vr.truth()
-            depth_rel, lit_rel = f"{TRUTH_DIR}/{vname}_depth.tiff", f"{TRUTH_DIR}/{vname}_lit.png"
-            _write_depth(folder / depth_rel, tr["depth"])
-            write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
-            truth["views"][vname] = {"depth": depth_rel, "lit": lit_rel}
-            view = View(name=vname, turntable_deg=float(deg), frames=rel)
-            done.append(packed_view(view, f"{vname}/{STORE_NAME}", names) if store is not None else view)
+            cams = [(1, vr, vname)] + ([(2, vr2, f"{vname}/{CAMERA2_DIR}")] if vr2 is not None else [])
+            written = {}
+            for c, rend, sub in cams:
+                rend.set_turntable(deg)
+                cam = rend.rig.camera
+                rel, store = {}, None
+                if image_format == "packed":
+                    store = create_store(folder / sub / STORE_NAME, names, height=cam.height, width=cam.width,
+                                         dtype=np.uint16 if settings.bit_depth == 16 else np.uint8)
+                for fi, n in enumerate(names):
+                    seed = _mix_seed(settings.seed, vi, fi) if c == 1 else _mix_seed(settings.seed, vi, fi, c)
+                    img = rend.render(frames[n], seed=seed)
+                    if store is not None:
+                        write_frame(store, n, img)
+                    else:
+                        rel[n] = f"{sub}/{n}.{image_format}"
+                        write_image(folder / rel[n], img)
+                    bar.update(1)
+                tr = rend.truth()
+                pre = f"{TRUTH_DIR}/{vname}_{'cam2_' if c == 2 else ''}"
+                depth_rel, lit_rel = f"{pre}depth.tiff", f"{pre}lit.png"
+                _write_depth(folder / depth_rel, tr["depth"])
+                write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
+                view = View(name=vname, turntable_deg=float(deg), frames=rel)
+                written[c] = ({"depth": depth_rel, "lit": lit_rel},
+                              packed_view(view, f"{sub}/{STORE_NAME}", names) if store is not None else view)
+            truth["views"][vname] = dict(written[1][0])
+            view = written[1][1]
+            if 2 in written:
+                truth["views"][vname]["camera2"] = written[2][0]
+                view = dataclasses.replace(view, camera2=written[2][1])
+            done.append(view)
             snapshot = {**truth, "views": dict(truth["views"])}
             scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": snapshot})
             save_scan(scan)

@@ -42,7 +42,8 @@ class Truth:
     turntable: Turntable | None
     """The rig's turntable (None: single pose)."""
     views: dict
-    """View name -> {"depth": relative path, "lit": relative path}."""
+    """View name -> {"depth": relative path, "lit": relative path}, and ``camera2``: the same for
+    camera 2 (a two-camera scan)."""
     settings: dict
     """The render settings used."""
     scene: str = ""
@@ -53,16 +54,23 @@ class Truth:
         R, t = _turn(self.turntable, turntable_deg)
         return self.vertices @ R.T + t, self.faces
 
-    def _file(self, view: str, key: str) -> Path:
+    def _file(self, view: str, key: str, camera: int = 1) -> Path:
         if view not in self.views:
             raise ValueError(f"truth: no view {view!r} (have {', '.join(self.views) or 'none'})")
-        return self.folder / self.views[view][key]
+        v = self.views[view]
+        if camera == 2:
+            if "camera2" not in v:
+                raise ValueError(f"truth: view {view!r} has no camera 2 (a one-camera scan)")
+            v = v["camera2"]
+        elif camera != 1:
+            raise ValueError(f"truth: camera must be 1 or 2, got {camera!r}")
+        return self.folder / v[key]
 
-    def depth(self, view: str) -> np.ndarray:
-        """(H, W) float32 camera-frame depth of a view (mm), NaN where nothing was hit."""
+    def depth(self, view: str, camera: int = 1) -> np.ndarray:
+        """(H, W) float32 camera-frame depth of a view (mm) seen by camera 1 or 2, NaN where nothing was hit."""
         import cv2
 
-        p = self._file(view, "depth")
+        p = self._file(view, "depth", camera)
         if not p.is_file():
             raise FormatError(p, "truth depth file not found")
         check_image_header(p)
@@ -71,10 +79,10 @@ class Truth:
             raise FormatError(p, "not a single-channel float32 TIFF")
         return d
 
-    def lit(self, view: str) -> np.ndarray:
-        """(H, W) bool: the pixel's centre sees a point lit by the projector image."""
+    def lit(self, view: str, camera: int = 1) -> np.ndarray:
+        """(H, W) bool: the pixel's centre (of camera 1 or 2) sees a point lit by the projector image."""
 
-        return read_image(self._file(view, "lit")) > 0
+        return read_image(self._file(view, "lit", camera)) > 0
 
 
 def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:

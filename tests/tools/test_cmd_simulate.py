@@ -105,3 +105,29 @@ def test_simulate_cli_opencv_graycode_errors(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert msg in err and len(err.splitlines()) == 1, err
         assert not out.exists() or not any(out.iterdir()), args
+
+
+def test_simulate_cli_camera2(tmp_path, capsys):
+    """--camera2 renders a second camera, camera 1 turned 180 degrees about the light axis: what it sees of an
+    object at (x, y, z) is what camera 1 sees of the object at (-x, -y, z) (depth for depth), its frames are
+    listed under the view's camera2 and its truth under truth.views.<view>.camera2."""
+    rig = _small_rig_file(tmp_path / "rig.json")
+    common = ["--rig", str(rig), "--scene", "sphere", "--size-mm", "30", "--codec", "gray-rings", "--bits", "3",
+              "--sector-bits", "0", "--angle-steps", "0", "--supersample", "1", "--no-progress", "--device", "cpu"]
+    assert main(["simulate", *common, "--camera2", "--place=12,7,20", "--out", str(tmp_path / "a")]) == 0
+    assert "x 2 cameras" in capsys.readouterr().out
+    assert main(["simulate", *common, "--place=-12,-7,20", "--out", str(tmp_path / "b")]) == 0
+    capsys.readouterr()
+    a = load_scan(tmp_path / "a")
+    assert a.rig.camera2 is not None and np.allclose(a.rig.camera2.center, a.rig.camera.center * [-1, -1, 1])
+    v = a.views[0]
+    assert v.camera2 is not None and set(v.camera2.frames) == set(v.frames) == set(frame_names(a.patterns))
+    assert all(p.startswith("view_000/cam2/") and (a.folder / p).is_file() for p in v.camera2.frames.values())
+    ta, tb = load_truth(a), load_truth(tmp_path / "b")
+    d2, d1 = ta.depth("view_000", camera=2), tb.depth("view_000")
+    obj = np.isfinite(d1) & (d1 < np.nanmedian(d1) - 5)     # the sphere, in front of the plane
+    assert obj.sum() > 200
+    assert np.array_equal(np.isfinite(d2), np.isfinite(d1))
+    assert np.median(np.abs(d2 - d1)[obj]) < 0.05 and np.percentile(np.abs(d2 - d1)[obj], 99) < 1.0
+    assert not np.allclose(ta.depth("view_000", camera=1)[obj], d1[obj], atol=1.0)  # camera 1 sees it elsewhere
+    assert ta.lit("view_000", camera=2).shape == (128, 160)

@@ -41,6 +41,14 @@ def small_procam_rig(*, gamma=1.0):
     return dataclasses.replace(rig, camera=cam, light=light)
 
 
+def small_stereo_rig(*, gamma=2.2):
+    """:func:`small_procam_rig` with a second camera (camera 1 turned 180 degrees about the light axis):
+    the virtual two-camera rig with a projector (the cameras 482 mm apart, 70 degrees between their axes)."""
+    from ringscan.pipeline.simulate.scan import add_camera2
+
+    return add_camera2(small_procam_rig(gamma=gamma))
+
+
 def bits_msb_first(frames, n_bits, first, index):
     """The Gray code read from pattern/inverse pairs (pattern > inverse), MSB first."""
     g = np.zeros_like(index)
@@ -159,3 +167,59 @@ def test_wrong_projector_size_is_one_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "capture_0" in err and "30 graycode_NN frames" in err, err
     assert not (tmp_path / "scan").exists()
+
+
+def test_two_cameras_in_opencv_sample_layout(tmp_path):
+    """A two-camera rig renders OpenCV's sample layout: pattern_camN_imK frames from 1 (white, black last), the
+    image list, the stereo and procam files (what the rig says), and each camera's truth: camera 2's truth
+    projector coordinates, through camera 2's own projection, land on the pixels that see them."""
+    from ringscan.pipeline.calibrate.graycode import list_capture
+    from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration
+    from ringscan.pipeline.geometry import camera_pixels
+
+    rig = small_stereo_rig()
+    out = tmp_path / "r"
+    doc = render_graycode_captures(out, rig=rig, scene="sphere", size_mm=50.0, progress=False, device="cpu",
+                                   settings=RenderSettings(supersample=2))
+    n = len(graycode_patterns((PW, PH)))
+    names = sorted(p.name for p in (out / "capture_0").iterdir())
+    assert names == sorted(f"pattern_cam{c}_im{k}.png" for c in (1, 2) for k in range(1, n + 1))
+    assert not (out / "capture_0" / "pattern_cam1_im0.png").exists()
+    a = list_capture(out / "capture_0", projector=(PW, PH))
+    b = list_capture(out / "capture_0.yml", projector=(PW, PH))
+    assert a.kind == "pattern" and b.kind == "list" and len(a.cameras) == 2
+    assert [[p.resolve() for p in c] for c in a.cameras] == [[p.resolve() for p in c] for c in b.cameras]
+    assert a.cameras[1][n - 2].name == f"pattern_cam2_im{n - 1}.png"        # white, then black, last
+    for cam in range(2):
+        truth = read_graycode_truth(out, camera=cam + 1)
+        white = read_image(a.cameras[cam][n - 2]).astype(float)
+        black = read_image(a.cameras[cam][n - 1]).astype(float)
+        assert truth["lit"].sum() > 5000 and np.median((white - black)[truth["lit"]]) > 60
+    st = read_stereo_calibration(out / "calibrationParameters.yml")
+    R = rig.camera2.R @ rig.camera.R.T
+    assert np.allclose(st["R"], R) and np.allclose(st["T"], rig.camera2.t - R @ rig.camera.t)
+    assert st["cam1_size"] == (320, 256) and st["cam2_size"] == (320, 256)
+    assert np.allclose(st["cam2_K"], rig.camera2.K) and np.allclose(st["cam2_dist"], rig.camera2.dist)
+    pc = read_opencv_calibration(out / "procam.yml")
+    Rp = rig.light.R @ rig.camera.R.T
+    assert np.allclose(pc["R"], Rp) and np.allclose(pc["T"], rig.light.t - Rp @ rig.camera.t)
+    assert pc["cam_size"] == (320, 256) and np.allclose(pc["proj_K"], rig.light.K)
+    assert np.allclose(np.array(doc["camera1_from_world"])[:3, :3], rig.camera.R)
+    # camera 2's truth depth: the points at those depths along camera 2's rays project back onto its pixels
+    t2 = read_graycode_truth(out, camera=2)
+    ys, xs = np.nonzero(np.isfinite(t2["depth"]))
+    sel = slice(None, None, 97)
+    from ringscan.pipeline.geometry import undistort_normalized
+
+    xn, yn = undistort_normalized(rig.camera2, xs[sel].astype(float), ys[sel].astype(float))
+    z = t2["depth"][ys[sel], xs[sel]].astype(float)
+    Xc = np.stack([xn * z, yn * z, z], 1)
+    Xw = (Xc - rig.camera2.t) @ rig.camera2.R
+    # ... and camera 1 sees the same surface: its truth depth there agrees (where camera 1 sees the point)
+    uv1 = camera_pixels(rig, Xw)
+    ok = (uv1[:, 0] > 1) & (uv1[:, 0] < 318) & (uv1[:, 1] > 1) & (uv1[:, 1] < 254)
+    d1 = read_graycode_truth(out, camera=1)["depth"]
+    z1 = (Xw @ rig.camera.R.T + rig.camera.t)[:, 2]
+    near = d1[np.round(uv1[ok, 1]).astype(int), np.round(uv1[ok, 0]).astype(int)]
+    agree = np.abs(near - z1[ok]) < 1.0
+    assert ok.sum() > 50 and agree.mean() > 0.8, (ok.sum(), agree.mean())   # the rest: occluded from camera 1

@@ -1,0 +1,255 @@
+"""``ringscan import`` of OpenCV's structured-light sample layout (two cameras, pattern_camN_imK frames, an
+image list, a camera-camera calibration file) against the virtual two-camera rig's truth, and its bad input."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.calibrate.errors import CalibrationError
+from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.patterns import DECODED_SCALE
+from ringscan.pipeline.formats.rig import has_calibrated_light
+from ringscan.pipeline.formats.scan import as_camera2, load_scan, read_view_frames
+from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
+from ringscan.tools.cli import main
+from tests.pipeline.simulate.test_opencv_graycode import PH, PW, small_stereo_rig
+
+PROJ = f"{PW}x{PH}"
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """The virtual two-camera rig's Gray code as OpenCV's sample stores it (320x256 cameras, 128x96 projector)."""
+    out = tmp_path_factory.mktemp("stereo") / "r"
+    rig = small_stereo_rig()
+    render_graycode_captures(out, rig=rig, scene="sphere", size_mm=50.0, progress=False, device="cpu")
+    return out, rig
+
+
+def _err(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def _decoded(scan, view, *, camera=1):
+    s = as_camera2(scan) if camera == 2 else scan
+    v = view.camera2 if camera == 2 else view
+    fr = read_view_frames(s, v, ["proj_u", "proj_v"]).astype(np.float64)
+    ok = (fr[0] > 0) & (fr[1] > 0)
+    return np.where(ok, fr[0] / DECODED_SCALE - 1, np.nan), np.where(ok, fr[1] / DECODED_SCALE - 1, np.nan)
+
+
+def test_two_camera_import_from_folder_and_list(rendered, tmp_path, capsys):
+    """The capture folder and its image list give the same two-camera scan: camera 1's decoded frames as the
+    view's, camera 2's under view.camera2, each within 0.1 px (median) of its camera's truth projector
+    coordinates; the rig in camera 1's frame with an uncalibrated projector, the truth depths inside its volume."""
+    out, rig = rendered
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["import", str(out / "capture_0"), "--rig", str(out / "calibrationParameters.yml"),
+                 "--projector", PROJ, "--out", str(a)]) == 0
+    text = capsys.readouterr().out
+    assert "camera 2:" in text and "uncalibrated" in text and "--rays camera-camera" in text
+    assert main(["import", str(out / "capture_0.yml"), "--rig", str(out / "calibrationParameters.yml"),
+                 "--projector", PROJ, "--out", str(b)]) == 0
+    capsys.readouterr()
+    sa, sb = load_scan(a), load_scan(b)
+    assert [v.name for v in sa.views] == [v.name for v in sb.views] == ["capture_0"]
+    va, vb = sa.views[0], sb.views[0]
+    assert va.camera2 is not None and va.camera2.frames["proj_u"] == "capture_0/cam2/proj_u.png"
+    for k in ("proj_u", "proj_v", "contrast"):
+        assert np.array_equal(read_image(a / va.frames[k]), read_image(b / vb.frames[k]))
+        assert np.array_equal(read_image(a / va.camera2.frames[k]), read_image(b / vb.camera2.frames[k]))
+    r = sa.rig
+    assert r.light.model == "uncalibrated" and not has_calibrated_light(r)
+    assert (r.light.width, r.light.height) == (PW, PH)
+    assert np.allclose(r.camera.R, np.eye(3)) and np.allclose(r.camera.t, 0)
+    R = rig.camera2.R @ rig.camera.R.T
+    assert np.allclose(r.camera2.R, R) and np.allclose(r.camera2.t, rig.camera2.t - R @ rig.camera.t)
+    for cam in (1, 2):
+        truth = read_graycode_truth(out, camera=cam)
+        u, v = _decoded(sa, va, camera=cam)
+        inner = cv2.erode((truth["lit"] & np.isfinite(truth["depth"])).astype(np.uint8), np.ones((5, 5), np.uint8))
+        sel = inner.astype(bool) & np.isfinite(u)
+        assert sel.sum() > 10000 and sel.sum() > 0.98 * inner.sum(), cam
+        e = np.hypot(u[sel] - truth["proj"][..., 0][sel], v[sel] - truth["proj"][..., 1][sel])
+        assert np.median(e) < 0.1 and np.percentile(e, 95) < 0.3, (cam, np.median(e), np.percentile(e, 95))
+    z1 = read_graycode_truth(out, camera=1)["depth"]
+    z1 = z1[np.isfinite(z1)]
+    assert r.volume.z_min < z1.min() and z1.max() < r.volume.z_max     # from the decoded matches, with margins
+    assert r.volume.z_max < 2 * z1.max()
+
+
+def test_stereo_with_projector_rig_and_one_camera(rendered, tmp_path, capsys):
+    """--projector-rig adds the projector (camera 1 - projector file) in camera 1's frame; --camera 1 with the
+    procam file alone gives the one-camera scan of camera 1's frames (as before for graycode_NN folders)."""
+    out, rig = rendered
+    s3 = tmp_path / "s3"
+    assert main(["import", str(out / "capture_0"), "--rig", str(out / "calibrationParameters.yml"),
+                 "--projector-rig", str(out / "procam.yml"), "--projector", PROJ, "--out", str(s3)]) == 0
+    r = load_scan(s3).rig
+    Rp = rig.light.R @ rig.camera.R.T
+    assert r.light.model == "perspective" and np.allclose(r.light.R, Rp)
+    assert np.allclose(r.light.t, rig.light.t - Rp @ rig.camera.t) and r.camera2 is not None
+    one = tmp_path / "one"
+    assert main(["import", str(out / "capture_0"), "--rig", str(out / "procam.yml"), "--camera", "1",
+                 "--projector", PROJ, "--out", str(one)]) == 0
+    capsys.readouterr()
+    s1 = load_scan(one)
+    assert s1.rig.camera2 is None and s1.views[0].camera2 is None
+    assert np.array_equal(read_image(one / "capture_0" / "proj_u.png"), read_image(s3 / "capture_0" / "proj_u.png"))
+
+
+def test_stereo_file_read_and_named_for_what_it_is(rendered, tmp_path):
+    out, _ = rendered
+    with pytest.raises(CalibrationError, match=r"camera-camera \(stereo\) calibration .*projector-from-scan"):
+        read_opencv_calibration(out / "calibrationParameters.yml")
+    with pytest.raises(CalibrationError, match="a camera-projector calibration"):
+        read_stereo_calibration(out / "procam.yml")
+    # 'cam1_distortion' spelled right, and R, T given only as RT_cam1_2_cam2
+    text = (out / "calibrationParameters.yml").read_text().replace("_distorsion", "_distortion")
+    text = text.replace("\nR:", "\nR_unused:").replace("\nT:", "\nT_unused:")
+    (tmp_path / "c.yml").write_text(text)
+    a, b = read_stereo_calibration(out / "calibrationParameters.yml"), read_stereo_calibration(tmp_path / "c.yml")
+    for k in ("cam1_dist", "cam2_dist", "R", "T"):
+        assert np.allclose(a[k], b[k]), k
+
+
+def _copy(out, tmp_path, name="cap"):
+    dst = tmp_path / name
+    shutil.copytree(out / "capture_0", dst)
+    return dst
+
+
+def test_bad_input_one_line_each_nothing_written(rendered, tmp_path, capsys):
+    out, _ = rendered
+    stereo, procam = str(out / "calibrationParameters.yml"), str(out / "procam.yml")
+    scan = tmp_path / "scan"
+
+    def run(capture, rig=stereo, *extra):
+        rc = main(["import", str(capture), "--rig", rig, "--projector", PROJ, "--out", str(scan), *extra])
+        assert rc == 1 and not scan.exists()
+        return _err(capsys)
+
+    # one camera's frames missing
+    c = _copy(out, tmp_path, "no_cam2")
+    for p in c.glob("pattern_cam2_*"):
+        p.unlink()
+    err = run(c)
+    assert f"{c}: camera 2's frames are missing" in err, err
+    c = _copy(out, tmp_path, "no_cam1")
+    for p in c.glob("pattern_cam1_*"):
+        p.unlink()
+    assert f"{c}: camera 1's frames are missing" in run(c)
+    c = _copy(out, tmp_path, "gap")
+    (c / "pattern_cam2_im7.png").unlink()
+    err = run(c)
+    assert "29 pattern_cam2_imK frames, but a 128x96 projector in layout opencv-graycode has 30" in err, err
+    # frames of different sizes
+    c = _copy(out, tmp_path, "sizes")
+    img = read_image(c / "pattern_cam1_im5.png")
+    cv2.imwrite(str(c / "pattern_cam1_im5.png"), img[:, :300])
+    err = run(c)
+    assert f"{c / 'pattern_cam1_im5.png'}: frame is 300x256, pattern_cam1_im1.png is 320x256" in err, err
+    # a frame count that does not fit the projector
+    err = main(["import", str(out / "capture_0"), "--rig", stereo, "--projector", "256x96", "--out", str(scan)])
+    err = _err(capsys)
+    assert "30 pattern_cam1_imK frames, but a 256x96 projector in layout opencv-graycode has 32" in err, err
+    assert not scan.exists()
+    # names that do not match
+    c = tmp_path / "renamed"
+    c.mkdir()
+    for p in (out / "capture_0").glob("pattern_cam1_*"):
+        shutil.copy(p, c / p.name.replace("pattern_cam1_im", "img_"))
+    err = run(c)
+    assert "no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext>" in err and "img_" in err, err
+    # a YAML listing files that do not exist
+    lst = tmp_path / "list.yml"
+    lst.write_text((out / "capture_0.yml").read_text())  # paths relative to the list's folder: not here
+    err = run(lst)
+    assert f"{lst}: cam1[0]: capture_0/pattern_cam1_im1.png not found" in err, err
+    # a YAML that is not FileStorage
+    bad = tmp_path / "bad.yml"
+    bad.write_text("- just\n- a list\n: of : nothing\n")
+    err = run(bad)
+    assert f"{bad}: not an OpenCV FileStorage file" in err, err
+    err = run(out / "capture_0", str(bad))
+    assert f"{bad}: not an OpenCV FileStorage file" in err, err
+    # a stereo file given where a procam file is needed: a one-camera capture, or --camera alone
+    gc = tmp_path / "gc"
+    gc.mkdir()
+    for k in range(1, 31):
+        shutil.copy(out / "capture_0" / f"pattern_cam1_im{k}.png", gc / f"graycode_{k - 1:02d}.png")
+    for args in ((gc,), (out / "capture_0", stereo, "--camera", "1")):
+        err = run(*args)
+        assert f"{stereo}: a camera-camera (stereo) calibration" in err and "projector-from-scan" in err, err
+    # two cameras' frames with a one-camera rig
+    err = run(out / "capture_0", procam)
+    assert "holds two cameras' frames, but the rig" in err and "--camera 1" in err, err
+    # the calibration's image size against the frames
+    text = (out / "calibrationParameters.yml").read_text().replace("cam2_size: [ 320, 256 ]", "cam2_size: [ 640, 512 ]")
+    (tmp_path / "big.yml").write_text(text)
+    err = run(out / "capture_0", str(tmp_path / "big.yml"))
+    assert "camera 2's frames are 320x256, the rig's camera 2 is 640x512" in err, err
+    # --projector-rig without a stereo --rig: a usage error
+    assert main(["import", str(gc), "--rig", procam, "--projector-rig", procam, "--projector", PROJ,
+                 "--out", str(scan)]) == 2
+    assert "--projector-rig goes with a camera-camera" in capsys.readouterr().err and not scan.exists()
+
+
+def test_jpeg_frames_and_a_list_with_absolute_paths(rendered, tmp_path, capsys):
+    """OpenCV's sample stores JPEGs: the same capture as .jpg (quality 95) imports with both cameras, and an
+    image list of absolute paths elsewhere finds them."""
+    out, _ = rendered
+    jpg = tmp_path / "jpg"
+    jpg.mkdir()
+    for p in (out / "capture_0").glob("*.png"):
+        cv2.imwrite(str(jpg / (p.stem + ".jpg")), read_image(p), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    lst = tmp_path / "lists" / "statue.yml"
+    lst.parent.mkdir()
+    fs = cv2.FileStorage(str(lst), cv2.FILE_STORAGE_WRITE)
+    for c in (1, 2):
+        fs.startWriteStruct(f"cam{c}", cv2.FileNode_SEQ)
+        for k in range(1, 31):
+            fs.write("", str(jpg / f"pattern_cam{c}_im{k}.jpg"))
+        fs.endWriteStruct()
+    fs.release()
+    for cap, name in ((jpg, "jpg"), (lst, "statue")):
+        scan = tmp_path / f"s_{name}"
+        assert main(["import", str(cap), "--rig", str(out / "calibrationParameters.yml"), "--projector", PROJ,
+                     "--out", str(scan)]) == 0
+        capsys.readouterr()
+        s = load_scan(scan)
+        assert [v.name for v in s.views] == [name] and s.views[0].camera2 is not None
+        truth = read_graycode_truth(out, camera=2)
+        u, v = _decoded(s, s.views[0], camera=2)
+        inner = cv2.erode((truth["lit"] & np.isfinite(truth["depth"])).astype(np.uint8),
+                          np.ones((5, 5), np.uint8)).astype(bool)
+        sel = inner & np.isfinite(u)
+        assert sel.sum() > 0.98 * inner.sum()
+        e = np.hypot(u[sel] - truth["proj"][..., 0][sel], v[sel] - truth["proj"][..., 1][sel])
+        assert np.median(e) < 0.1, np.median(e)
+
+
+def test_stereo_file_as_filestorage_json(rendered, tmp_path, capsys):
+    """cv::FileStorage writes JSON too: --rig stereo.json (no ringscan 'format') is read as the OpenCV file."""
+    out, _ = rendered
+    src = cv2.FileStorage(str(out / "calibrationParameters.yml"), cv2.FILE_STORAGE_READ)
+    js = cv2.FileStorage(str(tmp_path / "stereo.json"), cv2.FILE_STORAGE_WRITE)
+    for k in ("cam1_intrinsics", "cam1_distorsion", "cam2_intrinsics", "cam2_distorsion", "R", "T"):
+        js.write(k, src.getNode(k).mat())
+    js.release()
+    src.release()
+    a, b = read_stereo_calibration(out / "calibrationParameters.yml"), read_stereo_calibration(tmp_path / "stereo.json")
+    assert b["cam1_size"] is None and all(np.allclose(a[k], b[k]) for k in ("cam1_K", "cam2_dist", "R", "T"))
+    scan = tmp_path / "s"
+    assert main(["import", str(out / "capture_0"), "--rig", str(tmp_path / "stereo.json"), "--projector", PROJ,
+                 "--out", str(scan)]) == 0
+    capsys.readouterr()
+    r = load_scan(scan).rig
+    assert (r.camera2.width, r.camera2.height) == (320, 256)     # the sizes from the frames when the file has none
