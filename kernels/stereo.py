@@ -4,17 +4,18 @@ or three rays (docs/reconstruction.md "Two cameras", docs/design.md §19).
 - Matching. Each camera decodes the projector coordinate p = (u_p, v_p) of its
   samples; a camera-1 sample (the query) is matched to the camera-2 position x2
   where camera 2's projector-coordinate field equals the query's p. Camera 2's
-  samples (a dense per-pixel map or scattered ring-edge samples: both are just
-  (x2, p, sigma) triples here) are binned by p into a grid of square cells
-  (count, scan, write); each query takes its ``k`` nearest samples in projector
-  space and fits the local affine map x2 = x2m + A (p - pm) by weighted least
-  squares (weights 1 / sigma_p^2), evaluated at the query's p. Where the
-  neighbours lie on a line in projector space (ring edges: samples along one
-  ring) the map is fitted along that line only (pseudo-inverse), and the query
-  must lie on it. A neighbourhood that straddles a depth discontinuity is one
-  no single affine map fits: its fit residual (camera px) or its gain (camera
-  px per projector px) is too large, and the query is dropped. No extrinsics are
-  used, so the matches can re-estimate them.
+  samples (a dense per-pixel map or scattered ring-edge samples: both are just (x2,
+  p, sigma) triples here) are binned by p into a grid of square cells (count, scan,
+  write); each query takes its ``k`` nearest samples in projector space (searching
+  ring by ring of cells out to a radius) and fits the local affine map x2 = x2m + A
+  (p - pm) by weighted least squares (weights 1 / sigma_p^2), evaluated at the
+  query's p. Where the neighbours lie on a line in projector space (ring edges:
+  samples along one ring) the map is fitted along that line only (pseudo-inverse),
+  and the query must lie on their curve (a quadratic through them: a ring edge is an
+  arc). A neighbourhood that straddles a depth discontinuity is one no single affine
+  map fits: its fit residual (camera px) or its gain (camera px per projector px) is
+  too large, and the query is dropped. No extrinsics are used, so the matches can
+  re-estimate them.
 - Triangulation. Gauss-Newton on the weighted reprojection error of the point in
   camera 1, camera 2 and (optionally) the calibrated projector, from the
   midpoint of the two camera rays, through each lens's distortion
@@ -66,6 +67,8 @@ MATCH_TOO_FEW = wp.constant(2)
 MATCH_EXTRAPOLATED = wp.constant(3)
 MATCH_DISCONTINUITY = wp.constant(4)
 MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
+JACOBIAN_STEP_MM = wp.constant(0.5)
+"""Central-difference step of the triangulation's Jacobians (mm)."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
 
@@ -556,8 +559,11 @@ def triangulate_rays_kernel(
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
     ss = float(0.0)
+    # Jacobians by central differences over 0.5 mm: the projections are smooth on
+    # that scale, and a smaller step lets float32 noise into the Jacobian, which
+    # a point with a large residual (rays that miss) multiplies into its steps
+    h = float(JACOBIAN_STEP_MM)
     for _it in range(NEWTON_STEPS):
-        h = wp.max(0.01, 1.0e-4 * wp.length(X))
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
         H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
@@ -577,11 +583,7 @@ def triangulate_rays_kernel(
         if wp.length(step) < wp.max(1.0e-4, 0.02 * sd):
             converged = True
             break
-    if not converged:
-        status[i] = STATUS_NOT_CONVERGED
-        return
     # the residual at the solution
-    h = wp.max(0.01, 1.0e-4 * wp.length(X))
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     g = wp.vec3(0.0, 0.0, 0.0)
     H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
@@ -594,6 +596,12 @@ def triangulate_rays_kernel(
         chi += c3
         ss += r3 * r3
         nr = 3.0
+    rms = wp.sqrt(ss / nr)
+    if not converged:
+        # rays that miss each other by far leave float32 noise in the steps: name it for what it is
+        status[i] = wp.where(rms > max_residual_px, STATUS_INCONSISTENT, STATUS_NOT_CONVERGED)
+        residual[i] = wp.where(rms > max_residual_px, rms, -1.0)
+        return
     # in front of both cameras (and the projector), inside the volume
     z1 = (cam1.R * X + cam1.t)[2]
     z2 = (cam2.R * X + cam2.t)[2]
@@ -609,7 +617,6 @@ def triangulate_rays_kernel(
         sn = wp.max(sn, wp.length(wp.cross(d1, direction_to_light(light, X))))
     cov = wp.inverse(H)
     var = wp.dot(d1, cov * d1)
-    rms = wp.sqrt(ss / nr)
     points[i] = X
     residual[i] = rms
     chi2[i] = chi

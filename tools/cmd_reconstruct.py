@@ -68,7 +68,8 @@ def add_constraint_option(p) -> None:
                         "over the settings file's stereo.rays")
 
 
-def with_constraint(settings: ReconstructSettings, constraint: str | None, rays: str | None = None) -> ReconstructSettings:
+def with_constraint(settings: ReconstructSettings, constraint: str | None,
+                    rays: str | None = None) -> ReconstructSettings:
     """The settings with ``--constraint`` and ``--rays`` applied (unchanged where not given)."""
     if constraint is not None:
         settings = replace(settings, triangulate=replace(settings.triangulate, constraint=constraint))

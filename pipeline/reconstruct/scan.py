@@ -52,7 +52,7 @@ from ringscan.pipeline.formats.scan import (
 from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
-from ringscan.pipeline.reconstruct.view import reconstruct_view, write_view_ply
+from ringscan.pipeline.reconstruct.view import check_rays, reconstruct_view, write_view_ply
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +121,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
     check_no_overwrite(outputs, scan_inputs(scan))
     for v in chosen:
         check_view_frames(scan, v)  # every frame's header, before anything is written
+    check_rays(scan, chosen, settings)
     device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
     if held is not None:

@@ -104,8 +104,9 @@ def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
     off = proj - np.asarray(scan.patterns.center, float)
     r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
     c, s = off[:, 0] / r, off[:, 1] / r
-    sigma_proj = np.stack([np.sqrt(sr ** 2 * c ** 2 + st ** 2 * s ** 2), np.sqrt(sr ** 2 * s ** 2 + st ** 2 * c ** 2)], 1)
-    counts = np.bincount(status, minlength=len(MATCH_STATUS_NAMES)) if status.size else np.zeros(len(MATCH_STATUS_NAMES), int)
+    sigma_proj = np.stack([np.sqrt(sr ** 2 * c ** 2 + st ** 2 * s ** 2),
+                           np.sqrt(sr ** 2 * s ** 2 + st ** 2 * c ** 2)], 1)
+    counts = np.bincount(status, minlength=len(MATCH_STATUS_NAMES))
     stats = {"samples_camera1": int(len(samples1)), "samples_camera2": int(len(samples2)), "matches": int(ok.size),
              "unmatched": {name: int(counts[i]) for i, name in enumerate(MATCH_STATUS_NAMES) if i > 0}}
     return StereoMatches(uv1=samples1.uv.numpy()[ok].astype(np.float64), uv2=M.uv2.numpy()[ok].astype(np.float64),

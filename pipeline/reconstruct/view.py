@@ -36,7 +36,7 @@ from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, 
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points"]
+__all__ = ["ViewCloud", "reconstruct_view", "write_view_ply", "explain_no_points", "view_rays", "check_rays"]
 
 CALIBRATION_WARN_PX = 1.0
 """Median projector-pixel residual above which a view warns that the rig does not fit its images."""
@@ -177,6 +177,19 @@ def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
     return rays
 
 
+def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
+    """Every view's rays can be had: two-camera rays need two-camera views, the
+    projector's ray a calibrated projector (checked before anything is written).
+
+    Raises:
+        FormatError: naming the view and what is missing.
+    """
+    for view in views:
+        rays = view_rays(scan, view, settings)
+        if rays != "camera-camera" and not has_calibrated_light(scan.rig):
+            light_model_for(scan.rig)  # raises: the projector is not calibrated (its own message)
+
+
 def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, samples,
                    sector_bits: int, times: dict) -> dict:
     """Camera 1's samples matched in camera 2 and triangulated from two or three
@@ -203,11 +216,17 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
         kw = dict(light=light, proj=proj,
                   proj_info=polar_information(proj, f32(matches.sigma_rho.astype(np.float32)),
                                               f32(matches.sigma_tan.astype(np.float32)), center=scan.patterns.center))
+    check = epipolar_check(rig, matches)
+    max_res = st.max_residual_px
+    if check and not check["fits"]:
+        # a rig that misses: its points miss by the miss; the cloud is still made
+        # (and the view warns), an outlier is a point beyond 5 times the miss
+        max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
     tri = triangulate_rays(v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32)),
                            f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
-                           max_residual_px=st.max_residual_px, threads=threads, **kw)
+                           max_residual_px=max_res, threads=threads, **kw)
     points = np.zeros((n, 3), np.float32)
     status = np.full(n, STATUS_UNMATCHED, np.int32)
     confidence = np.zeros(n, np.float32)
@@ -216,10 +235,11 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector
-        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=camera_model_for(rig),
-                               light=light, volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
-                               sector_bits=sector_bits, phi=samples.phi, sigma_rho=samples.sigma_rho,
-                               sigma_tan=samples.sigma_tan, settings=settings.triangulate, threads=threads)
+        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence,
+                               camera=camera_model_for(rig), light=light, volume=(vol.z_min, vol.z_max, vol.r_max),
+                               center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi,
+                               sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
+                               settings=settings.triangulate, threads=threads)
         points, status = tp.points.numpy(), tp.status.numpy()
         confidence, sigma, residual = tp.confidence.numpy(), tp.sigma.numpy(), tp.residual.numpy()
         extra["fallback_camera_projector"] = int(n - len(matches))
@@ -230,7 +250,6 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     confidence[i] = np.where(tst == 0, samples.confidence.numpy()[i], 0.0)
     sigma[i] = tri.sigma.numpy()
     residual[i] = tri.residual.numpy()
-    check = epipolar_check(rig, matches)
     if check:
         check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
                  "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}
@@ -248,7 +267,8 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
         extra["calibration_check"] = check
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
-    return dict(points=wp.array(points, dtype=wp.vec3, device=device), status=wp.array(status, dtype=wp.int32, device=device),
+    return dict(points=wp.array(points, dtype=wp.vec3, device=device),
+                status=wp.array(status, dtype=wp.int32, device=device),
                 confidence=wp.array(confidence, dtype=wp.float32, device=device),
                 sigma=wp.array(sigma, dtype=wp.float32, device=device),
                 residual=wp.array(residual, dtype=wp.float32, device=device), extra=extra)

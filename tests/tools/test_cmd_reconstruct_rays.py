@@ -49,7 +49,28 @@ def test_two_camera_rays_on_a_one_camera_scan_is_one_line(tmp_path, capsys):
                  "--no-progress"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "needs a two-camera view" in err and "Traceback" not in err, err
-    assert not (tmp_path / "rec" / "view_000.ply").exists()
+    assert not (tmp_path / "rec").exists()  # checked before anything is written
+
+
+def test_projector_rays_with_an_uncalibrated_projector_is_one_line(stereo_folder, tmp_path, capsys):
+    import dataclasses
+    import shutil
+
+    from ringscan.pipeline.formats.rig import UncalibratedLight
+    from ringscan.pipeline.formats.scan import load_scan, save_scan
+
+    folder = tmp_path / "scan"
+    shutil.copytree(stereo_folder, folder)
+    scan = load_scan(folder)
+    li = scan.rig.light
+    save_scan(dataclasses.replace(scan, rig_ref=None, rig=dataclasses.replace(
+        scan.rig, light=UncalibratedLight(width=li.width, height=li.height, gamma=li.gamma))))
+    for rays in ("all", "camera-projector"):
+        assert main(["reconstruct", str(folder), "--out", str(tmp_path / rays), "--rays", rays, "--device", "cpu",
+                     "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "not calibrated" in err and "Traceback" not in err, err
+        assert not (tmp_path / rays).exists()
 
 
 def test_rays_is_a_choice(capsys):

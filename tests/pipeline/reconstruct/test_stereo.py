@@ -118,6 +118,8 @@ def test_rotated_extrinsics_warn(stereo_scan, tmp_path, caplog):
         cloud = reconstruct_view(bad, bad.views[0], settings=_rays("camera-camera"), device="cpu")
     chk = cloud.stats["calibration_check"]
     assert not chk["fits"] and chk["median_px"] > 3.0
+    # the cloud is still made (worse), not dropped as inconsistent
+    assert cloud.stats["points"] > 0.5 * cloud.stats["stereo"]["matches"]
     assert "does not fit the images" in caplog.text
 
 
@@ -128,3 +130,25 @@ def test_one_camera_view_refuses_two_camera_rays(tmp_path):
         reconstruct_view(scan, scan.views[0], settings=_rays("camera-camera"), device="cpu")
     with pytest.raises(FormatError, match="not a two-camera view"):
         match_view(scan, scan.views[0], device="cpu")
+
+
+def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
+    # every pixel's projector pixel as an OpenCV Gray code decodes it (integer codes):
+    # camera to camera, the local fit over the neighbours beats the projector ray of
+    # one rounded code, and all three rays beat both
+    from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
+    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+
+    scan = simulate_decoded_two_camera_scan(tmp_path / "scan", integer=True)
+    mesh = truth_surface(scan, 0.0)
+    med = {}
+    for rays in ("camera-projector", "camera-camera", "all"):
+        rep = reconstruct_scan(scan, tmp_path / rays, settings=_rays(rays), progress=False)
+        v = rep["views"][0]
+        ply = read_ply(tmp_path / rays / "view_000.ply")
+        d = point_distances(mesh, np.c_[ply["x"], ply["y"], ply["z"]].astype(np.float64))
+        med[rays] = float(np.median(d))
+        assert v["points"] > (0.99 if rays == "camera-projector" else 0.7) * v["samples"]
+    assert med["camera-camera"] < 0.95 * med["camera-projector"], med
+    assert med["all"] < 0.8 * med["camera-camera"], med
+    assert med["all"] < 0.04, med  # mm, 0.65 mm camera pixels

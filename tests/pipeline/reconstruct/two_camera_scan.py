@@ -63,3 +63,65 @@ def simulate_two_camera_scan(folder, *, patterns=None, rig=None, uncalibrated: b
         rig, light=UncalibratedLight(width=rig.light.width, height=rig.light.height, gamma=rig.light.gamma))
     save_scan(dataclasses.replace(scan1, rig=full, rig_ref=None, views=tuple(views)))
     return load_scan(folder)
+
+
+def _decoded_maps(rig, depth, lit, *, integer: bool):
+    """(proj_u, proj_v) float maps of one camera from its truth depth (NaN: not decoded)."""
+    from ringscan.pipeline.geometry import projector_pixels, undistort_normalized
+
+    c = rig.camera
+    h, w = depth.shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = undistort_normalized(c, uu.ravel(), vv.ravel())
+    z = depth.ravel().astype(np.float64)
+    Xc = np.stack([x * z, y * z, z], 1)
+    X = (Xc - c.t) @ c.R  # R^T (X_c - t)
+    ok = np.isfinite(X).all(1) & lit.ravel()
+    p = np.full((h * w, 2), np.nan)
+    p[ok] = projector_pixels(rig, X[ok])
+    if integer:
+        p = np.round(p)  # the projector pixel a Gray code names (as OpenCV decodes it)
+    inside = (p[:, 0] >= 0) & (p[:, 0] <= rig.light.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= rig.light.height - 1)
+    p[~inside] = np.nan
+    return p[:, 0].reshape(h, w), p[:, 1].reshape(h, w)
+
+
+def simulate_decoded_two_camera_scan(folder, *, integer: bool = True):
+    """A ``decoded`` two-camera scan (every pixel's projector coordinate, as an
+    imported Gray code gives it: integer codes by default) of the 80 mm sphere,
+    made from the virtual rig's truth depth of each camera; returns it loaded."""
+    from ringscan.pipeline.formats.images import write_image
+    from ringscan.pipeline.formats.patterns import DECODED_SCALE
+    from ringscan.pipeline.simulate.truth import load_truth
+
+    rig = two_camera_rig()
+    cheap = parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 1, "sector_bits": 0,
+                            "angle_steps": 0})
+    one = dataclasses.replace(rig, camera2=None)
+    scan1 = simulate_scan(folder, scene="sphere", rig=one, patterns=cheap, progress=False)
+    tmp = folder.parent / (folder.name + "_camera2")
+    rig2 = dataclasses.replace(one, camera=rig.camera2)
+    scan2 = simulate_scan(tmp, scene="sphere", rig=rig2, patterns=cheap, progress=False)
+    frames = {}
+    for key, scan, r in (("1", scan1, one), ("2", scan2, rig2)):
+        t = load_truth(scan)
+        u, v = _decoded_maps(r, t.depth("view_000"), t.lit("view_000"), integer=integer)
+        sub = "view_000" if key == "1" else "view_000/cam2"
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+        names = {}
+        for name, img in (("proj_u", u), ("proj_v", v)):
+            q = np.where(np.isfinite(img), np.round((np.nan_to_num(img) + 1.0) * DECODED_SCALE), 0)
+            write_image(folder / sub / f"{name}.png", q.astype(np.uint16))
+            names[name] = f"{sub}/{name}.png"
+        write_image(folder / sub / "contrast.png", np.full(u.shape, 200 * 257, np.uint16))
+        names["contrast"] = f"{sub}/contrast.png"
+        frames[key] = names
+    shutil.rmtree(tmp)
+    for rel in scan1.views[0].frames.values():  # the cheap pattern's frames: not part of the decoded scan
+        (folder / rel).unlink()
+    spec = parse_patterns({"codec": "decoded", **PROJ, "rho0": 0.0, "pitch": 1.0, "sector_bits": 8})
+    v1 = scan1.views[0]
+    view = View(name=v1.name, turntable_deg=v1.turntable_deg, frames=frames["1"],
+                camera2=View(name=v1.name, turntable_deg=v1.turntable_deg, frames=frames["2"]))
+    save_scan(dataclasses.replace(scan1, rig=rig, rig_ref=None, patterns=spec, views=(view,)))
+    return load_scan(folder)
