@@ -89,6 +89,14 @@ class Codec(ABC, Generic[S]):
         """Its samples can calibrate the light (projected, decoded without the rig's geometry)."""
         return self.layout.projectable and not self.rig_needs.geometry_to_decode
 
+    def full_coordinate(self, spec: PatternSpec) -> bool:
+        """Its samples of ``spec`` carry the full projector coordinate (both u_p and
+        v_p: the ring radius and the polar angle with their standard deviations), so
+        two cameras can be matched by equal projector coordinate
+        (docs/reconstruction.md, "Two cameras"). False here; a codec that decodes
+        both says when."""
+        return False
+
     def frame_names(self, spec: PatternSpec) -> list[str]:
         """The frame names, in projection order (may depend on any pattern parameter)."""
         return self.layout.frame_names(spec)

@@ -22,7 +22,7 @@ import warp as wp
 
 from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.base import Codec, StageSettings
-from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS
+from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
 __all__ = ["DecodedCodec", "DecodedSettings", "extract_decoded", "decoded_samples", "CONTRAST_FULL"]
@@ -136,6 +136,9 @@ class DecodedCodec(Codec[DecodedSettings]):
 
     layout = PATTERN_LAYOUTS["decoded"]
     settings_type = DecodedSettings
+
+    def full_coordinate(self, spec: PatternSpec) -> bool:
+        return True  # every sample is a decoded (u_p, v_p)
 
     def settings_from(self, stages: StageSettings) -> DecodedSettings:
         return DecodedSettings()

@@ -103,6 +103,9 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
         return draw_frame(spec, name)
 
+    def full_coordinate(self, spec: PatternSpec) -> bool:
+        return spec.angle_steps > 0  # the polar angle comes from the angle code only
+
     def settings_from(self, stages: StageSettings) -> GrayRingsSettings:
         return GrayRingsSettings(decode=stages.decode, sample=stages.sample, angle=stages.angle)
 

@@ -258,6 +258,9 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:
         return draw_frame(spec, name)
 
+    def full_coordinate(self, spec: PatternSpec) -> bool:
+        return spec.angle_steps > 0  # the polar angle comes from the angle code only
+
     def settings_from(self, stages: StageSettings) -> PhaseRingsSettings:
         return PhaseRingsSettings(decode=stages.decode, phase=stages.phase, angle=stages.angle)
 

@@ -173,19 +173,37 @@ def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
                                          "camera2 and the view's camera-2 frames); this one has one camera")
         return "camera-projector"
     if rays == "auto":
-        return "all" if has_calibrated_light(scan.rig) else "camera-camera"
+        if not has_calibrated_light(scan.rig):
+            return "camera-camera"
+        # a codec whose samples cannot be matched between the cameras: camera 1 and the projector
+        return "all" if codec_for(scan.patterns.codec, source=scan.path).full_coordinate(scan.patterns) \
+            else "camera-projector"
     return rays
 
 
 def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
-    """Every view's rays can be had: two-camera rays need two-camera views, the
-    projector's ray a calibrated projector (checked before anything is written).
+    """Every view's rays can be had: two-camera rays need two-camera views and a
+    codec whose samples carry the full projector coordinate (the cameras are
+    matched by it), the projector's ray a calibrated projector (checked before
+    anything is written).
 
     Raises:
         FormatError: naming the view and what is missing.
     """
+    codec = codec_for(scan.patterns.codec, source=scan.path)
     for view in views:
         rays = view_rays(scan, view, settings)
+        if rays in ("camera-camera", "all") and not codec.full_coordinate(scan.patterns):
+            angle = any(p.name == "angle_steps" for p in codec.layout.parameters)
+            raise FormatError(scan.path, f"view {view.name}: --rays {settings.stereo.rays} matches the two cameras "
+                                         f"by projector coordinate, but the {codec.name} codec's samples of this "
+                                         "scan carry the ring radius only"
+                                         + (" (no angle code: patterns.angle_steps 0); record the angle code "
+                                            "(--angle-steps > 0) or" if angle else ";")
+                                         + " use --rays camera-projector"
+                                         + ("" if has_calibrated_light(scan.rig) else
+                                            " (that needs a calibrated projector: ringscan calibrate "
+                                            "projector-from-scan, docs/calibration.md)"))
         if rays != "camera-camera" and not has_calibrated_light(scan.rig):
             light_model_for(scan.rig)  # raises: the projector is not calibrated (its own message)
 

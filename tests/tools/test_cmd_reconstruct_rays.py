@@ -77,3 +77,48 @@ def test_rays_is_a_choice(capsys):
     with pytest.raises(SystemExit) as e:
         main(["reconstruct", "x", "--out", "y", "--rays", "both"])
     assert e.value.code == 2
+
+
+@pytest.fixture(scope="module")
+def no_angle_folder(tmp_path_factory):
+    from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS
+    return simulate_two_camera_scan(tmp_path_factory.mktemp("noangle") / "scan",
+                                    patterns={**ANGLE_PATTERNS, "bits": 3, "angle_steps": 0}).folder
+
+
+def test_two_camera_rays_need_a_codec_with_the_full_projector_coordinate(no_angle_folder, tmp_path, capsys):
+    # gray-rings without the angle code: its samples carry the ring radius only, so the
+    # cameras cannot be matched; refused before anything is written (settings.json included)
+    for rays in ("camera-camera", "all"):
+        out = tmp_path / rays
+        assert main(["reconstruct", str(no_angle_folder), "--out", str(out), "--rays", rays, "--device", "cpu",
+                     "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+        assert "scan.json" in err and "ring radius only" in err and "--angle-steps" in err, err
+        assert not out.exists()
+    # auto on a calibrated projector: camera 1 and the projector
+    out = tmp_path / "auto"
+    assert main(["reconstruct", str(no_angle_folder), "--out", str(out), "--device", "cpu", "--no-progress"]) == 0
+    v = json.loads((out / "report.json").read_text())["views"][0]
+    assert v["rays"] == "camera-projector" and v["points"] > 0
+
+
+def test_auto_on_an_uncalibrated_projector_without_the_angle_is_one_line(no_angle_folder, tmp_path, capsys):
+    import dataclasses
+    import shutil
+
+    from ringscan.pipeline.formats.rig import UncalibratedLight
+    from ringscan.pipeline.formats.scan import load_scan, save_scan
+
+    folder = tmp_path / "scan"
+    shutil.copytree(no_angle_folder, folder)
+    scan = load_scan(folder)
+    li = scan.rig.light
+    save_scan(dataclasses.replace(scan, rig_ref=None, rig=dataclasses.replace(
+        scan.rig, light=UncalibratedLight(width=li.width, height=li.height, gamma=li.gamma))))
+    assert main(["reconstruct", str(folder), "--out", str(tmp_path / "rec"), "--device", "cpu",
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "ring radius only" in err and "calibrated projector" in err, err
+    assert not (tmp_path / "rec").exists()

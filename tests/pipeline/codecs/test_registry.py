@@ -119,3 +119,19 @@ def test_codec_capabilities_come_from_the_codec_objects():
         codec_for("decoded").render_frame(spec, "proj_u")
     with pytest.raises(FormatError, match="no reconstruction for codec 'moire'"):
         codec_for("moire")
+
+
+def test_full_coordinate_says_which_samples_carry_both_projector_coordinates():
+    from ringscan.pipeline.codecs.registry import REGISTRY, codec_for
+
+    base = {"width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 16.0}
+    decoded = parse_patterns({**base, "codec": "decoded", "rho0": 0.0, "pitch": 1.0})
+    assert codec_for("decoded").full_coordinate(decoded)
+    for name in ("gray-rings", "phase-rings"):
+        extra = {"bits": 5, "sector_bits": 6}
+        with_angle = parse_patterns({**base, **extra, "codec": name, "angle_steps": 4})
+        without = parse_patterns({**base, **extra, "codec": name, "angle_steps": 0})
+        assert codec_for(name).full_coordinate(with_angle) and not codec_for(name).full_coordinate(without), name
+    rings = parse_patterns({**base, "codec": "rings", "count": 20})
+    assert not codec_for("rings").full_coordinate(rings)
+    assert set(REGISTRY) == {"rings", "gray-rings", "phase-rings", "decoded"}  # a new codec: add it above
