@@ -15,7 +15,11 @@ turntable angle) plus the reference plane z = 0. Figures:
   farther apart on the surface, so a point between two sampled rings is covered
   and a ring that was not sampled is not. Reported for the whole view and for the
   object alone (truth points more than 0.5 mm off the plane, and off the wall of a
-  scan simulated with one, truth ``wall_z``).
+  scan simulated with one, truth ``wall_z``). A two-camera scan is measured
+  against camera 1's truth. The annulus and the light's angle come from the rig's
+  light, or, where its projector is ``uncalibrated``, from the light the simulator
+  rendered with (``truth.light``); without either (and for the ``decoded`` codec,
+  which has no rings), coverage is of all of camera 1's lit pixels.
 
 Points with a NaN or infinite coordinate are left out of every figure and
 counted (``non_finite_points``); a cloud with no finite point has no error
@@ -37,7 +41,7 @@ from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.meshes import open3d_lib, read_mesh
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import ParallelLight, turntable_transform
+from ringscan.pipeline.formats.rig import ParallelLight, Rig, has_calibrated_light, parse_rig, rig_to_dict, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, check_truth, load_scan
 from ringscan.pipeline.geometry import light_directions, projector_polar, undistort_normalized
 
@@ -46,7 +50,7 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at",
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at", "light_rig",
            "check_coverage_radius"]
 
 
@@ -144,18 +148,35 @@ def truth_points(scan: Scan, view_name: str) -> tuple[np.ndarray, np.ndarray]:
     return Xw, vv * cam.width + uu
 
 
+def light_rig(scan: Scan) -> Rig | None:
+    """The scan's rig with a calibrated light for the coverage figures: its own, or,
+    where its projector is ``uncalibrated`` (a two-camera scan), the light the
+    virtual rig rendered with (``truth.light``, written by ``ringscan simulate``);
+    None where neither is known."""
+    if has_calibrated_light(scan.rig):
+        return scan.rig
+    li = scan.extra.get("truth", {}).get("light")
+    if not isinstance(li, dict):
+        return None
+    return parse_rig({**rig_to_dict(scan.rig), "light": li}, source=f"{scan.path} (truth.light)")
+
+
 def coverage_radius(scan: Scan) -> float:
-    """Default coverage radius (mm): one band width at the object."""
-    li = scan.rig.light
+    """Default coverage radius (mm): one band width at the object, or two camera
+    pixels where that is larger; two camera pixels for a dense codec (a sample at
+    every pixel: no band spacing at the object) or an unknown projector."""
     spec = scan.patterns
+    cam_px = np.linalg.norm(scan.rig.camera.center) / scan.rig.camera.K[0, 0]
+    rig = light_rig(scan)
+    if rig is None or spec.layout.dense:
+        return float(2.0 * cam_px)
+    li = rig.light
     if isinstance(li, ParallelLight):
         px = li.pixel_pitch_mm
     else:
-        d = np.linalg.norm(li.center - np.array([0, 0, 0.5 * (scan.rig.volume.z_min + scan.rig.volume.z_max)]))
+        d = np.linalg.norm(li.center - np.array([0, 0, 0.5 * (rig.volume.z_min + rig.volume.z_max)]))
         px = d / li.K[0, 0]
-    cam_px = np.linalg.norm(scan.rig.camera.center) / scan.rig.camera.K[0, 0]
-    # a dense codec has a sample at every pixel: no band spacing at the object
-    return float(max(spec.pitch * px if not spec.layout.dense else 0.0, 2.0 * cam_px))
+    return float(max(spec.pitch * px, 2.0 * cam_px))
 
 
 def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_radius_mm: float | None = None,
@@ -181,22 +202,29 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     points = pts[finite]
     out = distance_stats(d)
     out["non_finite_points"] = int(np.count_nonzero(~finite))
-    # Coverage of the lit, seen surface inside the coded annulus.
+    # Coverage of camera 1's lit, seen surface inside the coded annulus (the decoded
+    # codec, or an unknown projector: all of camera 1's lit pixels).
     X, _ = truth_points(scan, view_name)
     spec = scan.patterns
-    rho = projector_polar(scan.rig, X, spec.center)
-    # from the first sampled ring to the last (band boundaries 1..2**bits-1 of the binary codecs)
+    rig = light_rig(scan)
+    # from the first sampled ring to the last (band boundaries 1..2**bits-1 of the binary
+    # codecs); the decoded codec has no rings
     radii = spec.ring_radii()
-    lo, hi = radii[0], radii[-1]
-    X = X[(rho >= lo) & (rho <= hi)]
+    if rig is not None and radii.size:
+        rho = projector_polar(rig, X, spec.center)
+        lo, hi = radii[0], radii[-1]
+        X = X[(rho >= lo) & (rho <= hi)]
     r = coverage_radius(scan) if coverage_radius_mm is None else float(coverage_radius_mm)
     out["coverage_radius_mm"] = r
     if len(X) and len(points):
         tp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(X))
         rp = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
         dn = np.asarray(tp.compute_point_cloud_distance(rp))
-        light_dir = light_directions(scan.rig, X)
-        cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
+        if rig is not None:
+            light_dir = light_directions(rig, X)
+            cos_t = np.abs(np.sum(surface_normals(mesh, X) * light_dir, axis=1))
+        else:
+            cos_t = np.ones(len(X))  # the light's direction unknown: no allowance for slopes
         near = dn <= r / np.maximum(cos_t, 0.25)
         tr = scan.extra["truth"]
         obj = np.abs(X[:, 2] - check_truth(scan)["reference_plane_z"]) > 0.5

@@ -243,6 +243,8 @@ class Truth(BaseModel):
     reference_plane: bool = Field(True, description="the scene has the reference plane")
     settings: Any = Field(None, description="the simulation's settings (kept as written)")
     scene: Any = Field(None, description="the scene's name")
+    light: Any = Field(None, description="the light the virtual rig rendered with (a rig's light block; evaluate "
+                                         "uses it where the scan's rig has an uncalibrated projector)")
 
 
 class Scan(BaseModel):

@@ -13,7 +13,7 @@ import numpy as np
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
-from ringscan.pipeline.formats.rig import Rig, default_rig, has_calibrated_light, turntable_transform
+from ringscan.pipeline.formats.rig import Rig, default_rig, has_calibrated_light, rig_to_dict, turntable_transform
 from ringscan.pipeline.formats.frame_store import STORE_NAME, create_store, write_frame
 from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
 from ringscan.pipeline.simulate.scenes import SceneMesh, add_wall, make_scene, place_scene, pose_scene
@@ -153,8 +153,9 @@ def simulate_scan(
     folder.mkdir(parents=True, exist_ok=True)
     mesh_rel = f"{TRUTH_DIR}/object.ply"
     _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
+    # the light rendered with: evaluate's coverage reads it where the scan's rig is later given an uncalibrated one
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
-             "settings": settings.to_dict()}
+             "settings": settings.to_dict(), "light": rig_to_dict(rig)["light"]}
     truth.update(placed)
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
