@@ -4,6 +4,7 @@ Ray cluster (resumable; see docs/batch.md)."""
 from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
+from ringscan.pipeline.batch.report import format_calibration_checks
 from ringscan.tools.cli import UsageError, add_device_option
 from ringscan.tools.cmd_reconstruct import (
     add_constraint_option,
@@ -81,6 +82,8 @@ def run(args) -> int:
                             backend=args.backend, address=args.address, fuse=args.fuse, mesh=args.mesh,
                             cpu_threads=cpu_threads, progress=not args.no_progress, storage_options=storage)
     print(format_table(rep["scans"], rep["totals"]))
+    for line in format_calibration_checks(rep["scans"]):
+        print(line)
     for s in rep.get("not_searched", []):
         print(f"not searched: {s['path']}: {s['why']}")
     failed = rep["totals"]["status"].get("failed", 0)

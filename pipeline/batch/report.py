@@ -7,7 +7,8 @@ from pathlib import Path
 
 from ringscan.pipeline.batch.worker import STAGES, STORAGE_STAGES
 
-__all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "TIME_FIELDS", "RUN_FIELDS", "read_results"]
+__all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "format_calibration_checks", "TIME_FIELDS", "RUN_FIELDS",
+           "read_results"]
 
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
@@ -54,6 +55,25 @@ def format_table(entries: list[dict], totals: dict) -> str:
         keys = (*STAGES, "other", *(k for k in STORAGE_STAGES if k in pv))
         lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in keys))
     return "\n".join(lines)
+
+
+def format_calibration_checks(entries: list[dict]) -> list[str]:
+    """One line per scan with a calibration check (its entry's ``calibration_check``:
+    the worst view's), with a warning where the rig file does not fit the images."""
+    lines = []
+    for e in entries:
+        c = e.get("calibration_check")
+        if not c:
+            continue
+        what = ("epipolar distance of the camera matches" if c.get("kind") == "epipolar"
+                else "ray-ray residual (projector px)")
+        line = (f"{e['scan']}: calibration check, worst view {c['view']} ({c['rays']}): {what}: median "
+                f"{c['median_px']:.2f} px, p95 {c['p95_px']:.2f} px ({c['samples']} samples)")
+        if c.get("views_not_fitting"):
+            line += (f"; warning: the rig file does not fit the images in {c['views_not_fitting']} view(s) "
+                     "(median above 1 px): check the calibration (docs/calibration.md)")
+        lines.append(line)
+    return lines
 
 
 RUN_FIELDS = ("time_s", "times_s", "resume", "seconds")

@@ -199,6 +199,9 @@ def _process(job: ScanJob, st, entry: dict) -> None:
     entry["computed_views"] = len(computed)
     entry["points"] = sum(int(v.get("points", 0)) for v in views)
     entry["times_s"] = _split(computed)
+    worst = worst_calibration_check(views)
+    if worst:
+        entry["calibration_check"] = worst
     st.commit()  # on object storage: the reconstruction stored, as it is on disk by now
     if entry["points"] == 0:
         reasons = list(dict.fromkeys(v.get("no_points", "no points") for v in views))
@@ -207,6 +210,19 @@ def _process(job: ScanJob, st, entry: dict) -> None:
         entry.update(_fuse(out, redo=bool(computed), mesh=job.mesh))
         if st.remote_out:
             entry["fused_out"] = job.out.rstrip("/") + "/" + ("mesh" if job.mesh else "fused")
+
+
+def worst_calibration_check(views: list[dict]) -> dict:
+    """A scan's calibration check for the batch report: the check (report.json
+    ``calibration_check``) of its view with the largest median, with that view's
+    ``view`` name and ``rays``, and ``views_not_fitting`` (how many views warn); {}
+    where no view has one."""
+    checked = [v for v in views if isinstance(v.get("calibration_check"), dict) and v["calibration_check"]]
+    if not checked:
+        return {}
+    w = max(checked, key=lambda v: float(v["calibration_check"].get("median_px", 0.0)))
+    return {"view": w["name"], "rays": w.get("rays", "camera-projector"), **w["calibration_check"],
+            "views_not_fitting": sum(not v["calibration_check"].get("fits", True) for v in checked)}
 
 
 def describe_error(e: BaseException) -> str:
