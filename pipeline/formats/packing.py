@@ -14,7 +14,9 @@ A run killed between 2 and 3 leaves the old files beside the new ones; the next
 run finds them (``<view folder>/<frame>.png|.tif|.tiff`` beside a store,
 ``<view folder>/frames.zarr`` beside image files), compares them again, and
 removes them. Frames are kept as ringscan reads them: a colour PNG frame (which
-ringscan reads as grey) is refused rather than packed.
+ringscan reads as grey) is refused rather than packed. A two-camera view's camera-2
+frames are converted with it (their store beside them, ``<view>/cam2/frames.zarr``),
+and scan.json names both cameras' new form in one write.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.frame_store import (STORE_NAME, is_store, open_store, read_store,
                                                    remove_stale_stores, write_store)
 from ringscan.pipeline.formats.images import read_image, write_image
-from ringscan.pipeline.formats.scan import (Scan, View, check_view_name, load_scan, packed_view, read_view_frames,
-                                           save_scan)
+from ringscan.pipeline.formats.scan import (Scan, View, as_camera2, check_view_name, load_scan, packed_view,
+                                           read_view_frames, save_scan)
 
 log = logging.getLogger(__name__)
 
@@ -101,15 +103,25 @@ def _remove_leftover_images(scan: Scan, view: View, *, keep: bool) -> int:
     return len(found)
 
 
-def _refuse_two_cameras(scan) -> None:
-    # Checked before anything is written: half a two-camera scan converted would be worse than none.
-    if any(v.camera2 is not None for v in scan.views):
-        raise FormatError(scan.path, "a two-camera scan: pack and unpack convert one-camera scans only for now "
-                                     "(camera 2's frames would be left behind); the scan is unchanged")
+def _cameras(scan: Scan, view: View) -> list[tuple[Scan, View, str]]:
+    """A view's frames of each camera: (the scan as that camera sees it, the camera's
+    view, its label for the log); camera 2's only in a two-camera view."""
+    out = [(scan, view, "camera 1")]
+    if view.camera2 is not None:
+        out.append((as_camera2(scan), view.camera2, "camera 2"))
+    return out
+
+
+def _with_camera(view: View, cam: int, new: View) -> View:
+    """``view`` with camera ``cam``'s frames (1: the view's own, 2: its ``camera2``) replaced by ``new``'s."""
+    if cam == 1:
+        return dataclasses.replace(new, name=view.name, turntable_deg=view.turntable_deg, camera2=view.camera2)
+    return dataclasses.replace(view, camera2=dataclasses.replace(new, name=view.name, camera2=None))
 
 
 def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
-    """Pack every view of a scan whose frames are image files into ``<view folder>/frames.zarr``.
+    """Pack every view of a scan whose frames are image files into ``<view folder>/frames.zarr``
+    (camera 2's frames of a two-camera view into a store beside them, ``<view>/cam2/frames.zarr``).
 
     Args:
         folder: the scan folder.
@@ -120,44 +132,57 @@ def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
             different sizes, a damaged store; the views before it stay packed.
     """
     scan = load_scan(folder)
-    _refuse_two_cameras(scan)
     res = PackResult(folder=scan.folder)
     for i, v in enumerate(scan.views):
-        if v.packed is None:
-            for n, rel in v.frames.items():
-                check_view_name(n, source=scan.path, where=f"views[{i}].frames: frame name")  # scan/2 asks it
-                _check_grey_png(scan.folder / rel)
+        for _, cv, _ in _cameras(scan, v):
+            if cv.packed is None:
+                where = f"views[{i}]{'.camera2' if cv is v.camera2 else ''}.frames: frame name"
+                for n, rel in cv.frames.items():
+                    check_view_name(n, source=scan.path, where=where)  # scan/2 asks it
+                    _check_grey_png(scan.folder / rel)
     views = list(scan.views)
-    folders = [_view_folder(v) for v in views]
+    # each camera's frame folder: a store goes beside its frames, unless other frames share the folder
+    folders = [_view_folder(cv) for v in views for _, cv, _ in _cameras(scan, v)]
     for i, v in enumerate(views):
-        if v.packed is not None:
+        units = _cameras(scan, v)
+        if all(cv.packed is not None for _, cv, _ in units):
             res.already.append(v.name)
-            res.removed += _remove_leftover_images(scan, v, keep=keep)
+            for _, cv, _ in units:
+                res.removed += _remove_leftover_images(scan, cv, keep=keep)
             continue
-        names = list(v.frames)
-        # A view's store goes beside its frames, unless other views' frames share the folder.
-        vdir = folders[i] if folders[i] != "." and folders.count(folders[i]) == 1 else v.name
-        store_rel = f"{vdir}/{STORE_NAME}"
-        old = [scan.folder / r for r in dict.fromkeys(v.frames.values())]
-        frames = read_view_frames(scan, v, names)
-        remove_stale_stores((scan.folder / store_rel).parent)
-        write_store(scan.folder / store_rel, frames, names)  # read back and compared before the rename
-        views[i] = packed_view(v, store_rel, names)
+        new, old, stores = v, [], []
+        for cam, (cscan, cv, label) in enumerate(units, 1):
+            if cv.packed is not None:
+                res.removed += _remove_leftover_images(scan, cv, keep=keep)
+                continue
+            names = list(cv.frames)
+            f = _view_folder(cv)
+            vdir = f if f != "." and folders.count(f) == 1 else (v.name if cam == 1 else f"{v.name}/cam2")
+            store_rel = f"{vdir}/{STORE_NAME}"
+            old += [scan.folder / r for r in dict.fromkeys(cv.frames.values())]
+            frames = read_view_frames(cscan, cv, names)
+            remove_stale_stores((scan.folder / store_rel).parent)
+            write_store(scan.folder / store_rel, frames, names)  # read back and compared before the rename
+            new = _with_camera(new, cam, packed_view(cv, store_rel, names))
+            stores.append(store_rel)
+            log.info("%s: packed %s, %s (%d frames)", scan.folder, v.name, label, len(names))
+        # scan.json names the new stores of both cameras at once: the view is packed or it is not
+        views[i] = new
         scan = dataclasses.replace(scan, views=tuple(views))
         save_scan(scan)
         res.converted.append(v.name)
         res.bytes_before += sum(_size(p) for p in old)
-        res.bytes_after += _size(scan.folder / store_rel)
+        res.bytes_after += sum(_size(scan.folder / r) for r in stores)
         if not keep:
             for p in old:
                 p.unlink(missing_ok=True)
             res.removed += len(old)
-        log.info("%s: packed %s (%d frames)", scan.folder, v.name, len(names))
     return res
 
 
 def _remove_leftover_store(scan: Scan, view: View, *, keep: bool) -> int:
-    """The store of an unpacked view left by a run killed before it removed it."""
+    """The store of an unpacked view left by a run killed before it removed it (``scan``
+    as the view's camera sees it)."""
     if keep:
         return 0
     store = scan.folder / _view_folder(view) / STORE_NAME
@@ -173,8 +198,28 @@ def _remove_leftover_store(scan: Scan, view: View, *, keep: bool) -> int:
     return 1
 
 
+def _write_images(scan: Scan, view: View, image_format: str) -> dict[str, str]:
+    """A packed view's frames (``scan`` as its camera sees it) written beside its store
+    as image files, each read back and compared; returns frame name -> path."""
+    names = list(view.frames)
+    frames = read_view_frames(scan, view, names)  # every checksum checked before a file is written
+    vdir = PurePosixPath(view.packed).parent
+    rel = {n: (vdir / f"{n}.{image_format}").as_posix() for n in names}
+    for n, img in zip(names, frames):
+        p = scan.folder / rel[n]
+        if p.exists():
+            if p.is_file() and np.array_equal(read_image(p), img):
+                continue
+            raise FormatError(p, f"is in the way of frame {n!r} of the store {view.packed} (and differs from it)")
+        write_image(p, img)
+        if not np.array_equal(read_image(p), img):
+            raise FormatError(p, f"does not read back as frame {n!r} of the store {view.packed}")
+    return rel
+
+
 def unpack_scan(folder: str | os.PathLike, *, image_format: str = "png", keep: bool = False) -> PackResult:
-    """Write every packed view's frames back as image files ``<view folder>/<frame>.<png|tiff>``.
+    """Write every packed view's frames back as image files ``<view folder>/<frame>.<png|tiff>``
+    (camera 2's beside its store, ``<view>/cam2/<frame>.png``).
 
     An image file already there (a pack with ``keep``) is kept when it holds the
     same frame, and is an error otherwise.
@@ -185,36 +230,32 @@ def unpack_scan(folder: str | os.PathLike, *, image_format: str = "png", keep: b
     if image_format not in ("png", "tiff"):
         raise ValueError(f"image_format: expected 'png' or 'tiff', got {image_format!r}")
     scan = load_scan(folder)
-    _refuse_two_cameras(scan)
     res = PackResult(folder=scan.folder)
     views = list(scan.views)
     for i, v in enumerate(views):
-        if v.packed is None:
+        units = _cameras(scan, v)
+        if all(cv.packed is None for _, cv, _ in units):
             res.already.append(v.name)
-            res.removed += _remove_leftover_store(scan, v, keep=keep)
+            for cscan, cv, _ in units:
+                res.removed += _remove_leftover_store(cscan, cv, keep=keep)
             continue
-        names = list(v.frames)
-        frames = read_view_frames(scan, v, names)  # every checksum checked before a file is written
-        vdir = PurePosixPath(v.packed).parent
-        rel = {n: (vdir / f"{n}.{image_format}").as_posix() for n in names}
-        for n, img in zip(names, frames):
-            p = scan.folder / rel[n]
-            if p.exists():
-                if p.is_file() and np.array_equal(read_image(p), img):
-                    continue
-                raise FormatError(p, f"is in the way of frame {n!r} of the store {v.packed} (and differs from it)")
-            write_image(p, img)
-            if not np.array_equal(read_image(p), img):
-                raise FormatError(p, f"does not read back as frame {n!r} of the store {v.packed}")
-        store = scan.folder / v.packed
-        views[i] = View(name=v.name, turntable_deg=v.turntable_deg, frames=rel)
+        new, stores = v, []
+        for cam, (cscan, cv, label) in enumerate(units, 1):
+            if cv.packed is None:
+                res.removed += _remove_leftover_store(cscan, cv, keep=keep)
+                continue
+            rel = _write_images(cscan, cv, image_format)
+            new = _with_camera(new, cam, View(name=v.name, turntable_deg=v.turntable_deg, frames=rel))
+            stores.append(scan.folder / cv.packed)
+            res.bytes_after += sum(_size(scan.folder / r) for r in rel.values())
+            log.info("%s: unpacked %s, %s (%d frames)", scan.folder, v.name, label, len(rel))
+        views[i] = new
         scan = dataclasses.replace(scan, views=tuple(views))
         save_scan(scan)
         res.converted.append(v.name)
-        res.bytes_before += _size(store)
-        res.bytes_after += sum(_size(scan.folder / r) for r in rel.values())
+        res.bytes_before += sum(_size(p) for p in stores)
         if not keep:
-            shutil.rmtree(store)
-            res.removed += 1
-        log.info("%s: unpacked %s (%d frames)", scan.folder, v.name, len(names))
+            for p in stores:
+                shutil.rmtree(p)
+            res.removed += len(stores)
     return res

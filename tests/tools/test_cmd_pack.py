@@ -97,3 +97,32 @@ def test_pack_and_unpack_a_root_on_worker_processes(tmp_path, capsys):
         assert s.views[0].packed is None and np.array_equal(read_view_frames(s, s.views[0]), frames[name])
     assert main(["pack", str(root), "--workers", "0"]) == 2
     assert "--workers" in capsys.readouterr().err
+
+
+def test_a_two_camera_scan_packs_and_unpacks_to_the_same_reconstruction(tmp_path, capsys):
+    from ringscan.pipeline.formats.scan import as_camera2
+    from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+
+    folder = tmp_path / "scan"
+    png = simulate_two_camera_scan(folder)
+    frames2 = read_view_frames(as_camera2(png), png.views[0].camera2)
+
+    def rec(name):
+        assert main(["reconstruct", str(folder), "--out", str(tmp_path / name), "--rays", "all", "--device", "cpu",
+                     "--no-progress"]) == 0
+        return _plys(tmp_path / name)
+
+    ref = rec("png")
+    assert len(ref) == 1 and len(ref["view_000.ply"]) > 1000
+    assert main(["pack", str(folder)]) == 0
+    assert "1 view(s) packed" in capsys.readouterr().out
+    s = load_scan(folder)
+    v = s.views[0]
+    assert (v.packed, v.camera2.packed) == ("view_000/frames.zarr", "view_000/cam2/frames.zarr")
+    assert not list(folder.glob("view_000/**/*.png"))
+    assert np.array_equal(read_view_frames(as_camera2(s), v.camera2), frames2)
+    assert rec("packed") == ref
+    assert main(["unpack", str(folder)]) == 0
+    s = load_scan(folder)
+    assert s.views[0].camera2.frames["white"] == "view_000/cam2/white.png" and not list(folder.rglob("frames.zarr"))
+    assert rec("unpacked") == ref

@@ -3,12 +3,13 @@ projector, a view's camera-2 frames."""
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.packing import pack_scan
+from ringscan.pipeline.formats.packing import pack_scan, unpack_scan
 from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import (
     default_rig,
@@ -144,9 +145,42 @@ def test_two_camera_scan_errors(tmp_path):
         as_camera2(Scan(folder=tmp_path, rig=default_rig(), patterns=scan.patterns, views=()))
 
 
-def test_pack_refuses_a_two_camera_scan_before_writing(tmp_path):
-    _write_stereo_scan(tmp_path)
-    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
-    with pytest.raises(FormatError, match="two-camera scan"):
+def test_pack_and_unpack_convert_camera_2_too(tmp_path):
+    scan = _write_stereo_scan(tmp_path)
+    before = {v.name: (read_view_frames(scan, v), read_view_frames(as_camera2(scan), v.camera2)) for v in scan.views}
+    res = pack_scan(tmp_path)
+    assert res.converted == ["view_000"] and res.removed == 2 * len(scan.views[0].frames)
+    packed = load_scan(tmp_path)
+    v = packed.views[0]
+    assert v.packed == "view_000/frames.zarr" and v.camera2.packed == "view_000/cam2/frames.zarr"
+    assert not list(tmp_path.rglob("*.png"))
+    assert np.array_equal(read_view_frames(packed, v), before["view_000"][0])
+    assert np.array_equal(read_view_frames(as_camera2(packed), v.camera2), before["view_000"][1])
+    assert pack_scan(tmp_path).already == ["view_000"]
+    res = unpack_scan(tmp_path)
+    assert res.converted == ["view_000"] and res.removed == 2
+    back = load_scan(tmp_path)
+    v = back.views[0]
+    assert v.packed is None and v.camera2.packed is None and not list(tmp_path.rglob("frames.zarr"))
+    assert set(v.camera2.frames.values()) == {f"view_000/cam2/{n}.png" for n in v.camera2.frames}
+    assert np.array_equal(read_view_frames(as_camera2(back), v.camera2), before["view_000"][1])
+
+
+def test_pack_of_a_two_camera_scan_with_a_bad_camera_2_frame_writes_nothing(tmp_path):
+    scan = _write_stereo_scan(tmp_path)
+    # a colour frame of camera 2: refused before any store is written
+    p = tmp_path / scan.views[0].camera2.frames["white"]
+    cv2.imwrite(str(p), np.zeros((60, 80, 3), np.uint8))
+    before = sorted(q.relative_to(tmp_path) for q in tmp_path.rglob("*"))
+    with pytest.raises(FormatError, match=r"cam2/white.png: colour frame"):
         pack_scan(tmp_path)
-    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert sorted(q.relative_to(tmp_path) for q in tmp_path.rglob("*")) == before
+
+
+def test_pack_keep_then_pack_removes_both_cameras_leftovers(tmp_path):
+    scan = _write_stereo_scan(tmp_path)
+    n = len(scan.views[0].frames)
+    assert pack_scan(tmp_path, keep=True).removed == 0
+    assert len(list(tmp_path.rglob("*.png"))) == 2 * n  # a killed run leaves these too
+    res = pack_scan(tmp_path)
+    assert res.already == ["view_000"] and res.removed == 2 * n and not list(tmp_path.rglob("*.png"))
