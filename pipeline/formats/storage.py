@@ -9,7 +9,8 @@ unchanged and give the same bytes:
    modification times stand in for the local files' in the freshness hash
    (``reconstruct.freshness``), so whether a scan is done is decided without
    downloading its frames;
-2. scan.json, the rig file and the packed stores' zarr.json are downloaded (each
+2. scan.json, the rig file and the packed stores' zarr.json (both cameras' of a
+   two-camera view) are downloaded (each
    bounded as a local read is, :mod:`.limits`) and checked by the usual loader; the
    frames (image files, or a store's chunks) are downloaded only when a view is to be
    computed (:meth:`Staged.fetch_frames`), each refused before the download when it is
@@ -401,9 +402,11 @@ class Staged:
             wanted.append(d["rig"])
         views = d.get("views") if isinstance(d, dict) else None
         for vd in views if isinstance(views, list) else []:
-            pk = vd.get("packed") if isinstance(vd, dict) else None
-            if isinstance(pk, dict) and isinstance(pk.get("store"), str):
-                wanted.append(pk["store"] + "/zarr.json")
+            c2 = vd.get("camera2") if isinstance(vd, dict) else None
+            for cam in (vd, c2):  # a two-camera view: camera 2's store too
+                pk = cam.get("packed") if isinstance(cam, dict) else None
+                if isinstance(pk, dict) and isinstance(pk.get("store"), str):
+                    wanted.append(pk["store"] + "/zarr.json")
         rels = sorted({r for r in (_clean_rel(w) for w in wanted) if r in self._objects})
         self._download(fs, root, rels, self.scan_dir, self.scan_location, limit=MAX_JSON_BYTES, what="file",
                        infos=self._objects)

@@ -321,3 +321,29 @@ def test_ray_tasks_read_and_write_s3(s3, scans_bucket, local_run):
         ray.shutdown()
     assert [s["status"] for s in rep["scans"]] == ["done", "done"]
     assert {k: v for k, v in objects(fs, "s3://ray/run").items() if k.endswith(".ply")} == plys(local_run)
+
+
+def test_two_camera_scan_through_s3(s3, tmp_path):
+    """A two-camera scan (camera 2's frames under <view>/cam2/) read from S3, as image files and packed
+    (camera 2's store too): the same PLY as the local reconstruction, every rays setting's inputs staged."""
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+    from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS, simulate_two_camera_scan
+
+    options, fs = s3
+    png = tmp_path / "png"
+    simulate_two_camera_scan(png, patterns={**ANGLE_PATTERNS, "bits": 3, "sector_bits": 4})
+    ref = reconstruct_scan(png, tmp_path / "local", progress=False)
+    assert ref["views"][0]["rays"] == "all" and ref["views"][0]["stereo"]["matches"] > 0
+    packed = tmp_path / "packed"
+    shutil.copytree(png, packed)
+    pack_scan(packed)
+    assert (packed / "view_000" / "cam2" / "frames.zarr" / "zarr.json").is_file()
+    fs.mkdir("stereo")
+    for name, folder in (("png", png), ("packed", packed)):
+        upload(fs, folder, f"s3://stereo/{name}")
+        entry = process_scan(ScanJob(folder=f"s3://stereo/{name}", rel=name, out=str(tmp_path / "out" / name),
+                                     storage_options=options))
+        assert entry["status"] == "done", entry
+        assert entry["calibration_check"]["kind"] == "epipolar"
+        assert ((tmp_path / "out" / name / "view_000.ply").read_bytes()
+                == (tmp_path / "local" / "view_000.ply").read_bytes()), name
