@@ -41,7 +41,8 @@ from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.meshes import open3d_lib, read_mesh
 from ringscan.pipeline.formats.ply import read_ply
-from ringscan.pipeline.formats.rig import ParallelLight, Rig, has_calibrated_light, parse_rig, rig_to_dict, turntable_transform
+from ringscan.pipeline.formats.rig import (ParallelLight, Rig, has_calibrated_light, parse_rig, rig_to_dict,
+                                          turntable_transform)
 from ringscan.pipeline.formats.scan import Scan, check_truth, load_scan
 from ringscan.pipeline.geometry import light_directions, projector_polar, undistort_normalized
 
@@ -50,7 +51,8 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at", "light_rig",
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at",
+           "light_rig",
            "check_coverage_radius"]
 
 
