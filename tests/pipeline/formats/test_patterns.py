@@ -41,10 +41,15 @@ def test_imported_codec_has_no_precompensation():
 
 
 def test_default_angle_code_stays_sharp_out_to_the_rim():
-    """The default gray-rings angle code: every period resolvable (>= angle_period), unwrappable by the sector
-    code (P <= 2^(S-1)), and at the annulus's outer radius no longer than 2 x angle_period, i.e. the number of
-    periods is not capped by the sector bits before the rim (with 8 sector bits it was: 25.5 px at rho 520)."""
-    spec = default_patterns("gray-rings")
+    """The default angle code of gray-rings and phase-rings: every period resolvable (>= angle_period),
+    unwrappable by the sector code (P <= 2^(S-1)), and at the annulus's outer radius no longer than
+    2 x angle_period, i.e. the number of periods is not capped by the sector bits before the rim (with 8 sector
+    bits it was: 25.5 px at rho 520)."""
+    for codec in ("gray-rings", "phase-rings"):
+        _check_sharp_to_the_rim(default_patterns(codec))
+
+
+def _check_sharp_to_the_rim(spec):
     starts, periods = spec_angle_zones(spec)
     assert periods.max() <= 2 ** (spec.sector_bits - 1)
     outer = spec.rho0 + spec.n_bands * spec.pitch
