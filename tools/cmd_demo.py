@@ -1,7 +1,7 @@
 """``ringscan demo``: the whole chain on an embedded default scene.
 
 Simulates a turntable scan with the virtual rig (default rig: 1280x1024 camera,
-parallel light, gray-rings 7 bits at a pitch of 4 px with 6 sector bits),
+parallel light, gray-rings 7 bits at a pitch of 4 px with 9 sector bits and the angle code),
 reconstructs every view, measures the points against the ground truth, fuses the
 views, meshes them and writes a preview PNG.
 """
@@ -24,8 +24,8 @@ from ringscan.tools.cli import UsageError, add_device_option
 log = logging.getLogger(__name__)
 
 DEMO_PATTERNS = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
-                 "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8,
-                 "angle_steps": 4}
+                 "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9,
+                 "angle_steps": 4, "angle_period": 8.0}  # gray-rings' defaults (docs/dense.md, "How sharp")
 
 
 def add_parser(sub):

@@ -296,7 +296,9 @@ class GrayRingsLayout(PatternLayout):
         Parameter("bits", int, None, 1, 16, doc="Gray-code bits of the band index"),
         Parameter("sector_bits", int, 0, 0, 12, doc="Gray-code bits of the angular sector; 0 = none"),
     ) + ANGLE_PARAMETERS
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8, "angle_steps": 4, "angle_period": 12.0}
+    # 9 sector bits let the angle reach P = 256 periods, 8 px ones from rho 326 on, so phi stays sharp out to
+    # the annulus's rim (docs/dense.md, "How sharp"; docs/accuracy.md: oblique rig 0.15x -> 0.11x, 2 more frames)
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9, "angle_steps": 4, "angle_period": 8.0}
 
     def binary_frame_names(self, spec: PatternSpec) -> list[str]:
         names = ["white", "black"]
@@ -319,8 +321,8 @@ class PhaseRingsLayout(GrayRingsLayout):
     name = "phase-rings"
     dense = True
     parameters = GrayRingsLayout.parameters + (Parameter("steps", int, 4, 3, 64, doc="phase steps"),)
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 8, "steps": 4, "angle_steps": 4,
-                "angle_period": 12.0}
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9, "steps": 4, "angle_steps": 4,
+                "angle_period": 8.0}
 
     def frame_names(self, spec: PatternSpec) -> list[str]:
         # the angle frames last, so every other frame keeps its index with or without them
