@@ -53,7 +53,7 @@ from ringscan.pipeline.evaluate.metrics import evaluate_recon  # noqa: E402
 from ringscan.pipeline.calibrate.stereo import relative_pose, rotation_angle_deg  # noqa: E402
 from ringscan.pipeline.formats.images import read_image  # noqa: E402
 from ringscan.pipeline.formats.ply import read_ply  # noqa: E402
-from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig  # noqa: E402
+from ringscan.pipeline.formats.rig import UncalibratedLight, default_rig, load_rig, save_rig  # noqa: E402
 from ringscan.pipeline.formats.scan import load_scan, save_scan  # noqa: E402
 from ringscan.tools.cli import main as cli  # noqa: E402
 from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS, two_camera_rig  # noqa: E402
@@ -147,6 +147,13 @@ def graycode(work: Path, k: int) -> None:
         run("reconstruct", work / "gc_scan", "--rays", rays, "--out", work / f"gc_rec_{rays}", "--no-progress", "-q")
         med, cov, n = truth.errors(work / f"gc_rec_{rays}", to_world)
         print(f"| {rays} | {n} | {med:.4f} | {100 * cov:.1f} % |")
+    # the stereo file alone: the projector uncalibrated, camera-camera (what --rays auto does then)
+    run("import", work / "gc_render" / "capture_0.yml", "--rig", work / "gc_render" / "calibrationParameters.yml",
+        "--projector", f"{li.width}x{li.height}", "--out", work / "gc_scan_uncal", "-q")
+    run("reconstruct", work / "gc_scan_uncal", "--out", work / "gc_rec_uncal", "--no-progress", "-q")
+    med, cov, n = truth.errors(work / "gc_rec_uncal", to_world)
+    print(f"| camera-camera, projector uncalibrated (import without --projector-rig) | {n} | {med:.4f} | "
+          f"{100 * cov:.1f} % |")
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
@@ -187,6 +194,12 @@ def rings(work: Path) -> None:
         med, cov, n = errors(work / f"rings_rec_{rays}")
         err[rays] = med
         print(f"| {rays} | {n} | {med:.4f} | {100 * cov:.1f} % |")
+    li = rig.light
+    unc = dataclasses.replace(rig, light=UncalibratedLight(width=li.width, height=li.height, gamma=li.gamma))
+    run("reconstruct", with_rig(scan, work / "uncal_scan", unc), "--out", work / "rings_rec_uncal", "--no-progress",
+        "-q")
+    med, cov, n = errors(work / "rings_rec_uncal")
+    print(f"| camera-camera, projector uncalibrated | {n} | {med:.4f} | {100 * cov:.1f} % |")
     print(f"({time.perf_counter() - t0:.0f} s)")
 
     # 3. a rig file whose camera 2 is turned by 2 degrees
@@ -228,7 +241,6 @@ def rings(work: Path) -> None:
     print("\n4. calibrate projector-from-scan (the projector fitted to the two cameras' points)")
     print("| cameras from | fx, fy error | cx, cy error | pose error | RMS |")
     print("|---|---|---|---|---|")
-    li = rig.light
     for label, src in (("true rig", work / "rings_rig.json"), ("refined rig (three devices)",
                                                                 work / "refined_three.json")):
         tag = "t" if label.startswith("true") else "r"
