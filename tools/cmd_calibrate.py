@@ -796,7 +796,9 @@ def add_refine_parser(calsub) -> None:
                                       "imported camera-projector scan's decoded pixels) without the rig's extrinsics, "
                                       "then re-estimates the second device's pose: an essential matrix (RANSAC) and a "
                                       "bundle adjustment over the matches, keeping the rig's baseline length (or "
-                                      "--baseline). Prints the epipolar distance and the reprojection error before and "
+                                      "--baseline); a two-camera rig's calibrated projector then joins a bundle "
+                                      "adjustment of the reprojection errors in all three devices (its pose held; "
+                                      "--two-view leaves it out). Prints the epipolar distance and the reprojection error before and "
                                       "after; writes the rig (JSON) and the pair as OpenCV FileStorage.")
     add_scan_match_options(p, out_help="the refined rig file to write (JSON)")
     p.add_argument("--pair", choices=("auto", "cameras", "projector"), default="auto",

@@ -12,6 +12,11 @@ re-estimate them:
   reprojection error, under a robust loss); it starts from the rig's own pose
   too and keeps the better. Two views fix the pose only up to scale: the
   baseline length is kept from the input rig, or given (a measured baseline).
+  Where a calibrated projector lit the matches, it then joins a bundle adjustment
+  of the reprojection errors in all three devices (points triangulated from the
+  three rays at each step, each match weighted by its predicted standard
+  deviation, the projector's pose held): the third view fixes the rotation that
+  two narrow views trade against the baseline direction.
 - :func:`fit_projector` fits a perspective projector (K, distortion, pose) to 3D
   points (triangulated by two cameras) and their projector pixels: a normalised
   DLT start, then OpenCV's ``calibrateCamera`` with the intrinsic guess on the
@@ -456,7 +461,7 @@ def _adjust_three(R0, t0, light_pose, obs, wts, settings: RefineSettings, scale0
     return R, t, scale, cov
 
 
-def _sigmas(sigma, n: int, what: str, cols: int = 1) -> np.ndarray:
+def _sigmas(sigma, n: int, what: str) -> np.ndarray:
     """(n,) standard deviations (px) of a match's pixel: given (n,) or (n, 2) (their mean), or 1 px."""
     if sigma is None:
         return np.ones(n)
