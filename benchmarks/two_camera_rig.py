@@ -8,7 +8,8 @@ ground truth (virtual-rig figures, not real data):
    two 320x256 cameras 482 mm apart, camera 2 = camera 1 turned 180 degrees about the light
    axis, a 128x96 projector; ``--scale K``: K times larger), a 50 mm sphere; ``import``
    with the stereo file and the projector's file (``--projector-rig``); ``reconstruct
-   --rays camera-projector | camera-camera | all``.
+   --rays camera-projector | camera-camera | all``; then ``calibrate refine`` of the imported
+   rig with camera 2 turned by 2 degrees (three devices, and ``--two-view``).
 2. ringscan's gray-rings + angle code: ``simulate`` of the two-camera rig of
    tests/pipeline/reconstruct/two_camera_scan.py (two 320x256 cameras 70 degrees apart about
    the light axis, the default rig's 1024x768 perspective projector), an 80 mm sphere;
@@ -154,6 +155,30 @@ def graycode(work: Path, k: int) -> None:
     med, cov, n = truth.errors(work / "gc_rec_uncal", to_world)
     print(f"| camera-camera, projector uncalibrated (import without --projector-rig) | {n} | {med:.4f} | "
           f"{100 * cov:.1f} % |")
+    # the imported rig with camera 2 turned by 2 degrees, refined (dense matches of every decoded pixel)
+    scan = work / "gc_scan"
+    irig = load_scan(scan).rig
+    Rt, tt = relative_pose(irig.camera, irig.camera2)
+    save_rig(work / "gc_true.json", irig)
+    save_rig(work / "gc_turned.json", dataclasses.replace(irig, camera2=turned(irig.camera2, 2.0)))
+    print("refine of the imported rig with camera 2 turned by 2 deg (camera-camera error after):")
+    print("| rig | epipolar median px | camera 2 rotation error | its own std | camera-camera median error mm |")
+    print("|---|---|---|---|---|")
+    for label, src, extra in (("true", "gc_true.json", []), ("refined (three devices)", "gc_turned.json", []),
+                              ("refined (--two-view)", "gc_turned.json", ["--two-view"])):
+        tag = label.split()[0] + ("2" if extra else "")
+        run("calibrate", "refine", scan, "--rig", work / src, "--out", work / f"gc_ref_{tag}.json", "--report",
+            work / f"gc_rep_{tag}.json", "--no-progress", "-q", "--force", *extra)
+        rep = json.loads((work / f"gc_rep_{tag}.json").read_text())
+        fixed = irig if label == "true" else load_rig(work / f"gc_ref_{tag}.json")  # true: the rig itself
+        rec = work / f"gc_fixed_rec_{tag}"
+        run("reconstruct", with_rig(scan, work / f"gc_fixed_{tag}", fixed), "--rays", "camera-camera", "--out", rec,
+            "--no-progress", "-q")
+        med, _, _ = truth.errors(rec, to_world)
+        R, _ = relative_pose(fixed.camera, fixed.camera2)
+        epi = rep["epipolar_px"]["before" if label == "true" else "after"]["median_px"]
+        std = "-" if label == "true" else f"{rep['rotation_std_deg']:.4f} deg"
+        print(f"| {label} | {epi:.3f} | {rotation_angle_deg(R @ Rt.T):.4f} deg | {std} | {med:.4f} |")
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
