@@ -798,8 +798,9 @@ def add_refine_parser(calsub) -> None:
                                       "bundle adjustment over the matches, keeping the rig's baseline length (or "
                                       "--baseline); a two-camera rig's calibrated projector then joins a bundle "
                                       "adjustment of the reprojection errors in all three devices (its pose held; "
-                                      "--two-view leaves it out). Prints the epipolar distance and the reprojection error before and "
-                                      "after; writes the rig (JSON) and the pair as OpenCV FileStorage.")
+                                      "--two-view leaves it out). Prints the epipolar distance and the reprojection "
+                                      "error before and after; writes the rig (JSON) and the pair as OpenCV "
+                                      "FileStorage.")
     add_scan_match_options(p, out_help="the refined rig file to write (JSON)")
     p.add_argument("--pair", choices=("auto", "cameras", "projector"), default="auto",
                    help="what to refine: camera 2 against camera 1, or the projector against camera 1 (auto: the "

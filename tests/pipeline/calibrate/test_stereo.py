@@ -247,8 +247,9 @@ def test_refine_with_the_calibrated_projector_adjusts_all_three_and_leaves_out_o
     _, u1, u2, up = seen
     cam1, cam2, proj = oblique_devices()
     Rt, tt = relative_pose(cam1, cam2)
-    ref = refine_extrinsics(cam1, rotated(cam2, 2.0), u1, u2, light=proj, uv_light=up,
-                            sigma1=np.full(len(u1), 0.1), sigma2=np.full(len(u1), 0.1), sigma_light=np.full(len(u1), 0.1))
+    s = np.full(len(u1), 0.1)
+    ref = refine_extrinsics(cam1, rotated(cam2, 2.0), u1, u2, light=proj, uv_light=up, sigma1=s, sigma2=s,
+                            sigma_light=s)
     assert ref.method == "three-device" and ref.bundle_used == len(u1)
     assert ref.light_epipolar.median_px < 0.2
     assert rotation_angle_deg(ref.R @ Rt.T) < 0.005
