@@ -143,51 +143,74 @@ def real(data: Path) -> None:
                   f"{ref.problems or 'none'}")
 
 
-def virtual_scan() -> None:
+def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
     from two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
+    from ringscan.pipeline.calibrate.stereo import refine_stereo_rig
     from ringscan.pipeline.formats.ply import read_ply
     from ringscan.pipeline.formats.rig import default_rig
     from ringscan.pipeline.reconstruct.stereo import match_view
 
     rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
-    with tempfile.TemporaryDirectory() as tmp:
-        scan = simulate_two_camera_scan(Path(tmp) / "scan", rig=rig)
-        m = match_view(scan, scan.views[0], device="cpu")
-        ply = read_ply(Path(tmp) / "scan" / "truth" / "object.ply")
-    V = np.stack([ply["x"], ply["y"], ply["z"]], 1)
-    cen = V.mean(0)
-    rad = float(np.linalg.norm(V - cen, axis=1).mean())
     c1, c2, li = rig.camera, rig.camera2, rig.light
-    n1 = cv2.undistortPoints(m.uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
-    n2 = cv2.undistortPoints(m.uv2.reshape(-1, 1, 2), c2.K, c2.dist).reshape(-1, 2)
-
-    def points(R, t):
-        return (triangulate_pair(R, t, n1, n2) - c1.t) @ c1.R
-
-    def err3(X):
-        return float(np.median(np.minimum(np.abs(np.linalg.norm(X - cen, axis=1) - rad), np.abs(X[:, 2]))))
-
-    print(f"virtual two-camera scan (match_view): {len(m)} matches")
     Rt, tt = relative_pose(c1, c2)
-    ref = refine_extrinsics(c1, turned(c2, 2.0), m.uv1, m.uv2)
-    true = refine_extrinsics(c1, c2, m.uv1, m.uv2)
-    for name, R, t, epi in (("turned 2 deg", ref.R0, ref.t0, ref.epipolar_before),
-                            ("refined", ref.R, ref.t, ref.epipolar_after), ("true rig", Rt, tt, true.epipolar_before)):
-        de, dt = pose_error(R, t, Rt, tt)
-        print(f"    {name:13s} epipolar median {epi.median_px:7.3f} p95 {epi.p95_px:7.3f} px | pose error "
-              f"{de:7.4f} deg {dt:7.3f} mm | 3D median error {err3(points(R, t)):8.4f} mm")
-    print(f"    refined pose's own std: rotation {ref.rotation_std_deg:.4f} deg, direction {ref.direction_std_deg:.4f} "
-          f"deg; problems: {ref.problems or 'none'}")
-    for name, R, t in (("true rig", Rt, tt), ("refined rig", ref.R, ref.t)):
-        fit = fit_projector(points(R, t), m.proj, size=(li.width, li.height))
-        K, Kt = fit.light.K, li.K
-        print(f"  projector-from-scan ({name}): RMS {fit.rms_px:.3f} px; fx {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, "
-              f"fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, cx {K[0, 2] - Kt[0, 2]:+.2f} px, "
-              f"cy {K[1, 2] - Kt[1, 2]:+.2f} px; pose {rotation_angle_deg(fit.light.R @ li.R.T):.4f} deg, "
-              f"{np.linalg.norm(fit.light.center - li.center):.3f} mm; std fx {fit.std['fx']:.2f} px, rotation "
-              f"{fit.std['rotation_deg']:.4f} deg; problems: {fit.problems or 'none'}")
+    bad = replace(rig, camera2=turned(c2, 2.0))
+    summary = []
+    for seed in seeds:
+        with tempfile.TemporaryDirectory() as tmp:
+            scan = simulate_two_camera_scan(Path(tmp) / "scan", rig=rig, seed=seed)
+            m = match_view(scan, scan.views[0], device="cpu")
+            ply = read_ply(Path(tmp) / "scan" / "truth" / "object.ply")
+        V = np.stack([ply["x"], ply["y"], ply["z"]], 1)
+        cen = V.mean(0)
+        rad = float(np.linalg.norm(V - cen, axis=1).mean())
+        n1 = cv2.undistortPoints(m.uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
+        n2 = cv2.undistortPoints(m.uv2.reshape(-1, 1, 2), c2.K, c2.dist).reshape(-1, 2)
+
+        def points(R, t, n1=n1, n2=n2):
+            return (triangulate_pair(R, t, n1, n2) - c1.t) @ c1.R
+
+        def err3(X, cen=cen, rad=rad):
+            return float(np.median(np.minimum(np.abs(np.linalg.norm(X - cen, axis=1) - rad), np.abs(X[:, 2]))))
+
+        _, two = refine_stereo_rig(bad, m.uv1, m.uv2)
+        _, three = refine_stereo_rig(bad, m.uv1, m.uv2, sigma1=m.sigma1, sigma2=m.sigma2, uv_light=m.proj,
+                                     sigma_light=m.sigma_proj)
+        _, true = refine_stereo_rig(rig, m.uv1, m.uv2)
+        e_true = err3(points(Rt, tt))
+        if seed == seeds[0]:
+            print(f"virtual two-camera scan (match_view), rendering seed {seed}: {len(m)} matches")
+            for name, R, t, epi in (("turned 2 deg", two.R0, two.t0, two.epipolar_before),
+                                    ("two-view", two.R, two.t, two.epipolar_after),
+                                    ("three devices", three.R, three.t, three.epipolar_after),
+                                    ("true rig", Rt, tt, true.epipolar_before)):
+                de, dt = pose_error(R, t, Rt, tt)
+                print(f"    {name:13s} epipolar median {epi.median_px:7.3f} p95 {epi.p95_px:7.3f} px | pose error "
+                      f"{de:7.4f} deg {dt:7.3f} mm | 3D median error {err3(points(R, t)):8.4f} mm")
+            for name, ref in (("two-view", two), ("three devices", three)):
+                print(f"    {name} pose's own std: rotation {ref.rotation_std_deg:.4f} deg, direction "
+                      f"{ref.direction_std_deg:.4f} deg; problems: {ref.problems or 'none'}")
+            for name, R, t in (("true rig", Rt, tt), ("refined rig, three devices", three.R, three.t)):
+                fit = fit_projector(points(R, t), m.proj, size=(li.width, li.height))
+                K, Kt = fit.light.K, li.K
+                print(f"  projector-from-scan ({name}): RMS {fit.rms_px:.3f} px; fx "
+                      f"{100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, "
+                      f"cx {K[0, 2] - Kt[0, 2]:+.2f} px, cy {K[1, 2] - Kt[1, 2]:+.2f} px; pose "
+                      f"{rotation_angle_deg(fit.light.R @ li.R.T):.4f} deg, "
+                      f"{np.linalg.norm(fit.light.center - li.center):.3f} mm; std fx {fit.std['fx']:.2f} px, "
+                      f"rotation {fit.std['rotation_deg']:.4f} deg; problems: {fit.problems or 'none'}")
+        row = [seed, len(m), two.epipolar_after.median_px, three.epipolar_after.median_px,
+               true.epipolar_before.median_px, pose_error(two.R, two.t, Rt, tt)[0],
+               pose_error(three.R, three.t, Rt, tt)[0], err3(points(two.R, two.t)) / e_true,
+               err3(points(three.R, three.t)) / e_true, e_true]
+        summary.append(row)
+    print("  refine from camera 2 turned 2 deg, per rendering seed (3D error as a ratio to the true rig's):")
+    print("  | seed | matches | epipolar median two-view / three devices / true px | rotation error two-view / "
+          "three devices deg | 3D error two-view / three devices | true rig's 3D error mm |")
+    for r in summary:
+        print(f"  | {r[0]} | {r[1]} | {r[2]:.3f} / {r[3]:.3f} / {r[4]:.3f} | {r[5]:.4f} / {r[6]:.4f} | "
+              f"{r[7]:.2f}x / {r[8]:.2f}x | {r[9]:.4f} |")
 
 
 def run() -> None:
@@ -197,6 +220,8 @@ def run() -> None:
                     help="surface points drawn (a dense scan gives millions of matches)")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "procam"))
     ap.add_argument("--no-scan", action="store_true", help="skip the virtual two-camera scan")
+    ap.add_argument("--scan-seeds", type=int, nargs="+", default=[0, 1, 2, 3],
+                    help="rendering seeds of the virtual two-camera scan (one scan each)")
     args = ap.parse_args()
     for noise in args.noise:
         synthetic(noise, args.points)
@@ -205,7 +230,7 @@ def run() -> None:
     else:
         print(f"real captures: {args.data} not found, skipped")
     if not args.no_scan:
-        virtual_scan()
+        virtual_scan(tuple(args.scan_seeds))
 
 
 if __name__ == "__main__":

@@ -728,15 +728,17 @@ def load_scan_with_rig(args):
 
 
 def view_matches(scan, view, *, device):
-    """(uv1, uv2, proj) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``)."""
+    """(uv1, uv2, proj, sigmas) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``);
+    sigmas: (n, 3) predicted standard deviations of uv1, uv2 (px) and proj (projector px), or None."""
     from ringscan.pipeline.reconstruct.stereo import match_view
 
     m = match_view(scan, view, device=device)
-    return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float)
+    sig = np.stack([m.sigma1, m.sigma2, np.mean(m.sigma_proj, axis=1)], 1).astype(float)
+    return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float), sig
 
 
 def gather_matches(scan, views, args, *, need: str):
-    """Matches of every view, subsampled to --max-matches: (uv1, uv2 or None, proj).
+    """Matches of every view, subsampled to --max-matches: (uv1, uv2 or None, proj, sigmas or None).
 
     ``need``: "cameras" (a two-camera scan's matches) or "projector" (camera-projector pairs:
     a two-camera scan's, or an imported one-camera scan's decoded pixels)."""
@@ -745,25 +747,29 @@ def gather_matches(scan, views, args, *, need: str):
         one = next(v for v in views if v.camera2 is None)
         raise FormatError(scan.path, f"view {one.name} has one camera's frames; matching cameras needs both")
     per = max(1, args.max_matches // max(1, len(views)))
-    u1s, u2s, ps = [], [], []
+    u1s, u2s, ps, ss = [], [], [], []
     for v in progress_bar(views, desc="matching", unit="view", disable=args.no_progress, leave=False):
         if v.camera2 is not None:
-            u1, u2, pr = view_matches(scan, v, device=args.device)
+            u1, u2, pr, sg = view_matches(scan, v, device=args.device)
         else:
             u1, pr = decoded_pairs(scan, v, max_pairs=per)
-            u2 = None
+            u2 = sg = None
         if u1.shape[0] > per:
             pick = np.sort(np.random.default_rng(len(u1s)).choice(u1.shape[0], per, replace=False))
             u1, pr = u1[pick], pr[pick]
             u2 = None if u2 is None else u2[pick]
+            sg = None if sg is None else sg[pick]
         print(f"  {v.name}: {u1.shape[0]} matches")
         u1s.append(u1)
         ps.append(pr)
         if u2 is not None:
             u2s.append(u2)
+        if sg is not None:
+            ss.append(sg)
     uv1, proj = np.concatenate(u1s), np.concatenate(ps)
     uv2 = np.concatenate(u2s) if len(u2s) == len(u1s) else None
-    return uv1, uv2, proj
+    sig = np.concatenate(ss) if len(ss) == len(u1s) else None
+    return uv1, uv2, proj, sig
 
 
 def print_refinement(what: str, ref) -> None:
@@ -775,6 +781,13 @@ def print_refinement(what: str, ref) -> None:
     print(f"  rotation changed by {ref.rotation_change_deg:.3f} deg (+- {ref.rotation_std_deg:.4f}), baseline "
           f"direction by {ref.direction_change_deg:.3f} deg (+- {ref.direction_std_deg:.4f}); baseline "
           f"{ref.baseline_mm:.2f} mm")
+    if ref.light_epipolar is not None:
+        print(f"  projector against camera 1 (held): epipolar distance {ref.light_epipolar.line()}")
+    if ref.method == "three-device":
+        print(f"  bundle adjustment over camera 1, camera 2 and the projector: {ref.bundle_used} matches, weighted "
+              "by their predicted standard deviations")
+    for note in ref.notes:
+        print(f"  note: {note}")
 
 
 def add_refine_parser(calsub) -> None:
@@ -783,14 +796,20 @@ def add_refine_parser(calsub) -> None:
                                       "imported camera-projector scan's decoded pixels) without the rig's extrinsics, "
                                       "then re-estimates the second device's pose: an essential matrix (RANSAC) and a "
                                       "bundle adjustment over the matches, keeping the rig's baseline length (or "
-                                      "--baseline). Prints the epipolar distance and the reprojection error before and "
-                                      "after; writes the rig (JSON) and the pair as OpenCV FileStorage.")
+                                      "--baseline); a two-camera rig's calibrated projector then joins a bundle "
+                                      "adjustment of the reprojection errors in all three devices (its pose held; "
+                                      "--two-view leaves it out). Prints the epipolar distance and the reprojection "
+                                      "error before and after; writes the rig (JSON) and the pair as OpenCV "
+                                      "FileStorage.")
     add_scan_match_options(p, out_help="the refined rig file to write (JSON)")
     p.add_argument("--pair", choices=("auto", "cameras", "projector"), default="auto",
                    help="what to refine: camera 2 against camera 1, or the projector against camera 1 (auto: the "
                         "cameras of a two-camera rig, the projector of a one-camera rig)")
     p.add_argument("--baseline", type=float, default=None, metavar="MM",
                    help="the baseline length in mm (a measured one; default: the rig's)")
+    p.add_argument("--two-view", action="store_true",
+                   help="cameras: leave a calibrated projector out of the adjustment (by default it joins it, its "
+                        "pose held, where it fits camera 1's matches)")
     p.set_defaults(_calibrate=run_refine)
 
 
@@ -807,10 +826,15 @@ def run_refine(args) -> int:
         raise FormatError(args.rig or scan.path, f"its projector is not calibrated (model {rig.light.model!r}): "
                                                  "refining it needs a perspective projector (a two-camera rig's "
                                                  "projector: `ringscan calibrate projector-from-scan`)")
-    uv1, uv2, proj = gather_matches(scan, views, args, need=pair)
+    uv1, uv2, proj, sig = gather_matches(scan, views, args, need=pair)
     with progress_step("refining", enabled=not args.no_progress):
         if pair == "cameras":
-            new, ref = refine_stereo_rig(rig, uv1, uv2, baseline_mm=args.baseline)
+            use_light = isinstance(rig.light, PerspectiveLight) and not args.two_view
+            new, ref = refine_stereo_rig(rig, uv1, uv2, baseline_mm=args.baseline,
+                                         sigma1=None if sig is None else sig[:, 0],
+                                         sigma2=None if sig is None else sig[:, 1],
+                                         uv_light=proj if use_light else None,
+                                         sigma_light=None if sig is None or not use_light else sig[:, 2])
         else:
             new, ref = refine_procam_rig(rig, uv1, proj, baseline_mm=args.baseline)
     print_refinement("camera 2 against camera 1" if pair == "cameras" else "projector against camera 1"
@@ -862,7 +886,7 @@ def run_projector_from_scan(args) -> int:
         size = (getattr(rig.light, "width", 0), getattr(rig.light, "height", 0))
         if not min(size) > 0:
             raise UsageError("--projector: the rig does not give the projector's size; give --projector WxH")
-    uv1, uv2, proj = gather_matches(scan, views, args, need="cameras")
+    uv1, uv2, proj, _ = gather_matches(scan, views, args, need="cameras")
     c1, c2 = rig.camera, rig.camera2
     R, t = relative_pose(c1, c2)
     n1 = cv2.undistortPoints(uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)

@@ -12,6 +12,11 @@ re-estimate them:
   reprojection error, under a robust loss); it starts from the rig's own pose
   too and keeps the better. Two views fix the pose only up to scale: the
   baseline length is kept from the input rig, or given (a measured baseline).
+  Where a calibrated projector lit the matches, it then joins a bundle adjustment
+  of the reprojection errors in all three devices (points triangulated from the
+  three rays at each step, each match weighted by its predicted standard
+  deviation, the projector's pose held): the third view fixes the rotation that
+  two narrow views trade against the baseline direction.
 - :func:`fit_projector` fits a perspective projector (K, distortion, pose) to 3D
   points (triangulated by two cameras) and their projector pixels: a normalised
   DLT start, then OpenCV's ``calibrateCamera`` with the intrinsic guess on the
@@ -220,9 +225,19 @@ class RefineSettings:
     """Most cost evaluations of the adjustment."""
     seed: int = 0
     """Seed of the subset."""
+    bundle_points: int = 30_000
+    """Most matches the three-device bundle adjustment uses (it triangulates each of them at every
+    step; a seeded random subset of the adjustment's matches)."""
+    max_light_epipolar_px: float = 1.0
+    """Largest median epipolar distance (camera-1 px) of camera 1 against the calibrated projector
+    under the input rig for the projector to join the adjustment (above it the projector's own
+    pose does not fit the images, and holding it would pull device 2 off)."""
 
     def __post_init__(self):
-        for name in ("ransac_px", "loss_scale_px", "min_loss_scale_px", "max_rotation_std_deg"):
+        if not (isinstance(self.bundle_points, int) and self.bundle_points >= 8):
+            raise ValueError(f"RefineSettings.bundle_points: expected an integer >= 8, got {self.bundle_points!r}")
+        for name in ("ransac_px", "loss_scale_px", "min_loss_scale_px", "max_rotation_std_deg",
+                     "max_light_epipolar_px"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"RefineSettings.{name}: expected a positive number, got {v!r}")
@@ -276,6 +291,16 @@ class Refinement:
     """The robust loss's scale of the last pass (px)."""
     problems: list[str] = field(default_factory=list)
     """What the matches do not determine (empty: a pose to stand behind)."""
+    method: str = "two-view"
+    """'two-view' (the epipolar adjustment alone) or 'three-device' (then a bundle adjustment of
+    the reprojection errors in device 1, device 2 and the calibrated projector, which is held)."""
+    light_epipolar: ResidualStats | None = None
+    """Epipolar distance (device-1 px) of device 1 against the calibrated projector under the input
+    rig (None: no projector given): whether the projector could join the adjustment."""
+    bundle_used: int = 0
+    """Matches the three-device adjustment used (0: it did not run)."""
+    notes: list[str] = field(default_factory=list)
+    """What the user should know that does not make the result wrong (e.g. why the projector was left out)."""
 
     def report(self) -> dict:
         """A JSON-able summary."""
@@ -286,7 +311,9 @@ class Refinement:
                 "rotation_change_deg": self.rotation_change_deg, "direction_change_deg": self.direction_change_deg,
                 "matches_used": self.used, "inliers": self.inliers, "start": self.start,
                 "rotation_std_deg": self.rotation_std_deg, "direction_std_deg": self.direction_std_deg,
-                "loss_scale_px": self.loss_scale_px,
+                "loss_scale_px": self.loss_scale_px, "method": self.method,
+                "light_epipolar_px": None if self.light_epipolar is None else self.light_epipolar.to_dict(),
+                "bundle_matches_used": self.bundle_used, "notes": list(self.notes),
                 "problems": list(self.problems)}
 
 
@@ -343,6 +370,123 @@ def _adjust(R0, d0, p1, p2, K1, K2, settings: RefineSettings):
     return R0, d0, float(res.cost), scale, cov
 
 
+def _triangulate_views(poses, obs, wts) -> np.ndarray:
+    """Device-1-frame points (n, 3) of matches seen by several devices: a weighted linear
+    (DLT) solve, then two Gauss-Newton steps on the weighted reprojection error.
+
+    Args:
+        poses: per device (R, t) with X_d = R X_1 + t.
+        obs: per device (n, 2) normalised undistorted coordinates.
+        wts: per device (n,) weights (focal length / standard deviation: px of normalised error).
+    """
+    n = obs[0].shape[0]
+    A = np.zeros((n, 3, 3))
+    b = np.zeros((n, 3))
+    for (R, t), o, w in zip(poses, obs, wts):
+        for k in range(2):
+            row = (R[k][None, :] - o[:, k:k + 1] * R[2][None, :]) * w[:, None]
+            rhs = -(t[k] - o[:, k] * t[2]) * w
+            A += row[:, :, None] * row[:, None, :]
+            b += row * rhs[:, None]
+    with np.errstate(all="ignore"):
+        X = np.linalg.solve(A + 1e-12 * np.eye(3), b[..., None])[..., 0]
+        for _ in range(2):
+            A[:] = 0.0
+            b[:] = 0.0
+            for (R, t), o, w in zip(poses, obs, wts):
+                Y = X @ R.T + t
+                z = Y[:, 2]
+                for k in range(2):
+                    g = (R[k][None, :] - (Y[:, k] / z)[:, None] * R[2][None, :]) * (w / z)[:, None]
+                    r = (Y[:, k] / z - o[:, k]) * w
+                    A += g[:, :, None] * g[:, None, :]
+                    b -= g * r[:, None]
+            X = X + np.linalg.solve(A + 1e-12 * np.eye(3), b[..., None])[..., 0]
+    return X
+
+
+def _views_residuals(poses, obs, wts, X) -> np.ndarray:
+    """(n, 2 x devices) weighted reprojection residuals of points X (device-1 frame)."""
+    out = []
+    for (R, t), o, w in zip(poses, obs, wts):
+        Y = X @ R.T + t
+        with np.errstate(all="ignore"):
+            out.append((Y[:, :2] / Y[:, 2:3] - o) * w[:, None])
+    r = np.concatenate(out, 1)
+    return np.where(np.isfinite(r), r, 0.0)
+
+
+def _adjust_three(R0, t0, light_pose, obs, wts, settings: RefineSettings, scale0: float):
+    """Bundle adjustment of device 2's pose (rotation, baseline direction; length kept) against
+    device 1 and a held third device (the calibrated projector): the reprojection errors of every
+    match in all three devices, each weighted by its predicted standard deviation, with the points
+    triangulated from the three rays at every step (eliminated). The projector sees the scene from
+    a third place, which fixes the rotation that two narrow views trade against the baseline direction.
+
+    Two passes as in :func:`_adjust`, the second with the robust loss's scale at 3 standard deviations
+    of the weighted residuals. Returns (R, t, scale of the last pass, (5, 5) covariance)."""
+    base = float(np.linalg.norm(t0))
+    d0 = np.asarray(t0, float) / base
+    e1, e2 = _tangent_basis(d0)
+    eye = (np.eye(3), np.zeros(3))
+
+    def unpack(x):
+        R = cv2.Rodrigues(x[:3].reshape(3, 1))[0] @ R0
+        d = d0 + x[3] * e1 + x[4] * e2
+        return R, base * d / np.linalg.norm(d)
+
+    def fun(x):
+        R, t = unpack(x)
+        poses = [eye, (R, t), light_pose]
+        return _views_residuals(poses, obs, wts, _triangulate_views(poses, obs, wts)).ravel()
+
+    x = np.zeros(5)
+    scale = scale0
+    for rnd in range(2):
+        res = least_squares(fun, x, loss=settings.loss, f_scale=scale, method="trf", max_nfev=settings.max_nfev,
+                            x_scale="jac", diff_step=1e-8)
+        x = res.x
+        if rnd == 0:
+            sigma = 1.4826 * float(np.median(np.abs(res.fun)))
+            scale = min(settings.loss_scale_px, max(settings.min_loss_scale_px, 3.0 * sigma))
+    r = res.fun
+    w = np.sqrt(np.where(np.abs(r) <= scale, 1.0, scale / np.maximum(np.abs(r), 1e-300)))
+    J = res.jac * w[:, None]
+    s2 = float(np.sum((r * w) ** 2)) / max(1, r.size - 3 * obs[0].shape[0] - 5)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((5, 5), np.inf)
+    R, t = unpack(x)
+    return R, t, scale, cov
+
+
+def _sigmas(sigma, n: int, what: str) -> np.ndarray:
+    """(n,) standard deviations (px) of a match's pixel: given (n,) or (n, 2) (their mean), or 1 px."""
+    if sigma is None:
+        return np.ones(n)
+    s = np.asarray(sigma, np.float64)
+    if s.ndim == 2:
+        s = s.mean(1)
+    if s.shape != (n,):
+        raise ValueError(f"{what}: {s.shape} standard deviations for {n} matches")
+    s = np.where(np.isfinite(s) & (s > 0), s, np.nan)
+    floor = max(1e-3, 0.1 * float(np.nanmedian(s))) if np.any(np.isfinite(s)) else 1.0
+    return np.where(np.isfinite(s), np.maximum(s, floor), np.nanmax(np.r_[s[np.isfinite(s)], 1.0]))
+
+
+def _axis_std_deg(cov) -> tuple[np.ndarray, np.ndarray]:
+    """Standard deviations (degrees) along the principal axes of the rotation's and the direction's
+    covariance blocks of a (5, 5) covariance (infinite where it is not finite)."""
+    out = []
+    for blk in (cov[:3, :3], cov[3:, 3:]):
+        if not np.all(np.isfinite(blk)):
+            out.append(np.full(blk.shape[0], np.inf))
+            continue
+        out.append(np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (blk + blk.T)), 0.0))))
+    return out[0], out[1]
+
+
 def _robust_cost(R, d, p1, p2, K1, K2, loss: str, scale: float) -> float:
     z = (_sampson(_fundamental(R, d, K1, K2), p1, p2) / scale) ** 2
     rho = {"linear": z, "soft_l1": 2 * (np.sqrt(1 + z) - 1), "huber": np.where(z <= 1, z, 2 * np.sqrt(z) - 1),
@@ -351,7 +495,8 @@ def _robust_cost(R, d, p1, p2, K1, K2, loss: str, scale: float) -> float:
 
 
 def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
-                      settings: RefineSettings = RefineSettings()) -> Refinement:
+                      settings: RefineSettings = RefineSettings(), sigma1=None, sigma2=None, light=None,
+                      uv_light=None, sigma_light=None) -> Refinement:
     """Re-estimate device 2's pose relative to device 1 from matched pixels.
 
     Args:
@@ -360,6 +505,12 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
         uv1, uv2: (n, 2) matched pixels as observed (distorted).
         baseline_mm: the baseline length to give the result (a measured one); None keeps the input rig's.
         settings: see :class:`RefineSettings`.
+        sigma1, sigma2: (n,) or (n, 2) predicted standard deviations (px) of uv1, uv2 (None: equal);
+            they weight the three-device adjustment.
+        light: a calibrated projector (:class:`PerspectiveLight`, world pose) whose pixels ``uv_light``
+            ((n, 2), standard deviations ``sigma_light``) lit the matches: it joins a bundle adjustment
+            of the reprojection errors in all three devices, its own pose held (where it fits device 1:
+            ``max_light_epipolar_px``), after the epipolar adjustment of the two.
 
     Returns:
         the :class:`Refinement` (the refined relative pose and the residuals before and after).
@@ -410,14 +561,40 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
         else:
             best = (name, R, d, cost, scale, cov)
     name, R, d, _, scale, cov = best
-    rot_std = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(cov[:3, :3]), 0.0)))
-    dir_std = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(cov[3:, 3:]), 0.0)))
+    rot_std, dir_std = _axis_std_deg(cov)
     # the epipolar geometry does not see the sign of t: take the one that puts the points in front
     _, front_p = reprojection_errors(R, d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
     _, front_m = reprojection_errors(R, -d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
     if front_m.mean() > front_p.mean():
         d = -d
     t = d * base
+    method, light_epi, bundle_used, notes = "two-view", None, 0, []
+    if light is not None:
+        if not isinstance(light, PerspectiveLight):
+            raise ValueError("refine_extrinsics: light must be a calibrated PerspectiveLight")
+        uvl = _check_pixels(uv_light, "refine_extrinsics: uv_light", n)
+        Rl, tl = relative_pose(dev1, light)
+        Kl = np.asarray(light.K, float)
+        nl = _normalize(uvl, Kl, light.dist)
+        light_epi = ResidualStats.of(epipolar_distances(Rl, tl, K1, Kl, n1, nl))
+        if light_epi.median_px <= settings.max_light_epipolar_px:
+            s1 = _sigmas(sigma1, n, "refine_extrinsics: sigma1")
+            s2 = _sigmas(sigma2, n, "refine_extrinsics: sigma2")
+            sl = _sigmas(sigma_light, n, "refine_extrinsics: sigma_light")
+            ref_px = float(np.median(s1))  # residuals in device-1 px of a median match
+            bsub = sub
+            if bsub.size > settings.bundle_points:
+                bsub = np.sort(rng.choice(bsub, settings.bundle_points, replace=False))
+            obs = [n1[bsub], n2[bsub], nl[bsub]]
+            wts = [K1[0, 0] * ref_px / s1[bsub], K2[0, 0] * ref_px / s2[bsub], Kl[0, 0] * ref_px / sl[bsub]]
+            R, t, scale, cov = _adjust_three(R, t, (Rl, tl), obs, wts, settings, settings.loss_scale_px)
+            rot_std, dir_std = _axis_std_deg(cov)
+            method, bundle_used = "three-device", int(bsub.size)
+        else:
+            notes.append(f"the projector was left out of the adjustment: camera 1's matches lie "
+                         f"{light_epi.median_px:.2f} px (median) from its epipolar lines (> "
+                         f"{settings.max_light_epipolar_px:g} px), so its pose does not fit the images; refine it "
+                         "first (--pair projector)")
     epi0 = epipolar_distances(R0, t0, K1, K2, n1, n2) if np.linalg.norm(t0) > 0 else np.full(n, np.inf)
     epi1 = epipolar_distances(R, t, K1, K2, n1, n2)
     rep0, _ = reprojection_errors(R0, t0, dev1, dev2, uv1, uv2, n1, n2)
@@ -441,19 +618,27 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
                      reprojection_after=ResidualStats.of(rep1), rotation_change_deg=rotation_angle_deg(R @ R0.T),
                      direction_change_deg=dirc, used=int(sub.size), inliers=inl, start=name,
                      rotation_std_deg=float(rot_std.max()), direction_std_deg=float(dir_std.max()),
-                     loss_scale_px=float(scale), problems=problems)
-    log.info("refine: epipolar median %.3f -> %.3f px; rotation changed %.3f deg (start: %s)",
-             out.epipolar_before.median_px, out.epipolar_after.median_px, out.rotation_change_deg, name)
+                     loss_scale_px=float(scale), problems=problems, method=method, light_epipolar=light_epi,
+                     bundle_used=bundle_used, notes=notes)
+    log.info("refine: epipolar median %.3f -> %.3f px; rotation changed %.3f deg (start: %s, %s)",
+             out.epipolar_before.median_px, out.epipolar_after.median_px, out.rotation_change_deg, name, method)
     return out
 
 
 def refine_stereo_rig(rig: Rig, uv1, uv2, *, baseline_mm: float | None = None,
-                      settings: RefineSettings = RefineSettings()) -> tuple[Rig, Refinement]:
-    """A two-camera rig with camera 2's pose re-estimated from matches (camera 1 and the world frame kept)."""
+                      settings: RefineSettings = RefineSettings(), sigma1=None, sigma2=None, uv_light=None,
+                      sigma_light=None) -> tuple[Rig, Refinement]:
+    """A two-camera rig with camera 2's pose re-estimated from matches (camera 1 and the world frame kept).
+
+    Where the rig's projector is calibrated and ``uv_light`` (the matches' projector pixels) is given,
+    the projector (its pose held) joins the adjustment (:func:`refine_extrinsics`)."""
     cam2 = getattr(rig, "camera2", None)
     if cam2 is None:
         raise CalibrationError(None, "the rig has one camera; refining a stereo pose needs camera2")
-    ref = refine_extrinsics(rig.camera, cam2, uv1, uv2, baseline_mm=baseline_mm, settings=settings)
+    light = rig.light if isinstance(rig.light, PerspectiveLight) and uv_light is not None else None
+    ref = refine_extrinsics(rig.camera, cam2, uv1, uv2, baseline_mm=baseline_mm, settings=settings, sigma1=sigma1,
+                            sigma2=sigma2, light=light, uv_light=uv_light if light is not None else None,
+                            sigma_light=sigma_light if light is not None else None)
     c1 = rig.camera
     new2 = replace(cam2, R=ref.R @ c1.R, t=ref.R @ c1.t + ref.t)
     return replace(rig, camera2=new2), ref

@@ -241,3 +241,22 @@ def test_stereo_rig_refine_keeps_camera_1_and_a_two_camera_rig_moves_its_project
     assert rotation_angle_deg(out.light.R @ proj.R.T) < 0.01 and np.linalg.norm(out.light.center - proj.center) < 0.3
     with pytest.raises(CalibrationError, match="one camera"):
         refine_stereo_rig(Rig(camera=cam1, light=proj, volume=rig.volume), u1, u2)
+
+
+def test_refine_with_the_calibrated_projector_adjusts_all_three_and_leaves_out_one_that_does_not_fit(seen):
+    _, u1, u2, up = seen
+    cam1, cam2, proj = oblique_devices()
+    Rt, tt = relative_pose(cam1, cam2)
+    s = np.full(len(u1), 0.1)
+    ref = refine_extrinsics(cam1, rotated(cam2, 2.0), u1, u2, light=proj, uv_light=up, sigma1=s, sigma2=s,
+                            sigma_light=s)
+    assert ref.method == "three-device" and ref.bundle_used == len(u1)
+    assert ref.light_epipolar.median_px < 0.2
+    assert rotation_angle_deg(ref.R @ Rt.T) < 0.005
+    assert np.linalg.norm(ref.t - tt) < 0.1
+    assert ref.epipolar_after.median_px < 0.12 and ref.problems == []
+    # a projector whose pose does not fit camera 1's matches is not held against camera 2
+    off = refine_extrinsics(cam1, rotated(cam2, 2.0), u1, u2, light=rotated(proj, 1.0), uv_light=up)
+    assert off.method == "two-view" and off.light_epipolar.median_px > 1.0
+    assert "left out" in off.notes[0]
+    assert rotation_angle_deg(off.R @ Rt.T) < 0.01

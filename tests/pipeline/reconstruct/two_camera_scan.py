@@ -38,16 +38,17 @@ def two_camera_rig(*, turn_deg: float = 70.0):
 
 
 def simulate_two_camera_scan(folder, *, patterns=None, rig=None, uncalibrated: bool = False,
-                             turntable_deg=(0.0,)):
-    """Write a two-camera scan of a 80 mm sphere into ``folder``; returns it loaded."""
+                             turntable_deg=(0.0,), seed: int = 0):
+    """Write a two-camera scan of a 80 mm sphere into ``folder``; returns it loaded
+    (``seed``: the renderings' noise, camera 1's ``seed``, camera 2's ``seed + 7``)."""
     rig = two_camera_rig() if rig is None else rig
     spec = parse_patterns(ANGLE_PATTERNS if patterns is None else patterns)
     one = dataclasses.replace(rig, camera2=None)
     scan1 = simulate_scan(folder, scene="sphere", rig=one, patterns=spec, turntable_deg=turntable_deg,
-                          progress=False)
+                          progress=False, settings=RenderSettings(seed=seed))
     tmp = folder.parent / (folder.name + "_camera2")
     scan2 = simulate_scan(tmp, scene="sphere", rig=dataclasses.replace(one, camera=rig.camera2), patterns=spec,
-                          turntable_deg=turntable_deg, progress=False, settings=RenderSettings(seed=7))
+                          turntable_deg=turntable_deg, progress=False, settings=RenderSettings(seed=7 + seed))
     views = []
     for v1, v2 in zip(scan1.views, scan2.views):
         frames2 = {}
