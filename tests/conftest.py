@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -20,6 +21,18 @@ def _devices() -> list:
     devs = ["cpu"]
     cuda = pytest.param("cuda:0", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device on this machine"))
     return devs + [cuda]
+
+
+@pytest.fixture(autouse=True)
+def _restore_log_levels():
+    """A command run in-process (``main([..., "-q"])``) sets the ringscan loggers' levels for the
+    process: put them back after every test, so a later test's caplog sees ringscan's warnings
+    whatever the test order."""
+    names = ("ringscan", "ringscan.progress")
+    levels = {n: logging.getLogger(n).level for n in names}
+    yield
+    for n, lv in levels.items():
+        logging.getLogger(n).setLevel(lv)
 
 
 @pytest.fixture(params=_devices())

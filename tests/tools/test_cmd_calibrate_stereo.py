@@ -10,7 +10,6 @@ so these tests check the commands, not the matcher.
 from __future__ import annotations
 
 import json
-import logging
 import math
 from dataclasses import replace
 
@@ -28,17 +27,6 @@ from ringscan.tools import cmd_calibrate
 from ringscan.tools.cli import main
 
 from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
-
-
-@pytest.fixture(autouse=True)
-def _restore_log_levels():
-    """``main([..., "-q"])`` sets the ringscan loggers' levels for the process: put them back, so that
-    later tests' caplog sees ringscan's warnings whatever the test order."""
-    names = ("ringscan", "ringscan.progress")
-    levels = {n: logging.getLogger(n).level for n in names}
-    yield
-    for n, lv in levels.items():
-        logging.getLogger(n).setLevel(lv)
 
 
 def turned(dev, deg: float):
