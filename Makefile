@@ -7,6 +7,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 STAMP   = $(VENV)/.installed
+# Test processes (pytest-xdist; each file stays on one process). Two fit a 2-core, 8 GB machine;
+# each holds Warp, Open3D and a scan in memory (~1.5 GB), so more need the memory too.
+TEST_WORKERS ?= 2
 
 .PHONY: demo test bench setup sysdeps clean FORCE
 
@@ -15,7 +18,7 @@ demo: setup
 
 test: setup
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: setup
 	$(BIN)/ringscan bench

@@ -179,6 +179,17 @@ def graycode(work: Path, k: int) -> None:
         epi = rep["epipolar_px"]["before" if label == "true" else "after"]["median_px"]
         std = "-" if label == "true" else f"{rep['rotation_std_deg']:.4f} deg"
         print(f"| {label} | {epi:.3f} | {rotation_angle_deg(R @ Rt.T):.4f} deg | {std} | {med:.4f} |")
+    # the projector fitted to the two cameras' dense points (every decoded pixel matched)
+    run("calibrate", "projector-from-scan", scan, "--rig", work / "gc_true.json", "--out", work / "gc_procam.json",
+        "--stereo-out", work / "gc_rig3.json", "--report", work / "gc_pfs.json", "--no-progress", "-q", "--force")
+    got, want = load_rig(work / "gc_rig3.json").light, irig.light
+    rep = json.loads((work / "gc_pfs.json").read_text())["projector"]
+    print("projector-from-scan on this scan (the true stereo rig; against the projector the import was given):")
+    print(f"| fx, fy error | {100 * (got.K[0, 0] / want.K[0, 0] - 1):+.3f} %, {100 * (got.K[1, 1] / want.K[1, 1] - 1):+.3f} % "
+          f"| cx, cy error {100 * (got.K[0, 2] - want.K[0, 2]) / want.width:+.3f} %, "
+          f"{100 * (got.K[1, 2] - want.K[1, 2]) / want.height:+.3f} % of the image | pose error "
+          f"{rotation_angle_deg(got.R @ want.R.T):.4f} deg, {np.linalg.norm(got.center - want.center):.3f} mm "
+          f"| RMS {rep['rms_px']:.3f} px |")
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
