@@ -33,11 +33,11 @@ from ringscan.pipeline.formats.scan import as_camera2, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.pipeline.simulate.test_opencv_graycode import PH, PW, small_stereo_rig  # noqa: E402
+from tests.pipeline.simulate.test_opencv_graycode import small_stereo_rig  # noqa: E402
 
 
-def scaled_rig(k: int):
-    rig = small_stereo_rig()
+def scale_rig(rig, k: int):
+    """``rig`` with its cameras and projector K times larger (same field of view; also used by two_camera_rig.py)."""
     if k == 1:
         return rig
 
@@ -50,9 +50,13 @@ def scaled_rig(k: int):
     li = rig.light
     Kp = li.K.copy()
     Kp[:2] *= k
-    Kp[0, 2], Kp[1, 2] = (PW * k - 1) / 2, (PH * k - 1) / 2
+    Kp[0, 2], Kp[1, 2] = (li.width * k - 1) / 2, (li.height * k - 1) / 2
     return dataclasses.replace(rig, camera=cam(rig.camera), camera2=cam(rig.camera2),
-                               light=dataclasses.replace(li, width=PW * k, height=PH * k, K=Kp))
+                               light=dataclasses.replace(li, width=li.width * k, height=li.height * k, K=Kp))
+
+
+def scaled_rig(k: int):
+    return scale_rig(small_stereo_rig(), k)
 
 
 def decoded(scan, view, camera):

@@ -97,24 +97,6 @@ class Truth:
         return float(np.median(d)), float((hit & self.lit).sum() / max(1, self.lit.sum())), int(X.shape[0])
 
 
-def scaled(rig, k: int):
-    if k == 1:
-        return rig
-
-    def cam(c):
-        K = c.K.copy()
-        K[:2] *= k
-        K[0, 2], K[1, 2] = (c.width * k - 1) / 2, (c.height * k - 1) / 2
-        return dataclasses.replace(c, width=c.width * k, height=c.height * k, K=K)
-
-    li = rig.light
-    Kp = li.K.copy()
-    Kp[:2] *= k
-    Kp[0, 2], Kp[1, 2] = (li.width * k - 1) / 2, (li.height * k - 1) / 2
-    return dataclasses.replace(rig, camera=cam(rig.camera), camera2=cam(rig.camera2),
-                               light=dataclasses.replace(li, width=li.width * k, height=li.height * k, K=Kp))
-
-
 def turned(dev, deg: float):
     rv = np.array([0.3, -0.8, 0.5])
     rv *= math.radians(deg) / np.linalg.norm(rv)
@@ -123,9 +105,9 @@ def turned(dev, deg: float):
 
 
 def graycode(work: Path, k: int) -> None:
-    from tests.pipeline.simulate.test_opencv_graycode import small_stereo_rig
+    from opencv_sample_virtual import scaled_rig  # this folder's: one way to scale the rig
 
-    rig = scaled(small_stereo_rig(), k)
+    rig = scaled_rig(k)
     save_rig(work / "gc_rig.json", rig)
     li = rig.light
     t0 = time.perf_counter()
