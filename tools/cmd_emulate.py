@@ -2,12 +2,13 @@
 
 Starts an emulated GRBL turntable and an emulated serial pattern projector on
 pseudo-terminals and serves the virtual rig's camera on a Unix socket, prints the
-ports and a ready ``ringscan capture`` command line, and runs until Ctrl-C (or
-``--seconds``). The folder also gets rig.json and patterns.json for that command.
+ports and a ready ``ringscan capture`` command line, and runs until Ctrl-C, SIGTERM
+(a service manager's stop) or ``--seconds``. The folder also gets rig.json and patterns.json for that command.
 """
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -42,8 +43,22 @@ def add_parser(sub):
     return p
 
 
-def run(args) -> int:
+def _stop(signum, frame):
+    raise KeyboardInterrupt
 
+
+def run(args) -> int:
+    # A shell starts background jobs with SIGINT ignored, and Python then keeps it ignored:
+    # install the handlers so Ctrl-C (kill -INT) and SIGTERM stop the emulator cleanly either way.
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _serve(args)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _serve(args) -> int:
     rig = load_rig(args.rig) if args.rig else default_rig()
     patterns = load_patterns(args.patterns) if args.patterns else parse_patterns(DEFAULT_PATTERNS, source="default")
     emu = EmulatedRig(rig, patterns, args.scene, folder=args.folder, flavor=args.flavor, time_scale=args.time_scale,

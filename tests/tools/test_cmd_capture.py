@@ -128,7 +128,9 @@ def test_capture_against_ringscan_emulate(files, reference, tmp_path):
     cmd = [sys.executable, "-m", "ringscan.tools.cli", "emulate", "--rig", str(files / "rig.json"), "--patterns",
            str(files / "patterns.json"), "--scene", "terrain", "--folder", str(emu_dir), "--time-scale", "500",
            "--seed", SEED, "--seconds", "120", "--device", "cpu"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    # Started as a shell starts a background job (SIGINT ignored): Ctrl-C must stop it all the same.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         ports = {}
         for line in proc.stdout:
@@ -145,8 +147,29 @@ def test_capture_against_ringscan_emulate(files, reference, tmp_path):
                           "--projector-settle", "0", "--timeout", "1")) == 0
         _assert_same(load_scan(out), reference)
         proc.send_signal(signal.SIGINT)
-        rest = proc.stdout.read()
-        assert proc.wait(timeout=30) == 0 and "emulator stopped" in rest
+        rest = proc.communicate(timeout=30)[0]  # not the --seconds 120 running out
+        assert proc.returncode == 0 and "emulator stopped" in rest
+        assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+
+
+def test_emulate_stops_cleanly_on_sigterm(tmp_path):
+    emu_dir = tmp_path / "emu"
+    cmd = [sys.executable, "-m", "ringscan.tools.cli", "emulate", "--folder", str(emu_dir), "--seconds", "120",
+           "--device", "cpu"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for line in proc.stdout:
+            if line.startswith("running"):
+                break
+        assert (emu_dir / "camera.sock").exists()
+        proc.terminate()  # what a service manager sends
+        rest = proc.communicate(timeout=30)[0]
+        assert proc.returncode == 0 and "emulator stopped" in rest
         assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
     finally:
         if proc.poll() is None:
