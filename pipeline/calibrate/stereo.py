@@ -1047,8 +1047,8 @@ def write_opencv_procam(path, rig: Rig) -> None:
 
 def write_opencv_stereo(path, rig: Rig) -> None:
     """A two-camera rig as OpenCV FileStorage in the layout of OpenCV's structured-light sample:
-    cam1_intrinsics, cam1_distorsion (sic), cam1_size, the same for cam2, R, T (X_cam2 = R X_cam1 + T)
-    and RT_cam1_2_cam2 (the 3x4 [R | T]). Atomic."""
+    cam1_intrinsics, cam1_distorsion (sic), cam1_size, the same for cam2, RT_cam1_2_cam2 (the 4x4
+    [R | T; 0 0 0 1]), R, T (X_cam2 = R X_cam1 + T), in the order of the sample's own file. Atomic."""
     c1, c2 = rig.camera, getattr(rig, "camera2", None)
     if c2 is None:
         raise CalibrationError(path, "the rig has one camera; OpenCV's stereo layout needs two")
@@ -1059,8 +1059,8 @@ def write_opencv_stereo(path, rig: Rig) -> None:
             fs.write(f"{k}_intrinsics", np.asarray(c.K, float))
             fs.write(f"{k}_distorsion", np.asarray(c.dist, float).reshape(1, -1))
             _write_size(fs, f"{k}_size", c.width, c.height)
+        fs.write("RT_cam1_2_cam2", np.vstack([np.hstack([R, T.reshape(3, 1)]), [[0.0, 0.0, 0.0, 1.0]]]))
         fs.write("R", R)
         fs.write("T", T.reshape(3, 1))
-        fs.write("RT_cam1_2_cam2", np.hstack([R, T.reshape(3, 1)]))
 
     _write_storage(path, write)
