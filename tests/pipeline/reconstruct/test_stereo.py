@@ -152,3 +152,28 @@ def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
     assert med["camera-camera"] < 0.95 * med["camera-projector"], med
     assert med["all"] < 0.8 * med["camera-camera"], med
     assert med["all"] < 0.04, med  # mm, 0.65 mm camera pixels
+
+
+def test_auto_fallback_places_points_as_one_camera_does(stereo_scan):
+    """--rays auto on a rig whose projector misses by more than the decode's errors: the camera-1 samples camera 2
+    does not match fall back to camera-projector with the calibration floor, exactly as a one-camera
+    reconstruction of the same scan places them."""
+    rig = stereo_scan.rig
+    li = rig.light
+    dR = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(0.3)]))[0]  # the projector turned 0.3 deg about its axis
+    off = dataclasses.replace(stereo_scan, rig=dataclasses.replace(rig, light=dataclasses.replace(li, R=dR @ li.R)))
+    auto = reconstruct_view(off, off.views[0], settings=_rays("auto"), device="cpu")
+    one = reconstruct_view(off, off.views[0], settings=_rays("camera-projector"), device="cpu")
+    assert auto.stats["rays"] == "all" and one.stats["rays"] == "camera-projector"
+    cal = one.stats["calibration"]
+    assert cal["floor_applied"] and cal["floor_px"] > 0, cal
+    assert auto.stats["calibration"] == cal
+    m = match_view(off, off.views[0], device="cpu")
+    matched = {(float(u), float(v)) for u, v in m.uv1}
+    by_uv = {(float(u), float(v)): i for i, (u, v) in enumerate(one.uv)}
+    fb = [(i, by_uv[(float(u), float(v))]) for i, (u, v) in enumerate(auto.uv)
+          if (float(u), float(v)) not in matched and (float(u), float(v)) in by_uv]
+    assert len(fb) > 0.5 * auto.stats["stereo"]["fallback_camera_projector"] and len(fb) > 500, len(fb)
+    a, b = np.array([i for i, _ in fb]), np.array([j for _, j in fb])
+    assert np.array_equal(auto.points[a], one.points[b])
+    assert np.array_equal(auto.sigma[a], one.sigma[b]) and np.array_equal(auto.residual[a], one.residual[b])
