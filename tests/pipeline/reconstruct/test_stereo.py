@@ -177,3 +177,26 @@ def test_auto_fallback_places_points_as_one_camera_does(stereo_scan):
     a, b = np.array([i for i, _ in fb]), np.array([j for _, j in fb])
     assert np.array_equal(auto.points[a], one.points[b])
     assert np.array_equal(auto.sigma[a], one.sigma[b]) and np.array_equal(auto.residual[a], one.residual[b])
+
+
+def test_predicted_match_sigmas_are_the_errors_scale(stereo_scan):
+    """The matches' camera-2 errors against the truth over their predicted sqrt(sigma1^2 + sigma2^2): a MAD near
+    1 per axis (it was ~2 while the sigmas held the decode's noise alone; benchmarks/stereo_rays.py)."""
+    scan = stereo_scan
+    m = match_view(scan, scan.views[0], device="cpu")
+    rig = scan.rig
+    depth = load_truth(scan).depth("view_000")
+    u, v = m.uv1[:, 0], m.uv1[:, 1]
+    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
+    fy, fx = v - i0, u - j0
+    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
+         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
+    keep = np.isfinite(z)
+    c = rig.camera
+    x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
+    X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R
+    e = m.uv2[keep] - project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
+    zn = e / np.hypot(m.sigma1, m.sigma2)[keep][:, None]
+    mad = 1.4826 * np.median(np.abs(zn - np.median(zn, axis=0)), axis=0)
+    assert np.all((0.8 < mad) & (mad < 1.3)), mad
+    assert 0.55 < np.mean(np.abs(zn) < 1) < 0.8
