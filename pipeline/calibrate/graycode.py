@@ -73,8 +73,9 @@ flip there are weak by nature; more mean the patterns hardly reach the pixel."""
 
 CAPTURE_INPUTS = (
     "a folder of graycode_NN.<ext> (from 00, one camera)",
-    "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2)",
-    "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths], cam2: [paths])",
+    "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2; one common prefix allowed)",
+    "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths] (or the first list), cam2: [paths]; relative "
+    "paths beside the list, else in the current folder)",
 )
 """What ``ringscan import`` takes as a capture (one view each); <ext> is png, tif(f), jpg/jpeg or bmp."""
 
