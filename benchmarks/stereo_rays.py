@@ -13,7 +13,10 @@ the test scan of tests/pipeline/reconstruct/two_camera_scan.py, camera 2 turned
    camera-2 position against the truth (camera 1's truth depth at uv1, bilinear,
    projected into camera 2) over sqrt(sigma1^2 + sigma2^2), per axis: its MAD
    (1.4826 x median absolute deviation; 1 where the prediction is honest) and
-   the shares within 1 and 2 predicted sigmas (0.68 and 0.95 for a Gaussian).
+   the shares within 1 and 2 predicted sigmas (0.68 and 0.95 for a Gaussian);
+   the same for two ``decoded`` two-camera scans of the sphere made from the
+   truth (every pixel's projector coordinate as an imported Gray code gives it:
+   integer codes, and exact codes in the codec's 1/32 px).
 
 Usage::
 
@@ -90,6 +93,15 @@ def main() -> int:
         stereo=StereoSettings(rays="camera-camera")), progress=False)
     _row("camera-camera, rig rotated 2 deg (warns)", rep, evaluate_recon(work / "rec_rotated", scan))
     _sigma_honesty(scan)
+    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+
+    for integer in (True, False):
+        dec = work / ("decoded_integer" if integer else "decoded_exact")
+        if not (dec / "scan.json").is_file():
+            shutil.rmtree(dec, ignore_errors=True)
+            simulate_decoded_two_camera_scan(dec, integer=integer)
+        print(f"decoded two-camera scan, {'integer' if integer else 'exact (1/32 px)'} codes:", end="")
+        _sigma_honesty(load_scan(dec))
     return 0
 
 
