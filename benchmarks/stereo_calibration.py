@@ -11,7 +11,10 @@
    - refine, camera against the projector, the same with camera 1 turned;
    - projector-from-scan: the projector fitted to the points the two (true)
      cameras triangulate: intrinsics error (%), pose error (deg, mm), RMS, the
-     fit's standard deviations and condition.
+     fit's standard deviations and condition;
+   - refine --pair projector of the two-camera rig, from a projector turned by
+     2 deg (20000 matches): camera 1 and the projector alone, and with camera 2
+     held as the third device: the projector's rotation and centre error.
 2. Real captures (../shared/data/procam, when present): the three captures
    imported (``decoded`` scan); refine (camera against the projector) from the
    calibration published with the data and from a fresh ``calibrate procam`` of the
@@ -113,6 +116,21 @@ def synthetic(noise: float, n: int) -> None:
     print(f"    fit's own std: fx {fit.std['fx']:.3f} px, cx {fit.std['cx']:.3f} px, cy {fit.std['cy']:.3f} px, "
           f"rotation {fit.std['rotation_deg']:.4f} deg, position {fit.std['position']:.3f} mm; condition "
           f"{fit.condition:.3g}; problems: {fit.problems or 'none'}")
+
+
+def projector_of_two_cameras(noise: float) -> None:
+    """refine --pair projector on the two-camera rig: two views, and camera 2 held as the third device."""
+    from ringscan.pipeline.calibrate.stereo import refine_procam_rig
+    from ringscan.pipeline.formats.rig import Rig, Volume
+
+    cam1, cam2, proj = oblique_devices()
+    _, u1, u2, up = observe(20000, noise_px=noise, seed=5)
+    rig = Rig(camera=cam1, camera2=cam2, light=turned(proj, 2.0), volume=Volume(z_min=0.0, z_max=2000.0, r_max=3000.0))
+    for name, kw in (("camera 1 and the projector", {}), ("camera 2 held (three devices)", {"uv_camera2": u2})):
+        new, ref = refine_procam_rig(rig, u1, up, **kw)
+        print(f"  projector of the two-camera rig, noise {noise} px, {name}: rotation error "
+              f"{rotation_angle_deg(new.light.R @ proj.R.T):.4f} deg (+- {ref.rotation_std_deg:.4f}), centre "
+              f"{np.linalg.norm(new.light.center - proj.center):.3f} mm ({ref.method})")
 
 
 def real(data: Path) -> None:
@@ -225,6 +243,7 @@ def run() -> None:
     args = ap.parse_args()
     for noise in args.noise:
         synthetic(noise, args.points)
+        projector_of_two_cameras(noise)
     if Path(args.data).is_dir():
         real(Path(args.data))
     else:

@@ -8,7 +8,15 @@ the test scan of tests/pipeline/reconstruct/two_camera_scan.py, camera 2 turned
    camera-camera with the projector uncalibrated: points, median / p95 error (mm)
    against the truth mesh, coverage, median residual, the calibration check;
 2. the same scan with the rig file's camera-1-to-camera-2 rotation off by 2
-   degrees: the epipolar check (it warns) and the camera-camera error.
+   degrees: the epipolar check (it warns) and the camera-camera error;
+3. the predicted match sigmas against the matches' actual errors: each match's
+   camera-2 position against the truth (camera 1's truth depth at uv1, bilinear,
+   projected into camera 2) over sqrt(sigma1^2 + sigma2^2), per axis: its MAD
+   (1.4826 x median absolute deviation; 1 where the prediction is honest) and
+   the shares within 1 and 2 predicted sigmas (0.68 and 0.95 for a Gaussian);
+   the same for two ``decoded`` two-camera scans of the sphere made from the
+   truth (every pixel's projector coordinate as an imported Gray code gives it:
+   integer codes, and exact codes in the codec's 1/32 px).
 
 Usage::
 
@@ -84,7 +92,47 @@ def main() -> int:
     rep = reconstruct_scan(bad, work / "rec_rotated", settings=ReconstructSettings(
         stereo=StereoSettings(rays="camera-camera")), progress=False)
     _row("camera-camera, rig rotated 2 deg (warns)", rep, evaluate_recon(work / "rec_rotated", scan))
+    _sigma_honesty(scan)
+    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+
+    for integer in (True, False):
+        dec = work / ("decoded_integer" if integer else "decoded_exact")
+        if not (dec / "scan.json").is_file():
+            shutil.rmtree(dec, ignore_errors=True)
+            simulate_decoded_two_camera_scan(dec, integer=integer)
+        print(f"decoded two-camera scan, {'integer' if integer else 'exact (1/32 px)'} codes:", end="")
+        _sigma_honesty(load_scan(dec))
     return 0
+
+
+def _sigma_honesty(scan) -> None:
+    """Actual match errors (camera-2 px, against the truth) over their predicted sigmas."""
+    from ringscan.pipeline.geometry import project_points, undistort_normalized
+    from ringscan.pipeline.reconstruct.stereo import match_view
+    from ringscan.pipeline.simulate.truth import load_truth
+
+    m = match_view(scan, scan.views[0], device="cpu")
+    rig = scan.rig
+    depth = load_truth(scan).depth("view_000")
+    u, v = m.uv1[:, 0], m.uv1[:, 1]
+    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
+    fy, fx = v - i0, u - j0
+    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
+         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
+    keep = np.isfinite(z)
+    c1, c2 = rig.camera, rig.camera2
+    x, y = undistort_normalized(c1, u[keep], v[keep])
+    X = (np.stack([x, y, np.ones_like(x)], 1) * z[keep, None] - c1.t) @ c1.R
+    e = m.uv2[keep] - project_points(X, c2.R, c2.t, c2.K, c2.dist)
+    pred = np.hypot(m.sigma1, m.sigma2)[keep]
+    zn = e / pred[:, None]
+    mad = [1.4826 * float(np.median(np.abs(zn[:, k] - np.median(zn[:, k])))) for k in (0, 1)]
+    print()
+    print("Predicted match sigmas (camera-2 px): error / sqrt(sigma1^2 + sigma2^2), per axis")
+    print(f"  {int(keep.sum())} matches; median |error| {np.median(np.hypot(e[:, 0], e[:, 1])):.4f} px; median "
+          f"sigma1 {np.median(m.sigma1):.4f}, sigma2 {np.median(m.sigma2):.4f} px")
+    print(f"  MAD x {mad[0]:.2f}, y {mad[1]:.2f} (1 if honest); within 1 sigma {np.mean(np.abs(zn) < 1):.2f} (0.68), "
+          f"within 2 sigma {np.mean(np.abs(zn) < 2):.2f} (0.95)")
 
 
 if __name__ == "__main__":

@@ -71,6 +71,11 @@ JACOBIAN_STEP_MM = wp.constant(0.5)
 """Central-difference step of the triangulation's Jacobians (mm)."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
+MODEL_SHARE = wp.constant(0.5)
+"""Share of one sample's excess scatter about the fitted map (its variance beyond the predicted
+noise: the decode's model error) added to each camera's sigma: half each. Measured on the
+virtual two-camera scan (benchmarks/stereo_rays.py, "Predicted match sigmas"): with it the
+match errors over their predicted sigmas have a MAD of about 1 in each camera; without it 2."""
 
 __all__ = [
     "MatchSettings",
@@ -138,11 +143,13 @@ class Matches:
     uv2: wp.array
     """vec2 camera-2 pixel (distorted image) where the field equals the query's p; 0 where status != 0."""
     sigma2: wp.array
-    """float32 predicted standard deviation of uv2 (camera-2 px): the camera-2
-    samples' noise through the fit."""
+    """float32 predicted standard deviation of uv2 (camera-2 px, per axis): the camera-2
+    samples' noise through the fit, and half of one neighbour's excess scatter about
+    the fit (``MODEL_SHARE``)."""
     sigma1: wp.array
     """float32 the query's own projector-coordinate noise as camera-1 px (its
-    sigma times the fitted gain: both cameras see the surface at similar scales)."""
+    sigma times the fitted gain: both cameras see the surface at similar scales),
+    and the other half of that excess scatter."""
     gain: wp.array
     """float32 fitted camera-2 px per projector px."""
     fit_px: wp.array
@@ -491,14 +498,21 @@ def match_kernel(
     # (gain^2 sigma^2), scaled up by the fit's own scatter where that is larger
     npar = wp.where(full, 3, 2)
     scale = float(1.0)
+    model2 = float(0.0)
     if n > npar and gain > 0.0:
         scale = wp.max(1.0, chi / (2.0 * float(n - npar) * gain * gain))
+        # one sample's scatter about the map (per axis) beyond its predicted noise
+        # (gain^2 times the neighbours' harmonic-mean variance n / sw): the decode's
+        # model error, smooth along an edge, so the fit does not average it out of
+        # uv2, and the query carries its own of the same size (design.md §19)
+        model2 = wp.max(0.0, ss / (2.0 * float(n - npar)) - gain * gain * float(n) / sw)
     var = 1.0 / sw + a1 * a1 / (l1 * sw)
     if full:
         var += a2 * a2 / (l2 * sw)
+    qs = gain * query_sigma[i]
     out_uv[i] = x
-    out_sigma2[i] = wp.max(gain * wp.sqrt(scale * var), SIGMA_FLOOR_PX)
-    out_sigma1[i] = wp.max(gain * query_sigma[i], SIGMA_FLOOR_PX)
+    out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
+    out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
     status[i] = MATCH_OK
 
 

@@ -782,10 +782,10 @@ def print_refinement(what: str, ref) -> None:
           f"direction by {ref.direction_change_deg:.3f} deg (+- {ref.direction_std_deg:.4f}); baseline "
           f"{ref.baseline_mm:.2f} mm")
     if ref.light_epipolar is not None:
-        print(f"  projector against camera 1 (held): epipolar distance {ref.light_epipolar.line()}")
+        print(f"  {ref.third or 'projector'} against camera 1 (held): epipolar distance {ref.light_epipolar.line()}")
     if ref.method == "three-device":
-        print(f"  bundle adjustment over camera 1, camera 2 and the projector: {ref.bundle_used} matches, weighted "
-              "by their predicted standard deviations")
+        print(f"  bundle adjustment over camera 1, camera 2 and the projector ({ref.third} held): {ref.bundle_used} "
+              "matches, weighted by their predicted standard deviations")
     for note in ref.notes:
         print(f"  note: {note}")
 
@@ -796,7 +796,8 @@ def add_refine_parser(calsub) -> None:
                                       "imported camera-projector scan's decoded pixels) without the rig's extrinsics, "
                                       "then re-estimates the second device's pose: an essential matrix (RANSAC) and a "
                                       "bundle adjustment over the matches, keeping the rig's baseline length (or "
-                                      "--baseline); a two-camera rig's calibrated projector then joins a bundle "
+                                      "--baseline); on a two-camera rig the third device (the calibrated projector "
+                                      "when camera 2 is refined, camera 2 when the projector is) then joins a bundle "
                                       "adjustment of the reprojection errors in all three devices (its pose held; "
                                       "--two-view leaves it out). Prints the epipolar distance and the reprojection "
                                       "error before and after; writes the rig (JSON) and the pair as OpenCV "
@@ -808,8 +809,9 @@ def add_refine_parser(calsub) -> None:
     p.add_argument("--baseline", type=float, default=None, metavar="MM",
                    help="the baseline length in mm (a measured one; default: the rig's)")
     p.add_argument("--two-view", action="store_true",
-                   help="cameras: leave a calibrated projector out of the adjustment (by default it joins it, its "
-                        "pose held, where it fits camera 1's matches)")
+                   help="on a two-camera rig, leave the third device (the calibrated projector for --pair cameras, "
+                        "camera 2 for --pair projector) out of the adjustment (by default it joins it, its pose held, "
+                        "where it fits camera 1's matches)")
     p.set_defaults(_calibrate=run_refine)
 
 
@@ -836,7 +838,15 @@ def run_refine(args) -> int:
                                          uv_light=proj if use_light else None,
                                          sigma_light=None if sig is None or not use_light else sig[:, 2])
         else:
-            new, ref = refine_procam_rig(rig, uv1, proj, baseline_mm=args.baseline)
+            # a two-camera rig's camera 2 (pose held) joins as the third device where every view has its matches
+            use_cam2 = rig.camera2 is not None and uv2 is not None and not args.two_view
+            new, ref = refine_procam_rig(rig, uv1, proj, baseline_mm=args.baseline,
+                                         uv_camera2=uv2 if use_cam2 else None,
+                                         sigma_cam=None if sig is None or not use_cam2 else sig[:, 0],
+                                         sigma_proj=None if sig is None or not use_cam2 else sig[:, 2],
+                                         sigma_camera2=None if sig is None or not use_cam2 else sig[:, 1])
+            if rig.camera2 is not None and uv2 is None and not args.two_view:
+                ref.notes.append("camera 2 was left out of the adjustment: a view has one camera's frames")
     print_refinement("camera 2 against camera 1" if pair == "cameras" else "projector against camera 1"
                      if rig.camera2 is not None else "camera against the projector", ref)
     refuse_unless_forced(args, ref.problems, args.out)

@@ -8,10 +8,14 @@ Three ways of naming the frames are read (:func:`list_capture`, ``CAPTURE_INPUTS
 
 - a folder of ``graycode_00.png`` ... (numbered from 0; one camera);
 - a folder of ``pattern_cam1_im1.png`` ... ``pattern_cam2_im44.png`` (OpenCV's
-  structured-light sample, ``cap_pattern``: numbered from 1, one or two cameras);
+  structured-light sample, ``cap_pattern``: numbered from 1, one or two cameras; the
+  sample glues its output path and the name together without a separator, so the
+  names may carry one common prefix, ``scanpattern_cam1_im1.png``);
 - an image list as ``cv::FileStorage`` writes it (YAML, XML or JSON:
-  ``cam1: [paths...]`` and optionally ``cam2: [...]``, in capture order; paths
-  relative to the list's folder, or absolute), as OpenCV's sample reads it.
+  ``cam1: [paths...]`` and optionally ``cam2: [...]``, in capture order), as OpenCV's
+  sample reads it: its first top-level list is camera 1's whatever its name, ``cam2``
+  camera 2's; a relative path is looked up beside the list, then in the current
+  folder (where OpenCV's sample looks).
 
 PNG, TIFF, JPEG and BMP frames are read. Two orders of white/black are read (``LAYOUTS``):
 
@@ -69,14 +73,16 @@ flip there are weak by nature; more mean the patterns hardly reach the pixel."""
 
 CAPTURE_INPUTS = (
     "a folder of graycode_NN.<ext> (from 00, one camera)",
-    "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2)",
-    "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths], cam2: [paths])",
+    "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2; one common prefix allowed)",
+    "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths] (or the first list), cam2: [paths]; relative "
+    "paths beside the list, else in the current folder)",
 )
 """What ``ringscan import`` takes as a capture (one view each); <ext> is png, tif(f), jpg/jpeg or bmp."""
 
 IMAGE_EXT = r"(png|tif|tiff|bmp|jpg|jpeg)"
 FRAME_RE = re.compile(rf"^graycode_(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
-SAMPLE_RE = re.compile(rf"^pattern_cam(\d+)_im(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
+SAMPLE_RE = re.compile(rf"^(.*?)pattern_cam(\d+)_im(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
+"""OpenCV's sample's names (group 1: a prefix, the sample's output path glued on without a separator)."""
 LIST_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 """An image-list capture is a file with one of these suffixes."""
 MAX_LIST_BYTES = 16 * 1024 * 1024
@@ -204,10 +210,16 @@ def _fit_hint(n: int) -> str:
 def _sample_frames(folder: Path, entries: list[str], *, projector, layout) -> tuple[tuple[Path, ...], ...]:
     """pattern_camN_imK frames of a folder, per camera, numbered from 1."""
     cams: dict[int, list[tuple[int, Path]]] = {}
+    prefixes = set()
     for name in entries:
         m = SAMPLE_RE.match(name)
         if m:
-            cams.setdefault(int(m.group(1)), []).append((int(m.group(2)), folder / name))
+            prefixes.add(m.group(1))
+            cams.setdefault(int(m.group(2)), []).append((int(m.group(3)), folder / name))
+    if len(prefixes) > 1:
+        shown = ", ".join(f"{p or '(none)'}pattern_cam1_im1" for p in sorted(prefixes)[:3])
+        raise CalibrationError(folder, f"pattern_camN_imK frames with {len(prefixes)} different prefixes ({shown}): "
+                                       "one capture per folder")
     others = sorted(c for c in cams if c not in (1, 2))
     if others:
         raise CalibrationError(folder, f"frames of camera {others[0]} (pattern_cam{others[0]}_imK): ringscan reads "
@@ -269,6 +281,12 @@ def _list_frames(path: Path, *, projector, layout) -> tuple[tuple[Path, ...], ..
         lists = {}
         for c in (1, 2):
             node = fs.getNode(f"cam{c}")
+            if c == 1 and (node.empty() or node.isNone()) and keys and keys[0] != "cam2":
+                # OpenCV's sample takes the first top-level node as camera 1's list, whatever its name
+                node = fs.getNode(keys[0])
+                if not node.isSeq():
+                    continue
+                log.info("%s: camera 1's frames from the first list, %r (no cam1 list)", path, keys[0])
             if node.empty() or node.isNone():
                 continue
             if not node.isSeq():
@@ -300,11 +318,14 @@ def _list_frames(path: Path, *, projector, layout) -> tuple[tuple[Path, ...], ..
             if "\0" in rel:
                 raise CalibrationError(path, f"cam{c}[{i}]: the path contains a NUL character")
             p = Path(rel)
-            p = p if p.is_absolute() else path.parent / p
+            if not p.is_absolute():
+                # beside the list, else where OpenCV's sample looks: the current folder
+                p = path.parent / p if (path.parent / p).exists() or not p.exists() else p.absolute()
             if not p.is_file():
                 why = "not found" if not p.exists() else "not a regular file"
-                raise CalibrationError(path, f"cam{c}[{i}]: {rel} {why} ({p}; paths are relative to the list's "
-                                             "folder)")
+                where = p if Path(rel).is_absolute() else f"{p} or {Path(rel).absolute()}"
+                raise CalibrationError(path, f"cam{c}[{i}]: {rel} {why} ({where}; a relative path is looked up "
+                                             "beside the list, then in the current folder)")
             if not re.search(rf"\.{IMAGE_EXT}$", p.name, re.IGNORECASE):
                 raise CalibrationError(path, f"cam{c}[{i}]: {rel} is not a PNG, TIFF, JPEG or BMP file name")
             paths.append(p)

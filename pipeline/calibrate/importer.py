@@ -198,8 +198,11 @@ def read_stereo_calibration(path) -> dict:
     """An OpenCV FileStorage camera-camera calibration as OpenCV's structured-light sample has it.
 
     Keys: ``cam1_intrinsics``, ``cam1_distorsion`` (sic; ``cam1_distortion`` too), optional
-    ``cam1_size`` ([width, height]), the same for cam2, and ``R``, ``T`` (X_cam2 = R X_cam1 + T)
-    or ``RT_cam1_2_cam2`` ([R | T], 3x4 or 4x4) when R, T are absent.
+    ``cam1_size`` ([width, height]), the same for cam2, and ``R``, ``T`` (X_cam2 = R X_cam1 + T,
+    as ``cv::stereoCalibrate`` gives them and ``cv::stereoRectify`` takes them) or
+    ``RT_cam1_2_cam2`` (the same pose as [R | T]: 4x4 with the row 0 0 0 1, as in the file of
+    OpenCV's structured-light test data, or 3x4) when R, T are absent. Other keys (the
+    sample's file has ``stereo_error``, ``Q``, ``R1``, ``R2``, ``P1``, ``P2``) are not read.
 
     Returns:
         dict with cam1_K, cam1_dist (5), cam1_size ((W, H) or None), cam2_K, cam2_dist, cam2_size, R, T.
@@ -222,6 +225,8 @@ def read_stereo_calibration(path) -> dict:
         rt = _mat(fs, path, "RT_cam1_2_cam2") if _has(fs, "RT_cam1_2_cam2") else None
         if rt is not None and rt.shape not in ((3, 4), (4, 4)):
             raise CalibrationError(path, f"RT_cam1_2_cam2: expected a 3x4 or 4x4 [R | T], got shape {rt.shape}")
+        if rt is not None and rt.shape == (4, 4) and not np.allclose(rt[3], [0, 0, 0, 1]):
+            raise CalibrationError(path, f"RT_cam1_2_cam2: a 4x4 [R | T] ends in the row 0 0 0 1, not {rt[3].tolist()}")
         if _has(fs, "R") or _has(fs, "T") or rt is None:
             out["R"], out["T"] = _mat(fs, path, "R"), _mat(fs, path, "T").ravel()
         else:

@@ -12,11 +12,12 @@ re-estimate them:
   reprojection error, under a robust loss); it starts from the rig's own pose
   too and keeps the better. Two views fix the pose only up to scale: the
   baseline length is kept from the input rig, or given (a measured baseline).
-  Where a calibrated projector lit the matches, it then joins a bundle adjustment
-  of the reprojection errors in all three devices (points triangulated from the
-  three rays at each step, each match weighted by its predicted standard
-  deviation, the projector's pose held): the third view fixes the rotation that
-  two narrow views trade against the baseline direction.
+  Where a third calibrated device saw the matches (the calibrated projector when
+  camera 2 is refined, camera 2 when a two-camera rig's projector is), it then
+  joins a bundle adjustment of the reprojection errors in all three devices
+  (points triangulated from the three rays at each step, each match weighted by
+  its predicted standard deviation, the third device's pose held): the third view
+  fixes the rotation that two narrow views trade against the baseline direction.
 - :func:`fit_projector` fits a perspective projector (K, distortion, pose) to 3D
   points (triangulated by two cameras) and their projector pixels: a normalised
   DLT start, then OpenCV's ``calibrateCamera`` with the intrinsic guess on the
@@ -295,8 +296,11 @@ class Refinement:
     """'two-view' (the epipolar adjustment alone) or 'three-device' (then a bundle adjustment of
     the reprojection errors in device 1, device 2 and the calibrated projector, which is held)."""
     light_epipolar: ResidualStats | None = None
-    """Epipolar distance (device-1 px) of device 1 against the calibrated projector under the input
-    rig (None: no projector given): whether the projector could join the adjustment."""
+    """Epipolar distance (device-1 px) of device 1 against the third device (the calibrated projector, or
+    camera 2 when the projector is refined) under the input rig (None: none given): whether it could join
+    the adjustment."""
+    third: str = ""
+    """The third device given ('projector' or 'camera 2'; '' for none)."""
     bundle_used: int = 0
     """Matches the three-device adjustment used (0: it did not run)."""
     notes: list[str] = field(default_factory=list)
@@ -313,6 +317,7 @@ class Refinement:
                 "rotation_std_deg": self.rotation_std_deg, "direction_std_deg": self.direction_std_deg,
                 "loss_scale_px": self.loss_scale_px, "method": self.method,
                 "light_epipolar_px": None if self.light_epipolar is None else self.light_epipolar.to_dict(),
+                "third_device": self.third or None,
                 "bundle_matches_used": self.bundle_used, "notes": list(self.notes),
                 "problems": list(self.problems)}
 
@@ -507,10 +512,11 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
         settings: see :class:`RefineSettings`.
         sigma1, sigma2: (n,) or (n, 2) predicted standard deviations (px) of uv1, uv2 (None: equal);
             they weight the three-device adjustment.
-        light: a calibrated projector (:class:`PerspectiveLight`, world pose) whose pixels ``uv_light``
-            ((n, 2), standard deviations ``sigma_light``) lit the matches: it joins a bundle adjustment
-            of the reprojection errors in all three devices, its own pose held (where it fits device 1:
-            ``max_light_epipolar_px``), after the epipolar adjustment of the two.
+        light: a third device with its world pose that saw the matches at ``uv_light`` ((n, 2), standard
+            deviations ``sigma_light``): the calibrated projector (:class:`PerspectiveLight`) when device 2
+            is camera 2, or camera 2 (:class:`Camera`) when device 2 is the projector. It joins a bundle
+            adjustment of the reprojection errors in all three devices, its own pose held (where it fits
+            device 1: ``max_light_epipolar_px``), after the epipolar adjustment of the two.
 
     Returns:
         the :class:`Refinement` (the refined relative pose and the residuals before and after).
@@ -569,9 +575,12 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
         d = -d
     t = d * base
     method, light_epi, bundle_used, notes = "two-view", None, 0, []
+    third = ""
     if light is not None:
-        if not isinstance(light, PerspectiveLight):
-            raise ValueError("refine_extrinsics: light must be a calibrated PerspectiveLight")
+        if not isinstance(light, (PerspectiveLight, Camera)):
+            raise ValueError("refine_extrinsics: light (the third device) must be a calibrated PerspectiveLight "
+                             "or a Camera")
+        third = "projector" if isinstance(light, PerspectiveLight) else "camera 2"
         uvl = _check_pixels(uv_light, "refine_extrinsics: uv_light", n)
         Rl, tl = relative_pose(dev1, light)
         Kl = np.asarray(light.K, float)
@@ -591,10 +600,10 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
             rot_std, dir_std = _axis_std_deg(cov)
             method, bundle_used = "three-device", int(bsub.size)
         else:
-            notes.append(f"the projector was left out of the adjustment: camera 1's matches lie "
-                         f"{light_epi.median_px:.2f} px (median) from its epipolar lines (> "
-                         f"{settings.max_light_epipolar_px:g} px), so its pose does not fit the images; refine it "
-                         "first (--pair projector)")
+            notes.append(f"{'the projector' if third == 'projector' else 'camera 2'} was left out of the "
+                         f"adjustment: camera 1's matches lie {light_epi.median_px:.2f} px (median) from its "
+                         f"epipolar lines (> {settings.max_light_epipolar_px:g} px), so its pose does not fit the "
+                         f"images; refine it first (--pair {'projector' if third == 'projector' else 'cameras'})")
     epi0 = epipolar_distances(R0, t0, K1, K2, n1, n2) if np.linalg.norm(t0) > 0 else np.full(n, np.inf)
     epi1 = epipolar_distances(R, t, K1, K2, n1, n2)
     rep0, _ = reprojection_errors(R0, t0, dev1, dev2, uv1, uv2, n1, n2)
@@ -619,7 +628,7 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
                      direction_change_deg=dirc, used=int(sub.size), inliers=inl, start=name,
                      rotation_std_deg=float(rot_std.max()), direction_std_deg=float(dir_std.max()),
                      loss_scale_px=float(scale), problems=problems, method=method, light_epipolar=light_epi,
-                     bundle_used=bundle_used, notes=notes)
+                     bundle_used=bundle_used, notes=notes, third=third)
     log.info("refine: epipolar median %.3f -> %.3f px; rotation changed %.3f deg (start: %s, %s)",
              out.epipolar_before.median_px, out.epipolar_after.median_px, out.rotation_change_deg, name, method)
     return out
@@ -645,13 +654,18 @@ def refine_stereo_rig(rig: Rig, uv1, uv2, *, baseline_mm: float | None = None,
 
 
 def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = None, move: str | None = None,
-                      settings: RefineSettings = RefineSettings()) -> tuple[Rig, Refinement]:
+                      settings: RefineSettings = RefineSettings(), uv_camera2=None, sigma_cam=None,
+                      sigma_proj=None, sigma_camera2=None) -> tuple[Rig, Refinement]:
     """A rig with the pose between (first) camera and projector re-estimated from camera-projector matches.
 
     Args:
         move: "camera" (default for one-camera rigs): the projector keeps its pose, so the world
             frame (tied to the light axis, docs/design.md §2) and the working volume stay;
             "projector" (default for two-camera rigs, whose world frame is camera 1's): the cameras stay.
+        uv_camera2: a two-camera rig's camera-2 pixels of the same matches ((n, 2)): camera 2 (its pose
+            held) joins the adjustment as the third device (:func:`refine_extrinsics`).
+        sigma_cam, sigma_proj, sigma_camera2: the matches' predicted standard deviations (px) in camera 1,
+            the projector and camera 2 (None: equal); they weight the three-device adjustment.
     """
     li = rig.light
     if not isinstance(li, PerspectiveLight):
@@ -663,7 +677,12 @@ def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = 
         raise ValueError(f"refine_procam_rig: move must be 'camera' or 'projector', got {move!r}")
     if move == "camera" and two:
         raise ValueError("refine_procam_rig: a two-camera rig keeps its cameras (move='projector')")
-    ref = refine_extrinsics(rig.camera, li, uv_cam, uv_proj, baseline_mm=baseline_mm, settings=settings)
+    cam2 = getattr(rig, "camera2", None) if uv_camera2 is not None else None
+    if uv_camera2 is not None and cam2 is None:
+        raise ValueError("refine_procam_rig: uv_camera2 given for a rig with one camera")
+    ref = refine_extrinsics(rig.camera, li, uv_cam, uv_proj, baseline_mm=baseline_mm, settings=settings,
+                            sigma1=sigma_cam, sigma2=sigma_proj, light=cam2, uv_light=uv_camera2,
+                            sigma_light=sigma_camera2 if cam2 is not None else None)
     c = rig.camera
     if move == "projector":
         return replace(rig, light=replace(li, R=ref.R @ c.R, t=ref.R @ c.t + ref.t)), ref
@@ -1047,8 +1066,8 @@ def write_opencv_procam(path, rig: Rig) -> None:
 
 def write_opencv_stereo(path, rig: Rig) -> None:
     """A two-camera rig as OpenCV FileStorage in the layout of OpenCV's structured-light sample:
-    cam1_intrinsics, cam1_distorsion (sic), cam1_size, the same for cam2, R, T (X_cam2 = R X_cam1 + T)
-    and RT_cam1_2_cam2 (the 3x4 [R | T]). Atomic."""
+    cam1_intrinsics, cam1_distorsion (sic), cam1_size, the same for cam2, RT_cam1_2_cam2 (the 4x4
+    [R | T; 0 0 0 1]), R, T (X_cam2 = R X_cam1 + T), in the order of the sample's own file. Atomic."""
     c1, c2 = rig.camera, getattr(rig, "camera2", None)
     if c2 is None:
         raise CalibrationError(path, "the rig has one camera; OpenCV's stereo layout needs two")
@@ -1059,8 +1078,8 @@ def write_opencv_stereo(path, rig: Rig) -> None:
             fs.write(f"{k}_intrinsics", np.asarray(c.K, float))
             fs.write(f"{k}_distorsion", np.asarray(c.dist, float).reshape(1, -1))
             _write_size(fs, f"{k}_size", c.width, c.height)
+        fs.write("RT_cam1_2_cam2", np.vstack([np.hstack([R, T.reshape(3, 1)]), [[0.0, 0.0, 0.0, 1.0]]]))
         fs.write("R", R)
         fs.write("T", T.reshape(3, 1))
-        fs.write("RT_cam1_2_cam2", np.hstack([R, T.reshape(3, 1)]))
 
     _write_storage(path, write)

@@ -116,16 +116,37 @@ def reconstruct_view(
     sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
 
     t = time.perf_counter()
-    rig = scan.rig
-    vol = rig.volume
-    cam = camera_model_for(rig)
     rays = view_rays(scan, view, settings)
     if rays in ("camera-camera", "all"):
         return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
                        **_stereo_points(scan, view, settings, device, threads, samples, sector_bits, times))
+    triangulated, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
+    wp.synchronize_device(device)
+    times["triangulate"] = time.perf_counter() - t
+    check = {}
+    if calibration:
+        check = {"kind": "ray-ray", "samples": calibration["samples"], "median_px": calibration["residual_px_median"],
+                 "p95_px": calibration["residual_px_p95"],
+                 "fits": bool(calibration["residual_px_median"] <= CALIBRATION_WARN_PX)}
+    return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
+                   points=triangulated.points, status=triangulated.status, confidence=triangulated.confidence,
+                   sigma=triangulated.sigma, residual=triangulated.residual,
+                   extra={**({"calibration": calibration} if calibration else {}),
+                          **({"calibration_check": check} if check else {})})
+
+
+def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, samples, sector_bits: int,
+                      threads: int):
+    """Camera 1's samples triangulated against the calibrated projector, with the calibration
+    floor where the rig misses by more than the decode's own errors: (Triangulation, the
+    calibration dict of :func:`calibration_floor` with ``floor_px`` and ``floor_applied``, or {}).
+    The one-camera path and the two-camera fallback (``auto``) both place points this way."""
+    rig = scan.rig
+    vol = rig.volume
     triangulate = partial(triangulate_rings, samples.uv, samples.rho, samples.sector, samples.confidence,
-                          camera=cam, light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
-                          center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi, threads=threads)
+                          camera=camera_model_for(rig), light=light_model_for(rig),
+                          volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
+                          sector_bits=sector_bits, phi=samples.phi, threads=threads)
     triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
                                settings=settings.triangulate)
     floor, calibration = calibration_floor(triangulated)
@@ -144,18 +165,7 @@ def reconstruct_view(
         log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
                     "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
                     view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
-    wp.synchronize_device(device)
-    times["triangulate"] = time.perf_counter() - t
-    check = {}
-    if calibration:
-        check = {"kind": "ray-ray", "samples": calibration["samples"], "median_px": calibration["residual_px_median"],
-                 "p95_px": calibration["residual_px_p95"],
-                 "fits": bool(calibration["residual_px_median"] <= CALIBRATION_WARN_PX)}
-    return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
-                   points=triangulated.points, status=triangulated.status, confidence=triangulated.confidence,
-                   sigma=triangulated.sigma, residual=triangulated.residual,
-                   extra={**({"calibration": calibration} if calibration else {}),
-                          **({"calibration_check": check} if check else {})})
+    return triangulated, calibration
 
 
 def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
@@ -252,15 +262,14 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     residual = np.full(n, -1.0, np.float32)
     extra = {}
     if st.rays == "auto" and use_light:
-        # camera 1's samples without a match in camera 2 (hidden from it): camera-projector
-        tp = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence,
-                               camera=camera_model_for(rig), light=light, volume=(vol.z_min, vol.z_max, vol.r_max),
-                               center=scan.patterns.center, sector_bits=sector_bits, phi=samples.phi,
-                               sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
-                               settings=settings.triangulate, threads=threads)
+        # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as
+        # a one-camera view places them (the calibration floor included)
+        tp, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
         points, status = tp.points.numpy(), tp.status.numpy()
         confidence, sigma, residual = tp.confidence.numpy(), tp.sigma.numpy(), tp.residual.numpy()
         extra["fallback_camera_projector"] = int(n - len(matches))
+        if calibration:
+            extra["calibration"] = calibration
     i = matches.index
     tst = tri.status.numpy()
     points[i] = tri.points.numpy()

@@ -28,7 +28,7 @@ makes one) renders both cameras, as OpenCV's structured-light sample stores them
     OUT/capture_0.yml                   the image list (cam1: [...], cam2: [...], relative paths)
     OUT/calibrationParameters.yml       the camera-camera calibration as the sample has it
                                         (cam1_intrinsics, cam1_distorsion, cam1_size, cam2_...,
-                                        R, T, RT_cam1_2_cam2; X_cam2 = R X_cam1 + T)
+                                        RT_cam1_2_cam2 (4x4), R, T; X_cam2 = R X_cam1 + T)
     OUT/procam.yml                      camera 1 and the projector (cam_int, cam_dist, proj_int,
                                         proj_dist, rotation, translation, img_shape), for comparison
     OUT/truth/capture_0_cam2_*.tiff/png camera 2's truth, as camera 1's
@@ -193,9 +193,10 @@ def write_stereo_calibration(path: str | os.PathLike, rig: Rig) -> None:
             fs.write(f"cam{c}_intrinsics", np.asarray(cam.K, np.float64))
             fs.write(f"cam{c}_distorsion", np.asarray(cam.dist, np.float64).reshape(1, -1))
             _write_seq(fs, f"cam{c}_size", [int(cam.width), int(cam.height)], flow=True)
+        # in the order and shapes of the file of OpenCV's structured-light test data (RT 4x4)
+        fs.write("RT_cam1_2_cam2", np.vstack([np.hstack([R, T.reshape(3, 1)]), [[0.0, 0.0, 0.0, 1.0]]]))
         fs.write("R", R)
         fs.write("T", T.reshape(3, 1))
-        fs.write("RT_cam1_2_cam2", np.hstack([R, T.reshape(3, 1)]))
 
     _write_storage(Path(path), write)
 

@@ -160,6 +160,61 @@ def test_projector_from_scan_writes_a_procam_rig(stereo_scan, tmp_path, matched,
     assert three.camera2 is not None and np.linalg.norm(three.light.center - proj.center) < 1.0
 
 
+
+def test_two_view_leaves_the_projector_out_of_the_cli_refine(stereo_scan, tmp_path, matched, capsys):
+    """refine --pair cameras on a rig with a calibrated projector: by default the projector joins (three-device),
+    --two-view leaves it out (the epipolar adjustment alone); both bring camera 2 back."""
+    cam1, cam2, proj = oblique_devices()
+    bad = tmp_path / "bad.json"
+    save_rig(bad, Rig(camera=cam1, camera2=turned(cam2, 2.0), light=proj, volume=VOLUME))
+    got = {}
+    for extra in ([], ["--two-view"]):
+        name = "two" if extra else "three"
+        out = tmp_path / f"{name}.json"
+        assert main(["calibrate", "refine", str(stereo_scan), "--rig", str(bad), "--out", str(out),
+                     "--report", str(tmp_path / f"{name}_rep.json"), "--max-matches", "4000", "-q", *extra]) == 0
+        got[name] = (capsys.readouterr().out, json.loads((tmp_path / f"{name}_rep.json").read_text()), load_rig(out))
+    for name, (text, rep, rig) in got.items():
+        assert rotation_angle_deg(rig.camera2.R @ cam2.R.T) < 0.01, name
+        assert rig.light.R.tolist() == proj.R.tolist()  # the projector is held
+    text, rep, _ = got["three"]
+    assert rep["method"] == "three-device" and rep["third_device"] == "projector" and rep["bundle_matches_used"] > 0
+    assert "projector against camera 1 (held)" in text and "bundle adjustment over camera 1, camera 2" in text
+    text, rep, _ = got["two"]
+    assert rep["method"] == "two-view" and rep["third_device"] is None and rep["light_epipolar_px"] is None
+    assert rep["bundle_matches_used"] == 0 and "bundle adjustment" not in text and "(held)" not in text
+
+
+def test_refine_the_projector_of_a_two_camera_rig_with_camera_2_held(stereo_scan, tmp_path, matched, capsys):
+    """refine --pair projector on a two-camera rig: camera 2 (pose held) joins the adjustment as the third device
+    and the projector comes back; where camera 2's own pose does not fit, it is left out with a note, and
+    --two-view leaves it out."""
+    cam1, cam2, proj = oblique_devices()
+
+    def run(name, rig, *extra):
+        src, out = tmp_path / f"{name}_in.json", tmp_path / f"{name}.json"
+        save_rig(src, rig)
+        assert main(["calibrate", "refine", str(stereo_scan), "--rig", str(src), "--pair", "projector",
+                     "--out", str(out), "--report", str(tmp_path / f"{name}_rep.json"), "--max-matches", "4000", "-q",
+                     *extra]) == 0
+        return capsys.readouterr().out, json.loads((tmp_path / f"{name}_rep.json").read_text()), load_rig(out)
+
+    text, rep, rig = run("three", Rig(camera=cam1, camera2=cam2, light=turned(proj, 2.0), volume=VOLUME))
+    assert "projector against camera 1" in text and "camera 2 against camera 1 (held)" in text
+    assert rep["method"] == "three-device" and rep["third_device"] == "camera 2" and rep["pair"] == "projector"
+    assert rep["epipolar_px"]["before"]["median_px"] > 20 and rep["epipolar_px"]["after"]["median_px"] < 0.15
+    assert rotation_angle_deg(rig.light.R @ proj.R.T) < 0.01 and np.linalg.norm(rig.light.center - proj.center) < 1
+    assert rig.camera.R.tolist() == cam1.R.tolist() and rig.camera2.R.tolist() == cam2.R.tolist()
+    R, T = procam_pose(rig)
+    assert np.allclose(read_opencv_calibration(tmp_path / "three.yml")["R"], R)
+    # camera 2's own pose off: it cannot serve as the held third device
+    text, rep, rig = run("off", Rig(camera=cam1, camera2=turned(cam2, 2.0), light=turned(proj, 2.0), volume=VOLUME))
+    assert rep["method"] == "two-view" and rep["light_epipolar_px"]["median_px"] > 1.0
+    assert "note: camera 2 was left out of the adjustment" in text and "--pair cameras" in text
+    assert rotation_angle_deg(rig.light.R @ proj.R.T) < 0.01
+    _, rep, _ = run("two", Rig(camera=cam1, camera2=cam2, light=turned(proj, 2.0), volume=VOLUME), "--two-view")
+    assert rep["method"] == "two-view" and rep["third_device"] is None
+
 def _one_line_error(capsys, *words):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err

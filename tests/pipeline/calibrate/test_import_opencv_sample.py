@@ -253,3 +253,130 @@ def test_stereo_file_as_filestorage_json(rendered, tmp_path, capsys):
     capsys.readouterr()
     r = load_scan(scan).rig
     assert (r.camera2.width, r.camera2.height) == (320, 256)     # the sizes from the frames when the file has none
+
+
+# ----------------------------------------------------------------------------- OpenCV's own files, as it writes them
+# Facts checked against OpenCV's sources (docs/calibration.md, "I have OpenCV's sample captures"):
+# opencv_contrib modules/structured_light/samples/cap_pattern.cpp (frame names), samples/pointcloud.cpp
+# (image list: the first top-level node is camera 1's list, then cam2; relative paths as imread takes them),
+# and the sample's calibration file in the structured-light test data (key order, cam sizes as [w, h],
+# RT_cam1_2_cam2 as the 4x4 [R | T; 0 0 0 1], R and T as cv::stereoRectify takes them, extra keys).
+
+
+def _write_sample_calibration(path, rig, *, with_rt=True, with_r_t=True):
+    """The two cameras as OpenCV's structured-light sample's calibrationParameters.yml has them, written by
+    cv2.FileStorage: X_cam2 = R X_cam1 + T (stereoCalibrate's R, T), and stereoRectify's outputs of them."""
+    c1, c2 = rig.camera, rig.camera2
+    R = c2.R @ c1.R.T
+    T = (c2.t - R @ c1.t).reshape(3, 1)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(c1.K, c1.dist, c2.K, c2.dist, (c1.width, c1.height), R, T,
+                                                flags=0, alpha=-1)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for k, c in (("cam1", c1), ("cam2", c2)):
+        fs.write(f"{k}_intrinsics", np.asarray(c.K, np.float64))
+        fs.write(f"{k}_distorsion", np.asarray(c.dist, np.float64).reshape(1, 5))
+        fs.startWriteStruct(f"{k}_size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)  # cv::Size
+        fs.write("", int(c.width))
+        fs.write("", int(c.height))
+        fs.endWriteStruct()
+    if with_rt:
+        fs.write("RT_cam1_2_cam2", np.vstack([np.hstack([R, T]), [[0.0, 0.0, 0.0, 1.0]]]))
+    if with_r_t:
+        fs.write("R", R)
+        fs.write("T", T)
+    fs.write("stereo_error", 0.4)
+    for k, m in (("Q", Q), ("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2)):
+        fs.write(k, m)
+    fs.release()
+    return R, T.ravel(), R1, R2
+
+
+def test_the_samples_calibration_file_maps_camera_1_to_camera_2(rendered, tmp_path):
+    """A calibrationParameters.yml as OpenCV writes it (extra keys, 4x4 RT, R and T that stereoRectify takes):
+    the imported rig puts a truth point where both true cameras see it, and R, T given only as the 4x4
+    RT_cam1_2_cam2 read the same."""
+    from ringscan.pipeline.calibrate.importer import stereo_rig
+    from ringscan.pipeline.geometry import project_points
+
+    _, rig = rendered
+    full, only_rt, bad = tmp_path / "cal.yml", tmp_path / "rt.yml", tmp_path / "bad.yml"
+    R, T, R1, R2 = _write_sample_calibration(full, rig)
+    _write_sample_calibration(only_rt, rig, with_r_t=False)
+    a, b = read_stereo_calibration(full), read_stereo_calibration(only_rt)
+    assert a["cam1_size"] == a["cam2_size"] == (320, 256)
+    for k in ("cam1_K", "cam1_dist", "cam2_K", "cam2_dist", "R", "T"):
+        assert np.allclose(a[k], b[k]), k
+    # ground truth: world points seen by the true cameras; the imported rig (camera 1's frame) triangulates
+    # their pixels back to the points in camera 1's frame
+    r = stereo_rig(a, projector=(PW, PH), z_range=(100.0, 2000.0))
+    X = np.random.default_rng(1).uniform([-30, -30, 0], [30, 30, 60], (50, 3))
+    c1, c2 = rig.camera, rig.camera2
+    u1 = project_points(X, c1.R, c1.t, c1.K, c1.dist)
+    u2 = project_points(X, c2.R, c2.t, c2.K, c2.dist)
+    n1 = cv2.undistortPoints(u1.reshape(-1, 1, 2), r.camera.K, r.camera.dist).reshape(-1, 2)
+    n2 = cv2.undistortPoints(u2.reshape(-1, 1, 2), r.camera2.K, r.camera2.dist).reshape(-1, 2)
+    P2 = np.hstack([r.camera2.R, r.camera2.t.reshape(3, 1)])
+    H = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), P2, n1.T, n2.T)
+    got = (H[:3] / H[3]).T
+    assert np.abs(got - (X @ c1.R.T + c1.t)).max() < 1e-6
+    # the file's R1, R2 are stereoRectify's of the rig's pose in that sense (the inverse pose swaps them)
+    R1b, R2b, *_ = cv2.stereoRectify(r.camera.K, r.camera.dist, r.camera2.K, r.camera2.dist, (320, 256),
+                                     r.camera2.R, r.camera2.t.reshape(3, 1), flags=0, alpha=-1)
+    assert np.allclose(R1b, R1) and np.allclose(R2b, R2) and not np.allclose(R1b, R2)
+    # a 4x4 RT that is not [R | T; 0 0 0 1]
+    text = only_rt.read_text()
+    fs = cv2.FileStorage(str(only_rt), cv2.FILE_STORAGE_READ)
+    rt = fs.getNode("RT_cam1_2_cam2").mat()
+    fs.release()
+    rt[3, 3] = 2.0
+    fs = cv2.FileStorage(str(bad), cv2.FILE_STORAGE_WRITE)
+    fs.write("cam1_intrinsics", c1.K)
+    fs.write("cam1_distorsion", c1.dist.reshape(1, 5))
+    fs.write("cam2_intrinsics", c2.K)
+    fs.write("cam2_distorsion", c2.dist.reshape(1, 5))
+    fs.write("RT_cam1_2_cam2", rt)
+    fs.release()
+    assert "RT_cam1_2_cam2" in text
+    with pytest.raises(CalibrationError, match=r"RT_cam1_2_cam2: a 4x4 \[R \| T\] ends in the row 0 0 0 1"):
+        read_stereo_calibration(bad)
+
+
+def test_the_samples_names_list_and_paths_as_opencv_reads_them(rendered, tmp_path, monkeypatch, capsys):
+    """cap_pattern's frames with its output path glued on (no separator), an image list whose first list is not
+    named cam1 and whose relative paths are the current folder's (as pointcloud.cpp reads it), and the sample's
+    calibration file: each imports to the frames of the capture as it is."""
+    out, rig = rendered
+    cal = tmp_path / "calibrationParameters.yml"
+    _write_sample_calibration(cal, rig)
+    ref = tmp_path / "ref"
+    assert main(["import", str(out / "capture_0"), "--rig", str(cal), "--projector", PROJ, "--out", str(ref)]) == 0
+    glued = tmp_path / "glued"
+    glued.mkdir()
+    for p in (out / "capture_0").glob("pattern_cam*"):
+        shutil.copy(p, glued / ("scan01" + p.name))
+    monkeypatch.chdir(out)  # the list's paths are relative to the current folder, not the list's
+    lst = tmp_path / "lists" / "images_list.yml"
+    lst.parent.mkdir()
+    fs = cv2.FileStorage(str(lst), cv2.FILE_STORAGE_WRITE)
+    for name, c in (("images", 1), ("cam2", 2)):
+        fs.startWriteStruct(name, cv2.FileNode_SEQ)
+        for k in range(1, 31):
+            fs.write("", f"capture_0/pattern_cam{c}_im{k}.png")
+        fs.endWriteStruct()
+    fs.release()
+    for cap, name in ((glued, "glued"), (lst, "images_list")):
+        scan = tmp_path / f"s_{name}"
+        assert main(["import", str(cap), "--rig", str(cal), "--projector", PROJ, "--out", str(scan)]) == 0
+        s = load_scan(scan)
+        assert s.views[0].name == name and s.views[0].camera2 is not None
+        for key in ("proj_u", "proj_v"):
+            assert np.array_equal(read_image(scan / s.views[0].frames[key]), read_image(ref / "capture_0" / f"{key}.png"))
+            assert np.array_equal(read_image(scan / s.views[0].camera2.frames[key]),
+                                  read_image(ref / "capture_0" / "cam2" / f"{key}.png"))
+    capsys.readouterr()
+    # two prefixes in one folder: one line naming them, nothing written
+    shutil.copy(out / "capture_0" / "pattern_cam1_im1.png", glued / "pattern_cam1_im1.png")
+    scan = tmp_path / "s_two"
+    assert main(["import", str(glued), "--rig", str(cal), "--projector", PROJ, "--out", str(scan)]) == 1
+    err = _err(capsys)
+    assert f"{glued}: pattern_camN_imK frames with 2 different prefixes" in err and not scan.exists(), err

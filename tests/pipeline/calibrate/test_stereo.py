@@ -217,8 +217,12 @@ def test_opencv_stereo_file_has_the_sample_layout(tmp_path):
     assert np.allclose(fs.getNode("cam2_distorsion").mat().ravel(), cam2.dist)
     assert [int(fs.getNode("cam2_size").at(i).real()) for i in range(2)] == [1920, 1280]
     assert np.allclose(fs.getNode("R").mat(), R) and np.allclose(fs.getNode("T").mat().ravel(), T)
-    assert np.allclose(fs.getNode("RT_cam1_2_cam2").mat(), np.hstack([R, T[:, None]]))
+    # as in OpenCV's structured-light test data: the 4x4 [R | T; 0 0 0 1], written before R and T
+    assert np.allclose(fs.getNode("RT_cam1_2_cam2").mat(), np.vstack([np.hstack([R, T[:, None]]), [[0, 0, 0, 1]]]))
+    keys = list(fs.root().keys())
     fs.release()
+    assert keys == ["cam1_intrinsics", "cam1_distorsion", "cam1_size", "cam2_intrinsics", "cam2_distorsion",
+                    "cam2_size", "RT_cam1_2_cam2", "R", "T"]
 
 
 def test_opencv_writers_refuse_the_wrong_rig(tmp_path):
