@@ -369,7 +369,7 @@ def test_samples_without_an_angle_pick_their_root_by_a_coarse_sector(device):
     fine = np.floor((phi_true + np.pi) / (2 * np.pi) * 2 ** 9).astype(np.int32)
     wrong = fine ^ 3  # the two finest bits of the binary sector flipped: the coarse sector is kept
     nan = np.full(len(uv), np.nan, np.float32)
-    kw = dict(sec=wrong, settings=TriangulateSettings())
+    kw = dict(sec=wrong, settings=TriangulateSettings(fallback_sector_px=16.0))
     T = _run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, **kw)
     st, X = T.status.numpy(), T.points.numpy()
     ok = st == 0
@@ -380,8 +380,8 @@ def test_samples_without_an_angle_pick_their_root_by_a_coarse_sector(device):
     right = [_run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, sec=fine,
                        settings=TriangulateSettings(fallback_sector_px=f)).status.numpy() for f in (16.0, 0.0)]
     assert np.array_equal(right[0], right[1])
-    # the sector as decoded (the setting off, or rings forced): mismatches
-    for s in (TriangulateSettings(fallback_sector_px=0.0), TriangulateSettings(constraint="rings")):
+    # the sector as decoded (the setting off, its default, or rings forced): mismatches
+    for s in (TriangulateSettings(), TriangulateSettings(constraint="rings", fallback_sector_px=16.0)):
         st0 = _run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, sec=wrong,
                         settings=s).status.numpy()
         assert np.mean(st0 == 4) > 0.5
