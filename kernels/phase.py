@@ -33,6 +33,9 @@ PHASE_LONELY = wp.constant(5)
 PHASE_STATUS_NAMES = ("ok", "dark", "code", "modulation", "slip", "lonely")
 TWO_PI = wp.constant(6.283185307179586)
 SECTOR_FILL_RADIUS = wp.constant(2)
+MODULATION_FLOOR = wp.constant(0.05)
+"""The ring-curvature correction reads a blur variance off the fringe modulation
+q as -2 ln(q) (pitch / 2 pi)^2; below this q it reads it as at this q."""
 RESPONSE_FLOOR = 0.02
 """Recorded values below this fraction of full scale get the weight of this value
 (the slope of a gamma curve vanishes at 0; sensor noise does not)."""
@@ -80,6 +83,13 @@ class PhaseSettings:
     min_pairs: int = 1
     """With smoothing, pixels with valid neighbours but fewer agreeing pairs than
     this are dropped as lonely (0: keep them)."""
+    ring_curvature: bool = True
+    """Remove the outward bias of averaged rings: any averaging across a ring (the
+    projector's pixel and defocus, the camera pixel, the smoothing window) reads
+    rho too large by (tangential variance) / (2 rho), since rho = |p - c| is
+    convex. The light's and the camera pixel's variance comes from the lost
+    fringe modulation, the window's from its pairs and the gradient of t
+    (docs/dense.md, "Ring curvature"). Off: rho as averaged."""
 
     def __post_init__(self):
         if self.response not in ("rig", "estimate", "linear"):
@@ -140,6 +150,40 @@ def edge_mask(edge: int, bits: int):
     if edge < 1 or edge >= (1 << bits):
         return 0
     return 1 << trailing_zeros(edge)
+
+
+@wp.func
+def ring_curvature_bias(t: float, q: float, cnt: float, sxx: float, sxy: float, syy: float, bx: float, by: float,
+                        rho0: float, pitch: float):
+    """Outward bias (bands) of a smoothed t: (s_light^2 + s_window^2) / (2 rho pitch).
+
+    s_light^2 = -2 ln(q) (pitch / 2 pi)^2 (projector px^2) is the variance of every
+    blur the pixel's fringe went through (projector pixel and defocus, camera
+    pixel), read off its modulation q as for a Gaussian, taken as isotropic.
+    s_window^2 is the smoothing window's tangential second moment: each agreeing
+    pair (offsets +-h, camera px) adds 2 |A h|^2 - 2 (a . h)^2, with a = pitch grad t
+    (least squares from the pairs' half differences: S g = b, S = sum h h^T,
+    b = sum h (t_a - t_b) / 2) and |A h|^2 = |a|^2 |h|^2 (a conformal camera-to-
+    projector map: tangential stretch = radial).
+    """
+    rho = rho0 + pitch * t
+    if rho < 0.5 * pitch:
+        return 0.0
+    k = pitch / TWO_PI
+    s2 = -2.0 * wp.log(wp.clamp(q, MODULATION_FLOOR, 1.0)) * k * k
+    sh = sxx + syy
+    if sh > 0.0:
+        det = sxx * syy - sxy * sxy
+        tan2 = float(0.0)
+        if det > 1.0e-6 * sh * sh:
+            gx = (syy * bx - sxy * by) / det
+            gy = (sxx * by - sxy * bx) / det
+            tan2 = (gx * gx + gy * gy) * sh - (gx * bx + gy * by)
+        else:
+            # pairs along one line: the gradient across it is unknown; conformal
+            tan2 = (bx * bx + by * by) / sh
+        s2 += 2.0 * pitch * pitch * wp.max(tan2, 0.0) / cnt
+    return s2 / (2.0 * rho * pitch)
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -292,9 +336,13 @@ def smooth_phase_kernel(
     t: wp.array2d(dtype=wp.float32),
     status: wp.array2d(dtype=wp.int32),
     sector: wp.array2d(dtype=wp.int32),
+    modulation: wp.array2d(dtype=wp.float32),
     radius: int,
     tolerance: float,
     min_pairs: int,
+    curvature: int,
+    rho0: float,
+    pitch: float,
     row0: int,
     chunk: int,
     t_out: wp.array2d(dtype=wp.float32),
@@ -302,10 +350,11 @@ def smooth_phase_kernel(
     sector_out: wp.array2d(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
 ):
-    """Pair-wise smoothing of t and sector gap filling, ``chunk`` pixels of one row
-    per thread.
+    """Pair-wise smoothing of t, the ring-curvature correction (``curvature`` 1)
+    and sector gap filling, ``chunk`` pixels of one row per thread.
 
-    t: (H, W) float32, status: (H, W) int32, sector: (H, W) int32, read.
+    t: (H, W) float32, status: (H, W) int32, sector: (H, W) int32, modulation:
+    (H, W) float32, read; rho0, pitch: the pattern's (t = (rho - rho0) / pitch).
     t_out: (H, W) float32, status_out, sector_out: (H, W) int32, flags: (H*W,)
     int32 (1 where the pixel stays a point, the count for the compaction), written.
     """
@@ -329,6 +378,12 @@ def smooth_phase_kernel(
         cnt = float(1.0)
         pairs = int(0)
         seen = int(0)
+        # moments of the agreeing pairs, for the gradient of t (least squares)
+        sxx = float(0.0)
+        sxy = float(0.0)
+        syy = float(0.0)
+        bx = float(0.0)
+        by = float(0.0)
         for dy in range(0, radius + 1):
             for dx in range(-radius, radius + 1):
                 if dy > 0 or dx > 0:
@@ -351,11 +406,22 @@ def smooth_phase_kernel(
                             acc += ta + tb
                             cnt += 2.0
                             pairs = pairs + 1
+                            half = 0.5 * (ta - tb)
+                            fx = float(dx)
+                            fy = float(dy)
+                            sxx += fx * fx
+                            sxy += fx * fy
+                            syy += fy * fy
+                            bx += half * fx
+                            by += half * fy
         if radius > 0 and seen > 0 and pairs < min_pairs:
             status_out[y, x] = PHASE_LONELY
         else:
             flags[y * w + x] = 1
-        t_out[y, x] = acc / cnt
+        ts = acc / cnt
+        if curvature != 0:
+            ts = ts - ring_curvature_bias(ts, modulation[y, x], cnt, sxx, sxy, syy, bx, by, rho0, pitch)
+        t_out[y, x] = ts
         # A pixel on a sector edge has a weak sector bit: either neighbouring
         # sector is right to within the triangulation's tolerance.
         if s < 0:
@@ -515,15 +581,20 @@ def smooth_phase(
     sector: wp.array,
     *,
     settings: PhaseSettings = PhaseSettings(),
+    rho0: float | None = None,
+    pitch: float | None = None,
     threads: int | None = None,
 ) -> PhaseMap:
-    """Pair-wise smoothing of the band coordinate, lonely-pixel rejection and
-    sector gap filling.
+    """Pair-wise smoothing of the band coordinate, the ring-curvature correction,
+    lonely-pixel rejection and sector gap filling.
 
     Args:
         phase: the output of :func:`decode_phase`.
         sector: (H, W) int32 decoded sector per pixel (-1 unknown).
-        settings: ``smooth_radius``, ``smooth_tolerance``, ``min_pairs``.
+        settings: ``smooth_radius``, ``smooth_tolerance``, ``min_pairs``,
+            ``ring_curvature``.
+        rho0, pitch: the pattern's inner radius and pitch (projector px); the
+            ring-curvature correction needs them (without them t is as averaged).
         threads: CPU threads (row slices); default: all cores.
 
     Returns:
@@ -532,6 +603,11 @@ def smooth_phase(
     h, w = phase.t.shape
     if not isinstance(sector, wp.array) or sector.dtype != wp.int32 or tuple(sector.shape) != (h, w):
         raise ValueError(f"smooth_phase: sector must be a ({h}, {w}) int32 Warp array")
+    if (rho0 is None) != (pitch is None):
+        raise ValueError("smooth_phase: give both rho0 and pitch, or neither")
+    if pitch is not None and not (np.isfinite(pitch) and pitch > 0 and np.isfinite(rho0)):
+        raise ValueError(f"smooth_phase: pitch must be > 0 and rho0 finite, got {pitch}, {rho0}")
+    curvature = int(settings.ring_curvature and pitch is not None)
     dev = phase.t.device
     out = PhaseMap(t=wp.empty_like(phase.t), modulation=phase.modulation, status=wp.empty_like(phase.status),
                    sector=wp.empty_like(sector), flags=wp.empty(h * w, dtype=wp.int32, device=dev))
@@ -540,8 +616,9 @@ def smooth_phase(
     s = settings
     launch_rows(
         smooth_phase_kernel, h, w,
-        lambda r0, chunk: [phase.t, phase.status, sector, int(s.smooth_radius), float(s.smooth_tolerance),
-                           int(s.min_pairs), r0, chunk],
+        lambda r0, chunk: [phase.t, phase.status, sector, phase.modulation, int(s.smooth_radius),
+                           float(s.smooth_tolerance), int(s.min_pairs), curvature, float(rho0 or 0.0),
+                           float(pitch or 1.0), r0, chunk],
         [out.t, out.status, out.sector, out.flags], dev, default_threads() if threads is None else threads,
     )
     return out

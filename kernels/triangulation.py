@@ -87,6 +87,16 @@ class TriangulateSettings:
     """Where both roots lie in the volume, the one nearer the decoded sector wins
     only if the other is farther by at least this many sector widths; otherwise
     the point is dropped as ambiguous."""
+    fallback_sector_px: float = 0.0
+    """In a scan with an angle code, a sample whose angle did not decode keeps its
+    ring alone; where no root matches its decoded sector, with this > 0 it picks the
+    root by a coarse sector instead: the sector code's top bits, as many as leave
+    sectors at least this wide (projector px) at the sample's ring (where the
+    angle's 8-16 px fringes lost their modulation, the finest sector stripes are as
+    unreliable; 16 recovers them). 0 (default): a mismatch is dropped. The points it
+    recovers are right but noisy (on the demo's sphere, 2.3x the median error), and
+    an unweighted Poisson mesh follows them (docs/reconstruction.md). Scans without
+    an angle code always use the sector as decoded."""
     min_incidence_cos: float = 0.03
     """Least conditioning of a point, in [0, 1]: |cos| of the angle between the
     camera ray and the normal of the ring's surface (the quadric of constant rho)
@@ -113,6 +123,8 @@ class TriangulateSettings:
                              f"not {self.constraint!r}")
         if not (self.max_residual_px > 0):
             raise ValueError(f"triangulate.max_residual_px: must be > 0, got {self.max_residual_px}")
+        if not (0 <= self.fallback_sector_px < float("inf")):
+            raise ValueError(f"triangulate.fallback_sector_px: must be >= 0, got {self.fallback_sector_px}")
 
 
 @dataclass
@@ -352,6 +364,7 @@ def triangulate_kernel(
     min_incidence_cos: float,
     max_residual_px: float,
     floor: float,
+    fallback_sector_px: float,
     i0: int,
     points: wp.array(dtype=wp.vec3),
     status: wp.array(dtype=wp.int32),
@@ -405,6 +418,19 @@ def triangulate_kernel(
     else:
         X, st, q, res = rings_solution(light, C, d, r, sector[i], vol, center, n_sectors, sector_tolerance,
                                        sector_margin, min_incidence_cos)
+        if st == STATUS_SECTOR_MISMATCH and fallback_sector_px > 0.0:
+            # A sample whose angle failed (low modulation: fine fringes lost) may
+            # read the finest sector bits wrong too; the root choice needs only a
+            # coarse sector (the top bits of a reflected Gray code are the coarse
+            # sector's own Gray code).
+            s = sector[i]
+            ns = n_sectors
+            while ns > 2 and 2.0 * PI * r < fallback_sector_px * float(ns):
+                ns = ns // 2
+                s = s // 2
+            if ns < n_sectors:
+                X, st, q, res = rings_solution(light, C, d, r, s, vol, center, ns, sector_tolerance, sector_margin,
+                                               min_incidence_cos)
         if st == STATUS_OK or st == STATUS_GRAZING:
             slope = ring_slope(light, X, d, center)
             sg = wp.where(slope > 0.0, sigma_rho[i] / slope, 1.0e9)
@@ -517,6 +543,7 @@ def triangulate_rings(
         return out
     if sigma_rho is None:
         sigma_rho = wp.full(n, NOMINAL_SIGMA_PX, dtype=wp.float32, device=dev)
+    has_angle = phi is not None
     if phi is None:
         phi = wp.full(n, float("nan"), dtype=wp.float32, device=dev)
         sigma_tan = wp.zeros(n, dtype=wp.float32, device=dev)
@@ -525,7 +552,8 @@ def triangulate_rings(
     n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
     args = [uv, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, wp.vec2(*center),
             constraint, n_sectors, settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos,
-            settings.max_residual_px, float(floor)]
+            settings.max_residual_px, float(floor),
+            float(settings.fallback_sector_px) if has_angle and constraint != 0 else 0.0]
     outputs = [out.points, out.status, out.confidence, out.residual, out.sigma, out.residual_var]
     threads = default_threads() if threads is None else threads
     launch_spans(triangulate_kernel, n, lambda i0: args + [i0], outputs, dev, threads)

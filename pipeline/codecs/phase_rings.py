@@ -220,7 +220,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
                          wlut=wlut, light_gamma=g_light, settings=ps, threads=threads)
     wp.synchronize_device(dev)
     t1 = time.perf_counter()
-    sm = smooth_phase(phase, labels.sector, settings=ps, threads=threads)
+    sm = smooth_phase(phase, labels.sector, settings=ps, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()

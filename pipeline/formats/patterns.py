@@ -321,7 +321,7 @@ class PhaseRingsLayout(GrayRingsLayout):
     name = "phase-rings"
     dense = True
     parameters = GrayRingsLayout.parameters + (Parameter("steps", int, 4, 3, 64, doc="phase steps"),)
-    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9, "steps": 4, "angle_steps": 4,
+    defaults = {"rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9, "steps": 8, "angle_steps": 4,
                 "angle_period": 8.0}
 
     def frame_names(self, spec: PatternSpec) -> list[str]:

@@ -183,6 +183,33 @@ def test_smoothing_keeps_planes_edges_and_drops_lone_slips(device):
     assert np.allclose(pts.confidence.numpy(), 0.9)
 
 
+@pytest.mark.parametrize("blur", [0.6, 1.0])
+def test_ring_curvature_correction_removes_the_outward_bias(device, blur):
+    # Averaging across a ring reads rho too large by (tangential variance) / (2 rho):
+    # here the blur's sigma^2 plus the 3x3 window's 2/3 px^2, (blur^2 + 2/3) / 2 px x px
+    # (rho x rho error). Medians over rho 12..90 (the bias falls as 1 / rho).
+    spec = _spec()
+    t_true, rho = _truth_t(spec)
+    _, lab, ph = _decode(_stack(spec, blur=blur), spec, device)
+    expect = (blur ** 2 + 2.0 / 3.0) / 2.0
+    for correct in (False, True):
+        kw = {"rho0": spec.rho0, "pitch": spec.pitch} if correct else {}
+        sm = smooth_phase(ph, lab.sector, **kw)
+        m = (sm.status.numpy() == 0) & (rho > 12) & (rho < 90)
+        assert m.sum() > 15000
+        bias = np.median((sm.t.numpy() - t_true)[m] * spec.pitch * rho[m])
+        if correct:
+            assert abs(bias) < 0.1 * expect
+        else:
+            assert bias == pytest.approx(expect, rel=0.15)
+    off = smooth_phase(ph, lab.sector, rho0=spec.rho0, pitch=spec.pitch,
+                       settings=PhaseSettings(ring_curvature=False))
+    plain = smooth_phase(ph, lab.sector)
+    assert np.array_equal(off.t.numpy(), plain.t.numpy())
+    with pytest.raises(ValueError, match="both"):
+        smooth_phase(ph, lab.sector, rho0=spec.rho0)
+
+
 def test_kernel_matches_numpy_twin(device):
     from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy
 

@@ -357,3 +357,33 @@ def test_calibration_floor_discounts_errors_across_the_epipolar_line(device):
     # a rig that fits: no floor
     T0 = _run_full(device, cam, light, uv, rho, _polar("perspective", P, rig.light), 0.02, 0.2, **kw)
     assert calibration_floor(T0)[0] == 0.0
+
+
+def test_samples_without_an_angle_pick_their_root_by_a_coarse_sector(device):
+    """In a scan with an angle code, a sample whose angle failed keeps its ring;
+    where no root matches its decoded sector it picks the root by the sector code's
+    top bits: finest bits read wrong (off by up to 3 sectors of 512) no longer drop
+    it as a sector mismatch."""
+    rig, cam, light, P, uv, rho, _ = _setup("parallel")
+    phi_true = _polar("parallel", P, rig.light)
+    fine = np.floor((phi_true + np.pi) / (2 * np.pi) * 2 ** 9).astype(np.int32)
+    wrong = fine ^ 3  # the two finest bits of the binary sector flipped: the coarse sector is kept
+    nan = np.full(len(uv), np.nan, np.float32)
+    kw = dict(sec=wrong, settings=TriangulateSettings(fallback_sector_px=16.0))
+    T = _run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, **kw)
+    st, X = T.status.numpy(), T.points.numpy()
+    ok = st == 0
+    # the rest: both roots in one coarse sector (ambiguous, 17 here) or a grazing ray
+    assert ok.mean() > 0.9 and set(np.unique(st[~ok])) <= {3, 5}
+    assert np.linalg.norm(X[ok] - P[ok], axis=1).max() < 2e-3
+    # samples whose decoded sector matches a root keep it: the same as without the fallback
+    right = [_run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, sec=fine,
+                       settings=TriangulateSettings(fallback_sector_px=f)).status.numpy() for f in (16.0, 0.0)]
+    assert np.array_equal(right[0], right[1])
+    # the sector as decoded (the setting off, its default, or rings forced): mismatches
+    for s in (TriangulateSettings(), TriangulateSettings(constraint="rings", fallback_sector_px=16.0)):
+        st0 = _run_full(device, cam, light, uv, rho, nan, 0.05, 0.0, sector_bits=9, sec=wrong,
+                        settings=s).status.numpy()
+        assert np.mean(st0 == 4) > 0.5
+    with pytest.raises(ValueError, match="fallback_sector_px"):
+        TriangulateSettings(fallback_sector_px=-1.0)

@@ -31,7 +31,7 @@ def test_patterns_writes_every_frame(tmp_path):
     assert main(["patterns", "--codec", "phase-rings", "--bits", "3", "--pitch", "5", "--sector-bits", "2",
                  "--width", "200", "--height", "150", "--out", str(out)]) == 0
     spec = parse_patterns(read_json(out / "patterns.json"))
-    assert (spec.width, spec.height, spec.center, spec.steps) == (200, 150, (99.5, 74.5), 4)
+    assert (spec.width, spec.height, spec.center, spec.steps) == (200, 150, (99.5, 74.5), 8)  # the default steps
     names = frame_names(spec)
     assert (out / "frames.txt").read_text().split() == [f"{n}.png" for n in names]
     for n in names:

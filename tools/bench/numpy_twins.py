@@ -290,7 +290,8 @@ def phase_numpy(frames: np.ndarray, dec: dict, *, bits: int, sector_bits: int, s
 
 
 def smooth_numpy(ph: dict, sector: np.ndarray, *, settings: PhaseSettings = PhaseSettings()) -> dict:
-    """NumPy twin of ``kernels.phase.smooth_phase``: ``t``, ``status``, ``sector``, ``modulation``."""
+    """NumPy twin of ``kernels.phase.smooth_phase`` called without ``rho0``/``pitch`` (no
+    ring-curvature correction): ``t``, ``status``, ``sector``, ``modulation``."""
     s = settings
     t, status = ph["t"], ph["status"]
     h, w = t.shape
