@@ -57,6 +57,7 @@ from ringscan.pipeline.calibrate.procam import (
 )
 from ringscan.pipeline.calibrate.stereo import (
     MAX_MATCHES,
+    DISTORTION_CHOICES,
     ProjectorSettings,
     decoded_pairs,
     fit_projector,
@@ -869,6 +870,13 @@ def add_projector_from_scan_parser(calsub) -> None:
     p.add_argument("--principal-point", nargs=2, type=float, default=None, metavar=("CX", "CY"),
                    help="hold the projector's principal point here (px): lets a nearly flat scene fit the focal "
                         "length")
+    p.add_argument("--tangential", choices=DISTORTION_CHOICES, default="auto",
+                   help="the projector's tangential distortion p1, p2: fitted where the points determine them "
+                        "(auto, the default: a significance test against the residuals), always (fit) or held at 0 "
+                        "(hold)")
+    p.add_argument("--radial", choices=DISTORTION_CHOICES, default="auto",
+                   help="its radial distortion: k1, and k2, k3 where the points determine them (auto, the "
+                        "default), k1 and k2 (fit) or none (hold)")
     p.set_defaults(_calibrate=run_projector_from_scan)
 
 
@@ -903,16 +911,28 @@ def run_projector_from_scan(args) -> int:
     Xw = (Xc - c1.t) @ c1.R
     pp = tuple(args.principal_point) if args.principal_point is not None else None
     with progress_step("fitting the projector", enabled=not args.no_progress):
-        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(principal_point=pp))
+        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
+            principal_point=pp, radial=args.radial, tangential=args.tangential))
     K = fit.light.K
     sd = fit.std
     print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
           f"{fit.residuals.line()}")
+    dist = fit.light.dist
     print(f"  fx {K[0, 0]:.2f} +- {sd['fx']:.2f}, fy {K[1, 1]:.2f} +- {sd['fy']:.2f}, cx {K[0, 2]:.2f} +- "
-          f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {fit.light.dist[0]:.4f}, k2 "
-          f"{fit.light.dist[1]:.4f}; fixed: {', '.join(fit.fixed)}")
+          f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {dist[0]:.4f}, k2 {dist[1]:.4f}, p1 "
+          f"{dist[2]:.5f}, p2 {dist[3]:.5f}, k3 {dist[4]:.4f}; fixed: {', '.join(fit.fixed) or 'none'}")
     print(f"  pose +- {sd['rotation_deg']:.4f} deg, +- {sd['position']:.3f} mm; condition {fit.condition:.3g}; "
           f"point set thickness {fit.thickness:.3f}")
+    nz = fit.std_noise
+    print(f"  (+- the residuals' correlation, {fit.correlation:.1f}x their variance: independent residuals would "
+          f"give fx +- {nz['fx']:.2f} px, pose +- {nz['rotation_deg']:.4f} deg, +- {nz['position']:.3f} mm)")
+    print(f"  depth along the projector's axis {fit.depth_range[0]:.0f} to {fit.depth_range[1]:.0f} mm (5-95 %): "
+          f"{100 * fit.depth_ratio:.1f} % of the distance; focal length-distance correlation "
+          f"{fit.focal_distance_correlation:+.4f}")
+    for line in fit.decisions:
+        print(f"  distortion {line}")
+    for note in fit.notes:
+        print(f"  note: {note}")
     refuse_unless_forced(args, problems + fit.problems, args.out)
     procam = procam_rig_from_fit(c1, fit.light, Xw)
     save_rig(args.out, procam)
