@@ -113,6 +113,7 @@ def synthetic(noise: float, n: int) -> None:
     print(f"    fit's own std: fx {fit.std['fx']:.3f} px, cx {fit.std['cx']:.3f} px, cy {fit.std['cy']:.3f} px, "
           f"rotation {fit.std['rotation_deg']:.4f} deg, position {fit.std['position']:.3f} mm; condition "
           f"{fit.condition:.3g}; problems: {fit.problems or 'none'}")
+    print(f"    residual correlation {fit.correlation:.2f}x; distortion: {'; '.join(fit.decisions)}")
 
 
 def real(data: Path) -> None:

@@ -870,11 +870,11 @@ def add_projector_from_scan_parser(calsub) -> None:
     p.add_argument("--principal-point", nargs=2, type=float, default=None, metavar=("CX", "CY"),
                    help="hold the projector's principal point here (px): lets a nearly flat scene fit the focal "
                         "length")
-    p.add_argument("--tangential", choices=DISTORTION_CHOICES, default="auto",
+    p.add_argument("--tangential", default="auto", metavar="|".join(DISTORTION_CHOICES),
                    help="the projector's tangential distortion p1, p2: fitted where the points determine them "
                         "(auto, the default: a significance test against the residuals), always (fit) or held at 0 "
                         "(hold)")
-    p.add_argument("--radial", choices=DISTORTION_CHOICES, default="auto",
+    p.add_argument("--radial", default="auto", metavar="|".join(DISTORTION_CHOICES),
                    help="its radial distortion: k1, and k2, k3 where the points determine them (auto, the "
                         "default), k1 and k2 (fit) or none (hold)")
     p.set_defaults(_calibrate=run_projector_from_scan)
@@ -884,6 +884,9 @@ def run_projector_from_scan(args) -> int:
     size = parse_size(args.projector, "--projector") if args.projector is not None else None
     if args.principal_point is not None and not all(np.isfinite(args.principal_point)):
         raise UsageError("--principal-point: expected two finite numbers")
+    for flag, value in (("--tangential", args.tangential), ("--radial", args.radial)):
+        if value not in DISTORTION_CHOICES:
+            raise UsageError(f"{flag}: expected {', '.join(DISTORTION_CHOICES)}, got {value!r}")
     match_outputs(args)
     scan, views = load_scan_with_rig(args)
     rig = scan.rig
