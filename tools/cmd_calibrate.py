@@ -67,6 +67,7 @@ from ringscan.pipeline.calibrate.stereo import (
     relative_pose,
     reprojection_errors,
     triangulate_pair,
+    triangulation_covariance,
     write_opencv_procam,
     write_opencv_stereo,
 )
@@ -874,6 +875,9 @@ def add_projector_from_scan_parser(calsub) -> None:
                    help="the projector's tangential distortion p1, p2: fitted where the points determine them "
                         "(auto, the default: a significance test against the residuals), always (fit) or held at 0 "
                         "(hold)")
+    p.add_argument("--weights", default="predicted", metavar="predicted|none",
+                   help="weight each point-pixel pair by its predicted uncertainty (the two cameras' triangulation "
+                        "mapped into the projector, plus the decoded pixel's; predicted, the default) or not (none)")
     p.add_argument("--radial", default="auto", metavar="|".join(DISTORTION_CHOICES),
                    help="its radial distortion: k1, and k2, k3 where the points determine them (auto, the "
                         "default), k1 and k2 (fit) or none (hold)")
@@ -887,6 +891,8 @@ def run_projector_from_scan(args) -> int:
     for flag, value in (("--tangential", args.tangential), ("--radial", args.radial)):
         if value not in DISTORTION_CHOICES:
             raise UsageError(f"{flag}: expected {', '.join(DISTORTION_CHOICES)}, got {value!r}")
+    if args.weights not in ("predicted", "none"):
+        raise UsageError(f"--weights: expected predicted or none, got {args.weights!r}")
     match_outputs(args)
     scan, views = load_scan_with_rig(args)
     rig = scan.rig
@@ -897,7 +903,7 @@ def run_projector_from_scan(args) -> int:
         size = (getattr(rig.light, "width", 0), getattr(rig.light, "height", 0))
         if not min(size) > 0:
             raise UsageError("--projector: the rig does not give the projector's size; give --projector WxH")
-    uv1, uv2, proj, _ = gather_matches(scan, views, args, need="cameras")
+    uv1, uv2, proj, sig = gather_matches(scan, views, args, need="cameras")
     c1, c2 = rig.camera, rig.camera2
     R, t = relative_pose(c1, c2)
     n1 = cv2.undistortPoints(uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
@@ -913,13 +919,17 @@ def run_projector_from_scan(args) -> int:
     Xc = triangulate_pair(R, t, n1[keep], n2[keep])
     Xw = (Xc - c1.t) @ c1.R
     pp = tuple(args.principal_point) if args.principal_point is not None else None
+    weighted = args.weights == "predicted" and sig is not None
     with progress_step("fitting the projector", enabled=not args.no_progress):
+        cov = triangulation_covariance(c1, c2, Xw, sig[keep, 0], sig[keep, 1]) if weighted else None
         fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
-            principal_point=pp, radial=args.radial, tangential=args.tangential))
+            principal_point=pp, radial=args.radial, tangential=args.tangential), point_cov=cov,
+            pixel_sigma=sig[keep, 2] if weighted else None)
     K = fit.light.K
     sd = fit.std
     print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
-          f"{fit.residuals.line()}")
+          f"{fit.residuals.line()}; "
+          + ("each pair weighted by its predicted uncertainty" if weighted else "unweighted"))
     dist = fit.light.dist
     print(f"  fx {K[0, 0]:.2f} +- {sd['fx']:.2f}, fy {K[1, 1]:.2f} +- {sd['fy']:.2f}, cx {K[0, 2]:.2f} +- "
           f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {dist[0]:.4f}, k2 {dist[1]:.4f}, p1 "

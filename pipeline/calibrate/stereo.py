@@ -52,7 +52,7 @@ from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
 __all__ = ["RefineSettings", "ResidualStats", "Refinement", "refine_extrinsics", "refine_procam_rig",
            "refine_stereo_rig", "relative_pose", "ProjectorSettings", "ProjectorFit", "fit_projector",
-           "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "epipolar_distances", "reprojection_errors",
+           "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "triangulation_covariance", "epipolar_distances", "reprojection_errors",
            "write_opencv_procam", "write_opencv_stereo", "rotation_angle_deg", "decoded_pairs"]
 
 log = logging.getLogger(__name__)
@@ -891,6 +891,72 @@ def _residual_correlation(resid: np.ndarray, uv: np.ndarray, cells: int) -> floa
     return max(1.0, float(np.mean(ratios))) if ratios else 1.0
 
 
+def _free_columns(terms: frozenset, intrinsic_flags: int) -> list[int]:
+    """Columns of the projectPoints Jacobian a fit with these distortion terms and flags moves."""
+    free = list(range(6)) + [6, 7]
+    if not intrinsic_flags & cv2.CALIB_FIX_PRINCIPAL_POINT:
+        free += [8, 9]
+    return free + [10 + i for i, nm in enumerate(_DIST_NAMES) if nm in terms]
+
+
+def _weighted_refine(obj, uv, white, K, dist, rvec, tvec, cols):
+    """(K, dist, rvec, tvec) minimising the whitened reprojection errors, from the given fit."""
+    p0 = np.concatenate([rvec.ravel(), tvec.ravel(), [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dist])
+    o = obj.reshape(-1, 1, 3)
+
+    def unpack(q):
+        p = p0.copy()
+        p[cols] = q
+        return p[0:3], p[3:6], np.array([[p[6], 0, p[8]], [0, p[7], p[9]], [0, 0, 1.0]]), p[10:15]
+
+    def fun(q):
+        rv, tv, Kq, dq = unpack(q)
+        pr, _ = cv2.projectPoints(o, rv, tv, Kq, dq)
+        return np.einsum("nij,nj->ni", white, pr.reshape(-1, 2) - uv).ravel()
+
+    def jac(q):
+        rv, tv, Kq, dq = unpack(q)
+        _, J = cv2.projectPoints(o, rv, tv, Kq, dq)
+        return np.einsum("nij,njk->nik", white, J[:, :15].reshape(-1, 2, 15)).reshape(-1, 15)[:, cols]
+
+    res = least_squares(fun, p0[cols], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=100)
+    rv, tv, Kq, dq = unpack(res.x)
+    return Kq, dq, rv.reshape(3, 1), tv.reshape(3, 1)
+
+
+def _point_jacobian(obj, rvec, tvec, K, dist, step: float = 1e-3) -> np.ndarray:
+    """(n, 2, 3) derivative of the projected pixels by the points (central differences)."""
+    J = np.zeros((obj.shape[0], 2, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = step
+        qp, _ = cv2.projectPoints((obj + d).reshape(-1, 1, 3), rvec, tvec, K, dist)
+        qm, _ = cv2.projectPoints((obj - d).reshape(-1, 1, 3), rvec, tvec, K, dist)
+        J[:, :, k] = (qp - qm).reshape(-1, 2) / (2 * step)
+    return J
+
+
+def _whitening(obj, model, cov_x, sig_p) -> np.ndarray:
+    """(n, 2, 2) W per pair with W S W^T = I for the residual's predicted covariance S (the point's
+    covariance mapped into the projector under ``model``, plus the pixel's), scaled to a median
+    weight of 1 (so the residuals stay in px of a typical pair)."""
+    n = obj.shape[0]
+    S = np.zeros((n, 2, 2))
+    if cov_x is not None:
+        Jp = _point_jacobian(obj, model.rvec, model.tvec, model.K, model.dist)  # the centred frame: world axes
+        S += np.einsum("nij,njk,nlk->nil", Jp, cov_x, Jp)
+    if sig_p is not None:
+        S[:, 0, 0] += sig_p[:, 0] ** 2
+        S[:, 1, 1] += sig_p[:, 1] ** 2
+    tr = np.trace(S, axis1=1, axis2=2)
+    floor = 1e-6 * max(float(np.median(tr)), 1e-300)
+    S += floor * np.eye(2)  # no pair weighs infinitely
+    L = np.linalg.cholesky(S)
+    W = np.linalg.inv(L)
+    scale = math.sqrt(float(np.median(tr)) / 2)
+    return W * scale
+
+
 @dataclass
 class _Model:
     """One calibrateCamera fit of the kept pairs with a set of distortion terms."""
@@ -907,7 +973,8 @@ class _Model:
 
 
 def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
-                  settings: ProjectorSettings = ProjectorSettings()) -> ProjectorFit:
+                  settings: ProjectorSettings = ProjectorSettings(), point_cov=None,
+                  pixel_sigma=None) -> ProjectorFit:
     """A perspective projector fitted to 3D points and the projector pixels that lit them.
 
     Args:
@@ -916,6 +983,12 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         proj_uv: (n, 2) their projector pixels (u_p, v_p).
         size: the projector's (width, height) in pixels.
         settings: see :class:`ProjectorSettings`.
+        point_cov: optional (n, 3, 3) covariance of each point (world units squared, e.g.
+            :func:`triangulation_covariance`), and
+        pixel_sigma: optional (n,) or (n, 2) standard deviation of ``proj_uv`` (px): with either,
+            each pair's residual is weighted by its predicted covariance (the point's mapped into
+            the projector under the unweighted fit, plus the pixel's): the first-order form of a
+            bundle adjustment that lets the points move within their uncertainty. Non-planar sets only.
 
     Returns:
         the :class:`ProjectorFit`; its ``problems`` say what the points do not determine.
@@ -931,8 +1004,21 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     w, h = (int(size[0]), int(size[1]))
     if w <= 0 or h <= 0:
         raise ValueError(f"fit_projector: size must be (width, height) > 0, got {size}")
+    cov_x = sig_p = None
+    if point_cov is not None:
+        cov_x = np.asarray(point_cov, np.float64)
+        if cov_x.shape != (X.shape[0], 3, 3) or not np.all(np.isfinite(cov_x)):
+            raise ValueError(f"fit_projector: point_cov must be finite (n, 3, 3), got shape {cov_x.shape}")
+    if pixel_sigma is not None:
+        sig_p = np.asarray(pixel_sigma, np.float64)
+        sig_p = np.repeat(sig_p[:, None], 2, 1) if sig_p.ndim == 1 else sig_p
+        if sig_p.shape != (X.shape[0], 2) or not np.all(np.isfinite(sig_p) & (sig_p >= 0)):
+            raise ValueError(f"fit_projector: pixel_sigma must be (n,) or (n, 2) finite >= 0, got shape "
+                             f"{np.shape(pixel_sigma)}")
     ok = np.all(np.isfinite(X), 1)
     X, uv = X[ok], uv[ok]
+    cov_x = None if cov_x is None else cov_x[ok]
+    sig_p = None if sig_p is None else sig_p[ok]
     n = X.shape[0]
     if n < settings.min_points:
         raise CalibrationError(None, f"only {n} points with projector pixels; fitting a projector needs at least "
@@ -996,8 +1082,12 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     n_intrinsics = 4 - (2 if settings.principal_point is not None else 0) - (1 if planar else 0)
 
+    white = None  # (n, 2, 2): each pair's residual -> whitened residual (W^T W = its inverse covariance)
+
     def calibrate(terms: frozenset, keep: np.ndarray, start: _Model | None = None) -> tuple[_Model, np.ndarray]:
-        """The fit of the kept pairs with these distortion terms, and every pair's reprojection error."""
+        """The fit of the kept pairs with these distortion terms (weighted where ``white`` is set:
+        OpenCV's fit, then a least-squares refinement of the whitened residuals), and every pair's
+        reprojection error (px)."""
         o = obj[keep].reshape(-1, 1, 3).astype(np.float32)
         p = uv[keep].reshape(-1, 1, 2).astype(np.float32)
         K_in = (start.K if start is not None else K0).copy()
@@ -1010,9 +1100,13 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         dist = np.asarray(dist, float).ravel()[:5]
         dist = np.concatenate([dist, np.zeros(5 - dist.size)])
         rvec, tvec = np.asarray(rv[0], float).reshape(3, 1), np.asarray(tv[0], float).reshape(3, 1)
-        q, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, np.asarray(K, float), dist)
+        K = np.asarray(K, float)
+        if white is not None:
+            K, dist, rvec, tvec = _weighted_refine(obj[keep], uv[keep], white[keep], K, dist, rvec, tvec,
+                                                   _free_columns(terms, intrinsic_flags))
+        q, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, dist)
         d = q.reshape(-1, 2) - uv
-        r = d[keep]
+        r = d[keep] if white is None else np.einsum("nij,nj->ni", white[keep], d[keep])
         rss = float(np.sum(r * r))
         dof = max(1, r.size - 6 - n_intrinsics - len(terms))
         return (_Model(terms, np.asarray(K, float), dist, rvec, tvec, r, rss, dof,
@@ -1029,6 +1123,9 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
             break
         keep = new
         model, err = calibrate(base, keep)
+    if (cov_x is not None or sig_p is not None) and not planar:
+        white = _whitening(obj, model, cov_x, sig_p)
+        model, err = calibrate(base, keep, model)
     # "auto": add the distortion term the data most clearly ask for while one passes the test; the
     # residuals' correlation scales their variance, since neighbouring pairs share their errors
     from scipy.stats import chi2
@@ -1071,6 +1168,8 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     light = PerspectiveLight(width=w, height=h, K=np.asarray(K, float), dist=dist, R=R, t=t)
     # conditioning: the fit's own covariance and the Jacobian's condition number
     _, J = cv2.projectPoints(obj[keep].reshape(-1, 1, 3), rvec, tvec, K, dist)
+    if white is not None:
+        J = np.einsum("nij,njk->nik", white[keep], J.reshape(-1, 2, J.shape[1])).reshape(-1, J.shape[1])
     names = _PARAM_NAMES
     free = [i for i, nme in enumerate(names) if nme not in fixed and not (nme == "fy" and "fy/fx" in fixed)]
     if "fy/fx" in fixed:  # fx and fy move together
@@ -1138,6 +1237,23 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     log.info("projector fit: RMS %.3f px over %d points; fx %.1f fy %.1f; condition %.3g; %s", fit.rms_px, fit.used,
              K[0, 0], K[1, 1], cond, "; ".join(decisions))
     return fit
+
+
+def triangulation_covariance(camera1: Camera, camera2: Camera, points_world, sigma1, sigma2) -> np.ndarray:
+    """(n, 3, 3) covariance (world units squared) of points triangulated by two cameras from pixels
+    with standard deviations ``sigma1``, ``sigma2`` ((n,) px per axis): the inverse of the two rays'
+    information (first order). Points far from both cameras or seen at a narrow angle come out long
+    along their depth."""
+    X = np.asarray(points_world, np.float64)
+    info = np.zeros((X.shape[0], 3, 3))
+    for cam, sig in ((camera1, sigma1), (camera2, sigma2)):
+        rv, _ = cv2.Rodrigues(np.asarray(cam.R, float))
+        J = _point_jacobian(X, rv, np.asarray(cam.t, float).reshape(3, 1), np.asarray(cam.K, float),
+                            np.asarray(cam.dist, float))
+        sig = np.maximum(np.asarray(sig, np.float64).reshape(-1), 1e-6)
+        info += np.einsum("nij,nik->njk", J, J) / (sig ** 2)[:, None, None]
+    info += 1e-12 * np.trace(info, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    return np.linalg.inv(info)
 
 
 def procam_rig_from_fit(camera: Camera, light: PerspectiveLight, points_world, *,

@@ -1,14 +1,22 @@
-"""fit_projector's distortion choices (auto / fit / hold), its residual correlation and depth checks,
-against a known projector (pipeline/calibrate/stereo.py)."""
+"""fit_projector's distortion choices (auto / fit / hold), its residual correlation and depth checks, its
+weights, and triangulation_covariance, against a known projector (pipeline/calibrate/stereo.py)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.stereo import ProjectorSettings, fit_projector, rotation_angle_deg
+from ringscan.pipeline.calibrate.stereo import (
+    ProjectorSettings,
+    fit_projector,
+    relative_pose,
+    rotation_angle_deg,
+    triangulate_pair,
+    triangulation_covariance,
+)
 
 from .stereo_truth import oblique_devices, project, surface_points
 
@@ -89,3 +97,38 @@ def test_little_depth_along_the_projector_axis_is_noted():
 def test_settings_refuse_bad_values(field, value):
     with pytest.raises(ValueError, match=field):
         ProjectorSettings(**{field: value})
+
+
+def test_pairs_weighted_by_their_predicted_uncertainty_fit_better():
+    X, up, proj = pairs([-0.08, 0.0, 0.0, 0.0, 0.0], noise_px=0.0)
+    rng = np.random.default_rng(7)
+    sigma = np.where(rng.random(len(X)) < 0.5, 0.05, 1.5)  # half the pairs 30x worse, and known to be
+    noisy = up + rng.normal(0, 1, up.shape) * sigma[:, None]
+    fixed = ProjectorSettings(radial="fit", tangential="hold")  # the choice is the other tests'
+    plain = fit_projector(X, noisy, size=SIZE, settings=fixed)
+    weighted = fit_projector(X, noisy, size=SIZE, settings=fixed, pixel_sigma=sigma)
+    # independent noise: the weighted fit's bound is the better one, and so is its projector
+    assert weighted.std_noise["position"] < 0.5 * plain.std_noise["position"]
+    err = [np.linalg.norm(f.light.center - proj.center) for f in (plain, weighted)]
+    assert err[1] < err[0] and err[1] < 3 * weighted.std["position"]
+    with pytest.raises(ValueError, match="pixel_sigma"):
+        fit_projector(X, noisy, size=SIZE, settings=fixed, pixel_sigma=sigma[:10])
+
+
+def test_triangulation_covariance_matches_the_scatter_of_noisy_triangulations():
+    cam1, cam2, _ = oblique_devices()
+    X = surface_points(3, seed=2)
+    C = triangulation_covariance(cam1, cam2, X, np.full(3, 0.2), np.full(3, 0.2))
+    R, t = relative_pose(cam1, cam2)
+    rng = np.random.default_rng(3)
+    for i in range(3):
+        (u1, _), (u2, _) = project(cam1, X[i:i + 1]), project(cam2, X[i:i + 1])
+        u1 = u1 + rng.normal(0, 0.2, (4000, 2))
+        u2 = u2 + rng.normal(0, 0.2, (4000, 2))
+        n1 = cv2.undistortPoints(u1.reshape(-1, 1, 2), cam1.K, cam1.dist).reshape(-1, 2)
+        n2 = cv2.undistortPoints(u2.reshape(-1, 1, 2), cam2.K, cam2.dist).reshape(-1, 2)
+        Xs = (triangulate_pair(R, t, n1, n2) - cam1.t) @ cam1.R
+        emp = np.cov(Xs.T)
+        # the long axis (depth) and the total spread within 15 % of the prediction
+        assert np.trace(emp) == pytest.approx(np.trace(C[i]), rel=0.15)
+        assert np.linalg.eigvalsh(emp)[-1] == pytest.approx(np.linalg.eigvalsh(C[i])[-1], rel=0.15)
