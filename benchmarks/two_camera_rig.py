@@ -25,7 +25,7 @@ ground truth (virtual-rig figures, not real data):
    epipolar residual and the camera-camera error against the true rig's.
 4. ``calibrate projector-from-scan`` from the true and from the refined rig: the projector's
    intrinsics (%), its pose (degrees, mm) against the truth, with each distortion choice
-   (``--radial``, ``--tangential``: auto, the default, and the fixed models), the fit's own
+   (``--radial``, ``--tangential``: auto, the default, and the fixed models; ``--weights``), the fit's own
    standard deviations (with the residuals' correlation, and the bound were they independent),
    the residuals' correlation and the points' depth along the projector's axis; step 1 prints
    the same for the Gray-code scan.
@@ -172,9 +172,12 @@ def graycode(work: Path, k: int) -> None:
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
-CASES = (("--radial auto --tangential auto (the default)", []),
-         ("--radial fit --tangential hold (k1, k2; the default before)", ["--radial", "fit", "--tangential", "hold"]),
-         ("--radial fit --tangential fit (k1, k2, p1, p2)", ["--radial", "fit", "--tangential", "fit"]))
+CASES = (("auto, weighted (the default)", []),
+         ("auto, --weights none", ["--weights", "none"]),
+         ("--radial fit --tangential hold --weights none (the default before)",
+          ["--radial", "fit", "--tangential", "hold", "--weights", "none"]),
+         ("--radial fit --tangential fit --weights none", ["--radial", "fit", "--tangential", "fit", "--weights",
+                                                           "none"]))
 """projector-from-scan's distortion choices the benchmark prints."""
 
 
