@@ -731,11 +731,13 @@ def load_scan_with_rig(args):
 
 def view_matches(scan, view, *, device):
     """(uv1, uv2, proj, sigmas) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``);
-    sigmas: (n, 3) predicted standard deviations of uv1, uv2 (px) and proj (projector px), or None."""
+    sigmas: (n, 5) predicted standard deviations of uv1, uv2 (px), proj (projector px, the mean of its
+    two axes) and proj along u_p and v_p, or None."""
     from ringscan.pipeline.reconstruct.stereo import match_view
 
     m = match_view(scan, view, device=device)
-    sig = np.stack([m.sigma1, m.sigma2, np.mean(m.sigma_proj, axis=1)], 1).astype(float)
+    sp = np.asarray(m.sigma_proj, float)
+    sig = np.stack([m.sigma1, m.sigma2, np.mean(sp, axis=1), sp[:, 0], sp[:, 1]], 1).astype(float)
     return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float), sig
 
 
@@ -924,7 +926,7 @@ def run_projector_from_scan(args) -> int:
         cov = triangulation_covariance(c1, c2, Xw, sig[keep, 0], sig[keep, 1]) if weighted else None
         fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
             principal_point=pp, radial=args.radial, tangential=args.tangential), point_cov=cov,
-            pixel_sigma=sig[keep, 2] if weighted else None)
+            pixel_sigma=sig[keep, 3:5] if weighted else None)
     K = fit.light.K
     sd = fit.std
     print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
