@@ -787,6 +787,8 @@ class ProjectorFit:
     """Per distortion term, fitted or held and why (the "auto" test's statistic)."""
     notes: list[str] = field(default_factory=list)
     """What the user should know that does not make the fit wrong (e.g. little depth in the points)."""
+    weighted: bool = False
+    """Whether each pair was weighted by its predicted uncertainty (``point_cov``, ``pixel_sigma``)."""
 
     def report(self) -> dict:
         li = self.light
@@ -797,7 +799,7 @@ class ProjectorFit:
                 "depth_range": list(self.depth_range), "depth_ratio": self.depth_ratio,
                 "focal_distance_correlation": self.focal_distance_correlation, "decisions": list(self.decisions),
                 "condition": self.condition, "fixed": list(self.fixed), "problems": list(self.problems),
-                "notes": list(self.notes)}
+                "notes": list(self.notes), "weighted": self.weighted}
 
 
 def _dlt(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -1236,7 +1238,8 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
                        used=int(keep.sum()), outliers=int(n - keep.sum()), thickness=thickness, std=std,
                        condition=cond, fixed=fixed, problems=problems, std_noise=std_noise,
                        correlation=model.correlation, depth_range=(z5, z95), depth_ratio=float(depth_ratio),
-                       focal_distance_correlation=fd_corr, decisions=decisions, notes=notes)
+                       focal_distance_correlation=fd_corr, decisions=decisions, notes=notes,
+                       weighted=white is not None)
     log.info("projector fit: RMS %.3f px over %d points; fx %.1f fy %.1f; condition %.3g; %s", fit.rms_px, fit.used,
              K[0, 0], K[1, 1], cond, "; ".join(decisions))
     return fit

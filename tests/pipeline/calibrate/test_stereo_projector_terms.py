@@ -111,6 +111,7 @@ def test_pairs_weighted_by_their_predicted_uncertainty_fit_better():
     assert weighted.std_noise["position"] < 0.5 * plain.std_noise["position"]
     err = [np.linalg.norm(f.light.center - proj.center) for f in (plain, weighted)]
     assert err[1] < err[0] and err[1] < 3 * weighted.std["position"]
+    assert weighted.weighted and not plain.weighted
     with pytest.raises(ValueError, match="pixel_sigma"):
         fit_projector(X, noisy, size=SIZE, settings=fixed, pixel_sigma=sigma[:10])
 
