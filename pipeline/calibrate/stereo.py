@@ -23,7 +23,12 @@ re-estimate them:
   non-planar point set, and the fit's own standard deviations and condition
   number, since a fit can match its own data and still be wrong (a nearly planar
   set leaves the focal length and the principal point trading against the
-  pose).
+  pose). The distortion terms beyond k1 enter only where the points determine
+  them (a chi-square test whose noise variance is scaled by the residuals'
+  spatial correlation: decoding errors are shared by neighbouring pixels), the
+  standard deviations carry that correlation too, and each pair may be weighted
+  by its predicted uncertainty (the two-camera triangulation's, mapped into the
+  projector, and the decoded pixel's).
 - :func:`write_opencv_procam` / :func:`write_opencv_stereo` write the rig as OpenCV
   FileStorage (the layouts :func:`~ringscan.pipeline.calibrate.importer.read_opencv_calibration`
   and OpenCV's structured-light sample read).
