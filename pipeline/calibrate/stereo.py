@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
@@ -57,8 +58,9 @@ from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
 __all__ = ["RefineSettings", "ResidualStats", "Refinement", "refine_extrinsics", "refine_procam_rig",
            "refine_stereo_rig", "relative_pose", "ProjectorSettings", "ProjectorFit", "fit_projector",
-           "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "triangulation_covariance", "epipolar_distances", "reprojection_errors",
-           "write_opencv_procam", "write_opencv_stereo", "rotation_angle_deg", "decoded_pairs"]
+           "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "triangulation_covariance",
+           "epipolar_distances", "reprojection_errors", "write_opencv_procam", "write_opencv_stereo",
+           "rotation_angle_deg", "decoded_pairs"]
 
 log = logging.getLogger(__name__)
 
@@ -1123,8 +1125,8 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
                        _residual_correlation(r, uv[keep], settings.correlation_cells)), np.linalg.norm(d, axis=1))
 
     keep = np.ones(n, bool)
+    model, err = calibrate(base, keep)
     for _ in range(2):
-        model, err = calibrate(base, keep)
         lim = max(settings.outlier_px, 5 * float(np.median(err[keep])))
         new = err <= lim
         if new.sum() < settings.min_points:
@@ -1138,8 +1140,6 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         model, err = calibrate(base, keep, model)
     # "auto": add the distortion term the data most clearly ask for while one passes the test; the
     # residuals' correlation scales their variance, since neighbouring pairs share their errors
-    from scipy.stats import chi2
-
     decided: dict[tuple, str] = {}
     while True:
         best = None
