@@ -858,10 +858,13 @@ def run_refine(args) -> int:
 def add_projector_from_scan_parser(calsub) -> None:
     p = calsub.add_parser("projector-from-scan", help="the projector fitted to a two-camera scan's points",
                           description="Triangulates the two cameras' matches with the rig (its projector may be "
-                                      "uncalibrated), then fits a perspective projector (intrinsics, k1, k2, pose) "
-                                      "to the points and their projector pixels: a normalised DLT, then OpenCV's "
-                                      "calibrateCamera on the non-planar point set. Prints the RMS reprojection "
-                                      "error, the fit's standard deviations and its condition, and refuses a fit "
+                                      "uncalibrated), then fits a perspective projector (intrinsics, pose, and the "
+                                      "lens distortion terms the points determine: --radial, --tangential) to the "
+                                      "points and their projector pixels, each pair weighted by its predicted "
+                                      "uncertainty (--weights): a normalised DLT, then OpenCV's calibrateCamera on "
+                                      "the non-planar point set. Prints the RMS reprojection error, the fit's "
+                                      "standard deviations (with the residuals' correlation, and without), its "
+                                      "condition, the points' depth along the projector's axis, and refuses a fit "
                                       "the points do not determine (a flat scene: give --principal-point). Writes a "
                                       "one-camera procam rig (camera 1 and the projector), as JSON and OpenCV "
                                       "FileStorage.")
