@@ -50,6 +50,7 @@ from ringscan.pipeline.calibrate.stereo import (
     relative_pose,
     rotation_angle_deg,
     triangulate_pair,
+    triangulation_covariance,
 )
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.formats.scan import load_scan
@@ -116,6 +117,7 @@ def synthetic(noise: float, n: int) -> None:
     print(f"    fit's own std: fx {fit.std['fx']:.3f} px, cx {fit.std['cx']:.3f} px, cy {fit.std['cy']:.3f} px, "
           f"rotation {fit.std['rotation_deg']:.4f} deg, position {fit.std['position']:.3f} mm; condition "
           f"{fit.condition:.3g}; problems: {fit.problems or 'none'}")
+    print(f"    residual correlation {fit.correlation:.2f}x; distortion: {'; '.join(fit.decisions)}")
 
 
 def projector_of_two_cameras(noise: float) -> None:
@@ -174,7 +176,7 @@ def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
     c1, c2, li = rig.camera, rig.camera2, rig.light
     Rt, tt = relative_pose(c1, c2)
     bad = replace(rig, camera2=turned(c2, 2.0))
-    summary = []
+    summary, fits = [], []
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
             scan = simulate_two_camera_scan(Path(tmp) / "scan", rig=rig, seed=seed)
@@ -191,6 +193,14 @@ def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
 
         def err3(X, cen=cen, rad=rad):
             return float(np.median(np.minimum(np.abs(np.linalg.norm(X - cen, axis=1) - rad), np.abs(X[:, 2]))))
+
+        def projector(R, t, weighted=True, m=m):
+            """projector-from-scan's fit: each pair weighted by its predicted uncertainty (the default) or not."""
+            X = points(R, t)
+            c2r = replace(c2, R=R @ c1.R, t=R @ c1.t + t)
+            cov = triangulation_covariance(c1, c2r, X, m.sigma1, m.sigma2) if weighted else None
+            return fit_projector(X, m.proj, size=(li.width, li.height), point_cov=cov,
+                                 pixel_sigma=m.sigma_proj if weighted else None)
 
         _, two = refine_stereo_rig(bad, m.uv1, m.uv2)
         _, three = refine_stereo_rig(bad, m.uv1, m.uv2, sigma1=m.sigma1, sigma2=m.sigma2, uv_light=m.proj,
@@ -210,7 +220,7 @@ def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
                 print(f"    {name} pose's own std: rotation {ref.rotation_std_deg:.4f} deg, direction "
                       f"{ref.direction_std_deg:.4f} deg; problems: {ref.problems or 'none'}")
             for name, R, t in (("true rig", Rt, tt), ("refined rig, three devices", three.R, three.t)):
-                fit = fit_projector(points(R, t), m.proj, size=(li.width, li.height))
+                fit = projector(R, t)
                 K, Kt = fit.light.K, li.K
                 print(f"  projector-from-scan ({name}): RMS {fit.rms_px:.3f} px; fx "
                       f"{100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, "
@@ -223,12 +233,24 @@ def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
                pose_error(three.R, three.t, Rt, tt)[0], err3(points(two.R, two.t)) / e_true,
                err3(points(three.R, three.t)) / e_true, e_true]
         summary.append(row)
+        for weighted in (True, False):
+            fit = projector(Rt, tt, weighted)
+            K, Kt = fit.light.K, li.K
+            fits.append((seed, "weighted" if weighted else "unweighted", 100 * (K[0, 0] / Kt[0, 0] - 1),
+                         100 * (K[1, 2] - Kt[1, 2]) / li.height, rotation_angle_deg(fit.light.R @ li.R.T),
+                         float(np.linalg.norm(fit.light.center - li.center)), fit.std["position"],
+                         ", ".join(nm for nm in ("k1", "k2", "p1", "p2", "k3") if nm not in fit.fixed)))
     print("  refine from camera 2 turned 2 deg, per rendering seed (3D error as a ratio to the true rig's):")
     print("  | seed | matches | epipolar median two-view / three devices / true px | rotation error two-view / "
           "three devices deg | 3D error two-view / three devices | true rig's 3D error mm |")
     for r in summary:
         print(f"  | {r[0]} | {r[1]} | {r[2]:.3f} / {r[3]:.3f} / {r[4]:.3f} | {r[5]:.4f} / {r[6]:.4f} | "
               f"{r[7]:.2f}x / {r[8]:.2f}x | {r[9]:.4f} |")
+    print("  projector-from-scan from the true rig, per rendering seed (auto distortion terms):")
+    print("  | seed | weights | fx error | cy error (of the image) | pose error | own std of the position | fitted |")
+    for r in fits:
+        print(f"  | {r[0]} | {r[1]} | {r[2]:+.3f} % | {r[3]:+.3f} % | {r[4]:.4f} deg, {r[5]:.3f} mm | {r[6]:.3f} mm "
+              f"| {r[7]} |")
 
 
 def run() -> None:

@@ -24,7 +24,11 @@ ground truth (virtual-rig figures, not real data):
    warns (the epipolar check); ``calibrate refine`` (three devices, and ``--two-view``): the
    epipolar residual and the camera-camera error against the true rig's.
 4. ``calibrate projector-from-scan`` from the true and from the refined rig: the projector's
-   intrinsics (%), its pose (degrees, mm) against the truth.
+   intrinsics (%), its pose (degrees, mm) against the truth, with each distortion choice
+   (``--radial``, ``--tangential``: auto, the default, and the fixed models; ``--weights``), the fit's own
+   standard deviations (with the residuals' correlation, and the bound were they independent),
+   the residuals' correlation and the points' depth along the projector's axis; step 1 prints
+   the same for the Gray-code scan.
 
     python benchmarks/two_camera_rig.py [--scale 1] [--work DIR]
 """
@@ -162,17 +166,52 @@ def graycode(work: Path, k: int) -> None:
         std = "-" if label == "true" else f"{rep['rotation_std_deg']:.4f} deg"
         print(f"| {label} | {epi:.3f} | {rotation_angle_deg(R @ Rt.T):.4f} deg | {std} | {med:.4f} |")
     # the projector fitted to the two cameras' dense points (every decoded pixel matched)
-    run("calibrate", "projector-from-scan", scan, "--rig", work / "gc_true.json", "--out", work / "gc_procam.json",
-        "--stereo-out", work / "gc_rig3.json", "--report", work / "gc_pfs.json", "--no-progress", "-q", "--force")
-    got, want = load_rig(work / "gc_rig3.json").light, irig.light
-    rep = json.loads((work / "gc_pfs.json").read_text())["projector"]
-    print("projector-from-scan on this scan (the true stereo rig; against the projector the import was given):")
-    print(f"| fx, fy error | {100 * (got.K[0, 0] / want.K[0, 0] - 1):+.3f} %, {100 * (got.K[1, 1] / want.K[1, 1] - 1):+.3f} % "
-          f"| cx, cy error {100 * (got.K[0, 2] - want.K[0, 2]) / want.width:+.3f} %, "
-          f"{100 * (got.K[1, 2] - want.K[1, 2]) / want.height:+.3f} % of the image | pose error "
-          f"{rotation_angle_deg(got.R @ want.R.T):.4f} deg, {np.linalg.norm(got.center - want.center):.3f} mm "
-          f"| RMS {rep['rms_px']:.3f} px |")
+    print("projector-from-scan on this scan (the true stereo rig; against the projector the import was given, "
+          f"whose lens has k1 {want_dist(irig)}):")
+    projector_table(work, scan, work / "gc_true.json", irig.light, "gc")
     print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+CASES = (("auto, weighted (the default)", []),
+         ("auto, --weights none", ["--weights", "none"]),
+         ("--radial fit --tangential hold --weights none (the default before)",
+          ["--radial", "fit", "--tangential", "hold", "--weights", "none"]),
+         ("--radial fit --tangential fit --weights none", ["--radial", "fit", "--tangential", "fit", "--weights",
+                                                           "none"]))
+"""projector-from-scan's distortion choices the benchmark prints."""
+
+
+def want_dist(rig) -> str:
+    d = rig.light.dist
+    return f"{d[0]:g}, k2 {d[1]:g}, p1 {d[2]:g}, p2 {d[3]:g}, k3 {d[4]:g}"
+
+
+def projector_table(work: Path, scan: Path, rig_file: Path, want, tag: str, *, label: str = "true rig",
+                    cases=CASES, header: bool = True) -> None:
+    """``calibrate projector-from-scan`` with each distortion choice: its errors against the projector ``want``,
+    what it fitted, its own standard deviations (with the residuals' correlation; and were they independent:
+    the Cramer-Rao bound) and the points' depth along the projector's axis."""
+    if header:
+        print("| cameras from | distortion | fx, fy error | cx, cy error (of the image) | pose error | RMS | fitted "
+              "| own std fx, pose (independent residuals) | residual correlation | depth 5-95 % |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+    for i, (what, extra) in enumerate(cases):
+        out = work / f"{tag}_pfs{i}"
+        run("calibrate", "projector-from-scan", scan, "--rig", rig_file, "--out", f"{out}_procam.json",
+            "--stereo-out", f"{out}_rig3.json", "--report", f"{out}.json", "--no-progress", "-q", "--force", *extra)
+        got = load_rig(f"{out}_rig3.json").light
+        rep = json.loads(Path(f"{out}.json").read_text())["projector"]
+        K, Kt = got.K, want.K
+        sd, sn = rep["std"], rep["std_noise"]
+        fitted = ", ".join(nm for nm in ("k1", "k2", "p1", "p2", "k3") if nm not in rep["fixed"]) or "none"
+        z0, z1 = rep["depth_range"]
+        print(f"| {label} | {what} | {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} % "
+              f"| {100 * (K[0, 2] - Kt[0, 2]) / want.width:+.3f} %, {100 * (K[1, 2] - Kt[1, 2]) / want.height:+.3f} % "
+              f"| {rotation_angle_deg(got.R @ want.R.T):.4f} deg, {np.linalg.norm(got.center - want.center):.3f} mm "
+              f"| {rep['rms_px']:.3f} px | {fitted} | {100 * sd['fx'] / K[0, 0]:.3f} %, {sd['rotation_deg']:.4f} deg, "
+              f"{sd['position']:.3f} mm ({100 * sn['fx'] / K[0, 0]:.3f} %, {sn['rotation_deg']:.4f} deg, "
+              f"{sn['position']:.3f} mm) | {rep['correlation']:.1f}x | {z0:.0f}-{z1:.0f} mm "
+              f"({100 * rep['depth_ratio']:.1f} %) |")
 
 
 def with_rig(src: Path, dst: Path, rig) -> Path:
@@ -256,22 +295,11 @@ def rings(work: Path) -> None:
     print(f"| true | {true_epi['median_px']:.3f} / {true_epi['p95_px']:.3f} | 0 | {err['camera-camera']:.4f} |")
 
     # 4. projector-from-scan
-    print("\n4. calibrate projector-from-scan (the projector fitted to the two cameras' points)")
-    print("| cameras from | fx, fy error | cx, cy error | pose error | RMS |")
-    print("|---|---|---|---|---|")
-    for label, src in (("true rig", work / "rings_rig.json"), ("refined rig (three devices)",
-                                                                work / "refined_three.json")):
-        tag = "t" if label.startswith("true") else "r"
-        run("calibrate", "projector-from-scan", scan, "--rig", src, "--out", work / f"procam_{tag}.json",
-            "--stereo-out", work / f"rig3_{tag}.json", "--report", work / f"pfs_{tag}.json", "--no-progress",
-            "-q", "--force")
-        got = load_rig(work / f"rig3_{tag}.json").light
-        K, Kt = got.K, li.K
-        rms = json.loads((work / f"pfs_{tag}.json").read_text())["projector"]["rms_px"]
-        print(f"| {label} | {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} % | "
-              f"{100 * (K[0, 2] - Kt[0, 2]) / li.width:+.3f} %, {100 * (K[1, 2] - Kt[1, 2]) / li.height:+.3f} % "
-              f"of the image | {rotation_angle_deg(got.R @ li.R.T):.4f} deg, "
-              f"{np.linalg.norm(got.center - li.center):.3f} mm | {rms:.3f} px |")
+    print("\n4. calibrate projector-from-scan (the projector fitted to the two cameras' points; the projector has "
+          "no lens distortion)")
+    projector_table(work, scan, work / "rings_rig.json", li, "rings_t", label="true rig")
+    projector_table(work, scan, work / "refined_three.json", li, "rings_r", label="refined rig (three devices)",
+                    cases=CASES[:1], header=False)
     print(f"({time.perf_counter() - t0:.0f} s in all for 2-4)")
 
 

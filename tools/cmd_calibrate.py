@@ -57,6 +57,7 @@ from ringscan.pipeline.calibrate.procam import (
 )
 from ringscan.pipeline.calibrate.stereo import (
     MAX_MATCHES,
+    DISTORTION_CHOICES,
     ProjectorSettings,
     decoded_pairs,
     fit_projector,
@@ -66,6 +67,7 @@ from ringscan.pipeline.calibrate.stereo import (
     relative_pose,
     reprojection_errors,
     triangulate_pair,
+    triangulation_covariance,
     write_opencv_procam,
     write_opencv_stereo,
 )
@@ -729,11 +731,13 @@ def load_scan_with_rig(args):
 
 def view_matches(scan, view, *, device):
     """(uv1, uv2, proj, sigmas) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``);
-    sigmas: (n, 3) predicted standard deviations of uv1, uv2 (px) and proj (projector px), or None."""
+    sigmas: (n, 5) predicted standard deviations of uv1, uv2 (px), proj (projector px, the mean of its
+    two axes) and proj along u_p and v_p, or None."""
     from ringscan.pipeline.reconstruct.stereo import match_view
 
     m = match_view(scan, view, device=device)
-    sig = np.stack([m.sigma1, m.sigma2, np.mean(m.sigma_proj, axis=1)], 1).astype(float)
+    sp = np.asarray(m.sigma_proj, float)
+    sig = np.stack([m.sigma1, m.sigma2, np.mean(sp, axis=1), sp[:, 0], sp[:, 1]], 1).astype(float)
     return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float), sig
 
 
@@ -864,10 +868,13 @@ def run_refine(args) -> int:
 def add_projector_from_scan_parser(calsub) -> None:
     p = calsub.add_parser("projector-from-scan", help="the projector fitted to a two-camera scan's points",
                           description="Triangulates the two cameras' matches with the rig (its projector may be "
-                                      "uncalibrated), then fits a perspective projector (intrinsics, k1, k2, pose) "
-                                      "to the points and their projector pixels: a normalised DLT, then OpenCV's "
-                                      "calibrateCamera on the non-planar point set. Prints the RMS reprojection "
-                                      "error, the fit's standard deviations and its condition, and refuses a fit "
+                                      "uncalibrated), then fits a perspective projector (intrinsics, pose, and the "
+                                      "lens distortion terms the points determine: --radial, --tangential) to the "
+                                      "points and their projector pixels, each pair weighted by its predicted "
+                                      "uncertainty (--weights): a normalised DLT, then OpenCV's calibrateCamera on "
+                                      "the non-planar point set. Prints the RMS reprojection error, the fit's "
+                                      "standard deviations (with the residuals' correlation, and without), its "
+                                      "condition, the points' depth along the projector's axis, and refuses a fit "
                                       "the points do not determine (a flat scene: give --principal-point). Writes a "
                                       "one-camera procam rig (camera 1 and the projector), as JSON and OpenCV "
                                       "FileStorage.")
@@ -879,6 +886,16 @@ def add_projector_from_scan_parser(calsub) -> None:
     p.add_argument("--principal-point", nargs=2, type=float, default=None, metavar=("CX", "CY"),
                    help="hold the projector's principal point here (px): lets a nearly flat scene fit the focal "
                         "length")
+    p.add_argument("--tangential", default="auto", metavar="|".join(DISTORTION_CHOICES),
+                   help="the projector's tangential distortion p1, p2: fitted where the points determine them "
+                        "(auto, the default: a significance test against the residuals), always (fit) or held at 0 "
+                        "(hold)")
+    p.add_argument("--weights", default="predicted", metavar="predicted|none",
+                   help="weight each point-pixel pair by its predicted uncertainty (the two cameras' triangulation "
+                        "mapped into the projector, plus the decoded pixel's; predicted, the default) or not (none)")
+    p.add_argument("--radial", default="auto", metavar="|".join(DISTORTION_CHOICES),
+                   help="its radial distortion: k1, and k2, k3 where the points determine them (auto, the "
+                        "default), k1 and k2 (fit) or none (hold)")
     p.set_defaults(_calibrate=run_projector_from_scan)
 
 
@@ -886,6 +903,11 @@ def run_projector_from_scan(args) -> int:
     size = parse_size(args.projector, "--projector") if args.projector is not None else None
     if args.principal_point is not None and not all(np.isfinite(args.principal_point)):
         raise UsageError("--principal-point: expected two finite numbers")
+    for flag, value in (("--tangential", args.tangential), ("--radial", args.radial)):
+        if value not in DISTORTION_CHOICES:
+            raise UsageError(f"{flag}: expected {', '.join(DISTORTION_CHOICES)}, got {value!r}")
+    if args.weights not in ("predicted", "none"):
+        raise UsageError(f"--weights: expected predicted or none, got {args.weights!r}")
     match_outputs(args)
     scan, views = load_scan_with_rig(args)
     rig = scan.rig
@@ -896,7 +918,7 @@ def run_projector_from_scan(args) -> int:
         size = (getattr(rig.light, "width", 0), getattr(rig.light, "height", 0))
         if not min(size) > 0:
             raise UsageError("--projector: the rig does not give the projector's size; give --projector WxH")
-    uv1, uv2, proj, _ = gather_matches(scan, views, args, need="cameras")
+    uv1, uv2, proj, sig = gather_matches(scan, views, args, need="cameras")
     c1, c2 = rig.camera, rig.camera2
     R, t = relative_pose(c1, c2)
     n1 = cv2.undistortPoints(uv1.reshape(-1, 1, 2), c1.K, c1.dist).reshape(-1, 2)
@@ -912,17 +934,33 @@ def run_projector_from_scan(args) -> int:
     Xc = triangulate_pair(R, t, n1[keep], n2[keep])
     Xw = (Xc - c1.t) @ c1.R
     pp = tuple(args.principal_point) if args.principal_point is not None else None
+    weighted = args.weights == "predicted" and sig is not None
     with progress_step("fitting the projector", enabled=not args.no_progress):
-        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(principal_point=pp))
+        cov = triangulation_covariance(c1, c2, Xw, sig[keep, 0], sig[keep, 1]) if weighted else None
+        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
+            principal_point=pp, radial=args.radial, tangential=args.tangential), point_cov=cov,
+            pixel_sigma=sig[keep, 3:5] if weighted else None)
     K = fit.light.K
     sd = fit.std
     print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
-          f"{fit.residuals.line()}")
+          f"{fit.residuals.line()}; "
+          + ("each pair weighted by its predicted uncertainty" if weighted else "unweighted"))
+    dist = fit.light.dist
     print(f"  fx {K[0, 0]:.2f} +- {sd['fx']:.2f}, fy {K[1, 1]:.2f} +- {sd['fy']:.2f}, cx {K[0, 2]:.2f} +- "
-          f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {fit.light.dist[0]:.4f}, k2 "
-          f"{fit.light.dist[1]:.4f}; fixed: {', '.join(fit.fixed)}")
+          f"{sd['cx']:.2f}, cy {K[1, 2]:.2f} +- {sd['cy']:.2f} px; k1 {dist[0]:.4f}, k2 {dist[1]:.4f}, p1 "
+          f"{dist[2]:.5f}, p2 {dist[3]:.5f}, k3 {dist[4]:.4f}; fixed: {', '.join(fit.fixed) or 'none'}")
     print(f"  pose +- {sd['rotation_deg']:.4f} deg, +- {sd['position']:.3f} mm; condition {fit.condition:.3g}; "
           f"point set thickness {fit.thickness:.3f}")
+    nz = fit.std_noise
+    print(f"  (+- the residuals' correlation, {fit.correlation:.1f}x their variance: independent residuals would "
+          f"give fx +- {nz['fx']:.2f} px, pose +- {nz['rotation_deg']:.4f} deg, +- {nz['position']:.3f} mm)")
+    print(f"  depth along the projector's axis {fit.depth_range[0]:.0f} to {fit.depth_range[1]:.0f} mm (5-95 %): "
+          f"{100 * fit.depth_ratio:.1f} % of the distance; focal length-distance correlation "
+          f"{fit.focal_distance_correlation:+.4f}")
+    for line in fit.decisions:
+        print(f"  distortion {line}")
+    for note in fit.notes:
+        print(f"  note: {note}")
     refuse_unless_forced(args, problems + fit.problems, args.out)
     procam = procam_rig_from_fit(c1, fit.light, Xw)
     save_rig(args.out, procam)

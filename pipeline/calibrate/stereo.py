@@ -24,7 +24,12 @@ re-estimate them:
   non-planar point set, and the fit's own standard deviations and condition
   number, since a fit can match its own data and still be wrong (a nearly planar
   set leaves the focal length and the principal point trading against the
-  pose).
+  pose). The distortion terms beyond k1 enter only where the points determine
+  them (a chi-square test whose noise variance is scaled by the residuals'
+  spatial correlation: decoding errors are shared by neighbouring pixels), the
+  standard deviations carry that correlation too, and each pair may be weighted
+  by its predicted uncertainty (the two-camera triangulation's, mapped into the
+  projector, and the decoded pixel's).
 - :func:`write_opencv_procam` / :func:`write_opencv_stereo` write the rig as OpenCV
   FileStorage (the layouts :func:`~ringscan.pipeline.calibrate.importer.read_opencv_calibration`
   and OpenCV's structured-light sample read).
@@ -42,6 +47,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
@@ -53,8 +59,9 @@ from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
 __all__ = ["RefineSettings", "ResidualStats", "Refinement", "refine_extrinsics", "refine_procam_rig",
            "refine_stereo_rig", "relative_pose", "ProjectorSettings", "ProjectorFit", "fit_projector",
-           "triangulate_pair", "procam_rig_from_fit", "epipolar_distances", "reprojection_errors",
-           "write_opencv_procam", "write_opencv_stereo", "rotation_angle_deg", "decoded_pairs"]
+           "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "triangulation_covariance",
+           "epipolar_distances", "reprojection_errors", "write_opencv_procam", "write_opencv_stereo",
+           "rotation_angle_deg", "decoded_pairs"]
 
 log = logging.getLogger(__name__)
 
@@ -692,6 +699,9 @@ def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = 
 
 # ----------------------------------------------------------------------------- projector from points
 
+DISTORTION_CHOICES = ("auto", "fit", "hold")
+"""What :class:`ProjectorSettings` does with a distortion term: decide from the data, fit, hold at 0."""
+
 
 @dataclass(frozen=True)
 class ProjectorSettings:
@@ -706,13 +716,30 @@ class ProjectorSettings:
     principal_point: tuple[float, float] | None = None
     """A known principal point (px): held fixed, which lets a nearly planar set fit
     the focal length (square pixels, no distortion)."""
-    fit_k1k2: bool = True
-    """Fit radial distortion k1, k2 (k3 is held at 0)."""
-    fit_tangential: bool = False
-    """Also fit tangential distortion p1, p2 (always held at 0 for a planar point set). Held at 0 by
-    default: on the virtual rings scan fitting them costs pose accuracy (0.034 -> 0.062 deg), but a projector
-    whose lens has them (p1 = 0.001 on the virtual Gray-code rig) then moves the principal point (cy 1.3 %)
-    and the pose (0.15 deg); fitting them there gives 0.14 % and 0.008 deg (benchmarks/two_camera_rig.py)."""
+    radial: str = "auto"
+    """Radial distortion: "auto" fits k1, and k2 (then k3) only where the points determine them
+    (:attr:`alpha`); "fit" fits k1, k2 (k3 held at 0); "hold" holds k1, k2, k3 at 0. A projector's
+    narrow field leaves k2 trading with k1 and the focal length: on the virtual Gray-code rig a k2 the
+    data do not determine moved the focal length by 0.13 % and the position by 0.7 mm."""
+    tangential: str = "auto"
+    """Tangential distortion p1, p2: "auto" fits them where the points determine them (:attr:`alpha`),
+    "fit" always, "hold" holds them at 0 (always held for a planar point set). A lens with them (p1 =
+    0.001 on the virtual Gray-code rig) held at 0 moves the principal point (cy 1.3 %) and the pose
+    (0.15 deg)."""
+    alpha: float = 0.001
+    """Significance level of "auto": a distortion term is fitted when the drop of the squared residuals
+    it brings, over the residual variance scaled by :attr:`ProjectorFit.correlation` (the residuals of
+    neighbouring points are not independent), exceeds the chi-square quantile 1 - alpha (one degree
+    of freedom per parameter)."""
+    correlation_cells: int = 4
+    """Cells per side of the grid over the projector pixels in which the residuals' correlation is
+    measured (the variance of a cell's mean residual against that of independent residuals). Coarse,
+    since the terms tested vary smoothly over the whole image: it is the residuals' correlation at
+    that scale that their estimates share (finer cells see less of it: 8x8 gave 9-22 on the virtual
+    scans where 4x4 gives 10-56, and let k2 in on the Gray-code scan)."""
+    min_depth_ratio: float = 0.03
+    """Smallest spread of the points' distances along the projector's axis (5th to 95th percentile)
+    as a share of their median distance: below it the focal length and the distance trade (a note)."""
     outlier_px: float = 3.0
     """Pairs whose reprojection error exceeds this (and 5x the median) after a first fit are left out."""
     max_focal_std: float = 0.005
@@ -727,8 +754,17 @@ class ProjectorSettings:
     def __post_init__(self):
         if not (isinstance(self.min_points, int) and self.min_points >= 6):
             raise ValueError(f"ProjectorSettings.min_points: expected an integer >= 6, got {self.min_points!r}")
+        for name in ("radial", "tangential"):
+            if getattr(self, name) not in DISTORTION_CHOICES:
+                raise ValueError(f"ProjectorSettings.{name}: expected one of {', '.join(DISTORTION_CHOICES)}, "
+                                 f"got {getattr(self, name)!r}")
+        if not (isinstance(self.alpha, float) and 0 < self.alpha < 0.5):
+            raise ValueError(f"ProjectorSettings.alpha: expected a level in (0, 0.5), got {self.alpha!r}")
+        if not (isinstance(self.correlation_cells, int) and 1 <= self.correlation_cells <= 64):
+            raise ValueError(f"ProjectorSettings.correlation_cells: expected an integer 1 to 64, "
+                             f"got {self.correlation_cells!r}")
         for name in ("min_thickness", "outlier_px", "max_focal_std", "max_center_std", "max_rotation_std_deg",
-                     "max_position_std"):
+                     "max_position_std", "min_depth_ratio"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"ProjectorSettings.{name}: expected a positive number, got {v!r}")
@@ -751,20 +787,45 @@ class ProjectorFit:
     thickness: float
     """Least to largest spread of the points (see :attr:`ProjectorSettings.min_thickness`)."""
     std: dict
-    """Standard deviations from the fit: fx, fy, cx, cy (px), k1, k2, rotation_deg, position (world units)."""
+    """Standard deviations from the fit: fx, fy, cx, cy (px), k1, k2, p1, p2, k3, rotation_deg, position
+    (world units); the covariance of independent residuals scaled by :attr:`correlation` (what the
+    residuals' correlated part leaves undetermined as well)."""
     condition: float
     """Condition number of the column-scaled Jacobian of the fit (large: parameters trade against each other)."""
     fixed: list[str] = field(default_factory=list)
     """Parameters held fixed."""
     problems: list[str] = field(default_factory=list)
     """What the points do not determine (empty: a projector to stand behind)."""
+    std_noise: dict = field(default_factory=dict)
+    """The same standard deviations were the residuals independent: the Cramer-Rao bound of the fit
+    for noise of the residuals' size (no fit of these points does better). :attr:`problems` come from
+    these (what the points' geometry leaves open), :attr:`notes` from :attr:`std`."""
+    correlation: float = 1.0
+    """How much the residuals of neighbouring points move together: the variance of the mean residual
+    in a cell of the projector image over what independent residuals give (1: independent)."""
+    depth_range: tuple = (math.nan, math.nan)
+    """5th and 95th percentile of the points' distances along the projector's axis (world units)."""
+    depth_ratio: float = math.nan
+    """Their spread over the median distance: what tells the focal length from the distance."""
+    focal_distance_correlation: float = math.nan
+    """Correlation of fx with the distance of the points from the projector in the fit (near +-1: they trade)."""
+    decisions: list[str] = field(default_factory=list)
+    """Per distortion term, fitted or held and why (the "auto" test's statistic)."""
+    notes: list[str] = field(default_factory=list)
+    """What the user should know that does not make the fit wrong (e.g. little depth in the points)."""
+    weighted: bool = False
+    """Whether each pair was weighted by its predicted uncertainty (``point_cov``, ``pixel_sigma``)."""
 
     def report(self) -> dict:
         li = self.light
         return {"K": li.K.tolist(), "dist": li.dist.tolist(), "R": li.R.tolist(), "t": li.t.tolist(),
                 "rms_px": self.rms_px, "residuals_px": self.residuals.to_dict(), "used": self.used,
                 "outliers": self.outliers, "thickness": self.thickness, "std": dict(self.std),
-                "condition": self.condition, "fixed": list(self.fixed), "problems": list(self.problems)}
+                "std_noise": dict(self.std_noise), "correlation": self.correlation,
+                "depth_range": list(self.depth_range), "depth_ratio": self.depth_ratio,
+                "focal_distance_correlation": self.focal_distance_correlation, "decisions": list(self.decisions),
+                "condition": self.condition, "fixed": list(self.fixed), "problems": list(self.problems),
+                "notes": list(self.notes), "weighted": self.weighted}
 
 
 def _dlt(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -822,8 +883,129 @@ def _pose_std(J: np.ndarray, cols: list[int], resid: np.ndarray):
     return cov, cond
 
 
+_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
+_PARAM_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", *_DIST_NAMES]
+"""The columns of cv2.projectPoints' Jacobian (rotation vector, translation, focal lengths, centre, distortion)."""
+
+
+def _dist_flags(terms: frozenset) -> int:
+    """calibrateCamera flags holding the distortion terms not in ``terms`` at 0."""
+    f = 0
+    for name, flag in (("k1", cv2.CALIB_FIX_K1), ("k2", cv2.CALIB_FIX_K2), ("k3", cv2.CALIB_FIX_K3)):
+        if name not in terms:
+            f |= flag
+    if "p1" not in terms:
+        f |= cv2.CALIB_ZERO_TANGENT_DIST
+    return f
+
+
+def _residual_correlation(resid: np.ndarray, uv: np.ndarray, cells: int) -> float:
+    """How much neighbouring residuals move together: over a cells x cells grid on the pixels ``uv``
+    ((m, 2)), the mean of n_c * mean_c(r)^2 over the mean of r^2, averaged over both axes (about 1
+    for independent residuals, up to the points in a cell where they are all alike). At least 1."""
+    if cells <= 1 or uv.shape[0] < 8 * cells:
+        return 1.0
+    lo, hi = uv.min(0), uv.max(0)
+    ij = np.clip(np.floor((uv - lo) / np.maximum(hi - lo, 1e-9) * cells).astype(np.int64), 0, cells - 1)
+    key = ij[:, 0] * cells + ij[:, 1]
+    cnt = np.bincount(key, minlength=cells * cells)
+    full = cnt >= 5
+    if full.sum() < 4:
+        return 1.0
+    ratios = []
+    for k in range(2):
+        var = float(np.mean(resid[:, k] ** 2))
+        if var <= 0:
+            continue
+        sm = np.bincount(key, weights=resid[:, k], minlength=cells * cells)
+        ratios.append(float(np.mean(sm[full] ** 2 / cnt[full])) / var)
+    return max(1.0, float(np.mean(ratios))) if ratios else 1.0
+
+
+def _free_columns(terms: frozenset, intrinsic_flags: int) -> list[int]:
+    """Columns of the projectPoints Jacobian a fit with these distortion terms and flags moves."""
+    free = list(range(6)) + [6, 7]
+    if not intrinsic_flags & cv2.CALIB_FIX_PRINCIPAL_POINT:
+        free += [8, 9]
+    return free + [10 + i for i, nm in enumerate(_DIST_NAMES) if nm in terms]
+
+
+def _weighted_refine(obj, uv, white, K, dist, rvec, tvec, cols):
+    """(K, dist, rvec, tvec) minimising the whitened reprojection errors, from the given fit."""
+    p0 = np.concatenate([rvec.ravel(), tvec.ravel(), [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dist])
+    o = obj.reshape(-1, 1, 3)
+
+    def unpack(q):
+        p = p0.copy()
+        p[cols] = q
+        return p[0:3], p[3:6], np.array([[p[6], 0, p[8]], [0, p[7], p[9]], [0, 0, 1.0]]), p[10:15]
+
+    def fun(q):
+        rv, tv, Kq, dq = unpack(q)
+        pr, _ = cv2.projectPoints(o, rv, tv, Kq, dq)
+        return np.einsum("nij,nj->ni", white, pr.reshape(-1, 2) - uv).ravel()
+
+    def jac(q):
+        rv, tv, Kq, dq = unpack(q)
+        _, J = cv2.projectPoints(o, rv, tv, Kq, dq)
+        return np.einsum("nij,njk->nik", white, J[:, :15].reshape(-1, 2, 15)).reshape(-1, 15)[:, cols]
+
+    res = least_squares(fun, p0[cols], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=100)
+    rv, tv, Kq, dq = unpack(res.x)
+    return Kq, dq, rv.reshape(3, 1), tv.reshape(3, 1)
+
+
+def _point_jacobian(obj, rvec, tvec, K, dist, step: float = 1e-3) -> np.ndarray:
+    """(n, 2, 3) derivative of the projected pixels by the points (central differences)."""
+    J = np.zeros((obj.shape[0], 2, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = step
+        qp, _ = cv2.projectPoints((obj + d).reshape(-1, 1, 3), rvec, tvec, K, dist)
+        qm, _ = cv2.projectPoints((obj - d).reshape(-1, 1, 3), rvec, tvec, K, dist)
+        J[:, :, k] = (qp - qm).reshape(-1, 2) / (2 * step)
+    return J
+
+
+def _whitening(obj, model, cov_x, sig_p) -> np.ndarray:
+    """(n, 2, 2) W per pair with W S W^T = I for the residual's predicted covariance S (the point's
+    covariance mapped into the projector under ``model``, plus the pixel's), scaled to a median
+    weight of 1 (so the residuals stay in px of a typical pair)."""
+    n = obj.shape[0]
+    S = np.zeros((n, 2, 2))
+    if cov_x is not None:
+        Jp = _point_jacobian(obj, model.rvec, model.tvec, model.K, model.dist)  # the centred frame: world axes
+        S += np.einsum("nij,njk,nlk->nil", Jp, cov_x, Jp)
+    if sig_p is not None:
+        S[:, 0, 0] += sig_p[:, 0] ** 2
+        S[:, 1, 1] += sig_p[:, 1] ** 2
+    tr = np.trace(S, axis1=1, axis2=2)
+    floor = 1e-6 * max(float(np.median(tr)), 1e-300)
+    S += floor * np.eye(2)  # no pair weighs infinitely
+    L = np.linalg.cholesky(S)
+    W = np.linalg.inv(L)
+    scale = math.sqrt(float(np.median(tr)) / 2)
+    return W * scale
+
+
+@dataclass
+class _Model:
+    """One calibrateCamera fit of the kept pairs with a set of distortion terms."""
+
+    terms: frozenset
+    K: np.ndarray
+    dist: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    resid: np.ndarray
+    rss: float
+    dof: int
+    correlation: float
+
+
 def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
-                  settings: ProjectorSettings = ProjectorSettings()) -> ProjectorFit:
+                  settings: ProjectorSettings = ProjectorSettings(), point_cov=None,
+                  pixel_sigma=None) -> ProjectorFit:
     """A perspective projector fitted to 3D points and the projector pixels that lit them.
 
     Args:
@@ -832,6 +1014,12 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         proj_uv: (n, 2) their projector pixels (u_p, v_p).
         size: the projector's (width, height) in pixels.
         settings: see :class:`ProjectorSettings`.
+        point_cov: optional (n, 3, 3) covariance of each point (world units squared, e.g.
+            :func:`triangulation_covariance`), and
+        pixel_sigma: optional (n,) or (n, 2) standard deviation of ``proj_uv`` (px): with either,
+            each pair's residual is weighted by its predicted covariance (the point's mapped into
+            the projector under the unweighted fit, plus the pixel's): the first-order form of a
+            bundle adjustment that lets the points move within their uncertainty. Non-planar sets only.
 
     Returns:
         the :class:`ProjectorFit`; its ``problems`` say what the points do not determine.
@@ -847,8 +1035,21 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     w, h = (int(size[0]), int(size[1]))
     if w <= 0 or h <= 0:
         raise ValueError(f"fit_projector: size must be (width, height) > 0, got {size}")
+    cov_x = sig_p = None
+    if point_cov is not None:
+        cov_x = np.asarray(point_cov, np.float64)
+        if cov_x.shape != (X.shape[0], 3, 3) or not np.all(np.isfinite(cov_x)):
+            raise ValueError(f"fit_projector: point_cov must be finite (n, 3, 3), got shape {cov_x.shape}")
+    if pixel_sigma is not None:
+        sig_p = np.asarray(pixel_sigma, np.float64)
+        sig_p = np.repeat(sig_p[:, None], 2, 1) if sig_p.ndim == 1 else sig_p
+        if sig_p.shape != (X.shape[0], 2) or not np.all(np.isfinite(sig_p) & (sig_p >= 0)):
+            raise ValueError(f"fit_projector: pixel_sigma must be (n,) or (n, 2) finite >= 0, got shape "
+                             f"{np.shape(pixel_sigma)}")
     ok = np.all(np.isfinite(X), 1)
     X, uv = X[ok], uv[ok]
+    cov_x = None if cov_x is None else cov_x[ok]
+    sig_p = None if sig_p is None else sig_p[ok]
     n = X.shape[0]
     if n < settings.min_points:
         raise CalibrationError(None, f"only {n} points with projector pixels; fitting a projector needs at least "
@@ -868,14 +1069,8 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
                                      f"extent < {settings.min_thickness:g}): one plane does not fix the projector's "
                                      "focal length and principal point together; scan an object with depth, or "
                                      "give the principal point")
-    fixed = ["k3"]
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
-    if not settings.fit_tangential:
-        flags |= cv2.CALIB_ZERO_TANGENT_DIST
-        fixed += ["p1", "p2"]
-    if not settings.fit_k1k2:
-        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-        fixed += ["k1", "k2"]
+    intrinsic_flags = cv2.CALIB_USE_INTRINSIC_GUESS
+    fixed: list[str] = []
     if planar:
         # a plane in its own frame (z = 0); square pixels, the given principal point, no distortion
         Rpl = Vt.copy()
@@ -887,9 +1082,9 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
                                     [uv.reshape(-1, 1, 2).astype(np.float32)], (w, h))
         f0 = 0.5 * (K0[0, 0] + K0[1, 1])
         K0 = np.array([[f0, 0, settings.principal_point[0]], [0, f0, settings.principal_point[1]], [0, 0, 1.0]])
-        flags |= (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K1
-                  | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST)
-        fixed = ["cx", "cy", "fy/fx", "k1", "k2", "p1", "p2", "k3"]
+        intrinsic_flags |= cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+        fixed = ["cx", "cy", "fy/fx"]
+        base, candidates = frozenset(), []
     else:
         Rpl = np.eye(3)
         obj = Xc
@@ -897,24 +1092,60 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         K0[0, 1] = 0.0
         if settings.principal_point is not None:
             K0[0, 2], K0[1, 2] = settings.principal_point
-            flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
-            fixed += ["cx", "cy"]
+            intrinsic_flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+            fixed = ["cx", "cy"]
         if not (K0[0, 0] > 0 and K0[1, 1] > 0 and np.all(np.isfinite(K0))):
             raise CalibrationError(None, "the points determine no projector (the DLT start failed): are the "
                                          "projector pixels those of these points?")
+        base = set()
+        candidates = []  # groups "auto" decides, in the order they may enter
+        if settings.radial != "hold":
+            base.add("k1")
+        if settings.radial == "fit":
+            base.add("k2")
+        elif settings.radial == "auto":
+            candidates += [("k2",), ("k3",)]
+        if settings.tangential == "fit":
+            base |= {"p1", "p2"}
+        elif settings.tangential == "auto":
+            candidates.append(("p1", "p2"))
+        base = frozenset(base)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    keep = np.ones(n, bool)
-    for _ in range(2):
+    n_intrinsics = 4 - (2 if settings.principal_point is not None else 0) - (1 if planar else 0)
+
+    white = None  # (n, 2, 2): each pair's residual -> whitened residual (W^T W = its inverse covariance)
+
+    def calibrate(terms: frozenset, keep: np.ndarray, start: _Model | None = None) -> tuple[_Model, np.ndarray]:
+        """The fit of the kept pairs with these distortion terms (weighted where ``white`` is set:
+        OpenCV's fit, then a least-squares refinement of the whitened residuals), and every pair's
+        reprojection error (px)."""
         o = obj[keep].reshape(-1, 1, 3).astype(np.float32)
         p = uv[keep].reshape(-1, 1, 2).astype(np.float32)
+        K_in = (start.K if start is not None else K0).copy()
+        d_in = start.dist.copy() if start is not None else np.zeros(5)
         try:
-            rms, K, dist, rv, tv, std_i, std_e, _ = cv2.calibrateCameraExtended(
-                [o], [p], (w, h), K0.copy(), np.zeros(5), flags=flags, criteria=crit)
+            _, K, dist, rv, tv = cv2.calibrateCamera([o], [p], (w, h), K_in, d_in,
+                                                     flags=intrinsic_flags | _dist_flags(terms), criteria=crit)
         except cv2.error as e:
             raise CalibrationError(None, f"the projector fit failed ({str(e).strip().splitlines()[-1]})") from None
+        dist = np.asarray(dist, float).ravel()[:5]
+        dist = np.concatenate([dist, np.zeros(5 - dist.size)])
         rvec, tvec = np.asarray(rv[0], float).reshape(3, 1), np.asarray(tv[0], float).reshape(3, 1)
+        K = np.asarray(K, float)
+        if white is not None:
+            K, dist, rvec, tvec = _weighted_refine(obj[keep], uv[keep], white[keep], K, dist, rvec, tvec,
+                                                   _free_columns(terms, intrinsic_flags))
         q, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, dist)
-        err = np.linalg.norm(q.reshape(-1, 2) - uv, axis=1)
+        d = q.reshape(-1, 2) - uv
+        r = d[keep] if white is None else np.einsum("nij,nj->ni", white[keep], d[keep])
+        rss = float(np.sum(r * r))
+        dof = max(1, r.size - 6 - n_intrinsics - len(terms))
+        return (_Model(terms, np.asarray(K, float), dist, rvec, tvec, r, rss, dof,
+                       _residual_correlation(r, uv[keep], settings.correlation_cells)), np.linalg.norm(d, axis=1))
+
+    keep = np.ones(n, bool)
+    model, err = calibrate(base, keep)
+    for _ in range(2):
         lim = max(settings.outlier_px, 5 * float(np.median(err[keep])))
         new = err <= lim
         if new.sum() < settings.min_points:
@@ -922,8 +1153,41 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         if np.array_equal(new, keep):
             break
         keep = new
-    dist = np.asarray(dist, float).ravel()[:5]
-    dist = np.concatenate([dist, np.zeros(5 - dist.size)])
+        model, err = calibrate(base, keep)
+    if (cov_x is not None or sig_p is not None) and not planar:
+        white = _whitening(obj, model, cov_x, sig_p)
+        model, err = calibrate(base, keep, model)
+    # "auto": add the distortion term the data most clearly ask for while one passes the test; the
+    # residuals' correlation scales their variance, since neighbouring pairs share their errors
+    decided: dict[tuple, str] = {}
+    while True:
+        best = None
+        for g in candidates:
+            if set(g) <= model.terms or (g == ("k3",) and "k2" not in model.terms):
+                continue
+            trial, trial_err = calibrate(model.terms | set(g), keep, model)
+            stat = (model.rss - trial.rss) / max(trial.rss / trial.dof * trial.correlation, 1e-300)
+            limit = float(chi2.ppf(1.0 - settings.alpha, len(g)))
+            decided[g] = (f"{', '.join(g)}: {{}} (auto: the drop of the squared residuals is {stat:.1f} times the "
+                          f"correlated noise variance, {'>' if stat > limit else '<='} {limit:.1f})")
+            if stat > limit and (best is None or stat / limit > best[0]):
+                best = (stat / limit, g, trial, trial_err)
+        if best is None:
+            break
+        _, g, model, err = best
+        decided[g] = decided[g].format("fitted")
+    decisions = []
+    for g in [("k1",), ("k2",), ("k3",), ("p1", "p2")]:
+        if g in decided:
+            decisions.append(decided[g].format("held at 0") if "{}" in decided[g] else decided[g])
+        elif set(g) <= model.terms:
+            decisions.append(f"{', '.join(g)}: fitted")
+        else:
+            why = ("a planar point set" if planar else "k2 held" if g == ("k3",) and settings.radial == "auto"
+                   else "held")
+            decisions.append(f"{', '.join(g)}: held at 0 ({why})")
+    fixed += [nm for nm in _DIST_NAMES if nm not in model.terms]
+    K, dist, rvec, tvec = model.K, model.dist, model.rvec, model.tvec
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
         raise CalibrationError(None, "the projector fit diverged")
     Rp, _ = cv2.Rodrigues(rvec)
@@ -933,47 +1197,93 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     light = PerspectiveLight(width=w, height=h, K=np.asarray(K, float), dist=dist, R=R, t=t)
     # conditioning: the fit's own covariance and the Jacobian's condition number
     _, J = cv2.projectPoints(obj[keep].reshape(-1, 1, 3), rvec, tvec, K, dist)
-    names = ["rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"]
+    if white is not None:
+        J = np.einsum("nij,njk->nik", white[keep], J.reshape(-1, 2, J.shape[1])).reshape(-1, J.shape[1])
+    names = _PARAM_NAMES
     free = [i for i, nme in enumerate(names) if nme not in fixed and not (nme == "fy" and "fy/fx" in fixed)]
     if "fy/fx" in fixed:  # fx and fy move together
         J = J.copy()
         J[:, 6] += J[:, 7]
-    resid = (q.reshape(-1, 2)[keep] - uv[keep]).ravel()
-    cov, cond = _pose_std(J, free, resid)
-    sd = dict(zip([names[i] for i in free], np.sqrt(np.maximum(np.diag(cov), 0))))
-    cov_r = cov[:3, :3]
-    cov_t = cov[3:6, 3:6]
-    # the projector's centre C = -Rp^T tvec (in the centred frame): its std from the translation's
-    std = {"fx": float(sd.get("fx", 0.0)), "fy": float(sd.get("fy", sd.get("fx", 0.0) * K[1, 1] / K[0, 0])),
-           "cx": float(sd.get("cx", 0.0)), "cy": float(sd.get("cy", 0.0)), "k1": float(sd.get("k1", 0.0)),
-           "k2": float(sd.get("k2", 0.0)), "rotation_deg": math.degrees(math.sqrt(max(np.trace(cov_r), 0.0))),
-           "position": math.sqrt(max(np.trace(cov_t), 0.0))}
+    cov, cond = _pose_std(J, free, model.resid.ravel())
+    free_names = [names[i] for i in free]
+
+    def stds(cov):
+        sd = dict(zip(free_names, np.sqrt(np.maximum(np.diag(cov), 0))))
+        out = {nm: float(sd.get(nm, 0.0)) for nm in ("fx", "cx", "cy", *_DIST_NAMES)}
+        out["fy"] = float(sd.get("fy", sd.get("fx", 0.0) * K[1, 1] / K[0, 0]))
+        out["rotation_deg"] = math.degrees(math.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
+        out["position"] = math.sqrt(max(np.trace(cov[3:6, 3:6]), 0.0))  # of the centred frame's origin
+        return out
+
+    std_noise = stds(cov)
+    std = stds(cov * model.correlation)
+    ifx, itz = free_names.index("fx"), free_names.index("tz")
+    fd_corr = float(cov[ifx, itz] / math.sqrt(max(cov[ifx, ifx] * cov[itz, itz], 1e-300)))
     dist_to_points = float(np.linalg.norm(tvec))
-    problems = []
+    zp = X[keep] @ R[2] + t[2]
+    z5, z50, z95 = (float(v) for v in np.percentile(zp, [5, 50, 95]))
+    depth_ratio = (z95 - z5) / max(z50, 1e-300)
+    problems, notes = [], []
     if planar:
         problems.append(f"the points lie nearly on one plane (thickness {thickness:.3g}): the principal point is "
                         f"the one given, square pixels and no distortion are assumed")
-    for nm, v in (("fx", K[0, 0]), ("fy", K[1, 1])):
-        if not std[nm] <= settings.max_focal_std * v:
-            problems.append(f"projector {nm} {v:.1f} +- {std[nm]:.2f} px ({100 * std[nm] / v:.2f} % > "
-                            f"{100 * settings.max_focal_std:g} %): the points do not determine the focal length")
-    for nm, v, s in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
-        if not std[nm] <= settings.max_center_std * s:
-            problems.append(f"projector {nm} {v:.1f} +- {std[nm]:.1f} px (> {100 * settings.max_center_std:g} % of "
-                            f"the image): the points do not determine the principal point")
-    if not std["rotation_deg"] <= settings.max_rotation_std_deg:
-        problems.append(f"projector rotation +- {std['rotation_deg']:.3f} deg (> {settings.max_rotation_std_deg:g}): "
-                        "the points do not determine its pose")
-    if not std["position"] <= settings.max_position_std * dist_to_points:
-        problems.append(f"projector position +- {std['position']:.2f} (> {100 * settings.max_position_std:g} % of "
-                        f"its distance {dist_to_points:.0f}): the points do not determine its pose")
+
+    def undetermined(sd: dict) -> list[str]:
+        out = []
+        for nm, v in (("fx", K[0, 0]), ("fy", K[1, 1])):
+            if not sd[nm] <= settings.max_focal_std * v:
+                out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.2f} px ({100 * sd[nm] / v:.2f} % > "
+                           f"{100 * settings.max_focal_std:g} %): the points do not determine the focal length")
+        for nm, v, s in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
+            if not sd[nm] <= settings.max_center_std * s:
+                out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.1f} px (> {100 * settings.max_center_std:g} % of "
+                           f"the image): the points do not determine the principal point")
+        if not sd["rotation_deg"] <= settings.max_rotation_std_deg:
+            out.append(f"projector rotation +- {sd['rotation_deg']:.3f} deg (> {settings.max_rotation_std_deg:g}): "
+                       "the points do not determine its pose")
+        if not sd["position"] <= settings.max_position_std * dist_to_points:
+            out.append(f"projector position +- {sd['position']:.2f} (> {100 * settings.max_position_std:g} % of "
+                       f"its distance {dist_to_points:.0f}): the points do not determine its pose")
+        return out
+
+    # refused: what even independent residuals of this size leave open (the geometry of the points);
+    # noted: what the residuals' correlated part (systematic match errors) leaves open on top
+    problems += undetermined(std_noise)
+    first = {p.split(" +-")[0] for p in problems}
+    notes += [f"{p.split(':')[0]} with the residuals' correlation ({model.correlation:.1f}x their variance): "
+              "systematic errors in the matches, not noise, limit it" for p in undetermined(std)
+              if p.split(" +-")[0] not in first]
+    if not planar and depth_ratio < settings.min_depth_ratio:
+        notes.append(f"the points span {100 * depth_ratio:.1f} % of their distance along the projector's axis "
+                     f"({z5:.0f} to {z95:.0f}; < {100 * settings.min_depth_ratio:g} %): the focal length and the "
+                     f"distance trade (correlation {fd_corr:+.3f}); scan an object with more depth")
     e = err[keep]
     fit = ProjectorFit(light=light, rms_px=float(np.sqrt(np.mean(e * e))), residuals=ResidualStats.of(e),
                        used=int(keep.sum()), outliers=int(n - keep.sum()), thickness=thickness, std=std,
-                       condition=cond, fixed=fixed, problems=problems)
-    log.info("projector fit: RMS %.3f px over %d points; fx %.1f fy %.1f; condition %.3g", fit.rms_px, fit.used,
-             K[0, 0], K[1, 1], cond)
+                       condition=cond, fixed=fixed, problems=problems, std_noise=std_noise,
+                       correlation=model.correlation, depth_range=(z5, z95), depth_ratio=float(depth_ratio),
+                       focal_distance_correlation=fd_corr, decisions=decisions, notes=notes,
+                       weighted=white is not None)
+    log.info("projector fit: RMS %.3f px over %d points; fx %.1f fy %.1f; condition %.3g; %s", fit.rms_px, fit.used,
+             K[0, 0], K[1, 1], cond, "; ".join(decisions))
     return fit
+
+
+def triangulation_covariance(camera1: Camera, camera2: Camera, points_world, sigma1, sigma2) -> np.ndarray:
+    """(n, 3, 3) covariance (world units squared) of points triangulated by two cameras from pixels
+    with standard deviations ``sigma1``, ``sigma2`` ((n,) px per axis): the inverse of the two rays'
+    information (first order). Points far from both cameras or seen at a narrow angle come out long
+    along their depth."""
+    X = np.asarray(points_world, np.float64)
+    info = np.zeros((X.shape[0], 3, 3))
+    for cam, sig in ((camera1, sigma1), (camera2, sigma2)):
+        rv, _ = cv2.Rodrigues(np.asarray(cam.R, float))
+        J = _point_jacobian(X, rv, np.asarray(cam.t, float).reshape(3, 1), np.asarray(cam.K, float),
+                            np.asarray(cam.dist, float))
+        sig = np.maximum(np.asarray(sig, np.float64).reshape(-1), 1e-6)
+        info += np.einsum("nij,nik->njk", J, J) / (sig ** 2)[:, None, None]
+    info += 1e-12 * np.trace(info, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    return np.linalg.inv(info)
 
 
 def procam_rig_from_fit(camera: Camera, light: PerspectiveLight, points_world, *,

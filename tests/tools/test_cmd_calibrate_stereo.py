@@ -148,7 +148,11 @@ def test_projector_from_scan_writes_a_procam_rig(stereo_scan, tmp_path, matched,
     out = tmp_path / "procam.json"
     assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out), "--stereo-out",
                  str(tmp_path / "three.json"), "-q"]) == 0
-    assert "projector: RMS reprojection error" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "projector: RMS reprojection error" in printed
+    # the lens has k1, k2 and no tangential terms: auto says what it chose and why, and the points' depth
+    assert "distortion p1, p2: held at 0 (auto" in printed and "distortion k1: fitted" in printed
+    assert "depth along the projector's axis" in printed
     cam1, _, proj = oblique_devices()
     rig = load_rig(out)
     R, T = procam_pose(rig)
@@ -250,6 +254,8 @@ def test_bad_input_one_line_nothing_written(procam_scan, stereo_scan, tmp_path, 
         (["calibrate", "refine", str(procam_scan), "--out", str(out), "--baseline", "-3"], 2, ["--baseline"]),
         (["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out), "--projector", "12"], 2,
          ["--projector"]),
+        (["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out), "--tangential", "maybe"], 2,
+         ["--tangential"]),
     ]
     (tmp_path / "x.yml").write_text("%YAML:1.0\n")
     before = scan_json.read_bytes()
