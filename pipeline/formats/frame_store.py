@@ -40,7 +40,17 @@ STORE_FORMAT = "ringscan.frames/1"
 STORE_NAME = "frames.zarr"
 """The store's folder name inside a view folder."""
 BLOSC = {"cname": "zstd", "clevel": 5, "shuffle": "bitshuffle", "blocksize": 0}
-"""The Blosc settings every frame is written with (docs/formats.md has the measurements)."""
+"""The Blosc settings every frame is written with: zstd level 5 after a bit-shuffle, Blosc's own block size.
+
+Chosen by measurement (``benchmarks/frame_store.py``; docs/formats.md has the table): the
+only codec family within 1.2x the PNG's size on the real captures as well as on simulated
+frames (zstd 5: 1.08x simulated, 1.14-1.19x on shared/data/procam's three captures). LZ4HC
+level 9 decodes ~1.5x faster but is 1.19-1.24x the PNG on the real captures (LZ4 and
+BloscLZ more still); zstd 1-3 are larger and no faster to decode; zstd 7-9 are 2-5 % smaller,
+decode at the same speed and encode 2-30x slower; a block size of 64 KiB-1 MiB changed
+little. Decoding the frames is ~90 % of reading a store (reading the files and their
+CRC32C another ~2 ms a view). The reader takes any Blosc codec numcodecs decodes (the
+codec is in each chunk's header), so stores written with other settings still read."""
 MAX_FRAMES = 4096
 """The most frames a store may hold (a bound on bad input)."""
 MAX_SIDE = 65536
@@ -175,7 +185,8 @@ def _encode(img: np.ndarray) -> bytes:
     import crc32c
 
     Blosc = _blosc()
-    c = Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=Blosc.BITSHUFFLE, blocksize=BLOSC["blocksize"])
+    shuffle = {"noshuffle": Blosc.NOSHUFFLE, "shuffle": Blosc.SHUFFLE, "bitshuffle": Blosc.BITSHUFFLE}[BLOSC["shuffle"]]
+    c = Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=shuffle, blocksize=BLOSC["blocksize"])
     data = c.encode(np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<")))
     return bytes(data) + crc32c.crc32c(data).to_bytes(4, "little")
 
