@@ -10,7 +10,9 @@ quadric (docs/design.md §3, §4), keep the valid points in sample order and wri
   reason), seconds per stage, the rig, the patterns and the resolved settings;
 - ``<out>/settings.json``: the resolved settings.
 
-The report is rewritten (atomically) after every view, so ``resume=True`` keeps
+The report is rewritten (atomically) after every view's PLY (the last view's
+report being the final one; both written on a writer thread behind the next
+view's compute), so ``resume=True`` keeps
 views that are already done after an interrupted run: done means made from the
 same inputs with the same settings, files whole (:mod:`.freshness` decides);
 every other view is redone and the report's ``resume`` block says why.
