@@ -20,7 +20,8 @@ TIME_FIELDS = ("time_s", "times_s", "cpu_s", "wall_s", "views_per_s", "first_res
 def summarise(entries: list[dict], *, wall_s: float) -> dict:
     """Totals of a batch: scans per status, views computed, views per second, the per-view time split, and
     ``cpu_per_view_s``: the workers' CPU seconds (every thread) on the scans that computed views, per view
-    computed (start-up not counted; on a shared machine it moves far less with the load than the clock does)."""
+    computed (a worker's start-up not counted, but its first scan's loading of the kernels it launches is; on a
+    shared machine it moves far less with the load than the clock does)."""
     status: dict[str, int] = {}
     split = dict.fromkeys((*STAGES, "other"), 0.0)
     computed = 0
