@@ -393,6 +393,11 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
     def steady(r):
         return (r["computed_views"] - views) / max(1e-9, r["wall_s"] - r["first_result_s"])
 
+    def steady_cpu(scans, workers):  # the workers' CPU a view, each worker's first scan (the scans are handed
+        # out in folder order, one to each worker first), which loads the kernels it launches, left out
+        rest = scans[workers:]
+        return sum(e["cpu_s"] for e in rest) / max(1, sum(e["computed_views"] for e in rest))
+
     keys = ("w1", "w2", "ceiling", "numpy", "kernels", "read1", "floor", "floor_fresh", "cpu1", "cpu2", "np_cpu",
             "load")
     runs = {f: {k: [] for k in keys} for f in FORMATS}
@@ -405,9 +410,10 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
             for key, workers in (("w1", 1), ("w2", 2)):
                 out = work / f"out_{fmt}_{key}"
                 shutil.rmtree(out, ignore_errors=True)
-                tot = batch_reconstruct(roots[fmt], out, workers=workers, device="cpu", progress=False)["totals"]
+                rep = batch_reconstruct(roots[fmt], out, workers=workers, device="cpu", progress=False)
+                tot = rep["totals"]
                 r[key].append(steady(tot))
-                r["cpu" + key[1]].append(tot["cpu_per_view_s"])
+                r["cpu" + key[1]].append(steady_cpu(rep["scans"], workers))
                 if key == "w1":
                     pv = tot["per_view_s"]
                     r["kernels"].append(1.0 / sum(pv[k] for k in ("decode", "sample", "triangulate", "other")))
@@ -446,7 +452,7 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
           f"view; views/s once the first scan is back; {tag}; {cores} cores; load average at the starts "
           f"{min(loads):.1f}-{max(loads):.1f}):")
     print("   | format | frames on disk | 1 view read, 1 thread | batch 1 worker | batch 2 workers | reading "
-          "ceiling | NumPy reference | kernels only (1 worker) | worker CPU a view (1 / 2 workers) | 2 workers / "
+          "ceiling | NumPy reference | kernels only (1 worker) | worker CPU a view, steady (1 / 2 workers) | 2 workers / "
           "NumPy | 2 workers vs PNG (OpenCV) | same PLYs |")
     print("   |---|---|---|---|---|---|---|---|---|---|---|---|")
     for f in FORMATS:
