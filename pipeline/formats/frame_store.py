@@ -46,9 +46,9 @@ BLOSC = {"cname": "zstd", "clevel": 5, "shuffle": "bitshuffle", "blocksize": 0}
 Chosen by measurement (``benchmarks/frame_store.py``; docs/formats.md has the table): the
 only codec family within 1.2x the PNG's size on the real captures as well as on simulated
 frames (zstd 5: 1.08x simulated, 1.14-1.19x on shared/data/procam's three captures). LZ4HC
-level 9 decodes ~1.5x faster but is 1.19-1.24x the PNG on the real captures (LZ4 and
+level 9 decodes 1.7-3x faster but is 1.19-1.24x the PNG on the real captures (LZ4 and
 BloscLZ more still); zstd 1-3 are larger and no faster to decode; zstd 7-9 are 2-5 % smaller,
-decode at the same speed and encode 2-30x slower; a block size of 64 KiB-1 MiB changed
+decode at the same speed and encode 4-30x slower; a block size of 64 KiB-1 MiB changed
 little. Decoding the frames is ~90 % of reading a store (reading the files and their
 CRC32C another ~2 ms a view). The reader takes any Blosc codec numcodecs decodes (the
 codec is in each chunk's header), so stores written with other settings still read."""
