@@ -394,7 +394,7 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
         return (r["computed_views"] - views) / max(1e-9, r["wall_s"] - r["first_result_s"])
 
     def steady_cpu(scans, workers):  # the workers' CPU a view, each worker's first scan (the scans are handed
-        # out in folder order, one to each worker first), which loads the kernels it launches, left out
+        # out in folder order, normally one to each worker first), which loads the kernels it launches, left out
         rest = scans[workers:]
         return sum(e["cpu_s"] for e in rest) / max(1, sum(e["computed_views"] for e in rest))
 
