@@ -6,9 +6,18 @@ read all frames into memory on one thread (files read from the page cache, decod
 next to PNG as OpenCV writes it by default and to copying the frames in memory (the
 floor). Blosc2's own format needs ``pip install blosc2`` (not a ringscan dependency).
 
+Then the Blosc settings a Zarr v3 store can hold (:data:`CODECS`: codec, level, shuffle,
+block size), on both frame sets, measured in interleaved rounds (the machine is shared:
+each candidate once per round, the best of the rounds kept): size against the PNG,
+decoding the 28 chunks on one thread into a preallocated stack, and that time against
+two memory floors: copying the frames into a preallocated, already-faulted stack
+(``np.copyto``: a reader that reuses its output) and into a fresh one (``np.empty`` +
+copy: what :func:`~ringscan.pipeline.formats.frame_store.read_store` does, the stack
+being new for each view), and the seconds to encode a frame (capture, ``ringscan pack``).
+
 Usage::
 
-    python benchmarks/frame_store.py [--scan SCAN_FOLDER] [--procam ../shared/data/procam/capture_1]
+    python benchmarks/frame_store.py [--scan SCAN_FOLDER] [--procam ../shared/data/procam/capture_1] [--rounds 7]
 
 ``--scan``: a full-size scan folder with PNG frames (default: one view simulated with
 ``ringscan simulate`` into /tmp/ringscan_frame_store, kept for reruns).
@@ -31,6 +40,13 @@ from ringscan.pipeline.formats import frame_store as fs
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 
 REPS = 7
+CODECS = (("zstd", 5, "bit", 0), ("zstd", 5, "bit", 1 << 20), ("zstd", 1, "bit", 0), ("zstd", 3, "bit", 0),
+          ("zstd", 3, "bit", 256 << 10), ("zstd", 7, "bit", 0), ("zstd", 9, "bit", 0),
+          ("lz4hc", 9, "bit", 0), ("lz4hc", 9, "bit", 64 << 10), ("lz4hc", 9, "bit", 1 << 20), ("lz4hc", 5, "bit", 0),
+          ("lz4hc", 1, "bit", 0), ("lz4", 9, "bit", 0), ("lz4", 5, "bit", 0), ("blosclz", 9, "bit", 0),
+          ("zstd", 1, "byte", 0), ("lz4", 9, "byte", 0))
+"""Blosc settings compared (cname, clevel, shuffle, blocksize; 0: Blosc's own choice). For 8-bit frames
+byte-shuffle moves nothing (one byte per element): it is the no-shuffle case."""
 
 
 def best(f, reps: int = REPS) -> float:
@@ -108,11 +124,68 @@ def measure(label: str, frames: np.ndarray, png_read) -> None:
         numcodecs.blosc.use_threads = None
 
 
+def codec_sweep(sets: dict[str, np.ndarray], rounds: int) -> None:
+    """The Blosc settings of :data:`CODECS` on every frame set, interleaved rounds (module docstring)."""
+    import numcodecs.blosc
+    from numcodecs import Blosc
+
+    numcodecs.blosc.use_threads = False  # Blosc on the calling thread alone
+    shuffles = {"bit": Blosc.BITSHUFFLE, "byte": Blosc.SHUFFLE, "none": Blosc.NOSHUFFLE}
+    rows: dict = {c: {} for c in CODECS}
+    floors: dict = {}
+    for label, frames in sets.items():
+        png = sum(len(cv2.imencode(".png", f)[1]) for f in frames)
+        out = np.zeros_like(frames)
+        hot = np.zeros_like(frames)
+        enc, t_enc = {}, {}
+        for c in CODECS:
+            codec = Blosc(cname=c[0], clevel=c[1], shuffle=shuffles[c[2]], blocksize=c[3])
+            t = time.perf_counter()
+            enc[c] = [bytes(codec.encode(f)) for f in frames]
+            t_enc[c] = (time.perf_counter() - t) / len(frames)
+        dec = Blosc()
+        ts: dict = {c: [] for c in CODECS}
+        f_hot, f_fresh = [], []
+        for _ in range(rounds):
+            for c in CODECS:
+                t = time.perf_counter()
+                for chunk, o in zip(enc[c], out):
+                    dec.decode(chunk, out=o)
+                ts[c].append(time.perf_counter() - t)
+                t = time.perf_counter()
+                np.copyto(hot, frames)
+                f_hot.append(time.perf_counter() - t)
+                t = time.perf_counter()
+                np.copyto(np.empty_like(frames), frames)
+                f_fresh.append(time.perf_counter() - t)
+        assert np.array_equal(out, frames)
+        floors[label] = (min(f_hot), min(f_fresh))
+        for c in CODECS:
+            size = sum(len(e) + 4 for e in enc[c])  # + each chunk's CRC32C
+            rows[c][label] = (size / png, min(ts[c]), t_enc[c])
+    print(f"\nBlosc settings (decode on one thread, best of {rounds} interleaved rounds; floors: copy into a "
+          "preallocated stack / into a fresh one):")
+    for label, (fh, ff) in floors.items():
+        print(f"   {label}: floors {1000 * fh:.1f} / {1000 * ff:.1f} ms")
+    head = " | ".join(f"{label}: size vs PNG | decode | vs floors | encode a frame" for label in sets)
+    print(f"   | cname, clevel, shuffle, blocksize | {head} |")
+    print("   |---|" + "---|---|---|---|" * len(sets))
+    for c, per in rows.items():
+        cells = []
+        for label, (ratio, t, te) in per.items():
+            fh, ff = floors[label]
+            cells.append(f"{ratio:.3f}x | {1000 * t:.1f} ms | {t / fh:.1f}x / {t / ff:.1f}x | {1000 * te:.0f} ms")
+        bs = f"{c[3] >> 10} KiB" if c[3] else "auto"
+        print(f"   | {c[0]} {c[1]}, {c[2]}-shuffle, {bs} | " + " | ".join(cells) + " |")
+    numcodecs.blosc.use_threads = None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scan", default=None, help="a full-size scan folder with PNG frames")
     ap.add_argument("--procam", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "procam"
                                             / "capture_1"))
+    ap.add_argument("--rounds", type=int, default=REPS, help="interleaved rounds of the codec table (default 7)")
     a = ap.parse_args()
     scan_dir = Path(a.scan) if a.scan else Path("/tmp/ringscan_frame_store/scan")
     if not (scan_dir / "scan.json").is_file():
@@ -125,12 +198,14 @@ def main() -> int:
     png_size = sum(size_of(scan.frame_path(view, n)) for n in view.frames) if view.packed is None else None
     measure(f"simulated view ({scan_dir})", frames,
             (png_size, lambda: read_view_frames(scan, view, threads=1)) if png_size else None)
+    sets = {"simulated": frames}
     procam = sorted(Path(a.procam).glob("graycode_*.png"))[:28]
     if len(procam) == 28:
-        measure(f"real capture ({a.procam}, graycode_00..27)",
-                np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in procam]), None)
+        sets["real capture"] = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in procam])
+        measure(f"real capture ({a.procam}, graycode_00..27)", sets["real capture"], None)
     else:
         print(f"\n(real captures not found at {a.procam}: skipped)")
+    codec_sweep(sets, a.rounds)
     return 0
 
 

@@ -12,25 +12,32 @@ __all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "format_calibrati
 
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
-TIME_FIELDS = ("time_s", "times_s", "wall_s", "views_per_s", "first_result_s", "workers", "backend")
+TIME_FIELDS = ("time_s", "times_s", "cpu_s", "wall_s", "views_per_s", "first_result_s", "cpu_per_view_s", "workers",
+               "backend")
 """Fields of the reports that depend on how the run went (clock, workers), not on its results."""
 
 
 def summarise(entries: list[dict], *, wall_s: float) -> dict:
-    """Totals of a batch: scans per status, views computed, views per second, the per-view time split."""
+    """Totals of a batch: scans per status, views computed, views per second, the per-view time split, and
+    ``cpu_per_view_s``: the workers' CPU seconds (every thread) on the scans that computed views, per view
+    computed (a worker's start-up not counted, but its first scan's loading of the kernels it launches is; on a
+    shared machine it moves far less with the load than the clock does)."""
     status: dict[str, int] = {}
     split = dict.fromkeys((*STAGES, "other"), 0.0)
     computed = 0
+    cpu = 0.0
     for e in entries:
         key = "failed" if e.get("status") == "failed" else e.get("status", "?")
         status[key] = status.get(key, 0) + 1
         computed += int(e.get("computed_views", 0))
+        if int(e.get("computed_views", 0)):
+            cpu += float(e.get("cpu_s", 0.0))
         for k, s in e.get("times_s", {}).items():
             split[k] = split.get(k, 0.0) + float(s)
     per_view = {k: (s / computed if computed else 0.0) for k, s in split.items()}
     return {"scans": len(entries), "status": status, "computed_views": computed,
             "wall_s": wall_s, "views_per_s": computed / wall_s if wall_s > 0 else 0.0,
-            "per_view_s": per_view}
+            "per_view_s": per_view, "cpu_per_view_s": cpu / computed if computed else 0.0}
 
 
 def format_table(entries: list[dict], totals: dict) -> str:
@@ -53,7 +60,8 @@ def format_table(entries: list[dict], totals: dict) -> str:
     if totals["computed_views"]:
         pv = totals["per_view_s"]
         keys = (*STAGES, "other", *(k for k in STORAGE_STAGES if k in pv))
-        lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in keys))
+        lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in keys)
+                     + (f"; worker CPU {totals['cpu_per_view_s']:.3f} s a view" if totals.get("cpu_per_view_s") else ""))
     return "\n".join(lines)
 
 

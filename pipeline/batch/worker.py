@@ -154,7 +154,7 @@ def process_scan(job: ScanJob) -> dict:
     A scan or output folder given as a URL is staged (:func:`~ringscan.pipeline.formats.storage.stage`): the
     frames are downloaded only when a view is computed, the results uploaded whole once the scan is done.
     """
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     entry: dict = {"scan": job.rel, "out": job.out}
     try:
         with stage(job.folder, job.out, options=job.storage_options) as st:
@@ -167,6 +167,7 @@ def process_scan(job: ScanJob) -> dict:
         log.info("%s: %s", job.folder, e)  # the batch logs it once, with the scan's name
         entry.update(status="failed", error=describe_error(e))
     entry["time_s"] = time.perf_counter() - t
+    entry["cpu_s"] = time.process_time() - cpu  # the worker's CPU seconds on it, every thread (one scan at a time)
     return entry
 
 

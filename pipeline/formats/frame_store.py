@@ -26,6 +26,7 @@ import os
 import re
 import secrets
 import shutil
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +41,17 @@ STORE_FORMAT = "ringscan.frames/1"
 STORE_NAME = "frames.zarr"
 """The store's folder name inside a view folder."""
 BLOSC = {"cname": "zstd", "clevel": 5, "shuffle": "bitshuffle", "blocksize": 0}
-"""The Blosc settings every frame is written with (docs/formats.md has the measurements)."""
+"""The Blosc settings every frame is written with: zstd level 5 after a bit-shuffle, Blosc's own block size.
+
+Chosen by measurement (``benchmarks/frame_store.py``; docs/formats.md has the table): the
+only codec family within 1.2x the PNG's size on the real captures as well as on simulated
+frames (zstd 5: 1.08x simulated, 1.14-1.19x on shared/data/procam's three captures). LZ4HC
+level 9 decodes 1.7-3x faster but is 1.19-1.24x the PNG on the real captures (LZ4 and
+BloscLZ more still); zstd 1-3 are larger and no faster to decode; zstd 7-9 are 2-5 % smaller,
+decode at the same speed and encode 4-30x slower; a block size of 64 KiB-1 MiB changed
+little. Decoding the frames is ~90 % of reading a store (reading the files and their
+CRC32C another ~2 ms a view). The reader takes any Blosc codec numcodecs decodes (the
+codec is in each chunk's header), so stores written with other settings still read."""
 MAX_FRAMES = 4096
 """The most frames a store may hold (a bound on bad input)."""
 MAX_SIDE = 65536
@@ -175,22 +186,48 @@ def _encode(img: np.ndarray) -> bytes:
     import crc32c
 
     Blosc = _blosc()
-    c = Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=Blosc.BITSHUFFLE, blocksize=BLOSC["blocksize"])
+    shuffle = {"noshuffle": Blosc.NOSHUFFLE, "shuffle": Blosc.SHUFFLE, "bitshuffle": Blosc.BITSHUFFLE}[BLOSC["shuffle"]]
+    c = Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=shuffle, blocksize=BLOSC["blocksize"])
     data = c.encode(np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<")))
     return bytes(data) + crc32c.crc32c(data).to_bytes(4, "little")
+
+
+_scratch = threading.local()
+
+
+def _read_chunk(path: Path, limit: int) -> memoryview:
+    """A chunk file's bytes, in this thread's reusable buffer: no allocation per frame (without
+    ringscan's allocator policy, ``kernels.runtime.retain_freed_memory``, each new ~0.6 MB
+    ``bytes`` is mapped and faulted in afresh: 9 ms a view against 1 ms). Valid until this
+    thread's next call."""
+    try:
+        f = open(path, "rb", buffering=0)
+    except FileNotFoundError:
+        raise FormatError(path, "frame missing from the frame store") from None
+    with f:
+        size = os.fstat(f.fileno()).st_size
+        if size < 20 or size > limit:
+            raise FormatError(path, f"frame chunk of {size} bytes (damaged store)")
+        buf = getattr(_scratch, "buf", None)
+        if buf is None or len(buf) < size:
+            buf = _scratch.buf = memoryview(bytearray(size))
+        n = 0
+        while n < size:
+            got = f.readinto(buf[n:size])
+            if not got:
+                break
+            n += got
+    if n != size:
+        raise FormatError(path, f"frame chunk shorter than its {size} bytes (changed while read)")
+    return buf[:size]
 
 
 def _decode_into(path: Path, out: np.ndarray) -> None:
     """Decode chunk file ``path`` into ``out`` (one frame), checking its CRC32C and size."""
     import crc32c
 
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise FormatError(path, "frame missing from the frame store") from None
-    if len(raw) < 20 or len(raw) > out.nbytes + (1 << 20):
-        raise FormatError(path, f"frame chunk of {len(raw)} bytes (damaged store)")
-    body = memoryview(raw)[:-4]
+    raw = _read_chunk(path, out.nbytes + (1 << 20))
+    body = raw[:-4]
     if crc32c.crc32c(body) != int.from_bytes(raw[-4:], "little"):
         raise FormatError(path, "frame chunk fails its CRC32C checksum (damaged store)")
     # The Blosc header's byte count (bytes 4..8) must be exactly one frame.

@@ -10,7 +10,9 @@ quadric (docs/design.md §3, §4), keep the valid points in sample order and wri
   reason), seconds per stage, the rig, the patterns and the resolved settings;
 - ``<out>/settings.json``: the resolved settings.
 
-The report is rewritten (atomically) after every view, so ``resume=True`` keeps
+The report is rewritten (atomically) after every view's PLY (the last view's
+report being the final one; both written on a writer thread behind the next
+view's compute), so ``resume=True`` keeps
 views that are already done after an interrupted run: done means made from the
 same inputs with the same settings, files whole (:mod:`.freshness` decides);
 every other view is redone and the report's ``resume`` block says why.
@@ -148,17 +150,21 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
     }
     if resume:
         report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
-    atomic_write_json(out / "settings.json", report["settings"])
     t_all = time.perf_counter()
     from ringscan.pipeline.formats.progress import progress_bar
 
     todo = [v for v in chosen if v.name not in done]
-    # Read the next view's frames while this one is reconstructed (image decoding
-    # and Warp launches both release the GIL).
+    # Read the next view's frames while this one is reconstructed, and write
+    # settings.json, each view's PLY and the report behind the compute (image
+    # decoding, Warp launches and fsync all release the GIL): a view does not wait
+    # for the disk. One writer thread keeps the order (a view's PLY is in place
+    # before the report that lists it), each file atomic and flushed as before.
     from concurrent.futures import ThreadPoolExecutor
 
     reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-write")
     pending = {}
+    written = [writer.submit(atomic_write_json, out / "settings.json", report["settings"])]
 
     def prefetch(k):
         if k < len(todo) and todo[k].name not in pending:
@@ -175,14 +181,23 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
             prefetch(k)
             frames, read_s = pending.pop(view.name).result()
             prefetch(k + 1)
-            report["views"].append(_reconstruct_one(scan, view, index=index, frames=frames, read_s=read_s,
-                                                    out_dir=out, settings=settings, device=device,
-                                                    inputs_hash=hashes.views[view.name]))
-            atomic_write_json(report_path, report)
+            cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
+            del frames
+            cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
+            entry = _view_entry(scan, view, index=index, cloud=cloud, inputs_hash=hashes.views[view.name])
+            report["views"].append(entry)
+            for f in written:  # a failed write stops the run before the next view
+                f.result()
+            # the last view's report is the final one, written below
+            snapshot = {**report, "views": list(report["views"])} if k + 1 < len(todo) else None
+            written = [writer.submit(_write_view, out, cloud, entry, index, report_path, snapshot)]
+        for f in written:
+            f.result()
     finally:
         for f in pending.values():
             f.cancel()
         reader.shutdown(wait=True)
+        writer.shutdown(wait=True)
     report["totals"] = _totals(report["views"])
     report["time_s"] = time.perf_counter() - t_all
     atomic_write_json(report_path, report)
@@ -195,6 +210,26 @@ def _timed_read(scan: Scan, view: View, threads: int) -> tuple[np.ndarray, float
     return frames, time.perf_counter() - t
 
 
+def _view_entry(scan: Scan, view: View, *, index: int, cloud, inputs_hash: str) -> dict:
+    """A reconstructed view's entry of the report (its ``times_s`` gains ``write`` once its PLY is written)."""
+    entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": f"{view.name}.ply",
+             "camera_center": scan.rig.camera.center.tolist(), "inputs_hash": inputs_hash, **cloud.stats}
+    log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
+             ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
+    if "no_points" in cloud.stats:
+        log.warning("%s of %s: no points: %s", view.name, scan.folder, cloud.stats["no_points"])
+    return entry
+
+
+def _write_view(out_dir: Path, cloud, entry: dict, index: int, report_path: Path, report: dict | None) -> None:
+    """Write a view's PLY, then (``report`` not None) the report that lists it (on the writer thread)."""
+    t = time.perf_counter()
+    write_view_ply(out_dir / entry["ply"], cloud, index)
+    entry["times_s"]["write"] = time.perf_counter() - t
+    if report is not None:
+        atomic_write_json(report_path, report)
+
+
 def scan_inputs(scan: Scan) -> list[Path]:
     """The files a scan is made of: scan.json, its rig file, every frame."""
     files = [scan.path]
@@ -202,25 +237,6 @@ def scan_inputs(scan: Scan) -> list[Path]:
         files.append(scan.folder / scan.rig_ref)
     files += [scan.frame_path(v, n) for v in scan.views for n in v.frames]
     return files
-
-
-def _reconstruct_one(scan: Scan, view: View, *, index: int, frames: np.ndarray, read_s: float, out_dir: Path,
-                     settings: ReconstructSettings, device: str, inputs_hash: str) -> dict:
-    """Reconstruct one view from its frames and write its PLY into ``out_dir``; returns the
-    view's report entry."""
-    cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
-    cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
-    ply = f"{view.name}.ply"
-    t = time.perf_counter()
-    write_view_ply(out_dir / ply, cloud, index)
-    cloud.stats["times_s"]["write"] = time.perf_counter() - t
-    entry = {"name": view.name, "index": index, "turntable_deg": view.turntable_deg, "ply": ply,
-             "camera_center": scan.rig.camera.center.tolist(), "inputs_hash": inputs_hash, **cloud.stats}
-    log.info("%s: %d samples -> %d points (%s)", view.name, cloud.stats.get("samples", 0), cloud.stats["points"],
-             ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
-    if "no_points" in cloud.stats:
-        log.warning("%s of %s: no points: %s", view.name, scan.folder, cloud.stats["no_points"])
-    return entry
 
 
 def _totals(views: list[dict]) -> dict:

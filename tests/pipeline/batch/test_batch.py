@@ -18,11 +18,28 @@ def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):
         ev = evaluate_recon(out / rel, scan_root / rel)
         assert ev["all"]["median_mm"] < 0.1 and ev["all"]["frac_over_1mm"] < 0.01
     assert read_json(out / "batch_report.json")["scans"] == rep["scans"]
+    assert all(s["cpu_s"] > 0 for s in rep["scans"])  # the workers' CPU seconds, per scan and per view
+    assert rep["totals"]["cpu_per_view_s"] == pytest.approx(sum(s["cpu_s"] for s in rep["scans"])
+                                                            / rep["totals"]["computed_views"])
     ply = out / "a_sphere" / "view_000.ply"
     before = ply.stat().st_mtime_ns
     rep2 = batch_reconstruct(scan_root, out, progress=False)
     assert [s["status"] for s in rep2["scans"]] == ["skipped (already done)"] * 2
     assert ply.stat().st_mtime_ns == before  # nothing redone
+    assert rep2["totals"]["cpu_per_view_s"] == 0.0  # no view computed
+
+
+def test_summarise_counts_cpu_of_the_scans_that_computed_views():
+    from ringscan.pipeline.batch.report import summarise
+
+    entries = [{"status": "done", "computed_views": 2, "cpu_s": 0.5, "times_s": {"read": 0.1}},
+               {"status": "skipped (already done)", "computed_views": 0, "cpu_s": 0.25, "times_s": {}},
+               {"status": "done", "computed_views": 1, "cpu_s": 0.25, "times_s": {"read": 0.2}},
+               {"status": "failed", "error": "x", "cpu_s": 0.125}]
+    tot = summarise(entries, wall_s=2.0)
+    assert tot["computed_views"] == 3 and tot["views_per_s"] == 1.5
+    assert tot["cpu_per_view_s"] == pytest.approx(0.75 / 3)
+    assert tot["per_view_s"]["read"] == pytest.approx(0.1)
 
 
 def test_batch_lists_a_broken_scan_and_goes_on(scan_root, tmp_path):

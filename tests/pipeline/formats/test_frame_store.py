@@ -32,6 +32,24 @@ def test_round_trip_is_bit_exact(tmp_path, dtype):
     assert not [p for p in (tmp_path / "v").iterdir() if p.name.startswith(".")]  # no temporaries left
 
 
+@pytest.mark.parametrize("cname,shuffle", [("zstd", "bitshuffle"), ("lz4", "shuffle"), ("lz4hc", "bitshuffle"),
+                                           ("blosclz", "noshuffle"), ("zlib", "bitshuffle")])
+def test_stores_written_with_any_blosc_codec_read_back(tmp_path, monkeypatch, cname, shuffle):
+    """The reader follows each chunk's own header: stores written with other Blosc settings (an
+    older ringscan's, another tool's) read bit-exactly with today's."""
+    a = _frames(np.uint8)
+    monkeypatch.setattr(fs, "BLOSC", {"cname": cname, "clevel": 9, "shuffle": shuffle, "blocksize": 1 << 16})
+    fs.write_store(tmp_path / "v.zarr", a, NAMES)
+    meta = json.loads((tmp_path / "v.zarr" / "zarr.json").read_text())
+    assert meta["codecs"][1]["configuration"]["cname"] == cname
+    # the chunks hold what zarr.json says (Blosc's header: flags bit 0 byte-shuffle, bit 2 bit-shuffle)
+    flags = (tmp_path / "v.zarr" / "c" / "0" / "0" / "0").read_bytes()[2]
+    assert (flags & 1, flags >> 2 & 1) == {"noshuffle": (0, 0), "shuffle": (1, 0), "bitshuffle": (0, 1)}[shuffle]
+    monkeypatch.undo()
+    assert fs.BLOSC["cname"] == "zstd"
+    assert np.array_equal(fs.read_store(tmp_path / "v.zarr"), a)
+
+
 def test_zarr_python_reads_the_store_and_writes_one_we_read(tmp_path):
     zarr = pytest.importorskip("zarr")
     a = _frames(np.uint16)
