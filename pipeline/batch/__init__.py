@@ -47,6 +47,14 @@ __all__ = ["find_scans", "iter_scans", "batch_reconstruct", "plan_batch", "defau
 
 BACKENDS = ("local", "ray")
 
+REPORT_EVERY_S = 2.0
+"""Least seconds between two rewrites of ``batch_report.json`` while a batch runs (after the
+first scan and at the end it is always written): the report grows with the scans, and
+rewriting it after every one of ten thousand would cost more than the scans."""
+REPORT_SHARE = 0.05
+"""Largest share of the batch's wall time spent rewriting the report: the next rewrite waits
+at least 1 / REPORT_SHARE times as long as the last one took."""
+
 
 def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
     """Workers and their devices by default.
@@ -217,6 +225,7 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
     bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     computed = 0
     first = None
+    next_write = 0.0  # the first scan's result is written at once (an unwritable OUT shows early)
     try:
         for n, entry in results:
             first = time.perf_counter() - t0 if first is None else first
@@ -227,8 +236,11 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
             bar.update(1)
             el = time.perf_counter() - t0
             bar.set_postfix_str(f"{computed / el if el > 0 else 0:.2f} views/s")
-            report["scans"] = [entries[k] for k in sorted(entries)]
-            write_json_to(report_path, report, storage_options)
+            if el >= next_write:
+                report["scans"] = [entries[k] for k in sorted(entries)]
+                write_json_to(report_path, report, storage_options)
+                took = time.perf_counter() - t0 - el
+                next_write = el + took + max(REPORT_EVERY_S, took / REPORT_SHARE)
     finally:
         bar.close()
     report["scans"] = [entries[k] for k in sorted(entries)]

@@ -29,6 +29,28 @@ def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):
     assert rep2["totals"]["cpu_per_view_s"] == 0.0  # no view computed
 
 
+def test_the_report_is_rewritten_after_the_first_scan_and_at_the_end_not_after_each(scan_root, tmp_path,
+                                                                                    monkeypatch):
+    import ringscan.pipeline.batch as batch
+
+    written = []
+    real = batch.write_json_to
+
+    def count(path, report, options):
+        written.append(len(report["scans"]))
+        return real(path, report, options)
+
+    monkeypatch.setattr(batch, "write_json_to", count)
+    monkeypatch.setattr(batch, "REPORT_EVERY_S", 3600.0)
+    rep = batch_reconstruct(scan_root, tmp_path / "out", workers=0, progress=False)
+    assert written == [1, 2] and read_json(tmp_path / "out" / "batch_report.json")["scans"] == rep["scans"]
+    written.clear()
+    monkeypatch.setattr(batch, "REPORT_EVERY_S", 0.0)
+    monkeypatch.setattr(batch, "REPORT_SHARE", 1e9)  # every scan
+    batch_reconstruct(scan_root, tmp_path / "out2", workers=0, progress=False)
+    assert written == [1, 2, 2]
+
+
 def test_summarise_counts_cpu_of_the_scans_that_computed_views():
     from ringscan.pipeline.batch.report import summarise
 
