@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import logging
+
 import numpy as np
 import warp as wp
 
@@ -27,7 +29,17 @@ from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_
 from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
 from ringscan.kernels.samples import Samples
 
-__all__ = ["SampleSettings", "sample_gray_rings", "ring_radii"]
+__all__ = ["SampleSettings", "sample_gray_rings", "ring_radii", "ring_blur_variance"]
+
+log = logging.getLogger(__name__)
+
+SQRT_2PI = wp.constant(2.5066282746310002)
+WALK_STEP = wp.constant(0.5)
+"""Step (camera px) of the walk along an edge's normal to the neighbouring band edges."""
+WALK_MAX = wp.constant(64.0)
+"""Longest walk (camera px): wider bands give the sample no blur estimate."""
+MIN_RING_ESTIMATES = 16
+"""Rings with fewer blur estimates than this take the median of all rings'."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +53,18 @@ class SampleSettings:
     noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
     band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
     position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
+    ring_curvature: bool = True
+    """Remove the inward shift of blurred ring edges: the crossing of a circle of
+    radius rho and its inverse, both blurred by a Gaussian of sigma (projector px
+    along the radius: projector pixel and defocus, camera pixel and defocus), lies
+    inward by sigma^2 / (2 rho), so the sample's rho (its ring's nominal radius)
+    reads too large by that much. Each sample's sigma comes from its own edge: the
+    slope of frame - inverse at the crossing is 2 C / (sqrt(2 pi) sigma) camera px
+    (C: white - black), scaled to projector px by the camera distance to the
+    neighbouring band edges (one pitch each); sigma^2 is then the median over the
+    samples of each ring (the bias is smooth; single edges are noisy) and rho
+    = rho0 + k pitch - sigma^2 / (2 rho) (docs/dense.md, "Ring curvature").
+    Off: rho = rho0 + k pitch."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -142,6 +166,101 @@ def edge_pair(
 
 
 @wp.func
+def band_at(code: wp.array2d(dtype=wp.int32), contrast: wp.array2d(dtype=wp.float32), bits: int,
+            min_contrast: float, fy: float, fx: float):
+    """Band index of the raw code (every bit by its sign, weak or not: it flips
+    where the edge is) of the pixel nearest (fy, fx); -2 outside the image or dark."""
+    yi = int(wp.floor(fy + 0.5))
+    xi = int(wp.floor(fx + 0.5))
+    if yi < 0 or xi < 0 or yi >= code.shape[0] or xi >= code.shape[1]:
+        return -2
+    if contrast[yi, xi] < min_contrast:
+        return -2
+    return gray_to_binary(code[yi, xi], bits)
+
+
+@wp.func
+def edge_blur(
+    frames: wp.array3d(dtype=Any),
+    code: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    bits: int,
+    min_contrast: float,
+    pitch: float,
+    y: int,
+    x: int,
+    dy: int,
+    dx: int,
+    frac: float,
+):
+    """Blur variance sigma^2 (projector px^2, along the radius) of the edge found
+    between p = (y, x) and q = (y + dy, x + dx) at ``frac``; -1 where unknown.
+
+    sigma (camera px) from the slope |grad d| = 2 C / (sqrt(2 pi) sigma) of
+    d = frame - inverse at the crossing, less the 1/12 px^2 that the one-pixel
+    difference itself adds; camera px -> projector px by pitch / (the mean camera
+    distance along the normal to the neighbouring band edges on either side).
+    """
+    h = code.shape[0]
+    w = code.shape[1]
+    y2 = y + dy
+    x2 = x + dx
+    kp = gray_to_binary(code[y, x], bits)
+    kq = gray_to_binary(code[y2, x2], bits)
+    b = bits - 1 - single_bit(code[y, x] ^ code[y2, x2])
+    fidx = FRAME_FIRST_BIT + 2 * b
+    along = bit_diff(frames, fidx, y2, x2) - bit_diff(frames, fidx, y, x)
+    ay0 = wp.max(y - dx, 0)
+    ay1 = wp.min(y + dx, h - 1)
+    ax0 = wp.max(x - dy, 0)
+    ax1 = wp.min(x + dy, w - 1)
+    by0 = wp.max(y2 - dx, 0)
+    by1 = wp.min(y2 + dx, h - 1)
+    bx0 = wp.max(x2 - dy, 0)
+    bx1 = wp.min(x2 + dy, w - 1)
+    across = 0.25 * (bit_diff(frames, fidx, ay1, ax1) - bit_diff(frames, fidx, ay0, ax0)
+                     + bit_diff(frames, fidx, by1, bx1) - bit_diff(frames, fidx, by0, bx0))
+    gx = along
+    gy = across
+    if dy == 1:
+        gx = across
+        gy = along
+    g = wp.sqrt(gx * gx + gy * gy)
+    cm = 0.5 * (contrast[y, x] + contrast[y2, x2])
+    if g <= 0.0 or cm <= 0.0:
+        return -1.0
+    sc = 2.0 * cm / (SQRT_2PI * g)
+    s2 = wp.max(sc * sc - 1.0 / 12.0, 0.0)
+    nx = gx / g
+    ny = gy / g
+    cy = float(y) + float(dy) * frac
+    cx = float(x) + float(dx) * frac
+    klo = wp.min(kp, kq)
+    khi = wp.max(kp, kq)
+    dsum = float(0.0)
+    sides = int(0)
+    for side in range(2):
+        sgn = float(2 * side - 1)
+        t = float(WALK_STEP)
+        while t <= WALK_MAX:
+            k = band_at(code, contrast, bits, min_contrast, cy + sgn * t * ny, cx + sgn * t * nx)
+            if k < 0:
+                t = WALK_MAX + 1.0
+            elif k != kp and k != kq:
+                if k == klo - 1 or k == khi + 1:
+                    # the first step whose nearest pixel is past the edge: on average
+                    # at the edge (measured on synthetic rings, pitch 3-6 px)
+                    dsum += t
+                    sides = sides + 1
+                t = WALK_MAX + 1.0
+            t = t + WALK_STEP
+    if sides == 0:
+        return -1.0
+    scale = pitch * float(sides) / dsum
+    return s2 * scale * scale
+
+
+@wp.func
 def pair_sector(sector: wp.array2d(dtype=wp.int32), y: int, x: int, y2: int, x2: int):
     s = sector[y, x]
     if s < 0:
@@ -161,22 +280,28 @@ def count_edges_kernel(
     bits: int,
     min_contrast: float,
     min_slope: float,
+    curvature: int,
+    pitch: float,
     row0: int,
     chunk: int,
     counts: wp.array(dtype=wp.int32),
     found: wp.array(dtype=wp.uint8),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
+    blur: wp.array(dtype=wp.float32),
 ):
     """Test both pairs of every pixel; count its samples (0, 1 or 2) and keep
     what the write pass needs, so that no pair is evaluated twice. A thread
     covers ``chunk`` pixels of one row (see ``kernels.launch.launch_rows``).
 
-    frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W) read.
+    frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W)
+    read; ``curvature`` 1: estimate each crossing's blur (``pitch``: projector px).
     counts: (H*W,) int32 written (every pixel).
     found: (H*W,) uint8 written where counts > 0: bit 0 the +x pair, bit 1 the +y pair.
     fraction, slope: (2*H*W,) float32 written at 2*i + d for each found pair d
         (0: +x, 1: +y): the crossing's position along the pair and its confidence.
+    blur: (2*H*W,) float32 written likewise with ``curvature`` 1: the edge's blur
+        variance (projector px^2, -1 unknown; :func:`edge_blur`).
     """
     w = code.shape[1]
     run = row_run(wp.tid(), w, row0, chunk)
@@ -195,11 +320,15 @@ def count_edges_kernel(
                 bitsf = bitsf | 1
                 fraction[2 * i] = ex[1]
                 slope[2 * i] = ex[3]
+                if curvature != 0:
+                    blur[2 * i] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 0, 1, ex[1])
             if ey[0] > 0.0:
                 n = n + 1
                 bitsf = bitsf | 2
                 fraction[2 * i + 1] = ey[1]
                 slope[2 * i + 1] = ey[3]
+                if curvature != 0:
+                    blur[2 * i + 1] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 1, 0, ey[1])
             if n > 0:
                 found[i] = wp.uint8(bitsf)
         counts[i] = n
@@ -220,7 +349,9 @@ def write_edges_kernel(
     found: wp.array(dtype=wp.uint8),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
+    blur: wp.array(dtype=wp.float32),
     bits: int,
+    curvature: int,
     row0: int,
     chunk: int,
     uv: wp.array(dtype=wp.vec2),
@@ -228,14 +359,16 @@ def write_edges_kernel(
     sample_sector: wp.array(dtype=wp.int32),
     confidence: wp.array(dtype=wp.float32),
     pixel: wp.array(dtype=wp.int32),
+    sample_blur: wp.array(dtype=wp.float32),
 ):
     """Write each pixel's samples at its scanned offset (pixels with a count only).
 
     code/sector (H, W) int32, counts and offsets (H*W,) int32 (offsets: their
-    exclusive scan), found (H*W,) uint8, fraction/slope (2*H*W,) float32, all
-    from the count pass: read.
+    exclusive scan), found (H*W,) uint8, fraction/slope/blur (2*H*W,) float32,
+    all from the count pass: read (blur only with ``curvature`` 1).
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
-    confidence (n_samples,) float32: written.
+    confidence (n_samples,) float32, sample_blur (n_samples,) float32 (with
+    ``curvature`` 1): written.
     """
     w = code.shape[1]
     run = row_run(wp.tid(), w, row0, chunk)
@@ -253,6 +386,8 @@ def write_edges_kernel(
                 sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
                 confidence[o] = slope[2 * i]
                 pixel[o] = i
+                if curvature != 0:
+                    sample_blur[o] = blur[2 * i]
                 o = o + 1
             if (f & 2) != 0:
                 uv[o] = wp.vec2(float(x), float(y) + fraction[2 * i + 1])
@@ -260,6 +395,8 @@ def write_edges_kernel(
                 sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
                 confidence[o] = slope[2 * i + 1]
                 pixel[o] = i
+                if curvature != 0:
+                    sample_blur[o] = blur[2 * i + 1]
 
 
 for _t in (wp.uint8, wp.uint16):
@@ -288,7 +425,9 @@ def sample_gray_rings(
         settings: sampler thresholds.
         threads: CPU threads (row slices); default: all cores.
         rho0, pitch: the pattern's inner radius and pitch (projector px); given
-            both, ``rho`` is filled (:func:`ring_radii`), else it is None.
+            both, ``rho`` is filled: the ring's radius (:func:`ring_radii`), less
+            the blurred edge's inward shift with ``settings.ring_curvature``
+            (:func:`ring_blur_variance`); else it is None.
 
     Returns:
         :class:`~ringscan.kernels.samples.Samples` on the frames' device, in
@@ -301,21 +440,27 @@ def sample_gray_rings(
         raise ValueError(f"sample_gray_rings: labels are {tuple(labels.code.shape)}, frames are {(h, w)}")
     if frames.shape[0] < 2 + 2 * bits:
         raise ValueError(f"sample_gray_rings: {bits} bits need {2 + 2 * bits} frames, got {frames.shape[0]}")
+    if (rho0 is None) != (pitch is None):
+        raise ValueError("sample_gray_rings: give both rho0 and pitch, or neither")
+    if pitch is not None and not (np.isfinite(pitch) and pitch > 0 and np.isfinite(rho0)):
+        raise ValueError(f"sample_gray_rings: pitch must be > 0 and rho0 finite, got {pitch}, {rho0}")
+    curvature = int(settings.ring_curvature and pitch is not None)
     dev = frames.device
     threads = default_threads() if threads is None else threads
     scale = 257.0 if frames.dtype == wp.uint16 else 1.0
     mc = settings.min_contrast * scale
     # count pass: every pixel's count (scanned below), and for the pairs found
-    # their crossing and confidence (read back by the write pass only where found)
+    # their crossing, confidence and blur (read back by the write pass only where found)
     counts = wp.empty(h * w, dtype=wp.int32, device=dev)
     found = wp.empty(h * w, dtype=wp.uint8, device=dev)
     fraction = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     slope = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
+    blur = wp.empty(2 * h * w if curvature else 0, dtype=wp.float32, device=dev)
     if h * w:
         launch_rows(count_edges_kernel, h, w,
                     lambda r0, chunk: [frames, labels.code, labels.weak, labels.contrast, bits, mc, settings.min_slope,
-                                       r0, chunk],
-                    [counts, found, fraction, slope], dev, threads)
+                                       curvature, float(pitch or 1.0), r0, chunk],
+                    [counts, found, fraction, slope, blur], dev, threads)
     offsets, total = scan_counts(counts)
     out = Samples(
         uv=wp.empty(total, dtype=wp.vec2, device=dev),
@@ -325,14 +470,55 @@ def sample_gray_rings(
         confidence=wp.empty(total, dtype=wp.float32, device=dev),
         pixel=wp.empty(total, dtype=wp.int32, device=dev),
     )
+    sample_blur = wp.empty(total if curvature else 0, dtype=wp.float32, device=dev)
     if total:
         launch_rows(write_edges_kernel, h, w,
-                    lambda r0, chunk: [labels.code, labels.sector, counts, offsets, found, fraction, slope, bits,
-                                       r0, chunk],
-                    [out.uv, out.ring, out.sector, out.confidence, out.pixel], dev, threads)
-    if rho0 is not None and pitch is not None:
+                    lambda r0, chunk: [labels.code, labels.sector, counts, offsets, found, fraction, slope, blur, bits,
+                                       curvature, r0, chunk],
+                    [out.uv, out.ring, out.sector, out.confidence, out.pixel, sample_blur], dev, threads)
+    if pitch is not None:
         out.rho = ring_radii(out.ring, rho0=rho0, pitch=pitch)
+        if curvature and total:
+            shift = ring_blur_variance(out.ring.numpy(), sample_blur.numpy(), rings=2 ** bits)
+            log.debug("ring-edge blur variance (projector px^2) per ring: %s", np.round(shift, 2).tolist())
+            wp.launch(ring_curvature_kernel, dim=total,
+                      inputs=[out.ring, wp.array(shift.astype(np.float32), device=dev)], outputs=[out.rho], device=dev)
     return out
+
+
+def ring_blur_variance(ring: np.ndarray, blur: np.ndarray, *, rings: int) -> np.ndarray:
+    """Per-ring median of the samples' blur variances (projector px^2).
+
+    ring: (n,) int band boundary index, blur: (n,) float per-sample estimates (< 0:
+    none). Returns (rings,) float64: the median over each ring's estimates, or over
+    all estimates for rings with fewer than ``MIN_RING_ESTIMATES`` (0 with none).
+    """
+    out = np.zeros(rings, dtype=np.float64)
+    ok = (blur >= 0) & (ring >= 0) & (ring < rings)
+    if not ok.any():
+        return out
+    r, b = ring[ok], blur[ok].astype(np.float64)
+    out[:] = np.median(b)
+    order = np.argsort(r, kind="stable")
+    r, b = r[order], b[order]
+    ks, starts, n = np.unique(r, return_index=True, return_counts=True)
+    for k, s0, c in zip(ks, starts, n):
+        if c >= MIN_RING_ESTIMATES:
+            out[k] = np.median(b[s0:s0 + c])
+    return out
+
+
+@wp.kernel
+def ring_curvature_kernel(ring: wp.array(dtype=wp.int32), blur: wp.array(dtype=wp.float32),
+                          rho: wp.array(dtype=wp.float32)):
+    """rho[i] -= blur[ring[i]] / (2 rho[i]): the blurred edge's inward shift.
+
+    ring (n,) int32 and blur (rings,) float32 (projector px^2) read; rho (n,) float32
+    read and written (nominal radii in, where the edge was seen out)."""
+    i = wp.tid()
+    r = rho[i]
+    if r > 0.0:
+        rho[i] = r - blur[ring[i]] / (2.0 * r)
 
 
 @wp.kernel

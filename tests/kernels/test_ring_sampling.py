@@ -72,3 +72,34 @@ def test_sampling_bad_input(device):
         sample_gray_rings(frames, lab, bits=9)
     with pytest.raises(ValueError, match="int32"):
         ring_radii(wp.zeros(3, dtype=wp.float32, device=device), rho0=0, pitch=1)
+
+
+@pytest.mark.parametrize("blur", [1.0, 1.5])
+def test_ring_curvature_correction_removes_the_inward_edge_shift(device, blur):
+    # A blurred circle's edge (frame = inverse) lies inward of its radius by
+    # sigma^2 / (2 rho): the nominal rho reads too large by that. Here sigma is the
+    # Gaussian blur (camera = projector grid, point-sampled frames): rho x error
+    # = blur^2 / 2. Medians over rho 10..60, away from the image border.
+    spec = _spec(width=240, height=200, center=(119.3, 99.6), bits=5, pitch=4.0, rho0=5.0)
+    frames = wp.array(_stack(spec, blur=blur), device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits)
+    expect = blur ** 2 / 2.0
+    for on in (False, True):
+        s = sample_gray_rings(frames, lab, bits=spec.bits, rho0=spec.rho0, pitch=spec.pitch,
+                              settings=SampleSettings(ring_curvature=on))
+        d = s.numpy()
+        u, v = d["uv"][:, 0], d["uv"][:, 1]
+        r = np.hypot(u - spec.center[0], v - spec.center[1])
+        m = (u > 6) & (v > 6) & (u < spec.width - 7) & (v < spec.height - 7) & (d["rho"] > 10) & (d["rho"] < 60)
+        assert m.sum() > 2000
+        bias = np.median(((d["rho"] - r) * d["rho"])[m])
+        if on:
+            assert abs(bias) < 0.12 * expect
+            # per ring, not per sample: the correction adds no scatter within a ring
+            for k in np.unique(d["ring"][m])[:5]:
+                assert np.ptp(d["rho"][d["ring"] == k]) < 1e-4
+        else:
+            assert bias == pytest.approx(expect, rel=0.15)
+            assert np.allclose(d["rho"], spec.rho0 + d["ring"] * spec.pitch)
+    with pytest.raises(ValueError, match="both"):
+        sample_gray_rings(frames, lab, bits=spec.bits, rho0=spec.rho0)
