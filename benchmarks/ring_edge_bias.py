@@ -59,7 +59,7 @@ def main():
         t = load_truth(scan)
         pu, pv = _decoded_maps(rig, t.depth(view.name), t.lit(view.name), integer=False)
     lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits)
-    edges = [0, 50, 100, 200, 300, 500, 1000]
+    edges = [0, 25, 50, 100, 200, 300, 500, 1000]
     print(f"{label}: median rho - rho_true (projector px) per rho bin")
     print("rho bin      " + "  ".join(f"{a:>4d}-{b:<4d}" for a, b in zip(edges[:-1], edges[1:])))
     for on in (False, True):
@@ -82,6 +82,9 @@ def main():
             m = fin & (r_true >= a) & (r_true < b)
             cells.append(f"{np.median(err[m]):+9.3f}" if m.sum() >= 20 else "        -")
         print(f"{'corrected' if on else 'nominal':<12s} " + "  ".join(cells) + f"   (n {fin.sum()})")
+        if not on:
+            counts = [int((fin & (r_true >= a) & (r_true < b)).sum()) for a, b in zip(edges[:-1], edges[1:])]
+            print(f"{'samples':<12s} " + "  ".join(f"{c:>9d}" for c in counts))
 
 
 if __name__ == "__main__":
