@@ -26,7 +26,10 @@
    from the refined rig; the 3D error is the median distance of the two-camera
    points from the sphere or the plane, whichever is nearer.
 
+   ``--ring-curvature``: decoded with ``SampleSettings.ring_curvature`` on.
+
     python benchmarks/stereo_calibration.py [--noise 0.1 0.3] [--points 200000] [--data DIR] [--no-scan]
+    python benchmarks/stereo_calibration.py --scan-only [--ring-curvature]   # section 3 alone
 """
 
 from __future__ import annotations
@@ -163,24 +166,27 @@ def real(data: Path) -> None:
                   f"{ref.problems or 'none'}")
 
 
-def virtual_scan(seeds=(0, 1, 2, 3)) -> None:
+def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = False) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
     from two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
     from ringscan.pipeline.calibrate.stereo import refine_stereo_rig
     from ringscan.pipeline.formats.ply import read_ply
     from ringscan.pipeline.formats.rig import default_rig
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
     from ringscan.pipeline.reconstruct.stereo import match_view
 
     rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
     c1, c2, li = rig.camera, rig.camera2, rig.light
     Rt, tt = relative_pose(c1, c2)
     bad = replace(rig, camera2=turned(c2, 2.0))
+    settings = ReconstructSettings()
+    settings = replace(settings, sample=replace(settings.sample, ring_curvature=ring_curvature))
     summary, fits = [], []
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
             scan = simulate_two_camera_scan(Path(tmp) / "scan", rig=rig, seed=seed)
-            m = match_view(scan, scan.views[0], device="cpu")
+            m = match_view(scan, scan.views[0], device="cpu", settings=settings)
             ply = read_ply(Path(tmp) / "scan" / "truth" / "object.ply")
         V = np.stack([ply["x"], ply["y"], ply["z"]], 1)
         cen = V.mean(0)
@@ -262,7 +268,13 @@ def run() -> None:
     ap.add_argument("--no-scan", action="store_true", help="skip the virtual two-camera scan")
     ap.add_argument("--scan-seeds", type=int, nargs="+", default=[0, 1, 2, 3],
                     help="rendering seeds of the virtual two-camera scan (one scan each)")
+    ap.add_argument("--scan-only", action="store_true", help="only the virtual two-camera scan (section 3)")
+    ap.add_argument("--ring-curvature", action="store_true",
+                    help="decode the scan with SampleSettings.ring_curvature on (docs/reconstruction.md)")
     args = ap.parse_args()
+    if args.scan_only:
+        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature)
+        return
     for noise in args.noise:
         synthetic(noise, args.points)
         projector_of_two_cameras(noise)
@@ -271,7 +283,7 @@ def run() -> None:
     else:
         print(f"real captures: {args.data} not found, skipped")
     if not args.no_scan:
-        virtual_scan(tuple(args.scan_seeds))
+        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature)
 
 
 if __name__ == "__main__":

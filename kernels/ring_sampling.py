@@ -53,7 +53,7 @@ class SampleSettings:
     noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
     band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
     position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
-    ring_curvature: bool = True
+    ring_curvature: bool = False
     """Remove the inward shift of blurred ring edges: the crossing of a circle of
     radius rho and its inverse, both blurred by a Gaussian of sigma (projector px
     along the radius: projector pixel and defocus, camera pixel and defocus), lies
@@ -63,7 +63,13 @@ class SampleSettings:
     (C: white - black), scaled to projector px by the camera distance to the
     neighbouring band edges (one pitch each); sigma^2 is then the median over the
     samples of each ring (the bias is smooth; single edges are noisy) and rho
-    = rho0 + k pitch - sigma^2 / (2 rho) (docs/dense.md, "Ring curvature").
+    = rho0 + k pitch - sigma^2 / (2 rho) (docs/reconstruction.md, "Sample").
+    Off by default: on the virtual rigs the shift is small (0.05 px at rho < 50
+    on the two-camera test rig, 0.015 px on the default rig) and, where the camera
+    resolves the projector's pixels (the default rig), the estimate reads the
+    blur ~2x too large and over-corrects (demo mesh 0.0100 -> 0.0112 mm); where
+    camera pixels are coarse (~3 projector px: the two-camera rig) it removes the
+    shift and projector-from-scan's position error falls by ~20 %.
     Off: rho = rho0 + k pitch."""
 
 
