@@ -26,10 +26,11 @@
    from the refined rig; the 3D error is the median distance of the two-camera
    points from the sphere or the plane, whichever is nearer.
 
-   ``--ring-curvature``: decoded with ``SampleSettings.ring_curvature`` on.
+   ``--ring-curvature on|off``: decoded with ``SampleSettings.ring_curvature`` on (the default, as the
+   calibrate commands do) or off.
 
     python benchmarks/stereo_calibration.py [--noise 0.1 0.3] [--points 200000] [--data DIR] [--no-scan]
-    python benchmarks/stereo_calibration.py --scan-only [--ring-curvature]   # section 3 alone
+    python benchmarks/stereo_calibration.py --scan-only [--ring-curvature on|off]   # section 3 alone
 """
 
 from __future__ import annotations
@@ -166,7 +167,7 @@ def real(data: Path) -> None:
                   f"{ref.problems or 'none'}")
 
 
-def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = False) -> None:
+def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = True) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
     from two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
@@ -269,11 +270,12 @@ def run() -> None:
     ap.add_argument("--scan-seeds", type=int, nargs="+", default=[0, 1, 2, 3],
                     help="rendering seeds of the virtual two-camera scan (one scan each)")
     ap.add_argument("--scan-only", action="store_true", help="only the virtual two-camera scan (section 3)")
-    ap.add_argument("--ring-curvature", action="store_true",
-                    help="decode the scan with SampleSettings.ring_curvature on (docs/reconstruction.md)")
+    ap.add_argument("--ring-curvature", choices=("on", "off"), default="on",
+                    help="decode the scan with SampleSettings.ring_curvature on (the default, as calibrate refine "
+                         "and projector-from-scan do) or off (docs/reconstruction.md)")
     args = ap.parse_args()
     if args.scan_only:
-        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature)
+        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature == "on")
         return
     for noise in args.noise:
         synthetic(noise, args.points)
@@ -283,7 +285,7 @@ def run() -> None:
     else:
         print(f"real captures: {args.data} not found, skipped")
     if not args.no_scan:
-        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature)
+        virtual_scan(tuple(args.scan_seeds), ring_curvature=args.ring_curvature == "on")
 
 
 if __name__ == "__main__":

@@ -681,6 +681,11 @@ def add_scan_match_options(p, *, out_help: str) -> None:
     p.add_argument("--max-matches", type=int, default=200_000, metavar="N",
                    help="use at most N matches over all views (a seeded random subset; default 200000)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    p.add_argument("--ring-curvature", choices=("on", "off"), default="on",
+                   help="decode ring-edge samples with the blurred edge's inward shift removed "
+                        "(SampleSettings.ring_curvature: on, the default here, since a fit of intrinsics or a pose "
+                        "takes a bias that grows toward the pattern centre for a change of focal length and "
+                        "distance; reconstruct leaves it off by default; docs/calibration.md)")
     add_force_option(p)
     add_device_option(p)
 
@@ -729,13 +734,17 @@ def load_scan_with_rig(args):
     return scan, views
 
 
-def view_matches(scan, view, *, device):
+def view_matches(scan, view, *, device, ring_curvature: bool = True):
     """(uv1, uv2, proj, sigmas) of one two-camera view (``ringscan.pipeline.reconstruct.stereo.match_view``);
     sigmas: (n, 5) predicted standard deviations of uv1, uv2 (px), proj (projector px, the mean of its
-    two axes) and proj along u_p and v_p, or None."""
+    two axes) and proj along u_p and v_p, or None. ``ring_curvature``: SampleSettings.ring_curvature."""
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
     from ringscan.pipeline.reconstruct.stereo import match_view
 
-    m = match_view(scan, view, device=device)
+    settings = ReconstructSettings()
+    settings = dataclasses.replace(settings,
+                                   sample=dataclasses.replace(settings.sample, ring_curvature=ring_curvature))
+    m = match_view(scan, view, device=device, settings=settings)
     sp = np.asarray(m.sigma_proj, float)
     sig = np.stack([m.sigma1, m.sigma2, np.mean(sp, axis=1), sp[:, 0], sp[:, 1]], 1).astype(float)
     return np.asarray(m.uv1, float), np.asarray(m.uv2, float), np.asarray(m.proj, float), sig
@@ -754,7 +763,8 @@ def gather_matches(scan, views, args, *, need: str):
     u1s, u2s, ps, ss = [], [], [], []
     for v in progress_bar(views, desc="matching", unit="view", disable=args.no_progress, leave=False):
         if v.camera2 is not None:
-            u1, u2, pr, sg = view_matches(scan, v, device=args.device)
+            u1, u2, pr, sg = view_matches(scan, v, device=args.device,
+                                          ring_curvature=getattr(args, "ring_curvature", "on") == "on")
         else:
             u1, pr = decoded_pairs(scan, v, max_pairs=per)
             u2 = sg = None

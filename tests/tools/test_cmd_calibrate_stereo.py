@@ -105,7 +105,8 @@ def stereo_scan(tmp_path_factory):
 def matched(monkeypatch):
     """match_view stood in for by exact (0.1 px noise) matches of the true rig."""
     X, u1, u2, up = observe(20000, noise_px=0.1, seed=5)
-    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, *, device: (u1, u2, up, None))
+    monkeypatch.setattr(cmd_calibrate, "view_matches",
+                        lambda scan, view, *, device, ring_curvature: (u1, u2, up, None))
 
 
 def test_refine_a_procam_scan_brings_the_camera_back(procam_scan, tmp_path, capsys):
@@ -163,6 +164,25 @@ def test_projector_from_scan_writes_a_procam_rig(stereo_scan, tmp_path, matched,
     three = load_rig(tmp_path / "three.json")
     assert three.camera2 is not None and np.linalg.norm(three.light.center - proj.center) < 1.0
 
+
+
+@pytest.mark.parametrize("flag, expect", [((), True), (("--ring-curvature", "off"), False)])
+def test_the_calibrate_commands_match_with_the_ring_curvature_correction(stereo_scan, tmp_path, monkeypatch, flag,
+                                                                        expect):
+    # a fit of intrinsics takes the blurred ring edge's 1/rho shift for focal length and distance: on by default
+    import ringscan.pipeline.reconstruct.stereo as stereo
+
+    seen = []
+
+    def stop(scan, view, *, device, settings):
+        seen.append(settings.sample.ring_curvature)
+        raise RuntimeError("matched")
+
+    monkeypatch.setattr(stereo, "match_view", stop)
+    for cmd in ("refine", "projector-from-scan"):
+        with pytest.raises(RuntimeError, match="matched"):
+            main(["calibrate", cmd, str(stereo_scan), "--out", str(tmp_path / f"{cmd}.json"), "-q", *flag])
+    assert seen == [expect, expect]
 
 
 def test_two_view_leaves_the_projector_out_of_the_cli_refine(stereo_scan, tmp_path, matched, capsys):
@@ -274,7 +294,7 @@ def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatc
 
     (u1, o1), (u2, o2), (up, op) = project(cam1, X), project(cam2, X), project(proj, X)
     ok = o1 & o2 & op
-    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, *, device: (u1[ok], u2[ok], up[ok], None))
+    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, **kw: (u1[ok], u2[ok], up[ok], None))
     out = tmp_path / "p.json"
     assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out)]) == 1
     _one_line_error(capsys, "nearly on one plane", "principal point")
