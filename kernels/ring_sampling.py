@@ -84,6 +84,26 @@ def bit_diff(frames: wp.array3d(dtype=Any), fidx: int, y: int, x: int):
 
 
 @wp.func
+def across_diff(frames: wp.array3d(dtype=Any), fidx: int, y: int, x: int, dy: int, dx: int, h: int, w: int):
+    """Gradient of frame - inverse across the pair p = (y, x), q = (y + dy, x + dx):
+    central differences perpendicular to (dy, dx), clamped to the image, averaged
+    over p and q."""
+    y2 = y + dy
+    x2 = x + dx
+    ay0 = wp.max(y - dx, 0)
+    ay1 = wp.min(y + dx, h - 1)
+    ax0 = wp.max(x - dy, 0)
+    ax1 = wp.min(x + dy, w - 1)
+    by0 = wp.max(y2 - dx, 0)
+    by1 = wp.min(y2 + dx, h - 1)
+    bx0 = wp.max(x2 - dy, 0)
+    bx1 = wp.min(x2 + dy, w - 1)
+    return 0.5 * (bit_diff(frames, fidx, ay1, ax1) - bit_diff(frames, fidx, ay0, ax0)) * 0.5 + 0.5 * (
+        bit_diff(frames, fidx, by1, bx1) - bit_diff(frames, fidx, by0, bx0)
+    ) * 0.5
+
+
+@wp.func
 def single_bit(m: int):
     """Index (from the least significant end) of the only set bit of m, or -1."""
     if m <= 0 or (m & (m - 1)) != 0:
@@ -150,17 +170,7 @@ def edge_pair(
         return none
     # Keep the direction closer to the edge normal: compare with the gradient
     # component across the pair (central differences, averaged over p and q).
-    ay0 = wp.max(y - dx, 0)
-    ay1 = wp.min(y + dx, h - 1)
-    ax0 = wp.max(x - dy, 0)
-    ax1 = wp.min(x + dy, w - 1)
-    by0 = wp.max(y2 - dx, 0)
-    by1 = wp.min(y2 + dx, h - 1)
-    bx0 = wp.max(x2 - dy, 0)
-    bx1 = wp.min(x2 + dy, w - 1)
-    across = 0.5 * (bit_diff(frames, fidx, ay1, ax1) - bit_diff(frames, fidx, ay0, ax0)) * 0.5 + 0.5 * (
-        bit_diff(frames, fidx, by1, bx1) - bit_diff(frames, fidx, by0, bx0)
-    ) * 0.5
+    across = across_diff(frames, fidx, y, x, dy, dx, h, w)
     if dx == 1:
         if wp.abs(across) > wp.abs(slope):
             return none
@@ -217,16 +227,7 @@ def edge_blur(
     b = bits - 1 - single_bit(code[y, x] ^ code[y2, x2])
     fidx = FRAME_FIRST_BIT + 2 * b
     along = bit_diff(frames, fidx, y2, x2) - bit_diff(frames, fidx, y, x)
-    ay0 = wp.max(y - dx, 0)
-    ay1 = wp.min(y + dx, h - 1)
-    ax0 = wp.max(x - dy, 0)
-    ax1 = wp.min(x + dy, w - 1)
-    by0 = wp.max(y2 - dx, 0)
-    by1 = wp.min(y2 + dx, h - 1)
-    bx0 = wp.max(x2 - dy, 0)
-    bx1 = wp.min(x2 + dy, w - 1)
-    across = 0.25 * (bit_diff(frames, fidx, ay1, ax1) - bit_diff(frames, fidx, ay0, ax0)
-                     + bit_diff(frames, fidx, by1, bx1) - bit_diff(frames, fidx, by0, bx0))
+    across = across_diff(frames, fidx, y, x, dy, dx, h, w)
     gx = along
     gy = across
     if dy == 1:

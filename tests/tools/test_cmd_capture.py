@@ -1,6 +1,7 @@
 """``ringscan capture`` and ``ringscan emulate`` end to end: a virtual capture, a capture
 killed mid-way and resumed, Ctrl-C, and a capture against a running ``ringscan emulate``."""
 
+import contextlib
 import signal
 import subprocess
 import sys
@@ -123,15 +124,32 @@ def test_ctrl_c_that_lands_in_a_finalizer_stops_the_capture_with_130(files, tmp_
     assert sum(len(v.frames) for v in load_scan(out, allow_incomplete=True).views) == 3
 
 
+@contextlib.contextmanager
+def _emulator(cmd, **popen):
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, **popen)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+
+
+def _assert_stops_cleanly(proc, sig, emu_dir):
+    proc.send_signal(sig)
+    rest = proc.communicate(timeout=30)[0]  # not the --seconds 120 running out
+    assert proc.returncode == 0 and "emulator stopped" in rest
+    assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
+
+
 def test_capture_against_ringscan_emulate(files, reference, tmp_path):
     emu_dir = tmp_path / "emu"
     cmd = [sys.executable, "-m", "ringscan.tools.cli", "emulate", "--rig", str(files / "rig.json"), "--patterns",
            str(files / "patterns.json"), "--scene", "terrain", "--folder", str(emu_dir), "--time-scale", "500",
            "--seed", SEED, "--seconds", "120", "--device", "cpu"]
     # Started as a shell starts a background job (SIGINT ignored): Ctrl-C must stop it all the same.
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
+    with _emulator(cmd, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) as proc:
         ports = {}
         for line in proc.stdout:
             key, _, rest = line.partition(":")
@@ -146,36 +164,19 @@ def test_capture_against_ringscan_emulate(files, reference, tmp_path):
                           ports["projector"], "--camera", ports["camera"], "--turntable-settle", "0",
                           "--projector-settle", "0", "--timeout", "1")) == 0
         _assert_same(load_scan(out), reference)
-        proc.send_signal(signal.SIGINT)
-        rest = proc.communicate(timeout=30)[0]  # not the --seconds 120 running out
-        assert proc.returncode == 0 and "emulator stopped" in rest
-        assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
+        _assert_stops_cleanly(proc, signal.SIGINT, emu_dir)
 
 
 def test_emulate_stops_cleanly_on_sigterm(tmp_path):
     emu_dir = tmp_path / "emu"
     cmd = [sys.executable, "-m", "ringscan.tools.cli", "emulate", "--folder", str(emu_dir), "--seconds", "120",
            "--device", "cpu"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    try:
+    with _emulator(cmd) as proc:
         for line in proc.stdout:
             if line.startswith("running"):
                 break
         assert (emu_dir / "camera.sock").exists()
-        proc.terminate()  # what a service manager sends
-        rest = proc.communicate(timeout=30)[0]
-        assert proc.returncode == 0 and "emulator stopped" in rest
-        assert not (emu_dir / "turntable").exists() and not (emu_dir / "camera.sock").exists()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
+        _assert_stops_cleanly(proc, signal.SIGTERM, emu_dir)  # what a service manager sends
 
 
 def test_cli_errors(files, tmp_path, capsys):
