@@ -32,11 +32,9 @@ def stereo_scan(tmp_path_factory):
     return simulate_two_camera_scan(tmp_path_factory.mktemp("stereo") / "scan")
 
 
-def test_matches_land_where_camera_2_sees_the_point(stereo_scan):
-    scan = stereo_scan
-    m = match_view(scan, scan.views[0], device="cpu")
-    assert len(m) > 0.5 * m.stats["samples_camera1"] and m.stats["matches"] == len(m)
-    # truth: camera 1's depth map (bilinear at uv1) -> the point -> camera 2
+def true_uv2(scan, m):
+    """(keep, uv2): where camera 1's truth depth (bilinear at uv1) is known, the point seen there projected
+    into camera 2."""
     rig = scan.rig
     depth = load_truth(scan).depth("view_000")
     u, v = m.uv1[:, 0], m.uv1[:, 1]
@@ -48,7 +46,16 @@ def test_matches_land_where_camera_2_sees_the_point(stereo_scan):
     c = rig.camera
     x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
     X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R  # R^T (X_c - t)
-    uv2 = project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
+    return keep, project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
+
+
+def test_matches_land_where_camera_2_sees_the_point(stereo_scan):
+    scan = stereo_scan
+    m = match_view(scan, scan.views[0], device="cpu")
+    assert len(m) > 0.5 * m.stats["samples_camera1"] and m.stats["matches"] == len(m)
+    # truth: camera 1's depth map (bilinear at uv1) -> the point -> camera 2
+    keep, uv2 = true_uv2(scan, m)
+    rig = scan.rig
     err = np.linalg.norm(m.uv2[keep] - uv2, axis=1)
     assert keep.mean() > 0.95 and np.median(err) < 0.1, np.median(err)  # camera px (0.65 mm pixels)
     # the rig fits: the matches lie on their epipolar lines
@@ -184,18 +191,8 @@ def test_predicted_match_sigmas_are_the_errors_scale(stereo_scan):
     1 per axis (it was ~2 while the sigmas held the decode's noise alone; benchmarks/stereo_rays.py)."""
     scan = stereo_scan
     m = match_view(scan, scan.views[0], device="cpu")
-    rig = scan.rig
-    depth = load_truth(scan).depth("view_000")
-    u, v = m.uv1[:, 0], m.uv1[:, 1]
-    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
-    fy, fx = v - i0, u - j0
-    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
-         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
-    keep = np.isfinite(z)
-    c = rig.camera
-    x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
-    X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R
-    e = m.uv2[keep] - project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
+    keep, uv2 = true_uv2(scan, m)
+    e = m.uv2[keep] - uv2
     zn = e / np.hypot(m.sigma1, m.sigma2)[keep][:, None]
     mad = 1.4826 * np.median(np.abs(zn - np.median(zn, axis=0)), axis=0)
     assert np.all((0.8 < mad) & (mad < 1.3)), mad
