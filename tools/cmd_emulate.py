@@ -75,9 +75,10 @@ def _serve(args) -> int:
         print(f"try:       ringscan capture --rig {rig_path} --patterns {pat_path} --views 8 --out SCAN "
               f"--turntable {emu.turntable_port} --projector {emu.projector_port} --camera {emu.camera_spec}",
               flush=True)
-        print("running; Ctrl-C stops it", flush=True)
         t_end = None if args.seconds is None else time.monotonic() + args.seconds
         try:
+            # said inside the try: a Ctrl-C or SIGTERM sent the moment "running" is read stops it cleanly too
+            print("running; Ctrl-C stops it", flush=True)
             while t_end is None or time.monotonic() < t_end:
                 time.sleep(0.2 if t_end is None else max(min(0.2, t_end - time.monotonic()), 0.0))
         except KeyboardInterrupt:
