@@ -336,6 +336,26 @@ def _tangent_basis(d):
     return e1, np.cross(d, e1)
 
 
+def _second_pass_scale(res, settings: RefineSettings) -> float:
+    """The robust loss's scale for the second pass: 3 standard deviations of the first pass's
+    residuals (1.4826 x their median absolute value), within [min_loss_scale_px, loss_scale_px]."""
+    sigma = 1.4826 * float(np.median(np.abs(res.fun)))
+    return min(settings.loss_scale_px, max(settings.min_loss_scale_px, 3.0 * sigma))
+
+
+def _robust_covariance(res, scale: float, *, dof: int) -> np.ndarray:
+    """(k, k) covariance of a least_squares result's parameters from its Jacobian, with the
+    robust (Huber-like) weights at ``scale`` as the loss applied them; inf where singular."""
+    r = res.fun
+    w = np.sqrt(np.where(np.abs(r) <= scale, 1.0, scale / np.maximum(np.abs(r), 1e-300)))
+    J = res.jac * w[:, None]
+    s2 = float(np.sum((r * w) ** 2)) / dof
+    try:
+        return np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        return np.full((J.shape[1], J.shape[1]), np.inf)
+
+
 def _adjust(R0, d0, p1, p2, K1, K2, settings: RefineSettings):
     """Bundle adjustment with the points eliminated: rotation vector + baseline direction (2 dof).
 
@@ -367,18 +387,8 @@ def _adjust(R0, d0, p1, p2, K1, K2, settings: RefineSettings):
                             max_nfev=settings.max_nfev, x_scale="jac")
         R0, d0 = unpack(res.x)
         if rnd == 0:
-            sigma = 1.4826 * float(np.median(np.abs(res.fun)))
-            scale = min(settings.loss_scale_px, max(settings.min_loss_scale_px, 3.0 * sigma))
-    # covariance from the last pass's Jacobian (robust weights as least_squares applied them)
-    r = res.fun
-    w = np.sqrt(np.where(np.abs(r) <= scale, 1.0, scale / np.maximum(np.abs(r), 1e-300)))
-    J = res.jac * w[:, None]
-    dof = max(1, r.size - 5)
-    s2 = float(np.sum((r * w) ** 2)) / dof
-    try:
-        cov = np.linalg.inv(J.T @ J) * s2
-    except np.linalg.LinAlgError:
-        cov = np.full((5, 5), np.inf)
+            scale = _second_pass_scale(res, settings)
+    cov = _robust_covariance(res, scale, dof=max(1, res.fun.size - 5))
     return R0, d0, float(res.cost), scale, cov
 
 
@@ -459,16 +469,8 @@ def _adjust_three(R0, t0, light_pose, obs, wts, settings: RefineSettings, scale0
                             x_scale="jac", diff_step=1e-8)
         x = res.x
         if rnd == 0:
-            sigma = 1.4826 * float(np.median(np.abs(res.fun)))
-            scale = min(settings.loss_scale_px, max(settings.min_loss_scale_px, 3.0 * sigma))
-    r = res.fun
-    w = np.sqrt(np.where(np.abs(r) <= scale, 1.0, scale / np.maximum(np.abs(r), 1e-300)))
-    J = res.jac * w[:, None]
-    s2 = float(np.sum((r * w) ** 2)) / max(1, r.size - 3 * obs[0].shape[0] - 5)
-    try:
-        cov = np.linalg.inv(J.T @ J) * s2
-    except np.linalg.LinAlgError:
-        cov = np.full((5, 5), np.inf)
+            scale = _second_pass_scale(res, settings)
+    cov = _robust_covariance(res, scale, dof=max(1, res.fun.size - 3 * obs[0].shape[0] - 5))
     R, t = unpack(x)
     return R, t, scale, cov
 
