@@ -44,10 +44,17 @@ def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return a * (1 - fy) + b * fy
 
 
-def sample_contrast(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.ndarray:
-    """White - black (8-bit levels) at each sample's camera position."""
+def sample_contrast(frames: wp.array, spec: PatternSpec, uv: np.ndarray, *,
+                    contrast: wp.array | None = None) -> np.ndarray:
+    """White - black (8-bit levels) at each sample's camera position.
+
+    ``contrast``: the decode's own (H, W) float32 white - black plane
+    (``RingLabels.contrast``: the same values), where the caller has it; else the
+    two frames are converted here (~2 ms a full-size view)."""
     names = frame_names(spec)
     scale = 257.0 if frames.dtype == wp.uint16 else 1.0
+    if contrast is not None:
+        return _bilinear(contrast.numpy(), uv) / scale
     white = frames[names.index("white")].numpy().astype(np.float32)
     black = frames[names.index("black")].numpy().astype(np.float32)
     return _bilinear(white - black, uv) / scale

@@ -78,7 +78,7 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                 rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
-    contrast = sample_contrast(frames, spec, samples.uv.numpy())
+    contrast = sample_contrast(frames, spec, samples.uv.numpy(), contrast=labels.contrast)
     rig = scan.rig
     samples, angle_stats = add_angle(frames, scan, samples, sigma_rho=edge_sigma(contrast, settings.angle.noise),
                                      settings=settings.angle, camera_gamma=float(rig.camera.gamma),

@@ -224,7 +224,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
-    contrast = sample_contrast(frames, spec, pts.uv.numpy())
+    contrast = sample_contrast(frames, spec, pts.uv.numpy(), contrast=labels.contrast)
     sig = phase_sigma(contrast, pts.confidence.numpy(), settings.angle.noise, pitch=spec.pitch, steps=spec.steps,
                       smooth_radius=ps.smooth_radius)
     pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
