@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import statistics
 import time
 
 from ringscan.kernels import init_warp, resolve_device
@@ -225,10 +226,13 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
     bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     computed = 0
     first = None
+    starts: list[float] = []
     next_write = 0.0  # the first scan's result is written at once (an unwritable OUT shows early)
     try:
         for n, entry in results:
             first = time.perf_counter() - t0 if first is None else first
+            if "worker_start_s" in entry:  # a worker's first scan: its start-up, for the totals
+                starts.append(float(entry.pop("worker_start_s")))
             entries[n] = entry
             computed += int(entry.get("computed_views", 0))
             if entry.get("status") == "failed":
@@ -246,5 +250,8 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
     report["scans"] = [entries[k] for k in sorted(entries)]
     report["totals"] = summarise(report["scans"], wall_s=time.perf_counter() - t0)
     report["totals"]["first_result_s"] = first  # starting the workers (Warp, kernel cache) and the first scan
+    if starts:
+        report["totals"]["worker_start_s"] = {"workers": len(starts), "median": float(statistics.median(starts)),
+                                              "max": max(starts)}
     write_json_to(report_path, report, storage_options)
     return report

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -90,7 +91,7 @@ class _LocalRun:
         for d in self.devices:
             q.put(d)
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=self.ctx, initializer=init_worker,
-                                   initargs=(None, q, os.getpid(), self.cpu_threads)), q
+                                   initargs=(None, q, os.getpid(), self.cpu_threads, time.time())), q
 
     def _next_item(self):
         if self.pending:
@@ -162,6 +163,6 @@ class _LocalRun:
 def run_inline(jobs: Iterable[ScanJob], *, device: str | None,
                call: Callable[[ScanJob], dict] = process_scan) -> Iterator[tuple[int, dict]]:
     """Run ``jobs`` one after another in this process (``--workers 0``)."""
-    init_worker(device)
+    init_worker(device, record_start=False)  # this process's own start-up is not a worker's
     for n, job in enumerate(jobs):
         yield n, call(job)

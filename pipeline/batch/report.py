@@ -13,7 +13,7 @@ __all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "format_calibrati
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
 TIME_FIELDS = ("time_s", "times_s", "cpu_s", "wall_s", "views_per_s", "first_result_s", "cpu_per_view_s", "workers",
-               "backend")
+               "backend", "worker_start_s")
 """Fields of the reports that depend on how the run went (clock, workers), not on its results."""
 
 
@@ -62,6 +62,10 @@ def format_table(entries: list[dict], totals: dict) -> str:
         keys = (*STAGES, "other", *(k for k in STORAGE_STAGES if k in pv))
         lines.append("per view (worker seconds): " + ", ".join(f"{k} {pv[k]:.3f}" for k in keys)
                      + (f"; worker CPU {totals['cpu_per_view_s']:.3f} s a view" if totals.get("cpu_per_view_s") else ""))
+    ws = totals.get("worker_start_s")
+    if ws:
+        lines.append(f"worker start-up: {ws['median']:.2f} s (median of {ws['workers']}; max {ws['max']:.2f} s), before "
+                     f"its first scan; the first scan also loads the kernels it launches")
     return "\n".join(lines)
 
 

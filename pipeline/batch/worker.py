@@ -59,6 +59,9 @@ RAISE_ENV = "RINGSCAN_BATCH_RAISE_SCAN"
 (``cv2.error``, not one of ringscan's) when it starts that scan, as a library that fails on a scan would."""
 
 _device: str | None = None
+_start_s: float | None = None
+_started = False
+"""This worker's start-up (seconds, :func:`init_worker`), until its first scan's entry reports it."""
 
 
 @dataclass(frozen=True)
@@ -90,7 +93,7 @@ def _exit_with_parent(parent: int) -> None:
 
 
 def init_worker(device: str | None = None, devices=None, parent: int | None = None,
-                cpu_threads: int | None = None) -> None:
+                cpu_threads: int | None = None, spawned_at: float | None = None, record_start: bool = True) -> None:
     """Start a worker: load Warp (and its kernel cache) once, choose its device.
 
     Args:
@@ -99,8 +102,14 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
         parent: the process id of the parent; the worker exits when the parent is gone.
         cpu_threads: this worker's share of the CPU (Warp CPU launches, frame
             reading); None: every core.
+        spawned_at: the parent's ``time.time()`` when it started this worker's
+            process: the worker's start-up is then counted from there (the
+            interpreter, ringscan's imports, Warp); None: from this call on.
+        record_start: report the start-up with the worker's first scan (False where
+            the "worker" is the ringscan process itself: ``--workers 0``).
     """
-    global _device
+    global _device, _start_s, _started
+    t = time.perf_counter()
     set_cpu_threads(cpu_threads)
     retain_freed_memory()  # a worker process is ringscan's own: keep freed arrays' pages for the next view
     if parent is not None:
@@ -109,7 +118,10 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
     if devices is not None:
         device = devices.get()
     _device = resolve_device(device)
-    log.info("batch worker %d on %s", os.getpid(), _device)
+    took = time.time() - spawned_at if spawned_at is not None else time.perf_counter() - t
+    if record_start and not _started:  # a Ray worker process runs this for every task: its start-up is its first
+        _started, _start_s = True, took
+    log.info("batch worker %d on %s, started in %.2f s", os.getpid(), _device, took)
 
 
 def worker_device() -> str:
@@ -168,6 +180,9 @@ def process_scan(job: ScanJob) -> dict:
         entry.update(status="failed", error=describe_error(e))
     entry["time_s"] = time.perf_counter() - t
     entry["cpu_s"] = time.process_time() - cpu  # the worker's CPU seconds on it, every thread (one scan at a time)
+    global _start_s
+    if _start_s is not None:  # once per worker: the batch gathers them into its totals (``worker_start_s``)
+        entry["worker_start_s"], _start_s = _start_s, None
     return entry
 
 

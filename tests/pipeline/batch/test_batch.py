@@ -21,6 +21,7 @@ def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):
     assert all(s["cpu_s"] > 0 for s in rep["scans"])  # the workers' CPU seconds, per scan and per view
     assert rep["totals"]["cpu_per_view_s"] == pytest.approx(sum(s["cpu_s"] for s in rep["scans"])
                                                             / rep["totals"]["computed_views"])
+    assert rep["totals"]["worker_start_s"]["workers"] >= 1  # the default: worker processes
     ply = out / "a_sphere" / "view_000.ply"
     before = ply.stat().st_mtime_ns
     rep2 = batch_reconstruct(scan_root, out, progress=False)
@@ -44,6 +45,7 @@ def test_the_report_is_rewritten_after_the_first_scan_and_at_the_end_not_after_e
     monkeypatch.setattr(batch, "REPORT_EVERY_S", 3600.0)
     rep = batch_reconstruct(scan_root, tmp_path / "out", workers=0, progress=False)
     assert written == [1, 2] and read_json(tmp_path / "out" / "batch_report.json")["scans"] == rep["scans"]
+    assert "worker_start_s" not in rep["totals"]  # in-process (--workers 0): no worker was started
     written.clear()
     monkeypatch.setattr(batch, "REPORT_EVERY_S", 0.0)
     monkeypatch.setattr(batch, "REPORT_SHARE", 1e9)  # every scan
