@@ -294,6 +294,10 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict 
           f"up/download) {1000 * med['k_s1']:.0f} ms a view against {1000 * med['k_p1']:.0f} ms")
     pv = last["s1"]["per_view_s"]
     print("   per view in that worker: " + ", ".join(f"{k} {1000 * v:.1f} ms" for k, v in pv.items()))
+    starts = [last[k]["worker_start_s"]["median"] for k in ("w1", "w2", "s1", "s2") if "worker_start_s" in last[k]]
+    if starts:
+        print(f"   worker start-up (spawn to ready, once per worker; the last round's runs): median "
+              f"{np.median(starts):.2f} s; first scan back after {last['w2']['first_result_s']:.2f} s (2 workers)")
     print(f"   NumPy reference, one scan after another: {med['numpy']:.2f} views/s (per view {1000 * med['np_read']:.0f} "
           f"ms reading frames + {1000 * med['np_n']:.0f} ms computing)")
     print(f"   reading the frames alone, {cores} processes (one per core): {med['ceiling']:.2f} views/s = "
