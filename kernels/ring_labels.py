@@ -231,10 +231,10 @@ def decode_gray_rings_swar_kernel(
     cmin: wp.uint64,
     row0: int,
     chunk: int,
-    code: wp.array2d(dtype=wp.int32),
-    weak: wp.array2d(dtype=wp.int32),
-    band: wp.array2d(dtype=wp.int32),
-    sector: wp.array2d(dtype=wp.int32),
+    code: wp.array2d(dtype=wp.uint64),
+    weak: wp.array2d(dtype=wp.uint64),
+    band: wp.array2d(dtype=wp.uint64),
+    sector: wp.array2d(dtype=wp.uint64),
     contrast: wp.array2d(dtype=wp.float32),
 ):
     """The decode of :func:`decode_gray_rings_kernel` for 8-bit frames, eight
@@ -252,7 +252,8 @@ def decode_gray_rings_swar_kernel(
     words:    (n_frames, H, W / 8) uint64 (the 8-bit frames viewed as words), read.
     tlut:     (1024,) uint64: 513 - ceil(bit_margin * c) at 512 + c, read.
     cmin:     512 + the least integer contrast >= min_contrast, in each lane.
-    code, weak, band, sector: (H, W) int32, written.
+    code, weak, band, sector: (H, W / 2) uint64 (the (H, W) int32 labels viewed as
+              pixel pairs, little-endian), written.
     contrast: (H, W) float32, written.
     """
     tid = wp.tid()
@@ -309,19 +310,20 @@ def decode_gray_rings_swar_kernel(
             b = b - 1
         ge, ke, be, se2 = swar_finish(ge, ke, se, swe, (ce | LANES_GUARD) - cmin, bits, sector_bits)
         go, ko, bo, so = swar_finish(go, ko, so, swo, (co | LANES_GUARD) - cmin, bits, sector_bits)
+        # pixels 2i, 2i + 1 are lane i of the even and odd words: one 64-bit store
+        # writes both int32 labels (-1 where lane + 1 was stored as 0)
         for i in range(4):
             x = 8 * j + 2 * i
             sh = wp.uint64(16 * i)
             contrast[y, x] = float(int((ce >> sh) & wp.uint64(0xFFFF)) - 512)
             contrast[y, x + 1] = float(int((co >> sh) & wp.uint64(0xFFFF)) - 512)
-            code[y, x] = int((ge >> sh) & wp.uint64(0xFFFF))
-            code[y, x + 1] = int((go >> sh) & wp.uint64(0xFFFF))
-            weak[y, x] = int((ke >> sh) & wp.uint64(0xFFFF))
-            weak[y, x + 1] = int((ko >> sh) & wp.uint64(0xFFFF))
-            band[y, x] = int((be >> sh) & wp.uint64(0xFFFF)) - 1
-            band[y, x + 1] = int((bo >> sh) & wp.uint64(0xFFFF)) - 1
-            sector[y, x] = int((se2 >> sh) & wp.uint64(0xFFFF)) - 1
-            sector[y, x + 1] = int((so >> sh) & wp.uint64(0xFFFF)) - 1
+            q = 4 * j + i
+            code[y, q] = ((ge >> sh) & wp.uint64(0xFFFF)) | (((go >> sh) & wp.uint64(0xFFFF)) << wp.uint64(32))
+            weak[y, q] = ((ke >> sh) & wp.uint64(0xFFFF)) | (((ko >> sh) & wp.uint64(0xFFFF)) << wp.uint64(32))
+            band[y, q] = (((be >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) & wp.uint64(0xFFFFFFFF) | (
+                (((bo >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) << wp.uint64(32))
+            sector[y, q] = (((se2 >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) & wp.uint64(0xFFFFFFFF) | (
+                (((so >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) << wp.uint64(32))
 
 
 # Frames are 8- or 16-bit: declare both overloads (so ahead-of-time CUDA builds
@@ -381,10 +383,11 @@ def decode_gray_rings(
     words = as_words(frames)
     if words is not None and bits <= 15:
         tlut, cmin = swar_thresholds(settings, dev)
+        pairs = [wp.array(ptr=a.ptr, dtype=wp.uint64, shape=(h, w // 2), device=dev) for a in outputs[:4]]
         launch_rows(
             decode_gray_rings_swar_kernel, h, w // 8,
             lambda r0, chunk: [words, tlut, bits, sector_bits, cmin, r0, chunk],
-            outputs, dev, threads,
+            pairs + [out.contrast], dev, threads,
         )
         return out
     launch_rows(
