@@ -109,10 +109,12 @@ def single_bit(m: int):
     """Index (from the least significant end) of the only set bit of m, or -1."""
     if m <= 0 or (m & (m - 1)) != 0:
         return -1
-    i = int(0)
-    while (m >> i) != 1:
-        i = i + 1
-    return i
+    # the bit's index, one binary digit per mask (no loop to mispredict)
+    i = wp.where((m & 0x55555555) != 0, 0, 1)
+    i = i + wp.where((m & 0x33333333) != 0, 0, 2)
+    i = i + wp.where((m & 0x0F0F0F0F) != 0, 0, 4)
+    i = i + wp.where((m & 0x00FF00FF) != 0, 0, 8)
+    return i + wp.where((m & 0x0000FFFF) != 0, 0, 16)
 
 
 @wp.func
