@@ -7,6 +7,12 @@ pixels lie within ``radius`` pixels of its own are near it in 3D: within
 ``tolerance`` times the pixel footprint at its depth (mm per pixel = depth / f)
 times their pixel distance, plus a floor. Points come in any order; each may
 share its pixel with one other point (the +x and +y samples of a pixel).
+
+Points in pixel order (the samplers write them so) are looked up where they lie:
+a window row's points are a run of the arrays, entered through an index of the
+first point of each block of BLOCK pixels (a pass over the points). Other orders
+use a slot map of two entries a pixel (2 * H * W, filled with -1 first): the
+same result, at the cost of writing and filling the map.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from ringscan.kernels.launch import default_threads, launch_spans
 
 MAX_PER_PIXEL = wp.constant(2)
 BLOCK = wp.constant(16)
-"""Columns per block of the sorted points' index (:func:`block_starts_kernel`)."""
+"""Pixels (raster order) per block of the sorted points' index (:func:`block_starts_kernel`)."""
 
 __all__ = ["NeighbourFilterSettings", "mark_isolated_points"]
 
@@ -122,27 +128,29 @@ def unsorted_kernel(pixel: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int
         flag[0] = 1
 
 
+@wp.func
+def pixel_block(p: int, n_blocks: int):
+    """Block of pixel index p (BLOCK consecutive pixels of the raster), clamped to
+    -1..n_blocks (a pixel outside the image only ever meets its own blocks)."""
+    return wp.where(p < 0, -1, wp.min(p / BLOCK, n_blocks))
+
+
 @wp.kernel
-def block_starts_kernel(pixel: wp.array(dtype=wp.int32), blocks_per_row: int, width: int, n_blocks: int,
-                        starts: wp.array(dtype=wp.int32)):
-    """starts[b] = the first point at or after block b (pixel sorted; block b: row
-    b / blocks_per_row, columns BLOCK * (b % blocks_per_row) on): point i writes the
-    blocks after its predecessor's up to its own, thread n those after the last.
+def block_starts_kernel(pixel: wp.array(dtype=wp.int32), n_blocks: int, starts: wp.array(dtype=wp.int32)):
+    """starts[b] = the first point whose pixel is in block b or after it (pixel
+    sorted): point i writes the blocks after its predecessor's up to its own,
+    thread n those after the last point's.
 
     pixel (n,) read; starts (n_blocks + 1,) written, each entry by one thread.
     """
     i = wp.tid()
-    n = pixel.shape[0]
     prev = int(-1)
     if i > 0:
-        q = pixel[i - 1]
-        prev = (q / width) * blocks_per_row + (q - (q / width) * width) / BLOCK
+        prev = pixel_block(pixel[i - 1], n_blocks)
     cur = n_blocks
-    if i < n:
-        p = pixel[i]
-        cur = (p / width) * blocks_per_row + (p - (p / width) * width) / BLOCK
-    # (a pixel outside the image only ever meets its own blocks' range: clamp)
-    for bb in range(wp.clamp(prev, -1, n_blocks) + 1, wp.clamp(cur, -1, n_blocks) + 1):
+    if i < pixel.shape[0]:
+        cur = pixel_block(pixel[i], n_blocks)
+    for bb in range(prev + 1, cur + 1):
         starts[bb] = i
 
 
@@ -164,8 +172,9 @@ def count_neighbours_sorted_kernel(
     status_out: wp.array(dtype=wp.int32),
 ):
     """:func:`count_neighbours_kernel` for points sorted by pixel: a window row's
-    points are a run of the arrays (from ``starts``, the first point of each BLOCK-column block), so no
-    slot map is needed. Same result: every status-0 point of the window counts.
+    points are a run of the arrays, entered at the first point of the block of
+    BLOCK pixels that holds the row's first column, so no slot map is needed. Same
+    result: every status-0 point of the window counts.
 
     points (n,) vec3 world, pixel/status (n,) int32, starts (n_blocks + 1,) int32
     (:func:`block_starts_kernel`): read. status_out (n,) int32: written.
@@ -183,14 +192,13 @@ def count_neighbours_sorted_kernel(
     n = int(0)
     xa = wp.max(x - radius, 0)
     xb = wp.min(x + radius, width - 1)
-    bpr = (width + BLOCK - 1) / BLOCK
     n_all = pixel.shape[0]
     for dy in range(-radius, radius + 1):
         yy = y + dy
         if n < min_neighbours and yy >= 0 and yy < height:
             row = yy * width
             hi = n_all
-            j = starts[yy * bpr + xa / BLOCK]
+            j = starts[(row + xa) / BLOCK]
             while j < hi and pixel[j] < row + xa:
                 j = j + 1
             while j < hi and n < min_neighbours:
@@ -255,11 +263,10 @@ def mark_isolated_points(
         wp.launch(unsorted_kernel, dim=n - 1, inputs=[pixel], outputs=[unsorted], device=dev)
     if not unsorted.numpy()[0]:
         # points in pixel order (the samplers write them so): each window row's points
-        # are a run of the arrays, found from the first point of each block of BLOCK columns
-        bpr = (width + BLOCK - 1) // BLOCK
-        starts = wp.empty(height * bpr + 1, dtype=wp.int32, device=dev)
-        wp.launch(block_starts_kernel, dim=n + 1, inputs=[pixel, bpr, width, height * bpr], outputs=[starts],
-                  device=dev)
+        # are a run of the arrays, found from the first point of each block of BLOCK pixels
+        n_blocks = (width * height + BLOCK - 1) // BLOCK
+        starts = wp.empty(n_blocks + 1, dtype=wp.int32, device=dev)
+        wp.launch(block_starts_kernel, dim=n + 1, inputs=[pixel, n_blocks], outputs=[starts], device=dev)
         launch_spans(count_neighbours_sorted_kernel, n, lambda i0: args + [starts] + tail + [i0], [out], dev, threads)
         return out
     slots = wp.full(MAX_PER_PIXEL * width * height, -1, dtype=wp.int32, device=dev)
