@@ -288,6 +288,7 @@ def count_edges_kernel(
     code: wp.array2d(dtype=wp.int32),
     weak: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
+    sector: wp.array2d(dtype=wp.int32),
     bits: int,
     min_contrast: float,
     min_slope: float,
@@ -297,6 +298,8 @@ def count_edges_kernel(
     chunk: int,
     counts: wp.array(dtype=wp.int32),
     pair: wp.array(dtype=wp.int32),
+    ring: wp.array(dtype=wp.int32),
+    pair_sectors: wp.array(dtype=wp.int32),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
     blur: wp.array(dtype=wp.float32),
@@ -307,11 +310,13 @@ def count_edges_kernel(
     pass needs, so that no pair is evaluated twice. On the CPU a run is a row, so
     the scan and the write pass see one count a row, not one a pixel.
 
-    frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W)
+    frames: (n, H, W) read; code, weak, sector: (H, W) int32 read; contrast (H, W)
     read; ``curvature`` 1: estimate each crossing's blur (``pitch``: projector px).
     counts: (runs,) int32 written: run r = (row - row0) * n_chunks + chunk index.
     pair: (2*H*W,) int32 written at the run's slots: 2 * pixel + direction (0: +x,
         1: +y) of each sample.
+    ring, pair_sectors: (2*H*W,) int32 written likewise: the boundary index and
+        the pair's sector (:func:`pair_sector`).
     fraction, slope: (2*H*W,) float32 written likewise: the crossing's position
         along the pair and its confidence.
     blur: (2*H*W,) float32 written likewise with ``curvature`` 1: the edge's blur
@@ -332,6 +337,8 @@ def count_edges_kernel(
             ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
             if ex[0] > 0.0:
                 pair[o + n] = 2 * i
+                ring[o + n] = int(ex[2])
+                pair_sectors[o + n] = pair_sector(sector, y, x, y, x + 1)
                 fraction[o + n] = ex[1]
                 slope[o + n] = ex[3]
                 if curvature != 0:
@@ -339,6 +346,8 @@ def count_edges_kernel(
                 n = n + 1
             if ey[0] > 0.0:
                 pair[o + n] = 2 * i + 1
+                ring[o + n] = int(ey[2])
+                pair_sectors[o + n] = pair_sector(sector, y, x, y + 1, x)
                 fraction[o + n] = ey[1]
                 slope[o + n] = ey[3]
                 if curvature != 0:
@@ -347,23 +356,17 @@ def count_edges_kernel(
     counts[row0 * ((w + chunk - 1) / chunk) + tid] = n
 
 
-@wp.func
-def pair_ring(code: wp.array2d(dtype=wp.int32), bits: int, y: int, x: int, y2: int, x2: int):
-    """The boundary index between two neighbouring bands: the larger band index."""
-    return wp.max(gray_to_binary(code[y, x], bits), gray_to_binary(code[y2, x2], bits))
-
-
 @wp.kernel
 def write_edges_kernel(
-    code: wp.array2d(dtype=wp.int32),
-    sector: wp.array2d(dtype=wp.int32),
+    w: int,
     counts: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
     pair: wp.array(dtype=wp.int32),
+    pair_ring: wp.array(dtype=wp.int32),
+    pair_sectors: wp.array(dtype=wp.int32),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
     blur: wp.array(dtype=wp.float32),
-    bits: int,
     curvature: int,
     row0: int,
     chunk: int,
@@ -376,14 +379,13 @@ def write_edges_kernel(
 ):
     """Copy each run's samples to its scanned offset (runs as in the count pass).
 
-    code/sector (H, W) int32, counts and offsets (runs,) int32 (offsets: their
-    exclusive scan), pair/fraction/slope/blur (2*H*W,) from the count pass: read
-    (blur only with ``curvature`` 1).
+    w: the image width. counts and offsets (runs,) int32 (offsets: their exclusive
+    scan), pair/pair_ring/pair_sectors/fraction/slope/blur (2*H*W,) from the count
+    pass: read (blur only with ``curvature`` 1).
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32, sample_blur (n_samples,) float32 (with
     ``curvature`` 1): written.
     """
-    w = code.shape[1]
     tid = wp.tid()
     r = row0 * ((w + chunk - 1) / chunk) + tid
     n = counts[r]
@@ -401,8 +403,8 @@ def write_edges_kernel(
         dy = 1 - dx
         f = fraction[src + k]
         uv[o + k] = wp.vec2(float(x) + float(dx) * f, float(y) + float(dy) * f)
-        ring[o + k] = pair_ring(code, bits, y, x, y + dy, x + dx)
-        sample_sector[o + k] = pair_sector(sector, y, x, y + dy, x + dx)
+        ring[o + k] = pair_ring[src + k]
+        sample_sector[o + k] = pair_sectors[src + k]
         confidence[o + k] = slope[src + k]
         pixel[o + k] = i
         if curvature != 0:
@@ -463,6 +465,8 @@ def sample_gray_rings(
     # confidences and blurs packed at the run's slots (read back by the write pass)
     counts = wp.empty(h * w, dtype=wp.int32, device=dev)  # runs <= pixels
     pair = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
+    ring = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
+    sectors = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
     fraction = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     slope = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     blur = wp.empty(2 * h * w if curvature else 0, dtype=wp.float32, device=dev)
@@ -470,11 +474,12 @@ def sample_gray_rings(
 
     def count_inputs(r0, chunk):
         runs[0] = h * ((w + chunk - 1) // chunk)  # the launcher's run length decides the runs
-        return [frames, labels.code, labels.weak, labels.contrast, bits, mc, settings.min_slope, curvature,
-                float(pitch or 1.0), r0, chunk]
+        return [frames, labels.code, labels.weak, labels.contrast, labels.sector, bits, mc, settings.min_slope,
+                curvature, float(pitch or 1.0), r0, chunk]
 
     if h * w:
-        launch_rows(count_edges_kernel, h, w, count_inputs, [counts, pair, fraction, slope, blur], dev, threads)
+        launch_rows(count_edges_kernel, h, w, count_inputs, [counts, pair, ring, sectors, fraction, slope, blur], dev,
+                    threads)
     counts = counts[:runs[0]]
     offsets, total = scan_counts(counts)
     out = Samples(
@@ -488,8 +493,8 @@ def sample_gray_rings(
     sample_blur = wp.empty(total if curvature else 0, dtype=wp.float32, device=dev)
     if total:
         launch_rows(write_edges_kernel, h, w,
-                    lambda r0, chunk: [labels.code, labels.sector, counts, offsets, pair, fraction, slope, blur, bits,
-                                       curvature, r0, chunk],
+                    lambda r0, chunk: [w, counts, offsets, pair, ring, sectors, fraction, slope, blur, curvature,
+                                       r0, chunk],
                     [out.uv, out.ring, out.sector, out.confidence, out.pixel, sample_blur], dev, threads)
     if pitch is not None:
         out.rho = ring_radii(out.ring, rho0=rho0, pitch=pitch)
