@@ -12,8 +12,8 @@ about one sample per pixel it crosses and never a grazing one.
 Output order is deterministic: per pixel in raster order, the +x sample first.
 Counts are computed per run of pixels (a row on the CPU, a pixel on CUDA),
 scanned (``wp.utils.array_scan``) and then written; the count pass keeps each
-crossing it finds (pair, position and confidence) packed at its run's slots, so
-the write pass only copies them to their scanned offsets.
+crossing it finds (pair, position, confidence, ring and sector) packed at its
+run's slots, so the write pass only copies them to their scanned offsets.
 """
 
 from __future__ import annotations
