@@ -312,7 +312,8 @@ def count_edges_kernel(
 
     frames: (n, H, W) read; code, weak, sector: (H, W) int32 read; contrast (H, W)
     read; ``curvature`` 1: estimate each crossing's blur (``pitch``: projector px).
-    counts: (runs,) int32 written: run r = (row - row0) * n_chunks + chunk index.
+    counts: (runs,) int32 written: run r = row * n_chunks + chunk index
+        (n_chunks = ceil(W / chunk)).
     pair: (2*H*W,) int32 written at the run's slots: 2 * pixel + direction (0: +x,
         1: +y) of each sample.
     ring, pair_sectors: (2*H*W,) int32 written likewise: the boundary index and
@@ -399,10 +400,11 @@ def write_edges_kernel(
         i = pd / 2
         y = i / w
         x = i - y * w
-        dx = 1 - (pd - 2 * i)
-        dy = 1 - dx
         f = fraction[src + k]
-        uv[o + k] = wp.vec2(float(x) + float(dx) * f, float(y) + float(dy) * f)
+        if pd == 2 * i:
+            uv[o + k] = wp.vec2(float(x) + f, float(y))
+        else:
+            uv[o + k] = wp.vec2(float(x), float(y) + f)
         ring[o + k] = pair_ring[src + k]
         sample_sector[o + k] = pair_sectors[src + k]
         confidence[o + k] = slope[src + k]
