@@ -7,6 +7,12 @@ pixels lie within ``radius`` pixels of its own are near it in 3D: within
 ``tolerance`` times the pixel footprint at its depth (mm per pixel = depth / f)
 times their pixel distance, plus a floor. Points come in any order; each may
 share its pixel with one other point (the +x and +y samples of a pixel).
+
+Points in pixel order (the samplers write them so) are looked up where they lie:
+a window row's points are a run of the arrays, entered through an index of the
+first point of each block of BLOCK pixels (a pass over the points). Other orders
+use a slot map of two entries a pixel (2 * H * W, filled with -1 first): the
+same result, at the cost of writing and filling the map.
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ from ringscan.kernels.geometry import CameraModel
 from ringscan.kernels.launch import default_threads, launch_spans
 
 MAX_PER_PIXEL = wp.constant(2)
+BLOCK = wp.constant(16)
+"""Pixels (raster order) per block of the sorted points' index (:func:`block_starts_kernel`)."""
 
 __all__ = ["NeighbourFilterSettings", "mark_isolated_points"]
 
@@ -112,6 +120,103 @@ def count_neighbours_kernel(
         status_out[i] = isolated_status
 
 
+@wp.kernel
+def unsorted_kernel(pixel: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    """flag[0] = 1 where pixel[i] > pixel[i + 1]. pixel (n,) read; flag (1,) written (pre-filled with 0)."""
+    i = wp.tid()
+    if pixel[i] > pixel[i + 1]:
+        flag[0] = 1
+
+
+@wp.func
+def pixel_block(p: int, n_blocks: int):
+    """Block of pixel index p (BLOCK consecutive pixels of the raster), clamped to
+    -1..n_blocks (a pixel outside the image only ever meets its own blocks)."""
+    return wp.where(p < 0, -1, wp.min(p / BLOCK, n_blocks))
+
+
+@wp.kernel
+def block_starts_kernel(pixel: wp.array(dtype=wp.int32), n_blocks: int, starts: wp.array(dtype=wp.int32)):
+    """starts[b] = the first point whose pixel is in block b or after it (pixel
+    sorted): point i writes the blocks after its predecessor's up to its own,
+    thread n those after the last point's.
+
+    pixel (n,) read; starts (n_blocks + 1,) written, each entry by one thread.
+    """
+    i = wp.tid()
+    prev = int(-1)
+    if i > 0:
+        prev = pixel_block(pixel[i - 1], n_blocks)
+    cur = n_blocks
+    if i < pixel.shape[0]:
+        cur = pixel_block(pixel[i], n_blocks)
+    for bb in range(prev + 1, cur + 1):
+        starts[bb] = i
+
+
+@wp.kernel
+def count_neighbours_sorted_kernel(
+    points: wp.array(dtype=wp.vec3),
+    pixel: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+    starts: wp.array(dtype=wp.int32),
+    cam: CameraModel,
+    width: int,
+    height: int,
+    radius: int,
+    tolerance: float,
+    floor_mm: float,
+    min_neighbours: int,
+    isolated_status: int,
+    i0: int,
+    status_out: wp.array(dtype=wp.int32),
+):
+    """:func:`count_neighbours_kernel` for points sorted by pixel: a window row's
+    points are a run of the arrays, entered at the first point of the block of
+    BLOCK pixels that holds the row's first column, so no slot map is needed. Same
+    result: every status-0 point of the window counts.
+
+    points (n,) vec3 world, pixel/status (n,) int32, starts (n_blocks + 1,) int32
+    (:func:`block_starts_kernel`): read. status_out (n,) int32: written.
+    """
+    i = i0 + wp.tid()
+    status_out[i] = status[i]
+    if status[i] != 0:
+        return
+    X = points[i]
+    p = pixel[i]
+    y = p / width
+    x = p - y * width
+    depth = wp.length(X - cam.center)
+    foot = depth / cam.fx
+    n = int(0)
+    xa = wp.max(x - radius, 0)
+    xb = wp.min(x + radius, width - 1)
+    n_all = pixel.shape[0]
+    for dy in range(-radius, radius + 1):
+        yy = y + dy
+        if n < min_neighbours and yy >= 0 and yy < height:
+            row = yy * width
+            hi = n_all
+            j = starts[(row + xa) / BLOCK]
+            while j < hi and pixel[j] < row + xa:
+                j = j + 1
+            while j < hi and n < min_neighbours:
+                q = pixel[j]
+                if q > row + xb:
+                    j = hi
+                else:
+                    if status[j] == 0 and j != i:
+                        dx = q - row - x
+                        pd = wp.sqrt(float(dx * dx + dy * dy))
+                        lim = tolerance * wp.max(pd, 1.0) * foot + floor_mm
+                        if wp.length(points[j] - X) <= lim:
+                            n = n + 1
+                    j = j + 1
+    if n < min_neighbours:
+        status_out[i] = isolated_status
+
+
 def mark_isolated_points(
     points: wp.array,
     pixel: wp.array,
@@ -148,11 +253,23 @@ def mark_isolated_points(
     dev = points.device
     if n == 0 or settings.radius <= 0:
         return wp.clone(status)
-    slots = wp.full(MAX_PER_PIXEL * width * height, -1, dtype=wp.int32, device=dev)
     out = wp.empty_like(status)
+    threads = default_threads() if threads is None else threads
+    args = [points, pixel, status]
+    tail = [camera, width, height, settings.radius, settings.tolerance, settings.floor_mm, settings.min_neighbours,
+            isolated_status]
+    unsorted = wp.zeros(1, dtype=wp.int32, device=dev)
+    if n > 1:
+        wp.launch(unsorted_kernel, dim=n - 1, inputs=[pixel], outputs=[unsorted], device=dev)
+    if not unsorted.numpy()[0]:
+        # points in pixel order (the samplers write them so): each window row's points
+        # are a run of the arrays, found from the first point of each block of BLOCK pixels
+        n_blocks = (width * height + BLOCK - 1) // BLOCK
+        starts = wp.empty(n_blocks + 1, dtype=wp.int32, device=dev)
+        wp.launch(block_starts_kernel, dim=n + 1, inputs=[pixel, n_blocks], outputs=[starts], device=dev)
+        launch_spans(count_neighbours_sorted_kernel, n, lambda i0: args + [starts] + tail + [i0], [out], dev, threads)
+        return out
+    slots = wp.full(MAX_PER_PIXEL * width * height, -1, dtype=wp.int32, device=dev)
     wp.launch(map_pixels_kernel, dim=n, inputs=[pixel, status], outputs=[slots], device=dev)
-    args = [points, pixel, status, slots, camera, width, height, settings.radius, settings.tolerance,
-            settings.floor_mm, settings.min_neighbours, isolated_status]
-    launch_spans(count_neighbours_kernel, n, lambda i0: args + [i0], [out], dev,
-                 default_threads() if threads is None else threads)
+    launch_spans(count_neighbours_kernel, n, lambda i0: args + [slots] + tail + [i0], [out], dev, threads)
     return out

@@ -20,8 +20,10 @@ gray_{bits-1}_inv, then sector_0, sector_0_inv, ...
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Any
 
+import numpy as np
 import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, row_run
@@ -38,6 +40,7 @@ LANES_GUARD = wp.constant(wp.uint64(0x8000800080008000))
 LANES_512 = wp.constant(wp.uint64(0x0200020002000200))
 LANES_513 = wp.constant(wp.uint64(0x0201020102010201))
 LANES_ONE = wp.constant(wp.uint64(0x0001000100010001))
+LANES_1024 = wp.constant(wp.uint64(0x0400040004000400))
 
 __all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings"]
 
@@ -173,55 +176,84 @@ def decode_gray_rings_kernel(
 
 
 @wp.func
-def lane16(v: wp.uint64, i: int):
-    """The i-th 16-bit lane of v."""
-    return int((v >> wp.uint64(16 * i)) & wp.uint64(0xFFFF))
+def lanes_gray_to_binary(g: wp.uint64):
+    """:func:`gray_to_binary` of each 16-bit lane of g (codes of up to 16 bits)."""
+    k = g ^ ((g >> wp.uint64(1)) & wp.uint64(0x7FFF7FFF7FFF7FFF))
+    k = k ^ ((k >> wp.uint64(2)) & wp.uint64(0x3FFF3FFF3FFF3FFF))
+    k = k ^ ((k >> wp.uint64(4)) & wp.uint64(0x0FFF0FFF0FFF0FFF))
+    return k ^ ((k >> wp.uint64(8)) & LANES_LO)
 
 
 @wp.func
-def byte_of(v: wp.uint64, i: int):
-    return int((v >> wp.uint64(8 * i)) & wp.uint64(0xFF))
+def lanes_full(guard: wp.uint64):
+    """0xFFFF in each 16-bit lane whose guard bit (15) is set in ``guard``, else 0."""
+    return ((guard >> wp.uint64(15)) & LANES_ONE) * wp.uint64(0xFFFF)
 
 
 @wp.func
-def swar_pair(fa: wp.uint64, fb: wp.uint64, tlo: wp.uint64, thi: wp.uint64, odd: int):
-    """For four pixels (even or odd bytes) of a frame/inverse word pair:
-    (a > b, |a - b| < m), each as four 16-bit lanes holding 0 or 1.
+def swar_thresholds_of(tlut: wp.array(dtype=wp.uint64), lc: wp.uint64):
+    """Lower weak bounds (513 - m) of the four contrast lanes ``lc`` (512 + c)."""
+    t = tlut[int(lc & wp.uint64(0x3FF))]
+    t = t | (tlut[int((lc >> wp.uint64(16)) & wp.uint64(0x3FF))] << wp.uint64(16))
+    t = t | (tlut[int((lc >> wp.uint64(32)) & wp.uint64(0x3FF))] << wp.uint64(32))
+    return t | (tlut[int(lc >> wp.uint64(48))] << wp.uint64(48))
 
-    Each lane holds L = 512 + a - b (257..767, no borrow between lanes); with a
-    guard bit at 15, (L | guard) - T keeps the guard iff L >= T.
-    """
-    sh = wp.uint64(8 * odd)
-    la = ((fa >> sh) & LANES_LO) | LANES_512
-    l = la - ((fb >> sh) & LANES_LO)
-    gt = (((l | LANES_GUARD) - LANES_513) >> wp.uint64(15)) & LANES_ONE
-    wk = ((((l | LANES_GUARD) - tlo) & ((thi | LANES_GUARD) - l)) >> wp.uint64(15)) & LANES_ONE
-    return gt, wk
+
+@wp.func
+def swar_finish(g: wp.uint64, k: wp.uint64, s: wp.uint64, sw: wp.uint64, ok: wp.uint64, bits: int, sector_bits: int):
+    """(code, weak, band + 1, sector + 1) lanes from the accumulated tests: g, k the
+    band code and weak bits and s the sector code in the top bits of each lane, sw's
+    guard bits any weak sector bit, ok's guard bits the contrast test."""
+    sh = wp.uint64(16 - bits)
+    lm = wp.uint64(0xFFFF) >> sh
+    lm = lm | (lm << wp.uint64(16))
+    lm = lm | (lm << wp.uint64(32))
+    g = (g >> sh) & lm
+    k = (k >> sh) & lm
+    kz = ~((k | LANES_GUARD) - LANES_ONE)  # guard kept: no weak bit
+    band1 = (lanes_gray_to_binary(g) + LANES_ONE) & lanes_full(ok & kz)
+    sector1 = wp.uint64(0)
+    if sector_bits > 0:
+        ssh = wp.uint64(16 - sector_bits)
+        sm = wp.uint64(0xFFFF) >> ssh
+        sm = sm | (sm << wp.uint64(16))
+        sm = sm | (sm << wp.uint64(32))
+        sector1 = (lanes_gray_to_binary((s >> ssh) & sm) + LANES_ONE) & lanes_full(ok & ~sw)
+    return g, k, band1, sector1
 
 
 @wp.kernel
 def decode_gray_rings_swar_kernel(
     words: wp.array3d(dtype=wp.uint64),
+    tlut: wp.array(dtype=wp.uint64),
     bits: int,
     sector_bits: int,
-    min_contrast: float,
-    bit_margin: float,
+    cmin: wp.uint64,
     row0: int,
     chunk: int,
-    code: wp.array2d(dtype=wp.int32),
-    weak: wp.array2d(dtype=wp.int32),
-    band: wp.array2d(dtype=wp.int32),
-    sector: wp.array2d(dtype=wp.int32),
+    code: wp.array2d(dtype=wp.uint64),
+    weak: wp.array2d(dtype=wp.uint64),
+    band: wp.array2d(dtype=wp.uint64),
+    sector: wp.array2d(dtype=wp.uint64),
     contrast: wp.array2d(dtype=wp.float32),
 ):
     """The decode of :func:`decode_gray_rings_kernel` for 8-bit frames, eight
-    pixels at a time: each uint64 word of a frame holds eight pixels, and the
-    comparisons frame > inverse and |frame - inverse| < margin run on four 16-bit
-    lanes at once. Same results, bit for bit. A thread covers ``chunk`` words of
-    one row.
+    pixels at a time. Same results, bit for bit. A thread covers ``chunk`` words
+    of one row.
+
+    Each uint64 word of a frame holds eight pixels, split into even and odd bytes,
+    four 16-bit lanes each. A lane holds L = 512 + a - b (257..767, no borrow
+    between lanes); with the guard bit 15 set, (L | guard) - T keeps the guard iff
+    L >= T. Per bit the tests' guard bits are shifted in from the top of each
+    lane, last bit first, so after all pairs a lane's top bits hold the code, first
+    bit most significant. Band, sector and the masks are finished in the lanes
+    (:func:`swar_finish`); only the stores are per pixel.
 
     words:    (n_frames, H, W / 8) uint64 (the 8-bit frames viewed as words), read.
-    code, weak, band, sector: (H, W) int32, written.
+    tlut:     (1024,) uint64: 513 - ceil(bit_margin * c) at 512 + c, read.
+    cmin:     512 + the least integer contrast >= min_contrast, in each lane.
+    code, weak, band, sector: (H, W / 2) uint64 (the (H, W) int32 labels viewed as
+              pixel pairs, little-endian), written.
     contrast: (H, W) float32, written.
     """
     tid = wp.tid()
@@ -232,62 +264,66 @@ def decode_gray_rings_swar_kernel(
     for j in range(j0, wp.min(j0 + chunk, nw)):
         wa = words[FRAME_WHITE, y, j]
         wb = words[FRAME_BLACK, y, j]
-        # per-pixel margins as lane thresholds: weak <=> 513 - m <= L <= 511 + m,
-        # m = ceil(bit_margin * c) (|d| < x <=> |d| < ceil(x) for integer d)
-        tlo_e = wp.uint64(0)
-        thi_e = wp.uint64(0)
-        tlo_o = wp.uint64(0)
-        thi_o = wp.uint64(0)
-        for i in range(8):
-            c = float(byte_of(wa, i) - byte_of(wb, i))
-            contrast[y, 8 * j + i] = c
-            m = wp.min(int(wp.ceil(wp.max(bit_margin * c, 0.0))), 256)
-            sh = wp.uint64(16 * (i / 2))
-            if i % 2 == 0:
-                tlo_e = tlo_e | (wp.uint64(513 - m) << sh)
-                thi_e = thi_e | (wp.uint64(511 + m) << sh)
-            else:
-                tlo_o = tlo_o | (wp.uint64(513 - m) << sh)
-                thi_o = thi_o | (wp.uint64(511 + m) << sh)
+        ce = ((wa & LANES_LO) | LANES_512) - (wb & LANES_LO)
+        co = (((wa >> wp.uint64(8)) & LANES_LO) | LANES_512) - ((wb >> wp.uint64(8)) & LANES_LO)
+        # weak <=> |d| < m <=> 513 - m <= L <= 511 + m, m = ceil(bit_margin * c)
+        # (|d| < x <=> |d| < ceil(x) for integer d): the lower bound per contrast
+        # from a table, the upper one 1024 - lower
+        tle = swar_thresholds_of(tlut, ce)
+        tlo = swar_thresholds_of(tlut, co)
+        the = (LANES_1024 - tle) | LANES_GUARD
+        tho = (LANES_1024 - tlo) | LANES_GUARD
         ge = wp.uint64(0)
         go = wp.uint64(0)
         ke = wp.uint64(0)
         ko = wp.uint64(0)
-        for b in range(bits):
+        b = bits - 1
+        while b >= 0:
             fa = words[FRAME_FIRST_BIT + 2 * b, y, j]
             fb = words[FRAME_FIRST_BIT + 2 * b + 1, y, j]
-            gte, wke = swar_pair(fa, fb, tlo_e, thi_e, 0)
-            gto, wko = swar_pair(fa, fb, tlo_o, thi_o, 1)
-            ge = (ge << wp.uint64(1)) | gte
-            ke = (ke << wp.uint64(1)) | wke
-            go = (go << wp.uint64(1)) | gto
-            ko = (ko << wp.uint64(1)) | wko
+            le = ((fa & LANES_LO) | LANES_512) - (fb & LANES_LO)
+            lo = (((fa >> wp.uint64(8)) & LANES_LO) | LANES_512) - ((fb >> wp.uint64(8)) & LANES_LO)
+            lge = le | LANES_GUARD
+            lgo = lo | LANES_GUARD
+            ge = (ge >> wp.uint64(1)) | ((lge - LANES_513) & LANES_GUARD)
+            go = (go >> wp.uint64(1)) | ((lgo - LANES_513) & LANES_GUARD)
+            ke = (ke >> wp.uint64(1)) | ((lge - tle) & (the - le) & LANES_GUARD)
+            ko = (ko >> wp.uint64(1)) | ((lgo - tlo) & (tho - lo) & LANES_GUARD)
+            b = b - 1
         se = wp.uint64(0)
         so = wp.uint64(0)
         swe = wp.uint64(0)
         swo = wp.uint64(0)
         base = FRAME_FIRST_BIT + 2 * bits
-        for b in range(sector_bits):
+        b = sector_bits - 1
+        while b >= 0:
             fa = words[base + 2 * b, y, j]
             fb = words[base + 2 * b + 1, y, j]
-            gte, wke = swar_pair(fa, fb, tlo_e, thi_e, 0)
-            gto, wko = swar_pair(fa, fb, tlo_o, thi_o, 1)
-            se = (se << wp.uint64(1)) | gte
-            swe = swe | wke
-            so = (so << wp.uint64(1)) | gto
-            swo = swo | wko
-        for i in range(8):
-            x = 8 * j + i
-            k = i / 2
-            g = wp.where(i % 2 == 0, lane16(ge, k), lane16(go, k))
-            wk = wp.where(i % 2 == 0, lane16(ke, k), lane16(ko, k))
-            code[y, x] = g
-            weak[y, x] = wk
-            ok = contrast[y, x] >= min_contrast
-            band[y, x] = wp.where(ok and wk == 0, gray_to_binary(g, bits), -1)
-            sg = wp.where(i % 2 == 0, lane16(se, k), lane16(so, k))
-            sw = wp.where(i % 2 == 0, lane16(swe, k), lane16(swo, k))
-            sector[y, x] = wp.where(sector_bits > 0 and ok and sw == 0, gray_to_binary(sg, sector_bits), -1)
+            le = ((fa & LANES_LO) | LANES_512) - (fb & LANES_LO)
+            lo = (((fa >> wp.uint64(8)) & LANES_LO) | LANES_512) - ((fb >> wp.uint64(8)) & LANES_LO)
+            lge = le | LANES_GUARD
+            lgo = lo | LANES_GUARD
+            se = (se >> wp.uint64(1)) | ((lge - LANES_513) & LANES_GUARD)
+            so = (so >> wp.uint64(1)) | ((lgo - LANES_513) & LANES_GUARD)
+            swe = swe | ((lge - tle) & (the - le))
+            swo = swo | ((lgo - tlo) & (tho - lo))
+            b = b - 1
+        ge, ke, be, se2 = swar_finish(ge, ke, se, swe, (ce | LANES_GUARD) - cmin, bits, sector_bits)
+        go, ko, bo, so = swar_finish(go, ko, so, swo, (co | LANES_GUARD) - cmin, bits, sector_bits)
+        # pixels 2i, 2i + 1 are lane i of the even and odd words: one 64-bit store
+        # writes both int32 labels (-1 where lane + 1 was stored as 0)
+        for i in range(4):
+            x = 8 * j + 2 * i
+            sh = wp.uint64(16 * i)
+            contrast[y, x] = float(int((ce >> sh) & wp.uint64(0xFFFF)) - 512)
+            contrast[y, x + 1] = float(int((co >> sh) & wp.uint64(0xFFFF)) - 512)
+            q = 4 * j + i
+            code[y, q] = ((ge >> sh) & wp.uint64(0xFFFF)) | (((go >> sh) & wp.uint64(0xFFFF)) << wp.uint64(32))
+            weak[y, q] = ((ke >> sh) & wp.uint64(0xFFFF)) | (((ko >> sh) & wp.uint64(0xFFFF)) << wp.uint64(32))
+            band[y, q] = (((be >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) & wp.uint64(0xFFFFFFFF) | (
+                (((bo >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) << wp.uint64(32))
+            sector[y, q] = (((se2 >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) & wp.uint64(0xFFFFFFFF) | (
+                (((so >> sh) & wp.uint64(0xFFFF)) - wp.uint64(1)) << wp.uint64(32))
 
 
 # Frames are 8- or 16-bit: declare both overloads (so ahead-of-time CUDA builds
@@ -345,11 +381,13 @@ def decode_gray_rings(
     outputs = [out.code, out.weak, out.band, out.sector, out.contrast]
     threads = default_threads() if threads is None else threads
     words = as_words(frames)
-    if words is not None and bits <= 16 and sector_bits <= 16:
+    if words is not None and bits <= 15:
+        tlut, cmin = swar_thresholds(settings, dev)
+        pairs = [wp.array(ptr=a.ptr, dtype=wp.uint64, shape=(h, w // 2), device=dev) for a in outputs[:4]]
         launch_rows(
             decode_gray_rings_swar_kernel, h, w // 8,
-            lambda r0, chunk: [words, bits, sector_bits, settings.min_contrast, settings.bit_margin, r0, chunk],
-            outputs, dev, threads,
+            lambda r0, chunk: [words, tlut, bits, sector_bits, cmin, r0, chunk],
+            pairs + [out.contrast], dev, threads,
         )
         return out
     launch_rows(
@@ -358,6 +396,25 @@ def decode_gray_rings(
         outputs, dev, threads,
     )
     return out
+
+
+def swar_thresholds(settings: DecodeSettings, device) -> tuple[wp.array, int]:
+    """The eight-pixel decode's thresholds for 8-bit frames, as integers.
+
+    Returns (tlut, cmin): tlut (1024,) uint64 on ``device`` holds 513 - m at
+    512 + c for each contrast c in -255..255, m = ceil(bit_margin * c) clamped to
+    0..256, computed in float32 as the per-pixel kernel does; cmin is 512 + the
+    least integer contrast >= min_contrast (clamped to 256..768) in each 16-bit lane.
+    """
+    c = np.arange(-255, 256, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        m = np.minimum(np.ceil(np.maximum(np.float32(settings.bit_margin) * c, np.float32(0.0))), 256.0)
+    lut = np.full(1024, 513, dtype=np.uint64)
+    lut[512 - 255:512 + 256] = 513 - np.nan_to_num(m, nan=0.0).astype(np.int64)
+    t = float(np.float32(settings.min_contrast))
+    lo = 256 if math.isnan(t) else int(min(max(math.ceil(t) if math.isfinite(t) else math.copysign(256, t), -256), 256))
+    cmin = (512 + lo) * 0x0001000100010001
+    return wp.array(lut, dtype=wp.uint64, device=device), cmin
 
 
 def as_words(frames: wp.array) -> wp.array | None:

@@ -10,9 +10,10 @@ normal (the larger component of the gradient of d) is kept, so a boundary gives
 about one sample per pixel it crosses and never a grazing one.
 
 Output order is deterministic: per pixel in raster order, the +x sample first.
-Counts are computed, scanned (``wp.utils.array_scan``) and then written; the count
-pass keeps each crossing it finds (position and confidence, per pixel and
-direction) so the write pass only copies them to their scanned offsets.
+Counts are computed per run of pixels (a row on the CPU, a pixel on CUDA),
+scanned (``wp.utils.array_scan``) and then written; the count pass keeps each
+crossing it finds (pair, position, confidence, ring and sector) packed at its
+run's slots, so the write pass only copies them to their scanned offsets.
 """
 
 from __future__ import annotations
@@ -108,10 +109,12 @@ def single_bit(m: int):
     """Index (from the least significant end) of the only set bit of m, or -1."""
     if m <= 0 or (m & (m - 1)) != 0:
         return -1
-    i = int(0)
-    while (m >> i) != 1:
-        i = i + 1
-    return i
+    # the bit's index, one binary digit per mask (no loop to mispredict)
+    i = wp.where((m & 0x55555555) != 0, 0, 1)
+    i = i + wp.where((m & 0x33333333) != 0, 0, 2)
+    i = i + wp.where((m & 0x0F0F0F0F) != 0, 0, 4)
+    i = i + wp.where((m & 0x00FF00FF) != 0, 0, 8)
+    return i + wp.where((m & 0x0000FFFF) != 0, 0, 16)
 
 
 @wp.func
@@ -285,6 +288,7 @@ def count_edges_kernel(
     code: wp.array2d(dtype=wp.int32),
     weak: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
+    sector: wp.array2d(dtype=wp.int32),
     bits: int,
     min_contrast: float,
     min_slope: float,
@@ -293,72 +297,77 @@ def count_edges_kernel(
     row0: int,
     chunk: int,
     counts: wp.array(dtype=wp.int32),
-    found: wp.array(dtype=wp.uint8),
+    pair: wp.array(dtype=wp.int32),
+    ring: wp.array(dtype=wp.int32),
+    pair_sectors: wp.array(dtype=wp.int32),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
     blur: wp.array(dtype=wp.float32),
 ):
-    """Test both pairs of every pixel; count its samples (0, 1 or 2) and keep
-    what the write pass needs, so that no pair is evaluated twice. A thread
-    covers ``chunk`` pixels of one row (see ``kernels.launch.launch_rows``).
+    """Test both pairs of every pixel of a run (``chunk`` pixels of one row, see
+    ``kernels.launch.launch_rows``); count the run's samples and keep, packed in
+    raster order (+x first) from slot 2 * (its first pixel) on, what the write
+    pass needs, so that no pair is evaluated twice. On the CPU a run is a row, so
+    the scan and the write pass see one count a row, not one a pixel.
 
-    frames: (n, H, W) read; code, weak: (H, W) int32 read; contrast (H, W)
+    frames: (n, H, W) read; code, weak, sector: (H, W) int32 read; contrast (H, W)
     read; ``curvature`` 1: estimate each crossing's blur (``pitch``: projector px).
-    counts: (H*W,) int32 written (every pixel).
-    found: (H*W,) uint8 written where counts > 0: bit 0 the +x pair, bit 1 the +y pair.
-    fraction, slope: (2*H*W,) float32 written at 2*i + d for each found pair d
-        (0: +x, 1: +y): the crossing's position along the pair and its confidence.
+    counts: (runs,) int32 written: run r = row * n_chunks + chunk index
+        (n_chunks = ceil(W / chunk)).
+    pair: (2*H*W,) int32 written at the run's slots: 2 * pixel + direction (0: +x,
+        1: +y) of each sample.
+    ring, pair_sectors: (2*H*W,) int32 written likewise: the boundary index and
+        the pair's sector (:func:`pair_sector`).
+    fraction, slope: (2*H*W,) float32 written likewise: the crossing's position
+        along the pair and its confidence.
     blur: (2*H*W,) float32 written likewise with ``curvature`` 1: the edge's blur
         variance (projector px^2, -1 unknown; :func:`edge_blur`).
     """
     w = code.shape[1]
-    run = row_run(wp.tid(), w, row0, chunk)
+    tid = wp.tid()
+    run = row_run(tid, w, row0, chunk)
     y = run[0]
     x0 = run[1]
     x1 = run[2]
+    o = 2 * (y * w + x0)
+    n = int(0)
     for x in range(x0, x1):
-        i = y * w + x
-        n = int(0)
-        bitsf = int(0)
         if contrast[y, x] >= min_contrast:
+            i = y * w + x
             ex = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 0, 1)
             ey = edge_pair(frames, code, weak, contrast, bits, min_contrast, min_slope, y, x, 1, 0)
             if ex[0] > 0.0:
-                n = n + 1
-                bitsf = bitsf | 1
-                fraction[2 * i] = ex[1]
-                slope[2 * i] = ex[3]
+                pair[o + n] = 2 * i
+                ring[o + n] = int(ex[2])
+                pair_sectors[o + n] = pair_sector(sector, y, x, y, x + 1)
+                fraction[o + n] = ex[1]
+                slope[o + n] = ex[3]
                 if curvature != 0:
-                    blur[2 * i] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 0, 1, ex[1])
+                    blur[o + n] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 0, 1, ex[1])
+                n = n + 1
             if ey[0] > 0.0:
-                n = n + 1
-                bitsf = bitsf | 2
-                fraction[2 * i + 1] = ey[1]
-                slope[2 * i + 1] = ey[3]
+                pair[o + n] = 2 * i + 1
+                ring[o + n] = int(ey[2])
+                pair_sectors[o + n] = pair_sector(sector, y, x, y + 1, x)
+                fraction[o + n] = ey[1]
+                slope[o + n] = ey[3]
                 if curvature != 0:
-                    blur[2 * i + 1] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 1, 0, ey[1])
-            if n > 0:
-                found[i] = wp.uint8(bitsf)
-        counts[i] = n
-
-
-@wp.func
-def pair_ring(code: wp.array2d(dtype=wp.int32), bits: int, y: int, x: int, y2: int, x2: int):
-    """The boundary index between two neighbouring bands: the larger band index."""
-    return wp.max(gray_to_binary(code[y, x], bits), gray_to_binary(code[y2, x2], bits))
+                    blur[o + n] = edge_blur(frames, code, contrast, bits, min_contrast, pitch, y, x, 1, 0, ey[1])
+                n = n + 1
+    counts[row0 * ((w + chunk - 1) / chunk) + tid] = n
 
 
 @wp.kernel
 def write_edges_kernel(
-    code: wp.array2d(dtype=wp.int32),
-    sector: wp.array2d(dtype=wp.int32),
+    w: int,
     counts: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
-    found: wp.array(dtype=wp.uint8),
+    pair: wp.array(dtype=wp.int32),
+    pair_ring: wp.array(dtype=wp.int32),
+    pair_sectors: wp.array(dtype=wp.int32),
     fraction: wp.array(dtype=wp.float32),
     slope: wp.array(dtype=wp.float32),
     blur: wp.array(dtype=wp.float32),
-    bits: int,
     curvature: int,
     row0: int,
     chunk: int,
@@ -369,42 +378,39 @@ def write_edges_kernel(
     pixel: wp.array(dtype=wp.int32),
     sample_blur: wp.array(dtype=wp.float32),
 ):
-    """Write each pixel's samples at its scanned offset (pixels with a count only).
+    """Copy each run's samples to its scanned offset (runs as in the count pass).
 
-    code/sector (H, W) int32, counts and offsets (H*W,) int32 (offsets: their
-    exclusive scan), found (H*W,) uint8, fraction/slope/blur (2*H*W,) float32,
-    all from the count pass: read (blur only with ``curvature`` 1).
+    w: the image width. counts and offsets (runs,) int32 (offsets: their exclusive
+    scan), pair/pair_ring/pair_sectors/fraction/slope/blur (2*H*W,) from the count
+    pass: read (blur only with ``curvature`` 1).
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32, sample_blur (n_samples,) float32 (with
     ``curvature`` 1): written.
     """
-    w = code.shape[1]
-    run = row_run(wp.tid(), w, row0, chunk)
-    y = run[0]
-    x0 = run[1]
-    x1 = run[2]
-    for x in range(x0, x1):
-        i = y * w + x
-        if counts[i] > 0:
-            o = offsets[i]
-            f = int(found[i])
-            if (f & 1) != 0:
-                uv[o] = wp.vec2(float(x) + fraction[2 * i], float(y))
-                ring[o] = pair_ring(code, bits, y, x, y, x + 1)
-                sample_sector[o] = pair_sector(sector, y, x, y, x + 1)
-                confidence[o] = slope[2 * i]
-                pixel[o] = i
-                if curvature != 0:
-                    sample_blur[o] = blur[2 * i]
-                o = o + 1
-            if (f & 2) != 0:
-                uv[o] = wp.vec2(float(x), float(y) + fraction[2 * i + 1])
-                ring[o] = pair_ring(code, bits, y, x, y + 1, x)
-                sample_sector[o] = pair_sector(sector, y, x, y + 1, x)
-                confidence[o] = slope[2 * i + 1]
-                pixel[o] = i
-                if curvature != 0:
-                    sample_blur[o] = blur[2 * i + 1]
+    tid = wp.tid()
+    r = row0 * ((w + chunk - 1) / chunk) + tid
+    n = counts[r]
+    if n == 0:
+        return
+    run = row_run(tid, w, row0, chunk)
+    src = 2 * (run[0] * w + run[1])
+    o = offsets[r]
+    for k in range(n):
+        pd = pair[src + k]
+        i = pd / 2
+        y = i / w
+        x = i - y * w
+        f = fraction[src + k]
+        if pd == 2 * i:
+            uv[o + k] = wp.vec2(float(x) + f, float(y))
+        else:
+            uv[o + k] = wp.vec2(float(x), float(y) + f)
+        ring[o + k] = pair_ring[src + k]
+        sample_sector[o + k] = pair_sectors[src + k]
+        confidence[o + k] = slope[src + k]
+        pixel[o + k] = i
+        if curvature != 0:
+            sample_blur[o + k] = blur[src + k]
 
 
 for _t in (wp.uint8, wp.uint16):
@@ -457,18 +463,26 @@ def sample_gray_rings(
     threads = default_threads() if threads is None else threads
     scale = 257.0 if frames.dtype == wp.uint16 else 1.0
     mc = settings.min_contrast * scale
-    # count pass: every pixel's count (scanned below), and for the pairs found
-    # their crossing, confidence and blur (read back by the write pass only where found)
-    counts = wp.empty(h * w, dtype=wp.int32, device=dev)
-    found = wp.empty(h * w, dtype=wp.uint8, device=dev)
+    # count pass: each run's count (scanned below) and its samples' pairs, crossings,
+    # confidences and blurs packed at the run's slots (read back by the write pass)
+    counts = wp.empty(h * w, dtype=wp.int32, device=dev)  # runs <= pixels
+    pair = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
+    ring = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
+    sectors = wp.empty(2 * h * w, dtype=wp.int32, device=dev)
     fraction = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     slope = wp.empty(2 * h * w, dtype=wp.float32, device=dev)
     blur = wp.empty(2 * h * w if curvature else 0, dtype=wp.float32, device=dev)
+    runs = [0]
+
+    def count_inputs(r0, chunk):
+        runs[0] = h * ((w + chunk - 1) // chunk)  # the launcher's run length decides the runs
+        return [frames, labels.code, labels.weak, labels.contrast, labels.sector, bits, mc, settings.min_slope,
+                curvature, float(pitch or 1.0), r0, chunk]
+
     if h * w:
-        launch_rows(count_edges_kernel, h, w,
-                    lambda r0, chunk: [frames, labels.code, labels.weak, labels.contrast, bits, mc, settings.min_slope,
-                                       curvature, float(pitch or 1.0), r0, chunk],
-                    [counts, found, fraction, slope, blur], dev, threads)
+        launch_rows(count_edges_kernel, h, w, count_inputs, [counts, pair, ring, sectors, fraction, slope, blur], dev,
+                    threads)
+    counts = counts[:runs[0]]
     offsets, total = scan_counts(counts)
     out = Samples(
         uv=wp.empty(total, dtype=wp.vec2, device=dev),
@@ -481,8 +495,8 @@ def sample_gray_rings(
     sample_blur = wp.empty(total if curvature else 0, dtype=wp.float32, device=dev)
     if total:
         launch_rows(write_edges_kernel, h, w,
-                    lambda r0, chunk: [labels.code, labels.sector, counts, offsets, found, fraction, slope, blur, bits,
-                                       curvature, r0, chunk],
+                    lambda r0, chunk: [w, counts, offsets, pair, ring, sectors, fraction, slope, blur, curvature,
+                                       r0, chunk],
                     [out.uv, out.ring, out.sector, out.confidence, out.pixel, sample_blur], dev, threads)
     if pitch is not None:
         out.rho = ring_radii(out.ring, rho0=rho0, pitch=pitch)

@@ -50,3 +50,29 @@ def test_bad_input(device):
         mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix[:3], device=device),
                              wp.zeros(len(X), dtype=wp.int32, device=device), camera=cam, width=40, height=30,
                              isolated_status=6)
+
+
+def test_points_in_pixel_order_or_not_give_the_same_marks(device):
+    """Points sorted by pixel take the slot-free path (window rows as runs of the
+    arrays); shuffled ones the slot map: the marks are the same, point for point."""
+    rng = np.random.default_rng(5)
+    cam, X, pix = _plane_points()
+    X = np.concatenate([X, X + rng.normal(0, 0.05, X.shape).astype(np.float32)])  # two points a pixel
+    pix = np.concatenate([pix, pix])
+    X[rng.choice(len(X), 60, replace=False)] += rng.normal(0, 4.0, (60, 3)).astype(np.float32)
+    status = np.where(rng.random(len(X)) < 0.1, 2, 0).astype(np.int32)
+    order = np.argsort(pix, kind="stable")
+    X, pix, status = X[order], pix[order], status[order]
+    shuffle = rng.permutation(len(X))
+
+    def marks(idx):
+        return mark_isolated_points(wp.array(X[idx], dtype=wp.vec3, device=device), wp.array(pix[idx], device=device),
+                                    wp.array(status[idx], device=device), camera=cam, width=40, height=30,
+                                    isolated_status=6,
+                                    settings=NeighbourFilterSettings(min_neighbours=4, tolerance=1.0)).numpy()
+
+    a = marks(np.arange(len(X)))
+    b = np.empty_like(a)
+    b[shuffle] = marks(shuffle)
+    assert np.array_equal(a, b)
+    assert 20 < np.sum(a == 6) < 200 and np.all(a[status == 2] == 2)

@@ -108,3 +108,21 @@ def test_eight_pixel_words_match_pixel_kernel(device):
         b = decode_gray_rings(wp.array(wide, device=device), bits=5, sector_bits=3, settings=s)
         for name in ("code", "weak", "band", "sector", "contrast"):
             assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()[:, :64]), (margin, name)
+
+
+@pytest.mark.parametrize("bits,sector_bits", [(1, 0), (7, 6), (15, 12)])
+def test_eight_pixel_words_match_pixel_kernel_any_contrast(device, bits, sector_bits):
+    """Word and pixel decodes agree over the whole range: negative and small
+    contrasts, contrast thresholds between and on integers, the widest codes."""
+    rng = np.random.default_rng(bits)
+    st = rng.integers(0, 256, size=(2 + 2 * bits + 2 * sector_bits, 12, 64), dtype=np.uint8)
+    st[0, :6] = np.minimum(255, st[1, :6].astype(int) + rng.integers(0, 40, size=(6, 64))).astype(np.uint8)
+    wide = np.concatenate([st, st[:, :, :1]], axis=2)  # width 65: the per-pixel kernel
+    for s in (DecodeSettings(), DecodeSettings(min_contrast=0.0, bit_margin=0.07),
+              DecodeSettings(min_contrast=12.5, bit_margin=0.25), DecodeSettings(min_contrast=-20.0, bit_margin=1.0),
+              DecodeSettings(min_contrast=300.0)):
+        a = decode_gray_rings(wp.array(st, device=device), bits=bits, sector_bits=sector_bits, settings=s)
+        b = decode_gray_rings(wp.array(wide, device=device), bits=bits, sector_bits=sector_bits, settings=s)
+        for name in ("code", "weak", "band", "sector", "contrast"):
+            assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()[:, :64]), (s, name)
+        assert (a.band.numpy() >= 0).any() == (s.min_contrast < 255)

@@ -103,3 +103,22 @@ def test_ring_curvature_correction_removes_the_inward_edge_shift(device, blur):
             assert np.allclose(d["rho"], spec.rho0 + d["ring"] * spec.pitch)
     with pytest.raises(ValueError, match="both"):
         sample_gray_rings(frames, lab, bits=spec.bits, rho0=spec.rho0)
+
+
+def test_sample_sector_is_its_pairs_sector(device):
+    """A sample's sector is its pixel's, or where that has none its neighbour's."""
+    spec = _spec()
+    frames = wp.array(_stack(spec, blur=0.7), device=device)
+    lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits)
+    d = sample_gray_rings(frames, lab, bits=spec.bits).numpy()
+    sec = lab.sector.numpy()
+    y, x = np.divmod(d["pixel"], spec.width)
+    along_x = d["uv"][:, 0] != x
+    along_y = d["uv"][:, 1] != y
+    one = along_x != along_y  # a crossing exactly at the pixel leaves its direction open
+    assert one.mean() > 0.95
+    y, x, along_x = y[one], x[one], along_x[one]
+    q = np.where(along_x, sec[y, np.minimum(x + 1, spec.width - 1)], sec[np.minimum(y + 1, spec.height - 1), x])
+    want = np.where(sec[y, x] >= 0, sec[y, x], q)
+    assert np.array_equal(d["sector"][one], want)
+    assert (want >= 0).mean() > 0.9 and len(np.unique(want[want >= 0])) == 2 ** spec.sector_bits
