@@ -154,9 +154,9 @@ class Triangulation:
 
 
 @wp.func
-def sector_residual(light: LightModel, X: wp.vec3, center: wp.vec2, sector: int, n_sectors: int):
-    """Distance (in sector widths) of X's polar angle outside decoded ``sector``."""
-    off = pattern_offset(light, X, center)
+def sector_residual(off: wp.vec2, sector: int, n_sectors: int):
+    """Distance (in sector widths) outside decoded ``sector`` of the polar angle of
+    a point whose pattern offset (:func:`pattern_offset`) is ``off``."""
     phi = polar_angle(off[1], off[0])
     width = 2.0 * PI / float(n_sectors)
     mid = (float(sector) + 0.5) * width - PI
@@ -214,14 +214,25 @@ def rings_solution(
     use_sector = n_sectors > 0 and s >= 0
     X = X1
     res = float(-1.0)
+    off = wp.vec2(0.0, 0.0)  # the chosen root's pattern offset, where the sector needed it
     if use_sector:
-        e1 = wp.where(ok1, sector_residual(light, X1, center, s, n_sectors), 1.0e9)
-        e2 = wp.where(ok2, sector_residual(light, X2, center, s, n_sectors), 1.0e9)
+        e1 = float(1.0e9)
+        e2 = float(1.0e9)
+        off1 = off
+        off2 = off
+        if ok1:
+            off1 = pattern_offset(light, X1, center)
+            e1 = sector_residual(off1, s, n_sectors)
+        if ok2:
+            off2 = pattern_offset(light, X2, center)
+            e2 = sector_residual(off2, s, n_sectors)
         if ok1 and ok2 and wp.abs(e1 - e2) < sector_margin:
             return zero, STATUS_AMBIGUOUS, 0.0, -1.0
+        off = off1
         if e2 < e1:
             X = X2
             res = e2
+            off = off2
         else:
             res = e1
         if res > sector_tolerance:
@@ -235,7 +246,8 @@ def rings_solution(
     # gradient of |p - c|: analytic for the parallel light, numerical otherwise).
     g = wp.vec3(0.0, 0.0, 0.0)
     if light.model == LIGHT_PARALLEL:
-        off = pattern_offset(light, X, center)
+        if not use_sector:
+            off = pattern_offset(light, X, center)
         g = wp.transpose(light.R) * wp.vec3(off[0], off[1], 0.0)
     else:
         h = 0.01
