@@ -107,11 +107,16 @@ class LightModel:
 
 @wp.struct
 class Volume:
-    """The rig's working volume (world frame, mm): z_min <= z <= z_max, radius <= r_max."""
+    """The rig's working volume (world frame, mm): z_min <= z <= z_max, radius <= r_max.
+
+    ``r2_limit`` is the largest float32 s whose float32 square root is <= r_max
+    (:func:`make_volume`): ``x^2 + y^2 <= r2_limit`` is the radius test to the
+    bit, without the square root."""
 
     z_min: float
     z_max: float
     r_max: float
+    r2_limit: float
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -402,8 +407,9 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
 
 @wp.func
 def in_volume(X: wp.vec3, vol: Volume):
-    r = wp.sqrt(X[0] * X[0] + X[1] * X[1])
-    return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
+    # sqrt(r2) <= r_max, decided exactly without the square root (Volume.r2_limit)
+    r2 = X[0] * X[0] + X[1] * X[1]
+    return X[2] >= vol.z_min and X[2] <= vol.z_max and r2 <= vol.r2_limit
 
 
 ROOT_FAILED_1 = wp.constant(1)
@@ -620,4 +626,24 @@ def make_volume(z_min: float, z_max: float, r_max: float) -> Volume:
     """Build a :class:`Volume` (mm)."""
     v = Volume()
     v.z_min, v.z_max, v.r_max = float(z_min), float(z_max), float(r_max)
+    v.r2_limit = float(sqrt_limit32(r_max))
     return v
+
+
+def sqrt_limit32(r: float) -> np.float32:
+    """The largest float32 s with float32 sqrt(s) <= float32(r) (IEEE square roots are
+    correctly rounded, so the test sqrt(s) <= r is exactly s <= this); -1 where r < 0
+    or is NaN (no s passes), +inf where r is +inf."""
+    r32 = np.float32(r)
+    if not r32 >= 0:
+        return np.float32(-1.0)
+    if np.isinf(r32):
+        return np.float32(np.inf)
+    up, down = np.float32(np.inf), np.float32(-np.inf)
+    with np.errstate(over="ignore"):
+        s = np.float32(r32 * r32)  # within an ulp or two of the answer
+        while s > 0 and np.sqrt(s) > r32:
+            s = np.nextafter(s, down)
+        while np.isfinite(s) and np.sqrt(np.nextafter(s, up)) <= r32:
+            s = np.nextafter(s, up)
+    return s

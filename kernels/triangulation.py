@@ -161,7 +161,14 @@ def sector_residual(off: wp.vec2, sector: int, n_sectors: int):
     width = 2.0 * PI / float(n_sectors)
     mid = (float(sector) + 0.5) * width - PI
     dphi = phi - mid
-    dphi = dphi - 2.0 * PI * wp.floor((dphi + PI) / (2.0 * PI))
+    # into [-pi, pi): dphi - 2 pi floor((dphi + pi) / (2 pi)), bit for bit in float32
+    # without the division (dphi lies in (-2 pi, 2 pi), and float32's
+    # u / (2 pi) >= 1 exactly where u >= 2 pi)
+    u = dphi + PI
+    if u >= 2.0 * PI:
+        dphi = dphi - 2.0 * PI
+    elif u < 0.0:
+        dphi = dphi + 2.0 * PI
     return wp.max(wp.abs(dphi) / width - 0.5, 0.0)
 
 
