@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.triangulation import STATUS_NAMES, TriangulateSettings, compact_points, triangulate_rings
+from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light, polar_angle
+from ringscan.kernels.triangulation import (
+    PI,
+    STATUS_NAMES,
+    TriangulateSettings,
+    compact_points,
+    sector_residual,
+    triangulate_rings,
+)
 from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (511.5, 383.5)
@@ -387,3 +394,38 @@ def test_samples_without_an_angle_pick_their_root_by_a_coarse_sector(device):
         assert np.mean(st0 == 4) > 0.5
     with pytest.raises(ValueError, match="fallback_sector_px"):
         TriangulateSettings(fallback_sector_px=-1.0)
+
+
+@wp.kernel
+def _sector_residual_kernel(off: wp.array(dtype=wp.vec2), sector: wp.array(dtype=int), n_sectors: int,
+                            out: wp.array(dtype=wp.vec2)):
+    i = wp.tid()
+    o = off[i]
+    # the reference: the wrap by floor, as the residual was first written
+    phi = polar_angle(o[1], o[0])
+    width = 2.0 * PI / float(n_sectors)
+    mid = (float(sector[i]) + 0.5) * width - PI
+    dphi = phi - mid
+    dphi = dphi - 2.0 * PI * wp.floor((dphi + PI) / (2.0 * PI))
+    out[i] = wp.vec2(sector_residual(o, sector[i], n_sectors), wp.max(wp.abs(dphi) / width - 0.5, 0.0))
+
+
+@pytest.mark.parametrize("n_sectors", [2, 64, 512])
+def test_sector_residual_wraps_as_the_floor_formula_to_the_bit(device, n_sectors):
+    """The sector residual's wrap without a division gives the floor formula's
+    bits for every angle and sector, also on the angles where the wrap turns
+    (half a turn from the sector's middle)."""
+    rng = np.random.default_rng(11)
+    sec = rng.integers(0, n_sectors, 30000)
+    mid = (sec + 0.5) * 2 * np.pi / n_sectors - np.pi
+    ang = np.r_[rng.uniform(-np.pi, np.pi, 15000), mid[15000:] + np.pi * rng.choice([-1, 1], 15000)
+                + rng.normal(0, 1e-6, 15000)]
+    rad = rng.uniform(5, 600, ang.size)
+    off = np.c_[rad * np.cos(ang), rad * np.sin(ang)].astype(np.float32)
+    out = wp.zeros(ang.size, dtype=wp.vec2, device=device)
+    wp.launch(_sector_residual_kernel, ang.size,
+              inputs=[wp.array(off, dtype=wp.vec2, device=device), wp.array(sec.astype(np.int32), device=device),
+                      n_sectors], outputs=[out], device=device)
+    o = out.numpy()
+    assert o[:, 0].tobytes() == o[:, 1].tobytes()
+    assert (o[:, 0] == 0).any() and (o[:, 0] > n_sectors / 2 - 0.6).any()
