@@ -384,8 +384,12 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
     pixel the model can name) and must be dropped, never kept."""
     t = t0
     h = wp.max(0.05, 1.0e-4 * wp.abs(t0))
+    g = float(0.0)
+    g_at_t = bool(False)  # g is the residual at the final t (no step taken since)
     for _i in range(NEWTON_STEPS):
         g0 = ring_residual(light, C, d, t, rho, center)
+        g = g0
+        g_at_t = True
         if wp.abs(g0) < 1.0e-4:
             break
         dg = (ring_residual(light, C, d, t + h, rho, center) - ring_residual(light, C, d, t - h, rho, center)) / (2.0 * h)
@@ -393,6 +397,7 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
             break
         step = g0 / dg
         t = t - step
+        g_at_t = False
         if wp.abs(step) < 1.0e-7 * wp.max(1.0, wp.abs(t)):
             break
     Xp = light.cam.R * (C + d * t) + light.cam.t
@@ -400,7 +405,8 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
     if Xp[2] > 0.0:
         xn = Xp[0] / Xp[2]
         yn = Xp[1] / Xp[2]
-        g = ring_residual(light, C, d, t, rho, center)
+        if not g_at_t:
+            g = ring_residual(light, C, d, t, rho, center)
         ok = wp.abs(g) <= ROOT_TOL_PX and in_lens_region(light.cam, xn, yn)
     return t, ok
 

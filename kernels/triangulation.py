@@ -258,7 +258,9 @@ def rings_solution(
         g = wp.transpose(light.R) * wp.vec3(off[0], off[1], 0.0)
     else:
         h = 0.01
-        f0 = wp.length(pattern_offset(light, X, center))
+        if not use_sector:
+            off = pattern_offset(light, X, center)
+        f0 = wp.length(off)
         g = wp.vec3(wp.length(pattern_offset(light, X + wp.vec3(h, 0.0, 0.0), center)) - f0,
                     wp.length(pattern_offset(light, X + wp.vec3(0.0, h, 0.0), center)) - f0,
                     wp.length(pattern_offset(light, X + wp.vec3(0.0, 0.0, h), center)) - f0)
