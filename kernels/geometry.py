@@ -33,6 +33,7 @@ __all__ = [
     "ROOT_FAILED_2",
     "monotonic_radius2",
     "fold_free_radius2",
+    "sqrt_limit32",
     "CameraModel",
     "LightModel",
     "make_camera",
