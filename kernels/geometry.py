@@ -32,6 +32,8 @@ __all__ = [
     "ROOT_FAILED_1",
     "ROOT_FAILED_2",
     "monotonic_radius2",
+    "fold_free_radius2",
+    "sqrt_limit32",
     "CameraModel",
     "LightModel",
     "make_camera",
@@ -66,7 +68,10 @@ class CameraModel:
     ``r2_max`` is the squared normalised radius x^2 + y^2 up to which the radial
     distortion r (1 + k1 r^2 + k2 r^4 + k3 r^6) grows with r (1e30 where it
     always does): beyond it the polynomial folds back, and a point there lands on
-    a pixel that a point inside also lands on (:func:`monotonic_radius2`)."""
+    a pixel that a point inside also lands on (:func:`monotonic_radius2`).
+    ``r2_safe`` is a squared radius inside which every point is provably in the
+    fold-free region with a margin (:func:`fold_free_radius2`): the per-sample
+    fold checks skip their work there (0: never skip)."""
 
     fx: float
     fy: float
@@ -82,6 +87,7 @@ class CameraModel:
     t: wp.vec3
     center: wp.vec3
     r2_max: float
+    r2_safe: float
 
 
 @wp.struct
@@ -102,11 +108,16 @@ class LightModel:
 
 @wp.struct
 class Volume:
-    """The rig's working volume (world frame, mm): z_min <= z <= z_max, radius <= r_max."""
+    """The rig's working volume (world frame, mm): z_min <= z <= z_max, radius <= r_max.
+
+    ``r2_limit`` is the largest float32 s whose float32 square root is <= r_max
+    (:func:`make_volume`): ``x^2 + y^2 <= r2_limit`` is the radius test to the
+    bit, without the square root."""
 
     z_min: float
     z_max: float
     r_max: float
+    r2_limit: float
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -140,12 +151,20 @@ def has_tangential(cam: CameraModel):
 
 
 @wp.func
+def has_lens_distortion(cam: CameraModel):
+    return cam.k1 != 0.0 or cam.k2 != 0.0 or cam.k3 != 0.0 or has_tangential(cam)
+
+
+@wp.func
 def locally_unfolded(cam: CameraModel, x: float, y: float):
     """The distortion is locally invertible at (x, y): a positive Jacobian and,
     for a radial-only lens, inside its monotonic radius ``cam.r2_max``."""
+    r2 = x * x + y * y
+    if r2 < cam.r2_safe:
+        return True  # the full test's answer, known on the host (fold_free_radius2)
     ok = distortion_jacobian_det(cam, x, y) > 0.0
     if not has_tangential(cam):
-        ok = ok and x * x + y * y < cam.r2_max
+        ok = ok and r2 < cam.r2_max
     return ok
 
 
@@ -158,7 +177,10 @@ def in_lens_region(cam: CameraModel, x: float, y: float):
     ``LENS_SEGMENT_SAMPLES`` - 1 evenly spaced points on the way from the axis:
     a sampled test, so it asks for a margin (a lens that squeezes area 100-fold
     is not a model of anything real), which also catches fold bands too thin to
-    fall on a sample."""
+    fall on a sample. Inside ``cam.r2_safe`` the answer is known (True) without
+    the samples (:func:`fold_free_radius2`)."""
+    if x * x + y * y < cam.r2_safe:
+        return True
     ok = locally_unfolded(cam, x, y)
     if ok and has_tangential(cam):
         for k in range(1, LENS_SEGMENT_SAMPLES + 1):
@@ -184,6 +206,11 @@ def undistort(cam: CameraModel, xd: float, yd: float):
     pixel has no such inverse (beyond the image of that region, or the
     iteration did not converge): such a pixel's ray is unknown and must be
     dropped, never used."""
+    if not has_lens_distortion(cam):
+        # the iteration's first step is exactly 0, the point distorts back onto
+        # itself, and the region test is r^2 < r2_max: the same answer at once
+        ok0 = wp.where(xd * xd + yd * yd < cam.r2_max, 1.0, 0.0)
+        return wp.vec3(xd, yd, ok0)
     x = xd
     y = yd
     for _h in range(60):
@@ -358,8 +385,12 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
     pixel the model can name) and must be dropped, never kept."""
     t = t0
     h = wp.max(0.05, 1.0e-4 * wp.abs(t0))
+    g = float(0.0)
+    g_at_t = bool(False)  # g is the residual at the final t (no step taken since)
     for _i in range(NEWTON_STEPS):
         g0 = ring_residual(light, C, d, t, rho, center)
+        g = g0
+        g_at_t = True
         if wp.abs(g0) < 1.0e-4:
             break
         dg = (ring_residual(light, C, d, t + h, rho, center) - ring_residual(light, C, d, t - h, rho, center)) / (2.0 * h)
@@ -367,6 +398,7 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
             break
         step = g0 / dg
         t = t - step
+        g_at_t = False
         if wp.abs(step) < 1.0e-7 * wp.max(1.0, wp.abs(t)):
             break
     Xp = light.cam.R * (C + d * t) + light.cam.t
@@ -374,15 +406,17 @@ def refine_root(light: LightModel, C: wp.vec3, d: wp.vec3, t0: float, rho: float
     if Xp[2] > 0.0:
         xn = Xp[0] / Xp[2]
         yn = Xp[1] / Xp[2]
-        g = ring_residual(light, C, d, t, rho, center)
+        if not g_at_t:
+            g = ring_residual(light, C, d, t, rho, center)
         ok = wp.abs(g) <= ROOT_TOL_PX and in_lens_region(light.cam, xn, yn)
     return t, ok
 
 
 @wp.func
 def in_volume(X: wp.vec3, vol: Volume):
-    r = wp.sqrt(X[0] * X[0] + X[1] * X[1])
-    return X[2] >= vol.z_min and X[2] <= vol.z_max and r <= vol.r_max
+    # sqrt(r2) <= r_max, decided exactly without the square root (Volume.r2_limit)
+    r2 = X[0] * X[0] + X[1] * X[1]
+    return X[2] >= vol.z_min and X[2] <= vol.z_max and r2 <= vol.r2_limit
 
 
 ROOT_FAILED_1 = wp.constant(1)
@@ -508,6 +542,50 @@ def monotonic_radius2(dist) -> float:
     return float(min(s.min(), R2_UNBOUNDED)) if s.size else R2_UNBOUNDED
 
 
+def fold_free_radius2(dist) -> float:
+    """A squared normalised radius s inside which the lens of ``dist`` (OpenCV order
+    k1, k2, p1, p2, k3) is provably fold-free with a margin: the Jacobian
+    determinant of the distortion is >= 2 ``LENS_MIN_DET`` everywhere in the disc
+    x^2 + y^2 <= s, so :func:`locally_unfolded` and :func:`in_lens_region` answer
+    True there whatever their float32 rounding, and may skip their work.
+
+    With R = 1 + k1 s + k2 s^2 + k3 s^3, D = dR/ds, M = R + 2 s D and P = |(p1, p2)|,
+    the determinant at radius r = sqrt(s) is R M plus tangential terms bounded by
+    12 P r (|R| + 2 s |D|) + 4 P r s |D| + 40 P^2 s; each factor is bounded by its
+    coefficients' absolute values, which makes the bound decrease with s, so
+    where it holds at s it holds on the whole disc (bisection finds the largest
+    such s). ``R2_UNBOUNDED`` for a lens without distortion; 0 where even the
+    axis has no margin."""
+    k1, k2, p1, p2, k3 = (abs(float(v)) for v in _dist5(dist))
+    if not np.all(np.isfinite([k1, k2, p1, p2, k3])):
+        return 0.0
+    if k1 == k2 == p1 == p2 == k3 == 0.0:
+        return R2_UNBOUNDED
+    P = float(np.hypot(p1, p2))
+    need = 2.0 * float(LENS_MIN_DET)
+
+    def bound(s):
+        r = np.sqrt(s)
+        r_lo = 1.0 - s * (k1 + s * (k2 + s * k3))
+        m_lo = 1.0 - s * (3.0 * k1 + s * (5.0 * k2 + s * 7.0 * k3))
+        r_hi = 1.0 + s * (k1 + s * (k2 + s * k3))
+        d_hi = k1 + s * (2.0 * k2 + s * 3.0 * k3)
+        if r_lo <= 0.0 or m_lo <= 0.0:
+            return -1.0
+        return r_lo * m_lo - 12.0 * P * r * (r_hi + 2.0 * s * d_hi) - 4.0 * P * r * s * d_hi - 40.0 * P * P * s
+
+    if not bound(0.0) >= need:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while bound(hi) >= need and hi < 1.0e6:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if bound(mid) >= need else (lo, mid)
+    # The radial-only test also compares with r2_max: stay clear of it in float32 too.
+    return float(min(lo, 0.99 * monotonic_radius2(dist)))
+
+
 def make_camera(K, dist, R, t) -> CameraModel:
     """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
     K = np.asarray(K, float)
@@ -523,6 +601,7 @@ def make_camera(K, dist, R, t) -> CameraModel:
     c.t = wp.vec3(*t.tolist())
     c.center = wp.vec3(*(-R.T @ t).tolist())
     c.r2_max = monotonic_radius2(d)
+    c.r2_safe = fold_free_radius2(d)
     return c
 
 
@@ -554,4 +633,24 @@ def make_volume(z_min: float, z_max: float, r_max: float) -> Volume:
     """Build a :class:`Volume` (mm)."""
     v = Volume()
     v.z_min, v.z_max, v.r_max = float(z_min), float(z_max), float(r_max)
+    v.r2_limit = float(sqrt_limit32(r_max))
     return v
+
+
+def sqrt_limit32(r: float) -> np.float32:
+    """The largest float32 s with float32 sqrt(s) <= float32(r) (IEEE square roots are
+    correctly rounded, so the test sqrt(s) <= r is exactly s <= this); -1 where r < 0
+    or is NaN (no s passes), +inf where r is +inf."""
+    r32 = np.float32(r)
+    if not r32 >= 0:
+        return np.float32(-1.0)
+    if np.isinf(r32):
+        return np.float32(np.inf)
+    up, down = np.float32(np.inf), np.float32(-np.inf)
+    with np.errstate(over="ignore"):
+        s = np.float32(r32 * r32)  # within an ulp or two of the answer
+        while s > 0 and np.sqrt(s) > r32:
+            s = np.nextafter(s, down)
+        while np.isfinite(s) and np.sqrt(np.nextafter(s, up)) <= r32:
+            s = np.nextafter(s, up)
+    return s

@@ -9,9 +9,15 @@ import warp as wp
 
 from ringscan.kernels import init_warp
 from ringscan.kernels.geometry import (
+    LENS_MIN_DET,
+    R2_UNBOUNDED,
     CameraModel,
     LightModel,
     Volume,
+    fold_free_radius2,
+    in_lens_region,
+    in_volume,
+    locally_unfolded,
     make_camera,
     make_parallel_light,
     make_perspective_light,
@@ -20,6 +26,7 @@ from ringscan.kernels.geometry import (
     polar_angle,
     ray_ring_roots,
     root_usable,
+    sqrt_limit32,
     undistort,
 )
 from ringscan.pipeline.formats.rig import default_rig
@@ -318,3 +325,126 @@ def test_distorted_projector_roots_are_on_their_ring_or_flagged(device, lens):
         assert _cv_min_det(Xp[:, :2] / Xp[:, 2:], np.eye(3), dist).min() > 0
         kept += good.sum()
     assert kept > n // 2
+
+
+# ----------------------------------------------------------------------------- per-launch constants: the same answers, cheaper
+
+REAL_CAMERA = np.array([-0.2223, -0.8661, -7.278e-4, -1.688e-3, 3.125])
+"""A real camera's calibration (shared/data/procam): tangential terms, a large k3."""
+FOLD_LENSES = {"default": np.array(default_rig().camera.dist, float), "real": REAL_CAMERA,
+               **{f"wide-{k}": v for k, v in WIDE_LENSES.items()},
+               **{f"projector-{k}": v for k, v in STRONG_PROJECTOR.items()}}
+
+
+@wp.kernel
+def _fold_checks_kernel(cam: CameraModel, xy: wp.array(dtype=wp.vec2), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    x = xy[i][0]
+    y = xy[i][1]
+    out[i] = wp.vec3(wp.where(in_lens_region(cam, x, y), 1.0, 0.0), wp.where(locally_unfolded(cam, x, y), 1.0, 0.0),
+                     0.0)
+
+
+@pytest.mark.parametrize("lens", sorted(FOLD_LENSES))
+def test_fold_free_radius_has_its_margin_by_opencv(lens):
+    """Inside fold_free_radius2 every point has a Jacobian determinant (of
+    OpenCV's projection: independent code) of at least 2 LENS_MIN_DET, and the
+    disc stays inside the monotonic radius; for the default and the real camera
+    it covers the whole image (the fast path is the common path)."""
+    dist = FOLD_LENSES[lens]
+    s = fold_free_radius2(dist)
+    assert 0 < s < monotonic_radius2(dist)
+    rng = np.random.default_rng(5)
+    r = np.sqrt(s) * np.sqrt(rng.uniform(0, 1, 4000))
+    r[:400] = np.sqrt(s)  # the rim, where the margin is least
+    a = rng.uniform(-np.pi, np.pi, r.size)
+    xy = np.c_[r * np.cos(a), r * np.sin(a)]
+    assert _cv_min_det(xy, np.eye(3), dist, samples=1).min() > 2 * float(LENS_MIN_DET) - 1e-4
+    if lens in ("default", "real"):
+        assert s > 0.17  # the default camera's corners: r^2 = 0.10; the real one's 1280x1024 at f 3450: 0.05
+    assert fold_free_radius2(None) == R2_UNBOUNDED
+    assert fold_free_radius2([np.nan, 0, 0, 0, 0]) == 0.0
+
+
+@pytest.mark.parametrize("lens", sorted(FOLD_LENSES))
+def test_fold_checks_answer_as_the_full_test_does(device, lens):
+    """The fold checks with the host's fold-free radius give the same answers as
+    the full test (r2_safe = 0), inside the radius and out, and undistort gives
+    the same bits over a whole image."""
+    dist = FOLD_LENSES[lens]
+    fast = make_camera(WIDE_K, dist, np.eye(3), np.zeros(3))
+    full = make_camera(WIDE_K, dist, np.eye(3), np.zeros(3))
+    full.r2_safe = 0.0
+    rng = np.random.default_rng(9)
+    r = np.r_[np.sqrt(fast.r2_safe) * rng.uniform(0, 2.5, 20000), rng.uniform(0, 3.0, 5000)]
+    a = rng.uniform(-np.pi, np.pi, r.size)
+    xy = wp.array(np.c_[r * np.cos(a), r * np.sin(a)].astype(np.float32), dtype=wp.vec2, device=device)
+    got = []
+    for cam in (fast, full):
+        out = wp.zeros(r.size, dtype=wp.vec3, device=device)
+        wp.launch(_fold_checks_kernel, r.size, inputs=[cam, xy], outputs=[out], device=device)
+        got.append(out.numpy())
+    np.testing.assert_array_equal(got[0], got[1])
+    assert got[0][:, 0].any() and (r * r > fast.r2_safe).mean() > 0.5  # both paths taken
+    v, u = np.mgrid[0:1024:4, 0:1280:4]
+    uv = wp.array(np.stack([u.ravel(), v.ravel()], 1).astype(np.float32) + 0.25, dtype=wp.vec2, device=device)
+    outs = []
+    for cam in (fast, full):
+        out = wp.zeros(uv.shape[0], dtype=wp.vec3, device=device)
+        wp.launch(_undistort_kernel, uv.shape[0], inputs=[cam, uv], outputs=[out], device=device)
+        outs.append(out.numpy())
+    assert outs[0].tobytes() == outs[1].tobytes()
+
+
+def test_a_lens_without_distortion_undistorts_to_itself(device):
+    """No distortion: every pixel's normalised point comes back exactly, flagged
+    good; a NaN pixel is flagged."""
+    uv = np.array([[0.0, 0.0], [639.5, 511.5], [1279.0, 1023.0], [1e7, -3e6], [np.nan, 5.0]])
+    cam = make_camera(WIDE_K, None, np.eye(3), np.zeros(3))
+    out = wp.zeros(len(uv), dtype=wp.vec3, device=device)
+    wp.launch(_undistort_kernel, len(uv), inputs=[cam, wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device)],
+              outputs=[out], device=device)
+    o = out.numpy()
+    yd = (uv[:, 1].astype(np.float32) - np.float32(511.5)) / np.float32(700.0)
+    xd = (uv[:, 0].astype(np.float32) - np.float32(639.5) - np.float32(0.0) * yd) / np.float32(700.0)
+    np.testing.assert_array_equal(o[:4, :2], np.c_[xd, yd][:4])
+    assert o[:4, 2].tolist() == [1.0] * 4 and o[4, 2] == 0.0
+
+
+def test_sqrt_limit_is_the_square_root_test():
+    """s <= sqrt_limit32(r) exactly where float32 sqrt(s) <= float32(r)."""
+    rng = np.random.default_rng(2)
+    rs = np.r_[rng.uniform(0, 5000, 300), 10.0 ** rng.uniform(-30, 18, 100), [0.0, 1.0, 100.0, 3.4e38]]
+    up = np.float32(np.inf)
+    for r in rs:
+        s = sqrt_limit32(r)
+        r32 = np.float32(r)
+        assert np.sqrt(s) <= r32
+        with np.errstate(over="ignore"):
+            assert not np.sqrt(np.nextafter(s, up)) <= r32
+    assert sqrt_limit32(-1.0) < 0 and sqrt_limit32(np.nan) < 0 and sqrt_limit32(np.inf) == np.inf
+
+
+@wp.kernel
+def _volume_kernel(X: wp.array(dtype=wp.vec3), vol: Volume, out: wp.array(dtype=wp.vec2i)):
+    i = wp.tid()
+    p = X[i]
+    ref = p[2] >= vol.z_min and p[2] <= vol.z_max and wp.sqrt(p[0] * p[0] + p[1] * p[1]) <= vol.r_max
+    out[i] = wp.vec2i(wp.where(in_volume(p, vol), 1, 0), wp.where(ref, 1, 0))
+
+
+def test_volume_radius_test_matches_the_square_root_to_the_bit(device):
+    """in_volume (no square root) agrees with sqrt(x^2 + y^2) <= r_max on points
+    within a few ulps of the volume's wall."""
+    rng = np.random.default_rng(4)
+    vol = make_volume(-3.0, 95.0, 100.0)
+    n = 40000
+    a = rng.uniform(-np.pi, np.pi, n)
+    r = np.float32(100.0) * (1 + rng.integers(-40, 40, n) * np.float32(2 ** -24))
+    X = np.c_[r * np.cos(a), r * np.sin(a), rng.uniform(0, 90, n)].astype(np.float32)
+    out = wp.zeros(n, dtype=wp.vec2i, device=device)
+    wp.launch(_volume_kernel, n, inputs=[wp.array(X, dtype=wp.vec3, device=device), vol], outputs=[out],
+              device=device)
+    o = out.numpy()
+    np.testing.assert_array_equal(o[:, 0], o[:, 1])
+    assert 0.2 < o[:, 1].mean() < 0.8

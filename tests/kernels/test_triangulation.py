@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.triangulation import STATUS_NAMES, TriangulateSettings, compact_points, triangulate_rings
+from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light, polar_angle
+from ringscan.kernels.triangulation import (
+    NOMINAL_SIGMA_PX,
+    PI,
+    STATUS_NAMES,
+    TriangulateSettings,
+    compact_points,
+    sector_residual,
+    triangulate_rings,
+)
 from ringscan.pipeline.formats.rig import default_rig
 
 CENTER = (511.5, 383.5)
@@ -387,3 +395,60 @@ def test_samples_without_an_angle_pick_their_root_by_a_coarse_sector(device):
         assert np.mean(st0 == 4) > 0.5
     with pytest.raises(ValueError, match="fallback_sector_px"):
         TriangulateSettings(fallback_sector_px=-1.0)
+
+
+@wp.kernel
+def _sector_residual_kernel(off: wp.array(dtype=wp.vec2), sector: wp.array(dtype=int), n_sectors: int,
+                            out: wp.array(dtype=wp.vec2)):
+    i = wp.tid()
+    o = off[i]
+    # the reference: the wrap by floor, as the residual was first written
+    phi = polar_angle(o[1], o[0])
+    width = 2.0 * PI / float(n_sectors)
+    mid = (float(sector[i]) + 0.5) * width - PI
+    dphi = phi - mid
+    dphi = dphi - 2.0 * PI * wp.floor((dphi + PI) / (2.0 * PI))
+    out[i] = wp.vec2(sector_residual(o, sector[i], n_sectors), wp.max(wp.abs(dphi) / width - 0.5, 0.0))
+
+
+@pytest.mark.parametrize("n_sectors", [2, 64, 512])
+def test_sector_residual_wraps_as_the_floor_formula_to_the_bit(device, n_sectors):
+    """The sector residual's wrap without a division gives the floor formula's
+    bits for every angle and sector, also on the angles where the wrap turns
+    (half a turn from the sector's middle)."""
+    rng = np.random.default_rng(11)
+    sec = rng.integers(0, n_sectors, 30000)
+    mid = (sec + 0.5) * 2 * np.pi / n_sectors - np.pi
+    ang = np.r_[rng.uniform(-np.pi, np.pi, 15000), mid[15000:] + np.pi * rng.choice([-1, 1], 15000)
+                + rng.normal(0, 1e-6, 15000)]
+    rad = rng.uniform(5, 600, ang.size)
+    off = np.c_[rad * np.cos(ang), rad * np.sin(ang)].astype(np.float32)
+    out = wp.zeros(ang.size, dtype=wp.vec2, device=device)
+    wp.launch(_sector_residual_kernel, ang.size,
+              inputs=[wp.array(off, dtype=wp.vec2, device=device), wp.array(sec.astype(np.int32), device=device),
+                      n_sectors], outputs=[out], device=device)
+    o = out.numpy()
+    assert o[:, 0].tobytes() == o[:, 1].tobytes()
+    assert (o[:, 0] == 0).any() and (o[:, 0] > n_sectors / 2 - 0.6).any()
+
+
+def test_parallel_light_sigma_is_the_float64_central_difference(device):
+    """Parallel light: each point's sigma is sigma_rho over the central difference
+    of rho along its ray (h = 0.01 mm), computed in float64 from the point itself:
+    to float32's precision, also where the ray nearly grazes the ring (a float32
+    difference of the two lengths misses by up to 1e-2 there)."""
+    rig, cam, light, P, uv, rho, sec = _setup("parallel", n=3000, seed=3)
+    T = _run(device, cam, light, uv, rho, sec)
+    st = T.status.numpy()
+    m = (st == 0) | (st == 5)
+    assert m.mean() > 0.9
+    X = T.points.numpy().astype(np.float64)[m]
+    L = rig.light
+    C = -np.asarray(rig.camera.R).T @ np.asarray(rig.camera.t)
+    d = (X - C) / np.linalg.norm(X - C, axis=1, keepdims=True)
+    o = (X @ np.asarray(L.R).T + L.t)[:, :2] / L.pixel_pitch_mm + np.asarray(L.axis_px) - CENTER
+    v = (d @ np.asarray(L.R).T)[:, :2] / L.pixel_pitch_mm
+    h = 0.01
+    slope = np.abs(np.linalg.norm(o + h * v, axis=1) - np.linalg.norm(o - h * v, axis=1)) / (2 * h)
+    rel = np.abs(T.sigma.numpy()[m] / (NOMINAL_SIGMA_PX / slope) - 1)
+    assert np.median(rel) < 1e-6 and rel.max() < 1e-4, (np.median(rel), rel.max())
