@@ -122,10 +122,12 @@ def test_procam_a_repeated_capture_is_left_out(tmp_path, procam, procam_123, cap
     assert "fx 3451.7 fy 3446.4" in out and "fx 1887.1 fy 1876.6" in out and "baseline 673.7" in out
     r = load_rig(rig)
     assert abs(r.camera.K[0, 0] - 3451.7) < 0.1
-    once = load_rig(procam_123[0])  # the rig of capture_1..3 given once: the same, to OpenCV's float rounding
+    # the rig of capture_1..3 given once: the same fit (OpenCV's fits of the same corners differ from run to run,
+    # by up to 2e-6 of a value, in the camera's k2; the repeat left in moves the camera's R and t by 1e-3 to 2e-2)
+    once = load_rig(procam_123[0])
     for a, b in ((r.camera, once.camera), (r.light, once.light)):
         for key in ("K", "dist", "R", "t"):
-            np.testing.assert_allclose(getattr(a, key), getattr(b, key), rtol=1e-6, atol=1e-9, err_msg=key)
+            np.testing.assert_allclose(getattr(a, key), getattr(b, key), rtol=1e-4, atol=1e-7, err_msg=key)
 
 
 def test_camera_one_image_three_times_is_refused(tmp_path, procam, capsys):
