@@ -340,17 +340,21 @@ def run_procam(args) -> int:
     check_outputs({"--out": args.out, "--report": args.report}, folder_files(args.captures))
     settings = ProcamSettings(window_px=args.window, camera=camera_settings_from_args(args),
                               board=board_settings_from_args(args))
-    caps, size = [], None
+    caps, size, done = [], None, {}
     for folder in progress_bar(args.captures, desc="decoding captures", unit="capture", disable=args.no_progress,
                                leave=False):
-        cap = read_capture(folder, projector=proj_size, layout=args.layout)
-        s = (cap.white.shape[1], cap.white.shape[0])
-        if size is None:
-            size = s
-        elif s != size:
-            raise FormatError(folder, f"frames are {s[0]}x{s[1]}, {args.captures[0]} has {size[0]}x{size[1]}")
-        cc = capture_corners(cap, board=board, name=Path(folder).name, settings=settings)
-        del cap
+        key = os.path.realpath(folder)
+        if key in done:  # a folder given again is not decoded again; calibrate_procam leaves the repeat out
+            cc = dataclasses.replace(done[key])  # its own object: repeats are told apart by identity
+        else:
+            cap = read_capture(folder, projector=proj_size, layout=args.layout)
+            s = (cap.white.shape[1], cap.white.shape[0])
+            if size is None:
+                size = s
+            elif s != size:
+                raise FormatError(folder, f"frames are {s[0]}x{s[1]}, {args.captures[0]} has {size[0]}x{size[1]}")
+            cc = done[key] = capture_corners(cap, board=board, name=Path(folder).name, settings=settings)
+            del cap
         print(f"  {cc.name}: " + ("board found" if cc.camera_view.found else cc.camera_view.reason)
               + ("" if not cc.camera_view.found else
                  (f", {len(cc.projector_view.ids)} corners in the projector" if cc.projector_view.found

@@ -18,10 +18,16 @@ are injected with ``inject(kind, on=..., ...)``: ``error`` (refuse the line),
 disappears, mid-move for a motion line), ``reset`` (the board restarts by itself).
 A vanished port comes back with :meth:`replug` (a fresh pty behind the same symlink,
 the controller freshly powered up, the table where the motor left it).
+
+A rig's own temporary folder (``ringscan-emu-*``) is locked for its life (``flock``): the
+folder of a rig whose process was killed (SIGKILL, an unhandled SIGTERM) is removed by the
+next rig that starts.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import socket
@@ -35,11 +41,54 @@ from ringscan.hardware.emulators.virtual import VirtualCamera, make_virtual_rig
 from ringscan.hardware.emulators.grbl import EmulatedTurntable
 from ringscan.hardware.emulators.projector import EmulatedProjector
 from ringscan.pipeline.codecs.render import render_frame
+from ringscan.pipeline.formats.atomic import LOCK_NAME, lock_folder
 from ringscan.pipeline.formats.patterns import frame_names
 
 log = logging.getLogger(__name__)
 
 __all__ = ["CameraServer", "EmulatedRig"]
+
+FOLDER_PREFIX = "ringscan-emu-"
+
+
+def _empty_folder(folder: Path, keep: str | None = None) -> None:
+    """Remove the port links, socket and files of an emulator folder (not sub-folders)."""
+    for p in folder.iterdir():
+        if p.name != keep and (p.is_symlink() or p.is_file() or p.is_socket()):
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+
+
+def remove_stale_folders(parent: str | os.PathLike) -> list[Path]:
+    """Remove the ``ringscan-emu-*`` folders in ``parent`` whose rig's process is gone.
+
+    Such a folder's lock file names its owner while it runs; the kernel drops the lock when
+    the process ends however it ends, so a lock file that can be locked and names an owner
+    is a killed rig's (a clean close removes it). Folders without a lock file (a rig still
+    starting, or one made before the lock) are left alone. Returns the folders removed.
+    """
+    removed = []
+    for folder in sorted(Path(parent).glob(FOLDER_PREFIX + "*")):
+        try:
+            fd = os.open(folder / LOCK_NAME, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        except OSError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                continue  # held: that rig is running
+            if not os.pread(fd, 200, 0):
+                continue  # its owner has created it and not locked it yet
+            _empty_folder(folder)
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+                removed.append(folder)
+        finally:
+            os.close(fd)
+    if removed:
+        log.info("removed %d emulator folder(s) left by killed processes", len(removed))
+    return removed
 
 
 class CameraServer:
@@ -109,7 +158,8 @@ class EmulatedRig:
         patterns: the PatternSpec whose frames the projector holds (index = frame order).
         scene: scene name or mesh path (pipeline.simulate.scenes.make_scene), or a mesh.
         folder: where the port symlinks and the camera socket go (default: a new
-            temporary folder, removed by :meth:`close`).
+            temporary folder, removed by :meth:`close`, or by the next rig if this
+            process is killed).
         flavor: turntable firmware, "grbl" or "horus".
         time_scale: the turntable moves this many times faster than a real one.
         start_deg: the table's physical angle at start.
@@ -128,8 +178,14 @@ class EmulatedRig:
                  steps_per_deg: float = 8.889):
 
         self._own_folder = folder is None
-        self.folder = Path(tempfile.mkdtemp(prefix="ringscan-emu-")) if folder is None else Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        self._lock = contextlib.ExitStack()
+        if folder is None:
+            remove_stale_folders(tempfile.gettempdir())
+            self.folder = Path(tempfile.mkdtemp(prefix=FOLDER_PREFIX))
+            self._lock.enter_context(lock_folder(self.folder, what="emulate"))
+        else:
+            self.folder = Path(folder)
+            self.folder.mkdir(parents=True, exist_ok=True)
         frames = {n: render_frame(patterns, n) for n in frame_names(patterns)}
         self.turntable = self.projector = self.camera_server = None
         try:
@@ -163,10 +219,9 @@ class EmulatedRig:
         for dev in (self.camera_server, self.projector, self.turntable):
             if dev is not None:
                 dev.close()
-        if self._own_folder:
-            for p in self.folder.iterdir():
-                if p.is_symlink() or p.is_file() or p.is_socket():
-                    p.unlink()
+        if self._own_folder and self.folder.is_dir():
+            _empty_folder(self.folder, keep=LOCK_NAME)
+            self._lock.close()  # removes the lock file
             try:
                 self.folder.rmdir()
             except OSError:

@@ -9,42 +9,97 @@ from ringscan.pipeline.batch.worker import FAULT_ENV
 ray = pytest.importorskip("ray", reason="ray is not installed: pip install '.[ray]'")
 
 
-def _start_cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
-
-
-@pytest.mark.slow
-def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(three_scans, tmp_path, monkeypatch):
-    local = tmp_path / "local"
+@pytest.fixture(scope="module")
+def local_out(three_scans, tmp_path_factory):
+    """The three scans done by the local backend: the bytes every Ray run must give."""
+    local = tmp_path_factory.mktemp("local") / "out"
     batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
-    want = read_results(local)
-    monkeypatch.delenv(FAULT_ENV, raising=False)
-    _start_cluster()
-    try:
-        rep = batch_reconstruct(three_scans, tmp_path / "ray", backend="ray", device="cpu", progress=False)
-    finally:
-        ray.shutdown()
-    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
-    assert read_results(tmp_path / "ray") == want
+    return local
 
-    # A worker killed mid-task (SIGKILL after one view of its scan): Ray retries the task, the scan resumes.
-    # Ray's workers take the driver's environment when the cluster starts: set the switch first.
-    marker = tmp_path / "kill-once"
-    marker.write_text("")
-    monkeypatch.setenv(FAULT_ENV, str(marker))
-    _start_cluster()
+
+@pytest.fixture(scope="class")
+def cluster(tmp_path_factory):
+    """One local cluster (2 CPUs) for the tests of a class; its switches set before it starts, as Ray's
+    workers take the driver's environment then: a kill-once marker path (a worker dies only once a test
+    creates the file) and the name of a scan whose worker raises (``c_raises``, only in the test that has it)."""
+    from ringscan.pipeline.batch.worker import RAISE_ENV
+
+    marker = tmp_path_factory.mktemp("fault") / "kill-once"
+    env = pytest.MonkeyPatch()
+    env.setenv(FAULT_ENV, str(marker))
+    env.setenv(RAISE_ENV, "c_raises")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
     try:
-        rep = batch_reconstruct(three_scans, tmp_path / "killed", backend="ray", device="cpu", progress=False)
+        yield marker
     finally:
         ray.shutdown()
-    assert (tmp_path / "kill-once.taken").exists()  # a worker did die
-    # the killed scan's retry keeps the view its first attempt wrote (a one-view scan is then found done)
-    assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
-    assert read_results(tmp_path / "killed") == want
+        env.undo()
 
 
 @pytest.mark.slow
-def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_path, monkeypatch):
+class TestOneCluster:
+    """Batches on one running cluster, one after the other (each its own output folder)."""
+
+    def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(self, cluster, three_scans, local_out, tmp_path):
+        want = read_results(local_out)
+        rep = batch_reconstruct(three_scans, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+        assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+        assert read_results(tmp_path / "ray") == want
+        assert not cluster.with_name("kill-once.taken").exists()  # no worker died for it
+
+        # A worker killed mid-task (SIGKILL after one view of its scan): Ray retries the task, the scan resumes.
+        cluster.write_text("")
+        rep = batch_reconstruct(three_scans, tmp_path / "killed", backend="ray", device="cpu", progress=False)
+        assert cluster.with_name("kill-once.taken").exists()  # a worker did die
+        # the killed scan's retry keeps the view its first attempt wrote (a one-view scan is then found done)
+        assert {s["status"] for s in rep["scans"]} <= {"done", "skipped (already done)"}
+        assert read_results(tmp_path / "killed") == want
+
+    def test_ray_a_huge_frame_or_a_library_error_fails_its_scan_alone(self, cluster, scan_root, tmp_path):
+        """On Ray as on the local pool: a frame of 60000x60000 px fails its scan alone, named, without a word of
+        retries (none happened); so does a scan whose worker raises OpenCV's own exception; a task that cannot
+        start its worker (a device that does not exist) names the error."""
+        import shutil
+
+        from ringscan.pipeline.batch.worker import RAISE_ENV
+        from tests.pipeline.batch.test_batch import _huge_png
+
+        root = tmp_path / "root"
+        shutil.copytree(scan_root, root)
+        shutil.copytree(scan_root / "a_sphere", root / "c_raises")  # the cluster's RAISE_ENV names it
+        frame = root / "b" / "cube" / "view_000" / "gray_1.png"
+        _huge_png(frame)
+        rep = batch_reconstruct(root, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+        bad = batch_reconstruct(scan_root, tmp_path / "bad", backend="ray", device="nodevice:7", progress=False)
+        status = {s["scan"]: s for s in rep["scans"]}
+        assert status["a_sphere"]["status"] == "done"
+        assert status["b/cube"]["status"] == "failed"
+        assert status["b/cube"]["error"].startswith(f"{frame}: image is 60000x60000 (3600 megapixels)")
+        assert status["c_raises"] == {**status["c_raises"], "status": "failed",
+                                      "error": f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"}
+        for s in bad["scans"]:
+            assert s["status"] == "failed" and "nodevice:7" in s["error"] and "retries" not in s["error"], s
+
+    def test_ray_tasks_read_packed_scans_to_the_same_bytes(self, cluster, three_scans, local_out, tmp_path):
+        import shutil
+
+        from ringscan.pipeline.formats.packing import pack_scan
+
+        packed = tmp_path / "packed"
+        shutil.copytree(three_scans, packed)
+        for scan in sorted(packed.glob("*/scan.json")):
+            assert pack_scan(scan.parent).converted
+        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+        assert [s["status"] for s in rep["scans"]] == ["done"] * 3
+
+        def plys(folder):
+            return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+
+        assert plys(tmp_path / "ray") == plys(local_out) and len(plys(local_out)) == 4
+
+
+@pytest.mark.slow
+def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, local_out, tmp_path, monkeypatch):
     """A cluster that declares one GPU (Ray lets a node declare GPUs it does not check):
     every task asks for it and gets it (the batch report says what Ray gave each task),
     and the scans are done with the bytes of the local backend (the tasks are told to
@@ -53,8 +108,6 @@ def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_pat
 
     assert task_options({"CPU": 8.0}) == {"num_cpus": 1}
     assert task_options({"CPU": 8.0, "GPU": 2.0}) == {"num_gpus": 1, "num_cpus": 1}
-    local = tmp_path / "local"
-    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
     monkeypatch.delenv(FAULT_ENV, raising=False)
     ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
     try:
@@ -64,7 +117,7 @@ def test_ray_tasks_ask_for_a_gpu_where_the_cluster_has_them(three_scans, tmp_pat
         ray.shutdown()
     assert [s["status"] for s in rep["scans"]] == ["done"] * 3
     assert all(s["ray_resources"].get("GPU") == 1.0 for s in rep["scans"])
-    assert read_results(tmp_path / "ray") == read_results(local)
+    assert read_results(tmp_path / "ray") == read_results(local_out)
 
 
 def test_an_unreachable_address_fails_fast_and_writes_nothing(scan_root, tmp_path, capsys):
@@ -83,65 +136,6 @@ def test_an_unreachable_address_fails_fast_and_writes_nothing(scan_root, tmp_pat
     rc = main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--address", "nohost", "--no-progress"])
     assert rc == 2 and "expected HOST:PORT or ray://HOST:PORT" in capsys.readouterr().err  # malformed: usage
     assert not out.exists() and not ray.is_initialized()
-
-
-@pytest.mark.slow
-def test_ray_a_huge_frame_or_a_library_error_fails_its_scan_alone(scan_root, tmp_path, monkeypatch):
-    """On Ray as on the local pool: a frame of 60000x60000 px fails its scan alone, named, without a word of
-    retries (none happened); so does a scan whose worker raises OpenCV's own exception; a task that cannot start
-    its worker (a device that does not exist) names the error."""
-    import shutil
-
-    from ringscan.pipeline.batch.worker import RAISE_ENV
-    from tests.pipeline.batch.test_batch import _huge_png
-
-    root = tmp_path / "root"
-    shutil.copytree(scan_root, root)
-    shutil.copytree(scan_root / "a_sphere", root / "c_raises")
-    frame = root / "b" / "cube" / "view_000" / "gray_1.png"
-    _huge_png(frame)
-    monkeypatch.delenv(FAULT_ENV, raising=False)
-    monkeypatch.setenv(RAISE_ENV, "c_raises")  # Ray's workers take the driver's environment when the cluster starts
-    _start_cluster()
-    try:
-        rep = batch_reconstruct(root, tmp_path / "ray", backend="ray", device="cpu", progress=False)
-        bad = batch_reconstruct(scan_root, tmp_path / "bad", backend="ray", device="nodevice:7", progress=False)
-    finally:
-        ray.shutdown()
-    status = {s["scan"]: s for s in rep["scans"]}
-    assert status["a_sphere"]["status"] == "done"
-    assert status["b/cube"]["status"] == "failed"
-    assert status["b/cube"]["error"].startswith(f"{frame}: image is 60000x60000 (3600 megapixels)")
-    assert status["c_raises"] == {**status["c_raises"], "status": "failed",
-                                  "error": f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"}
-    for s in bad["scans"]:
-        assert s["status"] == "failed" and "nodevice:7" in s["error"] and "retries" not in s["error"], s
-
-
-@pytest.mark.slow
-def test_ray_tasks_read_packed_scans_to_the_same_bytes(three_scans, tmp_path, monkeypatch):
-    import shutil
-
-    from ringscan.pipeline.formats.packing import pack_scan
-
-    local = tmp_path / "local"
-    batch_reconstruct(three_scans, local, workers=0, device="cpu", progress=False)
-    packed = tmp_path / "packed"
-    shutil.copytree(three_scans, packed)
-    for scan in sorted(packed.glob("*/scan.json")):
-        assert pack_scan(scan.parent).converted
-    monkeypatch.delenv(FAULT_ENV, raising=False)
-    _start_cluster()
-    try:
-        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
-    finally:
-        ray.shutdown()
-    assert [s["status"] for s in rep["scans"]] == ["done"] * 3
-
-    def plys(folder):
-        return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
-
-    assert plys(tmp_path / "ray") == plys(local) and len(plys(local)) == 4
 
 
 def _descendants(pid):
