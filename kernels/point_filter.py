@@ -65,6 +65,15 @@ def map_pixels_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=wp
         wp.atomic_cas(slots, MAX_PER_PIXEL * p + 1, -1, i)
 
 
+@wp.func
+def agrees(Y: wp.vec3, X: wp.vec3, dx: int, dy: int, foot: float, tolerance: float, floor_mm: float):
+    """Whether neighbour Y, (dx, dy) pixels from point X, lies within the filter's
+    distance of it: ``tolerance`` pixel footprints ``foot`` (mm) a pixel of
+    separation (at least one) plus ``floor_mm``."""
+    pd = wp.sqrt(float(dx * dx + dy * dy))
+    return wp.length(Y - X) <= tolerance * wp.max(pd, 1.0) * foot + floor_mm
+
+
 @wp.kernel
 def count_neighbours_kernel(
     points: wp.array(dtype=wp.vec3),
@@ -109,12 +118,10 @@ def count_neighbours_kernel(
         yy = y + dy
         xx = x + dx
         if yy >= 0 and yy < height and xx >= 0 and xx < width:
-            pd = wp.sqrt(float(dx * dx + dy * dy))
-            lim = tolerance * wp.max(pd, 1.0) * foot + floor_mm
             for k in range(MAX_PER_PIXEL):
                 j = slots[MAX_PER_PIXEL * (yy * width + xx) + k]
                 if j >= 0 and j != i:
-                    if wp.length(points[j] - X) <= lim:
+                    if agrees(points[j], X, dx, dy, foot, tolerance, floor_mm):
                         n = n + 1
     if n < min_neighbours:
         status_out[i] = isolated_status
@@ -207,10 +214,7 @@ def count_neighbours_sorted_kernel(
                     j = hi
                 else:
                     if status[j] == 0 and j != i:
-                        dx = q - row - x
-                        pd = wp.sqrt(float(dx * dx + dy * dy))
-                        lim = tolerance * wp.max(pd, 1.0) * foot + floor_mm
-                        if wp.length(points[j] - X) <= lim:
+                        if agrees(points[j], X, q - row - x, dy, foot, tolerance, floor_mm):
                             n = n + 1
                     j = j + 1
     if n < min_neighbours:
