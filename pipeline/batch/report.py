@@ -64,8 +64,8 @@ def format_table(entries: list[dict], totals: dict) -> str:
                      + (f"; worker CPU {totals['cpu_per_view_s']:.3f} s a view" if totals.get("cpu_per_view_s") else ""))
     ws = totals.get("worker_start_s")
     if ws:
-        lines.append(f"worker start-up: {ws['median']:.2f} s (median of {ws['workers']}; max {ws['max']:.2f} s), before "
-                     f"its first scan; the first scan also loads the kernels it launches")
+        lines.append(f"worker start-up: {ws['median']:.2f} s (median of {ws['workers']}; max {ws['max']:.2f} s), "
+                     "before its first scan; the first scan also loads the kernels it launches")
     return "\n".join(lines)
 
 
