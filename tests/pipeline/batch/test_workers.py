@@ -36,9 +36,11 @@ def test_same_bytes_whatever_the_workers(three_scans, reference, tmp_path):
     assert all(tot["per_view_s"][k] > 0 for k in STAGES)
     assert read_json(out / "batch_report.json")["totals"]["computed_views"] == 4
     # each worker's start-up, once (a worker that got no scan has nothing to say), from its spawn: the
-    # interpreter and ringscan's imports alone take more than 0.2 s; no scan's entry keeps it
+    # interpreter and ringscan's imports alone take more than 0.2 s, and every worker started within the
+    # batch (not before the first result: the slower worker may start after the other's first scan is back);
+    # no scan's entry keeps it
     ws = tot["worker_start_s"]
-    assert 1 <= ws["workers"] <= 2 and 0.2 < ws["median"] <= ws["max"] < tot["first_result_s"]
+    assert 1 <= ws["workers"] <= 2 and 0.2 < ws["median"] <= ws["max"] < tot["wall_s"]
     assert not any("worker_start_s" in s for s in rep["scans"])
 
 
