@@ -107,23 +107,12 @@ def main() -> int:
 
 def _sigma_honesty(scan) -> None:
     """Actual match errors (camera-2 px, against the truth) over their predicted sigmas."""
-    from ringscan.pipeline.geometry import project_points, undistort_normalized
     from ringscan.pipeline.reconstruct.stereo import match_view
-    from ringscan.pipeline.simulate.truth import load_truth
+    from tests.pipeline.reconstruct.two_camera_scan import true_uv2
 
     m = match_view(scan, scan.views[0], device="cpu")
-    rig = scan.rig
-    depth = load_truth(scan).depth("view_000")
-    u, v = m.uv1[:, 0], m.uv1[:, 1]
-    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
-    fy, fx = v - i0, u - j0
-    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
-         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
-    keep = np.isfinite(z)
-    c1, c2 = rig.camera, rig.camera2
-    x, y = undistort_normalized(c1, u[keep], v[keep])
-    X = (np.stack([x, y, np.ones_like(x)], 1) * z[keep, None] - c1.t) @ c1.R
-    e = m.uv2[keep] - project_points(X, c2.R, c2.t, c2.K, c2.dist)
+    keep, uv2 = true_uv2(scan, m)
+    e = m.uv2[keep] - uv2
     pred = np.hypot(m.sigma1, m.sigma2)[keep]
     zn = e / pred[:, None]
     mad = [1.4826 * float(np.median(np.abs(zn[:, k] - np.median(zn[:, k])))) for k in (0, 1)]

@@ -14,13 +14,11 @@ from ringscan.pipeline.evaluate.metrics import evaluate_recon
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.scan import load_scan, save_scan
-from ringscan.pipeline.geometry import project_points
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings
 from ringscan.pipeline.reconstruct.stereo import epipolar_distances, match_view
 from ringscan.pipeline.reconstruct.view import reconstruct_view
-from ringscan.pipeline.simulate.truth import load_truth
-from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, true_uv2
 
 
 def _rays(r):
@@ -30,23 +28,6 @@ def _rays(r):
 @pytest.fixture(scope="module")
 def stereo_scan(tmp_path_factory):
     return simulate_two_camera_scan(tmp_path_factory.mktemp("stereo") / "scan")
-
-
-def true_uv2(scan, m):
-    """(keep, uv2): where camera 1's truth depth (bilinear at uv1) is known, the point seen there projected
-    into camera 2."""
-    rig = scan.rig
-    depth = load_truth(scan).depth("view_000")
-    u, v = m.uv1[:, 0], m.uv1[:, 1]
-    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
-    fy, fx = v - i0, u - j0
-    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
-         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
-    keep = np.isfinite(z)
-    c = rig.camera
-    x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
-    X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R  # R^T (X_c - t)
-    return keep, project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
 
 
 def test_matches_land_where_camera_2_sees_the_point(stereo_scan):

@@ -9,12 +9,15 @@ import dataclasses
 import math
 import shutil
 
+import cv2
 import numpy as np
 
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import UncalibratedLight, default_rig, look_at
 from ringscan.pipeline.formats.scan import View, load_scan, save_scan
+from ringscan.pipeline.geometry import project_points
 from ringscan.pipeline.simulate.scan import simulate_scan
+from ringscan.pipeline.simulate.truth import load_truth
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
 PROJ = {"width": 1024, "height": 768, "center": [511.5, 383.5]}
@@ -126,3 +129,20 @@ def simulate_decoded_two_camera_scan(folder, *, integer: bool = True):
                 camera2=View(name=v1.name, turntable_deg=v1.turntable_deg, frames=frames["2"]))
     save_scan(dataclasses.replace(scan1, rig=rig, rig_ref=None, patterns=spec, views=(view,)))
     return load_scan(folder)
+
+
+def true_uv2(scan, m):
+    """(keep, uv2): where camera 1's truth depth (bilinear at uv1) is known, the point seen there projected
+    into camera 2."""
+    rig = scan.rig
+    depth = load_truth(scan).depth("view_000")
+    u, v = m.uv1[:, 0], m.uv1[:, 1]
+    i0, j0 = np.floor(v).astype(int), np.floor(u).astype(int)
+    fy, fx = v - i0, u - j0
+    z = (depth[i0, j0] * (1 - fx) * (1 - fy) + depth[i0, j0 + 1] * fx * (1 - fy)
+         + depth[i0 + 1, j0] * (1 - fx) * fy + depth[i0 + 1, j0 + 1] * fx * fy)
+    keep = np.isfinite(z)
+    c = rig.camera
+    x = cv2.undistortPoints(m.uv1[keep].reshape(-1, 1, 2), c.K, c.dist)[:, 0]
+    X = ((np.c_[x, np.ones(len(x))] * z[keep, None]) - c.t) @ c.R  # R^T (X_c - t)
+    return keep, project_points(X, rig.camera2.R, rig.camera2.t, rig.camera2.K, rig.camera2.dist)
