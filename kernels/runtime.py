@@ -14,6 +14,8 @@ import warp as wp
 
 log = logging.getLogger(__name__)
 _initialised = False
+_retaining = False
+_skipping = False
 
 
 def init_warp() -> None:
@@ -131,5 +133,34 @@ def retain_freed_memory(limit_mb: int | None = None) -> bool:
     ok = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
     ok = mallopt(M_TRIM_THRESHOLD, int(limit_mb) << 20) == 1 and ok
     if ok:
+        global _retaining
+        _retaining = True
         log.debug("host allocator: mmap threshold %d MiB, trim threshold %d MiB", MMAP_THRESHOLD_MAX >> 20, limit_mb)
     return ok
+
+
+def skip_final_collection() -> None:
+    """Let this process end without the garbage collector's last passes over every object.
+
+    At exit the interpreter collects everything the imports made (NumPy, SciPy, OpenCV,
+    Warp's builtins ...): 0.4-0.5 s on this project's 2-core machine, as much as a small
+    view, paid by every ``ringscan`` command and by every batch worker when its pool
+    closes (docs/batch.md). :func:`gc.freeze` in an ``atexit`` handler skips those passes;
+    the ``atexit`` handlers registered before it (``weakref.finalize``, temporary
+    folders, logging's flush) still run after it, every file ringscan writes is already
+    closed and flushed, and the operating system frees the memory. Called by the
+    processes ringscan owns, like :func:`retain_freed_memory`; registered once.
+    """
+    global _skipping
+    if not _skipping:
+        import atexit
+        import gc
+
+        atexit.register(gc.freeze)
+        _skipping = True
+
+
+def retains_freed_memory() -> bool:
+    """Whether :func:`retain_freed_memory` set its policy in this process (then the
+    larger arrays a view needs, its frame stacks, may be kept between views and scans too)."""
+    return _retaining

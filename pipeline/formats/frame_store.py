@@ -241,13 +241,15 @@ def _decode_into(path: Path, out: np.ndarray) -> None:
 
 
 def read_store(path: str | os.PathLike | StoreInfo, names: Sequence[str] | None = None, *,
-               threads: int = 1) -> np.ndarray:
+               threads: int = 1, out: np.ndarray | None = None) -> np.ndarray:
     """Read frames of a store as one (len(names), H, W) array.
 
     Args:
         path: the store folder (or its :class:`StoreInfo`).
         names: the frames to read, in this order (default: all, in store order).
         threads: frames decoded at a time (Blosc releases the GIL).
+        out: a C-contiguous (len(names), H, W) array of the store's dtype to decode
+            into (returned); default a new one.
 
     Raises:
         FormatError: naming the file: bad metadata, an unknown frame name, a missing
@@ -258,7 +260,12 @@ def read_store(path: str | os.PathLike | StoreInfo, names: Sequence[str] | None 
     for n in names:
         if n not in info.names:
             raise FormatError(info.path / "zarr.json", f"frame {n!r} is not in the frame store")
-    out = np.empty((len(names), info.height, info.width), info.dtype)
+    shape = (len(names), info.height, info.width)
+    if out is None:
+        out = np.empty(shape, info.dtype)
+    elif out.shape != shape or out.dtype != info.dtype or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"read_store: out must be a writeable C-contiguous {shape} {info.dtype} array, "
+                         f"got {out.shape} {out.dtype}")
     jobs = [(info.chunk_path(info.index(n)), out[i]) for i, n in enumerate(names)]
     # Decoded on pool threads even for threads=1: numcodecs' Blosc then decodes each
     # frame on its calling thread alone (on the main thread it would start Blosc's own

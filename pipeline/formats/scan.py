@@ -33,6 +33,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
+from ringscan.pipeline.formats.buffers import FrameBuffers
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.frame_store import open_store, read_store
 from ringscan.pipeline.formats.images import read_image
@@ -392,7 +393,8 @@ def check_view_frames(scan: Scan, view: View) -> None:
         check_view_frames(as_camera2(scan), view.camera2)
 
 
-def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None) -> np.ndarray:
+def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None,
+                     buffers: FrameBuffers | None = None) -> np.ndarray:
     """Read a view's frames as one (n_frames, H, W) array (uint8 or uint16).
 
     Frames are read in the order of ``names`` (default: the codec's frame order),
@@ -402,7 +404,8 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
     frames of different sizes or bit depths, or a size other than the camera's
     (the first such frame in frame order). A packed view is read from its frame
     store, ``threads`` frames decoded at a time, every chunk's checksum checked; its
-    frame names (as scan.json lists them), size and dtype must match.
+    frame names (as scan.json lists them), size and dtype must match. With
+    ``buffers`` the stack is taken from that pool (give it back when done with it).
     """
     names = frame_names(scan.patterns) if names is None else names
     cam = scan.rig.camera
@@ -410,7 +413,8 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
     if view.packed is not None:
-        return _read_packed(scan, view, names, threads=min(8, os.cpu_count() or 1) if threads is None else threads)
+        return _read_packed(scan, view, names, threads=min(8, os.cpu_count() or 1) if threads is None else threads,
+                            buffers=buffers)
     paths = [scan.frame_path(view, n) for n in names]
     threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))
 
@@ -434,14 +438,16 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
         if img.shape != (cam.height, cam.width):
             raise FormatError(p, f"frame is {img.shape[1]}x{img.shape[0]}, but the camera is {cam.width}x{cam.height}")
         if out is None:
-            out = np.empty((len(names), cam.height, cam.width), img.dtype)
+            shape = (len(names), cam.height, cam.width)
+            out = np.empty(shape, img.dtype) if buffers is None else buffers.take(shape, img.dtype)
         elif img.dtype != out.dtype:
             raise FormatError(p, f"frame is {img.dtype}, other frames of {view.name} are {out.dtype}")
         out[i] = img
     return out
 
 
-def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int) -> np.ndarray:
+def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int,
+                 buffers: FrameBuffers | None = None) -> np.ndarray:
     info = open_store(scan.folder / view.packed)
     meta = info.path / "zarr.json"
     # scan.json lists the store's frames in store order (only those captured so far, during a capture)
@@ -451,7 +457,8 @@ def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int) -> n
     cam = scan.rig.camera
     if (info.height, info.width) != (cam.height, cam.width):
         raise FormatError(meta, f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
-    return read_store(info, names, threads=max(1, int(threads)))
+    out = None if buffers is None else buffers.take((len(names), info.height, info.width), info.dtype)
+    return read_store(info, names, threads=max(1, int(threads)), out=out)
 
 
 def frame_files(scan: Scan, view: View) -> dict[str, Path]:

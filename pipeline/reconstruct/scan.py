@@ -34,6 +34,7 @@ import numpy as np
 
 from ringscan.kernels import resolve_device
 from ringscan.kernels.launch import cpu_threads
+from ringscan.kernels.runtime import retains_freed_memory
 from ringscan.pipeline.formats.atomic import (
     atomic_write_json,
     check_no_overwrite,
@@ -42,6 +43,7 @@ from ringscan.pipeline.formats.atomic import (
     lock_folder,
     remove_stale_temporaries,
 )
+from ringscan.pipeline.formats.buffers import FrameBuffers
 from ringscan.pipeline.formats.rig import rig_to_dict
 from ringscan.pipeline.formats.scan import (
     Scan,
@@ -161,6 +163,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
     # before the report that lists it), each file atomic and flushed as before.
     from concurrent.futures import ThreadPoolExecutor
 
+    buffers = _frame_buffers()
     reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
     writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-write")
     pending = {}
@@ -168,7 +171,8 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
 
     def prefetch(k):
         if k < len(todo) and todo[k].name not in pending:
-            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads())
+            pending[todo[k].name] = reader.submit(_timed_read, scan, todo[k], settings.threads or cpu_threads(),
+                                                  buffers)
 
     bar = progress_bar(chosen, desc=f"reconstruct {scan.folder.name}", unit="view", disable=not progress, leave=False)
     try:
@@ -182,6 +186,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
             frames, read_s = pending.pop(view.name).result()
             prefetch(k + 1)
             cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)
+            buffers.give(frames)  # the view is done with its frames (the cloud holds none of them)
             del frames
             cloud.stats["times_s"]["read"] = read_s  # read ahead, while the previous view was reconstructed
             entry = _view_entry(scan, view, index=index, cloud=cloud, inputs_hash=hashes.views[view.name])
@@ -204,9 +209,19 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
     return report
 
 
-def _timed_read(scan: Scan, view: View, threads: int) -> tuple[np.ndarray, float]:
+_FRAME_BUFFERS = FrameBuffers(keep=2)
+"""The process's frame stacks, kept from scan to scan where the process keeps freed memory
+(:func:`~ringscan.kernels.runtime.retain_freed_memory`: the ringscan command, batch workers,
+Ray tasks): one being reconstructed, one being read ahead."""
+
+
+def _frame_buffers() -> FrameBuffers:
+    return _FRAME_BUFFERS if retains_freed_memory() else FrameBuffers(keep=2)
+
+
+def _timed_read(scan: Scan, view: View, threads: int, buffers: FrameBuffers) -> tuple[np.ndarray, float]:
     t = time.perf_counter()
-    frames = read_view_frames(scan, view, threads=threads)
+    frames = read_view_frames(scan, view, threads=threads, buffers=buffers)
     return frames, time.perf_counter() - t
 
 

@@ -63,6 +63,27 @@ def test_resume_redoes_only_missing_views(small_scan, tmp_path):
     assert len(rep["views"]) == 2
 
 
+def test_frame_stacks_are_reused_between_views_and_scans(small_scan, tmp_path, monkeypatch):
+    """Where the process keeps freed memory (the ringscan command, batch workers), each view's frames are read
+    into the stacks the earlier views used, across scans too; the clouds are the same bytes as without."""
+    import ringscan.pipeline.reconstruct.scan as rs
+    from ringscan.pipeline.formats.buffers import FrameBuffers
+
+    reconstruct_scan(small_scan, tmp_path / "fresh", progress=False)  # a new pool for this call: nothing kept
+    pool = FrameBuffers(keep=2)
+    monkeypatch.setattr(rs, "_FRAME_BUFFERS", pool)
+    monkeypatch.setattr(rs, "retains_freed_memory", lambda: True)
+    taken = []
+    take = pool.take
+    monkeypatch.setattr(pool, "take", lambda shape, dtype: taken.append(take(shape, dtype)) or taken[-1])
+    for k in range(2):
+        reconstruct_scan(small_scan, tmp_path / f"pooled_{k}", progress=False)
+    assert len(taken) == 4 and len({id(a) for a in taken}) == 2  # two stacks for four views of two scans
+    for k in range(2):
+        for v in ("view_000.ply", "view_001.ply"):
+            assert (tmp_path / f"pooled_{k}" / v).read_bytes() == (tmp_path / "fresh" / v).read_bytes()
+
+
 def test_kernels_match_numpy_reference(small_scan):
     import warp as wp
 
