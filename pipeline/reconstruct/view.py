@@ -319,15 +319,18 @@ def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threa
     idx_np = idx.numpy()
     status = status_dev.numpy()
     counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
+    def kept(a):  # take(): the rows a[idx_np] names, without fancy indexing's cost on (n, 2) and (n, 3) rows
+        return a.numpy().take(idx_np, axis=0)
+
     cloud = ViewCloud(
-        points=points.numpy()[idx_np],
-        ring=samples.ring.numpy()[idx_np] if samples.ring is not None else np.full(idx_np.size, -1, np.int32),
-        rho=samples.rho.numpy()[idx_np],
-        confidence=confidence.numpy()[idx_np],
-        uv=samples.uv.numpy()[idx_np],
-        sigma=sigma.numpy()[idx_np],
+        points=kept(points),
+        ring=kept(samples.ring) if samples.ring is not None else np.full(idx_np.size, -1, np.int32),
+        rho=kept(samples.rho),
+        confidence=kept(confidence),
+        uv=kept(samples.uv),
+        sigma=kept(sigma),
         stats={},
-        residual=residual.numpy()[idx_np],
+        residual=kept(residual),
     )
     low_confidence = 0
     if settings.min_confidence > 0:
