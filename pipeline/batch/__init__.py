@@ -225,12 +225,13 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
     t0 = time.perf_counter()
     bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     computed = 0
-    first = None
+    first = last = None
     starts: list[float] = []
     next_write = 0.0  # the first scan's result is written at once (an unwritable OUT shows early)
     try:
         for n, entry in results:
-            first = time.perf_counter() - t0 if first is None else first
+            last = time.perf_counter() - t0
+            first = last if first is None else first
             if "worker_start_s" in entry:  # a worker's first scan: its start-up, for the totals
                 starts.append(float(entry.pop("worker_start_s")))
             entries[n] = entry
@@ -250,6 +251,7 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
     report["scans"] = [entries[k] for k in sorted(entries)]
     report["totals"] = summarise(report["scans"], wall_s=time.perf_counter() - t0)
     report["totals"]["first_result_s"] = first  # starting the workers (Warp, kernel cache) and the first scan
+    report["totals"]["last_result_s"] = last  # the rest of wall_s: closing the workers, the last report write
     if starts:
         report["totals"]["worker_start_s"] = {"workers": len(starts), "median": float(statistics.median(starts)),
                                               "max": max(starts)}

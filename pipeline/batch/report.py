@@ -12,8 +12,8 @@ __all__ = ["BATCH_REPORT_FORMAT", "summarise", "format_table", "format_calibrati
 
 BATCH_REPORT_FORMAT = "ringscan.batch/1"
 
-TIME_FIELDS = ("time_s", "times_s", "cpu_s", "wall_s", "views_per_s", "first_result_s", "cpu_per_view_s", "workers",
-               "backend", "worker_start_s")
+TIME_FIELDS = ("time_s", "times_s", "cpu_s", "wall_s", "views_per_s", "first_result_s", "last_result_s",
+               "cpu_per_view_s", "workers", "backend", "worker_start_s")
 """Fields of the reports that depend on how the run went (clock, workers), not on its results."""
 
 

@@ -22,6 +22,9 @@ def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path):
     assert rep["totals"]["cpu_per_view_s"] == pytest.approx(sum(s["cpu_s"] for s in rep["scans"])
                                                             / rep["totals"]["computed_views"])
     assert rep["totals"]["worker_start_s"]["workers"] >= 1  # the default: worker processes
+    # the results came back between the start and the end (closing the workers, the final report after them)
+    tot = rep["totals"]
+    assert 0 < tot["first_result_s"] <= tot["last_result_s"] <= tot["wall_s"]
     ply = out / "a_sphere" / "view_000.ply"
     before = ply.stat().st_mtime_ns
     rep2 = batch_reconstruct(scan_root, out, progress=False)
