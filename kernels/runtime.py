@@ -14,7 +14,7 @@ import warp as wp
 
 log = logging.getLogger(__name__)
 _initialised = False
-_retaining = False
+_retained_mb = 0
 _skipping = False
 
 
@@ -133,8 +133,8 @@ def retain_freed_memory(limit_mb: int | None = None) -> bool:
     ok = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
     ok = mallopt(M_TRIM_THRESHOLD, int(limit_mb) << 20) == 1 and ok
     if ok:
-        global _retaining
-        _retaining = True
+        global _retained_mb
+        _retained_mb = int(limit_mb)
         log.debug("host allocator: mmap threshold %d MiB, trim threshold %d MiB", MMAP_THRESHOLD_MAX >> 20, limit_mb)
     return ok
 
@@ -160,7 +160,7 @@ def skip_final_collection() -> None:
         _skipping = True
 
 
-def retains_freed_memory() -> bool:
-    """Whether :func:`retain_freed_memory` set its policy in this process (then the
-    larger arrays a view needs, its frame stacks, may be kept between views and scans too)."""
-    return _retaining
+def freed_memory_kept_mb() -> int:
+    """The most freed memory this process keeps, in MiB, as :func:`retain_freed_memory`
+    set it; 0 where the policy is not set (then nothing is kept between views and scans)."""
+    return _retained_mb

@@ -21,15 +21,18 @@ class FrameBuffers:
     """A small pool of frame stacks, safe to share between threads.
 
     :meth:`take` returns a free stack of the asked shape and dtype (or a new one);
-    :meth:`give` returns one to the pool, which keeps at most ``keep`` (the
-    oldest dropped first), so the pool holds no more than ``keep`` stacks' memory
-    between views. A stack given back must no longer be used by its taker.
+    :meth:`give` returns one to the pool, which keeps at most ``keep`` stacks and
+    at most ``max_bytes`` of them (the oldest dropped first; None: no byte bound).
+    A stack given back must no longer be used by its taker.
     """
 
-    def __init__(self, keep: int = 2):
+    def __init__(self, keep: int = 2, max_bytes: int | None = None):
         if keep < 0:
             raise ValueError(f"keep must be >= 0, got {keep}")
+        if max_bytes is not None and max_bytes < 0:
+            raise ValueError(f"max_bytes must be >= 0, got {max_bytes}")
         self.keep = int(keep)
+        self.max_bytes = None if max_bytes is None else int(max_bytes)
         self._free: list[np.ndarray] = []
         self._lock = threading.Lock()
 
@@ -51,6 +54,9 @@ class FrameBuffers:
                 return
             self._free.append(arr)
             del self._free[:-self.keep]
+            if self.max_bytes is not None:
+                while self._free and sum(a.nbytes for a in self._free) > self.max_bytes:
+                    self._free.pop(0)
 
     def clear(self) -> None:
         """Drop every kept stack."""

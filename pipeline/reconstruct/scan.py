@@ -34,7 +34,7 @@ import numpy as np
 
 from ringscan.kernels import resolve_device
 from ringscan.kernels.launch import cpu_threads
-from ringscan.kernels.runtime import retains_freed_memory
+from ringscan.kernels.runtime import freed_memory_kept_mb
 from ringscan.pipeline.formats.atomic import (
     atomic_write_json,
     check_no_overwrite,
@@ -212,11 +212,16 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
 _FRAME_BUFFERS = FrameBuffers(keep=2)
 """The process's frame stacks, kept from scan to scan where the process keeps freed memory
 (:func:`~ringscan.kernels.runtime.retain_freed_memory`: the ringscan command, batch workers,
-Ray tasks): one being reconstructed, one being read ahead."""
+Ray tasks), within the memory it keeps (``RINGSCAN_KEEP_FREED_MB``, 512 MiB by default):
+one being reconstructed, one being read ahead."""
 
 
 def _frame_buffers() -> FrameBuffers:
-    return _FRAME_BUFFERS if retains_freed_memory() else FrameBuffers(keep=2)
+    kept = freed_memory_kept_mb()
+    if kept <= 0:
+        return FrameBuffers(keep=2)  # this call's views only (a view and the one read ahead: the peak anyway)
+    _FRAME_BUFFERS.max_bytes = kept << 20
+    return _FRAME_BUFFERS
 
 
 def _timed_read(scan: Scan, view: View, threads: int, buffers: FrameBuffers) -> tuple[np.ndarray, float]:

@@ -42,6 +42,21 @@ def test_a_given_stack_is_taken_again_and_the_pool_stays_bounded():
         FrameBuffers(keep=-1)
 
 
+def test_the_pool_keeps_no_more_bytes_than_asked():
+    """A camera of many large frames: the pool keeps what fits in its bound, newest first, and
+    nothing larger than the bound (a worker keeps within the memory the user lets it keep)."""
+    pool = FrameBuffers(keep=2, max_bytes=150)
+    a, b = np.empty((1, 10, 10), np.uint8), np.empty((1, 10, 10), np.uint8)
+    pool.give(a)
+    pool.give(b)  # 200 bytes > 150: the older goes
+    assert pool.take((1, 10, 10), np.uint8) is b and pool.take((1, 10, 10), np.uint8) is not a
+    big = np.empty((2, 10, 10), np.uint8)
+    pool.give(big)
+    assert pool.take((2, 10, 10), np.uint8) is not big
+    with pytest.raises(ValueError):
+        FrameBuffers(max_bytes=-1)
+
+
 def test_threads_never_take_the_same_stack():
     pool = FrameBuffers(keep=8)
     for _ in range(8):

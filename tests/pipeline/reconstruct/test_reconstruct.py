@@ -72,7 +72,7 @@ def test_frame_stacks_are_reused_between_views_and_scans(small_scan, tmp_path, m
     reconstruct_scan(small_scan, tmp_path / "fresh", progress=False)  # a new pool for this call: nothing kept
     pool = FrameBuffers(keep=2)
     monkeypatch.setattr(rs, "_FRAME_BUFFERS", pool)
-    monkeypatch.setattr(rs, "retains_freed_memory", lambda: True)
+    monkeypatch.setattr(rs, "freed_memory_kept_mb", lambda: 512)
     taken = []
     take = pool.take
     monkeypatch.setattr(pool, "take", lambda shape, dtype: taken.append(take(shape, dtype)) or taken[-1])
