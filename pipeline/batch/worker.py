@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device, retain_freed_memory
-from ringscan.kernels.runtime import skip_final_collection
 from ringscan.kernels.launch import set_cpu_threads
+from ringscan.kernels.runtime import skip_final_collection
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remove_stale_temporaries
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
@@ -114,7 +114,7 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
     set_cpu_threads(cpu_threads)
     retain_freed_memory()  # a worker process is ringscan's own: keep freed arrays' pages for the next view
     if record_start:
-        skip_final_collection()  # a pool's worker process: closing the pool does not wait for a last collection
+        skip_final_collection()  # a worker process (pool or Ray): it ends without a last collection
     if parent is not None:
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
     init_warp()

@@ -26,6 +26,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -61,7 +62,7 @@ _TMP_DIR_RE = re.compile(r"^\..+\.(?P<pid>\d+)-[0-9a-f]{8}\.tmp$")
 _DTYPES = {"uint8": np.uint8, "uint16": np.uint16}
 
 __all__ = ["STORE_FORMAT", "STORE_NAME", "BLOSC", "StoreInfo", "open_store", "read_store", "write_store",
-           "create_store", "write_frame", "missing_frames", "is_store", "remove_stale_stores",
+           "create_store", "write_frame", "missing_frames", "check_chunk_files", "is_store", "remove_stale_stores",
            "remove_stale_chunk_temporaries"]
 
 
@@ -195,6 +196,38 @@ def _encode(img: np.ndarray) -> bytes:
 _scratch = threading.local()
 
 
+def _chunk_limit(info: StoreInfo) -> int:
+    """The largest chunk file a frame of ``info`` may have: the frame's bytes, Blosc's
+    header and overhead, the checksum, with room to spare."""
+    return info.height * info.width * info.dtype.itemsize + (1 << 20)
+
+
+def _check_chunk_size(path: Path, size: int, limit: int) -> None:
+    if size < 20 or size > limit:
+        raise FormatError(path, f"frame chunk of {size} bytes (damaged store)")
+
+
+def check_chunk_files(info: StoreInfo, names: Sequence[str]) -> None:
+    """Check, without reading them, that the chunk files of ``names`` are there, regular
+    files, and of a size a frame's chunk can have (a reader checks them before it writes
+    anything; their checksums are checked as they are decoded).
+
+    Raises:
+        FormatError: naming the first chunk file missing, not a regular file, or of an
+            impossible size.
+    """
+    limit = _chunk_limit(info)
+    for n in names:
+        p = info.chunk_path(info.index(n))
+        try:
+            st = os.stat(p)
+        except FileNotFoundError:
+            raise FormatError(p, "frame missing from the frame store") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise FormatError(p, "frame chunk is not a regular file")
+        _check_chunk_size(p, st.st_size, limit)
+
+
 def _read_chunk(path: Path, limit: int) -> memoryview:
     """A chunk file's bytes, in this thread's reusable buffer: no allocation per frame (without
     ringscan's allocator policy, ``kernels.runtime.retain_freed_memory``, each new ~0.6 MB
@@ -206,8 +239,7 @@ def _read_chunk(path: Path, limit: int) -> memoryview:
         raise FormatError(path, "frame missing from the frame store") from None
     with f:
         size = os.fstat(f.fileno()).st_size
-        if size < 20 or size > limit:
-            raise FormatError(path, f"frame chunk of {size} bytes (damaged store)")
+        _check_chunk_size(path, size, limit)
         buf = getattr(_scratch, "buf", None)
         if buf is None or len(buf) < size:
             buf = _scratch.buf = memoryview(bytearray(size))

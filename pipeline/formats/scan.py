@@ -35,7 +35,7 @@ import numpy as np
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.buffers import FrameBuffers
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.frame_store import open_store, read_store
+from ringscan.pipeline.formats.frame_store import check_chunk_files, open_store, read_store
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
@@ -364,7 +364,8 @@ def save_scan(scan: Scan) -> None:
 def check_view_frames(scan: Scan, view: View) -> None:
     """Check a view's frame files from their headers, without decoding them: regular image
     files within the size limits (:func:`~.limits.check_image_header`), of the camera's size;
-    a packed view's store from its metadata (every frame there, the camera's size).
+    a packed view's store from its metadata (every frame there, the camera's size) and its
+    chunk files (there, regular, of a possible size; their checksums as they are decoded).
     A reconstruction calls it for every view before it writes anything.
 
     Raises:
@@ -379,6 +380,7 @@ def check_view_frames(scan: Scan, view: View) -> None:
         if (info.width, info.height) != (cam.width, cam.height):
             raise FormatError(scan.folder / view.packed / "zarr.json",
                               f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+        check_chunk_files(info, frame_names(scan.patterns))
         if view.camera2 is not None:
             check_view_frames(as_camera2(scan), view.camera2)
         return

@@ -71,6 +71,15 @@ def test_pack_a_root_names_a_bad_frame_in_one_line_and_unpack_restores(tmp_path,
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(chunk) in err and "CRC32C" in err
     assert not list((tmp_path / "rec").glob("*.ply"))
+    # a chunk missing or cut short: refused from the files' sizes before anything is written
+    for damage, why in ((lambda: chunk.unlink(), "frame missing"), (lambda: chunk.write_bytes(intact[:9]),
+                                                                   "frame chunk of 9 bytes")):
+        damage()
+        rec = tmp_path / f"rec_{why.split()[-1]}"
+        assert main(["reconstruct", str(root / "good"), "--out", str(rec), "--device", "cpu", "--no-progress"]) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(chunk) in err and why in err
+        assert not rec.exists() or not any(rec.iterdir())
     chunk.write_bytes(intact)
     assert main(["unpack", str(root / "good"), "--image-format", "tiff"]) == 0
     s = load_scan(root / "good")
