@@ -20,7 +20,8 @@ The scans (320x240 camera, gray-rings, ``--views`` turntable views each) are mad
 once into ``--work`` (default /tmp/ringscan_batch_scale) and kept for reruns.
 ``--full --formats --scans 6 --views 2`` measures part 2 per frame format (PNG as OpenCV writes it by
 default, ringscan's PNG, uncompressed TIFF, the packed frame store) on copies of the same scans, and one
-view's reading time on one thread against copying its frames in memory.
+view's reading time on one thread against copying its frames in memory; ``--device cuda:0`` runs its
+batches on a GPU.
 ``--full [--tiff] [--rounds 3] --scans 16 --views 3 --work DIR`` measures part 2 on full-size views (the default
 rig's 1280x1024 camera, the core accuracy codec: 28 frames a view), where per-view fixed
 costs matter less; part 2 also runs every worker on one thread, which shows how the
@@ -389,7 +390,7 @@ def _load() -> float:
         return float("nan")
 
 
-def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int = 1) -> None:
+def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int = 1, device: str = "cpu") -> None:
     """Part 2 per frame format (:data:`FORMATS`); in each round every format in turn, the order rotated from
     round to round (a change of the machine's load does not always fall on the same format); medians of
     the rounds and of the per-round ratios printed, then the issue's targets and the bounds the machine sets on them."""
@@ -416,7 +417,7 @@ def formats_compare(work: Path, base: Path, views: int, spec: dict, rounds: int 
             for key, workers in (("w1", 1), ("w2", 2)):
                 out = work / f"out_{fmt}_{key}"
                 shutil.rmtree(out, ignore_errors=True)
-                rep = batch_reconstruct(roots[fmt], out, workers=workers, device="cpu", progress=False)
+                rep = batch_reconstruct(roots[fmt], out, workers=workers, device=device, progress=False)
                 tot = rep["totals"]
                 r[key].append(steady(tot))
                 r["cpu" + key[1]].append(steady_cpu(rep["scans"], workers))
@@ -513,6 +514,9 @@ def main() -> int:
     ap.add_argument("--formats", action="store_true",
                     help="with --full: part 2 per frame format (PNG as OpenCV writes it by default, ringscan's PNG, "
                          "uncompressed TIFF, packed), on copies of the scans")
+    ap.add_argument("--device", default="cpu",
+                    help="with --formats: Warp device of the batches (default cpu; cuda:0 on a GPU machine, where the "
+                         "compute stages leave the CPU and targets (b) and (e) are decided)")
     ap.add_argument("--rounds", type=int, default=1,
                     help="measure part 2 this many times in turn and print the medians (default 1)")
     a = ap.parse_args()
@@ -536,7 +540,7 @@ def main() -> int:
         pass
 
     if a.full and a.formats:
-        formats_compare(work, root, a.views, spec, rounds=a.rounds)
+        formats_compare(work, root, a.views, spec, rounds=a.rounds, device=a.device)
         return 0
     if a.throughput_only or a.full:
         throughput(root, work, a.views, None, spec, rounds=a.rounds)
