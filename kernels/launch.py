@@ -59,6 +59,13 @@ def _row_slices(h: int, n: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+def _one_launch(dev) -> bool:
+    """Whether a stage on ``dev`` is one launch of a thread per pixel or item (CUDA),
+    not slices of rows or spans launched from the CPU pool. One name for the
+    choice, so that the tests can run CUDA's launch geometry on the CPU backend."""
+    return dev.is_cuda
+
+
 _warmed: set = set()
 
 
@@ -122,7 +129,7 @@ def launch_rows(kernel, h: int, w: int, inputs_fn, outputs, device, threads: int
     returns the kernel's inputs.
     """
     dev = wp.get_device(device)
-    if dev.is_cuda:
+    if _one_launch(dev):
         wp.launch(kernel, dim=h * w, inputs=inputs_fn(0, 1), outputs=outputs, device=dev)
         return
     slices = _row_slices(h, threads * 4 if threads > 1 else 1)
@@ -140,7 +147,7 @@ def launch_spans(kernel, n: int, inputs_fn, outputs, device, threads: int, *, mi
     dev = wp.get_device(device)
     if n <= 0:
         return
-    if dev.is_cuda:
+    if _one_launch(dev):
         wp.launch(kernel, dim=n, inputs=inputs_fn(0), outputs=outputs, device=dev)
         return
     pieces = max(1, min(threads * 4 if threads > 1 else 1, n // max(1, min_span)))

@@ -452,9 +452,10 @@ def swar_thresholds(settings: DecodeSettings, device) -> tuple[wp.array, int]:
 def as_words(frames: wp.array) -> wp.array | None:
     """The 8-bit frame stack viewed as uint64 words (eight pixels each), or None
     where that view does not exist (16-bit frames, a width not a multiple of 8,
-    a strided array)."""
+    a strided array, a first pixel off an 8-byte boundary: memory that Warp did
+    not allocate, where a CUDA kernel's 64-bit loads would fault)."""
     n, h, w = frames.shape
-    if frames.dtype != wp.uint8 or w % 8 or not frames.is_contiguous or h * w == 0:
+    if frames.dtype != wp.uint8 or w % 8 or not frames.is_contiguous or h * w == 0 or frames.ptr % 8:
         return None
     words = wp.array(ptr=frames.ptr, dtype=wp.uint64, shape=(n, h, w // 8), device=frames.device)
     words._ref = frames  # keep the owner alive as long as the view

@@ -126,3 +126,27 @@ def test_eight_pixel_words_match_pixel_kernel_any_contrast(device, bits, sector_
         for name in ("code", "weak", "band", "sector", "contrast"):
             assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()[:, :64]), (s, name)
         assert (a.band.numpy() >= 0).any() == (s.min_contrast < 255)
+
+
+def test_frames_off_an_eight_byte_boundary_decode_a_pixel_at_a_time(device):
+    """Frames whose first pixel is not 8-byte aligned (memory from elsewhere: a
+    tensor at an odd offset) have no uint64 view (a CUDA 64-bit load there faults):
+    they decode with the pixel kernel, to the same labels."""
+    from ringscan.kernels.ring_labels import as_words
+
+    rng = np.random.default_rng(5)
+    st = rng.integers(0, 256, size=(2 + 2 * 4 + 2 * 2, 8, 32), dtype=np.uint8)
+    st[0] = np.maximum(st[0], 150)
+    st[1] = np.minimum(st[1], 60)
+    base = wp.array(np.concatenate([np.zeros(8, np.uint8), st.ravel()]), device=device)
+    aligned = wp.array(st, device=device)
+    assert as_words(aligned) is not None and aligned.ptr % 8 == 0
+    for off in (1, 3, 8):
+        fr = wp.array(ptr=base.ptr + off, dtype=wp.uint8, shape=st.shape, device=device)
+        fr._ref = base
+        wp.copy(fr, aligned)
+        assert (as_words(fr) is None) == (off % 8 != 0)
+        a = decode_gray_rings(aligned, bits=4, sector_bits=2)
+        b = decode_gray_rings(fr, bits=4, sector_bits=2)
+        for name in ("code", "weak", "band", "sector", "contrast"):
+            assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()), (off, name)

@@ -28,7 +28,7 @@ from ringscan.tools.bench.numpy_twins import decode_numpy, sample_numpy, triangu
 
 log = logging.getLogger(__name__)
 
-__all__ = ["best_of", "memory_bandwidth", "run_bench"]
+__all__ = ["best_of", "floor_note", "memory_bandwidth", "run_bench"]
 
 
 def best_of(fn, repeats: int) -> float:
@@ -56,6 +56,15 @@ def default_bench_scene() -> str:
     data = os.environ.get("RINGSCAN_SHARED_DATA") or Path(__file__).resolve().parents[2].parent / "shared" / "data"
     spot = Path(data) / "models" / "odedstein_spot.obj"
     return str(spot) if spot.is_file() else "sphere"
+
+
+def floor_note(runs: list[dict], floor: float) -> str:
+    """The Warp total against the memory floor (``floor`` seconds): of the first run on
+    the CPU (every core), or, where no CPU run was asked for (``--device cuda:0``), of
+    the first run, named by its device."""
+    r = next((r for r in runs if r["device"] == "cpu"), runs[0])
+    name = "CPU" if r["device"] == "cpu" else r["device"]
+    return f"Warp {name} total is {r['times']['total'] / floor:.1f}x that floor"
 
 
 def _default_scan(out: Path, scene: str | None, device: str | None):
@@ -145,8 +154,7 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
             line += f"{r['times'][stage] * 1e3:>12.1f}ms{ref[stage] / r['times'][stage]:>7.1f}x"
         out(line)
     out(f"memory floor: reading {frames.nbytes / 1e6:.1f} MB of frames once at {bw / 2 / 1e9:.1f} GB/s "
-        f"(half of the measured copy bandwidth) = {floor * 1e3:.1f} ms; "
-        f"Warp CPU total is {runs[0]['times']['total'] / floor:.1f}x that floor")
+        f"(half of the measured copy bandwidth) = {floor * 1e3:.1f} ms; {floor_note(runs, floor)}")
     if tmp is not None:
         tmp.cleanup()
     return {"numpy": ref, "warp": runs, "bandwidth_Bps": bw, "floor_s": floor}
