@@ -47,7 +47,8 @@ def scan_counts(counts: wp.array) -> tuple[wp.array, int]:
     offsets = wp.empty_like(counts)
     if counts.size == 0:
         return offsets, 0
-    wp.utils.array_scan(counts, offsets, inclusive=False)
+    with wp.ScopedDevice(counts.device):  # Warp's CUDA scan runs on the current device's context, not the array's
+        wp.utils.array_scan(counts, offsets, inclusive=False)
     last = counts.flatten() if counts.ndim > 1 else counts
     offs = offsets.flatten() if offsets.ndim > 1 else offsets
     return offsets, int(offs[-1:].numpy()[0] + last[-1:].numpy()[0])

@@ -164,6 +164,10 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
     if cpu_threads is not None and (isinstance(cpu_threads, bool) or not isinstance(cpu_threads, int)
                                     or cpu_threads < 1):
         raise ValueError(f"cpu_threads: expected a whole number >= 1, got {cpu_threads!r}")
+    if backend == "ray" and str(device or "").startswith("cuda:"):
+        # Ray gives each task its own GPU, which the task sees as cuda:0: a device number means nothing there
+        raise ValueError(f"device {device!r} with the Ray backend: Ray gives each scan's task a GPU of its own; "
+                         "use --device cuda (or leave it out: a task's GPU where it has one, else the CPU)")
     skipped: list = []
     root, scans = _root_and_scans(root, skipped, storage_options)
     remote_out = is_url(out_root)

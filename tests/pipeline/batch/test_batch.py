@@ -221,3 +221,13 @@ def test_an_unknown_device_is_the_commands_error_not_every_scans(scan_root, tmp_
     assert main(["batch", str(scan_root), "--out", str(out), "--device", "bogus", "--no-progress"]) == 1
     assert "ringscan batch: error: device 'bogus': unknown (known: cpu" in capsys.readouterr().err
     assert not out.exists()  # before: every scan 'failed' as if its worker had crashed, exit 1
+
+
+def test_a_device_number_with_the_ray_backend_is_refused_before_anything(scan_root, tmp_path, capsys):
+    # a Ray task sees only the GPU Ray gave it, as cuda:0: cuda:1 would fail every scan on the nodes
+    out = tmp_path / "out"
+    assert main(["batch", str(scan_root), "--out", str(out), "--backend", "ray", "--device", "cuda:1",
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "ringscan batch: error: device 'cuda:1' with the Ray backend" in err and "--device cuda" in err
+    assert not out.exists()
