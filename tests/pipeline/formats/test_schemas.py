@@ -261,6 +261,11 @@ BROKEN_SCANS = {
     "truth mesh 5": _set(["truth", "mesh"], 5),
     "truth views null": _set(["truth", "views"], None),
     "truth view depth 7": _set(["truth", "views", "view_000", "depth"], 7),
+    "frame_bits 0": _set(["frame_bits"], 0),
+    "frame_bits 7": _set(["frame_bits"], 7),
+    "frame_bits 17": _set(["frame_bits"], 17),
+    "frame_bits a string": _set(["frame_bits"], "12"),
+    "frame_bits true": _set(["frame_bits"], True),
 }
 
 
