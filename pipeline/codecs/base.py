@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.formats.images import FEW_BITS_MAX
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
@@ -138,11 +139,6 @@ class Codec(ABC, Generic[S]):
             stats: the view's counts (``pixels_decoded``, ``samples``, ...).
         """
         return None
-
-
-FEW_BITS_MAX = 1 << 14
-"""A 16-bit frame whose brightest value is below this (a quarter of the range) may be a
-10-, 12- or 14-bit camera's, its values LSB-aligned."""
 
 
 def frame_bits_hint(brightest: int, dtype, frame_bits: int | None) -> str:

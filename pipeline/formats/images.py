@@ -14,10 +14,14 @@ from ringscan.pipeline.formats.limits import check_image_header
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_image", "write_image", "png_params", "tiff_params", "expand_frame_bits", "FRAME_BITS_RANGE"]
+__all__ = ["read_image", "write_image", "png_params", "tiff_params", "expand_frame_bits", "FRAME_BITS_RANGE",
+           "FEW_BITS_MAX"]
 
 FRAME_BITS_RANGE = (9, 16)
 """Significant bits a 16-bit frame may hold (``frame_bits`` of scan.json; an 8-bit frame holds 8)."""
+FEW_BITS_MAX = 1 << 14
+"""16-bit frames whose brightest value is below this (a quarter of the range) may be a 10- to
+14-bit camera's, LSB-aligned: a message about frames without contrast says so."""
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:

@@ -54,7 +54,7 @@ SCAN_FORMATS = (SCAN_FORMAT, SCAN_FORMAT_PACKED)
 
 __all__ = ["SCAN_FORMAT", "SCAN_FORMAT_PACKED", "View", "Scan", "load_scan", "save_scan", "read_view_frames",
            "read_view_frame", "frame_files", "scan_to_dict", "check_view_name", "check_truth", "check_view_frames",
-           "packed_view", "as_camera2"]
+           "packed_view", "as_camera2", "check_frame_bits"]
 
 
 @dataclass(frozen=True)
@@ -221,16 +221,27 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
             second = View(name=name, turntable_deg=float(deg), frames=f2, packed=s2)
         views.append(View(name=name, turntable_deg=float(deg), frames=frames, packed=store, camera2=second))
     bits = d.get("frame_bits")
-    lo, hi = FRAME_BITS_RANGE
-    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or not (bits == 8 or lo <= bits <= hi)):
-        raise FormatError(src, f"frame_bits: expected a whole number, 8 for 8-bit frames or {lo}..{hi} for 16-bit "
-                               f"frames (the bits a camera's frame holds), got {bits!r:.60}")
+    if bits is not None:
+        check_frame_bits(bits, source=src)
     if bits is not None and bits != 16 and patterns.codec == "decoded":
         raise FormatError(src, f"frame_bits: {bits}, but the decoded codec's frames are projector coordinates, not "
                                "grey levels (leave frame_bits out, or 16)")
     extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views", "frame_bits")}
     return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra,
                 frame_bits=bits)
+
+
+def check_frame_bits(bits, *, source=None, where: str = "frame_bits") -> int:
+    """Check a ``frame_bits`` value: a whole number, 8 (8-bit frames) or 9..16 (16-bit frames).
+
+    Raises:
+        FormatError: naming ``source`` and ``where``.
+    """
+    lo, hi = FRAME_BITS_RANGE
+    if isinstance(bits, bool) or not isinstance(bits, int) or not (bits == 8 or lo <= bits <= hi):
+        raise FormatError(source, f"{where}: expected a whole number, 8 for 8-bit frames or {lo}..{hi} for 16-bit "
+                                  f"frames (the bits a camera's frame holds), got {bits!r:.60}")
+    return bits
 
 
 def _parse_frames(vd: dict, where: str, *, folder: Path, src: Path, fmt: str, name: str, needed: list[str],
