@@ -452,8 +452,8 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
     if view.packed is not None:
-        out, paths = _read_packed(scan, view, names, threads=min(8, os.cpu_count() or 1) if threads is None else threads,
-                                  buffers=buffers)
+        out, paths = _read_packed(scan, view, names, buffers=buffers,
+                                  threads=min(8, os.cpu_count() or 1) if threads is None else threads)
         return out if raw else _apply_frame_bits(scan, out, paths)
     paths = [scan.frame_path(view, n) for n in names]
     threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))

@@ -4,7 +4,8 @@
 A view's result is done when it was made from the same inputs with the same settings
 (a per-view content hash, :func:`hash_inputs`: the parsed rig, the patterns, the
 resolved settings but ``threads``, scan.json's ``frame_bits`` where set, the view's
-scan.json entry, each frame file's size and modification time) and its PLY is whole and holds the points the report says;
+scan.json entry, each frame file's size and modification time) and its PLY is whole
+and holds the points the report says;
 otherwise it is redone and :class:`DoneCheck` says why. A scan is done when every view
 asked for is done. Why sizes and times rather than a hash of the bytes, and what that
 misses: docs/design.md §14.
