@@ -178,6 +178,13 @@ def test_a_scan_with_a_rig_file_validates(tiny):
         assert _errors(SCAN, d), bad
 
 
+def test_a_scan_with_frame_bits_validates(tiny):
+    d = _scan_json(tiny)
+    for bits in (8, 10, 12, 16):
+        d["frame_bits"] = bits
+        assert _errors(SCAN, d) == [], bits
+
+
 def test_the_cli_writes_these_schemas(tmp_path, capsys):
     assert main(["schema", "rig"]) == 0
     assert json.loads(capsys.readouterr().out) == rig_json_schema()
