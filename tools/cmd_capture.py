@@ -43,7 +43,7 @@ from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import load_rig
-from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
 from ringscan.tools.cli import UsageError, add_device_option
 
 log = logging.getLogger(__name__)
@@ -131,6 +131,10 @@ def add_parser(sub):
                         "starting value; frames may be re-levelled between white and black)")
     g.add_argument("--flush", type=int, default=None, metavar="N",
                    help="frames dropped before each grab (default 4 for live cameras, 0 for files)")
+    g.add_argument("--frame-bits", type=int, default=None, metavar="N",
+                   help="bits the camera's 16-bit frames hold (10, 12: values 0..1023, 0..4095), written as "
+                        "scan.json's frame_bits so that they are read scaled to 16 bits (docs/formats.md); every "
+                        "frame is checked against it (default: the frames' own bits)")
 
     v = p.add_argument_group("virtual rig")
     v.add_argument("--virtual", metavar="SCENE", help="capture from the emulated virtual rig: turntable and "
@@ -263,7 +267,7 @@ def _run(args) -> int:
         scan = capture_scan(out, camera=devices.camera, projector=devices.projector, turntable=devices.turntable,
                             rig=rig, patterns=patterns, views=args.views, step_deg=args.step, start_deg=args.start,
                             settings=settings, resume=args.resume, table_at=plan.table_at,
-                            progress=not args.no_progress, on_view=live)
+                            progress=not args.no_progress, on_view=live, frame_bits=args.frame_bits)
     except CaptureError:
         if live is not None:  # keep what was captured reconstructed, then report the fault
             try:
@@ -287,6 +291,11 @@ def _check_options(args, rig, patterns: PatternSpec | None) -> None:
         raise UsageError("--reconstruct-settings only applies with --reconstruct")
     if args.allow_auto_exposure and args.exposure is None:
         raise UsageError("--allow-auto-exposure only applies with --exposure")
+    if args.frame_bits is not None:
+        try:
+            check_frame_bits(args.frame_bits, where="--frame-bits")
+        except FormatError as e:
+            raise UsageError(str(e)) from None
 
 
 def _capture_settings(args, out: Path):

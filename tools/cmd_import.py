@@ -19,8 +19,10 @@ from ringscan.pipeline.calibrate.importer import (
     read_opencv_calibration,
     read_stereo_calibration,
 )
+from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
+from ringscan.pipeline.formats.scan import check_frame_bits
 from ringscan.tools.cli import UsageError
 from ringscan.tools.cmd_calibrate import parse_size
 
@@ -61,6 +63,10 @@ def add_parser(sub):
                    help="least white - black of a pixel decoded on contrast alone, 8-bit grey levels (default "
                         f"{GrayCodeSettings.min_contrast:g}; dimmer pixels down to {GrayCodeSettings.dim_contrast:g} "
                         "only where the patterns visibly modulate them; docs/calibration.md)")
+    p.add_argument("--frame-bits", type=int, default=None, metavar="N",
+                   help="bits the captures' 16-bit frames hold (10, 12: a 10- or 12-bit camera's values "
+                        "0..1023, 0..4095), scaled to 16 bits as they are read, so that --min-contrast keeps its "
+                        "meaning (default: the frames' own bits)")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
     p.add_argument("--out", required=True, metavar="SCAN", help="the scan folder to write")
     return p
@@ -102,8 +108,13 @@ def run(args) -> int:
         kw["projector_rig"] = read_opencv_calibration(pr) if _is_opencv(pr) else load_rig(pr)
     if not (args.min_contrast >= 0 and args.min_contrast < 255):
         raise UsageError(f"--min-contrast {args.min_contrast:g}: expected grey levels from 0 to below 255")
+    if args.frame_bits is not None:
+        try:
+            check_frame_bits(args.frame_bits, where="--frame-bits")
+        except FormatError as e:
+            raise UsageError(str(e)) from None
     settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer,
-                              graycode=GrayCodeSettings(min_contrast=args.min_contrast))
+                              graycode=GrayCodeSettings(min_contrast=args.min_contrast), frame_bits=args.frame_bits)
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
         scan, stats = import_captures(args.captures, out=args.out, projector=proj, layout=args.layout,
                                       depth=tuple(args.depth) if args.depth else None, settings=settings,

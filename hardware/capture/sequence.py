@@ -41,7 +41,7 @@ from ringscan.pipeline.formats.progress import progress_bar
 from ringscan.pipeline.formats.rig import Rig, rig_to_dict
 from ringscan.pipeline.formats.frame_store import (STORE_NAME, create_store, is_store, open_store,
                                                    remove_stale_chunk_temporaries, write_frame)
-from ringscan.pipeline.formats.scan import Scan, View, load_scan, packed_view, save_scan
+from ringscan.pipeline.formats.scan import Scan, View, check_frame_bits, load_scan, packed_view, save_scan
 
 log = logging.getLogger(__name__)
 
@@ -254,7 +254,7 @@ def _clean_temp_files(folder: Path) -> int:
 
 
 def _new_capture(out: Path, rig: Rig | None, patterns: PatternSpec | None, views: int | None,
-                 step_deg: float | None, start_deg: float) -> tuple[Scan, dict]:
+                 step_deg: float | None, start_deg: float, frame_bits: int | None = None) -> tuple[Scan, dict]:
     if rig is None or patterns is None or views is None:
         raise ValueError("a new capture needs the rig, the patterns and the number of views")
     if (out / "scan.json").exists():
@@ -272,7 +272,7 @@ def _new_capture(out: Path, rig: Rig | None, patterns: PatternSpec | None, views
                       "start_deg": float(start_deg), "angles": angles},
              "settings": None, "table": {"deg": 0.0, "moving_to": None}, "status": "new", "error": None, "runs": []}
     atomic_write_json(out / CAPTURE_FILE, state)
-    scan = Scan(folder=out, rig=rig, patterns=patterns, views=())
+    scan = Scan(folder=out, rig=rig, patterns=patterns, views=(), frame_bits=frame_bits)
     save_scan(scan)
     return scan, state
 
@@ -406,7 +406,7 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
                  patterns: PatternSpec | None = None, views: int | None = None, step_deg: float | None = None,
                  start_deg: float | None = None, settings: CaptureSettings = CaptureSettings(), resume: bool = False,
                  table_at: float | None = None, progress: bool = True,
-                 on_view: Callable[[Scan, View], None] | None = None) -> Scan:
+                 on_view: Callable[[Scan, View], None] | None = None, frame_bits: int | None = None) -> Scan:
     """Capture a scan into ``out``, or resume an interrupted capture there.
 
     Args:
@@ -429,6 +429,10 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
         progress: show a progress bar.
         on_view: called with (scan, view) after each view is complete (e.g. to start
             reconstructing it while the next one is captured).
+        frame_bits: the bits the camera's frames hold (8, or 9..16 for 16-bit frames:
+            12 for a 12-bit camera's values 0..4095), written as scan.json's
+            ``frame_bits`` (docs/formats.md); every frame grabbed is checked against it.
+            None: the frames' own bits (a resumed capture: the scan's).
 
     Returns:
         The complete scan (loaded back from disk).
@@ -440,13 +444,22 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
         FormatError, ValueError: bad input (nothing captured).
     """
     out = Path(out)
+    if frame_bits is not None:
+        check_frame_bits(frame_bits, where="frame_bits")
     if not resume and patterns is not None:
         _check_frame_count(projector, patterns, out)
     if resume:
         table_deg = resume_angle(out, table_at)
+        if frame_bits is not None:
+            _require_capture(out)
+            had = load_scan(out, check_files=False, allow_incomplete=True).frame_bits
+            if had != frame_bits:
+                raise CaptureError(f"{out / 'scan.json'}: the capture being resumed has frame_bits "
+                                   f"{'absent' if had is None else had}, not {frame_bits}", folder=out)
         scan, state = _open_for_resume(out, rig, patterns, views, step_deg, start_deg)
     else:
-        scan, state = _new_capture(out, rig, patterns, views, step_deg, 0.0 if start_deg is None else start_deg)
+        scan, state = _new_capture(out, rig, patterns, views, step_deg, 0.0 if start_deg is None else start_deg,
+                                   frame_bits)
         table_deg = 0.0
     _check_frame_count(projector, scan.patterns, out)
     run = _CaptureRun(out, scan, state, camera=camera, projector=projector, turntable=turntable, settings=settings,
@@ -595,7 +608,8 @@ class _CaptureRun:
             time.sleep(self.settings.turntable_settle_s)
 
     def _show_and_grab(self, j: int) -> np.ndarray:
-        """Show frame ``j``, wait for the projector, grab one camera image (checked against the rig)."""
+        """Show frame ``j``, wait for the projector, grab one camera image (checked against the rig and
+        the scan's frame_bits)."""
         self.projector.show(j)
         if self.settings.projector_settle_s > 0:
             time.sleep(self.settings.projector_settle_s)
@@ -605,6 +619,15 @@ class _CaptureRun:
             raise CameraError(f"camera delivers {img.shape[1]}x{img.shape[0]} frames, the rig's camera is "
                               f"{cam.width}x{cam.height}", port=getattr(self.camera, "source", None),
                               retryable=False)
+        bits = self.scan.frame_bits
+        if bits is not None:  # a wrong setting found at the first frame, not at the reconstruction
+            depth = 8 if img.dtype == np.uint8 else 16
+            top = int(img.max()) if depth == 16 and 8 < bits < 16 else 0
+            if (depth == 8) != (bits == 8) or top > (1 << bits) - 1:
+                got = f"{depth}-bit frames" + (f" holding {top}" if top else "")
+                raise CameraError(f"camera delivers {got}, but frame_bits (--frame-bits) says {bits} bits"
+                                  f"{f' (at most {(1 << bits) - 1})' if top else ''}",
+                                  port=getattr(self.camera, "source", None), retryable=False)
         return img
 
     def _stopped_by(self, e: DeviceError) -> str:

@@ -229,8 +229,9 @@ class FolderCamera(CameraDevice):
         if (folder / "scan.json").is_file():
             scan = load_scan(folder)
             names = frame_names(scan.patterns)
-            # A frame is read when it is replayed (image file or packed store alike).
-            self.paths = [(lambda v=v, n=n: read_view_frame(scan, v, n)) for v in scan.views for n in names]
+            # A frame is read when it is replayed (image file or packed store alike), as stored: a camera
+            # gives its own bits (frame_bits of the new scan says them).
+            self.paths = [(lambda v=v, n=n: read_view_frame(scan, v, n, raw=True)) for v in scan.views for n in names]
         else:
             self.paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) \
                 if folder.is_dir() else []

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.images import FEW_BITS_MAX, FRAME_BITS_RANGE, expand_frame_bits, read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "CAPTURE_INPUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
@@ -401,8 +401,10 @@ def check_capture_sizes(files: CaptureFiles) -> list[tuple[int, int]]:
     return sizes
 
 
-def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-graycode") -> GrayCodeCapture:
-    """Read one capture folder of ``graycode_NN`` frames and sort its frames by ``layout``.
+def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-graycode",
+                 frame_bits: int | None = None) -> GrayCodeCapture:
+    """Read one capture folder of ``graycode_NN`` frames and sort its frames by ``layout``
+    (``frame_bits``: as :func:`read_capture_files`).
 
     Raises:
         CalibrationError: no frames, a frame count that does not fit the projector
@@ -418,17 +420,27 @@ def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-gr
         raise CalibrationError(folder, f"{len(paths)} graycode_NN frames, but a {projector[0]}x{projector[1]} "
                                        f"projector in layout {layout} has {want} ({cb} column and {rb} row bits, "
                                        "each with its inverse, white and black): wrong --layout or --projector?")
-    return read_capture_files(paths, projector=projector, layout=layout, source=folder)
+    return read_capture_files(paths, projector=projector, layout=layout, source=folder, frame_bits=frame_bits)
 
 
 def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "opencv-graycode",
-                       source=None) -> GrayCodeCapture:
+                       source=None, frame_bits: int | None = None) -> GrayCodeCapture:
     """Read one camera's frames of a capture (in capture order) and sort them by ``layout``.
+
+    ``frame_bits`` (9..16): the bits its 16-bit frames hold (a 12-bit camera's values
+    0..4095), scaled to the full 16-bit range by bit replication as they are read, as
+    a scan's ``frame_bits`` does (docs/formats.md); 8: 8-bit frames; None: the frames' own.
 
     Raises:
         CalibrationError: a frame count that does not fit the projector size, frames of
-            different sizes, or white darker than black (the wrong layout), naming ``source``.
+            different sizes, or white darker than black (the wrong layout), naming ``source``;
+            a frame of another depth than ``frame_bits`` says, or a value above its range,
+            naming the frame.
     """
+    lo, hi = FRAME_BITS_RANGE
+    if frame_bits is not None and (isinstance(frame_bits, bool) or not isinstance(frame_bits, int)
+                                   or not (frame_bits == 8 or lo <= frame_bits <= hi)):
+        raise ValueError(f"frame_bits must be 8 or {lo}..{hi}, got {frame_bits!r}")
     paths = [Path(p) for p in paths]
     source = Path(source) if source is not None else (paths[0].parent if paths else None)
     if layout not in LAYOUTS:
@@ -439,11 +451,16 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
         raise CalibrationError(source, f"{len(paths)} frames, but a {projector[0]}x{projector[1]} projector in "
                                        f"layout {layout} has {want}")
     frames = []
+    brightest = -1  # of 16-bit frames read as they are (the hint for a 10- or 12-bit camera's)
     for p in paths:
         img = read_image(p)
         if frames and img.shape != frames[0].shape:
             raise CalibrationError(p, f"frame is {img.shape[1]}x{img.shape[0]}, {paths[0].name} is "
                                       f"{frames[0].shape[1]}x{frames[0].shape[0]}")
+        if frame_bits is not None:
+            _expand_capture_frame(p, img, frame_bits)
+        elif img.dtype == np.uint16:
+            brightest = max(brightest, int(img.max()))
         scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
         frames.append(img.astype(np.float32) * np.float32(scale))
     fr = np.stack(frames)
@@ -455,8 +472,27 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
     pairs = pairs.reshape(cb + rb, 2, *fr.shape[1:])
     cap = GrayCodeCapture(folder=source, white=white, black=black, col_pairs=pairs[:cb], row_pairs=pairs[cb:],
                           projector=(int(projector[0]), int(projector[1])))
-    check_layout(cap, layout)
+    try:
+        check_layout(cap, layout)
+    except CalibrationError as e:
+        if 0 <= brightest < FEW_BITS_MAX and "no projector light" in e.message:
+            raise CalibrationError(e.path, f"{e.message}; 16-bit frames whose brightest value is {brightest}: a 10- "
+                                           f"or 12-bit camera's frames? give their bits (ringscan import "
+                                           f"--frame-bits, docs/calibration.md)") from None
+        raise
     return cap
+
+
+def _expand_capture_frame(p: Path, img: np.ndarray, bits: int) -> None:
+    """``img`` (read from ``p``) scaled in place from ``bits`` to 16 bits, after checking it holds them."""
+    if (img.dtype == np.uint8) != (bits == 8):
+        raise CalibrationError(p, f"frame is {8 if img.dtype == np.uint8 else 16}-bit, but --frame-bits says {bits}")
+    if img.dtype == np.uint16 and bits < 16:
+        top = (1 << bits) - 1
+        m = int(img.max())
+        if m > top:
+            raise CalibrationError(p, f"frame holds {m}, above the {bits}-bit range --frame-bits says ({top})")
+        expand_frame_bits(img, bits)
 
 
 def check_layout(cap: GrayCodeCapture, layout: str) -> None:

@@ -81,6 +81,10 @@ class ImportSettings:
     """Write the integer codes (no sub-pixel boundaries): the plain decode, for comparison."""
     graycode: GrayCodeSettings = GrayCodeSettings()
     """Decoding settings."""
+    frame_bits: int | None = None
+    """Bits the captures' 16-bit frames hold (9..16: a 12-bit camera's values 0..4095), scaled
+    to 16 bits as they are read (as a scan's ``frame_bits``); 8 for 8-bit frames; None: the
+    frames' own bits."""
 
 
 def _mat(fs, path, *names):
@@ -545,7 +549,8 @@ def import_captures(
     for f, name in zip(files, names):
         per_cam = {}
         for c in sel:
-            cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source)
+            cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
+                                     frame_bits=settings.frame_bits)
             dec = decode_graycode(cap, settings=settings.graycode)
             if settings.integer_only:
                 dec.u = np.where(dec.valid, dec.col, np.nan)
@@ -639,6 +644,8 @@ def import_captures(
                     "kinds": [f.kind for f, _, _ in decs], "stats": stats}
         if camera is not None:
             imported["camera"] = camera
+        if settings.frame_bits is not None:  # the captures' bits (the decoded frames are coordinates: no frame_bits)
+            imported["frame_bits"] = settings.frame_bits
         scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views), extra={"imported": imported})
         save_scan(scan)
     log.info("imported %d capture(s) into %s", len(views), out)

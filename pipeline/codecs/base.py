@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.formats.images import FEW_BITS_MAX
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
@@ -29,7 +30,7 @@ if TYPE_CHECKING:  # the stage blocks' types, for the protocol only: a codec's o
     from ringscan.kernels.ring_sampling import SampleSettings
     from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 
-__all__ = ["Codec", "RigNeeds", "StageSettings", "describe_lighting"]
+__all__ = ["Codec", "RigNeeds", "StageSettings", "describe_lighting", "frame_bits_hint"]
 
 S = TypeVar("S")
 
@@ -138,6 +139,16 @@ class Codec(ABC, Generic[S]):
             stats: the view's counts (``pixels_decoded``, ``samples``, ...).
         """
         return None
+
+
+def frame_bits_hint(brightest: int, dtype, frame_bits: int | None) -> str:
+    """``"; <hint>"`` where 16-bit frames of a scan without ``frame_bits`` are so dark
+    that they may hold a 10- to 14-bit camera's values (``brightest``: the brightest
+    value of the view's brightest frame), else ``""``."""
+    if np.dtype(dtype) != np.uint16 or frame_bits is not None or brightest >= FEW_BITS_MAX:
+        return ""
+    return (f"; 16-bit frames whose brightest value is {brightest}: a 10- or 12-bit camera's frames? set "
+            f"frame_bits in scan.json (docs/formats.md)")
 
 
 def describe_lighting(lo_mean: float, hi_mean: float, full: float) -> str:

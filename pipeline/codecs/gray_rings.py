@@ -15,7 +15,7 @@ from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
 from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, sample_contrast
-from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting
+from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
 from ringscan.pipeline.formats.scan import Scan
@@ -36,12 +36,15 @@ class GrayRingsSettings:
     every sample's predicted standard deviation."""
 
 
-def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, decode: DecodeSettings) -> str | None:
+def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, decode: DecodeSettings, *,
+                        frame_bits: int | None = None) -> str | None:
     """Why a view of a white/black-framed codec gave no point, from its white and
-    black frames, or None where they do not tell."""
+    black frames, or None where they do not tell (``frame_bits``: the scan's, for the
+    hint that dark 16-bit frames may want it)."""
     frames = np.asarray(frames)
     names = frame_names(spec)
     full = 65535.0 if frames.dtype == np.uint16 else 255.0
+    brightest = int(frames[names.index("white")].max())
     white = frames[names.index("white")].astype(np.float32)
     black = frames[names.index("black")].astype(np.float32)
     thr = decode.min_contrast * full / 255.0
@@ -49,7 +52,8 @@ def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, deco
     if lit == 0:
         return (f"no ring found: no contrast between the white and black frames (white - black is below "
                 f"{thr:g} grey levels at every pixel; white {white.mean():.0f}, black {black.mean():.0f} on "
-                f"average): {describe_lighting(float(black.mean()), float(white.mean()), full)}")
+                f"average): {describe_lighting(float(black.mean()), float(white.mean()), full)}"
+                f"{frame_bits_hint(brightest, frames.dtype, frame_bits)}")
     if stats.get("pixels_decoded", 0) == 0:
         return (f"no ring found: {lit} pixels have contrast, but none decodes to a ring band (every bit too "
                 f"weak: check the frame order and the exposure)")
@@ -114,4 +118,4 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
         return extract_gray_rings(frames, scan, settings, threads)
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: GrayRingsSettings) -> str | None:
-        return explain_binary_view(frames, scan.patterns, stats, settings.decode)
+        return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)

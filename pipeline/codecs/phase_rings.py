@@ -270,7 +270,7 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict,
                           settings: PhaseRingsSettings) -> str | None:
-        return explain_binary_view(frames, scan.patterns, stats, settings.decode)
+        return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)
 
 
 # ----------------------------------------------------------------------------- NumPy twins

@@ -7,7 +7,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings, describe_lighting
+from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.codecs.single_shot.extract import extract_rings
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
@@ -43,7 +43,8 @@ class RingsCodec(Codec[SingleShotSettings]):
         lo, hi = (float(x) for x in np.percentile(f, [1.0, 99.0]))
         if hi - lo < settings.lines.min_contrast * full / 255.0:
             return (f"no ring found: the rings frame has no contrast (grey levels {lo:.0f} to {hi:.0f} between the "
-                    f"1st and 99th percentile): {describe_lighting(lo, hi, full)}")
+                    f"1st and 99th percentile): {describe_lighting(lo, hi, full)}"
+                    f"{frame_bits_hint(int(f.max()), frames.dtype, scan.frame_bits)}")
         if stats.get("samples", 0) == 0:
             return (f"no ring found: {stats.get('line_samples', 0)} line centres in {stats.get('pieces', 0)} "
                     f"pieces, none labelled with a ring (see the labelling counts in the report)")

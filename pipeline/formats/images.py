@@ -14,7 +14,14 @@ from ringscan.pipeline.formats.limits import check_image_header
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_image", "write_image", "png_params", "tiff_params"]
+__all__ = ["read_image", "write_image", "png_params", "tiff_params", "expand_frame_bits", "FRAME_BITS_RANGE",
+           "FEW_BITS_MAX"]
+
+FRAME_BITS_RANGE = (9, 16)
+"""Significant bits a 16-bit frame may hold (``frame_bits`` of scan.json; an 8-bit frame holds 8)."""
+FEW_BITS_MAX = 1 << 14
+"""16-bit frames whose brightest value is below this (a quarter of the range) may be a 10- to
+14-bit camera's, LSB-aligned: a message about frames without contrast says so."""
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -48,6 +55,38 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if img.dtype not in (np.uint8, np.uint16):
         raise FormatError(path, f"unsupported pixel type {img.dtype} (need 8- or 16-bit)")
     return img
+
+
+def expand_frame_bits(frames: np.ndarray, bits: int) -> np.ndarray:
+    """Scale ``bits``-bit values held LSB-aligned in uint16 (0..2^bits - 1: a 10- or
+    12-bit camera's frames, V4L2's Y10/Y12, Mono12 saves) to the full 16-bit range, in
+    place, by bit replication: shifted left by 16 - bits, with the value's own top bits
+    repeated in the freed low bits (the PNG specification's way to scale sBIT data;
+    12 bits: ``v << 4 | v >> 8``). Exact and monotonic: 0 -> 0, 2^bits - 1 -> 65535, so
+    every threshold in 8-bit grey levels (x257) and the saturation level hold as for
+    16-bit frames.
+
+    Args:
+        frames: uint16 array of any shape (a frame or a stack), values at most
+            2^bits - 1 (the caller checks: a larger value would lose its top bits).
+        bits: 9..16 (16: nothing to do).
+
+    Returns:
+        ``frames``, scaled.
+    """
+    if frames.dtype != np.uint16:
+        raise ValueError(f"expand_frame_bits: frames must be uint16, got {frames.dtype}")
+    lo, hi = FRAME_BITS_RANGE
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not lo <= bits <= hi:
+        raise ValueError(f"expand_frame_bits: bits must be a whole number in {lo}..{hi}, got {bits!r}")
+    if bits == 16:
+        return frames
+    # 16 - bits <= bits, so the value's top 16 - bits bits fill the freed ones in one step
+    for f in (frames if frames.ndim == 3 else (frames,)):  # a stack a frame at a time: one frame's temporary
+        top = f >> (2 * bits - 16)
+        np.left_shift(f, 16 - bits, out=f)
+        np.bitwise_or(f, top, out=f)
+    return frames
 
 
 def png_params() -> list[int]:

@@ -160,7 +160,7 @@ def pack_scan(folder: str | os.PathLike, *, keep: bool = False) -> PackResult:
             vdir = f if f != "." and folders.count(f) == 1 else (v.name if cam == 1 else f"{v.name}/cam2")
             store_rel = f"{vdir}/{STORE_NAME}"
             old += [scan.folder / r for r in dict.fromkeys(cv.frames.values())]
-            frames = read_view_frames(cscan, cv, names)
+            frames = read_view_frames(cscan, cv, names, raw=True)  # as stored: frame_bits stays in scan.json
             remove_stale_stores((scan.folder / store_rel).parent)
             write_store(scan.folder / store_rel, frames, names)  # read back and compared before the rename
             new = _with_camera(new, cam, packed_view(cv, store_rel, names))
@@ -191,7 +191,7 @@ def _remove_leftover_store(scan: Scan, view: View, *, keep: bool) -> int:
     info = open_store(store)
     if set(info.names) != set(view.frames):
         return 0  # not this view's store: leave it
-    frames = read_view_frames(scan, view, list(info.names))
+    frames = read_view_frames(scan, view, list(info.names), raw=True)
     if not np.array_equal(read_store(info), frames):
         raise FormatError(store, f"differs from the image frames of {view.name} (kept; remove it by hand)")
     shutil.rmtree(store)
@@ -202,7 +202,7 @@ def _write_images(scan: Scan, view: View, image_format: str) -> dict[str, str]:
     """A packed view's frames (``scan`` as its camera sees it) written beside its store
     as image files, each read back and compared; returns frame name -> path."""
     names = list(view.frames)
-    frames = read_view_frames(scan, view, names)  # every checksum checked before a file is written
+    frames = read_view_frames(scan, view, names, raw=True)  # every checksum checked before a file is written
     vdir = PurePosixPath(view.packed).parent
     rel = {n: (vdir / f"{n}.{image_format}").as_posix() for n in names}
     for n, img in zip(names, frames):

@@ -21,6 +21,11 @@ view's ``camera2`` key, as files or as a store (docs/formats.md)::
 
      "views": [{"name": "view_000", "frames": {...},
                 "camera2": {"frames": {"white": "view_000/cam2/white.png", ...}}}]
+
+``frame_bits`` (optional, 8 for 8-bit frames, 9..16 for 16-bit ones; default the
+frames' own bits) says how many bits a 16-bit frame holds, LSB-aligned (a 12-bit
+camera's frames: 0..4095); such frames are scaled to the full 16-bit range as they
+are read (:func:`read_view_frames`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.buffers import FrameBuffers
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.frame_store import check_chunk_files, open_store, read_store
-from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.images import FRAME_BITS_RANGE, expand_frame_bits, read_image
 from ringscan.pipeline.formats.limits import check_image_header
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, parse_rig, rig_to_dict
@@ -49,7 +54,7 @@ SCAN_FORMATS = (SCAN_FORMAT, SCAN_FORMAT_PACKED)
 
 __all__ = ["SCAN_FORMAT", "SCAN_FORMAT_PACKED", "View", "Scan", "load_scan", "save_scan", "read_view_frames",
            "read_view_frame", "frame_files", "scan_to_dict", "check_view_name", "check_truth", "check_view_frames",
-           "packed_view", "as_camera2"]
+           "packed_view", "as_camera2", "check_frame_bits"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,10 @@ class Scan:
     """The rig file name when scan.json refers to one (``"rig.json"``), else None."""
     extra: dict = field(default_factory=dict)
     """Other top-level keys of scan.json, kept as they were (e.g. ``truth``)."""
+    frame_bits: int | None = None
+    """Significant bits of the frames (scan.json ``frame_bits``): 8 for 8-bit frames, 9..16
+    for 16-bit frames holding values 0..2^frame_bits - 1 (a 10- or 12-bit camera's), which
+    are read scaled to 0..65535; None: the frames' own bits (8 or 16)."""
 
     @property
     def path(self) -> Path:
@@ -211,8 +220,28 @@ def load_scan(folder: str | os.PathLike, *, check_files: bool = True, allow_inco
             f2, s2 = _parse_frames(c2, f"{where}.camera2", **{**parse, "name": f"{name} (camera 2)"})
             second = View(name=name, turntable_deg=float(deg), frames=f2, packed=s2)
         views.append(View(name=name, turntable_deg=float(deg), frames=frames, packed=store, camera2=second))
-    extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views")}
-    return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra)
+    bits = d.get("frame_bits")
+    if bits is not None:
+        check_frame_bits(bits, source=src)
+    if bits is not None and bits != 16 and patterns.codec == "decoded":
+        raise FormatError(src, f"frame_bits: {bits}, but the decoded codec's frames are projector coordinates, not "
+                               "grey levels (leave frame_bits out, or 16)")
+    extra = {k: v for k, v in d.items() if k not in ("format", "rig", "patterns", "views", "frame_bits")}
+    return Scan(folder=folder, rig=rig, patterns=patterns, views=tuple(views), rig_ref=rig_ref, extra=extra,
+                frame_bits=bits)
+
+
+def check_frame_bits(bits, *, source=None, where: str = "frame_bits") -> int:
+    """Check a ``frame_bits`` value: a whole number, 8 (8-bit frames) or 9..16 (16-bit frames).
+
+    Raises:
+        FormatError: naming ``source`` and ``where``.
+    """
+    lo, hi = FRAME_BITS_RANGE
+    if isinstance(bits, bool) or not isinstance(bits, int) or not (bits == 8 or lo <= bits <= hi):
+        raise FormatError(source, f"{where}: expected a whole number, 8 for 8-bit frames or {lo}..{hi} for 16-bit "
+                                  f"frames (the bits a camera's frame holds), got {bits!r:.60}")
+    return bits
 
 
 def _parse_frames(vd: dict, where: str, *, folder: Path, src: Path, fmt: str, name: str, needed: list[str],
@@ -344,6 +373,7 @@ def scan_to_dict(scan: Scan) -> dict:
     d = {"format": SCAN_FORMAT_PACKED if packed else SCAN_FORMAT,
          "rig": scan.rig_ref if scan.rig_ref else rig_to_dict(scan.rig),
          "patterns": scan.patterns.to_dict(),
+         **({} if scan.frame_bits is None else {"frame_bits": scan.frame_bits}),
          "views": [_view_to_dict(v) for v in scan.views]}
     d.update(scan.extra)
     return d
@@ -396,7 +426,7 @@ def check_view_frames(scan: Scan, view: View) -> None:
 
 
 def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, threads: int | None = None,
-                     buffers: FrameBuffers | None = None) -> np.ndarray:
+                     buffers: FrameBuffers | None = None, raw: bool = False) -> np.ndarray:
     """Read a view's frames as one (n_frames, H, W) array (uint8 or uint16).
 
     Frames are read in the order of ``names`` (default: the codec's frame order),
@@ -408,6 +438,13 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
     store, ``threads`` frames decoded at a time, every chunk's checksum checked; its
     frame names (as scan.json lists them), size and dtype must match. With
     ``buffers`` the stack is taken from that pool (give it back when done with it).
+
+    A scan whose ``frame_bits`` is below 16 has its 16-bit frames scaled to the full
+    16-bit range in place (:func:`~.images.expand_frame_bits`), so that every threshold
+    and the saturation level hold as for 16-bit frames; ``raw=True`` reads the values
+    as stored (packing, replaying a scan). Raises :class:`FormatError` naming the frame
+    file for a value above the range ``frame_bits`` says, or frames of another bit depth
+    than it says.
     """
     names = frame_names(scan.patterns) if names is None else names
     cam = scan.rig.camera
@@ -415,8 +452,9 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
         if n not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {n!r} is not listed")
     if view.packed is not None:
-        return _read_packed(scan, view, names, threads=min(8, os.cpu_count() or 1) if threads is None else threads,
-                            buffers=buffers)
+        out, paths = _read_packed(scan, view, names, buffers=buffers,
+                                  threads=min(8, os.cpu_count() or 1) if threads is None else threads)
+        return out if raw else _apply_frame_bits(scan, out, paths)
     paths = [scan.frame_path(view, n) for n in names]
     threads = min(8, os.cpu_count() or 1) if threads is None else max(1, int(threads))
 
@@ -445,11 +483,34 @@ def read_view_frames(scan: Scan, view: View, names: list[str] | None = None, *, 
         elif img.dtype != out.dtype:
             raise FormatError(p, f"frame is {img.dtype}, other frames of {view.name} are {out.dtype}")
         out[i] = img
-    return out
+    return out if raw else _apply_frame_bits(scan, out, paths)
+
+
+def _apply_frame_bits(scan: Scan, frames: np.ndarray, files: list[Path]) -> np.ndarray:
+    """``frames`` ((n, H, W), ``files[i]`` holding frame i) scaled to 16 bits where
+    scan.json's ``frame_bits`` says they hold fewer, after checking that they do."""
+    bits = scan.frame_bits
+    if bits is None or len(frames) == 0:
+        return frames
+    if frames.dtype == np.uint8:
+        if bits != 8:
+            raise FormatError(files[0], f"frame is 8-bit, but frame_bits in {scan.path} says {bits}")
+        return frames
+    if bits == 8:
+        raise FormatError(files[0], f"frame is 16-bit, but frame_bits in {scan.path} says 8 (9..16 for 16-bit frames)")
+    if bits == 16:
+        return frames
+    top = (1 << bits) - 1
+    for f, p in zip(frames, files):  # every frame: a max costs little beside its decoding
+        m = int(f.max())
+        if m > top:
+            raise FormatError(p, f"frame holds {m}, above the {bits}-bit range frame_bits says ({top}) in "
+                                 f"{scan.path}: set frame_bits to the camera's bits")
+    return expand_frame_bits(frames, bits)
 
 
 def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int,
-                 buffers: FrameBuffers | None = None) -> np.ndarray:
+                 buffers: FrameBuffers | None = None) -> tuple[np.ndarray, list[Path]]:
     info = open_store(scan.folder / view.packed)
     meta = info.path / "zarr.json"
     # scan.json lists the store's frames in store order (only those captured so far, during a capture)
@@ -460,7 +521,8 @@ def _read_packed(scan: Scan, view: View, names: list[str], *, threads: int,
     if (info.height, info.width) != (cam.height, cam.width):
         raise FormatError(meta, f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
     out = None if buffers is None else buffers.take((len(names), info.height, info.width), info.dtype)
-    return read_store(info, names, threads=max(1, int(threads)), out=out)
+    return (read_store(info, names, threads=max(1, int(threads)), out=out),
+            [info.chunk_path(info.index(n)) for n in names])
 
 
 def frame_files(scan: Scan, view: View) -> dict[str, Path]:
@@ -475,10 +537,13 @@ def frame_files(scan: Scan, view: View) -> dict[str, Path]:
     return {n: info.chunk_path(info.index(n)) if n in info.names else info.path for n in view.frames}
 
 
-def read_view_frame(scan: Scan, view: View, name: str) -> np.ndarray:
-    """Read one frame of a view (an image file or a frame of its store) as a 2D array."""
+def read_view_frame(scan: Scan, view: View, name: str, *, raw: bool = False) -> np.ndarray:
+    """Read one frame of a view (an image file or a frame of its store) as a 2D array,
+    scaled as :func:`read_view_frames` scales it (``raw``: as stored)."""
     if view.packed is None:
         if name not in view.frames:
             raise FormatError(scan.path, f"view {view.name}: frame {name!r} is not listed")
-        return read_image(scan.frame_path(view, name))
-    return read_view_frames(scan, view, [name], threads=1)[0]
+        p = scan.frame_path(view, name)
+        img = read_image(p)
+        return img if raw else _apply_frame_bits(scan, img[None], [p])[0]
+    return read_view_frames(scan, view, [name], threads=1, raw=raw)[0]

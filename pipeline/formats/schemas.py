@@ -261,6 +261,11 @@ class Scan(BaseModel):
     rig: Union[Rig, RelPath] = Field(description="the rig, or the name of a rig file in the scan folder")
     patterns: Annotated[Union[_PATTERNS], Field(discriminator="codec")]  # type: ignore[valid-type]
     views: list[View]
+    frame_bits: int = Field(None, ge=8, le=16, description="bits a frame holds: 8 for 8-bit frames, 9..16 for 16-bit "
+                                                          "frames holding 0..2^frame_bits - 1 (a 10- or 12-bit "
+                                                          "camera's), read scaled to 16 bits; default the frames' "
+                                                          "own (the loader checks it against the frames as they are "
+                                                          "read)")
     truth: Truth | None = None
 
 

@@ -3,8 +3,9 @@
 
 A view's result is done when it was made from the same inputs with the same settings
 (a per-view content hash, :func:`hash_inputs`: the parsed rig, the patterns, the
-resolved settings but ``threads``, the view's scan.json entry, each frame file's size
-and modification time) and its PLY is whole and holds the points the report says;
+resolved settings but ``threads``, scan.json's ``frame_bits`` where set, the view's
+scan.json entry, each frame file's size and modification time) and its PLY is whole
+and holds the points the report says;
 otherwise it is redone and :class:`DoneCheck` says why. A scan is done when every view
 asked for is done. Why sizes and times rather than a hash of the bytes, and what that
 misses: docs/design.md §14.
@@ -92,6 +93,8 @@ def hash_inputs(scan: Scan, settings, *, views: list[str] | None = None,
         sd.pop(k, None)
     base = {"recipe": HASH_RECIPE, "rig": _digest(rig_to_dict(scan.rig)),
             "patterns": _digest(scan.patterns.to_dict()), "settings": _digest(sd)}
+    if scan.frame_bits is not None:  # how the frames are read (absent: the hashes of earlier scans stay)
+        base["frame_bits"] = scan.frame_bits
     names = frame_names(scan.patterns)
     want = None if views is None else set(views)
     per_view = {}

@@ -414,3 +414,33 @@ def test_import_min_contrast(tmp_path, capsys, capture_and_rig):
                    "--out", str(out)])
         assert rc == 2 and "--min-contrast" in _err(capsys)
         assert not out.exists()
+
+
+def test_import_frame_bits(tmp_path, capsys, capture_and_rig):
+    """--frame-bits reads a 12-bit camera's 16-bit captures as their 8-bit original decodes;
+    without it the capture has no contrast and the message says to give it; out of range it
+    is a usage error (exit 2) and nothing is written."""
+    import json
+
+    cap, rig = capture_and_rig
+    c12 = tmp_path / "caps" / "c12"
+    c12.mkdir()
+    for p in sorted(cap.glob("graycode_*.png")):
+        v = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.uint16)
+        cv2.imwrite(str(c12 / p.name), (v << 4) | (v >> 4))  # 0..4095
+    base = ["import", "--rig", str(rig), "--projector", "128x96"]
+    assert main([*base, str(cap), "--out", str(tmp_path / "s8")]) == 0
+    out8 = capsys.readouterr().out
+    assert main([*base, str(c12), "--frame-bits", "12", "--out", str(tmp_path / "s12")]) == 0
+    out12 = capsys.readouterr().out
+    decoded = [line.split(":")[1] for line in (out8, out12) for line in line.splitlines() if "pixels decoded" in line]
+    assert len(decoded) == 2 and decoded[0] == decoded[1]  # the same count of pixels decoded
+    d = json.loads((tmp_path / "s12" / "scan.json").read_text())
+    assert d["imported"]["frame_bits"] == 12 and "frame_bits" not in d  # the decoded frames are coordinates
+    assert main([*base, str(c12), "--out", str(tmp_path / "s")]) == 1
+    err = _err(capsys)
+    assert "no projector light" in err and "a 10- or 12-bit camera's frames? give their bits" in err
+    for bad in ("7", "17"):
+        assert main([*base, str(c12), "--frame-bits", bad, "--out", str(tmp_path / f"bad{bad}")]) == 2
+        assert "--frame-bits: expected a whole number" in _err(capsys)
+        assert not (tmp_path / f"bad{bad}").exists()

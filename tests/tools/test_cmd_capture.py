@@ -283,3 +283,14 @@ def test_table_angles_checked_before_anything_moves(files, reference, tmp_path, 
         assert (out / "capture.json").read_bytes() == before  # no angle recorded
     else:
         assert not out.exists()
+
+
+def test_frame_bits_option(files, tmp_path, capsys):
+    assert main(_args(files, tmp_path / "a", "--views", "2", "--frame-bits", "7", *VIRTUAL)) == 2
+    assert "--frame-bits: expected a whole number, 8 for 8-bit frames or 9..16" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    # the virtual camera's frames are 8-bit: a 12-bit setting stops the capture at its first frame
+    assert main(_args(files, tmp_path / "b", "--views", "2", "--frame-bits", "12", *VIRTUAL)) == 1
+    err = capsys.readouterr().err
+    assert "camera delivers 8-bit frames, but frame_bits (--frame-bits) says 12" in err
+    assert load_scan(tmp_path / "b", check_files=False, allow_incomplete=True).frame_bits == 12

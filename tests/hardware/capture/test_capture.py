@@ -625,3 +625,52 @@ def test_packed_frames_are_appended_and_a_killed_capture_resumes(tmp_path, rig, 
         assert len(set(frames[:, 0, 1].tolist())) == 1  # every frame of a view at one table angle
     assert read_capture_state(out)["status"] == "complete"
     assert not stale.exists()
+
+
+class _DeepProbe(ProbeCamera):
+    """The probe as a 12-bit camera delivers it: 16-bit frames, values LSB-aligned
+    (frame j's pixel (0, 0) = 60 (j + 1)), one pixel at ``peak``."""
+
+    def __init__(self, projector, turntable, peak=4095, dtype=np.uint16):
+        super().__init__(projector, turntable)
+        self.peak, self.dtype = peak, dtype
+
+    def _read(self):
+        img = super()._read().astype(np.uint16) * 60
+        img[5, 5] = self.peak
+        return img.astype(self.dtype)
+
+
+def test_frame_bits_is_written_to_scan_json_and_every_frame_checked_against_it(tmp_path, rig, patterns):
+    from ringscan.pipeline.formats.scan import read_view_frame
+
+    proj, table, _ = _virtual(patterns)
+    kw = dict(projector=proj, turntable=table, settings=FAST, progress=False, rig=rig, patterns=patterns, views=2)
+    scan = capture_scan(tmp_path / "a", camera=_DeepProbe(proj, table), frame_bits=12, **kw)
+    assert scan.frame_bits == 12 and json.loads(scan.path.read_text())["frame_bits"] == 12
+    v = scan.views[1]
+    raw = read_image(scan.frame_path(v, "black"))  # stored as the camera gave it
+    assert raw.dtype == np.uint16 and raw[0, 0] == 120 and raw[5, 5] == 4095
+    scaled = read_view_frame(scan, v, "black")  # read scaled: 120 -> 120 << 4 | 120 >> 8
+    assert scaled[0, 0] == (120 << 4 | 120 >> 8) and scaled[5, 5] == 65535
+    # a resumed capture keeps it; another value is refused before anything moves
+    assert capture_scan(tmp_path / "a", camera=_DeepProbe(proj, table), resume=True, frame_bits=12,
+                        **{k: kw[k] for k in ("projector", "turntable", "settings", "progress")}).frame_bits == 12
+    with pytest.raises(CaptureError, match="the capture being resumed has frame_bits 12, not 10"):
+        capture_scan(tmp_path / "a", camera=_DeepProbe(proj, table), resume=True, frame_bits=10,
+                     **{k: kw[k] for k in ("projector", "turntable", "settings", "progress")})
+    # a frame above the range, or of the other depth, stops the capture at the first grab (not retried)
+    cam = _DeepProbe(proj, table, peak=4096)
+    with pytest.raises(CaptureError, match=r"camera delivers 16-bit frames holding 4096, but frame_bits "
+                                           r"\(--frame-bits\) says 12 bits \(at most 4095\)"):
+        capture_scan(tmp_path / "b", camera=cam, frame_bits=12, **kw)
+    assert cam.grabs == 1
+    cam = _DeepProbe(proj, table, peak=200, dtype=np.uint8)
+    with pytest.raises(CaptureError, match=r"camera delivers 8-bit frames, but frame_bits \(--frame-bits\) says 12"):
+        capture_scan(tmp_path / "c", camera=cam, frame_bits=12, **kw)
+    with pytest.raises(CaptureError, match=r"camera delivers 16-bit frames, but frame_bits \(--frame-bits\) says 8"):
+        capture_scan(tmp_path / "d", camera=_DeepProbe(proj, table), frame_bits=8, **kw)
+    for bad in (7, 17, "12"):
+        with pytest.raises(FormatError, match="frame_bits: expected a whole number"):
+            capture_scan(tmp_path / "e", camera=_DeepProbe(proj, table), frame_bits=bad, **kw)
+    assert not (tmp_path / "e").exists()

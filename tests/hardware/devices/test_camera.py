@@ -138,6 +138,19 @@ def test_folder_camera_replays_a_scan_in_capture_order(tmp_path, rig, patterns):
         cam.grab()
 
 
+def test_folder_camera_replays_a_12_bit_scan_as_its_camera_gave_it(tmp_path, rig, patterns):
+    """A scan with frame_bits 12 replays its stored values (0..4095), as a 12-bit camera delivers them,
+    not the 16-bit values a reconstruction reads."""
+    rel = {}
+    for k, n in enumerate(["white", "black", "gray_0", "gray_0_inv", "gray_1", "gray_1_inv"]):
+        rel[n] = f"view_000/{n}.png"
+        write_image(tmp_path / rel[n], np.full((rig.camera.height, rig.camera.width), 1000 + k, np.uint16))
+    save_scan(Scan(folder=tmp_path, rig=rig, patterns=patterns, views=(View("view_000", 0.0, rel),), frame_bits=12))
+    cam = open_camera(str(tmp_path))
+    got = [cam.grab() for _ in rel]
+    assert all(g.dtype == np.uint16 for g in got) and [int(g[0, 0]) for g in got] == [1000 + k for k in range(6)]
+
+
 def test_folder_camera_plain_folder_and_empty(tmp_path):
     imgs = _sequence(tmp_path, n=3)
     cam = FolderCamera(tmp_path)

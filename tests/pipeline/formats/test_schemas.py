@@ -178,6 +178,13 @@ def test_a_scan_with_a_rig_file_validates(tiny):
         assert _errors(SCAN, d), bad
 
 
+def test_a_scan_with_frame_bits_validates(tiny):
+    d = _scan_json(tiny)
+    for bits in (8, 10, 12, 16):
+        d["frame_bits"] = bits
+        assert _errors(SCAN, d) == [], bits
+
+
 def test_the_cli_writes_these_schemas(tmp_path, capsys):
     assert main(["schema", "rig"]) == 0
     assert json.loads(capsys.readouterr().out) == rig_json_schema()
@@ -261,6 +268,11 @@ BROKEN_SCANS = {
     "truth mesh 5": _set(["truth", "mesh"], 5),
     "truth views null": _set(["truth", "views"], None),
     "truth view depth 7": _set(["truth", "views", "view_000", "depth"], 7),
+    "frame_bits 0": _set(["frame_bits"], 0),
+    "frame_bits 7": _set(["frame_bits"], 7),
+    "frame_bits 17": _set(["frame_bits"], 17),
+    "frame_bits a string": _set(["frame_bits"], "12"),
+    "frame_bits true": _set(["frame_bits"], True),
 }
 
 
