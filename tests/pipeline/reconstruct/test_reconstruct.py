@@ -78,7 +78,9 @@ def test_frame_stacks_are_reused_between_views_and_scans(small_scan, tmp_path, m
     monkeypatch.setattr(pool, "take", lambda shape, dtype: taken.append(take(shape, dtype)) or taken[-1])
     for k in range(2):
         reconstruct_scan(small_scan, tmp_path / f"pooled_{k}", progress=False)
-    assert len(taken) == 4 and len({id(a) for a in taken}) == 2  # two stacks for four views of two scans
+    # four views of two scans in at most two stacks (one, where a view's read ahead starts after the view before it
+    # has given its stack back: a small view on a busy machine)
+    assert len(taken) == 4 and len({id(a) for a in taken}) <= 2
     for k in range(2):
         for v in ("view_000.ply", "view_001.ply"):
             assert (tmp_path / f"pooled_{k}" / v).read_bytes() == (tmp_path / "fresh" / v).read_bytes()
