@@ -40,7 +40,7 @@ from ringscan.pipeline.calibrate.camera import (
     reprojection_residuals,
 )
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import LAYOUTS, read_capture
+from ringscan.pipeline.calibrate.graycode import LAYOUTS, expand_capture_frame, read_capture
 from ringscan.pipeline.calibrate.light import (
     LightSettings,
     calibrate_parallel_light,
@@ -80,10 +80,10 @@ from ringscan.pipeline.calibrate.turntable import (
 )
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file, read_json
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.images import FEW_BITS_MAX, read_image
 from ringscan.pipeline.formats.progress import progress_bar, progress_step
 from ringscan.pipeline.formats.rig import PerspectiveLight, load_rig, parse_rig, save_rig
-from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
 from ringscan.pipeline.preview.plots import PLOT_FORMATS, residuals_figure, save_figure
 from ringscan.pipeline.reconstruct.scan import scan_inputs
 from ringscan.tools.cli import UsageError, add_device_option
@@ -399,6 +399,10 @@ def add_response_parser(calsub) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME", help="camera frames of the ramp, in --levels order")
     p.add_argument("--levels", type=float, nargs="+", required=True, help="projected values 0..255, one per frame")
     p.add_argument("--rig", required=True, metavar="RIG", help="rig file to update (its camera gamma linearises)")
+    p.add_argument("--frame-bits", type=int, default=None, metavar="N",
+                   help="bits the 16-bit frames hold (10, 12: a 10- or 12-bit camera's values 0..1023, 0..4095), "
+                        "scaled to 16 bits as they are read, so that contrast and saturation are judged on the "
+                        "camera's range (default: the frames' own bits)")
     add_force_option(p)
     p.set_defaults(_calibrate=run_response)
 
@@ -412,15 +416,30 @@ def run_response(args) -> int:
     bad = [v for v in args.levels if not (np.isfinite(v) and 0 <= v <= 255)]
     if bad:
         raise UsageError(f"--levels: values must be finite and in 0..255, got {', '.join(f'{v:g}' for v in bad)}")
+    if args.frame_bits is not None:
+        try:
+            check_frame_bits(args.frame_bits, where="--frame-bits")
+        except FormatError as e:
+            raise UsageError(str(e)) from None
     d = read_json(args.rig)
     rig = parse_rig(d, source=args.rig)
     imgs = [read_image(f) for f in args.frames]
     for f, im in zip(args.frames, imgs):
         if im.shape != imgs[0].shape or im.dtype != imgs[0].dtype:
             raise FormatError(f, "frame differs in size or bit depth from the first frame")
+        if args.frame_bits is not None:
+            expand_capture_frame(Path(f), im, args.frame_bits)
     problems = [f"{args.frames[j]} is the same image as {args.frames[i]}, but --levels gives "
                 f"{args.levels[i]:g} and {args.levels[j]:g}" for i, j in repeated_frames(np.stack(imgs), args.levels)]
-    gamma, curve = estimate_light_gamma(np.stack(imgs), np.asarray(args.levels) / 255.0, camera_gamma=rig.camera.gamma)
+    stack = np.stack(imgs)
+    try:
+        gamma, curve = estimate_light_gamma(stack, np.asarray(args.levels) / 255.0, camera_gamma=rig.camera.gamma)
+    except CalibrationError as e:
+        brightest = int(stack.max()) if stack.size else 0
+        if stack.dtype == np.uint16 and args.frame_bits is None and brightest < FEW_BITS_MAX:
+            raise CalibrationError(e.path, f"{e.message}; 16-bit frames whose brightest value is {brightest}: a 10- "
+                                           "or 12-bit camera's frames? give their bits (--frame-bits)") from None
+        raise
     print(f"light gamma {gamma:.3f} (camera gamma {rig.camera.gamma:g} undone first)")
     for x, y in curve.items():
         print(f"  level {255 * x:5.1f}: response {y:.4f} (model {x ** gamma:.4f})")

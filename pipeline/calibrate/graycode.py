@@ -56,7 +56,7 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.images import FEW_BITS_MAX, FRAME_BITS_RANGE, expand_frame_bits, read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 
-__all__ = ["LAYOUTS", "CAPTURE_INPUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
+__all__ = ["LAYOUTS", "CAPTURE_INPUTS", "expand_capture_frame", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
            "graycode_bits", "list_capture", "check_capture_sizes", "read_capture", "read_capture_files",
            "decode_graycode", "subpixel_map", "open_filestorage"]
 
@@ -458,7 +458,7 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
             raise CalibrationError(p, f"frame is {img.shape[1]}x{img.shape[0]}, {paths[0].name} is "
                                       f"{frames[0].shape[1]}x{frames[0].shape[0]}")
         if frame_bits is not None:
-            _expand_capture_frame(p, img, frame_bits)
+            expand_capture_frame(p, img, frame_bits)
         elif img.dtype == np.uint16:
             brightest = max(brightest, int(img.max()))
         scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
@@ -483,8 +483,13 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
     return cap
 
 
-def _expand_capture_frame(p: Path, img: np.ndarray, bits: int) -> None:
-    """``img`` (read from ``p``) scaled in place from ``bits`` to 16 bits, after checking it holds them."""
+def expand_capture_frame(p: Path, img: np.ndarray, bits: int) -> None:
+    """``img`` (read from ``p``) scaled in place from ``bits`` (a command's ``--frame-bits``: 8, or 9..16 for
+    16-bit frames) to 16 bits, after checking that it holds them.
+
+    Raises:
+        CalibrationError: naming ``p``: a frame of the other depth, or a value above the range.
+    """
     if (img.dtype == np.uint8) != (bits == 8):
         raise CalibrationError(p, f"frame is {8 if img.dtype == np.uint8 else 16}-bit, but --frame-bits says {bits}")
     if img.dtype == np.uint16 and bits < 16:

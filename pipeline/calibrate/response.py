@@ -57,7 +57,7 @@ def estimate_light_gamma(frames: np.ndarray, levels, *, camera_gamma: float = 1.
     lin = (fr.astype(np.float64) / full) ** camera_gamma
     black = lin[lv == 0].mean(0)
     white = lin[lv == 1].mean(0)
-    ok = (white - black) * full >= min_contrast * (full / 255.0) ** camera_gamma
+    ok = (white - black) * full >= min_contrast * (full / 255.0)  # linear levels, 8-bit ones x257 for 16-bit
     ok &= fr[lv == 1].max(0) < 0.99 * full  # unsaturated white
     if np.count_nonzero(ok) < 100:
         raise CalibrationError(None, f"response: only {int(np.count_nonzero(ok))} pixels with contrast (need 100)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import cv2
 import numpy as np
@@ -195,6 +196,37 @@ def test_response_refuses_repeated_frames_and_bad_levels(tmp_path, capsys):
     assert (tmp_path / "rig.json").read_bytes() == before
     assert main(["calibrate", "response", *g.values(), "--levels", "0", "64", "128", "192", "255", *rig]) == 0
     assert "light gamma 2.2" in capsys.readouterr().out
+
+
+def _grey12(tmp_path, name, value):
+    """The ramp frame of :func:`_grey` as a 12-bit camera gives it (values 0..4095 in a 16-bit PNG), its
+    brightest pixels saturated."""
+    rng = np.random.default_rng(int(value))
+    albedo = rng.uniform(0.5, 0.9, (64, 80))
+    albedo[:8] = 2.0  # a shiny strip: clipped at 4095 in the white frame
+    irr = (5 + 200 * albedo * (value / 255) ** 2.2) / 255
+    img = np.clip(np.round(4095 * irr ** (1 / 2.2)), 0, 4095).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / name), img)
+    return str(tmp_path / name)
+
+
+def test_response_of_a_12_bit_camera_with_frame_bits(tmp_path, capsys):
+    save_rig(tmp_path / "rig.json", default_rig())
+    g = [_grey12(tmp_path, f"g{v}.png", v) for v in (0, 64, 128, 192, 255)]
+    argv = ["calibrate", "response", *g, "--levels", "0", "64", "128", "192", "255", "--rig", str(tmp_path / "rig.json")]
+    # without it the frames are read as 16-bit ones, dark: refused, and the message says what to give
+    assert main(argv + ["--force"]) == 1
+    assert "a 10- or 12-bit camera's frames? give their bits (--frame-bits)" in capsys.readouterr().err
+    assert main(argv + ["--frame-bits", "12"]) == 0
+    assert "light gamma 2.2" in capsys.readouterr().out
+    assert abs(json.loads((tmp_path / "rig.json").read_text())["light"]["response"]["gamma"] - 2.2) < 0.05
+    img = cv2.imread(g[4], cv2.IMREAD_UNCHANGED)
+    img[0, 0] = 5000  # above the 12-bit range
+    cv2.imwrite(g[4], img)
+    assert main(argv + ["--frame-bits", "12"]) == 1
+    err = capsys.readouterr().err
+    assert "g255.png: frame holds 5000, above the 12-bit range --frame-bits says (4095)" in err
+    assert main(argv + ["--frame-bits", "7"]) == 2 and "--frame-bits" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- bad input (docs/bad_input.md)

@@ -28,6 +28,15 @@ def test_recovers_the_light_gamma(g):
     assert abs(curve[0.5] - 0.5 ** g) < 0.01
 
 
+def test_16_bit_frames_of_a_camera_with_a_gamma():
+    """The contrast test is in linear grey levels (8-bit ones x257 for 16-bit frames): 16-bit frames of a camera
+    with gamma 2 were refused as having no contrast (its threshold was raised to the camera's gamma too)."""
+    fr, lv = ramp(2.2, gamma_cam=2.0)
+    est8 = estimate_light_gamma(fr, lv, camera_gamma=2.0)[0]
+    est16 = estimate_light_gamma(fr.astype(np.uint16) * np.uint16(257), lv, camera_gamma=2.0)[0]
+    assert abs(est16 - est8) < 1e-9 and abs(est16 - 2.2) < 0.05
+
+
 def test_camera_gamma_is_undone_first():
     fr, lv = ramp(2.2, gamma_cam=2.0)
     assert abs(estimate_light_gamma(fr, lv, camera_gamma=2.0)[0] - 2.2) < 0.05
