@@ -297,16 +297,22 @@ STRONG_PROJECTOR = {
     # folds at r = 0.167, inside the projector's field
     "folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0]),
 }
+RATIONAL_PROJECTOR = {
+    # OpenCV's rational model, steep inside the projector's field (r < 0.17)
+    "rational-steep": np.array([-5.0, 20.0, 0.01, 0.01, 0.0, 2.0, -10.0, 0.0]),
+    # rational + thin prism, folding inside the field
+    "prism-folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.05, 0.0, -0.05, 0.0]),
+}
 
 
-@pytest.mark.parametrize("lens", sorted(STRONG_PROJECTOR))
+@pytest.mark.parametrize("lens", sorted({**STRONG_PROJECTOR, **RATIONAL_PROJECTOR}))
 def test_distorted_projector_roots_are_on_their_ring_or_flagged(device, lens):
     """Every root of a strongly distorted projector's ring that is not flagged as
     failed lies, by cv2.projectPoints, on its ring within 0.01 px, and in the
-    lens's fold-free region."""
+    lens's fold-free region (5-, 8- and 12-coefficient lenses)."""
     rig = default_rig(light_model="perspective")
     L = rig.light
-    dist = STRONG_PROJECTOR[lens]
+    dist = {**STRONG_PROJECTOR, **RATIONAL_PROJECTOR}[lens]
     light = make_perspective_light(L.K, dist, L.R, L.t)
     center = (511.5, 383.5)
     rng = np.random.default_rng(7)
