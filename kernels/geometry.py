@@ -32,7 +32,6 @@ __all__ = [
     "ROOT_TOL_PX",
     "ROOT_FAILED_1",
     "ROOT_FAILED_2",
-    "DIST_SIZES",
     "lens_coefficients",
     "monotonic_radius2",
     "pole_radius2",
@@ -607,11 +606,6 @@ def closest_on_ray(C: wp.vec3, d: wp.vec3, O: wp.vec3, e: wp.vec3):
 
 
 # ----------------------------------------------------------------------------- host builders
-
-
-DIST_SIZES = (4, 5, 8, 12)
-"""Distortion vector lengths of OpenCV's models: (k1, k2, p1, p2[, k3]), rational
-(+ k4, k5, k6) and thin prism (+ s1, s2, s3, s4)."""
 
 
 def lens_coefficients(dist) -> np.ndarray:
