@@ -1,6 +1,7 @@
 """Camera and light geometry shared by every kernel (docs/design.md §2, §3).
 
-Warp structs hold a camera (OpenCV pinhole with k1, k2, p1, p2, k3) and a light
+Warp structs hold a camera (OpenCV pinhole with k1, k2, p1, p2, k3 and, for wide
+lenses, OpenCV's rational k4, k5, k6 and thin-prism s1..s4 terms) and a light
 (parallel or perspective); ``@wp.func`` helpers project, distort, undistort and cast
 rays, and meet a camera ray with a ring's quadric (:func:`ray_ring_roots`, the one
 solve that triangulation and the single-shot labeller both call). Host functions build the structs from plain NumPy values, so this module, like
@@ -31,7 +32,9 @@ __all__ = [
     "ROOT_TOL_PX",
     "ROOT_FAILED_1",
     "ROOT_FAILED_2",
+    "lens_coefficients",
     "monotonic_radius2",
+    "pole_radius2",
     "fold_free_radius2",
     "sqrt_limit32",
     "CameraModel",
@@ -63,12 +66,19 @@ __all__ = [
 
 @wp.struct
 class CameraModel:
-    """An OpenCV pinhole camera: X_c = R X_w + t, distortion (k1, k2, p1, p2, k3).
+    """An OpenCV pinhole camera: X_c = R X_w + t, distortion (k1, k2, p1, p2, k3)
+    and OpenCV's rational (k4, k5, k6: the radial factor is
+    (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)) and thin-prism
+    (s1..s4: x'' += s1 r^2 + s2 r^4, y'' += s3 r^2 + s4 r^4) terms.
 
+    ``rational`` / ``prism`` are 1 where any of k4..k6 / s1..s4 is nonzero (set on
+    the host): 0 keeps the 5-coefficient arithmetic exactly as it always was.
     ``r2_max`` is the squared normalised radius x^2 + y^2 up to which the radial
-    distortion r (1 + k1 r^2 + k2 r^4 + k3 r^6) grows with r (1e30 where it
-    always does): beyond it the polynomial folds back, and a point there lands on
-    a pixel that a point inside also lands on (:func:`monotonic_radius2`).
+    distortion r R(r^2) grows with r (1e30 where it always does): beyond it the
+    model folds back, and a point there lands on a pixel that a point inside also
+    lands on (:func:`monotonic_radius2`). ``r2_pole`` is the least squared radius
+    where the rational denominator vanishes (1e30: none); nothing at or past it
+    is in the lens's region.
     ``r2_safe`` is a squared radius inside which every point is provably in the
     fold-free region with a margin (:func:`fold_free_radius2`): the per-sample
     fold checks skip their work there (0: never skip)."""
@@ -83,11 +93,21 @@ class CameraModel:
     p1: float
     p2: float
     k3: float
+    k4: float
+    k5: float
+    k6: float
+    s1: float
+    s2: float
+    s3: float
+    s4: float
+    rational: int
+    prism: int
     R: wp.mat33
     t: wp.vec3
     center: wp.vec3
     r2_max: float
     r2_safe: float
+    r2_pole: float
 
 
 @wp.struct
@@ -124,8 +144,44 @@ class Volume:
 
 
 @wp.func
+def is_full_model(cam: CameraModel):
+    """The lens has rational or thin-prism terms (the general branch of the helpers)."""
+    return cam.rational != 0 or cam.prism != 0
+
+
+@wp.func
+def full_model_terms(cam: CameraModel, x: float, y: float):
+    """Distortion and Jacobian of the rational + thin-prism model at (x, y).
+
+    Returns (vec2(x'', y''), mat22 d(x'', y'') / d(x, y), den): den is the
+    rational denominator 1 + k4 r^2 + k5 r^4 + k6 r^6 (the model is defined
+    where it is > 0)."""
+    r2 = x * x + y * y
+    num = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+    den = 1.0 + r2 * (cam.k4 + r2 * (cam.k5 + r2 * cam.k6))
+    dnum = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
+    dden = cam.k4 + r2 * (2.0 * cam.k5 + 3.0 * cam.k6 * r2)
+    radial = num / den
+    dr = (dnum * den - num * dden) / (den * den)  # d radial / d r^2
+    px = r2 * (cam.s1 + cam.s2 * r2)
+    py = r2 * (cam.s3 + cam.s4 * r2)
+    dpx = 2.0 * (cam.s1 + 2.0 * cam.s2 * r2)  # d px / d r^2, times 2
+    dpy = 2.0 * (cam.s3 + 2.0 * cam.s4 * r2)
+    xd = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x) + px
+    yd = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y + py
+    a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x + x * dpx
+    b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
+    J = wp.mat22(a, b + y * dpx, b + x * dpy,
+                 radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x + y * dpy)
+    return wp.vec2(xd, yd), J, den
+
+
+@wp.func
 def distort(cam: CameraModel, x: float, y: float):
     """Normalised undistorted (x, y) -> normalised distorted (x'', y'')."""
+    if is_full_model(cam):
+        d, _J, _den = full_model_terms(cam, x, y)
+        return d
     r2 = x * x + y * y
     radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
     xd = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x)
@@ -135,7 +191,13 @@ def distort(cam: CameraModel, x: float, y: float):
 
 @wp.func
 def distortion_jacobian_det(cam: CameraModel, x: float, y: float):
-    """Determinant of d(x'', y'') / d(x, y) at the undistorted point (x, y)."""
+    """Determinant of d(x'', y'') / d(x, y) at the undistorted point (x, y)
+    (-1 where a rational lens's denominator is not positive: no model there)."""
+    if is_full_model(cam):
+        _d, J, den = full_model_terms(cam, x, y)
+        if not (den > 0.0):
+            return -1.0
+        return wp.determinant(J)
     r2 = x * x + y * y
     radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
     dr = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
@@ -152,19 +214,29 @@ def has_tangential(cam: CameraModel):
 
 @wp.func
 def has_lens_distortion(cam: CameraModel):
-    return cam.k1 != 0.0 or cam.k2 != 0.0 or cam.k3 != 0.0 or has_tangential(cam)
+    return cam.k1 != 0.0 or cam.k2 != 0.0 or cam.k3 != 0.0 or has_tangential(cam) or is_full_model(cam)
+
+
+@wp.func
+def needs_segment_test(cam: CameraModel):
+    """The fold-free region is not a disc: tangential or thin-prism terms."""
+    return has_tangential(cam) or cam.prism != 0
 
 
 @wp.func
 def locally_unfolded(cam: CameraModel, x: float, y: float):
-    """The distortion is locally invertible at (x, y): a positive Jacobian and,
-    for a radial-only lens, inside its monotonic radius ``cam.r2_max``."""
+    """The distortion is locally invertible at (x, y): a positive Jacobian,
+    inside the rational denominator's first zero ``cam.r2_pole`` and, for a lens
+    without tangential or thin-prism terms, inside its monotonic radius
+    ``cam.r2_max``."""
     r2 = x * x + y * y
     if r2 < cam.r2_safe:
         return True  # the full test's answer, known on the host (fold_free_radius2)
     ok = distortion_jacobian_det(cam, x, y) > 0.0
-    if not has_tangential(cam):
+    if not needs_segment_test(cam):
         ok = ok and r2 < cam.r2_max
+    if cam.rational != 0:
+        ok = ok and r2 < cam.r2_pole
     return ok
 
 
@@ -172,7 +244,7 @@ def locally_unfolded(cam: CameraModel, x: float, y: float):
 def in_lens_region(cam: CameraModel, x: float, y: float):
     """(x, y) lies in the fold-free region around the optical axis, where the
     distortion maps undistorted points one to one onto pixels. Radial-only
-    lens: exactly r^2 < ``cam.r2_max``. With tangential terms the Jacobian
+    lens: exactly r^2 < ``cam.r2_max``. With tangential or thin-prism terms the Jacobian
     determinant (1 on the axis) must stay above ``LENS_MIN_DET`` at (x, y) and at
     ``LENS_SEGMENT_SAMPLES`` - 1 evenly spaced points on the way from the axis:
     a sampled test, so it asks for a margin (a lens that squeezes area 100-fold
@@ -182,7 +254,7 @@ def in_lens_region(cam: CameraModel, x: float, y: float):
     if x * x + y * y < cam.r2_safe:
         return True
     ok = locally_unfolded(cam, x, y)
-    if ok and has_tangential(cam):
+    if ok and needs_segment_test(cam):
         for k in range(1, LENS_SEGMENT_SAMPLES + 1):
             f = float(k) / float(LENS_SEGMENT_SAMPLES)
             if distortion_jacobian_det(cam, f * x, f * y) <= LENS_MIN_DET:
@@ -218,20 +290,35 @@ def undistort(cam: CameraModel, xd: float, yd: float):
             break
         x = 0.5 * x
         y = 0.5 * y
+    full = is_full_model(cam)
     for _i in range(UNDISTORT_ITERS):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
-        dr = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
-        fx = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x) - xd
-        fy = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y - yd
-        a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
-        b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
-        d = radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
-        det = a * d - b * b
-        if wp.abs(det) < 1.0e-12:
-            break
-        sx = (d * fx - b * fy) / det
-        sy = (a * fy - b * fx) / det
+        sx = float(0.0)
+        sy = float(0.0)
+        if full:
+            # rational / thin-prism lens: the same Newton step with the general Jacobian
+            dd, J, _den = full_model_terms(cam, x, y)
+            gx = dd[0] - xd
+            gy = dd[1] - yd
+            detJ = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+            if wp.abs(detJ) < 1.0e-12:
+                break
+            sx = (J[1, 1] * gx - J[0, 1] * gy) / detJ
+            sy = (J[0, 0] * gy - J[1, 0] * gx) / detJ
+        else:
+            # the 5-coefficient lens: these expressions are kept exactly as they were
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+            dr = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * cam.k3 * r2)
+            fx = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x) - xd
+            fy = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y - yd
+            a = radial + 2.0 * x * x * dr + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
+            b = 2.0 * x * y * dr + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
+            d = radial + 2.0 * y * y * dr + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
+            det = a * d - b * b
+            if wp.abs(det) < 1.0e-12:
+                break
+            sx = (d * fx - b * fy) / det
+            sy = (a * fy - b * fx) / det
         for _h in range(30):
             if locally_unfolded(cam, x - sx, y - sy):
                 break
@@ -331,7 +418,7 @@ def ring_terms(light: LightModel, P: wp.vec3d, center: wp.vec2d):
 def has_distortion(light: LightModel):
     c = light.cam
     return light.model != LIGHT_PARALLEL and (
-        c.k1 != 0.0 or c.k2 != 0.0 or c.k3 != 0.0 or c.p1 != 0.0 or c.p2 != 0.0
+        c.k1 != 0.0 or c.k2 != 0.0 or c.k3 != 0.0 or c.p1 != 0.0 or c.p2 != 0.0 or is_full_model(c)
     )
 
 
@@ -521,25 +608,54 @@ def closest_on_ray(C: wp.vec3, d: wp.vec3, O: wp.vec3, e: wp.vec3):
 # ----------------------------------------------------------------------------- host builders
 
 
-def _dist5(dist) -> np.ndarray:
-    d = np.zeros(5)
+def lens_coefficients(dist) -> np.ndarray:
+    """OpenCV's distortion vector (up to 12 coefficients: k1, k2, p1, p2, k3, k4,
+    k5, k6, s1, s2, s3, s4; a 14-vector's tilt taux, tauy only when both are 0)
+    padded with zeros to 12.
+
+    Raises:
+        ValueError: more than 14 coefficients, or a nonzero tilt."""
     dd = np.asarray(dist if dist is not None else [], float).ravel()
-    d[: dd.size] = dd
+    if dd.size > 14 or (dd.size > 12 and np.any(dd[12:] != 0)):
+        raise ValueError(f"distortion: {dd.size} coefficients {dd.tolist()}: the tilted-sensor model (taux, tauy) "
+                         "is not supported")
+    d = np.zeros(12)
+    d[: min(dd.size, 12)] = dd[:12]
     return d
 
 
-def monotonic_radius2(dist) -> float:
-    """Squared normalised radius up to which the radial distortion of ``dist``
-    (OpenCV order k1, k2, p1, p2, k3) is monotonic: the least s = r^2 > 0 with
-    d/dr [r (1 + k1 s + k2 s^2 + k3 s^3)] = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 = 0;
-    ``R2_UNBOUNDED`` (1e30) where there is none."""
-    k1, k2, _p1, _p2, k3 = _dist5(dist)
-    coef = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]), "f")
+def _least_positive_root(coef_low_first) -> float:
+    coef = np.trim_zeros(np.asarray(coef_low_first, float)[::-1], "f")
     if coef.size < 2:
         return R2_UNBOUNDED
     roots = np.roots(coef)
     s = roots.real[(np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots.real))) & (roots.real > 0)]
     return float(min(s.min(), R2_UNBOUNDED)) if s.size else R2_UNBOUNDED
+
+
+def pole_radius2(dist) -> float:
+    """Least squared normalised radius s > 0 where the rational denominator
+    1 + k4 s + k5 s^2 + k6 s^3 of ``dist`` vanishes; ``R2_UNBOUNDED`` where none."""
+    d = lens_coefficients(dist)
+    return _least_positive_root([1.0, d[5], d[6], d[7]])
+
+
+def monotonic_radius2(dist) -> float:
+    """Squared normalised radius up to which the radial distortion of ``dist``
+    (OpenCV order k1, k2, p1, p2, k3[, k4, k5, k6, ...]) is monotonic: the least
+    s = r^2 > 0 with d/dr [r (1 + k1 s + k2 s^2 + k3 s^3)] = 1 + 3 k1 s + 5 k2 s^2
+    + 7 k3 s^3 = 0, and for a rational lens (radial factor N(s) / D(s)) the least
+    s > 0 where D vanishes or d/dr [r N / D] = (N D + 2 s (N' D - N D')) / D^2 does;
+    ``R2_UNBOUNDED`` (1e30) where there is none."""
+    d = lens_coefficients(dist)
+    k1, k2, _p1, _p2, k3, k4, k5, k6 = d[:8]
+    if k4 == k5 == k6 == 0.0:
+        return _least_positive_root([1.0, 3.0 * k1, 5.0 * k2, 7.0 * k3])
+    N = np.polynomial.Polynomial([1.0, k1, k2, k3])
+    D = np.polynomial.Polynomial([1.0, k4, k5, k6])
+    s = np.polynomial.Polynomial([0.0, 1.0])
+    growth = N * D + 2.0 * s * (N.deriv() * D - N * D.deriv())
+    return min(_least_positive_root(growth.coef), pole_radius2(d))
 
 
 def fold_free_radius2(dist) -> float:
@@ -555,8 +671,14 @@ def fold_free_radius2(dist) -> float:
     coefficients' absolute values, which makes the bound decrease with s, so
     where it holds at s it holds on the whole disc (bisection finds the largest
     such s). ``R2_UNBOUNDED`` for a lens without distortion; 0 where even the
-    axis has no margin."""
-    k1, k2, p1, p2, k3 = (abs(float(v)) for v in _dist5(dist))
+    axis has no margin, and for a lens with rational (k4..k6) or thin-prism
+    (s1..s4) terms, which this bound does not cover (their checks always run)."""
+    full = lens_coefficients(dist)
+    if np.any(full[5:] != 0):
+        # rational or thin-prism lens: the bound below is for the polynomial
+        # alone, so no radius is proven and the full checks always run
+        return 0.0
+    k1, k2, p1, p2, k3 = (abs(float(v)) for v in full[:5])
     if not np.all(np.isfinite([k1, k2, p1, p2, k3])):
         return 0.0
     if k1 == k2 == p1 == p2 == k3 == 0.0:
@@ -587,21 +709,28 @@ def fold_free_radius2(dist) -> float:
 
 
 def make_camera(K, dist, R, t) -> CameraModel:
-    """Build a :class:`CameraModel` from OpenCV K (3x3), dist (<=5), R (3x3), t (3)."""
+    """Build a :class:`CameraModel` from OpenCV K (3x3), dist (4, 5, 8 or 12
+    coefficients, :func:`lens_coefficients`), R (3x3), t (3)."""
     K = np.asarray(K, float)
     R = np.asarray(R, float)
     t = np.asarray(t, float).ravel()
     if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
         raise ValueError(f"make_camera: expected K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
-    d = _dist5(dist)
+    d = lens_coefficients(dist)
     c = CameraModel()
     c.fx, c.fy, c.cx, c.cy, c.skew = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1])
-    c.k1, c.k2, c.p1, c.p2, c.k3 = (float(x) for x in d)
+    c.k1, c.k2, c.p1, c.p2, c.k3 = (float(x) for x in d[:5])
+    c.k4, c.k5, c.k6 = (float(x) for x in d[5:8])
+    c.s1, c.s2, c.s3, c.s4 = (float(x) for x in d[8:12])
+    # flags from the float32 values the kernels see: 0 keeps the 5-coefficient arithmetic
+    c.rational = int(np.any(d[5:8].astype(np.float32) != 0))
+    c.prism = int(np.any(d[8:12].astype(np.float32) != 0))
     c.R = wp.mat33(*R.ravel().tolist())
     c.t = wp.vec3(*t.tolist())
     c.center = wp.vec3(*(-R.T @ t).tolist())
     c.r2_max = monotonic_radius2(d)
     c.r2_safe = fold_free_radius2(d)
+    c.r2_pole = pole_radius2(d)
     return c
 
 

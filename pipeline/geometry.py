@@ -21,10 +21,12 @@ from ringscan.kernels.geometry import (
     UNDISTORT_TOL_PX,
     CameraModel,
     LightModel,
+    lens_coefficients,
     make_camera,
     make_parallel_light,
     make_perspective_light,
     monotonic_radius2,
+    pole_radius2,
 )
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig, UncalibratedLight
@@ -66,7 +68,8 @@ def _check_calibrated(rig: Rig) -> None:
 def undistort_normalized(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (u, v) -> undistorted normalised coordinates (x', y') in float64.
 
-    ``camera`` is anything with ``K`` (3x3, skew allowed) and ``dist`` (5): a
+    ``camera`` is anything with ``K`` (3x3, skew allowed) and ``dist`` (4, 5, 8
+    or 12 coefficients, OpenCV's order): a
     camera or a perspective light. The pixels are first normalised with K's
     inverse (so a skewed K is exact), then undistorted by OpenCV's iterative
     solver with :data:`UNDISTORT_CRITERIA`. A pixel without a true inverse (the
@@ -104,30 +107,38 @@ def _cv_distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 def _distortion_det(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    k1, k2, p1, p2, k3 = dist
+    """Jacobian determinant of OpenCV's distortion (12 coefficients) at (x, y); -1
+    where a rational lens's denominator is not positive (no model there)."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = dist
     r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    dr = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
+    dpx = 2 * (s1 + 2 * s2 * r2)
+    dpy = 2 * (s3 + 2 * s4 * r2)
+    a = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x + x * dpx
     b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-    d = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
-    return a * d - b * b
+    d = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x + y * dpy
+    return np.where(den > 0, a * d - (b + y * dpx) * (b + x * dpy), -1.0)
 
 
 def in_lens_region(dist, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Where undistorted normalised points (x, y) lie in the lens's fold-free
-    region: the host twin of ``kernels.geometry.in_lens_region`` (radial lens:
-    r^2 below :func:`~ringscan.kernels.geometry.monotonic_radius2`; with
-    tangential terms, a Jacobian determinant above 0.01 at 32 points on the way
-    from the axis). NaN points are outside."""
-    d = np.zeros(5)
-    dd = np.asarray(dist if dist is not None else [], np.float64).ravel()
-    d[: dd.size] = dd
+    region: the host twin of ``kernels.geometry.in_lens_region`` (lens without
+    tangential or thin-prism terms: r^2 below
+    :func:`~ringscan.kernels.geometry.monotonic_radius2`; with them, a Jacobian
+    determinant above 0.01 at 32 points on the way from the axis; a rational
+    lens also inside its denominator's first zero,
+    :func:`~ringscan.kernels.geometry.pole_radius2`). NaN points are outside."""
+    d = lens_coefficients(dist)
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         ok = _distortion_det(d, x, y) > 0
-        if d[2] == 0 and d[3] == 0:
+        if np.any(d[5:8]):
+            ok &= x * x + y * y < pole_radius2(d)
+        if d[2] == 0 and d[3] == 0 and not np.any(d[8:]):
             return ok & (x * x + y * y < monotonic_radius2(d))
         for k in range(1, LENS_SEGMENT_SAMPLES + 1):
             f = k / LENS_SEGMENT_SAMPLES

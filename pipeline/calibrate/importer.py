@@ -55,6 +55,7 @@ from ringscan.pipeline.formats.rig import (
     Volume,
     has_calibrated_light,
     parse_rig,
+    read_distortion,
     rig_to_dict,
 )
 from ringscan.pipeline.formats.scan import Scan, View, check_view_name, save_scan
@@ -151,8 +152,8 @@ def read_opencv_calibration(path) -> dict:
     try:
         if not _has(fs, "cam_int") and any(_has(fs, k) for k in STEREO_KEYS):
             raise CalibrationError(path, _stereo_message(path))
-        out = {"cam_K": _mat(fs, path, "cam_int"), "cam_dist": _mat(fs, path, "cam_dist").ravel(),
-               "proj_K": _mat(fs, path, "proj_int"), "proj_dist": _mat(fs, path, "proj_dist").ravel(),
+        out = {"cam_K": _mat(fs, path, "cam_int"), "cam_dist": _lens(path, "cam_dist", _mat(fs, path, "cam_dist")),
+               "proj_K": _mat(fs, path, "proj_int"), "proj_dist": _lens(path, "proj_dist", _mat(fs, path, "proj_dist")),
                "R": _mat(fs, path, "rotation", "roration"), "T": _mat(fs, path, "translation").ravel()}
         shp = fs.getNode("img_shape")
         out["cam_size"] = None
@@ -187,15 +188,12 @@ def _size_node(fs, path, name):
     return int(vals[0]), int(vals[1])
 
 
-def _dist5(path, name, d) -> np.ndarray:
-    """OpenCV distortion -> (k1, k2, p1, p2, k3): 4 or 5 coefficients, or more when the rest are 0."""
-    d = np.asarray(d, float).ravel()
-    if d.size < 4 or not np.all(np.isfinite(d)):
-        raise CalibrationError(path, f"{name}: expected 4 or more finite distortion coefficients, got {d.size}")
-    if d.size > 5 and np.any(d[5:] != 0):
-        raise CalibrationError(path, f"{name}: {d.size} coefficients (OpenCV's rational or thin-prism model): ringscan "
-                                     "reads k1, k2, p1, p2, k3 only")
-    return np.concatenate([d[:5], np.zeros(max(0, 5 - d.size))])
+def _lens(path, name, d) -> np.ndarray:
+    """OpenCV distortion as a rig keeps it (4, 5, 8 or 12 coefficients; 14 with a zero tilt)."""
+    try:
+        return read_distortion(np.asarray(d, float), source=path, where=name)
+    except FormatError as e:
+        raise CalibrationError(path, e.message) from None
 
 
 def read_stereo_calibration(path) -> dict:
@@ -223,8 +221,8 @@ def read_stereo_calibration(path) -> dict:
         out = {}
         for c in (1, 2):
             out[f"cam{c}_K"] = _mat(fs, path, f"cam{c}_intrinsics")
-            out[f"cam{c}_dist"] = _dist5(path, f"cam{c}_distorsion",
-                                         _mat(fs, path, f"cam{c}_distorsion", f"cam{c}_distortion"))
+            out[f"cam{c}_dist"] = _lens(path, f"cam{c}_distorsion",
+                                        _mat(fs, path, f"cam{c}_distorsion", f"cam{c}_distortion"))
             out[f"cam{c}_size"] = _size_node(fs, path, f"cam{c}_size")
         rt = _mat(fs, path, "RT_cam1_2_cam2") if _has(fs, "RT_cam1_2_cam2") else None
         if rt is not None and rt.shape not in ((3, 4), (4, 4)):
@@ -277,10 +275,10 @@ def stereo_rig(cal: dict, *, projector: tuple[int, int], z_range: tuple[float, f
         corners = np.array([[0, 0], [w1 - 1, 0], [0, h1 - 1], [w1 - 1, h1 - 1]], float)
         rays = np.linalg.solve(K1, np.concatenate([corners, np.ones((4, 1))], 1).T).T
         r_max = 1.5 * far * float(np.max(np.hypot(rays[:, 0], rays[:, 1])))
-    cam1 = Camera(width=int(w1), height=int(h1), K=K1, dist=np.asarray(cal["cam1_dist"], float).ravel()[:5],
+    cam1 = Camera(width=int(w1), height=int(h1), K=K1, dist=read_distortion(np.asarray(cal["cam1_dist"], float)),
                   R=np.eye(3), t=np.zeros(3))
     cam2 = Camera(width=int(w2), height=int(h2), K=np.asarray(cal["cam2_K"], float),
-                  dist=np.asarray(cal["cam2_dist"], float).ravel()[:5], R=np.asarray(cal["R"], float),
+                  dist=read_distortion(np.asarray(cal["cam2_dist"], float)), R=np.asarray(cal["R"], float),
                   t=np.asarray(cal["T"], float).ravel())
     li = light if light is not None else UncalibratedLight(width=int(projector[0]), height=int(projector[1]))
     return Rig(camera=cam1, light=li, volume=Volume(z_min=near, z_max=far, r_max=float(r_max)), camera2=cam2)
@@ -397,7 +395,7 @@ def _procam_light(projector_rig, path, cam1_K, projector) -> PerspectiveLight:
         log.warning("%s: its camera (fx %.1f) is not camera 1 of the stereo calibration (fx %.1f, %.1f %% apart); "
                     "the projector's pose is taken relative to camera 1", path, camK[0, 0], cam1_K[0, 0], 100 * rel)
     return PerspectiveLight(width=int(projector[0]), height=int(projector[1]), K=np.asarray(K, float),
-                            dist=np.asarray(dist, float).ravel()[:5], R=np.asarray(R, float),
+                            dist=read_distortion(np.asarray(dist, float)), R=np.asarray(R, float),
                             t=np.asarray(T, float).ravel())
 
 

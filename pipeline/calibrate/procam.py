@@ -35,7 +35,7 @@ from ringscan.pipeline.calibrate.graycode import (
     decode_graycode,
     subpixel_map,
 )
-from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig, Volume
+from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig, Volume, read_distortion
 
 __all__ = ["ProcamSettings", "CaptureCorners", "ProcamCalibration", "projector_corners", "calibrate_procam",
            "procam_rig", "capture_corners", "depth_range", "principal_point_inside"]
@@ -270,10 +270,10 @@ def procam_rig(
         corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
         rays = np.linalg.solve(Kp, np.concatenate([corners, np.ones((4, 1))], 1).T).T
         r_max = 1.5 * far * float(np.max(np.hypot(rays[:, 0], rays[:, 1])))
-    cam = Camera(width=int(cam_size[0]), height=int(cam_size[1]), K=Kc, dist=np.asarray(cam_dist, float).ravel()[:5],
-                 R=Rc, t=tc)
+    cam = Camera(width=int(cam_size[0]), height=int(cam_size[1]), K=Kc,
+                 dist=read_distortion(np.asarray(cam_dist, float)), R=Rc, t=tc)
     light = PerspectiveLight(width=int(proj_size[0]), height=int(proj_size[1]), K=Kp,
-                             dist=np.asarray(proj_dist, float).ravel()[:5], R=Rw, t=tw)
+                             dist=read_distortion(np.asarray(proj_dist, float)), R=Rw, t=tw)
     return Rig(camera=cam, light=light, volume=Volume(z_min=0.0, z_max=far - near, r_max=float(r_max)))
 
 

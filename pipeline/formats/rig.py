@@ -3,7 +3,7 @@
 A rig file is JSON::
 
     {"format": "ringscan.rig/1", "units": "mm",
-     "camera": {"width": W, "height": H, "K": 3x3, "dist": [k1,k2,p1,p2,k3],
+     "camera": {"width": W, "height": H, "K": 3x3, "dist": [k1,k2,p1,p2,k3] (or 4, 8, 12 values),
                 "R": 3x3, "t": [3], "response": {"gamma": g}},
      "light": {"model": "parallel", "R": 3x3, "t": [3], "pixel_pitch_mm": s,
                "axis_px": [a_u, a_v]}
@@ -32,7 +32,7 @@ from ringscan.pipeline.formats.errors import FormatError
 
 RIG_FORMAT = "ringscan.rig/1"
 
-__all__ = ["RIG_FORMAT", "Camera", "ParallelLight", "PerspectiveLight", "UncalibratedLight", "Volume", "Turntable", "Rig", "load_rig", "parse_rig", "save_rig", "rig_to_dict", "default_rig", "look_at", "turntable_transform",
+__all__ = ["RIG_FORMAT", "DIST_SIZES", "read_distortion", "Camera", "ParallelLight", "PerspectiveLight", "UncalibratedLight", "Volume", "Turntable", "Rig", "load_rig", "parse_rig", "save_rig", "rig_to_dict", "default_rig", "look_at", "turntable_transform",
            "has_calibrated_light"]
 
 
@@ -47,7 +47,8 @@ class Camera:
     K: np.ndarray
     """3x3 intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
     dist: np.ndarray
-    """Distortion (k1, k2, p1, p2, k3) in OpenCV order."""
+    """Distortion in OpenCV order: (k1, k2, p1, p2, k3), or 8 (+ k4, k5, k6: the
+    rational model) or 12 (+ s1, s2, s3, s4: thin prism) coefficients."""
     R: np.ndarray
     """3x3 rotation world -> camera."""
     t: np.ndarray
@@ -94,7 +95,7 @@ class PerspectiveLight:
     K: np.ndarray
     """3x3 intrinsic matrix."""
     dist: np.ndarray
-    """Distortion (k1, k2, p1, p2, k3)."""
+    """Distortion in OpenCV order: 5, 8 or 12 coefficients (as :attr:`Camera.dist`)."""
     R: np.ndarray
     """3x3 rotation world -> projector."""
     t: np.ndarray
@@ -251,16 +252,43 @@ def _intrinsics(src, where, v) -> np.ndarray:
     return K
 
 
+DIST_SIZES = (4, 5, 8, 12)
+"""Distortion vector lengths read: OpenCV's (k1, k2, p1, p2[, k3]), rational model
+(+ k4, k5, k6) and thin-prism model (+ s1, s2, s3, s4); 14 (+ taux, tauy) only
+with a zero tilt, kept as 12."""
+
+
+def read_distortion(v, *, source: str | os.PathLike | None = None, where: str = "dist") -> np.ndarray:
+    """OpenCV's distortion vector as a rig keeps it: 4 coefficients become 5 (k3 = 0),
+    5, 8 and 12 are kept as given, 14 with a zero tilt (taux = tauy = 0) becomes 12;
+    None is no distortion (5 zeros). ``v``: a list or an array of any shape (an
+    OpenCV 1xN or Nx1 matrix).
+
+    Raises:
+        FormatError: naming ``source`` and ``where``: another count, a non-finite
+            value, a nonzero tilt, or a value outside the sane range."""
+    if isinstance(v, np.ndarray):
+        v = v.ravel().tolist() if v.dtype.kind in "iuf" else [object()]
+    return _dist(source, where, v)
+
+
 def _dist(src, where, v) -> np.ndarray:
     if v is None:
         return np.zeros(5)
     ok = isinstance(v, (list, tuple)) and all(_is_number(x) for x in v)
     a = np.asarray(v, dtype=np.float64).ravel() if ok else None
-    if a is None or a.size not in (4, 5) or not np.all(np.isfinite(a)):
-        raise FormatError(src, f"{where}: expected 4 or 5 finite distortion coefficients (k1, k2, p1, p2[, k3])")
+    if a is None or a.size not in DIST_SIZES + (14,) or not np.all(np.isfinite(a)):
+        raise FormatError(src, f"{where}: expected 4, 5, 8 or 12 finite distortion coefficients (OpenCV's order: "
+                               "k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]])")
+    if a.size == 14:
+        if np.any(a[12:] != 0):
+            raise FormatError(src, f"{where}: tilted-sensor model (taux, tauy) not supported "
+                                   f"(taux = {a[12]:g}, tauy = {a[13]:g})")
+        a = a[:12]
     if np.abs(a).max() > MAX_DISTORTION:
         raise FormatError(src, f"{where}: {np.abs(a).max():g} is outside the sane range (|value| <= {MAX_DISTORTION:g})")
-    return np.concatenate([a, np.zeros(5 - a.size)])
+    # 4 coefficients are OpenCV's 5 with k3 = 0; 8 and 12 are kept as given
+    return np.concatenate([a, np.zeros(5 - a.size)]) if a.size < 5 else a
 
 
 def _gamma(src, where, d) -> float:

@@ -62,8 +62,14 @@ Intrinsics = Annotated[tuple[tuple[_Focal, _Pixels, _Pixels], tuple[_Zero, _Foca
                              tuple[_Zero, _Zero, _One]],
                        Field(description="3x3 intrinsic matrix [[fx, skew, cx], [0, fy, cy], [0, 0, 1]], pixels")]
 Distortion = Annotated[list[Annotated[float, Field(ge=-MAX_DISTORTION, le=MAX_DISTORTION)]],
-                       Field(min_length=4, max_length=5,
-                             description="OpenCV distortion (k1, k2, p1, p2[, k3]); absent or null: none")]
+                       Field(min_length=4, max_length=14,
+                             json_schema_extra={"anyOf": [
+                                 *({"minItems": n, "maxItems": n} for n in (4, 5, 8, 12)),
+                                 {"minItems": 14, "maxItems": 14,  # the tilt (taux, tauy) must be 0
+                                  "prefixItems": [True] * 12 + [{"const": 0}, {"const": 0}]}]},
+                             description="OpenCV distortion, 4, 5, 8 or 12 coefficients (k1, k2, p1, p2[, k3[, k4, "
+                                         "k5, k6[, s1, s2, s3, s4]]]: the rational and thin-prism models); 14 (+ "
+                                         "taux, tauy) only with a zero tilt; absent or null: none")]
 
 
 class Response(BaseModel):

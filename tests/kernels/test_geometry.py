@@ -2,6 +2,8 @@
 lens model's inverse (undistortion, distorted projector roots), against
 hand-computed geometry and OpenCV (independent code)."""
 
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from ringscan.kernels.geometry import (
     CameraModel,
     LightModel,
     Volume,
+    distort,
     fold_free_radius2,
     in_lens_region,
     in_volume,
@@ -23,6 +26,7 @@ from ringscan.kernels.geometry import (
     make_perspective_light,
     make_volume,
     monotonic_radius2,
+    pole_radius2,
     polar_angle,
     ray_ring_roots,
     root_usable,
@@ -30,6 +34,7 @@ from ringscan.kernels.geometry import (
     undistort,
 )
 from ringscan.pipeline.formats.rig import default_rig
+from ringscan.pipeline.geometry import undistort_normalized
 
 init_warp()
 
@@ -292,16 +297,22 @@ STRONG_PROJECTOR = {
     # folds at r = 0.167, inside the projector's field
     "folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0]),
 }
+RATIONAL_PROJECTOR = {
+    # OpenCV's rational model, steep inside the projector's field (r < 0.17)
+    "rational-steep": np.array([-5.0, 20.0, 0.01, 0.01, 0.0, 2.0, -10.0, 0.0]),
+    # rational + thin prism, folding inside the field
+    "prism-folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.05, 0.0, -0.05, 0.0]),
+}
 
 
-@pytest.mark.parametrize("lens", sorted(STRONG_PROJECTOR))
+@pytest.mark.parametrize("lens", sorted({**STRONG_PROJECTOR, **RATIONAL_PROJECTOR}))
 def test_distorted_projector_roots_are_on_their_ring_or_flagged(device, lens):
     """Every root of a strongly distorted projector's ring that is not flagged as
     failed lies, by cv2.projectPoints, on its ring within 0.01 px, and in the
-    lens's fold-free region."""
+    lens's fold-free region (5-, 8- and 12-coefficient lenses)."""
     rig = default_rig(light_model="perspective")
     L = rig.light
-    dist = STRONG_PROJECTOR[lens]
+    dist = {**STRONG_PROJECTOR, **RATIONAL_PROJECTOR}[lens]
     light = make_perspective_light(L.K, dist, L.R, L.t)
     center = (511.5, 383.5)
     rng = np.random.default_rng(7)
@@ -448,3 +459,144 @@ def test_volume_radius_test_matches_the_square_root_to_the_bit(device):
     o = out.numpy()
     np.testing.assert_array_equal(o[:, 0], o[:, 1])
     assert 0.2 < o[:, 1].mean() < 0.8
+
+
+# ----------------------------------------------------------------------------- OpenCV's rational and thin-prism models
+
+RATIONAL_LENSES = {
+    # a wide-angle lens as CALIB_RATIONAL_MODEL fits them: large k1 and k4 that
+    # nearly cancel, barrel of ~-0.3 r^2 over the field, no fold inside r = 1.6
+    "rational": np.array([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15]),
+    # + CALIB_THIN_PRISM_MODEL's s1..s4
+    "thin-prism": np.array([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15, 0.002, -0.0005, -0.001, 0.0003]),
+}
+RATIONAL_FOLDS = {
+    # radial (1 - 0.2 r^2) / (1 + 0.3 r^2): folds at r = 1.02, inside WIDE_K's corners (1.17)
+    "rational-fold": np.array([-0.2, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0]),
+    # the same with thin-prism terms: the fold-free region is no longer a disc
+    "prism-fold": np.array([-0.2, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.02, 0.0, -0.01, 0.005]),
+    # 1 / (1 - 0.8 r^2): no fold, but a pole at r = 1.118; past it a point lands on
+    # the opposite side of the image, on a pixel a point inside also reaches
+    "rational-pole": np.array([0.0, 0.0, 0.0, 0.0, 0.0, -0.8, 0.0, 0.0]),
+}
+
+
+@wp.kernel
+def _distort_kernel(cam: CameraModel, xy: wp.array(dtype=wp.vec2), out: wp.array(dtype=wp.vec2)):
+    i = wp.tid()
+    out[i] = distort(cam, xy[i][0], xy[i][1])
+
+
+def _field_points(K, dist, n, seed, min_det=0.05):
+    """Points of WIDE_K's field (a little beyond its corners) where OpenCV's projection is one to one."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1.2, 1.2, (3 * n, 2))
+    return xy[_cv_min_det(xy, K, dist) > min_det][:n]
+
+
+@pytest.mark.parametrize("lens", sorted(RATIONAL_LENSES))
+def test_rational_distort_is_opencvs(device, lens):
+    """The kernels' distortion of an 8- and a 12-coefficient lens is cv2.projectPoints'
+    to float32 precision: |x''| < 1.2 after ~20 float32 operations (relative error
+    6e-8 each) is within 1e-6, 0.0007 px at f = 700 px."""
+    dist = RATIONAL_LENSES[lens]
+    cam = make_camera(np.eye(3), dist, np.eye(3), np.zeros(3))
+    assert (cam.rational, cam.prism) == (1, int(dist.size == 12))
+    xy = np.random.default_rng(1).uniform(-1.2, 1.2, (4000, 2)).astype(np.float32)
+    out = wp.zeros(len(xy), dtype=wp.vec2, device=device)
+    wp.launch(_distort_kernel, len(xy), inputs=[cam, wp.array(xy, dtype=wp.vec2, device=device)], outputs=[out],
+              device=device)
+    ref = _cv_pixels(xy.astype(np.float64), np.eye(3), dist)
+    assert np.abs(ref - xy).max() > 0.1  # a strong lens: a wrong term would show
+    assert np.abs(out.numpy() - ref).max() < 1e-6
+
+
+@pytest.mark.parametrize("lens", sorted(RATIONAL_LENSES))
+def test_rational_undistort_inverts_opencv(device, lens):
+    """Points where the lens is one to one come back from their OpenCV pixels,
+    flagged good: round trip within 0.01 px (the kernels' own tolerance) and, as
+    absolute values, within 2e-6 of the points and of OpenCV's iterative
+    undistortion (float32 pixels of ~1000 carry 6e-5 px, 1e-7 normalised; Newton
+    stops on a step below 1e-6 after its quadratic step, so what is left is
+    float32 rounding, amplified by the inverse Jacobian, |J^-1| < 2 here)."""
+    dist = RATIONAL_LENSES[lens]
+    xy = _field_points(WIDE_K, dist, 2000, 3)
+    assert len(xy) > 1500
+    uv = _cv_pixels(xy, WIDE_K, dist)
+    got, ok = _undistort(WIDE_K, dist, uv, device)
+    assert ok.all(), f"{np.count_nonzero(~ok)} good pixels flagged"
+    assert np.abs(_cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
+    assert np.abs(got - xy).max() < 2e-6
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    pts = uv.reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):
+        ref = cv2.undistortPointsIter(pts, WIDE_K, dist, None, None, crit)[:, 0]
+    else:
+        ref = cv2.undistortPoints(pts, WIDE_K, dist, None, None, None, crit)[:, 0]
+    assert np.abs(got - ref).max() < 2e-6
+
+
+@pytest.mark.parametrize("lens", sorted(RATIONAL_FOLDS))
+def test_rational_undistort_drops_pixels_without_a_true_inverse(device, lens):
+    """Over the whole image of a rational lens that folds (or has a pole): every
+    pixel is either flagged or undistorted to a point that OpenCV projects back
+    onto it *and* that lies in the fold-free region (before the pole, not on
+    the far branch). Past the image of the fold every pixel is flagged, well
+    inside it none is."""
+    dist = RATIONAL_FOLDS[lens]
+    v, u = np.mgrid[0:1024:8, 0:1280:8]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    got, ok = _undistort(WIDE_K, dist, uv, device)
+    assert np.abs(_cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
+    assert _cv_min_det(got[ok], WIDE_K, dist).min() > 0
+    assert (got[ok] ** 2).sum(1).max() < pole_radius2(dist)
+    # every pixel that OpenCV's iterative undistortion inverts inside the region
+    # (the host twin, pipeline.geometry) is inverted here too
+    x, _y = undistort_normalized(SimpleNamespace(K=WIDE_K, dist=dist), uv[:, 0], uv[:, 1])
+    assert np.isfinite(x).sum() > 0.4 * len(x) and not (np.isfinite(x) & ~ok).any()
+    rd = np.hypot(uv[:, 0] - WIDE_K[0, 2], uv[:, 1] - WIDE_K[1, 2]) / WIDE_K[0, 0]
+    if lens == "rational-pole":
+        # the inner branch reaches every radius: every pixel has its inverse there
+        assert pole_radius2(dist) == pytest.approx(1.25)
+        assert ok.all()
+        return
+    assert 0.1 < np.mean(~ok) < 0.6  # the scene exercises the fold
+    if lens == "rational-fold":
+        r = np.linspace(0, 2.0, 40001)
+        ur = (_cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
+        turn = np.argmax(np.diff(ur) <= 0)
+        assert abs(np.sqrt(monotonic_radius2(dist)) - r[turn]) < 1e-4
+        assert not ok[rd > ur[turn] * 1.0001].any()
+        assert ok[rd < ur[turn] * 0.98].all()
+    else:
+        assert ok[rd < 0.5].all()  # the thin prism brings the fold's image in to r = 0.6 on one side
+
+
+@pytest.mark.parametrize("lens", sorted({**RATIONAL_LENSES, **RATIONAL_FOLDS}))
+def test_rational_fold_checks_always_run(device, lens):
+    """The fast path's proof covers the 5-coefficient polynomial only: a lens with
+    rational or thin-prism terms has no fold-free radius (r2_safe = 0), so the
+    full checks run for every point; an 8- or 12-vector whose extra terms are 0
+    is the 5-coefficient lens, to the bit."""
+    dist = {**RATIONAL_LENSES, **RATIONAL_FOLDS}[lens]
+    assert fold_free_radius2(dist) == 0.0
+    assert make_camera(WIDE_K, dist, np.eye(3), np.zeros(3)).r2_safe == 0.0
+    five = np.array([-0.35, 0.05, 0.01, -0.01, 0.0])
+    v, u = np.mgrid[0:1024:8, 0:1280:8]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    outs = []
+    for d in (five, np.r_[five, np.zeros(3)], np.r_[five, np.zeros(7)], np.r_[five, np.zeros(9)]):
+        cam = make_camera(WIDE_K, d, np.eye(3), np.zeros(3))
+        assert (cam.rational, cam.prism, cam.r2_safe) == (0, 0, fold_free_radius2(five))
+        out = wp.zeros(len(uv), dtype=wp.vec3, device=device)
+        wp.launch(_undistort_kernel, len(uv), inputs=[cam, wp.array(uv.astype(np.float32), dtype=wp.vec2,
+                                                                      device=device)], outputs=[out], device=device)
+        outs.append(out.numpy().tobytes())
+    assert len(set(outs)) == 1
+
+
+def test_a_tilted_sensor_is_refused():
+    with pytest.raises(ValueError, match="tilted-sensor"):
+        make_camera(WIDE_K, np.r_[np.zeros(12), 0.01, 0.0], np.eye(3), np.zeros(3))
+    cam = make_camera(WIDE_K, np.r_[0.1, np.zeros(13)], np.eye(3), np.zeros(3))  # zero tilt: the 12-vector
+    assert (cam.k1, cam.rational, cam.prism) == (pytest.approx(0.1), 0, 0)

@@ -31,7 +31,9 @@ def _grid(step=8):
     return np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
 
 
-@pytest.mark.parametrize("dist", [[-0.35, 0.05, 0.0, 0.0, 0.0], [-0.35, 0.05, 0.01, -0.01, 0.0]])
+@pytest.mark.parametrize("dist", [[-0.35, 0.05, 0.0, 0.0, 0.0], [-0.35, 0.05, 0.01, -0.01, 0.0],
+                                  [-0.2, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0],  # OpenCV's rational model
+                                  [-0.2, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.02, 0.0, -0.01, 0.005]])  # + thin prism
 def test_host_undistortion_drops_what_has_no_true_inverse(dist):
     """A strongly distorted lens (it folds inside its image): every pixel the host
     keeps maps back onto itself through cv2.projectPoints from the fold-free
@@ -68,3 +70,14 @@ def test_lens_region_of_a_radial_lens_is_its_monotonic_radius():
     r = np.array([0.0, 0.5, 0.9, 0.92, 1.5])
     assert in_lens_region(dist, r, 0 * r).tolist() == [True, True, True, False, False]
     assert not in_lens_region(dist, np.array([np.nan]), np.array([0.0]))[0]
+
+
+def test_lens_region_of_a_rational_lens_ends_at_its_fold_or_pole():
+    # (1 - 0.2 r^2) / (1 + 0.3 r^2): r times it turns back where 1 - 0.3 s - 0.06 s^2 = 0 (r = 1.0194)
+    r = np.array([0.0, 0.5, 1.01, 1.03, 1.5])
+    assert in_lens_region([-0.2, 0, 0, 0, 0, 0.3, 0, 0], r, 0 * r).tolist() == [True, True, True, False, False]
+    # 1 / (1 - 0.8 r^2) never turns back, but has a pole at r = sqrt(1.25) = 1.118; with a tangential
+    # term (the sampled test) the pole still ends the region
+    r = np.array([0.0, 1.1, 1.117, 1.119, 2.0])
+    for dist in ([0, 0, 0, 0, 0, -0.8, 0, 0], [0, 0, 1e-4, 0, 0, -0.8, 0, 0]):
+        assert in_lens_region(dist, r, 0 * r).tolist() == [True, True, True, False, False]

@@ -13,7 +13,7 @@ from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.meshes import read_cloud
 from ringscan.pipeline.formats.patterns import frame_names, gray_decode, gray_encode, parse_patterns
 from ringscan.pipeline.formats.ply import check_ply, read_ply, write_ply
-from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict, save_rig, turntable_transform
+from ringscan.pipeline.formats.rig import default_rig, load_rig, parse_rig, rig_to_dict, save_rig, turntable_transform
 from ringscan.pipeline.formats.scan import Scan, View, check_truth, load_scan, read_view_frames, save_scan
 
 GRAY = {"codec": "gray-rings", "width": 64, "height": 48, "center": [31.5, 23.5], "rho0": 2.0, "pitch": 2.0,
@@ -36,6 +36,38 @@ def test_rig_round_trip(tmp_path):
     assert math.isclose(math.degrees(math.acos(c[2] / 420.0)), 35.0, rel_tol=1e-9) and c[1] < 0 and abs(c[0]) < 1e-9
 
 
+@pytest.mark.parametrize("dist,kept", [
+    ([0.02, -0.05, 0.001, 0.0], [0.02, -0.05, 0.001, 0.0, 0.0]),  # OpenCV's 4: k3 = 0, written as 5 (as always)
+    ([0.02, -0.05, 0.001, 0.0, 0.01], None),
+    ([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15], None),  # CALIB_RATIONAL_MODEL
+    ([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15, 0.002, -0.0005, -0.001, 0.0003], None),  # + THIN_PRISM
+    ([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15, 0.002, -0.0005, -0.001, 0.0003, 0.0, 0.0],  # + zero tilt
+     [1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15, 0.002, -0.0005, -0.001, 0.0003]),
+])
+def test_rig_lens_models_round_trip(tmp_path, dist, kept):
+    """Camera, second camera and projector take OpenCV's 4-, 5-, 8-, 12- and (zero-tilt)
+    14-coefficient lenses and write them back as given (4 as 5, 14 as 12)."""
+    d = rig_to_dict(default_rig(light_model="perspective"))
+    d["camera"]["dist"] = dist
+    d["camera2"] = {**d["camera"], "t": (np.array(d["camera"]["t"]) + [60.0, 0, 0]).tolist()}
+    d["light"]["dist"] = dist
+    p = tmp_path / "rig.json"
+    p.write_text(json.dumps(d))
+    rig = load_rig(p)
+    save_rig(tmp_path / "back.json", rig)
+    back = json.loads((tmp_path / "back.json").read_text())
+    for dev in (back["camera"], back["camera2"], back["light"]):
+        assert dev["dist"] == (kept or dist)
+    assert rig_to_dict(load_rig(tmp_path / "back.json")) == back
+
+
+def test_a_five_coefficient_rig_writes_back_as_before():
+    rig = default_rig()
+    d = rig_to_dict(rig)
+    assert d["camera"]["dist"] == [0.02, -0.05, 0.0, 0.0, 0.0]
+    assert rig_to_dict(parse_rig(json.loads(json.dumps(d)))) == d
+
+
 @pytest.mark.parametrize("edit,match", [
     (lambda d: d.update(format="ringscan.rig/9"), "unknown rig format"),
     (lambda d: d["camera"].update(K=[[0, 0, 1], [0, 1, 1], [0, 0, 1]]), "camera.K: singular"),
@@ -54,7 +86,21 @@ def test_rig_round_trip(tmp_path):
     (lambda d: d["camera"].update(K=[["2600", 0, 639.5], [0, 2600, 511.5], [0, 0, 1]]),
      "camera.K: expected numbers of shape \\(3, 3\\), got '2600'"),
     (lambda d: d["camera"].update(width="1280"), "camera.width: expected a positive integer, got '1280'"),
-    (lambda d: d["camera"].update(dist=["0.02", 0, 0, 0, 0]), "camera.dist: expected 4 or 5 finite"),
+    (lambda d: d["camera"].update(dist=["0.02", 0, 0, 0, 0]), "camera.dist: expected 4, 5, 8 or 12 finite"),
+    # OpenCV writes 4, 5, 8, 12 or 14 coefficients: any other count is a broken file
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, 0.1]), "camera.dist: expected 4, 5, 8 or 12 finite"),
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, 0.1, 0]), "camera.dist: expected 4, 5, 8 or 12 finite"),
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, 0.1, 0, 0, 1e-3]),
+     "camera.dist: expected 4, 5, 8 or 12 finite"),
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, float("nan"), 0, 0]),
+     "camera.dist: expected 4, 5, 8 or 12 finite"),
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, 0.1, 0, 0, 0, 0, 0, 0, 0.001, 0]),
+     "camera.dist: tilted-sensor model \\(taux, tauy\\) not supported"),
+    (lambda d: d.update(camera2={**d["camera"], "t": [50.0, 0.0, 400.0],
+                                 "dist": [0.02, 0, 0, 0, 0, 0.1, 0, 0, 0, 0, 0, 0, 0, -0.002]}),
+     "camera2.dist: tilted-sensor model"),
+    (lambda d: d["camera"].update(dist=[0.02, 0, 0, 0, 0, 0.1, 0, 0, 0, 0, 0, 2e3]),
+     "camera.dist: 2000 is outside the sane range"),
     (lambda d: d["camera"].update(dist=[1e6, 0, 0, 0, 0]), "camera.dist: 1e\\+06 is outside the sane range"),
     (lambda d: d["camera"].update(response={"gamma": 1e300}), "camera.response.gamma: 1e\\+300 is outside"),
     (lambda d: d["light"].update(pixel_pitch_mm="0.15"), "light.pixel_pitch_mm: expected a number, got '0.15'"),

@@ -95,6 +95,13 @@ BROKEN_RIGS = {
     "K focal 0.5": _set(["camera", "K"], [[0.5, 0, 639.5], [0, 2600, 511.5], [0, 0, 1]]),
     "dist 3 values": _set(["camera", "dist"], [0.1, 0.2, 0.3]),
     "dist huge": _set(["camera", "dist"], [1e4, 0, 0, 0, 0]),
+    "dist 6 values": _set(["camera", "dist"], [0.1, 0, 0, 0, 0, 0.2]),
+    "dist 9 values": _set(["camera", "dist"], [0.1, 0, 0, 0, 0, 0.2, 0, 0, 0.001]),
+    "dist tilted sensor": _set(["camera", "dist"], [0.1, 0, 0, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0.01, 0]),
+    "light dist 7 values": _set(["light"], {"model": "perspective", "width": 1024, "height": 768,
+                                            "K": [[3800, 0, 511.5], [0, 3800, 383.5], [0, 0, 1]],
+                                            "dist": [0.1, 0, 0, 0, 0, 0.2, 0],
+                                            "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 600]}),
     "t 2 values": _set(["camera", "t"], [1, 2]),
     "t too far": _set(["camera", "t"], [0, 0, 1e6]),
     "R a string": _set(["camera", "R"], "identity"),
@@ -137,6 +144,12 @@ def test_what_the_loader_takes_the_schema_takes():
     d["comment"] = "kept"  # unknown keys are accepted
     parse_rig(d)
     assert _errors(RIG, d) == []
+    # OpenCV's rational (8) and thin-prism (12) models; 14 with a zero tilt
+    for dist in ([0.1, 0.01, 0, 0, 0, 0.2, 0, 0], [0.1, 0.01, 0, 0, 0, 0.2, 0, 0, 1e-3, 0, 0, 1e-4],
+                 [0.1, 0.01, 0, 0, 0, 0.2, 0, 0, 1e-3, 0, 0, 1e-4, 0, 0]):
+        d["camera"]["dist"] = dist
+        parse_rig(d)
+        assert _errors(RIG, d) == [], len(dist)
 
 
 # ----------------------------------------------------------------------------- scan.json

@@ -1,0 +1,86 @@
+"""pipeline.calibrate.importer: OpenCV calibration files with the rational and thin-prism lens
+models (8, 12 and zero-tilt 14 coefficients) are read as given; a tilted sensor and other counts
+are refused naming the file and the key."""
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.calibrate.errors import CalibrationError
+from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration, stereo_rig
+from ringscan.pipeline.calibrate.procam import procam_rig
+from ringscan.pipeline.formats.rig import parse_rig, rig_to_dict
+from ringscan.pipeline.geometry import camera_pixels
+
+RATIONAL = np.array([1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15])
+PRISM = np.r_[RATIONAL, 0.002, -0.0005, -0.001, 0.0003]
+CAM_K = np.array([[900.0, 0, 319.5], [0, 900.0, 255.5], [0, 0, 1]])
+PROJ_K = np.array([[1500.0, 0, 511.5], [0, 1500.0, 383.5], [0, 0, 1]])
+R = cv2.Rodrigues(np.array([0.0, 0.2, 0.0]))[0]
+T = np.array([-120.0, 0.0, 10.0])
+
+
+def _procam_xml(path, cam_dist, proj_dist):
+    """A camera-projector calibration as OpenCV's FileStorage writes it (XML)."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("cam_int", CAM_K)
+    fs.write("cam_dist", np.asarray(cam_dist, np.float64).reshape(1, -1))
+    fs.write("proj_int", PROJ_K)
+    fs.write("proj_dist", np.asarray(proj_dist, np.float64).reshape(1, -1))
+    fs.write("rotation", R)
+    fs.write("translation", T.reshape(3, 1))
+    fs.release()
+
+
+def test_a_rational_procam_calibration_is_read_as_given(tmp_path):
+    """8 coefficients for the camera, 12 for the projector: read as OpenCV wrote them, kept by the rig
+    (and its file), and the rig's camera projects as cv2.projectPoints with the file's 8 does."""
+    p = tmp_path / "calibration_result.xml"
+    _procam_xml(p, RATIONAL, PRISM)
+    d = read_opencv_calibration(p)
+    np.testing.assert_array_equal(d["cam_dist"], RATIONAL)
+    np.testing.assert_array_equal(d["proj_dist"], PRISM)
+    rig = procam_rig(cam_K=d["cam_K"], cam_dist=d["cam_dist"], cam_size=(640, 512), proj_K=d["proj_K"],
+                     proj_dist=d["proj_dist"], proj_size=(1024, 768), R=d["R"], T=d["T"], z_range=(300.0, 600.0))
+    np.testing.assert_array_equal(rig.camera.dist, RATIONAL)
+    np.testing.assert_array_equal(rig.light.dist, PRISM)
+    back = parse_rig(rig_to_dict(rig))
+    np.testing.assert_array_equal(back.camera.dist, RATIONAL)
+    X = np.random.default_rng(0).uniform([-60, -60, 0], [60, 60, 200], (100, 3))
+    Xc = X @ rig.camera.R.T + rig.camera.t
+    ref = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), CAM_K, RATIONAL)[0].reshape(-1, 2)
+    five = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), CAM_K, RATIONAL[:5])[0].reshape(-1, 2)
+    assert np.abs(camera_pixels(back, X) - ref).max() < 1e-9
+    assert np.abs(five - ref).max() > 1.0  # dropping k4..k6 would be far off
+
+
+def test_a_stereo_calibration_with_14_coefficients_and_no_tilt_reads_as_12(tmp_path):
+    p = tmp_path / "calibrationParameters.yml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("cam1_intrinsics", CAM_K)
+    fs.write("cam1_distorsion", RATIONAL.reshape(1, 8))
+    fs.write("cam2_intrinsics", CAM_K)
+    fs.write("cam2_distorsion", np.r_[PRISM, 0.0, 0.0].reshape(1, 14))
+    fs.write("R", R)
+    fs.write("T", T.reshape(3, 1))
+    fs.release()
+    cal = read_stereo_calibration(p)
+    np.testing.assert_array_equal(cal["cam1_dist"], RATIONAL)
+    np.testing.assert_array_equal(cal["cam2_dist"], PRISM)
+    cal["cam1_size"] = cal["cam2_size"] = (640, 512)
+    rig = stereo_rig(cal, projector=(1024, 768), z_range=(300.0, 600.0))
+    np.testing.assert_array_equal(rig.camera.dist, RATIONAL)
+    np.testing.assert_array_equal(rig.camera2.dist, PRISM)
+
+
+@pytest.mark.parametrize("cam_dist,match", [
+    (np.r_[PRISM, 0.001, 0.0], r"cam_dist: tilted-sensor model \(taux, tauy\) not supported"),
+    (np.r_[RATIONAL[:5], 0.1], r"cam_dist: expected 4, 5, 8 or 12 finite distortion coefficients"),
+    (np.r_[RATIONAL[:7], np.nan], r"cam_dist: expected 4, 5, 8 or 12 finite distortion coefficients"),
+])
+def test_other_lens_models_are_refused_naming_the_file_and_key(tmp_path, cam_dist, match):
+    p = tmp_path / "calibration_result.xml"
+    _procam_xml(p, cam_dist, RATIONAL)
+    with pytest.raises(CalibrationError, match=match) as e:
+        read_opencv_calibration(p)
+    assert str(p) in str(e.value) and "\n" not in str(e.value)
