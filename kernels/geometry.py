@@ -73,6 +73,8 @@ class CameraModel:
 
     ``rational`` / ``prism`` are 1 where any of k4..k6 / s1..s4 is nonzero (set on
     the host): 0 keeps the 5-coefficient arithmetic exactly as it always was.
+    ``lens`` is 1 where any coefficient is nonzero (set on the host: one test where
+    every sample would otherwise compare twelve of them).
     ``r2_max`` is the squared normalised radius x^2 + y^2 up to which the radial
     distortion r R(r^2) grows with r (1e30 where it always does): beyond it the
     model folds back, and a point there lands on a pixel that a point inside also
@@ -102,6 +104,7 @@ class CameraModel:
     s4: float
     rational: int
     prism: int
+    lens: int
     R: wp.mat33
     t: wp.vec3
     center: wp.vec3
@@ -115,10 +118,12 @@ class LightModel:
     """A parallel light (model 0) or a perspective projector (model 1).
 
     Parallel: X_L = R X_w + t; pixel (u_p, v_p) lights x_L = s (u_p - a_u),
-    y_L = s (v_p - a_v). Perspective: an inverse camera in ``cam``.
+    y_L = s (v_p - a_v). Perspective: an inverse camera in ``cam``. ``distorted``
+    is 1 for a perspective light whose lens distorts (set on the host).
     """
 
     model: int
+    distorted: int
     R: wp.mat33
     t: wp.vec3
     s: float
@@ -214,7 +219,7 @@ def has_tangential(cam: CameraModel):
 
 @wp.func
 def has_lens_distortion(cam: CameraModel):
-    return cam.k1 != 0.0 or cam.k2 != 0.0 or cam.k3 != 0.0 or has_tangential(cam) or is_full_model(cam)
+    return cam.lens != 0
 
 
 @wp.func
@@ -416,10 +421,7 @@ def ring_terms(light: LightModel, P: wp.vec3d, center: wp.vec2d):
 
 @wp.func
 def has_distortion(light: LightModel):
-    c = light.cam
-    return light.model != LIGHT_PARALLEL and (
-        c.k1 != 0.0 or c.k2 != 0.0 or c.k3 != 0.0 or c.p1 != 0.0 or c.p2 != 0.0 or is_full_model(c)
-    )
+    return light.distorted != 0
 
 
 @wp.func
@@ -725,6 +727,7 @@ def make_camera(K, dist, R, t) -> CameraModel:
     # flags from the float32 values the kernels see: 0 keeps the 5-coefficient arithmetic
     c.rational = int(np.any(d[5:8].astype(np.float32) != 0))
     c.prism = int(np.any(d[8:12].astype(np.float32) != 0))
+    c.lens = int(np.any(d.astype(np.float32) != 0))
     c.R = wp.mat33(*R.ravel().tolist())
     c.t = wp.vec3(*t.tolist())
     c.center = wp.vec3(*(-R.T @ t).tolist())
@@ -743,6 +746,7 @@ def make_parallel_light(R, t, pixel_pitch_mm: float, axis_px) -> LightModel:
     li.s = float(pixel_pitch_mm)
     li.a = wp.vec2(*np.asarray(axis_px, float).ravel().tolist())
     li.cam = make_camera(np.eye(3), None, np.eye(3), np.zeros(3))
+    li.distorted = 0
     return li
 
 
@@ -755,6 +759,7 @@ def make_perspective_light(K, dist, R, t) -> LightModel:
     li.s = 1.0
     li.a = wp.vec2(0.0, 0.0)
     li.cam = make_camera(K, dist, R, t)
+    li.distorted = li.cam.lens
     return li
 
 

@@ -823,6 +823,7 @@ def triangulate_rays(
         # an unused struct: the kernel reads no field of it
         from_cam = LightModel()
         from_cam.model = 1
+        from_cam.distorted = 0
         from_cam.cam = camera1
         from_cam.R = wp.mat33(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
         light = from_cam
