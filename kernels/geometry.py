@@ -673,13 +673,11 @@ def fold_free_radius2(dist) -> float:
     coefficients' absolute values, which makes the bound decrease with s, so
     where it holds at s it holds on the whole disc (bisection finds the largest
     such s). ``R2_UNBOUNDED`` for a lens without distortion; 0 where even the
-    axis has no margin, and for a lens with rational (k4..k6) or thin-prism
-    (s1..s4) terms, which this bound does not cover (their checks always run)."""
+    axis has no margin. A lens with rational (k4..k6) or thin-prism (s1..s4) terms:
+    :func:`_fold_free_radius2_full`."""
     full = lens_coefficients(dist)
     if np.any(full[5:] != 0):
-        # rational or thin-prism lens: the bound below is for the polynomial
-        # alone, so no radius is proven and the full checks always run
-        return 0.0
+        return _fold_free_radius2_full(full)
     k1, k2, p1, p2, k3 = (abs(float(v)) for v in full[:5])
     if not np.all(np.isfinite([k1, k2, p1, p2, k3])):
         return 0.0
@@ -708,6 +706,73 @@ def fold_free_radius2(dist) -> float:
         lo, hi = (mid, hi) if bound(mid) >= need else (lo, mid)
     # The radial-only test also compares with r2_max: stay clear of it in float32 too.
     return float(min(lo, 0.99 * monotonic_radius2(dist)))
+
+
+def _extremes(num, den, s: float) -> tuple[float, float]:
+    """(min, max) of the rational function num / den (numpy Polynomials, den > 0
+    on [0, s]) over t in [0, s]: at the ends or where its derivative vanishes."""
+    crit = (num.deriv() * den - num * den.deriv()).trim()
+    ts = [0.0, s]
+    if crit.degree() >= 1 and np.any(crit.coef != 0):
+        roots = crit.roots()
+        ts += [float(t.real) for t in roots if abs(t.imag) <= 1e-9 * max(1.0, abs(t.real)) and 0.0 < t.real < s]
+    vals = [float(num(t) / den(t)) for t in ts]
+    return min(vals), max(vals)
+
+
+def _fold_free_radius2_full(full) -> float:
+    """:func:`fold_free_radius2` for a lens with rational (k4..k6) or thin-prism
+    (s1..s4) terms (``full``: the 12 coefficients).
+
+    The radial map x R(t), t = r^2, R = N / D, has Jacobian determinant R M with
+    M = R + 2 t R'. Over the disc t <= s its least value is at least
+    min R * min M (both > 0), the extremes of these rational functions of t taken
+    exactly on [0, s] (at the ends or at roots of their derivatives' numerators:
+    cancelling terms, as in a fitted wide-angle lens, are accounted for). The
+    tangential and thin-prism terms add E with |E_ij| <= e = (6 P + Q) r, P =
+    |(p1, p2)|, Q = 2 max(|s1| + 2 |s2| t, |s3| + 2 |s4| t); with A_max = max |R| +
+    2 s max |R'| and C = s max |R'|, the determinant is at least
+    min R min M - 2 e A_max - 2 e C - 2 e^2. Every term is monotonic in s, so
+    bisection finds the largest s where it is >= 2 ``LENS_MIN_DET``, searched
+    inside 0.99 of the monotonic radius and of the pole.
+    """
+    full = np.asarray(full, float)
+    if not np.all(np.isfinite(full)):
+        return 0.0
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = full[:12]
+    P = float(np.hypot(p1, p2))
+    Poly = np.polynomial.Polynomial
+    N, D, t = Poly([1.0, k1, k2, k3]), Poly([1.0, k4, k5, k6]), Poly([0.0, 1.0])
+    dR_num, dR_den = N.deriv() * D - N * D.deriv(), D * D  # R' = dR_num / dR_den
+    M_num = N * D + 2.0 * t * dR_num  # M = M_num / D^2
+    limit = 0.99 * min(monotonic_radius2(full), pole_radius2(full))  # clear of the fold and the pole
+    need = 2.0 * float(LENS_MIN_DET)
+
+    def bound(s):
+        if s > limit:
+            return -1.0
+        r_lo, r_hi = _extremes(N, D, s)
+        m_lo, _ = _extremes(M_num, dR_den, s)
+        dr_lo, dr_hi = _extremes(dR_num, dR_den, s)
+        if r_lo <= 0.0 or m_lo <= 0.0:
+            return -1.0
+        d_abs = max(abs(dr_lo), abs(dr_hi))
+        r = np.sqrt(s)
+        Q = 2.0 * max(abs(s1) + 2.0 * abs(s2) * s, abs(s3) + 2.0 * abs(s4) * s)
+        e = (6.0 * P + Q) * r
+        a_max = max(abs(r_lo), abs(r_hi)) + 2.0 * s * d_abs
+        return r_lo * m_lo - 2.0 * e * a_max - 2.0 * e * s * d_abs - 2.0 * e * e
+
+    if not bound(0.0) >= need:
+        return 0.0
+    cap = min(1.0e6, limit)
+    if bound(cap) >= need:
+        return float(cap)
+    lo, hi = 0.0, cap
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if bound(mid) >= need else (lo, mid)
+    return float(lo)
 
 
 def make_camera(K, dist, R, t) -> CameraModel:
