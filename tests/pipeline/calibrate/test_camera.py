@@ -11,6 +11,7 @@ import pytest
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, distinct_views, lens_problems
 from ringscan.pipeline.calibrate.errors import CalibrationError
+from tests.pipeline.calibrate.synthetic import point_toward
 
 BOARD = Board(9, 7, 30.0)
 SIZE = (1280, 1024)
@@ -77,15 +78,8 @@ WIDE_DIST = np.array([1.0, 0.3, 0.0005, -0.0003, 0.01, 1.4, 0.6, 0.05])
 (the standard fit leaves 1.8 px RMS against 0.05 px of corner noise)."""
 
 
-def toward(px, z, K=WIDE_K, dist=WIDE_DIST):
-    """The camera-frame point at depth z that the lens shows at pixel px (bisection along its ray)."""
-    d = (np.asarray(px, float) - K[:2, 2]) / K[0, 0]
-    lo, hi = 0.0, 10.0
-    for _ in range(60):
-        m = (lo + hi) / 2
-        p, _ = cv2.projectPoints(np.array([[*(d * m), 1.0]]), np.zeros(3), np.zeros(3), K, dist)
-        lo, hi = (m, hi) if np.linalg.norm(p.ravel() - K[:2, 2]) < np.linalg.norm(d * K[0, 0]) else (lo, m)
-    return np.array([*(d * lo * z), z])
+def toward(px, z):
+    return point_toward(px, z, WIDE_K, WIDE_DIST)
 
 
 def wide_view(name, ax, ay, centre, seed, K=WIDE_K, dist=WIDE_DIST):
