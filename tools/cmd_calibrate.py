@@ -33,6 +33,7 @@ from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
 from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
 from ringscan.pipeline.calibrate.camera import (
+    LENS_MODELS,
     CameraSettings,
     calibrate_camera,
     calibration_report,
@@ -212,7 +213,11 @@ def board_settings_from_args(args) -> BoardSettings:
 
 def camera_settings_from_args(args) -> CameraSettings:
     tri = {"auto": None, "yes": True, "no": False}
-    return CameraSettings(min_views=args.min_views, fix_k3=tri[args.fix_k3], fix_tangential=tri[args.fix_tangential])
+    model = getattr(args, "lens_model", "standard")  # procam has no --lens-model
+    if model != "standard" and args.fix_k3 != "auto":
+        raise UsageError(f"--fix-k3 applies to --lens-model standard only (the {model} model always fits k3)")
+    return CameraSettings(min_views=args.min_views, fix_k3=tri[args.fix_k3], fix_tangential=tri[args.fix_tangential],
+                          lens_model=model)
 
 
 def print_views(views) -> None:
@@ -240,6 +245,10 @@ def add_camera_parser(calsub) -> None:
     p.add_argument("images", nargs="+", metavar="IMAGE", help="board images (8/16-bit PNG/TIFF/JPEG)")
     add_board_options(p)
     add_fit_options(p)
+    p.add_argument("--lens-model", choices=tuple(LENS_MODELS), default="standard",
+                   help="distortion model: standard (k1, k2, p1, p2, k3), rational (+ k4, k5, k6: wide-angle lenses; "
+                        f"needs {CameraSettings.wide_min_views} views and the board in the image's corners) or "
+                        "thin-prism (+ s1..s4 as well); --fix-k3 applies to standard only (default standard)")
     p.add_argument("--out", default=None, metavar="JSON",
                    help="write {'camera': block, 'report': ...} here (the camera block of a rig file)")
     p.add_argument("--rig", default=None, metavar="RIG",
@@ -279,6 +288,8 @@ def run_camera(args) -> int:
     with progress_step("fitting the camera", enabled=not args.no_progress):
         cal = calibrate_camera(views, board=board, size=size, settings=cs)
     print_calibration("camera", cal)
+    if cal.lens_model != "standard":
+        print(f"  lens model: {cal.lens_model} ({len(cal.dist)} coefficients)")
     print_duplicates(cal.duplicates)
     problems = list(cal.problems)
     if rig_size is not None and size != rig_size:

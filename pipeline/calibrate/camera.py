@@ -6,6 +6,15 @@ while the reprojection error hardly moves. :class:`CameraSettings` therefore fix
 k3 (and, with very few views, the tangential terms) unless enough views are given;
 the choice is reported (``CameraCalibration.fixed``).
 
+A wide-angle lens may need OpenCV's rational model (``lens_model="rational"``: k1..k6,
+8 coefficients) or its thin-prism model (``"thin-prism"``: + s1..s4, 12). Their
+coefficients trade against each other (numerator against denominator), so their
+standard deviations say little; instead the fit is held against what the views
+must show for such a model (:func:`lens_problems`): enough distinct views, board
+corners reaching out towards every corner of the image (the model extrapolates
+beyond them), and a radial map that still rises at the image's corners (a fitted
+lens that folds back inside the image is wrong there).
+
 A calibration also says what it cannot determine (``CameraCalibration.problems``):
 views that show the same board pose (the same capture given twice, a board that
 did not move) are counted once and left out of the fit, and too few *distinct*
@@ -29,13 +38,19 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 
 __all__ = ["CameraSettings", "CameraCalibration", "calibrate_camera", "calibration_flags", "view_errors",
            "reprojection_residuals", "camera_block", "calibration_report", "distinct_views", "intrinsics_problems",
-           "MIN_VIEWS"]
+           "lens_problems", "MIN_VIEWS", "LENS_MODELS", "DIST_NAMES"]
 
 log = logging.getLogger(__name__)
 
 MIN_VIEWS = 3
 """Fewest distinct board poses any calibration accepts: two poses leave the focal
 length and the principal point trading against each other (Zhang 2000)."""
+
+LENS_MODELS = {"standard": 5, "rational": 8, "thin-prism": 12}
+"""Lens model -> the count of distortion coefficients it fits (OpenCV's order, :data:`DIST_NAMES`)."""
+
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+"""OpenCV's distortion coefficients, in its order."""
 
 
 @dataclass(frozen=True)
@@ -66,9 +81,23 @@ class CameraSettings:
     max_aspect: float = 1.25
     """Largest fy / fx (or fx / fy): cameras and projectors have square pixels to a
     few percent, so a larger ratio is a fit that ran away."""
+    lens_model: str = "standard"
+    """"standard" (k1, k2, p1, p2, k3), "rational" (+ k4, k5, k6: OpenCV's
+    CALIB_RATIONAL_MODEL) or "thin-prism" (+ s1..s4 as well: CALIB_THIN_PRISM_MODEL)."""
+    wide_min_views: int = 8
+    """The rational and thin-prism models need this many distinct views (fewer: a problem)."""
+    min_corner_reach: float = 0.8
+    """Rational and thin-prism models: in each quarter of the image the board's corners
+    must reach this fraction of the way from the principal point to the image's corner
+    (less: a problem; the model's high powers of r extrapolate beyond the corners seen)."""
 
     def __post_init__(self):
-        for name in ("min_views", "k3_min_views", "tangential_min_views"):
+        if self.lens_model not in LENS_MODELS:
+            raise ValueError(f"--lens-model: expected one of {', '.join(LENS_MODELS)}, got {self.lens_model!r}")
+        if self.lens_model != "standard" and self.fix_k3 is not None:
+            raise ValueError(f"--fix-k3 applies to the standard lens model only (the {self.lens_model} model always "
+                             f"fits k3)")
+        for name in ("min_views", "k3_min_views", "tangential_min_views", "wide_min_views"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int):
                 raise ValueError(f"CameraSettings.{name}: expected an integer, got {v!r}")
@@ -81,6 +110,9 @@ class CameraSettings:
                 raise ValueError(f"CameraSettings.{name}: expected a positive number, got {v!r}")
         if not (isinstance(self.max_aspect, (int, float)) and math.isfinite(self.max_aspect) and self.max_aspect > 1):
             raise ValueError(f"CameraSettings.max_aspect: expected a number > 1, got {self.max_aspect!r}")
+        r = self.min_corner_reach
+        if isinstance(r, bool) or not (isinstance(r, (int, float)) and math.isfinite(r) and 0 <= r <= 1):
+            raise ValueError(f"CameraSettings.min_corner_reach: expected a number from 0 to 1, got {r!r}")
 
 
 @dataclass
@@ -90,7 +122,7 @@ class CameraCalibration:
     K: np.ndarray
     """3x3 intrinsics."""
     dist: np.ndarray
-    """(5,) distortion k1, k2, p1, p2, k3."""
+    """(5,), (8,) or (12,) distortion in OpenCV's order (:data:`DIST_NAMES`), by the lens model."""
     rms: float
     """Overall RMS reprojection error (px)."""
     size: tuple[int, int]
@@ -107,8 +139,11 @@ class CameraCalibration:
     """Parameters held fixed (e.g. ['k3'])."""
     outliers: list[str] = field(default_factory=list)
     """Names of views that spoil the fit."""
+    lens_model: str = "standard"
+    """The lens model fitted (:data:`LENS_MODELS`)."""
     std: np.ndarray = field(default_factory=lambda: np.zeros(9))
-    """(9,) standard deviations of fx, fy, cx, cy, k1, k2, p1, p2, k3 from the fit (0 where held fixed)."""
+    """(4 + n,) standard deviations of fx, fy, cx, cy and the n distortion coefficients from the fit (0 where
+    held fixed)."""
     duplicates: list[str] = field(default_factory=list)
     """Views left out as the same board pose as an earlier view ("name = earlier (d px)")."""
     problems: list[str] = field(default_factory=list)
@@ -120,7 +155,12 @@ def calibration_flags(n_views: int, settings: CameraSettings) -> tuple[int, list
     flags, fixed = 0, []
     fix_k3 = settings.fix_k3 if settings.fix_k3 is not None else n_views < settings.k3_min_views
     fix_tan = settings.fix_tangential if settings.fix_tangential is not None else n_views < settings.tangential_min_views
-    if fix_k3:
+    if settings.lens_model != "standard":
+        # the wide models fit k3 with k4..k6 (and s1..s4): --fix-k3 is refused for them
+        flags |= cv2.CALIB_RATIONAL_MODEL
+        if settings.lens_model == "thin-prism":
+            flags |= cv2.CALIB_THIN_PRISM_MODEL
+    elif fix_k3:
         flags |= cv2.CALIB_FIX_K3
         fixed.append("k3")
     if fix_tan:
@@ -216,6 +256,66 @@ def intrinsics_problems(K: np.ndarray, std: np.ndarray, size: tuple[int, int], *
     return out
 
 
+def _radial(dist: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Distorted radius r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6) (normalised units)."""
+    d = np.concatenate([np.asarray(dist, float).ravel(), np.zeros(8)])
+    r2 = r * r
+    num = 1 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+    den = 1 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+    return r * num / den
+
+
+def lens_problems(K: np.ndarray, dist: np.ndarray, img: list[np.ndarray], size: tuple[int, int], *,
+                  settings: CameraSettings, what: str) -> list[str]:
+    """What views cannot determine of a wide (rational, thin-prism) lens model.
+
+    Args:
+        K, dist: the fit.
+        img: the detected corners of each view used, (N_i, 1, 2) px.
+        size: image (width, height).
+
+    Three checks: at least ``settings.wide_min_views`` views; in each quarter of the
+    image (about the principal point) corners reaching ``settings.min_corner_reach``
+    of the way to the image's corner; and a radial map r -> r_d that rises all the way
+    out to the image's farthest corner (tangential and prism terms left out: they are
+    small where the radial map can fold).
+    """
+    out = []
+    n_coef = LENS_MODELS[settings.lens_model]
+    if len(img) < settings.wide_min_views:
+        out.append(f"{what} {settings.lens_model} lens model: {len(img)} distinct views < {settings.wide_min_views}: "
+                   f"too few to determine its {n_coef} distortion coefficients")
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    w, h = size
+    pts = np.concatenate([p.reshape(-1, 2) for p in img]).astype(np.float64) - (cx, cy)
+    short = []
+    for name, (u, v) in (("top-left", (0.0, 0.0)), ("top-right", (w - 1.0, 0.0)), ("bottom-left", (0.0, h - 1.0)),
+                         ("bottom-right", (w - 1.0, h - 1.0))):
+        corner = np.array([u - cx, v - cy])
+        # corners in this quarter: on the image corner's side of the principal point both ways
+        q = pts[(np.sign(pts[:, 0]) == np.sign(corner[0])) & (np.sign(pts[:, 1]) == np.sign(corner[1]))]
+        reach = float(np.max(np.linalg.norm(q, axis=1))) / float(np.linalg.norm(corner)) if len(q) else 0.0
+        if reach < settings.min_corner_reach:
+            short.append(f"{name} {100 * reach:.0f} %")
+    if short:
+        out.append(f"{what} {settings.lens_model} lens model: the board's corners reach only {', '.join(short)} of the "
+                   f"way to the image's corners (< {100 * settings.min_corner_reach:g} %): the model is not determined "
+                   f"there; add views with the board in the image's corners")
+    # the farthest image corner, in normalised distorted units
+    far = max(math.hypot((u - cx) / K[0, 0], (v - cy) / K[1, 1]) for u in (0.0, w - 1.0) for v in (0.0, h - 1.0))
+    r = np.linspace(0.0, 20.0, 20001)[1:]  # out to 87 degrees off axis, in steps of 0.001
+    rd = _radial(dist, r)
+    down = np.flatnonzero(np.diff(rd) <= 0)
+    reached = np.flatnonzero(rd >= far)
+    first_down = int(down[0]) if down.size else None
+    if first_down is not None and (not reached.size or reached[0] > first_down):
+        top = float(rd[first_down])
+        out.append(f"{what} {settings.lens_model} lens model: its radial map turns back {top * K[0, 0]:.0f} px from "
+                   f"the principal point, inside the image (its farthest corner is {far * K[0, 0]:.0f} px away): the "
+                   f"fitted lens folds; the views do not determine it there")
+    return out
+
+
 def calibrate_camera(
     views: list[BoardView],
     *,
@@ -261,23 +361,38 @@ def calibrate_camera(
     img = [v.corners.reshape(-1, 1, 2).astype(np.float32) for v in used]
     flags, fixed = calibration_flags(len(used), settings)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    n = LENS_MODELS[settings.lens_model]
     rms, K, dist, rvecs, tvecs, std_int, _, _ = cv2.calibrateCameraExtended(obj, img, tuple(size), None, None,
                                                                             flags=flags, criteria=crit)
-    std = np.full(9, np.nan)
-    si = np.asarray(std_int, float).ravel()[:9]
+    if n > 5:
+        # OpenCV starts from a distortion-free guess, from which a strong wide-angle lens can
+        # lead it into a local minimum (RMS 0.1-0.5 px for 0.07 px of noise on the tests'
+        # lenses); a second start from the standard model's fit finds the true one where the
+        # first does not, and vice versa: the lower RMS is kept.
+        std_flags = flags & ~(cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL)
+        _, K0, d0, _, _ = cv2.calibrateCamera(obj, img, tuple(size), None, None, flags=std_flags, criteria=crit)
+        d0 = np.concatenate([np.asarray(d0, float).ravel()[:5], np.zeros(n - 5)])
+        second = cv2.calibrateCameraExtended(obj, img, tuple(size), K0, d0, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
+                                             criteria=crit)
+        if np.isfinite(second[0]) and second[0] < rms:
+            rms, K, dist, rvecs, tvecs, std_int = second[:6]
+    std = np.full(4 + n, np.nan)
+    si = np.asarray(std_int, float).ravel()[:4 + n]
     std[:si.size] = si
-    dist = np.asarray(dist, float).ravel()[:5]
-    dist = np.concatenate([dist, np.zeros(5 - dist.size)])
+    dist = np.asarray(dist, float).ravel()[:n]
+    dist = np.concatenate([dist, np.zeros(n - dist.size)])
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist)) and K[0, 0] > 0 and K[1, 1] > 0):
         raise CalibrationError(None, f"{what} calibration diverged (K = {K.tolist()})")
     per = view_errors(obj, img, K, dist, rvecs, tvecs)
     names = [v.name for v in used]
     out = outlier_views(names, per, settings)
     problems = intrinsics_problems(K, std, size, settings=settings, what=what)
+    if settings.lens_model != "standard":
+        problems += lens_problems(K, dist, img, size, settings=settings, what=what)
     log.info("%s: RMS %.3f px over %d views, fx %.1f fy %.1f, fixed %s", what, rms, len(used), K[0, 0], K[1, 1], fixed)
     return CameraCalibration(K=K, dist=dist, rms=float(rms), size=(int(size[0]), int(size[1])), names=names,
                              per_view=per, rvecs=list(rvecs), tvecs=list(tvecs), fixed=fixed, outliers=out,
-                             std=std, duplicates=dups, problems=problems)
+                             std=std, duplicates=dups, problems=problems, lens_model=settings.lens_model)
 
 
 def camera_block(cal: CameraCalibration) -> dict:
@@ -287,9 +402,12 @@ def camera_block(cal: CameraCalibration) -> dict:
 
 def calibration_report(cal: CameraCalibration) -> dict:
     """A JSON-able summary: RMS overall and per view, what was fixed, the outliers."""
-    return {"rms_px": cal.rms, "views": {n: float(e) for n, e in zip(cal.names, cal.per_view)},
-            "fixed": list(cal.fixed), "outliers": list(cal.outliers),
-            "fx": float(cal.K[0, 0]), "fy": float(cal.K[1, 1]), "cx": float(cal.K[0, 2]), "cy": float(cal.K[1, 2]),
-            "dist": cal.dist.tolist(),
-            "std": {k: float(v) for k, v in zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), cal.std)},
-            "duplicates": list(cal.duplicates), "problems": list(cal.problems)}
+    out = {"rms_px": cal.rms, "views": {n: float(e) for n, e in zip(cal.names, cal.per_view)},
+           "fixed": list(cal.fixed), "outliers": list(cal.outliers),
+           "fx": float(cal.K[0, 0]), "fy": float(cal.K[1, 1]), "cx": float(cal.K[0, 2]), "cy": float(cal.K[1, 2]),
+           "dist": cal.dist.tolist(),
+           "std": {k: float(v) for k, v in zip(("fx", "fy", "cx", "cy", *DIST_NAMES), cal.std)},
+           "duplicates": list(cal.duplicates), "problems": list(cal.problems)}
+    if cal.lens_model != "standard":  # the standard model's report is as it was
+        out["lens_model"] = cal.lens_model
+    return out

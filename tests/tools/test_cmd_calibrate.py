@@ -476,3 +476,100 @@ def test_import_frame_bits(tmp_path, capsys, capture_and_rig):
         assert main([*base, str(c12), "--frame-bits", bad, "--out", str(tmp_path / f"bad{bad}")]) == 2
         assert "--frame-bits: expected a whole number" in _err(capsys)
         assert not (tmp_path / f"bad{bad}").exists()
+
+
+# ----------------------------------------------------------------------------- --lens-model (a wide-angle lens)
+
+WIDE_SIZE = (800, 640)
+WIDE_K = np.array([[437.5, 0, 399.5], [0, 437.5, 319.5], [0, 0, 1]])
+WIDE_DIST = np.array([1.0, 0.3, 0, 0, 0.01, 1.4, 0.6, 0.05])
+"""A strong rational lens (k1, k2, p1, p2, k3, k4, k5, k6; radial only, so that it can be rendered): the image's
+corners 55 degrees off axis (tests/pipeline/calibrate/test_camera.py's lens at 800x640)."""
+
+
+@pytest.fixture(scope="module")
+def wide_images(tmp_path_factory):
+    """Twelve ChArUco images rendered through the wide lens: four boards reaching into the image's corners (partly
+    outside it), eight around the middle."""
+    from ringscan.pipeline.calibrate.board import Board, board_points
+    from tests.pipeline.calibrate.synthetic import point_toward, render_charuco
+
+    board = Board(9, 7, 30.0, charuco="DICT_5X5_100")
+    poses = [(-25 * np.sign(v - 320), 25 * np.sign(u - 400), (u, v), 300)
+             for u, v in [(70, 60), (730, 60), (70, 580), (730, 580)]]
+    poses += [(ax, ay, px, 350) for ax, ay, px in [
+        (25, 0, (400, 320)), (0, 25, (400, 320)), (-20, -20, (400, 320)), (15, -15, (190, 320)),
+        (-15, 15, (610, 320)), (10, 10, (400, 155)), (-10, 10, (400, 485)), (20, 20, (400, 320))]]
+    centre = board_points(board).astype(np.float64).mean(0)
+    folder = tmp_path_factory.mktemp("wide")
+    out = []
+    for i, (ax, ay, px, z) in enumerate(poses):
+        R = cv2.Rodrigues(np.array([np.radians(ax), np.radians(ay), 0.0]))[0]
+        t = point_toward(px, z, WIDE_K, WIDE_DIST) - R @ centre
+        img = render_charuco(board, K=WIDE_K, dist=WIDE_DIST, size=WIDE_SIZE, rvec=cv2.Rodrigues(R)[0], tvec=t,
+                             seed=i)
+        cv2.imwrite(str(folder / f"v{i:02d}.png"), img)
+        out.append(str(folder / f"v{i:02d}.png"))
+    return out
+
+
+def test_camera_rational_lens_model_recovers_a_wide_lens(tmp_path, wide_images, capsys):
+    base = ["calibrate", "camera", *wide_images, "--square", "30", "--charuco", "DICT_5X5_100", "--no-progress"]
+    assert main([*base, "--out", str(tmp_path / "standard.json")]) == 0
+    r = default_rig()
+    save_rig(tmp_path / "rig.json", dataclasses.replace(r, camera=dataclasses.replace(r.camera, width=800, height=640)))
+    assert main([*base, "--lens-model", "rational", "--out", str(tmp_path / "rational.json"),
+                 "--rig", str(tmp_path / "rig.json")]) == 0
+    assert "lens model: rational (8 coefficients)" in capsys.readouterr().out
+    std = json.loads((tmp_path / "standard.json").read_text())
+    rat = json.loads((tmp_path / "rational.json").read_text())
+    # the default's outputs are as they were: 5 coefficients, no lens_model key
+    assert len(std["camera"]["dist"]) == 5 and list(std["report"]["std"])[-1] == "k3"
+    assert "lens_model" not in std["report"]
+    assert len(rat["camera"]["dist"]) == 8 and rat["report"]["lens_model"] == "rational"
+    assert rat["report"]["problems"] == [] and list(rat["report"]["std"])[-1] == "k6"
+    # The rendered corners are found to ~0.1 px (ChArUco's sub-pixel corners against the true
+    # projection): the rational fit is at that floor, the standard one 5x above it.
+    assert rat["report"]["rms_px"] < 0.12 and std["report"]["rms_px"] > 4 * rat["report"]["rms_px"]
+    # the rig file holds the 8 coefficients, as fitted
+    cam = load_rig(tmp_path / "rig.json").camera
+    np.testing.assert_allclose(cam.dist, rat["camera"]["dist"], rtol=0, atol=0)
+    # Rays all across the image land where the true lens puts them, to within three of the fit's
+    # own standard deviations of the principal point and (times the ray's normalised radius, up to
+    # 2.9 here) the focal length: 0.8 px at the centre, 2.9 px at the image's corners, where this
+    # fit is 2.3 px off (its corner views hold 26-35 corners each, found to ~0.1 px).
+    g = np.stack(np.meshgrid(np.linspace(-3, 3, 121), np.linspace(-3, 3, 121)), -1).reshape(-1, 2)
+    rays = np.c_[g, np.ones(len(g))]
+    true = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), WIDE_K, WIDE_DIST)[0].reshape(-1, 2)
+    inside = np.all((true >= 0) & (true <= np.array(WIDE_SIZE) - 1), 1)
+    s = rat["report"]["std"]
+    for block, limit in ((rat["camera"], 3 * (np.hypot(s["cx"], s["cy"]) + s["fx"] * np.hypot(*g[inside].T))),
+                         (std["camera"], None)):
+        fit = cv2.projectPoints(rays[inside], np.zeros(3), np.zeros(3), np.array(block["K"]),
+                                np.array(block["dist"]))[0].reshape(-1, 2)
+        err = np.linalg.norm(fit - true[inside], axis=1)
+        if limit is not None:
+            assert np.all(err <= limit) and err.max() < 3.0, (err.max(), limit.min())
+        else:
+            assert err.max() > 20  # the standard model cannot follow the lens into the corners
+
+
+def test_camera_lens_model_bad_combinations_are_refused(tmp_path, wide_images, capsys):
+    out = tmp_path / "cam.json"
+    base = ["calibrate", "camera", *wide_images[:3], "--square", "30", "--charuco", "DICT_5X5_100", "--out", str(out)]
+    for model in ("rational", "thin-prism"):
+        for fix in ("yes", "no"):
+            assert main([*base, "--lens-model", model, "--fix-k3", fix]) == 2
+            assert _err(capsys) == (f"ringscan calibrate camera: error: --fix-k3 applies to --lens-model standard "
+                                    f"only (the {model} model always fits k3) (see `ringscan calibrate camera "
+                                    f"--help`)")
+    with pytest.raises(SystemExit) as e:  # argparse's own refusal of a choice
+        main([*base, "--lens-model", "fisheye"])
+    assert e.value.code == 2
+    assert "argument --lens-model: invalid choice: 'fisheye'" in capsys.readouterr().err.strip().splitlines()[-1]
+    # three views and the board nowhere near the image's corners: refused, one line, nothing written
+    assert main([*base, "--lens-model", "rational"]) == 1
+    err = _err(capsys)
+    assert "3 distinct views < 8: too few to determine its 8 distortion coefficients" in err
+    assert "--force writes it anyway" in err
+    assert not out.exists()
