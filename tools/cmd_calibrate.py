@@ -81,7 +81,7 @@ from ringscan.pipeline.calibrate.turntable import (
 )
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file, read_json
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.images import FEW_BITS_MAX, read_image
+from ringscan.pipeline.formats.images import few_bits_hint, read_image
 from ringscan.pipeline.formats.progress import progress_bar, progress_step
 from ringscan.pipeline.formats.rig import PerspectiveLight, load_rig, parse_rig, save_rig
 from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
@@ -440,16 +440,17 @@ def run_response(args) -> int:
             raise FormatError(f, "frame differs in size or bit depth from the first frame")
         if args.frame_bits is not None:
             expand_capture_frame(Path(f), im, args.frame_bits)
-    problems = [f"{args.frames[j]} is the same image as {args.frames[i]}, but --levels gives "
-                f"{args.levels[i]:g} and {args.levels[j]:g}" for i, j in repeated_frames(np.stack(imgs), args.levels)]
     stack = np.stack(imgs)
+    problems = [f"{args.frames[j]} is the same image as {args.frames[i]}, but --levels gives "
+                f"{args.levels[i]:g} and {args.levels[j]:g}" for i, j in repeated_frames(stack, args.levels)]
     try:
         gamma, curve = estimate_light_gamma(stack, np.asarray(args.levels) / 255.0, camera_gamma=rig.camera.gamma)
     except CalibrationError as e:
-        brightest = int(stack.max()) if stack.size else 0
-        if stack.dtype == np.uint16 and args.frame_bits is None and brightest < FEW_BITS_MAX:
-            raise CalibrationError(e.path, f"{e.message}; 16-bit frames whose brightest value is {brightest}: a 10- "
-                                           "or 12-bit camera's frames? give their bits (--frame-bits)") from None
+        hint = ""
+        if stack.dtype == np.uint16 and args.frame_bits is None and stack.size:
+            hint = few_bits_hint(int(stack.max()), "give their bits (--frame-bits)")
+        if hint:
+            raise CalibrationError(e.path, e.message + hint) from None
         raise
     print(f"light gamma {gamma:.3f} (camera gamma {rig.camera.gamma:g} undone first)")
     for x, y in curve.items():

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.formats.images import FEW_BITS_MAX, FRAME_BITS_RANGE, expand_frame_bits, read_image
+from ringscan.pipeline.formats.images import FRAME_BITS_RANGE, expand_frame_bits, few_bits_hint, read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "CAPTURE_INPUTS", "expand_capture_frame", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
@@ -475,10 +475,9 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
     try:
         check_layout(cap, layout)
     except CalibrationError as e:
-        if 0 <= brightest < FEW_BITS_MAX and "no projector light" in e.message:
-            raise CalibrationError(e.path, f"{e.message}; 16-bit frames whose brightest value is {brightest}: a 10- "
-                                           f"or 12-bit camera's frames? give their bits (ringscan import "
-                                           f"--frame-bits, docs/calibration.md)") from None
+        hint = few_bits_hint(brightest, "give their bits (ringscan import --frame-bits, docs/calibration.md)")
+        if hint and "no projector light" in e.message:
+            raise CalibrationError(e.path, e.message + hint) from None
         raise
     return cap
 

@@ -19,7 +19,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.formats.images import FEW_BITS_MAX
+from ringscan.pipeline.formats.images import few_bits_hint
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
@@ -145,10 +145,9 @@ def frame_bits_hint(brightest: int, dtype, frame_bits: int | None) -> str:
     """``"; <hint>"`` where 16-bit frames of a scan without ``frame_bits`` are so dark
     that they may hold a 10- to 14-bit camera's values (``brightest``: the brightest
     value of the view's brightest frame), else ``""``."""
-    if np.dtype(dtype) != np.uint16 or frame_bits is not None or brightest >= FEW_BITS_MAX:
+    if np.dtype(dtype) != np.uint16 or frame_bits is not None:
         return ""
-    return (f"; 16-bit frames whose brightest value is {brightest}: a 10- or 12-bit camera's frames? set "
-            f"frame_bits in scan.json (docs/formats.md)")
+    return few_bits_hint(brightest, "set frame_bits in scan.json (docs/formats.md)")
 
 
 def describe_lighting(lo_mean: float, hi_mean: float, full: float) -> str:

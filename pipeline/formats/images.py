@@ -15,13 +15,22 @@ from ringscan.pipeline.formats.limits import check_image_header
 log = logging.getLogger(__name__)
 
 __all__ = ["read_image", "write_image", "png_params", "tiff_params", "expand_frame_bits", "FRAME_BITS_RANGE",
-           "FEW_BITS_MAX"]
+           "FEW_BITS_MAX", "few_bits_hint"]
 
 FRAME_BITS_RANGE = (9, 16)
 """Significant bits a 16-bit frame may hold (``frame_bits`` of scan.json; an 8-bit frame holds 8)."""
 FEW_BITS_MAX = 1 << 14
 """16-bit frames whose brightest value is below this (a quarter of the range) may be a 10- to
 14-bit camera's, LSB-aligned: a message about frames without contrast says so."""
+
+
+def few_bits_hint(brightest: int, advice: str) -> str:
+    """``"; <hint>"`` for a no-contrast message about 16-bit frames whose brightest value
+    (``brightest``) is below :data:`FEW_BITS_MAX`, ending with ``advice`` (what to give:
+    scan.json's frame_bits, a command's --frame-bits); ``""`` for brighter frames."""
+    if not 0 <= brightest < FEW_BITS_MAX:
+        return ""
+    return f"; 16-bit frames whose brightest value is {brightest}: a 10- or 12-bit camera's frames? {advice}"
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
