@@ -66,6 +66,12 @@ class Block:
     cwd: str = "work"
     """``work`` (the scratch folder), ``copy`` (a copy of the source tree: the install block) or ``repo``
     (the repository itself: the make block)."""
+    quotes: tuple = ()
+    """Figures the doc quotes from this block's output: templates with ``{}`` where a number stands
+    (``tests/support/printed.py``); each printed figure must agree with the doc's within ``quote_rtol``
+    of its value plus half a unit of the doc's last decimal."""
+    quote_rtol: float = 0.0
+    """How far a quoted figure may move from machine to machine, relative (the reason in the entry)."""
 
 
 BLOCKS = [
@@ -103,8 +109,13 @@ BLOCKS = [
     Block("docs/calibration.md", "ringscan calibrate pose board_on_plane.png", "no",
           "needs your rig: photos of a board (shots/, board_on_plane.png) and captures of the bare plane and a "
           "plate (cal/z0, cal/z40); the next block does the same on the virtual rig and runs in the suite"),
-    Block("docs/calibration.md", "ringscan simulate --scene plate:40 --out cal/z40", "suite",
-          "tests/tools/test_docs_commands.py::test_calibration_md_plane_scans_run_as_written"),
+    Block("docs/calibration.md", "ringscan simulate --scene plate:40 --out cal/z40", "script",
+          "~20 s (two full-size 1280x1024 scans and the light's fit); the suite covers the command on small "
+          "scans (tests/tools/test_cmd_calibrate_light.py, tests/pipeline/calibrate/test_light.py). The fit the "
+          "page quotes is checked here: the virtual rig's float32 renders may move its last digits on another "
+          "CPU (1e-3 of a value at most)",
+          quotes=("parallel light: pitch {} mm/px, axis pixel ({}, {}), tilt {} deg from z, roll {} deg; "
+                  "ring RMS {} px",), quote_rtol=1e-3),
     Block("docs/calibration.md", "ringscan calibrate turntable scans/board", "no",
           "needs your rig: a scan folder or photos of a board on the table (scans/board, tt/*.png); the next "
           "block does the same on the virtual rig"),
@@ -277,6 +288,17 @@ def run_block(block: Block, lang: str, text: str, work: Path, *, env: dict | Non
     return run_bash(text, work, env=env, timeout=timeout)
 
 
+def check_quotes(block: Block, output: str) -> None:
+    """The figures the doc quotes from this block are the ones it printed (AssertionError naming one that
+    is not)."""
+    sys.path.insert(0, str(ROOT))
+    from tests.support.printed import assert_figures_as_quoted
+
+    doc = (ROOT / block.doc).read_text()  # a quote may wrap: the templates match any run of whitespace
+    for template in block.quotes:
+        assert_figures_as_quoted(output, doc, template, rtol=block.quote_rtol, why=block.reason)
+
+
 def _source_copy(dest: Path) -> Path:
     """The tracked files of the repository (what a user gets in a release archive)."""
     files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
@@ -327,6 +349,11 @@ def main(argv: list[str] | None = None) -> int:
             t = time.perf_counter()
             r = run_block(block, lang, text, work, env=env)
             dt = time.perf_counter() - t
+            if r.returncode == 0 and block.quotes:
+                try:
+                    check_quotes(block, r.stdout)
+                except AssertionError as e:
+                    r = subprocess.CompletedProcess(r.args, 1, r.stdout, f"{r.stderr}\nthe doc's figures: {e}")
             if r.returncode == 0:
                 print(f"{name}: ran in {dt:.1f} s ({block.where})")
             else:

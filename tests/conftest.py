@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import pytest
 
 from ringscan.kernels import init_warp
 
+from tests.support.shared_data import SHARED_DATA, need_shared  # noqa: F401  (SHARED_DATA: for the test modules)
+
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("RINGSCAN_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 def _devices() -> list:
@@ -43,18 +43,43 @@ def device(request) -> str:
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """../shared/data (models, procam captures); tests skip with a reason when absent."""
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared data not found at {SHARED_DATA} (set RINGSCAN_SHARED_DATA)")
-    return SHARED_DATA
+    """../shared/data (models, procam captures): fails in CI when absent, skips elsewhere
+    (tests/support/shared_data.py)."""
+    return need_shared(SHARED_DATA)
 
 
 @pytest.fixture(scope="session")
 def model_path(shared_data) -> callable:
     def get(name: str) -> Path:
-        p = shared_data / "models" / name
-        if not p.is_file():
-            pytest.skip(f"model {name} not found in {shared_data / 'models'}")
-        return p
+        return need_shared(shared_data / "models" / name, f"model {name}")
 
     return get
+
+
+# ----------------------------------------------------------------------------- where the suite's time goes
+
+_SUITE = {"start": None, "tests": {}}
+
+
+def pytest_sessionstart(session):
+    import time
+
+    _SUITE["start"] = time.perf_counter()
+
+
+def pytest_runtest_logreport(report):
+    """Setup, call and teardown of each test, added up (on the controller too under pytest-xdist)."""
+    _SUITE["tests"][report.nodeid] = _SUITE["tests"].get(report.nodeid, 0.0) + report.duration
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line at the end: pytest's own time and the five slowest tests, so the next person sees
+    where the suite's time goes (the bar: 300 s on a 2-core machine)."""
+    import time
+
+    if _SUITE["start"] is None or not _SUITE["tests"]:
+        return
+    wall = time.perf_counter() - _SUITE["start"]
+    slow = sorted(_SUITE["tests"].items(), key=lambda kv: -kv[1])[:5]
+    terminalreporter.write_line(f"suite time: pytest {wall:.0f} s, tests {sum(_SUITE['tests'].values()):.0f} s; "
+                                "slowest: " + ", ".join(f"{k} {v:.1f} s" for k, v in slow))

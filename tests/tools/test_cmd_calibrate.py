@@ -15,20 +15,20 @@ from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig
 from ringscan.tools.cli import main
 from tests.pipeline.calibrate.synthetic import write_capture
 from tests.support.printed import assert_figures_as_quoted, printed_figure
+from tests.support.shared_data import need_shared
 
 ROOT = Path(__file__).resolve().parents[2]
-OPENCV_RTOL = 1e-4
-"""How far OpenCV's fits of the same corners move a figure from machine to machine (its threads and
-the BLAS): well under 1e-4 of a value (the rigs compare at that below), far under the fits' own
-standard deviations (fx +- several px)."""
+OPENCV_RTOL = 1e-3
+"""How far OpenCV's fits of the same corners may move a figure from machine to machine (its threads and
+the BLAS): ~1e-4 of a value seen (the projector's fy 1876.6 on one machine, 1876.7 on another; cx 457.4
+and 457.5), with room to spare, and still well under the fits' own uncertainty (a principal point from
+three board poses is known to a few px, not tenths)."""
 
 
 @pytest.fixture(scope="module")
 def procam(shared_data):
-    d = shared_data / "procam"
-    if not (d / "capture_1").is_dir():
-        pytest.skip(f"procam captures not found in {d}")
-    return d
+    need_shared(shared_data / "procam" / "capture_1", "procam captures")
+    return shared_data / "procam"
 
 
 def test_camera_without_a_board_exits_1_and_writes_nothing(tmp_path, procam, capsys):

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from ringscan.tools.cli import COMMANDS, _command_of, build_parser, main
+from tests.support.printed import assert_figures_as_quoted, printed_figure
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -71,23 +72,8 @@ def test_calibration_md_grey_ramp_runs_as_written(tmp_path, monkeypatch, capsys)
     argv = [a for arg in command for a in (sorted(glob.glob(arg)) if "*" in arg else [arg])]  # the shell's glob
     assert main(argv) == 0
     out = capsys.readouterr().out
-    gamma = float(out.split("light gamma ")[1].split()[0])
-    assert abs(gamma - 2.2) < 0.05, out  # the light's gamma, found
-    assert f"light gamma {gamma:.3f}" in section  # the figure the doc quotes is the one it gives
-
-
-@pytest.mark.slow
-def test_calibration_md_plane_scans_run_as_written(tmp_path, monkeypatch, capsys):
-    """docs/calibration.md §6: the virtual rig's plane scans and the light's fit, as written."""
-    text = (ROOT / "docs" / "calibration.md").read_text()
-    section = text[text.index("To try the step without a rig"):text.index("## 7. ")]
-    block = re.search(r"```sh\n(.*?)```", section, re.S).group(1)
-    monkeypatch.chdir(tmp_path)
-    lines = [ln.split(" #")[0].strip() for ln in block.splitlines() if ln.strip()]
-    assert lines[0].startswith('python -c "') and len(lines) == 4
-    exec(lines[0][len('python -c "'):-1], {})
-    for line in lines[1:]:
-        assert main([*shlex.split(line)[1:], "--device", "cpu", "--no-progress"]) == 0, line
-    out = capsys.readouterr().out
-    fit = out[out.index("parallel light:"):].splitlines()[0]
-    assert fit in section.replace("\n", " ")  # the figures the doc quotes are the ones it gives
+    assert abs(printed_figure(out, "light gamma {}") - 2.2) < 0.05, out  # the light's gamma, found
+    # the figure the doc quotes is the one it gives (to 1e-3 of it: the virtual rig's float32 render and the
+    # fit may move the last digits on another CPU)
+    assert_figures_as_quoted(out, section, "light gamma {} (camera gamma", rtol=1e-3,
+                             why="the virtual rig's float32 render and the fit on another CPU")

@@ -16,6 +16,7 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import read_capture
 from ringscan.pipeline.calibrate.importer import read_opencv_calibration
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners
+from tests.support.shared_data import need_shared
 
 BOARD = Board(9, 7, 75.0)
 PROJ = (1024, 768)
@@ -23,10 +24,8 @@ PROJ = (1024, 768)
 
 @pytest.fixture(scope="session")
 def procam(shared_data):
-    d = shared_data / "procam"
-    if not (d / "capture_1").is_dir():
-        pytest.skip(f"procam captures not found in {d}")
-    return d
+    need_shared(shared_data / "procam" / "capture_1", "procam captures")
+    return shared_data / "procam"
 
 
 @pytest.fixture(scope="session")

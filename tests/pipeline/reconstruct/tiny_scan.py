@@ -4,12 +4,17 @@ reconstructed in about a second, for tests of files, folders and reports."""
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
+import shutil
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, default_rig
+from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
 
 TINY_PATTERNS = {"codec": "gray-rings", "width": 256, "height": 192, "center": [127.5, 95.5], "rho0": 4.0,
@@ -27,7 +32,21 @@ def tiny_rig():
                             width=256, height=192))
 
 
+_RENDERED: dict = {}
+"""Turntable angles -> the tiny scan rendered once in this process (the renders are deterministic)."""
+
+
 def simulate_tiny_scan(folder, *, turntable_deg=(0.0,)):
-    """Write the tiny scan into ``folder``; returns the loaded scan."""
-    return simulate_scan(folder, scene="sphere", size_mm=40.0, rig=tiny_rig(), patterns=parse_patterns(TINY_PATTERNS),
-                         turntable_deg=tuple(turntable_deg), progress=False)
+    """Write the tiny scan into ``folder``; returns the loaded scan.
+
+    The virtual rig renders it once per process and set of angles; every call gets its own copy (tests
+    change their scan's files), byte for byte what a render into ``folder`` writes."""
+    key = tuple(float(a) for a in turntable_deg)
+    if key not in _RENDERED:
+        master = Path(tempfile.mkdtemp(prefix="ringscan_tiny_")) / "scan"
+        atexit.register(shutil.rmtree, master.parent, True)
+        simulate_scan(master, scene="sphere", size_mm=40.0, rig=tiny_rig(), patterns=parse_patterns(TINY_PATTERNS),
+                      turntable_deg=key, progress=False)
+        _RENDERED[key] = master
+    shutil.copytree(_RENDERED[key], folder, dirs_exist_ok=True)
+    return load_scan(folder)

@@ -19,6 +19,7 @@ from ringscan.pipeline.simulate.opencv_graycode import (
 )
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import main
+from tests.support.shared_data import need_shared
 
 PW, PH = 128, 96
 
@@ -79,9 +80,7 @@ def test_patterns_follow_opencv_layout(size):
 
 def test_patterns_equal_opencv_files(shared_data):
     """OpenCV's own GrayCodePattern output for a 1024x768 projector (../shared/data/procam)."""
-    folder = shared_data / "procam" / "graycode_pattern"
-    if not folder.is_dir():
-        pytest.skip(f"OpenCV pattern files not found in {folder}")
+    folder = need_shared(shared_data / "procam" / "graycode_pattern", "OpenCV's pattern files")
     pats = graycode_patterns((1024, 768))
     assert len(pats) == len(list(folder.glob("pattern_*.png"))) == 42
     for i, p in enumerate(pats):
