@@ -1,21 +1,36 @@
-"""Tiny simulated scans for the batch tests (320x256 camera, one view each)."""
+"""Small simulated scans for the batch tests (320x256 camera, the tiny scan's 256x192 projector of 0.6 mm
+pixels and its 3-bit pattern set: an 80 mm scene, about 550 points a view, one view each unless said)."""
+
+import dataclasses
 
 import pytest
 
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.simulate.scan import simulate_scan
-from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
+from tests.pipeline.reconstruct.test_reconstruct import small_rig
+from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
 
-SPEC = {"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 5, "sector_bits": 4}
+SPEC = TINY_PATTERNS
+"""The projected patterns: 16 frames; the projector's frames at 256x192 render in a fraction of the time of
+the default 1024x768 (the scans are for the batch's bookkeeping, their accuracy is the reconstruction's)."""
+
+
+def batch_rig():
+    """small_rig's 320x256 camera with tiny_rig's 256x192 projector (0.6 mm pixels: 154 mm x 115 mm)."""
+    return dataclasses.replace(small_rig(), light=tiny_rig().light)
+
+
+def simulate_batch_scan(folder, scene="sphere", turntable_deg=(0.0,)):
+    return simulate_scan(folder, scene=scene, size_mm=80.0, rig=batch_rig(), patterns=parse_patterns(SPEC),
+                         turntable_deg=turntable_deg, progress=False)
 
 
 @pytest.fixture(scope="package")
 def scan_root(tmp_path_factory):
     """Two scans: ``a_sphere`` and ``b/cube``."""
     root = tmp_path_factory.mktemp("batch") / "scans"
-    spec = parse_patterns(SPEC)
     for name, scene in (("a_sphere", "sphere"), ("b/cube", "cube")):
-        simulate_scan(root / name, scene=scene, rig=small_rig(), patterns=spec, progress=False)
+        simulate_batch_scan(root / name, scene)
     return root
 
 
@@ -26,6 +41,5 @@ def three_scans(tmp_path_factory, scan_root):
 
     root = tmp_path_factory.mktemp("batch3") / "scans"
     shutil.copytree(scan_root, root)
-    simulate_scan(root / "c_turn", scene="sphere", rig=small_rig(), patterns=parse_patterns(SPEC),
-                  turntable_deg=(0.0, 120.0), progress=False)
+    simulate_batch_scan(root / "c_turn", "sphere", turntable_deg=(0.0, 120.0))
     return root
