@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -39,6 +40,12 @@ def fused(scan):
 
 
 @pytest.fixture(scope="module")
+def poisson6(fused):
+    """The fused cloud's Poisson mesh at depth 6 (~1 mm cells on this ~55 mm object)."""
+    return poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=6))
+
+
+@pytest.fixture(scope="module")
 def visible(scan):
     obj, rig, angles, views = scan
     return visible_truth(obj, rig, angles, n=4000)
@@ -49,9 +56,9 @@ def _mesh_to_truth(mesh, obj) -> np.ndarray:
     return point_to_mesh(np.asarray(mesh.sample_points_uniformly(20000).points), obj)
 
 
-def test_poisson_mesh_lies_on_the_truth(scan, fused, visible):
+def test_poisson_mesh_lies_on_the_truth(scan, poisson6, visible):
     obj = scan[0]
-    res = poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=7))
+    res = poisson6
     assert res.method == "poisson" and res.watertight is None
     assert _mesh_to_truth(res.mesh, obj).mean() < 0.03
     # What the views saw is meshed; what they did not see (the base) is trimmed away.
@@ -68,21 +75,26 @@ def test_poisson_mesh_lies_on_the_truth(scan, fused, visible):
 
 
 def test_tsdf_from_views_and_from_a_bare_cloud(scan, fused, visible):
+    # The TSDF surface lies within a third of a voxel of the truth on average (it reads each
+    # depth map's nearest pixel; measured at 0.6 to 1.2 mm voxels: ~0.16 voxel from the views,
+    # 0.17 to 0.22 voxel from a bare cloud).
     obj = scan[0]
-    s = MeshSettings(method="tsdf", tsdf_voxel_mm=0.6)
+    s = MeshSettings(method="tsdf", tsdf_voxel_mm=1.0)
     res = mesh_fused(fused, settings=s)
     assert res.method == "tsdf" and res.info["depth_maps"] == 8
-    assert _mesh_to_truth(res.mesh, obj).mean() < 0.2
+    assert _mesh_to_truth(res.mesh, obj).mean() < 1.0 / 3
     assert np.mean(point_to_mesh(visible, res.mesh) < 0.5) > 0.85
-    bare = tsdf_mesh(fused.cloud, settings=s)
+    bare = tsdf_mesh(fused.cloud, settings=dataclasses.replace(s, tsdf_voxel_mm=1.2))
     assert bare.info["depth_maps"] >= 8
-    assert _mesh_to_truth(bare.mesh, obj).mean() < 0.2
+    assert _mesh_to_truth(bare.mesh, obj).mean() < 1.2 / 3
 
 
 @pytest.mark.parametrize("method", ["poisson", "tsdf"])
 def test_watertight_when_asked(fused, scan, method):
-    res = mesh_fused(fused, settings=MeshSettings(method=method, watertight=True, poisson_depth=6,
-                                                  tsdf_voxel_mm=0.8))
+    # Coarse grids, the same checks: depth-5 Poisson (its cube twice the object's size: ~3.5 mm
+    # cells) and 1 mm TSDF voxels; the medians below measured ~0.07 and ~0.17 mm.
+    res = mesh_fused(fused, settings=MeshSettings(method=method, watertight=True, poisson_depth=5,
+                                                  tsdf_voxel_mm=1.0))
     assert res.watertight is True
     assert res.mesh.is_watertight()
     assert res.info["closed"] and res.info["vertex_manifold"]
@@ -160,7 +172,7 @@ def test_mesh_cloud_drops_unusable_points(fused):
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     cloud.normals = o3d.utility.Vector3dVector(nrm)
     n = len(pts)
-    res = mesh_cloud(cloud, settings=MeshSettings(poisson_depth=7))
+    res = mesh_cloud(cloud, settings=MeshSettings(poisson_depth=6))
     assert res.info["dropped_points"] == {"non_finite": len(range(0, n, 20)) + len(range(2, n, 20)),
                                           "out_of_range": len(range(1, n, 20))}
     assert len(res.mesh.triangles) > 1000 and np.all(np.isfinite(np.asarray(res.mesh.vertices)))
@@ -193,19 +205,19 @@ def test_fuse_and_mesh_writes_everything(scan, tmp_path):
     obj, rig, angles, views = scan
     recon = tmp_path / "recon"
     recon.mkdir()
-    write_recon(recon, views, rig)
+    write_recon(recon, views[::2], rig)  # every 90 degrees
     truth = tmp_path / "truth.ply"
     write_mesh(truth, obj)
     out = tmp_path / "out"
     rep = fuse_and_mesh(recon, out, fuse_settings=FuseSettings(voxel_mm=0.5),
-                        mesh_settings=MeshSettings(poisson_depth=7), formats=("ply", "obj", ".STL"),
+                        mesh_settings=MeshSettings(poisson_depth=6), formats=("ply", "obj", ".STL"),
                         preview=False, truth=truth)
     for name in ("fused.ply", "mesh.ply", "mesh.obj", "mesh.stl", "fuse_report.json"):
         assert (out / name).is_file(), name
     disk = json.loads((out / "fuse_report.json").read_text())
     assert disk["format"] == "ringscan.fuse/1"
-    assert [v["name"] for v in disk["fusion"]["views"]] == [v.name for v in views]
-    assert disk["settings"]["fuse"]["voxel_mm"] == 0.5 and disk["settings"]["mesh"]["poisson_depth"] == 7
+    assert [v["name"] for v in disk["fusion"]["views"]] == [v.name for v in views[::2]]
+    assert disk["settings"]["fuse"]["voxel_mm"] == 0.5 and disk["settings"]["mesh"]["poisson_depth"] == 6
     assert disk["truth"]["mesh_to_truth_mean"] < 0.03
     assert rep["mesh"]["triangles"] == len(o3d.io.read_triangle_mesh(str(out / "mesh.ply")).triangles)
     cloud = o3d.io.read_point_cloud(str(out / "fused.ply"))
@@ -221,17 +233,17 @@ def _arrays(mesh):
     return np.asarray(mesh.vertices).tobytes() + np.asarray(mesh.triangles).tobytes()
 
 
-def test_poisson_gives_the_same_mesh_every_time(fused):
+def test_poisson_gives_the_same_mesh_every_time(fused, poisson6):
     # Open3D's Poisson on several threads gives another vertex order and other last
     # bits each call (a triangle more or less after trimming); on one (the default) not.
-    a = poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=7))
-    b = poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=7))
+    a = poisson6
+    b = poisson_mesh(fused.cloud, settings=MeshSettings(poisson_depth=6))
     assert len(a.mesh.triangles) > 1000 and _arrays(a.mesh) == _arrays(b.mesh)
 
 
-def test_fusion_gives_the_same_cloud_every_time(scan):
+def test_fusion_gives_the_same_cloud_every_time(scan, fused):
     obj, rig, angles, views = scan
-    a = fuse_views(list(views), rig, settings=FuseSettings(voxel_mm=0.5))
+    a = fused  # the module's fusion, made by the same call
     b = fuse_views(list(views), rig, settings=FuseSettings(voxel_mm=0.5))
     assert np.asarray(a.cloud.points).tobytes() == np.asarray(b.cloud.points).tobytes()
     assert json.dumps(a.report(), sort_keys=True) == json.dumps(b.report(), sort_keys=True)
