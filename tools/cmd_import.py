@@ -122,13 +122,19 @@ def run(args) -> int:
                                       sources={"rig": rig_path, "projector_rig": args.projector_rig},
                                       **kw)
     two = scan.rig.camera2 is not None
+    def coarse(st):
+        if not (st["coarse_share"] or st["low_modulation"]):
+            return ""
+        return (f" ({100 * st['coarse_share']:.0f} % from coarser bits where the finest barely modulate; "
+                f"{st['low_modulation']} left out: low_modulation)")
+
     for name, st in stats.items():
         print(f"  {name}: {'camera 1: ' if two else ''}{st['decoded']} pixels decoded, "
-              f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions")
+              f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions{coarse(st)}")
         if "camera2" in st:
             c2 = st["camera2"]
             print(f"  {name}: camera 2: {c2['decoded']} pixels decoded, {100 * c2['subpixel_share']:.0f} % with "
-                  "sub-pixel projector positions")
+                  f"sub-pixel projector positions{coarse(c2)}")
     li = scan.rig.light
     if not has_calibrated_light(scan.rig):
         v = scan.rig.volume

@@ -50,6 +50,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
@@ -70,6 +71,18 @@ DIM_BIT_FRACTION = 0.4
 DIM_MAX_WEAK = 2
 """Most weak bits of a dim pixel that is decoded: on a projector pixel's corner the column and the row bit that
 flip there are weak by nature; more mean the patterns hardly reach the pixel."""
+
+CLEAR_NOISE_SIGMAS = 4.0
+"""A bit stands clear of the camera's noise where its modulation |pattern - inverse| reaches this many
+standard deviations of a pattern - inverse difference (the noise measured from the capture itself)."""
+CLEAR_CONTRAST_FRACTION = 0.1
+"""... and this share of the pixel's white - black: a bit that carries less of the pixel's light is at the
+mercy of anything else the pixel sees (stray light, a JPEG's ringing, a gamma's harmonics)."""
+MAX_COARSE_BITS = 3
+"""Finest bits a pixel may leave untrusted and still get a sub-pixel position from the coarser ones (the
+boundaries of blocks of up to 2**3 = 8 projector pixels); more and it is dropped as ``low_modulation``."""
+LOW_MODULATION_WARN_SHARE = 0.2
+"""A view whose finest bit is untrusted at more than this share of its decoded pixels gets a warning."""
 
 CAPTURE_INPUTS = (
     "a folder of graycode_NN.<ext> (from 00, one camera)",
@@ -151,6 +164,14 @@ class Decoded:
     """(H, W) float64 sub-pixel projector v."""
     subpixel: np.ndarray | None = None
     """(H, W) bool: both u and v were interpolated between boundaries (else integer codes)."""
+    coarse: np.ndarray | None = None
+    """(H, W, 2) int8: finest column and row bits left untrusted at each pixel (0: every bit stands clear of
+    the noise; ``MAX_COARSE_BITS`` at most, see :func:`bit_clearance`)."""
+    low_modulation: np.ndarray | None = None
+    """(H, W) bool: dropped (not ``valid``) because a bit coarser than ``MAX_COARSE_BITS`` from the finest
+    barely modulates: the pixel's code would be a guess along the epipolar line."""
+    noise: float = 0.0
+    """Standard deviation (8-bit levels) of one frame's camera noise, measured from the capture."""
 
 
 def graycode_bits(projector: tuple[int, int]) -> tuple[int, int]:
@@ -536,10 +557,69 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     row, okr = code(cap.row_pairs)
     valid = (contrast >= settings.min_contrast) | ((contrast >= settings.dim_contrast) & (weak <= DIM_MAX_WEAK))
     valid &= okc & okr & (col < cap.projector[0]) & (row < cap.projector[1])
+    noise = frame_noise(cap, valid)
+    coarse = np.zeros(contrast.shape + (2,), np.int8)
+    low = np.zeros(contrast.shape, bool)
+    for a, (pairs, c) in enumerate(((cap.col_pairs, col), (cap.row_pairs, row))):
+        k = bit_clearance(pairs, contrast, valid, c, noise)
+        low |= k > MAX_COARSE_BITS
+        coarse[..., a] = np.minimum(k, MAX_COARSE_BITS)
+    low &= valid
+    valid &= ~low
     col = np.where(valid, col, -1).astype(np.int32)
     row = np.where(valid, row, -1).astype(np.int32)
-    log.info("%s: %d of %d pixels decoded", cap.folder, int(valid.sum()), valid.size)
-    return Decoded(col=col, row=row, valid=valid, contrast=contrast)
+    log.info("%s: %d of %d pixels decoded (%d dropped: low_modulation)", cap.folder, int(valid.sum()), valid.size,
+             int(low.sum()))
+    return Decoded(col=col, row=row, valid=valid, contrast=contrast, coarse=coarse, low_modulation=low, noise=noise)
+
+
+def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
+    """Standard deviation (8-bit levels) of one frame's camera noise, from the capture itself.
+
+    Where the coarsest column pattern's stripe lies wholly on a pixel, the pattern and its inverse
+    are the white and the black frames again (whatever the camera's and the projector's response):
+    pattern + inverse - white - black is then four frames' noise. Its standard deviation over the decoded
+    pixels, the few on a stripe's edge left out (beyond 4 of a robust first guess; the guess is widened by
+    half a level, as a median of integer levels is coarse), gives the noise of one frame.
+    """
+    p, inv = cap.col_pairs[0]
+    r = (p + inv - cap.white - cap.black)[valid].astype(np.float64)
+    if r.size < 100:
+        return 1.0
+    r -= np.median(r)
+    guess = 1.4826 * float(np.median(np.abs(r))) + 0.5
+    return max(float(np.std(r[np.abs(r) < 4.0 * guess])) / 2.0, 0.25)
+
+
+def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
+                  noise: float) -> np.ndarray:
+    """(H, W) int: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
+
+    A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
+    stripe's width, so that a pixel on a stripe's edge, where the bit flips and has no contrast by nature,
+    is judged by the stripe's middle) reaches ``CLEAR_NOISE_SIGMAS`` standard deviations of the
+    difference's noise and ``CLEAR_CONTRAST_FRACTION`` of the pixel's white - black. A far, dark, grazing
+    or defocused surface blurs the finest stripes into grey: their bits are then read by the noise, a
+    zigzag of whole projector pixels along the epipolar line that no calibration check can see. The
+    ``MAX_COARSE_BITS + 1`` finest bits are judged (the coarser ones are as wide as the contrast tests).
+    """
+    bits = pairs.shape[0]
+    out = np.zeros(contrast.shape, np.int64)
+    # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
+    c = code.astype(np.float64)
+    g = np.concatenate([np.abs(np.diff(c, axis=1))[valid[:, 1:] & valid[:, :-1]],
+                        np.abs(np.diff(c, axis=0))[valid[1:, :] & valid[:-1, :]]])
+    g = g[(g > 0) & (g <= 2)]
+    rate = float(np.median(g)) if g.size else 1.0
+    thresh = np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise, CLEAR_CONTRAST_FRACTION * contrast)
+    for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
+        b = bits - 1 - j
+        d = np.abs(pairs[b, 0] - pairs[b, 1]).astype(np.float32)
+        # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
+        r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
+        near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
+        out = np.where(near < thresh, j + 1, out)
+    return out
 
 
 def _flip_bit(a: np.ndarray, b: np.ndarray, bits: int) -> np.ndarray:
@@ -592,6 +672,33 @@ def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: in
     return out, ok
 
 
+def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,
+            max_span: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel coordinate of every pixel from the bits it trusts: a pixel that leaves its ``k`` finest bits
+    untrusted is interpolated between the boundaries of blocks of 2**k projector pixels (the code without
+    those bits: ``code >> k``, whose Gray bits are the first ``bits - k``), found between the pixels that
+    trust at least those bits. A pixel that finds no two boundaries around it at its own level (beside a
+    region of coarser pixels, say) takes the next coarser level that has them; where none has, a pixel
+    that trusts every bit keeps its integer code (and is not sub-pixel)."""
+    out = np.full(code.shape, np.nan)
+    ok = np.zeros(code.shape, bool)
+    bits = pairs.shape[0]
+    top = int(coarse[valid].max()) if valid.any() else 0
+    for k in range(0, min(top, bits - 1) + 1):
+        todo = valid & (coarse <= k) & ~ok
+        if not todo.any():
+            continue
+        lvl_valid = valid & (coarse <= k)
+        lvl_code = np.where(lvl_valid, code >> k, -1)
+        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k)
+        # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
+        take = todo & good
+        out = np.where(take, res * 2 ** k + (2 ** k - 1) / 2.0, out)
+        ok |= take
+    out = np.where(valid & ~ok & (coarse == 0), code, out)
+    return out, ok
+
+
 def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
     """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``."""
 
@@ -605,11 +712,18 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
         return 1 if (gx.mean() if gx.size else 0) >= (gy.mean() if gy.size else 0) else 0
 
     ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
-    u, oku = _along_axis(dec.col, dec.valid, cap.col_pairs, ax_u, settings.max_span_px)
-    v, okv = _along_axis(dec.row, dec.valid, cap.row_pairs, ax_v, settings.max_span_px)
+    coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
+    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px)
+    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px)
+    # a pixel whose finest bits are untrusted has no integer code to fall back on: it is dropped
+    lost = dec.valid & (((coarse[..., 0] > 0) & ~oku) | ((coarse[..., 1] > 0) & ~okv))
+    if dec.low_modulation is not None:
+        dec.low_modulation |= lost
+    dec.valid = dec.valid & ~lost
     dec.u = np.where(dec.valid, u, np.nan)
     dec.v = np.where(dec.valid, v, np.nan)
-    dec.subpixel = oku & okv
-    log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated",
-             cap.folder, "x" if ax_u else "y", "x" if ax_v else "y", int(dec.subpixel.sum()), int(dec.valid.sum()))
+    dec.subpixel = oku & okv & dec.valid
+    log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated "
+             "(%d from coarser bits)", cap.folder, "x" if ax_u else "y", "x" if ax_v else "y",
+             int(dec.subpixel.sum()), int(dec.valid.sum()), int((dec.subpixel & (coarse.max(-1) > 0)).sum()))
     return dec

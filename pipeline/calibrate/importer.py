@@ -33,6 +33,7 @@ import numpy as np
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import (
     LIST_SUFFIXES,
+    LOW_MODULATION_WARN_SHARE,
     GrayCodeSettings,
     check_capture_sizes,
     decode_graycode,
@@ -551,6 +552,10 @@ def import_captures(
                                      frame_bits=settings.frame_bits)
             dec = decode_graycode(cap, settings=settings.graycode)
             if settings.integer_only:
+                # an integer code whose finest bits do not stand clear of the noise is a guess: left out
+                guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
+                dec.low_modulation |= guess
+                dec.valid &= ~guess
                 dec.u = np.where(dec.valid, dec.col, np.nan)
                 dec.v = np.where(dec.valid, dec.row, np.nan)
                 dec.subpixel = np.zeros_like(dec.valid)
@@ -561,7 +566,18 @@ def import_captures(
         decs.append((f, name, per_cam))
         st = {}
         for c, dec in per_cam.items():
-            s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / max(1, dec.valid.sum()))}
+            n = max(1, int(dec.valid.sum()))
+            coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
+            s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
+                 "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
+                 "noise": round(float(dec.noise), 3)}
+            weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
+            if weak > LOW_MODULATION_WARN_SHARE:
+                log.warning("%s%s: the finest projector bits barely modulate at %.0f %% of the decoded pixels (a "
+                            "far, dark, grazing or defocused surface): %d of them take their positions from "
+                            "coarser bits, %d are left out (low_modulation)", name,
+                            " (camera 2)" if len(sel) == 2 and c == 2 else "", 100 * weak, int(coarse.sum()),
+                            s["low_modulation"])
             if len(sel) == 2 and c == 2:
                 st["camera2"] = s
             else:

@@ -17,11 +17,13 @@ def affine_map(w: int, h: int):
 
 
 def write_capture(folder: Path, *, cam=(160, 120), projector=(128, 96), wb_first=False, noise=1.0, seed=0,
-                  gamma=1.0, levels=(20.0, 220.0)) -> tuple[np.ndarray, np.ndarray]:
+                  gamma=1.0, levels=(20.0, 220.0), blur_px=0.0) -> tuple[np.ndarray, np.ndarray]:
     """Write graycode_NN.png frames of the affine scene; returns the true (u, v) maps.
 
     Each camera pixel averages 4x4 sub-samples of the projected binary pattern
     (pixel centres at integers: projector pixel k covers [k - 0.5, k + 0.5)).
+    ``blur_px``: a defocused projector, a Gaussian of this standard deviation in projector pixels
+    (the pattern drawn 8 times finer, blurred, and looked up bilinearly at each sub-sample).
     """
     rng = np.random.default_rng(seed)
     w, h = cam
@@ -37,6 +39,15 @@ def write_capture(folder: Path, *, cam=(160, 120), projector=(128, 96), wb_first
     cb, rb = graycode_bits(projector)
     lo, hi = levels
 
+    def blurred(g, bits, j):
+        """Bit j of codes g as the defocused projector shows it at every sub-sample (U or V's axis)."""
+        n = (projector[0] if g is gc else projector[1]) + 8
+        x = (np.arange(8 * n) + 0.5) / 8 - 0.5  # projector coordinate of each fine sample
+        k = np.floor(x + 0.5).astype(np.int64)
+        line = (((k ^ (k >> 1)) >> (bits - 1 - j)) & 1).astype(np.float32)[None, :]
+        line = cv2.GaussianBlur(line, (0, 0), sigmaX=8 * blur_px, sigmaY=1e-3, borderType=cv2.BORDER_REPLICATE)[0]
+        return np.interp(U if g is gc else V, x, line)
+
     def shot(lit):
         val = lit.mean(axis=(-1, -2))
         img = lo + (hi - lo) * val ** (1.0 / gamma) + rng.normal(0, noise, val.shape)
@@ -46,7 +57,7 @@ def write_capture(folder: Path, *, cam=(160, 120), projector=(128, 96), wb_first
     gc, gr = col ^ (col >> 1), row ^ (row >> 1)
     for bits, g in ((cb, gc), (rb, gr)):
         for j in range(bits):
-            b = ((g >> (bits - 1 - j)) & 1).astype(np.float64)
+            b = blurred(g, bits, j) if blur_px > 0 else ((g >> (bits - 1 - j)) & 1).astype(np.float64)
             frames += [shot(b), shot(1 - b)]
     white, black = shot(np.ones_like(U)), shot(np.zeros_like(U))
     frames = [white, black] + frames if wb_first else frames + [white, black]

@@ -155,3 +155,62 @@ def test_frames_that_frame_bits_does_not_fit_are_refused_naming_the_frame(captur
         read_capture(tmp_path / "c12", projector=PROJ, frame_bits=8)
     with pytest.raises(ValueError, match="frame_bits must be 8 or 9..16"):
         read_capture(folder, projector=PROJ, frame_bits=7)
+
+
+# ----------------------------------------------------------------------------- fine bits that barely modulate
+
+
+@pytest.fixture(scope="module")
+def defocused(tmp_path_factory):
+    """The affine scene through a projector defocused by 1.8 projector px (a Gaussian): the finest Gray bit
+    (stripes 2 projector px wide) keeps ~4 % of the pixel's white - black, under a noise of 1.5 levels."""
+    folder = tmp_path_factory.mktemp("defocus") / "capture"
+    u, v = write_capture(folder, cam=(320, 240), projector=(256, 192), blur_px=1.8, noise=1.5, levels=(20, 120))
+    return read_capture(folder, projector=(256, 192)), u, v
+
+
+def test_the_noise_is_measured_from_the_capture(defocused, capture):
+    cap, _, _ = defocused
+    dec = decode_graycode(cap)
+    assert 1.2 < dec.noise < 1.8  # the frames' noise: 1.5 levels (rounded to integers)
+    sharp = decode_graycode(read_capture(capture[0], projector=PROJ))
+    assert 0.8 < sharp.noise < 1.2 and not sharp.low_modulation.any() and not sharp.coarse.any()
+
+
+def test_bits_that_barely_modulate_give_way_to_coarser_ones(defocused):
+    """The finest bit is read by the noise: every bit trusted, the positions zigzag by up to a projector
+    pixel (the old decode: median 0.18 px, 1 % over 1.4 px); trusting only the bits that stand clear of the
+    noise, the positions come from the boundaries of the coarser bits, as exact as a sharp projector's."""
+    import ringscan.pipeline.calibrate.graycode as gc
+
+    cap, u, v = defocused
+    dec = subpixel_map(cap, decode_graycode(cap))
+    ok = dec.valid
+    assert ok.mean() > 0.9 and (dec.coarse[..., 0][ok] == 1).mean() > 0.95  # the finest bit, not more
+    e = np.abs(dec.u - u)[ok]
+    assert np.median(e) < 0.05 and np.percentile(e, 99) < 0.2, (np.median(e), np.percentile(e, 99))
+    ev = np.abs(dec.v - v)[ok]
+    assert np.median(ev) < 0.05 and np.percentile(ev, 99) < 0.2
+    assert dec.low_modulation.sum() == (~ok).sum()  # what is not decoded is counted as low_modulation
+    # every bit trusted (the thresholds at zero): the finest bit's misreads are whole-pixel errors
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(gc, "CLEAR_NOISE_SIGMAS", 0.0)
+        mp.setattr(gc, "CLEAR_CONTRAST_FRACTION", 0.0)
+        blind = subpixel_map(cap, decode_graycode(cap))
+    eb = np.abs(blind.u - u)[blind.valid]
+    assert np.percentile(eb, 99) > 1.0 and np.median(eb) > 2 * np.median(e)
+
+
+def test_a_pixel_whose_coarser_bits_barely_modulate_is_dropped_as_low_modulation(defocused):
+    cap, u, v = defocused
+    dark = dataclasses.replace(cap, col_pairs=cap.col_pairs.copy())
+    # a patch where the projector's light hardly reaches the 5 finest column bits (one more than MAX_COARSE_BITS)
+    b = dark.col_pairs.shape[0]
+    patch = (slice(b - 5, b), slice(None), slice(40, 200), slice(40, 280))
+    mean = dark.col_pairs[patch].mean(axis=1, keepdims=True)
+    dark.col_pairs[patch] = mean + 0.02 * (dark.col_pairs[patch] - mean)
+    dec = subpixel_map(dark, decode_graycode(dark))
+    inner = (slice(80, 160), slice(80, 240))  # farther than the 5th bit's half stripe (29 camera px) from the rim
+    assert dec.low_modulation[inner].all() and not dec.valid[inner].any()
+    assert np.isnan(dec.u[inner]).all()
+    assert dec.valid[:30].mean() > 0.9  # outside the patch, decoded as before
