@@ -335,7 +335,8 @@ def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> l
     moved = [o3d.geometry.PointCloud(d).transform(T) for d, T in zip(downs, transforms)]
     out = []
     for i, d in enumerate(moved):
-        others = [e for j, e in enumerate(moved) if j != i and len(e.points)]
+        # a view too small for normals (< 3 points after cleaning) cannot be a plane to measure against
+        others = [e for j, e in enumerate(moved) if j != i and len(e.points) and len(e.normals) == len(e.points)]
         if len(d.points) == 0 or not others:
             out.append((0.0, 0.0))
             continue

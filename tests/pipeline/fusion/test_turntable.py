@@ -128,6 +128,19 @@ def test_mappings_and_an_empty_view_are_accepted(scan):
     assert _cloud_to_truth(res, obj).mean() < 0.03
 
 
+def test_a_view_of_two_points_fuses_with_the_others(scan):
+    """A view that keeps only two points after cleaning has no normals: it is fused, and the other views'
+    residuals are measured against the views that have them (it raised IndexError: the normals of the
+    reference views no longer lined up with their points)."""
+    obj, rig, angles, views = scan
+    few = FusionView(name="few", points=views[1].points[:2].copy(), turntable_deg=views[1].turntable_deg,
+                     camera_center=views[1].camera_center, confidence=np.ones(2))
+    res = fuse_views([views[0], few, views[2]], rig,
+                     settings=FuseSettings(voxel_mm=0.5, radius_mm=0, statistical_neighbors=0))
+    assert res.names == [views[0].name, "few", views[2].name] and len(res.views[1].points) == 2
+    assert res.residuals[0].points_kept > 0 and _cloud_to_truth(res, obj).mean() < 0.03
+
+
 def test_bad_input(scan):
     obj, rig, angles, views = scan
     with pytest.raises(ValueError, match="non-empty"):
