@@ -14,6 +14,7 @@ from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig
 from ringscan.tools.cli import main
 from tests.pipeline.calibrate.synthetic import write_capture
+from tests.support.procam_crop import crop_decoded_scan
 from tests.support.printed import assert_figures_as_quoted, printed_figure
 from tests.support.shared_data import need_shared
 
@@ -27,8 +28,34 @@ three board poses is known to a few px, not tenths)."""
 
 @pytest.fixture(scope="module")
 def procam(shared_data):
+    """The captures; while this module's tests run, ``calibrate procam`` decodes each capture folder once (its
+    read_capture and capture_corners remembered by their inputs): the tests give capture_1..3 ten times over,
+    and what the command does with the corners (its checks, fits and messages) still runs every time.
+    tests/pipeline/calibrate/test_procam_real.py covers the decoding itself."""
+    import os
+
+    from ringscan.tools import cmd_calibrate
+
     need_shared(shared_data / "procam" / "capture_1", "procam captures")
-    return shared_data / "procam"
+    caps, corners = {}, {}
+    read, find = cmd_calibrate.read_capture, cmd_calibrate.capture_corners
+
+    def read_once(folder, **kw):
+        key = (os.path.realpath(folder), repr(sorted(kw.items())))
+        if key not in caps:
+            caps[key] = read(folder, **kw)
+        return caps[key]
+
+    def corners_once(cap, **kw):
+        key = (id(cap), repr(sorted(kw.items())))
+        if key not in corners:
+            corners[key] = (cap, find(cap, **kw))  # cap kept: its id is not reused
+        return dataclasses.replace(corners[key][1])  # its own object, as a fresh decode gives
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cmd_calibrate, "read_capture", read_once)
+        mp.setattr(cmd_calibrate, "capture_corners", corners_once)
+        yield shared_data / "procam"
 
 
 def test_camera_without_a_board_exits_1_and_writes_nothing(tmp_path, procam, capsys):
@@ -77,12 +104,20 @@ def test_procam_then_import_then_reconstruct(tmp_path, procam, procam_123):
     assert r.light.model == "perspective" and r.light.K[1, 2] > 768
     scan = tmp_path / "scan"
     assert main(["import", caps[2], "--rig", str(rig), "--projector", "1024x768", "--out", str(scan)]) == 0
+    # Reconstructed here: the imported scan cut to a window of the camera image around the board (the decoded
+    # frames are per camera pixel: the window is the scan a camera of its size, principal point moved by its
+    # corner, would have taken; tests/support/procam_crop.py). The whole image gave 530k points of 1.31M pixels.
+    x0, y0, w, h = 480, 310, 460, 330
+    crop_decoded_scan(scan, x0, y0, w, h)
     out = tmp_path / "out"
     assert main(["reconstruct", str(scan), "--out", str(out), "--device", "cpu"]) == 0
     ply = read_ply(out / "capture_3.ply")
-    assert len(ply["x"]) > 500_000
+    # the whole image's bound (500k of 1.31M pixels, 38 %) scaled to the window's pixels; the window is
+    # mostly board, lit and decoded, so it holds more than that share
+    assert len(ply["x"]) > 0.38 * w * h
     # the board is flat: points in the middle of the board (camera pixels inside its corners) fit a plane
-    u, v = ply["u"], ply["v"]
+    u, v = ply["u"] + x0, ply["v"] + y0  # the full image's pixels
+    assert u.min() >= x0 and u.max() < x0 + w and v.min() >= y0 and v.max() < y0 + h
     on = (u > 520) & (u < 900) & (v > 350) & (v < 600)
     P = np.stack([ply["x"][on], ply["y"][on], ply["z"][on]], 1).astype(np.float64)
     c = P.mean(0)

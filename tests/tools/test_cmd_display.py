@@ -66,7 +66,9 @@ def test_calibrate_latency_writes_the_rig_and_capture_waits_for_it(tmp_path, scr
     assert read_rig_latency(rig) == pytest.approx(report["measured_s"] + 1 / 60, abs=1e-4)
 
     # the capture takes the rig's latency as the wait after each frame
-    virtual_rig = make_virtual_rig(small_rig(), "terrain", device="cpu", settings=RenderSettings(supersample=1))
+    # any camera will do here (what is checked is the wait): the cheapest scene, a sharp lens
+    virtual_rig = make_virtual_rig(small_rig(), "plane", device="cpu",
+                                   settings=RenderSettings(supersample=1, defocus_px=0.0))
     frames = list(pattern_frames(small_patterns()).values())
     monkeypatch.setattr(cmd_capture, "open_camera",
                         lambda spec, **kw: VirtualCamera(virtual_rig, ScreenPattern(screen, frames), None, seed=SEED))

@@ -43,6 +43,19 @@ STEP = 1 / 8.889
 REPO = Path(__file__).resolve().parents[3]
 
 
+@pytest.fixture(scope="module")
+def virtual_rig(rig):
+    """The real virtual rig renderer on the CPU, as in tests/hardware/conftest.py, but with a
+    sharp projector lens (defocus_px=0): the emitted light is then the projector's own
+    1024x768 pixels, not a blurred image 4x finer, which makes each frame several times
+    cheaper to render. These tests check what the capture does with the frames (which
+    frame at which angle, byte-exact against the renderer), not the lens blur."""
+    from ringscan.hardware.emulators.virtual import make_virtual_rig
+    from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+
+    return make_virtual_rig(rig, "terrain", device="cpu", settings=RenderSettings(supersample=1, defocus_px=0.0))
+
+
 def _files(folder):
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
 

@@ -23,8 +23,9 @@ from tests.hardware.display_support import SCREEN_H, SCREEN_W, ScreenReader, vir
 
 CODEC_PARAMS = {
     "rings": {"count": 9, "line_width": 3.0, "pitch": 40.0},
-    "gray-rings": {"bits": 3, "sector_bits": 2, "pitch": 40.0},
-    "phase-rings": {"bits": 2, "sector_bits": 1, "steps": 4, "pitch": 40.0},
+    # every kind of frame (white, black, gray, sector, phase, each inverse) at the fewest bits
+    "gray-rings": {"bits": 2, "sector_bits": 1, "pitch": 40.0},
+    "phase-rings": {"bits": 1, "sector_bits": 1, "steps": 3, "pitch": 40.0},
 }
 
 

@@ -463,8 +463,8 @@ def test_a_table_found_turning_is_waited_for_never_reset(tmp_path):
         assert not tt.position_known and "turning" in tt.unknown_reason
         assert not any(x.startswith("G92") for x in e.lines)  # no angle declared on a guess
         tt.set_position(90.0)  # --table-at 90
-        tt.move_to(180.0)
-        assert e.angle_deg == pytest.approx(180.0, abs=STEP)
+        tt.move_to(110.0)  # and the table works again (a short move: 0.13 s)
+        assert e.angle_deg == pytest.approx(110.0, abs=STEP)
         tt.close()
 
 
@@ -479,7 +479,8 @@ def test_a_garbled_status_report_while_waiting_for_a_turning_table_is_asked_agai
         assert not e.moving and e.resets_in_motion == 0 and e.alarms == []
         assert e.angle_deg == steps(90.0) and not tt.position_known
         tt.set_position(90.0)
-        tt.move_to(180.0)
+        tt.move_to(110.0)
+        assert e.angle_deg == pytest.approx(110.0, abs=STEP)
         tt.close()
 
 
@@ -567,10 +568,12 @@ def test_emulator_can_lose_an_ok(emu):
     raw.send(b"\x18")
     raw.lines_until(lambda s: s.startswith("Grbl"))
     emu.inject("lose_ok", on="G1")
-    raw.send(b"G1 X10 F600\n")
+    # a move long enough (90 degrees at 60 deg/min: ~0.45 s at the emulator's time scale) that the status asked
+    # right after it finds it running on a loaded machine too (10 degrees at 600 deg/min took 5 ms: seen Idle)
+    raw.send(b"G1 X90 F60\n")
     assert raw.status().state == "Run"  # executed, but no ok came before the report
     raw.send(b"G4 P0\n")
-    assert raw.line() == "ok" and emu.angle_deg == steps(10.0)
+    assert raw.line() == "ok" and emu.angle_deg == steps(90.0)
     raw.close()
 
 
@@ -580,7 +583,7 @@ def test_emulator_can_lose_an_ok(emu):
 def test_wrong_device_gives_no_banner(tmp_path):
     with EmulatedProjector([np.zeros((4, 4), np.uint8)]) as p:
         with pytest.raises(TurntableTimeout, match="banner"):
-            GrblTurntable(p.port, **FAST)
+            GrblTurntable(p.port, timeout_s=0.2, boot_timeout_s=0.2)  # it never sends one: no need to wait long
 
 
 def test_missing_port(tmp_path):
