@@ -16,9 +16,11 @@ TEST_WORKERS ?= 2
 demo: setup
 	$(BIN)/ringscan demo --out out/demo
 
+# PYTHONDONTWRITEBYTECODE emptied for the suite: with it set (as on some machines) every test process
+# rewrote and compiled every test module afresh (~6 s a process).
 test: setup
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: setup
 	$(BIN)/ringscan bench
