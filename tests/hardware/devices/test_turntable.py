@@ -463,8 +463,8 @@ def test_a_table_found_turning_is_waited_for_never_reset(tmp_path):
         assert not tt.position_known and "turning" in tt.unknown_reason
         assert not any(x.startswith("G92") for x in e.lines)  # no angle declared on a guess
         tt.set_position(90.0)  # --table-at 90
-        tt.move_to(110.0)  # and the table works again (a short move: 0.13 s)
-        assert e.angle_deg == pytest.approx(110.0, abs=STEP)
+        tt.move_to(180.0)
+        assert e.angle_deg == pytest.approx(180.0, abs=STEP)
         tt.close()
 
 
@@ -479,8 +479,8 @@ def test_a_garbled_status_report_while_waiting_for_a_turning_table_is_asked_agai
         assert not e.moving and e.resets_in_motion == 0 and e.alarms == []
         assert e.angle_deg == steps(90.0) and not tt.position_known
         tt.set_position(90.0)
-        tt.move_to(110.0)
-        assert e.angle_deg == pytest.approx(110.0, abs=STEP)
+        tt.move_to(180.0)  # long enough for the status reports the emulator garbles (a short move ends first)
+        assert e.angle_deg == pytest.approx(180.0, abs=STEP)
         tt.close()
 
 

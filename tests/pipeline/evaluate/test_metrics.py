@@ -119,3 +119,39 @@ def test_evaluate_plot_and_a_truth_mesh(recon, tmp_path, capsys):
     assert main(["evaluate", str(rec), "--truth", str(scan.folder / scan.extra["truth"]["mesh"]),
                  "--plot", str(tmp_path / "x.gif")]) == 1
     assert "x.gif" in capsys.readouterr().err
+
+
+def test_truth_rho_at_pixel_centres_and_depth_edges(recon):
+    """The truth's ring radius at sub-pixel camera positions (used to count mislabelled ring samples): at a pixel
+    centre it is the radius of that pixel's truth point (projector_polar, independent of the interpolation);
+    between two pixels on a smooth surface it lies between theirs; across a depth edge it is NaN."""
+    from ringscan.pipeline.evaluate.metrics import truth_rho_at
+    from ringscan.pipeline.geometry import projector_polar
+
+    scan, _ = recon
+    w, h = scan.rig.camera.width, scan.rig.camera.height
+    X, pix = truth_points(scan, "view_000")
+    grid = np.full((h * w, 3), np.nan)
+    grid[pix] = X
+    u, v = pix % w, pix // w
+    inner = (u > 0) & (u < w - 2) & (v > 0) & (v < h - 2)
+    rho_px = projector_polar(scan.rig, X, scan.patterns.center)
+    # the tiny camera's pixels are ~1.3 mm at the object: 4 neighbours within 3 mm of their mean on smooth ground
+    got = truth_rho_at(scan, "view_000", np.stack([u, v], 1)[inner].astype(np.float64), max_step_mm=3.0)
+    smooth = np.isfinite(got)
+    assert smooth.mean() > 0.9
+    np.testing.assert_allclose(got[smooth], rho_px[inner][smooth], atol=1e-6)  # float64 through and through
+    # half way between two horizontal neighbours: between their radii
+    mid = truth_rho_at(scan, "view_000", np.stack([u + 0.5, v], 1)[inner].astype(np.float64), max_step_mm=3.0)
+    right = np.full(len(pix), np.nan)
+    right[inner] = projector_polar(scan.rig, grid[pix[inner] + 1], scan.patterns.center)
+    both = np.isfinite(mid) & np.isfinite(right[inner])
+    lo = np.minimum(rho_px[inner], right[inner])[both]
+    hi = np.maximum(rho_px[inner], right[inner])[both]
+    between = (mid[both] >= lo - 1e-6) & (mid[both] <= hi + 1e-6)
+    # the radius is not linear in the point (near the light axis the midpoint's can dip below both): almost all
+    assert both.sum() > 100 and between.mean() > 0.98, between.mean()
+    # a depth edge (the sphere's rim against the plane: neighbours far apart) is not judged
+    step = np.linalg.norm(grid[pix[inner] + 1] - grid[pix[inner]], axis=1)
+    edge = step > 10.0
+    assert edge.sum() > 10 and np.all(np.isnan(mid[edge]))
