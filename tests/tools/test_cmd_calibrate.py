@@ -126,11 +126,28 @@ def test_procam_then_import_then_reconstruct(tmp_path, procam, procam_123):
     assert len(P) > 20_000 and np.sqrt(np.mean(res ** 2)) < 1.5
 
 
-def test_import_opencv_file(tmp_path, procam, capsys):
+def test_import_opencv_file(tmp_path, procam, capsys, caplog, monkeypatch):
+    from ringscan.pipeline.calibrate import importer
+
     scan = tmp_path / "scan"
-    assert main(["import", str(procam / "capture_1"), "--rig", str(procam / "calibration_result.xml"),
-                 "--projector", "1024x768", "--out", str(scan)]) == 0
+    # the share of weak pixels that warns, lowered below capture_1's (~21 %: its dim table and walls)
+    monkeypatch.setattr(importer, "LOW_MODULATION_WARN_SHARE", 0.1)
+    argv = ["import", str(procam / "capture_1"), "--rig", str(procam / "calibration_result.xml"),
+            "--projector", "1024x768"]
+    with caplog.at_level("WARNING"):
+        assert main([*argv, "--out", str(scan)]) == 0
     assert (scan / "scan.json").is_file() and (scan / "capture_1" / "proj_u.png").is_file()
+    st = json.loads((scan / "scan.json").read_text())["imported"]["stats"]["capture_1"]
+    # the dim table and walls: their finest bits do not stand clear of the noise (benchmarks/graycode_clearance.py)
+    assert st["low_modulation"] > 10_000 and 0.02 < st["coarse_share"] < 0.5 and 1.0 < st["noise"] < 3.0
+    out = capsys.readouterr().out
+    assert printed_figure(out, "{} left out: low_modulation") == st["low_modulation"]
+    assert "capture_1: the finest projector bits barely modulate at" in caplog.text
+    # --integer leaves out the pixels whose finest bits are guesses too
+    assert main([*argv, "--integer", "--out", str(tmp_path / "int")]) == 0
+    sti = json.loads((tmp_path / "int" / "scan.json").read_text())["imported"]["stats"]["capture_1"]
+    assert sti["coarse_share"] == 0 and sti["decoded"] < st["decoded"]
+    assert sti["low_modulation"] > st["low_modulation"]
 
 
 # ----------------------------------------------------------------------------- calibrations that know they are wrong
