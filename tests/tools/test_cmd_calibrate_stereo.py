@@ -83,10 +83,20 @@ def write_scan(folder, rig: Rig, frames: dict | None = None, frames2: dict | Non
 VOLUME = Volume(z_min=0.0, z_max=2000.0, r_max=3000.0)
 
 
+def half_camera(cam):
+    """``cam`` at half its resolution, the same field of view (a quarter of the pixels to render and refine)."""
+    K = cam.K.copy()
+    K[:2, :2] /= 2.0
+    K[:2, 2] = (K[:2, 2] + 0.5) / 2.0 - 0.5
+    return replace(cam, width=cam.width // 2, height=cam.height // 2, K=K)
+
+
 @pytest.fixture(scope="module")
 def procam_scan(tmp_path_factory):
+    """A camera-projector scan of the wavy surface, camera 1 at half resolution (960x640)."""
     folder = tmp_path_factory.mktemp("procam")
     cam1, _, proj = oblique_devices()
+    cam1 = half_camera(cam1)
     rig = Rig(camera=cam1, light=proj, volume=VOLUME)
     write_scan(folder, rig, decoded_frames(cam1, proj))
     return folder
@@ -111,6 +121,7 @@ def matched(monkeypatch):
 
 def test_refine_a_procam_scan_brings_the_camera_back(procam_scan, tmp_path, capsys):
     cam1, _, proj = oblique_devices()
+    cam1 = half_camera(cam1)  # the scan's
     bad = tmp_path / "bad.json"
     save_rig(bad, Rig(camera=turned(cam1, 2.0), light=proj, volume=VOLUME))
     out = tmp_path / "fixed.json"
@@ -250,8 +261,9 @@ def _one_line_error(capsys, *words):
 def test_bad_input_one_line_nothing_written(procam_scan, stereo_scan, tmp_path, capsys):
     out = tmp_path / "o.json"
     cam1, cam2, proj = oblique_devices()
-    stereo_rig = tmp_path / "stereo.json"
-    save_rig(stereo_rig, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(1280, 800), volume=VOLUME))
+    stereo_rig = tmp_path / "stereo.json"  # its camera 1 the size of procam_scan's: refused for being two cameras
+    save_rig(stereo_rig, Rig(camera=half_camera(cam1), camera2=cam2, light=UncalibratedLight(1280, 800),
+                             volume=VOLUME))
     scan_json = procam_scan / "scan.json"
     cases = [
         # a procam rig where a two-camera one is needed
