@@ -122,6 +122,7 @@ def run(args) -> int:
                                       sources={"rig": rig_path, "projector_rig": args.projector_rig},
                                       **kw)
     two = scan.rig.camera2 is not None
+
     def coarse(st):
         if not (st["coarse_share"] or st["low_modulation"]):
             return ""

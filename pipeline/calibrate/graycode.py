@@ -591,6 +591,15 @@ def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
     return max(float(np.std(r[np.abs(r) < 4.0 * guess])) / 2.0, 0.25)
 
 
+def _code_steps(code: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|code step| between decoded neighbours across (camera x) and down (camera y), steps over 2 (depth
+    edges, misreads) left out."""
+    c = code.astype(np.float64)
+    gx = np.abs(np.diff(c, axis=1))[valid[:, 1:] & valid[:, :-1]]
+    gy = np.abs(np.diff(c, axis=0))[valid[1:, :] & valid[:-1, :]]
+    return gx[gx <= 2], gy[gy <= 2]
+
+
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
                   noise: float) -> np.ndarray:
     """(H, W) int: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
@@ -606,10 +615,8 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     bits = pairs.shape[0]
     out = np.zeros(contrast.shape, np.int64)
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
-    c = code.astype(np.float64)
-    g = np.concatenate([np.abs(np.diff(c, axis=1))[valid[:, 1:] & valid[:, :-1]],
-                        np.abs(np.diff(c, axis=0))[valid[1:, :] & valid[:-1, :]]])
-    g = g[(g > 0) & (g <= 2)]
+    g = np.concatenate(_code_steps(code, valid))
+    g = g[g > 0]
     rate = float(np.median(g)) if g.size else 1.0
     thresh = np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise, CLEAR_CONTRAST_FRACTION * contrast)
     for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
@@ -703,12 +710,7 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
     """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``."""
 
     def axis_of(code):
-        c = code.astype(np.float64)
-        m = dec.valid
-        gx = np.abs(np.diff(c, axis=1))[m[:, 1:] & m[:, :-1]]
-        gy = np.abs(np.diff(c, axis=0))[m[1:, :] & m[:-1, :]]
-        gx = gx[gx <= 2]
-        gy = gy[gy <= 2]
+        gx, gy = _code_steps(code, dec.valid)
         return 1 if (gx.mean() if gx.size else 0) >= (gy.mean() if gy.size else 0) else 0
 
     ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
