@@ -62,6 +62,10 @@ def run(args) -> int:
     a = res["all"]
     print(f"{'all':<12}{a['points']:>9}{_fmt(a['median_mm']):>11}{_fmt(a['rms_mm']):>9}{_fmt(a['p95_mm']):>9}"
           f"{_fmt(a['frac_over_1mm'], 100):>8}{_fmt(a.get('coverage_mean'), 100):>9}")
+    sg = a.get("sigma")
+    if sg and sg["points"]:
+        print(f"predicted sigma (along the camera ray, median {sg['median_sigma_mm']:.4f} mm): median |error|/sigma "
+              f"{sg['median_ratio']:.2f} (a Gaussian: 0.67), {100 * sg['beyond_3']:.1f} % beyond 3 sigma (0.3 %)")
     if a["non_finite_points"]:
         print(f"left out {a['non_finite_points']} point(s) with a NaN or infinite coordinate")
     if args.report:

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_against_mesh", "truth_rho_at",
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "sigma_stats", "ray_errors", "evaluate_against_mesh", "truth_rho_at",
            "light_rig",
            "check_coverage_radius"]
 
@@ -93,6 +93,37 @@ def distance_stats(d: np.ndarray, *, over_mm: float = 1.0) -> dict:
     return {"points": int(d.size), "median_mm": float(np.median(d)), "mean_mm": float(d.mean()),
             "rms_mm": float(np.sqrt(np.mean(d * d))), "p95_mm": float(np.percentile(d, 95)),
             "max_mm": float(d.max()), "frac_over_1mm": float(np.mean(d > over_mm))}
+
+
+def sigma_stats(error_mm: np.ndarray, sigma_mm: np.ndarray) -> dict:
+    """Whether predicted standard deviations mean what they say: ``median_ratio``,
+    the median of |error| / sigma (a Gaussian gives 0.674), and ``beyond_3``, the
+    share of points more than three of their sigmas off (0.27 %); points without a
+    finite error or a sigma > 0 are left out (``points`` counts the rest)."""
+    e = np.abs(np.asarray(error_mm, np.float64))
+    s = np.asarray(sigma_mm, np.float64)
+    m = np.isfinite(e) & np.isfinite(s) & (s > 0)
+    if not m.any():
+        return {"points": 0, "median_ratio": None, "beyond_3": None, "median_sigma_mm": None}
+    r = e[m] / s[m]
+    return {"points": int(m.sum()), "median_ratio": float(np.median(r)), "beyond_3": float(np.mean(r > 3.0)),
+            "median_sigma_mm": float(np.median(s[m]))}
+
+
+def ray_errors(mesh, points: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """Signed error of each point along its camera ray (mm): its distance from the
+    camera centre less the distance at which the ray first meets the truth (NaN
+    where the ray misses it). The predicted ``sigma`` of a point is along this ray."""
+    o3d = open3d_lib()
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0)
+    d = pts - np.asarray(center, np.float64)
+    length = np.linalg.norm(d, axis=1)
+    d /= np.maximum(length, 1e-12)[:, None]
+    rays = np.concatenate([np.broadcast_to(np.asarray(center, np.float64), pts.shape), d], axis=1)
+    hit = _scene(mesh).cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    return np.where(np.isfinite(hit), length - hit, np.nan)
 
 
 def _scene(mesh):
@@ -182,8 +213,12 @@ def coverage_radius(scan: Scan) -> float:
 
 
 def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_radius_mm: float | None = None,
-                  return_distances: bool = False):
+                  sigma: np.ndarray | None = None, return_distances: bool = False):
     """Accuracy and coverage of one view's points against the truth.
+
+    With ``sigma`` ((n,) mm, the points' predicted standard deviations along
+    camera 1's ray, the PLY's ``sigma``), ``out["sigma"]`` checks them
+    (:func:`sigma_stats` of each point's error along the same ray).
 
     Returns the figures (dict), and with ``return_distances`` also each point's
     distance to the truth surface (mm; NaN for a point with a non-finite coordinate).
@@ -191,6 +226,13 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     Raises:
         ValueError: ``coverage_radius_mm`` is not a finite number > 0.
     """
+    out, d, _ = _evaluate_view(scan, view_name, points, coverage_radius_mm=coverage_radius_mm, sigma=sigma)
+    return (out, d) if return_distances else out
+
+
+def _evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_radius_mm: float | None,
+                   sigma: np.ndarray | None):
+    """:func:`evaluate_view`'s (figures, distances, |error| / sigma or None)."""
     o3d = open3d_lib()
     check_coverage_radius(coverage_radius_mm)
     view = next((v for v in scan.views if v.name == view_name), None)
@@ -204,6 +246,18 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
     points = pts[finite]
     out = distance_stats(d)
     out["non_finite_points"] = int(np.count_nonzero(~finite))
+    if sigma is not None:
+        if np.size(sigma) != len(pts):
+            raise ValueError(f"evaluate_view: {np.size(sigma)} sigmas for {len(pts)} points")
+        cam = scan.rig.camera
+        center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
+        e = np.full(len(pts), np.nan)
+        e[finite] = ray_errors(mesh, pts[finite], center)
+        sigma = np.asarray(sigma, np.float64).reshape(-1)
+        out["sigma"] = sigma_stats(e, sigma)
+        ratios = np.abs(e) / np.where(sigma > 0, sigma, np.nan)
+    else:
+        ratios = None
     # Coverage of camera 1's lit, seen surface inside the coded annulus (the decoded
     # codec, or an unknown projector: all of camera 1's lit pixels).
     X, _ = truth_points(scan, view_name)
@@ -238,7 +292,7 @@ def evaluate_view(scan: Scan, view_name: str, points: np.ndarray, *, coverage_ra
         out["coverage"] = 0.0 if len(X) else None
         out["coverage_object"] = None
     out["truth_pixels"] = int(len(X))
-    return (out, d) if return_distances else out
+    return out, d, ratios
 
 
 def check_coverage_radius(r: float | None) -> None:
@@ -265,8 +319,8 @@ def _recon_views(p: Path) -> list[tuple[str, Path]]:
     return items
 
 
-def _ply_points(ply_path: Path) -> np.ndarray:
-    ply = read_ply(ply_path)
+def _ply_points(ply_path: Path, ply: dict | None = None) -> np.ndarray:
+    ply = read_ply(ply_path) if ply is None else ply
     missing = [k for k in ("x", "y", "z") if k not in ply]
     if missing:
         raise FormatError(ply_path, f"vertex property {missing[0]!r} missing")
@@ -331,14 +385,27 @@ def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLik
     result = {"views": {}}
     all_d = []
     dists = {}
+    ratios, sigmas = [], []
     for name, ply_path in items:
-        pts = _ply_points(ply_path)
-        result["views"][name], d = evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
-                                                 return_distances=True)
+        ply = read_ply(ply_path)
+        pts = _ply_points(ply_path, ply)
+        sigma = np.asarray(ply["sigma"], np.float64) if "sigma" in ply else None
+        result["views"][name], d, r = _evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
+                                                     sigma=sigma)
+        if r is not None:
+            ratios.append(r)
+            sigmas.append(sigma)
         all_d.append(d)
         dists[name] = d
     result["all"] = distance_stats(np.concatenate(all_d) if all_d else np.zeros(0))
     result["all"]["non_finite_points"] = sum(v["non_finite_points"] for v in result["views"].values())
+    if ratios:
+        # the ratios already carry each point's sigma: pooled with sigma 1
+        r = np.concatenate(ratios)
+        result["all"]["sigma"] = sigma_stats(r, np.ones(r.size))
+        s = np.concatenate(sigmas)
+        result["all"]["sigma"]["median_sigma_mm"] = float(np.median(s[np.isfinite(r)])) if np.isfinite(r).any() \
+            else None
     covs = [v["coverage"] for v in result["views"].values() if v.get("coverage") is not None]
     result["all"]["coverage_mean"] = float(np.mean(covs)) if covs else None
     return (result, dists) if return_distances else result

@@ -31,6 +31,7 @@ from ringscan.pipeline.formats.ply import write_ply
 from ringscan.pipeline.formats.rig import has_calibrated_light
 from ringscan.pipeline.formats.scan import Scan, View, as_camera2, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
+from ringscan.pipeline.reconstruct.error_scale import MIN_PAIRS, apply_error_model, fit_error_model, sample_subset
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_samples
 
@@ -147,25 +148,75 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
                           camera=camera_model_for(rig), light=light_model_for(rig),
                           volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
                           sector_bits=sector_bits, phi=samples.phi, threads=threads)
-    triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
-                               settings=settings.triangulate)
-    floor, calibration = calibration_floor(triangulated)
-    if calibration:
-        calibration["floor_px"] = floor
-        calibration["floor_applied"] = bool(calibration["chi2_median"] > FLOOR_CHI2)
-    if floor > 0 and calibration["floor_applied"]:
-        # The rig's calibration misses by more than the decode's own errors:
-        # discount that direction (across the epipolar line) by the miss
-        # (docs/reconstruction.md, "Calibration floor").
+    sigma_rho, sigma_tan, fit = _honest_sigmas(scan, samples, settings, sector_bits, threads)
+    if fit:
+        # The view's own frames measured what the decode's model misses; the
+        # calibration's share of it is the floor across the epipolar line.
+        floor = fit["floor_px"]
         ts = replace(settings.triangulate,
                      max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
-        triangulated = triangulate(sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan, settings=ts,
-                                   floor=floor)
+        triangulated = triangulate(sigma_rho=sigma_rho, sigma_tan=sigma_tan, settings=ts, floor=floor)
+        _, calibration = calibration_floor(triangulated)
+        if calibration:
+            calibration.update(floor_px=floor, floor_applied=bool(floor > 0), error_model=fit)
+    else:
+        triangulated = triangulate(sigma_rho=sigma_rho, sigma_tan=sigma_tan, settings=settings.triangulate)
+        floor, calibration = calibration_floor(triangulated)
+        if calibration:
+            calibration["floor_px"] = floor
+            calibration["floor_applied"] = bool(calibration["chi2_median"] > FLOOR_CHI2)
+        if floor > 0 and calibration["floor_applied"]:
+            # The rig's calibration misses by more than the decode's own errors:
+            # discount that direction (across the epipolar line) by the miss
+            # (docs/reconstruction.md, "Calibration floor").
+            ts = replace(settings.triangulate,
+                         max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
+            triangulated = triangulate(sigma_rho=sigma_rho, sigma_tan=sigma_tan, settings=ts, floor=floor)
     if calibration and calibration["residual_px_median"] > CALIBRATION_WARN_PX:
         log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
                     "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
                     view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     return triangulated, calibration
+
+
+def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bits: int, threads: int):
+    """(sigma_rho, sigma_tan, the :class:`ErrorModel` or {}): the samples' predicted
+    standard deviations with the error terms the view's own frames show the decode's
+    model to miss (:mod:`ringscan.pipeline.reconstruct.error_scale`): a subset of the
+    samples with an angle is placed by the ring alone, by the angle alone and by both,
+    and the two depths' disagreement measures the terms."""
+    if samples.phi is None or samples.sigma_tan is None or len(samples) < MIN_PAIRS:
+        return samples.sigma_rho, samples.sigma_tan, {}
+    rig = scan.rig
+    vol = rig.volume
+    dev = samples.uv.device
+    pick = np.flatnonzero(np.isfinite(samples.phi.numpy()))
+    pick = pick[sample_subset(pick.size)]
+    if pick.size < MIN_PAIRS:
+        return samples.sigma_rho, samples.sigma_tan, {}
+    host = {k: getattr(samples, k).numpy()[pick] for k in ("uv", "rho", "sector", "confidence", "phi", "sigma_rho",
+                                                           "sigma_tan")}
+    sub = {k: wp.array(v, dtype=getattr(samples, k).dtype, device=dev) for k, v in host.items()}
+    tri = partial(triangulate_rings, sub["uv"], sub["rho"], sub["sector"], sub["confidence"],
+                  camera=camera_model_for(rig), light=light_model_for(rig),
+                  volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center, sector_bits=sector_bits,
+                  phi=sub["phi"], sigma_rho=sub["sigma_rho"], sigma_tan=sub["sigma_tan"], threads=threads)
+    cam = rig.camera
+    center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
+    def depth(t):
+        d = np.linalg.norm(t.points.numpy().astype(np.float64) - center, axis=1)
+        return np.where(t.status.numpy() == 0, d, np.nan), t.sigma.numpy()
+    dr, sr = depth(tri(settings=replace(settings.triangulate, constraint="rings")))
+    dt, st = depth(tri(settings=replace(settings.triangulate, constraint="angle")))
+    both = tri(settings=replace(settings.triangulate, constraint="both"))
+    rv = np.where(both.status.numpy() == 0, both.residual_var.numpy(), 0.0)
+    fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"])
+    def widened(a, k, f):
+        if k == 1.0 and f == 0.0:
+            return a
+        return wp.array(apply_error_model(a.numpy(), k, f), dtype=wp.float32, device=dev)
+    return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"]),
+            widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"]), dict(fit))
 
 
 def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:

@@ -1,0 +1,184 @@
+"""The decode's predicted errors checked against the view's own frames
+(docs/design.md §18, item 6; docs/reconstruction.md, "Honest sigma").
+
+A sample that carries both projector coordinates places its point twice over:
+once on its ring's surface (rho alone) and once on its angle's (phi alone). The
+two depths along the camera ray come from different frames; where the decode's
+noise model (s_rho, s_tan: each depth's predicted standard deviation) is all
+there is, their difference has the variance s_rho^2 + s_tan^2. What the model
+cannot know shows up as more:
+
+- the camera's noise is not the one assumed: each coordinate's predicted error
+  is too small by a factor k (k_rho, k_tan >= 1);
+- an error of a fixed size in projector pixels that no noise model holds: the
+  harmonics of a projector's response nobody calibrated, which a 4-step phase
+  code reads as phase (the angle's floor f_tan), and the sub-pixel bias of a
+  ring edge (the projector's rasterisation, the camera's sampling: f_rho);
+- the rig's calibration misses across the epipolar line (c, px): that direction
+  holds no depth, so c widens the point's residual, not its depth.
+
+Each term moves the depth difference in a known way per sample (through the
+triangulation's own derivatives), so the five variances are one linear model of
+each pair's variance, fitted by maximum likelihood under a Student-t of 5
+degrees of freedom (robust to the few pairs a misread code throws far) and
+read back as Gaussian variances (``T_SCALE``). The
+sigmas are then sqrt(k^2 s^2 + f^2) per coordinate, and c is the floor of the
+triangulation (``kernels.triangulation``). With a t of 5, a sigma fitted as the
+Gaussian's sigma keeps median(|e| / sigma) at 0.67 and 0.3 % beyond three
+sigmas where the errors are Gaussian, and ~0.63 and ~2 % where they have a t's tails.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize
+
+__all__ = ["ErrorModel", "fit_error_model", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
+
+MAX_CHECK_SAMPLES = 40000
+"""Samples triangulated three more times for the fit (evenly spread over the
+view): five numbers are fixed to ~1 % by 40k pairs; a full-size real view has
+1.4M samples, whose triangulation is a view's main cost."""
+MIN_PAIRS = 400
+"""Fewer pairs with both depths than this: no fit (the decode's model as it is)."""
+TILE_PX = 32
+"""Camera tiles over which a calibration's miss is smooth (a decode's errors, noise,
+a fringe's harmonics and an edge's bias, change from pixel to pixel)."""
+MIN_TILE = 8
+"""Fewer pairs in a tile than this: no estimate of the miss there."""
+T_DOF = 5.0
+"""Degrees of freedom of the Student-t likelihood."""
+T_SCALE = 0.8566209142462031
+"""The scale a t of ``T_DOF`` fits to a unit Gaussian (E[(nu + 1) z^2 / (nu S^2 + z^2)] = 1):
+the model's variances are Gaussian ones, the likelihood's scale is this times
+theirs, so that Gaussian errors get their own sigma back."""
+TERMS = ("k_rho", "k_tan", "floor_rho_px", "floor_tan_px", "floor_px")
+
+
+class ErrorModel(dict):
+    """``k_rho``, ``k_tan`` (factors >= 1 on the decode's predicted standard
+    deviations), ``floor_rho_px``, ``floor_tan_px`` (projector px added in
+    quadrature to each coordinate's), ``floor_px`` (across the epipolar line: the
+    calibration's miss), ``pairs`` (samples that measured them), and the pairs'
+    normalised disagreement under the decode's model and under the fitted one
+    (``z_median`` / ``z_median_fitted``: a Gaussian gives 0.67; ``beyond_3`` /
+    ``beyond_3_fitted``: 0.27 %)."""
+
+
+def sample_subset(n: int, max_samples: int = MAX_CHECK_SAMPLES) -> np.ndarray:
+    """Indices of at most ``max_samples`` of ``n`` samples, evenly spread (deterministic)."""
+    if n <= max_samples:
+        return np.arange(n, dtype=np.int64)
+    return np.unique(np.linspace(0, n - 1, max_samples).round().astype(np.int64))
+
+
+def identity_model(pairs: int = 0) -> ErrorModel:
+    """The decode's model as it is (no term added)."""
+    return ErrorModel(k_rho=1.0, k_tan=1.0, floor_rho_px=0.0, floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs),
+                      z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
+
+
+def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndarray, s_tan: np.ndarray,
+                    sigma_rho_px: np.ndarray, sigma_tan_px: np.ndarray, residual_var_px: np.ndarray,
+                    uv: np.ndarray) -> ErrorModel:
+    """The error terms the decode's model misses, from the disagreement of the two depths.
+
+    Args:
+        depth_rho, depth_tan: (n,) each sample's depth along its camera ray (mm)
+            placed by the ring alone and by the angle alone; NaN where it was not.
+        s_rho, s_tan: (n,) their predicted standard deviations (mm).
+        sigma_rho_px, sigma_tan_px: (n,) the decode's predicted standard deviations
+            of rho and of the tangential position (projector px) those came from.
+        residual_var_px: (n,) the predicted variance across the epipolar line
+            (projector px^2) of the same sample placed by both; <= 0 where unknown.
+        uv: (n, 2) the samples' camera positions (px): the calibration's miss is
+            the part of the disagreement that is smooth over ``TILE_PX`` tiles.
+
+    Returns:
+        :class:`ErrorModel` (:func:`identity_model` with fewer than ``MIN_PAIRS`` pairs).
+    """
+    a = [np.asarray(x, np.float64) for x in (depth_rho, s_rho, depth_tan, s_tan, sigma_rho_px, sigma_tan_px,
+                                               residual_var_px)]
+    dr, sr, dt, st, pr, pt, rv = a
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    m = np.isfinite(dr) & np.isfinite(dt) & np.isfinite(uv).all(axis=1)
+    for x in (sr, st, pr, pt, rv):
+        m &= np.isfinite(x) & (x > 0)
+    n = int(np.count_nonzero(m))
+    if n < MIN_PAIRS:
+        return identity_model(n)
+    dr, sr, dt, st, pr, pt, rv, uv = (x[m] for x in (dr, sr, dt, st, pr, pt, rv, uv))
+    diff = dr - dt
+    model_var = sr * sr + st * st
+    # The calibration's miss: the signed residual across the epipolar line
+    # (px; the depth difference over its depth per px there), smooth over tiles.
+    gain = np.sqrt(model_var / rv)
+    calib, calib_var = _smooth_part(diff / gain, uv)
+    diff = diff - gain * calib
+    if calib_var <= np.median(rv):
+        # a miss within the decode's own error across the epipolar line: no floor (a
+        # virtual rig, which fits its own images, measures ~1 % of it)
+        calib_var = 0.0
+    # the depth difference per projector px of each term: s / sigma_px for the two
+    # coordinates; across the epipolar line the difference is the residual scaled
+    # by sqrt(model_var / residual_var)
+    X = np.stack([sr * sr, st * st, (sr / pr) ** 2, (st / pt) ** 2], axis=1)
+    # in units where every column's and the squared differences' medians are 1:
+    # var = Xs @ q with q = P * col / d2_scale, P the five variances
+    col = np.median(X, axis=0)
+    col[col <= 0] = 1.0
+    d2 = diff * diff
+    d2_scale = max(float(np.median(d2)), 1e-300)
+    Xs = X / col
+    d2 = d2 / d2_scale
+    lower = np.array([1.0, 1.0, 0.0, 0.0]) * col / d2_scale  # k >= 1: the noise model is never shrunk
+
+    def nll(q):
+        var = np.maximum(T_SCALE * T_SCALE * (Xs @ q), 1e-300)
+        u = d2 / (T_DOF * var)
+        f = 0.5 * np.sum(np.log(var)) + 0.5 * (T_DOF + 1) * np.sum(np.log1p(u))
+        g_var = 0.5 / var - 0.5 * (T_DOF + 1) * u / (var * (1 + u))
+        return f / n, T_SCALE * T_SCALE * (Xs.T @ g_var) / n
+
+    q0 = lower + 0.2
+    res = minimize(nll, q0, jac=True, method="L-BFGS-B", bounds=[(lo, None) for lo in lower],
+                   options={"maxiter": 1000, "ftol": 1e-12, "gtol": 1e-9})
+    p = np.maximum(res.x, lower) * d2_scale / col
+    z0 = np.abs(dr - dt) / np.sqrt(model_var)
+    z1 = np.abs(diff) / np.sqrt(X @ p)
+    return ErrorModel(k_rho=float(np.sqrt(max(p[0], 1.0))), k_tan=float(np.sqrt(max(p[1], 1.0))),
+                      floor_rho_px=float(np.sqrt(p[2])), floor_tan_px=float(np.sqrt(p[3])),
+                      floor_px=float(np.sqrt(calib_var)), pairs=n,
+                      z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
+                      z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+def _smooth_part(r: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
+    """Each sample's share of the residual field that is smooth over ``TILE_PX``
+    camera tiles (the median of its tile's signed residuals, 0 in tiles of fewer than
+    ``MIN_TILE`` samples), and that field's variance less what its medians' own noise
+    gives (>= 0)."""
+    key = np.floor(uv / TILE_PX).astype(np.int64)
+    tile = key[:, 0] * 1_000_003 + key[:, 1]
+    _, inv, counts = np.unique(tile, return_inverse=True, return_counts=True)
+    order = np.argsort(inv, kind="stable")
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    med = np.zeros(counts.size)
+    noise = np.zeros(counts.size)
+    rs = r[order]
+    for t in np.flatnonzero(counts >= MIN_TILE):
+        x = rs[starts[t]:starts[t] + counts[t]]
+        med[t] = np.median(x)
+        mad = np.median(np.abs(x - med[t])) / 0.6745
+        noise[t] = 1.571 * mad * mad / counts[t]  # a median's variance, pi / 2 sigma^2 / n
+    field = med[inv]
+    used = counts[inv] >= MIN_TILE
+    if not used.any():
+        return field, 0.0
+    return field, max(float(np.mean(field[used] ** 2) - np.mean(noise[inv][used])), 0.0)
+
+
+def apply_error_model(sigma_px: np.ndarray, k: float, floor_px: float) -> np.ndarray:
+    """sqrt(k^2 sigma^2 + floor^2), float32."""
+    s = np.asarray(sigma_px, np.float64)
+    return np.sqrt((k * s) ** 2 + floor_px ** 2).astype(np.float32)

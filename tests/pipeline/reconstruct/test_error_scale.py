@@ -1,0 +1,135 @@
+"""The error model fitted from the two depths' disagreement recovers terms planted
+in synthetic pairs (known truth), and leaves a model that is already right alone."""
+
+import numpy as np
+import pytest
+
+from ringscan.pipeline.reconstruct.error_scale import MIN_PAIRS, apply_error_model, fit_error_model, sample_subset
+
+
+def _pairs(rng, n, *, k_rho=1.0, k_tan=1.0, f_rho=0.0, f_tan=0.0, miss_px=0.0):
+    """n pairs drawn from the model: (args of fit_error_model), with a smooth miss
+    across the epipolar line of amplitude ``miss_px`` over the camera image."""
+    uv = rng.uniform(0, [640, 512], size=(n, 2))
+    sigma_rho_px = rng.lognormal(np.log(0.02), 0.5, n)     # the decode's model, projector px
+    sigma_tan_px = rng.lognormal(np.log(0.08), 0.5, n)
+    d_rho = rng.lognormal(np.log(0.4), 0.8, n)             # depth per projector px, mm (geometry)
+    d_tan = rng.lognormal(np.log(0.4), 0.8, n)
+    s_rho, s_tan = sigma_rho_px * d_rho, sigma_tan_px * d_tan
+    resid_var = rng.lognormal(np.log(0.003), 0.5, n)      # across the epipolar line, px^2
+    gain = np.sqrt((s_rho ** 2 + s_tan ** 2) / resid_var)
+    e_rho = rng.normal(0, np.sqrt((k_rho * s_rho) ** 2 + (f_rho * d_rho) ** 2))
+    e_tan = rng.normal(0, np.sqrt((k_tan * s_tan) ** 2 + (f_tan * d_tan) ** 2))
+    miss = miss_px * np.sin(uv[:, 0] / 150.0) * np.cos(uv[:, 1] / 170.0)  # smooth over 32 px tiles
+    depth = 400.0
+    depth_rho = depth + e_rho + gain * miss / 2
+    depth_tan = depth + e_tan - gain * miss / 2
+    return (depth_rho, s_rho, depth_tan, s_tan, sigma_rho_px, sigma_tan_px, resid_var, uv), miss
+
+
+def test_a_model_that_is_right_is_left_alone():
+    rng = np.random.default_rng(1)
+    args, _ = _pairs(rng, 30000)
+    fit = fit_error_model(*args)
+    # 30k pairs fix a variance to ~1 %, five of them together to a few: the widened
+    # sigmas stay within 5 % of the model's
+    for px, k, f in ((args[4], fit["k_rho"], fit["floor_rho_px"]), (args[5], fit["k_tan"], fit["floor_tan_px"])):
+        assert np.median(apply_error_model(px, k, f) / px) < 1.05
+    assert fit["floor_px"] == 0.0
+    assert 0.6 < fit["z_median"] < 0.75 and fit["pairs"] == 30000  # a Gaussian's median |z| is 0.674
+
+
+def test_planted_terms_are_recovered():
+    rng = np.random.default_rng(2)
+    args, miss = _pairs(rng, 40000, k_rho=1.6, k_tan=1.3, f_rho=0.03, f_tan=0.12, miss_px=0.3)
+    fit = fit_error_model(*args)
+    assert fit["k_rho"] == pytest.approx(1.6, rel=0.1)
+    assert fit["k_tan"] == pytest.approx(1.3, rel=0.1)
+    # floors are smaller parts of each variance than the factors: 25 %
+    assert fit["floor_rho_px"] == pytest.approx(0.03, rel=0.25)
+    assert fit["floor_tan_px"] == pytest.approx(0.12, rel=0.25)
+    # the smooth miss's RMS, read from 32 px tile medians (their own noise removed): 15 %
+    assert fit["floor_px"] == pytest.approx(np.sqrt(np.mean(miss ** 2)), rel=0.15)
+    # before the fit the pairs disagreed far beyond their sigmas; after it, as a t of 5 would
+    assert fit["z_median"] > 1.0 and fit["beyond_3"] > 0.05
+    assert 0.6 < fit["z_median_fitted"] < 0.85 and fit["beyond_3_fitted"] < 0.03
+
+
+def test_too_few_pairs_change_nothing():
+    rng = np.random.default_rng(3)
+    args, _ = _pairs(rng, MIN_PAIRS - 1, k_rho=3.0)
+    fit = fit_error_model(*args)
+    assert (fit["k_rho"], fit["k_tan"], fit["floor_rho_px"], fit["floor_tan_px"], fit["floor_px"]) == (1, 1, 0, 0, 0)
+    assert fit["pairs"] == MIN_PAIRS - 1
+
+
+def test_pairs_without_both_depths_are_left_out():
+    rng = np.random.default_rng(4)
+    args, _ = _pairs(rng, 2000)
+    dr = args[0].copy()
+    dr[::2] = np.nan
+    fit = fit_error_model(dr, *args[1:])
+    assert fit["pairs"] == 1000
+
+
+def test_apply_and_subset():
+    s = apply_error_model(np.array([0.03, 0.0]), 2.0, 0.04)
+    assert s.dtype == np.float32 and np.allclose(s, [0.072111, 0.04], rtol=1e-5)  # sqrt(0.06^2 + 0.04^2)
+    idx = sample_subset(10, 4)
+    assert idx.tolist() == [0, 3, 6, 9]
+    assert sample_subset(3, 4).tolist() == [0, 1, 2]
+
+
+@pytest.fixture(scope="module")
+def uncalibrated_scan(tmp_path_factory):
+    """A scan whose frames carry what the decode's noise model does not know: a
+    projector of gamma 2.2 that scan.json says nothing of, with sharp (unblurred)
+    pixels, and camera noise of 4 grey levels (the model assumes 1)."""
+    import dataclasses
+    import json
+
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.formats.scan import load_scan
+    from ringscan.pipeline.simulate.scan import simulate_scan
+    from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+    from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
+
+    rig = small_rig()
+    cam = dataclasses.replace(rig.camera, width=480, height=384,
+                              K=np.array([[975.0, 0, 239.5], [0, 975.0, 191.5], [0, 0, 1]]))
+    rig = dataclasses.replace(rig, camera=cam, light=dataclasses.replace(rig.light, gamma=2.2))
+    spec = parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 8.0, "bits": 6, "sector_bits": 6,
+                           "angle_steps": 4, "angle_period": 12.0})
+    folder = tmp_path_factory.mktemp("uncalibrated") / "scan"
+    simulate_scan(folder, scene="sphere", rig=rig, patterns=spec, progress=False,
+                  settings=RenderSettings(defocus_px=0.0, noise=4.0))
+    d = json.loads((folder / "scan.json").read_text())
+    d["rig"]["light"].pop("response", None)
+    (folder / "scan.json").write_text(json.dumps(d))
+    scan = load_scan(folder)
+    assert scan.rig.light.gamma == 1.0
+    return scan
+
+
+def test_sigmas_hold_on_frames_the_model_does_not_know(uncalibrated_scan, tmp_path):
+    from ringscan.kernels.triangulation import TriangulateSettings
+    from ringscan.pipeline.evaluate.metrics import evaluate_recon
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+    figures = {}
+    for c in ("rings", "both"):
+        rep = reconstruct_scan(uncalibrated_scan, tmp_path / c, progress=False,
+                               settings=ReconstructSettings(triangulate=TriangulateSettings(constraint=c)))
+        figures[c] = (rep["views"][0], evaluate_recon(tmp_path / c, uncalibrated_scan)["all"])
+    view, ev = figures["both"]
+    model = view["calibration"]["error_model"]
+    # the decode's own model was over-confident here (a Gaussian's median |z| is 0.67)...
+    assert model["z_median"] > 1.0 and model["beyond_3"] > 0.05
+    assert model["k_rho"] > 1.5 and model["k_tan"] > 1.5  # noise 4 where 1 is assumed
+    # ...the fitted one holds against the truth: the issue's bounds (a Gaussian: 0.67, 0.3 %)
+    for c in ("rings", "both"):
+        s = figures[c][1]["sigma"]
+        assert 0.4 <= s["median_ratio"] <= 1.2 and s["beyond_3"] <= 0.05, (c, s)
+    # and the default is no worse than rings alone (2 %: a median's spread over ~20k points)
+    assert ev["median_mm"] <= 1.02 * figures["rings"][1]["median_mm"]
