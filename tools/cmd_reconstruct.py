@@ -11,7 +11,7 @@ from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.settings import apply_setting, check_finite_settings, settings_from_dict
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-from ringscan.pipeline.reconstruct.settings import RAYS, ReconstructSettings
+from ringscan.pipeline.reconstruct.settings import RAYS, ReconstructSettings, check_setting_ranges
 from ringscan.tools.cli import UsageError, add_device_option
 
 
@@ -105,7 +105,9 @@ def load_settings(path, *, sets=(), min_confidence: float | None = None) -> Reco
     if not isinstance(d, dict):
         raise FormatError(path, f"expected an object of settings, got {type(d).__name__}")
     try:
-        settings_from_dict(ReconstructSettings, d)  # the file on its own first: its errors name it
+        alone = settings_from_dict(ReconstructSettings, d)  # the file on its own first: its errors name it
+        if 0 <= alone.min_confidence <= 1:  # else said below, as the file's or --min-confidence's
+            check_setting_ranges(alone)
     except (TypeError, ValueError) as e:
         raise FormatError(path, str(e)) from None
     try:
@@ -127,6 +129,10 @@ def load_settings(path, *, sets=(), min_confidence: float | None = None) -> Reco
         if min_confidence is not None or any(a.split("=")[0].strip() == "min_confidence" for a in sets):
             raise UsageError(f"--min-confidence: {why}")
         raise FormatError(path, f"min_confidence: {why}")
+    try:
+        check_setting_ranges(s)
+    except ValueError as e:
+        raise UsageError(f"--set: {e}") from None
     return s
 
 

@@ -30,7 +30,7 @@ from ringscan.pipeline.formats.atomic import (
     remove_stale_temporaries,
 )
 from ringscan.pipeline.formats.errors import RingscanError
-from ringscan.pipeline.formats.settings import settings_to_dict
+from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.formats.storage import (
     check_location,
     find_scan_urls,
@@ -39,7 +39,7 @@ from ringscan.pipeline.formats.storage import (
     local_path,
     write_json_to,
 )
-from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings, check_setting_ranges
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +159,9 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    check_settings_types(settings)
+    check_finite_settings(settings)
+    check_setting_ranges(settings)  # every scan would fail alike: the batch's error, before anything is written
     if workers is not None and (not isinstance(workers, int) or workers < 0):
         raise ValueError(f"workers: expected a whole number >= 0, got {workers!r}")
     if cpu_threads is not None and (isinstance(cpu_threads, bool) or not isinstance(cpu_threads, int)

@@ -4,6 +4,8 @@ crosses its inverse (``kernels.ring_labels``, ``kernels.ring_sampling``)."""
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -19,6 +21,8 @@ from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lightin
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
 from ringscan.pipeline.formats.scan import Scan
+
+log = logging.getLogger(__name__)
 
 __all__ = ["GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view"]
 
@@ -82,6 +86,13 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                 rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
+    band = labels.band.numpy()
+    decoded = int(np.count_nonzero(band >= 0))
+    if decoded == 0 and len(samples):
+        # Edges sampled where no pixel decodes (every pixel below decode.min_contrast, every bit weak) carry
+        # a ring index no band label confirms and no sector: no point may come of them.
+        log.info("%d edge samples, but no pixel decoded to a ring band: none kept", len(samples))
+        samples = _no_samples(samples)
     contrast = sample_contrast(frames, spec, samples.uv.numpy(), contrast=labels.contrast)
     rig = scan.rig
     samples, angle_stats = add_angle(frames, scan, samples, sigma_rho=edge_sigma(contrast, settings.angle.noise),
@@ -90,10 +101,17 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                      threads=threads)
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
-    band = labels.band.numpy()
-    stats = {"pixels_decoded": int(np.count_nonzero(band >= 0)), "samples": len(samples), **angle_stats,
+    stats = {"pixels_decoded": decoded, "samples": len(samples), **angle_stats,
              "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
+
+
+def _no_samples(samples: Samples) -> Samples:
+    """Samples of the same fields, dtypes and device, none of them."""
+    def empty(a):
+        return None if a is None else wp.empty(0, dtype=a.dtype, device=a.device)
+
+    return Samples(**{f.name: empty(getattr(samples, f.name)) for f in dataclasses.fields(samples)})
 
 
 class GrayRingsCodec(Codec[GrayRingsSettings]):

@@ -55,7 +55,7 @@ from ringscan.pipeline.formats.scan import (
 )
 from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
-from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.settings import ReconstructSettings, check_setting_ranges
 from ringscan.pipeline.reconstruct.view import check_rays, reconstruct_view, write_view_ply
 
 log = logging.getLogger(__name__)
@@ -96,13 +96,15 @@ def reconstruct_scan(
         The report (also written to ``out_dir/report.json``).
 
     Raises:
-        ValueError: a setting of the wrong type or not finite, naming it.
+        ValueError: a setting of the wrong type, not finite or outside its range
+            (:data:`~ringscan.pipeline.reconstruct.settings.SETTING_RANGES`), naming it.
         FormatError: ``out_dir`` cannot be a folder (a file, a device, under a
             file), or writing into it would overwrite one of the scan's own files;
             another run holds ``out_dir``.
     """
     check_settings_types(settings)
     check_finite_settings(settings)
+    check_setting_ranges(settings)
     with contextlib.ExitStack() as held:
         return _reconstruct(scan, out_dir, settings=settings, device=device, views=views, resume=resume,
                             progress=progress, held=held if lock else None)

@@ -86,3 +86,86 @@ def test_settings_schema_describes_every_field():
     assert props["min_confidence"]["description"] == "Points below this confidence are not written."
     assert props["threads"]["type"] == "integer"
     assert schema["$defs"]["DecodeSettings"]["properties"]["min_contrast"]["description"].startswith("Least white")
+
+
+def _numeric_settings(s, prefix=""):
+    """The paths of every numeric setting (ints and floats, not booleans) of a settings dataclass."""
+    import dataclasses
+
+    for f in dataclasses.fields(s):
+        v = getattr(s, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _numeric_settings(v, f"{prefix}{f.name}.")
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            yield f"{prefix}{f.name}"
+
+
+def test_every_numeric_setting_has_a_range_with_a_reason():
+    from ringscan.pipeline.reconstruct.settings import SETTING_RANGES, check_setting_ranges
+
+    assert set(SETTING_RANGES) == set(_numeric_settings(ReconstructSettings()))
+    assert all(len(b.why) > 8 and b.lo <= b.hi for b in SETTING_RANGES.values())
+    check_setting_ranges(ReconstructSettings())  # the defaults lie inside
+
+
+@pytest.mark.parametrize("assignment, message", [
+    ("decode.min_contrast=1e308", "decode.min_contrast: 1e+308 is outside 1 .. 200 (8-bit grey levels"),
+    ("decode.min_contrast=255", "decode.min_contrast: 255 is outside 1 .. 200"),
+    ("decode.min_contrast=1e20", "decode.min_contrast: 1e+20 is outside 1 .. 200"),
+    ("decode.min_contrast=-5", "decode.min_contrast: -5 is outside 1 .. 200"),
+    ("filter.radius=-1", "filter.radius: -1 is outside 0 .. 8 (pixels: 0 turns the filter off"),
+    ("threads=-1", "threads: -1 is outside 0 .. 4096 (CPU threads"),
+    ("stereo.match.cell_px=1e-9", "stereo.match.cell_px: 1e-09 is outside 1 .. 1024 (projector px"),
+    ("filter.min_neighbours=30", "filter.min_neighbours: 30 is more than the window of radius 2 holds (24)"),
+])
+def test_a_setting_outside_its_range_is_refused_before_anything_is_written(tiny_scan, tmp_path, capsys,
+                                                                           assignment, message):
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(tiny_scan), "--out", str(out), "--set", assignment, "--device", "cpu",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"ringscan reconstruct: error: --set: {message}"), err
+    assert not out.exists()
+
+
+def test_a_settings_file_outside_the_range_names_the_file_and_batch_refuses_it_too(tiny_scan, tmp_path, capsys):
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({"filter": {"radius": -1}}))
+    for command in ("reconstruct", "batch"):
+        out = tmp_path / command
+        assert main([command, str(tiny_scan), "--out", str(out), "--settings", str(path), "--device", "cpu",
+                     "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err == (f"ringscan {command}: error: {path}: filter.radius: -1 is outside 0 .. 8 (pixels: 0 turns "
+                       "the filter off; above 8 the window (17x17) reaches past a ring's neighbours and costs "
+                       "(2r+1)^2 tests a point)"), err
+        assert not out.exists()
+
+
+def test_library_settings_out_of_range_are_refused_by_reconstruct_and_batch(tiny_scan, tmp_path):
+    import dataclasses
+
+    from ringscan.pipeline.batch import batch_reconstruct
+
+    bad = ReconstructSettings(decode=dataclasses.replace(ReconstructSettings().decode, min_contrast=1e308))
+    with pytest.raises(ValueError, match=r"^decode.min_contrast: 1e\+308 is outside 1 .. 200"):
+        reconstruct_scan(tiny_scan, tmp_path / "out", settings=bad, device="cpu", progress=False)
+    with pytest.raises(ValueError, match=r"^decode.min_contrast: 1e\+308 is outside 1 .. 200"):
+        batch_reconstruct(tiny_scan, tmp_path / "batch", settings=bad, device="cpu", workers=0, progress=False)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "batch").exists()
+
+
+def test_no_pixel_decoded_writes_no_point(tiny_scan, tmp_path, capsys):
+    """decode.min_contrast 200 (in range) decodes no pixel of the tiny scan (white - black is below 200
+    everywhere); the sampler still finds edges (sample.min_contrast 12), which before gave 16 points of rings
+    no band label confirmed, none with a sector."""
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(tiny_scan), "--out", str(out), "--set", "decode.min_contrast=200",
+                 "--device", "cpu", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "ringscan reconstruct: error: no view of" in err and "below 200 grey levels at every pixel" in err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["totals"]["pixels_decoded"] == 0
+    assert rep["totals"]["points"] == 0 and rep["totals"]["samples"] == 0
+    assert len(read_ply(out / "view_000.ply")["x"]) == 0
