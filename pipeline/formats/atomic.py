@@ -259,7 +259,7 @@ def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
 
     path = Path(folder) / LOCK_NAME
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        fd = _open_lock_file(path)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -281,7 +281,7 @@ def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
             return
         # The previous owner may have removed the file between our open and our lock: lock the file that is there.
         try:
-            same = os.path.samestat(os.fstat(fd), os.stat(path))
+            same = os.path.samestat(os.fstat(fd), os.lstat(path))
         except FileNotFoundError:
             same = False
         if same:
@@ -293,8 +293,35 @@ def lock_folder(folder: str | os.PathLike, *, what: str = "ringscan"):
         yield path
     finally:
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(path)
+            if os.path.samestat(os.fstat(fd), os.lstat(path)):  # ours still: not a file put there since
+                os.unlink(path)
         os.close(fd)
+
+
+def _open_lock_file(path: Path) -> int:
+    """Open (create) a lock file for reading and writing, refusing anything but a plain file of its own:
+    a symbolic link (the run would write into the file it points to), a FIFO or a device (the open would
+    block, or the write go elsewhere), a file with another hard link (truncating it would empty that file).
+
+    Raises:
+        FormatError: naming the lock file and what it is; nothing is written to it or removed.
+    """
+    flags = (os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
+             | getattr(os, "O_NONBLOCK", 0))
+    fix = "it is ringscan's own lock file, a plain file: remove it (no ringscan run uses it then)"
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as e:
+        if os.path.islink(path):
+            raise FormatError(path, f"is a symbolic link (to {os.readlink(path)}), not a plain file: {fix}") from None
+        raise FormatError(path, f"cannot open the lock file: {e.strerror}") from None
+    st = os.fstat(fd)
+    why = (f"is {mode_kind(st.st_mode)}, not a plain file" if not stat.S_ISREG(st.st_mode)
+           else f"has {st.st_nlink} hard links: another file shares its contents" if st.st_nlink != 1 else None)
+    if why:
+        os.close(fd)
+        raise FormatError(path, f"{why}: {fix}")
+    return fd
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -211,3 +211,21 @@ def test_a_huge_image_is_one_line_before_decoding(tmp_path, capsys, tiny_scan, w
     rc, err = _run(["calibrate", "camera", str(frame), "--square", "5", "--out", str(tmp_path / "cam.json")], capsys)
     assert rc == 1 and err.startswith(f"ringscan calibrate camera: error: {want}"), err
     assert not (tmp_path / "cam.json").exists()
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "batch"])
+def test_a_lock_file_linked_to_another_file_is_refused_and_that_file_left_alone(tmp_path, capsys, tiny_scan,
+                                                                               command):
+    """OUT/.ringscan.lock a symbolic link to another file: before, the run truncated that file and wrote its
+    process id into it."""
+    out = tmp_path / "out"
+    out.mkdir()
+    other = tmp_path / "notes.txt"
+    other.write_text("keep me\n")
+    (out / ".ringscan.lock").symlink_to(other)
+    argv = [a.format(scan=tiny_scan, tmp=tmp_path, out=out) for a in COMMANDS[command]]
+    rc, err = _run(argv + (["--workers", "0"] if command == "batch" else []), capsys)
+    assert rc == 1 and err == (f"ringscan {command}: error: {out / '.ringscan.lock'}: is a symbolic link (to "
+                               f"{other}), not a plain file: it is ringscan's own lock file, a plain file: remove it "
+                               "(no ringscan run uses it then)"), err
+    assert other.read_text() == "keep me\n" and sorted(p.name for p in out.iterdir()) == [".ringscan.lock"]

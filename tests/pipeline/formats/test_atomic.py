@@ -201,3 +201,27 @@ def test_lock_folder_one_holder_at_a_time_and_a_dead_holder_taken_over(tmp_path)
     with lock_folder(tmp_path, what="batch"):
         assert lock.read_text() == f"{os.getpid()} batch\n"
     assert not lock.exists()
+
+
+def test_a_lock_file_that_is_a_link_a_fifo_or_a_hard_link_is_refused_and_left_alone(tmp_path):
+    """Before: a symbolic link's target (another file) was truncated and written; a FIFO gave
+    `Invalid argument` without a path and was removed."""
+    import os
+
+    from ringscan.pipeline.formats.atomic import LOCK_NAME, lock_folder
+
+    lock = tmp_path / LOCK_NAME
+    other = tmp_path / "precious.txt"
+    other.write_text("keep me\n")
+    cases = [("link", lambda: lock.symlink_to(other), f"is a symbolic link (to {other}), not a plain file"),
+             ("fifo", lambda: os.mkfifo(lock), "is a pipe (FIFO), not a plain file"),
+             ("hard link", lambda: os.link(other, lock), "has 2 hard links: another file shares its contents")]
+    for name, make, why in cases:
+        make()
+        with pytest.raises(FormatError) as e:
+            with lock_folder(tmp_path, what="batch"):
+                pytest.fail(f"{name}: the lock was taken")
+        assert str(e.value) == (f"{lock}: {why}: it is ringscan's own lock file, a plain file: remove it (no "
+                                "ringscan run uses it then)"), name
+        assert os.path.lexists(lock) and other.read_text() == "keep me\n", name
+        lock.unlink()
