@@ -21,7 +21,6 @@ killed writer leaves either nothing, or a store whose written frames are whole.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import secrets
@@ -34,8 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ringscan.pipeline.formats.atomic import _process_alive, atomic_write_bytes, atomic_write_json
+from ringscan.pipeline.formats.atomic import _process_alive, atomic_write_bytes, atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import MAX_IMAGE_PIXELS, mode_kind
 
 STORE_FORMAT = "ringscan.frames/1"
 """The ``ringscan.format`` attribute of a store's zarr.json."""
@@ -128,15 +128,12 @@ def open_store(path: str | os.PathLike) -> StoreInfo:
     """
     path = Path(path)
     meta = path / "zarr.json"
-    if not meta.is_file():
+    if not os.path.lexists(meta):
         raise FormatError(meta, "frame store metadata not found")
-    if meta.stat().st_size > 1 << 20:
-        raise FormatError(meta, "frame store metadata larger than 1 MiB")
-    try:
-        d = json.loads(meta.read_bytes())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise FormatError(meta, f"not valid JSON ({e})") from None
-    if not isinstance(d, dict) or d.get("zarr_format") != 3 or d.get("node_type") != "array":
+    # a regular file of at most 1 MiB (a FIFO would block, /dev/zero never end); JSON nested too deeply
+    # for the parser is refused as not valid JSON
+    d = read_json(meta, max_bytes=1 << 20)
+    if d.get("zarr_format") != 3 or d.get("node_type") != "array":
         raise FormatError(meta, "not a Zarr v3 array")
     shape = d.get("shape")
     if (not isinstance(shape, list) or len(shape) != 3
@@ -145,6 +142,9 @@ def open_store(path: str | os.PathLike) -> StoreInfo:
     n, h, w = shape
     if not (0 < n <= MAX_FRAMES and 0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
         raise FormatError(meta, f"shape: {shape} out of range")
+    if h * w > MAX_IMAGE_PIXELS:  # as an image file's header: refused before a frame is decoded
+        raise FormatError(meta, f"frames are {w}x{h} ({w * h / 1e6:.0f} megapixels): larger than ringscan reads "
+                                f"(at most {MAX_SIDE} px a side, {MAX_IMAGE_PIXELS / 1e6:.0f} megapixels)")
     dt = d.get("data_type")
     if dt not in _DTYPES:
         raise FormatError(meta, f"data_type: expected uint8 or uint16, got {dt!r}")
@@ -224,7 +224,7 @@ def check_chunk_files(info: StoreInfo, names: Sequence[str]) -> None:
         except FileNotFoundError:
             raise FormatError(p, "frame missing from the frame store") from None
         if not stat.S_ISREG(st.st_mode):
-            raise FormatError(p, "frame chunk is not a regular file")
+            raise FormatError(p, f"frame chunk is {mode_kind(st.st_mode)}, not a regular file (damaged store)")
         _check_chunk_size(p, st.st_size, limit)
 
 
@@ -234,11 +234,17 @@ def _read_chunk(path: Path, limit: int) -> memoryview:
     ``bytes`` is mapped and faulted in afresh: 9 ms a view against 1 ms). Valid until this
     thread's next call."""
     try:
-        f = open(path, "rb", buffering=0)
+        # O_NONBLOCK: a FIFO in a chunk's place cannot block the open (it is refused below)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise FormatError(path, "frame missing from the frame store") from None
-    with f:
-        size = os.fstat(f.fileno()).st_size
+    except OSError as e:
+        raise FormatError(path, f"cannot read the frame chunk: {e.strerror}") from None
+    with open(fd, "rb", buffering=0) as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise FormatError(path, f"frame chunk is {mode_kind(st.st_mode)}, not a regular file (damaged store)")
+        size = st.st_size
         _check_chunk_size(path, size, limit)
         buf = getattr(_scratch, "buf", None)
         if buf is None or len(buf) < size:

@@ -145,3 +145,50 @@ def test_frames_appended_one_by_one_resume(tmp_path):
     assert np.array_equal(fs.read_store(again), a)
     with pytest.raises(FormatError, match="a different frame store"):
         fs.create_store(tmp_path / "s.zarr", NAMES, height=37, width=53, dtype=np.uint8)
+
+
+def test_metadata_nested_too_deeply_or_of_frames_too_large_is_refused_before_decoding(tmp_path):
+    info = fs.write_store(tmp_path / "s.zarr", _frames(np.uint8), NAMES)
+    meta = info.path / "zarr.json"
+    good = meta.read_text()
+    meta.write_text("[" * 100000)  # before: RecursionError out of json.loads
+    with pytest.raises(FormatError, match=r"zarr.json: not valid JSON \(nested too deeply\)") as e:
+        fs.read_store(info.path)
+    assert e.value.path == str(meta)
+    # 30000x30000 frames (900 megapixels), within 65536 a side: refused as an image header of that size is,
+    # before a chunk is read (before: decoded into 900 MB a frame)
+    d = json.loads(good)
+    d["shape"] = [len(NAMES), 30000, 30000]
+    d["chunk_grid"]["configuration"]["chunk_shape"] = [1, 30000, 30000]
+    meta.write_text(json.dumps(d))
+    with pytest.raises(FormatError) as e:
+        fs.open_store(info.path)
+    assert str(e.value) == (f"{meta}: frames are 30000x30000 (900 megapixels): larger than ringscan reads (at most "
+                            "65536 px a side, 200 megapixels)")
+
+
+def test_a_fifo_in_place_of_a_chunk_or_the_metadata_is_refused_without_blocking(tmp_path):
+    import os
+
+    from tests.pipeline.formats.test_limits import _in_thread
+
+    info = fs.write_store(tmp_path / "s.zarr", _frames(np.uint8), NAMES)
+    chunk = info.chunk_path(2)
+    chunk.unlink()
+    os.mkfifo(chunk)
+    got = _in_thread(lambda: fs.read_store(info))  # before: blocked forever in open()
+    if got == "hung":
+        with open(chunk, "wb"):
+            pass
+    assert isinstance(got, FormatError), got
+    assert str(got) == f"{chunk}: frame chunk is a pipe (FIFO), not a regular file (damaged store)"
+    with pytest.raises(FormatError, match="frame chunk is a pipe"):
+        fs.check_chunk_files(info, NAMES)
+    meta = info.path / "zarr.json"
+    meta.unlink()
+    os.mkfifo(meta)
+    got = _in_thread(lambda: fs.open_store(info.path))
+    if got == "hung":
+        with open(meta, "wb"):
+            pass
+    assert isinstance(got, FormatError) and str(got).startswith(f"{meta}: is a pipe (FIFO)"), got

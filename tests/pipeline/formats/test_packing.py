@@ -181,3 +181,24 @@ def test_packed_scan_json_is_checked(tmp_path):
         read_view_frames(scan, scan.views[0])
     src.write_text(json.dumps(d))
     _check_frames(tmp_path, truth)
+
+
+def test_a_fifo_chunk_stops_unpack_and_a_later_pack_without_blocking(tmp_path):
+    import os
+
+    from tests.pipeline.formats.test_limits import _in_thread
+
+    _scan(tmp_path, views=1)
+    pack_scan(tmp_path, keep=True)  # the images stay beside the store: the next pack compares them
+    chunk = tmp_path / "view_0" / "frames.zarr" / "c" / "2" / "0" / "0"
+    chunk.unlink()
+    os.mkfifo(chunk)
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
+    for run in (lambda: pack_scan(tmp_path), lambda: unpack_scan(tmp_path)):
+        got = _in_thread(run)  # before: both blocked forever opening the FIFO
+        if got == "hung":
+            with open(chunk, "wb"):
+                pass
+        assert isinstance(got, FormatError) and got.path == str(chunk), got
+        assert "frame chunk is a pipe (FIFO), not a regular file" in str(got)
+        assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
