@@ -89,7 +89,8 @@ def run_conditioning(args) -> int:
     import json
     import os
 
-    from ringscan.pipeline.evaluate.conditioning import compute_conditioning, plot_conditioning
+    from ringscan.pipeline.evaluate.conditioning import (MAX_MAP_PIXELS, compute_conditioning, map_step_needed,
+                                                         plot_conditioning)
     from ringscan.pipeline.formats.patterns import default_patterns
     from ringscan.pipeline.formats.rig import load_rig
 
@@ -106,6 +107,10 @@ def run_conditioning(args) -> int:
         rig = load_rig(src)
         size = (rig.light.width, rig.light.height) if hasattr(rig.light, "width") else (1024, 768)
         spec = default_patterns("gray-rings", width=size[0], height=size[1], source=src)
+    need = map_step_needed(rig.camera.width, rig.camera.height)
+    if args.step < need:  # before: a 65536x65536 camera asked for 64 GiB
+        raise UsageError(f"--step {args.step}: the map of the {rig.camera.width}x{rig.camera.height} camera of {src} "
+                         f"would evaluate more than {MAX_MAP_PIXELS} pixels (~1.5 GB); give --step {need} or more")
     settings = ConditioningSettings(plane_z=args.plane_z, step=args.step, sigma_rho_px=args.sigma_rho,
                                     sigma_tan_px=args.sigma_tan)
     with progress_step("conditioning map", enabled=not args.no_progress):

@@ -26,9 +26,22 @@ from ringscan.pipeline.geometry import camera_model_for, camera_rays, light_mode
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ConditioningSettings", "ConditioningMap", "compute_conditioning", "plot_conditioning"]
+__all__ = ["ConditioningSettings", "ConditioningMap", "compute_conditioning", "plot_conditioning", "MAX_MAP_PIXELS",
+           "map_step_needed"]
 
 CONSTRAINT_PANELS = ("rings", "angle", "both")
+
+MAX_MAP_PIXELS = 2_000_000
+"""Most camera pixels a conditioning map evaluates: ~1.5 GB of memory (measured ~0.72 KB a pixel, the default
+1280x1024 rig at step 1: 1.3 million pixels, 0.94 GB); a larger camera needs a larger step."""
+
+
+def map_step_needed(width: int, height: int) -> int:
+    """The least step at which a ``width`` x ``height`` camera's map has at most :data:`MAX_MAP_PIXELS` pixels."""
+    step = 1
+    while -(-width // step) * -(-height // step) > MAX_MAP_PIXELS:
+        step += 1
+    return step
 
 
 @dataclass(frozen=True)
@@ -89,9 +102,14 @@ def compute_conditioning(rig: Rig, *, center, rho_range: tuple[float, float], se
         raise ValueError(f"conditioning: step must be >= 1, got {settings.step}")
     if not (settings.sigma_rho_px > 0 and settings.sigma_tan_px > 0):
         raise ValueError("conditioning: sigma_rho_px and sigma_tan_px must be > 0")
+    cam = rig.camera
+    need = map_step_needed(cam.width, cam.height)
+    if settings.step < need:
+        raise ValueError(f"conditioning: step {settings.step} evaluates {-(-cam.width // settings.step)}x"
+                         f"{-(-cam.height // settings.step)} pixels of the {cam.width}x{cam.height} camera: more than "
+                         f"the {MAX_MAP_PIXELS} a map may have (~1.5 GB); a step of {need} or more fits")
     init_warp()
     device = resolve_device(device)
-    cam = rig.camera
     ys, xs = np.mgrid[0:cam.height:settings.step, 0:cam.width:settings.step]
     uv = np.c_[xs.ravel(), ys.ravel()].astype(np.float64)
     C, d = camera_rays(rig, uv)

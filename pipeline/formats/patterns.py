@@ -42,6 +42,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import MAX_IMAGE_PIXELS
 
 PRECOMPENSATED_GAMMA_RANGE = (0.1, 10.0)
 """Accepted ``precompensated_gamma`` (the rig's range of response gammas)."""
@@ -436,6 +437,9 @@ def parse_patterns(d: dict, *, source: str | os.PathLike | None = None) -> Patte
 
     width = integer("width", lo=1, hi=65536)
     height = integer("height", lo=1, hi=65536)
+    if width * height > MAX_IMAGE_PIXELS:  # every frame is drawn at this size
+        raise FormatError(src, f"patterns: {width}x{height} is {width * height / 1e6:.0f} megapixels: larger than "
+                               f"the images ringscan reads ({MAX_IMAGE_PIXELS / 1e6:.0f} megapixels)")
     center = d.get("center")
     if not (isinstance(center, (list, tuple)) and len(center) == 2
             and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in center)):

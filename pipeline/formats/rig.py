@@ -29,6 +29,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.limits import MAX_IMAGE_PIXELS
 
 RIG_FORMAT = "ringscan.rig/1"
 
@@ -314,6 +315,14 @@ def _size(src, where, d, key, required: bool = True) -> int:
     return v
 
 
+def _check_pixels(src, where: str, width: int, height: int) -> None:
+    """Refuse a camera or projector of more pixels than the images ringscan reads: none of its frames could be
+    read, and a map of its pixels (conditioning, undistortion) would take gigabytes."""
+    if width * height > MAX_IMAGE_PIXELS:
+        raise FormatError(src, f"{where}: {width}x{height} is {width * height / 1e6:.0f} megapixels: larger than the "
+                               f"images ringscan reads ({MAX_IMAGE_PIXELS / 1e6:.0f} megapixels)")
+
+
 def _obj(src, where, d, key, required=True):
     v = d.get(key)
     if v is None and not required:
@@ -376,6 +385,7 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
                                   gamma=_gamma(src, "light", li))
     else:
         raise FormatError(src, f"light.model: expected 'parallel', 'perspective' or 'uncalibrated', got {model!r}")
+    _check_pixels(src, "light", light.width, light.height)
 
     v = _obj(src, "", d, "volume")
     volume = Volume(
@@ -411,9 +421,11 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
 
 
 def _camera(src, where: str, c: dict) -> Camera:
+    width, height = _size(src, where, c, "width"), _size(src, where, c, "height")
+    _check_pixels(src, where, width, height)
     return Camera(
-        width=_size(src, where, c, "width"),
-        height=_size(src, where, c, "height"),
+        width=width,
+        height=height,
         K=_intrinsics(src, f"{where}.K", c.get("K")),
         dist=_dist(src, f"{where}.dist", c.get("dist")),
         R=_rotation(src, f"{where}.R", c.get("R")),

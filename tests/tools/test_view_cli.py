@@ -118,6 +118,32 @@ def test_view_conditioning_map_of_a_rig(tmp_path, capsys):
     assert img is not None and img.shape[1] > 3 * img.shape[0] / 2  # three panels side by side
     assert main(["view", "--out", str(tmp_path / "x.png")]) == 2
     assert "--conditioning" in capsys.readouterr().err
+def test_view_conditioning_of_a_huge_camera_is_bounded(tmp_path, capsys):
+    """A rig's 65536x65536 camera (4295 megapixels: before, accepted, and the map asked for 64 GiB) is refused
+    by the rig's pixel bound; a 200-megapixel camera (accepted) needs a step that keeps the map within
+    MAX_MAP_PIXELS, said before anything is computed."""
+    import json
+
+    from ringscan.pipeline.formats.rig import default_rig, rig_to_dict
+
+    d = rig_to_dict(default_rig())
+    rig_path = tmp_path / "rig.json"
+    out = tmp_path / "cond.png"
+    d["camera"].update(width=65536, height=65536)
+    rig_path.write_text(json.dumps(d))
+    assert main(["view", "--conditioning", str(rig_path), "--out", str(out), "--device", "cpu"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (f"ringscan view: error: {rig_path}: camera: 65536x65536 is 4295 megapixels: larger than the images "
+                   "ringscan reads (200 megapixels)"), err
+    d["camera"].update(width=16000, height=12500)  # 200 megapixels: step 10 gives 1600x1250, the 2 million allowed
+    rig_path.write_text(json.dumps(d))
+    assert main(["view", "--conditioning", str(rig_path), "--out", str(out), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"ringscan view: error: --step 4: the map of the 16000x12500 camera of {rig_path} would "
+                          "evaluate more than 2000000 pixels (~1.5 GB); give --step 10 or more"), err
+    assert not out.exists()
+
+
 def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
     from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
 

@@ -140,3 +140,27 @@ def test_not_an_image_and_not_a_regular_file(tmp_path):
         with open(fifo, "wb"):
             pass
     assert isinstance(got, FormatError) and "is a pipe (FIFO)" in str(got), got
+
+
+def test_a_rig_or_patterns_larger_than_the_images_ringscan_reads_are_refused(tmp_path):
+    """A 456 KB packed scan whose rig declared a 30000x30000 camera was decoded before any check (22 GB); the
+    rig, the projector and the patterns are now bounded as an image is (200 megapixels)."""
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.formats.rig import default_rig, parse_rig, rig_to_dict
+
+    d = rig_to_dict(default_rig())
+    d["camera"].update(width=30000, height=30000)
+    with pytest.raises(FormatError) as e:
+        parse_rig(d, source="rig.json")
+    assert str(e.value) == ("rig.json: camera: 30000x30000 is 900 megapixels: larger than the images ringscan reads "
+                            "(200 megapixels)")
+    d = rig_to_dict(default_rig(light_model="perspective"))
+    d["light"].update(width=20000, height=20000)
+    with pytest.raises(FormatError, match=r"^rig.json: light: 20000x20000 is 400 megapixels"):
+        parse_rig(d, source="rig.json")
+    d["light"].update(width=16000, height=12500)  # 200 megapixels: the most
+    assert parse_rig(d, source="rig.json").light.width == 16000
+    spec = {"codec": "gray-rings", "width": 30000, "height": 30000, "center": [15000, 15000], "rho0": 8.0,
+            "pitch": 4.0, "bits": 3, "sector_bits": 2}
+    with pytest.raises(FormatError, match=r"patterns: 30000x30000 is 900 megapixels: larger than the images"):
+        parse_patterns(spec, source="scan.json")
