@@ -24,6 +24,7 @@ from pathlib import Path
 
 from ringscan.hardware.capture.latency import read_rig_latency
 from ringscan.hardware.capture.sequence import (
+    MAX_VIEWS,
     CaptureSettings,
     InterruptGuard,
     capture_scan,
@@ -285,6 +286,8 @@ def _check_options(args, rig, patterns: PatternSpec | None) -> None:
     """Options that only go together, refused before anything is opened."""
     if not args.resume and (rig is None or patterns is None or args.views is None):
         raise UsageError("a new capture needs --rig, --patterns and --views (or --resume to continue one)")
+    if args.views is not None and not 1 <= args.views <= MAX_VIEWS:  # before: 10^9 views planned in memory
+        raise UsageError(f"--views: expected 1 to {MAX_VIEWS} views (a view every 0.036 degrees), got {args.views}")
     if args.table_at is not None and not args.resume:
         raise UsageError("--table-at only applies with --resume")
     if args.reconstruct_settings and not args.reconstruct:

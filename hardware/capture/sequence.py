@@ -162,13 +162,18 @@ def view_name(i: int) -> str:
     return f"view_{i:03d}"
 
 
+MAX_VIEWS = 10000
+"""Most views of a capture: a view every 0.036 degrees of a turn (angles go to the table rounded to 0.001 degrees);
+the plan, capture.json and scan.json hold every view (a scan.json of 10 000 views is ~3 MB)."""
+
+
 def plan_angles(views: int, step_deg: float | None = None, start_deg: float = 0.0) -> list[float]:
     """Turntable angles of the views (degrees, rounded to 0.001 as G-code sends them).
 
     Default step: one full turn over the views (360 / views).
     """
-    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
-        raise ValueError(f"views must be an integer >= 1, got {views!r}")
+    if isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= MAX_VIEWS:
+        raise ValueError(f"views must be an integer from 1 to {MAX_VIEWS}, got {views!r}")
     step = 360.0 / views if step_deg is None else float(step_deg)
     if not math.isfinite(step) or not math.isfinite(start_deg):
         raise ValueError("step and start angles must be finite")

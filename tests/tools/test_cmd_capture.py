@@ -188,6 +188,12 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "--table-at only applies with --resume" in capsys.readouterr().err
     assert main(["capture", "--out", str(tmp_path / "d"), "--resume"]) == 1
     assert "nothing to resume" in capsys.readouterr().err
+    for n in ("1000000000", "0", "-3"):  # before: 10^9 views planned in memory, 85 MB/s and no output
+        assert main(_args(files, tmp_path / "v", "--views", n, *VIRTUAL)) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"ringscan capture: error: --views: expected 1 to 10000 views (a view every 0.036 "
+                              f"degrees), got {n}"), err
+        assert not (tmp_path / "v").exists()
     assert main(_args(files, tmp_path / "c2", "--views", "2", "--allow-auto-exposure", *VIRTUAL)) == 2
     assert "--allow-auto-exposure only applies with --exposure" in capsys.readouterr().err
     port = str(tmp_path / "no_such_port")
