@@ -33,6 +33,7 @@ from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.formats.storage import (
     check_location,
+    check_url,
     find_scan_urls,
     is_url,
     join_location,
@@ -80,7 +81,7 @@ def default_workers(device: str | None = None) -> tuple[int, list[str | None]]:
 def _root_and_scans(root, skipped: list | None = None, storage_options: dict | None = None):
     notes: list = []
     if is_url(root):
-        root = str(root).rstrip("/")
+        root = check_url(str(root)).rstrip("/")
         scans = find_scan_urls(root, storage_options, skipped=notes)
         if skipped is not None:
             skipped.extend({"path": path, "why": why} for path, why in notes)

@@ -141,8 +141,12 @@ def _safe_rel(folder: Path, src: Path, where: str, rel) -> str:
     for part in p.parts:
         cur = cur / part
         if cur.is_symlink():
-            full = (folder / p).resolve()
-            root = folder.resolve()
+            try:
+                full = (folder / p).resolve()
+                root = folder.resolve()
+            except (RuntimeError, OSError):  # a link loop (Python 3.11: RuntimeError; later: OSError)
+                raise FormatError(src, f"{where}: path {rel!r} cannot be followed: {cur} is a loop of symbolic "
+                                       "links") from None
             if full != root and root not in full.parents:
                 raise FormatError(src, f"{where}: path {rel!r} leaves the scan folder (through a link)")
             break

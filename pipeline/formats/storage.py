@@ -49,9 +49,9 @@ from ringscan.pipeline.formats.limits import MAX_JSON_BYTES
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAX_OBJECT_BYTES", "S3_DEFAULTS", "LIST_THREADS", "StorageError", "is_url", "local_path", "join_location",
-           "parse_storage_options", "filesystem", "storage_error", "check_location", "find_scan_urls",
-           "write_json_to", "Staged", "stage"]
+__all__ = ["MAX_OBJECT_BYTES", "S3_DEFAULTS", "LIST_THREADS", "StorageError", "StorageOptionError", "check_url",
+           "is_url", "local_path", "join_location", "parse_storage_options", "filesystem", "storage_error",
+           "check_location", "find_scan_urls", "write_json_to", "Staged", "stage"]
 
 MAX_OBJECT_BYTES = 1 << 30
 """Largest object downloaded as a frame or an output (1 GiB; a 200-megapixel 16-bit frame
@@ -77,6 +77,18 @@ def is_url(location) -> bool:
     and a ``file://`` URL are not."""
     m = _URL_RE.match(os.fspath(location)) if isinstance(location, (str, os.PathLike)) else None
     return m is not None and m["scheme"].lower() != "file"
+
+
+def check_url(url: str) -> str:
+    """Refuse a URL that names no bucket (``s3://``, ``s3:///x``): returns ``url``.
+
+    Raises:
+        StorageError: naming the URL.
+    """
+    m = _URL_RE.match(url)
+    if m is None or not url[m.end():].strip("/") or url[m.end():].startswith("/"):
+        raise StorageError(url, "names no bucket: expected SCHEME://BUCKET/PATH (e.g. s3://scans/2024)")
+    return url
 
 
 def local_path(location) -> Path:
@@ -131,6 +143,7 @@ def filesystem(url: str, options: dict | None = None):
         StorageError: fsspec, or the package for the protocol (s3fs, gcsfs), is not installed, or the
             options are not the file system's.
     """
+    check_url(url)
     scheme = _URL_RE.match(url)["scheme"].lower()
     try:
         import fsspec
@@ -148,6 +161,9 @@ def filesystem(url: str, options: dict | None = None):
             raise StorageError(url, f"{' '.join(str(e).split())} ({hint})") from None
         except (TypeError, ValueError) as e:
             text = " ".join(str(e).split())
+            option = storage_error(url, e)
+            if isinstance(option, StorageOptionError):
+                raise option from None
             if text.startswith("Protocol not known"):
                 raise StorageError(url, f"unknown protocol {scheme}:// (fsspec knows s3://, gs://, az://, "
                                         "file://, ...)") from None
@@ -156,11 +172,22 @@ def filesystem(url: str, options: dict | None = None):
     return fs, fs._strip_protocol(url).rstrip("/")
 
 
-def storage_error(url: str, e: BaseException) -> StorageError:
+class StorageOptionError(ValueError):
+    """A storage option (``--storage-option``) the file system does not take: a usage error (exit status 2)."""
+
+
+def storage_error(url: str, e: BaseException) -> StorageError | StorageOptionError:
     """One line for an error of object storage, naming ``url``: a missing bucket or object, refused
-    credentials, an endpoint that cannot be reached, or the library's own words."""
+    credentials, an endpoint that cannot be reached, or the library's own words; a storage option the
+    file system does not take (s3fs passes unknown ones on to its session: a ``TypeError`` at the first
+    request) is a :class:`StorageOptionError` naming the option."""
     if isinstance(e, StorageError):
         return e
+    m = re.search(r"unexpected keyword argument '([^']+)'", str(e)) if isinstance(e, TypeError) else None
+    if m:
+        scheme = (_URL_RE.match(url) or {"scheme": "?"})["scheme"]
+        return StorageOptionError(f"--storage-option {m[1]}: not an option of the {scheme}:// file system "
+                                  f"(docs/batch.md lists the usual ones; {' '.join(str(e).split())[:200]})")
     text = " ".join(str(e).split())
     low = text.lower()
     name = type(e).__name__
@@ -186,7 +213,7 @@ def _mapped(url: str):
     """Turn any error of the storage library inside the block into a :class:`StorageError` naming ``url``."""
     try:
         yield
-    except FormatError:
+    except (FormatError, StorageOptionError):
         raise
     except Exception as e:  # noqa: BLE001 - s3fs, botocore, aiohttp, gcsfs: their errors share no base class
         raise storage_error(url, e) from None

@@ -135,3 +135,27 @@ def test_a_two_camera_scan_packs_and_unpacks_to_the_same_reconstruction(tmp_path
     s = load_scan(folder)
     assert s.views[0].camera2.frames["white"] == "view_000/cam2/white.png" and not list(folder.rglob("frames.zarr"))
     assert rec("unpacked") == ref
+
+
+def test_a_zarr_json_nested_too_deeply_is_named_by_reconstruct_unpack_and_batch(tmp_path, capsys):
+    """A zarr.json of 100000 `[`: before, a RecursionError traceback (reconstruct, unpack) and
+    `FAILED: RecursionError` without the file (batch)."""
+    from ringscan.pipeline.formats.packing import pack_scan
+    from tests.pipeline.formats.test_packing import _scan
+
+    folder = tmp_path / "root" / "scan"
+    _scan(folder, views=1)  # 40x30 frames of noise: nothing here is reconstructed
+    pack_scan(folder)
+    meta = folder / "view_0" / "frames.zarr" / "zarr.json"
+    meta.write_text("[" * 100000)
+    capsys.readouterr()
+    want = f"{meta}: not valid JSON (nested too deeply)"
+    assert main(["reconstruct", str(folder), "--out", str(tmp_path / "rec"), "--device", "cpu"]) == 1
+    assert capsys.readouterr().err.strip() == f"ringscan reconstruct: error: {want}"
+    assert main(["unpack", str(folder)]) == 1
+    assert capsys.readouterr().err.strip() == f"{folder}: failed: {want}"
+    assert main(["batch", str(tmp_path / "root"), "--out", str(tmp_path / "b"), "--workers", "0", "--device", "cpu",
+                 "--no-progress"]) == 1
+    out = capsys.readouterr().out
+    assert f"FAILED: {want}" in out, out
+    assert not (tmp_path / "rec").exists() and not list((folder / "view_0").glob("*.png"))

@@ -282,7 +282,10 @@ def test_command_line_errors_are_one_line(s3, scan_root, tmp_path, capsys):
              "ringscan batch: error: s3://scans/root: cannot reach the storage service (Could not connect to the "
              "endpoint URL"),
             (["s3://scans/root", "--storage-option", "novalue"], 2,
-             "ringscan batch: error: --storage-option 'novalue': expected KEY=VALUE")):
+             "ringscan batch: error: --storage-option 'novalue': expected KEY=VALUE"),
+            # before: a raw `TypeError: AioSession.__init__() got an unexpected keyword argument` line, exit 1
+            (["s3://scans/root", *endpoint, "--storage-option", "bogus=1"], 2,
+             "ringscan batch: error: --storage-option bogus: not an option of the s3:// file system")):
         t = time.perf_counter()
         assert main(["batch", *args, "--out", str(tmp_path / "o"), "--device", "cpu"]) == code
         assert time.perf_counter() - t < 30
@@ -307,6 +310,16 @@ def test_storage_options_parse():
         "key": "abc"}
     assert storage.is_url("s3://b/p") and storage.is_url("gs://b") and not storage.is_url("file:///tmp/x")
     assert not storage.is_url("/tmp/x") and str(storage.local_path("file:///tmp/x")) == "/tmp/x"
+
+
+def test_a_url_without_a_bucket_is_one_line(tmp_path, capsys):
+    """`batch s3:// --out s3://out/x`: before, `TypeError: 'NoneType' object is not subscriptable`."""
+    for argv in (["batch", "s3://", "--out", "s3://out/x"], ["reconstruct", "s3:///x", "--out", str(tmp_path / "o")]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip()
+        assert err == (f"ringscan {argv[0]}: error: {argv[1]}: names no bucket: expected SCHEME://BUCKET/PATH (e.g. "
+                       "s3://scans/2024)"), err
+    assert not (tmp_path / "o").exists()
 
 
 def test_storage_errors_in_one_line():

@@ -255,6 +255,21 @@ def test_frame_paths_through_links(tmp_path):
         load_scan(scan_dir)
 
 
+def test_a_frame_folder_that_is_a_link_to_itself_is_one_line(tmp_path):
+    """A view folder (or a packed store) that is a symbolic link to itself: before, `RuntimeError: Symlink loop`
+    out of pathlib in every command that loads the scan."""
+    import shutil
+
+    scan_dir = tmp_path / "scan"
+    _write_scan(scan_dir)
+    shutil.rmtree(scan_dir / "view_000")
+    (scan_dir / "view_000").symlink_to("view_000")
+    with pytest.raises(FormatError) as e:
+        load_scan(scan_dir)
+    assert e.value.path == str(scan_dir / "scan.json")
+    assert str(e.value).endswith(f"cannot be followed: {scan_dir / 'view_000'} is a loop of symbolic links"), e.value
+
+
 def test_scan_folder_errors(tmp_path):
     with pytest.raises(FormatError, match="nowhere: scan folder not found"):
         load_scan(tmp_path / "nowhere")
