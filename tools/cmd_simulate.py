@@ -83,6 +83,18 @@ def add_parser(sub):
                    default="png", help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to "
                                        "read; packed: one frame store per view, about the PNGs' size, 6-11x faster)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    m = p.add_argument_group("renderer")
+    m.add_argument("--renderer", choices=("warp", "mitsuba"), default="warp",
+                   help="warp (default): ringscan's own ray tracer, which shares the reconstruction's camera and "
+                        "light geometry; mitsuba: Mitsuba 3's path tracer, an independent renderer that only reads "
+                        "the rig (inverse-square fall-off, inter-reflections; needs pip install 'ringscan[mitsuba]'; "
+                        "--device does not apply; docs/virtual_rig.md)")
+    m.add_argument("--spp", type=int, default=None,
+                   help="Mitsuba only: samples per canvas texel, S x S texels a pixel with S = --supersample "
+                        "(default 4)")
+    m.add_argument("--max-depth", type=int, default=None,
+                   help="Mitsuba only: longest light path, 2 = direct light only, 3 adds one bounce between "
+                        "surfaces, -1 = unlimited (default 3)")
     add_device_option(p)
     return p
 
@@ -171,10 +183,37 @@ def _gamma(g: float) -> float:
     return float(g)
 
 
+def _mitsuba_settings(args):
+    """MitsubaSettings of --spp/--max-depth for --renderer mitsuba, None for warp (where they are an error)."""
+    given = [o for o, v in (("--spp", args.spp), ("--max-depth", args.max_depth)) if v is not None]
+    if args.renderer != "mitsuba":
+        if given:
+            raise UsageError(f"{given[0]} applies to --renderer mitsuba only")
+        return None
+    if args.captures != "scan":
+        raise UsageError("--renderer mitsuba renders scan folders only (--captures scan); OpenCV Gray-code "
+                         "captures are rendered by ringscan's own renderer")
+    from ringscan.pipeline.simulate.mitsuba_render import MitsubaMissing, MitsubaSettings, mitsuba_available
+
+    if not mitsuba_available():
+        raise MitsubaMissing()
+    d = MitsubaSettings()
+    try:
+        return MitsubaSettings(spp=d.spp if args.spp is None else args.spp,
+                               max_depth=d.max_depth if args.max_depth is None else args.max_depth)
+    except ValueError as e:  # the option's name, not the field's
+        field, _, msg = str(e).partition(": ")
+        opt = {"MitsubaSettings.spp": "--spp", "MitsubaSettings.max_depth": "--max-depth"}.get(field)
+        if opt is None:
+            raise
+        raise UsageError(f"{opt}: {msg}") from None
+
+
 def run(args) -> int:
     out = check_output_folder(args.out, what="scan folder (--out)")
     rig = build_rig(args)
     place = parse_point(args.place, what="--place") if args.place is not None else None
+    mitsuba = _mitsuba_settings(args)
     if args.captures == "opencv-graycode":
         return _run_graycode(args, out, rig, place)
     li = rig.light
@@ -186,10 +225,12 @@ def run(args) -> int:
     t0 = time.perf_counter()
     scan = simulate_scan(args.out, scene=args.scene, rig=rig, patterns=spec, views=args.views, settings=settings,
                          device=args.device, progress=not args.no_progress, size_mm=args.size_mm, up=args.up,
-                         image_format=args.format, pose=args.pose, place=place, wall_z=args.wall)
+                         image_format=args.format, pose=args.pose, place=place, wall_z=args.wall,
+                         renderer=args.renderer, mitsuba=mitsuba)
     n_frames = len(scan.views[0].frames) if scan.views else 0
+    by = f" (Mitsuba {scan.extra['truth']['renderer']['variant']})" if mitsuba else ""
     print(f"{len(scan.views)} view(s) x {n_frames} {spec.codec} frame(s){' x 2 cameras' if rig.camera2 else ''} "
-          f"of {args.scene} "
+          f"of {args.scene}{by} "
           f"({rig.camera.width}x{rig.camera.height}, {args.bit_depth}-bit) in {time.perf_counter() - t0:.1f} s "
           f"-> {scan.folder} (truth in {scan.folder / 'truth'})")
     return 0

@@ -98,6 +98,8 @@ def simulate_scan(
     pose: str | None = None,
     place=None,
     wall_z: float | None = None,
+    renderer: str = "warp",
+    mitsuba=None,
 ) -> Scan:
     """Render a whole scan with the virtual rig and write it with its ground truth.
 
@@ -124,6 +126,12 @@ def simulate_scan(
             the transform from the upright scene.
         place, wall_z: see :func:`prepare_scene` (a bust in front of a wall: the
             object floats at ``place``, the wall, part of the truth mesh, behind it).
+        renderer: ``warp`` (ringscan's own ray tracer, :class:`VirtualRig`) or ``mitsuba``
+            (Mitsuba 3, an independent renderer: :class:`~ringscan.pipeline.simulate.mitsuba_render.MitsubaRig`;
+            ``device`` does not apply); the files written are the same, and scan.json
+            ``truth.renderer`` records Mitsuba's version, variant and settings.
+        mitsuba: :class:`~ringscan.pipeline.simulate.mitsuba_render.MitsubaSettings` for
+            ``renderer="mitsuba"`` (None: the defaults).
 
     Returns:
         The written scan (as :func:`load_scan` reads it back).
@@ -132,6 +140,10 @@ def simulate_scan(
 
     if not isinstance(patterns, PatternSpec):
         raise ValueError(f"patterns: expected a PatternSpec, got {type(patterns).__name__}")
+    if renderer not in ("warp", "mitsuba"):
+        raise ValueError(f"renderer: expected 'warp' or 'mitsuba', got {renderer!r}")
+    if mitsuba is not None and renderer != "mitsuba":
+        raise ValueError("mitsuba: Mitsuba's settings apply to renderer='mitsuba' only")
     if image_format not in ("png", "tiff", "packed"):
         raise ValueError(f"image_format: expected 'png', 'tiff' or 'packed', got {image_format!r}")
     rig = default_rig() if rig is None else rig
@@ -143,11 +155,19 @@ def simulate_scan(
     if not has_calibrated_light(rig):
         raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
     scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
-    vr = VirtualRig(rig, scene, settings=settings, device=device, projector_size=(patterns.width, patterns.height))
+
+    def make_renderer(r: Rig):
+        size = (patterns.width, patterns.height)
+        if renderer == "mitsuba":
+            from ringscan.pipeline.simulate.mitsuba_render import MitsubaRig, MitsubaSettings
+
+            return MitsubaRig(r, scene, settings=settings, mitsuba=mitsuba or MitsubaSettings(), projector_size=size)
+        return VirtualRig(r, scene, settings=settings, device=device, projector_size=size)
+
+    vr = make_renderer(rig)
     vr2 = None
     if rig.camera2 is not None:  # camera 2 sees the same scene under the same frames
-        vr2 = VirtualRig(dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera), scene, settings=settings,
-                         device=device, projector_size=(patterns.width, patterns.height))
+        vr2 = make_renderer(dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))
 
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -156,6 +176,8 @@ def simulate_scan(
     # the light rendered with: evaluate's coverage reads it where the scan's rig is later given an uncalibrated one
     truth = {"mesh": mesh_rel, "reference_plane_z": 0.0, "scene": scene.name, "views": {},
              "settings": settings.to_dict(), "light": rig_to_dict(rig)["light"]}
+    if renderer == "mitsuba":
+        truth["renderer"] = vr.describe()
     truth.update(placed)
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
@@ -165,7 +187,8 @@ def simulate_scan(
     done: list[View] = []
     t0 = time.perf_counter()
     n_cams = 2 if vr2 is not None else 1
-    bar = progress_bar(total=len(angles) * len(names) * n_cams, desc=f"simulate {scene.name}", unit="frame",
+    by = " (Mitsuba)" if renderer == "mitsuba" else ""
+    bar = progress_bar(total=len(angles) * len(names) * n_cams, desc=f"simulate {scene.name}{by}", unit="frame",
                        disable=not progress)
     try:
         for vi, deg in enumerate(angles):
