@@ -32,11 +32,16 @@ def add_workers_option(p) -> None:
 
 
 def _attempt(convert, folder: Path):
-    """``convert(folder)``, or the error's one line (errors cross the process boundary as text)."""
+    """``convert(folder)``, or the error's one line (errors cross the process boundary as text): a scan's
+    failure, whatever it is, is that scan's, and the others go on."""
     try:
         return convert(folder), None
     except RingscanError as e:
         return None, str(e)
+    except OSError as e:  # the disk: full, read-only, no permission
+        return None, f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}"
+    except Exception as e:  # noqa: BLE001 - a library's exception, named as the batch names it
+        return None, f"{type(e).__name__}: {' '.join(str(e).split())}"
 
 
 def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
@@ -47,6 +52,7 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
     if workers < 1:
         raise ValueError(f"--workers: expected 1 or more, got {workers}")
     failed = total = 0
+    skipped: list = []
 
     def report(folder, r, err):
         nonlocal failed
@@ -59,7 +65,7 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
               + (f", {r.removed} old file(s) removed" if r.removed else ""), flush=True)
 
     if workers == 1:
-        for folder in iter_scans(root):
+        for folder in iter_scans(root, skipped=skipped):
             total += 1
             report(folder, *_attempt(convert, folder))
     else:
@@ -68,7 +74,7 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
 
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as ex:
             running = {}
-            scans = iter_scans(root)
+            scans = iter_scans(root, skipped=skipped)
             while True:
                 for folder in scans:  # a bounded window: a root of a million scans is never listed whole
                     total += 1
@@ -80,6 +86,8 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 for f in done:
                     report(running.pop(f), *f.result())
+    for path, why in skipped:  # a scan nested in a scan's folder, a link loop: said, as batch says it
+        print(f"not searched: {path}: {why}")
     if total == 0:
         raise FormatError(root, "no scan folder (with a scan.json) found")
     return 1 if failed else 0

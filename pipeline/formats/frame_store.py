@@ -208,13 +208,14 @@ def _check_chunk_size(path: Path, size: int, limit: int) -> None:
 
 
 def check_chunk_files(info: StoreInfo, names: Sequence[str]) -> None:
-    """Check, without reading them, that the chunk files of ``names`` are there, regular
-    files, and of a size a frame's chunk can have (a reader checks them before it writes
-    anything; their checksums are checked as they are decoded).
+    """Check, without decoding them, that the chunk files of ``names`` are there, regular
+    files, of a size a frame's chunk can have, and that each one's header holds one frame
+    of the store's size and data type (a reader checks them before it writes anything;
+    their checksums are checked as they are decoded).
 
     Raises:
-        FormatError: naming the first chunk file missing, not a regular file, or of an
-            impossible size.
+        FormatError: naming the first chunk file missing, not a regular file, of an
+            impossible size, or holding another number of bytes than one frame.
     """
     limit = _chunk_limit(info)
     for n in names:
@@ -226,6 +227,17 @@ def check_chunk_files(info: StoreInfo, names: Sequence[str]) -> None:
         if not stat.S_ISREG(st.st_mode):
             raise FormatError(p, f"frame chunk is {mode_kind(st.st_mode)}, not a regular file (damaged store)")
         _check_chunk_size(p, st.st_size, limit)
+        # the Blosc header's byte count (bytes 4..8): one frame of the metadata's size and data type
+        try:
+            fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+            with open(fd, "rb", buffering=0) as f:
+                head = f.read(16)
+        except OSError as e:
+            raise FormatError(p, f"cannot read the frame chunk: {e.strerror}") from None
+        held = int.from_bytes(head[4:8], "little")
+        if held != info.height * info.width * info.dtype.itemsize:
+            raise FormatError(p, f"frame chunk holds {held} bytes, not one {info.width}x{info.height} {info.dtype} "
+                                 "frame")
 
 
 def _read_chunk(path: Path, limit: int) -> memoryview:

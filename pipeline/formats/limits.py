@@ -18,7 +18,7 @@ from pathlib import Path
 from ringscan.pipeline.formats.errors import FormatError
 
 __all__ = ["MAX_JSON_BYTES", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "mode_kind", "check_regular_file",
-           "read_bounded_bytes", "read_bounded_text", "image_header_size", "check_image_header"]
+           "read_bounded_bytes", "read_bounded_text", "image_header_size", "image_header_colour", "check_image_header"]
 
 MAX_JSON_BYTES = 64 * 1024 * 1024
 """Largest JSON file read (scan.json, rig files, settings, reports): 64 MiB (a scan.json
@@ -175,6 +175,92 @@ def _jpeg_size(f) -> tuple[int, int] | None:
             h, w = struct.unpack(">HH", seg[1:5])
             return w, h
         f.seek(length - 2, 1)
+    return None
+
+
+def _tiff_colour(f, head: bytes) -> bool | None:
+    """Whether a TIFF's first image is colour (RGB, YCbCr, CMYK or a palette: Photometric 2, 3, 5, 6, or 3 or
+    more samples a pixel), None when unreadable."""
+    bo = "<" if head[:2] == b"II" else ">"
+    version = struct.unpack(bo + "H", head[2:4])[0]
+    if version == 42:
+        off, count_fmt, entry_size, count_size, val_at = struct.unpack(bo + "I", head[4:8])[0], "H", 12, 2, 8
+    elif version == 43:
+        off, count_fmt, entry_size, count_size, val_at = struct.unpack(bo + "Q", head[8:16])[0], "Q", 20, 8, 12
+    else:
+        return None
+    f.seek(off)
+    raw = f.read(count_size)
+    if len(raw) != count_size:
+        return None
+    n = min(struct.unpack(bo + count_fmt, raw)[0], 4096)
+    entries = f.read(n * entry_size)
+    photometric, samples = None, 1
+    for i in range(len(entries) // entry_size):
+        e = entries[i * entry_size:(i + 1) * entry_size]
+        tag, typ = struct.unpack(bo + "HH", e[:4])
+        if tag in (262, 277) and typ == 3:  # SHORT
+            v = struct.unpack(bo + "H", e[val_at:val_at + 2])[0]
+            photometric, samples = (v, samples) if tag == 262 else (photometric, v)
+    return photometric in (2, 3, 5, 6) or samples >= 3
+
+
+def _jpeg_colour(f) -> bool | None:
+    """Whether a JPEG holds more than one component (colour), from its start-of-frame marker; None when unreadable."""
+    f.seek(2)
+    for _ in range(10000):
+        b = f.read(1)
+        while b and b != b"\xff":
+            b = f.read(1)
+        while b == b"\xff":
+            b = f.read(1)
+        if not b:
+            return None
+        marker = b[0]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            continue
+        raw = f.read(2)
+        if len(raw) != 2:
+            return None
+        length = struct.unpack(">H", raw)[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            seg = f.read(6)
+            return None if len(seg) != 6 else seg[5] > 1
+        f.seek(length - 2, 1)
+    return None
+
+
+def _bmp_colour(f, head: bytes) -> bool | None:
+    """Whether a BMP is colour: more than 8 bits a pixel, or a palette with a colour that is not grey."""
+    if len(head) < 30:
+        return None
+    bpp = struct.unpack("<H", head[28:30])[0]
+    if bpp > 8:
+        return True
+    f.seek(14)
+    info = f.read(40)
+    if len(info) < 36:
+        return None
+    size = struct.unpack("<I", info[:4])[0]
+    used = struct.unpack("<I", info[32:36])[0] or (1 << bpp)
+    f.seek(14 + size)
+    pal = f.read(4 * min(used, 256))
+    return any(not (pal[i] == pal[i + 1] == pal[i + 2]) for i in range(0, len(pal) - 3, 4))
+
+
+def image_header_colour(path: str | os.PathLike) -> bool | None:
+    """Whether a PNG, TIFF, JPEG or BMP file holds colour, from its header (a palette PNG counts as colour);
+    None for another format or a header that cannot be parsed."""
+    with open(path, "rb") as f:
+        head = f.read(32)
+        if head.startswith(_PNG) and head[12:16] == b"IHDR" and len(head) >= 26:
+            return head[25] in (2, 3, 6)  # RGB, palette, RGBA (0: grey, 4: grey and alpha)
+        if head[:2] in (b"II", b"MM") and len(head) >= 16:
+            return _tiff_colour(f, head)
+        if head[:2] == b"\xff\xd8":
+            return _jpeg_colour(f)
+        if head[:2] == b"BM":
+            return _bmp_colour(f, head)
     return None
 
 

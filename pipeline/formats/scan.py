@@ -408,12 +408,18 @@ def check_view_frames(scan: Scan, view: View) -> None:
     cam = scan.rig.camera
     if view.packed is not None:  # one store: its metadata says the size of every frame
         info = open_store(scan.folder / view.packed)
+        meta = scan.folder / view.packed / "zarr.json"
         missing = [n for n in frame_names(scan.patterns) if n not in info.names]
         if missing:
-            raise FormatError(scan.folder / view.packed / "zarr.json", f"frame {missing[0]!r} is not in the store")
+            raise FormatError(meta, f"frame {missing[0]!r} is not in the store")
+        if [n for n in info.names if n in view.frames] != list(view.frames):  # as a read checks it
+            raise FormatError(meta, f"frames {', '.join(info.names)} do not match scan.json's list for {view.name} "
+                                    f"({', '.join(view.frames)})")
         if (info.width, info.height) != (cam.width, cam.height):
-            raise FormatError(scan.folder / view.packed / "zarr.json",
-                              f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+            raise FormatError(meta, f"frames are {info.width}x{info.height}, but the camera is {cam.width}x{cam.height}")
+        bits = scan.frame_bits
+        if bits is not None and (bits == 8) != (info.dtype == np.uint8):
+            raise FormatError(meta, f"frames are {info.dtype}, but frame_bits in {scan.path} says {bits}")
         check_chunk_files(info, frame_names(scan.patterns))
         if view.camera2 is not None:
             check_view_frames(as_camera2(scan), view.camera2)

@@ -159,3 +159,62 @@ def test_a_zarr_json_nested_too_deeply_is_named_by_reconstruct_unpack_and_batch(
     out = capsys.readouterr().out
     assert f"FAILED: {want}" in out, out
     assert not (tmp_path / "rec").exists() and not list((folder / "view_0").glob("*.png"))
+
+
+def test_store_metadata_that_does_not_fit_is_refused_before_the_first_ply(tmp_path, capsys):
+    """Frame names reordered, or a data type other than the chunks hold, in view_1's zarr.json: before, refused
+    only when view_1 was read, after view_0's PLY was written."""
+    import json
+
+    from ringscan.pipeline.formats.packing import pack_scan
+    from tests.pipeline.formats.test_packing import _scan
+
+    folder = tmp_path / "scan"
+    _scan(folder, views=2)
+    pack_scan(folder)
+    meta = folder / "view_1" / "frames.zarr" / "zarr.json"
+    good = json.loads(meta.read_text())
+    names = good["attributes"]["ringscan"]["frames"]
+    for edit, why in ((lambda d: d["attributes"]["ringscan"].update(frames=names[::-1]),
+                       f"{meta}: frames {', '.join(names[::-1])} do not match scan.json's list for view_1"),
+                      (lambda d: d.update(data_type="uint16"),
+                       f"{meta.parent / 'c' / '0' / '0' / '0'}: frame chunk holds 1200 bytes, not one 40x30 uint16 "
+                       "frame")):
+        d = json.loads(json.dumps(good))
+        edit(d)
+        d["codecs"][1]["configuration"]["typesize"] = 2 if d["data_type"] == "uint16" else 1
+        meta.write_text(json.dumps(d))
+        out = tmp_path / "rec"
+        assert main(["reconstruct", str(folder), "--out", str(out), "--device", "cpu", "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"ringscan reconstruct: error: {why}"), err
+        assert not out.exists()
+
+
+def test_pack_says_which_scans_it_passed_over_and_unpack_goes_on_past_a_failed_scan(tmp_path, capsys, monkeypatch):
+    """A scan nested in a view folder: before, `pack TREE` skipped it without a word. A scan whose unpack raises
+    an exception of a library (not ringscan's own): before, `unpack ROOT` stopped there."""
+    from ringscan.pipeline.formats import packing
+    from ringscan.tools import cmd_unpack
+    from tests.pipeline.formats.test_packing import _scan
+
+    root = tmp_path / "root"
+    for name in ("a", "b"):
+        _scan(root / name, views=1)
+    _scan(root / "a" / "view_0" / "inner", views=1)
+    assert main(["pack", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert f"{root / 'a'}: 1 view(s) packed" in out and f"{root / 'b'}: 1 view(s) packed" in out
+    assert (f"not searched: {root / 'a' / 'view_0' / 'inner'}: a scan folder inside the scan folder {root / 'a'}: "
+            "not processed") in out, out
+
+    def unpack(folder, **kw):
+        if folder.name == "a":
+            raise RuntimeError("numcodecs: something went wrong")
+        return packing.unpack_scan(folder, **kw)
+
+    monkeypatch.setattr(cmd_unpack, "unpack_scan", unpack)
+    assert main(["unpack", str(root)]) == 1
+    out, err = capsys.readouterr()
+    assert err.strip() == f"{root / 'a'}: failed: RuntimeError: numcodecs: something went wrong"
+    assert f"{root / 'b'}: 1 view(s) unpacked" in out

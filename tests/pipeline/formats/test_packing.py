@@ -202,3 +202,112 @@ def test_a_fifo_chunk_stops_unpack_and_a_later_pack_without_blocking(tmp_path):
         assert isinstance(got, FormatError) and got.path == str(chunk), got
         assert "frame chunk is a pipe (FIFO), not a regular file" in str(got)
         assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
+
+
+@pytest.mark.parametrize("ext", ["tiff", "jpg", "bmp"])
+def test_a_colour_frame_of_any_format_is_refused_and_kept(tmp_path, ext):
+    """Before: only PNG was checked; a colour TIFF or JPEG was packed as grey and the original removed."""
+    _scan(tmp_path, views=1)
+    d = json.loads((tmp_path / "scan.json").read_text())
+    p = tmp_path / "view_0" / f"white.{ext}"
+    colour = np.zeros((H, W, 3), np.uint8)
+    colour[..., 2] = 200
+    cv2.imwrite(str(p), colour)
+    d["views"][0]["frames"]["white"] = f"view_0/white.{ext}"
+    (tmp_path / "scan.json").write_text(json.dumps(d))
+    before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
+    with pytest.raises(FormatError, match="colour frame: a packed store keeps frames as ringscan reads them") as e:
+        pack_scan(tmp_path)
+    assert e.value.path == str(p)
+    assert {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)} == before
+    cv2.imwrite(str(p), colour[..., 2])  # the same frame in grey packs
+    assert pack_scan(tmp_path).converted == ["view_0"]
+
+
+def test_two_views_naming_the_same_files_both_pack(tmp_path):
+    """Before: the first view's pack removed the files the second view names; the scan then did not load."""
+    truth = _scan(tmp_path, views=2)
+    d = json.loads((tmp_path / "scan.json").read_text())
+    d["views"][1]["frames"] = dict(d["views"][0]["frames"])  # view_1's own files: named by no view now
+    (tmp_path / "scan.json").write_text(json.dumps(d))
+    r = pack_scan(tmp_path)
+    assert r.converted == ["view_0", "view_1"] and r.removed == len(d["views"][0]["frames"])
+    scan = load_scan(tmp_path)
+    assert [v.packed for v in scan.views] == ["view_0/frames.zarr", "view_1/frames.zarr"]
+    assert not [f for f in _files(tmp_path) if f.startswith("view_0/") and f.endswith(".png")]
+    for v in scan.views:
+        got = read_view_frames(scan, v, list(v.frames))
+        assert all(np.array_equal(g, truth[(0, n)]) for g, n in zip(got, v.frames))
+
+
+def test_a_killed_pack_between_two_views_naming_the_same_files_resumes(tmp_path, monkeypatch):
+    truth = _scan(tmp_path, views=2)
+    d = json.loads((tmp_path / "scan.json").read_text())
+    d["views"][1]["frames"] = dict(d["views"][0]["frames"])
+    (tmp_path / "scan.json").write_text(json.dumps(d))
+    calls = []
+
+    def killed(info, name, img, real=frame_store.write_frame):
+        calls.append(name)
+        if len(calls) == len(d["views"][0]["frames"]) + 1:  # the second view's first frame
+            raise KeyboardInterrupt
+        real(info, name, img)
+
+    monkeypatch.setattr(frame_store, "write_frame", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pack_scan(tmp_path)
+    monkeypatch.undo()
+    assert all((tmp_path / r).is_file() for r in d["views"][1]["frames"].values())  # still needed: kept
+    r = pack_scan(tmp_path)
+    assert r.already == ["view_0"] and r.converted == ["view_1"]
+    scan = load_scan(tmp_path)
+    got = read_view_frames(scan, scan.views[1], list(scan.views[1].frames))
+    assert all(np.array_equal(g, truth[(0, n)]) for g, n in zip(got, scan.views[1].frames))
+    assert not [f for f in _files(tmp_path) if f.startswith("view_0/") and f.endswith(".png")]
+
+
+def test_unpack_refuses_a_link_in_place_of_a_frame_before_writing(tmp_path):
+    """Before: a frame file that was a link out of the scan (holding the same frame) was kept, and the scan then
+    refused to load (a path through a link out of the folder)."""
+    truth = _scan(tmp_path / "scan", views=2)
+    folder = tmp_path / "scan"
+    pack_scan(folder)
+    outside = tmp_path / "white.png"
+    write_image(outside, truth[(1, "white")])
+    link = folder / "view_1" / "white.png"
+    link.symlink_to(outside)
+    before = {f: (folder / f).read_bytes() for f in _files(folder)}
+    with pytest.raises(FormatError) as e:
+        unpack_scan(folder)
+    assert str(e.value) == (f"{link}: is a symbolic link (to {outside}) in the way of frame 'white' of the store "
+                            "view_1/frames.zarr: remove it, then unpack again")
+    assert {f: (folder / f).read_bytes() for f in _files(folder)} == before  # view_0 not unpacked either
+    link.unlink()
+    assert unpack_scan(folder).converted == ["view_0", "view_1"]
+    _check_frames(folder, truth)
+
+
+def test_unpack_removes_what_killed_runs_left(tmp_path, monkeypatch):
+    """A store whose chunks a killed deletion removed (zarr.json left): before, every rerun failed (`frame missing
+    from the frame store`) though the frames were all there; hidden temporary images of a killed write were never
+    removed; a store renamed for deletion is removed too."""
+    import shutil
+
+    truth = _scan(tmp_path, views=1)
+    pack_scan(tmp_path)
+    store = tmp_path / "view_0" / "frames.zarr"
+    saved = tmp_path.parent / f"{tmp_path.name}_store"
+    shutil.copytree(store, saved)
+    unpack_scan(tmp_path)  # the images are written and scan.json names them
+    shutil.copytree(saved, store)
+    shutil.rmtree(store / "c" / "0")  # a deletion killed half-way: zarr.json and some chunks left
+    shutil.rmtree(store / "c" / "3")
+    dead = 2 ** 22 + 12345  # a process id that is not running (above the default pid_max)
+    tmp_image = tmp_path / "view_0" / f".white.png.{dead}-0123abcd.tmp.png"
+    tmp_image.write_bytes(b"half a png")
+    renamed = tmp_path / "view_0" / f".frames.zarr.{dead}-89abcdef.tmp"
+    shutil.copytree(saved, renamed)
+    r = unpack_scan(tmp_path)
+    assert r.already == ["view_0"] and r.removed == 1
+    assert not store.exists() and not tmp_image.exists() and not renamed.exists()
+    _check_frames(tmp_path, truth)

@@ -184,3 +184,19 @@ def test_pack_keep_then_pack_removes_both_cameras_leftovers(tmp_path):
     assert len(list(tmp_path.rglob("*.png"))) == 2 * n  # a killed run leaves these too
     res = pack_scan(tmp_path)
     assert res.already == ["view_000"] and res.removed == 2 * n and not list(tmp_path.rglob("*.png"))
+
+
+def test_unpack_with_camera_2s_store_damaged_writes_nothing(tmp_path):
+    """Before: camera 1's PNGs were written beside its store, then camera 2's damaged chunk stopped the run."""
+    _write_stereo_scan(tmp_path)
+    pack_scan(tmp_path)
+    chunk = tmp_path / "view_000" / "cam2" / "frames.zarr" / "c" / "3" / "0" / "0"
+    raw = chunk.read_bytes()
+    chunk.write_bytes(raw[:-5] + bytes([raw[-5] ^ 1]) + raw[-4:])  # intact size and header: its CRC32C fails
+    before = sorted(q.relative_to(tmp_path) for q in tmp_path.rglob("*"))
+    scan_json = (tmp_path / "scan.json").read_bytes()
+    with pytest.raises(FormatError, match="CRC32C") as e:
+        unpack_scan(tmp_path)
+    assert e.value.path == str(chunk)
+    assert sorted(q.relative_to(tmp_path) for q in tmp_path.rglob("*")) == before
+    assert (tmp_path / "scan.json").read_bytes() == scan_json
