@@ -76,6 +76,13 @@ MODEL_SHARE = wp.constant(0.5)
 noise: the decode's model error) added to each camera's sigma: half each. Measured on the
 virtual two-camera scan (benchmarks/stereo_rays.py, "Predicted match sigmas"): with it the
 match errors over their predicted sigmas have a MAD of about 1 in each camera; without it 2."""
+MAX_REFITS = wp.constant(1)
+"""Neighbours a match may leave out, the worst-fitting first, before its neighbourhood counts as a
+discontinuity: one misread code among eight does not lose the match."""
+FIT_SIGMAS = wp.constant(3.0)
+"""A neighbourhood is a discontinuity where its fit residual exceeds ``MatchSettings.max_fit_px``
+and this many times the scatter its samples' own predicted sigmas leave (integer codes: a
+projector pixel's quantisation, ~0.4 camera px at one camera pixel per projector pixel)."""
 
 __all__ = [
     "MatchSettings",
@@ -239,6 +246,23 @@ def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.
         jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
     H, g = block_terms(r, jx, jy, jz, W, H, g)
     return H, g, quad(W, r, r), wp.length(r)
+
+
+@wp.func
+def sym_eigen(C: wp.mat22):
+    """Eigenvalues l1 >= l2 of a symmetric 2x2 matrix and the unit eigenvector of l1:
+    (l1, l2, v1x, v1y)."""
+    tr = C[0, 0] + C[1, 1]
+    df = 0.5 * (C[0, 0] - C[1, 1])
+    rt = wp.sqrt(df * df + C[0, 1] * C[0, 1])
+    l1 = 0.5 * tr + rt
+    l2 = 0.5 * tr - rt
+    v1 = wp.vec2(1.0, 0.0)
+    if rt > 0.0:
+        v1 = wp.normalize(wp.vec2(C[0, 1], l1 - C[0, 0]))
+        if wp.abs(C[0, 1]) < 1.0e-12 * (l1 + 1.0e-30):
+            v1 = wp.where(C[0, 0] >= C[1, 1], wp.vec2(1.0, 0.0), wp.vec2(0.0, 1.0))
+    return wp.vec4(l1, l2, v1[0], v1[1])
 
 
 @wp.func
@@ -417,103 +441,142 @@ def match_kernel(
     if n < k_min:
         status[i] = MATCH_TOO_FEW
         return
-    # weighted means, then the centred moments (projector: S; image x projector: B)
-    sw = float(0.0)
-    pm = wp.vec2(0.0, 0.0)
-    xm = wp.vec2(0.0, 0.0)
-    for a in range(n):
-        j = ni[a]
-        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
-        w = 1.0 / (sg * sg)
-        sw += w
-        pm += w * proj2[j]
-        xm += w * uv2[j]
-    pm = pm / sw
-    xm = xm / sw
-    S = wp.mat22(0.0, 0.0, 0.0, 0.0)
-    B = wp.mat22(0.0, 0.0, 0.0, 0.0)
-    for a in range(n):
-        j = ni[a]
-        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
-        w = 1.0 / (sg * sg)
-        dp = proj2[j] - pm
-        dx = uv2[j] - xm
-        S += w * wp.outer(dp, dp)
-        B += w * wp.outer(dx, dp)
-    # eigen-decomposition of the projector spread (symmetric 2x2)
-    C = S / sw
-    tr = C[0, 0] + C[1, 1]
-    df = 0.5 * (C[0, 0] - C[1, 1])
-    rt = wp.sqrt(df * df + C[0, 1] * C[0, 1])
-    l1 = 0.5 * tr + rt
-    l2 = 0.5 * tr - rt
-    v1 = wp.vec2(1.0, 0.0)
-    if rt > 0.0:
-        v1 = wp.normalize(wp.vec2(C[0, 1], l1 - C[0, 0]))
-        if wp.abs(C[0, 1]) < 1.0e-12 * (l1 + 1.0e-30):
-            v1 = wp.where(C[0, 0] >= C[1, 1], wp.vec2(1.0, 0.0), wp.vec2(0.0, 1.0))
-    v2 = wp.vec2(-v1[1], v1[0])
-    if not (l1 > 1.0e-12):
-        status[i] = MATCH_EXTRAPOLATED
-        return
-    dq = q - pm
-    a1 = wp.dot(dq, v1)
-    a2 = wp.dot(dq, v2)
-    full = l2 >= line_ratio * l1 and n >= 3
-    if wp.abs(a1) > max_extrapolation * wp.sqrt(l1):
-        status[i] = MATCH_EXTRAPOLATED
-        return
-    if full:
-        if wp.abs(a2) > max_extrapolation * wp.sqrt(l2):
-            status[i] = MATCH_EXTRAPOLATED
-            return
-    elif wp.abs(curve_offset(proj2, sigma2, ni, n, pm, v1, v2, a1, a2)) > max_offset:
-        # the query is off the neighbours' curve: the map across it is unknown
-        status[i] = MATCH_EXTRAPOLATED
-        return
-    # S^+ (in the eigenbasis): both directions, or the line's alone
-    Sp = wp.outer(v1, v1) / (l1 * sw)
-    if full:
-        Sp = Sp + wp.outer(v2, v2) / (l2 * sw)
-    A = B * Sp
-    x = xm + A * dq
-    g2 = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1]
-    gain = wp.where(full, wp.sqrt(0.5 * g2), wp.sqrt(g2))
-    # residuals of the fit: a neighbourhood across a depth edge fits no one map
-    chi = float(0.0)
-    ss = float(0.0)
-    for a in range(n):
-        j = ni[a]
-        sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
-        r = uv2[j] - (xm + A * (proj2[j] - pm))
-        ss += wp.dot(r, r)
-        chi += wp.dot(r, r) / (sg * sg)
-    fit = wp.sqrt(ss / float(n))
-    out_fit[i] = fit
-    out_gain[i] = gain
-    if fit > max_fit or gain > max_gain:
-        status[i] = MATCH_DISCONTINUITY
-        return
-    # the intercept's variance: the samples' projector noise through the map
-    # (gain^2 sigma^2), scaled up by the fit's own scatter where that is larger
-    npar = wp.where(full, 3, 2)
-    scale = float(1.0)
-    model2 = float(0.0)
-    if n > npar and gain > 0.0:
-        scale = wp.max(1.0, chi / (2.0 * float(n - npar) * gain * gain))
-        # one sample's scatter about the map (per axis) beyond its predicted noise
-        # (gain^2 times the neighbours' harmonic-mean variance n / sw): the decode's
-        # model error, smooth along an edge, so the fit does not average it out of
-        # uv2, and the query carries its own of the same size (design.md §19)
-        model2 = wp.max(0.0, ss / (2.0 * float(n - npar)) - gain * gain * float(n) / sw)
-    var = 1.0 / sw + a1 * a1 / (l1 * sw)
-    if full:
-        var += a2 * a2 / (l2 * sw)
-    qs = gain * query_sigma[i]
-    out_uv[i] = x
-    out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
-    out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
-    status[i] = MATCH_OK
+    # One neighbour that no map through the others fits (a misread code) is left out and the
+    # map fitted again; a neighbourhood that still does not fit straddles a depth edge.
+    st = int(MATCH_DISCONTINUITY)
+    for attempt in range(MAX_REFITS + 1):
+        # weighted means, then the centred moments (projector: S; image x projector: B): the fit.
+        # The plain (unweighted) mean and spread of the neighbours' projector points: the
+        # neighbourhood's shape, which says whether the query lies among them and whether they
+        # lie on a line. Judged on the weighted spread instead, a few precise neighbours among
+        # imprecise ones (sub-pixel positions among integer codes: weights 100 times apart) would
+        # leave the others no say, and a query amid its neighbours would look extrapolated.
+        sw = float(0.0)
+        pm = wp.vec2(0.0, 0.0)
+        xm = wp.vec2(0.0, 0.0)
+        pu = wp.vec2(0.0, 0.0)
+        var_sum = float(0.0)
+        for a in range(n):
+            j = ni[a]
+            sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+            w = 1.0 / (sg * sg)
+            sw += w
+            pm += w * proj2[j]
+            xm += w * uv2[j]
+            pu += proj2[j]
+            var_sum += sg * sg
+        pm = pm / sw
+        xm = xm / sw
+        pu = pu / float(n)
+        S = wp.mat22(0.0, 0.0, 0.0, 0.0)
+        B = wp.mat22(0.0, 0.0, 0.0, 0.0)
+        Cu = wp.mat22(0.0, 0.0, 0.0, 0.0)
+        for a in range(n):
+            j = ni[a]
+            sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+            w = 1.0 / (sg * sg)
+            dp = proj2[j] - pm
+            dx = uv2[j] - xm
+            S += w * wp.outer(dp, dp)
+            B += w * wp.outer(dx, dp)
+            du = proj2[j] - pu
+            Cu += wp.outer(du, du)
+        # eigen-decompositions of the projector spreads (symmetric 2x2)
+        e = sym_eigen(S / sw)
+        l1 = e[0]
+        l2 = e[1]
+        v1 = wp.vec2(e[2], e[3])
+        v2 = wp.vec2(-v1[1], v1[0])
+        eu = sym_eigen(Cu / float(n))
+        lu1 = eu[0]
+        lu2 = eu[1]
+        vu1 = wp.vec2(eu[2], eu[3])
+        vu2 = wp.vec2(-vu1[1], vu1[0])
+        if not (l1 > 1.0e-12 and lu1 > 1.0e-12):
+            st = MATCH_EXTRAPOLATED
+            break
+        dq = q - pm
+        a1 = wp.dot(dq, v1)
+        a2 = wp.dot(dq, v2)
+        dqu = q - pu
+        full = lu2 >= line_ratio * lu1 and n >= 3
+        if wp.abs(wp.dot(dqu, vu1)) > max_extrapolation * wp.sqrt(lu1):
+            st = MATCH_EXTRAPOLATED
+            break
+        if full:
+            # (or a weighted spread with nothing across: the neighbours that weigh lie on a line)
+            if wp.abs(wp.dot(dqu, vu2)) > max_extrapolation * wp.sqrt(lu2) or not (l2 > 1.0e-6 * l1):
+                st = MATCH_EXTRAPOLATED
+                break
+        elif wp.abs(curve_offset(proj2, sigma2, ni, n, pm, v1, v2, a1, a2)) > max_offset:
+            # the query is off the neighbours' curve: the map across it is unknown
+            st = MATCH_EXTRAPOLATED
+            break
+        # S^+ (in the eigenbasis): both directions, or the line's alone
+        Sp = wp.outer(v1, v1) / (l1 * sw)
+        if full:
+            Sp = Sp + wp.outer(v2, v2) / (l2 * sw)
+        A = B * Sp
+        x = xm + A * dq
+        g2 = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1]
+        gain = wp.where(full, wp.sqrt(0.5 * g2), wp.sqrt(g2))
+        # residuals of the fit: a neighbourhood across a depth edge fits no one map
+        chi = float(0.0)
+        ss = float(0.0)
+        worst = int(0)
+        worst_r2 = float(-1.0)
+        for a in range(n):
+            j = ni[a]
+            sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
+            r = uv2[j] - (xm + A * (proj2[j] - pm))
+            r2 = wp.dot(r, r)
+            ss += r2
+            chi += r2 / (sg * sg)
+            if r2 > worst_r2:
+                worst_r2 = r2
+                worst = a
+        fit = wp.sqrt(ss / float(n))
+        out_fit[i] = fit
+        out_gain[i] = gain
+        npar = wp.where(full, 3, 2)
+        # the scatter the neighbours' own precision leaves about the map (camera px, RMS over
+        # both axes: their projector variance through the map, less the parameters' share):
+        # integer codes leave ~0.4 px at one camera px per projector px, sub-pixel ones a few
+        # hundredths, under max_fit
+        noise_fit = wp.sqrt(g2 * var_sum / float(n) * float(wp.max(n - npar, 0)) / float(n))
+        if fit > wp.max(max_fit, FIT_SIGMAS * noise_fit) or gain > max_gain:
+            if attempt < MAX_REFITS and n > k_min and n > 3:
+                # the worst-fitting neighbour out (the last one in its place), and fit again
+                ni[worst] = ni[n - 1]
+                n -= 1
+                continue
+            st = MATCH_DISCONTINUITY
+            break
+        # the intercept's variance: the samples' projector noise through the map
+        # (gain^2 sigma^2), scaled up by the fit's own scatter where that is larger
+        scale = float(1.0)
+        model2 = float(0.0)
+        if n > npar and gain > 0.0:
+            scale = wp.max(1.0, chi / (2.0 * float(n - npar) * gain * gain))
+            # one sample's scatter about the map (per axis) beyond its predicted noise
+            # (gain^2 times the neighbours' harmonic-mean variance n / sw): the decode's
+            # model error, smooth along an edge, so the fit does not average it out of
+            # uv2, and the query carries its own of the same size (design.md §19)
+            model2 = wp.max(0.0, ss / (2.0 * float(n - npar)) - gain * gain * float(n) / sw)
+        var = 1.0 / sw + a1 * a1 / (l1 * sw)
+        if full:
+            var += a2 * a2 / (l2 * sw)
+        qs = gain * query_sigma[i]
+        out_uv[i] = x
+        out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
+        out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
+        st = MATCH_OK
+        break
+    if st != MATCH_OK:
+        out_uv[i] = wp.vec2(0.0, 0.0)
+        out_sigma2[i] = 0.0
+        out_sigma1[i] = 0.0
+    status[i] = st
 
 
 @wp.kernel

@@ -60,7 +60,10 @@ from ringscan.pipeline.reconstruct.view import check_rays, reconstruct_view, wri
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_FORMAT", "reconstruct_scan", "scan_inputs"]
+LOW_YIELD_SHARE = 0.25
+"""A view that keeps fewer points than this share of its decoded samples warns, naming the main reason."""
+
+__all__ = ["REPORT_FORMAT", "LOW_YIELD_SHARE", "reconstruct_scan", "scan_inputs", "low_yield"]
 
 
 def reconstruct_scan(
@@ -240,7 +243,29 @@ def _view_entry(scan: Scan, view: View, *, index: int, cloud, inputs_hash: str) 
              ", ".join(f"{k} {v}" for k, v in cloud.stats["dropped"].items()))
     if "no_points" in cloud.stats:
         log.warning("%s of %s: no points: %s", view.name, scan.folder, cloud.stats["no_points"])
+    else:
+        few = low_yield(cloud.stats)
+        if few:
+            log.warning("%s of %s: %s", view.name, scan.folder, few)
     return entry
+
+
+def low_yield(stats: dict) -> str | None:
+    """What a view that keeps under ``LOW_YIELD_SHARE`` of its samples lost most of them to, in one
+    line (None when it keeps more): the largest reason in ``dropped``, and for ``unmatched`` the
+    matching's own (``stereo.unmatched``: discontinuity, extrapolated, ...)."""
+    samples, points = int(stats.get("samples", 0)), int(stats.get("points", 0))
+    dropped = {k: int(v) for k, v in stats.get("dropped", {}).items() if v}
+    if samples <= 0 or points >= LOW_YIELD_SHARE * samples or not dropped:
+        return None
+    reason, count = max(dropped.items(), key=lambda kv: kv[1])
+    why = f"{reason} {count}"
+    sub = {k: int(v) for k, v in stats.get("stereo", {}).get("unmatched", {}).items() if v}
+    if reason == "unmatched" and sub:
+        r2, c2 = max(sub.items(), key=lambda kv: kv[1])
+        why = f"unmatched in camera 2 {count} ({r2} {c2})"
+    return (f"keeps {points} of its {samples} decoded samples ({100 * points / samples:.1f} %); most dropped as "
+            f"{why} (report.json 'dropped'; docs/reconstruction.md, 'When a view keeps few points')")
 
 
 def _write_view(out_dir: Path, cloud, entry: dict, index: int, report_path: Path, report: dict | None) -> None:

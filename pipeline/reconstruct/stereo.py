@@ -29,10 +29,19 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 log = logging.getLogger(__name__)
 
 __all__ = ["StereoMatches", "match_view", "match_samples", "decode_view", "epipolar_distances",
-           "EPIPOLAR_WARN_PX"]
+           "refine_integer_codes", "EPIPOLAR_WARN_PX"]
 
 EPIPOLAR_WARN_PX = 1.0
 """Median epipolar distance (px) of a view's matches above which the rig file does not fit its images."""
+QUERY_WINDOW_PX = 2
+"""Half width (camera px) of the window whose plane reads camera 1's integer codes (5 x 5 pixels)."""
+QUERY_MIN_PIXELS = 9
+"""Fewest decoded pixels in that window for a plane (3 parameters; the rest its scatter)."""
+QUERY_FIT_CHI2 = 4.0
+"""Largest scatter of a window's codes about their plane, in variances the codes' sigmas predict
+(integer codes: 1/12 px^2 each); beyond it the window straddles a depth edge or a misread code."""
+INTEGER_TOLERANCE_PX = 1.0 / 64.0
+"""A decoded coordinate this close to an integer is an integer code (the decoded frames' step is 1/32 px)."""
 
 
 @dataclass
@@ -87,28 +96,150 @@ def _coordinates(scan: Scan, samples: Samples, which: str):
                                  center=scan.patterns.center)
 
 
+def _polar_to_uv(proj: np.ndarray, sigma_rho: np.ndarray, sigma_tan: np.ndarray, center) -> np.ndarray:
+    """(n, 2) standard deviations along u_p and v_p of projector points whose errors are radial and
+    tangential about ``center``."""
+    off = proj - np.asarray(center, float)
+    r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
+    c, s = off[:, 0] / r, off[:, 1] / r
+    return np.stack([np.sqrt(sigma_rho ** 2 * c ** 2 + sigma_tan ** 2 * s ** 2),
+                     np.sqrt(sigma_rho ** 2 * s ** 2 + sigma_tan ** 2 * c ** 2)], 1)
+
+
+def _uv_to_polar(proj: np.ndarray, sigma_uv: np.ndarray, center) -> tuple[np.ndarray, np.ndarray]:
+    """The radial and tangential standard deviations of projector points with independent u_p, v_p errors."""
+    off = proj - np.asarray(center, float)
+    r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
+    c2, s2 = (off[:, 0] / r) ** 2, (off[:, 1] / r) ** 2
+    su2, sv2 = sigma_uv[:, 0] ** 2, sigma_uv[:, 1] ** 2
+    return np.sqrt(su2 * c2 + sv2 * s2), np.sqrt(su2 * s2 + sv2 * c2)
+
+
+def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarray, *, width: int, height: int,
+                         radius: int = QUERY_WINDOW_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integer projector codes of a dense per-pixel map read to a fraction of a projector pixel from
+    their camera neighbourhood: each integer coordinate (u_p or v_p apart) is replaced by the value
+    at its pixel of the plane fitted (weighted least squares, weights 1 / sigma^2) to the decoded
+    coordinates of the (2 radius + 1)^2 pixels around it. A window whose scatter about its plane is
+    beyond ``QUERY_FIT_CHI2`` times what the codes' sigmas allow (a depth edge, a misread code) keeps
+    the code as it is.
+
+    Integer codes are uniform over a projector pixel (sigma 1 / sqrt 12): at about one camera pixel
+    per projector pixel the code of camera 1's pixel is as far off as camera 2's fitted position
+    averages away, and the match is no better than the plain decode's; the plane through 25 of
+    them is a few times better.
+
+    Args:
+        pixel: (n,) linear pixel index y * width + x of each sample (one sample per pixel).
+        proj: (n, 2) projector coordinates (u_p, v_p).
+        sigma_uv: (n, 2) their standard deviations (projector px).
+        width, height: the camera's size.
+        radius: the window's half width (px).
+
+    Returns:
+        (proj, sigma_uv, refined): the coordinates and sigmas with the integer ones refined (the
+        sigma of the plane at the pixel, scaled by the window's scatter where that is larger), and
+        (n, 2) bool: which coordinates were.
+    """
+    import cv2
+
+    proj = np.asarray(proj, np.float64)
+    sigma_uv = np.asarray(sigma_uv, np.float64)
+    out_p, out_s = proj.copy(), sigma_uv.copy()
+    refined = np.zeros(proj.shape, bool)
+    n = proj.shape[0]
+    if n == 0:
+        return out_p, out_s, refined
+    pixel = np.asarray(pixel, np.int64)
+    ys, xs = np.divmod(pixel, int(width))
+    k = 2 * int(radius) + 1
+
+    def box(a):
+        return cv2.boxFilter(a, cv2.CV_64F, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    for axis in (0, 1):
+        val = proj[:, axis]
+        integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
+        if not integer.any():
+            continue
+        w = np.zeros((height, width))
+        w.flat[pixel] = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
+        # moments about each pixel's own centre: a window's sums of w x^a y^b p^c with x, y
+        # measured from the pixel (the sums of absolute coordinates re-centred)
+        P = np.zeros((height, width))
+        P.flat[pixel] = val
+        X = np.broadcast_to(np.arange(width, dtype=np.float64)[None, :], (height, width))
+        Y = np.broadcast_to(np.arange(height, dtype=np.float64)[:, None], (height, width))
+        sel = np.flatnonzero(integer)
+        x0, y0 = xs[sel].astype(np.float64), ys[sel].astype(np.float64)
+        # the code itself as an offset from the pixel's own (keeps the sums small)
+        p0 = val[sel]
+        at = (ys[sel], xs[sel])
+        S = box(w)[at]
+        Sx, Sy = box(w * X)[at] - x0 * S, box(w * Y)[at] - y0 * S
+        Sxx = box(w * X * X)[at] - 2 * x0 * box(w * X)[at] + x0 * x0 * S
+        Syy = box(w * Y * Y)[at] - 2 * y0 * box(w * Y)[at] + y0 * y0 * S
+        Sxy = box(w * X * Y)[at] - x0 * box(w * Y)[at] - y0 * box(w * X)[at] + x0 * y0 * S
+        wP, wPX, wPY = box(w * P)[at], box(w * P * X)[at], box(w * P * Y)[at]
+        Sp = wP - p0 * S
+        Sxp = wPX - x0 * wP - p0 * (Sx + x0 * S) + p0 * x0 * S
+        Syp = wPY - y0 * wP - p0 * (Sy + y0 * S) + p0 * y0 * S
+        Spp = box(w * P * P)[at] - 2 * p0 * wP + p0 * p0 * S
+        cnt = box((w > 0).astype(np.float64))[at]
+        M = np.stack([np.stack([S, Sx, Sy], -1), np.stack([Sx, Sxx, Sxy], -1), np.stack([Sy, Sxy, Syy], -1)], -2)
+        b = np.stack([Sp, Sxp, Syp], -1)
+        det = np.linalg.det(M)
+        good = (cnt >= QUERY_MIN_PIXELS) & (np.abs(det) > 1e-9 * np.maximum(S, 1e-30) ** 3)
+        Mi = np.zeros_like(M)
+        Mi[good] = np.linalg.inv(M[good])
+        beta = np.einsum("nij,nj->ni", Mi, b)
+        chi2 = np.maximum(Spp - np.einsum("ni,ni->n", beta, b), 0.0)
+        dof = np.maximum(cnt - 3, 1)
+        good &= chi2 <= QUERY_FIT_CHI2 * dof
+        var = Mi[:, 0, 0] * np.maximum(1.0, chi2 / dof)
+        g = sel[good]
+        out_p[g, axis] = p0[good] + beta[good, 0]
+        out_s[g, axis] = np.sqrt(var[good])
+        refined[g, axis] = True
+    return out_p, out_s, refined
+
+
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
                   settings: ReconstructSettings = ReconstructSettings(), threads: int | None = None) -> StereoMatches:
     """Match camera 1's samples to camera 2's by equal projector coordinate
-    (``kernels.stereo.match_by_projector``); the rig's extrinsics are not used."""
+    (``kernels.stereo.match_by_projector``); the rig's extrinsics are not used. Camera 1's
+    integer codes of a dense map (an imported Gray code that kept them) are first read from
+    their neighbourhood (:func:`refine_integer_codes`)."""
     p1, s1 = _coordinates(scan, samples1, "camera 1")
     p2, s2 = _coordinates(scan, samples2, "camera 2")
     light = scan.rig.light
+    center = scan.patterns.center
+    proj1 = p1.numpy().astype(np.float64)
+    sr1 = samples1.sigma_rho.numpy().astype(np.float64)
+    st1 = samples1.sigma_tan.numpy().astype(np.float64)
+    refined = np.zeros(proj1.shape, bool)
+    if samples1.ring is None and len(samples1):  # one sample per pixel: a dense map
+        cam = scan.rig.camera
+        proj1, suv, refined = refine_integer_codes(samples1.pixel.numpy(), proj1, _polar_to_uv(proj1, sr1, st1, center),
+                                                   width=cam.width, height=cam.height)
+        if refined.any():
+            sr1, st1 = _uv_to_polar(proj1, suv, center)
+            dev = p1.device
+            p1 = wp.array(proj1.astype(np.float32), dtype=wp.vec2, device=dev)
+            s1 = wp.array(np.sqrt(0.5 * (sr1 ** 2 + st1 ** 2)).astype(np.float32), dtype=wp.float32, device=dev)
     M = match_by_projector(p1, s1, p2, samples2.uv, s2, projector_size=(light.width, light.height),
                            settings=settings.stereo.match, threads=threads)
     status = M.status.numpy()
     ok = np.flatnonzero(status == 0)
-    proj = p1.numpy()[ok].astype(np.float64)
-    sr = samples1.sigma_rho.numpy()[ok].astype(np.float64)
-    st = samples1.sigma_tan.numpy()[ok].astype(np.float64)
-    off = proj - np.asarray(scan.patterns.center, float)
-    r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
-    c, s = off[:, 0] / r, off[:, 1] / r
-    sigma_proj = np.stack([np.sqrt(sr ** 2 * c ** 2 + st ** 2 * s ** 2),
-                           np.sqrt(sr ** 2 * s ** 2 + st ** 2 * c ** 2)], 1)
+    proj = proj1[ok]
+    sr = sr1[ok]
+    st = st1[ok]
+    sigma_proj = _polar_to_uv(proj, sr, st, center)
     counts = np.bincount(status, minlength=len(MATCH_STATUS_NAMES))
     stats = {"samples_camera1": int(len(samples1)), "samples_camera2": int(len(samples2)), "matches": int(ok.size),
              "unmatched": {name: int(counts[i]) for i, name in enumerate(MATCH_STATUS_NAMES) if i > 0}}
+    if refined.any():
+        stats["integer_codes_refined"] = int(refined.any(axis=1).sum())
     return StereoMatches(uv1=samples1.uv.numpy()[ok].astype(np.float64), uv2=M.uv2.numpy()[ok].astype(np.float64),
                          proj=proj, sigma1=M.sigma1.numpy()[ok].astype(np.float64),
                          sigma2=M.sigma2.numpy()[ok].astype(np.float64), sigma_proj=sigma_proj, sigma_rho=sr,

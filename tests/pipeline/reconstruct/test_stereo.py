@@ -122,8 +122,9 @@ def test_one_camera_view_refuses_two_camera_rays(tmp_path):
 
 def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
     # every pixel's projector pixel as an OpenCV Gray code decodes it (integer codes):
-    # camera to camera, the local fit over the neighbours beats the projector ray of
-    # one rounded code, and all three rays beat both
+    # camera to camera, camera 1's codes read from their 5 x 5 neighbours and the local fit
+    # over camera 2's beat the projector ray of one rounded code by half, and all three rays
+    # beat both
     from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
     from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
 
@@ -137,9 +138,12 @@ def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
         d = point_distances(mesh, np.c_[ply["x"], ply["y"], ply["z"]].astype(np.float64))
         med[rays] = float(np.median(d))
         assert v["points"] > (0.99 if rays == "camera-projector" else 0.7) * v["samples"]
-    assert med["camera-camera"] < 0.95 * med["camera-projector"], med
-    assert med["all"] < 0.8 * med["camera-camera"], med
-    assert med["all"] < 0.04, med  # mm, 0.65 mm camera pixels
+    # measured 0.047 / 0.018 / 0.015 mm (before camera 1's codes were read from their neighbours,
+    # camera-camera was 0.039 and all three 0.025: the rounded code of camera 1's pixel was as far
+    # off as camera 2's fit averaged away); the bars leave ~25 % for the noise
+    assert med["camera-camera"] < 0.5 * med["camera-projector"], med
+    assert med["all"] < 0.95 * med["camera-camera"], med
+    assert med["all"] < 0.02, med  # mm, 0.65 mm camera pixels
 
 
 def test_auto_fallback_places_points_as_one_camera_does(stereo_scan):
