@@ -134,7 +134,8 @@ def run(args) -> int:
         name = f"{pose_index[v['pose']]}:{v['name']}" if "pose" in v else v["name"]
         print(f"{name:<12}{v['turntable_deg']:>7.1f}{v['points_in']:>9}{v['points_kept']:>9}"
               f"{v['fitness_before']:>11.3f}{v['rmse_before_mm']:>11.4f}{v['fitness']:>7.3f}{v['rmse_mm']:>8.4f}"
-              f"{v['correction_mm']:>9.3f}{v['correction_deg']:>9.3f}")
+              f"{v['correction_mm']:>9.3f}{v['correction_deg']:>9.3f}"
+              + ("  angle kept (not fixed by the overlap)" if v.get("angle_held") else ""))
     m = rep["mesh"]
     wt = "" if m["watertight"] is None else f", watertight {m['watertight']}"
     print(f"fused {rep['fusion']['points']} points; {m['method']} mesh {m['vertices']} vertices, "

@@ -4,7 +4,10 @@
 cleans it (non-finite and low-confidence points, ground clip, outliers), orients its
 normals toward the view's camera, refines the poses (point-to-plane ICP between
 neighbouring views, loop closure, pose graph with the view nearest angle 0 fixed),
-reports each view's residual and correction, and merges and downsamples the views.
+reports each view's residual and correction, and merges and downsamples the views. The
+turntable pose is a prior that the refinement corrects only along the motions the views'
+overlap fixes (:func:`overlap_information`, :func:`weak_motions`): a symmetric object (a
+sphere, a cylinder) keeps its turntable angle, and a warning names its views.
 Several poses of one object are aligned in :mod:`.poses`. Why: docs/design.md §17; the
 steps, settings and figures: docs/fusion.md. Everything returned is an Open3D geometry
 or a NumPy array, so a user's script can carry on with Open3D directly.
@@ -28,10 +31,22 @@ from ringscan.pipeline.fusion.threads import check_threads, open3d_threads
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_NAME", "FuseSettings", "FusionView", "ViewResidual", "FuseResult", "check_fuse_settings", "fuse_views",
-           "merge_clouds", "rotation_deg", "apply_transform"]
+__all__ = ["REPORT_NAME", "WEAK_MOTION_RATIO", "FuseSettings", "FusionView", "ViewResidual", "FuseResult",
+           "check_fuse_settings", "fuse_views", "merge_clouds", "rotation_deg", "apply_transform", "overlap_information",
+           "weak_motions"]
 
 REPORT_NAME = "report.json"
+
+WEAK_MOTION_RATIO = 5.0e-3
+"""Which motions of a view its overlap with another view fixes. Point-to-plane ICP sees a
+motion only as far as it moves the overlap's points along their normals: the overlap's
+point-to-plane information (6 x 6, each rotation scaled by the overlap's RMS radius so that
+every motion is in mm at the points) has one eigenvalue per motion, and a motion whose
+eigenvalue is below this fraction of the largest one (it moves the points along their
+normals by less than sqrt(5e-3) ~ 7 % of what the best-fixed motion does) is not fixed:
+refinement keeps the turntable pose along it. Measured on 8-view scans (docs/fusion.md,
+"Symmetric objects"): the three rotations of a sphere and the spin of a cylinder about
+its axis 1e-5 to 3e-3; Spot, Blub, the goat head and a lumpy blob 1.4e-2 and above."""
 
 
 # ----------------------------------------------------------------------------- settings
@@ -130,6 +145,14 @@ class ViewResidual:
     """Translation of the refinement at the view's centroid (mm)."""
     correction_deg: float
     """Rotation angle of the refinement (degrees)."""
+    angle_held: bool | None = None
+    """True when the view's overlap with the other views does not fix its turn about the
+    turntable axis (a shape symmetric about the axis: a sphere, a cylinder), so refinement
+    kept the turntable's angle (:data:`WEAK_MOTION_RATIO`); None without refinement."""
+    motions_held: int | None = None
+    """How many of the view's 6 rigid motions (3 rotations, 3 translations) its overlap with
+    the other views does not fix, kept at the turntable pose (0: all fixed; 6: no overlap);
+    None without refinement."""
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -171,6 +194,7 @@ class FuseResult:
         return {
             "points": len(self.cloud.points),
             "views": [r.to_dict() for r in self.residuals],
+            "angle_held": [r.name for r in self.residuals if r.angle_held],
             "settings": dataclasses.asdict(self.settings),
             "axis": None if self.rig is None or self.rig.turntable is None else {
                 "axis_point": self.rig.turntable.axis_point.tolist(),
@@ -312,6 +336,166 @@ def _pairs(order: np.ndarray, s: FuseSettings) -> list[tuple[int, int, bool]]:
     return out
 
 
+# ----------------------------------------------------------------------------- what an overlap fixes
+#
+# A rigid motion is m = (omega, v0): a rotation vector and the velocity it gives the origin,
+# so a point x moves by omega x x + v0. A point
+# p matched with a target point of normal n sees the motion only as n . (omega x p + v0) =
+# omega . (p x n) + v0 . n: its row of the point-to-plane Jacobian is (p x n, n).
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _motion_frame(center: np.ndarray, scale: float) -> np.ndarray:
+    """(6, 6) A taking a motion m = (omega, v0) to xi = (scale * omega, v0 + omega x center):
+    the rotation as mm at ``scale`` from ``center``, the translation of ``center``."""
+    A = np.eye(6)
+    A[:3, :3] *= scale
+    A[3:, :3] = -_skew(center)
+    return A
+
+
+def _matches(o3d, nns, pts: np.ndarray, dist: float) -> tuple[np.ndarray, np.ndarray]:
+    """(indices into ``pts`` of the points whose nearest target point is within ``dist``, those target indices)."""
+    idx, d2 = nns.knn_search(o3d.core.Tensor(pts), 1)
+    ok = np.flatnonzero(np.sqrt(d2.numpy()[:, 0]) < dist)
+    return ok, idx.numpy()[ok, 0].astype(np.int64)
+
+
+def overlap_information(points: np.ndarray, target_points: np.ndarray, target_normals: np.ndarray, *,
+                        max_distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The point-to-plane information of an overlap: how strongly each rigid motion of
+    ``points`` moves them off the surface of ``target_points`` (unit ``target_normals``).
+
+    Each point whose nearest target point lies within ``max_distance_mm`` adds j j^T, with
+    j = (p x n, n): the row of point-to-plane ICP's Jacobian. Open3D's
+    ``get_information_matrix_from_point_clouds`` is point-to-point: it counts a sphere's
+    spin as fixed, since its points slide off their matches, but no surface moves.
+
+    Returns:
+        (H, matched): H (6, 6) for motions (omega, v0) about the origin, summed over the
+        points of ``points`` that have a match (``matched``, (m, 3));
+        ``weak_motions(H, matched)`` says which motions the overlap fixes.
+    """
+    o3d = open3d_lib()
+    p = np.asarray(points, np.float64)
+    q = np.asarray(target_points, np.float64)
+    for name, a, n in (("points", p, None), ("target_points", q, None),
+                       ("target_normals", np.asarray(target_normals), len(q))):
+        if a.ndim != 2 or a.shape[1] != 3 or (n is not None and len(a) != n):
+            raise ValueError(f"overlap_information: {name} must have shape ({'N' if n is None else n}, 3), "
+                             f"got {a.shape}")
+    if not max_distance_mm > 0:
+        raise ValueError(f"overlap_information: max_distance_mm must be > 0, got {max_distance_mm}")
+    if len(p) == 0 or len(q) == 0:
+        return np.zeros((6, 6)), np.zeros((0, 3))
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q))
+    nns.knn_index()
+    ok, idx = _matches(o3d, nns, p, max_distance_mm)
+    n = np.asarray(target_normals, np.float64)[idx]
+    J = np.concatenate([np.cross(p[ok], n), n], axis=1)
+    return J.T @ J, p[ok]
+
+
+def _spectrum(H: np.ndarray, points: np.ndarray):
+    """(eigenvalues ascending, eigenvectors, centre, scale) of ``H`` in the frame of ``points``:
+    motions xi = (scale * omega, velocity of the centre) (:func:`_motion_frame`), the centre
+    being the points' centroid and the scale their RMS distance from it."""
+    pts = np.asarray(points, np.float64)
+    c = pts.mean(axis=0) if len(pts) else np.zeros(3)
+    scale = max(float(np.sqrt(np.mean(np.sum((pts - c) ** 2, axis=1)))) if len(pts) else 1.0, 1e-9)
+    Ai = np.linalg.inv(_motion_frame(c, scale))
+    Hx = Ai.T @ H @ Ai
+    w, V = np.linalg.eigh(0.5 * (Hx + Hx.T))
+    return w, V, c, scale
+
+
+def weak_motions(H: np.ndarray, points: np.ndarray, *, ratio: float = WEAK_MOTION_RATIO,
+                 axis: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[int, bool | None]:
+    """Which motions an overlap's information ``H`` (:func:`overlap_information`) leaves free.
+
+    The motions are measured at ``points`` (the matched points that made ``H``: rotations
+    about their centroid, scaled by their RMS radius, so that every motion is in mm at the
+    points); a motion is free when its eigenvalue is below ``ratio`` times the largest
+    (:data:`WEAK_MOTION_RATIO`).
+
+    Args:
+        axis: (point, unit direction) of the turntable axis: also say whether a turn about it
+            is free (its Rayleigh quotient below ``ratio`` times the largest eigenvalue).
+
+    Returns:
+        (the number of free motions, 0 to 6; whether the turn about ``axis`` is free, None
+        without ``axis``). An empty ``H`` (no overlap) leaves all six free.
+    """
+    H = np.asarray(H, np.float64)
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)):
+        raise ValueError(f"weak_motions: H must be a finite (6, 6) matrix, got shape {H.shape}")
+    if np.ndim(points) != 2 or np.shape(points)[1] != 3:
+        raise ValueError(f"weak_motions: points must have shape (N, 3), got {np.shape(points)}")
+    if not 0 < ratio < 1:
+        raise ValueError(f"weak_motions: ratio must lie in (0, 1), got {ratio}")
+    w, V, c, scale = _spectrum(H, points)
+    if not w[-1] > 0:
+        return 6, None if axis is None else True
+    free = int(np.count_nonzero(w < ratio * w[-1]))
+    if axis is None:
+        return free, None
+    a0, a = (np.asarray(x, np.float64) for x in axis)
+    xi = _motion_frame(c, scale) @ np.concatenate([a, np.cross(a0, a)])  # the turn: v0 = -a x a0
+    Hx = V @ np.diag(w) @ V.T
+    return free, bool(xi @ Hx @ xi < ratio * w[-1] * (xi @ xi))
+
+
+def _held_icp(o3d, src, dst, s: FuseSettings, H: np.ndarray, matched: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Point-to-plane ICP of ``src`` onto ``dst`` from the turntable pose that moves only along
+    the motions their overlap fixes: the eigenvectors of the overlap's information ``H`` (at
+    its ``matched`` points, :func:`overlap_information`) above :data:`WEAK_MOTION_RATIO`,
+    found once, so that no step can slide along a free motion (a coarse pass's stray matches
+    at the overlap's edge make one look fixed). Coarse then fine, like :func:`_icp_pair`.
+    Returns (4x4 source -> target, fitness, inlier RMS point-to-plane mm)."""
+    w, V, c, scale = _spectrum(H, matched)
+    B = V[:, w >= WEAK_MOTION_RATIO * w[-1]]
+    P = np.asarray(src.points, np.float64)
+    Q = np.asarray(dst.points, np.float64)
+    N = np.asarray(dst.normals, np.float64)
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(Q))
+    nns.knn_index()
+    T = np.eye(4)
+    for dist in (s.icp_coarse_mm, s.icp_fine_mm):
+        for _ in range(s.icp_iterations):
+            X = apply_transform(T, P)
+            ok, idx = _matches(o3d, nns, X, dist)
+            if len(ok) < 6:
+                break
+            p, n = X[ok], N[idx]
+            J = np.concatenate([np.cross((p - c) / scale, n), n], axis=1) @ B
+            r = np.einsum("ij,ij->i", p - Q[idx], n)
+            xi = B @ np.linalg.lstsq(J, -r, rcond=None)[0]
+            step = np.eye(4)
+            step[:3, :3] = _rotation(xi[:3] / scale)
+            step[:3, 3] = c + xi[3:] - step[:3, :3] @ c  # turned about c, then c moved by xi[3:]
+            T = step @ T
+            if np.linalg.norm(xi) < 1e-3:  # a micrometre: far below any scan's noise (and matches can flip back and forth)
+                break
+    X = apply_transform(T, P)
+    ok, idx = _matches(o3d, nns, X, s.icp_fine_mm)
+    if len(ok) == 0:
+        return T, 0.0, 0.0
+    r = np.einsum("ij,ij->i", X[ok] - Q[idx], N[idx])
+    return T, len(ok) / max(len(P), 1), float(np.sqrt(np.mean(r * r)))
+
+
+def _rotation(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``omega`` (Rodrigues)."""
+    th = float(np.linalg.norm(omega))
+    if th < 1e-12:
+        return np.eye(3) + _skew(omega)
+    K = _skew(omega / th)
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * K @ K
+
+
 def plane_residuals(o3d, p: np.ndarray, q: np.ndarray, q_normals: np.ndarray,
                     dist: float) -> tuple[float, float] | None:
     """Points ``p`` (N, 3) against the cloud ``q`` (M, 3) with unit normals ``q_normals`` (M, 3):
@@ -347,8 +531,15 @@ def _residuals(o3d, downs: list, transforms: list[np.ndarray], dist: float) -> l
     return out
 
 
-def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: bool):
-    """Pose-graph refinement; returns per-view corrections (object frame) and the graph."""
+def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: bool, axis):
+    """Pose-graph refinement; returns per-view corrections (object frame), the graph, and per
+    view (motions its overlaps leave free, whether its turn about ``axis`` is free) or None
+    when no pair was registered.
+
+    A pair whose overlap leaves a motion free (:func:`weak_motions`: a sphere's rotations,
+    a cylinder's spin) is registered by :func:`_held_icp` instead, which keeps the turntable
+    pose along the free motions: ICP would otherwise slide the views along them as far as
+    the points' noise takes it (tens of degrees on a sphere)."""
     from ringscan.pipeline.formats.progress import progress_bar
 
     reg = o3d.pipelines.registration
@@ -359,20 +550,33 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
     for _ in range(n):
         graph.nodes.append(reg.PoseGraphNode(np.eye(4)))
     pairs = _pairs(order, s)
-    used = 0
+    used = []
     for i, j, uncertain in progress_bar(pairs, desc="registering views", unit="pair", disable=not progress):
         if len(downs[i].points) < 10 or len(downs[j].points) < 10:
             continue
         fine, info = _icp_pair(o3d, downs[i], downs[j], s)
-        if fine.fitness < s.min_edge_fitness:
-            log.info("views %d -> %d overlap too little (fitness %.2f): edge left out", i, j, fine.fitness)
+        T, fitness, rmse = fine.transformation, fine.fitness, fine.inlier_rmse
+        dst_pts, dst_nrm = np.asarray(downs[j].points), np.asarray(downs[j].normals)
+        src_pts = np.asarray(downs[i].points)
+        H, matched = overlap_information(apply_transform(T, src_pts), dst_pts, dst_nrm,
+                                         max_distance_mm=s.icp_fine_mm)
+        free = weak_motions(H, matched)[0] if len(matched) >= 6 else 0
+        if free:
+            T, fitness, rmse = _held_icp(o3d, downs[i], downs[j], s, H, matched)
+            info = reg.get_information_matrix_from_point_clouds(downs[i], downs[j], s.icp_fine_mm, T)
+            H, matched = overlap_information(apply_transform(T, src_pts), dst_pts, dst_nrm,
+                                             max_distance_mm=s.icp_fine_mm)
+            log.debug("views %d -> %d: their overlap leaves %d motion(s) free, kept at the turntable pose", i, j,
+                      free)
+        if fitness < s.min_edge_fitness:
+            log.info("views %d -> %d overlap too little (fitness %.2f): edge left out", i, j, fitness)
             continue
-        log.debug("edge %d -> %d: fitness %.3f, rmse %.3f mm", i, j, fine.fitness, fine.inlier_rmse)
-        graph.edges.append(reg.PoseGraphEdge(i, j, fine.transformation, info, uncertain=uncertain))
-        used += 1
-    if used == 0:
+        log.debug("edge %d -> %d: fitness %.3f, rmse %.3f mm", i, j, fitness, rmse)
+        graph.edges.append(reg.PoseGraphEdge(i, j, T, info, uncertain=uncertain))
+        used.append((i, j, H, matched))
+    if not used:
         log.warning("no pair of views overlaps enough to register: keeping the turntable poses")
-        return [np.eye(4) for _ in range(n)], graph
+        return [np.eye(4) for _ in range(n)], graph, None
     opt = reg.GlobalOptimizationOption(max_correspondence_distance=s.icp_fine_mm,
                                        edge_prune_threshold=s.edge_prune_threshold,
                                        preference_loop_closure=1.0, reference_node=ref)
@@ -381,7 +585,13 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
     # Hold the reference view exactly where the turntable put it.
     P_ref_inv = np.linalg.inv(np.asarray(graph.nodes[ref].pose))
     poses = [P_ref_inv @ np.asarray(graph.nodes[i].pose) for i in range(n)]
-    return poses, graph
+    # What each view's overlaps fix together (its edges' information summed).
+    held = []
+    for k in range(n):
+        mine = [(h, q) for i, j, h, q in used if k in (i, j)]
+        H = sum((h for h, _ in mine), np.zeros((6, 6)))
+        held.append(weak_motions(H, np.concatenate([q for _, q in mine] or [np.zeros((0, 3))]), axis=axis))
+    return poses, graph, held
 
 
 # ----------------------------------------------------------------------------- public API
@@ -477,10 +687,10 @@ def _fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fu
             d.normalize_normals()
             d.orient_normals_towards_camera_location(cam)
     before = _residuals(o3d, downs, [np.eye(4)] * len(vs), s.icp_fine_mm)
-    graph = None
+    graph = held = None
     poses = [np.eye(4) for _ in vs]
     if s.refine and len(vs) >= 2:
-        poses, graph = _refine(o3d, downs, angles, s, progress)
+        poses, graph, held = _refine(o3d, downs, angles, s, progress, (turntable.axis_point, turntable.axis_dir))
     after = _residuals(o3d, downs, poses, s.icp_fine_mm) if graph is not None else before
 
     residuals = []
@@ -490,11 +700,17 @@ def _fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fu
         residuals.append(ViewResidual(
             name=v.name, turntable_deg=v.turntable_deg, points_in=len(v.points), points_kept=len(clouds[i].points),
             fitness_before=before[i][0], rmse_before_mm=before[i][1], fitness=after[i][0], rmse_mm=after[i][1],
-            correction_mm=float(np.linalg.norm(apply_transform(P, c[None])[0] - c)), correction_deg=rotation_deg(P)))
+            correction_mm=float(np.linalg.norm(apply_transform(P, c[None])[0] - c)), correction_deg=rotation_deg(P),
+            motions_held=None if held is None else held[i][0], angle_held=None if held is None else held[i][1]))
         if graph is not None:
             clouds[i].transform(P)
             cams[i] = apply_transform(P, cams[i][None])[0]
 
+    kept = [r.name for r in residuals if r.angle_held]
+    if kept:
+        log.warning("the views' overlap does not fix the turntable angle of %d of %d views (%s): kept at the "
+                    "turntable's; a shape symmetric about the turntable axis (a sphere, a cylinder) does not show "
+                    "its own turn (docs/fusion.md, \"Symmetric objects\")", len(kept), len(vs), ", ".join(kept))
     fused, point_view, point_conf = merge_clouds(clouds, confs, voxel_mm=s.voxel_mm)
     log.info("fused %d views into %d points", len(vs), len(fused.points))
     return FuseResult(
