@@ -35,7 +35,8 @@ def add_parser(sub):
                                    "scan folder that `ringscan reconstruct` triangulates. A CAPTURE is "
                                    + "; or ".join(CAPTURE_INPUTS) + ". Two cameras' frames with a two-camera rig "
                                    "(an OpenCV stereo calibration file) give a two-camera scan.")
-    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders or image lists (YAML/XML/JSON)")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE",
+                   help="capture folders or image lists (FileStorage YAML/XML/JSON, or plain text: one path a line)")
     p.add_argument("--layout", choices=LAYOUTS, default="opencv-graycode",
                    help="frame order of every capture (the names may be graycode_NN from 00, pattern_camN_imK from 1 "
                         "as OpenCV's sample writes them, or an image list's order): opencv-graycode = column "
@@ -130,6 +131,10 @@ def run(args) -> int:
                 f"{st['low_modulation']} left out: low_modulation)")
 
     for name, st in stats.items():
+        if "frames_in_name_order" in st:
+            first, last = st["frames_in_name_order"]
+            print(f"  {name}: frames taken in name order, {first} (first) .. {last} (last); if that is not the "
+                  "capture order, give an image list (one path a line, docs/calibration.md)")
         print(f"  {name}: {'camera 1: ' if two else ''}{st['decoded']} pixels decoded, "
               f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions{coarse(st)}")
         if "camera2" in st:

@@ -4,18 +4,23 @@ A capture is the frames of a camera (or of two cameras) watching a projector of
 W_p x H_p pixels show the binary-reflected Gray code of each column
 (``ceil(log2 W_p)`` bits, most significant first) and each row (``ceil(log2 H_p)``
 bits), every pattern followed by its inverse, plus a white and a black frame.
-Three ways of naming the frames are read (:func:`list_capture`, ``CAPTURE_INPUTS``):
+These ways of naming the frames are read (:func:`list_capture`, ``CAPTURE_INPUTS``):
 
 - a folder of ``graycode_00.png`` ... (numbered from 0; one camera);
 - a folder of ``pattern_cam1_im1.png`` ... ``pattern_cam2_im44.png`` (OpenCV's
   structured-light sample, ``cap_pattern``: numbered from 1, one or two cameras; the
   sample glues its output path and the name together without a separator, so the
   names may carry one common prefix, ``scanpattern_cam1_im1.png``);
+- a folder of frames named by the camera (``DSC04052.JPG`` ...; one camera) whose count
+  is the layout's exactly: taken in natural name order (``DSC2`` before ``DSC10``);
 - an image list as ``cv::FileStorage`` writes it (YAML, XML or JSON:
   ``cam1: [paths...]`` and optionally ``cam2: [...]``, in capture order), as OpenCV's
   sample reads it: its first top-level list is camera 1's whatever its name, ``cam2``
   camera 2's; a relative path is looked up beside the list, then in the current
-  folder (where OpenCV's sample looks).
+  folder (where OpenCV's sample looks);
+- a plain-text image list (``.txt``, ``.lst``, ``.list``: one path a line, in capture
+  order, blank lines and ``#`` comments ignored; one camera), its paths looked up as
+  a FileStorage list's.
 
 PNG, TIFF, JPEG and BMP frames are read. Two orders of white/black are read (``LAYOUTS``):
 
@@ -57,7 +62,7 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.images import FRAME_BITS_RANGE, expand_frame_bits, few_bits_hint, read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 
-__all__ = ["LAYOUTS", "CAPTURE_INPUTS", "expand_capture_frame", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
+__all__ = ["LAYOUTS", "CAPTURE_INPUTS", "TEXT_LIST_SUFFIXES", "natural_key", "expand_capture_frame", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
            "graycode_bits", "list_capture", "check_capture_sizes", "read_capture", "read_capture_files",
            "decode_graycode", "subpixel_map", "open_filestorage"]
 
@@ -87,8 +92,11 @@ LOW_MODULATION_WARN_SHARE = 0.2
 CAPTURE_INPUTS = (
     "a folder of graycode_NN.<ext> (from 00, one camera)",
     "a folder of pattern_camN_imK.<ext> (OpenCV's sample: K from 1, cameras 1 and 2; one common prefix allowed)",
+    "a folder of frames of other names (DSC04052.JPG ...: one camera) holding exactly the layout's count, taken "
+    "in natural name order (DSC2 before DSC10)",
     "an image list (OpenCV FileStorage YAML/XML/JSON: cam1: [paths] (or the first list), cam2: [paths]; relative "
     "paths beside the list, else in the current folder)",
+    "a plain-text image list (.txt, .lst, .list: one path a line in capture order, # comments; one camera)",
 )
 """What ``ringscan import`` takes as a capture (one view each); <ext> is png, tif(f), jpg/jpeg or bmp."""
 
@@ -97,7 +105,9 @@ FRAME_RE = re.compile(rf"^graycode_(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
 SAMPLE_RE = re.compile(rf"^(.*?)pattern_cam(\d+)_im(\d+)\.{IMAGE_EXT}$", re.IGNORECASE)
 """OpenCV's sample's names (group 1: a prefix, the sample's output path glued on without a separator)."""
 LIST_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
-"""An image-list capture is a file with one of these suffixes."""
+"""A FileStorage image-list capture is a file with one of these suffixes."""
+TEXT_LIST_SUFFIXES = (".txt", ".lst", ".list")
+"""A plain-text image-list capture (one path a line) is a file with one of these suffixes."""
 MAX_LIST_BYTES = 16 * 1024 * 1024
 """Largest image-list file read."""
 MAX_FRAMES = 4096
@@ -189,7 +199,8 @@ class CaptureFiles:
     source: Path
     """The capture folder or the image-list file."""
     kind: str
-    """``graycode`` (graycode_NN names), ``pattern`` (pattern_camN_imK names) or ``list`` (an image list)."""
+    """``graycode`` (graycode_NN names), ``pattern`` (pattern_camN_imK names), ``named`` (other names, in
+    natural name order), ``list`` (a FileStorage image list) or ``text`` (a plain-text image list)."""
     cameras: tuple[tuple[Path, ...], ...]
     """Camera 1's frames, then camera 2's (when the capture has two cameras)."""
 
@@ -334,24 +345,63 @@ def _list_frames(path: Path, *, projector, layout) -> tuple[tuple[Path, ...], ..
         if len(items) != want:
             raise CalibrationError(path, f"cam{c} lists {len(items)} frames, but {what}: wrong --projector?"
                                          f"{_fit_hint(len(items))}")
-        paths = []
-        for i, rel in enumerate(items):
-            if "\0" in rel:
-                raise CalibrationError(path, f"cam{c}[{i}]: the path contains a NUL character")
-            p = Path(rel)
-            if not p.is_absolute():
-                # beside the list, else where OpenCV's sample looks: the current folder
-                p = path.parent / p if (path.parent / p).exists() or not p.exists() else p.absolute()
-            if not p.is_file():
-                why = "not found" if not p.exists() else "not a regular file"
-                where = p if Path(rel).is_absolute() else f"{p} or {Path(rel).absolute()}"
-                raise CalibrationError(path, f"cam{c}[{i}]: {rel} {why} ({where}; a relative path is looked up "
-                                             "beside the list, then in the current folder)")
-            if not re.search(rf"\.{IMAGE_EXT}$", p.name, re.IGNORECASE):
-                raise CalibrationError(path, f"cam{c}[{i}]: {rel} is not a PNG, TIFF, JPEG or BMP file name")
-            paths.append(p)
-        out.append(tuple(paths))
+        out.append(tuple(_resolve_listed(path, rel, f"cam{c}[{i}]") for i, rel in enumerate(items)))
     return tuple(out)
+
+
+def _resolve_listed(path: Path, rel: str, where: str) -> Path:
+    """A listed image's path: absolute as it is; relative beside the list, else in the current folder.
+
+    Raises:
+        CalibrationError: naming the list and ``where`` (the entry): not found, not a regular file, not an
+            image name.
+    """
+    if "\0" in rel:
+        raise CalibrationError(path, f"{where}: the path contains a NUL character")
+    p = Path(rel)
+    if not p.is_absolute():
+        # beside the list, else where OpenCV's sample looks: the current folder
+        p = path.parent / p if (path.parent / p).exists() or not p.exists() else p.absolute()
+    if not p.is_file():
+        why = "not found" if not p.exists() else "not a regular file"
+        at = p if Path(rel).is_absolute() else f"{p} or {Path(rel).absolute()}"
+        raise CalibrationError(path, f"{where}: {rel} {why} ({at}; a relative path is looked up beside the list, "
+                                     "then in the current folder)")
+    if not re.search(rf"\.{IMAGE_EXT}$", p.name, re.IGNORECASE):
+        raise CalibrationError(path, f"{where}: {rel} is not a PNG, TIFF, JPEG or BMP file name")
+    return p
+
+
+def _text_list_frames(path: Path, *, projector, layout) -> tuple[tuple[Path, ...]]:
+    """The frames of a plain-text image list: one path a line, blank lines and ``#`` comments left out."""
+    from ringscan.pipeline.formats.limits import check_regular_file
+
+    check_regular_file(path, what="image list", max_bytes=MAX_LIST_BYTES)
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise CalibrationError(path, f"not a text image list (one path a line): not UTF-8 text at byte "
+                                     f"{e.start}") from None
+    entries = []
+    for k, line in enumerate(text.splitlines(), start=1):
+        item = line.strip()
+        if not item or item.startswith("#"):
+            continue
+        if len(entries) >= MAX_FRAMES:
+            raise CalibrationError(path, f"more than {MAX_FRAMES} paths (at most {MAX_FRAMES} are read)")
+        entries.append((k, item))
+    want, what = _want(projector, layout)
+    if len(entries) != want:
+        raise CalibrationError(path, f"lists {len(entries)} frames, but {what}: wrong --projector?"
+                                     f"{_fit_hint(len(entries))}")
+    return (tuple(_resolve_listed(path, item, f"line {k}") for k, item in entries),)
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name in natural order: runs of digits compare as numbers (DSC2 before DSC10),
+    the rest without regard to case."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(t)) if t.isdigit() else (1, t.casefold()) for t in parts if t != ""), name
 
 
 def list_capture(path, *, projector: tuple[int, int], layout: str = "opencv-graycode") -> CaptureFiles:
@@ -368,10 +418,15 @@ def list_capture(path, *, projector: tuple[int, int], layout: str = "opencv-gray
     path = Path(path)
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
-    if path.is_file() or (path.suffix.lower() in LIST_SUFFIXES and not path.is_dir()):
-        if path.suffix.lower() not in LIST_SUFFIXES:
+    suffix = path.suffix.lower()
+    if path.is_file() or (suffix in LIST_SUFFIXES + TEXT_LIST_SUFFIXES and not path.is_dir()):
+        if suffix in TEXT_LIST_SUFFIXES:
+            return CaptureFiles(source=path, kind="text",
+                                cameras=_text_list_frames(path, projector=projector, layout=layout))
+        if suffix not in LIST_SUFFIXES:
             raise CalibrationError(path, "a capture is a folder of frames or an image list (.yml, .yaml, .xml, "
-                                         ".json), not this file")
+                                         ".json; or a plain-text list, one path a line: .txt, .lst, .list), not "
+                                         "this file")
         return CaptureFiles(source=path, kind="list", cameras=_list_frames(path, projector=projector, layout=layout))
     if not path.is_dir():
         raise CalibrationError(path, "capture folder not found")
@@ -385,9 +440,18 @@ def list_capture(path, *, projector: tuple[int, int], layout: str = "opencv-gray
         return CaptureFiles(source=path, kind="pattern",
                             cameras=_sample_frames(path, entries, projector=projector, layout=layout))
     if not n_gc:
-        imgs = [e for e in entries if re.search(rf"\.{IMAGE_EXT}$", e, re.IGNORECASE)]
-        lists = [e for e in entries if Path(e).suffix.lower() in LIST_SUFFIXES]
-        seen = (f"; found {len(imgs)} image(s) of other names, e.g. {', '.join(imgs[:3])}" if imgs else
+        imgs = sorted((e for e in entries if re.search(rf"\.{IMAGE_EXT}$", e, re.IGNORECASE)
+                       and (path / e).is_file()), key=natural_key)
+        want, what = _want(projector, layout)
+        if imgs and len(imgs) == want:
+            # frames named by the camera (DSC04052.JPG ...), as many as the layout has: capture order is
+            # name order (the import prints the first and last names)
+            log.info("%s: no graycode_NN or pattern_camN_imK names; %d frames taken in name order, %s .. %s",
+                     path, len(imgs), imgs[0], imgs[-1])
+            return CaptureFiles(source=path, kind="named", cameras=(tuple(path / e for e in imgs),))
+        lists = [e for e in entries if Path(e).suffix.lower() in LIST_SUFFIXES + TEXT_LIST_SUFFIXES]
+        seen = (f"; found {len(imgs)} image(s) of other names ({imgs[0]} .. {imgs[-1]}), but {what}: in name order "
+                f"they would be its frames if there were {want}{_fit_hint(len(imgs))}" if imgs else
                 "; it holds no PNG, TIFF, JPEG or BMP image")
         hint = f" (to import an image list, give the list: {path / lists[0]})" if lists else ""
         raise CalibrationError(path, "no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext> "

@@ -34,6 +34,7 @@ from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import (
     LIST_SUFFIXES,
     LOW_MODULATION_WARN_SHARE,
+    TEXT_LIST_SUFFIXES,
     GrayCodeSettings,
     check_capture_sizes,
     decode_graycode,
@@ -338,7 +339,7 @@ def check_import_names(captures: list) -> list[str]:
     names, seen = [], {}
     for folder in captures:
         real = Path(os.path.abspath(folder)).resolve()
-        is_list = real.suffix.lower() in LIST_SUFFIXES and not real.is_dir()
+        is_list = real.suffix.lower() in LIST_SUFFIXES + TEXT_LIST_SUFFIXES and not real.is_dir()
         name = real.stem if is_list else real.name
         check_view_name(name, source=folder, where="the image list's name (the view's name)" if is_list else
                         "the capture folder's name (the view's name)")
@@ -490,10 +491,13 @@ def import_captures(
                                                  "give --camera 1 (or 2) to import one camera's frames, or a "
                                                  "two-camera rig (a stereo calibration file) for a two-camera scan")
             if len(f.cameras) == 1 and rig_cams == 2:
-                if stereo is not None and f.kind == "graycode":  # a one-camera capture: a procam file was meant
+                if stereo is not None and f.kind in ("graycode", "named", "text"):
+                    # a one-camera capture: a procam file was meant
                     raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
                 what = {"graycode": "name its frames pattern_cam1_imK and pattern_cam2_imK",
-                        "pattern": "pattern_cam2_imK frames", "list": "a cam2 list"}[f.kind]
+                        "named": "name its frames pattern_cam1_imK and pattern_cam2_imK",
+                        "pattern": "pattern_cam2_imK frames", "list": "a cam2 list",
+                        "text": "a FileStorage list with cam1 and cam2"}[f.kind]
                 raise CalibrationError(f.source, "camera 2's frames are missing: the rig has two cameras, the capture "
                                                  f"holds camera 1's only ({what}); or give --camera 1 with a "
                                                  "calibrated projector")
@@ -582,6 +586,8 @@ def import_captures(
                 st["camera2"] = s
             else:
                 st.update(s)
+        if f.kind == "named":  # the order the frames were taken in, for the user to check
+            st["frames_in_name_order"] = [f.cameras[0][0].name, f.cameras[0][-1].name]
         stats[name] = st
 
     # the rig

@@ -161,13 +161,18 @@ def test_bad_input_one_line_each_nothing_written(rendered, tmp_path, capsys):
     err = _err(capsys)
     assert "30 pattern_cam1_imK frames, but a 256x96 projector in layout opencv-graycode has 32" in err, err
     assert not scan.exists()
-    # names that do not match
+    # names that do not match, as many as one camera's frames: taken in name order as one camera's, which
+    # the stereo file does not fit; one fewer: refused, naming what the layout has
     c = tmp_path / "renamed"
     c.mkdir()
     for p in (out / "capture_0").glob("pattern_cam1_*"):
         shutil.copy(p, c / p.name.replace("pattern_cam1_im", "img_"))
     err = run(c)
-    assert "no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext>" in err and "img_" in err, err
+    assert f"{stereo}: a camera-camera (stereo) calibration" in err, err
+    (c / "img_30.png").unlink()
+    err = run(c)
+    assert "no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext>" in err, err
+    assert "found 29 image(s) of other names (img_1.png .. img_29.png), but a 128x96 projector" in err, err
     # a YAML listing files that do not exist
     lst = tmp_path / "list.yml"
     lst.write_text((out / "capture_0.yml").read_text())  # paths relative to the list's folder: not here

@@ -1,0 +1,94 @@
+"""``ringscan import`` of captures as cameras and people name them: frames named by the camera (in
+natural name order, the order printed), a plain-text image list; every one decodes to the same
+projector coordinates as the same frames named graycode_NN."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from ringscan.pipeline.formats.images import read_image
+from ringscan.tools.cli import main
+from tests.pipeline.calibrate.synthetic import write_capture
+
+PROJ = (128, 96)
+
+
+def _procam_xml(path):
+    """A camera-projector calibration as OpenCV's FileStorage writes it (no units in it)."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("cam_int", np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]]))
+    fs.write("cam_dist", np.zeros((1, 5)))
+    fs.write("proj_int", np.array([[250.0, 0, 63.5], [0, 250.0, 47.5], [0, 0, 1]]))
+    fs.write("proj_dist", np.zeros((1, 5)))
+    fs.write("rotation", cv2.Rodrigues(np.array([0.0, 0.2, 0.0]))[0])
+    fs.write("translation", np.array([[-120.0], [0.0], [10.0]]))
+    fs.release()
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """A one-camera capture (graycode_NN), the same frames named DSC8.JPG .. DSC37.JPG, and a calibration."""
+    work = tmp_path_factory.mktemp("import_names")
+    write_capture(work / "graycode", projector=PROJ)
+    frames = sorted((work / "graycode").glob("graycode_*.png"))
+    (work / "cap_target").mkdir()
+    for k, p in enumerate(frames):
+        # PNG bytes under a camera's name (the reader goes by content; .JPG as the camera names them)
+        shutil.copy(p, work / "cap_target" / f"DSC{k + 8}.JPG")
+    _procam_xml(work / "calib.yml")
+    return work, frames
+
+
+def _run(capsys, *args):
+    rc = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def _decoded(scan, view):
+    return [read_image(scan / view / f"{k}.png") for k in ("proj_u", "proj_v")]
+
+
+def test_frames_named_by_the_camera_import_in_name_order(capture, tmp_path, capsys):
+    work, _ = capture
+    common = ["--rig", work / "calib.yml", "--projector", f"{PROJ[0]}x{PROJ[1]}", "--depth", "300", "600"]
+    rc, out, err = _run(capsys, "import", work / "graycode", *common, "--out", tmp_path / "a")
+    assert rc == 0, err
+    rc, out, err = _run(capsys, "import", work / "cap_target", *common, "--out", tmp_path / "b")
+    assert rc == 0, err
+    # the order is printed: DSC8 first (not DSC10, as a plain sort would have it), DSC37 last
+    assert "cap_target: frames taken in name order, DSC8.JPG (first) .. DSC37.JPG (last)" in out, out
+    for a, b in zip(_decoded(tmp_path / "a", "graycode"), _decoded(tmp_path / "b", "cap_target")):
+        assert np.array_equal(a, b)
+
+
+def test_a_plain_text_list_imports_as_its_frames(capture, tmp_path, capsys):
+    work, frames = capture
+    lst = tmp_path / "target.txt"
+    lst.write_text("# the target, in capture order\n\n" + "\n".join(str(p) for p in frames) + "\n")
+    common = ["--rig", work / "calib.yml", "--projector", f"{PROJ[0]}x{PROJ[1]}", "--depth", "300", "600"]
+    rc, out, err = _run(capsys, "import", lst, *common, "--out", tmp_path / "scan")
+    assert rc == 0, err
+    assert "target: " in out and "pixels decoded" in out
+    rc, _, err = _run(capsys, "import", work / "graycode", *common, "--out", tmp_path / "ref")
+    assert rc == 0, err
+    for a, b in zip(_decoded(tmp_path / "scan", "target"), _decoded(tmp_path / "ref", "graycode")):
+        assert np.array_equal(a, b)
+
+
+def test_a_count_that_does_not_fit_is_refused_before_anything_is_written(capture, tmp_path, capsys):
+    work, _ = capture
+    cap = tmp_path / "short"
+    shutil.copytree(work / "cap_target", cap)
+    (cap / "DSC37.JPG").unlink()
+    rc, out, err = _run(capsys, "import", cap, "--rig", work / "calib.yml", "--projector", "128x96", "--out",
+                        tmp_path / "scan")
+    assert rc != 0 and not (tmp_path / "scan").exists()
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert (f"{cap}: no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext> (OpenCV's sample, "
+            "from 1); found 29 image(s) of other names (DSC8.JPG .. DSC36.JPG), but a 128x96 projector in layout "
+            "opencv-graycode has 30") in err, err
