@@ -267,6 +267,23 @@ def test_response_refuses_repeated_frames_and_bad_levels(tmp_path, capsys):
     assert abs(printed_figure(capsys.readouterr().out, "light gamma {}") - 2.2) < 0.05
 
 
+def test_calibration_md_gives_the_exit_status_a_refused_calibration_has(tmp_path, capsys):
+    """docs/calibration.md said a refused calibration exits 2; the code (and docs/cli.md, bad_input.md) say 1."""
+    import re
+    from pathlib import Path
+
+    save_rig(tmp_path / "rig.json", default_rig())
+    g = {v: _grey(tmp_path, f"g{v}.png", v) for v in (0, 128, 255)}
+    rc = main(["calibrate", "response", g[0], g[128], g[128], g[255], "--levels", "0", "64", "128", "255", "--rig",
+               str(tmp_path / "rig.json")])
+    assert "not writing" in capsys.readouterr().err
+    text = (Path(__file__).resolve().parents[2] / "docs" / "calibration.md").read_text()
+    section = text[text.index("## What a calibration cannot stand behind"):]
+    said = re.search(r"refuses to write a result it cannot stand behind: one line naming every reason, exit\s+"
+                     r"status (\d)", section)
+    assert said and int(said[1]) == rc == 1, (said and said[0], rc)
+
+
 def _grey12(tmp_path, name, value):
     """The ramp frame of :func:`_grey` as a 12-bit camera gives it (values 0..4095 in a 16-bit PNG), its
     brightest pixels saturated."""
