@@ -138,7 +138,11 @@ def _setup_logging(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _command_of(argv)
-    parser = build_parser(command if command in COMMANDS else None)
+    try:  # Ctrl-C while the command's modules load (Warp, Open3D: seconds): one line too
+        parser = build_parser(command if command in COMMANDS else None)
+    except KeyboardInterrupt:
+        print(f"ringscan{' ' + command if command in COMMANDS else ''}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     _setup_logging(args)
     if not getattr(args, "_run", None):

@@ -69,16 +69,25 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
             total += 1
             report(folder, *_attempt(convert, folder))
     else:
+        import os
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
         from multiprocessing import get_context
 
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as ex:
+        from ringscan.pipeline.batch.local import children_without_ctrl_c, end_pool
+        from ringscan.pipeline.batch.worker import init_child
+
+        # the workers leave Ctrl-C to this process and exit when it is gone (even SIGKILLed); Ctrl-C ends them
+        ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=init_child,
+                                 initargs=(os.getpid(),))
+        finished = False
+        try:
             running = {}
             scans = iter_scans(root, skipped=skipped)
             while True:
                 for folder in scans:  # a bounded window: a root of a million scans is never listed whole
                     total += 1
-                    running[ex.submit(_attempt, convert, folder)] = folder
+                    with children_without_ctrl_c():
+                        running[ex.submit(_attempt, convert, folder)] = folder
                     if len(running) >= 2 * workers:
                         break
                 if not running:
@@ -86,6 +95,11 @@ def run_each(root: str, convert, verb: str, *, workers: int = 1) -> int:
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 for f in done:
                     report(running.pop(f), *f.result())
+            finished = True
+        finally:
+            if not finished:
+                end_pool(ex)
+            ex.shutdown(wait=True, cancel_futures=True)
     for path, why in skipped:  # a scan nested in a scan's folder, a link loop: said, as batch says it
         print(f"not searched: {path}: {why}")
     if total == 0:

@@ -256,6 +256,9 @@ def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend
                 next_write = el + took + max(REPORT_EVERY_S, took / REPORT_SHARE)
     finally:
         bar.close()
+        close = getattr(results, "close", None)
+        if close is not None:  # stopped early (Ctrl-C, a failed report write): the backend ends its workers now
+            close()
     report["scans"] = [entries[k] for k in sorted(entries)]
     report["totals"] = summarise(report["scans"], wall_s=time.perf_counter() - t0)
     report["totals"]["first_result_s"] = first  # starting the workers (Warp, kernel cache) and the first scan

@@ -17,9 +17,12 @@ scan is never failed for sharing a pool with one that crashes.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -29,7 +32,7 @@ from ringscan.pipeline.batch.worker import ScanJob, init_worker, process_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_local"]
+__all__ = ["run_local", "end_pool", "children_without_ctrl_c"]
 
 MAX_DEATHS = 2
 """How many times a scan's worker may die while that scan runs alone before it is reported as failed."""
@@ -66,8 +69,11 @@ class _LocalRun:
         self.pool = self.queue = None
 
     def results(self) -> Iterator[tuple[int, dict]]:
-        """Feed the pool, yield each scan's entry as it finishes, restart the pool when a worker dies."""
+        """Feed the pool, yield each scan's entry as it finishes, restart the pool when a worker dies.
+        Stopped early (Ctrl-C, an error, the generator closed), it ends the workers at once: they leave
+        Ctrl-C to this process (:func:`~.worker.init_child`), and waiting would wait for their scans."""
         self.pool, self.queue = self._new_pool()
+        finished = False
         try:
             while True:
                 try:
@@ -76,6 +82,7 @@ class _LocalRun:
                     lost, alone = [], False
                 else:
                     if not self.in_flight:
+                        finished = True
                         return
                     alone = len(self.in_flight) == 1
                     lost = yield from self._collect()
@@ -83,13 +90,16 @@ class _LocalRun:
                         continue
                 yield from self._restart(lost, alone=alone)
         finally:
+            if not finished:
+                end_pool(self.pool)
             self.pool.shutdown(wait=True, cancel_futures=True)
             self.queue.close()
 
     def _new_pool(self):
-        q = self.ctx.Queue()
-        for d in self.devices:
-            q.put(d)
+        with children_without_ctrl_c():
+            q = self.ctx.Queue()
+            for d in self.devices:
+                q.put(d)
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=self.ctx, initializer=init_worker,
                                    initargs=(None, q, os.getpid(), self.cpu_threads, time.time())), q
 
@@ -103,6 +113,12 @@ class _LocalRun:
         return n, job, 0
 
     def _submit(self) -> None:
+        """Give the pool work (a submit starts a worker process where the pool has fewer than it may), with
+        Ctrl-C kept from the processes it starts (:func:`children_without_ctrl_c`)."""
+        with children_without_ctrl_c():
+            self._submit_some()
+
+    def _submit_some(self) -> None:
         """Give the pool work: the next suspect alone once nothing else runs, else new scans up
         to two per worker. Raises BrokenProcessPool (the scan kept to be given again) if a worker died."""
         if self.suspects:
@@ -159,6 +175,41 @@ class _LocalRun:
         log.warning("a batch worker died; restarting the pool, %d scan(s) given again one at a time",
                     len(self.suspects))
         self.pool, self.queue = self._new_pool()
+
+
+@contextlib.contextmanager
+def children_without_ctrl_c():
+    """Processes started inside the block (a pool's workers, its resource tracker) start with SIGINT blocked:
+    the signal mask is inherited across exec, so they never see the Ctrl-C the terminal sends to the whole
+    process group, from their first instruction on (an initializer comes too late: a worker importing Warp
+    printed a KeyboardInterrupt traceback). This process ends them instead (:func:`end_pool`). A Ctrl-C that
+    arrives inside the block is held until it ends (raised half-way through starting a worker, it left one
+    that read a truncated start-up message and printed an EOFError traceback), then raised."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    held: list = []
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    old_handler = signal.signal(signal.SIGINT, lambda sig, frame: held.append(sig))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+    if held:
+        if callable(old_handler):
+            old_handler(signal.SIGINT, None)
+        elif old_handler != signal.SIG_IGN:
+            raise KeyboardInterrupt
+
+
+def end_pool(pool: ProcessPoolExecutor) -> None:
+    """End a process pool's workers now (SIGTERM), whatever they are running, and cancel what waits."""
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(OSError, ValueError):
+            p.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+
 
 def run_inline(jobs: Iterable[ScanJob], *, device: str | None,
                call: Callable[[ScanJob], dict] = process_scan) -> Iterator[tuple[int, dict]]:

@@ -93,6 +93,14 @@ def _exit_with_parent(parent: int) -> None:
             os._exit(1)
 
 
+def init_child(parent: int) -> None:
+    """Start a pool worker process: Ctrl-C is left to the parent (the terminal sends it to every process of the
+    group; the parent ends the pool and says so in one line, where each worker printed a KeyboardInterrupt
+    traceback), and the worker exits when the parent is gone (a SIGKILLed parent leaves no worker behind)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
+
+
 def init_worker(device: str | None = None, devices=None, parent: int | None = None,
                 cpu_threads: int | None = None, spawned_at: float | None = None, record_start: bool = True) -> None:
     """Start a worker: load Warp (and its kernel cache) once, choose its device.
@@ -116,7 +124,7 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
     if record_start:
         skip_final_collection()  # a worker process (pool or Ray): it ends without a last collection
     if parent is not None:
-        threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="ringscan-parent").start()
+        init_child(parent)
     init_warp()
     if devices is not None:
         device = devices.get()

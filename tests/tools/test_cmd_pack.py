@@ -218,3 +218,32 @@ def test_pack_says_which_scans_it_passed_over_and_unpack_goes_on_past_a_failed_s
     out, err = capsys.readouterr()
     assert err.strip() == f"{root / 'a'}: failed: RuntimeError: numcodecs: something went wrong"
     assert f"{root / 'b'}: 1 view(s) unpacked" in out
+
+
+
+def test_pack_workers_end_when_their_parent_is_killed(tmp_path):
+    """`pack ROOT --workers 2` with its parent SIGKILLed: before, the workers and the resource tracker ran on for
+    more than 60 s. Killed while the workers start (the watchdog is their pool initializer's)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.processes import children, running
+
+    for name in "abcdef":
+        _scan(tmp_path / "root" / name, views=1)
+    proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "pack", str(tmp_path / "root"),
+                             "--workers", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while len(kids := children(proc.pid)) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)  # two workers and the resource tracker
+    assert proc.poll() is None, "pack ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while any(running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(running(k) for k in kids)

@@ -247,3 +247,30 @@ def test_a_worker_that_dies_between_scans_breaks_nothing(monkeypatch):
     assert sorted(n for n, _ in got) == list(range(6))  # each scan once
     assert all(e["status"] == "done" for _, e in got)
     assert len(pools) == 2
+
+
+def test_ctrl_c_ends_the_batch_and_its_workers_in_one_line(three_scans, tmp_path):
+    """Ctrl-C at a terminal reaches every process of the group. Before: a KeyboardInterrupt traceback from every
+    worker (~60 lines). Sent while the workers start (importing Warp: where an initializer comes too late)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.support.processes import children, running
+
+    proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "batch", str(three_scans), "--out",
+                             str(tmp_path / "out"), "--workers", "2", "--no-progress", "--device", "cpu"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while len(kids := children(proc.pid)) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)  # two workers and the resource tracker
+    assert proc.poll() is None, "the batch ended before Ctrl-C"
+    os.killpg(proc.pid, signal.SIGINT)  # what the terminal does
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err == "ringscan batch: interrupted\n", (proc.returncode, err)
+    deadline = time.monotonic() + 10
+    while any(running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(running(k) for k in kids)
