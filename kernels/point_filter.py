@@ -25,6 +25,8 @@ from ringscan.kernels.geometry import CameraModel
 from ringscan.kernels.launch import default_threads, launch_spans
 
 MAX_PER_PIXEL = wp.constant(2)
+FLOOR_FOOTPRINTS = wp.constant(0.5)
+"""The filter's noise floor is at most this many pixel footprints (``NeighbourFilterSettings.floor_mm``)."""
 BLOCK = wp.constant(16)
 """Pixels (raster order) per block of the sorted points' index (:func:`block_starts_kernel`)."""
 
@@ -44,7 +46,10 @@ class NeighbourFilterSettings:
     tolerance * p * footprint (+ floor) in 3D; 3 allows surfaces tilted up to
     ~70 degrees from the camera."""
     floor_mm: float = 0.05
-    """Added to every distance threshold (noise floor, mm)."""
+    """Added to every distance threshold (noise floor, mm), at most ``FLOOR_FOOTPRINTS`` of the pixel's
+    footprint: a scene whose units are not millimetres (a calibration in metres read as mm: footprints of
+    a thousandth of a unit) keeps a filter that scales with it, where 0.05 would let every neighbour agree;
+    on rigs in mm (footprints of 0.1 mm and more) the floor is 0.05 mm as it was."""
 
 
 @wp.kernel
@@ -71,7 +76,7 @@ def agrees(Y: wp.vec3, X: wp.vec3, dx: int, dy: int, foot: float, tolerance: flo
     distance of it: ``tolerance`` pixel footprints ``foot`` (mm) a pixel of
     separation (at least one) plus ``floor_mm``."""
     pd = wp.sqrt(float(dx * dx + dy * dy))
-    return wp.length(Y - X) <= tolerance * wp.max(pd, 1.0) * foot + floor_mm
+    return wp.length(Y - X) <= tolerance * wp.max(pd, 1.0) * foot + wp.min(floor_mm, FLOOR_FOOTPRINTS * foot)
 
 
 @wp.kernel

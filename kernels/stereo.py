@@ -68,7 +68,11 @@ MATCH_EXTRAPOLATED = wp.constant(3)
 MATCH_DISCONTINUITY = wp.constant(4)
 MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
 JACOBIAN_STEP_MM = wp.constant(0.5)
-"""Central-difference step of the triangulation's Jacobians (mm)."""
+"""Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
+point's distance from camera 1."""
+JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
+"""... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
+its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
 MODEL_SHARE = wp.constant(0.5)
@@ -639,7 +643,7 @@ def triangulate_rays_kernel(
     # Jacobians by central differences over 0.5 mm: the projections are smooth on
     # that scale, and a smaller step lets float32 noise into the Jacobian, which
     # a point with a large residual (rays that miss) multiplies into its steps
-    h = float(JACOBIAN_STEP_MM)
+    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
     for _it in range(NEWTON_STEPS):
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)

@@ -16,6 +16,7 @@ from ringscan.pipeline.calibrate.importer import (
     ImportSettings,
     import_captures,
     opencv_calibration_kind,
+    parse_units,
     read_opencv_calibration,
     read_stereo_calibration,
 )
@@ -58,6 +59,11 @@ def add_parser(sub):
     p.add_argument("--depth", type=float, nargs=2, default=None, metavar=("NEAR", "FAR"),
                    help="working depths for an OpenCV file: along the projector axis (camera-projector) or camera "
                         "1's axis (camera-camera); default: from a plain triangulation of the captures")
+    p.add_argument("--units", default=None, metavar="UNIT",
+                   help="the units of an OpenCV calibration file's translations (and of --depth), which the file "
+                        "does not state: mm, cm, m, in, or the millimetres of one unit (a board square's size when "
+                        "the calibration counted in squares); the scan is in mm. Default: millimetres, assumed "
+                        "and said. A ringscan rig states its own (mm)")
     p.add_argument("--sector-bits", type=int, default=ImportSettings.sector_bits,
                    help=f"polar-angle sector bits for the root choice (default {ImportSettings.sector_bits})")
     p.add_argument("--min-contrast", type=float, default=GrayCodeSettings.min_contrast, metavar="LEVELS",
@@ -88,12 +94,45 @@ def _is_opencv(path: Path) -> bool:
     return isinstance(d, dict) and "format" not in d and any(k in d for k in ("cam_int", "cam1_intrinsics"))
 
 
+BASELINE_HINT = (1.0, 5000.0)
+"""Baselines (mm) outside which an assumed millimetre is doubted aloud: a rig of cameras and a projector
+under 1 mm apart is one counted in metres, over 5 m one counted in smaller units."""
+
+
+def _hint_units(kw: dict) -> None:
+    """Say so when the calibration's baseline is no rig's in millimetres (a file in metres, say)."""
+    import logging
+
+    import numpy as np
+
+    for key in ("opencv", "stereo", "projector_rig"):
+        cal = kw.get(key)
+        if isinstance(cal, dict):
+            b = float(np.linalg.norm(cal["T"]))
+            if not (BASELINE_HINT[0] <= b <= BASELINE_HINT[1]):
+                logging.getLogger(__name__).warning(
+                    "the calibration's baseline is %g units: %s? give --units (docs/calibration.md)", b,
+                    "metres" if b < BASELINE_HINT[0] else "not millimetres")
+                return
+
+
 def run(args) -> int:
     proj = parse_size(args.projector, "--projector")
     if args.depth is not None and not (0 < args.depth[0] < args.depth[1]):
         raise UsageError(f"--depth: expected 0 < NEAR < FAR, got {args.depth[0]:g} {args.depth[1]:g}")
     rig_path = Path(args.rig)
+    mm_per_unit = None
+    if args.units is not None:
+        try:
+            mm_per_unit = parse_units(args.units)
+        except ValueError as e:
+            raise UsageError(f"--units: {e}") from None
     kw = {}
+    opencv_paths = [p for p in (rig_path, Path(args.projector_rig) if args.projector_rig else None)
+                    if p is not None and _is_opencv(p)]
+    if mm_per_unit is not None and not opencv_paths:
+        raise UsageError(f"--units: {rig_path} is a ringscan rig, which states its units (mm); --units is for an "
+                         "OpenCV calibration file, which states none")
     if _is_opencv(rig_path):
         if opencv_calibration_kind(rig_path) == "stereo":
             kw["stereo"] = read_stereo_calibration(rig_path)
@@ -121,7 +160,7 @@ def run(args) -> int:
                                       depth=tuple(args.depth) if args.depth else None, settings=settings,
                                       camera=args.camera,
                                       sources={"rig": rig_path, "projector_rig": args.projector_rig},
-                                      **kw)
+                                      mm_per_unit=mm_per_unit, **kw)
     two = scan.rig.camera2 is not None
 
     def coarse(st):
@@ -141,11 +180,20 @@ def run(args) -> int:
             c2 = st["camera2"]
             print(f"  {name}: camera 2: {c2['decoded']} pixels decoded, {100 * c2['subpixel_share']:.0f} % with "
                   f"sub-pixel projector positions{coarse(c2)}")
+    names = ", ".join(str(p.name) for p in opencv_paths)
+    if not opencv_paths:
+        print(f"  units: mm ({rig_path.name} states them)")
+    elif mm_per_unit is None:
+        print(f"  units: {names} states none: assuming millimetres (give --units: m, cm, in, or the millimetres "
+              "of one unit, e.g. a board square's)")
+        _hint_units(kw)
+    else:
+        print(f"  units: {args.units} ({mm_per_unit:g} mm, --units): {names} converted to mm")
     li = scan.rig.light
     if not has_calibrated_light(scan.rig):
         v = scan.rig.volume
         print(f"wrote {args.out}: {len(scan.views)} view(s), two cameras, codec decoded, projector {li.width}x"
-              f"{li.height} uncalibrated (world = camera 1's frame, working depth {v.z_min:.0f}..{v.z_max:.0f}); "
+              f"{li.height} uncalibrated (world = camera 1's frame, working depth {v.z_min:.0f}..{v.z_max:.0f} mm); "
               "reconstruct camera to camera (--rays camera-camera)")
     else:
         print(f"wrote {args.out}: {len(scan.views)} view(s), {'two cameras, ' if two else ''}codec decoded, "

@@ -62,7 +62,7 @@ from ringscan.pipeline.formats.rig import (
 )
 from ringscan.pipeline.formats.scan import Scan, View, check_view_name, save_scan
 
-__all__ = ["ImportSettings", "read_opencv_calibration", "read_stereo_calibration", "opencv_calibration_kind",
+__all__ = ["ImportSettings", "UNITS", "parse_units", "to_millimetres", "read_opencv_calibration", "read_stereo_calibration", "opencv_calibration_kind",
            "stereo_rig", "triangulate_codes", "import_captures", "check_import_names", "encode_decoded",
            "procam_pose", "CAMERA2_DIR"]
 
@@ -88,6 +88,40 @@ class ImportSettings:
     """Bits the captures' 16-bit frames hold (9..16: a 12-bit camera's values 0..4095), scaled
     to 16 bits as they are read (as a scan's ``frame_bits``); 8 for 8-bit frames; None: the
     frames' own bits."""
+
+
+UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+"""Named units of an OpenCV calibration's translations, in millimetres."""
+MAX_MM_PER_UNIT = 1.0e4
+"""Largest millimetres per calibration unit (10 m: beyond it no rig fits the rig file's ranges)."""
+
+
+def parse_units(text: str) -> float:
+    """Millimetres per unit of ``--units``: mm, cm, m, in, or a number of millimetres (a board square's
+    size when the calibration counted in squares, say).
+
+    Raises:
+        ValueError: anything else, saying what is read.
+    """
+    t = str(text).strip().lower()
+    if t in UNITS:
+        return UNITS[t]
+    try:
+        v = float(t)
+    except ValueError:
+        v = float("nan")
+    if not (np.isfinite(v) and 0 < v <= MAX_MM_PER_UNIT):
+        raise ValueError(f"expected mm, cm, m, in or the millimetres of one unit (a number in (0, "
+                         f"{MAX_MM_PER_UNIT:g}]), got {text!r}")
+    return v
+
+
+def to_millimetres(cal: dict, mm_per_unit: float) -> dict:
+    """An OpenCV calibration's arrays (:func:`read_opencv_calibration`, :func:`read_stereo_calibration`) with
+    its translation ``T`` in millimetres (intrinsics and rotations have no units)."""
+    if mm_per_unit == 1.0:
+        return cal
+    return {**cal, "T": np.asarray(cal["T"], float) * float(mm_per_unit)}
 
 
 def _mat(fs, path, *names):
@@ -425,6 +459,7 @@ def import_captures(
     camera: int | None = None,
     settings: ImportSettings = ImportSettings(),
     sources: dict | None = None,
+    mm_per_unit: float | None = None,
 ) -> tuple[Scan, dict]:
     """Decode captures into a scan folder of the ``decoded`` codec.
 
@@ -452,6 +487,9 @@ def import_captures(
             scan (the rig must then calibrate the projector). None: every camera the captures hold.
         settings: decoding settings.
         sources: the calibration files' paths for messages (``rig``, ``projector_rig``).
+        mm_per_unit: millimetres per unit of the OpenCV calibrations' translations (and of
+            ``depth`` with them): an OpenCV file states no units (:func:`parse_units`). None: assumed
+            millimetres (1), said in the log. A ringscan rig is in mm (its ``units``) and takes none.
 
     Returns:
         (the scan, stats per view: decoded pixels and the share with sub-pixel positions,
@@ -466,6 +504,29 @@ def import_captures(
     if not captures:
         raise ValueError("import_captures: no capture folders")
     sources = sources or {}
+    if mm_per_unit is not None and not (np.isfinite(mm_per_unit) and 0 < mm_per_unit <= MAX_MM_PER_UNIT):
+        raise ValueError(f"import_captures: mm_per_unit must be in (0, {MAX_MM_PER_UNIT:g}], got {mm_per_unit!r}")
+    opencv_files = [k for k, v in (("rig", opencv if opencv is not None else stereo),
+                                   ("projector_rig", projector_rig)) if isinstance(v, dict)]
+    if mm_per_unit is not None and not opencv_files:
+        raise CalibrationError(sources.get("rig"), "units: a ringscan rig states its own (mm); units apply to an "
+                                                   "OpenCV calibration file, which states none")
+    # the calibration's units (scan.json imported.units): a ringscan rig states them, an OpenCV file does not
+    units = {"mm_per_unit": 1.0, "source": "rig"}
+    if opencv_files:
+        f = 1.0 if mm_per_unit is None else float(mm_per_unit)
+        units = {"mm_per_unit": f, "source": "given" if mm_per_unit is not None else "assumed"}
+        if opencv is not None:
+            opencv = to_millimetres(opencv, f)
+        if stereo is not None:
+            stereo = to_millimetres(stereo, f)
+        if isinstance(projector_rig, dict):
+            projector_rig = to_millimetres(projector_rig, f)
+        if depth is not None:
+            depth = (depth[0] * f, depth[1] * f)
+        if mm_per_unit is None:
+            log.info("%s: an OpenCV calibration states no units: assuming millimetres",
+                     sources.get("rig") or "the calibration")
     rig_src = sources.get("rig")
     names = check_import_names(captures)
     out = check_output_folder(out, what="scan folder (--out)")
@@ -660,7 +721,7 @@ def import_captures(
                     frames[c][key] = rel
             second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
             views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
-        imported = {"layout": layout, "captures": [str(f.source) for f, _, _ in decs],
+        imported = {"layout": layout, "units": units, "captures": [str(f.source) for f, _, _ in decs],
                     "kinds": [f.kind for f, _, _ in decs], "stats": stats}
         if camera is not None:
             imported["camera"] = camera

@@ -76,3 +76,19 @@ def test_points_in_pixel_order_or_not_give_the_same_marks(device):
     b[shuffle] = marks(shuffle)
     assert np.array_equal(a, b)
     assert 20 < np.sum(a == 6) < 200 and np.all(a[status == 2] == 2)
+
+
+def test_the_noise_floor_scales_with_a_scene_in_other_units(device):
+    """The same scene in metres (a calibration in metres read as mm): the outliers 25 footprints off the plane
+    are 0.02 units away, under the 0.05 floor in 'mm'; the floor is held to half a footprint, so they are
+    dropped as in mm (before: kept, every neighbour agreed). In mm the floor stays 0.05 mm (the marks of the
+    first test)."""
+    cam, X, pix = _plane_points(z=0.4)  # 0.4 units away, footprint 0.0008 units
+    X = X.copy()
+    X[100] += [0, 0, 0.02]
+    X[500] += [0, 0, -0.015]
+    X[300] += [0, 0, 0.0002]  # a quarter of a footprint: noise, kept
+    out = mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix, device=device),
+                               wp.zeros(len(X), dtype=wp.int32, device=device), camera=cam, width=40, height=30,
+                               isolated_status=6).numpy()
+    assert out[100] == 6 and out[500] == 6 and np.sum(out == 6) == 2

@@ -379,3 +379,20 @@ def test_one_misread_neighbour_is_left_out_two_surfaces_still_are_a_discontinuit
     assert (st == 0).mean() > 0.95, np.bincount(st)
     err = np.linalg.norm(M.uv2.numpy() - truth, axis=1)[st == 0]
     assert np.percentile(err, 99) < 0.1, np.percentile(err, 99)  # camera px: nothing pulled toward a misread
+
+
+def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
+    """The rig and points of test_two_and_three_rays_place_exact_points in metres (a calibration in metres
+    imported as mm): the Jacobians' step is at most 0.2 % of the point's distance, so it stays a step the
+    scene allows (before: 0.5 'mm', here more than the 0.4 m to the camera, and points off or dropped)."""
+    uv1, X, uv2, _ = _tri_inputs(np.random.default_rng(4))
+    c1 = make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t / 1000.0)
+    c2 = make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t / 1000.0)
+    n = len(uv1)
+    s = _w(np.full(n, 0.1), wp.float32, device)
+    T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), s, s, camera1=c1, camera2=c2,
+                         volume=tuple(v / 1000.0 for v in VOLUME))
+    st = T.status.numpy()
+    assert (st == 0).all(), np.bincount(st)
+    err = np.linalg.norm(T.points.numpy() - X / 1000.0, axis=1)
+    assert err.max() < 2e-6  # m: the 2e-3 mm of millimetres, float32 pixels limit it alike

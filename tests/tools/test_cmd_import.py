@@ -4,6 +4,7 @@ projector coordinates as the same frames named graycode_NN."""
 
 from __future__ import annotations
 
+import logging
 import shutil
 
 import cv2
@@ -92,3 +93,81 @@ def test_a_count_that_does_not_fit_is_refused_before_anything_is_written(capture
     assert (f"{cap}: no frames named graycode_NN.<ext> (from 00) or pattern_camN_imK.<ext> (OpenCV's sample, "
             "from 1); found 29 image(s) of other names (DSC8.JPG .. DSC36.JPG), but a 128x96 projector in layout "
             "opencv-graycode has 30") in err, err
+
+
+# ---------------------------------------------------------------------- units
+
+def _baseline(scan):
+    from ringscan.pipeline.formats.scan import load_scan
+
+    rig = load_scan(scan).rig
+    return float(np.linalg.norm(rig.light.center - rig.camera.center)), rig.volume
+
+
+def test_an_opencv_calibration_says_its_units_are_assumed_or_given(capture, tmp_path, capsys):
+    work, _ = capture
+    common = ["--rig", work / "calib.yml", "--projector", "128x96", "--depth", "300", "600"]
+    rc, out, err = _run(capsys, "import", work / "graycode", *common, "--out", tmp_path / "mm")
+    assert rc == 0, err
+    assert "units: calib.yml states none: assuming millimetres (give --units" in out, out
+    rc, out, err = _run(capsys, "import", work / "graycode", *common, "--units", "cm", "--out", tmp_path / "cm")
+    assert rc == 0, err
+    assert "units: cm (10 mm, --units): calib.yml converted to mm" in out, out
+    (b_mm, v_mm), (b_cm, v_cm) = _baseline(tmp_path / "mm"), _baseline(tmp_path / "cm")
+    # the translation and --depth are in the file's units: 10 times longer in mm (float64 arithmetic)
+    assert b_cm == pytest.approx(10 * b_mm, rel=1e-9) and b_mm == pytest.approx(np.hypot(120.0, 10.0), rel=1e-9)
+    assert v_cm.z_max - v_cm.z_min == pytest.approx(10 * (v_mm.z_max - v_mm.z_min), rel=1e-9)
+    import json
+
+    units = [json.loads((tmp_path / s / "scan.json").read_text())["imported"]["units"] for s in ("mm", "cm")]
+    assert units == [{"mm_per_unit": 1.0, "source": "assumed"}, {"mm_per_unit": 10.0, "source": "given"}]
+    # a number: the millimetres of one unit (a board square counted as 1)
+    rc, out, err = _run(capsys, "import", work / "graycode", *common, "--units", "25", "--out", tmp_path / "sq")
+    assert rc == 0, err
+    assert _baseline(tmp_path / "sq")[0] == pytest.approx(25 * b_mm, rel=1e-9)
+
+
+def test_a_calibration_in_metres_is_doubted_aloud(capture, tmp_path, capsys, caplog):
+    work, _ = capture
+    fs = cv2.FileStorage(str(work / "calib.yml"), cv2.FILE_STORAGE_READ)
+    cal = {k: fs.getNode(k).mat() for k in ("cam_int", "cam_dist", "proj_int", "proj_dist", "rotation",
+                                           "translation")}
+    fs.release()
+    fs = cv2.FileStorage(str(tmp_path / "metres.yml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in cal.items():
+        fs.write(k, v / 1000.0 if k == "translation" else v)
+    fs.release()
+    common = ["--rig", tmp_path / "metres.yml", "--projector", "128x96", "--depth", "0.3", "0.6"]
+    with caplog.at_level(logging.WARNING):
+        rc, out, err = _run(capsys, "import", work / "graycode", *common, "--out", tmp_path / "a")
+    assert rc == 0, err
+    assert "the calibration's baseline is 0.120416 units: metres? give --units" in caplog.text, caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        rc, out, err = _run(capsys, "import", work / "graycode", *common, "--units", "m", "--out", tmp_path / "b")
+    assert rc == 0 and "baseline" not in caplog.text, caplog.text
+    assert _baseline(tmp_path / "b")[0] == pytest.approx(np.hypot(120.0, 10.0), rel=1e-6)
+
+
+def test_units_that_do_not_apply_or_do_not_read_are_refused(capture, tmp_path, capsys):
+    work, _ = capture
+    from ringscan.pipeline.calibrate.importer import read_opencv_calibration
+    from ringscan.pipeline.calibrate.procam import procam_rig
+    from ringscan.pipeline.formats.rig import save_rig
+
+    c = read_opencv_calibration(work / "calib.yml")
+    save_rig(tmp_path / "rig.json", procam_rig(cam_K=c["cam_K"], cam_dist=c["cam_dist"], cam_size=(160, 120),
+                                               proj_K=c["proj_K"], proj_dist=c["proj_dist"], proj_size=PROJ,
+                                               R=c["R"], T=c["T"], z_range=(300.0, 600.0)))
+    for rig, units, want in ((tmp_path / "rig.json", "cm", "rig.json is a ringscan rig, which states its units "
+                                                           "(mm); --units is for an OpenCV calibration file"),
+                             (work / "calib.yml", "furlong", "--units: expected mm, cm, m, in or the millimetres "
+                                                             "of one unit"),
+                             (work / "calib.yml", "-3", "got '-3'")):
+        rc, out, err = _run(capsys, "import", work / "graycode", "--rig", rig, "--projector", "128x96", "--units",
+                            units, "--out", tmp_path / "scan")
+        assert rc != 0 and want in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "scan").exists()
+    rc, out, err = _run(capsys, "import", work / "graycode", "--rig", tmp_path / "rig.json", "--projector", "128x96",
+                        "--out", tmp_path / "scan")
+    assert rc == 0 and "units: mm (rig.json states them)" in out, err
