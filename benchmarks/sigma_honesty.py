@@ -12,14 +12,19 @@ error model of the default run (docs/reconstruction.md, "Honest sigma").
 Renderer: ringscan's own virtual rig. It shares the reconstruction's geometry and
 light model, so it cannot judge that model; it does render what the decode's noise
 model leaves out (a projector's gamma, a sharp projector's rasterised edges,
-defocus, dark surfaces, strong noise, ambient light).
+defocus, dark surfaces, strong noise, ambient light). ``--renderer mitsuba`` renders
+with Mitsuba 3 instead (an independent renderer, docs/virtual_rig.md), on the default
+rig with its perspective projector (Mitsuba's projector; also what ringscan renders
+with ``--light perspective``); ``--camera-scale K`` divides the camera's size and focal
+length by K (same field of view) to make a Mitsuba run affordable on a CPU.
 
 Bounds (exit 1 when one is missed): every row median(|e|/sigma) in 0.4-1.2 and
 <= 5 % beyond 3 sigma; the default's median error <= 1.02 x rings alone (2 %:
 the run-to-run spread of a median over ~130k points on different samples is
 well under 1 %).
 
-    python benchmarks/sigma_honesty.py [--only NAME ...] [--out DIR]
+    python benchmarks/sigma_honesty.py [--only NAME ...] [--out DIR] [--renderer warp|mitsuba]
+                                       [--light parallel|perspective] [--camera-scale K]
 """
 
 from __future__ import annotations
@@ -63,13 +68,24 @@ BEYOND_3 = 0.05
 NOT_WORSE = 1.02
 
 
-def run_condition(name: str, work: Path) -> tuple[list[dict], dict]:
+def scaled_camera(cam, k: int):
+    """The camera with its size and focal length divided by k: the same field of view, k x larger pixels
+    (pixel centres at integers: c' = (c + 1/2) / k - 1/2)."""
+    K = cam.K.copy()
+    K[:2, :2] /= k
+    K[:2, 2] = (cam.K[:2, 2] + 0.5) / k - 0.5
+    return replace(cam, width=cam.width // k, height=cam.height // k, K=K)
+
+
+def run_condition(name: str, work: Path, *, renderer: str = "warp", light: str = "parallel",
+                  camera_scale: int = 1) -> tuple[list[dict], dict]:
     gamma, render = CONDITIONS[name]
-    rig = default_rig()
-    rig = replace(rig, light=replace(rig.light, gamma=gamma))
+    rig = default_rig(light_model=light)
+    rig = replace(rig, light=replace(rig.light, gamma=gamma), camera=scaled_camera(rig.camera, camera_scale))
     folder = work / name / "scan"
     simulate_scan(folder, scene=str(SHARED_DATA / "models" / "odedstein_spot.obj"), rig=rig,
-                  patterns=parse_patterns(PATTERNS), settings=RenderSettings(**render), progress=False)
+                  patterns=parse_patterns(PATTERNS), settings=RenderSettings(**render), progress=False,
+                  renderer=renderer)
     d = json.loads((folder / "scan.json").read_text())
     d["rig"]["light"].pop("response", None)  # nobody calibrated the light
     (folder / "scan.json").write_text(json.dumps(d))
@@ -94,7 +110,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="+", choices=list(CONDITIONS), help="conditions to run (default all)")
     ap.add_argument("--out", type=Path, help="work folder (default a temporary one)")
+    ap.add_argument("--renderer", choices=("warp", "mitsuba"), default="warp",
+                    help="warp (default): ringscan's virtual rig; mitsuba: Mitsuba 3 (an independent renderer)")
+    ap.add_argument("--light", choices=("parallel", "perspective"), default=None,
+                    help="the default rig's light (default parallel; perspective with --renderer mitsuba)")
+    ap.add_argument("--camera-scale", type=int, default=1, metavar="K",
+                    help="divide the camera's size and focal length by K (default 1)")
     args = ap.parse_args(argv)
+    light = args.light or ("perspective" if args.renderer == "mitsuba" else "parallel")
+    if args.camera_scale < 1:
+        ap.error("--camera-scale: must be >= 1")
     if not (SHARED_DATA / "models" / "odedstein_spot.obj").is_file():
         print(f"error: {SHARED_DATA / 'models' / 'odedstein_spot.obj'} not found (set RINGSCAN_SHARED_DATA)")
         return 1
@@ -102,12 +127,14 @@ def main(argv=None) -> int:
     missed = []
     with tempfile.TemporaryDirectory() as tmp:
         work = args.out or Path(tmp)
+        print(f"renderer {args.renderer}, {light} light, camera 1/{args.camera_scale} size")
         print("| condition | constraint | points | median mm | coverage | sigma mm | median abs(e)/sigma "
               "| beyond 3 sigma |")
         print("|---|---|---|---|---|---|---|---|")
         models = {}
         for name in names:
-            rows, models[name] = run_condition(name, work)
+            rows, models[name] = run_condition(name, work, renderer=args.renderer, light=light,
+                                               camera_scale=args.camera_scale)
             for r in rows:
                 print(f"| {r['condition']} | {r['constraint']} | {r['points']} | {r['median_mm']:.4f} | "
                       f"{100 * r['coverage']:.1f} % | {r['sigma_mm']:.4f} | {r['ratio']:.2f} | "

@@ -151,6 +151,7 @@ def test_simulate_cli_mitsuba_writes_the_scan_and_truth_of_warp(tmp_path, capsys
     assert _relative_files(tmp_path / "mi") == _relative_files(tmp_path / "warp")
     doc = read_json(tmp_path / "mi" / "scan.json")["truth"]
     assert doc["renderer"]["name"] == "mitsuba" and doc["renderer"]["spp"] == 1
+    assert doc["renderer"]["variant"] in ("llvm_ad_rgb", "scalar_rgb") and doc["renderer"]["parallel_distance_mm"] == 1e8
     assert doc["renderer"]["max_depth"] == 2 and "renderer" not in read_json(tmp_path / "warp" / "scan.json")["truth"]
     tw, tm = load_truth(tmp_path / "warp"), load_truth(tmp_path / "mi")
     dw, dm = tw.depth("view_000"), tm.depth("view_000")
