@@ -31,7 +31,13 @@ import numpy as np
 from ringscan.hardware.capture.latency import LatencySettings, latency_frames, measure_latency, write_rig_latency
 from ringscan.hardware.devices.camera import open_camera
 from ringscan.hardware.devices.display import DisplayProjector, choose_display, list_displays, parse_display_spec
-from ringscan.pipeline.calibrate.board import ARUCO_DICTIONARIES, Board, BoardSettings, detect_board
+from ringscan.pipeline.calibrate.board import (
+    ARUCO_DICTIONARIES,
+    Board,
+    BoardSettings,
+    charuco_dictionary,
+    detect_board,
+)
 from ringscan.pipeline.calibrate.camera import (
     LENS_MODELS,
     CameraSettings,
@@ -148,12 +154,23 @@ def view_name(path) -> str:
     return "/".join(Path(path).parts[-2:])
 
 
+def _charuco_arg(text: str) -> str:
+    import argparse
+
+    try:
+        return charuco_dictionary(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def add_board_options(p) -> None:
     g = p.add_argument_group("board")
     g.add_argument("--board", default="9x7", metavar="COLSxROWS", help="inner corners of the chessboard (default 9x7)")
     g.add_argument("--square", type=float, required=True, help="square size in mm (the rig's units)")
-    g.add_argument("--charuco", choices=ARUCO_DICTIONARIES, default=None,
-                   help="a ChArUco board with this ArUco dictionary (--board counts its inner corners)")
+    g.add_argument("--charuco", type=_charuco_arg, default=None, metavar="DICT",
+                   help="a ChArUco board with this predefined ArUco dictionary, any case (--board counts its inner "
+                        "corners; OpenCV's layout before 4.6.0 is recognised by itself): "
+                        + ", ".join(ARUCO_DICTIONARIES))
     g.add_argument("--marker", type=float, default=0.0, help="ChArUco marker size in mm (default 0.75 x square)")
     g.add_argument("--max-tilt", type=float, default=BoardSettings.max_tilt_deg,
                    help=f"reject views tilted more than this (degrees, default {BoardSettings.max_tilt_deg:g})")
@@ -222,7 +239,8 @@ def camera_settings_from_args(args) -> CameraSettings:
 
 def print_views(views) -> None:
     for v in views:
-        print(f"  {v.name}: {'found' if v.found else v.reason}")
+        found = "found" + (" (ChArUco board of OpenCV's legacy layout, before 4.6.0)" if v.legacy else "")
+        print(f"  {v.name}: {found if v.found else v.reason}")
 
 
 def print_calibration(what: str, cal) -> None:

@@ -20,13 +20,22 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Board", "BoardSettings", "BoardView", "detect_board", "board_points", "ARUCO_DICTIONARIES"]
+__all__ = ["Board", "BoardSettings", "BoardView", "detect_board", "board_points", "ARUCO_DICTIONARIES",
+           "charuco_dictionary", "corner_id_problem"]
 
 log = logging.getLogger(__name__)
 
-ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250",
-                      "DICT_6X6_50", "DICT_6X6_250", "DICT_7X7_50", "DICT_ARUCO_ORIGINAL")
-"""ArUco dictionaries accepted for ChArUco boards."""
+ARUCO_DICTIONARIES = tuple(
+    n for n in (*(f"DICT_{k}X{k}_{m}" for k in (4, 5, 6, 7) for m in (50, 100, 250, 1000)), "DICT_ARUCO_ORIGINAL",
+                "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11",
+                "DICT_ARUCO_MIP_36h12")
+    if isinstance(getattr(cv2.aruco, n, None), int))
+"""ArUco dictionaries accepted for ChArUco boards: every predefined dictionary of OpenCV
+(``cv::aruco::PredefinedDictionaryType``) this OpenCV has."""
+
+ID_FIT_SQUARES = 0.3
+"""A ChArUco corner whose detected position lies farther than this many squares from where its board
+neighbours place it (a local affine map of their board positions) has an id that does not fit the board."""
 
 
 MIN_SQUARE_MM = 0.01
@@ -52,6 +61,10 @@ class Board:
     """ArUco dictionary name of a ChArUco board (None: a plain chessboard)."""
     marker: float = 0.0
     """ChArUco marker size (same units; 0: 0.75 * square)."""
+    legacy: bool = False
+    """A ChArUco board of OpenCV's layout before 4.6.0 (``CharucoBoard.setLegacyPattern``: with an even
+    number of rows of squares the markers start in the other colour). :func:`detect_board` tries it by
+    itself where the current layout finds too few corners."""
 
     def __post_init__(self):
         if self.cols < 2 or self.rows < 2:
@@ -64,6 +77,8 @@ class Board:
                              f"{self.square:g}, got {self.marker:g}")
         if self.charuco is not None and self.charuco not in ARUCO_DICTIONARIES:
             raise ValueError(f"board: unknown ArUco dictionary {self.charuco!r} (known: {', '.join(ARUCO_DICTIONARIES)})")
+        if self.charuco is None and self.legacy:
+            raise ValueError("board: the legacy layout is a ChArUco board's (give its dictionary)")
 
     @property
     def n_corners(self) -> int:
@@ -100,6 +115,8 @@ class BoardView:
     """Average edge width in px (chessboards), NaN where not measured."""
     tilt_deg: float = float("nan")
     """Estimated board tilt from the view direction (degrees)."""
+    legacy: bool = False
+    """A ChArUco board found in OpenCV's legacy layout (before 4.6.0)."""
 
 
 def board_points(board: Board) -> np.ndarray:
@@ -123,12 +140,67 @@ def _tilt_deg(board: Board, corners: np.ndarray, ids: np.ndarray, size: tuple[in
     return math.degrees(math.acos(min(1.0, cosang)))
 
 
-def _charuco_detector(board: Board):
+def charuco_dictionary(name: str) -> str:
+    """The predefined ArUco dictionary of ``name``, whatever its case (``dict_5x5_1000``,
+    ``DICT_APRILTAG_36H11``).
+
+    Raises:
+        ValueError: no such dictionary, listing them.
+    """
+    for n in ARUCO_DICTIONARIES:
+        if n.upper() == str(name).strip().upper():
+            return n
+    raise ValueError(f"unknown ArUco dictionary {name!r} (OpenCV's predefined ones: {', '.join(ARUCO_DICTIONARIES)})")
+
+
+def _charuco_detector(board: Board, legacy: bool):
     aruco = cv2.aruco
     d = aruco.getPredefinedDictionary(getattr(aruco, board.charuco))
     marker = board.marker or 0.75 * board.square
     b = aruco.CharucoBoard((board.cols + 1, board.rows + 1), board.square, marker, d)
+    if legacy:
+        b.setLegacyPattern(True)
     return aruco.CharucoDetector(b)
+
+
+def corner_id_problem(board: Board, corners: np.ndarray, ids: np.ndarray) -> str | None:
+    """Why detected corner ids do not fit the board's geometry, or None where they do.
+
+    Each corner's image position is predicted from its detected neighbours within two squares on the
+    board (the affine map of their board positions to their image positions: perspective and lens
+    distortion are smooth over that span); a corner farther than ``ID_FIT_SQUARES`` squares from its
+    prediction carries an id that is not its place on the board (an id shifted by one lands a whole
+    square off). Ids outside the board, or twice, do not fit either.
+    """
+    ids = np.asarray(ids, np.int64).ravel()
+    x = np.asarray(corners, np.float64).reshape(-1, 2)
+    if ids.size and (ids.min() < 0 or ids.max() >= board.n_corners):
+        bad = int(ids[(ids < 0) | (ids >= board.n_corners)][0])
+        return f"corner id {bad} is not on a {board.cols}x{board.rows} board"
+    u, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        return f"corner id {int(u[counts > 1][0])} found twice"
+    g = np.c_[ids % board.cols, ids // board.cols].astype(np.float64)  # board position in squares
+    worst, at = 0.0, -1
+    for i in range(len(ids)):
+        d = np.abs(g - g[i]).max(axis=1)
+        nb = np.flatnonzero((d > 0) & (d <= 2))
+        if nb.size < 4:
+            continue
+        G = np.c_[g[nb] - g[i], np.ones(nb.size)]
+        if np.linalg.matrix_rank(G[:, :2]) < 2:
+            continue
+        coef, *_ = np.linalg.lstsq(G, x[nb], rcond=None)  # x = A (g - g_i) + x_i's prediction
+        scale = np.sqrt(abs(np.linalg.det(coef[:2])))  # px per square
+        if not scale > 0:
+            continue
+        r = float(np.linalg.norm(x[i] - coef[2]) / scale)
+        if r > worst:
+            worst, at = r, i
+    if worst > ID_FIT_SQUARES:
+        return (f"corner {int(ids[at])} lies {worst:.1f} squares from where its neighbours on the board place it: "
+                "its id is not its place on the board")
+    return None
 
 
 def detect_board(
@@ -180,16 +252,31 @@ def detect_board(
             return BoardView(name, False, f"blurred (edges {sharp:.1f} px wide > {settings.max_edge_width_px:g})",
                              None, None, sharp)
     else:
-        ch_corners, ch_ids, _, _ = _charuco_detector(board).detectBoard(img)
+        legacy = board.legacy
+        ch_corners, ch_ids, _, _ = _charuco_detector(board, legacy).detectBoard(img)
         n = 0 if ch_ids is None else len(ch_ids)
+        if n < settings.min_charuco_corners and (board.rows + 1) % 2 == 0:
+            # with an even number of rows of squares OpenCV's layout before 4.6.0 (setLegacyPattern) puts the
+            # markers in the other squares: the board finds (almost) no corner in the other layout
+            c2, i2, _, _ = _charuco_detector(board, not legacy).detectBoard(img)
+            n2 = 0 if i2 is None else len(i2)
+            if n2 > n:
+                ch_corners, ch_ids, n, legacy = c2, i2, n2, not legacy
+                log.info("%s: a ChArUco board of OpenCV's %s layout", name, "legacy (before 4.6.0)" if legacy
+                         else "current")
         if n < settings.min_charuco_corners:
             return BoardView(name, False, f"not found ({n} ChArUco corners < {settings.min_charuco_corners})",
                              None, None)
         corners = ch_corners.reshape(-1, 2).astype(np.float32)
         ids = ch_ids.ravel().astype(np.int32)
+        why = corner_id_problem(board, corners, ids)
+        if why:
+            return BoardView(name, False, f"ChArUco corner ids do not fit the board ({why}): a board of another size "
+                                          f"or numbering than --board {board.cols}x{board.rows} --charuco "
+                                          f"{board.charuco}?", None, None)
     tilt = _tilt_deg(board, corners, ids, size)
     if math.isfinite(tilt) and tilt > settings.max_tilt_deg:
         return BoardView(name, False, f"too oblique (tilted {tilt:.0f} deg > {settings.max_tilt_deg:g})", None, None,
                          sharp, tilt)
     log.debug("%s: board found (%d corners, edge width %.2f px, tilt %.0f deg)", name, len(ids), sharp, tilt)
-    return BoardView(name, True, "", corners, ids, sharp, tilt)
+    return BoardView(name, True, "", corners, ids, sharp, tilt, legacy=board.charuco is not None and legacy)

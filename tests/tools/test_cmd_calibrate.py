@@ -659,3 +659,18 @@ def test_camera_lens_model_bad_combinations_are_refused(tmp_path, wide_images, c
     assert "3 distinct views < 8: too few to determine its 8 distortion coefficients" in err
     assert "--force writes it anyway" in err
     assert not out.exists()
+
+
+def test_charuco_takes_every_predefined_dictionary_in_any_case(tmp_path, capsys):
+    from ringscan.tools.cli import build_parser
+
+    args = build_parser("calibrate").parse_args(["calibrate", "camera", "a.png", "--square", "30", "--charuco",
+                                                 "dict_5x5_1000"])
+    assert args.charuco == "DICT_5X5_1000"  # (before: refused, not among ten dictionaries)
+    with pytest.raises(SystemExit) as e:  # argparse's usage error, before anything is read
+        main(["calibrate", "camera", str(tmp_path / "a.png"), "--square", "30", "--charuco", "DICT_9X9_50",
+              "--out", str(tmp_path / "cam.json")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err, err
+    assert "unknown ArUco dictionary 'DICT_9X9_50'" in err and "DICT_APRILTAG_36h11" in err, err
+    assert not (tmp_path / "cam.json").exists()

@@ -8,7 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.board import Board, BoardSettings, board_points, detect_board
+from ringscan.pipeline.calibrate.board import (
+    ARUCO_DICTIONARIES,
+    Board,
+    BoardSettings,
+    board_points,
+    charuco_dictionary,
+    corner_id_problem,
+    detect_board,
+)
 
 W, H = 960, 720
 F = float(max(W, H))  # the detector's nominal focal length: its tilt estimate is then exact
@@ -144,3 +152,65 @@ def test_charuco_board_mostly_hidden_is_not_found():
     # the wrong dictionary finds nothing either
     wrong = Board(cols=9, rows=7, square=30.0, charuco="DICT_4X4_50")
     assert not detect_board(img, board=wrong).found
+
+
+def test_every_predefined_dictionary_is_accepted_in_any_case():
+    # OpenCV's predefined dictionaries, the larger ones (DICT_5X5_1000) and the AprilTags among them
+    for name in ("DICT_5X5_1000", "DICT_7X7_1000", "DICT_APRILTAG_36h11", "DICT_ARUCO_MIP_36h12"):
+        assert name in ARUCO_DICTIONARIES
+    assert charuco_dictionary("dict_5x5_1000") == "DICT_5X5_1000"
+    assert charuco_dictionary("DICT_APRILTAG_36H11") == "DICT_APRILTAG_36h11"
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'DICT_9X9_50'"):
+        charuco_dictionary("DICT_9X9_50")
+    board = Board(cols=9, rows=7, square=30.0, charuco="DICT_5X5_1000")
+    img, truth = charuco_image(board)
+    v = detect_board(img, board=board)
+    assert v.found and np.array_equal(np.sort(v.ids), np.arange(board.n_corners))
+    assert np.max(np.linalg.norm(v.corners - truth[v.ids], axis=1)) < 0.2  # px: where the drawn board has them
+
+
+def test_a_board_of_the_legacy_layout_is_found_by_itself():
+    # 10 x 8 squares (an even number of rows): OpenCV before 4.6.0 put the markers in the other squares; the
+    # current layout finds no corner on such a print, the legacy one all of them, at their places
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_100)
+    cb = cv2.aruco.CharucoBoard((10, 8), 30.0, 22.5, d)
+    cb.setLegacyPattern(True)
+    img = cb.generateImage((10 * 40 + 80, 8 * 40 + 80), marginSize=40)
+    _, truth = charuco_image(CHARUCO)
+    v = detect_board(img, board=CHARUCO)
+    assert v.found and v.legacy and np.array_equal(np.sort(v.ids), np.arange(CHARUCO.n_corners))
+    assert np.max(np.linalg.norm(v.corners - truth[v.ids], axis=1)) < 0.2
+    current, _ = charuco_image(CHARUCO)
+    assert not detect_board(current, board=CHARUCO).legacy
+    # pinned to one layout, the other one's print is not found
+    pinned = Board(cols=9, rows=7, square=30.0, charuco="DICT_5X5_100", legacy=True)
+    assert detect_board(img, board=pinned).found
+    with pytest.raises(ValueError, match="legacy layout is a ChArUco board's"):
+        Board(cols=9, rows=7, square=30.0, legacy=True)
+
+
+def test_corner_ids_are_checked_against_the_board_geometry():
+    img, _ = charuco_image(CHARUCO)
+    v = detect_board(img, board=CHARUCO)
+    assert corner_id_problem(CHARUCO, v.corners, v.ids) is None
+    # one id shifted by one: its corner lies a square from where its neighbours put it
+    ids = v.ids.copy()
+    k = int(np.flatnonzero(ids == 30)[0])
+    ids[k] = 31
+    ids[np.flatnonzero(v.ids == 31)[0]] = 30  # (the two swapped: no id twice, still one square off each)
+    why = corner_id_problem(CHARUCO, v.corners, ids)
+    assert why is not None and "squares from where its neighbours on the board place it" in why, why
+    # every id shifted by one (a numbering that starts elsewhere): the corners at the rows' ends wrap
+    shifted = (v.ids + 1) % CHARUCO.n_corners
+    assert corner_id_problem(CHARUCO, v.corners, shifted) is not None
+    assert "found twice" in corner_id_problem(CHARUCO, v.corners, np.r_[v.ids[:-1], v.ids[0]])
+    assert "not on a 9x7 board" in corner_id_problem(CHARUCO, v.corners, np.r_[v.ids[:-1], 63])
+    # a tilted, distorted view of the board keeps its ids' fit (the check is local: a few squares)
+    K = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]])
+    from tests.pipeline.calibrate.synthetic import render_charuco
+
+    photo = render_charuco(CHARUCO, K=K, dist=np.array([-0.3, 0.12, 0, 0, 0]), size=(640, 480),
+                           rvec=np.array([0.6, -0.3, 0.1]), tvec=np.array([-130.0, -90.0, 520.0]))
+    w = detect_board(photo, board=CHARUCO)
+    assert w.found, w.reason
+    assert corner_id_problem(CHARUCO, w.corners, w.ids) is None
