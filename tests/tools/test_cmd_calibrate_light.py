@@ -93,3 +93,28 @@ def test_calibrate_pose_updates_the_camera(tmp_path, capsys):
     assert main(["calibrate", "pose", str(tmp_path / "small.png"), "--board", "9x6", "--square", "12",
                  "--rig", str(tmp_path / "rig.json")]) == 1
     assert "small.png" in capsys.readouterr().err
+
+
+def test_a_fifo_chunk_in_a_packed_plane_scan_is_refused_without_blocking(tmp_path, capsys):
+    """Before: `calibrate light` blocked forever opening a FIFO in a packed scan's store."""
+    import os
+
+    from ringscan.pipeline.formats.packing import pack_scan
+    from tests.pipeline.formats.test_limits import _in_thread
+    from tests.pipeline.formats.test_packing import _scan
+
+    scan = tmp_path / "z0"
+    _scan(scan, views=1)  # 40x30 frames of noise: the FIFO is met before anything is fitted
+    pack_scan(scan)
+    chunk = scan / "view_0" / "frames.zarr" / "c" / "2" / "0" / "0"
+    chunk.unlink()
+    os.mkfifo(chunk)
+    rc = _in_thread(lambda: main(["calibrate", "light", str(scan), "--heights", "0", "--out",
+                                  str(tmp_path / "rig.json")]))
+    if rc == "hung":
+        with open(chunk, "wb"):
+            pass
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err == (f"ringscan calibrate light: error: {chunk}: frame chunk is a pipe (FIFO), not a regular "
+                               "file (damaged store)"), (rc, err)
+    assert not (tmp_path / "rig.json").exists()
