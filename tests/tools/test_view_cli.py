@@ -142,6 +142,13 @@ def test_view_conditioning_of_a_huge_camera_is_bounded(tmp_path, capsys):
     assert err.startswith(f"ringscan view: error: --step 4: the map of the 16000x12500 camera of {rig_path} would "
                           "evaluate more than 2000000 pixels (~1.5 GB); give --step 10 or more"), err
     assert not out.exists()
+    from ringscan.pipeline.evaluate.conditioning import ConditioningSettings, compute_conditioning
+    from ringscan.pipeline.formats.rig import load_rig
+
+    with pytest.raises(ValueError, match=r"^conditioning: step 9 evaluates 1778x1389 pixels of the 16000x12500 camera: "
+                                         r"more than the 2000000 a map may have \(~1.5 GB\); a step of 10 or more"):
+        compute_conditioning(load_rig(rig_path), center=(511.5, 383.5), rho_range=(8.0, 380.0),
+                             settings=ConditioningSettings(step=9), device="cpu")
 
 
 def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
