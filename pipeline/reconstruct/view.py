@@ -70,10 +70,15 @@ class ViewCloud:
     stats: dict
     """Counts and seconds per stage."""
     residual: np.ndarray | None = None
-    """(n,) float32 each point's residual: two cameras, the RMS reprojection error
-    of its rays (px); camera-projector, the projector-side residual
-    (``kernels.triangulation.Triangulation.residual``: px with the angle,
-    sector widths with the rings alone). None: not recorded."""
+    """(n,) float32 each point's residual in px: two cameras, the RMS reprojection
+    error of its rays; camera-projector with the angle, the projector-side residual
+    across the epipolar line (``kernels.triangulation.Triangulation.residual``).
+    NaN where the point has none (placed by the rings alone: ``sector_residual``).
+    None: not recorded."""
+    sector_residual: np.ndarray | None = None
+    """(n,) float32 for a point placed by the rings alone, how far its root lies
+    outside its decoded sector, in sector widths (0 inside); NaN for the others and
+    where the scan has no sectors. None: not recorded."""
 
 
 def reconstruct_view(
@@ -132,6 +137,7 @@ def reconstruct_view(
     return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
                    points=triangulated.points, status=triangulated.status, confidence=triangulated.confidence,
                    sigma=triangulated.sigma, residual=triangulated.residual,
+                   residual_px=_angle_used(samples, settings),
                    extra={**({"calibration": calibration} if calibration else {}),
                           **({"calibration_check": check} if check else {})})
 
@@ -328,6 +334,8 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     confidence[i] = np.where(tst == 0, samples.confidence.numpy()[i], 0.0)
     sigma[i] = tri.sigma.numpy()
     residual[i] = tri.residual.numpy()
+    residual_px = _angle_used(samples, settings) if st.rays == "auto" and use_light else np.zeros(n, bool)
+    residual_px[i] = True  # the rays' RMS reprojection error
     if check:
         check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
                  "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}
@@ -349,11 +357,22 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
                 status=wp.array(status, dtype=wp.int32, device=device),
                 confidence=wp.array(confidence, dtype=wp.float32, device=device),
                 sigma=wp.array(sigma, dtype=wp.float32, device=device),
-                residual=wp.array(residual, dtype=wp.float32, device=device), extra=extra)
+                residual=wp.array(residual, dtype=wp.float32, device=device), residual_px=residual_px, extra=extra)
+
+
+def _angle_used(samples, settings: ReconstructSettings) -> np.ndarray:
+    """(n,) bool: the samples the camera-projector triangulation places with the angle
+    (their residual is in projector px; the others' in sector widths): as
+    ``kernels.triangulation``'s kernel decides, a finite angle and a constraint other
+    than the rings (every codec gives an angle's ``sigma_tan`` > 0)."""
+    if samples.phi is None or settings.triangulate.constraint == "rings":
+        return np.zeros(len(samples), bool)
+    return np.isfinite(samples.phi.numpy())
 
 
 def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, frames: np.ndarray,
             samples, codec_stats: dict, times: dict, *, rays: str, points, status, confidence, sigma, residual,
+            residual_px: np.ndarray,
             extra: dict) -> ViewCloud:
     """Filter, compact and count a view's per-sample results into its cloud."""
     rig = scan.rig
@@ -381,14 +400,18 @@ def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threa
         uv=kept(samples.uv),
         sigma=kept(sigma),
         stats={},
-        residual=kept(residual),
     )
+    # one unit a property: px where the angle or a second camera placed the point, sector widths
+    # (the rings alone) apart, NaN where the point has none
+    res, in_px = kept(residual), residual_px.take(idx_np)
+    cloud.residual = np.where(in_px, res, np.float32(np.nan))
+    cloud.sector_residual = np.where(~in_px & (res >= 0), res, np.float32(np.nan))
     low_confidence = 0
     if settings.min_confidence > 0:
         keep = cloud.confidence >= settings.min_confidence
         low_confidence = int(keep.size - np.count_nonzero(keep))
         cloud = ViewCloud(cloud.points[keep], cloud.ring[keep], cloud.rho[keep], cloud.confidence[keep],
-                          cloud.uv[keep], cloud.sigma[keep], {}, cloud.residual[keep])
+                          cloud.uv[keep], cloud.sigma[keep], {}, cloud.residual[keep], cloud.sector_residual[keep])
     times["download"] = time.perf_counter() - t
     with_angle = samples.phi is not None and settings.triangulate.constraint != "rings"
     two = rays != "camera-projector"
@@ -400,7 +423,7 @@ def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threa
         "rays": rays,
         "points": int(cloud.points.shape[0]),
         "median_sigma_mm": float(np.median(cloud.sigma)) if cloud.sigma.size else None,
-        "median_residual": float(np.median(cloud.residual)) if cloud.residual.size else None,
+        "median_residual": float(np.nanmedian(cloud.residual)) if np.isfinite(cloud.residual).any() else None,
         **extra,
         # every sample not written, by reason: the kernels' statuses, then min_confidence
         "dropped": {**{name: int(counts[i]) for i, name in enumerate(STATUS_NAMES)
@@ -445,4 +468,6 @@ def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
         "u": cloud.uv[:, 0].astype(np.float32), "v": cloud.uv[:, 1].astype(np.float32),
         "sigma": cloud.sigma.astype(np.float32),
         **({"residual": cloud.residual.astype(np.float32)} if cloud.residual is not None else {}),
+        **({"sector_residual": cloud.sector_residual.astype(np.float32)} if cloud.sector_residual is not None
+           else {}),
     }, comments=["ringscan point cloud, world frame, mm"])
