@@ -107,8 +107,9 @@ def read_cloud(path: str | os.PathLike):
 
 
 def write_cloud(path: str | os.PathLike, cloud, *, view: np.ndarray | None = None,
-                confidence: np.ndarray | None = None) -> None:
-    """Write a cloud as binary PLY: x, y, z, nx, ny, nz (when present), view, confidence."""
+                confidence: np.ndarray | None = None, sigma: np.ndarray | None = None) -> None:
+    """Write a cloud as binary PLY: x, y, z, nx, ny, nz (when present), view, confidence,
+    sigma (each per-point array when given, one per point)."""
     pts = np.asarray(cloud.points)
     f = {"x": pts[:, 0].astype(np.float32), "y": pts[:, 1].astype(np.float32), "z": pts[:, 2].astype(np.float32)}
     if cloud.has_normals():
@@ -118,6 +119,8 @@ def write_cloud(path: str | os.PathLike, cloud, *, view: np.ndarray | None = Non
         f["view"] = np.asarray(view, np.int32)
     if confidence is not None and len(confidence) == len(pts):
         f["confidence"] = np.asarray(confidence, np.float32)
+    if sigma is not None and len(sigma) == len(pts):
+        f["sigma"] = np.asarray(sigma, np.float32)
     write_ply(path, f, comments=["ringscan fused cloud, object frame, mm"])
 
 

@@ -149,6 +149,9 @@ class MultiPoseResult:
     """(M,) mean confidence of the points merged into each point."""
     pose_graph: object = None
     """The optimised ``o3d.pipelines.registration.PoseGraph`` (None without one)."""
+    point_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    """(M,) standard deviation (mm) of each merged point (the poses' errors independent:
+    :func:`~ringscan.pipeline.fusion.turntable.merge_clouds`); NaN where unknown."""
 
     @property
     def rig(self):
@@ -446,9 +449,12 @@ def _fuse_poses(poses: Sequence, *, names: Sequence[str] | None = None, settings
         c = o3d.geometry.PointCloud(cloud).transform(T)  # normals turn with it: still outward
         moved.append(c)
         confs.append(conf if len(conf) == len(c.points) else np.ones(len(c.points)))
-    out, point_view, point_conf = merge_clouds(moved, confs, voxel_mm=s.voxel_mm)
+    sigmas = [np.asarray(fr.point_sigma, np.float64) if fr is not None and len(fr.point_sigma) == len(c.points)
+              else np.full(len(c.points), np.nan) for (_, _, fr), c in zip(items, moved)]
+    out, point_view, point_conf, point_sigma = merge_clouds(moved, confs, voxel_mm=s.voxel_mm, sigmas=sigmas)
     log.info("merged %d poses into %d points", n, len(out.points))
     return MultiPoseResult(cloud=out, poses=moved, names=names, transforms=np.stack(transforms), registrations=regs,
                            settings=s, fused=[it[2] for it in items if it[2] is not None]
                            if all(it[2] is not None for it in items) else [],
-                           point_view=point_view, point_confidence=point_conf, pose_graph=graph)
+                           point_view=point_view, point_confidence=point_conf, pose_graph=graph,
+                           point_sigma=point_sigma)

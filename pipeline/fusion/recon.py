@@ -81,8 +81,9 @@ def _read_view(recon_dir: Path, report_path: Path, i: int, entry, rig: Rig | Non
     if all(k in fields for k in ("nx", "ny", "nz")):
         normals = np.stack([fields["nx"], fields["ny"], fields["nz"]], axis=1).astype(np.float64)
     confidence = fields["confidence"].astype(np.float64) if "confidence" in fields else None
+    sigma = fields["sigma"].astype(np.float64) if "sigma" in fields else None
     return FusionView(name=str(name), points=points, turntable_deg=float(turntable_deg), camera_center=centre,
-                      normals=normals, confidence=confidence)
+                      normals=normals, confidence=confidence, sigma=sigma)
 
 
 def recon_folder(path: str | os.PathLike, *, work_dir: str | os.PathLike | None = None, device: str | None = None,

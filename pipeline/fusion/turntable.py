@@ -32,8 +32,8 @@ from ringscan.pipeline.fusion.threads import check_threads, open3d_threads
 log = logging.getLogger(__name__)
 
 __all__ = ["REPORT_NAME", "WEAK_MOTION_RATIO", "FuseSettings", "FusionView", "ViewResidual", "FuseResult",
-           "check_fuse_settings", "fuse_views", "merge_clouds", "rotation_deg", "apply_transform", "overlap_information",
-           "weak_motions"]
+           "check_fuse_settings", "fuse_views", "merge_clouds", "rotation_deg", "apply_transform",
+           "overlap_information", "weak_motions"]
 
 REPORT_NAME = "report.json"
 
@@ -121,6 +121,8 @@ class FusionView:
     """(N, 3) normals in the world frame, or None to estimate them."""
     confidence: np.ndarray | None = None
     """(N,) per-point confidence, or None."""
+    sigma: np.ndarray | None = None
+    """(N,) per-point standard deviation (mm, a reconstruction's ``sigma``), or None."""
 
 
 @dataclass(frozen=True)
@@ -188,6 +190,9 @@ class FuseResult:
     """(M,) mean confidence of the points merged into each fused point."""
     pose_graph: object = None
     """The optimised ``o3d.pipelines.registration.PoseGraph`` (None without refinement)."""
+    point_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    """(M,) standard deviation (mm) of each fused point (:func:`merge_clouds`); NaN where a
+    merged point had none."""
 
     def report(self) -> dict:
         """A JSON-ready summary: per-view residuals and the resolved settings."""
@@ -241,13 +246,19 @@ def _as_view(v, i: int) -> FusionView:
         conf = np.asarray(vc.confidence, dtype=np.float64)
         if conf.shape != (n,):
             raise ValueError(f"views[{i}] ({vc.name}): confidence must have shape ({n},), got {conf.shape}")
+    sigma = None
+    if vc.sigma is not None:
+        sigma = np.asarray(vc.sigma, dtype=np.float64)
+        if sigma.shape != (n,):
+            raise ValueError(f"views[{i}] ({vc.name}): sigma must have shape ({n},), got {sigma.shape}")
     cc = np.asarray(vc.camera_center, dtype=np.float64)
     if cc.shape != (3,) or not np.all(np.isfinite(cc)):
         raise ValueError(f"views[{i}] ({vc.name}): camera_center must be 3 finite numbers, got {vc.camera_center!r}")
     th = float(vc.turntable_deg)
     if not math.isfinite(th):
         raise ValueError(f"views[{i}] ({vc.name}): turntable_deg is not finite")
-    return FusionView(name=str(vc.name), points=pts, turntable_deg=th, camera_center=cc, normals=nrm, confidence=conf)
+    return FusionView(name=str(vc.name), points=pts, turntable_deg=th, camera_center=cc, normals=nrm, confidence=conf,
+                      sigma=sigma)
 
 
 def check_fuse_settings(s: FuseSettings) -> None:
@@ -271,7 +282,8 @@ def check_fuse_settings(s: FuseSettings) -> None:
 
 
 def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSettings):
-    """The view's cloud in the object frame, cleaned, with normals toward ``cam``."""
+    """(the view's cloud in the object frame, cleaned, with normals toward ``cam``; its points'
+    confidence; their sigma, NaN where the view has none)."""
     keep = np.all(np.isfinite(v.points), axis=1)
     if v.confidence is not None:
         keep &= v.confidence >= s.min_confidence
@@ -284,6 +296,7 @@ def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSetti
     if v.normals is not None:
         pcd.normals = o3d.utility.Vector3dVector(v.normals[keep] @ T[:3, :3].T)
     conf = (v.confidence[keep] if v.confidence is not None else np.ones(int(keep.sum()))).astype(np.float64)
+    sigma = (v.sigma[keep] if v.sigma is not None else np.full(int(keep.sum()), np.nan)).astype(np.float64)
     idx = np.arange(len(pcd.points))
     if len(idx) and s.statistical_neighbors > 0 and len(idx) > s.statistical_neighbors:
         pcd, kept = pcd.remove_statistical_outlier(nb_neighbors=s.statistical_neighbors,
@@ -292,14 +305,14 @@ def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSetti
     if len(idx) and s.radius_mm > 0 and s.radius_min_points > 0:
         pcd, kept = pcd.remove_radius_outlier(nb_points=s.radius_min_points, radius=s.radius_mm)
         idx = idx[np.asarray(kept, dtype=np.int64)]
-    conf = conf[idx]
+    conf, sigma = conf[idx], sigma[idx]
     if len(pcd.points) >= 3:
         if not pcd.has_normals():
             pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm,
                                                                       max_nn=s.normal_max_nn))
         pcd.normalize_normals()
         pcd.orient_normals_towards_camera_location(cam)
-    return pcd, conf
+    return pcd, conf, sigma
 
 
 # ----------------------------------------------------------------------------- registration
@@ -477,7 +490,8 @@ def _held_icp(o3d, src, dst, s: FuseSettings, H: np.ndarray, matched: np.ndarray
             step[:3, :3] = _rotation(xi[:3] / scale)
             step[:3, 3] = c + xi[3:] - step[:3, :3] @ c  # turned about c, then c moved by xi[3:]
             T = step @ T
-            if np.linalg.norm(xi) < 1e-3:  # a micrometre: far below any scan's noise (and matches can flip back and forth)
+            # a micrometre: far below any scan's noise (and matches may flip back and forth)
+            if np.linalg.norm(xi) < 1e-3:
                 break
     X = apply_transform(T, P)
     ok, idx = _matches(o3d, nns, X, s.icp_fine_mm)
@@ -598,17 +612,25 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
 
 
 
-def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_mm: float):
+def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_mm: float,
+                 sigmas: Sequence[np.ndarray] | None = None):
     """Merge clouds (already in one frame) into one, thinned on a voxel grid.
 
     Args:
         clouds: Open3D point clouds.
         confidences: one (n_i,) confidence array per cloud.
         voxel_mm: voxel size; 0 keeps every point.
+        sigmas: one (n_i,) standard deviation array (mm) per cloud (NaN: unknown), or None.
 
     Returns:
-        (cloud, source, confidence): the merged cloud, each point's source cloud
-        index (the first point in its voxel) and its mean confidence over the voxel.
+        (cloud, source, confidence, sigma): the merged cloud, each point's source cloud
+        index (the first point in its voxel), its mean confidence over the voxel, and the
+        standard deviation of the voxel's mean position: the points of one source in a voxel
+        are taken to share one error (neighbouring pixels of one view: the same calibration,
+        the same ring), of their RMS sigma, and the sources' errors to be independent, so
+        sigma = sqrt(sum over sources of (n_s * sigma_s)^2) / n for n points, n_s of source s
+        (one source: its RMS sigma; k sources of equal sigma and count: sigma / sqrt(k)).
+        NaN where a merged point has no sigma.
     """
     o3d = open3d_lib()
     merged = o3d.geometry.PointCloud()
@@ -617,6 +639,12 @@ def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_m
     labels = np.concatenate([np.full(len(c.points), i, np.int32) for i, c in enumerate(clouds)] or
                             [np.zeros(0, np.int32)])
     conf_all = np.concatenate([np.asarray(c, np.float64) for c in confidences] or [np.zeros(0)])
+    if sigmas is None:
+        sig_all = np.full(len(labels), np.nan)
+    else:
+        sig_all = np.concatenate([np.asarray(x, np.float64) for x in sigmas] or [np.zeros(0)])
+    if len(sig_all) != len(labels):
+        raise ValueError(f"merge_clouds: {len(sig_all)} sigmas for {len(labels)} points")
     if voxel_mm > 0 and len(merged.points):
         lo = merged.get_min_bound() - voxel_mm
         hi = merged.get_max_bound() + voxel_mm
@@ -624,8 +652,21 @@ def merge_clouds(clouds: Sequence, confidences: Sequence[np.ndarray], *, voxel_m
         source = np.array([labels[t[0]] for t in traces], np.int32)
         conf = np.array([conf_all[np.asarray(t)].mean() for t in traces], np.float32)
         out.normalize_normals()
-        return out, source, conf
-    return merged, labels, conf_all.astype(np.float32)
+        return out, source, conf, _voxel_sigma(traces, labels, sig_all, len(clouds))
+    return merged, labels, conf_all.astype(np.float32), sig_all.astype(np.float32)
+
+
+def _voxel_sigma(traces, labels: np.ndarray, sigma: np.ndarray, n_sources: int) -> np.ndarray:
+    """:func:`merge_clouds`'s sigma of each voxel's mean (float32)."""
+    lens = np.array([len(t) for t in traces], np.int64)
+    flat = np.concatenate([np.asarray(t, np.int64) for t in traces])
+    vox = np.repeat(np.arange(len(traces)), lens)
+    groups, inv = np.unique(vox * max(n_sources, 1) + labels[flat], return_inverse=True)
+    n_g = np.bincount(inv)
+    s2_g = np.bincount(inv, weights=sigma[flat] ** 2)  # NaN stays NaN
+    var = np.bincount(groups // max(n_sources, 1), weights=n_g * s2_g, minlength=len(traces)) / lens.astype(
+        np.float64) ** 2
+    return np.sqrt(var).astype(np.float32)
 
 
 def fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = FuseSettings(),
@@ -670,12 +711,13 @@ def _fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fu
         turntable = Turntable(axis_point=np.zeros(3), axis_dir=np.array([0.0, 0.0, 1.0]))
 
     T0 = [turntable_transform(turntable, -v.turntable_deg) for v in vs]
-    clouds, confs, cams = [], [], []
+    clouds, confs, sigmas, cams = [], [], [], []
     for v, T in zip(vs, T0):
         cam = apply_transform(T, v.camera_center[None])[0]
-        pcd, conf = _clean_view(o3d, v, T, cam, s)
+        pcd, conf, sigma = _clean_view(o3d, v, T, cam, s)
         clouds.append(pcd)
         confs.append(conf)
+        sigmas.append(sigma)
         cams.append(cam)
         log.info("%s: %d of %d points kept", v.name, len(pcd.points), len(v.points))
     if sum(len(c.points) for c in clouds) == 0:
@@ -711,13 +753,13 @@ def _fuse_views(views: Sequence, rig: Rig | None, *, settings: FuseSettings = Fu
         log.warning("the views' overlap does not fix the turntable angle of %d of %d views (%s): kept at the "
                     "turntable's; a shape symmetric about the turntable axis (a sphere, a cylinder) does not show "
                     "its own turn (docs/fusion.md, \"Symmetric objects\")", len(kept), len(vs), ", ".join(kept))
-    fused, point_view, point_conf = merge_clouds(clouds, confs, voxel_mm=s.voxel_mm)
+    fused, point_view, point_conf, point_sigma = merge_clouds(clouds, confs, voxel_mm=s.voxel_mm, sigmas=sigmas)
     log.info("fused %d views into %d points", len(vs), len(fused.points))
     return FuseResult(
         cloud=fused, views=clouds, names=[v.name for v in vs], turntable_deg=angles,
         transforms=np.stack([P @ T for P, T in zip(poses, T0)]), corrections=np.stack(poses),
         camera_centers=np.stack(cams), residuals=residuals, rig=rig, settings=s,
-        point_view=point_view, point_confidence=point_conf, pose_graph=graph)
+        point_view=point_view, point_confidence=point_conf, pose_graph=graph, point_sigma=point_sigma)
 
 
 # ----------------------------------------------------------------------------- several poses

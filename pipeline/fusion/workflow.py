@@ -132,7 +132,8 @@ def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str
     """Write the fused cloud, one mesh file per extension and the preview; returns the
     report's ``outputs`` entry (file names relative to ``out_dir``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_cloud(out_dir / "fused.ply", fused.cloud, view=fused.point_view, confidence=fused.point_confidence)
+    write_cloud(out_dir / "fused.ply", fused.cloud, view=fused.point_view, confidence=fused.point_confidence,
+                sigma=fused.point_sigma)
     outputs = {"cloud": "fused.ply", "meshes": []}
     for ext in mesh_exts:
         write_mesh(out_dir / f"mesh{ext}", meshed.mesh)
