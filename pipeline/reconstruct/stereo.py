@@ -151,55 +151,53 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
     if n == 0:
         return out_p, out_s, refined
     pixel = np.asarray(pixel, np.int64)
-    ys, xs = np.divmod(pixel, int(width))
-    k = 2 * int(radius) + 1
+    r = int(radius)
+    off = np.arange(-r, r + 1, dtype=np.float64)  # a window pixel's offset from its centre, along x or y
+    one = np.ones_like(off)
+    kernels = {"1": (one, one), "x": (off, one), "y": (one, off), "xx": (off * off, one), "xy": (off, off),
+               "yy": (one, off * off)}
 
-    def box(a):
-        return cv2.boxFilter(a, cv2.CV_64F, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    def window(a, k):  # each pixel's window sum of a times the offsets' powers (separable), raveled
+        kx, ky = kernels[k]
+        return cv2.sepFilter2D(a, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).ravel()
 
     for axis in (0, 1):
         val = proj[:, axis]
         integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
         if not integer.any():
             continue
+        # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
         w = np.zeros((height, width))
         w.flat[pixel] = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
-        # moments about each pixel's own centre: a window's sums of w x^a y^b p^c with x, y
-        # measured from the pixel (the sums of absolute coordinates re-centred)
-        P = np.zeros((height, width))
-        P.flat[pixel] = val
-        X = np.broadcast_to(np.arange(width, dtype=np.float64)[None, :], (height, width))
-        Y = np.broadcast_to(np.arange(height, dtype=np.float64)[:, None], (height, width))
-        sel = np.flatnonzero(integer)
-        x0, y0 = xs[sel].astype(np.float64), ys[sel].astype(np.float64)
-        # the code itself as an offset from the pixel's own (keeps the sums small)
-        p0 = val[sel]
-        at = (ys[sel], xs[sel])
-        S = box(w)[at]
-        Sx, Sy = box(w * X)[at] - x0 * S, box(w * Y)[at] - y0 * S
-        Sxx = box(w * X * X)[at] - 2 * x0 * box(w * X)[at] + x0 * x0 * S
-        Syy = box(w * Y * Y)[at] - 2 * y0 * box(w * Y)[at] + y0 * y0 * S
-        Sxy = box(w * X * Y)[at] - x0 * box(w * Y)[at] - y0 * box(w * X)[at] + x0 * y0 * S
-        wP, wPX, wPY = box(w * P)[at], box(w * P * X)[at], box(w * P * Y)[at]
-        Sp = wP - p0 * S
-        Sxp = wPX - x0 * wP - p0 * (Sx + x0 * S) + p0 * x0 * S
-        Syp = wPY - y0 * wP - p0 * (Sy + y0 * S) + p0 * y0 * S
-        Spp = box(w * P * P)[at] - 2 * p0 * wP + p0 * p0 * S
-        cnt = box((w > 0).astype(np.float64))[at]
-        M = np.stack([np.stack([S, Sx, Sy], -1), np.stack([Sx, Sxx, Sxy], -1), np.stack([Sy, Sxy, Syy], -1)], -2)
-        b = np.stack([Sp, Sxp, Syp], -1)
-        det = np.linalg.det(M)
-        good = (cnt >= QUERY_MIN_PIXELS) & (np.abs(det) > 1e-9 * np.maximum(S, 1e-30) ** 3)
-        Mi = np.zeros_like(M)
-        Mi[good] = np.linalg.inv(M[good])
-        beta = np.einsum("nij,nj->ni", Mi, b)
-        chi2 = np.maximum(Spp - np.einsum("ni,ni->n", beta, b), 0.0)
+        p0 = np.zeros(height * width)
+        p0[pixel] = val
+        wp_ = w * p0.reshape(height, width)
+        # weighted moments of each window about its centre pixel, the coordinate as an offset from the
+        # centre's own code p0 (sums of w (p - p0), w dx (p - p0), ...)
+        S, Sx, Sy = (window(w, k) for k in ("1", "x", "y"))
+        Sxx, Sxy, Syy = (window(w, k) for k in ("xx", "xy", "yy"))
+        wP, wPx, wPy = (window(wp_, k) for k in ("1", "x", "y"))
+        Sp, Sxp, Syp = wP - p0 * S, wPx - p0 * Sx, wPy - p0 * Sy
+        Spp = window(wp_ * p0.reshape(height, width), "1") - 2 * p0 * wP + p0 * p0 * S
+        cnt = window((w > 0).astype(np.float64), "1")
+        # the 3x3 normal equations [S Sx Sy; Sx Sxx Sxy; Sy Sxy Syy] beta = (Sp, Sxp, Syp), by cofactors
+        c00, c01, c02 = Sxx * Syy - Sxy * Sxy, Sxy * Sy - Sx * Syy, Sx * Sxy - Sxx * Sy
+        c11, c12, c22 = S * Syy - Sy * Sy, Sx * Sy - S * Sxy, S * Sxx - Sx * Sx
+        det = S * c00 + Sx * c01 + Sy * c02
+        good = (cnt >= QUERY_MIN_PIXELS) & (det > 1e-9 * np.maximum(S, 1e-30) * np.maximum(c00, 1e-30))
+        inv_det = np.where(good, 1.0 / np.where(good, det, 1.0), 0.0)
+        b0 = (c00 * Sp + c01 * Sxp + c02 * Syp) * inv_det  # the plane at the centre (offset from p0)
+        b1 = (c01 * Sp + c11 * Sxp + c12 * Syp) * inv_det
+        b2 = (c02 * Sp + c12 * Sxp + c22 * Syp) * inv_det
+        chi2 = np.maximum(Spp - (b0 * Sp + b1 * Sxp + b2 * Syp), 0.0)
         dof = np.maximum(cnt - 3, 1)
         good &= chi2 <= QUERY_FIT_CHI2 * dof
-        var = Mi[:, 0, 0] * np.maximum(1.0, chi2 / dof)
-        g = sel[good]
-        out_p[g, axis] = p0[good] + beta[good, 0]
-        out_s[g, axis] = np.sqrt(var[good])
+        sel = np.flatnonzero(integer)
+        at = pixel[sel]
+        keep = good[at]
+        g, at = sel[keep], at[keep]
+        out_p[g, axis] = val[g] + b0[at]
+        out_s[g, axis] = np.sqrt(c00[at] * inv_det[at] * np.maximum(1.0, chi2[at] / dof[at]))
         refined[g, axis] = True
     return out_p, out_s, refined
 
