@@ -117,6 +117,10 @@ CASES = [
      _add("hardware/extra.py", "import ringscan.hardware.errors"), "hardware"),
     ("a new top-level module (in no layer)",
      _add("extra.py", "import ringscan.tools.cli"), "top"),
+    ("a pipeline stage takes the API's fuse from the package root",
+     _add("pipeline/fusion/probe.py", "from ringscan import fuse"), "top"),
+    ("the API imports hardware (its sibling layer)",
+     _add("api.py", "import ringscan.hardware.errors"), "top"),
 ]
 
 

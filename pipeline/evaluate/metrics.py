@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 
 
-__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "sigma_stats", "ray_errors", "evaluate_against_mesh", "truth_rho_at",
+__all__ = ["truth_surface", "distance_stats", "point_distances", "surface_normals", "truth_points", "coverage_radius", "evaluate_view", "evaluate_recon", "evaluate_points", "sigma_stats", "ray_errors", "evaluate_against_mesh", "truth_rho_at",
            "light_rig",
            "check_coverage_radius"]
 
@@ -382,14 +382,34 @@ def evaluate_recon(cloud_or_dir: str | os.PathLike, truth_scan: str | os.PathLik
         if not 0 <= vi < len(scan.views):
             raise FormatError(p, f"its points are of view {vi}, but {scan.path} has {len(scan.views)} view(s)")
         items.append((scan.views[vi].name, p))
+
+    def views():
+        for name, ply_path in items:
+            ply = read_ply(ply_path)
+            sigma = np.asarray(ply["sigma"], np.float64) if "sigma" in ply else None
+            yield name, _ply_points(ply_path, ply), sigma
+
+    return evaluate_points(scan, views(), coverage_radius_mm=coverage_radius_mm, return_distances=return_distances)
+
+
+def evaluate_points(scan: Scan, views, *, coverage_radius_mm: float | None = None, return_distances: bool = False):
+    """:func:`evaluate_recon`'s figures of views' points held in memory.
+
+    Args:
+        scan: the simulated scan whose truth the points are measured against.
+        views: (view name, (N, 3) world points, (N,) sigma mm or None) for each view.
+
+    Returns:
+        As :func:`evaluate_recon`: the figures, per view and for ``all`` views (and with
+        ``return_distances`` each view's point distances).
+    """
+    check_coverage_radius(coverage_radius_mm)
+    check_truth(scan)
     result = {"views": {}}
     all_d = []
     dists = {}
     ratios, sigmas = [], []
-    for name, ply_path in items:
-        ply = read_ply(ply_path)
-        pts = _ply_points(ply_path, ply)
-        sigma = np.asarray(ply["sigma"], np.float64) if "sigma" in ply else None
+    for name, pts, sigma in views:
         result["views"][name], d, r = _evaluate_view(scan, name, pts, coverage_radius_mm=coverage_radius_mm,
                                                      sigma=sigma)
         if r is not None:

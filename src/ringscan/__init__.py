@@ -1,16 +1,53 @@
 """ringscan: structured-light 3D scanning with concentric ring patterns (Lee & Krim).
 
+The Python API (docs/api.md), plain functions from a scan to clouds, a fused object, a
+mesh and figures::
+
+    import ringscan
+
+    scan = ringscan.load_scan("out/demo/scan")   # or ringscan.simulate(folder, ...)
+    views = ringscan.reconstruct(scan)           # per view: an Open3D tensor cloud and its pose
+    fused = ringscan.fuse(views)                 # o3d.t.geometry.PointCloud, object frame
+    mesh = ringscan.mesh(fused)                  # o3d.t.geometry.TriangleMesh
+    print(ringscan.evaluate(views, scan)["all"])
+
 The sub-packages are the layers (docs/architecture.md): ``ringscan.kernels``,
-``ringscan.pipeline`` (the public Python API), ``ringscan.hardware`` and
-``ringscan.tools`` (the ``ringscan`` command). Importing ``ringscan`` alone loads
-none of them (no Warp, no Open3D).
+``ringscan.pipeline`` (every stage's own API), ``ringscan.hardware`` and
+``ringscan.tools`` (the ``ringscan`` command); ``ringscan.api`` holds the functions
+above. Importing ``ringscan`` alone loads none of them (no Warp, no Open3D): a name
+of the API is imported on its first use.
 """
 
+from __future__ import annotations
+
+import importlib
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
 
 try:
     __version__ = version("ringscan")
 except PackageNotFoundError:  # imported from a source tree that was never installed
     __version__ = "0+unknown"
 
-__all__ = ["__version__"]
+if TYPE_CHECKING:
+    # The API as plain imports, for import-linter (which reads imports under TYPE_CHECKING
+    # too: a module taking a name from here depends on ringscan.api) and for type checkers.
+    # At run time __getattr__ loads them on first use.
+    from ringscan.api import ReconstructedView, evaluate, fuse, load_scan, mesh, reconstruct, simulate
+
+_API = ("ReconstructedView", "evaluate", "fuse", "load_scan", "mesh", "reconstruct", "simulate")
+"""The names taken from ringscan.api; the same as the TYPE_CHECKING import above (a test checks it)."""
+
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name not in _API:
+        raise AttributeError(f"module 'ringscan' has no attribute {name!r}")
+    value = getattr(importlib.import_module("ringscan.api"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))
