@@ -47,6 +47,12 @@ WALL_HALF_SIZE_MM = 10000.0
 """Half the side of :func:`add_wall`'s square: wider than any view of a rig within 100 m."""
 WALL_ALBEDO = 0.8
 """Albedo of the wall's faces when the scene carries per-face albedo (else the render's one albedo)."""
+DATA_DIR = Path(__file__).resolve().parent / "data"
+"""The meshes the package ships (package data), each beside its licence."""
+SHIPPED_MESHES = {"spot": ("spot.obj", "spot_LICENSE.md")}
+"""Shipped mesh name -> (mesh file, licence file) in :data:`DATA_DIR`: Keenan Crane's Spot
+(public domain; 11533 vertices, 23062 triangles, 0.7 MB), the default object of ``ringscan demo``.
+A name here is also a scene name of :func:`make_scene`."""
 
 __all__ = [
     "SCENES",
@@ -60,6 +66,8 @@ __all__ = [
     "make_scene",
     "make_chessboard",
     "load_mesh_file",
+    "SHIPPED_MESHES",
+    "shipped_mesh",
     "icosphere",
     "corner_normals",
 ]
@@ -361,8 +369,25 @@ def _plate(key: str) -> SceneMesh:
     return SceneMesh(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3]], np.int32), name=f"plate_{h:g}mm")
 
 
+def shipped_mesh(name: str = "spot") -> tuple[Path, Path]:
+    """The (mesh file, licence file) paths of a mesh the package ships (:data:`SHIPPED_MESHES`).
+
+    Raises:
+        ValueError: an unknown name.
+        FileNotFoundError: the package was installed without its data files.
+    """
+    if name not in SHIPPED_MESHES:
+        raise ValueError(f"shipped mesh {name!r}: unknown (known: {', '.join(SHIPPED_MESHES)})")
+    mesh, licence = (DATA_DIR / f for f in SHIPPED_MESHES[name])
+    for f in (mesh, licence):
+        if not f.is_file():
+            raise FileNotFoundError(f"{f}: missing; the ringscan package was installed without its data files")
+    return mesh, licence
+
+
 def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto") -> SceneMesh:
-    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``) or load a mesh file.
+    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``, or a shipped mesh:
+    ``spot``) or load a mesh file.
 
     Args:
         name_or_path: a procedural scene name or the path of a mesh file.
@@ -390,10 +415,12 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
     if key == "chessboard":
         cols, rows = CHESSBOARD_CORNERS
         return make_chessboard(cols, rows, size_mm / (max(cols, rows) + 3))
+    if key in SHIPPED_MESHES:
+        return load_mesh_file(shipped_mesh(key)[0], size_mm=size_mm, up=up)
     p = Path(key)
     if p.suffix or p.exists() or os.sep in key or "/" in key:
         return load_mesh_file(p, size_mm=size_mm, up=up)
-    raise ValueError(f"scene {key!r}: unknown (known: {', '.join(SCENES)}, or the path of an OBJ/PLY/STL file)")
+    raise ValueError(f"scene {key!r}: unknown (known: {', '.join((*SCENES, *SHIPPED_MESHES))}, or the path of an OBJ/PLY/STL file)")
 
 
 # ----------------------------------------------------------------------------- poses
