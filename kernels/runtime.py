@@ -62,6 +62,50 @@ def _native_stderr_to_log():
             log.log(logging.INFO if "CUDA driver" in line else logging.WARNING, "%s", line.strip())
 
 
+KERNEL_PACKAGE = "ringscan.kernels"
+
+
+def uncached_kernel_modules(device: str = "cpu") -> list[str] | None:
+    """The Warp modules of :mod:`ringscan.kernels` that Warp's kernel cache holds no
+    compiled binary of for ``device``: those Warp compiles at their first launch
+    (seconds each on a CPU; a fresh machine, a new Warp version or changed kernel
+    code). Warp keeps each module's binaries in ``<kernel_cache_dir>/wp_<module>_<hash>/``,
+    the hash over the module's code and options (block size 1 on a CPU).
+
+    Imports every kernel module (as a scan does anyway); logs nothing.
+
+    Returns:
+        The module names (empty: all cached), or None where the cache cannot be read
+        this way (another Warp version's layout).
+    """
+    import importlib
+    import pkgutil
+
+    resolved = resolve_device(device)
+    try:
+        dev = wp.get_device(resolved)
+        package = importlib.import_module(KERNEL_PACKAGE)
+        cold = []
+        for info in pkgutil.iter_modules(package.__path__):
+            name = f"{KERNEL_PACKAGE}.{info.name}"
+            importlib.import_module(name)
+            module = wp.get_module(name)
+            if not module.kernels:
+                continue
+            block_dim = 1 if dev.is_cpu else module.options["block_dim"]
+            folder = os.path.join(wp.config.kernel_cache_dir, module.get_module_identifier(block_dim=block_dim))
+            if dev.is_cpu:
+                cached = os.path.isfile(os.path.join(folder, module._get_compile_output_name(dev, block_dim=block_dim)))
+            else:  # one binary a GPU architecture: any counts
+                cached = os.path.isdir(folder) and any(f.endswith((".ptx", ".cubin")) for f in os.listdir(folder))
+            if not cached:
+                cold.append(name)
+        return cold
+    except (AttributeError, TypeError, KeyError, OSError) as e:
+        log.debug("could not read Warp's kernel cache: %s", e)
+        return None
+
+
 def resolve_device(device: str | None) -> str:
     """Check a device name given by the user ("cpu", "cuda", "cuda:0", or None =
     the best available) and return Warp's name for it.

@@ -41,13 +41,18 @@ FUSE_REPORT_FORMAT = "ringscan.fuse/1"
 def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
                   mesh_settings: MeshSettings = MeshSettings(), formats=(".ply",), preview: bool = True,
                   rig=None, truth=None, device: str | None = None, progress: bool = False,
-                  pose_settings=None) -> dict:
+                  pose_settings=None, preview_scale_bar: bool = False,
+                  preview_view=None) -> dict:
     """Fuse a reconstruction folder (or a scan folder), mesh it, write everything.
 
     Writes into ``out_dir``: ``fused.ply`` (the fused cloud), ``mesh.<ext>`` for each
     of ``formats`` (ply, obj, stl), ``preview.png`` (when ``preview``; see
     :mod:`ringscan.pipeline.preview`) and ``fuse_report.json`` (per-view residuals,
     mesh checks, resolved settings, and the figures against ``truth`` when given).
+    ``preview_scale_bar`` draws a bar of a round number of millimetres on the preview
+    (:func:`ringscan.pipeline.preview.render.render_to_png`; the report's
+    ``outputs.preview_scale_bar_mm``); ``preview_view`` (a
+    :class:`ringscan.pipeline.preview.render.ViewSettings`) frames it (None: the default view).
     A ``mesh.<ext>`` in another format (or a ``preview.png`` with ``preview`` off)
     that an earlier run left in ``out_dir`` is removed, and named in the report's
     ``outputs.removed``: the folder then holds what this run made, nothing older.
@@ -98,7 +103,8 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
     # TSDF from several poses integrates the merged cloud (virtual views), not the per-view depth maps.
     with progress_step(f"{mesh_settings.method} meshing", enabled=progress):
         meshed = mesh_cloud(fused.cloud, settings=mesh_settings) if multi else mesh_fused(fused, settings=mesh_settings)
-    outputs = _write_outputs(out_dir, fused, meshed, mesh_exts, preview=preview, progress=progress)
+    outputs = _write_outputs(out_dir, fused, meshed, mesh_exts, preview=preview, progress=progress,
+                             scale_bar=preview_scale_bar, view=preview_view)
     _remove_stale_outputs(out_dir, outputs, input_files, preview=preview)
 
     report = {"format": FUSE_REPORT_FORMAT, "source": str(Path(sources[0]).resolve()),
@@ -128,7 +134,7 @@ def _mesh_extensions(formats) -> list[str]:
 
 
 def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str], *, preview: bool,
-                   progress: bool) -> dict:
+                   progress: bool, scale_bar: bool = False, view=None) -> dict:
     """Write the fused cloud, one mesh file per extension and the preview; returns the
     report's ``outputs`` entry (file names relative to ``out_dir``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -140,9 +146,12 @@ def _write_outputs(out_dir: Path, fused, meshed: MeshResult, mesh_exts: list[str
         outputs["meshes"].append(f"mesh{ext}")
     if preview:
         with progress_step("rendering preview.png", enabled=progress):
-            rendered = render_to_png([meshed.mesh], out_dir / "preview.png")
+            rendered = render_to_png([meshed.mesh], out_dir / "preview.png", scale_bar=scale_bar,
+                                     **({} if view is None else {"settings": view}))
         outputs["preview"] = "preview.png"
         outputs["preview_renderer"] = rendered.renderer
+        if scale_bar:
+            outputs["preview_scale_bar_mm"] = rendered.scale_bar_mm
     return outputs
 
 

@@ -6,14 +6,20 @@ bounds is ``python benchmarks/demo_accuracy.py``: about 20 s a view on two cores
 
 from __future__ import annotations
 
+import fnmatch
 import functools
 import json
+import tomllib
+from pathlib import Path
 
 import cv2
 import numpy as np
 import open3d as o3d
+import warp as wp
 
+from ringscan.kernels.runtime import uncached_kernel_modules
 from ringscan.pipeline.formats.scan import load_scan
+from ringscan.pipeline.simulate import scenes
 from ringscan.tools import cmd_demo
 from ringscan.tools.cli import main
 from tests.hardware.conftest import small_rig
@@ -25,8 +31,8 @@ apart (1.8 mm, ~3 camera pixels of the small rig), 5 + 3 bits: 22 frames a view 
 
 def test_demo_runs_the_whole_chain_on_a_small_rig(tmp_path, monkeypatch, capsys):
     """simulate -> reconstruct -> evaluate -> fuse -> mesh (ply, obj, stl) -> preview, with the demo's
-    own code and outputs, on the default rig's geometry with a 320x256 camera (same field of view)
-    and two views."""
+    own code, object (the shipped Spot) and outputs, on the default rig's geometry with a 320x256
+    camera (same field of view) and two views."""
     monkeypatch.setattr(cmd_demo, "simulate_scan", functools.partial(cmd_demo.simulate_scan, rig=small_rig()))
     monkeypatch.setattr(cmd_demo, "DEMO_PATTERNS", {**cmd_demo.DEMO_PATTERNS, **SMALL_CODEC})
     out = tmp_path / "demo"
@@ -36,6 +42,11 @@ def test_demo_runs_the_whole_chain_on_a_small_rig(tmp_path, monkeypatch, capsys)
     scan = load_scan(out / "scan")
     assert scan.rig.camera.width == 320 and len(scan.views) == 2
     assert scan.patterns.angle_steps == 4  # the demo's angle code, kept
+    # The truth mesh is the shipped Spot's, as make_scene places it (80 mm long).
+    truth = o3d.io.read_triangle_mesh(str(out / "scan" / scan.extra["truth"]["mesh"]))
+    spot = scenes.make_scene(scenes.shipped_mesh()[0])
+    assert len(truth.triangles) == len(spot.faces) == 23062
+    np.testing.assert_allclose(np.asarray(truth.vertices).max(axis=0), spot.vertices.max(axis=0), atol=1e-3)
     # Points against the virtual rig's ground truth. A camera pixel of the small rig spans ~0.65 mm at
     # the object (f = 650 px, ~420 mm away); measured: median 0.036 mm, 0.5 % over 1 mm, coverage 99 %.
     ev = json.loads((out / "evaluation.json").read_text())["all"]
@@ -55,6 +66,42 @@ def test_demo_runs_the_whole_chain_on_a_small_rig(tmp_path, monkeypatch, capsys)
     fg = np.any(img != img[0, 0], axis=2)
     assert 0.05 < fg.mean() < 0.9
     assert img[fg].std() > 10
+    # With a scale bar: a round number of mm (Spot is 80 mm long: a fifth of the frame is 10-20 mm),
+    # drawn in black ink in the lower left corner, below the object.
+    assert rep["outputs"]["preview_scale_bar_mm"] in (5.0, 10.0, 20.0)
+    corner = img[-30:, :120]
+    assert (corner.max(axis=2) < 60).sum() > 50
+    # The kernels this run used are in Warp's kernel cache now: a second run announces no compile.
+    cold = uncached_kernel_modules("cpu")
+    assert cold is not None and "ringscan.kernels.raytrace" not in cold and "ringscan.kernels.ring_lines" not in cold
+
+
+def test_the_default_object_is_the_shipped_mesh_with_its_licence():
+    """`ringscan demo` scans Spot, the mesh the package ships; its licence file ships beside it, and
+    pyproject's package-data puts both in the wheel."""
+    args = cmd_demo.add_parser(__import__("argparse").ArgumentParser().add_subparsers()).parse_args([])
+    assert args.scene == cmd_demo.DEMO_SCENE == "spot"
+    mesh, licence = scenes.shipped_mesh(args.scene)
+    assert mesh.name == "spot.obj" and 300_000 < mesh.stat().st_size < 1_000_000  # small: 0.7 MB
+    assert "public domain" in licence.read_text() and "Keenan Crane" in licence.read_text()
+    assert scenes.make_scene("spot").name == "spot"
+    root = Path(__file__).resolve().parents[2]
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    patterns = data["package-data"]["ringscan.pipeline.simulate"]
+    pkg_dir = root / data["package-dir"]["ringscan.pipeline"] / "simulate"
+    for f in (mesh, licence):
+        rel = f.resolve().relative_to(pkg_dir.resolve()).as_posix()
+        assert any(fnmatch.fnmatch(rel, p) for p in patterns), rel
+
+
+def test_a_cold_kernel_cache_is_announced_before_compiling(tmp_path, monkeypatch, capsys):
+    """An empty Warp kernel cache (a first run): one line names the compile and its expected time;
+    the check itself compiles nothing."""
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    cmd_demo._announce_kernel_compile("cpu")
+    line = capsys.readouterr().out
+    assert line.startswith("[0/4] first run: compiling") and f"about {cmd_demo.COLD_COMPILE_S} s" in line
+    assert str(tmp_path) in line and not any(tmp_path.iterdir())
 
 
 def test_demo_rejects_no_views(tmp_path, capsys):
