@@ -104,3 +104,17 @@ def test_skip_final_collection_freezes_at_exit_after_later_handlers(tmp_path, mo
     assert (frozen > 1000) if mode == "skip" else frozen == 0
     assert (tmp_path / "finalized").read_text() == "yes"  # weakref.finalize's atexit pass still ran
     assert not Path((tmp_path / "tmp").read_text()).exists()  # the temporary folder was removed
+
+
+def test_uncached_kernel_modules_reads_warps_kernel_cache(tmp_path, monkeypatch):
+    """An empty kernel cache holds none of ringscan's kernel modules (those with kernels: not
+    runtime.py, which has none); checking compiles nothing into it."""
+    import warp as wp
+
+    from ringscan.kernels.runtime import uncached_kernel_modules
+
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    cold = uncached_kernel_modules("cpu")
+    assert {"ringscan.kernels.raytrace", "ringscan.kernels.ring_lines", "ringscan.kernels.triangulation"} <= set(cold)
+    assert "ringscan.kernels.runtime" not in cold
+    assert not any(tmp_path.iterdir())
