@@ -65,14 +65,15 @@ def _native_stderr_to_log():
 KERNEL_PACKAGE = "ringscan.kernels"
 
 
-def uncached_kernel_modules(device: str = "cpu") -> list[str] | None:
+def uncached_kernel_modules(device: str = "cpu", modules=None) -> list[str] | None:
     """The Warp modules of :mod:`ringscan.kernels` that Warp's kernel cache holds no
     compiled binary of for ``device``: those Warp compiles at their first launch
     (seconds each on a CPU; a fresh machine, a new Warp version or changed kernel
     code). Warp keeps each module's binaries in ``<kernel_cache_dir>/wp_<module>_<hash>/``,
     the hash over the module's code and options (block size 1 on a CPU).
 
-    Imports every kernel module (as a scan does anyway); logs nothing.
+    ``modules``: the module names to check (``"raytrace"`` or ``"ringscan.kernels.raytrace"``;
+    None: every one). Imports them (as a scan does anyway); logs nothing.
 
     Returns:
         The module names (empty: all cached), or None where the cache cannot be read
@@ -85,9 +86,10 @@ def uncached_kernel_modules(device: str = "cpu") -> list[str] | None:
     try:
         dev = wp.get_device(resolved)
         package = importlib.import_module(KERNEL_PACKAGE)
+        names = ([f"{KERNEL_PACKAGE}.{i.name}" for i in pkgutil.iter_modules(package.__path__)] if modules is None
+                 else [m if m.startswith(KERNEL_PACKAGE + ".") else f"{KERNEL_PACKAGE}.{m}" for m in modules])
         cold = []
-        for info in pkgutil.iter_modules(package.__path__):
-            name = f"{KERNEL_PACKAGE}.{info.name}"
+        for name in names:
             importlib.import_module(name)
             module = wp.get_module(name)
             if not module.kernels:

@@ -32,9 +32,11 @@ DEMO_SCENE = "spot"
 """The demo's default object: the mesh the package ships (pipeline/simulate/data/spot.obj, with its licence)."""
 DEMO_VIEW = ViewSettings(azimuth_deg=-30.0, elevation_deg=25.0)
 """The preview's view: Spot from the front left, a little above (head, ears, back and legs in sight)."""
-COLD_COMPILE_S = 75
-"""Warp's compile of every ringscan kernel module for the CPU, from an empty kernel cache, on the
-2-core development machine while it ran other work (docs/demo.md): what a first run announces."""
+DEMO_KERNELS = ("raytrace", "angle", "ring_labels", "ring_sampling", "triangulation", "point_filter")
+"""The Warp modules of ringscan.kernels a demo run launches (what Warp compiled into an empty kernel cache)."""
+COLD_COMPILE_S = 30
+"""What compiling them adds to a demo run on the 2-core development machine, measured: 139 s from an
+empty kernel cache against 108 s with it filled (docs/demo.md); a first run announces it."""
 
 
 def add_parser(sub):
@@ -92,14 +94,14 @@ def run(args) -> int:
 
 def _announce_kernel_compile(device) -> None:
     """One line before a first run's Warp compile (a fresh machine, a new Warp or changed kernels):
-    it is silent and takes a minute on two cores; later runs load the kernels from Warp's cache."""
+    it is silent and takes half a minute on two cores; later runs load the kernels from Warp's cache."""
     from ringscan.kernels.runtime import resolve_device, uncached_kernel_modules
 
     try:
         resolved = resolve_device(device)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    cold = uncached_kernel_modules(resolved)
+    cold = uncached_kernel_modules(resolved, DEMO_KERNELS)
     if not cold:
         return
     import warp as wp
