@@ -150,8 +150,9 @@ def _tiff_size(f, head: bytes) -> tuple[int, int] | None:
     return None
 
 
-def _jpeg_size(f) -> tuple[int, int] | None:
-    """Width and height from a JPEG's start-of-frame marker, None when unreadable."""
+def _jpeg_frame_header(f) -> bytes | None:
+    """The first 6 bytes of a JPEG's start-of-frame segment (precision, height, width,
+    components), None when unreadable."""
     f.seek(2)
     for _ in range(10000):
         b = f.read(1)
@@ -169,13 +170,19 @@ def _jpeg_size(f) -> tuple[int, int] | None:
             return None
         length = struct.unpack(">H", raw)[0]
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            seg = f.read(5)
-            if len(seg) != 5:
-                return None
-            h, w = struct.unpack(">HH", seg[1:5])
-            return w, h
+            seg = f.read(6)
+            return seg if len(seg) == 6 else None
         f.seek(length - 2, 1)
     return None
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    """Width and height from a JPEG's start-of-frame marker, None when unreadable."""
+    seg = _jpeg_frame_header(f)
+    if seg is None:
+        return None
+    h, w = struct.unpack(">HH", seg[1:5])
+    return w, h
 
 
 def _tiff_colour(f, head: bytes) -> bool | None:
@@ -207,27 +214,8 @@ def _tiff_colour(f, head: bytes) -> bool | None:
 
 def _jpeg_colour(f) -> bool | None:
     """Whether a JPEG holds more than one component (colour), from its start-of-frame marker; None when unreadable."""
-    f.seek(2)
-    for _ in range(10000):
-        b = f.read(1)
-        while b and b != b"\xff":
-            b = f.read(1)
-        while b == b"\xff":
-            b = f.read(1)
-        if not b:
-            return None
-        marker = b[0]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            continue
-        raw = f.read(2)
-        if len(raw) != 2:
-            return None
-        length = struct.unpack(">H", raw)[0]
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            seg = f.read(6)
-            return None if len(seg) != 6 else seg[5] > 1
-        f.seek(length - 2, 1)
-    return None
+    seg = _jpeg_frame_header(f)
+    return None if seg is None else seg[5] > 1
 
 
 def _bmp_colour(f, head: bytes) -> bool | None:
