@@ -20,8 +20,6 @@ in the frames both ways read.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import shutil
 import sys
@@ -38,18 +36,8 @@ from ringscan.pipeline.calibrate.graycode import graycode_bits  # noqa: E402
 from ringscan.pipeline.formats.images import read_image, write_image  # noqa: E402
 from ringscan.pipeline.formats.ply import read_ply  # noqa: E402
 from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
-from ringscan.tools.cli import main as cli  # noqa: E402
 from tests.pipeline.reconstruct.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms  # noqa: E402
-
-
-def run(*args) -> str:
-    """One ringscan command; its console output (the command must succeed)."""
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        rc = cli([str(a) for a in args])
-    if rc != 0:
-        raise SystemExit(f"ringscan {' '.join(map(str, args))} failed ({rc}):\n{buf.getvalue()}")
-    return buf.getvalue()
+from benchmarks.two_camera_rig import run  # noqa: E402  (one ringscan command, its console output)
 
 
 def misread(render: Path, projector, share: float, seed: int = 1) -> None:
