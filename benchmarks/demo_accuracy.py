@@ -1,6 +1,6 @@
 """``ringscan demo`` at full size, with the accuracy bounds it must meet (was a test).
 
-Runs ``ringscan demo --views N --out DIR`` as a process (the default rig: 1280x1024 camera,
+Runs ``ringscan demo --views N --out DIR`` as a process (its object: Spot, the shipped mesh; the default rig: 1280x1024 camera,
 gray-rings 7 bits at a pitch of 4 px with 9 sector bits and the angle code, 38 frames a view),
 then prints the figures and one line per bound, ``ok`` or ``MISSED``:
 
@@ -18,8 +18,10 @@ Usage::
 
     python benchmarks/demo_accuracy.py [--views 1] [--out DIR] [--device cpu]
 
-One view takes about 25 s on an idle 2-core machine (CPU backend; 45 s while shared with other
-work); docs/demo.md has the 8-view run.
+One view of the sphere (the demo's object before Spot) took about 25 s on an idle 2-core machine
+(CPU backend; 45 s while shared with other work); docs/demo.md has the 6-view run of Spot, whose
+outputs meet every bound here (median 0.0043 mm, 0.000 % over 1 mm, coverage 99.8 %, mesh -> truth
+mean 0.0329 mm, 113374 triangles, preview foreground 9.5 % with std 34.4).
 """
 
 from __future__ import annotations
