@@ -31,7 +31,7 @@ DEMO_PATTERNS = {"codec": "gray-rings", "width": 1024, "height": 768, "center": 
 DEMO_SCENE = "spot"
 """The demo's default object: the mesh the package ships (pipeline/simulate/data/spot.obj, with its licence)."""
 DEMO_VIEW = ViewSettings(azimuth_deg=-30.0, elevation_deg=25.0)
-"""The preview's view: Spot from the front left, a little above (head, ears, back and legs in sight)."""
+"""The preview's view: Spot in three-quarter view, 25 degrees above (head, ears, back and legs in sight)."""
 DEMO_KERNELS = ("raytrace", "angle", "ring_labels", "ring_sampling", "triangulation", "point_filter")
 """The Warp modules of ringscan.kernels a demo run launches (what Warp compiled into an empty kernel cache)."""
 COLD_COMPILE_S = 30
