@@ -6,6 +6,7 @@ bounds is ``python benchmarks/demo_accuracy.py``: about 20 s a view on two cores
 
 from __future__ import annotations
 
+import argparse
 import fnmatch
 import functools
 import json
@@ -82,7 +83,7 @@ def test_demo_runs_the_whole_chain_on_a_small_rig(tmp_path, monkeypatch, capsys)
 def test_the_default_object_is_the_shipped_mesh_with_its_licence():
     """`ringscan demo` scans Spot, the mesh the package ships; its licence file ships beside it, and
     pyproject's package-data puts both in the wheel."""
-    args = cmd_demo.add_parser(__import__("argparse").ArgumentParser().add_subparsers()).parse_args([])
+    args = cmd_demo.add_parser(argparse.ArgumentParser().add_subparsers()).parse_args([])
     assert args.scene == cmd_demo.DEMO_SCENE == "spot"
     mesh, licence = scenes.shipped_mesh(args.scene)
     assert mesh.name == "spot.obj" and 300_000 < mesh.stat().st_size < 1_000_000  # small: 0.7 MB
