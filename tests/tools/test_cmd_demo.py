@@ -10,12 +10,12 @@ import argparse
 import fnmatch
 import functools
 import json
-import tomllib
 from pathlib import Path
 
 import cv2
 import numpy as np
 import open3d as o3d
+import pytest
 import warp as wp
 
 from ringscan.kernels.runtime import uncached_kernel_modules
@@ -89,6 +89,10 @@ def test_the_default_object_is_the_shipped_mesh_with_its_licence():
     assert mesh.name == "spot.obj" and 300_000 < mesh.stat().st_size < 1_000_000  # small: 0.7 MB
     assert "public domain" in licence.read_text() and "Keenan Crane" in licence.read_text()
     assert scenes.make_scene("spot").name == "spot"
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        tomllib = pytest.importorskip("tomli")
     root = Path(__file__).resolve().parents[2]
     data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
     patterns = data["package-data"]["ringscan.pipeline.simulate"]
