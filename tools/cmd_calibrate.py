@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import math
 import os
 from pathlib import Path
 
@@ -848,6 +849,9 @@ def print_refinement(what: str, ref) -> None:
     print(f"  rotation changed by {ref.rotation_change_deg:.3f} deg (+- {ref.rotation_std_deg:.4f}), baseline "
           f"direction by {ref.direction_change_deg:.3f} deg (+- {ref.direction_std_deg:.4f}); baseline "
           f"{ref.baseline_mm:.2f} mm")
+    if math.isfinite(ref.scale_std):
+        print(f"  scale (vergence): +- {100 * ref.scale_std:.2f} % of the depths (a turn of +- {ref.vergence_std_deg:.4f} "
+              "deg about the vergence axis; noise and the spread over the image's quarters)")
     if ref.light_epipolar is not None:
         print(f"  {ref.third or 'projector'} against camera 1 (held): epipolar distance {ref.light_epipolar.line()}")
     if ref.method == "three-device":

@@ -295,6 +295,14 @@ class Refinement:
     adjustment's Jacobian and the matches' residuals (noise only: systematic match errors come on top)."""
     direction_std_deg: float = math.nan
     """... of the baseline direction (degrees)."""
+    vergence_std_deg: float = math.nan
+    """Standard deviation of the rotation about the vergence axis (perpendicular to the baseline and
+    the view), the one that scales depth: the larger of the adjustment's own (noise) and the spread
+    of the pose fitted to each quarter of the image left out (a jackknife: the matches' systematic
+    errors, an unmodelled lens, move it where noise does not)."""
+    scale_std: float = math.nan
+    """What that vergence leaves of the scene's scale: the relative standard deviation of the matches'
+    median depth (vergence in radians x depth / baseline)."""
     loss_scale_px: float = math.nan
     """The robust loss's scale of the last pass (px)."""
     problems: list[str] = field(default_factory=list)
@@ -322,6 +330,7 @@ class Refinement:
                 "rotation_change_deg": self.rotation_change_deg, "direction_change_deg": self.direction_change_deg,
                 "matches_used": self.used, "inliers": self.inliers, "start": self.start,
                 "rotation_std_deg": self.rotation_std_deg, "direction_std_deg": self.direction_std_deg,
+                "vergence_std_deg": self.vergence_std_deg, "scale_std": self.scale_std,
                 "loss_scale_px": self.loss_scale_px, "method": self.method,
                 "light_epipolar_px": None if self.light_epipolar is None else self.light_epipolar.to_dict(),
                 "third_device": self.third or None,
@@ -501,6 +510,55 @@ def _axis_std_deg(cov) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
+MAX_SCALE_STD = 0.002
+"""A refined pair whose matches fix the scene's scale (its vergence) only to more than this
+(0.2 %) says so: two cameras fix their pose only up to a weakly determined vergence."""
+JACKKNIFE_POINTS = 20_000
+"""Matches (evenly drawn) each leave-a-quarter-out fit of the vergence uses."""
+
+
+def _vergence(R, d, cov, p1, p2, n1, K1, K2, base: float, settings: "RefineSettings") -> tuple[float, float]:
+    """(vergence standard deviation in degrees, relative scale standard deviation) of a refined pair.
+
+    The vergence axis is perpendicular to the baseline and to the matches' mean viewing
+    direction (camera 1's frame); a turn about it changes every disparity alike, so the depths
+    scale by (turn x depth / baseline). Its standard deviation is the larger of the adjustment's
+    covariance along it and the jackknife spread of the pose fitted with each quarter of
+    camera 1's image left out."""
+    v = np.c_[n1, np.ones(len(n1))].mean(axis=0)
+    b = -R.T @ d  # camera 2's centre in camera 1's frame, a unit vector
+    axis1 = np.cross(b, v)
+    if not np.linalg.norm(axis1) > 0:
+        return math.nan, math.nan
+    axis1 /= np.linalg.norm(axis1)
+    axis2 = R @ axis1  # the rotation vector's perturbations are in camera 2's frame
+    blk = cov[:3, :3]
+    sd_cov = math.sqrt(max(float(axis2 @ blk @ axis2), 0.0)) if np.all(np.isfinite(blk)) else math.inf
+    n = len(p1)
+    take = np.unique(np.linspace(0, n - 1, min(n, JACKKNIFE_POINTS)).astype(np.int64))
+    q1, q2 = p1[take], p2[take]
+    cx, cy = np.median(q1[:, 0]), np.median(q1[:, 1])
+    quarter = (q1[:, 0] > cx).astype(int) + 2 * (q1[:, 1] > cy).astype(int)
+    turns = []
+    for k in range(4):
+        keep = quarter != k
+        if np.count_nonzero(keep) < settings.min_points:
+            continue
+        Rk, *_ = _adjust(R, d, q1[keep], q2[keep], K1, K2, settings)
+        rv, _ = cv2.Rodrigues(Rk @ R.T)
+        turns.append(float(rv.ravel() @ axis2))
+    sd_jack = math.sqrt(0.75 * np.sum((np.asarray(turns) - np.mean(turns)) ** 2)) if len(turns) == 4 else 0.0
+    sd = max(sd_cov, sd_jack)
+    P1 = K1 @ np.eye(3, 4)
+    P2 = K2 @ np.c_[R, d * base]
+    X = cv2.triangulatePoints(P1, P2, q1.T.astype(np.float64), q2.T.astype(np.float64))
+    z = X[2] / X[3]
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        return math.degrees(sd), math.nan
+    return math.degrees(sd), sd * float(np.median(z)) / base
+
+
 def _robust_cost(R, d, p1, p2, K1, K2, loss: str, scale: float) -> float:
     z = (_sampson(_fundamental(R, d, K1, K2), p1, p2) / scale) ** 2
     rho = {"linear": z, "soft_l1": 2 * (np.sqrt(1 + z) - 1), "huber": np.where(z <= 1, z, 2 * np.sqrt(z) - 1),
@@ -629,6 +687,12 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
                         "a scene; scan an object with more depth, wider in the image")
     if inl < max(settings.min_points, 0.5 * n):
         problems.append(f"only {inl} of {n} matches fit the refined pose within {3 * settings.loss_scale_px:g} px")
+    verg_std, scale_std = _vergence(R, t / np.linalg.norm(t), cov, p1[sub], p2[sub], n1[sub], K1, K2, base, settings)
+    if scale_std > MAX_SCALE_STD:
+        notes.append(f"the matches fix the scene's scale only to +- {100 * scale_std:.2f} % (a turn of "
+                     f"+- {verg_std:.4f} deg about the vergence axis, which two cameras determine weakly): pin it "
+                     "with a known distance in the scene, or refine with the calibrated projector as a third "
+                     "device")
     dirc = math.degrees(math.acos(min(1.0, abs(float(np.dot(t / np.linalg.norm(t), t0 / np.linalg.norm(t0)))))
                                   if np.linalg.norm(t0) > 0 else 1.0))
     out = Refinement(R=R, t=t, R0=R0, t0=t0, baseline_mm=base, epipolar_before=ResidualStats.of(epi0),
@@ -636,7 +700,7 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
                      reprojection_after=ResidualStats.of(rep1), rotation_change_deg=rotation_angle_deg(R @ R0.T),
                      direction_change_deg=dirc, used=int(sub.size), inliers=inl, start=name,
                      rotation_std_deg=float(rot_std.max()), direction_std_deg=float(dir_std.max()),
-                     loss_scale_px=float(scale), problems=problems, method=method, light_epipolar=light_epi,
+                     vergence_std_deg=verg_std, scale_std=scale_std, loss_scale_px=float(scale), problems=problems, method=method, light_epipolar=light_epi,
                      bundle_used=bundle_used, notes=notes, third=third)
     log.info("refine: epipolar median %.3f -> %.3f px; rotation changed %.3f deg (start: %s, %s)",
              out.epipolar_before.median_px, out.epipolar_after.median_px, out.rotation_change_deg, name, method)
