@@ -4,6 +4,7 @@ Sub-commands register themselves: each ``add_<name>_parser(calsub)`` adds one
 sub-command and sets ``_calibrate`` to its run function; :func:`run` dispatches.
 
 - ``camera IMAGES...``: camera intrinsics from chessboard or ChArUco images;
+- ``stereo --cam1 IMAGES... --cam2 IMAGES...``: two cameras and their pose from board image pairs;
 - ``procam CAPTURE_DIR...``: camera + perspective projector from Gray-code captures;
 - ``response CAPTURE_DIR...``: the projector's response curve;
 - ``pose IMAGE``: the camera's pose over the reference plane from a board lying on it;
@@ -78,7 +79,9 @@ from ringscan.pipeline.calibrate.stereo import (
     triangulation_covariance,
     write_opencv_procam,
     write_opencv_stereo,
+    write_opencv_stereo_cameras,
 )
+from ringscan.pipeline.calibrate.stereo_boards import calibrate_stereo_boards
 from ringscan.pipeline.calibrate.response import estimate_light_gamma, repeated_frames, response_problems
 from ringscan.pipeline.calibrate.turntable import (
     TurntableSettings,
@@ -292,16 +295,7 @@ def run_camera(args) -> int:
     if args.rig:
         r = parse_rig(read_json(args.rig), source=args.rig)
         rig_size = (r.camera.width, r.camera.height)
-    views, size = [], None
-    for path in progress_bar(args.images, desc="detecting the board", unit="image", disable=args.no_progress,
-                             leave=False):
-        img = read_image(path)
-        s = (img.shape[1], img.shape[0])
-        if size is None:
-            size = s
-        elif s != size:
-            raise FormatError(path, f"image is {s[0]}x{s[1]}, the first image is {size[0]}x{size[1]}")
-        views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
+    views, size = _detect_all(args.images, board, bs, None, args.no_progress)
     print(f"board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} images:")
     print_views(views)
     with progress_step("fitting the camera", enabled=not args.no_progress):
@@ -333,6 +327,79 @@ def run_camera(args) -> int:
         cam.update(block)
         save_rig(args.rig, parse_rig(d, source=args.rig))
         print(f"updated the camera of {args.rig}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- stereo
+
+
+def add_stereo_parser(calsub) -> None:
+    p = calsub.add_parser("stereo", help="two cameras' intrinsics and relative pose from board image pairs",
+                          description="Calibrates each camera from its board images (as calibrate camera does), "
+                                      "then the pair's pose from the pairs in which both cameras found the board "
+                                      "(OpenCV's stereoCalibrate, intrinsics held). Writes the pair as OpenCV "
+                                      "FileStorage in the layout of OpenCV's structured-light sample (what "
+                                      "ringscan import --rig reads).")
+    p.add_argument("--cam1", nargs="+", required=True, metavar="IMAGE",
+                   help="camera 1's board images, in the order of the pairs")
+    p.add_argument("--cam2", nargs="+", required=True, metavar="IMAGE",
+                   help="camera 2's board images of the same board poses, in the same order")
+    add_board_options(p)
+    add_fit_options(p)
+    p.add_argument("--out", required=True, metavar="YML",
+                   help="the pair as OpenCV FileStorage (.yml/.yaml/.xml; cam1_intrinsics ... R, T)")
+    p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
+    add_force_option(p)
+    p.set_defaults(_calibrate=run_stereo)
+
+
+def _detect_all(paths, board, bs, what: str | None, no_progress: bool):
+    """(detections, image size) of the board in every image (of one camera: ``what``, for messages)."""
+    views, size = [], None
+    for path in progress_bar(paths, desc="detecting the board" + (f" ({what})" if what else ""), unit="image",
+                             disable=no_progress, leave=False):
+        img = read_image(path)
+        s = (img.shape[1], img.shape[0])
+        if size is None:
+            size = s
+        elif s != size:
+            first = f"{what}'s first image" if what else "the first image"
+            raise FormatError(path, f"image is {s[0]}x{s[1]}, {first} is {size[0]}x{size[1]}")
+        views.append(detect_board(img, board=board, name=view_name(path), settings=bs))
+    return views, size
+
+
+def run_stereo(args) -> int:
+    if len(args.cam1) != len(args.cam2):
+        raise UsageError(f"--cam1 has {len(args.cam1)} images, --cam2 {len(args.cam2)}: give them in pairs "
+                         "(the same board pose, in the same order)")
+    if Path(args.out).suffix.lower() not in (".yml", ".yaml", ".xml"):
+        raise UsageError(f"--out {args.out}: OpenCV FileStorage needs .yml, .yaml or .xml")
+    board = board_from_args(args)
+    bs = board_settings_from_args(args)
+    check_outputs({"--out": args.out, "--report": args.report}, [*args.cam1, *args.cam2])
+    cs = camera_settings_from_args(args)
+    v1, size1 = _detect_all(args.cam1, board, bs, "camera 1", args.no_progress)
+    v2, size2 = _detect_all(args.cam2, board, bs, "camera 2", args.no_progress)
+    for what, views in (("camera 1", v1), ("camera 2", v2)):
+        print(f"{what}: board {board.cols}x{board.rows} found in {sum(v.found for v in views)} of {len(views)} "
+              "images:")
+        print_views(views)
+    with progress_step("fitting the cameras and their pose", enabled=not args.no_progress):
+        cal = calibrate_stereo_boards(v1, v2, board=board, size1=size1, size2=size2, settings=cs)
+    print_calibration("camera 1", cal.camera1)
+    print_calibration("camera 2", cal.camera2)
+    rot = math.degrees(float(np.linalg.norm(cv2.Rodrigues(cal.R)[0])))
+    print(f"pair: RMS reprojection error {cal.rms:.3f} px over {len(cal.pairs)} pairs; baseline {cal.baseline:.2f} "
+          f"(board units: mm when --square is); cameras turned {rot:.2f} deg from each other")
+    for n, e in zip(cal.pairs, cal.per_pair):
+        print(f"  {n}: {e:.3f} px")
+    refuse_unless_forced(args, cal.problems, args.out)
+    write_opencv_stereo_cameras(args.out, *cal.cameras())
+    print(f"wrote {args.out} (import with: ringscan import CAPTURE --rig {args.out} --projector WxH)")
+    if args.report:
+        atomic_write_json(args.report, cal.report())
+        print(f"wrote {args.report}")
     return 0
 
 

@@ -60,7 +60,7 @@ from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 __all__ = ["RefineSettings", "ResidualStats", "Refinement", "refine_extrinsics", "refine_procam_rig",
            "refine_stereo_rig", "relative_pose", "ProjectorSettings", "ProjectorFit", "fit_projector",
            "triangulate_pair", "procam_rig_from_fit", "DISTORTION_CHOICES", "triangulation_covariance",
-           "epipolar_distances", "reprojection_errors", "write_opencv_procam", "write_opencv_stereo",
+           "epipolar_distances", "reprojection_errors", "write_opencv_procam", "write_opencv_stereo", "write_opencv_stereo_cameras",
            "rotation_angle_deg", "decoded_pairs"]
 
 log = logging.getLogger(__name__)
@@ -1447,6 +1447,11 @@ def write_opencv_stereo(path, rig: Rig) -> None:
     c1, c2 = rig.camera, getattr(rig, "camera2", None)
     if c2 is None:
         raise CalibrationError(path, "the rig has one camera; OpenCV's stereo layout needs two")
+    write_opencv_stereo_cameras(path, c1, c2)
+
+
+def write_opencv_stereo_cameras(path, c1, c2) -> None:
+    """Two cameras (``Camera``: K, dist, size, world pose) as :func:`write_opencv_stereo` writes a rig's. Atomic."""
     R, T = relative_pose(c1, c2)
 
     def write(fs):
