@@ -123,6 +123,9 @@ BLOCKS = [
           "needs your captures from OpenCV's structured-light sample (data/: not in ../shared); the same commands "
           "run on virtual captures in OpenCV's layout in tests/pipeline/calibrate/test_import_opencv_sample.py "
           "and benchmarks/opencv_sample_virtual.py"),
+    Block("docs/calibration.md", "ringscan calibrate stereo --cam1 left/*.png --cam2 right/*.png", "no",
+          "needs your two cameras' photos of a board (left/, right/); the same command runs on rendered ChArUco "
+          "pairs of a known rig in tests/tools/test_cmd_calibrate_stereo_boards.py"),
     Block("docs/calibration.md", "ringscan calibrate refine scan --out rig_refined.json", "script",
           "minutes (a two-camera scan rendered at full size, both cameras decoded and matched); `scan` is your "
           "two-camera scan: here the virtual rig's (`ringscan simulate --camera2 --light perspective`)",
