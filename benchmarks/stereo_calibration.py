@@ -168,6 +168,7 @@ def real(data: Path) -> None:
 
 
 def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = True) -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.support, which it imports
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
     from two_camera_scan import simulate_two_camera_scan, two_camera_rig
 

@@ -35,6 +35,19 @@ def _restore_log_levels():
         logging.getLogger(n).setLevel(lv)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _shared_renders(request, tmp_path_factory):
+    """The folder where this session's processes share their renders (tests/support/shared_renders.py):
+    under pytest-xdist the workers' common base temporary folder (each worker's is a folder in it, made
+    afresh for each session), else this process's own."""
+    from tests.support.shared_renders import share_renders_in
+
+    base = tmp_path_factory.getbasetemp()
+    share_renders_in((base.parent if hasattr(request.config, "workerinput") else base) / "shared_renders")
+    yield
+    share_renders_in(None)
+
+
 @pytest.fixture(params=_devices())
 def device(request) -> str:
     """Every kernel test runs on "cpu", and on "cuda:0" where a GPU is present."""

@@ -27,11 +27,40 @@ three board poses is known to a few px, not tenths)."""
 
 
 @pytest.fixture(scope="module")
-def procam(shared_data):
+def boards_found_once():
+    """While this module's tests run, ``calibrate camera`` and ``calibrate pose`` look for the board in each image
+    once (their detect_board remembered by the image's pixels, the board, the name and the settings): the tests
+    give the same few images many times over (capture_1..3's white frames; the twelve wide-lens images, to two
+    lens models), and what the commands do with the corners (their checks, fits and messages) still runs every
+    time. Each call gets its own copy of the view. tests/pipeline/calibrate/test_board.py covers the detection."""
+    import hashlib
+
+    from ringscan.tools import cmd_calibrate
+
+    found = {}
+    detect = cmd_calibrate.detect_board
+
+    def detect_once(image, **kw):
+        img = np.ascontiguousarray(image)
+        key = (hashlib.sha1(img.tobytes()).hexdigest(), img.shape, str(img.dtype), repr(sorted(kw.items())))
+        if key not in found:
+            found[key] = detect(image, **kw)
+        v = found[key]
+        return dataclasses.replace(v, corners=None if v.corners is None else v.corners.copy(),
+                                   ids=None if v.ids is None else v.ids.copy())
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cmd_calibrate, "detect_board", detect_once)
+        yield
+
+
+@pytest.fixture(scope="module")
+def procam(shared_data, boards_found_once):
     """The captures; while this module's tests run, ``calibrate procam`` decodes each capture folder once (its
     read_capture and capture_corners remembered by their inputs): the tests give capture_1..3 ten times over,
     and what the command does with the corners (its checks, fits and messages) still runs every time.
-    tests/pipeline/calibrate/test_procam_real.py covers the decoding itself."""
+    tests/pipeline/calibrate/test_procam_real.py covers the decoding itself. The board is looked for once in
+    each image too (:func:`boards_found_once`)."""
     import os
 
     from ringscan.tools import cmd_calibrate
@@ -599,7 +628,7 @@ def wide_images(tmp_path_factory):
     return out
 
 
-def test_camera_rational_lens_model_recovers_a_wide_lens(tmp_path, wide_images, capsys):
+def test_camera_rational_lens_model_recovers_a_wide_lens(tmp_path, wide_images, boards_found_once, capsys):
     base = ["calibrate", "camera", *wide_images, "--square", "30", "--charuco", "DICT_5X5_100", "--no-progress"]
     assert main([*base, "--out", str(tmp_path / "standard.json")]) == 0
     r = default_rig()

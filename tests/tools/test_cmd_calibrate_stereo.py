@@ -125,10 +125,12 @@ def test_refine_a_procam_scan_brings_the_camera_back(procam_scan, tmp_path, caps
     bad = tmp_path / "bad.json"
     save_rig(bad, Rig(camera=turned(cam1, 2.0), light=proj, volume=VOLUME))
     out = tmp_path / "fixed.json"
+    # 20000 of the scan's decoded pixels (960x640; the default takes 200000): measured 1e-4 deg, 0.006 mm and
+    # 0.007 px after, the bounds below 50x that; the subsample's own path (a seeded random subset) runs too
     assert main(["calibrate", "refine", str(procam_scan), "--rig", str(bad), "--out", str(out),
-                 "--report", str(tmp_path / "rep.json"), "-q"]) == 0
+                 "--report", str(tmp_path / "rep.json"), "--max-matches", "20000", "-q"]) == 0
     text = capsys.readouterr().out
-    assert "camera against the projector" in text and "epipolar distance  before" in text
+    assert "camera against the projector: 20000 matches used" in text and "epipolar distance  before" in text
     rig = load_rig(out)
     assert rotation_angle_deg(rig.camera.R @ cam1.R.T) < 0.01
     assert np.linalg.norm(rig.camera.center - cam1.center) < 0.5

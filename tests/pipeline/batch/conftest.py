@@ -9,6 +9,7 @@ from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.simulate.scan import simulate_scan
 from tests.pipeline.reconstruct.test_reconstruct import small_rig
 from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
+from tests.support.shared_renders import shared_render
 
 SPEC = TINY_PATTERNS
 """The projected patterns: 16 frames; the projector's frames at 256x192 render in a fraction of the time of
@@ -21,8 +22,15 @@ def batch_rig():
 
 
 def simulate_batch_scan(folder, scene="sphere", turntable_deg=(0.0,)):
-    return simulate_scan(folder, scene=scene, size_mm=80.0, rig=batch_rig(), patterns=parse_patterns(SPEC),
-                         turntable_deg=turntable_deg, progress=False)
+    """Write the batch scan of ``scene`` into ``folder`` (rendered once per test session for the same
+    arguments, tests/support/shared_renders.py: each batch test module's process asks for them)."""
+    turntable_deg = tuple(float(a) for a in turntable_deg)
+
+    def render(dst):
+        simulate_scan(dst, scene=scene, size_mm=80.0, rig=batch_rig(), patterns=parse_patterns(SPEC),
+                      turntable_deg=turntable_deg, progress=False)
+
+    shared_render(folder, "batch", (scene, turntable_deg), render)
 
 
 @pytest.fixture(scope="package")

@@ -7,14 +7,14 @@ import json
 
 import pytest
 
-from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.evaluate.metrics import evaluate_view
 from ringscan.pipeline.formats.patterns import parse_patterns
-from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
-from tests.pipeline.codecs.test_phase_rings import crop_rig
+from tests.pipeline.codecs.test_phase_rings import PROJ, crop_rig
 
-GRAY = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 2.0,
-        "bits": 7, "sector_bits": 6}
+GRAY = {"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 2.0, "bits": 7, "sector_bits": 6}
+"""On crop_rig's projector window (test_phase_rings.WINDOW: the camera's frames are the whole projector's)."""
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +26,9 @@ def medians(tmp_path_factory):
         rig = dataclasses.replace(rig, light=dataclasses.replace(rig.light, gamma=light_gamma))
         spec = parse_patterns({**GRAY, "precompensated_gamma": pre})
         scan = simulate_scan(d / name, scene="sphere", rig=rig, patterns=spec, progress=False)
-        rep = reconstruct_scan(scan, d / f"rec_{name}", progress=False)
-        ev = evaluate_recon(d / f"rec_{name}", scan)["views"]["view_000"]
-        out[name] = (ev["median_mm"], rep["views"][0]["points"])
+        cloud = reconstruct_view(scan, scan.views[0])  # reconstruct_scan's points, in memory (no PLY round trip)
+        ev = evaluate_view(scan, "view_000", cloud.points, sigma=cloud.sigma)
+        out[name] = (ev["median_mm"], cloud.stats["points"])
     return out
 
 

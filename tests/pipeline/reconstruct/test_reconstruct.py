@@ -45,8 +45,9 @@ def test_small_scan_truth(small_scan, tmp_path):
     assert a["median_mm"] < 0.05, a  # camera pixels of 0.65 mm here
     assert a["frac_over_1mm"] < 0.003, a
     ply = read_ply(tmp_path / "rec" / "view_001.ply")
-    assert set(ply) >= {"x", "y", "z", "ring", "rho", "view", "confidence", "u", "v"}
+    assert set(ply) >= {"x", "y", "z", "ring", "rho", "view", "confidence", "u", "v", "sigma"}
     assert np.all(ply["view"] == 1) and np.all((ply["ring"] >= 1) & (ply["ring"] < 32))
+    assert np.all(ply["sigma"] > 0) and np.median(ply["sigma"]) < 0.1  # mm: each point's predicted sigma
     assert np.allclose(ply["rho"], 8.0 + 16.0 * ply["ring"])
     settings = read_json(tmp_path / "rec" / "settings.json")
     assert settings["decode"]["bit_margin"] > 0 and rep["settings"] == settings
@@ -205,13 +206,15 @@ def five_lens_error(tmp_path_factory):
     return get
 
 
-@pytest.mark.parametrize("device,lens", [("camera", k) for k in sorted(WIDE_LENS)] +
-                         [("light", k) for k in sorted(PROJECTOR_LENS)])
+@pytest.mark.parametrize("device,lens", [("camera", "thin-prism"), ("light", "thin-prism")])
 def test_a_rational_lens_is_as_accurate_as_a_five_coefficient_one(tmp_path, device, lens, five_lens_error):
-    """The same scene through the small rig's 5-coefficient lens and through a wide rational (8) or
-    thin-prism (12) lens, on the camera or on a perspective projector: the points are as accurate
-    (median error to the truth within 15 % and as few over 1 mm); read with its first 5 coefficients
-    alone the scan is far off (the terms are used)."""
+    """The same scene through the small rig's 5-coefficient lens and through a wide thin-prism (12) lens, on the
+    camera or on a perspective projector: the points are as accurate (median error to the truth within 15 % and
+    as few over 1 mm); read with its first 5 coefficients alone the scan is far off (the terms are used).
+    The thin-prism lenses are the rational ones (8 coefficients) and s1..s4: every term runs here. The rational
+    lenses alone, on both devices, are benchmarks/acceptance.py's rational-lenses case (the default rig at full
+    size; measured 1.01x and 0.98x the 5-coefficient median); tests/kernels/test_geometry.py checks the
+    8-coefficient model against OpenCV's projection."""
     import shutil
 
     wide_dist = (WIDE_LENS if device == "camera" else PROJECTOR_LENS)[lens]

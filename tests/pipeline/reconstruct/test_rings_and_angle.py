@@ -1,16 +1,17 @@
 """Rings and angle together, end to end on the virtual rig: the angle code's frames
 are rendered, decoded and triangulated with the ring; the points fill the bands
-where the ring alone is blind, and their predicted sigma is in the PLY."""
+where the ring alone is blind, and each has its predicted sigma (the PLY's ``sigma``:
+test_reconstruct.py's test_small_scan_truth reads it back)."""
 
 import numpy as np
 import pytest
 
 from ringscan.kernels.triangulation import TriangulateSettings
-from ringscan.pipeline.evaluate.metrics import evaluate_recon
+from ringscan.pipeline.evaluate.metrics import evaluate_view
 from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
-from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
 from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
 from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
@@ -18,6 +19,14 @@ from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
 
 def _settings(constraint):
     return ReconstructSettings(triangulate=TriangulateSettings(constraint=constraint))
+
+
+def _view(scan, constraint=None):
+    """The view's cloud (its ``stats``: reconstruct_scan's view report) and its figures against the truth
+    (evaluate_recon's for the view), in memory: the PLY written and read back is not what these tests are about
+    (test_reconstruct.py's are)."""
+    cloud = reconstruct_view(scan, scan.views[0], settings=_settings(constraint) if constraint else ReconstructSettings())
+    return cloud, evaluate_view(scan, scan.views[0].name, cloud.points, sigma=cloud.sigma)
 
 
 @pytest.fixture(scope="module", params=["gray-rings", "phase-rings"])
@@ -29,10 +38,10 @@ def angle_scan(request, tmp_path_factory):
                          progress=False)
 
 
-def test_both_coordinates_fill_the_blind_bands(angle_scan, tmp_path):
-    both = reconstruct_scan(angle_scan, tmp_path / "both", progress=False)
-    rings = reconstruct_scan(angle_scan, tmp_path / "rings", settings=_settings("rings"), progress=False)
-    vb, vr = both["views"][0], rings["views"][0]
+def test_both_coordinates_fill_the_blind_bands(angle_scan):
+    both, eb = _view(angle_scan)
+    rings, er = _view(angle_scan, "rings")
+    vb, vr = both.stats, rings.stats
     assert vb["constraint"] == "both" and vr["constraint"] == "rings"
     assert vb["angle_decoded"] > 0.95 * vb["samples"]
     # rings alone drop grazing and ambiguous roots; both coordinates keep them
@@ -40,22 +49,17 @@ def test_both_coordinates_fill_the_blind_bands(angle_scan, tmp_path):
     assert vb["dropped"]["grazing"] + vb["dropped"]["ambiguous"] + vb["dropped"]["ill_conditioned"] \
         < 0.2 * (vr["dropped"]["grazing"] + vr["dropped"]["ambiguous"])
     assert vb["points"] > vr["points"]
-    rb = evaluate_recon(tmp_path / "both", angle_scan)
-    rr = evaluate_recon(tmp_path / "rings", angle_scan)
-    eb, er = rb["all"], rr["all"]
-    assert rb["views"]["view_000"]["coverage"] > rr["views"]["view_000"]["coverage"]
+    assert eb["coverage"] > er["coverage"]
     assert eb["median_mm"] < 1.15 * er["median_mm"]
     assert eb["frac_over_1mm"] < 0.003
     # the virtual rig fits its own images: no calibration floor
     assert not vb["calibration"]["floor_applied"] and vb["calibration"]["residual_px_median"] < 0.2
-    ply = read_ply(tmp_path / "both" / "view_000.ply")
-    assert np.all(ply["sigma"] > 0) and np.median(ply["sigma"]) < 0.1  # mm, camera pixels of 0.65 mm
+    assert np.all(both.sigma > 0) and np.median(both.sigma) < 0.1  # mm, camera pixels of 0.65 mm (the PLY's sigma)
 
 
-def test_angle_alone_places_points_too(angle_scan, tmp_path):
-    rep = reconstruct_scan(angle_scan, tmp_path / "angle", settings=_settings("angle"), progress=False)
-    e = evaluate_recon(tmp_path / "angle", angle_scan)["all"]
-    assert rep["views"][0]["points"] > 0.5 * rep["views"][0]["samples"]
+def test_angle_alone_places_points_too(angle_scan):
+    cloud, e = _view(angle_scan, "angle")
+    assert cloud.stats["constraint"] == "angle" and cloud.stats["points"] > 0.5 * cloud.stats["samples"]
     assert e["median_mm"] < 0.2
 
 

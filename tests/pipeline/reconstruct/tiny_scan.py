@@ -4,11 +4,7 @@ reconstructed in about a second, for tests of files, folders and reports."""
 
 from __future__ import annotations
 
-import atexit
 import dataclasses
-import shutil
-import tempfile
-from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +12,7 @@ from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, default_rig
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
+from tests.support.shared_renders import shared_render
 
 TINY_PATTERNS = {"codec": "gray-rings", "width": 256, "height": 192, "center": [127.5, 95.5], "rho0": 4.0,
                  "pitch": 3.0, "bits": 3, "sector_bits": 4}
@@ -32,21 +29,17 @@ def tiny_rig():
                             width=256, height=192))
 
 
-_RENDERED: dict = {}
-"""Turntable angles -> the tiny scan rendered once in this process (the renders are deterministic)."""
-
-
 def simulate_tiny_scan(folder, *, turntable_deg=(0.0,)):
     """Write the tiny scan into ``folder``; returns the loaded scan.
 
-    The virtual rig renders it once per process and set of angles; every call gets its own copy (tests
-    change their scan's files), byte for byte what a render into ``folder`` writes."""
+    The virtual rig renders it once per test session and set of angles (tests/support/shared_renders.py);
+    every call gets its own copy (tests change their scan's files), byte for byte what a render into
+    ``folder`` writes."""
     key = tuple(float(a) for a in turntable_deg)
-    if key not in _RENDERED:
-        master = Path(tempfile.mkdtemp(prefix="ringscan_tiny_")) / "scan"
-        atexit.register(shutil.rmtree, master.parent, True)
-        simulate_scan(master, scene="sphere", size_mm=40.0, rig=tiny_rig(), patterns=parse_patterns(TINY_PATTERNS),
+
+    def render(dst):
+        simulate_scan(dst, scene="sphere", size_mm=40.0, rig=tiny_rig(), patterns=parse_patterns(TINY_PATTERNS),
                       turntable_deg=key, progress=False)
-        _RENDERED[key] = master
-    shutil.copytree(_RENDERED[key], folder, dirs_exist_ok=True)
+
+    shared_render(folder, "tiny", key, render)
     return load_scan(folder)

@@ -19,6 +19,7 @@ from ringscan.pipeline.geometry import project_points
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.truth import load_truth
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+from tests.support.shared_renders import shared_render
 
 PROJ = {"width": 1024, "height": 768, "center": [511.5, 383.5]}
 ANGLE_PATTERNS = {"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 5, "sector_bits": 6,
@@ -43,9 +44,18 @@ def two_camera_rig(*, turn_deg: float = 70.0):
 def simulate_two_camera_scan(folder, *, patterns=None, rig=None, uncalibrated: bool = False,
                              turntable_deg=(0.0,), seed: int = 0):
     """Write a two-camera scan of a 80 mm sphere into ``folder``; returns it loaded
-    (``seed``: the renderings' noise, camera 1's ``seed``, camera 2's ``seed + 7``)."""
+    (``seed``: the renderings' noise, camera 1's ``seed``, camera 2's ``seed + 7``). Rendered once per
+    test session for the same arguments (tests/support/shared_renders.py); each call gets its own copy."""
     rig = two_camera_rig() if rig is None else rig
-    spec = parse_patterns(ANGLE_PATTERNS if patterns is None else patterns)
+    patterns = ANGLE_PATTERNS if patterns is None else patterns
+    turntable_deg = tuple(float(a) for a in turntable_deg)
+    shared_render(folder, "two_camera", (patterns, rig, uncalibrated, turntable_deg, seed),
+                  lambda dst: _render_two_camera_scan(dst, patterns, rig, uncalibrated, turntable_deg, seed))
+    return load_scan(folder)
+
+
+def _render_two_camera_scan(folder, patterns, rig, uncalibrated, turntable_deg, seed):
+    spec = parse_patterns(patterns)
     one = dataclasses.replace(rig, camera2=None)
     scan1 = simulate_scan(folder, scene="sphere", rig=one, patterns=spec, turntable_deg=turntable_deg,
                           progress=False, settings=RenderSettings(seed=seed))
@@ -66,7 +76,6 @@ def simulate_two_camera_scan(folder, *, patterns=None, rig=None, uncalibrated: b
     full = rig if not uncalibrated else dataclasses.replace(
         rig, light=UncalibratedLight(width=rig.light.width, height=rig.light.height, gamma=rig.light.gamma))
     save_scan(dataclasses.replace(scan1, rig=full, rig_ref=None, views=tuple(views)))
-    return load_scan(folder)
 
 
 def _decoded_maps(rig, depth, lit, *, integer: bool):
@@ -93,7 +102,14 @@ def _decoded_maps(rig, depth, lit, *, integer: bool):
 def simulate_decoded_two_camera_scan(folder, *, integer: bool = True):
     """A ``decoded`` two-camera scan (every pixel's projector coordinate, as an
     imported Gray code gives it: integer codes by default) of the 80 mm sphere,
-    made from the virtual rig's truth depth of each camera; returns it loaded."""
+    made from the virtual rig's truth depth of each camera; returns it loaded. Made once per test
+    session for each ``integer`` (tests/support/shared_renders.py); each call gets its own copy."""
+    shared_render(folder, "decoded_two_camera", bool(integer),
+                  lambda dst: _render_decoded_two_camera_scan(dst, integer=integer))
+    return load_scan(folder)
+
+
+def _render_decoded_two_camera_scan(folder, *, integer: bool):
     from ringscan.pipeline.formats.images import write_image
     from ringscan.pipeline.formats.patterns import DECODED_SCALE
     from ringscan.pipeline.simulate.truth import load_truth
@@ -128,7 +144,6 @@ def simulate_decoded_two_camera_scan(folder, *, integer: bool = True):
     view = View(name=v1.name, turntable_deg=v1.turntable_deg, frames=frames["1"],
                 camera2=View(name=v1.name, turntable_deg=v1.turntable_deg, frames=frames["2"]))
     save_scan(dataclasses.replace(scan1, rig=rig, rig_ref=None, patterns=spec, views=(view,)))
-    return load_scan(folder)
 
 
 def true_uv2(scan, m):
