@@ -89,12 +89,6 @@ def add_parser(sub):
                         "light geometry; mitsuba: Mitsuba 3's path tracer, an independent renderer that only reads "
                         "the rig (inverse-square fall-off, inter-reflections; needs pip install 'ringscan[mitsuba]'; "
                         "--device does not apply; docs/virtual_rig.md)")
-    m.add_argument("--spp", type=int, default=None,
-                   help="Mitsuba only: samples per canvas texel, S x S texels a pixel with S = --supersample "
-                        "(default 4)")
-    m.add_argument("--max-depth", type=int, default=None,
-                   help="Mitsuba only: longest light path, 2 = direct light only, 3 adds one bounce between "
-                        "surfaces, -1 = unlimited (default 3)")
     add_device_option(p)
     return p
 
@@ -184,11 +178,9 @@ def _gamma(g: float) -> float:
 
 
 def _mitsuba_settings(args):
-    """MitsubaSettings of --spp/--max-depth for --renderer mitsuba, None for warp (where they are an error)."""
-    given = [o for o, v in (("--spp", args.spp), ("--max-depth", args.max_depth)) if v is not None]
+    """MitsubaSettings (its defaults: 4 samples a texel, one bounce; MitsubaSettings in Python for others) for
+    --renderer mitsuba, None for warp."""
     if args.renderer != "mitsuba":
-        if given:
-            raise UsageError(f"{given[0]} applies to --renderer mitsuba only")
         return None
     if args.captures != "scan":
         raise UsageError("--renderer mitsuba renders scan folders only (--captures scan); OpenCV Gray-code "
@@ -197,16 +189,7 @@ def _mitsuba_settings(args):
 
     if not mitsuba_available():
         raise MitsubaMissing()
-    d = MitsubaSettings()
-    try:
-        return MitsubaSettings(spp=d.spp if args.spp is None else args.spp,
-                               max_depth=d.max_depth if args.max_depth is None else args.max_depth)
-    except ValueError as e:  # the option's name, not the field's
-        field, _, msg = str(e).partition(": ")
-        opt = {"MitsubaSettings.spp": "--spp", "MitsubaSettings.max_depth": "--max-depth"}.get(field)
-        if opt is None:
-            raise
-        raise UsageError(f"{opt}: {msg}") from None
+    return MitsubaSettings()
 
 
 def run(args) -> int:

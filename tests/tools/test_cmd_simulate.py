@@ -145,14 +145,13 @@ def test_simulate_cli_mitsuba_writes_the_scan_and_truth_of_warp(tmp_path, capsys
     base = ["simulate", "--scene", "cube", "--size-mm", "40", "--rig", str(rig), "--bits", "2", "--rho0", "4",
             "--pitch", "3", "--sector-bits", "0", "--angle-steps", "0", "--supersample", "1", "--no-progress"]
     assert main(base + ["--out", str(tmp_path / "warp"), "--device", "cpu"]) == 0
-    assert main(base + ["--out", str(tmp_path / "mi"), "--renderer", "mitsuba", "--spp", "1",
-                        "--max-depth", "2"]) == 0
+    assert main(base + ["--out", str(tmp_path / "mi"), "--renderer", "mitsuba"]) == 0
     assert "(Mitsuba " in capsys.readouterr().out
     assert _relative_files(tmp_path / "mi") == _relative_files(tmp_path / "warp")
     doc = read_json(tmp_path / "mi" / "scan.json")["truth"]
-    assert doc["renderer"]["name"] == "mitsuba" and doc["renderer"]["spp"] == 1
+    assert doc["renderer"]["name"] == "mitsuba" and doc["renderer"]["spp"] == 4
     assert doc["renderer"]["variant"] in ("llvm_ad_rgb", "scalar_rgb") and doc["renderer"]["parallel_distance_mm"] == 1e8
-    assert doc["renderer"]["max_depth"] == 2 and "renderer" not in read_json(tmp_path / "warp" / "scan.json")["truth"]
+    assert doc["renderer"]["max_depth"] == 3 and "renderer" not in read_json(tmp_path / "warp" / "scan.json")["truth"]
     tw, tm = load_truth(tmp_path / "warp"), load_truth(tmp_path / "mi")
     dw, dm = tw.depth("view_000"), tm.depth("view_000")
     assert np.array_equal(np.isfinite(dw), np.isfinite(dm)) and np.isfinite(dw).all()
@@ -163,15 +162,11 @@ def test_simulate_cli_mitsuba_writes_the_scan_and_truth_of_warp(tmp_path, capsys
 
 
 def test_simulate_cli_mitsuba_errors(tmp_path, capsys, monkeypatch):
-    """Mitsuba's options without it, OpenCV captures with it, bad values, Mitsuba not installed: one
+    """OpenCV captures with Mitsuba, Mitsuba not installed: one
     line each, nothing written."""
     rig = _small_rig_file(tmp_path / "rig.json")
     base = ["simulate", "--scene", "cube", "--size-mm", "30", "--rig", str(rig), "--no-progress"]
-    cases = [(["--spp", "8"], "--spp applies to --renderer mitsuba only", 2),
-             (["--max-depth", "4"], "--max-depth applies to --renderer mitsuba only", 2),
-             (["--renderer", "mitsuba", "--captures", "opencv-graycode"], "scan folders only", 2),
-             (["--renderer", "mitsuba", "--spp", "0"], "--spp: must be in 1..4096, got 0", 2),
-             (["--renderer", "mitsuba", "--max-depth", "1"], "--max-depth: must be -1 (unlimited)", 2)]
+    cases = [(["--renderer", "mitsuba", "--captures", "opencv-graycode"], "scan folders only", 2)]
     for k, (args, msg, code) in enumerate(cases):
         out = tmp_path / f"o{k}"
         assert main(base + args + ["--out", str(out)]) == code, args
