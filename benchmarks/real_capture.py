@@ -1,0 +1,337 @@
+"""Issue 33's figures: a real-capture-sized two-camera Gray-code scan through ringscan and through OpenCV's sample.
+
+The capture is virtual (the issue's statue, OpenCV's structured-light sample data, is not in
+../shared) but of its size: two 1920x1280 cameras and a projector (the virtual rig of
+benchmarks/opencv_sample_virtual.py, ``small_stereo_rig`` of the tests, its cameras 6 times
+larger and cropped to 1280 rows, its projector 6 times larger: 768x576), a sphere on a plane,
+``simulate --captures opencv-graycode``; rendered once into ``--work DIR`` and reused.
+
+Then, paired and interleaved in one run (``--rounds`` rounds, the median of each figure):
+
+1. ringscan, two cameras (camera to camera): ``ringscan import capture_0.yml --rig
+   calibrationParameters.yml --projector-rig procam.yml`` then ``reconstruct --rays camera-camera``;
+2. ringscan, one camera and the calibrated projector: ``reconstruct --rays camera-projector`` of the
+   same import;
+3. OpenCV's own sample pipeline on the same captures (what OpenCV's ``structured_light``
+   sample does): read the frames, ``stereoRectify`` + ``initUndistortRectifyMap`` + ``remap``
+   (nearest, as the sample), ``cv2.structured_light.GrayCodePattern.decode`` (white threshold 5,
+   black threshold 40) and ``reprojectImageTo3D``. Where the OpenCV build lacks
+   ``cv2.structured_light`` (it is in opencv-contrib-python-headless, the project's dependency),
+   the decode is a NumPy re-implementation of the same steps (the bits from pattern/inverse
+   pairs, the shadow mask from white - black, the Gray code to binary, the disparity of a
+   projector pixel's camera 1 and camera 2 pixels' mean columns), and the benchmark says so.
+
+It prints per stage (report.json ``times_s``, the import's wall time) microseconds a sample and
+samples a second, the ratio ringscan (import + two-camera reconstruct) / OpenCV (bar
+``peer_speed`` <= 1.0), and the one-camera triangulation of the decoded view on one core
+(``triangulate_rings threads=1``, us a sample; bar <= 0.5). Exits 1 when a bar is missed,
+naming it.
+
+    python benchmarks/real_capture.py [--work DIR] [--scale 1.0] [--rounds 3]
+
+``--scale 0.5``: cameras and projector half the size (a quick check; the bars are the issue's
+at scale 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import io
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from ringscan.pipeline.calibrate.importer import read_stereo_calibration  # noqa: E402
+from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
+from ringscan.tools.cli import main as cli  # noqa: E402
+from tests.pipeline.simulate.test_opencv_graycode import small_stereo_rig  # noqa: E402
+
+BASE_WIDTH, BASE_HEIGHT, BASE_SCALE = 1920, 1280, 6
+"""The issue's cameras (1920x1280): the test rig's 320x256 cameras 6 times larger, cropped to 1280 rows."""
+PEER_SPEED_BAR = 1.0
+TRIANGULATE_US_BAR = 0.5
+WHITE_THRESHOLD, BLACK_THRESHOLD = 5, 40
+"""OpenCV GrayCodePattern thresholds (the sample's command-line values)."""
+
+
+def capture_rig(scale: float):
+    """The test's two-camera rig at the issue's size times ``scale``."""
+    rig = small_stereo_rig()
+    k = BASE_SCALE * scale
+    w, h = int(round(BASE_WIDTH * scale)), int(round(BASE_HEIGHT * scale))
+
+    def cam(c):
+        K = c.K.copy()
+        K[:2] *= k
+        K[0, 2], K[1, 2] = (w - 1) / 2, (h - 1) / 2
+        return dataclasses.replace(c, width=w, height=h, K=K)
+
+    li = rig.light
+    pw, ph = int(round(li.width * k)), int(round(li.height * k))
+    Kp = li.K.copy()
+    Kp[:2] *= k
+    Kp[0, 2], Kp[1, 2] = (pw - 1) / 2, (ph - 1) / 2
+    return dataclasses.replace(rig, camera=cam(rig.camera), camera2=cam(rig.camera2),
+                               light=dataclasses.replace(li, width=pw, height=ph, K=Kp))
+
+
+def run(*args) -> str:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        rc = cli([str(a) for a in args])
+    if rc != 0:
+        raise SystemExit(f"ringscan {' '.join(map(str, args))} failed ({rc}):\n{buf.getvalue()}")
+    return buf.getvalue()
+
+
+def render(work: Path, scale: float) -> Path:
+    """The capture folder (rendered once: ``--work`` keeps it)."""
+    out = work / f"render_{scale:g}"
+    if (out / "truth.json").exists():
+        return out
+    rig = capture_rig(scale)
+    save_rig(work / f"rig_{scale:g}.json", rig)
+    t = time.perf_counter()
+    run("simulate", "--rig", work / f"rig_{scale:g}.json", "--captures", "opencv-graycode", "--scene", "sphere",
+        "--size-mm", "50", "--out", out, "--no-progress", "-q")
+    print(f"rendered {out} in {time.perf_counter() - t:.0f} s")
+    return out
+
+
+def ringscan_import(src: Path, out: Path, projector: tuple[int, int]) -> float:
+    shutil.rmtree(out, ignore_errors=True)
+    t = time.perf_counter()
+    run("import", src / "capture_0.yml", "--rig", src / "calibrationParameters.yml", "--projector-rig",
+        src / "procam.yml", "--projector", f"{projector[0]}x{projector[1]}", "--out", out, "-q")
+    return time.perf_counter() - t
+
+
+def ringscan_reconstruct(scan: Path, out: Path, rays: str) -> tuple[float, dict]:
+    shutil.rmtree(out, ignore_errors=True)
+    t = time.perf_counter()
+    run("reconstruct", scan, "--rays", rays, "--out", out, "--no-progress", "-q")
+    wall = time.perf_counter() - t
+    rep = json.loads((out / "report.json").read_text())
+    view = rep["views"][0] if isinstance(rep.get("views"), list) else next(iter(rep["views"].values()))
+    return wall, view
+
+
+def read_list(src: Path) -> dict[int, list[Path]]:
+    fs = cv2.FileStorage(str(src / "capture_0.yml"), cv2.FILE_STORAGE_READ)
+    out = {}
+    for c in (1, 2):
+        node = fs.getNode(f"cam{c}")
+        out[c] = [src / node.at(i).string() for i in range(node.size())]
+    fs.release()
+    return out
+
+
+def numpy_graycode_decode(pats, blacks, whites, proj: tuple[int, int]) -> np.ndarray:
+    """OpenCV's GrayCodePattern.decode (DECODE_3D_UNDERWORLD) re-implemented in NumPy: the disparity map of
+    camera 1 (its column minus the mean column of camera 2's pixels of the same projector pixel; 0 where none)."""
+    pw, ph = proj
+    cb, rb = int(np.ceil(np.log2(pw))), int(np.ceil(np.log2(ph)))
+    codes = []
+    for cam in range(2):
+        p = pats[cam]
+        lit = (whites[cam].astype(np.int16) - blacks[cam]) > BLACK_THRESHOLD
+        ok = lit.copy()
+
+        def bits(first, n):
+            g = np.zeros(p[0].shape, np.int32)
+            for k in range(n):
+                a, b = p[first + 2 * k].astype(np.int16), p[first + 2 * k + 1].astype(np.int16)
+                ok[np.abs(a - b) < WHITE_THRESHOLD] = False
+                g = (g << 1) | (a > b)
+            shift = 1
+            while shift < n:
+                g ^= g >> shift
+                shift <<= 1
+            return g
+
+        x, y = bits(0, cb), bits(2 * cb, rb)
+        ok &= (x < pw) & (y < ph)
+        codes.append(np.where(ok, y * pw + x, -1))
+    n = pw * ph
+    c2 = codes[1].ravel()
+    m2 = c2 >= 0
+    cols2 = np.tile(np.arange(pats[1][0].shape[1]), pats[1][0].shape[0])[m2]
+    cnt = np.bincount(c2[m2], minlength=n)
+    sx = np.bincount(c2[m2], cols2, minlength=n)
+    c1 = codes[0]
+    disp = np.zeros(c1.shape, np.float64)
+    hit = (c1 >= 0) & (cnt[np.maximum(c1, 0)] > 0)
+    cols1 = np.broadcast_to(np.arange(c1.shape[1])[None, :], c1.shape)
+    disp[hit] = cols1[hit] - sx[c1[hit]] / cnt[c1[hit]]
+    return disp
+
+
+def opencv_sample(src: Path, proj: tuple[int, int]) -> tuple[dict, int]:
+    """OpenCV's structured-light sample pipeline on the capture: (seconds per stage, pixels with a disparity)."""
+    times = {}
+    t = time.perf_counter()
+    lists = read_list(src)
+    imgs = {c: [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in lists[c]] for c in (1, 2)}
+    times["read"] = time.perf_counter() - t
+    t = time.perf_counter()
+    cal = read_stereo_calibration(src / "calibrationParameters.yml")
+    h, w = imgs[1][0].shape
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(cal["cam1_K"], cal["cam1_dist"], cal["cam2_K"], cal["cam2_dist"],
+                                                (w, h), cal["R"], cal["T"].reshape(3, 1), flags=0, alpha=-1)
+    maps = {1: cv2.initUndistortRectifyMap(cal["cam1_K"], cal["cam1_dist"], R1, P1, (w, h), cv2.CV_32FC1),
+            2: cv2.initUndistortRectifyMap(cal["cam2_K"], cal["cam2_dist"], R2, P2, (w, h), cv2.CV_32FC1)}
+    rect = {c: [cv2.remap(im, *maps[c], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) for im in imgs[c]]
+            for c in (1, 2)}
+    times["rectify"] = time.perf_counter() - t
+    t = time.perf_counter()
+    pats = [rect[c][:-2] for c in (1, 2)]
+    whites = [rect[c][-2] for c in (1, 2)]
+    blacks = [rect[c][-1] for c in (1, 2)]
+    if hasattr(cv2, "structured_light"):
+        gc = cv2.structured_light.GrayCodePattern.create(proj[0], proj[1])
+        gc.setWhiteThreshold(WHITE_THRESHOLD)
+        gc.setBlackThreshold(BLACK_THRESHOLD)
+        ok, disp = gc.decode(pats, blackImages=blacks, whiteImages=whites,
+                             flags=cv2.structured_light.DECODE_3D_UNDERWORLD)
+    else:
+        disp = numpy_graycode_decode(pats, blacks, whites, proj)
+    times["decode"] = time.perf_counter() - t
+    t = time.perf_counter()
+    cloud = cv2.reprojectImageTo3D(disp.astype(np.float32), Q, handleMissingValues=True, ddepth=-1)
+    mask = disp > 0
+    _ = cloud[mask]
+    times["reproject"] = time.perf_counter() - t
+    return times, int(mask.sum())
+
+
+def triangulate_one_core(scan_dir: Path, repeats: int = 2) -> tuple[float, int]:
+    """The one-camera triangulation of the imported view's decoded samples on one thread: (us a sample, samples)."""
+    from dataclasses import replace
+
+    from ringscan.kernels import init_warp
+    from ringscan.kernels.triangulation import triangulate_rings
+    from ringscan.pipeline.formats.scan import load_scan
+    from ringscan.pipeline.geometry import camera_model_for, light_model_for
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+    from ringscan.pipeline.reconstruct.stereo import decode_view
+
+    init_warp()
+    scan = load_scan(scan_dir)
+    st = ReconstructSettings()
+    samples, _, _ = decode_view(scan, scan.views[0], settings=st, device="cpu", threads=1)
+    rig, vol = scan.rig, scan.rig.volume
+    best = float("inf")
+    for _ in range(repeats + 1):  # the first compiles / loads the kernels
+        t = time.perf_counter()
+        triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=camera_model_for(rig),
+                          light=light_model_for(rig), volume=(vol.z_min, vol.z_max, vol.r_max),
+                          center=scan.patterns.center, sector_bits=scan.patterns.sector_bits, phi=samples.phi,
+                          sigma_rho=samples.sigma_rho, sigma_tan=samples.sigma_tan,
+                          settings=replace(st.triangulate), threads=1)
+        best = min(best, time.perf_counter() - t)
+    return 1e6 * best / max(1, len(samples)), len(samples)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", default=None, help="keep the rendering (and the runs' outputs) here; reused")
+    ap.add_argument("--scale", type=float, default=1.0, help="cameras and projector this times the issue's size")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (the median is printed)")
+    args = ap.parse_args()
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="real_capture_"))
+    work.mkdir(parents=True, exist_ok=True)
+    src = render(work, args.scale)
+    truth = json.loads((src / "truth.json").read_text())
+    proj = tuple(truth["projector"])
+    cw, ch = truth["camera"]
+    print(f"capture: two {cw}x{ch} cameras, a {proj[0]}x{proj[1]} projector, {len(read_list(src)[1])} frames a "
+          f"camera ({src})")
+    print(f"OpenCV {cv2.__version__}; decode: " + ("cv2.structured_light.GrayCodePattern.decode"
+                                                  if hasattr(cv2, "structured_light") else
+                                                  "cv2.structured_light ABSENT in this build: a NumPy "
+                                                  "re-implementation of its decode"))
+    scan = work / "scan"
+    rec = {r: work / f"rec_{r}" for r in ("camera-camera", "camera-projector")}
+    # a warm-up of each (kernel compile and load, file caches), not counted
+    ringscan_import(src, scan, proj)
+    for r, out in rec.items():
+        ringscan_reconstruct(scan, out, r)
+    opencv_sample(src, proj)
+    rows = {"import": [], "two": [], "one": [], "opencv": [], "ratio": []}
+    stage = {"two": {}, "one": {}, "opencv": {}}
+    views = {}
+    for i in range(args.rounds):
+        t_imp = ringscan_import(src, scan, proj)
+        t_two, v_two = ringscan_reconstruct(scan, rec["camera-camera"], "camera-camera")
+        cv_stage, _ = opencv_sample(src, proj)
+        t_one, v_one = ringscan_reconstruct(scan, rec["camera-projector"], "camera-projector")
+        t_cv_total = sum(cv_stage.values())
+        rows["import"].append(t_imp)
+        rows["two"].append(t_two)
+        rows["one"].append(t_one)
+        rows["opencv"].append(t_cv_total)
+        rows["ratio"].append((t_imp + t_two) / t_cv_total)
+        for k, s in v_two["times_s"].items():
+            stage["two"].setdefault(k, []).append(s)
+        for k, s in v_one["times_s"].items():
+            stage["one"].setdefault(k, []).append(s)
+        for k, s in cv_stage.items():
+            stage["opencv"].setdefault(k, []).append(s)
+        views = {"two": v_two, "one": v_one}
+        print(f"  round {i + 1}: import {t_imp:.2f} s, reconstruct camera-camera {t_two:.2f} s, camera-projector "
+              f"{t_one:.2f} s; OpenCV {t_cv_total:.2f} s; ratio {rows['ratio'][-1]:.2f}")
+    _, cv_pixels = opencv_sample(src, proj)
+    med = {k: statistics.median(v) for k, v in rows.items()}
+    n_two = views["two"].get("samples") or views["two"].get("pixels_decoded")
+    n_one = views["one"].get("samples") or views["one"].get("pixels_decoded")
+    print(f"\nmedian of {args.rounds} rounds; samples: camera 1 {n_one} decoded pixels; OpenCV: {cv_pixels} pixels "
+          "with a disparity")
+    print("| run | stage | s | us a sample | samples/s |")
+    print("|---|---|---|---|---|")
+
+    def line(run_name, st, s, n):
+        print(f"| {run_name} | {st} | {s:.3f} | {1e6 * s / n:.3f} | {n / s:.3g} |")
+
+    line("ringscan", "import (both cameras, wall)", med["import"], n_two)
+    for k, v in stage["two"].items():
+        line("two cameras", k, statistics.median(v), n_two)
+    line("two cameras", "reconstruct (wall)", med["two"], n_two)
+    for k, v in stage["one"].items():
+        line("camera + projector", k, statistics.median(v), n_one)
+    line("camera + projector", "reconstruct (wall)", med["one"], n_one)
+    for k, v in stage["opencv"].items():
+        line("OpenCV sample", k, statistics.median(v), n_two)
+    line("OpenCV sample", "all", med["opencv"], n_two)
+    print(f"points: two cameras {views['two']['points']}, camera + projector {views['one']['points']}")
+    tri_us, tri_n = triangulate_one_core(scan)
+    peer = med["ratio"]
+    print(f"\npeer_speed (ringscan import + camera-camera reconstruct / OpenCV sample, paired): {peer:.2f} "
+          f"(rounds: {', '.join(f'{r:.2f}' for r in rows['ratio'])}; bar <= {PEER_SPEED_BAR})")
+    print(f"triangulation us a sample on one core (triangulate_rings threads=1, {tri_n} samples of the imported "
+          f"view): {tri_us:.3f} (bar <= {TRIANGULATE_US_BAR})")
+    missed = []
+    if args.scale == 1.0:
+        if peer > PEER_SPEED_BAR:
+            missed.append(f"peer_speed {peer:.2f} > {PEER_SPEED_BAR}")
+        if tri_us > TRIANGULATE_US_BAR:
+            missed.append(f"triangulation {tri_us:.3f} us a sample > {TRIANGULATE_US_BAR}")
+    else:
+        print("(scale != 1: the bars are the issue's at its size; not checked)")
+    for m in missed:
+        print(f"MISSED: {m}")
+    return 1 if missed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
