@@ -1,4 +1,4 @@
-"""Run the command blocks of README.md and docs/calibration.md as written, so they cannot rot.
+"""Run the command blocks of README.md and docs/*.md as written, so they cannot rot.
 
     python benchmarks/run_doc_blocks.py                # every block that can run here (several minutes)
     python benchmarks/run_doc_blocks.py --pip          # also README's install block (a fresh venv: needs PyPI)
@@ -6,17 +6,20 @@
     python benchmarks/run_doc_blocks.py --keep DIR     # keep the scratch folders in DIR
     python benchmarks/run_doc_blocks.py --match TEXT   # only the blocks holding TEXT
 
-Every fenced ``sh``/``python`` block of the two files is listed in :data:`BLOCKS` with
-where it runs:
+Every fenced ``sh``/``bash``/``python`` block of README.md and docs/*.md (:data:`DOCS`) is listed
+in :data:`BLOCKS` with where it runs:
 
 - ``suite``: cheap enough for the test suite (``tests/tools/test_doc_blocks.py`` and
   ``tests/tools/test_docs_commands.py`` run it as written; the test named in the entry);
 - ``script``: runs here, as written, but too slow for the suite (tens of seconds to minutes
   on a 2-core machine) or it needs the package index; this script runs it;
-- ``no``: cannot run without hardware or your own photos (the reason says which); the
-  block next to it that does the same on the virtual rig is run instead.
+- ``no``: cannot run without hardware or your own photos, or is not a program (an excerpt of the
+  source); the reason says which, and names the block or test that does the same instead.
 
-A block that is in neither file's list, or a list entry whose block is gone or changed,
+A usage synopsis (``ringscan fuse RECON --out OUT [--watertight]``: placeholders in capitals,
+``[options]``, ``a|b``) is not a command block: it stands in an untagged fence.
+
+A block that is in no list, or a list entry whose block is gone or changed,
 fails ``tests/tools/test_doc_blocks.py``: a new block must be classified.
 
 A shell block runs in ``bash -e -o pipefail`` with this Python's ``bin`` folder first on
@@ -25,7 +28,10 @@ folder ``work/`` whose sibling ``shared`` is the repository's ``../shared`` (the
 ``../shared/data/...``); ``--device`` is not added (CUDA when present, as a user gets).
 A python block runs with this Python in the same folder. Inputs a block expects from
 an earlier step are made by the entry's ``setup`` (named in the entry), never faked:
-e.g. README's Python snippet runs on a tiny simulated scan in the demo's layout.
+e.g. README's Python snippet runs on a tiny simulated scan in the demo's layout, docs/api.md's
+on the demo itself (``ringscan demo --out out/demo``: the shipped Spot mesh). Blocks of one
+page with the same ``share`` run in one scratch folder, in page order: a later block reads
+what an earlier one wrote, as a reader following the page has it.
 Output: one line per block: ran (seconds) / FAILED (the last lines of its output) /
 not run (why).
 """
@@ -44,7 +50,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ("README.md", "docs/calibration.md")
+DOCS = ("README.md", *(f"docs/{p.name}" for p in sorted((ROOT / "docs").glob("*.md")) if p.name != "batch.md"))
+"""The pages whose blocks run. docs/batch.md is listed apart (its blocks need a cluster or object storage;
+``tests/pipeline/batch`` runs the commands it describes on local folders)."""
 LANGS = ("sh", "bash", "python")
 """Fence languages of command blocks (an untagged block is output or a file, not commands)."""
 
@@ -72,6 +80,8 @@ class Block:
     of its value plus half a unit of the doc's last decimal."""
     quote_rtol: float = 0.0
     """How far a quoted figure may move from machine to machine, relative (the reason in the entry)."""
+    share: str = ""
+    """Blocks of one page with the same ``share`` run in one scratch folder, in page order (module docstring)."""
 
 
 BLOCKS = [
@@ -96,9 +106,12 @@ BLOCKS = [
     Block("docs/calibration.md", "ringscan import ../shared/data/procam/capture_{1,2,3}", "script",
           "~50 s (decoding three real captures of 42 frames, reconstructing 2.7 million points)",
           setup="shared_procam_rig"),
-    Block("docs/calibration.md", "ringscan calibrate response ramp/*.png", "suite",
+    Block("docs/calibration.md", "--levels 0 32 64 96 128 160 192 224 255 --rig rig.json", "no",
+          "needs your projector's grey ramp photographed (ramp/*.png) and your rig; the block after the next "
+          "does the same on the virtual rig's ramp and runs in the suite"),
+    Block("docs/calibration.md", "--levels 0 32 64 96 128 160 192 224 255 --rig ramp_rig.json", "suite",
           "tests/tools/test_docs_commands.py::test_calibration_md_grey_ramp_runs_as_written (after the python "
-          "block that makes ramp/)", setup="ramp"),
+          "block that makes ramp/ and ramp_rig.json)", setup="ramp"),
     Block("docs/calibration.md", "vr = VirtualRig(rig, \"plane\")", "suite",
           "tests/tools/test_docs_commands.py::test_calibration_md_grey_ramp_runs_as_written"),
     Block("docs/calibration.md", "ringscan patterns --codec phase-rings --rig rig.json --out pat", "suite",
@@ -134,6 +147,95 @@ BLOCKS = [
           "as the block before (it refines the rig first, as the page does)", setup="stereo_scan_refined"),
     Block("docs/calibration.md", "ringscan simulate --scene chessboard --views 8", "script",
           "~60 s (eight 1280x1024 views rendered, then the axis fit)"),
+    # docs/accuracy.md
+    Block("docs/accuracy.md", "--light perspective --out scans/spot_cone", "script",
+          "a full-size scan of Spot (38 frames of 1280x1024) rendered, reconstructed and evaluated: ~40 s"),
+    # docs/api.md: on the demo's own scan (the shipped Spot mesh), as the page says
+    Block("docs/api.md", 'scan = ringscan.load_scan("out/demo/scan")\nprint(scan.patterns.codec', "script",
+          "needs the demo's scan (`ringscan demo --out out/demo`, ~2 min: the setup runs it once for the page)",
+          setup="demo", share="api"),
+    Block("docs/api.md", 'ringscan.simulate("out/api/cube"', "script",
+          "two full-size views of a cube rendered (~20 s)", share="api"),
+    Block("docs/api.md", 'views=["view_000", "view_001"]', "script",
+          "two views of the demo's scan reconstructed (~30 s)", setup="demo", share="api"),
+    Block("docs/api.md", 'triangulate={"constraint": "rings"}', "script",
+          "a view of the demo's scan reconstructed (~15 s)", setup="demo", share="api"),
+    Block("docs/api.md", "fused, report = ringscan.fuse(views", "script",
+          "the demo's six views reconstructed and fused (~1 min)", setup="demo", share="api"),
+    Block("docs/api.md", "mesh = ringscan.mesh(fused, poisson_depth=8)", "script",
+          "the demo's scan reconstructed, fused and meshed twice (~1.5 min)", setup="demo", share="api"),
+    Block("docs/api.md", "figures = ringscan.evaluate(views, scan)", "script",
+          "the demo's scan reconstructed, fused, meshed and evaluated (~1.5 min)", setup="demo", share="api"),
+    # docs/architecture.md
+    Block("docs/architecture.md", "class DecodedLayout(PatternLayout):", "no",
+          "not a program: an excerpt of three source files (formats/patterns.py, codecs/decoded.py, "
+          "codecs/registry.py) showing where a codec's parts live; the suite imports and runs the real ones "
+          "(tests/pipeline/codecs)"),
+    # docs/demo.md
+    Block("docs/demo.md", ".venv/bin/ringscan demo --out out/demo", "script",
+          "the demo at full size (~2 min), run in the repository's environment as the page says", cwd="repo"),
+    Block("docs/demo.md", 'mesh = o3d.io.read_triangle_mesh("out/demo/model/mesh.ply")', "script",
+          "needs the demo's output (`ringscan demo --out out/demo`, ~2 min)", setup="demo",
+          drop_lines={"draw_geometries": "opens a window: needs a display"}),
+    # docs/dense.md
+    Block("docs/dense.md", "--pitch 8 --bits 6 --sector-bits 6 --out scans/spot_phase", "script",
+          "a full-size phase-rings scan of Spot, a sweep of ring counts (a scan each) and the dense benchmark: "
+          "minutes"),
+    Block("docs/dense.md", "--angle-steps 4 --sector-bits 9 --out scans/spot_angle", "script",
+          "a full-size scan of Spot reconstructed twice and its conditioning map: ~1.5 min"),
+    # docs/fusion.md: on the demo's output (out/demo), as the page says
+    Block("docs/fusion.md", "ringscan view out/demo/recon/view_000.ply --out v0.png", "script",
+          "needs the demo's output (`ringscan demo --out out/demo`, ~2 min: the setup runs it once for the page)",
+          setup="demo", share="fusion"),
+    Block("docs/fusion.md", "fuse_and_mesh(\"out/demo/recon\"", "script",
+          "the demo's six views fused and meshed (~1 min)", setup="demo", share="fusion"),
+    Block("docs/fusion.md", "palette = np.array(", "script",
+          "the demo's six views fused and rendered (~1 min)", setup="demo", share="fusion"),
+    Block("docs/fusion.md", "scene = o3d.t.geometry.RaycastingScene()", "script",
+          "the demo's six views fused, meshed and compared with the truth (~1 min)", setup="demo", share="fusion"),
+    Block("docs/fusion.md", "ringscan simulate --scene spot --views 8 --pose $p", "script",
+          "four poses of eight full-size views each rendered, reconstructed and fused: ~10 min"),
+    Block("docs/fusion.md", "ringscan fuse $W/recon_0", "no",
+          "needs the work folder of benchmarks/multipose_accuracy.py (`W`: its --keep folder, ~15 min); the block "
+          "above does the same from scratch"),
+    # docs/hardware.md
+    Block("docs/hardware.md", "--views 8 --out scan --virtual sphere", "script",
+          "eight full-size views captured from the emulated turntable and projector (the real drivers, "
+          "rendered grabs): ~2 min", setup="rig_and_patterns"),
+    Block("docs/hardware.md", "ringscan calibrate latency --projector display:1", "no",
+          "needs a projector on a second display, a camera and a turntable on /dev/ttyUSB0; the block above "
+          "runs the same capture on emulated devices"),
+    Block("docs/hardware.md", "SerialProjector(\"/dev/ttyACM0\"", "no",
+          "needs the real turntable, projector and camera on their ports; tests/hardware runs capture_scan on "
+          "the emulated ones"),
+    Block("docs/hardware.md", 'tt.inject("error", on="G1", code=33)', "suite",
+          "tests/tools/test_doc_blocks.py::test_hardware_fault_injection_block_runs_as_written"),
+    # docs/reconstruction.md
+    Block("docs/reconstruction.md", "ringscan simulate --camera2 --scene sphere --out scans/sphere2", "script",
+          "a two-camera full-size scan rendered and matched: ~1 min"),
+    # docs/single_shot.md
+    Block("docs/single_shot.md", "ringscan simulate --scene sphere --codec rings --out scan9", "script",
+          "a full-size one-frame scan rendered, reconstructed and evaluated: ~20 s (Warp and Open3D start-up)"),
+    Block("docs/single_shot.md", "--count 30 --pitch 12 --out sphere_30", "script",
+          "three full-size one-frame scans rendered, one reconstructed: ~30 s"),
+    # docs/virtual_rig.md
+    Block("docs/virtual_rig.md", "ringscan simulate --scene sphere --out scans/sphere", "script",
+          "two full-size scans rendered (one of four views), one reconstructed: ~2 min. The median the page "
+          "quotes is checked here: the float32 renders may move its last digit on another CPU (5 % of it)",
+          quotes=("median {} mm",), quote_rtol=0.05),
+    Block("docs/virtual_rig.md", 'simulate_scan("scans/cube", scene="cube"', "script",
+          "four full-size views of a cube rendered: ~40 s"),
+    Block("docs/virtual_rig.md", "--rig ../shared/data/rigs/oblique_projector.json", "script",
+          "a 1920x1080 scan of a bust in front of a wall: ~1 min; the rig and the bust are real data in "
+          "../shared (not shipped: the page says where they come from)", setup="shared", share="oblique"),
+    Block("docs/virtual_rig.md", "ringscan import scans/oblique/capture_0", "script",
+          "the block above's captures decoded and reconstructed: ~1 min", setup="shared", share="oblique"),
+    Block("docs/virtual_rig.md", "--renderer mitsuba --out scans/sphere_mi", "script",
+          "a full-size Mitsuba scan: ~2 min",
+          drop_lines={"pip install": "installs into this environment (README's install block covers installing; "
+                                     "the test extra holds mitsuba already)"}),
+    Block("docs/virtual_rig.md", "from ringscan.pipeline.simulate.mitsuba_render import MitsubaRig", "script",
+          "a full-size Mitsuba scan of a cube and two frames: ~2 min"),
 ]
 
 
@@ -165,9 +267,17 @@ def untagged_commands(path: Path) -> list[int]:
         s = line.strip()
         if s.startswith("```"):
             lang = (s[3:].strip() or "-") if lang is None else None
-        elif lang is not None and lang not in LANGS and re.match(r"(\$ )?(ringscan|make|pip) ", s):
+        elif (lang is not None and lang not in LANGS and re.match(r"(\$ )?(ringscan|make|pip) ", s)
+              and not is_synopsis(s)):
             bad.append(n)
     return bad
+
+
+def is_synopsis(line: str) -> bool:
+    """A usage line, not a command: ``[options]``, ``a|b``, ``...`` or a placeholder in capitals
+    (``ROOT``, ``SCAN_OR_ROOT``, ``P.json``) before its comment."""
+    cmd = line.split(" #")[0]
+    return (any(c in cmd for c in ("[", "|", "...")) or re.search(r"(?:^|[\s=/])[A-Z][A-Z0-9_]*(?:\.\w+)?(?=[\s/]|$)", cmd) is not None)
 
 
 def classify() -> list[tuple[Block, int, str, str]]:
@@ -227,7 +337,7 @@ def setup_shots_and_rig(work: Path) -> None:
 
 
 def setup_ramp(work: Path) -> None:
-    """``ramp/*.png`` and ``rig.json``: the section's own Python block (the virtual rig's grey ramp), as written."""
+    """``ramp/*.png`` and ``ramp_rig.json``: the section's own Python block (the virtual rig's grey ramp), as written."""
     (text,) = [t for b, _, _, t in classify() if b.match == 'vr = VirtualRig(rig, "plane")']
     subprocess.run([sys.executable, "-c", text], cwd=work, env=_env(), check=True, capture_output=True)
 
@@ -247,6 +357,25 @@ def setup_stereo_scan(work: Path) -> None:
 def setup_stereo_scan_refined(work: Path) -> None:
     setup_stereo_scan(work)
     run_bash("ringscan calibrate refine scan --out rig_refined.json", work, env=_env(), check=True)
+
+
+def setup_demo(work: Path) -> None:
+    """``out/demo``: the demo itself (``ringscan demo --out out/demo``: the shipped Spot mesh on the virtual
+    turntable, reconstructed, fused and meshed), once for the blocks that share the folder."""
+    if (work / "out" / "demo" / "model").is_dir():
+        return
+    made = work.parent.parent / "demo_output"  # one demo for the run: the pages' folders get a copy
+    if not (made / "out" / "demo" / "model").is_dir():
+        made.mkdir(parents=True, exist_ok=True)
+        run_bash("ringscan demo --out out/demo", made, check=True)
+    shutil.copytree(made / "out", work / "out", dirs_exist_ok=True)
+
+
+def setup_rig_and_patterns(work: Path) -> None:
+    """``rig.json`` (the default rig) and ``patterns.json`` (the default patterns): what a reader has after
+    docs/hardware.md's set-up (`ringscan patterns`)."""
+    setup_default_rig(work)
+    run_bash("ringscan patterns --out pats && cp pats/patterns.json patterns.json", work, check=True)
 
 
 def setup_demo_scan(work: Path) -> None:
@@ -332,7 +461,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}: not run ({block.where}: {block.reason})")
                 continue
             env = None
-            work = base / f"block_{i:02d}" / "work"
+            work = base / (f"share_{Path(block.doc).stem}_{block.share}" if block.share else f"block_{i:02d}") / "work"
             if block.cwd == "copy":  # the install block: a fresh venv, a copy of the tree (pip wheel writes dist/)
                 if not args.pip:
                     print(f"{name}: not run (needs --pip: {block.reason})")

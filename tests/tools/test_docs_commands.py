@@ -60,13 +60,14 @@ def test_doc_command_parses(doc, line, argv):
 
 
 def test_calibration_md_grey_ramp_runs_as_written(tmp_path, monkeypatch, capsys):
-    """docs/calibration.md §5: the virtual rig's ramp, then the command of the section, as written."""
+    """docs/calibration.md §5: the virtual rig's ramp, then the section's command on its rig file, as written."""
     import glob
 
     text = (ROOT / "docs" / "calibration.md").read_text()
     section = text[text.index("## 5. "):text.index("## 6. ")]
     snippet = re.search(r"```python\n(.*?)```", section, re.S).group(1)
-    command = next(argv for _, argv in _command_lines(section) if argv[:2] == ["calibrate", "response"])
+    command = next(argv for _, argv in _command_lines(section)  # the one on the virtual rig's file
+                   if argv[:2] == ["calibrate", "response"] and "ramp_rig.json" in argv)
     monkeypatch.chdir(tmp_path)
     exec(compile(snippet, "calibration.md §5", "exec"), {})
     argv = [a for arg in command for a in (sorted(glob.glob(arg)) if "*" in arg else [arg])]  # the shell's glob
