@@ -80,14 +80,36 @@ def _add_common_below(sub: argparse._SubParsersAction, level: int) -> None:
             _add_common_below(n, level + 1)
 
 
+HELP_EPILOG = ("Every command: -v more log (-vv debug), -q errors only, --no-progress; exit status 0 done, 1 failed "
+               "on its input (one line naming the file), 2 usage error, 130 interrupted (what was written is whole). "
+               "`ringscan COMMAND --help` gives a command's options. Documentation: README.md, which an installed "
+               "ringscan carries as its description (`python -c \"import importlib.metadata as m; "
+               "print(m.metadata('ringscan').get_payload())\"` prints it), and docs/ in ringscan's source tree "
+               "(docs/cli.md: these conventions in full).")
+"""The listing's epilog: the conventions themselves (a wheel has no docs/ folder), and where the rest is."""
+
+RESUME_HINT = {
+    "reconstruct": "the same command with --resume keeps the views already done",
+    "batch": "the same command again resumes: finished scans are skipped",
+    "pack": "the same command again resumes", "unpack": "the same command again resumes",
+    "capture": "`ringscan capture --out SCAN --resume` continues the capture",
+}
+"""What a rerun after Ctrl-C does, for the commands that resume (the others start over)."""
+
+
+def interrupted_line(name: str) -> str:
+    """The line Ctrl-C leaves: interrupted, what was written is whole, and whether a rerun resumes."""
+    hint = RESUME_HINT.get(name.split(" ")[0], "a rerun starts over")
+    return f"ringscan{' ' + name if name else ''}: interrupted; what was written so far is whole ({hint})"
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; ``command`` (or every command when "*") gets its full options,
     the others only their line in the listing."""
     p = argparse.ArgumentParser(
         prog="ringscan",
         description="Structured-light 3D scanning with concentric ring patterns.",
-        epilog="Conventions shared by every command (verbosity, progress, exit status): docs/cli.md. "
-               "`ringscan COMMAND --help` for a command's options.",
+        epilog=HELP_EPILOG,
     )
     p.add_argument("--version", action="version", version=f"ringscan {_version()}",
                    help="print the version and exit")
@@ -141,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     try:  # Ctrl-C while the command's modules load (Warp, Open3D: seconds): one line too
         parser = build_parser(command if command in COMMANDS else None)
     except KeyboardInterrupt:
-        print(f"ringscan{' ' + command if command in COMMANDS else ''}: interrupted", file=sys.stderr)
+        print(interrupted_line(command if command in COMMANDS else ""), file=sys.stderr)
         return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     _setup_logging(args)
@@ -177,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ringscan {name}: error: {where}{e.strerror or e}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:
-        print(f"ringscan {name}: interrupted", file=sys.stderr)
+        print(interrupted_line(name), file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

@@ -14,6 +14,7 @@ from ringscan.pipeline.fusion.mesh import (
     orient_normals,
 )
 from ringscan.pipeline.fusion.meshing import mesh_cloud
+from ringscan.tools.cmd_fuse import WATERTIGHT_COST
 
 
 def add_parser(sub):
@@ -24,7 +25,8 @@ def add_parser(sub):
     p.add_argument("cloud", metavar="CLOUD", help="point cloud file (PLY, PCD, XYZ, ...)")
     p.add_argument("--out", required=True, metavar="MESH", help="output mesh: .ply, .obj or .stl")
     p.add_argument("--method", choices=("poisson", "tsdf"), default="poisson", help="meshing method (default poisson)")
-    p.add_argument("--watertight", action="store_true", help="closed manifold mesh (checked with is_watertight)")
+    p.add_argument("--watertight", action="store_true",
+                   help=f"closed manifold mesh (checked with is_watertight); {WATERTIGHT_COST}")
     p.add_argument("--poisson-depth", type=int, default=None, metavar="N",
                    help=f"Poisson octree depth (default {MeshSettings.poisson_depth})")
     p.add_argument("--density-quantile", type=float, default=None, metavar="Q",
@@ -41,6 +43,8 @@ def run(args) -> int:
     out = check_output_file(args.out, extensions=MESH_FORMATS, what="mesh file (--out)")
     check_no_overwrite([out], [args.cloud])
     kw = {"method": args.method, "watertight": args.watertight}
+    if args.watertight:
+        print(f"--watertight: {WATERTIGHT_COST}", flush=True)
     if args.poisson_depth is not None:
         kw["poisson_depth"] = args.poisson_depth
     if args.density_quantile is not None:

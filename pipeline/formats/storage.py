@@ -136,6 +136,10 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+CLOUD_INSTALL = "pip install fsspec s3fs (or pip install '.[cloud]' in ringscan's source tree)"
+"""How to get the packages URLs need (ringscan is not on a package index: no ``ringscan[cloud]`` there)."""
+
+
 def filesystem(url: str, options: dict | None = None):
     """The fsspec file system of ``url`` (one per protocol and options in a process) and the path in it.
 
@@ -148,8 +152,7 @@ def filesystem(url: str, options: dict | None = None):
     try:
         import fsspec
     except ImportError:
-        raise StorageError(url, "reading and writing URLs needs fsspec (and s3fs for s3://): pip install "
-                                "'ringscan[cloud]'") from None
+        raise StorageError(url, f"reading and writing URLs needs fsspec (and s3fs for s3://): {CLOUD_INSTALL}") from None
     opts = _merge(S3_DEFAULTS, options or {}) if scheme in ("s3", "s3a") else dict(options or {})
     key = (scheme, json.dumps(opts, sort_keys=True, default=str))
     fs = _filesystems.get(key)
@@ -157,7 +160,7 @@ def filesystem(url: str, options: dict | None = None):
         try:
             fs = fsspec.filesystem(scheme, **opts)
         except ImportError as e:  # fsspec names the package of the protocol (gcsfs, adlfs)
-            hint = "pip install 'ringscan[cloud]'" if scheme in ("s3", "s3a") else "ringscan[cloud] installs s3fs only"
+            hint = CLOUD_INSTALL if scheme in ("s3", "s3a") else "pip install the package it names"
             raise StorageError(url, f"{' '.join(str(e).split())} ({hint})") from None
         except (TypeError, ValueError) as e:
             text = " ".join(str(e).split())

@@ -153,7 +153,8 @@ def test_exit_status_interrupted_is_130(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(cmd_view, "run", interrupted)
     assert main(["view", "x.ply", "--out", str(tmp_path / "x.png")]) == 130
-    assert capsys.readouterr().err.strip() == "ringscan view: interrupted"
+    assert capsys.readouterr().err.strip() == ("ringscan view: interrupted; what was written so far is whole "
+                                               "(a rerun starts over)")
 
 
 def test_module_entry_point_shares_the_usage_error(tmp_path):
