@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,7 +65,7 @@ from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "CAPTURE_INPUTS", "TEXT_LIST_SUFFIXES", "natural_key", "expand_capture_frame", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "CaptureFiles",
            "graycode_bits", "list_capture", "check_capture_sizes", "read_capture", "read_capture_files",
-           "decode_graycode", "subpixel_map", "open_filestorage"]
+           "decode_graycode", "subpixel_map", "open_filestorage", "cpu_cores"]
 
 log = logging.getLogger(__name__)
 
@@ -508,13 +509,42 @@ def read_capture(folder, *, projector: tuple[int, int], layout: str = "opencv-gr
     return read_capture_files(paths, projector=projector, layout=layout, source=folder, frame_bits=frame_bits)
 
 
+def cpu_cores() -> int:
+    """The cores this process may run on (its CPU affinity; the core count where that is unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _read_frames(paths: list[Path], threads: int | None):
+    """The frames of ``paths`` (uint8/uint16 arrays), in order, decoded on up to ``threads`` threads
+    (None: :func:`cpu_cores`), at most ``2 threads + 4`` frames ahead of the caller."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    n = max(1, min(len(paths), cpu_cores() if threads is None else int(threads)))
+    if n == 1:
+        yield from (read_image(p) for p in paths)
+        return
+    with ThreadPoolExecutor(max_workers=n, thread_name_prefix="ringscan-frames") as ex:
+        ahead = 2 * n + 4
+        futs = [ex.submit(read_image, p) for p in paths[:ahead]]
+        for i in range(len(paths)):
+            if i + ahead < len(paths):
+                futs.append(ex.submit(read_image, paths[i + ahead]))
+            img = futs[i].result()
+            futs[i] = None
+            yield img
+
+
 def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "opencv-graycode",
-                       source=None, frame_bits: int | None = None) -> GrayCodeCapture:
+                       source=None, frame_bits: int | None = None, threads: int | None = None) -> GrayCodeCapture:
     """Read one camera's frames of a capture (in capture order) and sort them by ``layout``.
 
     ``frame_bits`` (9..16): the bits its 16-bit frames hold (a 12-bit camera's values
     0..4095), scaled to the full 16-bit range by bit replication as they are read, as
     a scan's ``frame_bits`` does (docs/formats.md); 8: 8-bit frames; None: the frames' own.
+    ``threads``: frames decoded at once (None: :func:`cpu_cores`).
 
     Raises:
         CalibrationError: a frame count that does not fit the projector size, frames of
@@ -535,21 +565,23 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
     if len(paths) != want:
         raise CalibrationError(source, f"{len(paths)} frames, but a {projector[0]}x{projector[1]} projector in "
                                        f"layout {layout} has {want}")
-    frames = []
     brightest = -1  # of 16-bit frames read as they are (the hint for a 10- or 12-bit camera's)
-    for p in paths:
-        img = read_image(p)
-        if frames and img.shape != frames[0].shape:
+    fr = None
+    # the frames are decoded on threads (the image decoders release the GIL), checked and
+    # converted in capture order: the first bad frame in that order is the one named
+    for i, (p, img) in enumerate(zip(paths, _read_frames(paths, threads))):
+        if fr is None:
+            fr = np.empty((len(paths), *img.shape), np.float32)  # filled frame by frame: no stacked copy
+        elif img.shape != fr.shape[1:]:
             raise CalibrationError(p, f"frame is {img.shape[1]}x{img.shape[0]}, {paths[0].name} is "
-                                      f"{frames[0].shape[1]}x{frames[0].shape[0]}")
+                                      f"{fr.shape[2]}x{fr.shape[1]}")
         if frame_bits is not None:
             expand_capture_frame(p, img, frame_bits)
         elif img.dtype == np.uint16:
             brightest = max(brightest, int(img.max()))
-        scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
-        frames.append(img.astype(np.float32) * np.float32(scale))
-    fr = np.stack(frames)
-    del frames
+        fr[i] = img
+        if img.dtype == np.uint16:
+            fr[i] *= np.float32(1.0 / 257.0)  # as img.astype(float32) * float32(1 / 257): the same floats
     if layout == "opencv-graycode":
         pairs, white, black = fr[:-2], fr[-2], fr[-1]
     else:

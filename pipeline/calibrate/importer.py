@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +38,7 @@ from ringscan.pipeline.calibrate.graycode import (
     TEXT_LIST_SUFFIXES,
     GrayCodeSettings,
     check_capture_sizes,
+    cpu_cores,
     decode_graycode,
     list_capture,
     open_filestorage,
@@ -608,48 +610,58 @@ def import_captures(
         if projector_rig is not None:
             light = _procam_light(projector_rig, sources.get("projector_rig"), stereo["cam1_K"], projector)
 
-    # decode
+    # decode: a view's cameras at once, on threads of their own (NumPy's and OpenCV's loops and the
+    # image decoders release the GIL); each camera's result is the one it gets alone
+    workers = max(1, min(len(sel), cpu_cores()))
+    per_threads = max(1, cpu_cores() // workers)
+
+    def decode_camera(f, c):
+        cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
+                                 frame_bits=settings.frame_bits, threads=per_threads)
+        dec = decode_graycode(cap, settings=settings.graycode)
+        if settings.integer_only:
+            # an integer code whose finest bits do not stand clear of the noise is a guess: left out
+            guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
+            dec.low_modulation |= guess
+            dec.valid &= ~guess
+            dec.u = np.where(dec.valid, dec.col, np.nan)
+            dec.v = np.where(dec.valid, dec.row, np.nan)
+            dec.subpixel = np.zeros_like(dec.valid)
+        else:
+            subpixel_map(cap, dec, settings=settings.graycode)
+        return dec
+
     decs, stats = [], {}
-    for f, name in zip(files, names):
-        per_cam = {}
-        for c in sel:
-            cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
-                                     frame_bits=settings.frame_bits)
-            dec = decode_graycode(cap, settings=settings.graycode)
-            if settings.integer_only:
-                # an integer code whose finest bits do not stand clear of the noise is a guess: left out
-                guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
-                dec.low_modulation |= guess
-                dec.valid &= ~guess
-                dec.u = np.where(dec.valid, dec.col, np.nan)
-                dec.v = np.where(dec.valid, dec.row, np.nan)
-                dec.subpixel = np.zeros_like(dec.valid)
-            else:
-                subpixel_map(cap, dec, settings=settings.graycode)
-            per_cam[c] = dec
-            del cap
-        decs.append((f, name, per_cam))
-        st = {}
-        for c, dec in per_cam.items():
-            n = max(1, int(dec.valid.sum()))
-            coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
-            s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
-                 "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
-                 "noise": round(float(dec.noise), 3)}
-            weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
-            if weak > LOW_MODULATION_WARN_SHARE:
-                log.warning("%s%s: the finest projector bits barely modulate at %.0f %% of the decoded pixels (a "
-                            "far, dark, grazing or defocused surface): %d of them take their positions from "
-                            "coarser bits, %d are left out (low_modulation)", name,
-                            " (camera 2)" if len(sel) == 2 and c == 2 else "", 100 * weak, int(coarse.sum()),
-                            s["low_modulation"])
-            if len(sel) == 2 and c == 2:
-                st["camera2"] = s
-            else:
-                st.update(s)
-        if f.kind == "named":  # the order the frames were taken in, for the user to check
-            st["frames_in_name_order"] = [f.cameras[0][0].name, f.cameras[0][-1].name]
-        stats[name] = st
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ringscan-import") as pool:
+        for f, name in zip(files, names):
+            futs = {c: pool.submit(decode_camera, f, c) for c in sel}
+            try:
+                per_cam = {c: futs[c].result() for c in sel}  # camera 1's error first, as decoded in turn
+            finally:
+                for fu in futs.values():
+                    fu.cancel()
+            decs.append((f, name, per_cam))
+            st = {}
+            for c, dec in per_cam.items():
+                n = max(1, int(dec.valid.sum()))
+                coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
+                s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
+                     "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
+                     "noise": round(float(dec.noise), 3)}
+                weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
+                if weak > LOW_MODULATION_WARN_SHARE:
+                    log.warning("%s%s: the finest projector bits barely modulate at %.0f %% of the decoded pixels (a "
+                                "far, dark, grazing or defocused surface): %d of them take their positions from "
+                                "coarser bits, %d are left out (low_modulation)", name,
+                                " (camera 2)" if len(sel) == 2 and c == 2 else "", 100 * weak, int(coarse.sum()),
+                                s["low_modulation"])
+                if len(sel) == 2 and c == 2:
+                    st["camera2"] = s
+                else:
+                    st.update(s)
+            if f.kind == "named":  # the order the frames were taken in, for the user to check
+                st["frames_in_name_order"] = [f.cameras[0][0].name, f.cameras[0][-1].name]
+            stats[name] = st
 
     # the rig
     if opencv is not None:
