@@ -261,8 +261,8 @@ def main() -> int:
                                                   if hasattr(cv2, "structured_light") else
                                                   "cv2.structured_light ABSENT in this build: a NumPy "
                                                   "re-implementation of its decode"))
-    scan = work / "scan"
-    rec = {r: work / f"rec_{r}" for r in ("camera-camera", "camera-projector")}
+    scan = work / f"scan_{args.scale:g}"
+    rec = {r: work / f"rec_{r}_{args.scale:g}" for r in ("camera-camera", "camera-projector")}
     # a warm-up of each (kernel compile and load, file caches), not counted
     ringscan_import(src, scan, proj)
     for r, out in rec.items():

@@ -44,6 +44,7 @@ from ringscan.kernels.geometry import (
     light_pixel,
     make_volume,
     project_camera,
+    undistort,
 )
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
 from ringscan.kernels.triangulation import (
@@ -89,6 +90,7 @@ and this many times the scatter its samples' own predicted sigmas leave (integer
 projector pixel's quantisation, ~0.4 camera px at one camera pixel per projector pixel)."""
 
 __all__ = [
+    "epipolar_distances",
     "MatchSettings",
     "Matches",
     "RayTriangulation",
@@ -584,6 +586,39 @@ def match_kernel(
 
 
 @wp.kernel
+def epipolar_kernel(
+    uv1: wp.array(dtype=wp.vec2),
+    uv2: wp.array(dtype=wp.vec2),
+    cam1: CameraModel,
+    cam2: CameraModel,
+    E: wp.mat33,
+    scale: float,
+    i0: int,
+    dist: wp.array(dtype=wp.float32),
+):
+    """Distance (camera-2 px) of uv2[i] from the epipolar line of uv1[i], i = i0 + tid.
+
+    uv1, uv2 (n,) vec2 distorted pixels: read. E: the essential matrix (unit
+    baseline) taking camera 1's undistorted normalised point to its line in
+    camera 2's normalised plane; scale: camera 2's sqrt(fx fy). dist (n,)
+    float32: written, NaN where a pixel has no undistorted point
+    (:func:`~ringscan.kernels.geometry.undistort`)."""
+    i = i0 + wp.tid()
+    p1 = uv1[i]
+    p2 = uv2[i]
+    y1 = (p1[1] - cam1.cy) / cam1.fy
+    n1 = undistort(cam1, (p1[0] - cam1.cx - cam1.skew * y1) / cam1.fx, y1)
+    y2 = (p2[1] - cam2.cy) / cam2.fy
+    n2 = undistort(cam2, (p2[0] - cam2.cx - cam2.skew * y2) / cam2.fx, y2)
+    if not (n1[2] > 0.0 and n2[2] > 0.0):
+        dist[i] = wp.nan
+        return
+    line = E * wp.vec3(n1[0], n1[1], 1.0)
+    den = wp.sqrt(line[0] * line[0] + line[1] * line[1])
+    dist[i] = wp.where(den > 0.0, wp.abs(line[0] * n2[0] + line[1] * n2[1] + line[2]) / den * scale, wp.nan)
+
+
+@wp.kernel
 def triangulate_rays_kernel(
     uv1: wp.array(dtype=wp.vec2),
     uv2: wp.array(dtype=wp.vec2),
@@ -831,8 +866,32 @@ def match_by_projector(
     return out
 
 
-def triangulate_rays(
-    uv1: wp.array,
+def epipolar_distances(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, camera2: CameraModel,
+                       E: np.ndarray, scale: float, threads: int | None = None) -> wp.array:
+    """(n,) float32 distance (camera-2 px) of each uv2 from the epipolar line of its uv1
+    (:func:`epipolar_kernel`; NaN where a pixel has no undistorted point).
+
+    Args:
+        uv1, uv2: (n,) vec2 distorted pixels of camera 1 and camera 2.
+        camera1, camera2: their models.
+        E: (3, 3) essential matrix [t]x R with a unit t (X2 = R X1 + t).
+        scale: camera 2's sqrt(fx fy) (normalised -> px).
+        threads: CPU threads; default all cores.
+    """
+    fn = "epipolar_distances"
+    n = _check("uv1", uv1, None, wp.vec2, fn)
+    _check("uv2", uv2, n, wp.vec2, fn)
+    dev = uv1.device
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    if n:
+        Em = wp.mat33(*np.asarray(E, np.float64).astype(np.float32).ravel().tolist())
+        args = [uv1, uv2, camera1, camera2, Em, float(scale)]
+        launch_spans(epipolar_kernel, n, lambda i0: args + [i0], [out], dev,
+                     default_threads() if threads is None else threads)
+    return out
+
+
+def triangulate_rays(    uv1: wp.array,
     uv2: wp.array,
     sigma1: wp.array,
     sigma2: wp.array,
