@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["ErrorModel", "fit_error_model", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
+__all__ = ["ErrorModel", "fit_error_model", "fit_neighbour_model", "widen_depth_sigma", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
 
 MAX_CHECK_SAMPLES = 40000
 """Samples triangulated three more times for the fit (evenly spread over the
@@ -59,7 +59,9 @@ class ErrorModel(dict):
     """``k_rho``, ``k_tan`` (factors >= 1 on the decode's predicted standard
     deviations), ``floor_rho_px``, ``floor_tan_px`` (projector px added in
     quadrature to each coordinate's), ``floor_px`` (across the epipolar line: the
-    calibration's miss), ``pairs`` (samples that measured them), and the pairs'
+    calibration's miss), ``pairs`` (samples that measured them), ``measured_by``
+    (``angle``: each sample's two depths, :func:`fit_error_model`; ``neighbours``: a
+    ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), and the pairs'
     normalised disagreement under the decode's model and under the fitted one
     (``z_median`` / ``z_median_fitted``: a Gaussian gives 0.67; ``beyond_3`` /
     ``beyond_3_fitted``: 0.27 %)."""
@@ -75,7 +77,7 @@ def sample_subset(n: int, max_samples: int = MAX_CHECK_SAMPLES) -> np.ndarray:
 def identity_model(pairs: int = 0) -> ErrorModel:
     """The decode's model as it is (no term added)."""
     return ErrorModel(k_rho=1.0, k_tan=1.0, floor_rho_px=0.0, floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs),
-                      z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
+                      measured_by=None, z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
 
 
 def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndarray, s_tan: np.ndarray,
@@ -123,15 +125,125 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
     # coordinates; across the epipolar line the difference is the residual scaled
     # by sqrt(model_var / residual_var)
     X = np.stack([sr * sr, st * st, (sr / pr) ** 2, (st / pt) ** 2], axis=1)
+    p = _fit_variances(X, diff * diff, np.array([1.0, 1.0, 0.0, 0.0]))  # k >= 1: the noise model is never shrunk
+    z0 = np.abs(dr - dt) / np.sqrt(model_var)
+    z1 = np.abs(diff) / np.sqrt(X @ p)
+    return ErrorModel(k_rho=float(np.sqrt(max(p[0], 1.0))), k_tan=float(np.sqrt(max(p[1], 1.0))),
+                      floor_rho_px=float(np.sqrt(p[2])), floor_tan_px=float(np.sqrt(p[3])),
+                      floor_px=float(np.sqrt(calib_var)), pairs=n, measured_by="angle",
+                      z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
+                      z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
+                        ring: np.ndarray | None, uv: np.ndarray, *, width: int,
+                        max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
+    """The ring coordinate's missed error terms where no angle checks it: from each
+    sample's disagreement with its neighbours on the same ring (or, for a dense code,
+    the neighbouring pixels).
+
+    A smooth surface's depth along a ring's samples (one a camera pixel) is a straight
+    line over three of them to far below the decode's errors (a 20 mm radius bends it by
+    ~h^2 / R, ~5e-4 mm over 0.1 mm steps), while each sample's error comes from its
+    own camera pixels: r = d - ((1 - t) d_a + t d_b), with a and b the neighbours on
+    either side and t the sample's place between them, has the variance
+    V + (1 - t)^2 V_a + t^2 V_b. Fitted as the pairs of :func:`fit_error_model` are, with
+    two terms: k (on the predicted depth sigma s) and a floor in projector px. What is
+    smooth along a ring (a blurred edge's bias) is not seen: that needs the angle.
+
+    Args:
+        depth: (n,) each sample's depth along its camera ray (mm), NaN where not placed.
+        s: (n,) its predicted standard deviation (mm).
+        sigma_px: (n,) the decode's predicted standard deviation of rho (projector px).
+        pixel: (n,) linear camera pixel y * width + x of each sample.
+        ring: (n,) ring index of each sample, or None for a dense code (one sample a pixel).
+        uv: (n, 2) the samples' camera positions (px).
+        width: camera width (px).
+        max_samples: at most this many samples are checked (whole rows of them, evenly spread).
+
+    Returns:
+        :class:`ErrorModel` with k_rho and floor_rho_px (the other terms 1 and 0),
+        ``pairs`` = samples checked; :func:`identity_model` with fewer than ``MIN_PAIRS``.
+    """
+    d, s, p = (np.asarray(x, np.float64) for x in (depth, s, sigma_px))
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    pixel = np.asarray(pixel, np.int64)
+    ring = np.zeros(pixel.size, np.int64) if ring is None else np.asarray(ring, np.int64)
+    ok = np.isfinite(d) & np.isfinite(s) & (s > 0) & np.isfinite(p) & (p > 0) & np.isfinite(uv).all(axis=1)
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok < MIN_PAIRS:
+        return identity_model(0)
+    y = pixel // width
+    x = pixel % width
+    # every R-th row's samples are checked, against the rows either side
+    period = max(3, int(np.ceil(n_ok / max_samples)))
+    cand = np.flatnonzero(ok & (y % period <= 2))
+    npix = int(pixel.max()) + width + 2
+    key = ring[cand] * npix + pixel[cand]
+    order = np.argsort(key, kind="stable")
+    key, cand = key[order], cand[order]
+    centre = cand[(y[cand] % period) == 1]
+    offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
+    nb = np.full((centre.size, len(offsets)), -1, np.int64)
+    for j, (dx, dy) in enumerate(offsets):
+        xx, yy = x[centre] + dx, y[centre] + dy
+        want = ring[centre] * npix + yy * width + xx
+        at = np.minimum(np.searchsorted(key, want), key.size - 1)
+        hit = (key[at] == want) & (xx >= 0) & (xx < width) & (yy >= 0)
+        nb[hit, j] = cand[at[hit]]
+    # the two neighbours most nearly on opposite sides (at least 120 degrees apart)
+    vec = uv[np.maximum(nb, 0)] - uv[centre][:, None, :]
+    norm = np.linalg.norm(vec, axis=2)
+    unit = vec / np.where(norm > 0, norm, 1.0)[..., None]
+    cos = np.einsum("mik,mjk->mij", unit, unit)
+    have = (nb >= 0) & (norm > 0)
+    cos = np.where(have[:, :, None] & have[:, None, :], cos, np.inf)
+    best = cos.reshape(centre.size, -1).argmin(axis=1)
+    ia, ib = np.divmod(best, len(offsets))
+    rows = np.arange(centre.size)
+    use = cos[rows, ia, ib] <= -0.5
+    c, a, b = centre[use], nb[rows, ia][use], nb[rows, ib][use]
+    if c.size < MIN_PAIRS:
+        return identity_model(int(c.size))
+    ab = uv[b] - uv[a]
+    t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+    wa, wb = 1.0 - t, t
+    r = d[c] - (wa * d[a] + wb * d[b])
+    g = s / p  # depth per projector px of rho
+    X = np.stack([s[c] ** 2 + (wa * s[a]) ** 2 + (wb * s[b]) ** 2,
+                  g[c] ** 2 + (wa * g[a]) ** 2 + (wb * g[b]) ** 2], axis=1)
+    q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
+    z0 = np.abs(r) / np.sqrt(X[:, 0])
+    z1 = np.abs(r) / np.sqrt(X @ q)
+    return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
+                      floor_tan_px=0.0, floor_px=0.0, pairs=int(c.size), measured_by="neighbours",
+                      z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
+                      z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+def widen_depth_sigma(s: np.ndarray, sigma_px: np.ndarray, model: ErrorModel) -> np.ndarray:
+    """(n,) float32: a ring-only point's depth sigma s (mm) with ``model``'s terms:
+    sqrt(k^2 s^2 + (floor * s / sigma_px)^2), the same as triangulating with
+    :func:`apply_error_model`'s rho sigma (the depth's sigma is linear in rho's)."""
+    s64 = np.asarray(s, np.float64)
+    p = np.asarray(sigma_px, np.float64)
+    g = np.where(p > 0, s64 / np.where(p > 0, p, 1.0), 0.0)
+    return np.sqrt((model["k_rho"] * s64) ** 2 + (model["floor_rho_px"] * g) ** 2).astype(np.float32)
+
+
+def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """The variances P (>= ``lower``) of the model var_i = X_i @ P that fit the squared
+    differences ``d2`` (n,) best under a Student-t of ``T_DOF`` degrees of freedom read
+    back as Gaussian variances (``T_SCALE``). X: (n, m) each term's variance per unit."""
+    n = d2.size
     # in units where every column's and the squared differences' medians are 1:
-    # var = Xs @ q with q = P * col / d2_scale, P the five variances
+    # var = Xs @ q with q = P * col / d2_scale
     col = np.median(X, axis=0)
     col[col <= 0] = 1.0
-    d2 = diff * diff
     d2_scale = max(float(np.median(d2)), 1e-300)
     Xs = X / col
     d2 = d2 / d2_scale
-    lower = np.array([1.0, 1.0, 0.0, 0.0]) * col / d2_scale  # k >= 1: the noise model is never shrunk
+    lower = lower * col / d2_scale
 
     def nll(q):
         var = np.maximum(T_SCALE * T_SCALE * (Xs @ q), 1e-300)
@@ -140,17 +252,9 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
         g_var = 0.5 / var - 0.5 * (T_DOF + 1) * u / (var * (1 + u))
         return f / n, T_SCALE * T_SCALE * (Xs.T @ g_var) / n
 
-    q0 = lower + 0.2
-    res = minimize(nll, q0, jac=True, method="L-BFGS-B", bounds=[(lo, None) for lo in lower],
+    res = minimize(nll, lower + 0.2, jac=True, method="L-BFGS-B", bounds=[(lo, None) for lo in lower],
                    options={"maxiter": 1000, "ftol": 1e-12, "gtol": 1e-9})
-    p = np.maximum(res.x, lower) * d2_scale / col
-    z0 = np.abs(dr - dt) / np.sqrt(model_var)
-    z1 = np.abs(diff) / np.sqrt(X @ p)
-    return ErrorModel(k_rho=float(np.sqrt(max(p[0], 1.0))), k_tan=float(np.sqrt(max(p[1], 1.0))),
-                      floor_rho_px=float(np.sqrt(p[2])), floor_tan_px=float(np.sqrt(p[3])),
-                      floor_px=float(np.sqrt(calib_var)), pairs=n,
-                      z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
-                      z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+    return np.maximum(res.x, lower) * d2_scale / col
 
 
 def _smooth_part(r: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:

@@ -31,7 +31,14 @@ from ringscan.pipeline.formats.ply import write_ply
 from ringscan.pipeline.formats.rig import has_calibrated_light
 from ringscan.pipeline.formats.scan import Scan, View, as_camera2, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
-from ringscan.pipeline.reconstruct.error_scale import MIN_PAIRS, apply_error_model, fit_error_model, sample_subset
+from ringscan.pipeline.reconstruct.error_scale import (
+    MIN_PAIRS,
+    apply_error_model,
+    fit_error_model,
+    fit_neighbour_model,
+    sample_subset,
+    widen_depth_sigma,
+)
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_samples
 
@@ -127,6 +134,9 @@ def reconstruct_view(
         return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
                        **_stereo_points(scan, view, settings, device, threads, samples, sector_bits, times))
     triangulated, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
+    neighbours = {}
+    if samples.phi is None:  # no angle to measure the ring's errors against: its neighbours do
+        triangulated, neighbours = _neighbour_sigmas(scan, samples, triangulated)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     check = {}
@@ -139,6 +149,7 @@ def reconstruct_view(
                    sigma=triangulated.sigma, residual=triangulated.residual,
                    residual_px=_angle_used(samples, settings),
                    extra={**({"calibration": calibration} if calibration else {}),
+                          **({"error_model": neighbours} if neighbours else {}),
                           **({"calibration_check": check} if check else {})})
 
 
@@ -223,6 +234,30 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
         return wp.array(apply_error_model(a.numpy(), k, f), dtype=wp.float32, device=dev)
     return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"]),
             widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"]), dict(fit))
+
+
+def _neighbour_sigmas(scan: Scan, samples, triangulated):
+    """(triangulated with its sigma widened, the :class:`ErrorModel` or {}): where no
+    angle checks the ring coordinate, its missed error terms measured from each point's
+    disagreement with its neighbours on the same ring
+    (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`). The points
+    stay where they are (one coordinate places them; its sigma weighs nothing), so the
+    depth sigmas are widened after the one triangulation."""
+    if samples.sigma_rho is None or len(samples) < MIN_PAIRS:
+        return triangulated, {}
+    cam = scan.rig.camera
+    center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
+    ok = triangulated.status.numpy() == 0
+    depth = np.where(ok, np.linalg.norm(triangulated.points.numpy().astype(np.float64) - center, axis=1), np.nan)
+    sigma = triangulated.sigma.numpy()
+    sigma_px = samples.sigma_rho.numpy()
+    fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
+                              samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
+                              width=cam.width)
+    if fit["measured_by"] is None:
+        return triangulated, {}
+    widened = wp.array(widen_depth_sigma(sigma, sigma_px, fit), dtype=wp.float32, device=triangulated.sigma.device)
+    return replace(triangulated, sigma=widened), dict(fit)
 
 
 def view_rays(scan: Scan, view: View, settings: ReconstructSettings) -> str:
