@@ -638,15 +638,23 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     """Integer projector column and row of every camera pixel (the plain decode)."""
     contrast = cap.white - cap.black
     weak = np.zeros(contrast.shape, np.int32)
+    dim = DIM_BIT_FRACTION * contrast
+    d = np.empty_like(contrast)
+    bit = np.empty(contrast.shape, bool)
 
     def code(pairs):
-        g = np.zeros(contrast.shape, np.int64)
+        g = np.zeros(contrast.shape, np.int64 if len(pairs) > 30 else np.int32)
         ok = np.ones(contrast.shape, bool)
         for p, inv in pairs:
-            d = p - inv
-            g = (g << 1) | (d > 0)
-            ok &= np.abs(d) >= settings.min_bit_contrast
-            weak[...] += np.abs(d) < DIM_BIT_FRACTION * contrast
+            np.subtract(p, inv, out=d)
+            np.greater(d, 0, out=bit)
+            g <<= 1
+            g |= bit
+            np.abs(d, out=d)
+            np.greater_equal(d, settings.min_bit_contrast, out=bit)
+            ok &= bit
+            np.less(d, dim, out=bit)
+            weak[...] += bit
         return gray_decode(g, len(pairs)), ok
 
     col, okc = code(cap.col_pairs)
@@ -733,38 +741,41 @@ def _flip_bit(a: np.ndarray, b: np.ndarray, bits: int) -> np.ndarray:
 
 
 def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float):
-    """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across)."""
+    """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across).
+
+    The boundaries (a code step of one between neighbouring pixels) are found and placed once, in
+    row-major order; each pixel finds the last boundary before it and the first after it in its row
+    by counting the boundaries before it (a cumulative sum), not by scanning the row twice."""
     if axis == 0:
         res, ok = _along_axis(code.T, valid.T, pairs.transpose(0, 1, 3, 2), 1, max_span)
         return res.T, ok.T
     H, W = code.shape
     bits = pairs.shape[0]
-    c0, c1 = code[:, :-1].astype(np.int64), code[:, 1:].astype(np.int64)
-    step = c1 - c0
-    trans = valid[:, :-1] & valid[:, 1:] & (np.abs(step) == 1)
-    yy, xx = np.nonzero(trans)
-    b = _flip_bit(c0[yy, xx], c1[yy, xx], bits)
+    c0, c1 = code[:, :-1], code[:, 1:]
+    trans = valid[:, :-1] & valid[:, 1:] & (np.abs(c1.astype(np.int64) - c0) == 1)
+    # pixel (y, x): counts[y, x] boundaries k <= x - 1 in row y (boundary k lies between pixels k and k + 1)
+    counts = np.zeros((H, W), np.int64)
+    np.cumsum(trans, axis=1, out=counts[:, 1:])
+    flat = np.flatnonzero(trans)
+    if flat.size == 0:
+        return code.astype(np.float64), np.zeros(code.shape, bool)
+    yy, xx = np.divmod(flat, W - 1)
+    a, b_ = c0[yy, xx].astype(np.int64), c1[yy, xx].astype(np.int64)
+    b = _flip_bit(a, b_, bits)
     d0 = pairs[b, 0, yy, xx] - pairs[b, 1, yy, xx]
     d1 = pairs[b, 0, yy, xx + 1] - pairs[b, 1, yy, xx + 1]
     den = d0 - d1
     frac = np.where(np.abs(den) > 1e-6, d0 / np.where(den == 0, 1, den), 0.5)
-    pos = np.full((H, W - 1), np.nan)
-    val = np.full((H, W - 1), np.nan)
-    pos[yy, xx] = xx + np.clip(frac, 0.0, 1.0)
-    val[yy, xx] = 0.5 * (c0[yy, xx] + c1[yy, xx])
-    # the last boundary at or left of each pixel, and the first one right of it
-    k = np.where(trans, np.arange(W - 1)[None, :], -1)
-    left = np.maximum.accumulate(k, axis=1)  # boundary index k: between pixels k and k+1
-    kr = np.where(trans, np.arange(W - 1)[None, :], W)
-    right = np.minimum.accumulate(kr[:, ::-1], axis=1)[:, ::-1]
-    # pixel x: left boundary = last k <= x - 1; right boundary = first k >= x
-    lk = np.concatenate([np.full((H, 1), -1), left], axis=1)
-    rk = np.concatenate([right, np.full((H, 1), W)], axis=1)
-    has = (lk >= 0) & (rk < W - 1)
-    lkc, rkc = np.clip(lk, 0, W - 2), np.clip(rk, 0, W - 2)
-    rows = np.arange(H)[:, None]
-    pl, vl = pos[rows, lkc], val[rows, lkc]
-    pr, vr = pos[rows, rkc], val[rows, rkc]
+    pos = xx + np.clip(frac, 0.0, 1.0)  # the boundaries in row-major order
+    val = 0.5 * (a + b_)
+    row_total = counts[:, -1:]
+    first = np.zeros((H, 1), np.int64)
+    np.cumsum(row_total[:-1, 0], out=first[1:, 0])  # boundaries in the rows above
+    has = (counts >= 1) & (counts < row_total)
+    left = np.clip(first + counts - 1, 0, flat.size - 1)
+    right = np.clip(first + counts, 0, flat.size - 1)
+    pl, vl = pos.take(left), val.take(left)
+    pr, vr = pos.take(right), val.take(right)
     x = np.arange(W)[None, :].astype(np.float64)
     span = pr - pl
     ok = has & valid & (np.abs(vr - vl) == 1) & (span > 0) & (span <= max_span)
