@@ -1,5 +1,5 @@
 """Scenes for the virtual rig: procedural objects (plane, sphere, cube, chessboard,
-terrain), loaded mesh files, and resting poses for "flip and rescan".
+terrain, corner: a block with a 90-degree V-groove, for inter-reflection), loaded mesh files, and resting poses for "flip and rescan".
 
 Every scene is a triangle mesh in millimetres in the world frame (docs/design.md §2,
 §16): it stands on the reference plane z = 0 and is centred on the light axis;
@@ -26,7 +26,7 @@ from ringscan.pipeline.formats.errors import FormatError
 
 log = logging.getLogger(__name__)
 
-SCENES = ("plane", "sphere", "cube", "terrain", "chessboard")
+SCENES = ("plane", "sphere", "cube", "terrain", "chessboard", "corner")
 TETRA_DEG = math.degrees(math.acos(-1.0 / 3.0))   # 109.47: the angle between tetrahedron directions
 POSES = {"upright": (), "upside-down": (("x", 180.0),), "side-x": (("x", 90.0),), "side-y": (("y", 90.0),),
          "tetra-1": (("x", TETRA_DEG),), "tetra-2": (("z", 120.0), ("x", TETRA_DEG)),
@@ -43,6 +43,8 @@ CHESSBOARD_DARK = 0.04
 """Albedo of the black squares (printer ink)."""
 CHESSBOARD_LIGHT = 0.8
 """Albedo of the white squares and the margin (paper)."""
+CORNER_BASE_RATIO = 1.0 / 8.0
+"""The ``corner`` block's base under its groove, as a share of ``size_mm``."""
 WALL_HALF_SIZE_MM = 10000.0
 """Half the side of :func:`add_wall`'s square: wider than any view of a rig within 100 m."""
 WALL_ALBEDO = 0.8
@@ -308,6 +310,30 @@ def make_chessboard(
                      name="chessboard", face_albedo=np.concatenate(albedo))
 
 
+def _corner(size_mm: float) -> SceneMesh:
+    """A block with a concave 90-degree corner: a right-angled V-groove along y cut into its top.
+
+    The block is ``size_mm`` square in x and y; its cross-section (in x, z) is the pentagon
+    (-S/2, 0), (S/2, 0), (S/2, b + S/2), (0, b), (-S/2, b + S/2) with S = ``size_mm`` and a base
+    b = :data:`CORNER_BASE_RATIO` S: the groove's two faces, normals (-1, 0, 1) / sqrt 2 and
+    (1, 0, 1) / sqrt 2, meet at 90 degrees along the crease x = 0, z = b. Seen from above (the
+    light) and from the camera's side (-y), both faces are lit and visible, and each lights the
+    other: light bounced once between them (inter-reflection) is what the scene is for.
+    """
+    S = size_mm
+    b = CORNER_BASE_RATIO * S
+    sec = np.array([[-S / 2, 0.0], [S / 2, 0.0], [S / 2, b + S / 2], [0.0, b], [-S / 2, b + S / 2]])
+    n = len(sec)
+    front = np.stack([sec[:, 0], np.full(n, -S / 2), sec[:, 1]], 1)   # y = -S/2: vertices 0..4
+    back = front + [0.0, S, 0.0]                                        # y = +S/2: vertices 5..9
+    faces = [[0, 1, 2], [0, 2, 3], [0, 3, 4]]                           # the front pentagon, normal -y
+    faces += [[5, 8, 7], [5, 9, 8], [5, 7, 6]]                          # the back pentagon, normal +y
+    for i in range(n):                                                  # the sides around the section
+        j = (i + 1) % n
+        faces += [[i, i + n, j + n], [i, j + n, j]]
+    return SceneMesh(vertices=np.concatenate([front, back]), faces=np.array(faces, np.int32), name="corner")
+
+
 # ----------------------------------------------------------------------------- public
 
 
@@ -386,8 +412,8 @@ def shipped_mesh(name: str = "spot") -> tuple[Path, Path]:
 
 
 def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: str = "auto") -> SceneMesh:
-    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``, or a shipped mesh:
-    ``spot``) or load a mesh file.
+    """Build a scene by name (``plane``, ``sphere``, ``cube``, ``terrain``, ``chessboard``, ``corner``, or a
+    shipped mesh: ``spot``) or load a mesh file.
 
     Args:
         name_or_path: a procedural scene name or the path of a mesh file.
@@ -412,6 +438,8 @@ def make_scene(name_or_path: str | os.PathLike, *, size_mm: float = 80.0, up: st
         return _cube(size_mm)
     if key == "terrain":
         return _terrain(size_mm)
+    if key == "corner":
+        return _corner(size_mm)
     if key == "chessboard":
         cols, rows = CHESSBOARD_CORNERS
         return make_chessboard(cols, rows, size_mm / (max(cols, rows) + 3))

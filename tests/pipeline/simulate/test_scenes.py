@@ -35,7 +35,7 @@ def _closed_outward(s):
     return closed, vol
 
 
-@pytest.mark.parametrize("name", ["sphere", "cube", "terrain", "chessboard"])
+@pytest.mark.parametrize("name", ["sphere", "cube", "terrain", "chessboard", "corner"])
 def test_procedural_scenes_stand_on_the_plane(name):
     s = make_scene(name, size_mm=60.0)
     lo, hi = s.vertices.min(0), s.vertices.max(0)
@@ -129,7 +129,32 @@ def test_bad_scenes(tmp_path):
         make_scene("sphere", size_mm=0)
     with pytest.raises(ValueError, match="up"):
         load_mesh_file(bad, up="x")
-    assert set(SCENES) == {"plane", "sphere", "cube", "terrain", "chessboard"}
+    assert set(SCENES) == {"plane", "sphere", "cube", "terrain", "chessboard", "corner"}
+
+
+def test_corner_is_a_right_angled_groove_facing_up():
+    """The ``corner`` block: 60 mm square, base 60 / 8 = 7.5 mm under a 90-degree V-groove along y whose
+    crease runs at x = 0, z = 7.5 and whose faces rise to z = 37.5 at x = +-30 (known by construction)."""
+    s = make_scene("corner", size_mm=60.0)
+    watertight, vol = _closed_outward(s)
+    assert watertight
+    # the pentagon's area (60 x 37.5 less the groove's triangle, 60 x 30 / 2) times the 60 mm length
+    assert vol == pytest.approx((60.0 * 37.5 - 0.5 * 60.0 * 30.0) * 60.0, rel=1e-12)
+    assert np.allclose(s.vertices.min(0), [-30.0, -30.0, 0.0]) and np.allclose(s.vertices.max(0), [30.0, 30.0, 37.5])
+    v = s.vertices
+    p0, p1, p2 = (v[s.faces[:, k]] for k in range(3))
+    n = np.cross(p1 - p0, p2 - p0)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    r = 1.0 / math.sqrt(2.0)
+    groove = [np.isclose(n, [r, 0, r], atol=1e-12).all(1), np.isclose(n, [-r, 0, r], atol=1e-12).all(1)]
+    for g, sign in zip(groove, (1.0, -1.0)):
+        assert g.sum() == 2                                     # each face: two triangles, outward up the groove
+        pts = np.concatenate([p0[g], p1[g], p2[g]])
+        # every vertex on its plane z = 7.5 - sign * x (through the crease, 45 degrees)
+        assert np.allclose(pts[:, 2], 7.5 - sign * pts[:, 0], atol=1e-12)
+        assert np.ptp(pts[:, 1]) == pytest.approx(60.0)         # the whole length of the block
+    # the faces meet at 90 degrees: their normals are orthogonal
+    assert float(np.dot(n[groove[0]][0], n[groove[1]][0])) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_chessboard_squares_and_corners():
