@@ -1,6 +1,8 @@
 """The one samples type: what every codec's decode + sampling stages hand to
 triangulation (``kernels.triangulation``), and what the kernel samplers
-(``ring_sampling``, ``phase``) return."""
+(``ring_sampling``, ``phase``) return; and the sub-pixel positions of a dense
+Gray-code map's pixels between its code boundaries (:func:`subpixel_lines`, what
+``ringscan import`` samples a decoded capture with)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,110 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-__all__ = ["Samples"]
+from ringscan.kernels.runtime import init_warp
+
+__all__ = ["Samples", "subpixel_lines"]
+
+
+@wp.func
+def line_pixel(axis: int, line: int, i: int):
+    """(y, x) of pixel i of a line: a row (axis 1: i across) or a column (axis 0: i down)."""
+    if axis == 1:
+        return line, i
+    return i, line
+
+
+@wp.func
+def gray_flip_bit(a: int, b: int, bits: int):
+    """Index (0 = MSB) of the one Gray bit that differs between codes a and b (|a - b| = 1)."""
+    x = (a ^ (a >> 1)) ^ (b ^ (b >> 1))
+    x = wp.max(x, 1)
+    high = int(0)
+    while x > 1:
+        x = x >> 1
+        high += 1
+    return bits - 1 - high
+
+
+@wp.func
+def code_boundary(code: wp.array2d(dtype=wp.int32), valid: wp.array2d(dtype=wp.uint8),
+                  pairs: wp.array4d(dtype=wp.float32), bits: int, axis: int, line: int, k: int):
+    """The boundary between pixels k and k + 1 of a line, where both decoded and their codes
+    are one apart: (is one, its position in line px: k + the fraction where the flipping
+    bit's pattern - inverse crosses 0, the two codes' mean)."""
+    y0, x0 = line_pixel(axis, line, k)
+    y1, x1 = line_pixel(axis, line, k + 1)
+    if valid[y0, x0] == wp.uint8(0) or valid[y1, x1] == wp.uint8(0):
+        return False, wp.float64(0.0), wp.float64(0.0)
+    c0 = code[y0, x0]
+    c1 = code[y1, x1]
+    if wp.abs(c1 - c0) != 1:
+        return False, wp.float64(0.0), wp.float64(0.0)
+    b = gray_flip_bit(c0, c1, bits)
+    d0 = pairs[b, 0, y0, x0] - pairs[b, 1, y0, x0]
+    d1 = pairs[b, 0, y1, x1] - pairs[b, 1, y1, x1]
+    den = d0 - d1
+    frac = wp.float32(0.5)
+    if wp.abs(den) > wp.float32(1.0e-6):
+        frac = d0 / den
+    frac = wp.clamp(frac, wp.float32(0.0), wp.float32(1.0))
+    return True, wp.float64(k) + wp.float64(frac), wp.float64(0.5) * (wp.float64(c0) + wp.float64(c1))
+
+
+@wp.kernel
+def subpixel_lines_kernel(
+    code: wp.array2d(dtype=wp.int32),
+    valid: wp.array2d(dtype=wp.uint8),
+    pairs: wp.array4d(dtype=wp.float32),
+    bits: int,
+    axis: int,
+    max_span: wp.float64,
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array2d(dtype=wp.uint8),
+):
+    """One line (tid) of :func:`subpixel_lines`: each pixel between the last code boundary before it and the
+    first after it, in one walk (the boundary after a pixel is found once and becomes the one before the next).
+
+    code (H, W) int32, valid (H, W) uint8, pairs (>= bits, 2, H, W) float32: read. out (H, W) float64,
+    ok (H, W) uint8: written on the line."""
+    line = wp.tid()
+    n = code.shape[1]
+    if axis == 0:
+        n = code.shape[0]
+    has_l = bool(False)
+    pl = wp.float64(0.0)
+    vl = wp.float64(0.0)
+    kr = int(-1)  # the first boundary at or after the pixel; n: none
+    pr = wp.float64(0.0)
+    vr = wp.float64(0.0)
+    for x in range(n):
+        if kr < x:
+            kr = n
+            k = x
+            while k < n - 1:
+                is_b, pk, vk = code_boundary(code, valid, pairs, bits, axis, line, k)
+                if is_b:
+                    kr = k
+                    pr = pk
+                    vr = vk
+                    break
+                k += 1
+        y, xx = line_pixel(axis, line, x)
+        c = code[y, xx]
+        res = wp.float64(c)
+        good = wp.uint8(0)
+        if has_l and kr < n - 1 and valid[y, xx] != wp.uint8(0):
+            span = pr - pl
+            if (wp.abs(vr - vl) == wp.float64(1.0) and span > wp.float64(0.0) and span <= max_span
+                    and wp.abs(wp.float64(c) - wp.float64(0.5) * (vl + vr)) < wp.float64(1.0e-9)):
+                res = vl + (wp.float64(x) - pl) / span * (vr - vl)
+                good = wp.uint8(1)
+        out[y, xx] = res
+        ok[y, xx] = good
+        if kr == x:  # the boundary after this pixel is the one before the next
+            has_l = True
+            pl = pr
+            vl = vr
 
 
 @dataclass
@@ -52,3 +157,47 @@ class Samples:
         """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
         names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan")
         return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}
+
+
+def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bits: int, axis: int,
+                   max_span: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel projector coordinate of a dense Gray-code map along camera ``axis`` (1: across, 0: down).
+
+    A boundary lies between neighbours that both decoded and whose codes are one apart, at the
+    fraction where the one Gray bit that flips there (of ``bits``, MSB first) crosses its
+    inverse; a decoded pixel between two boundaries whose codes step by one, at most
+    ``max_span`` line px apart, with its own code between them, takes the linear
+    interpolation of the two boundaries' codes at its position.
+
+    Args:
+        code: (H, W) int32 codes (any value where not valid).
+        valid: (H, W) bool.
+        pairs: (>= bits, 2, H, W) float32 patterns and inverses, MSB first (the first ``bits`` are read).
+        bits, axis, max_span: as above.
+
+    Returns:
+        (out (H, W) float64: the interpolated coordinate, the code itself where none;
+        ok (H, W) bool: interpolated).
+    """
+    init_warp()
+    code = np.ascontiguousarray(code, np.int32)
+    valid = np.ascontiguousarray(valid, bool).view(np.uint8)
+    pairs = np.ascontiguousarray(pairs, np.float32)
+    H, W = code.shape
+    if valid.shape != (H, W) or pairs.ndim != 4 or pairs.shape[1:] != (2, H, W) or not (0 < bits <= pairs.shape[0]):
+        raise ValueError(f"subpixel_lines: code {code.shape}, valid {valid.shape}, pairs {pairs.shape}, "
+                         f"bits {bits} do not agree")
+    out = np.empty((H, W), np.float64)
+    ok = np.empty((H, W), np.uint8)
+    if H and W:
+        dev = "cpu"
+        o_w, k_w = wp.array(out, dtype=wp.float64, device=dev, copy=False), wp.array(ok, dtype=wp.uint8, device=dev,
+                                                                                      copy=False)
+        wp.launch(subpixel_lines_kernel, dim=H if axis == 1 else W,
+                  inputs=[wp.array(code, dtype=wp.int32, device=dev, copy=False),
+                          wp.array(valid, dtype=wp.uint8, device=dev, copy=False),
+                          wp.array(pairs, dtype=wp.float32, device=dev, copy=False), int(bits), int(axis),
+                          wp.float64(max_span)],
+                  outputs=[o_w, k_w], device=dev)
+        wp.synchronize_device(dev)
+    return out, ok.view(bool)

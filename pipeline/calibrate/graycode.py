@@ -59,6 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ringscan.kernels.samples import subpixel_lines
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.formats.images import FRAME_BITS_RANGE, expand_frame_bits, few_bits_hint, read_image
 from ringscan.pipeline.formats.patterns import gray_decode
@@ -733,57 +734,11 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     return out
 
 
-def _flip_bit(a: np.ndarray, b: np.ndarray, bits: int) -> np.ndarray:
-    """Index (0 = MSB) of the single Gray bit that differs between codes a and b (|a - b| = 1)."""
-    x = (a ^ (a >> 1)) ^ (b ^ (b >> 1))
-    x = np.maximum(x, 1)
-    return (bits - 1 - np.floor(np.log2(x)).astype(np.int64)).astype(np.int64)
-
-
 def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float):
-    """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across).
-
-    The boundaries (a code step of one between neighbouring pixels) are found and placed once, in
-    row-major order; each pixel finds the last boundary before it and the first after it in its row
-    by counting the boundaries before it (a cumulative sum), not by scanning the row twice."""
-    if axis == 0:
-        res, ok = _along_axis(code.T, valid.T, pairs.transpose(0, 1, 3, 2), 1, max_span)
-        return res.T, ok.T
-    H, W = code.shape
-    bits = pairs.shape[0]
-    c0, c1 = code[:, :-1], code[:, 1:]
-    trans = valid[:, :-1] & valid[:, 1:] & (np.abs(c1.astype(np.int64) - c0) == 1)
-    # pixel (y, x): counts[y, x] boundaries k <= x - 1 in row y (boundary k lies between pixels k and k + 1)
-    counts = np.zeros((H, W), np.int64)
-    np.cumsum(trans, axis=1, out=counts[:, 1:])
-    flat = np.flatnonzero(trans)
-    if flat.size == 0:
-        return code.astype(np.float64), np.zeros(code.shape, bool)
-    yy, xx = np.divmod(flat, W - 1)
-    a, b_ = c0[yy, xx].astype(np.int64), c1[yy, xx].astype(np.int64)
-    b = _flip_bit(a, b_, bits)
-    d0 = pairs[b, 0, yy, xx] - pairs[b, 1, yy, xx]
-    d1 = pairs[b, 0, yy, xx + 1] - pairs[b, 1, yy, xx + 1]
-    den = d0 - d1
-    frac = np.where(np.abs(den) > 1e-6, d0 / np.where(den == 0, 1, den), 0.5)
-    pos = xx + np.clip(frac, 0.0, 1.0)  # the boundaries in row-major order
-    val = 0.5 * (a + b_)
-    row_total = counts[:, -1:]
-    first = np.zeros((H, 1), np.int64)
-    np.cumsum(row_total[:-1, 0], out=first[1:, 0])  # boundaries in the rows above
-    has = (counts >= 1) & (counts < row_total)
-    left = np.clip(first + counts - 1, 0, flat.size - 1)
-    right = np.clip(first + counts, 0, flat.size - 1)
-    pl, vl = pos.take(left), val.take(left)
-    pr, vr = pos.take(right), val.take(right)
-    x = np.arange(W)[None, :].astype(np.float64)
-    span = pr - pl
-    ok = has & valid & (np.abs(vr - vl) == 1) & (span > 0) & (span <= max_span)
-    ok &= np.abs(code - 0.5 * (vl + vr)) < 1e-9  # the pixel's own code lies between the two boundaries
-    with np.errstate(invalid="ignore", divide="ignore"):
-        res = vl + (x - pl) / span * (vr - vl)
-    out = np.where(ok, res, code.astype(np.float64))
-    return out, ok
+    """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across): each decoded pixel
+    interpolated between the code boundaries around it (one Warp kernel walk a line,
+    ``kernels.samples.subpixel_lines``; its figures are the NumPy construction's to the bit)."""
+    return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span)
 
 
 def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,

@@ -1,6 +1,7 @@
 """The one Samples type: what every sampler and codec returns."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 from ringscan.kernels.samples import Samples
@@ -18,3 +19,70 @@ def test_optional_fields_default_to_none_and_numpy_gives_the_set_ones():
     np.testing.assert_array_equal(d["uv"], [[1.5, 2.0], [3.0, 4.5]])
     s.phi = wp.array(np.array([0.5, -3.0], np.float32), dtype=wp.float32, device="cpu")
     np.testing.assert_array_equal(s.numpy()["phi"], np.float32([0.5, -3.0]))
+
+
+def _reference_along_x(code, valid, pairs, max_span):
+    """The NumPy construction subpixel_lines replaced (graycode._along_axis before issue 33), along x."""
+    H, W = code.shape
+    bits = pairs.shape[0]
+    c0, c1 = code[:, :-1].astype(np.int64), code[:, 1:].astype(np.int64)
+    trans = valid[:, :-1] & valid[:, 1:] & (np.abs(c1 - c0) == 1)
+    yy, xx = np.nonzero(trans)
+    a, b_ = c0[yy, xx], c1[yy, xx]
+    x = np.maximum((a ^ (a >> 1)) ^ (b_ ^ (b_ >> 1)), 1)
+    b = bits - 1 - np.floor(np.log2(x)).astype(np.int64)
+    d0 = pairs[b, 0, yy, xx] - pairs[b, 1, yy, xx]
+    d1 = pairs[b, 0, yy, xx + 1] - pairs[b, 1, yy, xx + 1]
+    den = d0 - d1
+    frac = np.where(np.abs(den) > 1e-6, d0 / np.where(den == 0, 1, den), 0.5)
+    pos = np.full((H, W - 1), np.nan)
+    val = np.full((H, W - 1), np.nan)
+    pos[yy, xx] = xx + np.clip(frac, 0.0, 1.0)
+    val[yy, xx] = 0.5 * (c0[yy, xx] + c1[yy, xx])
+    left = np.maximum.accumulate(np.where(trans, np.arange(W - 1)[None, :], -1), axis=1)
+    right = np.minimum.accumulate(np.where(trans, np.arange(W - 1)[None, :], W)[:, ::-1], axis=1)[:, ::-1]
+    lk = np.concatenate([np.full((H, 1), -1), left], axis=1)
+    rk = np.concatenate([right, np.full((H, 1), W)], axis=1)
+    has = (lk >= 0) & (rk < W - 1)
+    rows = np.arange(H)[:, None]
+    pl, vl = pos[rows, np.clip(lk, 0, W - 2)], val[rows, np.clip(lk, 0, W - 2)]
+    pr, vr = pos[rows, np.clip(rk, 0, W - 2)], val[rows, np.clip(rk, 0, W - 2)]
+    span = pr - pl
+    ok = has & valid & (np.abs(vr - vl) == 1) & (span > 0) & (span <= max_span)
+    ok &= np.abs(code - 0.5 * (vl + vr)) < 1e-9
+    with np.errstate(invalid="ignore", divide="ignore"):
+        res = vl + (np.arange(W)[None, :] - pl) / span * (vr - vl)
+    return np.where(ok, res, code.astype(np.float64)), ok
+
+
+@pytest.mark.parametrize("axis", [1, 0])
+def test_subpixel_lines_equal_the_numpy_construction(axis):
+    """A Gray-coded ramp (2.3 camera px per code, a few misread and undecoded pixels, a depth step that
+    jumps codes) with noisy pattern/inverse levels: the kernel's walk gives the NumPy construction's
+    numbers to the bit, along rows and (transposed) along columns; most pixels are interpolated, and
+    a pixel's interpolated code lies within half a code of its integer one (the boundaries around code c
+    lie at c -+ 1/2)."""
+    from ringscan.kernels.samples import subpixel_lines
+
+    rng = np.random.default_rng(5)
+    H, W, bits = 40, 300, 7
+    xs = np.arange(W) / 2.3 + 0.4 * np.sin(np.arange(H))[:, None]
+    xs[:, 200:] += 9.0  # a depth step: codes jump
+    code = np.floor(xs).astype(np.int32)
+    valid = rng.random((H, W)) > 0.03
+    code[rng.random((H, W)) < 0.01] += 3  # misreads
+    c = np.clip(code, 0, 2 ** bits - 1).astype(np.int64)
+    g = c ^ (c >> 1)  # the reflected Gray code
+    pairs = np.empty((bits, 2, H, W), np.float32)
+    for b in range(bits):
+        on = ((g >> (bits - 1 - b)) & 1).astype(np.float32)
+        level = 40 + 160 * on + rng.normal(0, 3, (H, W))
+        pairs[b, 0], pairs[b, 1] = level, 240 - level
+    if axis == 0:
+        code, valid, pairs = code.T.copy(), valid.T.copy(), pairs.transpose(0, 1, 3, 2).copy()
+    out, ok = subpixel_lines(code, valid, pairs, bits=bits, axis=axis, max_span=12.0)
+    t = (lambda a: a.T) if axis == 0 else (lambda a: a)
+    want, want_ok = _reference_along_x(t(code), t(valid), pairs if axis == 1 else pairs.transpose(0, 1, 3, 2), 12.0)
+    assert np.array_equal(t(ok), want_ok) and np.array_equal(t(out), want)
+    assert want_ok.mean() > 0.6
+    assert np.all(np.abs(out[ok] - code[ok]) <= 0.5 + 1e-12)  # between the boundaries c -+ 1/2
