@@ -12,10 +12,17 @@ from ringscan.pipeline.formats.atomic import check_output_file
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.fusion.workflow import load_truth_mesh
-from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, own_camera, shade_cloud
-from ringscan.pipeline.preview.colour import colorize
+from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, length_unit, own_camera, shade_cloud
+from ringscan.pipeline.preview.colour import category_colours, colorize, readable_unit
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png, view_camera
 from ringscan.tools.cli import UsageError, add_device_option
+
+CATEGORICAL = ("view", "ring")
+"""Fields whose values name things (a view, a ring): one colour each and a legend, not a scale."""
+MAX_CATEGORIES = 20
+"""More distinct values than this (a scan of 60 rings) get a scale with whole-number ticks instead."""
+FIXED_RANGE = {"confidence": (0.0, 1.0)}
+"""Fields with a range of their own: the colours mean the same from one picture to the next."""
 
 FLOOR_MM = 0.5
 """--truth SCAN: points within this height of the reference plane are the floor, reported apart
@@ -100,9 +107,13 @@ def run_conditioning(args) -> int:
     if not (args.sigma_rho > 0 and args.sigma_tan > 0):
         raise UsageError("--sigma-rho, --sigma-tan: expected standard deviations > 0 (projector px)")
     src = args.conditioning
+    why = ""
     if os.path.isdir(src):
         scan = load_scan(src, check_files=False)
         rig, spec = scan.rig, scan.patterns
+        if not spec.layout.projectable:  # imported: projector columns and rows, no rings to map
+            why = (f"{src} was decoded on import (codec '{spec.codec}': projector columns and rows, no rings); "
+                   "the map is of a ring codec: give its rig file for the default gray-rings patterns")
     else:
         rig = load_rig(src)
         size = (rig.light.width, rig.light.height) if hasattr(rig.light, "width") else (1024, 768)
@@ -116,7 +127,9 @@ def run_conditioning(args) -> int:
     with progress_step("conditioning map", enabled=not args.no_progress):
         cmap = compute_conditioning(rig, center=spec.center, rho_range=(spec.rho0, spec.rho_max),
                                     sector_bits=spec.sector_bits, settings=settings, device=args.device)
-        plot_conditioning(cmap, out, title=f"{src}: plane z = {cmap.plane_z:g} mm")
+        plot_conditioning(cmap, out, title=f"{src}: plane z = {cmap.plane_z:g} mm", empty_why=why)
+    if why and not cmap.lit.any():
+        print(f"no panel has a value: {why}")
     print(json.dumps(cmap.summary()))
     print(f"wrote {args.out}")
     return 0
@@ -217,7 +230,8 @@ def run(args) -> int:
         obj = dist if floor is None else dist[~floor]
         vmax = args.max_error if args.max_error else max(float(np.quantile(obj if len(obj) else dist, 0.99)), 1e-6)
         geoms[0] = colorize(g, dist, vmin=0.0, vmax=vmax, cmap=args.cmap)
-        bar = {"vmin": 0.0, "vmax": vmax, "cmap": args.cmap, "label": "dist (mm)"}
+        unit, k = readable_unit(vmax, "mm")  # 0..0.004 mm reads 0..4 um
+        bar = {"vmin": 0.0, "vmax": vmax * k, "cmap": args.cmap, "label": f"dist ({unit})"}
         if floor is None:
             print(f"distance to truth: mean {dist.mean():.4f} mm, median {np.median(dist):.4f} mm, "
                   f"p95 {np.quantile(dist, 0.95):.4f} mm")
@@ -234,15 +248,40 @@ def run(args) -> int:
                 raise UsageError(f"--color-by {field}: {args.files[0]} is a mesh; a mesh has only height")
             vals = np.asarray(g.vertices)[:, 2].astype(np.float64)
         fin = vals[np.isfinite(vals)]
-        lo, hi = (float(np.quantile(fin, 0.01)), float(np.quantile(fin, 0.99))) if len(fin) else (0.0, 1.0)
-        geoms[0] = colorize(g, vals, vmin=lo, vmax=hi, cmap=args.cmap)
-        bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
-               "label": {"height": "z (mm)", "rho": "rho (px)"}.get(field, field)}
+        kinds = np.unique(fin) if field in CATEGORICAL else np.zeros(MAX_CATEGORIES + 1)
+        if len(kinds) <= MAX_CATEGORIES:  # one colour a view (or ring), named in a legend
+            rgb, ok = category_colours(len(kinds)), np.isfinite(vals)
+            colours = np.full((len(vals), 3), 0.5)  # no value: grey
+            if len(kinds):
+                colours[ok] = rgb[np.searchsorted(kinds, vals[ok])]
+            geoms[0] = painted(g, colours)
+            bar = {"label": field, "categories": [(f"{field} {v:g}", c) for v, c in zip(kinds, rgb)]}
+        else:
+            unit = length_unit(args.files[0])
+            lo, hi = (float(np.quantile(fin, 0.01)), float(np.quantile(fin, 0.99))) if len(fin) else (0.0, 1.0)
+            lo, hi = FIXED_RANGE.get(field, (lo, hi))
+            geoms[0] = colorize(g, vals, vmin=lo, vmax=hi, cmap=args.cmap)
+            bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
+                   "label": {"height": f"z ({unit})", "rho": "rho (px)"}.get(field, field)}
     with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
         res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar,
-                            scale_bar=not args.no_scale_bar)
+                            scale_bar=not args.no_scale_bar, length_unit=length_unit(args.files[0]))
     w, h = res.png_size
     seen = f", seen from {cam.view}'s camera" if cam is not None else ""
-    sb = f", scale bar {res.scale_bar_mm:g} mm" if res.scale_bar_mm else ""
+    sb = f", scale bar {res.scale_bar_label}" if res.scale_bar_mm else ""
     print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer{seen}{sb})")
     return 0
+
+
+def painted(geom, rgb: np.ndarray):
+    """A copy of a cloud (or mesh) with these (N, 3) colours, 0..1."""
+    import open3d as o3d
+
+    colours = o3d.utility.Vector3dVector(np.ascontiguousarray(rgb, dtype=np.float64))
+    if hasattr(geom, "triangles"):
+        out = o3d.geometry.TriangleMesh(geom)
+        out.vertex_colors = colours
+    else:
+        out = o3d.geometry.PointCloud(geom)
+        out.colors = colours
+    return out

@@ -27,7 +27,7 @@ from ringscan.pipeline.geometry import camera_model_for, camera_rays, light_mode
 log = logging.getLogger(__name__)
 
 __all__ = ["ConditioningSettings", "ConditioningMap", "compute_conditioning", "plot_conditioning", "MAX_MAP_PIXELS",
-           "map_step_needed"]
+           "map_step_needed", "conditioning_figure", "empty_panel_reason"]
 
 CONSTRAINT_PANELS = ("rings", "angle", "both")
 
@@ -149,17 +149,27 @@ def compute_conditioning(rig: Rig, *, center, rho_range: tuple[float, float], se
     return ConditioningMap(sigma=sig, lit=lit.reshape(xs.shape), step=settings.step, plane_z=plane_z)
 
 
-def plot_conditioning(cmap: ConditioningMap, out: str | Path, *, title: str = "") -> Path:
-    """Three panels (rings, angle, both) on one logarithmic colour scale with a
-    colour bar; unlit pixels white, lit pixels a constraint drops black. PNG or SVG
-    by the file's extension, written atomically."""
+def empty_panel_reason(cmap: ConditioningMap, constraint: str) -> str | None:
+    """Why a panel of the map has no value, in words (None: it has some)."""
+    if np.isfinite(cmap.sigma[constraint]).any():
+        return None
+    if not cmap.lit.any():
+        return f"no camera pixel sees the coded rings on the plane z = {cmap.plane_z:g} mm"
+    return f"the '{constraint}' constraint places none of the {int(cmap.lit.sum())} lit pixels"
+
+
+def conditioning_figure(cmap: ConditioningMap, *, title: str = "", empty_why: str = ""):
+    """The map's figure: three panels (rings, angle, both) on one logarithmic colour scale with a
+    colour bar; unlit pixels light grey, lit pixels a constraint drops black (both in the legend). A
+    panel with no value says so on the panel, and why (``empty_why`` first when given: what the caller
+    knows, e.g. the scan's codec has no rings)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
+    from matplotlib.colors import ListedColormap, LogNorm
+    from matplotlib.patches import Patch
 
-    out = Path(out)
     vals = np.concatenate([s[np.isfinite(s)] for s in cmap.sigma.values()])
     lo, hi = (float(np.percentile(vals, 1)), float(np.percentile(vals, 99))) if vals.size else (1e-3, 1.0)
     lo, hi = max(lo, 1e-6), max(hi, lo * 10)
@@ -168,19 +178,44 @@ def plot_conditioning(cmap: ConditioningMap, out: str | Path, *, title: str = ""
     summ = cmap.summary()
     norm = LogNorm(vmin=lo, vmax=hi)
     im = None
+    extent = (0, w * cmap.step, h * cmap.step, 0)
     for ax, k in zip(axes, CONSTRAINT_PANELS):
-        ax.imshow(np.where(cmap.lit, 0.0, 1.0), cmap="gray", vmin=0, vmax=1,
-                  extent=(0, w * cmap.step, h * cmap.step, 0))
-        im = ax.imshow(np.ma.masked_invalid(cmap.sigma[k]), cmap="viridis", norm=norm,
-                       extent=(0, w * cmap.step, h * cmap.step, 0))
+        # unlit: light grey; lit but dropped: black (under the sigma map)
+        ax.imshow(np.where(cmap.lit, 0, 1), cmap=ListedColormap(["black", "0.85"]), vmin=0, vmax=1, extent=extent,
+                  interpolation="nearest")
+        im = ax.imshow(np.ma.masked_invalid(cmap.sigma[k]), cmap="viridis", norm=norm, extent=extent)
         s = summ[k]
-        med = f"{s['median_sigma_mm']:.3g} mm" if s["median_sigma_mm"] is not None else "-"
-        ax.set_title(f"{k}: {100 * s['placed']:.0f} % of lit pixels, median {med}")
+        why = empty_panel_reason(cmap, k)
+        if why is None:
+            ax.set_title(f"{k}: {100 * s['placed']:.0f} % of lit pixels, median {s['median_sigma_mm']:.3g} mm")
+        else:
+            ax.set_title(f"{k}: no value")
+            text = f"{empty_why}\n({why})" if empty_why else why
+            ax.text(0.5, 0.5, "\n".join(_wrap(text, 38)), transform=ax.transAxes, ha="center", va="center",
+                    fontsize=10, bbox={"facecolor": "white", "edgecolor": "0.3", "boxstyle": "round"})
         ax.set_xlabel("camera u (px)")
     axes[0].set_ylabel("camera v (px)")
-    fig.colorbar(im, ax=axes, shrink=0.8, label="predicted depth sigma along the ray (mm); black: dropped")
+    axes[-1].legend(handles=[Patch(color="0.85", label="not lit by the rings"),
+                             Patch(color="black", label="lit, dropped by the constraint")],
+                    loc="lower right", fontsize=8)
+    fig.colorbar(im, ax=axes, shrink=0.8, label="predicted depth sigma along the ray (mm)")
     if title:
         fig.suptitle(title)
+    return fig
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    import textwrap
+
+    return [ln for part in text.split("\n") for ln in textwrap.wrap(part, width)]
+
+
+def plot_conditioning(cmap: ConditioningMap, out: str | Path, *, title: str = "", empty_why: str = "") -> Path:
+    """:func:`conditioning_figure` written as PNG or SVG by the file's extension, atomically."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    fig = conditioning_figure(cmap, title=title, empty_why=empty_why)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=80, format=out.suffix.lstrip(".").lower() or "png")
     plt.close(fig)

@@ -12,7 +12,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.atomic import atomic_path
 
-__all__ = ["ResidualMap", "residual_map", "plot_residuals"]
+__all__ = ["ResidualMap", "residual_map", "residual_map_figure", "plot_residuals", "NO_POINT_LABEL"]
 
 
 @dataclass
@@ -61,26 +61,35 @@ def residual_map(fields: dict[str, np.ndarray], *, width: int, height: int, chec
     return ResidualMap(residual=out, summary=summ)
 
 
-def plot_residuals(rmap: ResidualMap, out: str | Path, *, title: str = "", unit: str = "px") -> Path:
-    """The map on a logarithmic colour scale with a colour bar (pixels without a
-    point white), PNG or SVG by the extension, written atomically."""
+NO_POINT_LABEL = "no point (not decoded: e.g. a board's dark squares)"
+"""The legend's name for the hatched pixels of a residual map."""
+
+
+def residual_map_figure(rmap: ResidualMap, *, title: str = "", unit: str = "px"):
+    """The map on a logarithmic colour scale with a colour bar; pixels without a point hatched grey
+    (not white: white reads as a value) and named in a legend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
+    from matplotlib.patches import Patch, Rectangle
 
-    out = Path(out)
     vals = rmap.residual[np.isfinite(rmap.residual) & (rmap.residual > 0)]
     lo, hi = (float(np.percentile(vals, 1)), float(np.percentile(vals, 99))) if vals.size else (1e-3, 1.0)
     lo = max(lo, 1e-6)
     hi = max(hi, lo * 10)
     h, w = rmap.residual.shape
     fig, ax = plt.subplots(figsize=(8, 8 * h / w + 0.8), constrained_layout=True)
-    im = ax.imshow(np.ma.masked_invalid(np.maximum(rmap.residual, lo)), cmap="inferno", norm=LogNorm(vmin=lo, vmax=hi))
+    hatch = {"facecolor": "0.92", "edgecolor": "0.6", "hatch": "///", "linewidth": 0}
+    ax.add_patch(Rectangle((-0.5, -0.5), w, h, zorder=0, **hatch))
+    im = ax.imshow(np.ma.masked_invalid(np.maximum(rmap.residual, lo)), cmap="inferno", norm=LogNorm(vmin=lo, vmax=hi),
+                   zorder=1)
     ax.set_xlabel("camera 1 u (px)")
     ax.set_ylabel("camera 1 v (px)")
-    fig.colorbar(im, ax=ax, shrink=0.8, label=f"residual per point ({unit}); white: no point")
+    fig.colorbar(im, ax=ax, shrink=0.8, label=f"residual per point ({unit})")
+    if not np.isfinite(rmap.residual).all():
+        ax.legend(handles=[Patch(label=NO_POINT_LABEL, **hatch)], loc="lower right", fontsize=8)
     s = rmap.summary
     line = f"{s['points']} points" + (f", median {s['median']:.3g} {unit}, p95 {s['p95']:.3g} {unit}"
                                       if s["median"] is not None else "")
@@ -89,6 +98,15 @@ def plot_residuals(rmap: ResidualMap, out: str | Path, *, title: str = "", unit:
         line += f"\n{c['kind']} check: median {c['median_px']:.3g} px, p95 {c['p95_px']:.3g} px" + (
             "" if c.get("fits", True) else " - the rig file does not fit the images")
     ax.set_title((title + "\n" if title else "") + line)
+    return fig
+
+
+def plot_residuals(rmap: ResidualMap, out: str | Path, *, title: str = "", unit: str = "px") -> Path:
+    """:func:`residual_map_figure` written as PNG or SVG by the extension, atomically."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    fig = residual_map_figure(rmap, title=title, unit=unit)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=80, format=out.suffix.lstrip(".").lower() or "png")
     plt.close(fig)

@@ -125,3 +125,22 @@ def own_camera(ply_path: str | os.PathLike) -> OwnCamera | None:
     E[:3, :3], E[:3, 3] = cam.R, cam.t
     return OwnCamera(np.asarray(cam.K, float), E, int(cam.width), int(cam.height), str(views[0].get("name")),
                      float(views[0].get("turntable_deg", 0.0)))
+
+
+BOARD_UNITS = "board units"
+"""The length unit of a scan whose calibration stated none (an OpenCV file imported without --units):
+whatever the board was measured in, not known to be mm."""
+
+
+def length_unit(ply_path: str | os.PathLike) -> str:
+    """The unit of a cloud's coordinates: ``"mm"``, or :data:`BOARD_UNITS` for a view's PLY of a scan
+    imported from a calibration that states no units (scan.json ``imported.units.source`` "assumed");
+    a file with nothing beside it to say otherwise is in mm (ringscan writes mm)."""
+    report = Path(ply_path).parent / "report.json"
+    try:
+        scan = read_json(report).get("scan") if report.is_file() else None
+        units = (read_json(Path(scan) / "scan.json").get("imported") or {}).get("units") if scan else None
+    except (FormatError, ValueError, TypeError, OSError) as e:
+        log.info("%s: its units unknown (%s): mm", ply_path, e)
+        return "mm"
+    return BOARD_UNITS if isinstance(units, dict) and units.get("source") == "assumed" else "mm"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 
 import numpy as np
@@ -11,7 +12,13 @@ from ringscan.pipeline.formats.images import write_image
 
 log = logging.getLogger(__name__)
 
-__all__ = ["colorize", "colorbar", "ring_overlay", "heatmap", "depth_heatmap", "error_heatmap"]
+__all__ = ["colorize", "colorbar", "colorbar_labels", "nice_ticks", "readable_unit", "category_colours",
+           "ring_overlay", "heatmap", "depth_heatmap", "error_heatmap"]
+
+NICE_STEPS = (1.0, 2.0, 2.5, 5.0, 10.0)
+"""Tick steps within a decade: ticks read as round numbers (0.002, 0.025, 50), never 0.00409."""
+SMALLER_UNIT = {"mm": ("um", 1000.0)}
+"""A length unit and the one below it with its factor: a scale that tops out under 0.1 mm reads in um."""
 
 
 def _diverging(x: np.ndarray) -> np.ndarray:
@@ -77,9 +84,56 @@ def _range(values: np.ndarray, vmin, vmax) -> tuple[float, float]:
     return float(vmin), float(vmax)
 
 
-def colorbar(height: int, *, vmin: float, vmax: float, cmap: str = "turbo", label: str = "",
-             width: int = 110, background=(1.0, 1.0, 1.0)) -> np.ndarray:
-    """A vertical colour bar (BGR uint8, height x width) with 5 tick labels and a title."""
+def nice_ticks(vmin: float, vmax: float, n: int = 5) -> tuple[np.ndarray, list[str]]:
+    """About ``n`` round tick values inside [vmin, vmax] (a step of 1, 2, 2.5 or 5 times a power of ten)
+    and their labels, all in one format (the step's decimals): ``0, 0.002, 0.004``, never ``0.00409``."""
+    vmin, vmax = float(vmin), float(vmax)
+    if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmax <= vmin:
+        return np.array([vmin]), [f"{vmin:g}"]
+    e = math.floor(math.log10((vmax - vmin) / max(n - 1, 1)))
+
+    def count(step):
+        return math.floor(vmax / step + 1e-9) - math.ceil(vmin / step - 1e-9) + 1
+
+    steps = [m * 10.0 ** k for k in (e - 1, e, e + 1) for m in NICE_STEPS[:-1]]
+    step = min(steps, key=lambda s: (abs(count(s) - n), -s))  # the count nearest n, then the larger step
+    first = math.ceil(vmin / step - 1e-9)
+    ticks = np.array([k * step for k in range(first, math.floor(vmax / step + 1e-9) + 1)])
+    mant = step / 10.0 ** math.floor(math.log10(step))
+    decimals = max(0, -math.floor(math.log10(step)) + (1 if abs(mant - 2.5) < 1e-9 else 0))
+    labels = [f"{0.0 if abs(v) < step * 1e-9 else v:.{decimals}f}" for v in ticks]
+    return ticks, labels
+
+
+def readable_unit(vmax: float, unit: str = "mm") -> tuple[str, float]:
+    """The unit a scale reaching ``vmax`` (in ``unit``) reads best in, and the factor to it: mm below
+    0.1 mm -> um (x1000), so that ticks are 0, 2, 4 um and not 0.00409 mm; otherwise ``unit`` itself."""
+    if unit in SMALLER_UNIT and 0 < abs(vmax) < 0.1:
+        return SMALLER_UNIT[unit]
+    return unit, 1.0
+
+
+def category_colours(n: int) -> np.ndarray:
+    """``n`` well-separated colours (RGB, 0..1), one a category: matplotlib's tab10 then tab20's light ones."""
+    base = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+                     [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207],
+                     [174, 199, 232], [255, 187, 120], [152, 223, 138], [255, 152, 150], [197, 176, 213],
+                     [196, 156, 148], [247, 182, 210], [199, 199, 199], [219, 219, 141], [158, 218, 229]]) / 255.0
+    return base[np.arange(n) % len(base)]
+
+
+def colorbar_labels(*, vmin: float = 0.0, vmax: float = 1.0, categories=None, **_) -> list[str]:
+    """The labels :func:`colorbar` draws for these arguments (tick labels, or the categories' names)."""
+    if categories is not None:
+        return [str(name) for name, _ in categories]
+    return nice_ticks(vmin, vmax)[1]
+
+
+def colorbar(height: int, *, vmin: float = 0.0, vmax: float = 1.0, cmap: str = "turbo", label: str = "",
+             width: int = 110, background=(1.0, 1.0, 1.0), categories=None) -> np.ndarray:
+    """A vertical colour bar (BGR uint8, height x width): round ticks in one format
+    (:func:`nice_ticks`) and a title; or, with ``categories`` [(name, RGB 0..1), ...], a legend: one
+    swatch and name a category (views, rings: no continuous scale between them)."""
     import cv2
 
     bg = np.clip(np.rint(np.asarray(background, float)[::-1] * 255), 0, 255).astype(np.uint8)
@@ -89,19 +143,27 @@ def colorbar(height: int, *, vmin: float, vmax: float, cmap: str = "turbo", labe
     top, bottom = (28, height - 14) if roomy else (4, height - 4)
     if bottom - top < 4:
         return bar
+    ink = (0, 0, 0) if bg.mean() > 127 else (255, 255, 255)
+    if categories is not None:
+        if label and roomy:
+            cv2.putText(bar, label[:16], (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, ink, 1, cv2.LINE_AA)
+        row = max(8, min(18, (bottom - top) // max(len(categories), 1)))
+        for k, (name, rgb) in enumerate(categories[: (bottom - top) // row]):
+            y = top + k * row
+            colour = tuple(int(c) for c in np.clip(np.rint(np.asarray(rgb, float)[::-1] * 255), 0, 255))
+            cv2.rectangle(bar, (8, y + 2), (22, y + row - 3), colour, -1)
+            cv2.putText(bar, str(name)[:12], (27, y + row - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.36, ink, 1, cv2.LINE_AA)
+        return bar
     x0, x1 = 10, 30
     ramp = np.linspace(1, 0, bottom - top)
     rgb = _cmap_rgb(ramp, cmap)
     bar[top:bottom, x0:x1] = np.clip(np.rint(rgb[:, None, ::-1] * 255), 0, 255).astype(np.uint8)
     bar[top:bottom, x0 - 1] = bar[top:bottom, x1] = 0
     bar[top - 1, x0 - 1:x1 + 1] = bar[bottom, x0 - 1:x1 + 1] = 0
-    ink = (0, 0, 0) if bg.mean() > 127 else (255, 255, 255)
-    for k in range(5):
-        f = k / 4
+    for val, txt in zip(*nice_ticks(vmin, vmax)):
+        f = (val - vmin) / (vmax - vmin) if vmax > vmin else 0.0
         y = int(round(bottom - 1 - f * (bottom - top - 1)))
         bar[y, x1:x1 + 5] = 0
-        val = vmin + f * (vmax - vmin)
-        txt = f"{val:.3g}"
         cv2.putText(bar, txt, (x1 + 8, min(max(y + 4, 10), height - 2)), cv2.FONT_HERSHEY_SIMPLEX, 0.38, ink, 1,
                     cv2.LINE_AA)
     if label and roomy:

@@ -32,7 +32,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.meshes import MESH_FORMATS, drop_non_finite, read_cloud
 from ringscan.pipeline.formats.ply import check_ply
-from ringscan.pipeline.preview.colour import colorbar
+from ringscan.pipeline.preview.colour import colorbar, colorbar_labels
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,11 @@ class RenderResult:
     png_size: tuple[int, int] | None = None
     """(width, height) of the PNG :func:`render_to_png` wrote, colour bar included."""
     scale_bar_mm: float | None = None
-    """The length of the scale bar :func:`render_to_png` drew, mm (None: none drawn)."""
+    """The length of the scale bar :func:`render_to_png` drew, in its ``length_unit`` (None: none drawn)."""
+    scale_bar_label: str | None = None
+    """The scale bar's label as drawn (``"20 mm"``, ``"20 board units"``)."""
+    legend: list | None = None
+    """The colour bar's labels as drawn: its round ticks, or one name a category (None: no bar)."""
 
 
 # ----------------------------------------------------------------------------- camera
@@ -373,8 +377,8 @@ def scale_bar_mm(geoms, K: np.ndarray, E: np.ndarray, width: int) -> tuple[float
     return mm, mm * px_per_mm
 
 
-def _draw_scale_bar(bgr: np.ndarray, mm: float, px: float) -> None:
-    """Draw a scale bar of ``px`` pixels labelled ``mm`` in the lower left corner (in place)."""
+def _draw_scale_bar(bgr: np.ndarray, mm: float, px: float, unit: str = "mm") -> None:
+    """Draw a scale bar of ``px`` pixels labelled ``mm`` ``unit`` in the lower left corner (in place)."""
     import cv2
 
     h, w = bgr.shape[:2]
@@ -386,26 +390,32 @@ def _draw_scale_bar(bgr: np.ndarray, mm: float, px: float) -> None:
     cv2.line(bgr, (x0, y), (x1, y), ink, 2)
     for x in (x0, x1):
         cv2.line(bgr, (x, y - 5), (x, y + 5), ink, 1)
-    cv2.putText(bgr, f"{mm:g} mm", (x0, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, ink, 1, cv2.LINE_AA)
+    cv2.putText(bgr, f"{mm:g} {unit}", (x0, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, ink, 1, cv2.LINE_AA)
 
 
 def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = ViewSettings(), camera=None,
-                  colorbar_spec: dict | None = None, scale_bar: bool = False) -> RenderResult:
+                  colorbar_spec: dict | None = None, scale_bar: bool = False,
+                  length_unit: str = "mm") -> RenderResult:
     """Render (see :func:`render_geometries`) and write a PNG atomically.
 
     ``colorbar_spec`` ({"vmin", "vmax", "cmap", "label"}) appends a colour bar, for
     geometries painted with :func:`colorize`. ``scale_bar`` draws a bar of a round
     number of millimetres in the lower left corner, true at the median depth of the
-    points (:func:`scale_bar_mm`).
+    points (:func:`scale_bar_mm`), labelled in ``length_unit``: the geometry's own ("board units"
+    for a scan whose calibration stated none), never mm it is not in. A colour bar's ``categories``
+    [(name, RGB), ...] draws a legend instead of a scale (:func:`colorbar`); the labels drawn are
+    ``RenderResult.legend``.
     """
     res = render_geometries(geoms, settings=settings, camera=camera)
     bgr = np.ascontiguousarray(res.image[:, :, ::-1])
     if scale_bar:
         res.scale_bar_mm, px = scale_bar_mm(_as_geometries(geoms), res.K, res.E, settings.width)
-        _draw_scale_bar(bgr, res.scale_bar_mm, px)
+        _draw_scale_bar(bgr, res.scale_bar_mm, px, length_unit)
+        res.scale_bar_label = f"{res.scale_bar_mm:g} {length_unit}"
     if colorbar_spec:
         bar = colorbar(res.image.shape[0], **colorbar_spec, background=settings.background)
         bgr = np.concatenate([bgr, bar], axis=1)
+        res.legend = colorbar_labels(**colorbar_spec)
     write_image(path, np.ascontiguousarray(bgr))
     res.png_size = (int(bgr.shape[1]), int(bgr.shape[0]))
     return res
