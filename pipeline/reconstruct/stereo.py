@@ -167,20 +167,29 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
         if not integer.any():
             continue
-        # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
         w = np.zeros((height, width))
         w.flat[pixel] = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
         p0 = np.zeros(height * width)
         p0[pixel] = val
-        wp_ = w * p0.reshape(height, width)
+        sel = np.flatnonzero(integer)
+        at = pixel[sel]
         # weighted moments of each window about its centre pixel, the coordinate as an offset from the
         # centre's own code p0 (sums of w (p - p0), w dx (p - p0), ...)
-        S, Sx, Sy = (window(w, k) for k in ("1", "x", "y"))
-        Sxx, Sxy, Syy = (window(w, k) for k in ("xx", "xy", "yy"))
-        wP, wPx, wPy = (window(wp_, k) for k in ("1", "x", "y"))
+        if at.size * (2 * r + 1) ** 2 < height * width:
+            # a few integer codes among sub-pixel ones: their own windows, offset by offset
+            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = _windows_at(w.ravel(), p0, at, width, height, r)
+            p0 = p0[at]
+            at = np.arange(at.size)
+        else:
+            # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
+            wp_ = w * p0.reshape(height, width)
+            S, Sx, Sy = (window(w, k) for k in ("1", "x", "y"))
+            Sxx, Sxy, Syy = (window(w, k) for k in ("xx", "xy", "yy"))
+            wP, wPx, wPy = (window(wp_, k) for k in ("1", "x", "y"))
+            wPP = window(wp_ * p0.reshape(height, width), "1")
+            cnt = window((w > 0).astype(np.float64), "1")
         Sp, Sxp, Syp = wP - p0 * S, wPx - p0 * Sx, wPy - p0 * Sy
-        Spp = window(wp_ * p0.reshape(height, width), "1") - 2 * p0 * wP + p0 * p0 * S
-        cnt = window((w > 0).astype(np.float64), "1")
+        Spp = wPP - 2 * p0 * wP + p0 * p0 * S
         # the 3x3 normal equations [S Sx Sy; Sx Sxx Sxy; Sy Sxy Syy] beta = (Sp, Sxp, Syp), by cofactors
         c00, c01, c02 = Sxx * Syy - Sxy * Sxy, Sxy * Sy - Sx * Syy, Sx * Sxy - Sxx * Sy
         c11, c12, c22 = S * Syy - Sy * Sy, Sx * Sy - S * Sxy, S * Sxx - Sx * Sx
@@ -193,14 +202,43 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         chi2 = np.maximum(Spp - (b0 * Sp + b1 * Sxp + b2 * Syp), 0.0)
         dof = np.maximum(cnt - 3, 1)
         good &= chi2 <= QUERY_FIT_CHI2 * dof
-        sel = np.flatnonzero(integer)
-        at = pixel[sel]
         keep = good[at]
         g, at = sel[keep], at[keep]
         out_p[g, axis] = val[g] + b0[at]
         out_s[g, axis] = np.sqrt(c00[at] * inv_det[at] * np.maximum(1.0, chi2[at] / dof[at]))
         refined[g, axis] = True
     return out_p, out_s, refined
+
+
+def _windows_at(w: np.ndarray, p: np.ndarray, at: np.ndarray, width: int, height: int, r: int) -> tuple:
+    """The window sums of :func:`refine_integer_codes` at the pixels ``at`` only: (S, Sx, Sy, Sxx, Sxy, Syy,
+    sum w p, sum w p dx, sum w p dy, sum w p^2, count of pixels with w > 0), each (len(at),), over the
+    (2 r + 1)^2 pixels around each (those outside the image count as w = 0, as the image's filters do).
+
+    Args:
+        w, p: (height * width,) float64 weights (0: no sample) and coordinates, raveled.
+        at: (m,) linear pixel indices."""
+    ys, xs = np.divmod(at, width)
+    sums = np.zeros((11, at.size))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            y, x = ys + dy, xs + dx
+            inside = (y >= 0) & (y < height) & (x >= 0) & (x < width)
+            idx = np.where(inside, at + (dy * width + dx), 0)
+            wk = np.where(inside, w.take(idx), 0.0)
+            wpk = wk * p.take(idx)
+            sums[0] += wk
+            sums[1] += wk * dx
+            sums[2] += wk * dy
+            sums[3] += wk * (dx * dx)
+            sums[4] += wk * (dx * dy)
+            sums[5] += wk * (dy * dy)
+            sums[6] += wpk
+            sums[7] += wpk * dx
+            sums[8] += wpk * dy
+            sums[9] += wpk * p.take(idx)
+            sums[10] += wk > 0
+    return tuple(sums)
 
 
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,

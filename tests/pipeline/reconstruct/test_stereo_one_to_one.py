@@ -8,6 +8,7 @@ camera to camera and measured against the plain way (integer codes matched by eq
 
 import logging
 
+import cv2
 import numpy as np
 import pytest
 
@@ -112,3 +113,28 @@ def test_integer_codes_are_read_from_their_neighbourhood():
     edge = (np.abs(x - 49.5) < 2) & (pixel // W >= 2) & (pixel // W < H - 2) & ~sub
     assert not refined[edge, 0].any() and np.array_equal(out[edge, 0], codes[edge, 0])
     assert refined[edge, 1].all()
+
+
+def test_window_sums_at_a_few_pixels_equal_the_image_filters():
+    """refine_integer_codes sums the windows of a few integer codes among sub-pixel ones at their own
+    pixels (_windows_at): the same sums as the image-wide separable filters, borders (outside = no
+    sample) included, to float64 rounding (the sums reach ~1e7; 1e-6 of slack is ~1e-13 relative)."""
+    from ringscan.pipeline.reconstruct.stereo import _windows_at
+
+    rng = np.random.default_rng(3)
+    H, W, r = 23, 31, 2
+    w = np.where(rng.random((H, W)) < 0.8, rng.uniform(1, 100, (H, W)), 0.0)
+    p = rng.uniform(0, 800, (H, W)) * (w > 0)
+    at = np.r_[0, W - 1, W * H - 1, W * (H - 1), rng.choice(W * H, 40, replace=False)]
+    got = _windows_at(w.ravel(), p.ravel(), at, W, H, r)
+    off = np.arange(-r, r + 1, dtype=np.float64)
+    one = np.ones_like(off)
+
+    def filt(a, kx, ky):
+        return cv2.sepFilter2D(a, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).ravel()[at]
+
+    want = (filt(w, one, one), filt(w, off, one), filt(w, one, off), filt(w, off * off, one), filt(w, off, off),
+            filt(w, one, off * off), filt(w * p, one, one), filt(w * p, off, one), filt(w * p, one, off),
+            filt(w * p * p, one, one), filt((w > 0).astype(np.float64), one, one))
+    for g, x in zip(got, want):
+        np.testing.assert_allclose(g, x, rtol=1e-12, atol=1e-6)
