@@ -41,7 +41,10 @@ How a frame is made (docs/virtual_rig.md, "An independent renderer: Mitsuba 3"):
   camera, ``exposure``, Gaussian noise in grey levels, rounding and clamping.
 
 Surfaces are two-sided Lambertian (Mitsuba's ``diffuse``) with flat facets (no
-interpolated normals); the reference plane z = 0 is a 200 m square.
+interpolated normals); the reference plane z = 0 is a 200 m square. Glossy parts
+(``MitsubaSettings.coat_roughness``) are Mitsuba's ``roughplastic``: the albedo's
+diffuse base under a clear coat whose GGX lobe reflects the projector as a highlight
+(the plane stays matte).
 
 Truth (per view): each camera pixel's centre ray (OpenCV undistortion) is intersected
 with the Mitsuba scene (``Scene.ray_intersect``): the depth is its camera Z; the pixel
@@ -75,7 +78,7 @@ from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 log = logging.getLogger(__name__)
 
 __all__ = ["MitsubaSettings", "MitsubaRig", "MitsubaMissing", "INSTALL_HINT", "MIN_LLVM", "mitsuba_available",
-           "choose_variant", "PARALLEL_DISTANCE_MM", "PLANE_HALF_MM"]
+           "choose_variant", "PARALLEL_DISTANCE_MM", "PLANE_HALF_MM", "COAT_IOR"]
 
 INSTALL_HINT = "pip install 'ringscan[mitsuba]'"
 """How to install Mitsuba 3 for ringscan."""
@@ -94,6 +97,10 @@ PLANE_HALF_MM = 1.0e5
 """Half the side of the square that stands for the infinite reference plane (mm). Its
 central +-1 m is its own pair of triangles, so that the plane near the object is not
 interpolated from vertices 100 m away (float32: their rounding would tilt it by µm)."""
+
+COAT_IOR = 1.49
+"""Refractive index of a glossy part's clear coat (:attr:`MitsubaSettings.coat_roughness`): acrylic,
+polypropylene (Mitsuba's ``roughplastic`` default)."""
 
 _PLANE_INNER_MM = 1000.0
 _EMIT_UPSAMPLE = 4
@@ -116,6 +123,12 @@ class MitsubaSettings:
     """Samples a texel of the ambient image, rendered once per view and added to every frame (its
     Monte Carlo noise is the same in every frame: an ambient of 0.05 at 4 spp varies by ~0.1 % of
     full white)."""
+    coat_roughness: float | None = None
+    """Glossy parts ("my parts are glossy"): None (default) renders the object matte (Lambertian,
+    Mitsuba's ``diffuse``); a number renders it as glossy plastic, Mitsuba's ``roughplastic``: a
+    diffuse base of the render's albedo under a clear coat (index 1.49) whose specular lobe has this
+    GGX roughness alpha in [0.01, 1] (0.05: polished, 0.1: glossy, 0.3: satin). The reference plane
+    stays matte. ringscan's own renderer has no specular lobe; this is Mitsuba's only."""
     variant: str | None = None
     """Mitsuba variant; None: ``llvm_ad_rgb`` where Dr.Jit has a libLLVM of at least
     :data:`MIN_LLVM` (vectorised, ~5x faster here), else ``scalar_rgb``."""
@@ -134,6 +147,12 @@ class MitsubaSettings:
             bad("ambient_spp", f"must be in 1..4096, got {self.ambient_spp}")
         if self.max_depth != -1 and not 2 <= self.max_depth <= 64:
             bad("max_depth", f"must be -1 (unlimited) or in 2..64, got {self.max_depth}")
+        if self.coat_roughness is not None:
+            v = self.coat_roughness
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+                bad("coat_roughness", f"expected None (matte) or a finite number, got {v!r}")
+            if not 0.01 <= v <= 1.0:
+                bad("coat_roughness", f"must be in [0.01, 1] (a GGX alpha), got {v}")
         if self.variant is not None and self.variant not in ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb"):
             bad("variant", f"expected scalar_rgb, llvm_ad_rgb or cuda_ad_rgb, got {self.variant!r}")
 
@@ -536,7 +555,8 @@ class MitsubaRig:
             if len(idx) == 0:
                 continue
             used, inv = np.unique(F[idx].ravel(), return_inverse=True)
-            out.append(self._mesh(f"object_{len(out)}", V[used], inv.reshape(-1, 3), a))
+            out.append(self._mesh(f"object_{len(out)}", V[used], inv.reshape(-1, 3), a,
+                                  coat_roughness=self.mitsuba.coat_roughness))
         # the reference plane z = 0: a central square and four trapezoids around it
         a, b = _PLANE_INNER_MM, PLANE_HALF_MM
         P = np.array([[-a, -a], [a, -a], [a, a], [-a, a], [-b, -b], [b, -b], [b, b], [-b, b]], float)
@@ -546,11 +566,16 @@ class MitsubaRig:
         out.append(self._mesh("plane", P, Fp, s.albedo))
         return out
 
-    def _mesh(self, name: str, V: np.ndarray, F: np.ndarray, albedo: float):
+    def _mesh(self, name: str, V: np.ndarray, F: np.ndarray, albedo: float, *, coat_roughness: float | None = None):
         mi = self._mi
         props = mi.Properties()
-        props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {
-            "type": "diffuse", "reflectance": {"type": "rgb", "value": [float(albedo)] * 3}}})
+        rgb = {"type": "rgb", "value": [float(albedo)] * 3}
+        if coat_roughness is None:
+            bsdf = {"type": "diffuse", "reflectance": rgb}
+        else:
+            bsdf = {"type": "roughplastic", "distribution": "ggx", "alpha": float(coat_roughness),
+                    "int_ior": COAT_IOR, "diffuse_reflectance": rgb}
+        props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": bsdf})
         m = mi.Mesh(name, len(V), len(F), props=props, has_vertex_normals=False, has_vertex_texcoords=False)
         p = mi.traverse(m)
         p["vertex_positions"] = type(p["vertex_positions"])(np.ascontiguousarray(V, np.float32).ravel())
