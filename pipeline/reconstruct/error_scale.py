@@ -136,7 +136,7 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
 
 
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
-                        ring: np.ndarray | None, uv: np.ndarray, *, width: int,
+                        ring: np.ndarray | None, uv: np.ndarray, *, width: int, step: int = 1,
                         max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
     """The ring coordinate's missed error terms where no angle checks it: from each
     sample's disagreement with its neighbours on the same ring (or, for a dense code,
@@ -159,6 +159,8 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         ring: (n,) ring index of each sample, or None for a dense code (one sample a pixel).
         uv: (n, 2) the samples' camera positions (px).
         width: camera width (px).
+        step: the neighbours' distance (px): 1 for a ring's samples; past the window a
+            dense decode smooths over (2 r + 1 for a radius r), whose pixels share errors.
         max_samples: at most this many samples are checked (whole rows of them, evenly spread).
 
     Returns:
@@ -175,15 +177,15 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         return identity_model(0)
     y = pixel // width
     x = pixel % width
-    # every R-th row's samples are checked, against the rows either side
-    period = max(3, int(np.ceil(n_ok / max_samples)))
-    cand = np.flatnonzero(ok & (y % period <= 2))
-    npix = int(pixel.max()) + width + 2
+    # every R-th row's samples are checked, against the rows ``step`` either side
+    period = max(2 * step + 1, int(np.ceil(n_ok / max_samples)))
+    cand = np.flatnonzero(ok & (y % period <= 2 * step))
+    npix = int(pixel.max()) + (width + 1) * (step + 1)
     key = ring[cand] * npix + pixel[cand]
     order = np.argsort(key, kind="stable")
     key, cand = key[order], cand[order]
-    centre = cand[(y[cand] % period) == 1]
-    offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
+    centre = cand[(y[cand] % period) == step]
+    offsets = [(dx, dy) for dy in (-step, 0, step) for dx in (-step, 0, step) if dx or dy]
     nb = np.full((centre.size, len(offsets)), -1, np.int64)
     for j, (dx, dy) in enumerate(offsets):
         xx, yy = x[centre] + dx, y[centre] + dy

@@ -136,7 +136,7 @@ def reconstruct_view(
     triangulated, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
     neighbours = {}
     if samples.phi is None:  # no angle to measure the ring's errors against: its neighbours do
-        triangulated, neighbours = _neighbour_sigmas(scan, samples, triangulated)
+        triangulated, neighbours = _neighbour_sigmas(scan, samples, triangulated, settings)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     check = {}
@@ -236,13 +236,14 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
             widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"]), dict(fit))
 
 
-def _neighbour_sigmas(scan: Scan, samples, triangulated):
+def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSettings):
     """(triangulated with its sigma widened, the :class:`ErrorModel` or {}): where no
     angle checks the ring coordinate, its missed error terms measured from each point's
     disagreement with its neighbours on the same ring
     (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`). The points
     stay where they are (one coordinate places them; its sigma weighs nothing), so the
-    depth sigmas are widened after the one triangulation."""
+    depth sigmas are widened after the one triangulation. A dense code (one sample a
+    pixel: phase-rings) is checked against pixels past its smoothing window."""
     if samples.sigma_rho is None or len(samples) < MIN_PAIRS:
         return triangulated, {}
     cam = scan.rig.camera
@@ -253,7 +254,8 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated):
     sigma_px = samples.sigma_rho.numpy()
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
                               samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
-                              width=cam.width)
+                              width=cam.width,
+                              step=1 if samples.ring is not None else 2 * settings.phase.smooth_radius + 1)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = wp.array(widen_depth_sigma(sigma, sigma_px, fit), dtype=wp.float32, device=triangulated.sigma.device)
