@@ -125,7 +125,8 @@ def run(args) -> int:
     sources = args.source[0] if len(args.source) == 1 else list(args.source)
     rep = fuse_and_mesh(sources, args.out, fuse_settings=FuseSettings(**fkw), mesh_settings=MeshSettings(**mkw),
                         formats=parse_formats(args.formats), preview=not args.no_preview, truth=args.truth,
-                        device=args.device, progress=not args.no_progress, pose_settings=PoseSettings(**pkw))
+                        device=args.device, progress=not args.no_progress, pose_settings=PoseSettings(**pkw),
+                        preview_scale_bar=True)  # preview.png carries its scale, as the demo's does
     if "poses" in rep["fusion"]:
         # fitness / p2pl: against all other poses; fit ref: against the first alone;
         # o3d rmse: Open3D's point-to-point inlier RMSE (reported, not checked).
@@ -154,7 +155,8 @@ def run(args) -> int:
               f"{100 * t['truth_within']:.2f}% of truth within {t['within_mm']} mm")
     outs = rep["outputs"]
     files = [outs["cloud"], *outs["meshes"], *([outs["preview"]] if "preview" in outs else []), "fuse_report.json"]
-    print(f"wrote {args.out}/: {', '.join(files)}")
+    print(f"wrote {args.out}/: {', '.join(files)}"
+          + (f" (preview.png: scale bar {outs['preview_scale_bar_mm']:g} mm)" if outs.get("preview_scale_bar_mm") else ""))
     if outs.get("removed"):
         print(f"removed {', '.join(outs['removed'])}: left in {args.out}/ by an earlier run, not asked for this time")
     if args.watertight and not m["watertight"]:

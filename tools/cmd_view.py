@@ -24,6 +24,10 @@ MAX_CATEGORIES = 20
 FIXED_RANGE = {"confidence": (0.0, 1.0)}
 """Fields with a range of their own: the colours mean the same from one picture to the next."""
 
+NOT_DECODED = "no point (not decoded)"
+"""The key of the hatched pixels of a view seen from its own camera: where it decoded nothing (a board's
+dark squares, a shadow), which plain would read as white surface."""
+
 FLOOR_MM = 0.5
 """--truth SCAN: points within this height of the reference plane are the floor, reported apart
 (the same split as evaluate's object coverage)."""
@@ -265,7 +269,8 @@ def run(args) -> int:
                    "label": {"height": f"z ({unit})", "rho": "rho (px)"}.get(field, field)}
     with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
         res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar,
-                            scale_bar=not args.no_scale_bar, length_unit=length_unit(args.files[0]))
+                            scale_bar=not args.no_scale_bar, length_unit=length_unit(args.files[0]),
+                            empty_label=NOT_DECODED if cam is not None else None)
     w, h = res.png_size
     seen = f", seen from {cam.view}'s camera" if cam is not None else ""
     sb = f", scale bar {res.scale_bar_label}" if res.scale_bar_mm else ""

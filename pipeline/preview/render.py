@@ -96,6 +96,8 @@ class RenderResult:
     """The scale bar's label as drawn (``"20 mm"``, ``"20 board units"``)."""
     legend: list | None = None
     """The colour bar's labels as drawn: its round ticks, or one name a category (None: no bar)."""
+    empty_label: str | None = None
+    """The key of the hatched pixels where nothing was drawn, as drawn (None: left plain)."""
 
 
 # ----------------------------------------------------------------------------- camera
@@ -393,9 +395,32 @@ def _draw_scale_bar(bgr: np.ndarray, mm: float, px: float, unit: str = "mm") -> 
     cv2.putText(bgr, f"{mm:g} {unit}", (x0, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, ink, 1, cv2.LINE_AA)
 
 
+HATCH_BGR = (150, 150, 150)
+"""The hatch lines' colour on the empty pixels."""
+
+
+def _hatch_empty(bgr: np.ndarray, background, label: str) -> None:
+    """Diagonal grey lines over the pixels still the background colour, and a key (in place)."""
+    import cv2
+
+    bg = np.clip(np.rint(np.asarray(background, float)[::-1] * 255), 0, 255).astype(np.uint8)
+    empty = np.all(bgr == bg, axis=2)
+    yy, xx = np.mgrid[0:bgr.shape[0], 0:bgr.shape[1]]
+    bgr[empty & ((xx + yy) % 8 == 0)] = HATCH_BGR
+    ink = (0, 0, 0) if bg.mean() > 127 else (255, 255, 255)
+    x0, y0 = 10, 10
+    cv2.rectangle(bgr, (x0 - 4, y0 - 4), (x0 + 30 + 7 * len(label), y0 + 18), tuple(int(c) for c in bg), -1)
+    sw = bgr[y0:y0 + 14, x0:x0 + 20]
+    sw[:] = bg
+    sy, sx = np.mgrid[0:14, 0:20]
+    sw[(sx + sy) % 8 == 0] = HATCH_BGR
+    cv2.rectangle(bgr, (x0, y0), (x0 + 19, y0 + 13), ink, 1)
+    cv2.putText(bgr, label, (x0 + 26, y0 + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.4, ink, 1, cv2.LINE_AA)
+
+
 def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = ViewSettings(), camera=None,
                   colorbar_spec: dict | None = None, scale_bar: bool = False,
-                  length_unit: str = "mm") -> RenderResult:
+                  length_unit: str = "mm", empty_label: str | None = None) -> RenderResult:
     """Render (see :func:`render_geometries`) and write a PNG atomically.
 
     ``colorbar_spec`` ({"vmin", "vmax", "cmap", "label"}) appends a colour bar, for
@@ -404,10 +429,15 @@ def render_to_png(geoms, path: str | os.PathLike, *, settings: ViewSettings = Vi
     points (:func:`scale_bar_mm`), labelled in ``length_unit``: the geometry's own ("board units"
     for a scan whose calibration stated none), never mm it is not in. A colour bar's ``categories``
     [(name, RGB), ...] draws a legend instead of a scale (:func:`colorbar`); the labels drawn are
-    ``RenderResult.legend``.
+    ``RenderResult.legend``. ``empty_label`` hatches the pixels where nothing was drawn (a view seen
+    from its own camera: where it decoded nothing, e.g. a board's dark squares, which would read as
+    white surface) and keys them with that label in the upper left corner.
     """
     res = render_geometries(geoms, settings=settings, camera=camera)
     bgr = np.ascontiguousarray(res.image[:, :, ::-1])
+    if empty_label:
+        _hatch_empty(bgr, settings.background, empty_label)
+        res.empty_label = empty_label
     if scale_bar:
         res.scale_bar_mm, px = scale_bar_mm(_as_geometries(geoms), res.K, res.E, settings.width)
         _draw_scale_bar(bgr, res.scale_bar_mm, px, length_unit)

@@ -166,3 +166,36 @@ def test_pixels_without_a_point_are_marked_not_white():
     (bg,) = [p for p in ax.patches if p.get_hatch()]
     assert bg.get_facecolor()[:3] != (1.0, 1.0, 1.0)
     assert "white" not in " ".join(a.get_ylabel() for a in fig.axes)
+
+
+def test_a_views_own_camera_render_marks_where_nothing_was_decoded(tmp_path):
+    """Seen from its own camera, a view's holes (a board's dark squares) are hatched and keyed, not white."""
+    import cv2
+
+    from ringscan.pipeline.preview.render import HATCH_BGR, ViewSettings, render_to_png
+
+    p = np.random.default_rng(2).uniform(-10, 10, (4000, 3)) * [1, 1, 0] + [0, 0, 0]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    s = ViewSettings(width=200, height=160, renderer="software")
+    res = render_to_png([cloud], tmp_path / "a.png", settings=s, empty_label=cmd_view.NOT_DECODED)
+    assert res.empty_label == "no point (not decoded)"
+    img = cv2.imread(str(tmp_path / "a.png"))
+    assert (np.all(img == HATCH_BGR, axis=2)).sum() > 100  # the empty pixels carry the hatch
+    plain = render_to_png([cloud], tmp_path / "b.png", settings=s)
+    assert plain.empty_label is None and not np.all(cv2.imread(str(tmp_path / "b.png")) == HATCH_BGR, axis=2).any()
+
+
+def test_fuse_draws_a_scale_bar_on_its_preview(tmp_path, monkeypatch, capsys):
+    """`ringscan fuse` asks for preview.png's scale bar (as the demo does) and says its length."""
+    from ringscan.tools import cmd_fuse
+
+    asked = {}
+
+    def fake(sources, out, **kw):  # the workflow itself is tested in tests/pipeline/fusion; here: what fuse asks
+        asked.update(kw)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cmd_fuse, "fuse_and_mesh", fake)
+    (tmp_path / "recon").mkdir()
+    assert main(["fuse", str(tmp_path / "recon"), "--out", str(tmp_path / "out"), "--no-progress"]) == 130
+    assert asked["preview_scale_bar"] is True
