@@ -33,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import (
+    LIGHT_PARALLEL,
     NEWTON_STEPS,
     CameraModel,
     LightModel,
@@ -40,6 +41,7 @@ from ringscan.kernels.geometry import (
     camera_ray,
     closest_on_ray,
     direction_to_light,
+    full_model_terms,
     in_volume,
     light_pixel,
     make_volume,
@@ -59,6 +61,8 @@ from ringscan.kernels.triangulation import (
 
 MAX_NEIGHBOURS = 16
 """Largest ``MatchSettings.neighbours`` (the kernel's fixed local arrays)."""
+MAX_GRID_SPLIT = 4
+"""Most halvings of ``MatchSettings.cell_px`` for a dense camera-2 map (:func:`match_by_projector`)."""
 VecKi = wp.types.vector(length=MAX_NEIGHBOURS, dtype=wp.int32)
 VecKf = wp.types.vector(length=MAX_NEIGHBOURS, dtype=wp.float32)
 
@@ -68,12 +72,6 @@ MATCH_TOO_FEW = wp.constant(2)
 MATCH_EXTRAPOLATED = wp.constant(3)
 MATCH_DISCONTINUITY = wp.constant(4)
 MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
-JACOBIAN_STEP_MM = wp.constant(0.5)
-"""Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
-point's distance from camera 1."""
-JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
-"""... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
-its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
 MODEL_SHARE = wp.constant(0.5)
@@ -217,39 +215,53 @@ def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H
 
 
 @wp.func
-def cam_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
-    p = project_camera(cam, X)
-    return wp.vec2(p[0] - uv[0], p[1] - uv[1])
-
-
-@wp.func
-def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
-    p = light_pixel(light, X)
-    return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
+def projection_jacobian(cam: CameraModel, X: wp.vec3):
+    """d(u, v) / dX of :func:`~ringscan.kernels.geometry.project_camera` at the world point X, exact
+    (the lens's own derivative, :func:`~ringscan.kernels.geometry.full_model_terms`): its columns
+    (d/dx, d/dy, d/dz) as three vec2."""
+    Xc = cam.R * X + cam.t
+    z = Xc[2]
+    zs = wp.where(wp.abs(z) > 1.0e-12, z, 1.0e-12)
+    inv = 1.0 / zs
+    xn = Xc[0] * inv
+    yn = Xc[1] * inv
+    _d, J, _den = full_model_terms(cam, xn, yn)
+    # d(u, v) / d(xn, yn) = [[fx, skew], [0, fy]] J; d(xn, yn) / dXc = [[1, 0, -xn], [0, 1, -yn]] / z
+    a = (cam.fx * J[0, 0] + cam.skew * J[1, 0]) * inv
+    b = (cam.fx * J[0, 1] + cam.skew * J[1, 1]) * inv
+    c = cam.fy * J[1, 0] * inv
+    d = cam.fy * J[1, 1] * inv
+    m0 = wp.vec3(a, b, -(a * xn + b * yn))  # d u / dXc
+    m1 = wp.vec3(c, d, -(c * xn + d * yn))  # d v / dXc
+    R = cam.R
+    jx = wp.vec2(m0[0] * R[0, 0] + m0[1] * R[1, 0] + m0[2] * R[2, 0], m1[0] * R[0, 0] + m1[1] * R[1, 0] + m1[2] * R[2, 0])
+    jy = wp.vec2(m0[0] * R[0, 1] + m0[1] * R[1, 1] + m0[2] * R[2, 1], m1[0] * R[0, 1] + m1[1] * R[1, 1] + m1[2] * R[2, 1])
+    jz = wp.vec2(m0[0] * R[0, 2] + m0[1] * R[1, 2] + m0[2] * R[2, 2], m1[0] * R[0, 2] + m1[1] * R[1, 2] + m1[2] * R[2, 2])
+    return jx, jy, jz
 
 
 @wp.func
 def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
-                      W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
-    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
-    the Jacobian by central differences over h mm. Returns (H, g, chi2 term, |r| px)."""
+                      W: wp.vec3, H: wp.mat33, g: wp.vec3):
+    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``),
+    its Jacobian exact (:func:`projection_jacobian`). Returns (H, g, chi2 term, |r| px)."""
     r = wp.vec2(0.0, 0.0)
     jx = wp.vec2(0.0, 0.0)
     jy = wp.vec2(0.0, 0.0)
     jz = wp.vec2(0.0, 0.0)
-    ex = wp.vec3(h, 0.0, 0.0)
-    ey = wp.vec3(0.0, h, 0.0)
-    ez = wp.vec3(0.0, 0.0, h)
     if is_light != 0:
-        r = light_residual(light, X, obs)
-        jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
-        jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
-        jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
+        p = light_pixel(light, X)
+        r = wp.vec2(p[0] - obs[0], p[1] - obs[1])
+        if light.model == LIGHT_PARALLEL:
+            jx = wp.vec2(light.R[0, 0], light.R[1, 0]) / light.s
+            jy = wp.vec2(light.R[0, 1], light.R[1, 1]) / light.s
+            jz = wp.vec2(light.R[0, 2], light.R[1, 2]) / light.s
+        else:
+            jx, jy, jz = projection_jacobian(light.cam, X)
     else:
-        r = cam_residual(cam, X, obs)
-        jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
-        jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
-        jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
+        p = project_camera(cam, X)
+        r = wp.vec2(p[0] - obs[0], p[1] - obs[1])
+        jx, jy, jz = projection_jacobian(cam, X)
     H, g = block_terms(r, jx, jy, jz, W, H, g)
     return H, g, quad(W, r, r), wp.length(r)
 
@@ -418,9 +430,11 @@ def match_kernel(
         covered = float(rr - 1) * cell
         if rr > 0 and n == k_max and nd[k_max - 1] <= covered * covered:
             break
-        for gy in range(cy - rr, cy + rr + 1):
-            for gx in range(cx - rr, cx + rr + 1):
-                if wp.max(wp.abs(gx - cx), wp.abs(gy - cy)) == rr and gx >= 0 and gy >= 0 and gx < nx and gy < ny:
+        for gy in range(wp.max(cy - rr, 0), wp.min(cy + rr, ny - 1) + 1):
+            # ring rr's cells: its top and bottom rows whole, the two end cells of the rows between
+            step = wp.where(wp.abs(gy - cy) == rr, 1, wp.max(2 * rr, 1))
+            for gx in range(cx - rr, cx + rr + 1, step):
+                if gx >= 0 and gx < nx:
                     ci = gy * nx + gx
                     for s in range(offsets[ci], offsets[ci] + counts[ci]):
                         j = items[s]
@@ -675,19 +689,15 @@ def triangulate_rays_kernel(
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
     ss = float(0.0)
-    # Jacobians by central differences over 0.5 mm: the projections are smooth on
-    # that scale, and a smaller step lets float32 noise into the Jacobian, which
-    # a point with a large residual (rays that miss) multiplies into its steps
-    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
     for _it in range(NEWTON_STEPS):
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
-        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
+        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, H, g)
+        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, H, g)
         chi = c1 + c2
         ss = r1 * r1 + r2 * r2
         if use_light != 0:
-            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
+            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, H, g)
             chi += c3
             ss += r3 * r3
         if not (wp.abs(wp.determinant(H)) > 0.0):
@@ -702,13 +712,13 @@ def triangulate_rays_kernel(
     # the residual at the solution
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     g = wp.vec3(0.0, 0.0, 0.0)
-    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
+    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, H, g)
+    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, H, g)
     chi = c1 + c2
     ss = r1 * r1 + r2 * r2
     nr = float(2.0)
     if use_light != 0:
-        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
+        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, H, g)
         chi += c3
         ss += r3 * r3
         nr = 3.0
@@ -847,6 +857,14 @@ def match_by_projector(
     rings = int(np.ceil(settings.radius_px / cell))
     nx = int(np.ceil(W / cell))
     ny = int(np.ceil(Hh / cell))
+    # A dense map (camera 2 finer than the projector: ~100 samples a 4 px cell) is binned finer: each
+    # cell split in 2 x 2 while the cells would still hold a quarter of the neighbours on average, so
+    # a query reads ~50 samples, not ~900. The grid covers the same extent and the search the same
+    # radius (cell / 2^s, rings 2^s, both exact): the same neighbours, the same matches.
+    split = 0
+    while split < MAX_GRID_SPLIT and m / (nx * ny * 4.0 ** (split + 1)) >= settings.neighbours / 4.0:
+        split += 1
+    cell, rings, nx, ny = cell / 2 ** split, rings * 2 ** split, nx * 2 ** split, ny * 2 ** split
     counts = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
     if m:
         wp.launch(count_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny], outputs=[counts], device=dev)

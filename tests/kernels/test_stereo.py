@@ -441,3 +441,34 @@ def test_epipolar_distances_match_float64_geometry():
     moved = kernel(uv1, uv2_moved)
     assert np.max(np.abs(moved - reference(uv1, uv2_moved))) < 1e-3
     assert np.median(moved) > 0.3  # the moves are seen: ~N(0, 1.5) across the lines
+
+
+def test_dense_map_binned_finer_finds_the_same_matches(monkeypatch):
+    """A dense camera-2 map (~80 samples a 4 px cell) is binned in cells of 1 px (MAX_GRID_SPLIT):
+    the same neighbours, so the same matches to the bit as the 4 px grid, the radius unchanged."""
+    import ringscan.kernels.stereo as ks
+
+    rng = np.random.default_rng(11)
+    H, W = 200, 300
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    pu = 0.42 * x + 0.03 * y + 2e-4 * x * y + rng.normal(0, 0.02, x.shape)
+    pv = 0.45 * y - 0.02 * x + rng.normal(0, 0.02, x.shape)
+    keep = rng.random(x.shape) > 0.05
+    proj2 = np.stack([pu[keep], pv[keep]], 1).astype(np.float32)
+    uv2 = np.stack([x[keep], y[keep]], 1).astype(np.float32)
+    q = np.stack([rng.uniform(-2, 130, 3000), rng.uniform(-2, 95, 3000)], 1).astype(np.float32)
+    q[::50] = np.nan
+
+    def run():
+        v2 = lambda a: wp.array(a, dtype=wp.vec2, device="cpu")  # noqa: E731
+        f32 = lambda a: wp.array(a, dtype=wp.float32, device="cpu")  # noqa: E731
+        M = match_by_projector(v2(q), f32(np.full(len(q), 0.05, np.float32)), v2(proj2), v2(uv2),
+                               f32(np.full(len(proj2), 0.05, np.float32)), projector_size=(128, 96), threads=2)
+        return {k: getattr(M, k).numpy() for k in ("uv2", "sigma2", "sigma1", "gain", "fit_px", "status")}
+
+    fine = run()
+    monkeypatch.setattr(ks, "MAX_GRID_SPLIT", 0)
+    coarse = run()
+    for k in fine:
+        assert np.array_equal(fine[k], coarse[k], equal_nan=True), k
+    assert (fine["status"] == 0).mean() > 0.8  # most queries inside the map matched
