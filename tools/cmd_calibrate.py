@@ -1033,6 +1033,28 @@ def add_projector_from_scan_parser(calsub) -> None:
     p.set_defaults(_calibrate=run_projector_from_scan)
 
 
+PARALLEL_RMS_PX = 0.5
+"""A projector whose pixels are an affine function of the points to within this (px RMS) is a parallel
+(collimated) light: a pinhole's are not, unless the points lie in one plane."""
+
+
+def no_pinhole_projector(X: np.ndarray, uv: np.ndarray) -> str:
+    """Why no pinhole projector fits the points' projector pixels (OpenCV only says that the principal
+    point left the image): an affine map fits them (a parallel light), or they fit no camera model."""
+    A = np.c_[X, np.ones(len(X))]
+    coef, *_ = np.linalg.lstsq(A, uv, rcond=None)
+    rms = float(np.sqrt(np.mean(np.sum((A @ coef - uv) ** 2, axis=1))))
+    thick = float(np.linalg.svd(X - X.mean(0), compute_uv=False)[-1] / np.sqrt(len(X)))
+    if rms <= PARALLEL_RMS_PX and thick > 1.0:
+        return (f"no pinhole projector fits the scan: its projector pixels are an affine function of the points "
+                f"(RMS {rms:.2f} px), the mark of a parallel (collimated) light such as the virtual rig's default "
+                "(`ringscan simulate --light parallel`); projector-from-scan fits a perspective projector; a "
+                "parallel light is calibrated with `ringscan calibrate light` (docs/calibration.md)")
+    return ("no pinhole projector fits the scan's projector pixels (the fit put the principal point outside the "
+            f"projector image; an affine map leaves {rms:.1f} px RMS): check --projector WxH and that the scan's "
+            "projector coordinates are the projector's pixels")
+
+
 def run_projector_from_scan(args) -> int:
     size = parse_size(args.projector, "--projector") if args.projector is not None else None
     if args.principal_point is not None and not all(np.isfinite(args.principal_point)):
@@ -1071,9 +1093,14 @@ def run_projector_from_scan(args) -> int:
     weighted = args.weights == "predicted" and sig is not None
     with progress_step("fitting the projector", enabled=not args.no_progress):
         cov = triangulation_covariance(c1, c2, Xw, sig[keep, 0], sig[keep, 1]) if weighted else None
-        fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
-            principal_point=pp, radial=args.radial, tangential=args.tangential), point_cov=cov,
-            pixel_sigma=sig[keep, 3:5] if weighted else None)
+        try:
+            fit = fit_projector(Xw, proj[keep], size=size, settings=ProjectorSettings(
+                principal_point=pp, radial=args.radial, tangential=args.tangential), point_cov=cov,
+                pixel_sigma=sig[keep, 3:5] if weighted else None)
+        except CalibrationError as e:
+            if "Principal point must be within the image" not in e.message:
+                raise
+            raise CalibrationError(args.rig or scan.path, no_pinhole_projector(Xw, proj[keep])) from None
     K = fit.light.K
     sd = fit.std
     print(f"projector: RMS reprojection error {fit.rms_px:.3f} px over {fit.used} points ({fit.outliers} left out); "
