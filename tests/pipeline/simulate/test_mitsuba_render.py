@@ -331,3 +331,33 @@ def test_scan_rendered_by_mitsuba_reconstructs_end_to_end(tmp_path):
     assert ev["points"] > 150 and ev["coverage"] > 0.9
     assert ev["median_mm"] < 0.15 and ev["frac_over_1mm"] < 0.02, ev
     assert math.isfinite(ev["p95_mm"]) and ev["p95_mm"] < 0.6, ev
+
+
+def test_sigma_honesty_refuses_mitsuba_only_conditions_on_ringscans_renderer(tmp_path, capsys):
+    """benchmarks/sigma_honesty.py: the conditions only Mitsuba renders (a corner's inter-reflection, a glossy
+    coat) are refused for ringscan's renderer with one line, before anything is rendered; each names a
+    scene or Mitsuba settings that exist."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[3] / "benchmarks" / "sigma_honesty.py"
+    spec = importlib.util.spec_from_file_location("sigma_honesty", path)
+    sh = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sh)
+    only = [n for n in sh.CONDITIONS if sh.condition_extras(n).get("mitsuba_only")]
+    assert {"corner-interreflection", "glossy-coat-0.1"} <= set(only)
+    for n in sh.CONDITIONS:
+        ex = sh.condition_extras(n)
+        MitsubaSettings(**ex.get("mitsuba", {}))                     # valid settings
+        if "scene" in ex:
+            from ringscan.pipeline.simulate.scenes import make_scene
+
+            make_scene(ex["scene"])
+    for n in only:
+        with pytest.raises(ValueError, match=f"condition {n}: needs --renderer mitsuba"):
+            sh.run_condition(n, tmp_path, renderer="warp")
+    assert sh.main(["--only", "glossy-coat-0.1", "--out", str(tmp_path)]) == 1
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == ["error: condition glossy-coat-0.1 needs --renderer mitsuba: ringscan's own renderer cannot render "
+                   "a glossy coat's specular lobe (it renders Lambertian surfaces only)"]
+    assert not any(tmp_path.iterdir())
