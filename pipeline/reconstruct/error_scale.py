@@ -136,7 +136,7 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
 
 
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
-                        ring: np.ndarray | None, uv: np.ndarray, *, width: int, step: int = 1,
+                        ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
                         max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
     """The ring coordinate's missed error terms where no angle checks it: from each
     sample's disagreement with its neighbours on the same ring (or, for a dense code,
@@ -159,8 +159,9 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         ring: (n,) ring index of each sample, or None for a dense code (one sample a pixel).
         uv: (n, 2) the samples' camera positions (px).
         width: camera width (px).
-        step: the neighbours' distance (px): 1 for a ring's samples; past the window a
-            dense decode smooths over (2 r + 1 for a radius r), whose pixels share errors.
+        window: the side (px) of the square a dense decode averages each pixel over
+            (2 r + 1 for a smoothing radius r; 1: none): neighbouring pixels then share
+            part of their errors (a box's overlap), which their difference would hide.
         max_samples: at most this many samples are checked (whole rows of them, evenly spread).
 
     Returns:
@@ -177,15 +178,15 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         return identity_model(0)
     y = pixel // width
     x = pixel % width
-    # every R-th row's samples are checked, against the rows ``step`` either side
-    period = max(2 * step + 1, int(np.ceil(n_ok / max_samples)))
-    cand = np.flatnonzero(ok & (y % period <= 2 * step))
-    npix = int(pixel.max()) + (width + 1) * (step + 1)
+    # every R-th row's samples are checked, against the rows either side
+    period = max(3, int(np.ceil(n_ok / max_samples)))
+    cand = np.flatnonzero(ok & (y % period <= 2))
+    npix = int(pixel.max()) + width + 2
     key = ring[cand] * npix + pixel[cand]
     order = np.argsort(key, kind="stable")
     key, cand = key[order], cand[order]
-    centre = cand[(y[cand] % period) == step]
-    offsets = [(dx, dy) for dy in (-step, 0, step) for dx in (-step, 0, step) if dx or dy]
+    centre = cand[(y[cand] % period) == 1]
+    offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
     nb = np.full((centre.size, len(offsets)), -1, np.int64)
     for j, (dx, dy) in enumerate(offsets):
         xx, yy = x[centre] + dx, y[centre] + dy
@@ -212,8 +213,19 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     wa, wb = 1.0 - t, t
     r = d[c] - (wa * d[a] + wb * d[b])
     g = s / p  # depth per projector px of rho
-    X = np.stack([s[c] ** 2 + (wa * s[a]) ** 2 + (wb * s[b]) ** 2,
-                  g[c] ** 2 + (wa * g[a]) ** 2 + (wb * g[b]) ** 2], axis=1)
+
+    def overlap(i, j):  # the share of error two pixels have in common under a window x window mean
+        dx = np.abs(x[i] - x[j])
+        dy = np.abs(y[i] - y[j])
+        return np.maximum(window - dx, 0) * np.maximum(window - dy, 0) / float(window * window)
+
+    rca, rcb, rab = (overlap(c, a), overlap(c, b), overlap(a, b)) if window > 1 else (0.0, 0.0, 0.0)
+
+    def var(u):  # Var(e_c - wa e_a - wb e_b) for errors of standard deviations u, correlated as above
+        return (u[c] ** 2 + (wa * u[a]) ** 2 + (wb * u[b]) ** 2 - 2 * wa * rca * u[c] * u[a]
+                - 2 * wb * rcb * u[c] * u[b] + 2 * wa * wb * rab * u[a] * u[b])
+
+    X = np.stack([var(s), var(g)], axis=1)
     q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
     z0 = np.abs(r) / np.sqrt(X[:, 0])
     z1 = np.abs(r) / np.sqrt(X @ q)

@@ -243,7 +243,8 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`). The points
     stay where they are (one coordinate places them; its sigma weighs nothing), so the
     depth sigmas are widened after the one triangulation. A dense code (one sample a
-    pixel: phase-rings) is checked against pixels past its smoothing window."""
+    pixel: phase-rings) averages each pixel over a window; the errors its pixels share
+    are taken into account."""
     if samples.sigma_rho is None or len(samples) < MIN_PAIRS:
         return triangulated, {}
     cam = scan.rig.camera
@@ -255,7 +256,7 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
                               samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
                               width=cam.width,
-                              step=1 if samples.ring is not None else 2 * settings.phase.smooth_radius + 1)
+                              window=1 if samples.ring is not None else 2 * settings.phase.smooth_radius + 1)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = wp.array(widen_depth_sigma(sigma, sigma_px, fit), dtype=wp.float32, device=triangulated.sigma.device)
