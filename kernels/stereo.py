@@ -46,6 +46,7 @@ from ringscan.kernels.geometry import (
     light_pixel,
     make_volume,
     project_camera,
+    projection_jacobian,
     undistort,
 )
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
@@ -215,36 +216,10 @@ def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H
 
 
 @wp.func
-def projection_jacobian(cam: CameraModel, X: wp.vec3):
-    """d(u, v) / dX of :func:`~ringscan.kernels.geometry.project_camera` at the world point X, exact
-    (the lens's own derivative, :func:`~ringscan.kernels.geometry.full_model_terms`): its columns
-    (d/dx, d/dy, d/dz) as three vec2."""
-    Xc = cam.R * X + cam.t
-    z = Xc[2]
-    zs = wp.where(wp.abs(z) > 1.0e-12, z, 1.0e-12)
-    inv = 1.0 / zs
-    xn = Xc[0] * inv
-    yn = Xc[1] * inv
-    _d, J, _den = full_model_terms(cam, xn, yn)
-    # d(u, v) / d(xn, yn) = [[fx, skew], [0, fy]] J; d(xn, yn) / dXc = [[1, 0, -xn], [0, 1, -yn]] / z
-    a = (cam.fx * J[0, 0] + cam.skew * J[1, 0]) * inv
-    b = (cam.fx * J[0, 1] + cam.skew * J[1, 1]) * inv
-    c = cam.fy * J[1, 0] * inv
-    d = cam.fy * J[1, 1] * inv
-    m0 = wp.vec3(a, b, -(a * xn + b * yn))  # d u / dXc
-    m1 = wp.vec3(c, d, -(c * xn + d * yn))  # d v / dXc
-    R = cam.R
-    jx = wp.vec2(m0[0] * R[0, 0] + m0[1] * R[1, 0] + m0[2] * R[2, 0], m1[0] * R[0, 0] + m1[1] * R[1, 0] + m1[2] * R[2, 0])
-    jy = wp.vec2(m0[0] * R[0, 1] + m0[1] * R[1, 1] + m0[2] * R[2, 1], m1[0] * R[0, 1] + m1[1] * R[1, 1] + m1[2] * R[2, 1])
-    jz = wp.vec2(m0[0] * R[0, 2] + m0[1] * R[1, 2] + m0[2] * R[2, 2], m1[0] * R[0, 2] + m1[1] * R[1, 2] + m1[2] * R[2, 2])
-    return jx, jy, jz
-
-
-@wp.func
 def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
                       W: wp.vec3, H: wp.mat33, g: wp.vec3):
     """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``),
-    its Jacobian exact (:func:`projection_jacobian`). Returns (H, g, chi2 term, |r| px)."""
+    its Jacobian exact (:func:`~ringscan.kernels.geometry.projection_jacobian`). Returns (H, g, chi2 term, |r| px)."""
     r = wp.vec2(0.0, 0.0)
     jx = wp.vec2(0.0, 0.0)
     jy = wp.vec2(0.0, 0.0)
