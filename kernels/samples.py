@@ -6,6 +6,7 @@ Gray-code map's pixels between its code boundaries (:func:`subpixel_lines`, what
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +15,11 @@ import warp as wp
 from ringscan.kernels.runtime import init_warp
 
 __all__ = ["Samples", "subpixel_lines"]
+
+_first_launch = threading.Lock()
+_loaded: set = set()
+"""Devices :func:`subpixel_lines`' kernel has run on: its first launch (which builds or loads the module; Warp's
+module loading is not thread-safe) is made under the lock, so that an import's cameras may decode on threads."""
 
 
 @wp.func
@@ -193,11 +199,20 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
         dev = "cpu"
         o_w, k_w = wp.array(out, dtype=wp.float64, device=dev, copy=False), wp.array(ok, dtype=wp.uint8, device=dev,
                                                                                       copy=False)
-        wp.launch(subpixel_lines_kernel, dim=H if axis == 1 else W,
-                  inputs=[wp.array(code, dtype=wp.int32, device=dev, copy=False),
-                          wp.array(valid, dtype=wp.uint8, device=dev, copy=False),
-                          wp.array(pairs, dtype=wp.float32, device=dev, copy=False), int(bits), int(axis),
-                          wp.float64(max_span)],
-                  outputs=[o_w, k_w], device=dev)
+        inputs = [wp.array(code, dtype=wp.int32, device=dev, copy=False),
+                  wp.array(valid, dtype=wp.uint8, device=dev, copy=False),
+                  wp.array(pairs, dtype=wp.float32, device=dev, copy=False), int(bits), int(axis),
+                  wp.float64(max_span)]
+
+        def launch():
+            wp.launch(subpixel_lines_kernel, dim=H if axis == 1 else W, inputs=inputs, outputs=[o_w, k_w], device=dev)
+
+        key = (dev, pairs.dtype.str)
+        if key in _loaded:
+            launch()
+        else:
+            with _first_launch:
+                launch()
+                _loaded.add(key)
         wp.synchronize_device(dev)
     return out, ok.view(bool)
