@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -43,8 +44,14 @@ def gray_flip_bit(a: int, b: int, bits: int):
 
 
 @wp.func
+def pair_level(pairs: wp.array4d(dtype=Any), b: int, f: int, y: int, x: int, scale: wp.float32):
+    """Frame f (0 pattern, 1 inverse) of bit b at (y, x) in 8-bit levels: its value as float32 times scale."""
+    return wp.float32(pairs[b, f, y, x]) * scale
+
+
+@wp.func
 def code_boundary(code: wp.array2d(dtype=wp.int32), valid: wp.array2d(dtype=wp.uint8),
-                  pairs: wp.array4d(dtype=wp.float32), bits: int, axis: int, line: int, k: int):
+                  pairs: wp.array4d(dtype=Any), scale: wp.float32, bits: int, axis: int, line: int, k: int):
     """The boundary between pixels k and k + 1 of a line, where both decoded and their codes
     are one apart: (is one, its position in line px: k + the fraction where the flipping
     bit's pattern - inverse crosses 0, the two codes' mean)."""
@@ -57,8 +64,8 @@ def code_boundary(code: wp.array2d(dtype=wp.int32), valid: wp.array2d(dtype=wp.u
     if wp.abs(c1 - c0) != 1:
         return False, wp.float64(0.0), wp.float64(0.0)
     b = gray_flip_bit(c0, c1, bits)
-    d0 = pairs[b, 0, y0, x0] - pairs[b, 1, y0, x0]
-    d1 = pairs[b, 0, y1, x1] - pairs[b, 1, y1, x1]
+    d0 = pair_level(pairs, b, 0, y0, x0, scale) - pair_level(pairs, b, 1, y0, x0, scale)
+    d1 = pair_level(pairs, b, 0, y1, x1, scale) - pair_level(pairs, b, 1, y1, x1, scale)
     den = d0 - d1
     frac = wp.float32(0.5)
     if wp.abs(den) > wp.float32(1.0e-6):
@@ -71,7 +78,8 @@ def code_boundary(code: wp.array2d(dtype=wp.int32), valid: wp.array2d(dtype=wp.u
 def subpixel_lines_kernel(
     code: wp.array2d(dtype=wp.int32),
     valid: wp.array2d(dtype=wp.uint8),
-    pairs: wp.array4d(dtype=wp.float32),
+    pairs: wp.array4d(dtype=Any),
+    scale: wp.float32,
     bits: int,
     axis: int,
     max_span: wp.float64,
@@ -81,7 +89,8 @@ def subpixel_lines_kernel(
     """One line (tid) of :func:`subpixel_lines`: each pixel between the last code boundary before it and the
     first after it, in one walk (the boundary after a pixel is found once and becomes the one before the next).
 
-    code (H, W) int32, valid (H, W) uint8, pairs (>= bits, 2, H, W) float32: read. out (H, W) float64,
+    code (H, W) int32, valid (H, W) uint8, pairs (>= bits, 2, H, W) uint8, uint16 or float32 (levels:
+    value * scale): read. out (H, W) float64,
     ok (H, W) uint8: written on the line."""
     line = wp.tid()
     n = code.shape[1]
@@ -98,7 +107,7 @@ def subpixel_lines_kernel(
             kr = n
             k = x
             while k < n - 1:
-                is_b, pk, vk = code_boundary(code, valid, pairs, bits, axis, line, k)
+                is_b, pk, vk = code_boundary(code, valid, pairs, scale, bits, axis, line, k)
                 if is_b:
                     kr = k
                     pr = pk
@@ -166,7 +175,7 @@ class Samples:
 
 
 def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bits: int, axis: int,
-                   max_span: float) -> tuple[np.ndarray, np.ndarray]:
+                   max_span: float, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel projector coordinate of a dense Gray-code map along camera ``axis`` (1: across, 0: down).
 
     A boundary lies between neighbours that both decoded and whose codes are one apart, at the
@@ -178,7 +187,8 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
     Args:
         code: (H, W) int32 codes (any value where not valid).
         valid: (H, W) bool.
-        pairs: (>= bits, 2, H, W) float32 patterns and inverses, MSB first (the first ``bits`` are read).
+        pairs: (>= bits, 2, H, W) patterns and inverses, MSB first (the first ``bits`` are read): uint8,
+            uint16 or float32 values, their levels ``float32(value) * scale`` (a frame stack as read).
         bits, axis, max_span: as above.
 
     Returns:
@@ -188,7 +198,9 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
     init_warp()
     code = np.ascontiguousarray(code, np.int32)
     valid = np.ascontiguousarray(valid, bool).view(np.uint8)
-    pairs = np.ascontiguousarray(pairs, np.float32)
+    if pairs.dtype not in (np.uint8, np.uint16, np.float32):
+        pairs = pairs.astype(np.float32)
+    pairs = np.ascontiguousarray(pairs)
     H, W = code.shape
     if valid.shape != (H, W) or pairs.ndim != 4 or pairs.shape[1:] != (2, H, W) or not (0 < bits <= pairs.shape[0]):
         raise ValueError(f"subpixel_lines: code {code.shape}, valid {valid.shape}, pairs {pairs.shape}, "
@@ -201,8 +213,8 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
                                                                                       copy=False)
         inputs = [wp.array(code, dtype=wp.int32, device=dev, copy=False),
                   wp.array(valid, dtype=wp.uint8, device=dev, copy=False),
-                  wp.array(pairs, dtype=wp.float32, device=dev, copy=False), int(bits), int(axis),
-                  wp.float64(max_span)]
+                  wp.array(pairs, dtype=wp.dtype_from_numpy(pairs.dtype), device=dev, copy=False),
+                  wp.float32(scale), int(bits), int(axis), wp.float64(max_span)]
 
         def launch():
             wp.launch(subpixel_lines_kernel, dim=H if axis == 1 else W, inputs=inputs, outputs=[o_w, k_w], device=dev)

@@ -151,11 +151,27 @@ class GrayCodeCapture:
     black: np.ndarray
     """(H, W) float32 black frame."""
     col_pairs: np.ndarray
-    """(col_bits, 2, H, W) float32 column patterns and inverses, MSB first."""
+    """(col_bits, 2, H, W) column patterns and inverses, MSB first, as read (uint8 or uint16) or float32:
+    their levels are ``float32(value) * scale`` (:func:`pair_diff`)."""
     row_pairs: np.ndarray
-    """(row_bits, 2, H, W) float32 row patterns and inverses, MSB first."""
+    """(row_bits, 2, H, W) row patterns and inverses, MSB first, as ``col_pairs``."""
     projector: tuple[int, int]
     """Projector (width, height)."""
+    scale: float = 1.0
+    """8-bit levels of one unit of the pairs' values: 1 (8-bit or float frames), 1 / 257 (16-bit frames).
+    The frames are kept as read, a quarter of float32's memory and of the decode's reads."""
+
+
+def pair_diff(pairs: np.ndarray, b: int, scale: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) float32 pattern - inverse of bit ``b`` of ``pairs`` in 8-bit levels: each frame's value as
+    float32 times ``scale`` (rounded to float32), then the difference: the figures a float32 copy of the
+    frames scaled as they were read gives, to the bit."""
+    p, inv = pairs[b, 0], pairs[b, 1]
+    if scale == 1.0:
+        return np.subtract(p, inv, out=out, dtype=np.float32)
+    s = np.float32(scale)
+    a = np.multiply(p, s, dtype=np.float32)
+    return np.subtract(a, np.multiply(inv, s, dtype=np.float32), out=out if out is not None else a)
 
 
 @dataclass
@@ -569,10 +585,12 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
     brightest = -1  # of 16-bit frames read as they are (the hint for a 10- or 12-bit camera's)
     fr = None
     # the frames are decoded on threads (the image decoders release the GIL), checked and
-    # converted in capture order: the first bad frame in that order is the one named
+    # stored in capture order: the first bad frame in that order is the one named. They are
+    # kept as read (their levels: value * scale); a capture of 8- and 16-bit frames mixed
+    # becomes float32 levels
     for i, (p, img) in enumerate(zip(paths, _read_frames(paths, threads))):
         if fr is None:
-            fr = np.empty((len(paths), *img.shape), np.float32)  # filled frame by frame: no stacked copy
+            fr = np.empty((len(paths), *img.shape), img.dtype)  # filled frame by frame: no stacked copy
         elif img.shape != fr.shape[1:]:
             raise CalibrationError(p, f"frame is {img.shape[1]}x{img.shape[0]}, {paths[0].name} is "
                                       f"{fr.shape[2]}x{fr.shape[1]}")
@@ -580,16 +598,20 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
             expand_capture_frame(p, img, frame_bits)
         elif img.dtype == np.uint16:
             brightest = max(brightest, int(img.max()))
-        fr[i] = img
-        if img.dtype == np.uint16:
-            fr[i] *= np.float32(1.0 / 257.0)  # as img.astype(float32) * float32(1 / 257): the same floats
+        if img.dtype != fr.dtype:
+            if fr.dtype != np.float32:
+                fr = np.concatenate([_levels_of(fr[:i]), np.empty((len(paths) - i, *img.shape), np.float32)])
+            fr[i] = _levels_of(img)
+        else:
+            fr[i] = img
+    scale = 1.0 / 257.0 if fr.dtype == np.uint16 else 1.0
     if layout == "opencv-graycode":
         pairs, white, black = fr[:-2], fr[-2], fr[-1]
     else:
         white, black, pairs = fr[0], fr[1], fr[2:]
     pairs = pairs.reshape(cb + rb, 2, *fr.shape[1:])
-    cap = GrayCodeCapture(folder=source, white=white, black=black, col_pairs=pairs[:cb], row_pairs=pairs[cb:],
-                          projector=(int(projector[0]), int(projector[1])))
+    cap = GrayCodeCapture(folder=source, white=_levels_of(white), black=_levels_of(black), col_pairs=pairs[:cb],
+                          row_pairs=pairs[cb:], projector=(int(projector[0]), int(projector[1])), scale=scale)
     try:
         check_layout(cap, layout)
     except CalibrationError as e:
@@ -598,6 +620,15 @@ def read_capture_files(paths, *, projector: tuple[int, int], layout: str = "open
             raise CalibrationError(e.path, e.message + hint) from None
         raise
     return cap
+
+
+def _levels_of(a: np.ndarray) -> np.ndarray:
+    """float32 8-bit levels of frames as read: uint16 values / 257 (as float32(value) * float32(1 / 257)),
+    others as they are (a new array)."""
+    out = a.astype(np.float32)
+    if a.dtype == np.uint16:
+        out *= np.float32(1.0 / 257.0)
+    return out
 
 
 def expand_capture_frame(p: Path, img: np.ndarray, bits: int) -> None:
@@ -646,8 +677,8 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     def code(pairs):
         g = np.zeros(contrast.shape, np.int64 if len(pairs) > 30 else np.int32)
         ok = np.ones(contrast.shape, bool)
-        for p, inv in pairs:
-            np.subtract(p, inv, out=d)
+        for b in range(len(pairs)):
+            pair_diff(pairs, b, cap.scale, out=d)
             np.greater(d, 0, out=bit)
             g <<= 1
             g |= bit
@@ -666,7 +697,7 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     coarse = np.zeros(contrast.shape + (2,), np.int8)
     low = np.zeros(contrast.shape, bool)
     for a, (pairs, c) in enumerate(((cap.col_pairs, col), (cap.row_pairs, row))):
-        k = bit_clearance(pairs, contrast, valid, c, noise)
+        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale)
         low |= k > MAX_COARSE_BITS
         coarse[..., a] = np.minimum(k, MAX_COARSE_BITS)
     low &= valid
@@ -687,7 +718,7 @@ def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
     pixels, the few on a stripe's edge left out (beyond 4 of a robust first guess; the guess is widened by
     half a level, as a median of integer levels is coarse), gives the noise of one frame.
     """
-    p, inv = cap.col_pairs[0]
+    p, inv = (_levels_of(a) if cap.scale != 1.0 else a.astype(np.float32, copy=False) for a in cap.col_pairs[0])
     r = (p + inv - cap.white - cap.black)[valid].astype(np.float64)
     if r.size < 100:
         return 1.0
@@ -706,7 +737,7 @@ def _code_steps(code: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
-                  noise: float) -> np.ndarray:
+                  noise: float, *, scale: float = 1.0) -> np.ndarray:
     """(H, W) int: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
 
     A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
@@ -726,7 +757,7 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     thresh = np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise, CLEAR_CONTRAST_FRACTION * contrast)
     for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
         b = bits - 1 - j
-        d = np.abs(pairs[b, 0] - pairs[b, 1]).astype(np.float32)
+        d = np.abs(pair_diff(pairs, b, scale))
         # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
         r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
         near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
@@ -734,15 +765,16 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     return out
 
 
-def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float):
+def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float,
+                scale: float = 1.0):
     """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across): each decoded pixel
     interpolated between the code boundaries around it (one Warp kernel walk a line,
     ``kernels.samples.subpixel_lines``; its figures are the NumPy construction's to the bit)."""
-    return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span)
+    return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale)
 
 
 def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,
-            max_span: float) -> tuple[np.ndarray, np.ndarray]:
+            max_span: float, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel coordinate of every pixel from the bits it trusts: a pixel that leaves its ``k`` finest bits
     untrusted is interpolated between the boundaries of blocks of 2**k projector pixels (the code without
     those bits: ``code >> k``, whose Gray bits are the first ``bits - k``), found between the pixels that
@@ -759,7 +791,7 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
             continue
         lvl_valid = valid & (coarse <= k)
         lvl_code = np.where(lvl_valid, code >> k, -1)
-        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k)
+        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k, scale)
         # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
         take = todo & good
         out = np.where(take, res * 2 ** k + (2 ** k - 1) / 2.0, out)
@@ -777,8 +809,8 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
 
     ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
     coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
-    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px)
-    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px)
+    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale)
+    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale)
     # a pixel whose finest bits are untrusted has no integer code to fall back on: it is dropped
     lost = dec.valid & (((coarse[..., 0] > 0) & ~oku) | ((coarse[..., 1] > 0) & ~okv))
     if dec.low_modulation is not None:

@@ -86,3 +86,29 @@ def test_subpixel_lines_equal_the_numpy_construction(axis):
     assert np.array_equal(t(ok), want_ok) and np.array_equal(t(out), want)
     assert want_ok.mean() > 0.6
     assert np.all(np.abs(out[ok] - code[ok]) <= 0.5 + 1e-12)  # between the boundaries c -+ 1/2
+
+
+@pytest.mark.parametrize("dtype, scale", [(np.uint8, 1.0), (np.uint16, 1.0 / 257.0)])
+def test_subpixel_lines_read_frames_as_stored(dtype, scale):
+    """A frame stack kept as read (8-bit, or 16-bit with levels value / 257: ringscan import keeps a
+    capture so, a quarter of float32's memory) gives the numbers its float32 levels give, to the bit."""
+    from ringscan.kernels.samples import subpixel_lines
+
+    rng = np.random.default_rng(9)
+    H, W, bits = 24, 200, 6
+    xs = np.arange(W) / 1.7 + 0.5 * np.cos(np.arange(H))[:, None]
+    code = np.floor(xs).astype(np.int32)
+    valid = rng.random((H, W)) > 0.02
+    c = np.clip(code, 0, 2 ** bits - 1).astype(np.int64)
+    g = c ^ (c >> 1)
+    top = 255 if dtype == np.uint8 else 65535
+    raw = np.empty((bits, 2, H, W), dtype)
+    for b in range(bits):
+        on = ((g >> (bits - 1 - b)) & 1).astype(np.float64)
+        level = np.clip((0.15 + 0.7 * on) * top + rng.normal(0, 0.02 * top, (H, W)), 0, top)
+        raw[b, 0], raw[b, 1] = np.round(level), np.round(top - level)
+    levels = raw.astype(np.float32) * np.float32(scale)
+    out, ok = subpixel_lines(code, valid, raw, bits=bits, axis=1, max_span=12.0, scale=scale)
+    want, want_ok = subpixel_lines(code, valid, levels, bits=bits, axis=1, max_span=12.0)
+    assert np.array_equal(ok, want_ok) and np.array_equal(out, want)
+    assert ok.mean() > 0.6

@@ -118,9 +118,12 @@ def test_frame_bits_reads_a_12_bit_capture_as_its_8_bit_original(capture, tmp_pa
     _to_12_bits(folder, tmp_path / "c12")
     ref = read_capture(folder, projector=PROJ)
     cap = read_capture(tmp_path / "c12", projector=PROJ, frame_bits=12)
-    # v -> v << 4 | v >> 4 -> replicated to 16 bits: v * 257 give or take 15 of 65536
-    for a, b in ((cap.white, ref.white), (cap.black, ref.black), (cap.col_pairs, ref.col_pairs),
-                 (cap.row_pairs, ref.row_pairs)):
+    # v -> v << 4 | v >> 4 -> replicated to 16 bits: v * 257 give or take 15 of 65536 (the pairs are kept
+    # as read: their levels are value * scale, 1 / 257 for 16-bit frames)
+    assert cap.col_pairs.dtype == np.uint16 and ref.col_pairs.dtype == np.uint8 and cap.scale == 1 / 257
+    for a, b in ((cap.white, ref.white), (cap.black, ref.black),
+                 (cap.col_pairs * np.float32(cap.scale), ref.col_pairs.astype(np.float32)),
+                 (cap.row_pairs * np.float32(cap.scale), ref.row_pairs.astype(np.float32))):
         assert np.abs(a - b).max() <= 15 / 257 + 1e-4
     d12, d8 = decode_graycode(cap), decode_graycode(ref)
     assert np.mean(d12.valid == d8.valid) > 0.999
@@ -304,3 +307,18 @@ def test_a_plain_text_list_reads_as_a_filestorage_list(capture, tmp_path, monkey
     lst.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(CalibrationError, match="not a text image list"):
         list_capture(lst, projector=PROJ)
+
+
+def test_a_capture_kept_as_read_decodes_as_its_float_levels(capture, tmp_path):
+    """The frames are kept as read (8-bit here; 16-bit with scale 1 / 257): the decode and the sub-pixel map
+    of the capture equal those of the same capture as float32 levels, to the bit."""
+    folder, u, v = capture
+    cap = read_capture(folder, projector=PROJ)
+    assert cap.col_pairs.dtype == np.uint8 and cap.scale == 1.0
+    flt = dataclasses.replace(cap, col_pairs=cap.col_pairs.astype(np.float32),
+                              row_pairs=cap.row_pairs.astype(np.float32))
+    a, b = subpixel_map(cap, decode_graycode(cap)), subpixel_map(flt, decode_graycode(flt))
+    for f in ("col", "row", "valid", "contrast", "coarse", "low_modulation", "subpixel"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    assert a.noise == b.noise
+    assert np.array_equal(a.u, b.u, equal_nan=True) and np.array_equal(a.v, b.v, equal_nan=True)
