@@ -44,6 +44,9 @@ from ringscan.pipeline.simulate.scenes import SceneMesh, corner_normals, make_sc
 log = logging.getLogger(__name__)
 
 EMIT_UPSAMPLE = 4
+_FILTER_ALIGN = 64
+"""The blur of a window of the projector's image reads columns from a multiple of this many pixels
+(see VirtualRig._emitted_window)."""
 
 __all__ = ["EMIT_UPSAMPLE", "RenderSettings", "view_angles", "VirtualRig"]
 
@@ -198,6 +201,8 @@ class VirtualRig:
         self._corner = corner_normals(scene.vertices, scene.faces)
         self._deg = 0.0
         self._geometry = None
+        self._window = None
+        self._emit_buf = None
         self._calls = 0
 
     # -- pose
@@ -216,6 +221,7 @@ class VirtualRig:
         if float(deg) != self._deg:
             self._deg = float(deg)
             self._geometry = None
+            self._window = None
 
     def object_vertices(self) -> np.ndarray:
         """The object's vertices in the world frame at the current angle, (N, 3) float64."""
@@ -260,27 +266,91 @@ class VirtualRig:
         which the renderer interpolates bilinearly. Without defocus k = 1 and the
         renderer samples the sharp pixels (nearest).
         """
-        import cv2
+        pw, ph = self.projector_size
+        return self._emitted_window(self._check_frame(frame), (0, 0, pw, ph))
 
+    def _check_frame(self, frame: np.ndarray) -> np.ndarray:
         f = np.asarray(frame)
         pw, ph = self.projector_size
         if f.shape != (ph, pw):
             raise ValueError(f"frame: expected shape ({ph}, {pw}) (the projector's), got {f.shape}")
         if f.dtype != np.uint8:
             raise ValueError(f"frame: expected uint8, got {f.dtype}")
+        return f
+
+    def _emitted_window(self, f: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`emitted` of the projector pixels ``[x0, x1) x [y0, y1)`` alone, ((y1 - y0) k, (x1 - x0) k).
+
+        The blur reaches r projector pixels (the weights' half width), so the frame is read
+        r pixels beyond the window on each side (as far as the image goes; beyond it the
+        light is 0, as for the whole image): every value is computed from the same
+        pixels and weights as over the whole image.
+        """
+        import cv2
+
+        x0, y0, x1, y1 = window
         lut = ((np.arange(256) / 255.0) ** float(self.rig.light.gamma)).astype(np.float32)
-        e = lut[f]
         if self.settings.defocus_px <= 0:
-            return e
+            return lut[f[y0:y1, x0:x1]]
+        pw, ph = self.projector_size
         k = EMIT_UPSAMPLE
         w = _pixel_gauss_weights(self.settings.defocus_px, k)
-        tmp = np.empty((ph, pw * k), np.float32)
+        r = (w.shape[1] - 1) // 2
+        # The crop's columns start at a multiple of _FILTER_ALIGN and end at one or at the image's edge:
+        # OpenCV's filter runs a row in vector blocks and its last pixels (the blocks' remainder) by
+        # another path, which rounds differently in the last bit; aligned so, every pixel takes the path
+        # it takes over the whole image (the remainder is the image's own, where the crop reaches it).
+        cx0 = max(x0 - r, 0) // _FILTER_ALIGN * _FILTER_ALIGN
+        cx1 = min(cx0 - (cx0 - min(x1 + r, pw)) // _FILTER_ALIGN * _FILTER_ALIGN, pw)
+        cy0, cy1 = max(y0 - r, 0), min(y1 + r, ph)
+        e = lut[f[cy0:cy1, cx0:cx1]]
+        wd = cx1 - cx0
+        h = e.shape[0]
+        tmp = np.empty((h, wd * k), np.float32)
         for m in range(k):
             tmp[:, m::k] = cv2.filter2D(e, cv2.CV_32F, w[m][None, :], borderType=cv2.BORDER_CONSTANT)
-        out = np.empty((ph * k, pw * k), np.float32)
+        out = np.empty((h * k, wd * k), np.float32)
         for m in range(k):
             out[m::k, :] = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], borderType=cv2.BORDER_CONSTANT)
-        return out
+        return out[(y0 - cy0) * k:(y1 - cy0) * k, (x0 - cx0) * k:(x1 - cx0) * k]
+
+    def emit_window(self) -> tuple[int, int, int, int]:
+        """(x0, y0, x1, y1): the projector pixels ``[x0, x1) x [y0, y1)`` whose light the camera can see
+        at the current angle: every sub-sample that the projector may light (a direct weight > 0, on
+        the image) falls in it, with one pixel to spare on every side for the bilinear
+        interpolation between fine samples (or the image's edge). :meth:`render` computes the
+        emitted light of this window alone: a camera that sees a part of the projector's image
+        renders in a fraction of the time, with the same frames. (0, 0, 0, 0) when the projector
+        lights nothing the camera sees.
+        """
+        if self._window is None:
+            s = self.geometry().samples.numpy()
+            pw, ph = self.projector_size
+            u, v = s[:, 0], s[:, 1]
+            # a superset of the kernel's inside_image test (u in [-0.5, W_p - 0.5]): never too small
+            on = (s[:, 2] > 0) & (u >= -1.0) & (u <= pw) & (v >= -1.0) & (v <= ph)
+            if not on.any():
+                self._window = (0, 0, 0, 0)
+            else:
+                u, v = u[on], v[on]
+                self._window = (max(int(np.floor(u.min())) - 1, 0), max(int(np.floor(v.min())) - 1, 0),
+                                min(int(np.ceil(u.max())) + 2, pw), min(int(np.ceil(v.max())) + 2, ph))
+        return self._window
+
+    def _emitted_for_render(self, frame: np.ndarray) -> np.ndarray:
+        """The emitted image as :meth:`render` uses it: the whole (H_p k, W_p k) image, computed over
+        :meth:`emit_window` alone and 0 elsewhere (light the camera cannot see). One buffer, reused
+        from frame to frame."""
+        f = self._check_frame(frame)
+        pw, ph = self.projector_size
+        k = self.emitted_upsample
+        x0, y0, x1, y1 = win = self.emit_window()
+        if self._emit_buf is None or self._emit_buf[0] != win:
+            self._emit_buf = (win, np.zeros((ph * k, pw * k), np.float32))
+        buf = self._emit_buf[1]
+        if x1 > x0 and y1 > y0:
+            buf[y0 * k:y1 * k, x0 * k:x1 * k] = self._emitted_window(f, win)
+        return buf
 
     def render(self, frame: np.ndarray, *, seed: int | None = None) -> np.ndarray:
         """The camera image under a projector frame.
@@ -302,7 +372,9 @@ class VirtualRig:
         elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
         geo = self.geometry()
-        e = wp.array(self.emitted(frame), dtype=float, device=self.device)
+        # on the CPU the kernel reads the buffer where it is (no copy of the whole image a frame)
+        e = wp.array(self._emitted_for_render(frame), dtype=float, device=self.device,
+                     copy=wp.get_device(self.device).is_cuda)
         s = self.settings
         gamma = float(self.rig.camera.gamma)
         full_irr = (1.0 + s.ambient) / s.exposure ** gamma
