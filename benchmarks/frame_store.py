@@ -108,6 +108,18 @@ def measure(label: str, frames: np.ndarray, png_read) -> None:
         rows = [("PNG, OpenCV's default parameters", size_png, t_png)]
         rows.append(("Zarr v3 (ringscan): Blosc zstd 5, bit-shuffle, CRC32C", size_of(tmp / "frames.zarr"),
                      best(lambda: fs.read_store(info))))
+        try:  # the same store through zarr-python v3 (issue 36: a library's reader unless > 1.2x slower)
+            import zarr
+
+            def zarr_read():
+                with zarr.config.set({"async.concurrency": 1, "threading.max_workers": 1}):
+                    return zarr.open_array(str(tmp / "frames.zarr"), mode="r")[...]
+
+            assert np.array_equal(zarr_read(), frames)
+            rows.append((f"the same store through zarr-python {zarr.__version__} (1 thread)",
+                         size_of(tmp / "frames.zarr"), best(zarr_read)))
+        except ImportError:
+            print("zarr-python is not installed (pip install '.[test]'): its reader not measured")
         if png_read is not None:
             rows.append(("ringscan's PNG (read_view_frames, 1 thread)", png_read[0], best(png_read[1], 3)))
         for name, path, read in blosc2_candidates(frames, tmp):
