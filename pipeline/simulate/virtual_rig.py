@@ -339,12 +339,15 @@ class VirtualRig:
 
     def _emitted_for_render(self, frame: np.ndarray) -> np.ndarray:
         """The emitted image as :meth:`render` uses it: the whole (H_p k, W_p k) image, computed over
-        :meth:`emit_window` alone and 0 elsewhere (light the camera cannot see). One buffer, reused
-        from frame to frame."""
+        :meth:`emit_window` alone and 0 elsewhere (light the camera cannot see): one buffer, reused
+        from frame to frame (a new image a frame where the window is the whole image)."""
         f = self._check_frame(frame)
         pw, ph = self.projector_size
         k = self.emitted_upsample
         x0, y0, x1, y1 = win = self.emit_window()
+        if win == (0, 0, pw, ph):  # the camera sees the whole image: computed in place, nothing to copy
+            self._emit_buf = None
+            return np.ascontiguousarray(self._emitted_window(f, win))
         if self._emit_buf is None or self._emit_buf[0] != win:
             self._emit_buf = (win, np.zeros((ph * k, pw * k), np.float32))
         buf = self._emit_buf[1]
