@@ -721,18 +721,23 @@ def import_captures(
         if (out / "scan.json").exists():  # written by another import between the check above and the lock
             raise FormatError(out, "already holds a scan (scan.json); choose another folder")
         views = []
-        for f, name, per_cam in decs:
-            frames = {}
-            for c, dec in per_cam.items():
-                sub = f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2) else name
-                frames[c] = {}
-                fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
-                for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
-                    rel = f"{sub}/{key}.png"
-                    write_image(out / rel, img)
-                    frames[c][key] = rel
-            second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
-            views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
+
+        def write_camera(sub, dec):  # its three frames, encoded and written (PNG encoders release the GIL)
+            fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+            rels = {}
+            for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
+                rels[key] = f"{sub}/{key}.png"
+                write_image(out / rels[key], img)
+            return rels
+
+        with ThreadPoolExecutor(max_workers=cpu_cores(), thread_name_prefix="ringscan-import-write") as pool:
+            written = [(f, name, {c: pool.submit(write_camera, f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2)
+                                                 else name, dec) for c, dec in per_cam.items()})
+                       for f, name, per_cam in decs]
+            for f, name, futs in written:
+                frames = {c: fu.result() for c, fu in futs.items()}  # the first failure in order is raised
+                second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
+                views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
         imported = {"layout": layout, "units": units, "captures": [str(f.source) for f, _, _ in decs],
                     "kinds": [f.kind for f, _, _ in decs], "stats": stats}
         if camera is not None:
