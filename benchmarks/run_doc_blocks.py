@@ -96,7 +96,11 @@ BLOCKS = [
     Block("README.md", "report = reconstruct_scan(\"out/demo/scan\"", "suite",
           "tests/tools/test_doc_blocks.py::test_readme_python_block_runs_as_written", setup="demo_scan"),
     # docs/calibration.md
-    Block("docs/calibration.md", "ringscan calibrate camera shots/*.png --board 9x7", "script",
+    Block("docs/calibration.md", "--board 9x7 --square 30 --charuco DICT_5X5_100", "no",
+          "needs your photos of a ChArUco board through a wide-angle lens (shots/: the shared captures show a plain "
+          "chessboard); tests/pipeline/calibrate/test_camera.py fits the rational and thin-prism models to "
+          "rendered views of a known lens"),
+    Block("docs/calibration.md", "ringscan calibrate camera shots/*.png --board 9x7 --square 75", "script",
           "~25 s (board detection in three 1280x1024 photos, twice); `shots/` are your photos: here the white "
           "frames of the shared procam captures, the same board", setup="shots_and_rig"),
     Block("docs/calibration.md", "ringscan calibrate procam ../shared/data/procam/capture_{1,2,3}", "script",
@@ -298,6 +302,10 @@ def classify() -> list[tuple[Block, int, str, str]]:
         bad = untagged_commands(ROOT / doc)
         if bad:
             raise ValueError(f"{doc}:{bad[0]}: a command line in a block without the sh language tag")
+    twice = [(b, line) for b, line, _, _ in out if sum(b is c for c, *_ in out) > 1]
+    if twice:
+        raise ValueError(f"{twice[0][0].doc}:{twice[0][1]}: the entry {twice[0][0].match!r} matches more than one "
+                         "block (make its match text longer)")
     gone = [b for b in BLOCKS if id(b) not in used]
     if gone:
         raise ValueError(f"{gone[0].doc}: no block contains {gone[0].match!r} any more")

@@ -59,6 +59,9 @@ def test_a_new_block_must_be_listed(tmp_path, monkeypatch):
     fake.write_text(readme + "\n```\nringscan view out/demo/mesh/mesh.ply\n```\n")  # a command without the tag
     with pytest.raises(ValueError, match="without the sh language tag"):
         DB.classify()
+    fake.write_text(readme + "\n```sh\nmake demo    # again\n```\n")  # an entry whose text two blocks hold
+    with pytest.raises(ValueError, match="matches more than one block"):
+        DB.classify()
     start = readme.index("```sh\nmake demo")
     fake.write_text(readme[:start] + readme[readme.index("```", start + 5) + 3:])  # the block removed
     with pytest.raises(ValueError, match="no block contains 'make demo    #'"):
