@@ -481,7 +481,7 @@ def main(argv: list[str] | None = None) -> int:
                            VIRTUAL_ENV=str(venv))
             elif block.cwd == "repo":
                 work = ROOT
-                if not args.make_test:
+                if not args.make_test and any(ln.startswith("make test") for ln in text.splitlines()):
                     print(f"{name}: `make test` left out (the suite itself; --make-test runs it)")
                     text = "\n".join(ln for ln in text.splitlines() if not ln.startswith("make test")) + "\n"
             for key, why in block.drop_lines.items():
