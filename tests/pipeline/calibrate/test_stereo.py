@@ -44,6 +44,14 @@ def seen():
     return observe(20000, noise_px=0.1, seed=3)
 
 
+@pytest.fixture(scope="module")
+def seen_6k():
+    """6000 matches of the same devices and noise: the three-device bundle's time grows faster than the
+    matches (18 s for 20000 on two cores, 3.4 s for these); its bounds hold with a margin of 2x or more
+    (measured: rotation 0.00085 deg, baseline 0.053 mm, projector epipolar median 0.10 px)."""
+    return observe(6000, noise_px=0.1, seed=3)
+
+
 def test_refine_from_a_rotated_rig_returns_the_true_pose(seen):
     _, u1, u2, _ = seen
     cam1, cam2, _ = oblique_devices()
@@ -248,8 +256,8 @@ def test_stereo_rig_refine_keeps_camera_1_and_a_two_camera_rig_moves_its_project
         refine_stereo_rig(Rig(camera=cam1, light=proj, volume=rig.volume), u1, u2)
 
 
-def test_refine_with_the_calibrated_projector_adjusts_all_three_and_leaves_out_one_that_does_not_fit(seen):
-    _, u1, u2, up = seen
+def test_refine_with_the_calibrated_projector_adjusts_all_three_and_leaves_out_one_that_does_not_fit(seen_6k):
+    _, u1, u2, up = seen_6k
     cam1, cam2, proj = oblique_devices()
     Rt, tt = relative_pose(cam1, cam2)
     s = np.full(len(u1), 0.1)
