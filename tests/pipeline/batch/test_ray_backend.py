@@ -169,16 +169,32 @@ class TestOneCluster:
     """Batches on one running cluster, one after the other (each its own output folder); the last adds a node
     with a GPU."""
 
-    def test_ray_gives_the_local_bytes_and_survives_a_killed_worker(self, cluster, three_scans, local_out, tmp_path):
-        want = read_results(local_out)
-        rep = batch_reconstruct(three_scans, tmp_path / "ray", backend="ray", device="cpu", progress=False)
+    def test_ray_tasks_read_packed_scans_to_the_same_bytes(self, cluster, three_scans, local_out, tmp_path):
+        """Packed scans on Ray give the local backend's bytes; on a cluster without GPUs each task asks for one
+        CPU and gets it (the report says what Ray gave it), and no worker dies while no test asks for it.
+        (Unpacked scans on Ray: test_ray_survives_a_killed_worker_with_the_local_bytes, next.)"""
+        import shutil
+
+        from ringscan.pipeline.formats.packing import pack_scan
+
+        packed = tmp_path / "packed"
+        shutil.copytree(three_scans, packed)
+        for scan in sorted(packed.glob("*/scan.json")):
+            assert pack_scan(scan.parent).converted
+        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
         assert [s["status"] for s in rep["scans"]] == ["done"] * 3
-        # a cluster without GPUs: each task asks for one CPU and gets it (the report says what Ray gave it)
         assert [s["ray_resources"] for s in rep["scans"]] == [{"CPU": 1.0}] * 3
-        assert read_results(tmp_path / "ray") == want
         assert not cluster.marker.with_name("kill-once.taken").exists()  # no worker died for it
 
-        # A worker killed mid-task (SIGKILL after one view of its scan): Ray retries the task, the scan resumes.
+        def plys(folder):
+            return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+
+        assert plys(tmp_path / "ray") == plys(local_out) and len(plys(local_out)) == 4
+
+    def test_ray_survives_a_killed_worker_with_the_local_bytes(self, cluster, three_scans, local_out, tmp_path):
+        """A worker killed mid-task (SIGKILL after one view of its scan): Ray retries the task, the scan resumes,
+        and the three (unpacked) scans give the local backend's bytes."""
+        want = read_results(local_out)
         cluster.marker.write_text("")
         rep = batch_reconstruct(three_scans, tmp_path / "killed", backend="ray", device="cpu", progress=False)
         assert cluster.marker.with_name("kill-once.taken").exists()  # a worker did die
@@ -210,23 +226,6 @@ class TestOneCluster:
                                       "error": f"cv2.error: {RAISE_ENV}: OpenCV's own exception, raised on purpose"}
         for s in bad["scans"]:
             assert s["status"] == "failed" and "nodevice:7" in s["error"] and "retries" not in s["error"], s
-
-    def test_ray_tasks_read_packed_scans_to_the_same_bytes(self, cluster, three_scans, local_out, tmp_path):
-        import shutil
-
-        from ringscan.pipeline.formats.packing import pack_scan
-
-        packed = tmp_path / "packed"
-        shutil.copytree(three_scans, packed)
-        for scan in sorted(packed.glob("*/scan.json")):
-            assert pack_scan(scan.parent).converted
-        rep = batch_reconstruct(packed, tmp_path / "ray", backend="ray", device="cpu", progress=False)
-        assert [s["status"] for s in rep["scans"]] == ["done"] * 3
-
-        def plys(folder):
-            return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
-
-        assert plys(tmp_path / "ray") == plys(local_out) and len(plys(local_out)) == 4
 
     def test_ray_tasks_read_and_write_s3(self, cluster, scan_root, local_out):
         """Ray tasks stage their scans from S3 (a local S3 server) as local workers do: the storage options
