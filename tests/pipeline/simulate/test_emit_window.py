@@ -48,16 +48,16 @@ def _cut_camera(rig, x0, y0, width, height):
 
 
 @pytest.mark.parametrize("bit_depth", [8, 16])
-def test_frames_rendered_through_the_window_are_the_whole_projectors(bit_depth):
+def test_frames_rendered_through_the_window_are_the_whole_projectors(bit_depth, device):
     """The tiny rig's camera cut to its middle 32x24 pixels sees a small part of the projector: the render
     computes the light there alone, and every frame of a pattern set (rings and sectors, their edges
     blurred) is byte for byte the render through the whole projector's light, at two turntable angles
-    (the window follows the view)."""
+    (the window follows the view); on the CPU, where the kernel reads the light in place, and on a GPU."""
     rig = _cut_camera(tiny_rig(), 64, 52, 32, 24)
     frames = list(render_frames(parse_patterns({**TINY_PATTERNS, "bits": 2, "sector_bits": 3})).values())
     settings = RenderSettings(bit_depth=bit_depth)
-    cut = VirtualRig(rig, "cube", settings=settings, device="cpu")
-    whole = VirtualRig(rig, "cube", settings=settings, device="cpu")
+    cut = VirtualRig(rig, "cube", settings=settings, device=device)
+    whole = VirtualRig(rig, "cube", settings=settings, device=device)
     pw, ph = whole.projector_size
     whole.emit_window = lambda: (0, 0, pw, ph)  # the light of the whole image, as before the window
     windows = []
