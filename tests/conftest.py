@@ -48,6 +48,19 @@ def _shared_renders(request, tmp_path_factory):
     share_renders_in(None)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _frames_drawn_once():
+    """The virtual rig's callers draw each projector frame once per process (tests/support/frame_cache.py)."""
+    import ringscan.hardware.emulators.rig as emulated_rig
+    import ringscan.pipeline.simulate.scan as simulated_scan
+    from tests.support.frame_cache import cached_render_frame
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(simulated_scan, "render_frame", cached_render_frame)
+        mp.setattr(emulated_rig, "render_frame", cached_render_frame)
+        yield
+
+
 @pytest.fixture(params=_devices())
 def device(request) -> str:
     """Every kernel test runs on "cpu", and on "cuda:0" where a GPU is present."""
