@@ -34,3 +34,29 @@ def test_missing_shared_data_fails_in_ci_and_skips_elsewhere(tmp_path, monkeypat
     monkeypatch.delenv("CI")
     with pytest.raises(pytest.skip.Exception, match="not found"):
         need_shared(tmp_path / "nowhere")
+
+
+def test_a_cached_frame_is_a_copy_of_the_drawn_one(monkeypatch):
+    """tests/support/frame_cache.py: the same bytes as drawing the frame, a fresh copy each call (a caller that
+    writes into it changes nothing for the next); frames of another codec's kinds are not kept."""
+    import numpy as np
+
+    from ringscan.pipeline.codecs.render import render_frame
+    from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
+    from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS
+    from tests.support import frame_cache
+
+    spec = parse_patterns(TINY_PATTERNS)
+    for name in frame_names(spec):
+        a = frame_cache.cached_render_frame(spec, name)
+        assert np.array_equal(a, render_frame(spec, name)), name
+        a[:] = 7
+        assert np.array_equal(frame_cache.cached_render_frame(spec, name), render_frame(spec, name)), name
+    other = parse_patterns({**TINY_PATTERNS, "pitch": 4.0})  # another pattern set: its own frames
+    assert not np.array_equal(frame_cache.cached_render_frame(other, "gray_2"), render_frame(spec, "gray_2"))
+    drawn = []
+    monkeypatch.setattr(frame_cache, "render_frame", lambda sp, nm: drawn.append(nm) or np.zeros((2, 2), np.uint8))
+    n = len(frame_cache._frames)
+    for _ in range(2):
+        frame_cache.cached_render_frame(spec, "proj_u")  # a kind another codec draws (render_frame's registry)
+    assert drawn == ["proj_u", "proj_u"] and len(frame_cache._frames) == n  # drawn each time, not kept
