@@ -103,3 +103,18 @@ def test_a_camera_that_sees_no_projector_light_renders_the_ambient_light():
     whole.emit_window = lambda: (0, 0, *vr.projector_size)
     assert np.array_equal(vr.render(white, seed=1), whole.render(white, seed=1))
     assert np.array_equal(vr.render(white, seed=2), vr.render(np.zeros_like(white), seed=2))
+
+
+def test_rigs_of_one_scene_share_its_corner_normals():
+    """The shading normals of a mesh are computed once for the rigs that render it (two cameras, scan after
+    scan): the same values as computing them afresh, one read-only array; another mesh gets its own."""
+    from ringscan.pipeline.simulate.scenes import corner_normals, make_scene
+
+    sphere = make_scene("sphere")
+    a = VirtualRig(tiny_rig(), sphere, device="cpu")
+    b = VirtualRig(tiny_rig(), make_scene("sphere"), device="cpu")
+    assert a._corner is b._corner and not a._corner.flags.writeable
+    assert np.array_equal(a._corner, corner_normals(sphere.vertices, sphere.faces))
+    cube = VirtualRig(tiny_rig(), "cube", device="cpu")
+    assert cube._corner.shape == (12, 3, 3)
+    assert np.array_equal(cube._corner, corner_normals(cube.scene.vertices, cube.scene.faces))
