@@ -335,7 +335,10 @@ class VirtualRig:
             tmp[:, m::k] = cv2.filter2D(e, cv2.CV_32F, w[m][None, :], borderType=cv2.BORDER_CONSTANT)
         out = np.empty((h * k, wd * k), np.float32)
         for m in range(k):
-            out[m::k, :] = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], borderType=cv2.BORDER_CONSTANT)
+            rows = out[m::k, :]  # written in place (whole rows, every k-th): no copy of the image
+            got = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], dst=rows, borderType=cv2.BORDER_CONSTANT)
+            if not np.shares_memory(got, rows):
+                rows[...] = got
         return out[(y0 - cy0) * k:(y1 - cy0) * k, (x0 - cx0) * k:(x1 - cx0) * k]
 
     def emit_window(self) -> tuple[int, int, int, int]:

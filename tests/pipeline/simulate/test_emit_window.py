@@ -13,6 +13,27 @@ from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig
 from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
 
 
+def _emitted_whole(vr, f):
+    """The emitted light as the virtual rig computed it before the window (commit 0462968): the whole frame
+    through the response, blurred by OpenCV in rows then columns, each fine sample's filter interleaved."""
+    import cv2
+
+    from ringscan.pipeline.simulate.virtual_rig import _pixel_gauss_weights
+
+    e = ((np.arange(256) / 255.0) ** float(vr.rig.light.gamma)).astype(np.float32)[f]
+    if vr.settings.defocus_px <= 0:
+        return e
+    k, (ph, pw) = 4, f.shape
+    w = _pixel_gauss_weights(vr.settings.defocus_px, k)
+    tmp = np.empty((ph, pw * k), np.float32)
+    for m in range(k):
+        tmp[:, m::k] = cv2.filter2D(e, cv2.CV_32F, w[m][None, :], borderType=cv2.BORDER_CONSTANT)
+    out = np.empty((ph * k, pw * k), np.float32)
+    for m in range(k):
+        out[m::k, :] = cv2.filter2D(tmp, cv2.CV_32F, w[m][:, None], borderType=cv2.BORDER_CONSTANT)
+    return out
+
+
 def _with_projector(rig, width, height):
     return dataclasses.replace(rig, light=dataclasses.replace(rig.light, width=width, height=height))
 
@@ -20,15 +41,17 @@ def _with_projector(rig, width, height):
 @pytest.mark.parametrize("size", [(1024, 768), (250, 190)], ids=["default", "odd-width"])
 @pytest.mark.parametrize("defocus", [0.7, 2.5, 0.0])
 def test_a_windows_emitted_light_is_the_whole_images_bytes(size, defocus):
-    """Any window, at the image's edges or inside it, of a projector whose width is a multiple of OpenCV's
-    vector blocks or not: the blurred light there is the whole image's, bit for bit (the blur reads the
-    same pixels beyond the window, through the same code path; without defocus it is a lookup)."""
+    """The whole image's light is what the rig computed before it computed windows; any window, at the image's
+    edges or inside it, of a projector whose width is a multiple of OpenCV's vector blocks or not: the blurred
+    light there is the whole image's, bit for bit (the blur reads the same pixels beyond the window, through
+    the same code path; without defocus it is a lookup)."""
     vr = VirtualRig(_with_projector(default_rig(), *size), "plane", settings=RenderSettings(defocus_px=defocus),
                     device="cpu")
     pw, ph = size
     rng = np.random.default_rng(31)
     f = rng.integers(0, 256, (ph, pw), dtype=np.uint8)
     whole = vr.emitted(f)
+    assert np.array_equal(whole, _emitted_whole(vr, f))  # the whole image: as before
     k = vr.emitted_upsample
     windows = [(0, 0, pw, ph), (0, 0, 1, 1), (pw - 1, ph - 1, pw, ph), (3, 5, pw, 9), (0, ph // 2, 17, ph)]
     for _ in range(20):
