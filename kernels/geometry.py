@@ -48,7 +48,6 @@ __all__ = [
     "project_camera",
     "light_pixel",
     "projection_jacobian",
-    "light_jacobian",
     "light_point_local",
     "direction_to_light",
     "Volume",
@@ -411,17 +410,6 @@ def projection_jacobian(cam: CameraModel, X: wp.vec3):
     jy = wp.vec2(m0[0] * R[0, 1] + m0[1] * R[1, 1] + m0[2] * R[2, 1], m1[0] * R[0, 1] + m1[1] * R[1, 1] + m1[2] * R[2, 1])
     jz = wp.vec2(m0[0] * R[0, 2] + m0[1] * R[1, 2] + m0[2] * R[2, 2], m1[0] * R[0, 2] + m1[1] * R[1, 2] + m1[2] * R[2, 2])
     return jx, jy, jz
-
-
-@wp.func
-def light_jacobian(light: LightModel, X: wp.vec3):
-    """d(u_p, v_p) / dX of :func:`light_pixel` at the world point X, exact: its columns
-    (d/dx, d/dy, d/dz) as three vec2 (a perspective light's lens through
-    :func:`projection_jacobian`)."""
-    if light.model == LIGHT_PARALLEL:
-        return (wp.vec2(light.R[0, 0], light.R[1, 0]) / light.s, wp.vec2(light.R[0, 1], light.R[1, 1]) / light.s,
-                wp.vec2(light.R[0, 2], light.R[1, 2]) / light.s)
-    return projection_jacobian(light.cam, X)
 
 
 @wp.func

@@ -8,8 +8,7 @@ coordinates best (docs/design.md §3, §4, §18; docs/reconstruction.md).
   through the projector's distortion); the decoded sector picks the root, and
   without one two roots in the volume are ambiguous, never guessed.
 - Both coordinates: Gauss-Newton along the ray from the ray-ray closest point on
-  the weighted projector-grid residual (:func:`full_solution`, with the projector's
-  exact Jacobian through its lens: ``geometry.light_jacobian``); the calibration
+  the weighted projector-grid residual (:func:`full_solution`); the calibration
   floor (:func:`calibration_floor`) discounts the direction across the epipolar line.
 
 Status codes (``status`` array, ``STATUS_NAMES``): 0 point, 1 no real root, 2 no
@@ -36,7 +35,6 @@ from ringscan.kernels.geometry import (
     Volume,
     camera_ray,
     closest_on_ray,
-    light_jacobian,
     light_pixel,
     light_pixel_ray,
     make_volume,
@@ -206,13 +204,6 @@ def pixel_offset(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
 
 
 @wp.func
-def along_ray(light: LightModel, X: wp.vec3, d: wp.vec3):
-    """d(u_p, v_p) / dt at X on the ray X + t d: the light's exact Jacobian (:func:`light_jacobian`) along d."""
-    jx, jy, jz = light_jacobian(light, X)
-    return jx * d[0] + jy * d[1] + jz * d[2]
-
-
-@wp.func
 def quad(W: wp.vec3, a: wp.vec2, b: wp.vec2):
     """a^T W b for the symmetric 2x2 W = [[W0, W1], [W1, W2]]."""
     return a[0] * (W[0] * b[0] + W[1] * b[1]) + a[1] * (W[1] * b[0] + W[2] * b[1])
@@ -297,8 +288,7 @@ def full_solution(
 ):
     """Both projector coordinates: the point on the ray whose projector pixel is
     nearest the observed one in the decode's own metric (Gauss-Newton in t from
-    the ray-ray closest point, through the projector's lens distortion, with its
-    exact derivative: one projection a step, not three).
+    the ray-ray closest point, through the projector's lens distortion).
 
     The information matrix is info_r e_r e_r^T + info_t e_t e_t^T (radial and
     tangential: 1 / sigma^2 each; info_r = 0 for the angle alone), with the
@@ -311,13 +301,14 @@ def full_solution(
     if not lok:
         return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0, 0.0
     t = closest_on_ray(C, d, O, e)
+    h = wp.max(0.05, 1.0e-4 * wp.abs(t))
     e_t = wp.vec2(-e_r[1], e_r[0])
     W = wp.vec3(info_r * e_r[0] * e_r[0] + info_t * e_t[0] * e_t[0],
                 info_r * e_r[0] * e_r[1] + info_t * e_t[0] * e_t[1],
                 info_r * e_r[1] * e_r[1] + info_t * e_t[1] * e_t[1])
     if floor2 > 0.0:
         # Woodbury: (W^-1 + c^2 n n^T)^-1, n across the epipolar line at t
-        J0 = along_ray(light, C + d * t, d)
+        J0 = pixel_offset(light, C + d * (t + h), p_obs) - pixel_offset(light, C + d * (t - h), p_obs)
         jl0 = wp.length(J0)
         if jl0 > 0.0:
             n = wp.vec2(-J0[1] / jl0, J0[0] / jl0)
@@ -328,7 +319,7 @@ def full_solution(
     jj = float(0.0)
     for _i in range(NEWTON_STEPS):
         r0 = pixel_offset(light, C + d * t, p_obs)
-        J = along_ray(light, C + d * t, d)
+        J = (pixel_offset(light, C + d * (t + h), p_obs) - pixel_offset(light, C + d * (t - h), p_obs)) / (2.0 * h)
         jj = quad(W, J, J)
         if not (jj > 1.0e-24):
             break
@@ -352,7 +343,10 @@ def full_solution(
     # Conditioning, of each coordinate on its own: |cos| between the ray and the
     # normal of the surface of constant rho (the ring's cone) and of constant phi
     # (the angle's half-plane); the point is ill-conditioned only where both graze.
-    ax, ay, az = light_jacobian(light, X)
+    hx = 0.05
+    ax = (pixel_offset(light, X + wp.vec3(hx, 0.0, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(hx, 0.0, 0.0), p_obs)) / (2.0 * hx)
+    ay = (pixel_offset(light, X + wp.vec3(0.0, hx, 0.0), p_obs) - pixel_offset(light, X - wp.vec3(0.0, hx, 0.0), p_obs)) / (2.0 * hx)
+    az = (pixel_offset(light, X + wp.vec3(0.0, 0.0, hx), p_obs) - pixel_offset(light, X - wp.vec3(0.0, 0.0, hx), p_obs)) / (2.0 * hx)
     g_r = wp.vec3(wp.dot(ax, e_r), wp.dot(ay, e_r), wp.dot(az, e_r))
     g_t = wp.vec3(wp.dot(ax, e_t), wp.dot(ay, e_t), wp.dot(az, e_t))
     cos_r = wp.where(wp.length(g_r) > 0.0, wp.abs(wp.dot(g_r, d)) / wp.length(g_r), 0.0)
