@@ -27,7 +27,7 @@ albedo's diffuse base). ``corner-direct`` (the corner by direct light only: Mits
 to ``max_depth`` 2, or ringscan's renderer) is their control; ``far-dark-plane`` (the
 bare reference plane at the far end of the working volume, albedo 0.1, ambient 0.6, the
 projector 3 px out of focus there: the finest Gray bit's pattern/inverse difference
-~13 % of the pixel's white) and ``far-faint-plane`` (albedo 0.05, 4 px out of focus: ~8 %,
+~13 % of the pixel's white) and ``far-faint-plane`` (albedo 0.05, 4 px out of focus: ~7 %,
 the issue's real far panel's 5-8 %, about twice the noise of that difference) render with
 either. The corner's and glossy Spot's rows come twice: the whole view, and ``(object)``,
 its points above the reference plane, where the condition acts (the bounds apply to
