@@ -33,7 +33,6 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import (
-    LIGHT_PARALLEL,
     NEWTON_STEPS,
     CameraModel,
     LightModel,
@@ -41,12 +40,10 @@ from ringscan.kernels.geometry import (
     camera_ray,
     closest_on_ray,
     direction_to_light,
-    full_model_terms,
     in_volume,
     light_pixel,
     make_volume,
     project_camera,
-    projection_jacobian,
     undistort,
 )
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
@@ -73,6 +70,12 @@ MATCH_TOO_FEW = wp.constant(2)
 MATCH_EXTRAPOLATED = wp.constant(3)
 MATCH_DISCONTINUITY = wp.constant(4)
 MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
+JACOBIAN_STEP_MM = wp.constant(0.5)
+"""Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
+point's distance from camera 1."""
+JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
+"""... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
+its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
 MODEL_SHARE = wp.constant(0.5)
@@ -216,27 +219,42 @@ def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H
 
 
 @wp.func
+def cam_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
+    p = project_camera(cam, X)
+    return wp.vec2(p[0] - uv[0], p[1] - uv[1])
+
+
+@wp.func
+def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
+    p = light_pixel(light, X)
+    return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
+
+
+@wp.func
 def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
-                      W: wp.vec3, H: wp.mat33, g: wp.vec3):
-    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``),
-    its Jacobian exact (:func:`~ringscan.kernels.geometry.projection_jacobian`). Returns (H, g, chi2 term, |r| px)."""
+                      W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
+    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
+    the Jacobian by central differences over h mm (the exact one,
+    ``geometry.projection_jacobian``, converges samples of a rig that does not fit
+    that these leave ``not_converged``: a change of behaviour, not taken).
+    Returns (H, g, chi2 term, |r| px)."""
     r = wp.vec2(0.0, 0.0)
     jx = wp.vec2(0.0, 0.0)
     jy = wp.vec2(0.0, 0.0)
     jz = wp.vec2(0.0, 0.0)
+    ex = wp.vec3(h, 0.0, 0.0)
+    ey = wp.vec3(0.0, h, 0.0)
+    ez = wp.vec3(0.0, 0.0, h)
     if is_light != 0:
-        p = light_pixel(light, X)
-        r = wp.vec2(p[0] - obs[0], p[1] - obs[1])
-        if light.model == LIGHT_PARALLEL:
-            jx = wp.vec2(light.R[0, 0], light.R[1, 0]) / light.s
-            jy = wp.vec2(light.R[0, 1], light.R[1, 1]) / light.s
-            jz = wp.vec2(light.R[0, 2], light.R[1, 2]) / light.s
-        else:
-            jx, jy, jz = projection_jacobian(light.cam, X)
+        r = light_residual(light, X, obs)
+        jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
+        jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
+        jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
     else:
-        p = project_camera(cam, X)
-        r = wp.vec2(p[0] - obs[0], p[1] - obs[1])
-        jx, jy, jz = projection_jacobian(cam, X)
+        r = cam_residual(cam, X, obs)
+        jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
+        jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
+        jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
     H, g = block_terms(r, jx, jy, jz, W, H, g)
     return H, g, quad(W, r, r), wp.length(r)
 
@@ -664,15 +682,19 @@ def triangulate_rays_kernel(
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
     ss = float(0.0)
+    # Jacobians by central differences over 0.5 mm: the projections are smooth on
+    # that scale, and a smaller step lets float32 noise into the Jacobian, which
+    # a point with a large residual (rays that miss) multiplies into its steps
+    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
     for _it in range(NEWTON_STEPS):
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
-        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, H, g)
-        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, H, g)
+        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
+        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
         chi = c1 + c2
         ss = r1 * r1 + r2 * r2
         if use_light != 0:
-            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, H, g)
+            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
             chi += c3
             ss += r3 * r3
         if not (wp.abs(wp.determinant(H)) > 0.0):
@@ -687,13 +709,13 @@ def triangulate_rays_kernel(
     # the residual at the solution
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     g = wp.vec3(0.0, 0.0, 0.0)
-    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, H, g)
-    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, H, g)
+    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
+    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
     chi = c1 + c2
     ss = r1 * r1 + r2 * r2
     nr = float(2.0)
     if use_light != 0:
-        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, H, g)
+        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
         chi += c3
         ss += r3 * r3
         nr = 3.0
