@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["ErrorModel", "fit_error_model", "fit_neighbour_model", "widen_depth_sigma", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
+__all__ = ["ErrorModel", "fit_error_model", "region_scale", "fit_neighbour_model", "widen_depth_sigma", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
 
 MAX_CHECK_SAMPLES = 40000
 """Samples triangulated three more times for the fit (evenly spread over the
@@ -52,6 +52,14 @@ T_SCALE = 0.8566209142462031
 """The scale a t of ``T_DOF`` fits to a unit Gaussian (E[(nu + 1) z^2 / (nu S^2 + z^2)] = 1):
 the model's variances are Gaussian ones, the likelihood's scale is this times
 theirs, so that Gaussian errors get their own sigma back."""
+REGION_PX = 32
+"""Camera tiles over which a part of the view may need wider sigmas than the view's
+model gives (an object beside a plane: its own facets, shadows, bounced light). On
+Mitsuba's renders (docs/accuracy.md) 32 px tiles left fewer points beyond 3 sigma on the
+object than 64 px (glossy Spot, angle: 7.7 -> 6.0 %; the corner's default 6.0 -> 5.7 %)."""
+MIN_REGION_PAIRS = 64
+"""Fewer pairs in a tile than this: the view's model alone there (64 pairs fix a
+scale to ~18 %; a tile's factor is never below 1, so that noise only widens)."""
 TERMS = ("k_rho", "k_tan", "floor_rho_px", "floor_tan_px", "floor_px")
 
 
@@ -61,7 +69,8 @@ class ErrorModel(dict):
     quadrature to each coordinate's), ``floor_px`` (across the epipolar line: the
     calibration's miss), ``pairs`` (samples that measured them), ``measured_by``
     (``angle``: each sample's two depths, :func:`fit_error_model`; ``neighbours``: a
-    ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), and the pairs'
+    ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), ``regions``
+    (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), and the pairs'
     normalised disagreement under the decode's model and under the fitted one
     (``z_median`` / ``z_median_fitted``: a Gaussian gives 0.67; ``beyond_3`` /
     ``beyond_3_fitted``: 0.27 %)."""
@@ -77,7 +86,7 @@ def sample_subset(n: int, max_samples: int = MAX_CHECK_SAMPLES) -> np.ndarray:
 def identity_model(pairs: int = 0) -> ErrorModel:
     """The decode's model as it is (no term added)."""
     return ErrorModel(k_rho=1.0, k_tan=1.0, floor_rho_px=0.0, floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs),
-                      measured_by=None, z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
+                      measured_by=None, regions=None, z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
 
 
 def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndarray, s_tan: np.ndarray,
@@ -126,13 +135,63 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
     # by sqrt(model_var / residual_var)
     X = np.stack([sr * sr, st * st, (sr / pr) ** 2, (st / pt) ** 2], axis=1)
     p = _fit_variances(X, diff * diff, np.array([1.0, 1.0, 0.0, 0.0]))  # k >= 1: the noise model is never shrunk
+    var = X @ p
+    regions = _region_scales(diff * diff, var, uv)
     z0 = np.abs(dr - dt) / np.sqrt(model_var)
-    z1 = np.abs(diff) / np.sqrt(X @ p)
+    z1 = np.abs(diff) / np.sqrt(var * region_scale(regions, uv))
     return ErrorModel(k_rho=float(np.sqrt(max(p[0], 1.0))), k_tan=float(np.sqrt(max(p[1], 1.0))),
                       floor_rho_px=float(np.sqrt(p[2])), floor_tan_px=float(np.sqrt(p[3])),
-                      floor_px=float(np.sqrt(calib_var)), pairs=n, measured_by="angle",
+                      floor_px=float(np.sqrt(calib_var)), pairs=n, measured_by="angle", regions=regions,
                       z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+def _region_scales(d2: np.ndarray, var: np.ndarray, uv: np.ndarray) -> dict:
+    """Where a part of the view disagrees more than the view's model says (an object's
+    grazing facets and shadow edges beside a plane that holds most pairs, light bounced
+    into a concave corner): per ``REGION_PX`` camera tile with at least
+    ``MIN_REGION_PAIRS`` pairs, the factor m >= 1 on the variances that the tile's pairs
+    fit (the same Student-t, one scale: the fixed point of its likelihood). Never below 1:
+    the view's model is the least a sample gets.
+
+    Returns: {"tile_px": REGION_PX, "scales": [[tile x, tile y, m], ...] (tiles with m > 1)}.
+    """
+    key = np.floor(uv / REGION_PX).astype(np.int64)
+    tile = key[:, 0] * 1_000_003 + key[:, 1]
+    ids, inv, counts = np.unique(tile, return_inverse=True, return_counts=True)
+    u_all = d2 / (T_SCALE * T_SCALE * np.maximum(var, 1e-300))
+    scales = []
+    for t in np.flatnonzero(counts >= MIN_REGION_PAIRS):
+        u = u_all[inv == t]
+        m = 1.0
+        for _ in range(50):  # the t likelihood's scale: m = mean((nu + 1) u / (nu + u / m))
+            m_new = float(np.mean((T_DOF + 1) * u / (T_DOF + u / m)))
+            if abs(m_new - m) <= 1e-4 * m:
+                m = m_new
+                break
+            m = m_new
+        if m > 1.0:
+            tx, ty = int(key[inv == t][0, 0]), int(key[inv == t][0, 1])
+            scales.append([tx, ty, round(m, 4)])
+    return {"tile_px": REGION_PX, "scales": scales}
+
+
+def region_scale(regions: dict | None, uv: np.ndarray) -> np.ndarray:
+    """(n,) each sample's variance factor from :func:`_region_scales`' tiles (1 outside them)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    out = np.ones(len(uv))
+    if not regions or not regions.get("scales"):
+        return out
+    table = np.asarray(regions["scales"], np.float64)
+    px = float(regions["tile_px"])
+    key = np.floor(uv / px).astype(np.int64)
+    code = key[:, 0] * 1_000_003 + key[:, 1]
+    tcode = table[:, 0].astype(np.int64) * 1_000_003 + table[:, 1].astype(np.int64)
+    order = np.argsort(tcode)
+    at = np.minimum(np.searchsorted(tcode[order], code), len(tcode) - 1)
+    hit = tcode[order][at] == code
+    out[hit] = table[order][at[hit], 2]
+    return out
 
 
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
@@ -230,7 +289,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     z0 = np.abs(r) / np.sqrt(X[:, 0])
     z1 = np.abs(r) / np.sqrt(X @ q)
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
-                      floor_tan_px=0.0, floor_px=0.0, pairs=int(c.size), measured_by="neighbours",
+                      floor_tan_px=0.0, floor_px=0.0, pairs=int(c.size), measured_by="neighbours", regions=None,
                       z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
 

@@ -36,6 +36,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
     apply_error_model,
     fit_error_model,
     fit_neighbour_model,
+    region_scale,
     sample_subset,
     widen_depth_sigma,
 )
@@ -228,10 +229,15 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     both = tri(settings=replace(settings.triangulate, constraint="both"))
     rv = np.where(both.status.numpy() == 0, both.residual_var.numpy(), 0.0)
     fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"])
+    # parts of the view whose pairs disagree more than the view's model says (an object's
+    # facets beside a plane) widen both coordinates alike: the weighting stays, sigma grows
+    scale = np.sqrt(region_scale(fit["regions"], samples.uv.numpy())) if fit["regions"] else None
+
     def widened(a, k, f):
-        if k == 1.0 and f == 0.0:
+        if k == 1.0 and f == 0.0 and scale is None:
             return a
-        return wp.array(apply_error_model(a.numpy(), k, f), dtype=wp.float32, device=dev)
+        w = apply_error_model(a.numpy(), k, f)
+        return wp.array(w if scale is None else (w * scale).astype(np.float32), dtype=wp.float32, device=dev)
     return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"]),
             widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"]), dict(fit))
 

@@ -243,3 +243,24 @@ def test_a_smoothed_dense_code_is_checked_with_its_window():
     known = np.median(widen_depth_sigma(s, sigma_px, fit_neighbour_model(*args, width=w, window=3)) / (3 * s))
     assert blind < 0.8  # the shared part cancels in the neighbours' difference
     assert known == pytest.approx(1.0, abs=0.1)  # ~6000 residuals: ~1 % on a sigma
+
+
+def test_a_part_of_the_view_that_errs_more_gets_its_own_scale():
+    """An object's pairs (here a 128x128 px corner of the view, ~5 % of the pairs)
+    disagree 2x more than the rest: the view's model, fitted on all, fits the rest; the
+    object's tiles get a variance factor of ~4, the rest none."""
+    from ringscan.pipeline.reconstruct.error_scale import region_scale
+
+    rng = np.random.default_rng(11)
+    args, _ = _pairs(rng, 40000)
+    dr, s_rho, dt, s_tan, px_rho, px_tan, rv, uv = args
+    obj = (uv[:, 0] < 128) & (uv[:, 1] < 128)
+    dr = np.where(obj, 400.0 + 2.0 * (dr - 400.0), dr)
+    dt = np.where(obj, 400.0 + 2.0 * (dt - 400.0), dt)
+    fit = fit_error_model(dr, s_rho, dt, s_tan, px_rho, px_tan, rv, uv)
+    m = region_scale(fit["regions"], uv)
+    # ~125 pairs a 32 px tile fix a variance to ~20 %; the median over the object's 16 tiles to 25 %
+    assert np.median(m[obj]) == pytest.approx(4.0, rel=0.25)
+    assert np.median(m[~obj]) == 1.0 and np.mean(m[~obj] > 1.3) < 0.02
+    z = np.abs(dr - dt) / np.sqrt((s_rho ** 2 + s_tan ** 2) * m)
+    assert 0.6 < np.median(z[obj]) < 0.8  # the object's pairs as a Gaussian's (0.674)
