@@ -141,3 +141,20 @@ def test_rigs_of_one_scene_share_its_corner_normals():
     cube = VirtualRig(tiny_rig(), "cube", device="cpu")
     assert cube._corner.shape == (12, 3, 3)
     assert np.array_equal(cube._corner, corner_normals(cube.scene.vertices, cube.scene.faces))
+
+
+def test_a_perspective_projectors_window_gives_its_whole_frames():
+    """The default rig's perspective projector (its lens distortion included), seen by the middle 64x48 pixels
+    of its camera: a window of its image, and the frames of the whole image byte for byte."""
+    rig = _cut_camera(default_rig(light_model="perspective"), 608, 488, 64, 48)
+    spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+                           "rho0": 8.0, "pitch": 4.0, "bits": 2, "sector_bits": 2})
+    cut = VirtualRig(rig, "sphere", device="cpu")
+    whole = VirtualRig(rig, "sphere", device="cpu")
+    whole.emit_window = lambda: (0, 0, 1024, 768)
+    x0, y0, x1, y1 = cut.emit_window()
+    assert (x1 - x0) * (y1 - y0) < 0.05 * 1024 * 768, (x0, y0, x1, y1)
+    for i, f in enumerate(render_frames(spec).values()):
+        a = cut.render(f, seed=i)
+        assert np.array_equal(a, whole.render(f, seed=i)), i
+    assert a.std() > 0
