@@ -1,6 +1,6 @@
 """Run the command blocks of README.md and docs/*.md as written, so they cannot rot.
 
-    python benchmarks/run_doc_blocks.py                # every block that can run here (several minutes)
+    python benchmarks/run_doc_blocks.py                # every block that can run here (~60 min on 2 loaded cores)
     python benchmarks/run_doc_blocks.py --pip          # also README's install block (a fresh venv: needs PyPI)
     python benchmarks/run_doc_blocks.py --only suite   # only those the test suite runs too
     python benchmarks/run_doc_blocks.py --keep DIR     # keep the scratch folders in DIR
