@@ -36,9 +36,7 @@ at scale 1).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import io
 import json
 import shutil
 import statistics
@@ -56,6 +54,7 @@ from ringscan.pipeline.calibrate.importer import read_stereo_calibration  # noqa
 from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
 from ringscan.tools.cli import main as cli  # noqa: E402
 from tests.pipeline.simulate.test_opencv_graycode import small_stereo_rig  # noqa: E402
+from two_camera_rig import run  # noqa: E402  (one ringscan command, its console output)
 
 BASE_WIDTH, BASE_HEIGHT, BASE_SCALE = 1920, 1280, 6
 """The issue's cameras (1920x1280): the test rig's 320x256 cameras 6 times larger, cropped to 1280 rows."""
@@ -84,15 +83,6 @@ def capture_rig(scale: float):
     Kp[0, 2], Kp[1, 2] = (pw - 1) / 2, (ph - 1) / 2
     return dataclasses.replace(rig, camera=cam(rig.camera), camera2=cam(rig.camera2),
                                light=dataclasses.replace(li, width=pw, height=ph, K=Kp))
-
-
-def run(*args) -> str:
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        rc = cli([str(a) for a in args])
-    if rc != 0:
-        raise SystemExit(f"ringscan {' '.join(map(str, args))} failed ({rc}):\n{buf.getvalue()}")
-    return buf.getvalue()
 
 
 def render(work: Path, scale: float) -> Path:
