@@ -35,12 +35,14 @@ TRUE_LIGHT = ParallelLight(R=TRUE_R, t=np.zeros(3), pixel_pitch_mm=0.15, axis_px
                            width=1024, height=768)
 
 
-def true_rig():
-    """The default rig's geometry with a 320x256 camera and the tilted (2.5 deg), rolled
-    (7 deg), off-centre (axis 15 px from the pattern centre) light."""
+def true_rig(width=320, height=256):
+    """The default rig's geometry with a ``width`` x ``height`` camera (the field of view of 320x256 at
+    f = 650 px) and the tilted (2.5 deg), rolled (7 deg), off-centre (axis 15 px from the pattern centre)
+    light."""
     rig = default_rig()
-    K = np.array([[650.0, 0, 159.5], [0, 650.0, 127.5], [0, 0, 1]])
-    cam = dataclasses.replace(rig.camera, width=320, height=256, K=K)
+    f = 650.0 * width / 320
+    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    cam = dataclasses.replace(rig.camera, width=width, height=height, K=K)
     return dataclasses.replace(rig, camera=cam, light=TRUE_LIGHT, turntable=None)
 
 
@@ -177,9 +179,12 @@ def test_heights_must_match_the_scans(plane_scans):
 
 @pytest.mark.slow
 def test_virtual_rig_light_from_phase_rings(tmp_path):
+    """The same bounds from phase-rings captures, on a 160x128 camera of the same field of view: the fit
+    takes 0.3 s instead of 4 s at 320x256 (measured there: axis 0.012 px, pitch 1e-5, angle 0.036 deg;
+    at 320x256 0.005 px, 3e-5, 0.026 deg)."""
     spec = parse_patterns({**SPEC, "codec": "phase-rings", "steps": 4})
-    scans = [simulate_scan(tmp_path / f"z{h:g}", scene=plate(h) if h else "plane", rig=true_rig(), patterns=spec,
-                           progress=False) for h in (0.0, 40.0)]
+    scans = [simulate_scan(tmp_path / f"z{h:g}", scene=plate(h) if h else "plane", rig=true_rig(160, 128),
+                           patterns=spec, progress=False) for h in (0.0, 40.0)]
     cal = calibrate_parallel_light(scans, [0.0, 40.0], device="cpu")
     check_light(cal.light, axis_px=0.5, pitch_rel=0.002, angle_deg=0.1)
 
