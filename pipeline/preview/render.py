@@ -240,7 +240,10 @@ def offscreen_available() -> bool:
     import open3d as o3d
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.zeros((1, 3))))
-    s = ViewSettings(width=16, height=16, timeout_s=60.0)
+    # 16x16 px take 3-10 s on a loaded 2-core machine (the child's imports); Open3D's
+    # offscreen start now and then hangs instead (a suite run waited 60 s here once): past
+    # 25 s the software renderer draws the previews
+    s = ViewSettings(width=16, height=16, timeout_s=25.0)
     try:
         _render_open3d([pc], *view_camera(([-1.0, -1, -1], [1.0, 1, 1]), settings=s), s)
     except RuntimeError as e:
