@@ -47,14 +47,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.pipeline.calibrate.stereo import (
-    decoded_pairs,
-    fit_projector,
+from ringscan.pipeline.calibrate.projector_fit import decoded_pairs, fit_projector, triangulation_covariance
+from ringscan.pipeline.calibrate.rig_refine import (
     refine_extrinsics,
     relative_pose,
     rotation_angle_deg,
     triangulate_pair,
-    triangulation_covariance,
 )
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.formats.scan import load_scan
@@ -126,7 +124,7 @@ def synthetic(noise: float, n: int) -> None:
 
 def projector_of_two_cameras(noise: float) -> None:
     """refine --pair projector on the two-camera rig: two views, and camera 2 held as the third device."""
-    from ringscan.pipeline.calibrate.stereo import refine_procam_rig
+    from ringscan.pipeline.calibrate.rig_refine import refine_procam_rig
     from ringscan.pipeline.formats.rig import Rig, Volume
 
     cam1, cam2, proj = oblique_devices()
@@ -172,7 +170,7 @@ def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = True) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
     from two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
-    from ringscan.pipeline.calibrate.stereo import refine_stereo_rig
+    from ringscan.pipeline.calibrate.rig_refine import refine_stereo_rig
     from ringscan.pipeline.formats.ply import read_ply
     from ringscan.pipeline.formats.rig import default_rig
     from ringscan.pipeline.reconstruct.settings import ReconstructSettings

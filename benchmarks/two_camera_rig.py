@@ -55,7 +55,7 @@ import open3d as o3d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ringscan.pipeline.evaluate.metrics import evaluate_recon  # noqa: E402
-from ringscan.pipeline.calibrate.stereo import relative_pose, rotation_angle_deg  # noqa: E402
+from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg  # noqa: E402
 from ringscan.pipeline.formats.images import read_image  # noqa: E402
 from ringscan.pipeline.formats.ply import read_ply  # noqa: E402
 from ringscan.pipeline.formats.rig import UncalibratedLight, default_rig, load_rig, save_rig  # noqa: E402

@@ -64,22 +64,26 @@ from ringscan.pipeline.calibrate.procam import (
     principal_point_inside,
     procam_rig,
 )
-from ringscan.pipeline.calibrate.stereo import (
-    MAX_MATCHES,
+from ringscan.pipeline.calibrate.opencv_files import (
+    write_opencv_procam,
+    write_opencv_stereo,
+    write_opencv_stereo_cameras,
+)
+from ringscan.pipeline.calibrate.projector_fit import (
     DISTORTION_CHOICES,
     ProjectorSettings,
     decoded_pairs,
     fit_projector,
     procam_rig_from_fit,
+    triangulation_covariance,
+)
+from ringscan.pipeline.calibrate.rig_refine import (
+    MAX_MATCHES,
     refine_procam_rig,
     refine_stereo_rig,
     relative_pose,
     reprojection_errors,
     triangulate_pair,
-    triangulation_covariance,
-    write_opencv_procam,
-    write_opencv_stereo,
-    write_opencv_stereo_cameras,
 )
 from ringscan.pipeline.calibrate.stereo_boards import calibrate_stereo_boards
 from ringscan.pipeline.calibrate.response import estimate_light_gamma, repeated_frames, response_problems

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
-from ringscan.pipeline.calibrate.stereo import relative_pose, rotation_angle_deg
+from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, Volume, load_rig, save_rig
@@ -334,7 +334,7 @@ def virtual_two_camera(tmp_path_factory):
 def sphere_errors(folder, rig) -> float:
     """Median distance (mm) of the scan's camera-camera points under ``rig`` from the 80 mm sphere
     or the plane (whichever is nearer)."""
-    from ringscan.pipeline.calibrate.stereo import triangulate_pair
+    from ringscan.pipeline.calibrate.rig_refine import triangulate_pair
     from ringscan.pipeline.formats.scan import load_scan
     from ringscan.pipeline.reconstruct.stereo import match_view
 

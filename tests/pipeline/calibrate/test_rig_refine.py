@@ -1,4 +1,5 @@
-"""Calibration from matches (pipeline/calibrate/stereo.py) against a known rig."""
+"""Calibration from matches against a known rig: extrinsics refined (pipeline/calibrate/rig_refine.py), a projector
+fitted (projector_fit.py), the rig written as OpenCV files (opencv_files.py)."""
 
 from __future__ import annotations
 
@@ -12,19 +13,16 @@ import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
-from ringscan.pipeline.calibrate.stereo import (
+from ringscan.pipeline.calibrate.opencv_files import write_opencv_procam, write_opencv_stereo
+from ringscan.pipeline.calibrate.projector_fit import ProjectorSettings, fit_projector, procam_rig_from_fit
+from ringscan.pipeline.calibrate.rig_refine import (
     MAX_SCALE_STD,
-    ProjectorSettings,
-    fit_projector,
-    procam_rig_from_fit,
     refine_extrinsics,
     refine_procam_rig,
     refine_stereo_rig,
     relative_pose,
     rotation_angle_deg,
     triangulate_pair,
-    write_opencv_procam,
-    write_opencv_stereo,
 )
 from ringscan.pipeline.formats.rig import Rig, Volume
 

@@ -1,5 +1,5 @@
 """fit_projector's distortion choices (auto / fit / hold), its residual correlation and depth checks, its
-weights, and triangulation_covariance, against a known projector (pipeline/calibrate/stereo.py)."""
+weights, and triangulation_covariance, against a known projector (pipeline/calibrate/projector_fit.py)."""
 
 from __future__ import annotations
 
@@ -9,14 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.stereo import (
-    ProjectorSettings,
-    fit_projector,
-    relative_pose,
-    rotation_angle_deg,
-    triangulate_pair,
-    triangulation_covariance,
-)
+from ringscan.pipeline.calibrate.projector_fit import ProjectorSettings, fit_projector, triangulation_covariance
+from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg, triangulate_pair
 
 from .stereo_truth import oblique_devices, project, surface_points
 
