@@ -78,3 +78,11 @@ def test_calibration_md_grey_ramp_runs_as_written(tmp_path, monkeypatch, capsys)
     # fit may move the last digits on another CPU)
     assert_figures_as_quoted(out, section, "light gamma {} (camera gamma", rtol=1e-3,
                              why="the virtual rig's float32 render and the fit on another CPU")
+
+
+def test_the_docs_index_lists_every_page_and_only_pages_that_exist():
+    index = (ROOT / "docs" / "index.md").read_text()
+    linked = set(re.findall(r"\]\(([\w.]+\.md)\)", index))
+    pages = {p.name for p in (ROOT / "docs").glob("*.md")} - {"index.md"}
+    assert linked == pages, (sorted(pages - linked), sorted(linked - pages))
+    assert "(docs/index.md)" in (ROOT / "README.md").read_text()
