@@ -19,3 +19,12 @@ def running(pid: int) -> bool:
         return "State:\tZ" not in Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return False
+
+
+def as_foreground_job() -> None:
+    """``preexec_fn`` for a child that is to receive a terminal's Ctrl-C: SIGINT at its default. A shell
+    starts background jobs (``make test &``, a CI runner's script) with SIGINT ignored, every descendant
+    inherits that, and Python keeps it ignored: the child would never see the test's SIGINT."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -258,11 +258,12 @@ def test_ctrl_c_ends_the_batch_and_its_workers_in_one_line(three_scans, tmp_path
     import sys
     import time
 
-    from tests.support.processes import children, running
+    from tests.support.processes import as_foreground_job, children, running
 
     proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "batch", str(three_scans), "--out",
                              str(tmp_path / "out"), "--workers", "2", "--no-progress", "--device", "cpu"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=as_foreground_job)
     deadline = time.monotonic() + 60
     while len(kids := children(proc.pid)) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)  # two workers and the resource tracker
