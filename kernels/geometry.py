@@ -47,7 +47,6 @@ __all__ = [
     "camera_ray",
     "project_camera",
     "light_pixel",
-    "projection_jacobian",
     "light_point_local",
     "direction_to_light",
     "Volume",
@@ -384,32 +383,6 @@ def light_pixel(light: LightModel, X: wp.vec3):
         return wp.vec3(XL[0] / light.s + light.a[0], XL[1] / light.s + light.a[1], 1.0)
     p = project_camera(light.cam, X)
     return wp.vec3(p[0], p[1], wp.where(p[2] > 1.0e-6, 1.0, 0.0))
-
-
-@wp.func
-def projection_jacobian(cam: CameraModel, X: wp.vec3):
-    """d(u, v) / dX of :func:`project_camera` at the world point X, exact
-    (the lens's own derivative, :func:`full_model_terms`): its columns
-    (d/dx, d/dy, d/dz) as three vec2."""
-    Xc = cam.R * X + cam.t
-    z = Xc[2]
-    zs = wp.where(wp.abs(z) > 1.0e-12, z, 1.0e-12)
-    inv = 1.0 / zs
-    xn = Xc[0] * inv
-    yn = Xc[1] * inv
-    _d, J, _den = full_model_terms(cam, xn, yn)
-    # d(u, v) / d(xn, yn) = [[fx, skew], [0, fy]] J; d(xn, yn) / dXc = [[1, 0, -xn], [0, 1, -yn]] / z
-    a = (cam.fx * J[0, 0] + cam.skew * J[1, 0]) * inv
-    b = (cam.fx * J[0, 1] + cam.skew * J[1, 1]) * inv
-    c = cam.fy * J[1, 0] * inv
-    d = cam.fy * J[1, 1] * inv
-    m0 = wp.vec3(a, b, -(a * xn + b * yn))  # d u / dXc
-    m1 = wp.vec3(c, d, -(c * xn + d * yn))  # d v / dXc
-    R = cam.R
-    jx = wp.vec2(m0[0] * R[0, 0] + m0[1] * R[1, 0] + m0[2] * R[2, 0], m1[0] * R[0, 0] + m1[1] * R[1, 0] + m1[2] * R[2, 0])
-    jy = wp.vec2(m0[0] * R[0, 1] + m0[1] * R[1, 1] + m0[2] * R[2, 1], m1[0] * R[0, 1] + m1[1] * R[1, 1] + m1[2] * R[2, 1])
-    jz = wp.vec2(m0[0] * R[0, 2] + m0[1] * R[1, 2] + m0[2] * R[2, 2], m1[0] * R[0, 2] + m1[1] * R[1, 2] + m1[2] * R[2, 2])
-    return jx, jy, jz
 
 
 @wp.func

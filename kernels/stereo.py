@@ -234,9 +234,9 @@ def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
 def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
                       W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
     """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
-    the Jacobian by central differences over h mm (the exact one,
-    ``geometry.projection_jacobian``, converges samples of a rig that does not fit
-    that these leave ``not_converged``: a change of behaviour, not taken).
+    the Jacobian by central differences over h mm (the lens's exact derivative was tried
+    and not taken: it converges samples of a rig that does not fit that these leave
+    ``not_converged``, a change of behaviour; docs/batch.md gives the figures).
     Returns (H, g, chi2 term, |r| px)."""
     r = wp.vec2(0.0, 0.0)
     jx = wp.vec2(0.0, 0.0)
