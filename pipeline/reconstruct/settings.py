@@ -9,7 +9,7 @@ from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.point_filter import NeighbourFilterSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
-from ringscan.kernels.stereo import MatchSettings
+from ringscan.kernels.stereo_match import MatchSettings
 from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 

@@ -15,12 +15,12 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.geometry import make_camera
-from ringscan.kernels.stereo import (
+from ringscan.kernels.stereo_match import (
     MATCH_STATUS_NAMES,
     match_by_projector,
     projector_coordinates,
 )
-from ringscan.kernels.stereo import epipolar_distances as kernel_epipolar_distances
+from ringscan.kernels.stereo_match import epipolar_distances as kernel_epipolar_distances
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Rig
@@ -244,7 +244,7 @@ def _windows_at(w: np.ndarray, p: np.ndarray, at: np.ndarray, width: int, height
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
                   settings: ReconstructSettings = ReconstructSettings(), threads: int | None = None) -> StereoMatches:
     """Match camera 1's samples to camera 2's by equal projector coordinate
-    (``kernels.stereo.match_by_projector``); the rig's extrinsics are not used. Camera 1's
+    (``kernels.stereo_match.match_by_projector``); the rig's extrinsics are not used. Camera 1's
     integer codes of a dense map (an imported Gray code that kept them) are first read from
     their neighbourhood (:func:`refine_integer_codes`)."""
     p1, s1 = _coordinates(scan, samples1, "camera 1")
@@ -313,7 +313,7 @@ def epipolar_distances(rig: Rig, uv1: np.ndarray, uv2: np.ndarray, *, threads: i
     """(n,) distance (camera-2 px) of each uv2 from the epipolar line of its uv1
     under the rig's two cameras (lens distortion undone; NaN where a pixel has no
     undistorted point): what a rig that fits its images keeps near the matches' noise.
-    One Warp kernel (``kernels.stereo.epipolar_distances``, float32: within 1e-3 px of
+    One Warp kernel (``kernels.stereo_match.epipolar_distances``, float32: within 1e-3 px of
     the float64 arithmetic); ``uv1``, ``uv2`` NumPy (n, 2) or (n,) vec2 Warp arrays."""
     c1, c2 = rig.camera, rig.camera2
     if c2 is None:

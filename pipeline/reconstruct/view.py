@@ -16,7 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
-from ringscan.kernels.stereo import polar_information, triangulate_rays
+from ringscan.kernels.stereo_rays import polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
     STATUS_NAMES,

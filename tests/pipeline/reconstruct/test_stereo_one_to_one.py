@@ -18,7 +18,7 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings
 from ringscan.pipeline.reconstruct.stereo import refine_integer_codes
 from ringscan.pipeline.simulate.opencv_graycode import render_graycode_captures
-from ringscan.kernels.stereo import MatchSettings
+from ringscan.kernels.stereo_match import MatchSettings
 from tests.pipeline.reconstruct.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms
 
 CAMERA_CAMERA = ReconstructSettings(stereo=StereoSettings(rays="camera-camera"))

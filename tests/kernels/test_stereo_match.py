@@ -1,5 +1,5 @@
-"""Two-camera matching and triangulation against a hand-made rig: two cameras and a
-projector around a known sphere (or a step); truth projected through each lens
+"""Two-camera matching (kernels.stereo_match) against a hand-made rig (tests/kernels/stereo_rig.py):
+two cameras and a projector around a known sphere (or a step); truth projected through each lens
 gives the exact projector coordinates and pixels."""
 
 import cv2
@@ -7,92 +7,15 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.geometry import make_camera, make_perspective_light
-from ringscan.kernels.stereo import (
+from ringscan.kernels.geometry import make_camera
+from ringscan.kernels.stereo_match import (
     MATCH_STATUS_NAMES,
     MatchSettings,
     match_by_projector,
-    polar_information,
     projector_coordinates,
-    triangulate_rays,
 )
-from ringscan.kernels.triangulation import STATUS_NAMES
-from ringscan.pipeline.formats.rig import Camera, look_at
 
-PW, PH = 1024, 768
-CENTER = (511.5, 383.5)
-VOLUME = (-10.0, 95.0, 100.0)
-SPHERE_C = np.array([0.0, 0.0, -40.0])
-SPHERE_R = 70.0  # cap reaching z = 30 at the centre
-
-
-def _cam(eye, dist=(0.02, -0.05, 0.001, -0.0005, 0.0)):
-    R, t = look_at(eye, [0.0, 0.0, 20.0])
-    K = np.array([[2600.0, 0, 639.5], [0, 2600.0, 511.5], [0, 0, 1.0]])
-    return Camera(width=1280, height=1024, K=K, dist=np.asarray(dist, float), R=R, t=t)
-
-
-CAM1 = _cam([0.0, -240.0, 370.0])
-CAM2 = _cam([0.0, 240.0, 370.0], dist=(-0.03, 0.04, -0.0008, 0.0006, 0.0))
-_Rp, _tp = look_at([0.0, 0.0, 600.0], [0.0, 0.0, 0.0])
-PROJ = Camera(width=PW, height=PH, K=np.array([[575 / 0.15, 0, 511.5], [0, 575 / 0.15, 383.5], [0, 0, 1.0]]),
-              dist=np.array([0.03, -0.01, 0.0, 0.0, 0.0]), R=_Rp, t=_tp)
-
-
-def _project(c, X):
-    return cv2.projectPoints(np.asarray(X, float), cv2.Rodrigues(c.R)[0], c.t, c.K, c.dist)[0][:, 0]
-
-
-def _rays(c, uv):
-    n = cv2.undistortPoints(np.asarray(uv, float).reshape(-1, 1, 2), c.K, c.dist,
-                            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))[:, 0]
-    d = np.c_[n, np.ones(len(n))] @ c.R  # R^T (x, y, 1)
-    return c.center, d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def _hit(c, uv, surface="sphere"):
-    """World points where the rays of pixels uv meet the surface (NaN: miss)."""
-    C, d = _rays(c, uv)
-    if surface == "sphere":
-        w = C - SPHERE_C
-        b = d @ w
-        disc = b * b - (w @ w - SPHERE_R ** 2)
-        t = -b - np.sqrt(np.where(disc >= 0, disc, np.nan))
-    else:  # a step: z = 30 for x < 0, z = 0 for x >= 0 (the wall hidden from nobody that matters here)
-        t_hi = (30.0 - C[2]) / d[:, 2]
-        t_lo = (0.0 - C[2]) / d[:, 2]
-        x_hi = C[0] + t_hi * d[:, 0]
-        t = np.where(x_hi < 0, t_hi, t_lo)
-        x_lo = C[0] + t_lo * d[:, 0]
-        t = np.where((x_hi >= 0) & (x_lo < 0), np.nan, t)  # the step's wall: no sample
-    return C + t[:, None] * d
-
-
-def _visible(c, X, surface="sphere"):
-    """X is the first surface point along c's ray through its pixel."""
-    back = _hit(c, _project(c, X), surface)
-    return np.linalg.norm(back - X, axis=1) < 1e-3
-
-
-def _ring_samples(rng, radii, step=1.0, jitter=0.3):
-    """Projector points along rings (tangential spacing ~step px)."""
-    ps = []
-    for r in radii:
-        n = int(2 * np.pi * r / step)
-        phi = np.linspace(-np.pi, np.pi, n, endpoint=False) + rng.uniform(-jitter, jitter, n) * step / r
-        ps.append(np.c_[CENTER[0] + r * np.cos(phi), CENTER[1] + r * np.sin(phi)])
-    return np.concatenate(ps)
-
-
-def _from_projector(p, surface="sphere"):
-    X = _hit(PROJ, p, surface)
-    ok = np.isfinite(X).all(axis=1)
-    ok[ok] &= _visible(CAM1, X[ok], surface) & _visible(CAM2, X[ok], surface)
-    return X, ok
-
-
-def _w(a, dtype, device):
-    return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=device)
+from .stereo_rig import CAM1, CAM2, CENTER, PH, PROJ, PW, _from_projector, _hit, _project, _ring_samples, _w
 
 
 def _match(device, q, qs, p2, uv2, s2, **kw):
@@ -173,70 +96,6 @@ def test_a_depth_step_is_dropped_not_blended(device):
     assert err[st == 0].max() < 0.1  # nothing blended across the edge (a blend is ~100 px off)
 
 
-def _tri_inputs(rng, n=2000):
-    uv1 = np.c_[rng.uniform(350, 930, n), rng.uniform(250, 770, n)]
-    X = _hit(CAM1, uv1)
-    ok = np.isfinite(X).all(1)
-    uv1, X = uv1[ok], X[ok]
-    return uv1, X, _project(CAM2, X), _project(PROJ, X)
-
-
-def _models():
-    return (make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t), make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t),
-            make_perspective_light(PROJ.K, PROJ.dist, PROJ.R, PROJ.t))
-
-
-def test_two_and_three_rays_place_exact_points(device):
-    uv1, X, uv2, p = _tri_inputs(np.random.default_rng(4))
-    c1, c2, light = _models()
-    n = len(uv1)
-    s = _w(np.full(n, 0.1), wp.float32, device)
-    sr = _w(np.full(n, 0.05), wp.float32, device)
-    pj = _w(p, wp.vec2, device)
-    for kw in ({}, {"light": light, "proj": pj, "proj_info": polar_information(pj, sr, sr, center=CENTER)}):
-        T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), s, s, camera1=c1, camera2=c2,
-                             volume=VOLUME, **kw)
-        st = T.status.numpy()
-        assert (st == 0).all(), np.bincount(st)
-        err = np.linalg.norm(T.points.numpy() - X, axis=1)
-        assert err.max() < 2e-3  # mm; float32 pixels limit it
-        assert np.median(T.residual.numpy()) < 1e-3
-        assert np.all(T.sigma.numpy() > 0)
-
-
-def test_noise_three_rays_beat_two_and_sigma_and_chi2_are_honest(device):
-    rng = np.random.default_rng(5)
-    uv1, X, uv2, p = _tri_inputs(rng, 4000)
-    c1, c2, light = _models()
-    n = len(uv1)
-    s1, s2, sp = 0.05, 0.2, 0.05
-    uv1n = uv1 + rng.normal(0, s1, uv1.shape)
-    uv2n = uv2 + rng.normal(0, s2, uv2.shape)
-    pn = p + rng.normal(0, sp, p.shape)
-    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
-    pj = _w(pn, wp.vec2, device)
-    spa = _w(np.full(n, sp), wp.float32, device)
-    out = {}
-    for name, kw, dof in (("two", {}, 1),
-                          ("three", {"light": light, "proj": pj,
-                                     "proj_info": polar_information(pj, spa, spa, center=CENTER)}, 3)):
-        T = triangulate_rays(_w(uv1n, wp.vec2, device), _w(uv2n, wp.vec2, device),
-                             _w(np.full(n, s1), wp.float32, device), _w(np.full(n, s2), wp.float32, device),
-                             camera1=c1, camera2=c2, volume=VOLUME, **kw)
-        st = T.status.numpy()
-        assert (st == 0).mean() > 0.99, [STATUS_NAMES[k] for k in np.unique(st)]
-        ok = st == 0
-        e = T.points.numpy()[ok] - X[ok]
-        along = np.sum(e * d1[ok], axis=1)
-        sig = T.sigma.numpy()[ok]
-        # the predicted sigma along camera 1's ray is the error's scale there
-        assert 0.8 < np.std(along / sig) < 1.25
-        # chi-square with its degrees of freedom: mean dof
-        assert abs(np.mean(T.chi2.numpy()[ok]) / dof - 1) < 0.15
-        out[name] = np.median(np.linalg.norm(e, axis=1))
-    assert out["three"] < 0.8 * out["two"], out
-
-
 def test_bad_inputs_raise(device):
     a = wp.zeros(3, dtype=wp.vec2, device=device)
     f = wp.zeros(3, dtype=wp.float32, device=device)
@@ -244,9 +103,6 @@ def test_bad_inputs_raise(device):
         match_by_projector(a, wp.zeros(2, dtype=wp.float32, device=device), a, a, f, projector_size=(PW, PH))
     with pytest.raises(ValueError, match="neighbours"):
         MatchSettings(neighbours=40)
-    c1, c2, light = _models()
-    with pytest.raises(ValueError, match="go together"):
-        triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, light=light)
     p, s = projector_coordinates(wp.array(np.array([10.0, 5.0], np.float32), device=device),
                                  wp.array(np.array([0.0, np.nan], np.float32), device=device),
                                  wp.array(np.array([0.3, 0.3], np.float32), device=device),
@@ -381,29 +237,12 @@ def test_one_misread_neighbour_is_left_out_two_surfaces_still_are_a_discontinuit
     assert np.percentile(err, 99) < 0.1, np.percentile(err, 99)  # camera px: nothing pulled toward a misread
 
 
-def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
-    """The rig and points of test_two_and_three_rays_place_exact_points in metres (a calibration in metres
-    imported as mm): the Jacobians' step is at most 0.2 % of the point's distance, so it stays a step the
-    scene allows (before: 0.5 'mm', here more than the 0.4 m to the camera, and points off or dropped)."""
-    uv1, X, uv2, _ = _tri_inputs(np.random.default_rng(4))
-    c1 = make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t / 1000.0)
-    c2 = make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t / 1000.0)
-    n = len(uv1)
-    s = _w(np.full(n, 0.1), wp.float32, device)
-    T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), s, s, camera1=c1, camera2=c2,
-                         volume=tuple(v / 1000.0 for v in VOLUME))
-    st = T.status.numpy()
-    assert (st == 0).all(), np.bincount(st)
-    err = np.linalg.norm(T.points.numpy() - X / 1000.0, axis=1)
-    assert err.max() < 2e-6  # m: the 2e-3 mm of millimetres, float32 pixels limit it alike
-
-
 def test_epipolar_distances_match_float64_geometry():
     """The kernel's epipolar distance against the float64 construction (OpenCV's undistortion,
     E = [t]x R): exact matches of a distorting pair lie on their lines (0 up to float32), and
     camera-2 pixels moved by known amounts keep the float64 distance within 1e-3 px (float32
     normalised coordinates: ~1e-7 of a 2600 px focal length, times the lens's stretch)."""
-    from ringscan.kernels.stereo import epipolar_distances
+    from ringscan.kernels.stereo_match import epipolar_distances
 
     rng = np.random.default_rng(3)
     uv1 = np.c_[rng.uniform(300, 980, 400), rng.uniform(250, 780, 400)]
@@ -446,7 +285,7 @@ def test_epipolar_distances_match_float64_geometry():
 def test_dense_map_binned_finer_finds_the_same_matches(monkeypatch):
     """A dense camera-2 map (~80 samples a 4 px cell) is binned in cells of 1 px (MAX_GRID_SPLIT):
     the same neighbours, so the same matches to the bit as the 4 px grid, the radius unchanged."""
-    import ringscan.kernels.stereo as ks
+    import ringscan.kernels.stereo_match as ks
 
     rng = np.random.default_rng(11)
     H, W = 200, 300

@@ -1,28 +1,24 @@
-"""Two cameras: matching by equal projector coordinate, and triangulation of two
-or three rays (docs/reconstruction.md "Two cameras", docs/design.md §19).
+"""Two cameras, matching: a camera-1 sample finds its camera-2 position by equal
+projector coordinate (docs/reconstruction.md "Two cameras", docs/design.md §19).
 
-- Matching. Each camera decodes the projector coordinate p = (u_p, v_p) of its
-  samples; a camera-1 sample (the query) is matched to the camera-2 position x2
-  where camera 2's projector-coordinate field equals the query's p. Camera 2's
-  samples (a dense per-pixel map or scattered ring-edge samples: both are just (x2,
-  p, sigma) triples here) are binned by p into a grid of square cells (count, scan,
-  write); each query takes its ``k`` nearest samples in projector space (searching
-  ring by ring of cells out to a radius) and fits the local affine map x2 = x2m + A
-  (p - pm) by weighted least squares (weights 1 / sigma_p^2), evaluated at the
-  query's p. Where the neighbours lie on a line in projector space (ring edges:
-  samples along one ring) the map is fitted along that line only (pseudo-inverse),
-  and the query must lie on their curve (a quadratic through them: a ring edge is an
-  arc). A neighbourhood that straddles a depth discontinuity is one no single affine
-  map fits: its fit residual (camera px) or its gain (camera px per projector px) is
-  too large, and the query is dropped. No extrinsics are used, so the matches can
-  re-estimate them.
-- Triangulation. Gauss-Newton on the weighted reprojection error of the point in
-  camera 1, camera 2 and (optionally) the calibrated projector, from the
-  midpoint of the two camera rays, through each lens's distortion
-  (``geometry.project_camera``, ``geometry.light_pixel``).
+Each camera decodes the projector coordinate p = (u_p, v_p) of its samples; a
+camera-1 sample (the query) is matched to the camera-2 position x2 where camera 2's
+projector-coordinate field equals the query's p. Camera 2's samples (a dense
+per-pixel map or scattered ring-edge samples: both are just (x2, p, sigma) triples
+here) are binned by p into a grid of square cells (count, scan, write); each query
+takes its ``k`` nearest samples in projector space (searching ring by ring of cells
+out to a radius) and fits the local affine map x2 = x2m + A (p - pm) by weighted
+least squares (weights 1 / sigma_p^2), evaluated at the query's p. Where the
+neighbours lie on a line in projector space (ring edges: samples along one ring)
+the map is fitted along that line only (pseudo-inverse), and the query must lie on
+their curve (a quadratic through them: a ring edge is an arc). A neighbourhood that
+straddles a depth discontinuity is one no single affine map fits: its fit residual
+(camera px) or its gain (camera px per projector px) is too large, and the query is
+dropped. No extrinsics are used, so the matches can re-estimate them; with
+extrinsics, :func:`epipolar_distances` checks them against the epipolar lines.
 
-Status codes of the triangulation are those of ``kernels.triangulation``
-(``STATUS_NAMES``); the matching has its own (``MATCH_STATUS_NAMES``).
+The matches go on to :mod:`ringscan.kernels.stereo_rays` (triangulation of the two
+or three rays). The matching has its own status codes (``MATCH_STATUS_NAMES``).
 """
 
 from __future__ import annotations
@@ -32,30 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.geometry import (
-    NEWTON_STEPS,
-    CameraModel,
-    LightModel,
-    Volume,
-    camera_ray,
-    closest_on_ray,
-    direction_to_light,
-    in_volume,
-    light_pixel,
-    make_volume,
-    project_camera,
-    undistort,
-)
+from ringscan.kernels.geometry import CameraModel, undistort
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
-from ringscan.kernels.triangulation import (
-    STATUS_ILL_CONDITIONED,
-    STATUS_INCONSISTENT,
-    STATUS_NOT_CONVERGED,
-    STATUS_OK,
-    STATUS_OUTSIDE,
-    STATUS_UNDISTORT_FAILED,
-    quad,
-)
 
 MAX_NEIGHBOURS = 16
 """Largest ``MatchSettings.neighbours`` (the kernel's fixed local arrays)."""
@@ -70,12 +44,6 @@ MATCH_TOO_FEW = wp.constant(2)
 MATCH_EXTRAPOLATED = wp.constant(3)
 MATCH_DISCONTINUITY = wp.constant(4)
 MATCH_STATUS_NAMES = ("ok", "no_coordinate", "too_few_neighbours", "extrapolated", "discontinuity")
-JACOBIAN_STEP_MM = wp.constant(0.5)
-"""Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
-point's distance from camera 1."""
-JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
-"""... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
-its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
 SIGMA_FLOOR_PX = wp.constant(1.0e-3)
 """Least standard deviation (px) a sample or a ray is given: keeps the weights finite."""
 MODEL_SHARE = wp.constant(0.5)
@@ -95,13 +63,12 @@ __all__ = [
     "epipolar_distances",
     "MatchSettings",
     "Matches",
-    "RayTriangulation",
     "MATCH_STATUS_NAMES",
     "MAX_NEIGHBOURS",
+    "SIGMA_FLOOR_PX",
+    "check_array",
     "projector_coordinates",
     "match_by_projector",
-    "triangulate_rays",
-    "polar_information",
 ]
 
 
@@ -173,22 +140,6 @@ class Matches:
     """int32 ``MATCH_STATUS_NAMES`` index."""
 
 
-@dataclass
-class RayTriangulation:
-    """Per match (Warp arrays of length n)."""
-
-    points: wp.array
-    """vec3 world point (mm); zero where the status is not ok, inconsistent or ill-conditioned."""
-    status: wp.array
-    """int32 status (``kernels.triangulation.STATUS_NAMES``)."""
-    residual: wp.array
-    """float32 RMS over the rays of each ray's reprojection error (each in its own pixels); -1 where no point."""
-    chi2: wp.array
-    """float32 weighted chi-square (sum of squared residuals over their predicted sigmas)."""
-    sigma: wp.array
-    """float32 predicted standard deviation of the point along camera 1's ray (mm)."""
-
-
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -206,57 +157,6 @@ def cell_of(p: wp.vec2, cell: float, nx: int, ny: int):
 def key_less(da: float, ia: int, db: float, ib: int):
     """(da, ia) < (db, ib): distance first, the sample index breaks ties (a deterministic neighbour set)."""
     return da < db or (da == db and ia < ib)
-
-
-@wp.func
-def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H: wp.mat33, g: wp.vec3):
-    """Add one 2-D observation (residual r, Jacobian columns j*, information W) to H and g."""
-    H = H + wp.mat33(quad(W, jx, jx), quad(W, jx, jy), quad(W, jx, jz),
-                     quad(W, jy, jx), quad(W, jy, jy), quad(W, jy, jz),
-                     quad(W, jz, jx), quad(W, jz, jy), quad(W, jz, jz))
-    g = g + wp.vec3(quad(W, jx, r), quad(W, jy, r), quad(W, jz, r))
-    return H, g
-
-
-@wp.func
-def cam_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
-    p = project_camera(cam, X)
-    return wp.vec2(p[0] - uv[0], p[1] - uv[1])
-
-
-@wp.func
-def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
-    p = light_pixel(light, X)
-    return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
-
-
-@wp.func
-def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
-                      W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
-    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
-    the Jacobian by central differences over h mm (the lens's exact derivative was tried
-    and not taken: it converges samples of a rig that does not fit that these leave
-    ``not_converged``, a change of behaviour; docs/batch.md gives the figures).
-    Returns (H, g, chi2 term, |r| px)."""
-    r = wp.vec2(0.0, 0.0)
-    jx = wp.vec2(0.0, 0.0)
-    jy = wp.vec2(0.0, 0.0)
-    jz = wp.vec2(0.0, 0.0)
-    ex = wp.vec3(h, 0.0, 0.0)
-    ey = wp.vec3(0.0, h, 0.0)
-    ez = wp.vec3(0.0, 0.0, h)
-    if is_light != 0:
-        r = light_residual(light, X, obs)
-        jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
-        jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
-        jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
-    else:
-        r = cam_residual(cam, X, obs)
-        jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
-        jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
-        jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
-    H, g = block_terms(r, jx, jy, jz, W, H, g)
-    return H, g, quad(W, r, r), wp.length(r)
 
 
 @wp.func
@@ -625,137 +525,12 @@ def epipolar_kernel(
     dist[i] = wp.where(den > 0.0, wp.abs(line[0] * n2[0] + line[1] * n2[1] + line[2]) / den * scale, wp.nan)
 
 
-@wp.kernel
-def triangulate_rays_kernel(
-    uv1: wp.array(dtype=wp.vec2),
-    uv2: wp.array(dtype=wp.vec2),
-    sigma1: wp.array(dtype=wp.float32),
-    sigma2: wp.array(dtype=wp.float32),
-    proj: wp.array(dtype=wp.vec2),
-    proj_info: wp.array(dtype=wp.vec3),
-    cam1: CameraModel,
-    cam2: CameraModel,
-    light: LightModel,
-    use_light: int,
-    vol: Volume,
-    min_sin: float,
-    max_residual_px: float,
-    i0: int,
-    points: wp.array(dtype=wp.vec3),
-    status: wp.array(dtype=wp.int32),
-    residual: wp.array(dtype=wp.float32),
-    chi2: wp.array(dtype=wp.float32),
-    sigma: wp.array(dtype=wp.float32),
-):
-    """Triangulate match i0 + tid from camera 1, camera 2 and, with ``use_light``,
-    the projector.
-
-    uv1, uv2 (n,) vec2 camera pixels (distorted), sigma1, sigma2 (n,) float32
-    px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
-    (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. points
-    (n,) vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written."""
-    i = i0 + wp.tid()
-    points[i] = wp.vec3(0.0, 0.0, 0.0)
-    residual[i] = -1.0
-    chi2[i] = 0.0
-    sigma[i] = 0.0
-    d1, ok1 = camera_ray(cam1, uv1[i][0], uv1[i][1])
-    d2, ok2 = camera_ray(cam2, uv2[i][0], uv2[i][1])
-    if not ok1 or not ok2:
-        status[i] = STATUS_UNDISTORT_FAILED
-        return
-    C1 = cam1.center
-    C2 = cam2.center
-    t1 = closest_on_ray(C1, d1, C2, d2)
-    t2 = closest_on_ray(C2, d2, C1, d1)
-    X = 0.5 * (C1 + d1 * t1 + C2 + d2 * t2)
-    s1 = wp.max(sigma1[i], SIGMA_FLOOR_PX)
-    s2 = wp.max(sigma2[i], SIGMA_FLOOR_PX)
-    W1 = wp.vec3(1.0 / (s1 * s1), 0.0, 1.0 / (s1 * s1))
-    W2 = wp.vec3(1.0 / (s2 * s2), 0.0, 1.0 / (s2 * s2))
-    WL = wp.vec3(0.0, 0.0, 0.0)
-    pL = wp.vec2(0.0, 0.0)
-    if use_light != 0:
-        WL = proj_info[i]
-        pL = proj[i]
-    converged = bool(False)
-    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    chi = float(0.0)
-    ss = float(0.0)
-    # Jacobians by central differences over 0.5 mm: the projections are smooth on
-    # that scale, and a smaller step lets float32 noise into the Jacobian, which
-    # a point with a large residual (rays that miss) multiplies into its steps
-    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
-    for _it in range(NEWTON_STEPS):
-        H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        g = wp.vec3(0.0, 0.0, 0.0)
-        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
-        chi = c1 + c2
-        ss = r1 * r1 + r2 * r2
-        if use_light != 0:
-            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
-            chi += c3
-            ss += r3 * r3
-        if not (wp.abs(wp.determinant(H)) > 0.0):
-            break
-        step = wp.inverse(H) * g
-        X = X - step
-        # 2 % of the point's own standard deviation along the step is as far as refining helps
-        sd = wp.sqrt(wp.max(wp.dot(step, wp.inverse(H) * step), 0.0)) / wp.max(wp.length(step), 1.0e-30)
-        if wp.length(step) < wp.max(1.0e-4, 0.02 * sd):
-            converged = True
-            break
-    # the residual at the solution
-    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    g = wp.vec3(0.0, 0.0, 0.0)
-    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
-    chi = c1 + c2
-    ss = r1 * r1 + r2 * r2
-    nr = float(2.0)
-    if use_light != 0:
-        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
-        chi += c3
-        ss += r3 * r3
-        nr = 3.0
-    rms = wp.sqrt(ss / nr)
-    if not converged:
-        # rays that miss each other by far leave float32 noise in the steps: name it for what it is
-        status[i] = wp.where(rms > max_residual_px, STATUS_INCONSISTENT, STATUS_NOT_CONVERGED)
-        residual[i] = wp.where(rms > max_residual_px, rms, -1.0)
-        return
-    # in front of both cameras (and the projector), inside the volume
-    z1 = (cam1.R * X + cam1.t)[2]
-    z2 = (cam2.R * X + cam2.t)[2]
-    front = z1 > 0.0 and z2 > 0.0
-    if use_light != 0:
-        front = front and light_pixel(light, X)[2] > 0.0
-    if not front or not in_volume(X, vol):
-        status[i] = STATUS_OUTSIDE
-        return
-    # conditioning: the widest angle between camera 1's ray and another ray
-    sn = wp.length(wp.cross(d1, d2))
-    if use_light != 0:
-        sn = wp.max(sn, wp.length(wp.cross(d1, direction_to_light(light, X))))
-    cov = wp.inverse(H)
-    var = wp.dot(d1, cov * d1)
-    points[i] = X
-    residual[i] = rms
-    chi2[i] = chi
-    sigma[i] = wp.where(var > 0.0, wp.sqrt(var), 1.0e9)
-    st = int(STATUS_OK)
-    if sn < min_sin:
-        st = STATUS_ILL_CONDITIONED
-    elif rms > max_residual_px:
-        st = STATUS_INCONSISTENT
-    status[i] = st
-
-
 # ----------------------------------------------------------------------------- host
 
 
-def _check(name: str, a, n: int | None, dtype, fn: str) -> int:
+def check_array(name: str, a, n: int | None, dtype, fn: str) -> int:
+    """The host functions' argument check (here and in :mod:`ringscan.kernels.stereo_rays`):
+    ``a`` a 1-D Warp array of ``dtype`` (of length ``n`` unless None); its length."""
     if not isinstance(a, wp.array) or a.dtype != dtype or a.ndim != 1 or (n is not None and a.shape[0] != n):
         shape = f"({n},)" if n is not None else "1-D"
         raise ValueError(f"{fn}: {name} must be a {shape} {dtype.__name__} Warp array")
@@ -774,9 +549,9 @@ def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sig
         (proj (n,) vec2: c + rho (cos phi, sin phi), NaN where phi is; sigma (n,)
         float32: the isotropic sqrt((sigma_rho^2 + sigma_tan^2) / 2)), on rho's device.
     """
-    n = _check("rho", rho, None, wp.float32, "projector_coordinates")
+    n = check_array("rho", rho, None, wp.float32, "projector_coordinates")
     for name, a in (("phi", phi), ("sigma_rho", sigma_rho), ("sigma_tan", sigma_tan)):
-        _check(name, a, n, wp.float32, "projector_coordinates")
+        check_array(name, a, n, wp.float32, "projector_coordinates")
     dev = rho.device
     proj = wp.empty(n, dtype=wp.vec2, device=dev)
     sigma = wp.empty(n, dtype=wp.float32, device=dev)
@@ -784,27 +559,6 @@ def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sig
         wp.launch(polar_coordinates_kernel, dim=n, inputs=[rho, phi, sigma_rho, sigma_tan, wp.vec2(*center)],
                   outputs=[proj, sigma], device=dev)
     return proj, sigma
-
-
-def polar_information(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,
-                      center: tuple[float, float]) -> wp.array:
-    """Information matrices (W00, W01, W11; 1/px^2) of projector pixels whose
-    errors are radial (sigma_rho) and tangential (sigma_tan) about ``center``.
-
-    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32 -> (n,) vec3 (host
-    arithmetic: a small array, once per view)."""
-    n = _check("proj", proj, None, wp.vec2, "polar_information")
-    _check("sigma_rho", sigma_rho, n, wp.float32, "polar_information")
-    _check("sigma_tan", sigma_tan, n, wp.float32, "polar_information")
-    p = proj.numpy().astype(np.float64)
-    off = p - np.asarray(center, float)
-    r = np.hypot(off[:, 0], off[:, 1])
-    c = np.where(r > 0, off[:, 0] / np.where(r > 0, r, 1), 1.0)
-    s = np.where(r > 0, off[:, 1] / np.where(r > 0, r, 1), 0.0)
-    ir = 1.0 / np.maximum(sigma_rho.numpy().astype(np.float64), 1e-3) ** 2
-    it = 1.0 / np.maximum(sigma_tan.numpy().astype(np.float64), 1e-3) ** 2
-    W = np.stack([ir * c * c + it * s * s, (ir - it) * c * s, ir * s * s + it * c * c], axis=1)
-    return wp.array(W.astype(np.float32), dtype=wp.vec3, device=proj.device)
 
 
 def match_by_projector(
@@ -834,11 +588,11 @@ def match_by_projector(
         :class:`Matches` on the queries' device.
     """
     fn = "match_by_projector"
-    n = _check("query", query, None, wp.vec2, fn)
-    _check("query_sigma", query_sigma, n, wp.float32, fn)
-    m = _check("proj2", proj2, None, wp.vec2, fn)
-    _check("uv2", uv2, m, wp.vec2, fn)
-    _check("sigma2", sigma2, m, wp.float32, fn)
+    n = check_array("query", query, None, wp.vec2, fn)
+    check_array("query_sigma", query_sigma, n, wp.float32, fn)
+    m = check_array("proj2", proj2, None, wp.vec2, fn)
+    check_array("uv2", uv2, m, wp.vec2, fn)
+    check_array("sigma2", sigma2, m, wp.float32, fn)
     W, Hh = (int(x) for x in projector_size)
     if W < 1 or Hh < 1:
         raise ValueError(f"{fn}: bad projector_size {projector_size}")
@@ -894,8 +648,8 @@ def epipolar_distances(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, ca
         threads: CPU threads; default all cores.
     """
     fn = "epipolar_distances"
-    n = _check("uv1", uv1, None, wp.vec2, fn)
-    _check("uv2", uv2, n, wp.vec2, fn)
+    n = check_array("uv1", uv1, None, wp.vec2, fn)
+    check_array("uv2", uv2, n, wp.vec2, fn)
     dev = uv1.device
     out = wp.empty(n, dtype=wp.float32, device=dev)
     if n:
@@ -903,76 +657,4 @@ def epipolar_distances(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, ca
         args = [uv1, uv2, camera1, camera2, Em, float(scale)]
         launch_spans(epipolar_kernel, n, lambda i0: args + [i0], [out], dev,
                      default_threads() if threads is None else threads)
-    return out
-
-
-def triangulate_rays(    uv1: wp.array,
-    uv2: wp.array,
-    sigma1: wp.array,
-    sigma2: wp.array,
-    *,
-    camera1: CameraModel,
-    camera2: CameraModel,
-    volume: tuple[float, float, float],
-    light: LightModel | None = None,
-    proj: wp.array | None = None,
-    proj_info: wp.array | None = None,
-    min_sin: float = 0.03,
-    max_residual_px: float = 2.0,
-    threads: int | None = None,
-) -> RayTriangulation:
-    """Points from two camera rays, or three rays with the calibrated projector.
-
-    Args:
-        uv1, uv2: (n,) vec2 camera-1 and camera-2 pixels (distorted images).
-        sigma1, sigma2: (n,) float32 their standard deviations (px).
-        camera1, camera2: :class:`~ringscan.kernels.geometry.CameraModel` each.
-        volume: (z_min, z_max, r_max) of the working volume, world mm.
-        light: the calibrated projector (or parallel light) for a third ray; None: two rays.
-        proj: (n,) vec2 projector pixels (with ``light``).
-        proj_info: (n,) vec3 their information matrices (with ``light``; :func:`polar_information`).
-        min_sin: least sine of the widest angle between camera 1's ray and another
-            ray: below it the point is ``ill_conditioned``.
-        max_residual_px: largest RMS reprojection error (px): above it ``inconsistent``.
-        threads: CPU threads; default all cores.
-    """
-    fn = "triangulate_rays"
-    n = _check("uv1", uv1, None, wp.vec2, fn)
-    _check("uv2", uv2, n, wp.vec2, fn)
-    _check("sigma1", sigma1, n, wp.float32, fn)
-    _check("sigma2", sigma2, n, wp.float32, fn)
-    if (light is None) != (proj is None) or (light is None) != (proj_info is None):
-        raise ValueError(f"{fn}: light, proj and proj_info go together")
-    if light is not None:
-        _check("proj", proj, n, wp.vec2, fn)
-        _check("proj_info", proj_info, n, wp.vec3, fn)
-    z_min, z_max, r_max = (float(x) for x in volume)
-    if not (z_max > z_min and r_max > 0):
-        raise ValueError(f"{fn}: bad volume {volume}")
-    if not (0 <= min_sin < 1) or not (max_residual_px > 0):
-        raise ValueError(f"{fn}: need 0 <= min_sin < 1 and max_residual_px > 0")
-    dev = uv1.device
-    out = RayTriangulation(points=wp.empty(n, dtype=wp.vec3, device=dev),
-                           status=wp.empty(n, dtype=wp.int32, device=dev),
-                           residual=wp.empty(n, dtype=wp.float32, device=dev),
-                           chi2=wp.empty(n, dtype=wp.float32, device=dev),
-                           sigma=wp.empty(n, dtype=wp.float32, device=dev))
-    if n == 0:
-        return out
-    use_light = 1 if light is not None else 0
-    if light is None:
-        # an unused struct: the kernel reads no field of it
-        from_cam = LightModel()
-        from_cam.model = 1
-        from_cam.distorted = 0
-        from_cam.cam = camera1
-        from_cam.R = wp.mat33(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-        light = from_cam
-        proj = wp.zeros(1, dtype=wp.vec2, device=dev)
-        proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
-    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, camera1, camera2, light, use_light,
-            make_volume(z_min, z_max, r_max), float(min_sin), float(max_residual_px)]
-    outputs = [out.points, out.status, out.residual, out.chi2, out.sigma]
-    threads = default_threads() if threads is None else threads
-    launch_spans(triangulate_rays_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out

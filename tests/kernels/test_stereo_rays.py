@@ -1,0 +1,102 @@
+"""Two- and three-ray triangulation (kernels.stereo_rays) against a hand-made rig
+(tests/kernels/stereo_rig.py): two cameras and a projector around a known sphere; truth
+projected through each lens gives the exact pixels."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.geometry import make_camera, make_perspective_light
+from ringscan.kernels.stereo_rays import polar_information, triangulate_rays
+from ringscan.kernels.triangulation import STATUS_NAMES
+
+from .stereo_rig import CAM1, CAM2, CENTER, PROJ, VOLUME, _hit, _project, _w
+
+
+def _tri_inputs(rng, n=2000):
+    uv1 = np.c_[rng.uniform(350, 930, n), rng.uniform(250, 770, n)]
+    X = _hit(CAM1, uv1)
+    ok = np.isfinite(X).all(1)
+    uv1, X = uv1[ok], X[ok]
+    return uv1, X, _project(CAM2, X), _project(PROJ, X)
+
+
+def _models():
+    return (make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t), make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t),
+            make_perspective_light(PROJ.K, PROJ.dist, PROJ.R, PROJ.t))
+
+
+def test_two_and_three_rays_place_exact_points(device):
+    uv1, X, uv2, p = _tri_inputs(np.random.default_rng(4))
+    c1, c2, light = _models()
+    n = len(uv1)
+    s = _w(np.full(n, 0.1), wp.float32, device)
+    sr = _w(np.full(n, 0.05), wp.float32, device)
+    pj = _w(p, wp.vec2, device)
+    for kw in ({}, {"light": light, "proj": pj, "proj_info": polar_information(pj, sr, sr, center=CENTER)}):
+        T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), s, s, camera1=c1, camera2=c2,
+                             volume=VOLUME, **kw)
+        st = T.status.numpy()
+        assert (st == 0).all(), np.bincount(st)
+        err = np.linalg.norm(T.points.numpy() - X, axis=1)
+        assert err.max() < 2e-3  # mm; float32 pixels limit it
+        assert np.median(T.residual.numpy()) < 1e-3
+        assert np.all(T.sigma.numpy() > 0)
+
+
+def test_noise_three_rays_beat_two_and_sigma_and_chi2_are_honest(device):
+    rng = np.random.default_rng(5)
+    uv1, X, uv2, p = _tri_inputs(rng, 4000)
+    c1, c2, light = _models()
+    n = len(uv1)
+    s1, s2, sp = 0.05, 0.2, 0.05
+    uv1n = uv1 + rng.normal(0, s1, uv1.shape)
+    uv2n = uv2 + rng.normal(0, s2, uv2.shape)
+    pn = p + rng.normal(0, sp, p.shape)
+    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    pj = _w(pn, wp.vec2, device)
+    spa = _w(np.full(n, sp), wp.float32, device)
+    out = {}
+    for name, kw, dof in (("two", {}, 1),
+                          ("three", {"light": light, "proj": pj,
+                                     "proj_info": polar_information(pj, spa, spa, center=CENTER)}, 3)):
+        T = triangulate_rays(_w(uv1n, wp.vec2, device), _w(uv2n, wp.vec2, device),
+                             _w(np.full(n, s1), wp.float32, device), _w(np.full(n, s2), wp.float32, device),
+                             camera1=c1, camera2=c2, volume=VOLUME, **kw)
+        st = T.status.numpy()
+        assert (st == 0).mean() > 0.99, [STATUS_NAMES[k] for k in np.unique(st)]
+        ok = st == 0
+        e = T.points.numpy()[ok] - X[ok]
+        along = np.sum(e * d1[ok], axis=1)
+        sig = T.sigma.numpy()[ok]
+        # the predicted sigma along camera 1's ray is the error's scale there
+        assert 0.8 < np.std(along / sig) < 1.25
+        # chi-square with its degrees of freedom: mean dof
+        assert abs(np.mean(T.chi2.numpy()[ok]) / dof - 1) < 0.15
+        out[name] = np.median(np.linalg.norm(e, axis=1))
+    assert out["three"] < 0.8 * out["two"], out
+
+
+def test_bad_inputs_raise(device):
+    a = wp.zeros(3, dtype=wp.vec2, device=device)
+    f = wp.zeros(3, dtype=wp.float32, device=device)
+    c1, c2, light = _models()
+    with pytest.raises(ValueError, match="go together"):
+        triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, light=light)
+
+
+def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
+    """The rig and points of test_two_and_three_rays_place_exact_points in metres (a calibration in metres
+    imported as mm): the Jacobians' step is at most 0.2 % of the point's distance, so it stays a step the
+    scene allows (before: 0.5 'mm', here more than the 0.4 m to the camera, and points off or dropped)."""
+    uv1, X, uv2, _ = _tri_inputs(np.random.default_rng(4))
+    c1 = make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t / 1000.0)
+    c2 = make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t / 1000.0)
+    n = len(uv1)
+    s = _w(np.full(n, 0.1), wp.float32, device)
+    T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), s, s, camera1=c1, camera2=c2,
+                         volume=tuple(v / 1000.0 for v in VOLUME))
+    st = T.status.numpy()
+    assert (st == 0).all(), np.bincount(st)
+    err = np.linalg.norm(T.points.numpy() - X / 1000.0, axis=1)
+    assert err.max() < 2e-6  # m: the 2e-3 mm of millimetres, float32 pixels limit it alike
