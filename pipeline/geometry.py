@@ -1,7 +1,7 @@
 """Host-side rig geometry (NumPy + OpenCV), written once for the whole pipeline.
 
 The kernels have their own ``@wp.func`` twins in :mod:`ringscan.kernels.geometry`;
-this module is what host code (the single-shot labeller, evaluation, the truth
+this module is what host code (the rings codec's labeller, evaluation, the truth
 helpers, the NumPy reference) uses, and what turns a parsed
 :class:`~ringscan.pipeline.formats.rig.Rig` into the kernels' camera and light
 structs. Camera and projector (perspective light) pixels follow OpenCV's model

@@ -13,9 +13,10 @@ import json
 import logging
 import time
 
+from ringscan.pipeline.codecs import DEFAULT_CODEC
 from ringscan.pipeline.evaluate.metrics import evaluate_recon
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_folder
-from ringscan.pipeline.formats.patterns import parse_patterns
+from ringscan.pipeline.formats.patterns import CODEC_DEFAULTS, parse_patterns
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.preview.render import ViewSettings
@@ -25,9 +26,8 @@ from ringscan.tools.cli import UsageError, add_device_option
 
 log = logging.getLogger(__name__)
 
-DEMO_PATTERNS = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
-                 "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9,
-                 "angle_steps": 4, "angle_period": 8.0}  # gray-rings' defaults (docs/dense.md, "How sharp")
+DEMO_PATTERNS = {"codec": DEFAULT_CODEC, "width": 1024, "height": 768, "center": [511.5, 383.5],
+                 **CODEC_DEFAULTS[DEFAULT_CODEC]}  # the default codec's defaults (docs/dense.md, "How sharp")
 DEMO_SCENE = "spot"
 """The demo's default object: the mesh the package ships (pipeline/simulate/data/spot.obj, with its licence)."""
 DEMO_VIEW = ViewSettings(azimuth_deg=-30.0, elevation_deg=25.0)

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from ringscan.hardware.emulators.rig import EmulatedRig
+from ringscan.pipeline.codecs import DEFAULT_CODEC
 from ringscan.pipeline.formats.atomic import atomic_write_json
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict
@@ -21,7 +22,7 @@ from ringscan.tools.cmd_capture import load_patterns
 
 # The default pattern set: the 28-frame gray-rings set of ``ringscan patterns``'s
 # defaults (7 band bits, 6 sector bits) on the default rig's 1024x768 projector.
-DEFAULT_PATTERNS = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+DEFAULT_PATTERNS = {"codec": DEFAULT_CODEC, "width": 1024, "height": 768, "center": [511.5, 383.5],
                     "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6}
 
 

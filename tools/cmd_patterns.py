@@ -18,37 +18,23 @@ from __future__ import annotations
 import argparse
 
 from ringscan.hardware.devices.display import VIEWER_KEYS, DisplayProjector, run_viewer
+from ringscan.pipeline.codecs import DEFAULT_CODEC
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json, check_output_folder
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.patterns import CODEC_DEFAULTS, CODECS, PatternSpec, default_patterns, frame_names
+from ringscan.pipeline.formats.patterns import CODECS, PatternSpec, default_patterns, frame_names, pattern_options
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.tools.cli import UsageError
 
 
 def add_pattern_options(p, *, size: bool = True) -> None:
     """The pattern options of ``patterns`` and ``simulate`` (``size``: also --width/--height/--center).
-    An option not given takes its codec's default (``patterns.CODEC_DEFAULTS``)."""
-    gd, rd, pd = CODEC_DEFAULTS["gray-rings"], CODEC_DEFAULTS["rings"], CODEC_DEFAULTS["phase-rings"]
+    An option not given takes its codec's default (``patterns.CODEC_DEFAULTS``); the codec
+    options are ``patterns.pattern_options``, the default codec ``codecs.DEFAULT_CODEC``."""
     g = p.add_argument_group("pattern")
-    g.add_argument("--codec", choices=CODECS, default="gray-rings", help="pattern codec (default gray-rings)")
-    g.add_argument("--bits", type=int, default=None, help=f"Gray-code bits of the band index (default {gd['bits']})")
-    g.add_argument("--pitch", type=float, default=None,
-                   help=f"projector px per band (default {gd['pitch']:g}; {rd['pitch']:g} for rings)")
-    g.add_argument("--rho0", type=float, default=None,
-                   help=f"inner radius in projector px (default {gd['rho0']:g}; the pitch for rings)")
-    g.add_argument("--sector-bits", type=int, default=None,
-                   help=f"Gray-code bits of the angular sector (default {gd['sector_bits']}; 0 = none; not for rings)")
-    g.add_argument("--count", type=int, default=None, help=f"rings of the single-shot codec (default {rd['count']})")
-    g.add_argument("--line-width", type=float, default=None,
-                   help=f"ring line width in px, rings codec (default {rd['line_width']:g})")
-    g.add_argument("--steps", type=int, default=None, help=f"phase steps, phase-rings codec (default {pd['steps']})")
-    g.add_argument("--angle-steps", type=int, default=None,
-                   help="phase steps of the angle code (angular fringes around the centre, so every point gets "
-                        f"both projector coordinates; gray-rings and phase-rings; default {gd['angle_steps']}; "
-                        "0 = none (rings alone, the paper's patterns), else >= 3)")
-    g.add_argument("--angle-period", type=float, default=None, metavar="PX",
-                   help=f"least period of the angular fringes, projector px (default {gd['angle_period']:g})")
+    g.add_argument("--codec", choices=CODECS, default=DEFAULT_CODEC, help=f"pattern codec (default {DEFAULT_CODEC})")
+    for o in pattern_options():
+        g.add_argument(o.flag, dest=o.dest, type=o.type, default=None, metavar=o.metavar, help=o.help)
     g.add_argument("--precompensate", type=float, default=None, metavar="GAMMA",
                    help="write grey levels pre-compensated for a light of this response gamma "
                         "(value = 255 v^(1/GAMMA), so the light emits v; default none)")
@@ -70,11 +56,8 @@ def pattern_spec_from_args(args, width: int, height: int, center=None, *,
     pre = args.precompensate if precompensated_gamma is None else precompensated_gamma
     return default_patterns(args.codec, width=int(width), height=int(height),
                             center=None if center is None else [float(c) for c in center],
-                            rho0=args.rho0, pitch=args.pitch, count=args.count, line_width=args.line_width,
-                            bits=args.bits, sector_bits=args.sector_bits, steps=args.steps,
-                            angle_steps=getattr(args, "angle_steps", None),
-                            angle_period=getattr(args, "angle_period", None),
-                            precompensated_gamma=pre, source="command line")
+                            precompensated_gamma=pre, source="command line",
+                            **{o.dest: getattr(args, o.dest, None) for o in pattern_options()})
 
 
 def add_parser(sub):

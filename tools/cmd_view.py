@@ -100,6 +100,7 @@ def run_conditioning(args) -> int:
     import json
     import os
 
+    from ringscan.pipeline.codecs import DEFAULT_CODEC
     from ringscan.pipeline.evaluate.conditioning import (MAX_MAP_PIXELS, compute_conditioning, map_step_needed,
                                                          plot_conditioning)
     from ringscan.pipeline.formats.patterns import default_patterns
@@ -121,7 +122,7 @@ def run_conditioning(args) -> int:
     else:
         rig = load_rig(src)
         size = (rig.light.width, rig.light.height) if hasattr(rig.light, "width") else (1024, 768)
-        spec = default_patterns("gray-rings", width=size[0], height=size[1], source=src)
+        spec = default_patterns(DEFAULT_CODEC, width=size[0], height=size[1], source=src)
     need = map_step_needed(rig.camera.width, rig.camera.height)
     if args.step < need:  # before: a 65536x65536 camera asked for 64 GiB
         raise UsageError(f"--step {args.step}: the map of the {rig.camera.width}x{rig.camera.height} camera of {src} "

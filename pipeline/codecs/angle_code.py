@@ -22,7 +22,7 @@ from ringscan.kernels.samples import Samples
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX"]
+__all__ = ["add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -30,6 +30,10 @@ predicted standard deviation: the frames' one-pixel box filter widened by the
 projector's defocus (a Gaussian of sigma 0.7 px, the virtual rig's default and a
 sharp real projector's, spreads a box edge's 10-90 % rise over ~2.8 px). With 1 px
 the virtual rig's edges scatter three times their prediction."""
+NO_ANGLE_CODE = " (no angle code: patterns.angle_steps 0); record the angle code (--angle-steps > 0) or"
+"""How a scan of a codec that can carry the angle code (``Codec.has_angle_code``) but
+does not gets the full projector coordinate (the middle of an error message that
+ends "use --rays camera-projector")."""
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:

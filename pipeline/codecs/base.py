@@ -90,6 +90,12 @@ class Codec(ABC, Generic[S]):
         """Its samples can calibrate the light (projected, decoded without the rig's geometry)."""
         return self.layout.projectable and not self.rig_needs.geometry_to_decode
 
+    @property
+    def has_angle_code(self) -> bool:
+        """Its patterns can carry the angle code (:mod:`.angle_code`: a layout parameter
+        ``angle_steps``), which gives every sample the full projector coordinate."""
+        return any(p.name == "angle_steps" for p in self.layout.parameters)
+
     def full_coordinate(self, spec: PatternSpec) -> bool:
         """Its samples of ``spec`` carry the full projector coordinate (both u_p and
         v_p: the ring radius and the polar angle with their standard deviations), so

@@ -25,7 +25,10 @@ from ringscan.pipeline.codecs.base import Codec, StageSettings
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["DecodedCodec", "DecodedSettings", "extract_decoded", "decoded_samples", "CONTRAST_FULL"]
+__all__ = ["NAME", "DecodedCodec", "DecodedSettings", "extract_decoded", "decoded_samples", "CONTRAST_FULL"]
+
+NAME = "decoded"
+"""The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
 CONTRAST_FULL = 64.0
 """White - black (8-bit levels) at which a sample's confidence reaches 1."""
@@ -134,7 +137,7 @@ class DecodedCodec(Codec[DecodedSettings]):
     """Imported captures (``ringscan import``): frames ``proj_u``, ``proj_v``,
     ``contrast``; one sample per decoded pixel. Not projectable."""
 
-    layout = PATTERN_LAYOUTS["decoded"]
+    layout = PATTERN_LAYOUTS[NAME]
     settings_type = DecodedSettings
 
     def full_coordinate(self, spec: PatternSpec) -> bool:

@@ -24,7 +24,10 @@ from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view"]
+__all__ = ["NAME", "GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view"]
+
+NAME = "gray-rings"
+"""The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,7 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
     and angle code (``angle_steps``): frames ``white``, ``black``,
     ``gray_<b>``/``gray_<b>_inv``, ``sector_<b>``/``sector_<b>_inv``, ``angle_<n>``."""
 
-    layout = PATTERN_LAYOUTS["gray-rings"]
+    layout = PATTERN_LAYOUTS[NAME]
     settings_type = GrayRingsSettings
 
     def render_frame(self, spec: PatternSpec, name: str) -> np.ndarray:

@@ -64,8 +64,12 @@ log = logging.getLogger(__name__)
 GAMMA_RANGE = (0.3, 4.0)
 """Search interval of :func:`estimate_camera_gamma`."""
 
-__all__ = ["PhaseRingsCodec", "PhaseRingsSettings", "extract_phase_rings", "view_response", "residual_light_gamma",
+__all__ = ["NAME", "PhaseRingsCodec",
+           "PhaseRingsSettings", "extract_phase_rings", "view_response", "residual_light_gamma",
            "estimate_camera_gamma", "PhaseSettings"]
+
+NAME = "phase-rings"
+"""The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
 
 @dataclass(frozen=True)
@@ -204,8 +208,8 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     """
 
     spec = scan.patterns
-    if spec.codec != "phase-rings":
-        raise ValueError(f"extract_phase_rings: the scan's codec is {spec.codec!r}, not phase-rings")
+    if spec.codec != NAME:
+        raise ValueError(f"extract_phase_rings: the scan's codec is {spec.codec!r}, not {NAME}")
     ps = settings.phase
     dev = frames.device
     t0 = time.perf_counter()
@@ -251,7 +255,7 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
     """The ``gray-rings`` frames plus ``phase_<n>``, n = 0..steps-1 (N-step phase
     shifted radial fringes): one sample per decoded pixel."""
 
-    layout = PATTERN_LAYOUTS["phase-rings"]
+    layout = PATTERN_LAYOUTS[NAME]
     settings_type = PhaseRingsSettings
     rig_needs = RigNeeds(response=True)
 

@@ -14,14 +14,17 @@ from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["RingsCodec"]
+__all__ = ["NAME", "RingsCodec"]
+
+NAME = "rings"
+"""The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
 
 class RingsCodec(Codec[SingleShotSettings]):
     """One frame ``rings``: lines ``line_width`` px wide at rho_j = rho0 + j * pitch,
     j = 0..count-1. The labeller reads the rig's geometry to order the rings."""
 
-    layout = PATTERN_LAYOUTS["rings"]
+    layout = PATTERN_LAYOUTS[NAME]
     settings_type = SingleShotSettings
     rig_needs = RigNeeds(geometry_to_decode=True)
 

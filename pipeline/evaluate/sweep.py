@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.pipeline.codecs import gray_rings, phase_rings
 from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances, truth_points, truth_surface
 from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_json
 from ringscan.pipeline.formats.images import write_image
@@ -276,12 +277,12 @@ def run_sweep(
     center = [(pw - 1) / 2.0, (ph - 1) / 2.0]
     specs = []
     for b in sorted(set(int(x) for x in settings.bits)):
-        specs.append(parse_patterns({"codec": "gray-rings", "width": pw, "height": ph, "center": center,
+        specs.append(parse_patterns({"codec": gray_rings.NAME, "width": pw, "height": ph, "center": center,
                                      "rho0": settings.rho0, "pitch": settings.pitch(b), "bits": b,
                                      "sector_bits": settings.sector_bits}))
     if settings.dense:
         nb = max(1, math.ceil(math.log2((settings.radius - settings.rho0) / settings.dense_pitch)))
-        specs.append(parse_patterns({"codec": "phase-rings", "width": pw, "height": ph, "center": center,
+        specs.append(parse_patterns({"codec": phase_rings.NAME, "width": pw, "height": ph, "center": center,
                                      "rho0": settings.rho0, "pitch": settings.dense_pitch, "bits": nb,
                                      "sector_bits": settings.sector_bits, "steps": settings.steps}))
     big = max(s.pitch for s in specs)

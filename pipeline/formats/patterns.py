@@ -53,7 +53,8 @@ DECODED_SCALE = 32
 
 __all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec",
            "PatternLayout", "Parameter", "PATTERN_LAYOUTS", "angle_zones", "angle_periods", "spec_angle_zones", "pattern_layout", "parse_patterns", "default_patterns",
-           "frame_names", "gray_encode", "gray_decode"]
+           "frame_names", "gray_encode", "gray_decode",
+           "PatternOption", "pattern_options"]
 
 
 def gray_encode(k):
@@ -498,6 +499,55 @@ def default_patterns(codec: str, *, width: int = 1024, height: int = 768, center
 def frame_names(spec: PatternSpec) -> list[str]:
     """The frame names of a codec, in projection order (its :class:`PatternLayout`)."""
     return spec.layout.frame_names(spec)
+
+
+# ----------------------------------------------------------------------------- command-line options
+
+
+@dataclass(frozen=True)
+class PatternOption:
+    """One codec option of ``ringscan patterns`` and ``simulate`` (added by
+    ``tools.cmd_patterns``): a keyword of :func:`default_patterns`. Not given, it
+    takes its codec's default (:data:`CODEC_DEFAULTS`)."""
+
+    flag: str
+    """The option, e.g. ``--sector-bits``."""
+    dest: str
+    """The :func:`default_patterns` keyword (a :class:`PatternSpec` field)."""
+    type: type
+    """``int`` or ``float``."""
+    help: str
+    """Its ``--help`` text (naming the codecs' defaults)."""
+    metavar: str | None = None
+    """Its ``--help`` placeholder (None: argparse's)."""
+
+
+def pattern_options() -> tuple[PatternOption, ...]:
+    """The codec options of the pattern set, in ``--help`` order: the parameters of
+    the projectable codecs' layouts plus ``rho0`` and ``pitch``, each help naming
+    the defaults of :data:`CODEC_DEFAULTS` (the one place on the command line that
+    names the codecs)."""
+    gd, rd, pd = CODEC_DEFAULTS["gray-rings"], CODEC_DEFAULTS["rings"], CODEC_DEFAULTS["phase-rings"]
+    return (
+        PatternOption("--bits", "bits", int, f"Gray-code bits of the band index (default {gd['bits']})"),
+        PatternOption("--pitch", "pitch", float, f"projector px per band (default {gd['pitch']:g}; {rd['pitch']:g} for "
+                                                 "rings)"),
+        PatternOption("--rho0", "rho0", float,
+                      f"inner radius in projector px (default {gd['rho0']:g}; the pitch for rings)"),
+        PatternOption("--sector-bits", "sector_bits", int,
+                      f"Gray-code bits of the angular sector (default {gd['sector_bits']}; 0 = none; not for rings)"),
+        PatternOption("--count", "count", int, f"rings of the single-shot codec (default {rd['count']})"),
+        PatternOption("--line-width", "line_width", float,
+                      f"ring line width in px, rings codec (default {rd['line_width']:g})"),
+        PatternOption("--steps", "steps", int, f"phase steps, phase-rings codec (default {pd['steps']})"),
+        PatternOption("--angle-steps", "angle_steps", int,
+                      "phase steps of the angle code (angular fringes around the centre, so every point gets "
+                      f"both projector coordinates; gray-rings and phase-rings; default {gd['angle_steps']}; "
+                      "0 = none (rings alone, the paper's patterns), else >= 3)"),
+        PatternOption("--angle-period", "angle_period", float,
+                      f"least period of the angular fringes, projector px (default {gd['angle_period']:g})",
+                      metavar="PX"),
+    )
 
 
 # ----------------------------------------------------------------------------- rendering

@@ -3,8 +3,8 @@
 ::
 
     {"format": "ringscan.scan/1", "rig": {...} or "rig.json",
-     "patterns": {"codec": "gray-rings", "width": 800, "height": 600,
-                  "center": [400, 300], "rho0": 20.0, "pitch": 4.0, "bits": 7},
+     "patterns": {"codec": ..., "width": 800, "height": 600,
+                  "center": [400, 300], "rho0": 20.0, "pitch": 4.0, ...},
      "views": [{"name": "view_000", "turntable_deg": 0.0,
                 "frames": {"white": "view_000/white.png", ...}}]}
 

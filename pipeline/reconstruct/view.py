@@ -25,6 +25,7 @@ from ringscan.kernels.triangulation import (
     compact_points,
     triangulate_rings,
 )
+from ringscan.pipeline.codecs.angle_code import NO_ANGLE_CODE
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import write_ply
@@ -125,7 +126,7 @@ def reconstruct_view(
     codec = codec_for(scan.patterns.codec, source=scan.path)
     samples, codec_stats = codec.extract(frames_w, scan, codec.settings_from(settings), threads=threads)
     times.update(codec_stats.pop("times_s"))
-    # A codec may decide sectors of its own (single-shot: line orientation
+    # A codec may decide sectors of its own (the rings codec: line orientation
     # sectors); it says how many bits they carry.
     sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
 
@@ -305,12 +306,10 @@ def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
     for view in views:
         rays = view_rays(scan, view, settings)
         if rays in ("camera-camera", "all") and not codec.full_coordinate(scan.patterns):
-            angle = any(p.name == "angle_steps" for p in codec.layout.parameters)
             raise FormatError(scan.path, f"view {view.name}: --rays {settings.stereo.rays} matches the two cameras "
                                          f"by projector coordinate, but the {codec.name} codec's samples of this "
                                          "scan carry the ring radius only"
-                                         + (" (no angle code: patterns.angle_steps 0); record the angle code "
-                                            "(--angle-steps > 0) or" if angle else ";")
+                                         + (NO_ANGLE_CODE if codec.has_angle_code else ";")
                                          + " use --rays camera-projector"
                                          + ("" if has_calibrated_light(scan.rig) else
                                             " (that needs a calibrated projector: ringscan calibrate "

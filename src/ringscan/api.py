@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ringscan.pipeline.codecs import DEFAULT_CODEC
 from ringscan.pipeline.evaluate.metrics import distance_stats, evaluate_points, point_distances
 from ringscan.pipeline.formats.meshes import open3d_lib
 from ringscan.pipeline.formats.patterns import PatternSpec, default_patterns, parse_patterns
@@ -164,7 +165,7 @@ def simulate(folder: str | os.PathLike, *, scene: str | os.PathLike = "sphere", 
         raise ValueError(f"simulate: rig must be a Rig (ringscan.pipeline.load_rig), got {type(rig).__name__}")
     rig = default_rig() if rig is None else rig
     if patterns is None:
-        patterns = default_patterns("gray-rings", width=rig.light.width, height=rig.light.height)
+        patterns = default_patterns(DEFAULT_CODEC, width=rig.light.width, height=rig.light.height)
     elif isinstance(patterns, Mapping):
         patterns = parse_patterns(dict(patterns), source="simulate: patterns")
     elif not isinstance(patterns, PatternSpec):

@@ -65,3 +65,22 @@ def test_capture_carries_the_precompensation(tmp_path):
     scan = load_scan(tmp_path / "scan")
     assert scan.patterns.precompensated_gamma == 2.2
     assert read_json(tmp_path / "scan" / "scan.json")["patterns"]["precompensated_gamma"] == 2.2
+
+
+def test_every_codec_parameter_is_a_pattern_option():
+    """The codec options of ``patterns``/``simulate`` come from ``formats.patterns.pattern_options``
+    (the one place on the command line that names the codecs): one option a parameter of
+    every projectable codec, each a ``default_patterns`` keyword."""
+    import argparse
+
+    from ringscan.pipeline.codecs import DEFAULT_CODEC
+    from ringscan.pipeline.formats.patterns import CODECS, PATTERN_LAYOUTS, pattern_options
+    from ringscan.tools.cmd_patterns import add_pattern_options
+
+    dests = [o.dest for o in pattern_options()]
+    params = {p.name for c in CODECS for p in PATTERN_LAYOUTS[c].parameters}
+    assert len(dests) == len(set(dests)) and set(dests) == params | {"rho0", "pitch"}
+    p = argparse.ArgumentParser()
+    add_pattern_options(p)
+    args = p.parse_args([])
+    assert args.codec == DEFAULT_CODEC in CODECS and all(getattr(args, d) is None for d in dests)

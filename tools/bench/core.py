@@ -20,6 +20,7 @@ from ringscan.kernels import init_warp
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
 from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
+from ringscan.pipeline.codecs import gray_rings, phase_rings
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
@@ -68,7 +69,7 @@ def floor_note(runs: list[dict], floor: float) -> str:
 
 
 def _default_scan(out: Path, scene: str | None, device: str | None):
-    spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+    spec = parse_patterns({"codec": gray_rings.NAME, "width": 1024, "height": 768, "center": [511.5, 383.5],
                            "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 6})
     return simulate_scan(out, scene=scene or default_bench_scene(), patterns=spec, device=device, progress=False)
 
@@ -88,8 +89,9 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     else:
         scan = load_scan(scan_dir)
     spec = scan.patterns
-    if spec.codec not in ("gray-rings", "phase-rings"):
-        raise ValueError(f"bench: the scan's codec is {spec.codec!r}; the binary stages need gray-rings frames")
+    if spec.codec not in (gray_rings.NAME, phase_rings.NAME):  # the codecs of the binary frames
+        raise ValueError(f"bench: the scan's codec is {spec.codec!r}; the binary stages need {gray_rings.NAME} "
+                         "frames")
     view = scan.views[0]
     frames = read_view_frames(scan, view)
     nf, h, w = frames.shape

@@ -14,6 +14,7 @@ from ringscan.kernels import init_warp
 from ringscan.kernels.phase import PhaseSettings, compact_phase_points, decode_phase, response_tables, smooth_phase
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
+from ringscan.pipeline.codecs import phase_rings
 from ringscan.pipeline.codecs.phase_rings import residual_light_gamma
 from ringscan.pipeline.formats.patterns import PatternSpec, parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
@@ -27,7 +28,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULT_BENCH_PATTERNS", "bench_dense"]
 
 
-DEFAULT_BENCH_PATTERNS = {"codec": "phase-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+DEFAULT_BENCH_PATTERNS = {"codec": phase_rings.NAME, "width": 1024, "height": 768, "center": [511.5, 383.5],
                           "rho0": 8.0, "pitch": 8.0, "bits": 6, "sector_bits": 6, "steps": 4}
 
 
@@ -64,8 +65,9 @@ def bench_dense(*, scan_dir: str | os.PathLike | None = None, scene: str | None 
         scan = load_scan(scan_dir)
     try:
         spec: PatternSpec = scan.patterns
-        if spec.codec != "phase-rings":
-            raise ValueError(f"bench_dense: the scan's codec is {spec.codec!r}; the dense stages need phase-rings")
+        if spec.codec != phase_rings.NAME:
+            raise ValueError(f"bench_dense: the scan's codec is {spec.codec!r}; the dense stages need "
+                             f"{phase_rings.NAME}")
         frames = read_view_frames(scan, scan.views[0])
         nf, h, w = frames.shape
         rig = scan.rig

@@ -90,6 +90,9 @@ def test_a_registered_codec_runs_end_to_end(ramp_registered, tmp_path):
     spec = parse_patterns({"codec": "ramp", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0,
                            "pitch": 8.0, "bits": 5})
     assert spec.to_dict()["bits"] == 5 and spec.rho_max == 8.0 + 32 * 8.0
+    # what the rest of the pipeline asks of a codec, the codec says from its own files
+    assert ramp_registered.calibrates_light and not ramp_registered.has_angle_code
+    assert not ramp_registered.full_coordinate(spec)
     scan = simulate_scan(tmp_path / "scan", scene="sphere", rig=rig, patterns=spec, progress=False)
     assert [n for n in scan.views[0].frames] == ["white", "black", "ramp"]
     rep = reconstruct_scan(scan, tmp_path / "rec", progress=False)

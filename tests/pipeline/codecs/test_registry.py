@@ -135,3 +135,14 @@ def test_full_coordinate_says_which_samples_carry_both_projector_coordinates():
     rings = parse_patterns({**base, "codec": "rings", "count": 20})
     assert not codec_for("rings").full_coordinate(rings)
     assert set(REGISTRY) == {"rings", "gray-rings", "phase-rings", "decoded"}  # a new codec: add it above
+
+
+def test_code_outside_the_codecs_names_them_through_the_codecs_package():
+    """The default codec and every codec's ``NAME`` are registered; whether a codec can
+    carry the angle code is asked of the codec (``Codec.has_angle_code``)."""
+    from ringscan.pipeline.codecs import DEFAULT_CODEC, decoded, gray_rings, phase_rings, rings
+
+    assert DEFAULT_CODEC in CODECS
+    assert [m.NAME for m in (rings, gray_rings, phase_rings, decoded)] == list(REGISTRY)
+    assert {n: c.has_angle_code for n, c in REGISTRY.items()} == {"rings": False, "gray-rings": True,
+                                                                   "phase-rings": True, "decoded": False}
