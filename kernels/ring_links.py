@@ -3,7 +3,7 @@
 Ring roots (:func:`ring_roots`): for sample i and candidate radius rho_k the
 camera ray meets the ring's quadric (cylinder for a parallel light, cone for a
 perspective one, Newton steps for projector distortion) at up to two points,
-through the same :func:`ringscan.kernels.geometry.ray_ring_roots` that
+through the same :func:`ringscan.kernels.ring_quadric.ray_ring_roots` that
 triangulation uses; each is kept when it lies in front of the camera and inside
 the working volume. The labelling stage (``pipeline.codecs.single_shot``) tests
 its hypotheses with them.
@@ -26,11 +26,9 @@ from ringscan.kernels.geometry import (
     Volume,
     camera_ray,
     make_volume,
-    pattern_offset,
-    ray_ring_roots,
-    root_usable,
 )
 from ringscan.kernels.ring_lines import bilinear
+from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
 __all__ = ["RingRoots", "ring_roots", "link_lines"]
 

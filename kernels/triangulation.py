@@ -4,7 +4,7 @@ coordinates best (docs/design.md §3, §4, §18; docs/reconstruction.md).
 
 - The ring alone: both light models give a quadric (a cylinder for the parallel
   light, the elliptic cone of the ring for a projector); along the ray it is a
-  quadratic in t, solved in float64 (``geometry.ray_ring_roots``, Newton steps
+  quadratic in t, solved in float64 (``ring_quadric.ray_ring_roots``, Newton steps
   through the projector's distortion); the decoded sector picks the root, and
   without one two roots in the volume are ambiguous, never guessed.
 - Both coordinates: Gauss-Newton along the ray from the ray-ray closest point on
@@ -38,12 +38,10 @@ from ringscan.kernels.geometry import (
     light_pixel,
     light_pixel_ray,
     make_volume,
-    pattern_offset,
     polar_angle,
-    ray_ring_roots,
-    root_usable,
 )
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
+from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
 STATUS_OK = wp.constant(0)
 STATUS_NO_ROOT = wp.constant(1)
