@@ -23,13 +23,13 @@ import logging
 from pathlib import Path
 
 from ringscan.hardware.capture.latency import read_rig_latency
+from ringscan.hardware.capture.plan import CapturePlan, check_angles, plan_capture
 from ringscan.hardware.capture.sequence import (
     MAX_VIEWS,
     CaptureSettings,
     InterruptGuard,
     capture_scan,
     read_capture_state,
-    resume_angle,
 )
 from ringscan.hardware.capture.session import run_session, wait_for_key, wait_for_serial
 from ringscan.hardware.devices.camera import open_camera
@@ -233,34 +233,16 @@ def _run_session(args) -> int:
     return 0
 
 
-MAX_TABLE_DEG = 3600.0
-"""Largest turntable angle accepted from the command line (``--table-at``, ``--start``): ten turns either way."""
-MAX_STEP_DEG = 360.0
-"""Largest angle between views (``--step``): one turn either way."""
-
-
-def check_angles(args) -> None:
-    """``--table-at``, ``--start`` and ``--step`` finite and within range, before anything moves (NaN or 1e300 would
-    reach the table's controller as a move, or ``G92 Xnan``).
-
-    Raises:
-        ValueError: naming the option, e.g. ``--table-at: expected degrees from -3600 to 3600, got 1e+300``.
-    """
-    for opt, value, limit in (("--table-at", args.table_at, MAX_TABLE_DEG), ("--start", args.start, MAX_TABLE_DEG),
-                              ("--step", args.step, MAX_STEP_DEG)):
-        if value is not None and not -limit <= value <= limit:  # NaN fails too
-            raise ValueError(f"{opt}: expected degrees from {-limit:g} to {limit:g}, got {value:g}")
-
-
 def _run(args) -> int:
-    check_angles(args)
+    check_angles(table_at=args.table_at, start=args.start, step=args.step)
     out = Path(args.out)
     rig = load_rig(args.rig) if args.rig else None
     patterns = load_patterns(args.patterns) if args.patterns else None
     _check_options(args, rig, patterns)
     settings, display = _capture_settings(args, out)
     live = _live_reconstructor(args)
-    plan = _plan(args, out, rig, patterns)
+    plan = plan_capture(out, rig=rig, patterns=patterns, views=args.views, resume=args.resume,
+                        table_at=args.table_at, virtual=bool(args.virtual))
     names = frame_names(plan.patterns)
     devices = _Devices()
     try:
@@ -323,37 +305,6 @@ def _live_reconstructor(args):
     return LiveReconstructor(args.reconstruct, settings=load_settings(args.reconstruct_settings), device=args.device)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Plan:
-    """What this run captures: the new capture's options, or what the folder being resumed says."""
-
-    rig: object
-    """The rig the devices are opened for."""
-    patterns: PatternSpec
-    """The patterns projected."""
-    views: int
-    """Number of views in the plan."""
-    table_deg: float
-    """Where the table stands at the start."""
-    table_at: float | None
-    """The table angle declared to ``capture_scan`` on a resume (``--table-at``, or the virtual table's)."""
-
-
-def _plan(args, out: Path, rig, patterns: PatternSpec | None) -> _Plan:
-    if not args.resume:
-        return _Plan(rig, patterns, args.views, 0.0, None)
-    if not (out / "scan.json").is_file():
-        raise FormatError(out / "scan.json", "nothing to resume (no scan.json)")
-    saved = load_scan(out, check_files=False, allow_incomplete=True)
-    n_views = len(read_capture_state(out)["plan"]["angles"])
-    table_at = args.table_at
-    if args.virtual and table_at is None:
-        # The virtual world starts afresh with its table where the capture says it
-        # is, so the last confirmed angle is always right: declare it.
-        table_at = float(read_capture_state(out)["table"]["deg"])
-    return _Plan(rig or saved.rig, patterns or saved.patterns, n_views, resume_angle(out, table_at), table_at)
-
-
 class _Devices:
     """The devices of one capture, opened one after the other; :meth:`close` closes whichever
     were opened, also when opening one of them failed."""
@@ -361,7 +312,7 @@ class _Devices:
     def __init__(self):
         self.emu = self.camera = self.projector = self.turntable = None
 
-    def open(self, args, plan: _Plan, *, settings: CaptureSettings, display, names: list[str]) -> None:
+    def open(self, args, plan: CapturePlan, *, settings: CaptureSettings, display, names: list[str]) -> None:
         if args.virtual:
             if args.turntable or args.projector or args.camera:
                 raise UsageError("--virtual replaces --turntable, --projector and --camera")
