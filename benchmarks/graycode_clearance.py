@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import ringscan.pipeline.calibrate.graycode as gc
+from ringscan.pipeline.calibrate.capture_reader import read_capture
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "procam"
 
@@ -41,7 +42,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     proj = tuple(int(x) for x in args.projector.split("x"))
     for name in args.captures:
-        cap = gc.read_capture(args.data / name, projector=proj)
+        cap = read_capture(args.data / name, projector=proj)
         new = gc.subpixel_map(cap, gc.decode_graycode(cap))
         saved = gc.CLEAR_NOISE_SIGMAS, gc.CLEAR_CONTRAST_FRACTION
         gc.CLEAR_NOISE_SIGMAS = gc.CLEAR_CONTRAST_FRACTION = 0.0

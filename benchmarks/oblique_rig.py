@@ -78,7 +78,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ringscan.pipeline.calibrate.graycode import decode_graycode, read_capture
+from ringscan.pipeline.calibrate.capture_reader import read_capture
+from ringscan.pipeline.calibrate.graycode import decode_graycode
 from ringscan.pipeline.calibrate.importer import procam_pose, triangulate_codes
 from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances
 from ringscan.pipeline.formats.images import read_image

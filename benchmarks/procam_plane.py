@@ -32,7 +32,8 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.board import Board
-from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, read_capture
+from ringscan.pipeline.calibrate.capture_reader import read_capture
+from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode
 from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, procam_pose, triangulate_codes
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners, depth_range, procam_rig
 from ringscan.kernels.triangulation import TriangulateSettings

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ringscan.pipeline.calibrate.graycode import CAPTURE_INPUTS, LAYOUTS, GrayCodeSettings
+from ringscan.pipeline.calibrate.capture_files import CAPTURE_INPUTS
+from ringscan.pipeline.calibrate.graycode import LAYOUTS, GrayCodeSettings
 from ringscan.pipeline.calibrate.importer import (
     ImportSettings,
     import_captures,
@@ -24,8 +25,8 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
 from ringscan.pipeline.formats.scan import check_frame_bits
+from ringscan.tools.calibrate_options import parse_size
 from ringscan.tools.cli import UsageError
-from ringscan.tools.cmd_calibrate import parse_size
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
 

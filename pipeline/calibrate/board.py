@@ -16,12 +16,17 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.images import read_image
+from ringscan.pipeline.formats.progress import progress_bar
+
 __all__ = ["Board", "BoardSettings", "BoardView", "detect_board", "board_points", "ARUCO_DICTIONARIES",
-           "charuco_dictionary", "corner_id_problem"]
+           "charuco_dictionary", "corner_id_problem", "detect_board_images", "view_name"]
 
 log = logging.getLogger(__name__)
 
@@ -280,3 +285,30 @@ def detect_board(
                          sharp, tilt)
     log.debug("%s: board found (%d corners, edge width %.2f px, tilt %.0f deg)", name, len(ids), sharp, tilt)
     return BoardView(name, True, "", corners, ids, sharp, tilt, legacy=board.charuco is not None and legacy)
+
+
+def view_name(path) -> str:
+    """An image's name in messages: its folder and file name (captures share file names)."""
+    return "/".join(Path(path).parts[-2:])
+
+
+def detect_board_images(paths, *, board: Board, settings: BoardSettings = BoardSettings(), what: str | None = None,
+                        progress: bool = True) -> tuple[list[BoardView], tuple[int, int] | None]:
+    """The board detected in every image of ``paths`` (of one camera: ``what``, for messages), each view named by
+    :func:`view_name`, and the images' size (width, height).
+
+    Raises:
+        FormatError: naming the image: unreadable, or of another size than the first image.
+    """
+    views, size = [], None
+    for path in progress_bar(paths, desc="detecting the board" + (f" ({what})" if what else ""), unit="image",
+                             disable=not progress, leave=False):
+        img = read_image(path)
+        s = (img.shape[1], img.shape[0])
+        if size is None:
+            size = s
+        elif s != size:
+            first = f"{what}'s first image" if what else "the first image"
+            raise FormatError(path, f"image is {s[0]}x{s[1]}, {first} is {size[0]}x{size[1]}")
+        views.append(detect_board(img, board=board, name=view_name(path), settings=settings))
+    return views, size

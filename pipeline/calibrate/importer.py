@@ -1,7 +1,7 @@
 """Real Gray-code captures -> a ringscan scan folder of the ``decoded`` codec (docs/design.md §7).
 
 :func:`import_captures` decodes every capture (one view each: a folder of frames or an
-image list, :func:`~ringscan.pipeline.calibrate.graycode.list_capture`) to sub-pixel
+image list, :func:`~ringscan.pipeline.calibrate.capture_files.list_capture`) to sub-pixel
 projector positions (:mod:`graycode`) and writes them as the ``decoded`` codec's
 frames (docs/formats.md), with the rig; ``ringscan reconstruct`` then meets each
 pixel's camera ray with the cone of its rho = |p - c| around the projector's
@@ -32,17 +32,18 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import (
+from ringscan.pipeline.calibrate.capture_files import (
     LIST_SUFFIXES,
-    LOW_MODULATION_WARN_SHARE,
     TEXT_LIST_SUFFIXES,
-    GrayCodeSettings,
     check_capture_sizes,
-    cpu_cores,
-    decode_graycode,
     list_capture,
     open_filestorage,
-    read_capture_files,
+)
+from ringscan.pipeline.calibrate.capture_reader import cpu_cores, read_capture_files
+from ringscan.pipeline.calibrate.graycode import (
+    LOW_MODULATION_WARN_SHARE,
+    GrayCodeSettings,
+    decode_graycode,
     subpixel_map,
 )
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
@@ -471,7 +472,7 @@ def import_captures(
 
     Args:
         captures: capture folders or image lists, one view each
-            (:func:`~ringscan.pipeline.calibrate.graycode.list_capture`).
+            (:func:`~ringscan.pipeline.calibrate.capture_files.list_capture`).
         out: the scan folder to write (frames, scan.json last).
         rig: a ringscan rig with a perspective light (one camera), or with ``camera2``
             (a two-camera rig, its light perspective or uncalibrated); or

@@ -32,12 +32,13 @@ from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.codecs.registry import REGISTRY, extract_samples
-from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig
+from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig, parse_rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 from ringscan.pipeline.geometry import camera_rays, project_points
 
 __all__ = ["LightSettings", "PlaneSamples", "LightCalibration", "plane_samples", "fit_parallel_light",
-           "calibrate_parallel_light", "rig_with_light", "camera_pose_on_plane", "LIGHT_CODECS"]
+           "calibrate_parallel_light", "rig_with_light", "camera_pose_on_plane", "rig_file_with_camera_pose",
+           "LIGHT_CODECS"]
 
 log = logging.getLogger(__name__)
 
@@ -438,3 +439,33 @@ def camera_pose_on_plane(
     rms = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, 1))))
     log.info("camera pose from %s: centre (%.2f, %.2f, %.2f) mm, RMS %.3f px", view.name, *(-R.T @ t), rms)
     return R, t, rms
+
+
+def rig_file_with_camera_pose(d: dict, *, rig: Rig, R: np.ndarray, t: np.ndarray,
+                              source=None) -> tuple[Rig, float | None]:
+    """The rig file's contents ``d`` (those of ``rig``) given the camera pose R, t of
+    :func:`camera_pose_on_plane`, in place, and the rig they now hold. A perspective projector (calibrated
+    with the camera: ``calibrate procam``) is fixed to the camera: it moves with it into the board's frame,
+    so the baseline is kept.
+
+    Returns:
+        (the new rig, the camera-projector baseline kept; None where the light is not perspective).
+
+    Raises:
+        CalibrationError: naming ``source`` (the rig file): the baseline would change.
+    """
+    cam = rig.camera
+    d["camera"]["R"], d["camera"]["t"] = R.tolist(), t.tolist()
+    if rig.light.model == "perspective":
+        Rrel = rig.light.R @ cam.R.T
+        Trel = rig.light.t - Rrel @ cam.t
+        d["light"]["R"], d["light"]["t"] = (Rrel @ R).tolist(), (Rrel @ t + Trel).tolist()
+    new = parse_rig(d, source=source)
+    if rig.light.model != "perspective":
+        return new, None
+    before = float(np.linalg.norm(-rig.light.R.T @ rig.light.t + cam.R.T @ cam.t))
+    after = float(np.linalg.norm(-new.light.R.T @ new.light.t + new.camera.R.T @ new.camera.t))
+    if abs(after - before) > 1e-6 * max(before, 1.0):
+        raise CalibrationError(source, f"the camera-projector baseline would change from {before:.1f} to "
+                                       f"{after:.1f}; not written")
+    return new, after

@@ -19,14 +19,19 @@ frame it chooses).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.board import Board, BoardSettings, BoardView, board_points, detect_board
 from ringscan.pipeline.calibrate.camera import CameraCalibration, CameraSettings, calibrate_camera, distinct_views
+from ringscan.pipeline.calibrate.capture_reader import read_capture
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import (
     Decoded,
@@ -35,10 +40,12 @@ from ringscan.pipeline.calibrate.graycode import (
     decode_graycode,
     subpixel_map,
 )
+from ringscan.pipeline.formats.errors import FormatError
+from ringscan.pipeline.formats.progress import progress_bar
 from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig, Volume, read_distortion
 
 __all__ = ["ProcamSettings", "CaptureCorners", "ProcamCalibration", "projector_corners", "calibrate_procam",
-           "procam_rig", "capture_corners", "depth_range", "principal_point_inside"]
+           "procam_rig", "capture_corners", "capture_corners_of_folders", "depth_range", "principal_point_inside"]
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +167,41 @@ def capture_corners(cap: GrayCodeCapture, *, board: Board, name: str,
     pv = BoardView(name, True, "", pp[ok].astype(np.float32), cv_view.ids[ok])
     log.info("%s: %d of %d corners located in the projector", name, n, len(ok))
     return CaptureCorners(name, cv_view, pv)
+
+
+
+def capture_corners_of_folders(folders, *, board: Board, projector: tuple[int, int], layout: str = "opencv-graycode",
+                               settings: ProcamSettings = ProcamSettings(), progress: bool = True,
+                               on_capture: Callable[[CaptureCorners], None] | None = None,
+                               ) -> tuple[list[CaptureCorners], tuple[int, int] | None]:
+    """:func:`capture_corners` of each capture folder of ``graycode_NN`` frames (read in ``layout``), in order,
+    and the camera's frame size (width, height). A folder given again is not decoded again: it gets a copy of
+    its first result (its own object; :func:`calibrate_procam` leaves the repeat out). ``on_capture`` is
+    called with each result as it comes.
+
+    Raises:
+        FormatError: naming the folder: frames of another size than the first capture's.
+        CalibrationError: as :func:`~ringscan.pipeline.calibrate.capture_reader.read_capture`.
+    """
+    caps, size, done = [], None, {}
+    for folder in progress_bar(folders, desc="decoding captures", unit="capture", disable=not progress,
+                               leave=False):
+        key = os.path.realpath(folder)
+        if key in done:  # a folder given again is not decoded again; calibrate_procam leaves the repeat out
+            cc = dataclasses.replace(done[key])  # its own object: repeats are told apart by identity
+        else:
+            cap = read_capture(folder, projector=projector, layout=layout)
+            s = (cap.white.shape[1], cap.white.shape[0])
+            if size is None:
+                size = s
+            elif s != size:
+                raise FormatError(folder, f"frames are {s[0]}x{s[1]}, {folders[0]} has {size[0]}x{size[1]}")
+            cc = done[key] = capture_corners(cap, board=board, name=Path(folder).name, settings=settings)
+            del cap
+        if on_capture is not None:
+            on_capture(cc)
+        caps.append(cc)
+    return caps, size
 
 
 def calibrate_procam(

@@ -37,7 +37,7 @@ from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
 __all__ = ["ProjectorSettings", "ProjectorFit", "fit_projector", "procam_rig_from_fit", "DISTORTION_CHOICES",
-           "triangulation_covariance", "decoded_pairs"]
+           "triangulation_covariance", "decoded_pairs", "no_pinhole_projector", "PARALLEL_RMS_PX"]
 
 log = logging.getLogger(__name__)
 
@@ -671,3 +671,25 @@ def decoded_pairs(scan: Scan, view: View, *, max_pairs: int = 200_000, seed: int
     uv = np.stack([xx, yy], 1).astype(np.float64)
     proj = np.stack([fr[0][yy, xx], fr[1][yy, xx]], 1).astype(np.float64) / DECODED_SCALE - 1.0
     return uv, proj
+
+
+PARALLEL_RMS_PX = 0.5
+"""A projector whose pixels are an affine function of the points to within this (px RMS) is a parallel
+(collimated) light: a pinhole's are not, unless the points lie in one plane."""
+
+
+def no_pinhole_projector(X: np.ndarray, uv: np.ndarray) -> str:
+    """Why no pinhole projector fits the points' projector pixels (OpenCV only says that the principal
+    point left the image): an affine map fits them (a parallel light), or they fit no camera model."""
+    A = np.c_[X, np.ones(len(X))]
+    coef, *_ = np.linalg.lstsq(A, uv, rcond=None)
+    rms = float(np.sqrt(np.mean(np.sum((A @ coef - uv) ** 2, axis=1))))
+    thick = float(np.linalg.svd(X - X.mean(0), compute_uv=False)[-1] / np.sqrt(len(X)))
+    if rms <= PARALLEL_RMS_PX and thick > 1.0:
+        return (f"no pinhole projector fits the scan: its projector pixels are an affine function of the points "
+                f"(RMS {rms:.2f} px), the mark of a parallel (collimated) light such as the virtual rig's default "
+                "(`ringscan simulate --light parallel`); projector-from-scan fits a perspective projector; a "
+                "parallel light is calibrated with `ringscan calibrate light` (docs/calibration.md)")
+    return ("no pinhole projector fits the scan's projector pixels (the fit put the principal point outside the "
+            f"projector image; an affine map leaves {rms:.1f} px RMS): check --projector WxH and that the scan's "
+            "projector coordinates are the projector's pixels")

@@ -4,6 +4,7 @@ help on every option, exit status, progress off a terminal, a fast --help."""
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import subprocess
 import sys
@@ -67,7 +68,13 @@ def test_every_command_module_is_in_the_listing():
     import ringscan.tools
 
     modules = {m.name[4:] for m in pkgutil.iter_modules(ringscan.tools.__path__) if m.name.startswith("cmd_")}
-    assert modules == set(COMMANDS)
+    assert set(COMMANDS) <= modules
+    # the rest are cmd_<command>_<group>.py: a group of <command>'s sub-commands, in its module's GROUPS
+    for part in sorted(modules - set(COMMANDS)):
+        owner = next((c for c in COMMANDS if part.startswith(c + "_")), None)
+        assert owner is not None, f"tools/cmd_{part}.py is no command in cli.COMMANDS"
+        groups = getattr(importlib.import_module(f"ringscan.tools.cmd_{owner}"), "GROUPS", ())
+        assert f"ringscan.tools.cmd_{part}" in {g.__name__ for g in groups}, part
 
 
 def test_every_option_has_help():

@@ -97,7 +97,7 @@ def test_projector_from_scan_on_a_parallel_light_says_what_it_is(tmp_path, monke
     """A two-camera scan under a collimated light (the virtual rig's default): no pinhole projector fits, and
     the error says why in ringscan's words, not OpenCV's "Principal point must be within the image"."""
     from ringscan.pipeline.formats.rig import Rig, UncalibratedLight
-    from ringscan.tools import cmd_calibrate
+    from ringscan.tools import cmd_calibrate_scan
 
     from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
     from .test_cmd_calibrate_stereo import VOLUME, write_scan
@@ -108,7 +108,7 @@ def test_projector_from_scan_on_a_parallel_light_says_what_it_is(tmp_path, monke
     X, u1, u2, _ = observe(20000, noise_px=0.1, seed=5)
     c, extent = X[:, :2].mean(0), np.ptp(X[:, :2], axis=0)
     parallel = (X[:, :2] - c) / (extent / [1200, 760]) + [640, 400]  # light along z: pixels affine in x, y
-    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, *, device, ring_curvature:
+    monkeypatch.setattr(cmd_calibrate_scan, "view_matches", lambda scan, view, *, device, ring_curvature:
                         (u1, u2, parallel, None))
     assert main(["calibrate", "projector-from-scan", str(tmp_path), "--out", str(tmp_path / "p.json"),
                  "--no-progress"]) == 1

@@ -35,10 +35,11 @@ def boards_found_once():
     time. Each call gets its own copy of the view. tests/pipeline/calibrate/test_board.py covers the detection."""
     import hashlib
 
-    from ringscan.tools import cmd_calibrate
+    from ringscan.pipeline.calibrate import board
+    from ringscan.tools import cmd_calibrate_light
 
     found = {}
-    detect = cmd_calibrate.detect_board
+    detect = board.detect_board
 
     def detect_once(image, **kw):
         img = np.ascontiguousarray(image)
@@ -50,7 +51,8 @@ def boards_found_once():
                                    ids=None if v.ids is None else v.ids.copy())
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cmd_calibrate, "detect_board", detect_once)
+        mp.setattr(board, "detect_board", detect_once)  # calibrate camera's (board.detect_board_images)
+        mp.setattr(cmd_calibrate_light, "detect_board", detect_once)  # calibrate pose's
         yield
 
 
@@ -63,11 +65,11 @@ def procam(shared_data, boards_found_once):
     each image too (:func:`boards_found_once`)."""
     import os
 
-    from ringscan.tools import cmd_calibrate
+    from ringscan.pipeline.calibrate import procam
 
     need_shared(shared_data / "procam" / "capture_1", "procam captures")
     caps, corners = {}, {}
-    read, find = cmd_calibrate.read_capture, cmd_calibrate.capture_corners
+    read, find = procam.read_capture, procam.capture_corners
 
     def read_once(folder, **kw):
         key = (os.path.realpath(folder), repr(sorted(kw.items())))
@@ -82,8 +84,8 @@ def procam(shared_data, boards_found_once):
         return dataclasses.replace(corners[key][1])  # its own object, as a fresh decode gives
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cmd_calibrate, "read_capture", read_once)
-        mp.setattr(cmd_calibrate, "capture_corners", corners_once)
+        mp.setattr(procam, "read_capture", read_once)  # calibrate procam's (procam.capture_corners_of_folders)
+        mp.setattr(procam, "capture_corners", corners_once)
         yield shared_data / "procam"
 
 
@@ -406,25 +408,6 @@ def test_camera_out_must_not_overwrite_an_image_or_its_rig(tmp_path, capsys, cap
     assert main(["calibrate", "camera", str(img), "--square", "5", "--out", str(rig), "--rig", str(rig)]) == 1
     assert _err(capsys).endswith(f"{rig}: given to both --out and --rig: one would overwrite the other")
     assert img.read_bytes() == before
-
-
-def test_blurred_board_never_quotes_opencvs_placeholder_width(monkeypatch):
-    """cv2.estimateChessboardSharpness returns 9999 when it cannot measure an edge: not a width to quote."""
-    import cv2
-
-    from ringscan.pipeline.calibrate.board import Board, detect_board
-
-    img = np.zeros((240, 320), np.uint8)
-    sq = 20
-    for r in range(8):
-        for c in range(10):
-            if (r + c) % 2:
-                img[20 + r * sq:20 + (r + 1) * sq, 40 + c * sq:40 + (c + 1) * sq] = 255
-    board = Board(cols=9, rows=7, square=5.0)
-    assert detect_board(img, board=board, name="b").found
-    monkeypatch.setattr(cv2, "estimateChessboardSharpness", lambda *a, **k: ((9999.0, 0, 0, 0), None))
-    v = detect_board(img, board=board, name="b")
-    assert not v.found and "9999" not in v.reason and v.reason.startswith("blurred (OpenCV could not measure")
 
 
 def test_import_view_names_checked_before_anything_is_written(tmp_path, capsys, capture_and_rig):

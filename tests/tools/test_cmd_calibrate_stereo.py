@@ -23,7 +23,7 @@ from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, Volume, load_rig, save_rig
 from ringscan.pipeline.formats.scan import Scan, View, save_scan
-from ringscan.tools import cmd_calibrate
+from ringscan.tools import cmd_calibrate_scan
 from ringscan.tools.cli import main
 
 from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
@@ -115,7 +115,7 @@ def stereo_scan(tmp_path_factory):
 def matched(monkeypatch):
     """match_view stood in for by exact (0.1 px noise) matches of the true rig."""
     X, u1, u2, up = observe(20000, noise_px=0.1, seed=5)
-    monkeypatch.setattr(cmd_calibrate, "view_matches",
+    monkeypatch.setattr(cmd_calibrate_scan, "view_matches",
                         lambda scan, view, *, device, ring_curvature: (u1, u2, up, None))
 
 
@@ -308,7 +308,7 @@ def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatc
 
     (u1, o1), (u2, o2), (up, op) = project(cam1, X), project(cam2, X), project(proj, X)
     ok = o1 & o2 & op
-    monkeypatch.setattr(cmd_calibrate, "view_matches", lambda scan, view, **kw: (u1[ok], u2[ok], up[ok], None))
+    monkeypatch.setattr(cmd_calibrate_scan, "view_matches", lambda scan, view, **kw: (u1[ok], u2[ok], up[ok], None))
     out = tmp_path / "p.json"
     assert main(["calibrate", "projector-from-scan", str(stereo_scan), "--out", str(out)]) == 1
     _one_line_error(capsys, "nearly on one plane", "principal point")

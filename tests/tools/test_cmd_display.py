@@ -17,7 +17,7 @@ from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.rig import save_rig
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools import cmd_calibrate, cmd_capture, cmd_patterns
+from ringscan.tools import cmd_calibrate_light, cmd_capture, cmd_patterns
 from ringscan.tools.cli import main
 from tests.hardware.conftest import pattern_frames, small_patterns, small_rig
 from tests.hardware.display_support import DelayedScreenCamera, ScreenPattern, virtual_screen
@@ -55,7 +55,7 @@ def test_calibrate_latency_writes_the_rig_and_capture_waits_for_it(tmp_path, scr
         cams.append(DelayedScreenCamera(screen, delay_s=2 / 60))
         return cams[-1]
 
-    monkeypatch.setattr(cmd_calibrate, "open_camera", screen_camera)
+    monkeypatch.setattr(cmd_calibrate_light, "open_camera", screen_camera)
     rc = main(["calibrate", "latency", "--projector", "display:0", "--camera", "cam0", "--rig", str(rig),
                "--trials", "2", "--rest", "0.1", "--max-delay", "0.15", "--report", str(tmp_path / "lat.json")])
     out = capsys.readouterr().out

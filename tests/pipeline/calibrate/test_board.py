@@ -214,3 +214,18 @@ def test_corner_ids_are_checked_against_the_board_geometry():
     w = detect_board(photo, board=CHARUCO)
     assert w.found, w.reason
     assert corner_id_problem(CHARUCO, w.corners, w.ids) is None
+
+
+def test_blurred_board_never_quotes_opencvs_placeholder_width(monkeypatch):
+    """cv2.estimateChessboardSharpness returns 9999 when it cannot measure an edge: not a width to quote."""
+    img = np.zeros((240, 320), np.uint8)
+    sq = 20
+    for r in range(8):
+        for c in range(10):
+            if (r + c) % 2:
+                img[20 + r * sq:20 + (r + 1) * sq, 40 + c * sq:40 + (c + 1) * sq] = 255
+    board = Board(cols=9, rows=7, square=5.0)
+    assert detect_board(img, board=board, name="b").found
+    monkeypatch.setattr(cv2, "estimateChessboardSharpness", lambda *a, **k: ((9999.0, 0, 0, 0), None))
+    v = detect_board(img, board=board, name="b")
+    assert not v.found and "9999" not in v.reason and v.reason.startswith("blurred (OpenCV could not measure")

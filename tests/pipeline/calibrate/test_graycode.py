@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.graycode import (GrayCodeSettings, decode_graycode, graycode_bits, list_capture,
-                                                  natural_key, read_capture, read_capture_files,
-                                                  subpixel_map)
+from ringscan.pipeline.calibrate.capture_reader import read_capture
+from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, graycode_bits, subpixel_map
 from tests.pipeline.calibrate.synthetic import write_capture
 
 PROJ = (128, 96)
@@ -60,16 +57,6 @@ def test_both_layouts(tmp_path):
     assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
 
 
-def test_wrong_layout_is_a_clear_error(capture, tmp_path):
-    folder, _, _ = capture
-    with pytest.raises(CalibrationError, match="darker than the one read as black.*opencv-graycode-wb-first"):
-        read_capture(folder, projector=PROJ, layout="opencv-graycode-wb-first")
-    with pytest.raises(CalibrationError, match="30 graycode_NN frames, but a 1024x768 projector .* has 42"):
-        read_capture(folder, projector=(1024, 768))
-    with pytest.raises(CalibrationError, match="capture folder not found"):
-        read_capture(tmp_path / "nothing", projector=PROJ)
-
-
 @pytest.mark.parametrize("case", ["dim", "stray", "dark"])
 def test_dim_pixels_decode_where_the_patterns_reach_them(tmp_path, case):
     """A dim capture (white - black 16 grey levels, below ``min_contrast`` 20; camera
@@ -100,66 +87,6 @@ def test_dim_pixels_decode_where_the_patterns_reach_them(tmp_path, case):
     inner = (np.abs(u - np.round(u)) < 0.3) & (np.abs(v - np.round(v)) < 0.3) & dec.valid
     assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
     assert np.mean(dec.row[inner] == np.round(v[inner])) > 0.999
-
-
-def _to_12_bits(src, dst):
-    """The 8-bit capture ``src`` as a 12-bit camera records it: 16-bit PNGs holding
-    v * 4095 / 255 (v << 4 | v >> 4), 0..4095."""
-    import cv2
-
-    dst.mkdir(parents=True)
-    for p in sorted(src.glob("graycode_*.png")):
-        v = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.uint16)
-        cv2.imwrite(str(dst / p.name), (v << 4) | (v >> 4))
-
-
-def test_frame_bits_reads_a_12_bit_capture_as_its_8_bit_original(capture, tmp_path):
-    folder, u, v = capture
-    _to_12_bits(folder, tmp_path / "c12")
-    ref = read_capture(folder, projector=PROJ)
-    cap = read_capture(tmp_path / "c12", projector=PROJ, frame_bits=12)
-    # v -> v << 4 | v >> 4 -> replicated to 16 bits: v * 257 give or take 15 of 65536 (the pairs are kept
-    # as read: their levels are value * scale, 1 / 257 for 16-bit frames)
-    assert cap.col_pairs.dtype == np.uint16 and ref.col_pairs.dtype == np.uint8 and cap.scale == 1 / 257
-    for a, b in ((cap.white, ref.white), (cap.black, ref.black),
-                 (cap.col_pairs * np.float32(cap.scale), ref.col_pairs.astype(np.float32)),
-                 (cap.row_pairs * np.float32(cap.scale), ref.row_pairs.astype(np.float32))):
-        assert np.abs(a - b).max() <= 15 / 257 + 1e-4
-    d12, d8 = decode_graycode(cap), decode_graycode(ref)
-    assert np.mean(d12.valid == d8.valid) > 0.999
-    both = d12.valid & d8.valid
-    assert np.mean((d12.col == d8.col)[both]) > 0.999 and np.mean((d12.row == d8.row)[both]) > 0.999
-
-
-def test_a_12_bit_capture_without_frame_bits_says_what_to_give(capture, tmp_path):
-    folder, _, _ = capture
-    _to_12_bits(folder, tmp_path / "c12")
-    with pytest.raises(CalibrationError) as e:
-        read_capture(tmp_path / "c12", projector=PROJ)
-    msg = str(e.value)
-    assert "no projector light in the capture" in msg
-    assert "16-bit frames whose brightest value is" in msg and "ringscan import --frame-bits" in msg
-
-
-def test_frames_that_frame_bits_does_not_fit_are_refused_naming_the_frame(capture, tmp_path):
-    import cv2
-
-    folder, _, _ = capture
-    _to_12_bits(folder, tmp_path / "c12")
-    p = sorted((tmp_path / "c12").glob("graycode_*.png"))[3]
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    img[7, 8] = 5000
-    cv2.imwrite(str(p), img)
-    with pytest.raises(CalibrationError, match=r"frame holds 5000, above the 12-bit range --frame-bits says \(4095\)") \
-            as e:
-        read_capture(tmp_path / "c12", projector=PROJ, frame_bits=12)
-    assert e.value.path == str(p)
-    with pytest.raises(CalibrationError, match="frame is 8-bit, but --frame-bits says 12"):
-        read_capture(folder, projector=PROJ, frame_bits=12)
-    with pytest.raises(CalibrationError, match="frame is 16-bit, but --frame-bits says 8"):
-        read_capture(tmp_path / "c12", projector=PROJ, frame_bits=8)
-    with pytest.raises(ValueError, match="frame_bits must be 8 or 9..16"):
-        read_capture(folder, projector=PROJ, frame_bits=7)
 
 
 # ----------------------------------------------------------------------------- fine bits that barely modulate
@@ -219,94 +146,6 @@ def test_a_pixel_whose_coarser_bits_barely_modulate_is_dropped_as_low_modulation
     assert dec.low_modulation[inner].all() and not dec.valid[inner].any()
     assert np.isnan(dec.u[inner]).all()
     assert dec.valid[:30].mean() > 0.9  # outside the patch, decoded as before
-
-
-# ---------------------------------------------------------------------- captures named by the camera, text lists
-
-def _renamed(src, dst, names):
-    """The capture's graycode_NN frames copied to ``names`` (in capture order)."""
-    import shutil
-
-    dst.mkdir()
-    frames = sorted(src.glob("graycode_*.png"))
-    for p, n in zip(frames, names):
-        shutil.copy(p, dst / n)
-    return frames
-
-
-def test_frames_named_by_the_camera_are_taken_in_natural_name_order(capture, tmp_path):
-    # DSC8 .. DSC37: in plain string order DSC10 .. DSC19 would come before DSC8 and the capture be garbled
-    folder, u, v = capture
-    names = [f"DSC{k}.PNG" for k in range(8, 38)]
-    frames = _renamed(folder, tmp_path / "cap", names)
-    files = list_capture(tmp_path / "cap", projector=PROJ)
-    assert files.kind == "named" and [p.name for p in files.cameras[0]] == names
-    assert sorted(names) != names  # (the plain sort would not do)
-    a = read_capture_files(files.cameras[0], projector=PROJ)
-    b = read_capture_files(frames, projector=PROJ)
-    assert np.array_equal(a.col_pairs, b.col_pairs) and np.array_equal(a.white, b.white)
-    dec = subpixel_map(a, decode_graycode(a))
-    assert np.sqrt(np.mean((dec.u[dec.subpixel] - u[dec.subpixel]) ** 2)) < 0.08  # as the graycode_NN import
-
-
-def test_natural_order_compares_numbers_as_numbers():
-    names = ["DSC10.JPG", "dsc2.jpg", "DSC1.JPG", "img_2_b.png", "img_10_a.png", "img_2_a.png"]
-    assert sorted(names, key=natural_key) == ["DSC1.JPG", "dsc2.jpg", "DSC10.JPG", "img_2_a.png", "img_2_b.png",
-                                              "img_10_a.png"]
-
-
-def test_frames_of_other_names_that_do_not_fit_say_what_the_layout_expects(capture, tmp_path):
-    folder, _, _ = capture
-    names = [f"DSC{k:05d}.png" for k in range(4052, 4052 + 29)]  # one frame short of 30
-    _renamed(folder, tmp_path / "cap", names)
-    with pytest.raises(CalibrationError) as e:
-        list_capture(tmp_path / "cap", projector=PROJ)
-    msg = str(e.value)
-    assert msg.startswith(f"{tmp_path / 'cap'}: no frames named graycode_NN")
-    assert ("found 29 image(s) of other names (DSC04052.png .. DSC04080.png), but a 128x96 projector in layout "
-            "opencv-graycode has 30 (7 column and 7 row bits") in msg, msg
-
-
-def test_a_plain_text_list_reads_as_a_filestorage_list(capture, tmp_path, monkeypatch):
-    folder, _, _ = capture
-    frames = sorted(folder.glob("graycode_*.png"))
-    sub = tmp_path / "lists"
-    sub.mkdir()
-    # relative paths beside the list, one absolute, blank lines and comments; CRLF line ends
-    lines = ["# capture of the target, camera 1", ""]
-    for k, p in enumerate(frames):
-        lines.append(str(p) if k == 0 else f"../frames/{p.name}" + ("  # white" if k == len(frames) - 2 else ""))
-    (tmp_path / "frames").mkdir()
-    for p in frames[1:]:
-        (tmp_path / "frames" / p.name).write_bytes(p.read_bytes())
-    lst = sub / "capture.txt"
-    lst.write_text("\r\n".join(lines) + "\r\n")
-    with pytest.raises(CalibrationError, match=r"line 31: \.\./frames/graycode_28\.png  # white not found"):
-        list_capture(lst, projector=PROJ)  # a comment after a path is part of the path: only whole lines are
-    lines[-2] = lines[-2].split("  #")[0]
-    lst.write_text("\r\n".join(lines) + "\r\n")
-    files = list_capture(lst, projector=PROJ)
-    assert files.kind == "text" and [p.name for p in files.cameras[0]] == [p.name for p in frames]
-    assert files.cameras[0][0] == frames[0] and files.cameras[0][1] == sub / "../frames" / frames[1].name
-    # not beside the list: the current folder
-    monkeypatch.chdir(tmp_path)
-    lst2 = tmp_path / "elsewhere" / "c.lst"
-    lst2.parent.mkdir()
-    lst2.write_text("\n".join(str(Path("frames") / p.name) if k else str(p) for k, p in enumerate(frames)))
-    assert list_capture(lst2, projector=PROJ).cameras[0][1] == (tmp_path / "frames" / frames[1].name)
-    # a count that does not fit, a missing file, a line that is no image: one line each, naming the list
-    lst.write_text("\n".join(str(p) for p in frames[:-1]))
-    with pytest.raises(CalibrationError, match=r"capture\.txt: lists 29 frames, but a 128x96 projector .* has 30"):
-        list_capture(lst, projector=PROJ)
-    lst.write_text("\n".join(["nothere.png"] + [str(p) for p in frames[1:]]))
-    with pytest.raises(CalibrationError, match=r"capture\.txt: line 1: nothere\.png not found"):
-        list_capture(lst, projector=PROJ)
-    lst.write_text("\n".join([str(lst)] + [str(p) for p in frames[1:]]))
-    with pytest.raises(CalibrationError, match=r"line 1: .*capture\.txt is not a PNG, TIFF, JPEG or BMP file name"):
-        list_capture(lst, projector=PROJ)
-    lst.write_bytes(b"\xff\xfe\x00garbage")
-    with pytest.raises(CalibrationError, match="not a text image list"):
-        list_capture(lst, projector=PROJ)
 
 
 def test_a_capture_kept_as_read_decodes_as_its_float_levels(capture, tmp_path):
