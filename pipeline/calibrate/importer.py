@@ -31,7 +31,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.capture_files import (
     LIST_SUFFIXES,
     TEXT_LIST_SUFFIXES,
@@ -40,6 +39,7 @@ from ringscan.pipeline.calibrate.capture_files import (
     open_filestorage,
 )
 from ringscan.pipeline.calibrate.capture_reader import cpu_cores, read_capture_files
+from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import (
     LOW_MODULATION_WARN_SHARE,
     GrayCodeSettings,

@@ -229,3 +229,20 @@ def test_blurred_board_never_quotes_opencvs_placeholder_width(monkeypatch):
     monkeypatch.setattr(cv2, "estimateChessboardSharpness", lambda *a, **k: ((9999.0, 0, 0, 0), None))
     v = detect_board(img, board=board, name="b")
     assert not v.found and "9999" not in v.reason and v.reason.startswith("blurred (OpenCV could not measure")
+
+
+def test_detect_board_images_names_views_by_folder_and_refuses_another_size(tmp_path):
+    from ringscan.pipeline.calibrate.board import detect_board_images
+    from ringscan.pipeline.formats.errors import FormatError
+
+    for name, shape in (("a", (120, 160)), ("b", (120, 160)), ("c", (100, 160))):
+        (tmp_path / name).mkdir()
+        cv2.imwrite(str(tmp_path / name / "board.png"), np.full(shape, 128, np.uint8))
+    board = Board(cols=9, rows=7, square=5.0)
+    views, size = detect_board_images([tmp_path / "a" / "board.png", tmp_path / "b" / "board.png"], board=board,
+                                      progress=False)
+    assert size == (160, 120) and [v.name for v in views] == ["a/board.png", "b/board.png"]
+    assert not any(v.found for v in views)
+    with pytest.raises(FormatError, match=r"board\.png: image is 160x100, camera 2's first image is 160x120"):
+        detect_board_images([tmp_path / "a" / "board.png", tmp_path / "c" / "board.png"], board=board,
+                            what="camera 2", progress=False)

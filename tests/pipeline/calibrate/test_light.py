@@ -211,3 +211,23 @@ def test_camera_pose_from_a_board_on_the_plane():
     assert abs(C[2] - C_true[2]) < 0.3 and abs(np.hypot(C[0], C[1]) - np.hypot(C_true[0], C_true[1])) < 0.3
     with pytest.raises(CalibrationError, match="not found"):
         camera_pose_on_plane(dataclasses.replace(view, found=False, reason="not found"), board=board, camera=cam)
+
+
+def test_rig_file_with_camera_pose_moves_a_procam_projector_with_the_camera():
+    """The camera's new pose over the plane; a perspective projector keeps its pose relative to the camera (the
+    baseline); a parallel light's rig just takes the pose."""
+    from ringscan.pipeline.calibrate.light import rig_file_with_camera_pose
+    from ringscan.pipeline.formats.rig import Rig, Volume, rig_to_dict
+    from tests.pipeline.calibrate.stereo_truth import oblique_devices
+
+    cam, _, proj = oblique_devices()
+    rig = Rig(camera=cam, light=proj, volume=Volume(z_min=0.0, z_max=2000.0, r_max=3000.0))
+    R, _ = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))
+    t = np.array([10.0, -20.0, 900.0])
+    new, baseline = rig_file_with_camera_pose(rig_to_dict(rig), rig=rig, R=R, t=t, source="rig.json")
+    assert np.allclose(new.camera.R, R) and np.allclose(new.camera.t, t)
+    assert baseline == pytest.approx(np.linalg.norm(cam.center - proj.center))
+    assert np.allclose(new.light.R @ new.camera.R.T, proj.R @ cam.R.T)  # the projector moved with the camera
+    par = default_rig()
+    moved, none = rig_file_with_camera_pose(rig_to_dict(par), rig=par, R=R, t=t)
+    assert none is None and np.allclose(moved.camera.R, R) and rig_to_dict(moved)["light"] == rig_to_dict(par)["light"]

@@ -12,8 +12,8 @@ import pytest
 
 from ringscan.pipeline.calibrate.board import Board, BoardView, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera
-from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.capture_reader import read_capture
+from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.importer import read_opencv_calibration
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners
 from tests.support.shared_data import need_shared
@@ -122,3 +122,38 @@ def test_three_distinct_captures_leave_nothing_undetermined(calibration):
 def test_one_capture_three_times_is_refused(corners):
     with pytest.raises(CalibrationError, match="only 1 distinct board pose.*capture_1 = capture_1"):
         calibrate_procam([corners[0]] * 3, board=BOARD, camera_size=(1280, 1024), projector_size=PROJ)
+
+
+def test_capture_corners_of_folders_decodes_a_folder_given_again_once(tmp_path, monkeypatch):
+    """A folder given twice (here as ``c1`` and ``c1/../c1``) is read and located once; its repeat is a copy of
+    its own (calibrate_procam tells repeats apart by identity); a capture of another frame size is refused."""
+    from types import SimpleNamespace
+
+    from ringscan.pipeline.calibrate import procam
+    from ringscan.pipeline.calibrate.procam import CaptureCorners, capture_corners_of_folders
+    from ringscan.pipeline.formats.errors import FormatError
+
+    for name in ("c1", "c2"):
+        (tmp_path / name).mkdir()
+    sizes = {"c1": (48, 64), "c2": (40, 64)}
+    reads = []
+
+    def read(folder, **kw):
+        reads.append(folder)
+        return SimpleNamespace(white=np.zeros(sizes[tmp_path.joinpath(folder).resolve().name]))
+
+    def corners(cap, *, board, name, settings):
+        v = BoardView(name, False, "not found", None, None)
+        return CaptureCorners(name, v, v)
+
+    monkeypatch.setattr(procam, "read_capture", read)
+    monkeypatch.setattr(procam, "capture_corners", corners)
+    seen = []
+    folders = [str(tmp_path / "c1"), str(tmp_path / "c1" / ".." / "c1")]
+    caps, size = capture_corners_of_folders(folders, board=Board(cols=9, rows=7, square=5.0), projector=(64, 48),
+                                            progress=False, on_capture=seen.append)
+    assert len(reads) == 1 and size == (64, 48) and [c.name for c in caps] == ["c1", "c1"]
+    assert caps[0] is not caps[1] and seen == caps
+    with pytest.raises(FormatError, match=r"c2: frames are 64x40, .*c1 has 64x48"):
+        capture_corners_of_folders([str(tmp_path / "c1"), str(tmp_path / "c2")],
+                                   board=Board(cols=9, rows=7, square=5.0), projector=(64, 48), progress=False)

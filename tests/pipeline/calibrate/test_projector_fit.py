@@ -127,3 +127,17 @@ def test_triangulation_covariance_matches_the_scatter_of_noisy_triangulations():
         # the long axis (depth) and the total spread within 15 % of the prediction
         assert np.trace(emp) == pytest.approx(np.trace(C[i]), rel=0.15)
         assert np.linalg.eigvalsh(emp)[-1] == pytest.approx(np.linalg.eigvalsh(C[i])[-1], rel=0.15)
+
+
+def test_no_pinhole_projector_names_a_parallel_light():
+    """Projector pixels that are an affine function of points in depth: a collimated light, said so; others
+    (no camera model fits them): the projector's size and the scan's projector coordinates to check."""
+    from ringscan.pipeline.calibrate.projector_fit import no_pinhole_projector
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-100, 100, (500, 3))
+    parallel = X[:, :2] * 2.0 + [640, 400]
+    assert "parallel (collimated) light" in no_pinhole_projector(X, parallel)
+    wild = rng.uniform(0, 1280, (500, 2))
+    msg = no_pinhole_projector(X, wild)
+    assert "parallel" not in msg and "check --projector WxH" in msg
