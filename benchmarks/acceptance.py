@@ -200,7 +200,7 @@ def case_rational_lenses(work: Path) -> list:
     from ringscan.pipeline.formats.scan import load_scan, save_scan
 
     sys.path.insert(0, str(ROOT))
-    from tests.pipeline.reconstruct.test_reconstruct import PROJECTOR_LENS, WIDE_LENS
+    from tests.support.reconstruct_rig import PROJECTOR_LENS, WIDE_LENS
 
     spec = parse_patterns({"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 16.0, "bits": 5, "sector_bits": 4})
 

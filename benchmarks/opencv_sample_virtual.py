@@ -33,7 +33,7 @@ from ringscan.pipeline.formats.scan import as_camera2, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.pipeline.simulate.test_opencv_graycode import small_stereo_rig  # noqa: E402
+from tests.support.opencv_graycode_rig import small_stereo_rig  # noqa: E402
 
 
 def scale_rig(rig, k: int):

@@ -40,7 +40,7 @@ def main():
     from ringscan.pipeline.simulate.scan import simulate_scan
     from ringscan.pipeline.simulate.truth import load_truth
     from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-    from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS, _decoded_maps, two_camera_rig
+    from tests.support.two_camera_scan import ANGLE_PATTERNS, _decoded_maps, two_camera_rig
 
     wp.config.quiet = True
     with tempfile.TemporaryDirectory() as tmp:

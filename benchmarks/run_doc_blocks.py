@@ -391,7 +391,7 @@ def setup_demo_scan(work: Path) -> None:
     """``out/demo/scan`` as `ringscan demo` lays it out (a scan folder with ``view_000``), at the size of
     the tests' tiny scan (160x128 camera, one view): the snippet's own steps run on it unchanged."""
     sys.path.insert(0, str(ROOT))
-    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    from tests.support.tiny_scan import simulate_tiny_scan
 
     simulate_tiny_scan(work / "out" / "demo" / "scan")
 

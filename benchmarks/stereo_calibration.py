@@ -1,7 +1,7 @@
 """Calibration from a scan's matches: refine and projector-from-scan, against known truth.
 
 1. Virtual rig (the numbers of ../shared/data/rigs/oblique_projector.json and a
-   second camera mirrored across the projector axis, tests/pipeline/calibrate/
+   second camera mirrored across the projector axis, tests/support/
    stereo_truth.py): a wavy surface seen by both cameras and the projector,
    exact pixels plus Gaussian noise (``--noise`` px per coordinate).
    - refine, camera 2 against camera 1, from a rig whose camera 2 is turned by
@@ -19,7 +19,7 @@
    imported (``decoded`` scan); refine (camera against the projector) from the
    calibration published with the data and from a fresh ``calibrate procam`` of the
    same captures: epipolar distance before and after.
-3. A virtual two-camera scan (tests/pipeline/reconstruct/two_camera_scan.py: a
+3. A virtual two-camera scan (tests/support/two_camera_scan.py: a
    320x256 camera pair 70 deg apart around an 80 mm sphere on the reference plane,
    the default rig's perspective projector, rings + angle) matched by ``match_view``:
    refine from camera 2 turned by 2 deg, and projector-from-scan from the true and
@@ -57,8 +57,8 @@ from ringscan.pipeline.calibrate.rig_refine import (
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.formats.scan import load_scan
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "calibrate"))
-from stereo_truth import oblique_devices, observe  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.support
+from tests.support.stereo_truth import oblique_devices, observe  # noqa: E402
 
 
 def turned(dev, deg: float):
@@ -166,9 +166,7 @@ def real(data: Path) -> None:
 
 
 def virtual_scan(seeds=(0, 1, 2, 3), *, ring_curvature: bool = True) -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.support, which it imports
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline" / "reconstruct"))
-    from two_camera_scan import simulate_two_camera_scan, two_camera_rig
+    from tests.support.two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
     from ringscan.pipeline.calibrate.rig_refine import refine_stereo_rig
     from ringscan.pipeline.formats.ply import read_ply

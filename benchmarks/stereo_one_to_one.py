@@ -1,7 +1,7 @@
 """Two cameras at about one projector pixel per camera pixel (issue 34), on the virtual rig, through the
 commands a user runs, against the plain way.
 
-The rig (tests/pipeline/reconstruct/one_to_one.py) is a public capture's scaled down by ``--scale``:
+The rig (tests/support/one_to_one.py) is a public capture's scaled down by ``--scale``:
 two cameras 40 mm apart beside a projector (full size 2048x1500 cameras, a 1920x1080 projector), a
 plane 1 m away, ``--ratio`` = the cameras' focal length over the projector's (0.9: a camera pixel
 covers 1.1 projector pixels). ``simulate --captures opencv-graycode`` renders OpenCV's Gray code;
@@ -36,7 +36,7 @@ from ringscan.pipeline.calibrate.graycode import graycode_bits  # noqa: E402
 from ringscan.pipeline.formats.images import read_image, write_image  # noqa: E402
 from ringscan.pipeline.formats.ply import read_ply  # noqa: E402
 from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
-from tests.pipeline.reconstruct.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms  # noqa: E402
+from tests.support.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms  # noqa: E402
 from benchmarks.two_camera_rig import run  # noqa: E402  (one ringscan command, its console output)
 
 

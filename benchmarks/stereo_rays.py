@@ -1,7 +1,7 @@
 """Two cameras on the virtual rig: which rays place the points, against the truth.
 
 Prints, for one two-camera scan of an 80 mm sphere (gray-rings + the angle code;
-the test scan of tests/pipeline/reconstruct/two_camera_scan.py, camera 2 turned
+the test scan of tests/support/two_camera_scan.py, camera 2 turned
 70 degrees about the light axis):
 
 1. per ``--rays`` (camera-projector, camera-camera, all, auto) and for
@@ -41,7 +41,7 @@ from ringscan.pipeline.formats.rig import UncalibratedLight  # noqa: E402
 from ringscan.pipeline.formats.scan import load_scan, save_scan  # noqa: E402
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan  # noqa: E402
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings  # noqa: E402
-from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan  # noqa: E402
+from tests.support.two_camera_scan import simulate_two_camera_scan  # noqa: E402
 
 
 def _row(name, rep, ev):
@@ -93,7 +93,7 @@ def main() -> int:
         stereo=StereoSettings(rays="camera-camera")), progress=False)
     _row("camera-camera, rig rotated 2 deg (warns)", rep, evaluate_recon(work / "rec_rotated", scan))
     _sigma_honesty(scan)
-    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+    from tests.support.two_camera_scan import simulate_decoded_two_camera_scan
 
     for integer in (True, False):
         dec = work / ("decoded_integer" if integer else "decoded_exact")
@@ -108,7 +108,7 @@ def main() -> int:
 def _sigma_honesty(scan) -> None:
     """Actual match errors (camera-2 px, against the truth) over their predicted sigmas."""
     from ringscan.pipeline.reconstruct.stereo import match_view
-    from tests.pipeline.reconstruct.two_camera_scan import true_uv2
+    from tests.support.two_camera_scan import true_uv2
 
     m = match_view(scan, scan.views[0], device="cpu")
     keep, uv2 = true_uv2(scan, m)

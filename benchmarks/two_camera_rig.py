@@ -11,7 +11,7 @@ ground truth (virtual-rig figures, not real data):
    --rays camera-projector | camera-camera | all``; then ``calibrate refine`` of the imported
    rig with camera 2 turned by 2 degrees (three devices, and ``--two-view``).
 2. ringscan's gray-rings + angle code: ``simulate`` of the two-camera rig of
-   tests/pipeline/reconstruct/two_camera_scan.py (two 320x256 cameras 70 degrees apart about
+   tests/support/two_camera_scan.py (two 320x256 cameras 70 degrees apart about
    the light axis, the default rig's 1024x768 perspective projector), an 80 mm sphere;
    ``reconstruct --rays ...``.
    Figures: 1. the median distance (mm) of the points from the truth (the sphere's mesh or
@@ -61,7 +61,7 @@ from ringscan.pipeline.formats.ply import read_ply  # noqa: E402
 from ringscan.pipeline.formats.rig import UncalibratedLight, default_rig, load_rig, save_rig  # noqa: E402
 from ringscan.pipeline.formats.scan import load_scan, save_scan  # noqa: E402
 from ringscan.tools.cli import main as cli  # noqa: E402
-from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS, two_camera_rig  # noqa: E402
+from tests.support.two_camera_scan import ANGLE_PATTERNS, two_camera_rig  # noqa: E402
 
 RAYS = ("camera-projector", "camera-camera", "all")
 

@@ -1,5 +1,5 @@
 """ringscan's Python API (src/ringscan/api.py, docs/api.md) on the tiny simulated scan
-(tests/pipeline/reconstruct/tiny_scan.py: a 40 mm sphere, a 160 x 128 camera, gray-rings
+(tests/support/tiny_scan.py: a 40 mm sphere, a 160 x 128 camera, gray-rings
 of 3 bits and 4 sector bits), two views 90 degrees apart: what it returns against what
 the command line's path writes for the same scan, and against the truth."""
 
@@ -25,7 +25,7 @@ from ringscan.pipeline.fusion.recon import fuse_recon
 from ringscan.pipeline.fusion.turntable import FuseSettings
 from ringscan.pipeline.fusion.workflow import load_truth_mesh
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
 
 ANGLES = (0.0, 90.0)
 SPARSE = {"radius_mm": 0.0, "statistical_neighbors": 0}

@@ -47,7 +47,7 @@ def test_a_projector_window_around_what_the_camera_sees_gives_the_whole_projecto
     from ringscan.pipeline.formats.patterns import parse_patterns
     from ringscan.pipeline.formats.scan import read_view_frames
     from ringscan.pipeline.simulate.scan import simulate_scan
-    from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
+    from tests.support.tiny_scan import TINY_PATTERNS, tiny_rig
     from tests.support.projector_window import projector_window, seen_projector_pixels
 
     rig = tiny_rig()
@@ -83,7 +83,7 @@ def test_a_cached_frame_is_a_copy_of_the_drawn_one(monkeypatch):
 
     from ringscan.pipeline.codecs.render import render_frame
     from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
-    from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS
+    from tests.support.tiny_scan import TINY_PATTERNS
     from tests.support import frame_cache
 
     spec = parse_patterns(TINY_PATTERNS)

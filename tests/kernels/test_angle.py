@@ -6,57 +6,21 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
-from ringscan.kernels.phase import response_tables
 from ringscan.pipeline.formats.patterns import angle_periods, angle_zones
+from tests.support.angle_frames import (
+    BANDS,
+    PITCH,
+    RHO0,
+    SB,
+    STEPS,
+    C,
+    angle_decode,
+    angle_frames,
+    angle_lut,
+    angle_samples,
+)
 
 STATUS = {n: i for i, n in enumerate(ANGLE_STATUS_NAMES)}
-C = (200.3, 150.7)
-SB = 6
-STEPS = 4
-RHO0, PITCH, BANDS = 8.0, 4.0, 48
-
-
-def _frames(gamma_cam=1.0, noise=0.0, seed=0, contrast=200.0, zones=None):
-    h, w = 300, 400
-    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    rho = np.hypot(x - C[0], y - C[1])
-    phi = np.arctan2(y - C[1], x - C[0])
-    starts, periods = zones
-    P = angle_periods(rho, starts, periods)
-    lit = (rho >= RHO0) & (rho < RHO0 + BANDS * PITCH)
-    irr = [np.ones_like(rho), np.zeros_like(rho)]
-    irr += [np.where(lit, 0.5 + 0.5 * np.cos(P * phi - 2 * np.pi * n / STEPS), 0.0) for n in range(STEPS)]
-    rng = np.random.default_rng(seed)
-    out = []
-    for f in irr:
-        level = 20.0 + contrast * f ** (1.0 / gamma_cam) if gamma_cam != 1.0 else 20.0 + contrast * f
-        out.append(np.clip(np.round(level + rng.normal(0, noise, level.shape)), 0, 255).astype(np.uint8))
-    return np.stack(out), rho, phi
-
-
-def _lut(gamma_cam, contrast=200.0):
-    # recorded = 20 + contrast * irradiance^(1/g): invert it
-    r = np.arange(256, dtype=np.float64)
-    lin = np.clip((r - 20.0) / contrast, 0, None) ** gamma_cam
-    return lin.astype(np.float32)
-
-
-def _decode(device, frames, pts, rho, sector, zones, lut, settings=AngleSettings()):
-    return decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
-                        wp.array(rho.astype(np.float32), device=device), wp.array(sector.astype(np.int32), device=device),
-                        white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
-                        lut=wp.array(lut, device=device), settings=settings)
-
-
-def _samples(n=3000, seed=1):
-    rng = np.random.default_rng(seed)
-    r = rng.uniform(RHO0 + 2, RHO0 + BANDS * PITCH - 2, n)
-    a = rng.uniform(-np.pi, np.pi, n)
-    pts = np.c_[C[0] + r * np.cos(a), C[1] + r * np.sin(a)]
-    ok = (pts[:, 0] > 1) & (pts[:, 0] < 398) & (pts[:, 1] > 1) & (pts[:, 1] < 298)
-    pts, r, a = pts[ok], r[ok], a[ok]
-    sector = np.floor((a + np.pi) / (2 * np.pi) * 2 ** SB).astype(np.int32)
-    return pts, r, a, sector
 
 
 def test_zones_double_and_respect_the_period_and_the_sector_code():
@@ -74,9 +38,9 @@ def test_zones_double_and_respect_the_period_and_the_sector_code():
 @pytest.mark.parametrize("gamma_cam", [1.0, 2.2])
 def test_angle_comes_back_at_sub_pixel_positions(device, gamma_cam):
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = _frames(gamma_cam=gamma_cam, zones=zones)
-    pts, r, a, sector = _samples()
-    A = _decode(device, frames, pts, r, sector, zones, _lut(gamma_cam))
+    frames, _, _ = angle_frames(gamma_cam=gamma_cam, zones=zones)
+    pts, r, a, sector = angle_samples()
+    A = angle_decode(device, frames, pts, r, sector, zones, angle_lut(gamma_cam))
     st = A.status.numpy()
     phi = A.phi.numpy()
     P = angle_periods(r, *zones)
@@ -93,11 +57,11 @@ def test_angle_comes_back_at_sub_pixel_positions(device, gamma_cam):
 
 def test_sigma_matches_the_scatter_and_sectors_unwrap(device):
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    pts, r, a, sector = _samples(n=400, seed=3)
+    pts, r, a, sector = angle_samples(n=400, seed=3)
     errs, sig = [], []
     for seed in range(12):
-        frames, _, _ = _frames(noise=2.0, seed=seed, zones=zones)
-        A = _decode(device, frames, pts, r, sector, zones, _lut(1.0), AngleSettings(noise=2.0))
+        frames, _, _ = angle_frames(noise=2.0, seed=seed, zones=zones)
+        A = angle_decode(device, frames, pts, r, sector, zones, angle_lut(1.0), AngleSettings(noise=2.0))
         errs.append(np.angle(np.exp(1j * (A.phi.numpy() - a))) * r)
         sig.append(A.sigma_tan.numpy())
     errs, sig = np.array(errs), np.array(sig)
@@ -112,32 +76,34 @@ def test_sigma_matches_the_scatter_and_sectors_unwrap(device):
 
 def test_unknown_sector_dark_and_flat(device):
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = _frames(zones=zones)
-    pts, r, a, sector = _samples(n=200)
+    frames, _, _ = angle_frames(zones=zones)
+    pts, r, a, sector = angle_samples(n=200)
     far = r > zones[0][-1] + 2
-    A = _decode(device, frames, pts, r, np.where(far, -1, sector), zones, _lut(1.0))
+    A = angle_decode(device, frames, pts, r, np.where(far, -1, sector), zones, angle_lut(1.0))
     st = A.status.numpy()
     assert np.all(st[far] == STATUS["no_sector"])
     flat = frames.copy()
     flat[2:] = flat[2:].mean(axis=0, keepdims=True).astype(np.uint8)
-    assert np.all(_decode(device, flat, pts, r, sector, zones, _lut(1.0)).status.numpy() == STATUS["modulation"])
+    status = angle_decode(device, flat, pts, r, sector, zones, angle_lut(1.0)).status.numpy()
+    assert np.all(status == STATUS["modulation"])
     dark = frames.copy()
     dark[0] = dark[1]
-    assert np.all(_decode(device, dark, pts, r, sector, zones, _lut(1.0)).status.numpy() == STATUS["dark"])
+    assert np.all(angle_decode(device, dark, pts, r, sector, zones, angle_lut(1.0)).status.numpy() == STATUS["dark"])
 
 
 def test_bad_input(device):
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = _frames(zones=zones)
-    pts, r, a, sector = _samples(n=10)
+    frames, _, _ = angle_frames(zones=zones)
+    pts, r, a, sector = angle_samples(n=10)
     with pytest.raises(ValueError, match="steps"):
         decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                      wp.array(r.astype(np.float32), device=device), wp.array(sector, device=device), white=0, black=1,
-                     angle0=4, steps=4, sector_bits=SB, zones=zones, lut=wp.array(_lut(1.0), device=device))
+                     angle0=4, steps=4, sector_bits=SB, zones=zones, lut=wp.array(angle_lut(1.0), device=device))
     with pytest.raises(ValueError, match="rho"):
         decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                      wp.array(r[:3].astype(np.float32), device=device), wp.array(sector, device=device), white=0,
-                     black=1, angle0=2, steps=4, sector_bits=SB, zones=zones, lut=wp.array(_lut(1.0), device=device))
+                     black=1, angle0=2, steps=4, sector_bits=SB, zones=zones,
+                     lut=wp.array(angle_lut(1.0), device=device))
 
 
 def _sector_frames(ss=4, contrast=200.0):
@@ -165,7 +131,7 @@ def test_unknown_sector_unwraps_from_the_coarse_code_at_the_sample(device):
     than the camera resolves) re-read the coarse sector bits at their own position:
     on a sector edge the shared edge unwraps them, and they come back without a slip."""
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = _frames(zones=zones)
+    frames, _, _ = angle_frames(zones=zones)
     stack = np.concatenate([frames, _sector_frames()])
     sector0 = frames.shape[0]
     rng = np.random.default_rng(5)
@@ -184,14 +150,14 @@ def test_unknown_sector_unwraps_from_the_coarse_code_at_the_sample(device):
     A = decode_angle(wp.array(stack, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                      wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
                      white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
-                     lut=wp.array(_lut(1.0), device=device), sector0=sector0)
+                     lut=wp.array(angle_lut(1.0), device=device), sector0=sector0)
     st = A.status.numpy()
     assert np.mean(st == STATUS["ok"]) > 0.99
     ok = st == STATUS["ok"]
     err_tan = np.abs(np.angle(np.exp(1j * (A.phi.numpy()[ok] - a[ok])))) * r[ok]
     assert err_tan.max() < 0.3   # no period slip (a period is >= 12 px)
     # without the sector frames they have no angle, as before
-    B = _decode(device, frames, pts, r, unknown, zones, _lut(1.0))
+    B = angle_decode(device, frames, pts, r, unknown, zones, angle_lut(1.0))
     assert np.all(B.status.numpy() == STATUS["no_sector"])
     # the coarse code unreadable (every sector frame equal to its inverse): no angle, no guess
     flat = stack.copy()
@@ -199,10 +165,10 @@ def test_unknown_sector_unwraps_from_the_coarse_code_at_the_sample(device):
     C2 = decode_angle(wp.array(flat, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                       wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
                       white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
-                      lut=wp.array(_lut(1.0), device=device), sector0=sector0)
+                      lut=wp.array(angle_lut(1.0), device=device), sector0=sector0)
     assert np.all(C2.status.numpy() == STATUS["no_sector"])
     with pytest.raises(ValueError, match="sector frames"):
         decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                      wp.array(r.astype(np.float32), device=device), wp.array(unknown.astype(np.int32), device=device),
                      white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
-                     lut=wp.array(_lut(1.0), device=device), sector0=sector0)
+                     lut=wp.array(angle_lut(1.0), device=device), sector0=sector0)

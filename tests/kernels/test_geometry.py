@@ -31,6 +31,7 @@ from ringscan.kernels.geometry import (
 )
 from ringscan.pipeline.formats.rig import default_rig
 from ringscan.pipeline.geometry import undistort_normalized
+from tests.support.opencv_lenses import STRONG_PROJECTOR, cv_min_det, cv_pixels
 
 init_warp()
 
@@ -96,26 +97,6 @@ def _undistort(K, dist, uv, device):
     return o[:, :2], o[:, 2] > 0
 
 
-def _cv_pixels(xy, K, dist):
-    """OpenCV's projection of normalised undistorted points (x, y, 1)."""
-    P = np.c_[xy, np.ones(len(xy))].astype(np.float64)
-    return cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)[0][:, 0]
-
-
-def _cv_min_det(xy, K, dist, samples=64, h=1e-6):
-    """Least Jacobian determinant (normalised units, 1 on the axis) of OpenCV's
-    projection at ``samples`` points on the segment from the axis to each point:
-    > 0 where the point lies in the fold-free region around the axis."""
-    out = np.full(len(xy), np.inf)
-    for f in np.linspace(1.0 / samples, 1.0, samples):
-        q = xy * f
-        jx = (_cv_pixels(q + [h, 0], K, dist) - _cv_pixels(q - [h, 0], K, dist)) / (2 * h)
-        jy = (_cv_pixels(q + [0, h], K, dist) - _cv_pixels(q - [0, h], K, dist)) / (2 * h)
-        det = (jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0]) / (K[0, 0] * K[1, 1])
-        out = np.minimum(out, det)
-    return out
-
-
 @pytest.mark.parametrize("lens", sorted(WIDE_LENSES))
 def test_undistort_inverts_opencv_inside_the_fold_free_region(device, lens):
     """Points where the lens is one to one (by OpenCV's projection) come back from
@@ -124,14 +105,14 @@ def test_undistort_inverts_opencv_inside_the_fold_free_region(device, lens):
     dist = WIDE_LENSES[lens]
     rng = np.random.default_rng(3)
     xy = rng.uniform(-1.6, 1.6, (6000, 2))
-    xy = xy[_cv_min_det(xy, WIDE_K, dist) > 0.05][:2000]
+    xy = xy[cv_min_det(xy, WIDE_K, dist) > 0.05][:2000]
     assert len(xy) > 500
-    uv = _cv_pixels(xy, WIDE_K, dist)
+    uv = cv_pixels(xy, WIDE_K, dist)
     got, ok = _undistort(WIDE_K, dist, uv, device)
     assert ok.all(), f"{np.count_nonzero(~ok)} good pixels flagged"
-    assert np.abs(_cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
+    assert np.abs(cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
     assert np.abs(got - xy).max() < 2e-4
-    inner = _cv_min_det(xy, WIDE_K, dist) > 0.5
+    inner = cv_min_det(xy, WIDE_K, dist) > 0.5
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
     pts = uv[inner].reshape(-1, 1, 2)
     if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x; 5.x takes the criteria in undistortPoints
@@ -153,13 +134,13 @@ def test_undistort_flags_pixels_without_a_true_inverse(device, lens):
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
     got, ok = _undistort(WIDE_K, dist, uv, device)
     assert 0.1 < np.mean(~ok) < 0.6  # the scene exercises the fold
-    assert np.abs(_cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
-    assert _cv_min_det(got[ok], WIDE_K, dist).min() > 0
+    assert np.abs(cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
+    assert cv_min_det(got[ok], WIDE_K, dist).min() > 0
     if lens == "radial":
         # the largest image radius a point of the fold-free region reaches:
         # where OpenCV's projection of (r, 0) first turns back
         r = np.linspace(0, 2.0, 40001)
-        ur = (_cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
+        ur = (cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
         reach = ur[np.argmax(np.diff(ur) <= 0)]
         rd = np.hypot(uv[:, 0] - WIDE_K[0, 2], uv[:, 1] - WIDE_K[1, 2]) / WIDE_K[0, 0]
         assert not ok[rd > reach * 1.0001].any()
@@ -173,34 +154,17 @@ def test_undistort_default_camera_flags_nothing(device):
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
     got, ok = _undistort(c.K, c.dist, uv, device)
     assert ok.all()
-    assert np.abs(_cv_pixels(got, c.K, c.dist) - uv).max() < 0.01
+    assert np.abs(cv_pixels(got, c.K, c.dist) - uv).max() < 0.01
 
 
 def test_monotonic_radius_is_where_opencv_turns_back():
     for dist in ([-0.35, 0.05, 0, 0, 0], [-0.4, 0, 0, 0, 0], [0.3, -0.2, 0, 0, 0.01]):
         r = np.linspace(0, 3.0, 300001)
-        u = _cv_pixels(np.c_[r, np.zeros_like(r)], np.eye(3), np.array(dist))[:, 0]
+        u = cv_pixels(np.c_[r, np.zeros_like(r)], np.eye(3), np.array(dist))[:, 0]
         turn = r[np.argmax(np.diff(u) <= 0)]
         assert abs(np.sqrt(monotonic_radius2(dist)) - turn) < 1e-4
     assert monotonic_radius2([0.02, 0.0, 0.0, 0.0, 0.0]) >= 1e29      # pincushion: never folds
     assert monotonic_radius2(None) >= 1e29
-
-
-# ----------------------------------------------------------------------------- strongly distorted projectors (test_ring_quadric's too)
-
-STRONG_PROJECTOR = {
-    # no fold, but far from the undistorted cone: 4 fixed Newton steps kept
-    # points tens of px off their ring
-    "steep": np.array([-5.0, 20.0, 0.01, 0.01, 0.0]),
-    # folds at r = 0.167, inside the projector's field
-    "folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0]),
-}
-RATIONAL_PROJECTOR = {
-    # OpenCV's rational model, steep inside the projector's field (r < 0.17)
-    "rational-steep": np.array([-5.0, 20.0, 0.01, 0.01, 0.0, 2.0, -10.0, 0.0]),
-    # rational + thin prism, folding inside the field
-    "prism-folding": np.array([-12.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.05, 0.0, -0.05, 0.0]),
-}
 
 
 # ----------------------------------------------------------------------------- per-launch constants: the same answers, cheaper
@@ -235,7 +199,7 @@ def test_fold_free_radius_has_its_margin_by_opencv(lens):
     r[:400] = np.sqrt(s)  # the rim, where the margin is least
     a = rng.uniform(-np.pi, np.pi, r.size)
     xy = np.c_[r * np.cos(a), r * np.sin(a)]
-    assert _cv_min_det(xy, np.eye(3), dist, samples=1).min() > 2 * float(LENS_MIN_DET) - 1e-4
+    assert cv_min_det(xy, np.eye(3), dist, samples=1).min() > 2 * float(LENS_MIN_DET) - 1e-4
     if lens in ("default", "real"):
         assert s > 0.17  # the default camera's corners: r^2 = 0.10; the real one's 1280x1024 at f 3450: 0.05
     assert fold_free_radius2(None) == R2_UNBOUNDED
@@ -356,7 +320,7 @@ def _field_points(K, dist, n, seed, min_det=0.05):
     """Points of WIDE_K's field (a little beyond its corners) where OpenCV's projection is one to one."""
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-1.2, 1.2, (3 * n, 2))
-    return xy[_cv_min_det(xy, K, dist) > min_det][:n]
+    return xy[cv_min_det(xy, K, dist) > min_det][:n]
 
 
 @pytest.mark.parametrize("lens", sorted(RATIONAL_LENSES))
@@ -371,7 +335,7 @@ def test_rational_distort_is_opencvs(device, lens):
     out = wp.zeros(len(xy), dtype=wp.vec2, device=device)
     wp.launch(_distort_kernel, len(xy), inputs=[cam, wp.array(xy, dtype=wp.vec2, device=device)], outputs=[out],
               device=device)
-    ref = _cv_pixels(xy.astype(np.float64), np.eye(3), dist)
+    ref = cv_pixels(xy.astype(np.float64), np.eye(3), dist)
     assert np.abs(ref - xy).max() > 0.1  # a strong lens: a wrong term would show
     assert np.abs(out.numpy() - ref).max() < 1e-6
 
@@ -387,10 +351,10 @@ def test_rational_undistort_inverts_opencv(device, lens):
     dist = RATIONAL_LENSES[lens]
     xy = _field_points(WIDE_K, dist, 2000, 3)
     assert len(xy) > 1500
-    uv = _cv_pixels(xy, WIDE_K, dist)
+    uv = cv_pixels(xy, WIDE_K, dist)
     got, ok = _undistort(WIDE_K, dist, uv, device)
     assert ok.all(), f"{np.count_nonzero(~ok)} good pixels flagged"
-    assert np.abs(_cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
+    assert np.abs(cv_pixels(got, WIDE_K, dist) - uv).max() < 0.01
     assert np.abs(got - xy).max() < 2e-6
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
     pts = uv.reshape(-1, 1, 2)
@@ -412,8 +376,8 @@ def test_rational_undistort_drops_pixels_without_a_true_inverse(device, lens):
     v, u = np.mgrid[0:1024:8, 0:1280:8]
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
     got, ok = _undistort(WIDE_K, dist, uv, device)
-    assert np.abs(_cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
-    assert _cv_min_det(got[ok], WIDE_K, dist).min() > 0
+    assert np.abs(cv_pixels(got[ok], WIDE_K, dist) - uv[ok]).max() < 0.01
+    assert cv_min_det(got[ok], WIDE_K, dist).min() > 0
     assert (got[ok] ** 2).sum(1).max() < pole_radius2(dist)
     # every pixel that OpenCV's iterative undistortion inverts inside the region
     # (the host twin, pipeline.geometry) is inverted here too
@@ -428,7 +392,7 @@ def test_rational_undistort_drops_pixels_without_a_true_inverse(device, lens):
     assert 0.1 < np.mean(~ok) < 0.6  # the scene exercises the fold
     if lens == "rational-fold":
         r = np.linspace(0, 2.0, 40001)
-        ur = (_cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
+        ur = (cv_pixels(np.c_[r, np.zeros_like(r)], WIDE_K, dist)[:, 0] - WIDE_K[0, 2]) / WIDE_K[0, 0]
         turn = np.argmax(np.diff(ur) <= 0)
         assert abs(np.sqrt(monotonic_radius2(dist)) - r[turn]) < 1e-4
         assert not ok[rd > ur[turn] * 1.0001].any()

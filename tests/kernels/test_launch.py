@@ -115,11 +115,10 @@ def test_gray_rings_decode_and_samples_in_cuda_geometry(cuda_geometry, dtype, wi
     count / scan / write of the edge samples, with the blur correction."""
     from ringscan.kernels.ring_labels import decode_gray_rings
     from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+    from tests.support.ring_frames import frame_stack, gray_rings_spec
 
-    from .test_ring_labels import _spec, _stack
-
-    spec = _spec(width=width, height=96, center=(77.3, 47.6), bits=4, sector_bits=3, pitch=3.0, rho0=5.0)
-    frames = wp.array(_stack(spec, blur=0.9, dtype=dtype), device="cpu")
+    spec = gray_rings_spec(width=width, height=96, center=(77.3, 47.6), bits=4, sector_bits=3, pitch=3.0, rho0=5.0)
+    frames = wp.array(frame_stack(spec, blur=0.9, dtype=dtype), device="cpu")
 
     def run():
         lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=3)
@@ -135,14 +134,13 @@ def test_gray_rings_decode_and_samples_in_cuda_geometry(cuda_geometry, dtype, wi
 def test_phase_rings_in_cuda_geometry(cuda_geometry):
     """Wrapped phase and unwrapping, the pair-wise smoothing and the compaction of the points."""
     from ringscan.kernels.phase import compact_phase_points, smooth_phase
+    from tests.support.phase_frames import phase_decode, phase_spec, phase_stack
 
-    from .test_phase import _decode, _spec, _stack
-
-    spec = _spec()
-    frames = _stack(spec, noise=1.5, cam_gamma=2.2, seed=3)
+    spec = phase_spec()
+    frames = phase_stack(spec, noise=1.5, cam_gamma=2.2, seed=3)
 
     def run():
-        _, lab, ph = _decode(frames, spec, "cpu", cam_gamma=2.2)
+        _, lab, ph = phase_decode(frames, spec, "cpu", cam_gamma=2.2)
         sm = smooth_phase(ph, lab.sector, rho0=spec.rho0, pitch=spec.pitch, threads=3)
         pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=3)
         assert len(pts) > 3000
@@ -155,10 +153,9 @@ def test_phase_rings_in_cuda_geometry(cuda_geometry):
 def test_ring_lines_in_cuda_geometry(cuda_geometry):
     """The two smoothing passes and the count / scan / write of the line centres."""
     from ringscan.kernels.ring_lines import detect_ring_lines
+    from tests.support.ring_lines_image import circles_image
 
-    from .test_ring_lines import _circles
-
-    img = wp.array(_circles(noise=1.0)[None], device="cpu")
+    img = wp.array(circles_image(noise=1.0)[None], device="cpu")
 
     def run():
         lines = detect_ring_lines(img, threads=3)
@@ -172,20 +169,18 @@ def test_spans_in_cuda_geometry(cuda_geometry):
     """1-D stages: the angle decode, the neighbour filter (points in pixel order and not)."""
     from ringscan.kernels.point_filter import mark_isolated_points
     from ringscan.pipeline.formats.patterns import angle_zones
-
-    from .test_angle import BANDS, PITCH, RHO0, SB, _frames, _lut, _samples
-    from .test_angle import _decode as _decode_angle
-    from .test_point_filter import _plane_points
+    from tests.support.angle_frames import BANDS, PITCH, RHO0, SB, angle_decode, angle_frames, angle_lut, angle_samples
+    from tests.support.plane_points import plane_points
 
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = _frames(noise=2.0, zones=zones)
-    pts, rho, _, sector = _samples(n=20000)
-    cam, X, pix = _plane_points(w=160, h=120)
+    frames, _, _ = angle_frames(noise=2.0, zones=zones)
+    pts, rho, _, sector = angle_samples(n=20000)
+    cam, X, pix = plane_points(w=160, h=120)
     X = X + np.random.default_rng(2).normal(0.0, 2.0, X.shape).astype(np.float32)
     shuffled = np.random.default_rng(3).permutation(len(X))
 
     def run():
-        ang = _decode_angle("cpu", frames, pts, rho, sector, zones, _lut(1.0))
+        ang = angle_decode("cpu", frames, pts, rho, sector, zones, angle_lut(1.0))
         out = {f"a_{k}": v for k, v in _fields(ang, ("phi", "sigma_tan", "modulation", "status")).items()}
         for name, order in (("sorted", np.arange(len(X))), ("shuffled", shuffled)):
             out[name] = mark_isolated_points(wp.array(X[order], dtype=wp.vec3, device="cpu"),

@@ -2,7 +2,6 @@
 
 import math
 
-import cv2
 import numpy as np
 import pytest
 import warp as wp
@@ -17,36 +16,10 @@ from ringscan.kernels.phase import (
     smooth_phase,
 )
 from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.pipeline.codecs.render import render_frames
-from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, gray_decode
+from ringscan.pipeline.formats.patterns import frame_names, gray_decode
+from tests.support.phase_frames import phase_decode, phase_spec, phase_stack
 
 STATUS = {n: i for i, n in enumerate(PHASE_STATUS_NAMES)}
-
-
-def _spec(**kw):
-    d = dict(codec="phase-rings", width=160, height=120, center=(79.5, 59.5), rho0=4.0, pitch=6.0, bits=4,
-             sector_bits=2, steps=4)
-    d.update(kw)
-    return PatternSpec(**d)
-
-
-def _stack(spec, *, blur=0.6, cam_gamma=1.0, light_gamma=1.0, noise=0.0, seed=0, mix_with=None):
-    """Camera frames of a flat albedo-0.8 target seen pixel for pixel: light response,
-    projector blur, ambient 0.05, camera response, noise, 8-bit."""
-    rng = np.random.default_rng(seed)
-    fr = render_frames(spec)
-    other = render_frames(mix_with) if mix_with is not None else None
-    out = []
-    for n in frame_names(spec):
-        e = (fr[n].astype(np.float64) / 255.0) ** light_gamma
-        if other is not None:
-            e = 0.5 * e + 0.5 * (other[n].astype(np.float64) / 255.0) ** light_gamma
-        if blur:
-            e = cv2.GaussianBlur(e, (0, 0), blur)
-        irr = 0.8 * (0.05 + e) / 0.85
-        val = 255.0 * 0.9 * irr ** (1.0 / cam_gamma) + rng.normal(0.0, noise, irr.shape)
-        out.append(np.clip(np.rint(val), 0, 255).astype(np.uint8))
-    return np.stack(out)
 
 
 def _truth_t(spec):
@@ -55,25 +28,15 @@ def _truth_t(spec):
     return (rho - spec.rho0) / spec.pitch, rho
 
 
-def _decode(frames_np, spec, device, *, cam_gamma=1.0, light_gamma=1.0, settings=PhaseSettings(), weighted=True):
-    fr = wp.array(frames_np, device=device)
-    lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
-    lut, wlut = response_tables(255, camera_gamma=cam_gamma, weighted=weighted)
-    ph = decode_phase(fr, lab, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps,
-                      lut=wp.array(lut, device=device), wlut=wp.array(wlut, device=device), light_gamma=light_gamma,
-                      settings=settings)
-    return fr, lab, ph
-
-
 def _annulus(spec, rho, margin=1.5):
     far = min(spec.width, spec.height) / 2 - 2
     return (rho > spec.rho0 + margin) & (rho < min(spec.rho_max, far) - margin)
 
 
 def test_phase_matches_geometry_and_never_slips(device):
-    spec = _spec()
+    spec = phase_spec()
     t_true, rho = _truth_t(spec)
-    _, _, ph = _decode(_stack(spec, noise=1.0), spec, device, settings=PhaseSettings(smooth_radius=0))
+    _, _, ph = phase_decode(phase_stack(spec, noise=1.0), spec, device, settings=PhaseSettings(smooth_radius=0))
     st, t = ph.status.numpy(), ph.t.numpy()
     ann = _annulus(spec, rho)
     ok = ann & (st == 0)
@@ -91,9 +54,10 @@ def test_phase_matches_geometry_and_never_slips(device):
 def test_unwrapping_at_band_edges_beats_the_naive_rule(device):
     """Strong noise: t = band + wrapped phase slips a period near edges; the
     edge-anchored unwrapping does not."""
-    spec = _spec()
+    spec = phase_spec()
     t_true, rho = _truth_t(spec)
-    fr, lab, ph = _decode(_stack(spec, noise=5.0, seed=3), spec, device, settings=PhaseSettings(smooth_radius=0))
+    fr, lab, ph = phase_decode(phase_stack(spec, noise=5.0, seed=3), spec, device,
+                               settings=PhaseSettings(smooth_radius=0))
     st, t = ph.status.numpy(), ph.t.numpy()
     ann = _annulus(spec, rho)
     ok = ann & (st == 0)
@@ -108,14 +72,14 @@ def test_unwrapping_at_band_edges_beats_the_naive_rule(device):
 
 @pytest.mark.parametrize("cam_gamma,light_gamma,steps", [(2.2, 1.0, 4), (1.0, 1.8, 3), (2.2, 2.0, 3)])
 def test_response_correction_removes_gamma_error(device, cam_gamma, light_gamma, steps):
-    spec = _spec(steps=steps)
+    spec = phase_spec(steps=steps)
     t_true, rho = _truth_t(spec)
-    frames = _stack(spec, cam_gamma=cam_gamma, light_gamma=light_gamma, blur=0.0)
+    frames = phase_stack(spec, cam_gamma=cam_gamma, light_gamma=light_gamma, blur=0.0)
     s = PhaseSettings(smooth_radius=0)
     ann = _annulus(spec, rho)
 
     def rms(cg, lg):
-        _, _, ph = _decode(frames, spec, device, cam_gamma=cg, light_gamma=lg, settings=s)
+        _, _, ph = phase_decode(frames, spec, device, cam_gamma=cg, light_gamma=lg, settings=s)
         ok = ann & (ph.status.numpy() == 0)
         assert ok.sum() > 0.9 * ann.sum()
         return float(np.sqrt(np.mean((ph.t.numpy()[ok] - t_true[ok]) ** 2)))
@@ -126,10 +90,10 @@ def test_response_correction_removes_gamma_error(device, cam_gamma, light_gamma,
 
 
 def test_mixed_pixels_are_dropped_for_low_modulation(device):
-    spec = _spec()
-    shifted = _spec(rho0=spec.rho0 + spec.pitch / 2)  # opposite fringe phase, same bands
+    spec = phase_spec()
+    shifted = phase_spec(rho0=spec.rho0 + spec.pitch / 2)  # opposite fringe phase, same bands
     _, rho = _truth_t(spec)
-    _, _, ph = _decode(_stack(spec, mix_with=shifted), spec, device)
+    _, _, ph = phase_decode(phase_stack(spec, mix_with=shifted), spec, device)
     st = ph.status.numpy()
     ann = _annulus(spec, rho, margin=spec.pitch)
     assert np.mean(st[ann] == STATUS["modulation"]) > 0.95
@@ -137,9 +101,9 @@ def test_mixed_pixels_are_dropped_for_low_modulation(device):
 
 
 def test_dark_frames_give_no_points(device):
-    spec = _spec()
+    spec = phase_spec()
     frames = np.zeros((len(frame_names(spec)), spec.height, spec.width), np.uint8)
-    fr, lab, ph = _decode(frames, spec, device)
+    fr, lab, ph = phase_decode(frames, spec, device)
     assert np.all(ph.status.numpy() == STATUS["dark"])
     sm = smooth_phase(ph, lab.sector)
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch)
@@ -188,9 +152,9 @@ def test_ring_curvature_correction_removes_the_outward_bias(device, blur):
     # Averaging across a ring reads rho too large by (tangential variance) / (2 rho):
     # here the blur's sigma^2 plus the 3x3 window's 2/3 px^2, (blur^2 + 2/3) / 2 px x px
     # (rho x rho error). Medians over rho 12..90 (the bias falls as 1 / rho).
-    spec = _spec()
+    spec = phase_spec()
     t_true, rho = _truth_t(spec)
-    _, lab, ph = _decode(_stack(spec, blur=blur), spec, device)
+    _, lab, ph = phase_decode(phase_stack(spec, blur=blur), spec, device)
     expect = (blur ** 2 + 2.0 / 3.0) / 2.0
     for correct in (False, True):
         kw = {"rho0": spec.rho0, "pitch": spec.pitch} if correct else {}
@@ -213,9 +177,9 @@ def test_ring_curvature_correction_removes_the_outward_bias(device, blur):
 def test_kernel_matches_numpy_twin(device):
     from ringscan.tools.bench.numpy_twins import decode_numpy, phase_numpy, points_numpy, smooth_numpy
 
-    spec = _spec()
-    frames = _stack(spec, noise=2.0, cam_gamma=2.2, light_gamma=1.3, seed=5)
-    fr, lab, ph = _decode(frames, spec, device, cam_gamma=2.2, light_gamma=1.3)
+    spec = phase_spec()
+    frames = phase_stack(spec, noise=2.0, cam_gamma=2.2, light_gamma=1.3, seed=5)
+    fr, lab, ph = phase_decode(frames, spec, device, cam_gamma=2.2, light_gamma=1.3)
     dec = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
     lut, wlut = response_tables(255, camera_gamma=2.2)
     ref = phase_numpy(frames, dec, bits=spec.bits, sector_bits=spec.sector_bits, steps=spec.steps, lut=lut, wlut=wlut,
@@ -252,8 +216,8 @@ def test_response_tables():
 
 
 def test_bad_inputs(device):
-    spec = _spec()
-    frames = _stack(spec)
+    spec = phase_spec()
+    frames = phase_stack(spec)
     fr = wp.array(frames, device=device)
     lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
     lut, wlut = (wp.array(a, device=device) for a in response_tables(255))
@@ -282,9 +246,9 @@ def test_bad_inputs(device):
 
 
 def test_sixteen_bit_frames(device):
-    spec = _spec()
+    spec = phase_spec()
     t_true, rho = _truth_t(spec)
-    frames = (_stack(spec).astype(np.uint16) * 257)
+    frames = (phase_stack(spec).astype(np.uint16) * 257)
     fr = wp.array(frames, device=device)
     lab = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits)
     lut, wlut = (wp.array(a, device=device) for a in response_tables(65535))

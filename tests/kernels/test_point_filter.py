@@ -4,20 +4,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.geometry import make_camera
 from ringscan.kernels.point_filter import NeighbourFilterSettings, mark_isolated_points
-
-
-def _plane_points(w=40, h=30, f=500.0, z=400.0):
-    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
-    cam = make_camera(K, None, np.eye(3), np.zeros(3))
-    v, u = np.mgrid[0:h, 0:w]
-    X = np.stack([(u - w / 2) / f * z, (v - h / 2) / f * z, np.full(u.shape, z)], -1).reshape(-1, 3)
-    return cam, X.astype(np.float32), (v * w + u).ravel().astype(np.int32)
+from tests.support.plane_points import plane_points
 
 
 def test_keeps_a_surface_and_drops_outliers(device):
-    cam, X, pix = _plane_points()
+    cam, X, pix = plane_points()
     X = X.copy()
     X[100] += [0, 0, 20.0]  # a mixed pixel 20 mm (25 footprints) off the plane
     X[500] += [0, 0, -15.0]
@@ -31,7 +23,7 @@ def test_keeps_a_surface_and_drops_outliers(device):
 
 
 def test_disabled_and_empty(device):
-    cam, X, pix = _plane_points()
+    cam, X, pix = plane_points()
     X[3] += [0, 0, 50.0]
     st = wp.zeros(len(X), dtype=wp.int32, device=device)
     out = mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix, device=device), st,
@@ -45,7 +37,7 @@ def test_disabled_and_empty(device):
 
 
 def test_bad_input(device):
-    cam, X, pix = _plane_points()
+    cam, X, pix = plane_points()
     with pytest.raises(ValueError, match="pixel must be"):
         mark_isolated_points(wp.array(X, dtype=wp.vec3, device=device), wp.array(pix[:3], device=device),
                              wp.zeros(len(X), dtype=wp.int32, device=device), camera=cam, width=40, height=30,
@@ -56,7 +48,7 @@ def test_points_in_pixel_order_or_not_give_the_same_marks(device):
     """Points sorted by pixel take the slot-free path (window rows as runs of the
     arrays); shuffled ones the slot map: the marks are the same, point for point."""
     rng = np.random.default_rng(5)
-    cam, X, pix = _plane_points()
+    cam, X, pix = plane_points()
     X = np.concatenate([X, X + rng.normal(0, 0.05, X.shape).astype(np.float32)])  # two points a pixel
     pix = np.concatenate([pix, pix])
     X[rng.choice(len(X), 60, replace=False)] += rng.normal(0, 4.0, (60, 3)).astype(np.float32)
@@ -83,7 +75,7 @@ def test_the_noise_floor_scales_with_a_scene_in_other_units(device):
     are 0.02 units away, under the 0.05 floor in 'mm'; the floor is held to half a footprint, so they are
     dropped as in mm (before: kept, every neighbour agreed). In mm the floor stays 0.05 mm (the marks of the
     first test)."""
-    cam, X, pix = _plane_points(z=0.4)  # 0.4 units away, footprint 0.0008 units
+    cam, X, pix = plane_points(z=0.4)  # 0.4 units away, footprint 0.0008 units
     X = X.copy()
     X[100] += [0, 0, 0.02]
     X[500] += [0, 0, -0.015]

@@ -2,39 +2,18 @@
 
 import math
 
-import cv2
 import numpy as np
 import pytest
 import warp as wp
 
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
-from ringscan.pipeline.codecs.render import render_frames
-from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
-
-
-def _spec(**kw):
-    d = dict(codec="gray-rings", width=160, height=120, center=(79.5, 59.5), rho0=6.0, pitch=4.0, bits=4, sector_bits=3)
-    d.update(kw)
-    return PatternSpec(**d)
-
-
-def _stack(spec, blur=0.0, dtype=np.uint8):
-    fr = render_frames(spec)
-    imgs = []
-    for n in frame_names(spec):
-        f = fr[n].astype(np.float32)
-        if blur:
-            f = cv2.GaussianBlur(f, (0, 0), blur)
-        if dtype == np.uint16:
-            f = f * 257.0
-        imgs.append(np.clip(np.rint(f), 0, np.iinfo(dtype).max).astype(dtype))
-    return np.stack(imgs)
+from tests.support.ring_frames import frame_stack, gray_rings_spec
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_decode_matches_band_and_sector_truth(device, dtype):
-    spec = _spec()
-    frames = wp.array(_stack(spec, blur=0.6, dtype=dtype), device=device)
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec, blur=0.6, dtype=dtype), device=device)
     lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits)
     band, sector = lab.band.numpy(), lab.sector.numpy()
     v, u = np.mgrid[0:spec.height, 0:spec.width]
@@ -57,8 +36,8 @@ def test_decode_matches_band_and_sector_truth(device, dtype):
 
 
 def test_decode_rejects_low_contrast_and_outside(device):
-    spec = _spec()
-    st = _stack(spec)
+    spec = gray_rings_spec()
+    st = frame_stack(spec)
     st[:, :40, :] = 100  # a flat, unlit strip: white == black
     lab = decode_gray_rings(wp.array(st, device=device), bits=spec.bits, sector_bits=spec.sector_bits)
     band = lab.band.numpy()
@@ -86,8 +65,8 @@ def test_decode_bad_input(device):
 
 
 def test_decode_threads_agree():
-    spec = _spec()
-    frames = wp.array(_stack(spec, blur=0.8), device="cpu")
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec, blur=0.8), device="cpu")
     a = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=1)
     b = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits, threads=3)
     assert np.array_equal(a.band.numpy(), b.band.numpy())

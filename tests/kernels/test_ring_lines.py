@@ -10,33 +10,7 @@ from ringscan.kernels.geometry import make_camera, make_parallel_light, make_per
 from ringscan.kernels.ring_lines import LineSettings, detect_ring_lines, smooth_frame
 from ringscan.kernels.ring_links import link_lines, ring_roots
 from ringscan.pipeline.formats.rig import default_rig
-
-CENTER = (100.3, 80.7)
-RADII = (22.0, 37.0, 52.0, 67.0)
-
-
-def _circles(radii=RADII, center=CENTER, size=(160, 200), width=2.5, blur=0.8, level=120.0, dtype=np.uint8,
-             background=50.0, noise=0.0, seed=0):
-    """Antialiased bright circles (exact box profile of ``width`` px across, 8x8
-    sub-samples per pixel), blurred, on a flat background."""
-    h, w = size
-    s = 8
-    v, u = np.mgrid[0:h * s, 0:w * s].astype(np.float64)
-    u = (u + 0.5) / s - 0.5
-    v = (v + 0.5) / s - 0.5
-    r = np.hypot(u - center[0], v - center[1])
-    lit = np.zeros_like(r)
-    for rk in radii:
-        lit += np.abs(r - rk) <= width / 2
-    img = lit.reshape(h, s, w, s).mean(axis=(1, 3))
-    img = background + level * img
-    if blur:
-        img = cv2.GaussianBlur(img, (0, 0), blur)
-    if noise:
-        img = img + np.random.default_rng(seed).normal(0, noise, img.shape)
-    if dtype == np.uint16:
-        img = img * 257.0
-    return np.clip(np.rint(img), 0, np.iinfo(dtype).max).astype(dtype)
+from tests.support.ring_lines_image import CENTER, RADII, circles_image
 
 
 def _detect(img, device, **kw):
@@ -45,7 +19,7 @@ def _detect(img, device, **kw):
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_centres_lie_on_the_circles(device, dtype):
-    lines = _detect(_circles(dtype=dtype, noise=1.0), device)
+    lines = _detect(circles_image(dtype=dtype, noise=1.0), device)
     d = lines.numpy()
     r = np.hypot(d["uv"][:, 0] - CENTER[0], d["uv"][:, 1] - CENTER[1])
     k = np.argmin(np.abs(r[:, None] - np.array(RADII)[None]), 1)
@@ -86,14 +60,14 @@ def test_flat_and_empty_frames_give_no_centres(device):
 
 
 def test_weak_lines_and_noise_are_rejected(device):
-    img = _circles(level=4.0, noise=1.5)  # lines 4 grey levels high: below min_contrast
+    img = circles_image(level=4.0, noise=1.5)  # lines 4 grey levels high: below min_contrast
     assert len(_detect(img, device)) == 0
     noise = np.clip(np.random.default_rng(1).normal(60, 2.0, (120, 160)), 0, 255).astype(np.uint8)
     assert len(_detect(noise, device)) < 20
 
 
 def test_threads_do_not_change_the_result():
-    fr = wp.array(_circles(noise=1.0)[None], device="cpu")
+    fr = wp.array(circles_image(noise=1.0)[None], device="cpu")
     a = detect_ring_lines(fr, threads=1).numpy()
     b = detect_ring_lines(fr, threads=3).numpy()
     assert all(np.array_equal(a[k], b[k]) for k in a)
@@ -115,7 +89,7 @@ def test_bad_input():
 
 
 def test_smoothing_keeps_the_mean_and_scales_16_bit(device):
-    img = _circles()
+    img = circles_image()
     s8 = smooth_frame(wp.array(img[None], device=device), sigma=1.5).numpy()
     s16 = smooth_frame(wp.array(img[None].astype(np.uint16) * 257, device=device), sigma=1.5).numpy()
     assert abs(s8.mean() - img.mean()) < 0.5

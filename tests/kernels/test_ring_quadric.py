@@ -9,8 +9,7 @@ import warp as wp
 from ringscan.kernels.geometry import LightModel, Volume, make_parallel_light, make_perspective_light, make_volume
 from ringscan.kernels.ring_quadric import ray_ring_roots, root_usable
 from ringscan.pipeline.formats.rig import default_rig
-
-from .test_geometry import RATIONAL_PROJECTOR, STRONG_PROJECTOR, _cv_min_det
+from tests.support.opencv_lenses import RATIONAL_PROJECTOR, STRONG_PROJECTOR, cv_min_det
 
 
 @wp.kernel
@@ -139,6 +138,6 @@ def test_distorted_projector_roots_are_on_their_ring_or_flagged(device, lens):
         p = cv2.projectPoints(X.reshape(-1, 1, 3), rvec, L.t, L.K, dist)[0].reshape(-1, 2)
         np.testing.assert_allclose(np.hypot(p[:, 0] - center[0], p[:, 1] - center[1]), rho[good], atol=0.01)
         Xp = X @ L.R.T + L.t
-        assert _cv_min_det(Xp[:, :2] / Xp[:, 2:], np.eye(3), dist).min() > 0
+        assert cv_min_det(Xp[:, :2] / Xp[:, 2:], np.eye(3), dist).min() > 0
         kept += good.sum()
     assert kept > n // 2

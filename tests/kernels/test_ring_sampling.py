@@ -6,14 +6,13 @@ import warp as wp
 
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
-
-from .test_ring_labels import _spec, _stack
+from tests.support.ring_frames import frame_stack, gray_rings_spec
 
 
 @pytest.mark.parametrize("blur", [0.0, 0.8, 1.5])
 def test_samples_lie_on_ring_circles(device, blur):
-    spec = _spec(width=200, height=160, center=(99.3, 79.6), bits=5, pitch=3.0, rho0=5.0)
-    frames = wp.array(_stack(spec, blur=blur), device=device)
+    spec = gray_rings_spec(width=200, height=160, center=(99.3, 79.6), bits=5, pitch=3.0, rho0=5.0)
+    frames = wp.array(frame_stack(spec, blur=blur), device=device)
     lab = decode_gray_rings(frames, bits=spec.bits)
     s = sample_gray_rings(frames, lab, bits=spec.bits)
     d = s.numpy()
@@ -35,8 +34,8 @@ def test_samples_lie_on_ring_circles(device, blur):
 
 
 def test_sample_order_is_deterministic_raster():
-    spec = _spec()
-    frames = wp.array(_stack(spec, blur=0.7), device="cpu")
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec, blur=0.7), device="cpu")
     lab = decode_gray_rings(frames, bits=spec.bits)
     a = sample_gray_rings(frames, lab, bits=spec.bits, threads=1).numpy()
     b = sample_gray_rings(frames, lab, bits=spec.bits, threads=2).numpy()
@@ -45,8 +44,8 @@ def test_sample_order_is_deterministic_raster():
 
 
 def test_no_edges_gives_no_samples(device):
-    spec = _spec()
-    st = _stack(spec)
+    spec = gray_rings_spec()
+    st = frame_stack(spec)
     st[2:] = st[2:, :1, :1]  # every code frame flat: no edge anywhere
     frames = wp.array(st, device=device)
     lab = decode_gray_rings(frames, bits=spec.bits)
@@ -55,16 +54,16 @@ def test_no_edges_gives_no_samples(device):
 
 
 def test_flat_edges_are_dropped(device):
-    spec = _spec()
-    frames = wp.array(_stack(spec, blur=3.0), device=device)  # heavy defocus
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec, blur=3.0), device=device)  # heavy defocus
     lab = decode_gray_rings(frames, bits=spec.bits)
     strict = sample_gray_rings(frames, lab, bits=spec.bits, settings=SampleSettings(min_slope=0.9))
     assert len(strict) == 0
 
 
 def test_sampling_bad_input(device):
-    spec = _spec()
-    frames = wp.array(_stack(spec), device=device)
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec), device=device)
     lab = decode_gray_rings(frames, bits=spec.bits)
     with pytest.raises(ValueError, match="labels are"):
         sample_gray_rings(wp.zeros((10, 8, 8), dtype=wp.uint8, device=device), lab, bits=4)
@@ -80,8 +79,8 @@ def test_ring_curvature_correction_removes_the_inward_edge_shift(device, blur):
     # sigma^2 / (2 rho): the nominal rho reads too large by that. Here sigma is the
     # Gaussian blur (camera = projector grid, point-sampled frames): rho x error
     # = blur^2 / 2. Medians over rho 10..60, away from the image border.
-    spec = _spec(width=240, height=200, center=(119.3, 99.6), bits=5, pitch=4.0, rho0=5.0)
-    frames = wp.array(_stack(spec, blur=blur), device=device)
+    spec = gray_rings_spec(width=240, height=200, center=(119.3, 99.6), bits=5, pitch=4.0, rho0=5.0)
+    frames = wp.array(frame_stack(spec, blur=blur), device=device)
     lab = decode_gray_rings(frames, bits=spec.bits)
     expect = blur ** 2 / 2.0
     for on in (False, True):
@@ -107,8 +106,8 @@ def test_ring_curvature_correction_removes_the_inward_edge_shift(device, blur):
 
 def test_sample_sector_is_its_pairs_sector(device):
     """A sample's sector is its pixel's, or where that has none its neighbour's."""
-    spec = _spec()
-    frames = wp.array(_stack(spec, blur=0.7), device=device)
+    spec = gray_rings_spec()
+    frames = wp.array(frame_stack(spec, blur=0.7), device=device)
     lab = decode_gray_rings(frames, bits=spec.bits, sector_bits=spec.sector_bits)
     d = sample_gray_rings(frames, lab, bits=spec.bits).numpy()
     sec = lab.sector.numpy()

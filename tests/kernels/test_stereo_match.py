@@ -1,4 +1,4 @@
-"""Two-camera matching (kernels.stereo_match) against a hand-made rig (tests/kernels/stereo_rig.py):
+"""Two-camera matching (kernels.stereo_match) against a hand-made rig (tests/support/stereo_rig.py):
 two cameras and a projector around a known sphere (or a step); truth projected through each lens
 gives the exact projector coordinates and pixels."""
 
@@ -14,8 +14,19 @@ from ringscan.kernels.stereo_match import (
     match_by_projector,
     projector_coordinates,
 )
-
-from .stereo_rig import CAM1, CAM2, CENTER, PH, PROJ, PW, _from_projector, _hit, _project, _ring_samples, _w
+from tests.support.stereo_rig import (
+    CAM1,
+    CAM2,
+    CENTER,
+    PH,
+    PROJ,
+    PW,
+    from_projector,
+    project_points,
+    ring_samples,
+    surface_hits,
+    warp_array as _w,
+)
 
 
 def _match(device, q, qs, p2, uv2, s2, **kw):
@@ -27,16 +38,16 @@ def test_dense_map_matches_to_hundredths_of_a_pixel(device):
     # camera 2's coordinates at every pixel of a window (the imported Gray code's kind)
     uu, vv = np.meshgrid(np.arange(380.0, 640.0), np.arange(500.0, 780.0))
     g = np.c_[uu.ravel(), vv.ravel()]
-    X2 = _hit(CAM2, g)
-    p2 = _project(PROJ, X2)
+    X2 = surface_hits(CAM2, g)
+    p2 = project_points(PROJ, X2)
     # queries: camera-1 pixels whose points camera 2 sees inside that window
     rng = np.random.default_rng(1)
-    X = _hit(CAM1, np.c_[rng.uniform(300, 980, 3000), rng.uniform(250, 800, 3000)])
-    uv2_true = _project(CAM2, X)
+    X = surface_hits(CAM1, np.c_[rng.uniform(300, 980, 3000), rng.uniform(250, 800, 3000)])
+    uv2_true = project_points(CAM2, X)
     inside = (np.isfinite(X).all(1) & (uv2_true[:, 0] > 390) & (uv2_true[:, 0] < 630)
               & (uv2_true[:, 1] > 510) & (uv2_true[:, 1] < 770))
     X, uv2_true = X[inside], uv2_true[inside]
-    q = _project(PROJ, X)
+    q = project_points(PROJ, X)
     M = _match(device, q, np.full(len(q), 0.05), p2, g, np.full(len(g), 0.05))
     st = M.status.numpy()
     assert len(q) > 200 and (st == 0).mean() > 0.98, np.bincount(st)  # the rest: at the window's edge
@@ -52,20 +63,20 @@ def test_dense_map_matches_to_hundredths_of_a_pixel(device):
 def test_ring_samples_match_along_their_ring_with_predicted_sigma(device):
     rng = np.random.default_rng(2)
     radii = np.arange(20.0, 240.0, 8.0)
-    p2_true = _ring_samples(rng, radii)
-    X2, ok2 = _from_projector(p2_true)
+    p2_true = ring_samples(rng, radii)
+    X2, ok2 = from_projector(p2_true)
     p2_true, X2 = p2_true[ok2], X2[ok2]
-    uv2 = _project(CAM2, X2)
+    uv2 = project_points(CAM2, X2)
     # the angle code's noise: tangential, 0.1 projector px
     sig = 0.1
     off = p2_true - CENTER
     tang = np.c_[-off[:, 1], off[:, 0]] / np.linalg.norm(off, axis=1, keepdims=True)
     p2 = p2_true + tang * rng.normal(0, sig, (len(off), 1))
     # queries: camera 1's samples on the same rings (exact coordinates)
-    q = _ring_samples(rng, radii, step=3.0)
-    Xq, okq = _from_projector(q)
+    q = ring_samples(rng, radii, step=3.0)
+    Xq, okq = from_projector(q)
     q, Xq = q[okq], Xq[okq]
-    truth = _project(CAM2, Xq)
+    truth = project_points(CAM2, Xq)
     M = _match(device, q, np.full(len(q), 0.0), p2, uv2, np.full(len(p2), sig))
     st = M.status.numpy()
     assert (st == 0).mean() > 0.97, np.bincount(st)
@@ -83,11 +94,11 @@ def test_ring_samples_match_along_their_ring_with_predicted_sigma(device):
 def test_a_depth_step_is_dropped_not_blended(device):
     rng = np.random.default_rng(3)
     p2 = np.c_[rng.uniform(300, 720, 40000), rng.uniform(200, 560, 40000)]
-    X2, ok2 = _from_projector(p2, "step")
-    p2, uv2 = p2[ok2], _project(CAM2, X2[ok2])
+    X2, ok2 = from_projector(p2, "step")
+    p2, uv2 = p2[ok2], project_points(CAM2, X2[ok2])
     q = np.c_[rng.uniform(320, 700, 4000), rng.uniform(220, 540, 4000)]
-    Xq, okq = _from_projector(q, "step")
-    q, truth = q[okq], _project(CAM2, Xq[okq])
+    Xq, okq = from_projector(q, "step")
+    q, truth = q[okq], project_points(CAM2, Xq[okq])
     M = _match(device, q, np.zeros(len(q)), p2, uv2, np.full(len(p2), 0.02))
     st = M.status.numpy()
     err = np.linalg.norm(M.uv2.numpy() - truth, axis=1)
@@ -122,13 +133,13 @@ def test_predicted_sigmas_take_in_the_samples_scatter_beyond_their_noise(device)
     independent per sample, which the fit partly averages out, so here it predicts up to 1.5x too much."""
     rng = np.random.default_rng(4)
     radii = np.arange(20.0, 240.0, 8.0)
-    p2 = _ring_samples(rng, radii)
-    X2, ok2 = _from_projector(p2)
+    p2 = ring_samples(rng, radii)
+    X2, ok2 = from_projector(p2)
     p2, X2 = p2[ok2], X2[ok2]
     scatter = 0.05  # camera px per axis, beyond the stated 0.01 projector px
-    uv2 = _project(CAM2, X2) + rng.normal(0, scatter, (len(X2), 2))
-    q_true = _ring_samples(rng, radii, step=3.0)
-    Xq, okq = _from_projector(q_true)
+    uv2 = project_points(CAM2, X2) + rng.normal(0, scatter, (len(X2), 2))
+    q_true = ring_samples(rng, radii, step=3.0)
+    Xq, okq = from_projector(q_true)
     q_true, Xq = q_true[okq], Xq[okq]
     off = q_true - CENTER
     tang = np.c_[-off[:, 1], off[:, 0]] / np.linalg.norm(off, axis=1, keepdims=True)
@@ -137,7 +148,7 @@ def test_predicted_sigmas_take_in_the_samples_scatter_beyond_their_noise(device)
     st = M.status.numpy()
     assert (st == 0).mean() > 0.9, np.bincount(st)
     ok = st == 0
-    e = M.uv2.numpy()[ok] - _project(CAM2, Xq[ok])
+    e = M.uv2.numpy()[ok] - project_points(CAM2, Xq[ok])
     s1, s2, gain = M.sigma1.numpy()[ok], M.sigma2.numpy()[ok], M.gain.numpy()[ok]
     z = e / np.hypot(s1, s2)[:, None]
     mad = 1.4826 * np.median(np.abs(z - np.median(z, axis=0)), axis=0)
@@ -246,9 +257,9 @@ def test_epipolar_distances_match_float64_geometry():
 
     rng = np.random.default_rng(3)
     uv1 = np.c_[rng.uniform(300, 980, 400), rng.uniform(250, 780, 400)]
-    X = _hit(CAM1, uv1)
+    X = surface_hits(CAM1, uv1)
     X = X[np.isfinite(X).all(axis=1)]
-    uv1, uv2 = _project(CAM1, X), _project(CAM2, X)
+    uv1, uv2 = project_points(CAM1, X), project_points(CAM2, X)
     uv2_moved = uv2 + rng.normal(0, 1.5, uv2.shape)
     R = CAM2.R @ CAM1.R.T
     t = CAM2.t - R @ CAM1.t

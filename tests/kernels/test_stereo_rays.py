@@ -1,5 +1,5 @@
 """Two- and three-ray triangulation (kernels.stereo_rays) against a hand-made rig
-(tests/kernels/stereo_rig.py): two cameras and a projector around a known sphere; truth
+(tests/support/stereo_rig.py): two cameras and a projector around a known sphere; truth
 projected through each lens gives the exact pixels."""
 
 import numpy as np
@@ -9,16 +9,15 @@ import warp as wp
 from ringscan.kernels.geometry import make_camera, make_perspective_light
 from ringscan.kernels.stereo_rays import polar_information, triangulate_rays
 from ringscan.kernels.triangulation import STATUS_NAMES
-
-from .stereo_rig import CAM1, CAM2, CENTER, PROJ, VOLUME, _hit, _project, _w
+from tests.support.stereo_rig import CAM1, CAM2, CENTER, PROJ, VOLUME, project_points, surface_hits, warp_array as _w
 
 
 def _tri_inputs(rng, n=2000):
     uv1 = np.c_[rng.uniform(350, 930, n), rng.uniform(250, 770, n)]
-    X = _hit(CAM1, uv1)
+    X = surface_hits(CAM1, uv1)
     ok = np.isfinite(X).all(1)
     uv1, X = uv1[ok], X[ok]
-    return uv1, X, _project(CAM2, X), _project(PROJ, X)
+    return uv1, X, project_points(CAM2, X), project_points(PROJ, X)
 
 
 def _models():

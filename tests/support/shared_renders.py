@@ -1,7 +1,7 @@
 """Scans rendered once per test session and copied to every test that asks for the same one.
 
 Several test modules ask for the same virtual-rig scan (the two-camera scan of
-tests/pipeline/reconstruct/two_camera_scan.py, the batch tests' scans, the tiny scan). The renders
+tests/support/two_camera_scan.py, the batch tests' scans, the tiny scan). The renders
 are deterministic (seeded noise: a render into another folder writes the same bytes), so the
 first process of a session to ask for one renders it into a folder every process of the session
 shares (under pytest-xdist the workers' common base temporary folder), under a file lock; every

@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+from tests.support.tiny_scan import simulate_tiny_scan
 
 # Each command with its arguments, "{out}" standing for the output path under test.
 # Inputs need not exist: the output is checked first, before anything is read or computed.
@@ -199,7 +199,7 @@ def test_calibrate_out_must_not_overwrite_a_scan_json(tmp_path, capsys, tiny_sca
 def test_a_huge_image_is_one_line_before_decoding(tmp_path, capsys, tiny_scan, w, bits):
     """A PNG of a few bytes whose header says 60000x60000 (before: a cv2.error traceback) or 30000x30000 16-bit
     (before: 20 GB in `calibrate camera`, then the OOM killer): refused from its header."""
-    from tests.pipeline.formats.test_limits import png_header_only
+    from tests.support.header_only import png_header_only
 
     frame = tiny_scan / "view_000" / "gray_1.png"
     png_header_only(frame, w, w, bits)

@@ -98,13 +98,12 @@ def test_projector_from_scan_on_a_parallel_light_says_what_it_is(tmp_path, monke
     the error says why in ringscan's words, not OpenCV's "Principal point must be within the image"."""
     from ringscan.pipeline.formats.rig import Rig, UncalibratedLight
     from ringscan.tools import cmd_calibrate_scan
-
-    from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
-    from .test_cmd_calibrate_stereo import VOLUME, write_scan
+    from tests.support.decoded_scan import VOLUME, write_decoded_scan
+    from tests.support.stereo_truth import oblique_devices, observe
 
     cam1, cam2, _ = oblique_devices()
-    write_scan(tmp_path, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(width=1280, height=800),
-                             volume=VOLUME))
+    write_decoded_scan(tmp_path, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(width=1280, height=800),
+                                     volume=VOLUME))
     X, u1, u2, _ = observe(20000, noise_px=0.1, seed=5)
     c, extent = X[:, :2].mean(0), np.ptp(X[:, :2], axis=0)
     parallel = (X[:, :2] - c) / (extent / [1200, 760]) + [640, 400]  # light along z: pixels affine in x, y

@@ -13,10 +13,10 @@ import pytest
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import default_rig, load_rig, save_rig
 from ringscan.tools.cli import main
-from tests.pipeline.calibrate.synthetic import write_capture
-from tests.support.procam_crop import crop_decoded_scan
 from tests.support.printed import assert_figures_as_quoted, printed_figure
+from tests.support.procam_crop import crop_decoded_scan
 from tests.support.shared_data import need_shared
+from tests.support.synthetic_captures import write_capture
 
 ROOT = Path(__file__).resolve().parents[2]
 OPENCV_RTOL = 1e-3
@@ -590,7 +590,7 @@ def wide_images(tmp_path_factory):
     """Twelve ChArUco images rendered through the wide lens: four boards reaching into the image's corners (partly
     outside it), eight around the middle."""
     from ringscan.pipeline.calibrate.board import Board, board_points
-    from tests.pipeline.calibrate.synthetic import point_toward, render_charuco
+    from tests.support.synthetic_captures import point_toward, render_charuco
 
     board = Board(9, 7, 30.0, charuco="DICT_5X5_100")
     poses = [(-25 * np.sign(v - 320), 25 * np.sign(u - 400), (u, v), 300)

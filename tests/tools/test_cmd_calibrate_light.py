@@ -100,16 +100,16 @@ def test_a_fifo_chunk_in_a_packed_plane_scan_is_refused_without_blocking(tmp_pat
     import os
 
     from ringscan.pipeline.formats.packing import pack_scan
-    from tests.pipeline.formats.test_limits import _in_thread
-    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.threads import in_thread
+    from tests.support.noise_scan import noise_scan
 
     scan = tmp_path / "z0"
-    _scan(scan, views=1)  # 40x30 frames of noise: the FIFO is met before anything is fitted
+    noise_scan(scan, views=1)  # 40x30 frames of noise: the FIFO is met before anything is fitted
     pack_scan(scan)
     chunk = scan / "view_0" / "frames.zarr" / "c" / "2" / "0" / "0"
     chunk.unlink()
     os.mkfifo(chunk)
-    rc = _in_thread(lambda: main(["calibrate", "light", str(scan), "--heights", "0", "--out",
+    rc = in_thread(lambda: main(["calibrate", "light", str(scan), "--heights", "0", "--out",
                                   str(tmp_path / "rig.json")]))
     if rc == "hung":
         with open(chunk, "wb"):

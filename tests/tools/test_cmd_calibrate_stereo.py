@@ -19,14 +19,12 @@ import pytest
 
 from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
 from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg
-from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.patterns import DECODED_SCALE, frame_names, parse_patterns
-from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, Volume, load_rig, save_rig
-from ringscan.pipeline.formats.scan import Scan, View, save_scan
+from ringscan.pipeline.formats.patterns import DECODED_SCALE
+from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, load_rig, save_rig
 from ringscan.tools import cmd_calibrate_scan
 from ringscan.tools.cli import main
-
-from ..pipeline.calibrate.stereo_truth import oblique_devices, observe
+from tests.support.decoded_scan import VOLUME, write_decoded_scan
+from tests.support.stereo_truth import oblique_devices, observe
 
 
 def turned(dev, deg: float):
@@ -60,29 +58,6 @@ def decoded_frames(cam, proj, step: int = 1):
     return {"proj_u": fu, "proj_v": fv, "contrast": np.where(ok, 200 * 257, 0).astype(np.uint16).reshape(fu.shape)}
 
 
-def write_scan(folder, rig: Rig, frames: dict | None = None, frames2: dict | None = None) -> None:
-    spec = parse_patterns({"codec": "decoded", "width": 1280, "height": 800, "center": [661.5, 758.8],
-                           "rho0": 0.0, "pitch": 1.0, "sector_bits": 8}, source="test")
-    views = []
-    for name in ("v1",):
-        rel, rel2 = {}, {}
-        for k in frame_names(spec):
-            img = frames[k] if frames else np.zeros((rig.camera.height, rig.camera.width), np.uint16)
-            write_image(folder / name / f"{k}.png", img)
-            rel[k] = f"{name}/{k}.png"
-            if rig.camera2 is not None:
-                c2 = rig.camera2
-                img2 = frames2[k] if frames2 else np.zeros((c2.height, c2.width), np.uint16)
-                write_image(folder / name / "cam2" / f"{k}.png", img2)
-                rel2[k] = f"{name}/cam2/{k}.png"
-        cam2 = View(name=name, turntable_deg=0.0, frames=rel2) if rel2 else None
-        views.append(View(name=name, turntable_deg=0.0, frames=rel, camera2=cam2))
-    save_scan(Scan(folder=folder, rig=rig, patterns=spec, views=tuple(views)))
-
-
-VOLUME = Volume(z_min=0.0, z_max=2000.0, r_max=3000.0)
-
-
 def half_camera(cam):
     """``cam`` at half its resolution, the same field of view (a quarter of the pixels to render and refine)."""
     K = cam.K.copy()
@@ -98,7 +73,7 @@ def procam_scan(tmp_path_factory):
     cam1, _, proj = oblique_devices()
     cam1 = half_camera(cam1)
     rig = Rig(camera=cam1, light=proj, volume=VOLUME)
-    write_scan(folder, rig, decoded_frames(cam1, proj))
+    write_decoded_scan(folder, rig, decoded_frames(cam1, proj))
     return folder
 
 
@@ -106,7 +81,7 @@ def procam_scan(tmp_path_factory):
 def stereo_scan(tmp_path_factory):
     folder = tmp_path_factory.mktemp("stereo")
     cam1, cam2, _ = oblique_devices()
-    write_scan(folder, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(width=1280, height=800),
+    write_decoded_scan(folder, Rig(camera=cam1, camera2=cam2, light=UncalibratedLight(width=1280, height=800),
                            volume=VOLUME))
     return folder
 
@@ -176,7 +151,6 @@ def test_projector_from_scan_writes_a_procam_rig(stereo_scan, tmp_path, matched,
     assert np.allclose(read_opencv_calibration(tmp_path / "procam.yml")["R"], R)
     three = load_rig(tmp_path / "three.json")
     assert three.camera2 is not None and np.linalg.norm(three.light.center - proj.center) < 1.0
-
 
 
 @pytest.mark.parametrize("flag, expect", [((), True), (("--ring-curvature", "off"), False)])
@@ -304,7 +278,7 @@ def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatc
     cam1, cam2, proj = oblique_devices()
     rng = np.random.default_rng(2)
     X = np.stack([rng.uniform(-800, 800, 8000), rng.uniform(0, 1200, 8000), np.full(8000, 250.0)], 1)
-    from ..pipeline.calibrate.stereo_truth import project
+    from tests.support.stereo_truth import project
 
     (u1, o1), (u2, o2), (up, op) = project(cam1, X), project(cam2, X), project(proj, X)
     ok = o1 & o2 & op
@@ -322,8 +296,7 @@ def test_a_flat_scene_is_refused_unless_forced(stereo_scan, tmp_path, monkeypatc
 def virtual_two_camera(tmp_path_factory):
     """A two-camera scan of the virtual rig (a sphere on the plane) with a perspective projector."""
     from ringscan.pipeline.formats.rig import default_rig
-
-    from ..pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, two_camera_rig
+    from tests.support.two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
     rig = replace(two_camera_rig(), light=default_rig(light_model="perspective").light)
     folder = tmp_path_factory.mktemp("virtual2") / "scan"

@@ -10,7 +10,7 @@ import pytest
 from ringscan.pipeline.calibrate.board import Board
 from ringscan.pipeline.calibrate.importer import read_stereo_calibration
 from ringscan.tools.cli import main
-from tests.pipeline.calibrate.synthetic import render_charuco
+from tests.support.synthetic_captures import render_charuco
 
 BOARD = Board(cols=9, rows=7, square=30.0, charuco="DICT_5X5_100")
 K = np.array([[900.0, 0, 319.5], [0, 900.0, 239.5], [0, 0, 1]])

@@ -18,7 +18,7 @@ from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.rig import save_rig
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.tools.cli import main
-from tests.hardware.conftest import small_patterns, small_rig
+from tests.support.hardware_rig import small_patterns, small_rig
 
 SEED = "3"
 

@@ -10,7 +10,7 @@ from ringscan.pipeline.formats.atomic import atomic_write_json, read_json
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import save_rig
 from ringscan.tools.cli import main
-from tests.hardware.conftest import small_patterns, small_rig
+from tests.support.hardware_rig import small_patterns, small_rig
 
 
 def test_session_of_two_poses_on_the_virtual_rig(tmp_path, monkeypatch, capsys):

@@ -23,7 +23,7 @@ from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.simulate import scenes
 from ringscan.tools import cmd_demo
 from ringscan.tools.cli import main
-from tests.hardware.conftest import small_rig
+from tests.support.hardware_rig import small_rig
 
 SMALL_CODEC = {"pitch": 12.0, "bits": 5, "sector_bits": 3}
 """Over the demo's own patterns (gray-rings with the angle code, 4 steps): rings 12 projector pixels

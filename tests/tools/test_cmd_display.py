@@ -19,8 +19,8 @@ from ringscan.pipeline.formats.rig import save_rig
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools import cmd_calibrate_light, cmd_capture, cmd_patterns
 from ringscan.tools.cli import main
-from tests.hardware.conftest import pattern_frames, small_patterns, small_rig
-from tests.hardware.display_support import DelayedScreenCamera, ScreenPattern, virtual_screen
+from tests.support.hardware_rig import pattern_frames, small_patterns, small_rig
+from tests.support.virtual_screen import DelayedScreenCamera, ScreenPattern, virtual_screen
 
 SEED = 5
 

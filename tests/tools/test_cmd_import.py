@@ -13,8 +13,8 @@ import pytest
 
 from ringscan.pipeline.formats.images import read_image
 from ringscan.tools.cli import main
-from tests.pipeline.calibrate.synthetic import write_capture
 from tests.support.printed import printed_figure
+from tests.support.synthetic_captures import write_capture
 
 PROJ = (128, 96)
 

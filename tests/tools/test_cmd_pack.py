@@ -8,7 +8,7 @@ from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
 
 
 def _plys(folder):
@@ -110,7 +110,7 @@ def test_pack_and_unpack_a_root_on_worker_processes(tmp_path, capsys):
 
 def test_a_two_camera_scan_packs_and_unpacks_to_the_same_reconstruction(tmp_path, capsys):
     from ringscan.pipeline.formats.scan import as_camera2
-    from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+    from tests.support.two_camera_scan import simulate_two_camera_scan
 
     folder = tmp_path / "scan"
     png = simulate_two_camera_scan(folder)
@@ -141,10 +141,10 @@ def test_a_zarr_json_nested_too_deeply_is_named_by_reconstruct_unpack_and_batch(
     """A zarr.json of 100000 `[`: before, a RecursionError traceback (reconstruct, unpack) and
     `FAILED: RecursionError` without the file (batch)."""
     from ringscan.pipeline.formats.packing import pack_scan
-    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.noise_scan import noise_scan
 
     folder = tmp_path / "root" / "scan"
-    _scan(folder, views=1)  # 40x30 frames of noise: nothing here is reconstructed
+    noise_scan(folder, views=1)  # 40x30 frames of noise: nothing here is reconstructed
     pack_scan(folder)
     meta = folder / "view_0" / "frames.zarr" / "zarr.json"
     meta.write_text("[" * 100000)
@@ -167,10 +167,10 @@ def test_store_metadata_that_does_not_fit_is_refused_before_the_first_ply(tmp_pa
     import json
 
     from ringscan.pipeline.formats.packing import pack_scan
-    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.noise_scan import noise_scan
 
     folder = tmp_path / "scan"
-    _scan(folder, views=2)
+    noise_scan(folder, views=2)
     pack_scan(folder)
     meta = folder / "view_1" / "frames.zarr" / "zarr.json"
     good = json.loads(meta.read_text())
@@ -196,12 +196,12 @@ def test_pack_says_which_scans_it_passed_over_and_unpack_goes_on_past_a_failed_s
     an exception of a library (not ringscan's own): before, `unpack ROOT` stopped there."""
     from ringscan.pipeline.formats import packing
     from ringscan.tools import cmd_unpack
-    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.noise_scan import noise_scan
 
     root = tmp_path / "root"
     for name in ("a", "b"):
-        _scan(root / name, views=1)
-    _scan(root / "a" / "view_0" / "inner", views=1)
+        noise_scan(root / name, views=1)
+    noise_scan(root / "a" / "view_0" / "inner", views=1)
     assert main(["pack", str(root)]) == 0
     out = capsys.readouterr().out
     assert f"{root / 'a'}: 1 view(s) packed" in out and f"{root / 'b'}: 1 view(s) packed" in out
@@ -230,11 +230,11 @@ def test_pack_workers_end_when_their_parent_is_killed(tmp_path):
     import sys
     import time
 
-    from tests.pipeline.formats.test_packing import _scan
+    from tests.support.noise_scan import noise_scan
     from tests.support.processes import children, running
 
     for name in "abcdef":
-        _scan(tmp_path / "root" / name, views=1)
+        noise_scan(tmp_path / "root" / name, views=1)
     proc = subprocess.Popen([sys.executable, "-m", "ringscan.tools.cli", "pack", str(tmp_path / "root"),
                              "--workers", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60

@@ -12,7 +12,7 @@ from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import save_rig
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.tools.cli import main
-from tests.hardware.conftest import small_rig
+from tests.support.hardware_rig import small_rig
 
 PAT = ["--codec", "phase-rings", "--bits", "2", "--sector-bits", "0", "--pitch", "40", "--steps", "3"]
 

@@ -11,8 +11,8 @@ import pytest
 
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
-from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+from tests.support.tiny_scan import simulate_tiny_scan
+from tests.support.two_camera_scan import simulate_two_camera_scan
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_rays_is_a_choice(capsys):
 
 @pytest.fixture(scope="module")
 def no_angle_folder(tmp_path_factory):
-    from tests.pipeline.reconstruct.two_camera_scan import ANGLE_PATTERNS
+    from tests.support.two_camera_scan import ANGLE_PATTERNS
     return simulate_two_camera_scan(tmp_path_factory.mktemp("noangle") / "scan",
                                     patterns={**ANGLE_PATTERNS, "bits": 3, "angle_steps": 0}).folder
 

@@ -13,7 +13,7 @@ from ringscan.pipeline.formats.settings import settings_json_schema
 from ringscan.pipeline.reconstruct import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+from tests.support.tiny_scan import simulate_tiny_scan
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import open3d as o3d
 import pytest
 
 from ringscan.tools.cli import main
-from tests.pipeline.fusion.fusion_synth import point_to_mesh, synthetic_scan, write_recon
+from tests.support.fusion_synth import point_to_mesh, synthetic_scan, write_recon
 
 
 @pytest.fixture(scope="module")

@@ -152,7 +152,7 @@ def test_view_conditioning_of_a_huge_camera_is_bounded(tmp_path, capsys):
 
 
 def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
-    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    from tests.support.tiny_scan import simulate_tiny_scan
 
     scan = simulate_tiny_scan(tmp_path / "scan")
     truth_mesh = o3d.io.read_triangle_mesh(str(scan.folder / scan.extra["truth"]["mesh"]))
@@ -173,7 +173,7 @@ def test_view_truth_takes_a_simulated_scan_too(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def tiny_recon(tmp_path_factory):
     from ringscan.pipeline.reconstruct import reconstruct_scan
-    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    from tests.support.tiny_scan import simulate_tiny_scan
 
     root = tmp_path_factory.mktemp("tiny")
     scan = simulate_tiny_scan(root / "scan")

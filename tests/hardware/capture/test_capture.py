@@ -33,7 +33,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
 from ringscan.pipeline.formats.scan import load_scan
-from tests.hardware.conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
+from tests.support.hardware_rig import ProbeCamera, pattern_frames, small_patterns, small_rig
 
 FAST = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0, retries=2, retry_delay_s=0.0,
                        command_timeout_s=0.3)
@@ -449,7 +449,7 @@ import os, sys
 from ringscan.hardware.capture.sequence import CaptureSettings, capture_scan
 from ringscan.hardware.devices.projector import VirtualProjector
 from ringscan.hardware.devices.turntable import VirtualTurntable
-from tests.hardware.conftest import ProbeCamera, pattern_frames, small_patterns, small_rig
+from tests.support.hardware_rig import ProbeCamera, pattern_frames, small_patterns, small_rig
 
 class Killed(ProbeCamera):
     def _read(self):

@@ -14,8 +14,8 @@ from ringscan.hardware.devices.turntable import VirtualTurntable
 from ringscan.hardware.emulators.virtual import VirtualCamera
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import frame_names
-from tests.hardware.conftest import pattern_frames
-from tests.hardware.display_support import SCREEN_H, SCREEN_W, ScreenPattern, virtual_screen
+from tests.support.hardware_rig import pattern_frames
+from tests.support.virtual_screen import SCREEN_H, SCREEN_W, ScreenPattern, virtual_screen
 
 FAST = CaptureSettings(turntable_settle_s=0.0, projector_settle_s=0.0, retries=0)
 SEED = 7

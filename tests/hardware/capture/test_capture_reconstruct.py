@@ -10,7 +10,7 @@ from ringscan.hardware.devices.grbl import GrblTurntable
 from ringscan.hardware.devices.projector import SerialProjector
 from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.pipeline.formats.patterns import frame_names
-from tests.hardware.conftest import small_patterns, small_rig
+from tests.support.hardware_rig import small_patterns, small_rig
 
 
 @pytest.mark.slow

@@ -21,7 +21,7 @@ from ringscan.hardware.devices.projector import VirtualProjector
 from ringscan.hardware.errors import CaptureError
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict, save_rig
-from tests.hardware.display_support import SCREEN_H, SCREEN_W, DelayedScreenCamera, virtual_screen
+from tests.support.virtual_screen import SCREEN_H, SCREEN_W, DelayedScreenCamera, virtual_screen
 
 FAST = LatencySettings(trials=2, rest_s=0.1, max_s=0.15)
 

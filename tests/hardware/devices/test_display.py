@@ -19,7 +19,7 @@ from ringscan.hardware.devices.display import (
 from ringscan.hardware.errors import ProjectorCommandError, ProjectorError
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.patterns import CODECS, frame_names, parse_patterns
-from tests.hardware.display_support import SCREEN_H, SCREEN_W, ScreenReader, virtual_screen
+from tests.support.virtual_screen import SCREEN_H, SCREEN_W, ScreenReader, virtual_screen
 
 CODEC_PARAMS = {
     "rings": {"count": 9, "line_width": 3.0, "pitch": 40.0},

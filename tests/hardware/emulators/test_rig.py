@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ringscan.hardware.emulators.rig import FOLDER_PREFIX, EmulatedRig, remove_stale_folders
 from ringscan.pipeline.formats.atomic import LOCK_NAME, lock_folder
-from tests.hardware.conftest import small_patterns
+from tests.support.hardware_rig import small_patterns
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[3]
 _RIG = """
 import sys
 from ringscan.hardware.emulators.rig import EmulatedRig
-from tests.hardware.conftest import small_patterns, small_rig
+from tests.support.hardware_rig import small_patterns, small_rig
 
 emu = EmulatedRig(small_rig(), small_patterns(), "terrain", device="cpu")
 print(emu.folder, flush=True)

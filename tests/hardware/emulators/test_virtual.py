@@ -5,7 +5,7 @@ import numpy as np
 from ringscan.hardware.devices.projector import VirtualProjector
 from ringscan.hardware.devices.turntable import VirtualTurntable
 from ringscan.hardware.emulators.virtual import VirtualCamera
-from tests.hardware.conftest import pattern_frames, small_patterns
+from tests.support.hardware_rig import pattern_frames, small_patterns
 
 
 def test_virtual_camera_follows_projector_and_turntable(virtual_rig, rig):

@@ -7,6 +7,7 @@ from ringscan.pipeline.evaluate.metrics import evaluate_recon
 from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.tools.cli import main
+from tests.support.header_only import huge_png
 
 
 def test_batch_reconstructs_every_scan_and_resumes(scan_root, tmp_path, monkeypatch):
@@ -148,22 +149,12 @@ def test_root_given_through_dot_dot_writes_inside_out(scan_root, tmp_path):
     assert (out / "a_sphere" / "view_000.ply").is_file() and (out / "batch_report.json").is_file()
 
 
-def _huge_png(path, w=60000, h=60000):
-    import struct
-    import zlib
-
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-                     + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
-
-
 def test_a_huge_frame_fails_its_scan_alone(scan_root, tmp_path):
     """A 60000x60000 PNG (a few bytes on disk) as a frame: refused before decoding, that scan fails, named;
     the other is done and in the report; a rerun does the same (before: a cv2.error aborted the whole batch)."""
     root = _copy(scan_root, tmp_path)
     frame = root / "b" / "cube" / "view_000" / "gray_1.png"
-    _huge_png(frame)
+    huge_png(frame)
     out = tmp_path / "out"
     for _ in range(2):
         rep = batch_reconstruct(root, out, workers=0, device="cpu", progress=False)
@@ -199,7 +190,7 @@ def test_on_the_pool_a_huge_frame_or_a_library_error_fails_its_scan_alone(scan_r
     root = _copy(scan_root, tmp_path)
     shutil.copytree(scan_root / "a_sphere", root / "c_raises")
     frame = root / "b" / "cube" / "view_000" / "gray_1.png"
-    _huge_png(frame)
+    huge_png(frame)
     monkeypatch.setenv(RAISE_ENV, "c_raises")  # spawned workers take the environment
     rep = batch_reconstruct(root, tmp_path / "out", workers=1, device="cpu", progress=False)
     status = {s["scan"]: s for s in rep["scans"]}

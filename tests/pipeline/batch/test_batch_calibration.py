@@ -13,7 +13,7 @@ import numpy as np
 
 from ringscan.pipeline.formats.scan import load_scan, save_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan
+from tests.support.two_camera_scan import simulate_two_camera_scan
 
 
 def _rotate_camera2(folder, deg):

@@ -1,7 +1,6 @@
 """``ringscan batch`` and ``reconstruct`` through object storage: scans read from and results written to an
 S3 server that the tests start (moto's, on a free port), against the same batch on local folders."""
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -11,7 +10,7 @@ import time
 import pytest
 
 pytest.importorskip("s3fs", reason="the object-storage tests need s3fs (pip install '.[test]')")
-moto_server = pytest.importorskip("moto.server", reason="the object-storage tests need moto (pip install '.[test]')")
+pytest.importorskip("moto.server", reason="the object-storage tests need moto (pip install '.[test]')")
 
 from ringscan.pipeline.batch import batch_reconstruct, plan_batch  # noqa: E402
 from ringscan.pipeline.batch.worker import FAULT_ENV, ScanJob, process_scan  # noqa: E402
@@ -19,42 +18,7 @@ from ringscan.pipeline.formats import storage  # noqa: E402
 from ringscan.pipeline.formats.packing import pack_scan  # noqa: E402
 from ringscan.pipeline.formats.storage import StorageError  # noqa: E402
 from ringscan.tools.cli import main  # noqa: E402
-
-CREDENTIALS = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1"}
-
-
-@contextlib.contextmanager
-def s3_server():
-    """A local S3 server (moto's, on a free port), empty, the credentials in this process's environment while it
-    runs: yields (storage options pointing at it, an s3fs file system on it). Moto keeps its buckets in the
-    process, whatever server serves them: they are emptied when the server starts and when it stops."""
-    import s3fs
-
-    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    env = pytest.MonkeyPatch()
-    for k, v in CREDENTIALS.items():  # for the spawned workers too; no profile of the machine's
-        env.setenv(k, v)
-    env.delenv("AWS_PROFILE", raising=False)
-    try:
-        host, port = (server.get_host_and_port() if hasattr(server, "get_host_and_port")  # moto >= 5.0.x
-                      else ("127.0.0.1", server._server.server_port))
-        options = {"endpoint_url": f"http://{host}:{port}", "key": "testing", "secret": "testing"}
-        _reset(options)
-        yield options, s3fs.S3FileSystem(**options, use_listings_cache=False, skip_instance_cache=True)
-        _reset(options)
-    finally:
-        env.undo()
-        server.stop()
-
-
-def _reset(options):
-    """Empty moto's buckets (its server's reset call)."""
-    import urllib.request
-
-    with urllib.request.urlopen(urllib.request.Request(options["endpoint_url"] + "/moto-api/reset",
-                                                       method="POST"), timeout=10) as answer:
-        assert answer.status == 200
+from tests.support.s3 import objects, plys, s3_server, upload  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -62,17 +26,6 @@ def s3():
     """A local S3 server for the module: (storage options pointing at it, an s3fs file system on it)."""
     with s3_server() as server:
         yield server
-
-
-def upload(fs, folder, url):
-    """Copy a local folder to ``url``, an object a file (put side by side: s3fs's batch of puts)."""
-    fs.pipe({url[len("s3://"):] + "/" + p.relative_to(folder).as_posix(): p.read_bytes()
-             for p in sorted(folder.rglob("*")) if p.is_file()})
-
-
-def objects(fs, url) -> dict:
-    base = url[len("s3://"):]
-    return {k[len(base) + 1:]: fs.cat_file(k) for k in fs.find(base)}
 
 
 @pytest.fixture(scope="module")
@@ -90,10 +43,6 @@ def scans_bucket(s3, scan_root):
     fs.mkdir("scans")
     upload(fs, scan_root, "s3://scans/root")
     return "s3://scans/root"
-
-
-def plys(folder) -> dict:
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
 
 
 def test_same_plys_through_s3_and_a_rerun_skips(s3, scans_bucket, local_run):
@@ -347,9 +296,9 @@ def test_two_camera_scan_through_s3(s3, tmp_path):
     """A two-camera scan (camera 2's frames under <view>/cam2/) read from S3, as image files and packed
     (camera 2's store too): the same PLY as the local reconstruction, every rays setting's inputs staged."""
     from ringscan.pipeline.reconstruct.scan import reconstruct_scan
-    from tests.pipeline.batch.conftest import SPEC
-    from tests.pipeline.reconstruct.tiny_scan import tiny_rig
-    from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, two_camera_rig
+    from tests.support.batch_scans import SPEC
+    from tests.support.tiny_scan import tiny_rig
+    from tests.support.two_camera_scan import simulate_two_camera_scan, two_camera_rig
 
     options, fs = s3
     png = tmp_path / "png"

@@ -209,13 +209,13 @@ class TestOneCluster:
         import shutil
 
         from ringscan.pipeline.batch.worker import RAISE_ENV
-        from tests.pipeline.batch.test_batch import _huge_png
+        from tests.support.header_only import huge_png
 
         root = tmp_path / "root"
         shutil.copytree(scan_root, root)
         shutil.copytree(scan_root / "a_sphere", root / "c_raises")  # the cluster's RAISE_ENV names it
         frame = root / "b" / "cube" / "view_000" / "gray_1.png"
-        _huge_png(frame)
+        huge_png(frame)
         rep = batch_reconstruct(root, tmp_path / "ray", backend="ray", device="cpu", progress=False)
         bad = batch_reconstruct(scan_root, tmp_path / "bad", backend="ray", device="nodevice:7", progress=False)
         status = {s["scan"]: s for s in rep["scans"]}
@@ -233,7 +233,7 @@ class TestOneCluster:
         this process's environment only after the cluster started); the local backend's PLYs."""
         pytest.importorskip("s3fs", reason="the object-storage tests need s3fs (pip install '.[test]')")
         pytest.importorskip("moto.server", reason="the object-storage tests need moto (pip install '.[test]')")
-        from tests.pipeline.batch.test_object_storage import objects, plys, s3_server, upload
+        from tests.support.s3 import objects, plys, s3_server, upload
 
         with s3_server() as (options, fs):
             fs.mkdir("scans")

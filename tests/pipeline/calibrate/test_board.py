@@ -207,7 +207,7 @@ def test_corner_ids_are_checked_against_the_board_geometry():
     assert "not on a 9x7 board" in corner_id_problem(CHARUCO, v.corners, np.r_[v.ids[:-1], 63])
     # a tilted, distorted view of the board keeps its ids' fit (the check is local: a few squares)
     K = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]])
-    from tests.pipeline.calibrate.synthetic import render_charuco
+    from tests.support.synthetic_captures import render_charuco
 
     photo = render_charuco(CHARUCO, K=K, dist=np.array([-0.3, 0.12, 0, 0, 0]), size=(640, 480),
                            rvec=np.array([0.6, -0.3, 0.1]), tvec=np.array([-130.0, -90.0, 520.0]))

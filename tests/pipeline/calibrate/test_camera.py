@@ -11,7 +11,7 @@ import pytest
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera, distinct_views, lens_problems
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from tests.pipeline.calibrate.synthetic import point_toward
+from tests.support.synthetic_captures import point_toward
 
 BOARD = Board(9, 7, 30.0)
 SIZE = (1280, 1024)

@@ -11,7 +11,7 @@ from ringscan.pipeline.calibrate.capture_files import list_capture, natural_key
 from ringscan.pipeline.calibrate.capture_reader import read_capture_files
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import decode_graycode, subpixel_map
-from tests.pipeline.calibrate.synthetic import write_capture
+from tests.support.synthetic_captures import write_capture
 
 PROJ = (128, 96)
 

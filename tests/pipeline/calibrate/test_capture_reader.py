@@ -9,7 +9,7 @@ import pytest
 from ringscan.pipeline.calibrate.capture_reader import read_capture
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.graycode import decode_graycode
-from tests.pipeline.calibrate.synthetic import write_capture
+from tests.support.synthetic_captures import write_capture
 
 PROJ = (128, 96)
 

@@ -17,7 +17,7 @@ from ringscan.pipeline.formats.rig import has_calibrated_light
 from ringscan.pipeline.formats.scan import as_camera2, load_scan, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
 from ringscan.tools.cli import main
-from tests.pipeline.simulate.test_opencv_graycode import PH, PW, small_stereo_rig
+from tests.support.opencv_graycode_rig import PH, PW, small_stereo_rig
 
 PROJ = f"{PW}x{PH}"
 

@@ -218,7 +218,7 @@ def test_rig_file_with_camera_pose_moves_a_procam_projector_with_the_camera():
     baseline); a parallel light's rig just takes the pose."""
     from ringscan.pipeline.calibrate.light import rig_file_with_camera_pose
     from ringscan.pipeline.formats.rig import Rig, Volume, rig_to_dict
-    from tests.pipeline.calibrate.stereo_truth import oblique_devices
+    from tests.support.stereo_truth import oblique_devices
 
     cam, _, proj = oblique_devices()
     rig = Rig(camera=cam, light=proj, volume=Volume(z_min=0.0, z_max=2000.0, r_max=3000.0))

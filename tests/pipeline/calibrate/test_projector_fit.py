@@ -11,8 +11,7 @@ import pytest
 
 from ringscan.pipeline.calibrate.projector_fit import ProjectorSettings, fit_projector, triangulation_covariance
 from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg, triangulate_pair
-
-from .stereo_truth import oblique_devices, project, surface_points
+from tests.support.stereo_truth import oblique_devices, project, surface_points
 
 SIZE = (1280, 800)
 

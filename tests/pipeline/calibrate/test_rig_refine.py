@@ -25,8 +25,7 @@ from ringscan.pipeline.calibrate.rig_refine import (
     triangulate_pair,
 )
 from ringscan.pipeline.formats.rig import Rig, Volume
-
-from .stereo_truth import oblique_devices, observe, project
+from tests.support.stereo_truth import oblique_devices, observe, project
 
 
 def rotated(dev, deg: float, axis=(0.3, -0.8, 0.5)):

@@ -11,7 +11,7 @@ import pytest
 
 from ringscan.pipeline.calibrate.scan_matches import gather_matches, load_scan_with_rig, two_camera_points
 from ringscan.pipeline.formats.errors import FormatError
-from tests.pipeline.calibrate.stereo_truth import oblique_devices, observe
+from tests.support.stereo_truth import oblique_devices, observe
 
 
 def _views(n, *, two=True):

@@ -11,7 +11,7 @@ from ringscan.pipeline.evaluate.metrics import evaluate_view
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
-from tests.pipeline.codecs.test_phase_rings import PROJ, crop_rig
+from tests.support.crop_rig import PROJ, crop_rig
 
 GRAY = {"codec": "gray-rings", **PROJ, "rho0": 8.0, "pitch": 2.0, "bits": 7, "sector_bits": 6}
 """On crop_rig's projector window (test_phase_rings.WINDOW: the camera's frames are the whole projector's)."""

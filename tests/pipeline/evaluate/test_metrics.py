@@ -15,7 +15,7 @@ from ringscan.pipeline.formats.ply import read_ply, write_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, simulate_tiny_scan, tiny_rig
 
 
 @pytest.fixture(scope="module")

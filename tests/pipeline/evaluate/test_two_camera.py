@@ -16,7 +16,7 @@ from ringscan.pipeline.formats.rig import UncalibratedLight, rig_to_dict, save_r
 from ringscan.pipeline.formats.scan import load_scan, save_scan
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.two_camera_scan import two_camera_rig
+from tests.support.two_camera_scan import two_camera_rig
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +69,7 @@ def test_evaluate_a_two_camera_scan_with_an_uncalibrated_projector(simulated, tm
 
 
 def test_evaluate_the_decoded_codec(tmp_path):
-    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+    from tests.support.two_camera_scan import simulate_decoded_two_camera_scan
 
     scan = simulate_decoded_two_camera_scan(tmp_path / "scan", integer=True)
     rep = reconstruct_scan(scan, tmp_path / "rec", progress=False)  # auto: all three rays

@@ -9,7 +9,7 @@ from ringscan.pipeline.formats import frame_store as fs
 from ringscan.pipeline.formats.buffers import FrameBuffers
 from ringscan.pipeline.formats.packing import pack_scan
 from ringscan.pipeline.formats.scan import load_scan, read_view_frames
-from tests.pipeline.formats.test_packing import _scan
+from tests.support.noise_scan import noise_scan
 
 
 def test_a_given_stack_is_taken_again_and_the_pool_stays_bounded():
@@ -91,7 +91,7 @@ def test_read_store_decodes_into_the_given_stack(tmp_path):
 
 @pytest.mark.parametrize("packed", [False, True])
 def test_read_view_frames_reads_into_a_pooled_stack(tmp_path, packed):
-    truth = _scan(tmp_path, views=2)
+    truth = noise_scan(tmp_path, views=2)
     if packed:
         pack_scan(tmp_path)
     scan = load_scan(tmp_path)

@@ -170,13 +170,13 @@ def test_metadata_nested_too_deeply_or_of_frames_too_large_is_refused_before_dec
 def test_a_fifo_in_place_of_a_chunk_or_the_metadata_is_refused_without_blocking(tmp_path):
     import os
 
-    from tests.pipeline.formats.test_limits import _in_thread
+    from tests.support.threads import in_thread
 
     info = fs.write_store(tmp_path / "s.zarr", _frames(np.uint8), NAMES)
     chunk = info.chunk_path(2)
     chunk.unlink()
     os.mkfifo(chunk)
-    got = _in_thread(lambda: fs.read_store(info))  # before: blocked forever in open()
+    got = in_thread(lambda: fs.read_store(info))  # before: blocked forever in open()
     if got == "hung":
         with open(chunk, "wb"):
             pass
@@ -187,7 +187,7 @@ def test_a_fifo_in_place_of_a_chunk_or_the_metadata_is_refused_without_blocking(
     meta = info.path / "zarr.json"
     meta.unlink()
     os.mkfifo(meta)
-    got = _in_thread(lambda: fs.open_store(info.path))
+    got = in_thread(lambda: fs.open_store(info.path))
     if got == "hung":
         with open(meta, "wb"):
             pass

@@ -4,9 +4,6 @@ headers checked before decoding."""
 from __future__ import annotations
 
 import os
-import struct
-import threading
-import zlib
 
 import cv2
 import numpy as np
@@ -16,50 +13,14 @@ from ringscan.pipeline.formats.atomic import read_json
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.limits import check_image_header, image_header_size, read_bounded_text
-
-
-def png_header_only(path, w, h, bit_depth=8):
-    """A PNG whose IHDR claims w x h (grey) and whose data is a few bytes: small on disk, huge decoded."""
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
-                     + chunk(b"IEND", b""))
-    return path
-
-
-def tiff_header_only(path, w, h, big_endian=False):
-    bo = ">" if big_endian else "<"
-    entries = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 1, 8), (277, 3, 1, 1)]
-    ifd = struct.pack(bo + "H", len(entries)) + b"".join(
-        struct.pack(bo + "HHI", t, typ, n) + (struct.pack(bo + "HH", v, 0) if typ == 3 else struct.pack(bo + "I", v))
-        for t, typ, n, v in entries) + struct.pack(bo + "I", 0)
-    path.write_bytes((b"MM" if big_endian else b"II") + struct.pack(bo + "HI", 42, 8) + ifd)
-    return path
-
-
-def _in_thread(fn, timeout=10.0):
-    """Run fn in a thread; its result or exception, or 'hung' when it does not return in time."""
-    box = {}
-
-    def target():
-        try:
-            box["value"] = fn()
-        except BaseException as e:  # noqa: BLE001 - handed to the test
-            box["error"] = e
-
-    t = threading.Thread(target=target, daemon=True)
-    t.start()
-    t.join(timeout)
-    if t.is_alive():
-        return "hung"
-    return box.get("error", box.get("value"))
+from tests.support.header_only import png_header_only, tiff_header_only
+from tests.support.threads import in_thread
 
 
 def test_a_fifo_is_refused_without_blocking(tmp_path):
     fifo = tmp_path / "rig.json"
     os.mkfifo(fifo)
-    got = _in_thread(lambda: read_json(fifo))
+    got = in_thread(lambda: read_json(fifo))
     if got == "hung":  # unblock the thread so the test run can end
         with open(fifo, "wb") as f:
             f.write(b"{}")
@@ -68,7 +29,7 @@ def test_a_fifo_is_refused_without_blocking(tmp_path):
 
 
 def test_a_device_is_refused_before_reading():
-    got = _in_thread(lambda: read_json("/dev/zero"))
+    got = in_thread(lambda: read_json("/dev/zero"))
     assert isinstance(got, FormatError) and "/dev/zero: is a device, not a regular file" in str(got), got
 
 
@@ -135,7 +96,7 @@ def test_not_an_image_and_not_a_regular_file(tmp_path):
     fifo = tmp_path / "frame.png"
     p.unlink()
     os.mkfifo(fifo)
-    got = _in_thread(lambda: read_image(fifo))
+    got = in_thread(lambda: read_image(fifo))
     if got == "hung":
         with open(fifo, "wb"):
             pass

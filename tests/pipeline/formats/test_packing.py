@@ -10,33 +10,8 @@ from ringscan.pipeline.formats import frame_store
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.packing import pack_scan, unpack_scan
-from ringscan.pipeline.formats.patterns import frame_names, parse_patterns
-from ringscan.pipeline.formats.rig import default_rig, parse_rig, rig_to_dict
-from ringscan.pipeline.formats.scan import SCAN_FORMAT, SCAN_FORMAT_PACKED, Scan, View, load_scan, \
-    read_view_frame, read_view_frames, save_scan
-
-SPEC = {"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 4.0,
-        "bits": 3, "sector_bits": 2}
-W, H = 40, 30
-
-
-def _scan(folder, *, dtype=np.uint8, views=2, ext="png"):
-    d = rig_to_dict(default_rig())
-    d["camera"].update(width=W, height=H)
-    spec = parse_patterns(SPEC)
-    rng = np.random.default_rng(3)
-    hi = np.iinfo(dtype).max
-    truth, vs = {}, []
-    for k in range(views):
-        frames = {}
-        for n in frame_names(spec):
-            img = rng.integers(0, hi + 1, size=(H, W), dtype=np.int64).astype(dtype)
-            write_image(folder / f"view_{k}" / f"{n}.{ext}", img)
-            frames[n] = f"view_{k}/{n}.{ext}"
-            truth[(k, n)] = img
-        vs.append(View(f"view_{k}", 10.0 * k, frames))
-    save_scan(Scan(folder=folder, rig=parse_rig(d), patterns=spec, views=tuple(vs)))
-    return truth
+from ringscan.pipeline.formats.scan import SCAN_FORMAT, SCAN_FORMAT_PACKED, load_scan, read_view_frame, read_view_frames
+from tests.support.noise_scan import H, W, noise_scan
 
 
 def _files(folder):
@@ -53,7 +28,7 @@ def _check_frames(folder, truth):
 
 @pytest.mark.parametrize("dtype, ext", [(np.uint8, "png"), (np.uint16, "png"), (np.uint16, "tiff")])
 def test_pack_and_unpack_are_lossless(tmp_path, dtype, ext):
-    truth = _scan(tmp_path, dtype=dtype, ext=ext)
+    truth = noise_scan(tmp_path, dtype=dtype, ext=ext)
     r = pack_scan(tmp_path)
     assert r.converted == ["view_0", "view_1"] and r.removed == 2 * len(truth) // 2
     d = json.loads((tmp_path / "scan.json").read_text())
@@ -74,7 +49,7 @@ def test_pack_and_unpack_are_lossless(tmp_path, dtype, ext):
 
 def test_keep_leaves_the_originals_and_a_later_pack_removes_them_after_comparing(tmp_path):
     # --keep leaves the state a pack killed after rewriting scan.json leaves: store + old files
-    truth = _scan(tmp_path, views=1)
+    truth = noise_scan(tmp_path, views=1)
     before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path) if f.endswith(".png")}
     pack_scan(tmp_path, keep=True)
     assert {f: (tmp_path / f).read_bytes() for f in before} == before
@@ -92,7 +67,7 @@ def test_keep_leaves_the_originals_and_a_later_pack_removes_them_after_comparing
 
 
 def test_a_killed_pack_leaves_the_originals_and_resumes(tmp_path, monkeypatch):
-    truth = _scan(tmp_path)
+    truth = noise_scan(tmp_path)
     scan_json = (tmp_path / "scan.json").read_bytes()
     before = _files(tmp_path)
     calls = []
@@ -118,7 +93,7 @@ def test_a_killed_pack_leaves_the_originals_and_resumes(tmp_path, monkeypatch):
 
 
 def test_a_bad_frame_is_named_and_nothing_is_written(tmp_path):
-    _scan(tmp_path, views=1)
+    noise_scan(tmp_path, views=1)
     bad = tmp_path / "view_0" / "sector_1.png"
     bad.write_bytes(bad.read_bytes()[:100])
     before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
@@ -129,7 +104,7 @@ def test_a_bad_frame_is_named_and_nothing_is_written(tmp_path):
 
 
 def test_a_frame_name_that_is_no_file_name_is_refused_before_anything_is_written(tmp_path):
-    _scan(tmp_path, views=1)
+    noise_scan(tmp_path, views=1)
     d = json.loads((tmp_path / "scan.json").read_text())
     d["views"][0]["frames"]["sub/extra"] = d["views"][0]["frames"]["white"]
     (tmp_path / "scan.json").write_text(json.dumps(d))
@@ -140,7 +115,7 @@ def test_a_frame_name_that_is_no_file_name_is_refused_before_anything_is_written
 
 
 def test_colour_png_is_refused(tmp_path):
-    _scan(tmp_path, views=1)
+    noise_scan(tmp_path, views=1)
     p = tmp_path / "view_0" / "white.png"
     cv2.imwrite(str(p), np.zeros((H, W, 3), np.uint8))
     with pytest.raises(FormatError, match="colour frame") as e:
@@ -149,7 +124,7 @@ def test_colour_png_is_refused(tmp_path):
 
 
 def test_packed_scan_json_is_checked(tmp_path):
-    truth = _scan(tmp_path, views=1)
+    truth = noise_scan(tmp_path, views=1)
     pack_scan(tmp_path)
     src = tmp_path / "scan.json"
     d = json.loads(src.read_text())
@@ -186,16 +161,16 @@ def test_packed_scan_json_is_checked(tmp_path):
 def test_a_fifo_chunk_stops_unpack_and_a_later_pack_without_blocking(tmp_path):
     import os
 
-    from tests.pipeline.formats.test_limits import _in_thread
+    from tests.support.threads import in_thread
 
-    _scan(tmp_path, views=1)
+    noise_scan(tmp_path, views=1)
     pack_scan(tmp_path, keep=True)  # the images stay beside the store: the next pack compares them
     chunk = tmp_path / "view_0" / "frames.zarr" / "c" / "2" / "0" / "0"
     chunk.unlink()
     os.mkfifo(chunk)
     before = {f: (tmp_path / f).read_bytes() for f in _files(tmp_path)}
     for run in (lambda: pack_scan(tmp_path), lambda: unpack_scan(tmp_path)):
-        got = _in_thread(run)  # before: both blocked forever opening the FIFO
+        got = in_thread(run)  # before: both blocked forever opening the FIFO
         if got == "hung":
             with open(chunk, "wb"):
                 pass
@@ -207,7 +182,7 @@ def test_a_fifo_chunk_stops_unpack_and_a_later_pack_without_blocking(tmp_path):
 @pytest.mark.parametrize("ext", ["tiff", "jpg", "bmp"])
 def test_a_colour_frame_of_any_format_is_refused_and_kept(tmp_path, ext):
     """Before: only PNG was checked; a colour TIFF or JPEG was packed as grey and the original removed."""
-    _scan(tmp_path, views=1)
+    noise_scan(tmp_path, views=1)
     d = json.loads((tmp_path / "scan.json").read_text())
     p = tmp_path / "view_0" / f"white.{ext}"
     colour = np.zeros((H, W, 3), np.uint8)
@@ -226,7 +201,7 @@ def test_a_colour_frame_of_any_format_is_refused_and_kept(tmp_path, ext):
 
 def test_two_views_naming_the_same_files_both_pack(tmp_path):
     """Before: the first view's pack removed the files the second view names; the scan then did not load."""
-    truth = _scan(tmp_path, views=2)
+    truth = noise_scan(tmp_path, views=2)
     d = json.loads((tmp_path / "scan.json").read_text())
     d["views"][1]["frames"] = dict(d["views"][0]["frames"])  # view_1's own files: named by no view now
     (tmp_path / "scan.json").write_text(json.dumps(d))
@@ -241,7 +216,7 @@ def test_two_views_naming_the_same_files_both_pack(tmp_path):
 
 
 def test_a_killed_pack_between_two_views_naming_the_same_files_resumes(tmp_path, monkeypatch):
-    truth = _scan(tmp_path, views=2)
+    truth = noise_scan(tmp_path, views=2)
     d = json.loads((tmp_path / "scan.json").read_text())
     d["views"][1]["frames"] = dict(d["views"][0]["frames"])
     (tmp_path / "scan.json").write_text(json.dumps(d))
@@ -269,7 +244,7 @@ def test_a_killed_pack_between_two_views_naming_the_same_files_resumes(tmp_path,
 def test_unpack_refuses_a_link_in_place_of_a_frame_before_writing(tmp_path):
     """Before: a frame file that was a link out of the scan (holding the same frame) was kept, and the scan then
     refused to load (a path through a link out of the folder)."""
-    truth = _scan(tmp_path / "scan", views=2)
+    truth = noise_scan(tmp_path / "scan", views=2)
     folder = tmp_path / "scan"
     pack_scan(folder)
     outside = tmp_path / "white.png"
@@ -293,7 +268,7 @@ def test_unpack_removes_what_killed_runs_left(tmp_path, monkeypatch):
     removed; a store renamed for deletion is removed too."""
     import shutil
 
-    truth = _scan(tmp_path, views=1)
+    truth = noise_scan(tmp_path, views=1)
     pack_scan(tmp_path)
     store = tmp_path / "view_0" / "frames.zarr"
     saved = tmp_path.parent / f"{tmp_path.name}_store"

@@ -157,7 +157,7 @@ def test_what_the_loader_takes_the_schema_takes():
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    from tests.support.tiny_scan import simulate_tiny_scan
 
     return simulate_tiny_scan(tmp_path_factory.mktemp("schema") / "scan", turntable_deg=(0.0, 90.0)).folder
 
@@ -208,7 +208,7 @@ def test_the_cli_writes_these_schemas(tmp_path, capsys):
 def test_imported_scans_validate(tmp_path, capsys):
     """`ringscan import` output (the decoded codec, the rig in a file beside scan.json)."""
     from ringscan.pipeline.formats.rig import save_rig
-    from tests.pipeline.simulate.test_opencv_graycode import PH, PW, small_procam_rig
+    from tests.support.opencv_graycode_rig import PH, PW, small_procam_rig
 
     save_rig(tmp_path / "rig.json", small_procam_rig())
     out, scan = tmp_path / "render", tmp_path / "scan"

@@ -24,8 +24,7 @@ from ringscan.pipeline.fusion.tsdf import tsdf_mesh
 from ringscan.pipeline.fusion.turntable import FuseSettings, check_fuse_settings, fuse_views
 from ringscan.pipeline.fusion.meshing import mesh_cloud, mesh_fused
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
-
-from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
+from tests.support.fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,7 @@ import pytest
 
 from ringscan.pipeline.fusion.poses import AlignmentError, PoseSettings, fuse_poses
 from ringscan.pipeline.simulate.scenes import SceneMesh, make_scene, pose_rotation, pose_scene
-
-from .fusion_synth import lumpy_object, scan_views, small_rig, write_recon
+from tests.support.fusion_synth import lumpy_object, scan_views, small_rig, write_recon
 
 FAST = PoseSettings(ransac_trials=2, ransac_iterations=50_000, voxel_mm=0.5)
 
@@ -215,8 +214,8 @@ def test_simulate_with_a_pose_writes_the_posed_truth(tmp_path, capsys):
     from ringscan.pipeline.formats.meshes import read_mesh
     from ringscan.pipeline.simulate.scan import simulate_scan
     from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-    from tests.pipeline.simulate.test_simulate import small_rig as sim_rig
-    from tests.pipeline.simulate.test_simulate import small_spec
+    from tests.support.simulate_rig import small_rig as sim_rig
+    from tests.support.simulate_rig import small_spec
 
     kw = dict(scene="cube", rig=sim_rig(), patterns=small_spec(), views=1, settings=RenderSettings(supersample=1),
               device="cpu", progress=False, size_mm=40.0)

@@ -3,7 +3,7 @@ refinement corrects only as far as the views' overlap fixes it (pipeline/fusion/
 docs/fusion.md "Symmetric objects").
 
 Pure geometry: a sphere, a cylinder and an asymmetric blob ray-cast by a small camera
-(tests/pipeline/fusion/fusion_synth.py) with 0.03 mm of noise along the rays, at their true
+(tests/support/fusion_synth.py) with 0.03 mm of noise along the rays, at their true
 turntable angles but one view (view_002) reported 2 degrees off."""
 
 from __future__ import annotations
@@ -23,8 +23,7 @@ from ringscan.pipeline.fusion.turntable import (
     overlap_information,
     weak_motions,
 )
-
-from .fusion_synth import lumpy_object, point_to_mesh, scan_views, small_rig
+from tests.support.fusion_synth import lumpy_object, point_to_mesh, scan_views, small_rig
 
 ANGLES = tuple(k * 60.0 for k in range(6))
 OFF_DEG = 2.0

@@ -12,8 +12,7 @@ import pytest
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.fusion.recon import fuse_recon, load_recon, recon_folder
 from ringscan.pipeline.fusion.turntable import FuseSettings, FusionView, fuse_views, plane_residuals
-
-from .fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon, wrong_axis
+from tests.support.fusion_synth import point_to_mesh, synthetic_scan, visible_truth, write_recon, wrong_axis
 
 FAST = FuseSettings(voxel_mm=0.5)
 

@@ -24,9 +24,8 @@ from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import default_rig
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
-
-from .tiny_scan import TINY_PATTERNS, tiny_rig
-from .two_camera_scan import simulate_decoded_two_camera_scan
+from tests.support.tiny_scan import TINY_PATTERNS, tiny_rig
+from tests.support.two_camera_scan import simulate_decoded_two_camera_scan
 
 init_warp()
 WARP_DIR = os.path.dirname(wp.__file__)

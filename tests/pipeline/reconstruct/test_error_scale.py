@@ -92,7 +92,7 @@ def uncalibrated_scan(tmp_path_factory):
     from ringscan.pipeline.formats.scan import load_scan
     from ringscan.pipeline.simulate.scan import simulate_scan
     from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-    from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
+    from tests.support.reconstruct_rig import PROJ, small_rig
 
     rig = small_rig()
     cam = dataclasses.replace(rig.camera, width=480, height=384,

@@ -20,7 +20,7 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, tiny_rig
 
 
 @pytest.fixture(scope="module")

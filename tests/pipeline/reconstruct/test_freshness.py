@@ -29,7 +29,7 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import explain_no_points
 from ringscan.tools.cli import main
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan, tiny_rig
+from tests.support.tiny_scan import simulate_tiny_scan, tiny_rig
 
 OTHER = ReconstructSettings(min_confidence=0.5)
 

@@ -14,16 +14,7 @@ from ringscan.pipeline.formats.rig import default_rig
 from ringscan.pipeline.formats.scan import read_view_frames
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
-
-PROJ = {"width": 1024, "height": 768, "center": [511.5, 383.5]}
-
-
-def small_rig():
-    """The default rig with a 320x256 camera (f scaled to match): fast tests."""
-    rig = default_rig()
-    cam = dataclasses.replace(rig.camera, width=320, height=256,
-                              K=np.array([[650.0, 0, 159.5], [0, 650.0, 127.5], [0, 0, 1]]))
-    return dataclasses.replace(rig, camera=cam)
+from tests.support.reconstruct_rig import PROJ, PROJECTOR_LENS, WIDE_LENS, small_rig
 
 
 @pytest.fixture(scope="module")
@@ -154,19 +145,6 @@ def test_frames_handed_in_are_read_only_and_give_the_same_cloud(small_scan, devi
 
 
 # ----------------------------------------------------------------------------- OpenCV's rational and thin-prism lenses
-
-WIDE_LENS = {
-    # CALIB_RATIONAL_MODEL's 8 coefficients: -3 % barrel at this camera's corners (~5 px)
-    "rational": [1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15],
-    # + CALIB_THIN_PRISM_MODEL's s1..s4
-    "thin-prism": [1.8, 0.6, 0.001, -0.0005, 0.02, 2.1, 1.2, 0.15, 0.002, -0.0005, -0.001, 0.0003],
-}
-
-
-PROJECTOR_LENS = {
-    "rational": [-0.3, 0.5, 0.001, 0.0, 0.0, 0.5, 0.2, 0.0],
-    "thin-prism": [-0.3, 0.5, 0.001, 0.0, 0.0, 0.5, 0.2, 0.0, 0.005, 0.0, -0.003, 0.0],
-}
 
 
 def _lens_scan(root, name, dist, device="camera"):

@@ -13,7 +13,7 @@ from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.simulate.scan import simulate_scan
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, tiny_rig
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
-from tests.pipeline.reconstruct.test_reconstruct import PROJ, small_rig
-from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+from tests.support.reconstruct_rig import PROJ, small_rig
+from tests.support.tiny_scan import simulate_tiny_scan
 
 
 def _settings(constraint):

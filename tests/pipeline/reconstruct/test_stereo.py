@@ -18,7 +18,7 @@ from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings
 from ringscan.pipeline.reconstruct.stereo import epipolar_distances, match_view
 from ringscan.pipeline.reconstruct.view import reconstruct_view
-from tests.pipeline.reconstruct.two_camera_scan import simulate_two_camera_scan, true_uv2
+from tests.support.two_camera_scan import simulate_two_camera_scan, true_uv2
 
 
 def _rays(r):
@@ -112,7 +112,7 @@ def test_rotated_extrinsics_warn(stereo_scan, tmp_path, caplog):
 
 
 def test_one_camera_view_refuses_two_camera_rays(tmp_path):
-    from tests.pipeline.reconstruct.tiny_scan import simulate_tiny_scan
+    from tests.support.tiny_scan import simulate_tiny_scan
     scan = simulate_tiny_scan(tmp_path / "tiny")
     with pytest.raises(FormatError, match="needs a two-camera view"):
         reconstruct_view(scan, scan.views[0], settings=_rays("camera-camera"), device="cpu")
@@ -126,7 +126,7 @@ def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
     # over camera 2's beat the projector ray of one rounded code by half, and all three rays
     # beat both
     from ringscan.pipeline.evaluate.metrics import point_distances, truth_surface
-    from tests.pipeline.reconstruct.two_camera_scan import simulate_decoded_two_camera_scan
+    from tests.support.two_camera_scan import simulate_decoded_two_camera_scan
 
     scan = simulate_decoded_two_camera_scan(tmp_path / "scan", integer=True)
     mesh = truth_surface(scan, 0.0)

@@ -1,5 +1,5 @@
 """Two cameras that see about one projector pixel per camera pixel (issue 34): OpenCV's Gray code
-rendered on a scaled-down copy of a public capture's rig (tests/pipeline/reconstruct/one_to_one.py:
+rendered on a scaled-down copy of a public capture's rig (tests/support/one_to_one.py:
 two cameras 40 mm apart, a plane 1 m away, 1.1 projector px per camera px), imported as it comes
 (about half the pixels sub-pixel, the rest integer codes) and with ``--integer``, reconstructed
 camera to camera and measured against the plain way (integer codes matched by equal code,
@@ -19,7 +19,7 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSe
 from ringscan.pipeline.reconstruct.stereo import refine_integer_codes
 from ringscan.pipeline.simulate.opencv_graycode import render_graycode_captures
 from ringscan.kernels.stereo_match import MatchSettings
-from tests.pipeline.reconstruct.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms
+from tests.support.one_to_one import one_to_one_rig, plain_camera_camera, plane_rms
 
 CAMERA_CAMERA = ReconstructSettings(stereo=StereoSettings(rays="camera-camera"))
 

@@ -10,7 +10,7 @@ from ringscan.pipeline.codecs.render import render_frames
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import default_rig
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings, VirtualRig
-from tests.pipeline.reconstruct.tiny_scan import TINY_PATTERNS, tiny_rig
+from tests.support.tiny_scan import TINY_PATTERNS, tiny_rig
 
 
 def _emitted_whole(vr, f):

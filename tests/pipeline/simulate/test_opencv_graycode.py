@@ -1,15 +1,13 @@
 """OpenCV's column/row Gray code on the virtual rig: the patterns, the files, and the round trip
 through ``ringscan import`` against the truth projector coordinates."""
 
-import dataclasses
-
 import cv2
 import numpy as np
 import pytest
 
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, gray_decode
-from ringscan.pipeline.formats.rig import Camera, default_rig, save_rig
+from ringscan.pipeline.formats.rig import save_rig
 from ringscan.pipeline.simulate.opencv_graycode import (
     graycode_bit_counts,
     graycode_frame_names,
@@ -19,35 +17,8 @@ from ringscan.pipeline.simulate.opencv_graycode import (
 )
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 from ringscan.tools.cli import main
+from tests.support.opencv_graycode_rig import PH, PW, small_procam_rig, small_stereo_rig
 from tests.support.shared_data import need_shared
-
-PW, PH = 128, 96
-
-
-def small_procam_rig(*, gamma=1.0):
-    """The default perspective rig with a 320x256 camera and a 128x96 projector with lens distortion.
-
-    One projector pixel covers about 1.2 mm on the plane, one camera pixel about
-    0.65 mm: about 1.8 camera pixels per projector pixel, as the sub-pixel decode needs.
-    """
-    rig = default_rig(gamma=gamma, light_model="perspective", turntable=False)
-    c = rig.camera
-    K = np.array([[650.0, 0, 159.5], [0, 650.0, 127.5], [0, 0, 1.0]])
-    cam = Camera(width=320, height=256, K=K, dist=c.dist, R=c.R, t=c.t, gamma=gamma)
-    li = rig.light
-    Kp = li.K.copy()
-    Kp[:2] /= 8.0
-    Kp[0, 2], Kp[1, 2] = (PW - 1) / 2, (PH - 1) / 2
-    light = dataclasses.replace(li, width=PW, height=PH, K=Kp, dist=np.array([-0.08, 0.05, 0.001, 0.0, 0.0]))
-    return dataclasses.replace(rig, camera=cam, light=light)
-
-
-def small_stereo_rig(*, gamma=2.2):
-    """:func:`small_procam_rig` with a second camera (camera 1 turned 180 degrees about the light axis):
-    the virtual two-camera rig with a projector (the cameras 482 mm apart, 70 degrees between their axes)."""
-    from ringscan.pipeline.simulate.scan import add_camera2
-
-    return add_camera2(small_procam_rig(gamma=gamma))
 
 
 def bits_msb_first(frames, n_bits, first, index):
