@@ -56,7 +56,7 @@ def test_camera_camera_camera_projector_and_all_three(stereo_scan, tmp_path):
     for rays, (med, cov, v) in out.items():
         assert med < 0.05, (rays, med)
         assert v["calibration_check"]["fits"], v["calibration_check"]
-    cc, al, au = out["camera-camera"][2], out["all"][2], out["auto"][2]
+    cc, au = out["camera-camera"][2], out["auto"][2]
     assert cc["calibration_check"]["kind"] == "epipolar" and cc["calibration_check"]["median_px"] < 0.3
     assert out["camera-projector"][2]["calibration_check"]["kind"] == "ray-ray"
     assert cc["dropped"]["unmatched"] > 0 and au["dropped"]["unmatched"] == 0  # auto falls back
