@@ -44,3 +44,16 @@ def test_the_pipeline_table_names_every_package_and_each_package_every_module():
         named = set(re.findall(r"`([\w/.]+)`", row))
         missing = sorted(m for m in modules(pipeline / name) if m not in named and m.rstrip("/") not in named)
         assert not missing, f"docs/architecture.md's `{name}` row does not name {missing}"
+
+
+def test_every_design_section_the_code_cites_exists():
+    """Comments and docstrings cite docs/design.md by section (``design.md §7``): each one a heading there."""
+    design = (ROOT / "docs" / "design.md").read_text(encoding="utf-8")
+    headings = set(re.findall(r"^## §(\d+) ", design, flags=re.M))
+    cited = {}
+    for top in ("kernels", "pipeline", "hardware", "tools", "src"):
+        for path in (ROOT / top).rglob("*.py"):
+            for n in re.findall(r"design\.md §(\d+)", path.read_text(encoding="utf-8")):
+                cited.setdefault(n, path.relative_to(ROOT).as_posix())
+    assert cited, "no citation found: the pattern no longer matches how the code cites design.md"
+    assert {n: p for n, p in cited.items() if n not in headings} == {}
