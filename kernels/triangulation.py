@@ -58,6 +58,30 @@ STATUS_UNMATCHED = 11  # given by pipeline.reconstruct.stereo: camera 2 has no m
 STATUS_NAMES = ("ok", "no_root", "outside_volume", "ambiguous", "sector_mismatch", "grazing", "isolated",
                 "not_converged", "undistort_failed", "ill_conditioned", "inconsistent", "unmatched")
 PI = wp.constant(3.14159265358979)
+
+
+@wp.struct
+class TriangulationParams:
+    """The scalar settings of :func:`triangulate_kernel`, filled once by :func:`triangulate_rings`."""
+
+    center: wp.vec2
+    """The pattern centre, projector px."""
+    constraint: wp.int32
+    """CONSTRAINT_RINGS (0), CONSTRAINT_ANGLE (1) or CONSTRAINT_BOTH (2)."""
+    n_sectors: wp.int32
+    """2 ** sector_bits, 0 without sectors."""
+    sector_tolerance: wp.float32
+    """ReconstructSettings.sector_tolerance."""
+    sector_margin: wp.float32
+    """ReconstructSettings.sector_margin."""
+    min_incidence_cos: wp.float32
+    """Below it, a point is grazing."""
+    max_residual_px: wp.float32
+    """The full coordinate's residual bound, projector px."""
+    floor: wp.float32
+    """The decode's error floor, projector px (added in quadrature)."""
+    fallback_sector_px: wp.float32
+    """Where > 0: a sector mismatch is retried with coarser sectors at least this wide (projector px)."""
 CONSTRAINT_RINGS = wp.constant(0)
 CONSTRAINT_ANGLE = wp.constant(1)
 CONSTRAINT_BOTH = wp.constant(2)
@@ -399,15 +423,7 @@ def triangulate_kernel(
     cam: CameraModel,
     light: LightModel,
     vol: Volume,
-    center: wp.vec2,
-    constraint: int,
-    n_sectors: int,
-    sector_tolerance: float,
-    sector_margin: float,
-    min_incidence_cos: float,
-    max_residual_px: float,
-    floor: float,
-    fallback_sector_px: float,
+    params: TriangulationParams,
     i0: int,
     points: wp.array(dtype=wp.vec3),
     status: wp.array(dtype=wp.int32),
@@ -431,6 +447,15 @@ def triangulate_kernel(
     written.
     """
     i = i0 + wp.tid()
+    center = params.center
+    constraint = params.constraint
+    n_sectors = params.n_sectors
+    sector_tolerance = params.sector_tolerance
+    sector_margin = params.sector_margin
+    min_incidence_cos = params.min_incidence_cos
+    max_residual_px = params.max_residual_px
+    floor = params.floor
+    fallback_sector_px = params.fallback_sector_px
     ray = rays[i]
     d = wp.vec3(ray[0], ray[1], ray[2])
     C = cam.center
@@ -601,10 +626,17 @@ def triangulate_rings(
     threads = default_threads() if threads is None else threads
     rays = wp.empty(n, dtype=wp.vec4, device=dev)
     launch_spans(camera_rays_kernel, n, lambda i0: [uv, camera, i0], [rays], dev, threads)
-    args = [rays, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, wp.vec2(*center),
-            constraint, n_sectors, settings.sector_tolerance, settings.sector_margin, settings.min_incidence_cos,
-            settings.max_residual_px, float(floor),
-            float(settings.fallback_sector_px) if has_angle and constraint != 0 else 0.0]
+    params = TriangulationParams()
+    params.center = wp.vec2(*center)
+    params.constraint = constraint
+    params.n_sectors = n_sectors
+    params.sector_tolerance = settings.sector_tolerance
+    params.sector_margin = settings.sector_margin
+    params.min_incidence_cos = settings.min_incidence_cos
+    params.max_residual_px = settings.max_residual_px
+    params.floor = float(floor)
+    params.fallback_sector_px = float(settings.fallback_sector_px) if has_angle and constraint != 0 else 0.0
+    args = [rays, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, params]
     outputs = [out.points, out.status, out.confidence, out.residual, out.sigma, out.residual_var]
     launch_spans(triangulate_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out
