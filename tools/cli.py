@@ -8,7 +8,9 @@ The device is chosen here, once, at the edge (``--device``), and handed down.
 The conventions every command follows (docs/cli.md) are set here: ``-v``/``-q``
 before or after the command, ``--no-progress`` everywhere, progress bars only on a
 terminal, and the exit status: 0 success, 1 a run that failed on its input or data,
-2 a usage error, 130 interrupted.
+2 a usage error, 130 interrupted. Help comes in two tiers: ``--help`` shows the basic
+options a command declares with ``basic_options`` (and the essentials), ``--help-all``
+every option; an advanced option parses as any other.
 """
 
 from __future__ import annotations
@@ -59,10 +61,74 @@ def _version() -> str:
     return __version__
 
 
+ESSENTIAL = frozenset({"-h", "--help", "--help-all", "-v", "--verbose", "-q", "--quiet", "--no-progress",
+                       "--device", "--out"})
+"""Options every ``--help`` shows where the command has them (docs/cli.md, "Basic and advanced options"), with
+the positional arguments and the required options."""
+
+
+def basic_options(p: argparse.ArgumentParser, *options: str) -> argparse.ArgumentParser:
+    """Declare a command's basic options (any of each one's spellings): ``ringscan COMMAND --help`` shows them,
+    the positional arguments, the required options and ``ESSENTIAL``; every other option is advanced, shown by
+    ``--help-all`` only (it parses as before). A parser that declares none shows every option."""
+    p._basic_options = frozenset(options)
+    return p
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose help ends with how many advanced options ``--help-all`` adds."""
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        hidden = [a for a in self._actions if getattr(a, "_advanced_help", None) is not None
+                  and a.help == argparse.SUPPRESS]
+        if hidden:
+            n = len(hidden)
+            text += (f"\n{n} more option{'s' if n > 1 else ''} (advanced): "
+                     f"`{self.prog} --help-all` lists every option.\n")
+        return text
+
+
+class _HelpAllAction(argparse.Action):
+    """``--help-all``: the help with the advanced options too, then exit."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        for a in parser._actions:
+            if getattr(a, "_advanced_help", None) is not None:
+                a.help = a._advanced_help
+        parser.print_help()
+        parser.exit()
+
+
+def _apply_tiers(p: argparse.ArgumentParser) -> None:
+    """Hide the help of the options ``basic_options`` did not declare (their help kept for ``--help-all``)."""
+    basic = getattr(p, "_basic_options", None)
+    if basic is None:
+        return
+    known = {s for a in p._actions for s in a.option_strings}
+    unknown = sorted(basic - known)
+    if unknown:
+        raise ValueError(f"{p.prog}: basic_options names no option {', '.join(unknown)}")
+    for a in p._actions:
+        if (not a.option_strings or a.required or a.help == argparse.SUPPRESS
+                or {*a.option_strings} & (basic | ESSENTIAL)):
+            continue
+        a._advanced_help, a.help = a.help, argparse.SUPPRESS
+
+
 def _add_common(p: argparse.ArgumentParser, level: int, *, leaf: bool) -> None:
     """-v/-q on every parser (each level counts into its own attribute, summed in
     main: argparse's sub-parsers would otherwise overwrite the level above);
-    --no-progress on every command that runs something."""
+    --help-all (listed right after -h) on every parser; --no-progress on every
+    command that runs something."""
+    a = p.add_argument("--help-all", action=_HelpAllAction,
+                       help="show this help with every option, the advanced ones too, and exit")
+    for actions in (p._actions, p._optionals._group_actions):
+        actions.remove(a)
+        actions.insert(1, a)
     p.add_argument("-v", "--verbose", action="count", default=0, dest=f"_verbose_{level}",
                    help="more log output (-vv: debug); allowed before or after the command")
     p.add_argument("-q", "--quiet", action="count", default=0, dest=f"_quiet_{level}",
@@ -78,11 +144,13 @@ def _add_common_below(sub: argparse._SubParsersAction, level: int) -> None:
         _add_common(sp, level, leaf=not nested)
         for n in nested:
             _add_common_below(n, level + 1)
+        _apply_tiers(sp)
 
 
 HELP_EPILOG = ("Every command: -v more log (-vv debug), -q errors only, --no-progress; exit status 0 done, 1 failed "
                "on its input (one line naming the file), 2 usage error, 130 interrupted (what was written is whole). "
-               "`ringscan COMMAND --help` gives a command's options. Documentation: README.md, which an installed "
+               "`ringscan COMMAND --help` gives a command's basic options, `ringscan COMMAND --help-all` every option "
+               "(the advanced ones too). Documentation: README.md, which an installed "
                "ringscan carries as its description (`python -c \"import importlib.metadata as m; "
                "print(m.metadata('ringscan').get_payload())\"` prints it), and docs/ in ringscan's source tree "
                "(docs/cli.md: these conventions in full).")
@@ -106,7 +174,7 @@ def interrupted_line(name: str) -> str:
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; ``command`` (or every command when "*") gets its full options,
     the others only their line in the listing."""
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="ringscan",
         description="Structured-light 3D scanning with concentric ring patterns.",
         epilog=HELP_EPILOG,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ringscan.pipeline.batch import batch_reconstruct, format_table, plan_batch
 from ringscan.pipeline.batch.report import format_calibration_checks
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 from ringscan.tools.cmd_reconstruct import (
     add_constraint_option,
     add_settings_options,
@@ -53,6 +53,7 @@ def add_parser(sub):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_storage_option(p)
     add_device_option(p)
+    basic_options(p, "--settings", "--set", "--workers", "--backend", "--address", "--fuse", "--mesh", "--dry-run")
     return p
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ringscan.tools.bench.core import run_bench
 from ringscan.tools.bench.dense import bench_dense
+from ringscan.tools.cli import basic_options
 
 
 def add_parser(sub):
@@ -19,6 +20,7 @@ def add_parser(sub):
     p.add_argument("--dense", action="store_true",
                    help="time the dense phase-rings path instead (decode, phase, smoothing, triangulation; "
                         "--scan then names a phase-rings scan)")
+    basic_options(p, "--scan", "--scene", "--repeats", "--dense")
     return p
 
 

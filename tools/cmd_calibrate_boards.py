@@ -53,7 +53,7 @@ from ringscan.tools.calibrate_options import (
     print_views,
     refuse_unless_forced,
 )
-from ringscan.tools.cli import UsageError
+from ringscan.tools.cli import UsageError, basic_options
 
 MAX_WINDOW_PX = 200
 """Largest ``calibrate procam --window`` (camera px): a homography is fitted to the (2w+1)^2 pixels around each
@@ -83,6 +83,7 @@ def add_camera_parser(calsub) -> None:
                    help="also draw the reprojection residuals (per view, and every corner's across the image) "
                         "into this PNG or SVG file")
     add_force_option(p)
+    basic_options(p, "--lens-model", "--rig", "--plot", "--board", "--charuco")
     p.set_defaults(_calibrate=run_camera)
 
 
@@ -154,6 +155,7 @@ def add_stereo_parser(calsub) -> None:
                    help="the pair as OpenCV FileStorage (.yml/.yaml/.xml; cam1_intrinsics ... R, T)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
     add_force_option(p)
+    basic_options(p, "--board", "--charuco", "--report")
     p.set_defaults(_calibrate=run_stereo)
 
 
@@ -215,6 +217,7 @@ def add_procam_parser(calsub) -> None:
     p.add_argument("--out", required=True, metavar="RIG", help="the rig file to write")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
     add_force_option(p)
+    basic_options(p, "--layout", "--board", "--charuco", "--report")
     p.set_defaults(_calibrate=run_procam)
 
 

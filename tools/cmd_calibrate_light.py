@@ -51,7 +51,7 @@ from ringscan.tools.calibrate_options import (
     print_views,
     refuse_unless_forced,
 )
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 
 # ----------------------------------------------------------------------------- response
@@ -70,6 +70,7 @@ def add_response_parser(calsub) -> None:
                         "scaled to 16 bits as they are read, so that contrast and saturation are judged on the "
                         "camera's range (default: the frames' own bits)")
     add_force_option(p)
+    basic_options(p, "--frame-bits", "--force")
     p.set_defaults(_calibrate=run_response)
 
 
@@ -134,6 +135,7 @@ def add_pose_parser(calsub) -> None:
     p.add_argument("--thickness", type=float, default=0.0, metavar="MM",
                    help="the board's thickness: its printed face lies this far above the plane (default 0)")
     p.add_argument("--rig", required=True, metavar="RIG", help="rig file to update (its camera's intrinsics are used)")
+    basic_options(p, "--thickness", "--board", "--charuco")
     p.set_defaults(_calibrate=run_pose)
 
 
@@ -181,6 +183,7 @@ def add_light_parser(calsub) -> None:
                         f"(projector px, default {LightSettings.max_residual_px:g})")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
     add_device_option(p)
+    basic_options(p, "--rig", "--report")
     p.set_defaults(_calibrate=run_light)
 
 
@@ -236,6 +239,7 @@ def add_latency_parser(calsub) -> None:
                    help=f"time the old frame stays up before a switch, s (default {d.rest_s:g})")
     p.add_argument("--step", type=float, default=None, metavar="S", help="delay step, s (default half a refresh)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write every grab's verdict as JSON")
+    basic_options(p, "--rig", "--exposure", "--report")
     p.set_defaults(_calibrate=run_latency)
 
 
@@ -287,6 +291,7 @@ def add_turntable_parser(calsub) -> None:
     p.add_argument("--out", required=True, metavar="RIG", help="rig file to write (the rig with this turntable)")
     p.add_argument("--report", default=None, metavar="JSON", help="also write the figures as JSON")
     add_force_option(p)
+    basic_options(p, "--angles", "--rig", "--board", "--charuco", "--report")
     p.set_defaults(_calibrate=run_turntable)
 
 

@@ -36,7 +36,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import PerspectiveLight, save_rig
 from ringscan.tools.calibrate_options import add_force_option, check_outputs, parse_size, refuse_unless_forced
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 
 # ----------------------------------------------------------------------------- refine, projector-from-scan
@@ -148,6 +148,7 @@ def add_refine_parser(calsub) -> None:
                    help="on a two-camera rig, leave the third device (the calibrated projector for --pair cameras, "
                         "camera 2 for --pair projector) out of the adjustment (by default it joins it, its pose held, "
                         "where it fits camera 1's matches)")
+    basic_options(p, "--rig", "--opencv", "--report", "--pair")
     p.set_defaults(_calibrate=run_refine)
 
 
@@ -213,6 +214,7 @@ def add_projector_from_scan_parser(calsub) -> None:
     p.add_argument("--radial", default="auto", metavar="|".join(DISTORTION_CHOICES),
                    help="its radial distortion: k1, and k2, k3 where the points determine them (auto, the "
                         "default), k1 and k2 (fit) or none (hold)")
+    basic_options(p, "--rig", "--stereo-out", "--opencv", "--report", "--projector")
     p.set_defaults(_calibrate=run_projector_from_scan)
 
 

@@ -45,7 +45,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +164,8 @@ def add_parser(sub):
     s.add_argument("--image-format", "--frames", dest="image_format", choices=("png", "tiff", "packed"),
                    help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read; packed: "
                         "one frame store per view, frames appended as they arrive, about the PNGs' size)")
+    basic_options(p, "--rig", "--patterns", "--views", "--resume", "--turntable", "--projector", "--camera",
+                  "--exposure", "--virtual")
     return p
 
 

@@ -22,7 +22,7 @@ from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.preview.render import ViewSettings
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.simulate.scan import simulate_scan
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,7 @@ def add_parser(sub):
     p.add_argument("--size-mm", type=float, default=80.0, metavar="MM",
                    help="longest side of the object in mm (default 80)")
     add_device_option(p)
+    basic_options(p, "--scene", "--views", "--size-mm")
     return p
 
 

@@ -17,7 +17,7 @@ from ringscan.pipeline.codecs import DEFAULT_CODEC
 from ringscan.pipeline.formats.atomic import atomic_write_json
 from ringscan.pipeline.formats.patterns import parse_patterns
 from ringscan.pipeline.formats.rig import default_rig, load_rig, rig_to_dict
-from ringscan.tools.cli import add_device_option
+from ringscan.tools.cli import add_device_option, basic_options
 from ringscan.tools.cmd_capture import load_patterns
 
 # The default pattern set: the 28-frame gray-rings set of ``ringscan patterns``'s
@@ -41,6 +41,7 @@ def add_parser(sub):
     p.add_argument("--seed", type=int, default=None, help="camera noise seed (default: fresh noise per grab)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
     add_device_option(p)
+    basic_options(p, "--rig", "--patterns", "--scene", "--folder", "--seconds")
     return p
 
 

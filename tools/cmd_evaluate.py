@@ -9,7 +9,7 @@ from ringscan.pipeline.evaluate.metrics import evaluate_against_mesh, evaluate_r
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_no_overwrite, check_output_file
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.preview.plots import PLOT_FORMATS, error_histogram_figure, save_figure
-from ringscan.tools.cli import UsageError
+from ringscan.tools.cli import UsageError, basic_options
 
 
 def add_parser(sub):
@@ -29,6 +29,7 @@ def add_parser(sub):
     p.add_argument("--plot", default=None, metavar="PNG_OR_SVG",
                    help="also draw the histogram of the point-to-surface distances (all points, each view, the "
                         "median and p95) into this PNG or SVG file")
+    basic_options(p, "--coverage-radius", "--report", "--plot")
     return p
 
 

@@ -11,7 +11,7 @@ from ringscan.pipeline.fusion.mesh import MeshSettings
 from ringscan.pipeline.fusion.poses import PoseSettings
 from ringscan.pipeline.fusion.turntable import FuseSettings
 from ringscan.pipeline.fusion.workflow import fuse_and_mesh
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 
 WATERTIGHT_COST = ("closing the surface where no view looked takes several times an open mesh's time "
@@ -63,6 +63,7 @@ def add_parser(sub):
     p.add_argument("--no-preview", action="store_true", help="do not render preview.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_device_option(p)
+    basic_options(p, "--method", "--watertight", "--formats", "--truth")
     return p
 
 

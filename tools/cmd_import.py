@@ -26,7 +26,7 @@ from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
 from ringscan.pipeline.formats.scan import check_frame_bits
 from ringscan.tools.calibrate_options import parse_size
-from ringscan.tools.cli import UsageError
+from ringscan.tools.cli import UsageError, basic_options
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
 
@@ -77,6 +77,7 @@ def add_parser(sub):
                         "meaning (default: the frames' own bits)")
     p.add_argument("--integer", action="store_true", help="write integer codes only (no sub-pixel positions)")
     p.add_argument("--out", required=True, metavar="SCAN", help="the scan folder to write")
+    basic_options(p, "--layout", "--camera", "--min-contrast", "--frame-bits")
     return p
 
 

@@ -14,6 +14,7 @@ from ringscan.pipeline.fusion.mesh import (
     orient_normals,
 )
 from ringscan.pipeline.fusion.meshing import mesh_cloud
+from ringscan.tools.cli import basic_options
 from ringscan.tools.cmd_fuse import WATERTIGHT_COST
 
 
@@ -36,6 +37,7 @@ def add_parser(sub):
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help="CPU threads for Poisson (default 1: the same bytes from run to run; 0 = every core, "
                         "faster, last bits vary; docs/fusion.md)")
+    basic_options(p, "--method", "--watertight", "--poisson-depth")
     return p
 
 

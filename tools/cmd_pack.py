@@ -9,6 +9,7 @@ from pathlib import Path
 from ringscan.pipeline.batch.discover import iter_scans
 from ringscan.pipeline.formats.errors import FormatError, RingscanError
 from ringscan.pipeline.formats.packing import pack_scan
+from ringscan.tools.cli import basic_options
 
 
 def add_parser(sub):
@@ -23,6 +24,7 @@ def add_parser(sub):
                    help="a scan folder, or a folder whose scans (found as `ringscan batch` finds them) are packed")
     p.add_argument("--keep", action="store_true", help="leave the image files in place")
     add_workers_option(p)
+    basic_options(p, "--keep", "--workers")
     return p
 
 

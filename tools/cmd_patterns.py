@@ -24,7 +24,7 @@ from ringscan.pipeline.formats.atomic import atomic_write_bytes, atomic_write_js
 from ringscan.pipeline.formats.images import write_image
 from ringscan.pipeline.formats.patterns import CODECS, PatternSpec, default_patterns, frame_names, pattern_options
 from ringscan.pipeline.formats.rig import load_rig
-from ringscan.tools.cli import UsageError
+from ringscan.tools.cli import UsageError, basic_options
 
 
 def add_pattern_options(p, *, size: bool = True) -> None:
@@ -73,6 +73,7 @@ def add_parser(sub):
                    help="pre-compensate the frames for this rig's light response (light.response.gamma, "
                         "'ringscan calibrate response') and take the projector size from it")
     add_pattern_options(p)
+    basic_options(p, "--show", "--rig", "--codec", "--bits", "--sector-bits", "--angle-steps", "--width", "--height")
     return p
 
 

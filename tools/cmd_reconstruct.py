@@ -12,7 +12,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.settings import apply_setting, check_finite_settings, settings_from_dict
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import RAYS, ReconstructSettings, check_setting_ranges
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 
 def add_parser(sub):
@@ -31,6 +31,7 @@ def add_parser(sub):
     add_constraint_option(p)
     add_storage_option(p)
     add_device_option(p)
+    basic_options(p, "--settings", "--set", "--min-confidence", "--resume", "--constraint", "--rays")
     return p
 
 

@@ -7,6 +7,7 @@ import json
 
 from ringscan.pipeline.formats.atomic import atomic_write_json, check_output_file
 from ringscan.pipeline.formats.settings import settings_json_schema
+from ringscan.tools.cli import basic_options
 
 # What each name describes: (the dataclass's module, its name, where the file is used).
 SCHEMAS = {
@@ -26,6 +27,7 @@ def add_parser(sub):
                                    "and other tools. " + "; ".join(f"{k}: {v[2]}" for k, v in SCHEMAS.items()) + ".")
     p.add_argument("what", choices=list(SCHEMAS), help="which file")
     p.add_argument("--out", default=None, metavar="JSON", help="write it to this file (default: print it)")
+    basic_options(p)
     return p
 
 

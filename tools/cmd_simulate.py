@@ -19,7 +19,7 @@ from ringscan.pipeline.simulate.opencv_graycode import (
 from ringscan.pipeline.simulate.scan import CAMERA2_DIR, add_camera2, simulate_scan
 from ringscan.pipeline.simulate.scenes import SCENES, parse_point
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 from ringscan.tools.cmd_patterns import add_pattern_options, pattern_spec_from_args
 
 
@@ -90,6 +90,7 @@ def add_parser(sub):
                         "the rig (inverse-square fall-off, inter-reflections; needs pip install 'ringscan[mitsuba]'; "
                         "--device does not apply; docs/virtual_rig.md)")
     add_device_option(p)
+    basic_options(p, "--scene", "--codec", "--views", "--rig", "--light", "--camera2", "--captures", "--size-mm")
     return p
 
 

@@ -7,7 +7,7 @@ from ringscan.pipeline.formats.atomic import check_output_folder
 from ringscan.pipeline.formats.rig import load_rig
 from ringscan.pipeline.simulate.scenes import SCENES
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -65,6 +65,7 @@ def add_parser(sub):
     p.add_argument("--keep-scans", action="store_true", help="keep each run's scan under OUT/scans")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_option(p)
+    basic_options(p, "--scene", "--bits", "--sector-bits", "--rig", "--size-mm")
     return p
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from functools import partial
 
 from ringscan.pipeline.formats.packing import unpack_scan
+from ringscan.tools.cli import basic_options
 from ringscan.tools.cmd_pack import add_workers_option, run_each
 
 
@@ -19,6 +20,7 @@ def add_parser(sub):
                    help="frame files to write (default png; tiff: uncompressed)")
     p.add_argument("--keep", action="store_true", help="leave the frame stores in place")
     add_workers_option(p)
+    basic_options(p, "--image-format", "--keep", "--workers")
     return p
 
 

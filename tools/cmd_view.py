@@ -15,7 +15,7 @@ from ringscan.pipeline.fusion.workflow import load_truth_mesh
 from ringscan.pipeline.preview.clouds import CLOUD_FIELDS, cloud_field, length_unit, own_camera, shade_cloud
 from ringscan.pipeline.preview.colour import category_colours, colorize, readable_unit
 from ringscan.pipeline.preview.render import ViewSettings, read_geometry, render_to_png, view_camera
-from ringscan.tools.cli import UsageError, add_device_option
+from ringscan.tools.cli import UsageError, add_device_option, basic_options
 
 CATEGORICAL = ("view", "ring")
 """Fields whose values name things (a view, a ring): one colour each and a legend, not a scale."""
@@ -93,6 +93,7 @@ def add_parser(sub):
                    help="no scale bar (a round number of mm, true at the points' median depth, lower left)")
     p.add_argument("--max-error", type=float, default=None, metavar="MM",
                    help="top of the error colour scale (default: 99th percentile)")
+    basic_options(p, "--truth", "--color-by", "--max-error", "--conditioning", "--residuals")
     return p
 
 
