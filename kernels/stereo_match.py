@@ -118,6 +118,35 @@ class MatchSettings:
                 raise ValueError(f"match.{name}: must be > 0, got {getattr(self, name)}")
 
 
+@wp.struct
+class MatchParams:
+    """The scalar settings of :func:`match_kernel`, filled once by :func:`match_by_projector`
+    (the grid as binned, the rest from :class:`MatchSettings`)."""
+
+    cell: wp.float32
+    """The grid's cell size, projector px (``MatchSettings.cell_px``, split for a dense map)."""
+    nx: wp.int32
+    """The grid's columns."""
+    ny: wp.int32
+    """The grid's rows."""
+    rings: wp.int32
+    """Rings of cells the search reaches: ``MatchSettings.radius_px`` in cells."""
+    k_max: wp.int32
+    """``MatchSettings.neighbours``."""
+    k_min: wp.int32
+    """``MatchSettings.min_neighbours``."""
+    line_ratio: wp.float32
+    """``MatchSettings.line_ratio``."""
+    max_offset: wp.float32
+    """``MatchSettings.max_offset_px``."""
+    max_extrapolation: wp.float32
+    """``MatchSettings.max_extrapolation``."""
+    max_fit: wp.float32
+    """``MatchSettings.max_fit_px``."""
+    max_gain: wp.float32
+    """``MatchSettings.max_gain``."""
+
+
 @dataclass
 class Matches:
     """Per query (Warp arrays of length n, the queries' device)."""
@@ -275,17 +304,7 @@ def match_kernel(
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     items: wp.array(dtype=wp.int32),
-    cell: float,
-    nx: int,
-    ny: int,
-    rings: int,
-    k_max: int,
-    k_min: int,
-    line_ratio: float,
-    max_offset: float,
-    max_extrapolation: float,
-    max_fit: float,
-    max_gain: float,
+    params: MatchParams,
     i0: int,
     out_uv: wp.array(dtype=wp.vec2),
     out_sigma2: wp.array(dtype=wp.float32),
@@ -298,9 +317,21 @@ def match_kernel(
 
     query (n,) vec2 projector px, query_sigma (n,) float32; proj2, uv2 (m,) vec2,
     sigma2 (m,) float32 (camera 2's samples); offsets, counts (nx * ny,) int32,
-    items (binned,) int32 (the grid): read. out_uv (n,) vec2, out_sigma2,
-    out_sigma1, out_gain, out_fit (n,) float32, status (n,) int32: written."""
+    items (binned,) int32 (the grid): read. params: the grid and the fit's
+    settings (:class:`MatchParams`). out_uv (n,) vec2, out_sigma2, out_sigma1,
+    out_gain, out_fit (n,) float32, status (n,) int32: written."""
     i = i0 + wp.tid()
+    cell = params.cell
+    nx = params.nx
+    ny = params.ny
+    rings = params.rings
+    k_max = params.k_max
+    k_min = params.k_min
+    line_ratio = params.line_ratio
+    max_offset = params.max_offset
+    max_extrapolation = params.max_extrapolation
+    max_fit = params.max_fit
+    max_gain = params.max_gain
     q = query[i]
     out_uv[i] = wp.vec2(0.0, 0.0)
     out_sigma2[i] = 0.0
@@ -626,9 +657,19 @@ def match_by_projector(
         wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
                   device=dev)
     s = settings
-    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, cell, nx, ny, rings, int(s.neighbours),
-            int(s.min_neighbours), float(s.line_ratio), float(s.max_offset_px), float(s.max_extrapolation),
-            float(s.max_fit_px), float(s.max_gain)]
+    params = MatchParams()
+    params.cell = cell
+    params.nx = nx
+    params.ny = ny
+    params.rings = rings
+    params.k_max = int(s.neighbours)
+    params.k_min = int(s.min_neighbours)
+    params.line_ratio = float(s.line_ratio)
+    params.max_offset = float(s.max_offset_px)
+    params.max_extrapolation = float(s.max_extrapolation)
+    params.max_fit = float(s.max_fit_px)
+    params.max_gain = float(s.max_gain)
+    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, params]
     outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.fit_px, out.status]
     threads = default_threads() if threads is None else threads
     launch_spans(match_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
