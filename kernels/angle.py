@@ -84,6 +84,37 @@ class AngleSettings:
                 raise ValueError(f"AngleSettings.{k}: must be a finite number >= 0, got {v!r}")
 
 
+@wp.struct
+class AngleParams:
+    """The scalar settings of :func:`angle_kernel`, filled once by :func:`decode_angle`
+    (the frame layout, the light's response and :class:`AngleSettings`)."""
+
+    white: wp.int32
+    """Frame index of white."""
+    black: wp.int32
+    """Frame index of black."""
+    angle0: wp.int32
+    """Frame index of ``angle_0``."""
+    steps: wp.int32
+    """The number of angle frames N."""
+    n_sectors: wp.int32
+    """2 ** sector_bits, 0 without sectors."""
+    sector0: wp.int32
+    """Frame index of ``sector_0`` (the coarse sector re-read), -1: none."""
+    level_scale: wp.float32
+    """Full scale / 255: 8-bit grey levels -> recorded levels (1 or 257)."""
+    inv_light_gamma: wp.float32
+    """1 / the light's response exponent."""
+    min_contrast: wp.float32
+    """``AngleSettings.min_contrast`` (8-bit grey levels)."""
+    bit_margin: wp.float32
+    """``AngleSettings.bit_margin``."""
+    min_modulation: wp.float32
+    """``AngleSettings.min_modulation``."""
+    noise: wp.float32
+    """``AngleSettings.noise`` (8-bit grey levels)."""
+
+
 @dataclass
 class AngleSamples:
     """Per-sample angle results (Warp arrays of length n)."""
@@ -184,18 +215,7 @@ def angle_kernel(
     uv: wp.array(dtype=wp.vec2),
     rho: wp.array(dtype=wp.float32),
     sector: wp.array(dtype=wp.int32),
-    white: int,
-    black: int,
-    angle0: int,
-    steps: int,
-    n_sectors: int,
-    sector0: int,
-    level_scale: float,
-    inv_light_gamma: float,
-    min_contrast: float,
-    bit_margin: float,
-    min_modulation: float,
-    noise: float,
+    params: AngleParams,
     i0: int,
     phi: wp.array(dtype=wp.float32),
     sigma_tan: wp.array(dtype=wp.float32),
@@ -204,17 +224,30 @@ def angle_kernel(
 ):
     """Angle of sample i0 + tid.
 
-    frames: (n_frames, H, W) uint8/uint16, read (``white``, ``black``, the
-        angle frames from index ``angle0`` and, for samples without a sector,
-        the sector frame pairs from ``sector0``; -1: none). lut: (full + 1,)
-        float32, read.
+    frames: (n_frames, H, W) uint8/uint16, read (the frames ``params`` names:
+        ``white``, ``black``, the angle frames from index ``angle0`` and, for
+        samples without a sector, the sector frame pairs from ``sector0``; -1:
+        none). lut: (full + 1,) float32, read.
     trig: (steps,) vec2 (cos, sin) of 2 pi n / steps, read.
     zone_rho: (Z,) float32 inner radius of each zone, ascending; zone_periods:
         (Z,) int32 its number of periods, read.
     uv (n,) vec2 camera position, rho (n,) float32, sector (n,) int32, read.
+    params: the frame indices, thresholds and noise model (:class:`AngleParams`).
     phi, sigma_tan, modulation (n,) float32, status (n,) int32, written.
     """
     i = i0 + wp.tid()
+    white = params.white
+    black = params.black
+    angle0 = params.angle0
+    steps = params.steps
+    n_sectors = params.n_sectors
+    sector0 = params.sector0
+    level_scale = params.level_scale
+    inv_light_gamma = params.inv_light_gamma
+    min_contrast = params.min_contrast
+    bit_margin = params.bit_margin
+    min_modulation = params.min_modulation
+    noise = params.noise
     x = uv[i][0]
     y = uv[i][1]
     phi[i] = wp.nan
@@ -348,11 +381,21 @@ def decode_angle(
     full = 255.0 if frames.dtype == wp.uint8 else 65535.0
     shifts = 2 * np.pi * np.arange(steps) / steps
     trig = wp.array(np.c_[np.cos(shifts), np.sin(shifts)].astype(np.float32), dtype=wp.vec2, device=dev)
+    params = AngleParams()
+    params.white = int(white)
+    params.black = int(black)
+    params.angle0 = int(angle0)
+    params.steps = int(steps)
+    params.n_sectors = 2 ** sector_bits if sector_bits > 0 else 0
+    params.sector0 = int(sector0)
+    params.level_scale = full / 255.0
+    params.inv_light_gamma = 1.0 / float(light_gamma)
+    params.min_contrast = float(settings.min_contrast)
+    params.bit_margin = float(settings.bit_margin)
+    params.min_modulation = float(settings.min_modulation)
+    params.noise = float(settings.noise)
     args = [frames, lut, trig, wp.array(starts.astype(np.float32), device=dev),
-            wp.array(periods.astype(np.int32), device=dev), uv, rho, sector, int(white), int(black), int(angle0),
-            int(steps), 2 ** sector_bits if sector_bits > 0 else 0, int(sector0), full / 255.0,
-            1.0 / float(light_gamma), float(settings.min_contrast), float(settings.bit_margin),
-            float(settings.min_modulation), float(settings.noise)]
+            wp.array(periods.astype(np.int32), device=dev), uv, rho, sector, params]
     outputs = [out.phi, out.sigma_tan, out.modulation, out.status]
     threads = default_threads() if threads is None else threads
     launch_spans(angle_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
