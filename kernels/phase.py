@@ -102,6 +102,29 @@ class PhaseSettings:
             raise ValueError("PhaseSettings: min_modulation, slip_tolerance, smooth_tolerance and min_pairs must be >= 0")
 
 
+@wp.struct
+class PhaseParams:
+    """The scalar settings of :func:`phase_unwrap_kernel`, filled once by :func:`decode_phase`
+    (the pattern's layout, the light's response and :class:`PhaseSettings`)."""
+
+    bits: wp.int32
+    """The pattern's band bits."""
+    phase0: wp.int32
+    """Frame index of ``phase_0``."""
+    steps: wp.int32
+    """The number of phase frames N."""
+    inv_light_gamma: wp.float32
+    """1 / the light's response exponent (1: the frames are not normalised)."""
+    min_contrast: wp.float32
+    """``PhaseSettings.min_contrast`` in recorded levels (x257 for 16-bit)."""
+    min_modulation: wp.float32
+    """``PhaseSettings.min_modulation``."""
+    edge_ratio: wp.float32
+    """``PhaseSettings.edge_ratio``."""
+    slip_tolerance: wp.float32
+    """``PhaseSettings.slip_tolerance`` (bands)."""
+
+
 @dataclass
 class PhaseMap:
     """Per-pixel phase results (Warp arrays of shape (H, W) on the frames' device)."""
@@ -198,14 +221,7 @@ def phase_unwrap_kernel(
     code: wp.array2d(dtype=wp.int32),
     weak: wp.array2d(dtype=wp.int32),
     contrast: wp.array2d(dtype=wp.float32),
-    bits: int,
-    phase0: int,
-    steps: int,
-    inv_light_gamma: float,
-    min_contrast: float,
-    min_modulation: float,
-    edge_ratio: float,
-    slip_tolerance: float,
+    params: PhaseParams,
     row0: int,
     chunk: int,
     t_out: wp.array2d(dtype=wp.float32),
@@ -221,8 +237,17 @@ def phase_unwrap_kernel(
         recorded value.
     trig: (steps,) vec2, read: (cos, sin) of each step's shift 2 pi n / steps.
     code, weak: (H, W) int32, contrast: (H, W) float32, read (the band decode).
+    params: the frame layout and thresholds (:class:`PhaseParams`).
     t_out, modulation: (H, W) float32, status: (H, W) int32, written.
     """
+    bits = params.bits
+    phase0 = params.phase0
+    steps = params.steps
+    inv_light_gamma = params.inv_light_gamma
+    min_contrast = params.min_contrast
+    min_modulation = params.min_modulation
+    edge_ratio = params.edge_ratio
+    slip_tolerance = params.slip_tolerance
     w = frames.shape[2]
     run = row_run(wp.tid(), w, row0, chunk)
     y = run[0]
@@ -566,11 +591,18 @@ def decode_phase(
     s = settings
     shifts = 2.0 * np.pi * np.arange(steps) / steps
     trig = wp.array(np.stack([np.cos(shifts), np.sin(shifts)], -1).astype(np.float32), dtype=wp.vec2, device=dev)
+    params = PhaseParams()
+    params.bits = bits
+    params.phase0 = phase0
+    params.steps = steps
+    params.inv_light_gamma = 1.0 / float(light_gamma)
+    params.min_contrast = s.min_contrast * scale
+    params.min_modulation = s.min_modulation
+    params.edge_ratio = s.edge_ratio
+    params.slip_tolerance = s.slip_tolerance
     launch_rows(
         phase_unwrap_kernel, h, w,
-        lambda r0, chunk: [frames, lut, wlut, trig, labels.code, labels.weak, labels.contrast, bits, phase0, steps,
-                           1.0 / float(light_gamma), s.min_contrast * scale, s.min_modulation, s.edge_ratio,
-                           s.slip_tolerance, r0, chunk],
+        lambda r0, chunk: [frames, lut, wlut, trig, labels.code, labels.weak, labels.contrast, params, r0, chunk],
         [out.t, out.modulation, out.status], dev, default_threads() if threads is None else threads,
     )
     return out
