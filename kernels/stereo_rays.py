@@ -56,6 +56,18 @@ __all__ = [
 ]
 
 
+@wp.struct
+class RayParams:
+    """The scalar settings of :func:`triangulate_rays_kernel`, filled once by :func:`triangulate_rays`."""
+
+    use_light: wp.int32
+    """1: the calibrated projector is a third ray; 0: the two cameras alone."""
+    min_sin: wp.float32
+    """Least sine of the widest angle between camera 1's ray and another ray (below: ill-conditioned)."""
+    max_residual_px: wp.float32
+    """Largest RMS reprojection error, px (above: inconsistent)."""
+
+
 @dataclass
 class RayTriangulation:
     """Per match (Warp arrays of length n)."""
@@ -140,10 +152,8 @@ def triangulate_rays_kernel(
     cam1: CameraModel,
     cam2: CameraModel,
     light: LightModel,
-    use_light: int,
     vol: Volume,
-    min_sin: float,
-    max_residual_px: float,
+    params: RayParams,
     i0: int,
     points: wp.array(dtype=wp.vec3),
     status: wp.array(dtype=wp.int32),
@@ -151,14 +161,18 @@ def triangulate_rays_kernel(
     chi2: wp.array(dtype=wp.float32),
     sigma: wp.array(dtype=wp.float32),
 ):
-    """Triangulate match i0 + tid from camera 1, camera 2 and, with ``use_light``,
+    """Triangulate match i0 + tid from camera 1, camera 2 and, with ``params.use_light``,
     the projector.
 
     uv1, uv2 (n,) vec2 camera pixels (distorted), sigma1, sigma2 (n,) float32
     px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
-    (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. points
-    (n,) vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written."""
+    (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. params:
+    the third ray's switch and the bounds (:class:`RayParams`). points (n,)
+    vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written."""
     i = i0 + wp.tid()
+    use_light = params.use_light
+    min_sin = params.min_sin
+    max_residual_px = params.max_residual_px
     points[i] = wp.vec3(0.0, 0.0, 0.0)
     residual[i] = -1.0
     chi2[i] = 0.0
@@ -344,8 +358,12 @@ def triangulate_rays(    uv1: wp.array,
         light = from_cam
         proj = wp.zeros(1, dtype=wp.vec2, device=dev)
         proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
-    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, camera1, camera2, light, use_light,
-            make_volume(z_min, z_max, r_max), float(min_sin), float(max_residual_px)]
+    params = RayParams()
+    params.use_light = use_light
+    params.min_sin = float(min_sin)
+    params.max_residual_px = float(max_residual_px)
+    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, camera1, camera2, light, make_volume(z_min, z_max, r_max),
+            params]
     outputs = [out.points, out.status, out.residual, out.chi2, out.sigma]
     threads = default_threads() if threads is None else threads
     launch_spans(triangulate_rays_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
