@@ -136,8 +136,26 @@ def simulate_scan(
     Returns:
         The written scan (as :func:`load_scan` reads it back).
     """
-    from ringscan.pipeline.formats.progress import progress_bar
+    _check_simulate_options(patterns, renderer, mitsuba, image_format)
+    rig = default_rig() if rig is None else rig
+    angles = _checked_angles(rig, views, turntable_deg)
+    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
+    renderers = _renderers(rig, scene, patterns, renderer, settings, device, mitsuba)
+    folder = Path(out_dir)
+    scan, truth = _start_scan(folder, rig, patterns, scene, settings, renderer, renderers[0], placed)
+    names = frame_names(patterns)
+    out = _FrameWriter(folder=folder, names=names, frames={n: render_frame(patterns, n) for n in names},
+                       settings=settings, image_format=image_format)
+    t0 = time.perf_counter()
+    by = " (Mitsuba)" if renderer == "mitsuba" else ""
+    _render_views(out, scan, truth, angles, renderers, f"simulate {scene.name}{by}", progress)
+    log.info("simulated %d view(s) x %d frame(s) of %s in %.1f s -> %s", len(angles), len(names), scene.name,
+             time.perf_counter() - t0, folder)
+    return load_scan(folder)
 
+
+def _check_simulate_options(patterns, renderer: str, mitsuba, image_format: str) -> None:
+    """Raise ValueError for a pattern set, renderer, Mitsuba settings or image format simulate_scan does not take."""
     if not isinstance(patterns, PatternSpec):
         raise ValueError(f"patterns: expected a PatternSpec, got {type(patterns).__name__}")
     if renderer not in ("warp", "mitsuba"):
@@ -146,7 +164,10 @@ def simulate_scan(
         raise ValueError("mitsuba: Mitsuba's settings apply to renderer='mitsuba' only")
     if image_format not in ("png", "tiff", "packed"):
         raise ValueError(f"image_format: expected 'png', 'tiff' or 'packed', got {image_format!r}")
-    rig = default_rig() if rig is None else rig
+
+
+def _checked_angles(rig: Rig, views: int | None, turntable_deg) -> tuple[float, ...]:
+    """The views' turntable angles, checked against the rig's turntable, and the rig's light checked calibrated."""
     angles = view_angles(views) if views is not None else tuple(float(a) for a in turntable_deg)
     if not angles:
         raise ValueError("turntable_deg: no views")
@@ -154,22 +175,34 @@ def simulate_scan(
         turntable_transform(rig.turntable, a)
     if not has_calibrated_light(rig):
         raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
-    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
+    return angles
 
-    def make_renderer(r: Rig):
-        size = (patterns.width, patterns.height)
-        if renderer == "mitsuba":
-            from ringscan.pipeline.simulate.mitsuba_render import MitsubaRig, MitsubaSettings
 
-            return MitsubaRig(r, scene, settings=settings, mitsuba=mitsuba or MitsubaSettings(), projector_size=size)
-        return VirtualRig(r, scene, settings=settings, device=device, projector_size=size)
+def _make_renderer(r: Rig, scene: SceneMesh, patterns: PatternSpec, renderer: str, settings: RenderSettings,
+                   device: str | None, mitsuba):
+    """The renderer (``warp``: :class:`VirtualRig`, ``mitsuba``: ``MitsubaRig``) of camera 1 of ``r``."""
+    size = (patterns.width, patterns.height)
+    if renderer == "mitsuba":
+        from ringscan.pipeline.simulate.mitsuba_render import MitsubaRig, MitsubaSettings
 
-    vr = make_renderer(rig)
+        return MitsubaRig(r, scene, settings=settings, mitsuba=mitsuba or MitsubaSettings(), projector_size=size)
+    return VirtualRig(r, scene, settings=settings, device=device, projector_size=size)
+
+
+def _renderers(rig: Rig, scene: SceneMesh, patterns: PatternSpec, renderer: str, settings: RenderSettings,
+               device: str | None, mitsuba) -> tuple:
+    """(camera 1's renderer, camera 2's or None): camera 2 sees the same scene under the same frames."""
+    vr = _make_renderer(rig, scene, patterns, renderer, settings, device, mitsuba)
     vr2 = None
-    if rig.camera2 is not None:  # camera 2 sees the same scene under the same frames
-        vr2 = make_renderer(dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))
+    if rig.camera2 is not None:
+        vr2 = _make_renderer(dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera), scene, patterns,
+                             renderer, settings, device, mitsuba)
+    return vr, vr2
 
-    folder = Path(out_dir)
+
+def _start_scan(folder: Path, rig: Rig, patterns: PatternSpec, scene: SceneMesh, settings: RenderSettings,
+                renderer: str, vr, placed: dict) -> tuple[Scan, dict]:
+    """The scan folder with its truth mesh and a scan.json of no views yet: (the scan, its truth entries)."""
     folder.mkdir(parents=True, exist_ok=True)
     mesh_rel = f"{TRUTH_DIR}/object.ply"
     _write_mesh(folder / mesh_rel, scene.vertices, scene.faces)    # empty for the plane scene
@@ -181,55 +214,76 @@ def simulate_scan(
     truth.update(placed)
     scan = Scan(folder=folder, rig=rig, patterns=patterns, views=(), extra={"truth": {**truth, "views": {}}})
     save_scan(scan)
+    return scan, truth
 
-    names = frame_names(patterns)
-    frames = {n: render_frame(patterns, n) for n in names}
+
+@dataclasses.dataclass(frozen=True)
+class _FrameWriter:
+    """Where and how :func:`simulate_scan` writes the frames it renders."""
+
+    folder: Path
+    names: list
+    frames: dict
+    settings: RenderSettings
+    image_format: str
+
+
+def _render_views(out: _FrameWriter, scan: Scan, truth: dict, angles, renderers: tuple, desc: str,
+                  progress: bool) -> None:
+    """Every view rendered and written, scan.json saved after each (with the truth so far)."""
+    from ringscan.pipeline.formats.progress import progress_bar
+
+    vr, vr2 = renderers
     done: list[View] = []
-    t0 = time.perf_counter()
     n_cams = 2 if vr2 is not None else 1
-    by = " (Mitsuba)" if renderer == "mitsuba" else ""
-    bar = progress_bar(total=len(angles) * len(names) * n_cams, desc=f"simulate {scene.name}{by}", unit="frame",
-                       disable=not progress)
+    bar = progress_bar(total=len(angles) * len(out.names) * n_cams, desc=desc, unit="frame", disable=not progress)
     try:
         for vi, deg in enumerate(angles):
             vname = f"view_{vi:03d}"
             cams = [(1, vr, vname)] + ([(2, vr2, f"{vname}/{CAMERA2_DIR}")] if vr2 is not None else [])
-            written = {}
-            for c, rend, sub in cams:
-                rend.set_turntable(deg)
-                cam = rend.rig.camera
-                rel, store = {}, None
-                if image_format == "packed":
-                    store = create_store(folder / sub / STORE_NAME, names, height=cam.height, width=cam.width,
-                                         dtype=np.uint16 if settings.bit_depth == 16 else np.uint8)
-                for fi, n in enumerate(names):
-                    seed = _mix_seed(settings.seed, vi, fi) if c == 1 else _mix_seed(settings.seed, vi, fi, c)
-                    img = rend.render(frames[n], seed=seed)
-                    if store is not None:
-                        write_frame(store, n, img)
-                    else:
-                        rel[n] = f"{sub}/{n}.{image_format}"
-                        write_image(folder / rel[n], img)
-                    bar.update(1)
-                tr = rend.truth()
-                pre = f"{TRUTH_DIR}/{vname}_{'cam2_' if c == 2 else ''}"
-                depth_rel, lit_rel = f"{pre}depth.tiff", f"{pre}lit.png"
-                _write_depth(folder / depth_rel, tr["depth"])
-                write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
-                view = View(name=vname, turntable_deg=float(deg), frames=rel)
-                written[c] = ({"depth": depth_rel, "lit": lit_rel},
-                              packed_view(view, f"{sub}/{STORE_NAME}", names) if store is not None else view)
-            truth["views"][vname] = dict(written[1][0])
-            view = written[1][1]
-            if 2 in written:
-                truth["views"][vname]["camera2"] = written[2][0]
-                view = dataclasses.replace(view, camera2=written[2][1])
-            done.append(view)
+            written = {c: _render_camera(out, bar, rend, c, vi, deg, vname, sub) for c, rend, sub in cams}
+            done.append(_add_view_truth(truth, vname, written))
             snapshot = {**truth, "views": dict(truth["views"])}
             scan = dataclasses.replace(scan, views=tuple(done), extra={"truth": snapshot})
             save_scan(scan)
     finally:
         bar.close()
-    log.info("simulated %d view(s) x %d frame(s) of %s in %.1f s -> %s", len(angles), len(names), scene.name,
-             time.perf_counter() - t0, folder)
-    return load_scan(folder)
+
+
+def _render_camera(out: _FrameWriter, bar, rend, c: int, vi: int, deg: float, vname: str,
+                   sub: str) -> tuple[dict, View]:
+    """One camera's frames and truth of one view written: (its truth entry, its view)."""
+    folder, names, frames, settings, image_format = out.folder, out.names, out.frames, out.settings, out.image_format
+    rend.set_turntable(deg)
+    cam = rend.rig.camera
+    rel, store = {}, None
+    if image_format == "packed":
+        store = create_store(folder / sub / STORE_NAME, names, height=cam.height, width=cam.width,
+                             dtype=np.uint16 if settings.bit_depth == 16 else np.uint8)
+    for fi, n in enumerate(names):
+        seed = _mix_seed(settings.seed, vi, fi) if c == 1 else _mix_seed(settings.seed, vi, fi, c)
+        img = rend.render(frames[n], seed=seed)
+        if store is not None:
+            write_frame(store, n, img)
+        else:
+            rel[n] = f"{sub}/{n}.{image_format}"
+            write_image(folder / rel[n], img)
+        bar.update(1)
+    tr = rend.truth()
+    pre = f"{TRUTH_DIR}/{vname}_{'cam2_' if c == 2 else ''}"
+    depth_rel, lit_rel = f"{pre}depth.tiff", f"{pre}lit.png"
+    _write_depth(folder / depth_rel, tr["depth"])
+    write_image(folder / lit_rel, np.where(tr["lit"], 255, 0).astype(np.uint8))
+    view = View(name=vname, turntable_deg=float(deg), frames=rel)
+    return ({"depth": depth_rel, "lit": lit_rel},
+            packed_view(view, f"{sub}/{STORE_NAME}", names) if store is not None else view)
+
+
+def _add_view_truth(truth: dict, vname: str, written: dict) -> View:
+    """The view of its cameras' written frames (camera 2's as its ``camera2``), its truth entries put in ``truth``."""
+    truth["views"][vname] = dict(written[1][0])
+    view = written[1][1]
+    if 2 in written:
+        truth["views"][vname]["camera2"] = written[2][0]
+        view = dataclasses.replace(view, camera2=written[2][1])
+    return view
