@@ -545,6 +545,125 @@ def _robust_cost(R, d, p1, p2, K1, K2, loss: str, scale: float) -> float:
     return 0.5 * scale ** 2 * float(np.sum(rho))
 
 
+@dataclass(frozen=True)
+class _Matches:
+    """The matches :func:`refine_extrinsics` adjusts to: as observed, normalized, undistorted, and the subset used."""
+
+    uv1: np.ndarray
+    uv2: np.ndarray
+    n1: np.ndarray
+    n2: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    K1: np.ndarray
+    K2: np.ndarray
+    sub: np.ndarray
+
+
+def _matches(dev1, dev2, uv1, uv2, settings: RefineSettings, rng) -> _Matches:
+    """The matches normalized and undistorted, with the seeded subset the adjustment uses."""
+    n = uv1.shape[0]
+    K1, K2 = np.asarray(dev1.K, float), np.asarray(dev2.K, float)
+    n1 = _normalize(uv1, K1, dev1.dist)
+    n2 = _normalize(uv2, K2, dev2.dist)
+    p1 = n1 @ K1[:2, :2].T + K1[:2, 2]
+    p2 = n2 @ K2[:2, :2].T + K2[:2, 2]
+    sub = np.sort(rng.choice(n, settings.max_points, replace=False)) if n > settings.max_points else np.arange(n)
+    return _Matches(uv1, uv2, n1, n2, p1, p2, K1, K2, sub)
+
+
+def _best_start(m: _Matches, R0, t0, settings: RefineSettings):
+    """(start's name, R, unit d, loss scale, covariance) of the better adjustment of two starts: the matches'
+    own essential matrix, and the rig's pose (kept only where clearly better)."""
+    sub, K1, K2 = m.sub, m.K1, m.K2
+    starts = []
+    f1 = 0.5 * (K1[0, 0] + K1[1, 1])
+    E, mask = cv2.findEssentialMat(m.n1[sub], m.n2[sub], np.eye(3), method=cv2.RANSAC, prob=0.999,
+                                   threshold=settings.ransac_px / f1)
+    if E is not None and E.shape == (3, 3):
+        _, Re, te, _ = cv2.recoverPose(E, m.n1[sub], m.n2[sub], np.eye(3), mask=mask)
+        starts.append(("essential", Re, te.ravel() / np.linalg.norm(te)))
+    if np.linalg.norm(t0) > 0:
+        starts.append(("rig", R0, t0 / np.linalg.norm(t0)))
+    if not starts:
+        raise CalibrationError(None, "the matches determine no pose (no essential matrix) and the rig has none")
+    best = None
+    for name, Rs, ds in starts:
+        R, d, cost, scale, cov = _adjust(Rs, ds, m.p1[sub], m.p2[sub], K1, K2, settings)
+        # costs compare only at one scale: evaluate each end at the first end's
+        if best is not None:
+            loss_scale = best[4]
+            cost = _robust_cost(R, d, m.p1[sub], m.p2[sub], K1, K2, settings.loss, loss_scale)
+            best_cost = _robust_cost(best[1], best[2], m.p1[sub], m.p2[sub], K1, K2, settings.loss, loss_scale)
+            if cost < best_cost * (1 - 1e-6):
+                best = (name, R, d, cost, scale, cov)
+        else:
+            best = (name, R, d, cost, scale, cov)
+    name, R, d, _, scale, cov = best
+    return name, R, d, scale, cov
+
+
+def _third_device(m: _Matches, dev1, seen: tuple, sigmas: tuple, R, t, rng, settings: RefineSettings):
+    """(name, epipolar stats against device 1, the three-device adjustment's (R, t, scale, cov, matches used)
+    or the note why it was left out) of the third device: ``seen`` is (it, its pixels)."""
+    light, uv_light = seen
+    if not isinstance(light, (PerspectiveLight, Camera)):
+        raise ValueError("refine_extrinsics: light (the third device) must be a calibrated PerspectiveLight "
+                         "or a Camera")
+    n, sub, K1, K2 = m.uv1.shape[0], m.sub, m.K1, m.K2
+    third = "projector" if isinstance(light, PerspectiveLight) else "camera 2"
+    uvl = _check_pixels(uv_light, "refine_extrinsics: uv_light", n)
+    Rl, tl = relative_pose(dev1, light)
+    Kl = np.asarray(light.K, float)
+    nl = _normalize(uvl, Kl, light.dist)
+    light_epi = ResidualStats.of(epipolar_distances(Rl, tl, K1, Kl, m.n1, nl))
+    if not light_epi.median_px <= settings.max_light_epipolar_px:
+        return third, light_epi, (f"{'the projector' if third == 'projector' else 'camera 2'} was left out of the "
+                                  f"adjustment: camera 1's matches lie {light_epi.median_px:.2f} px (median) from its "
+                                  f"epipolar lines (> {settings.max_light_epipolar_px:g} px), so its pose does not "
+                                  f"fit the images; refine it first (--pair "
+                                  f"{'projector' if third == 'projector' else 'cameras'})")
+    sigma1, sigma2, sigma_light = sigmas
+    s1 = _sigmas(sigma1, n, "refine_extrinsics: sigma1")
+    s2 = _sigmas(sigma2, n, "refine_extrinsics: sigma2")
+    sl = _sigmas(sigma_light, n, "refine_extrinsics: sigma_light")
+    ref_px = float(np.median(s1))  # residuals in device-1 px of a median match
+    bsub = sub
+    if bsub.size > settings.bundle_points:
+        bsub = np.sort(rng.choice(bsub, settings.bundle_points, replace=False))
+    obs = [m.n1[bsub], m.n2[bsub], nl[bsub]]
+    wts = [K1[0, 0] * ref_px / s1[bsub], K2[0, 0] * ref_px / s2[bsub], Kl[0, 0] * ref_px / sl[bsub]]
+    R, t, scale, cov = _adjust_three(R, t, (Rl, tl), obs, wts, settings, settings.loss_scale_px)
+    return third, light_epi, (R, t, scale, cov, int(bsub.size))
+
+
+def _refined_residuals(m: _Matches, dev1, dev2, R0, t0, R, t, settings: RefineSettings):
+    """(epipolar before, after, reprojection before, after, in front of both, inliers) over all the matches."""
+    n, K1, K2 = m.uv1.shape[0], m.K1, m.K2
+    epi0 = epipolar_distances(R0, t0, K1, K2, m.n1, m.n2) if np.linalg.norm(t0) > 0 else np.full(n, np.inf)
+    epi1 = epipolar_distances(R, t, K1, K2, m.n1, m.n2)
+    rep0, _ = reprojection_errors(R0, t0, dev1, dev2, m.uv1, m.uv2, m.n1, m.n2)
+    rep1, front = reprojection_errors(R, t, dev1, dev2, m.uv1, m.uv2, m.n1, m.n2)
+    samp = np.abs(_sampson(_fundamental(R, t, K1, K2), m.p1, m.p2))
+    inl = int(np.count_nonzero(samp <= 3 * settings.loss_scale_px))
+    return epi0, epi1, rep0, rep1, front, inl
+
+
+def _pose_problems(front, rot_std, inl: int, n: int, settings: RefineSettings) -> list[str]:
+    """What the matches do not determine about the refined pose."""
+    problems = []
+    if front.mean() < settings.min_front:
+        problems.append(f"only {100 * front.mean():.0f} % of the matches lie in front of both devices under the "
+                        "refined pose: the matches do not determine it (too few, or mostly wrong)")
+    if not rot_std.max() <= settings.max_rotation_std_deg:
+        problems.append(f"the matches fix the rotation only to +- {rot_std.max():.3f} deg (> "
+                        f"{settings.max_rotation_std_deg:g}) about its worst axis: too narrow a view of too shallow "
+                        "a scene; scan an object with more depth, wider in the image")
+    if inl < max(settings.min_points, 0.5 * n):
+        problems.append(f"only {inl} of {n} matches fit the refined pose within {3 * settings.loss_scale_px:g} px")
+    return problems
+
+
 def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
                       settings: RefineSettings = RefineSettings(), sigma1=None, sigma2=None, light=None,
                       uv_light=None, sigma_light=None) -> Refinement:
@@ -580,93 +699,30 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
     if not (math.isfinite(base) and base > 0):
         raise CalibrationError(None, f"baseline {base:g} mm: the rig's devices are at one place; give the baseline "
                                      "length")
-    K1, K2 = np.asarray(dev1.K, float), np.asarray(dev2.K, float)
-    n1 = _normalize(uv1, K1, dev1.dist)
-    n2 = _normalize(uv2, K2, dev2.dist)
-    p1 = n1 @ K1[:2, :2].T + K1[:2, 2]
-    p2 = n2 @ K2[:2, :2].T + K2[:2, 2]
     rng = np.random.default_rng(settings.seed)
-    sub = np.sort(rng.choice(n, settings.max_points, replace=False)) if n > settings.max_points else np.arange(n)
-
-    # two starts: the matches' own essential matrix, and the rig's pose (kept only where clearly better)
-    starts = []
-    f1 = 0.5 * (K1[0, 0] + K1[1, 1])
-    E, mask = cv2.findEssentialMat(n1[sub], n2[sub], np.eye(3), method=cv2.RANSAC, prob=0.999,
-                                   threshold=settings.ransac_px / f1)
-    if E is not None and E.shape == (3, 3):
-        _, Re, te, _ = cv2.recoverPose(E, n1[sub], n2[sub], np.eye(3), mask=mask)
-        starts.append(("essential", Re, te.ravel() / np.linalg.norm(te)))
-    if np.linalg.norm(t0) > 0:
-        starts.append(("rig", R0, t0 / np.linalg.norm(t0)))
-    if not starts:
-        raise CalibrationError(None, "the matches determine no pose (no essential matrix) and the rig has none")
-    best = None
-    for name, Rs, ds in starts:
-        R, d, cost, scale, cov = _adjust(Rs, ds, p1[sub], p2[sub], K1, K2, settings)
-        # costs compare only at one scale: evaluate each end at the first end's
-        if best is not None:
-            loss_scale = best[4]
-            cost = _robust_cost(R, d, p1[sub], p2[sub], K1, K2, settings.loss, loss_scale)
-            best_cost = _robust_cost(best[1], best[2], p1[sub], p2[sub], K1, K2, settings.loss, loss_scale)
-            if cost < best_cost * (1 - 1e-6):
-                best = (name, R, d, cost, scale, cov)
-        else:
-            best = (name, R, d, cost, scale, cov)
-    name, R, d, _, scale, cov = best
+    m = _matches(dev1, dev2, uv1, uv2, settings, rng)
+    name, R, d, scale, cov = _best_start(m, R0, t0, settings)
     rot_std, dir_std = _axis_std_deg(cov)
     # the epipolar geometry does not see the sign of t: take the one that puts the points in front
-    _, front_p = reprojection_errors(R, d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
-    _, front_m = reprojection_errors(R, -d * base, dev1, dev2, uv1[sub], uv2[sub], n1[sub], n2[sub])
-    if front_m.mean() > front_p.mean():
-        d = -d
-    t = d * base
+    sub = m.sub
+    _, front_p = reprojection_errors(R, d * base, dev1, dev2, uv1[sub], uv2[sub], m.n1[sub], m.n2[sub])
+    _, front_m = reprojection_errors(R, -d * base, dev1, dev2, uv1[sub], uv2[sub], m.n1[sub], m.n2[sub])
+    t = (-d if front_m.mean() > front_p.mean() else d) * base
     method, light_epi, bundle_used, notes = "two-view", None, 0, []
     third = ""
     if light is not None:
-        if not isinstance(light, (PerspectiveLight, Camera)):
-            raise ValueError("refine_extrinsics: light (the third device) must be a calibrated PerspectiveLight "
-                             "or a Camera")
-        third = "projector" if isinstance(light, PerspectiveLight) else "camera 2"
-        uvl = _check_pixels(uv_light, "refine_extrinsics: uv_light", n)
-        Rl, tl = relative_pose(dev1, light)
-        Kl = np.asarray(light.K, float)
-        nl = _normalize(uvl, Kl, light.dist)
-        light_epi = ResidualStats.of(epipolar_distances(Rl, tl, K1, Kl, n1, nl))
-        if light_epi.median_px <= settings.max_light_epipolar_px:
-            s1 = _sigmas(sigma1, n, "refine_extrinsics: sigma1")
-            s2 = _sigmas(sigma2, n, "refine_extrinsics: sigma2")
-            sl = _sigmas(sigma_light, n, "refine_extrinsics: sigma_light")
-            ref_px = float(np.median(s1))  # residuals in device-1 px of a median match
-            bsub = sub
-            if bsub.size > settings.bundle_points:
-                bsub = np.sort(rng.choice(bsub, settings.bundle_points, replace=False))
-            obs = [n1[bsub], n2[bsub], nl[bsub]]
-            wts = [K1[0, 0] * ref_px / s1[bsub], K2[0, 0] * ref_px / s2[bsub], Kl[0, 0] * ref_px / sl[bsub]]
-            R, t, scale, cov = _adjust_three(R, t, (Rl, tl), obs, wts, settings, settings.loss_scale_px)
-            rot_std, dir_std = _axis_std_deg(cov)
-            method, bundle_used = "three-device", int(bsub.size)
+        third, light_epi, bundle = _third_device(m, dev1, (light, uv_light), (sigma1, sigma2, sigma_light), R, t,
+                                                 rng, settings)
+        if isinstance(bundle, str):
+            notes.append(bundle)
         else:
-            notes.append(f"{'the projector' if third == 'projector' else 'camera 2'} was left out of the "
-                         f"adjustment: camera 1's matches lie {light_epi.median_px:.2f} px (median) from its "
-                         f"epipolar lines (> {settings.max_light_epipolar_px:g} px), so its pose does not fit the "
-                         f"images; refine it first (--pair {'projector' if third == 'projector' else 'cameras'})")
-    epi0 = epipolar_distances(R0, t0, K1, K2, n1, n2) if np.linalg.norm(t0) > 0 else np.full(n, np.inf)
-    epi1 = epipolar_distances(R, t, K1, K2, n1, n2)
-    rep0, _ = reprojection_errors(R0, t0, dev1, dev2, uv1, uv2, n1, n2)
-    rep1, front = reprojection_errors(R, t, dev1, dev2, uv1, uv2, n1, n2)
-    samp = np.abs(_sampson(_fundamental(R, t, K1, K2), p1, p2))
-    inl = int(np.count_nonzero(samp <= 3 * settings.loss_scale_px))
-    problems = []
-    if front.mean() < settings.min_front:
-        problems.append(f"only {100 * front.mean():.0f} % of the matches lie in front of both devices under the "
-                        "refined pose: the matches do not determine it (too few, or mostly wrong)")
-    if not rot_std.max() <= settings.max_rotation_std_deg:
-        problems.append(f"the matches fix the rotation only to +- {rot_std.max():.3f} deg (> "
-                        f"{settings.max_rotation_std_deg:g}) about its worst axis: too narrow a view of too shallow "
-                        "a scene; scan an object with more depth, wider in the image")
-    if inl < max(settings.min_points, 0.5 * n):
-        problems.append(f"only {inl} of {n} matches fit the refined pose within {3 * settings.loss_scale_px:g} px")
-    verg_std, scale_std = _vergence(R, t / np.linalg.norm(t), cov, p1[sub], p2[sub], n1[sub], K1, K2, base, settings)
+            R, t, scale, cov, bundle_used = bundle
+            rot_std, dir_std = _axis_std_deg(cov)
+            method = "three-device"
+    epi0, epi1, rep0, rep1, front, inl = _refined_residuals(m, dev1, dev2, R0, t0, R, t, settings)
+    problems = _pose_problems(front, rot_std, inl, n, settings)
+    verg_std, scale_std = _vergence(R, t / np.linalg.norm(t), cov, m.p1[sub], m.p2[sub], m.n1[sub], m.K1, m.K2, base,
+                                    settings)
     if scale_std > MAX_SCALE_STD:
         notes.append(f"the matches fix the scene's scale only to +- {100 * scale_std:.2f} % (a turn of "
                      f"+- {verg_std:.4f} deg about the vergence axis, which two cameras determine weakly): pin it "
