@@ -347,31 +347,24 @@ class _Model:
     correlation: float
 
 
-def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
-                  settings: ProjectorSettings = ProjectorSettings(), point_cov=None,
-                  pixel_sigma=None) -> ProjectorFit:
-    """A perspective projector fitted to 3D points and the projector pixels that lit them.
+@dataclass
+class _FitProblem:
+    """The pairs a projector is fitted to (``obj``: the points in the centred frame, a plane's own for a
+    planar set) and how :func:`_calibrate` fits them."""
 
-    Args:
-        points_world: (n, 3) points (e.g. triangulated by two cameras) in the frame the
-            projector's pose is wanted in.
-        proj_uv: (n, 2) their projector pixels (u_p, v_p).
-        size: the projector's (width, height) in pixels.
-        settings: see :class:`ProjectorSettings`.
-        point_cov: optional (n, 3, 3) covariance of each point (world units squared, e.g.
-            :func:`triangulation_covariance`), and
-        pixel_sigma: optional (n,) or (n, 2) standard deviation of ``proj_uv`` (px): with either,
-            each pair's residual is weighted by its predicted covariance (the point's mapped into
-            the projector under the unweighted fit, plus the pixel's): the first-order form of a
-            bundle adjustment that lets the points move within their uncertainty. Non-planar sets only.
+    obj: np.ndarray
+    uv: np.ndarray
+    size: tuple[int, int]
+    K0: np.ndarray
+    flags: int
+    n_intrinsics: int
+    settings: ProjectorSettings
+    white: np.ndarray | None = None
+    """(n, 2, 2): each pair's residual -> whitened residual (W^T W = its inverse covariance)."""
 
-    Returns:
-        the :class:`ProjectorFit`; its ``problems`` say what the points do not determine.
 
-    Raises:
-        CalibrationError: too few pairs, pixels outside the projector, or a nearly planar
-            point set without a known principal point.
-    """
+def _fit_inputs(points_world, proj_uv, size, point_cov, pixel_sigma, settings: ProjectorSettings):
+    """(X, uv, (w, h), point covariances, pixel sigmas) checked, of the pairs with finite points."""
     X = np.asarray(points_world, np.float64)
     if X.ndim != 2 or X.shape[1] != 3:
         raise ValueError(f"fit_projector: points must be (n, 3), got shape {X.shape}")
@@ -403,6 +396,12 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         raise CalibrationError(None, f"{100 * outside.mean():.0f} % of the projector pixels lie outside a {w}x{h} "
                                      f"projector (u up to {uv[:, 0].max():.0f}, v up to {uv[:, 1].max():.0f}): "
                                      "wrong projector size?")
+    return X, uv, (w, h), cov_x, sig_p
+
+
+def _point_set_shape(X: np.ndarray, settings: ProjectorSettings):
+    """(centre, centred points, principal axes, thickness, planar) of the points; a planar set needs a principal point."""
+    n = X.shape[0]
     c = X.mean(0)
     Xc = X - c  # centred: float32 object points keep their precision, the Jacobian its conditioning
     _, sv, Vt = np.linalg.svd(Xc[:: max(1, n // 20000)], full_matrices=False)
@@ -413,82 +412,104 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
                                      f"extent < {settings.min_thickness:g}): one plane does not fix the projector's "
                                      "focal length and principal point together; scan an object with depth, or "
                                      "give the principal point")
-    intrinsic_flags = cv2.CALIB_USE_INTRINSIC_GUESS
+    return c, Xc, Vt, thickness, planar
+
+
+def _planar_start(Xc, Vt, uv, size, settings: ProjectorSettings):
+    """(Rpl, obj, K0, flags, fixed) of a planar set: the plane in its own frame (z = 0); square pixels,
+    the given principal point, no distortion."""
+    Rpl = Vt.copy()
+    if np.linalg.det(Rpl) < 0:
+        Rpl[2] *= -1
+    obj = Xc @ Rpl.T
+    obj[:, 2] = 0.0
+    K0 = cv2.initCameraMatrix2D([obj.reshape(-1, 1, 3).astype(np.float32)],
+                                [uv.reshape(-1, 1, 2).astype(np.float32)], size)
+    f0 = 0.5 * (K0[0, 0] + K0[1, 1])
+    K0 = np.array([[f0, 0, settings.principal_point[0]], [0, f0, settings.principal_point[1]], [0, 0, 1.0]])
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+    return Rpl, obj, K0, flags, ["cx", "cy", "fy/fx"]
+
+
+def _general_start(Xc, uv, settings: ProjectorSettings):
+    """(K0, flags, fixed, base terms, candidate term groups) of a set with depth: the DLT's intrinsics."""
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS
     fixed: list[str] = []
+    K0, _, _ = _decompose(_dlt(Xc, uv))
+    K0[0, 1] = 0.0
+    if settings.principal_point is not None:
+        K0[0, 2], K0[1, 2] = settings.principal_point
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        fixed = ["cx", "cy"]
+    if not (K0[0, 0] > 0 and K0[1, 1] > 0 and np.all(np.isfinite(K0))):
+        raise CalibrationError(None, "the points determine no projector (the DLT start failed): are the "
+                                     "projector pixels those of these points?")
+    base = set()
+    candidates = []  # groups "auto" decides, in the order they may enter
+    if settings.radial != "hold":
+        base.add("k1")
+    if settings.radial == "fit":
+        base.add("k2")
+    elif settings.radial == "auto":
+        candidates += [("k2",), ("k3",)]
+    if settings.tangential == "fit":
+        base |= {"p1", "p2"}
+    elif settings.tangential == "auto":
+        candidates.append(("p1", "p2"))
+    return K0, flags, fixed, frozenset(base), candidates
+
+
+def _fit_problem(Xc, Vt, uv, size, planar: bool, settings: ProjectorSettings):
+    """(the fit problem, Rpl, fixed, base terms, candidate term groups) of the centred points."""
     if planar:
-        # a plane in its own frame (z = 0); square pixels, the given principal point, no distortion
-        Rpl = Vt.copy()
-        if np.linalg.det(Rpl) < 0:
-            Rpl[2] *= -1
-        obj = Xc @ Rpl.T
-        obj[:, 2] = 0.0
-        K0 = cv2.initCameraMatrix2D([obj.reshape(-1, 1, 3).astype(np.float32)],
-                                    [uv.reshape(-1, 1, 2).astype(np.float32)], (w, h))
-        f0 = 0.5 * (K0[0, 0] + K0[1, 1])
-        K0 = np.array([[f0, 0, settings.principal_point[0]], [0, f0, settings.principal_point[1]], [0, 0, 1.0]])
-        intrinsic_flags |= cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-        fixed = ["cx", "cy", "fy/fx"]
+        Rpl, obj, K0, flags, fixed = _planar_start(Xc, Vt, uv, size, settings)
         base, candidates = frozenset(), []
     else:
         Rpl = np.eye(3)
         obj = Xc
-        K0, _, _ = _decompose(_dlt(Xc, uv))
-        K0[0, 1] = 0.0
-        if settings.principal_point is not None:
-            K0[0, 2], K0[1, 2] = settings.principal_point
-            intrinsic_flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
-            fixed = ["cx", "cy"]
-        if not (K0[0, 0] > 0 and K0[1, 1] > 0 and np.all(np.isfinite(K0))):
-            raise CalibrationError(None, "the points determine no projector (the DLT start failed): are the "
-                                         "projector pixels those of these points?")
-        base = set()
-        candidates = []  # groups "auto" decides, in the order they may enter
-        if settings.radial != "hold":
-            base.add("k1")
-        if settings.radial == "fit":
-            base.add("k2")
-        elif settings.radial == "auto":
-            candidates += [("k2",), ("k3",)]
-        if settings.tangential == "fit":
-            base |= {"p1", "p2"}
-        elif settings.tangential == "auto":
-            candidates.append(("p1", "p2"))
-        base = frozenset(base)
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+        K0, flags, fixed, base, candidates = _general_start(Xc, uv, settings)
     n_intrinsics = 4 - (2 if settings.principal_point is not None else 0) - (1 if planar else 0)
+    return _FitProblem(obj, uv, size, K0, flags, n_intrinsics, settings), Rpl, fixed, base, candidates
 
-    white = None  # (n, 2, 2): each pair's residual -> whitened residual (W^T W = its inverse covariance)
 
-    def calibrate(terms: frozenset, keep: np.ndarray, start: _Model | None = None) -> tuple[_Model, np.ndarray]:
-        """The fit of the kept pairs with these distortion terms (weighted where ``white`` is set:
-        OpenCV's fit, then a least-squares refinement of the whitened residuals), and every pair's
-        reprojection error (px)."""
-        o = obj[keep].reshape(-1, 1, 3).astype(np.float32)
-        p = uv[keep].reshape(-1, 1, 2).astype(np.float32)
-        K_in = (start.K if start is not None else K0).copy()
-        d_in = start.dist.copy() if start is not None else np.zeros(5)
-        try:
-            _, K, dist, rv, tv = cv2.calibrateCamera([o], [p], (w, h), K_in, d_in,
-                                                     flags=intrinsic_flags | _dist_flags(terms), criteria=crit)
-        except cv2.error as e:
-            raise CalibrationError(None, f"the projector fit failed ({str(e).strip().splitlines()[-1]})") from None
-        dist = np.asarray(dist, float).ravel()[:5]
-        dist = np.concatenate([dist, np.zeros(5 - dist.size)])
-        rvec, tvec = np.asarray(rv[0], float).reshape(3, 1), np.asarray(tv[0], float).reshape(3, 1)
-        K = np.asarray(K, float)
-        if white is not None:
-            K, dist, rvec, tvec = _weighted_refine(obj[keep], uv[keep], white[keep], K, dist, rvec, tvec,
-                                                   _free_columns(terms, intrinsic_flags))
-        q, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, dist)
-        d = q.reshape(-1, 2) - uv
-        r = d[keep] if white is None else np.einsum("nij,nj->ni", white[keep], d[keep])
-        rss = float(np.sum(r * r))
-        dof = max(1, r.size - 6 - n_intrinsics - len(terms))
-        return (_Model(terms, np.asarray(K, float), dist, rvec, tvec, r, rss, dof,
-                       _residual_correlation(r, uv[keep], settings.correlation_cells)), np.linalg.norm(d, axis=1))
+def _calibrate(pb: _FitProblem, terms: frozenset, keep: np.ndarray,
+               start: _Model | None = None) -> tuple[_Model, np.ndarray]:
+    """The fit of the kept pairs with these distortion terms (weighted where ``white`` is set:
+    OpenCV's fit, then a least-squares refinement of the whitened residuals), and every pair's
+    reprojection error (px)."""
+    obj, uv, white, settings = pb.obj, pb.uv, pb.white, pb.settings
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    o = obj[keep].reshape(-1, 1, 3).astype(np.float32)
+    p = uv[keep].reshape(-1, 1, 2).astype(np.float32)
+    K_in = (start.K if start is not None else pb.K0).copy()
+    d_in = start.dist.copy() if start is not None else np.zeros(5)
+    try:
+        _, K, dist, rv, tv = cv2.calibrateCamera([o], [p], pb.size, K_in, d_in,
+                                                 flags=pb.flags | _dist_flags(terms), criteria=crit)
+    except cv2.error as e:
+        raise CalibrationError(None, f"the projector fit failed ({str(e).strip().splitlines()[-1]})") from None
+    dist = np.asarray(dist, float).ravel()[:5]
+    dist = np.concatenate([dist, np.zeros(5 - dist.size)])
+    rvec, tvec = np.asarray(rv[0], float).reshape(3, 1), np.asarray(tv[0], float).reshape(3, 1)
+    K = np.asarray(K, float)
+    if white is not None:
+        K, dist, rvec, tvec = _weighted_refine(obj[keep], uv[keep], white[keep], K, dist, rvec, tvec,
+                                               _free_columns(terms, pb.flags))
+    q, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, dist)
+    d = q.reshape(-1, 2) - uv
+    r = d[keep] if white is None else np.einsum("nij,nj->ni", white[keep], d[keep])
+    rss = float(np.sum(r * r))
+    dof = max(1, r.size - 6 - pb.n_intrinsics - len(terms))
+    return (_Model(terms, np.asarray(K, float), dist, rvec, tvec, r, rss, dof,
+                   _residual_correlation(r, uv[keep], settings.correlation_cells)), np.linalg.norm(d, axis=1))
 
+
+def _drop_outliers(pb: _FitProblem, base: frozenset):
+    """(model, errors, kept pairs): the fit with the base terms, refitted twice without its outliers."""
+    settings = pb.settings
+    n = pb.obj.shape[0]
     keep = np.ones(n, bool)
-    model, err = calibrate(base, keep)
+    model, err = _calibrate(pb, base, keep)
     for _ in range(2):
         lim = max(settings.outlier_px, 5 * float(np.median(err[keep])))
         new = err <= lim
@@ -497,21 +518,23 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         if np.array_equal(new, keep):
             break
         keep = new
-        model, err = calibrate(base, keep)
-    if (cov_x is not None or sig_p is not None) and not planar:
-        white = _whitening(obj, model, cov_x, sig_p)
-        model, err = calibrate(base, keep, model)
-    # "auto": add the distortion term the data most clearly ask for while one passes the test; the
-    # residuals' correlation scales their variance, since neighbouring pairs share their errors
+        model, err = _calibrate(pb, base, keep)
+    return model, err, keep
+
+
+def _auto_distortion(pb: _FitProblem, model: _Model, err, keep, candidates):
+    """(model, errors, decided): "auto" adds the distortion term the data most clearly ask for while one
+    passes the test; ``decided`` holds each tested group's message (``{}``: fitted or held)."""
+    # the residuals' correlation scales their variance, since neighbouring pairs share their errors
     decided: dict[tuple, str] = {}
     while True:
         best = None
         for g in candidates:
             if set(g) <= model.terms or (g == ("k3",) and "k2" not in model.terms):
                 continue
-            trial, trial_err = calibrate(model.terms | set(g), keep, model)
+            trial, trial_err = _calibrate(pb, model.terms | set(g), keep, model)
             stat = (model.rss - trial.rss) / max(trial.rss / trial.dof * trial.correlation, 1e-300)
-            limit = float(chi2.ppf(1.0 - settings.alpha, len(g)))
+            limit = float(chi2.ppf(1.0 - pb.settings.alpha, len(g)))
             decided[g] = (f"{', '.join(g)}: {{}} (auto: the drop of the squared residuals is {stat:.1f} times the "
                           f"correlated noise variance, {'>' if stat > limit else '<='} {limit:.1f})")
             if stat > limit and (best is None or stat / limit > best[0]):
@@ -520,6 +543,11 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
             break
         _, g, model, err = best
         decided[g] = decided[g].format("fitted")
+    return model, err, decided
+
+
+def _decisions(decided: dict, model: _Model, planar: bool, settings: ProjectorSettings) -> list[str]:
+    """Per distortion term, fitted or held and why."""
     decisions = []
     for g in [("k1",), ("k2",), ("k3",), ("p1", "p2")]:
         if g in decided:
@@ -530,7 +558,11 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
             why = ("a planar point set" if planar else "k2 held" if g == ("k3",) and settings.radial == "auto"
                    else "held")
             decisions.append(f"{', '.join(g)}: held at 0 ({why})")
-    fixed += [nm for nm in _DIST_NAMES if nm not in model.terms]
+    return decisions
+
+
+def _fitted_light(model: _Model, Rpl, c, size) -> tuple[PerspectiveLight, np.ndarray, np.ndarray]:
+    """(the projector, R, t) in the points' frame of the model fitted in the centred (plane's) frame."""
     K, dist, rvec, tvec = model.K, model.dist, model.rvec, model.tvec
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
         raise CalibrationError(None, "the projector fit diverged")
@@ -538,11 +570,16 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
     # X_p = Rp (Rpl (X - c)) + tvec
     R = Rp @ Rpl
     t = tvec.ravel() - R @ c
-    light = PerspectiveLight(width=w, height=h, K=np.asarray(K, float), dist=dist, R=R, t=t)
-    # conditioning: the fit's own covariance and the Jacobian's condition number
-    _, J = cv2.projectPoints(obj[keep].reshape(-1, 1, 3), rvec, tvec, K, dist)
-    if white is not None:
-        J = np.einsum("nij,njk->nik", white[keep], J.reshape(-1, 2, J.shape[1])).reshape(-1, J.shape[1])
+    return PerspectiveLight(width=size[0], height=size[1], K=np.asarray(K, float), dist=dist, R=R, t=t), R, t
+
+
+def _fit_stds(pb: _FitProblem, model: _Model, keep, fixed: list[str]):
+    """(condition, stds of independent residuals, stds with their correlation, focal-distance correlation)
+    of the fit: its own covariance and the Jacobian's condition number."""
+    K, dist, rvec, tvec = model.K, model.dist, model.rvec, model.tvec
+    _, J = cv2.projectPoints(pb.obj[keep].reshape(-1, 1, 3), rvec, tvec, K, dist)
+    if pb.white is not None:
+        J = np.einsum("nij,njk->nik", pb.white[keep], J.reshape(-1, 2, J.shape[1])).reshape(-1, J.shape[1])
     names = _PARAM_NAMES
     free = [i for i, nme in enumerate(names) if nme not in fixed and not (nme == "fy" and "fy/fx" in fixed)]
     if "fy/fx" in fixed:  # fx and fy move together
@@ -559,57 +596,105 @@ def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
         out["position"] = math.sqrt(max(np.trace(cov[3:6, 3:6]), 0.0))  # of the centred frame's origin
         return out
 
-    std_noise = stds(cov)
-    std = stds(cov * model.correlation)
     ifx, itz = free_names.index("fx"), free_names.index("tz")
     fd_corr = float(cov[ifx, itz] / math.sqrt(max(cov[ifx, ifx] * cov[itz, itz], 1e-300)))
-    dist_to_points = float(np.linalg.norm(tvec))
+    return cond, stds(cov), stds(cov * model.correlation), fd_corr
+
+
+def _undetermined(sd: dict, K, size, dist_to_points: float, settings: ProjectorSettings) -> list[str]:
+    """What standard deviations ``sd`` leave the points not determining about the projector."""
+    w, h = size
+    out = []
+    for nm, v in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not sd[nm] <= settings.max_focal_std * v:
+            out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.2f} px ({100 * sd[nm] / v:.2f} % > "
+                       f"{100 * settings.max_focal_std:g} %): the points do not determine the focal length")
+    for nm, v, s in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
+        if not sd[nm] <= settings.max_center_std * s:
+            out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.1f} px (> {100 * settings.max_center_std:g} % of "
+                       f"the image): the points do not determine the principal point")
+    if not sd["rotation_deg"] <= settings.max_rotation_std_deg:
+        out.append(f"projector rotation +- {sd['rotation_deg']:.3f} deg (> {settings.max_rotation_std_deg:g}): "
+                   "the points do not determine its pose")
+    if not sd["position"] <= settings.max_position_std * dist_to_points:
+        out.append(f"projector position +- {sd['position']:.2f} (> {100 * settings.max_position_std:g} % of "
+                   f"its distance {dist_to_points:.0f}): the points do not determine its pose")
+    return out
+
+
+def _add_findings(fit: ProjectorFit, model: _Model, planar: bool, settings: ProjectorSettings) -> None:
+    """The fit's problems (what the points' geometry leaves open) and notes (what else the user should know)."""
+    problems, notes = fit.problems, fit.notes
+    K, size, dist_to_points = model.K, (fit.light.width, fit.light.height), float(np.linalg.norm(model.tvec))
+    if planar:
+        problems.append(f"the points lie nearly on one plane (thickness {fit.thickness:.3g}): the principal point is "
+                        f"the one given, square pixels and no distortion are assumed")
+    # refused: what even independent residuals of this size leave open (the geometry of the points);
+    # noted: what the residuals' correlated part (systematic match errors) leaves open on top
+    problems += _undetermined(fit.std_noise, K, size, dist_to_points, settings)
+    first = {p.split(" +-")[0] for p in problems}
+    notes += [f"{p.split(':')[0]} with the residuals' correlation ({model.correlation:.1f}x their variance): "
+              "systematic errors in the matches, not noise, limit it"
+              for p in _undetermined(fit.std, K, size, dist_to_points, settings) if p.split(" +-")[0] not in first]
+    z5, z95 = fit.depth_range
+    if not planar and fit.depth_ratio < settings.min_depth_ratio:
+        notes.append(f"the points span {100 * fit.depth_ratio:.1f} % of their distance along the projector's axis "
+                     f"({z5:.0f} to {z95:.0f}; < {100 * settings.min_depth_ratio:g} %): the focal length and the "
+                     f"distance trade (correlation {fit.focal_distance_correlation:+.3f}); scan an object with more "
+                     "depth")
+
+
+def fit_projector(points_world, proj_uv, *, size: tuple[int, int],
+                  settings: ProjectorSettings = ProjectorSettings(), point_cov=None,
+                  pixel_sigma=None) -> ProjectorFit:
+    """A perspective projector fitted to 3D points and the projector pixels that lit them.
+
+    Args:
+        points_world: (n, 3) points (e.g. triangulated by two cameras) in the frame the
+            projector's pose is wanted in.
+        proj_uv: (n, 2) their projector pixels (u_p, v_p).
+        size: the projector's (width, height) in pixels.
+        settings: see :class:`ProjectorSettings`.
+        point_cov: optional (n, 3, 3) covariance of each point (world units squared, e.g.
+            :func:`triangulation_covariance`), and
+        pixel_sigma: optional (n,) or (n, 2) standard deviation of ``proj_uv`` (px): with either,
+            each pair's residual is weighted by its predicted covariance (the point's mapped into
+            the projector under the unweighted fit, plus the pixel's): the first-order form of a
+            bundle adjustment that lets the points move within their uncertainty. Non-planar sets only.
+
+    Returns:
+        the :class:`ProjectorFit`; its ``problems`` say what the points do not determine.
+
+    Raises:
+        CalibrationError: too few pairs, pixels outside the projector, or a nearly planar
+            point set without a known principal point.
+    """
+    X, uv, (w, h), cov_x, sig_p = _fit_inputs(points_world, proj_uv, size, point_cov, pixel_sigma, settings)
+    n = X.shape[0]
+    c, Xc, Vt, thickness, planar = _point_set_shape(X, settings)
+    pb, Rpl, fixed, base, candidates = _fit_problem(Xc, Vt, uv, (w, h), planar, settings)
+    model, err, keep = _drop_outliers(pb, base)
+    if (cov_x is not None or sig_p is not None) and not planar:
+        pb.white = _whitening(pb.obj, model, cov_x, sig_p)
+        model, err = _calibrate(pb, base, keep, model)
+    model, err, decided = _auto_distortion(pb, model, err, keep, candidates)
+    decisions = _decisions(decided, model, planar, settings)
+    fixed += [nm for nm in _DIST_NAMES if nm not in model.terms]
+    light, R, t = _fitted_light(model, Rpl, c, (w, h))
+    cond, std_noise, std, fd_corr = _fit_stds(pb, model, keep, fixed)
     zp = X[keep] @ R[2] + t[2]
     z5, z50, z95 = (float(v) for v in np.percentile(zp, [5, 50, 95]))
     depth_ratio = (z95 - z5) / max(z50, 1e-300)
-    problems, notes = [], []
-    if planar:
-        problems.append(f"the points lie nearly on one plane (thickness {thickness:.3g}): the principal point is "
-                        f"the one given, square pixels and no distortion are assumed")
-
-    def undetermined(sd: dict) -> list[str]:
-        out = []
-        for nm, v in (("fx", K[0, 0]), ("fy", K[1, 1])):
-            if not sd[nm] <= settings.max_focal_std * v:
-                out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.2f} px ({100 * sd[nm] / v:.2f} % > "
-                           f"{100 * settings.max_focal_std:g} %): the points do not determine the focal length")
-        for nm, v, s in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
-            if not sd[nm] <= settings.max_center_std * s:
-                out.append(f"projector {nm} {v:.1f} +- {sd[nm]:.1f} px (> {100 * settings.max_center_std:g} % of "
-                           f"the image): the points do not determine the principal point")
-        if not sd["rotation_deg"] <= settings.max_rotation_std_deg:
-            out.append(f"projector rotation +- {sd['rotation_deg']:.3f} deg (> {settings.max_rotation_std_deg:g}): "
-                       "the points do not determine its pose")
-        if not sd["position"] <= settings.max_position_std * dist_to_points:
-            out.append(f"projector position +- {sd['position']:.2f} (> {100 * settings.max_position_std:g} % of "
-                       f"its distance {dist_to_points:.0f}): the points do not determine its pose")
-        return out
-
-    # refused: what even independent residuals of this size leave open (the geometry of the points);
-    # noted: what the residuals' correlated part (systematic match errors) leaves open on top
-    problems += undetermined(std_noise)
-    first = {p.split(" +-")[0] for p in problems}
-    notes += [f"{p.split(':')[0]} with the residuals' correlation ({model.correlation:.1f}x their variance): "
-              "systematic errors in the matches, not noise, limit it" for p in undetermined(std)
-              if p.split(" +-")[0] not in first]
-    if not planar and depth_ratio < settings.min_depth_ratio:
-        notes.append(f"the points span {100 * depth_ratio:.1f} % of their distance along the projector's axis "
-                     f"({z5:.0f} to {z95:.0f}; < {100 * settings.min_depth_ratio:g} %): the focal length and the "
-                     f"distance trade (correlation {fd_corr:+.3f}); scan an object with more depth")
     e = err[keep]
     fit = ProjectorFit(light=light, rms_px=float(np.sqrt(np.mean(e * e))), residuals=ResidualStats.of(e),
                        used=int(keep.sum()), outliers=int(n - keep.sum()), thickness=thickness, std=std,
-                       condition=cond, fixed=fixed, problems=problems, std_noise=std_noise,
+                       condition=cond, fixed=fixed, problems=[], std_noise=std_noise,
                        correlation=model.correlation, depth_range=(z5, z95), depth_ratio=float(depth_ratio),
-                       focal_distance_correlation=fd_corr, decisions=decisions, notes=notes,
-                       weighted=white is not None)
+                       focal_distance_correlation=fd_corr, decisions=decisions, notes=[],
+                       weighted=pb.white is not None)
+    _add_findings(fit, model, planar, settings)
     log.info("projector fit: RMS %.3f px over %d points; fx %.1f fy %.1f; condition %.3g; %s", fit.rms_px, fit.used,
-             K[0, 0], K[1, 1], cond, "; ".join(decisions))
+             model.K[0, 0], model.K[1, 1], cond, "; ".join(decisions))
     return fit
 
 
