@@ -9,7 +9,8 @@ principal point and picks the root by its polar angle. A capture of two cameras
 (OpenCV's structured-light sample) becomes a two-camera scan: camera 1's decoded
 frames are the view's, camera 2's go under the view's ``camera2``.
 
-:func:`read_opencv_calibration` reads an OpenCV camera-projector calibration file
+:func:`read_opencv_calibration` (:mod:`.opencv_files`, as the other readers; re-exported here) reads an
+OpenCV camera-projector calibration file
 (cam_int, cam_dist, proj_int, proj_dist, rotation (or 'roration'), translation;
 X_proj = R X_cam + T); :func:`read_stereo_calibration` a camera-camera one as
 OpenCV's structured-light sample has it (cam1_intrinsics, cam1_distorsion,
@@ -36,7 +37,6 @@ from ringscan.pipeline.calibrate.capture_files import (
     TEXT_LIST_SUFFIXES,
     check_capture_sizes,
     list_capture,
-    open_filestorage,
 )
 from ringscan.pipeline.calibrate.capture_reader import cpu_cores, read_capture_files
 from ringscan.pipeline.calibrate.errors import CalibrationError
@@ -46,11 +46,16 @@ from ringscan.pipeline.calibrate.graycode import (
     decode_graycode,
     subpixel_map,
 )
+from ringscan.pipeline.calibrate.opencv_files import (  # the readers: re-exported, as they always were here
+    _stereo_message,
+    opencv_calibration_kind,
+    read_opencv_calibration,
+    read_stereo_calibration,
+)
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.formats.atomic import check_output_folder, lock_folder
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.limits import MAX_JSON_BYTES
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, parse_patterns
 from ringscan.pipeline.formats.rig import (
     Camera,
@@ -71,8 +76,6 @@ __all__ = ["ImportSettings", "UNITS", "parse_units", "to_millimetres", "read_ope
 
 CAMERA2_DIR = "cam2"
 """Camera 2's decoded frames of a view go to ``<view>/cam2/`` in the scan folder."""
-STEREO_KEYS = ("cam1_intrinsics", "cam2_intrinsics")
-PROCAM_KEYS = ("cam_int", "proj_int")
 
 log = logging.getLogger(__name__)
 
@@ -125,169 +128,6 @@ def to_millimetres(cal: dict, mm_per_unit: float) -> dict:
     if mm_per_unit == 1.0:
         return cal
     return {**cal, "T": np.asarray(cal["T"], float) * float(mm_per_unit)}
-
-
-def _mat(fs, path, *names):
-    for n in names:
-        node = fs.getNode(n)
-        if not node.empty():
-            m = node.mat()
-            if m is None:
-                raise CalibrationError(path, f"{n}: not a matrix")
-            return np.asarray(m, float)
-    raise CalibrationError(path, f"missing {' or '.join(names)}")
-
-
-def _has(fs, name) -> bool:
-    node = fs.getNode(name)
-    return not (node.empty() or node.isNone())
-
-
-def _stereo_message(path) -> str:
-    return (f"a camera-camera (stereo) calibration ({', '.join(STEREO_KEYS)}, R, T): it does not calibrate the "
-            "projector, which a one-camera import needs. Import both cameras' captures with it (pattern_cam1/"
-            "pattern_cam2 frames or an image list: `ringscan import CAPTURE --rig "
-            f"{Path(path).name} --projector WxH --out SCAN`) for a two-camera scan, add the projector's calibration "
-            "with --projector-rig PROCAM, or calibrate the projector from that scan with `ringscan calibrate "
-            "projector-from-scan` (docs/calibration.md)")
-
-
-def opencv_calibration_kind(path) -> str:
-    """``procam`` (cam_int, proj_int, ...) or ``stereo`` (cam1_intrinsics, cam2_intrinsics, R, T) of an
-    OpenCV FileStorage calibration file.
-
-    Raises:
-        CalibrationError: naming the file: not FileStorage, or neither kind (with the keys it has).
-    """
-    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
-    try:
-        if all(_has(fs, k) for k in PROCAM_KEYS):
-            return "procam"
-        if any(_has(fs, k) for k in STEREO_KEYS):
-            return "stereo"
-        if any(_has(fs, k) for k in PROCAM_KEYS):
-            return "procam"  # read_opencv_calibration names what is missing
-        keys = ", ".join(list(fs.root().keys())[:8]) or "nothing"
-    finally:
-        fs.release()
-    raise CalibrationError(path, f"neither a camera-projector calibration (cam_int, cam_dist, proj_int, proj_dist, "
-                                 f"rotation, translation) nor a camera-camera one (cam1_intrinsics, cam1_distorsion, "
-                                 f"cam2_..., R, T); it has {keys}")
-
-
-def read_opencv_calibration(path) -> dict:
-    """An OpenCV FileStorage camera-projector calibration (XML/YAML) as arrays.
-
-    Returns:
-        dict with cam_K, cam_dist, proj_K, proj_dist, R, T (X_proj = R X_cam + T) and
-        cam_size ((W, H) from ``img_shape`` when present, else None).
-
-    Raises:
-        CalibrationError: naming the file; a camera-camera (stereo) file is named for what
-            it is, with what to do instead.
-    """
-    path = Path(path)
-    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
-    try:
-        if not _has(fs, "cam_int") and any(_has(fs, k) for k in STEREO_KEYS):
-            raise CalibrationError(path, _stereo_message(path))
-        out = {"cam_K": _mat(fs, path, "cam_int"), "cam_dist": _lens(path, "cam_dist", _mat(fs, path, "cam_dist")),
-               "proj_K": _mat(fs, path, "proj_int"), "proj_dist": _lens(path, "proj_dist", _mat(fs, path, "proj_dist")),
-               "R": _mat(fs, path, "rotation", "roration"), "T": _mat(fs, path, "translation").ravel()}
-        shp = fs.getNode("img_shape")
-        out["cam_size"] = None
-        if not shp.empty() and shp.mat() is not None and shp.mat().size == 2:
-            h, w = (int(x) for x in shp.mat().ravel())
-            out["cam_size"] = (w, h)
-    finally:
-        fs.release()
-    for k in ("cam_K", "proj_K", "R"):
-        if out[k].shape != (3, 3) or not np.all(np.isfinite(out[k])):
-            raise CalibrationError(path, f"{k}: expected a finite 3x3 matrix, got shape {out[k].shape}")
-    if out["T"].shape != (3,):
-        raise CalibrationError(path, f"translation: expected 3 values, got {out['T'].shape}")
-    R = out["R"]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4:
-        raise CalibrationError(path, "rotation: not a rotation matrix")
-    return out
-
-
-def _size_node(fs, path, name):
-    """(W, H) of a cv::Size node ([w, h]) or a 2-element matrix; None when absent."""
-    node = fs.getNode(name)
-    if node.empty() or node.isNone():
-        return None
-    if node.isSeq():
-        vals = [node.at(i).real() for i in range(node.size())]
-    else:
-        m = node.mat()
-        vals = [] if m is None else list(np.asarray(m, float).ravel())
-    if len(vals) != 2 or not all(np.isfinite(vals)) or any(v != int(v) or not 0 < v <= 65536 for v in vals):
-        raise CalibrationError(path, f"{name}: expected an image size [width, height], got {vals}")
-    return int(vals[0]), int(vals[1])
-
-
-def _lens(path, name, d) -> np.ndarray:
-    """OpenCV distortion as a rig keeps it (4, 5, 8 or 12 coefficients; 14 with a zero tilt)."""
-    try:
-        return read_distortion(np.asarray(d, float), source=path, where=name)
-    except FormatError as e:
-        raise CalibrationError(path, e.message) from None
-
-
-def read_stereo_calibration(path) -> dict:
-    """An OpenCV FileStorage camera-camera calibration as OpenCV's structured-light sample has it.
-
-    Keys: ``cam1_intrinsics``, ``cam1_distorsion`` (sic; ``cam1_distortion`` too), optional
-    ``cam1_size`` ([width, height]), the same for cam2, and ``R``, ``T`` (X_cam2 = R X_cam1 + T,
-    as ``cv::stereoCalibrate`` gives them and ``cv::stereoRectify`` takes them) or
-    ``RT_cam1_2_cam2`` (the same pose as [R | T]: 4x4 with the row 0 0 0 1, as in the file of
-    OpenCV's structured-light test data, or 3x4) when R, T are absent. Other keys (the
-    sample's file has ``stereo_error``, ``Q``, ``R1``, ``R2``, ``P1``, ``P2``) are not read.
-
-    Returns:
-        dict with cam1_K, cam1_dist (5), cam1_size ((W, H) or None), cam2_K, cam2_dist, cam2_size, R, T.
-
-    Raises:
-        CalibrationError: naming the file and the key; a camera-projector file is named for what it is.
-    """
-    path = Path(path)
-    fs = open_filestorage(path, what="calibration file", max_bytes=MAX_JSON_BYTES)
-    try:
-        if _has(fs, "cam_int") and not any(_has(fs, k) for k in STEREO_KEYS):
-            raise CalibrationError(path, "a camera-projector calibration (cam_int, proj_int, ...), not a camera-camera "
-                                         "one: give it as --projector-rig, or alone for a one-camera import")
-        out = {}
-        for c in (1, 2):
-            out[f"cam{c}_K"] = _mat(fs, path, f"cam{c}_intrinsics")
-            out[f"cam{c}_dist"] = _lens(path, f"cam{c}_distorsion",
-                                        _mat(fs, path, f"cam{c}_distorsion", f"cam{c}_distortion"))
-            out[f"cam{c}_size"] = _size_node(fs, path, f"cam{c}_size")
-        rt = _mat(fs, path, "RT_cam1_2_cam2") if _has(fs, "RT_cam1_2_cam2") else None
-        if rt is not None and rt.shape not in ((3, 4), (4, 4)):
-            raise CalibrationError(path, f"RT_cam1_2_cam2: expected a 3x4 or 4x4 [R | T], got shape {rt.shape}")
-        if rt is not None and rt.shape == (4, 4) and not np.allclose(rt[3], [0, 0, 0, 1]):
-            raise CalibrationError(path, f"RT_cam1_2_cam2: a 4x4 [R | T] ends in the row 0 0 0 1, not {rt[3].tolist()}")
-        if _has(fs, "R") or _has(fs, "T") or rt is None:
-            out["R"], out["T"] = _mat(fs, path, "R"), _mat(fs, path, "T").ravel()
-        else:
-            out["R"], out["T"] = rt[:3, :3].copy(), rt[:3, 3].copy()
-    finally:
-        fs.release()
-    for k in ("cam1_K", "cam2_K", "R"):
-        if out[k].shape != (3, 3) or not np.all(np.isfinite(out[k])):
-            raise CalibrationError(path, f"{k}: expected a finite 3x3 matrix, got shape {out[k].shape}")
-    if out["T"].shape != (3,) or not np.all(np.isfinite(out["T"])):
-        raise CalibrationError(path, f"T: expected 3 finite values, got shape {out['T'].shape}")
-    R = out["R"]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
-        raise CalibrationError(path, "R: not a rotation matrix")
-    if np.linalg.norm(out["T"]) <= 0:
-        raise CalibrationError(path, "T: zero (the cameras at one place: no baseline)")
-    if rt is not None and (np.abs(rt[:3, :3] - R).max() > 1e-4 or np.abs(rt[:3, 3] - out["T"]).max()
-                           > 1e-4 * max(1.0, np.linalg.norm(out["T"]))):
-        log.warning("%s: RT_cam1_2_cam2 differs from R, T; R, T are used", path)
-    return out
 
 
 def stereo_rig(cal: dict, *, projector: tuple[int, int], z_range: tuple[float, float],
@@ -448,6 +288,331 @@ def _one_camera(rig: Rig, camera: int, source) -> Rig:
     return Rig(camera=cam, light=rig.light, volume=rig.volume, turntable=rig.turntable)
 
 
+def _check_import_args(captures: list, rig, opencv, stereo, projector_rig, camera, mm_per_unit) -> None:
+    """Raise ValueError for a call of :func:`import_captures` that cannot be right, before anything is read."""
+    if sum(x is not None for x in (rig, opencv, stereo)) != 1:
+        raise ValueError("import_captures: give exactly one of rig, opencv and stereo")
+    if projector_rig is not None and stereo is None:
+        raise ValueError("import_captures: projector_rig goes with stereo")
+    if camera not in (None, 1, 2):
+        raise ValueError(f"import_captures: camera must be 1 or 2, got {camera!r}")
+    if not captures:
+        raise ValueError("import_captures: no capture folders")
+    if mm_per_unit is not None and not (np.isfinite(mm_per_unit) and 0 < mm_per_unit <= MAX_MM_PER_UNIT):
+        raise ValueError(f"import_captures: mm_per_unit must be in (0, {MAX_MM_PER_UNIT:g}], got {mm_per_unit!r}")
+
+
+def _in_millimetres(opencv, stereo, projector_rig, depth, mm_per_unit, sources: dict):
+    """(opencv, stereo, projector_rig, depth, units): the OpenCV calibrations and ``depth`` in mm, and the
+    calibration's units as scan.json ``imported.units`` records them (a ringscan rig states them, an OpenCV
+    file does not)."""
+    opencv_files = [k for k, v in (("rig", opencv if opencv is not None else stereo),
+                                   ("projector_rig", projector_rig)) if isinstance(v, dict)]
+    if mm_per_unit is not None and not opencv_files:
+        raise CalibrationError(sources.get("rig"), "units: a ringscan rig states its own (mm); units apply to an "
+                                                   "OpenCV calibration file, which states none")
+    units = {"mm_per_unit": 1.0, "source": "rig"}
+    if opencv_files:
+        f = 1.0 if mm_per_unit is None else float(mm_per_unit)
+        units = {"mm_per_unit": f, "source": "given" if mm_per_unit is not None else "assumed"}
+        if opencv is not None:
+            opencv = to_millimetres(opencv, f)
+        if stereo is not None:
+            stereo = to_millimetres(stereo, f)
+        if isinstance(projector_rig, dict):
+            projector_rig = to_millimetres(projector_rig, f)
+        if depth is not None:
+            depth = (depth[0] * f, depth[1] * f)
+        if mm_per_unit is None:
+            log.info("%s: an OpenCV calibration states no units: assuming millimetres",
+                     sources.get("rig") or "the calibration")
+    return opencv, stereo, projector_rig, depth, units
+
+
+def _rig_cameras(rig: Rig | None, stereo: dict | None) -> int:
+    """The cameras of the calibration: 2 for a stereo file or a rig with ``camera2``, else 1."""
+    return 2 if stereo is not None or (rig is not None and rig.camera2 is not None) else 1
+
+
+def _selected_cameras(files: list, rig_cams: int, stereo, projector_rig, camera, rig_src) -> tuple[int, ...]:
+    """The cameras to import (1, 2 or both), the captures' cameras checked against the rig's."""
+    if camera is not None:
+        for f in files:
+            if len(f.cameras) < camera:
+                raise CalibrationError(f.source, f"camera {camera}'s frames are missing (--camera {camera}): the "
+                                                 "capture holds camera 1's only")
+        if stereo is not None and projector_rig is None:
+            raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
+        return (camera,)
+    for f in files:
+        if len(f.cameras) == 2 and rig_cams == 1:
+            named = f" {rig_src}" if rig_src else ""
+            raise CalibrationError(f.source, f"holds two cameras' frames, but the rig{named} has one camera: "
+                                             "give --camera 1 (or 2) to import one camera's frames, or a "
+                                             "two-camera rig (a stereo calibration file) for a two-camera scan")
+        if len(f.cameras) == 1 and rig_cams == 2:
+            if stereo is not None and f.kind in ("graycode", "named", "text"):
+                # a one-camera capture: a procam file was meant
+                raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
+            what = {"graycode": "name its frames pattern_cam1_imK and pattern_cam2_imK",
+                    "named": "name its frames pattern_cam1_imK and pattern_cam2_imK",
+                    "pattern": "pattern_cam2_imK frames", "list": "a cam2 list",
+                    "text": "a FileStorage list with cam1 and cam2"}[f.kind]
+            raise CalibrationError(f.source, "camera 2's frames are missing: the rig has two cameras, the capture "
+                                             f"holds camera 1's only ({what}); or give --camera 1 with a "
+                                             "calibrated projector")
+    return (1, 2) if rig_cams == 2 else (1,)
+
+
+def _frame_sizes(files: list, sel: tuple[int, ...]) -> dict[int, tuple[int, int]]:
+    """Each selected camera's frame size (headers only), one size per camera across the captures."""
+    sizes: dict[int, tuple[int, int]] = {}
+    for f in files:
+        got = check_capture_sizes(f)
+        for c in sel:
+            wh = got[c - 1]
+            if c in sizes and wh != sizes[c]:
+                raise CalibrationError(f.frames_of(c)[0], f"frame is {wh[0]}x{wh[1]}, camera {c}'s frames of "
+                                                          f"{files[0].source} are {sizes[c][0]}x{sizes[c][1]}")
+            sizes.setdefault(c, wh)
+    return sizes
+
+
+def _check_rig_sizes(files: list, sel, sizes: dict, rig, opencv, stereo, rig_src) -> None:
+    """The frames' sizes against the calibration's cameras (where it states them)."""
+    rig_cams = _rig_cameras(rig, stereo)
+    if rig is not None:
+        rig_size = {1: (rig.camera.width, rig.camera.height)}
+        if rig.camera2 is not None:
+            rig_size[2] = (rig.camera2.width, rig.camera2.height)
+    elif stereo is not None:
+        rig_size = {c: stereo[f"cam{c}_size"] for c in (1, 2) if stereo[f"cam{c}_size"] is not None}
+    else:
+        rig_size = {1: opencv["cam_size"]} if opencv["cam_size"] else {}
+    for c in sel:
+        rc = rig_size.get(c if rig_cams == 2 else 1)
+        if rc is not None and tuple(rc) != sizes[c]:
+            src = next(f.frames_of(c)[0] for f in files)
+            raise CalibrationError(src, f"camera {c}'s frames are {sizes[c][0]}x{sizes[c][1]}, the rig's camera"
+                                        f"{' 2' if rig_cams == 2 and c == 2 else ''} is {rc[0]}x{rc[1]}"
+                                        f"{f' ({rig_src})' if rig_src else ''}")
+
+
+def _checked_rig(rig: Rig, projector, camera, rig_src) -> Rig:
+    """A ringscan rig's projector checked (a real one of ``projector``'s size); its one camera for ``camera``."""
+    li = rig.light
+    if not isinstance(li, (PerspectiveLight, UncalibratedLight)):
+        raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
+    if (li.width, li.height) != tuple(projector):
+        raise CalibrationError(rig_src, f"import: --projector {projector[0]}x{projector[1]} does not match the "
+                                        f"rig's {li.width}x{li.height} projector")
+    if camera is not None and rig.camera2 is not None:
+        rig = _one_camera(rig, camera, rig_src)
+    elif rig.camera2 is None and not has_calibrated_light(rig):
+        raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
+    return rig
+
+
+def _stereo_with_light(stereo: dict, projector_rig, sizes: dict, sel, projector, sources: dict):
+    """(stereo, light): the stereo arrays with the cameras' sizes (the frames' where the file has none), and
+    the projector of ``projector_rig`` in camera 1's frame (None: uncalibrated)."""
+    if stereo["cam1_size"] is None or stereo["cam2_size"] is None:
+        stereo = {**stereo, "cam1_size": stereo["cam1_size"] or sizes.get(1, sizes[sel[0]]),
+                  "cam2_size": stereo["cam2_size"] or sizes.get(2, sizes[sel[0]])}
+    light = None
+    if projector_rig is not None:
+        light = _procam_light(projector_rig, sources.get("projector_rig"), stereo["cam1_K"], projector)
+    return stereo, light
+
+
+def _decode_camera(f, c: int, projector, layout: str, settings: ImportSettings, threads: int):
+    """Camera ``c``'s frames of capture ``f`` decoded to projector positions (sub-pixel unless integer_only)."""
+    cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
+                             frame_bits=settings.frame_bits, threads=threads)
+    dec = decode_graycode(cap, settings=settings.graycode)
+    if settings.integer_only:
+        # an integer code whose finest bits do not stand clear of the noise is a guess: left out
+        guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
+        dec.low_modulation |= guess
+        dec.valid &= ~guess
+        dec.u = np.where(dec.valid, dec.col, np.nan)
+        dec.v = np.where(dec.valid, dec.row, np.nan)
+        dec.subpixel = np.zeros_like(dec.valid)
+    else:
+        subpixel_map(cap, dec, settings=settings.graycode)
+    return dec
+
+
+def _decode_stats(name: str, per_cam: dict, sel) -> dict:
+    """A view's decode stats (camera 2's under ``camera2``), with a warning where the finest bits barely modulate."""
+    st = {}
+    for c, dec in per_cam.items():
+        n = max(1, int(dec.valid.sum()))
+        coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
+        s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
+             "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
+             "noise": round(float(dec.noise), 3)}
+        weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
+        if weak > LOW_MODULATION_WARN_SHARE:
+            log.warning("%s%s: the finest projector bits barely modulate at %.0f %% of the decoded pixels (a "
+                        "far, dark, grazing or defocused surface): %d of them take their positions from "
+                        "coarser bits, %d are left out (low_modulation)", name,
+                        " (camera 2)" if len(sel) == 2 and c == 2 else "", 100 * weak, int(coarse.sum()),
+                        s["low_modulation"])
+        if len(sel) == 2 and c == 2:
+            st["camera2"] = s
+        else:
+            st.update(s)
+    return st
+
+
+def _decode_captures(files: list, names: list, sel, projector, layout: str, settings: ImportSettings):
+    """(decs: (capture, name, {camera: decoded}) per view, stats per view): a view's cameras at once."""
+    # decode: a view's cameras at once, on threads of their own (NumPy's and OpenCV's loops and the
+    # image decoders release the GIL); each camera's result is the one it gets alone
+    workers = max(1, min(len(sel), cpu_cores()))
+    per_threads = max(1, cpu_cores() // workers)
+    decs, stats = [], {}
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ringscan-import") as pool:
+        for f, name in zip(files, names):
+            futs = {c: pool.submit(_decode_camera, f, c, projector, layout, settings, per_threads) for c in sel}
+            try:
+                per_cam = {c: futs[c].result() for c in sel}  # camera 1's error first, as decoded in turn
+            finally:
+                for fu in futs.values():
+                    fu.cancel()
+            decs.append((f, name, per_cam))
+            st = _decode_stats(name, per_cam, sel)
+            if f.kind == "named":  # the order the frames were taken in, for the user to check
+                st["frames_in_name_order"] = [f.cameras[0][0].name, f.cameras[0][-1].name]
+            stats[name] = st
+    return decs, stats
+
+
+def _procam_depths(dec, cam_K, cam_dist, proj_K, proj_dist, R, T) -> np.ndarray:
+    """Camera-projector triangulation of every 8th pixel's integer code: the points (camera frame)."""
+    yy, xx = np.nonzero(dec.valid[::8, ::8])
+    return triangulate_codes(np.stack([xx * 8, yy * 8], 1),
+                             np.stack([dec.col[::8, ::8][yy, xx], dec.row[::8, ::8][yy, xx]], 1),
+                             cam_K=cam_K, cam_dist=cam_dist, proj_K=proj_K, proj_dist=proj_dist, R=R, T=T)
+
+
+def _opencv_rig(opencv: dict, decs: list, sel, sizes: dict, projector, depth) -> Rig:
+    """The rig of a camera-projector calibration, its working depth from the captures where not given."""
+    dec0 = [d[sel[0]] for _, _, d in decs]
+    size = opencv["cam_size"] or sizes[sel[0]]
+    if depth is None:
+        zs = []
+        for dec in dec0:
+            X = _procam_depths(dec, opencv["cam_K"], opencv["cam_dist"], opencv["proj_K"], opencv["proj_dist"],
+                               opencv["R"], opencv["T"])
+            zp = (X @ opencv["R"].T + opencv["T"])[:, 2]
+            zs.append(zp[np.isfinite(zp) & (zp > 0)])
+        z = np.concatenate(zs)
+        if z.size < 100:
+            raise CalibrationError(None, "import: too few decoded pixels to find the working depth; give --depth")
+        depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
+    return procam_rig(cam_K=opencv["cam_K"], cam_dist=opencv["cam_dist"], cam_size=size, proj_K=opencv["proj_K"],
+                      proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"],
+                      z_range=depth)
+
+
+def _stereo_depth(stereo: dict, decs: list, sel, projector, light, rig_src) -> tuple[float, float]:
+    """The working depth along camera 1's axis of a stereo calibration, from the captures."""
+    if len(sel) == 2:
+        z = np.concatenate([_stereo_depths(d[1], d[2], stereo, projector) for _, _, d in decs])
+    else:
+        z = np.zeros(0)
+        for _, _, d in decs:  # one camera with the projector: camera 1 - projector
+            X = _procam_depths(d[sel[0]], stereo[f"cam{sel[0]}_K"], stereo[f"cam{sel[0]}_dist"], light.K, light.dist,
+                               light.R, light.t)
+            z = np.concatenate([z, X[:, 2][np.isfinite(X[:, 2]) & (X[:, 2] > 0)]])
+    if z.size < 100:
+        raise CalibrationError(rig_src, "import: too few pixels matched between the cameras to find the "
+                                        "working depth (a calibration that does not fit the captures?); give "
+                                        "--depth NEAR FAR")
+    return depth_range(np.percentile(z, [1, 99]), margin=0.25)
+
+
+def _decoded_spec(rig: Rig, settings: ImportSettings):
+    """The ``decoded`` codec's pattern spec of the rig's projector (centred on its principal point)."""
+    li = rig.light
+    center = (float(li.K[0, 2]), float(li.K[1, 2])) if has_calibrated_light(rig) else \
+        ((li.width - 1) / 2.0, (li.height - 1) / 2.0)
+    return parse_patterns({"codec": "decoded", "width": li.width, "height": li.height, "center": list(center),
+                           "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits}, source="import")
+
+
+def _write_camera(out: Path, sub: str, dec) -> dict:
+    """A camera's three decoded frames, encoded and written (PNG encoders release the GIL): their paths."""
+    fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+    rels = {}
+    for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
+        rels[key] = f"{sub}/{key}.png"
+        write_image(out / rels[key], img)
+    return rels
+
+
+def _write_scan(out: Path, rig: Rig, spec, decs: list, sel, imported: dict) -> Scan:
+    """The scan folder written under its lock: every view's decoded frames, then scan.json."""
+    out.mkdir(parents=True, exist_ok=True)
+    with lock_folder(out, what="import"):
+        if (out / "scan.json").exists():  # written by another import since _new_scan_folder's check
+            raise FormatError(out, "already holds a scan (scan.json); choose another folder")
+        views = []
+        with ThreadPoolExecutor(max_workers=cpu_cores(), thread_name_prefix="ringscan-import-write") as pool:
+            written = []
+            for f, name, per_cam in decs:
+                subs = {c: f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2) else name for c in per_cam}
+                written.append((f, name, {c: pool.submit(_write_camera, out, subs[c], dec)
+                                          for c, dec in per_cam.items()}))
+            for f, name, futs in written:
+                frames = {c: fu.result() for c, fu in futs.items()}  # the first failure in order is raised
+                second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
+                views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
+        scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views), extra={"imported": imported})
+        save_scan(scan)
+    return scan
+
+
+def _new_scan_folder(out) -> Path:
+    """The scan folder to write, checked: one that holds no scan yet."""
+    out = check_output_folder(out, what="scan folder (--out)")
+    if (out / "scan.json").exists():
+        raise FormatError(out, "already holds a scan (scan.json); choose another folder (import writes a new scan)")
+    return out
+
+
+def _stereo_import_rig(stereo: dict, decs: list, sel, projector, depth, light, camera, rig_src) -> Rig:
+    """The two-camera rig of a stereo calibration (one camera's for ``camera``), its depth found where not given."""
+    if depth is None:
+        depth = _stereo_depth(stereo, decs, sel, projector, light, rig_src)
+    rig = stereo_rig(stereo, projector=projector, z_range=depth, light=light)
+    if camera is not None:
+        rig = _one_camera(rig, camera, rig_src)
+    return rig
+
+
+def _saved_rig(rig: Rig, size: tuple[int, int], source, rig_src) -> Rig:
+    """The rig with the checks a saved rig gets, its camera checked against the frames' ``size``."""
+    rig = parse_rig(rig_to_dict(rig), source=rig_src or "the imported rig")
+    if (rig.camera.width, rig.camera.height) != size:
+        raise CalibrationError(source, f"frames are {size[0]}x{size[1]}, the rig's camera "
+                                       f"is {rig.camera.width}x{rig.camera.height}")
+    return rig
+
+
+def _imported_extra(layout: str, units: dict, decs: list, stats: dict, camera, settings: ImportSettings) -> dict:
+    """Scan.json's ``imported`` entry: the layout, units, captures, their kinds and decode stats."""
+    imported = {"layout": layout, "units": units, "captures": [str(f.source) for f, _, _ in decs],
+                "kinds": [f.kind for f, _, _ in decs], "stats": stats}
+    if camera is not None:
+        imported["camera"] = camera
+    if settings.frame_bits is not None:  # the captures' bits (the decoded frames are coordinates: no frame_bits)
+        imported["frame_bits"] = settings.frame_bits
+    return imported
+
+
 def import_captures(
     captures: list,
     *,
@@ -498,254 +663,29 @@ def import_captures(
         (the scan, stats per view: decoded pixels and the share with sub-pixel positions,
         and ``camera2``'s likewise).
     """
-    if sum(x is not None for x in (rig, opencv, stereo)) != 1:
-        raise ValueError("import_captures: give exactly one of rig, opencv and stereo")
-    if projector_rig is not None and stereo is None:
-        raise ValueError("import_captures: projector_rig goes with stereo")
-    if camera not in (None, 1, 2):
-        raise ValueError(f"import_captures: camera must be 1 or 2, got {camera!r}")
-    if not captures:
-        raise ValueError("import_captures: no capture folders")
+    _check_import_args(captures, rig, opencv, stereo, projector_rig, camera, mm_per_unit)
     sources = sources or {}
-    if mm_per_unit is not None and not (np.isfinite(mm_per_unit) and 0 < mm_per_unit <= MAX_MM_PER_UNIT):
-        raise ValueError(f"import_captures: mm_per_unit must be in (0, {MAX_MM_PER_UNIT:g}], got {mm_per_unit!r}")
-    opencv_files = [k for k, v in (("rig", opencv if opencv is not None else stereo),
-                                   ("projector_rig", projector_rig)) if isinstance(v, dict)]
-    if mm_per_unit is not None and not opencv_files:
-        raise CalibrationError(sources.get("rig"), "units: a ringscan rig states its own (mm); units apply to an "
-                                                   "OpenCV calibration file, which states none")
-    # the calibration's units (scan.json imported.units): a ringscan rig states them, an OpenCV file does not
-    units = {"mm_per_unit": 1.0, "source": "rig"}
-    if opencv_files:
-        f = 1.0 if mm_per_unit is None else float(mm_per_unit)
-        units = {"mm_per_unit": f, "source": "given" if mm_per_unit is not None else "assumed"}
-        if opencv is not None:
-            opencv = to_millimetres(opencv, f)
-        if stereo is not None:
-            stereo = to_millimetres(stereo, f)
-        if isinstance(projector_rig, dict):
-            projector_rig = to_millimetres(projector_rig, f)
-        if depth is not None:
-            depth = (depth[0] * f, depth[1] * f)
-        if mm_per_unit is None:
-            log.info("%s: an OpenCV calibration states no units: assuming millimetres",
-                     sources.get("rig") or "the calibration")
+    opencv, stereo, projector_rig, depth, units = _in_millimetres(opencv, stereo, projector_rig, depth,
+                                                                  mm_per_unit, sources)
     rig_src = sources.get("rig")
     names = check_import_names(captures)
-    out = check_output_folder(out, what="scan folder (--out)")
-    if (out / "scan.json").exists():
-        raise FormatError(out, "already holds a scan (scan.json); choose another folder (import writes a new scan)")
+    out = _new_scan_folder(out)
     files = [list_capture(c, projector=projector, layout=layout) for c in captures]
-
-    # which cameras: the rig's against the captures'
-    rig_cams = 2 if stereo is not None or (rig is not None and rig.camera2 is not None) else 1
-    if camera is not None:
-        for f in files:
-            if len(f.cameras) < camera:
-                raise CalibrationError(f.source, f"camera {camera}'s frames are missing (--camera {camera}): the "
-                                                 "capture holds camera 1's only")
-        sel = (camera,)
-        if stereo is not None and projector_rig is None:
-            raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
-    else:
-        for f in files:
-            if len(f.cameras) == 2 and rig_cams == 1:
-                named = f" {rig_src}" if rig_src else ""
-                raise CalibrationError(f.source, f"holds two cameras' frames, but the rig{named} has one camera: "
-                                                 "give --camera 1 (or 2) to import one camera's frames, or a "
-                                                 "two-camera rig (a stereo calibration file) for a two-camera scan")
-            if len(f.cameras) == 1 and rig_cams == 2:
-                if stereo is not None and f.kind in ("graycode", "named", "text"):
-                    # a one-camera capture: a procam file was meant
-                    raise CalibrationError(rig_src, _stereo_message(rig_src or "the stereo file"))
-                what = {"graycode": "name its frames pattern_cam1_imK and pattern_cam2_imK",
-                        "named": "name its frames pattern_cam1_imK and pattern_cam2_imK",
-                        "pattern": "pattern_cam2_imK frames", "list": "a cam2 list",
-                        "text": "a FileStorage list with cam1 and cam2"}[f.kind]
-                raise CalibrationError(f.source, "camera 2's frames are missing: the rig has two cameras, the capture "
-                                                 f"holds camera 1's only ({what}); or give --camera 1 with a "
-                                                 "calibrated projector")
-        sel = (1, 2) if rig_cams == 2 else (1,)
-
-    # frame sizes (headers only): one size per camera across the captures, and the rig's
-    sizes: dict[int, tuple[int, int]] = {}
-    for f in files:
-        got = check_capture_sizes(f)
-        for c in sel:
-            wh = got[c - 1]
-            if c in sizes and wh != sizes[c]:
-                raise CalibrationError(f.frames_of(c)[0], f"frame is {wh[0]}x{wh[1]}, camera {c}'s frames of "
-                                                          f"{files[0].source} are {sizes[c][0]}x{sizes[c][1]}")
-            sizes.setdefault(c, wh)
+    sel = _selected_cameras(files, _rig_cameras(rig, stereo), stereo, projector_rig, camera, rig_src)
+    sizes = _frame_sizes(files, sel)
+    _check_rig_sizes(files, sel, sizes, rig, opencv, stereo, rig_src)
     if rig is not None:
-        rig_size = {1: (rig.camera.width, rig.camera.height)}
-        if rig.camera2 is not None:
-            rig_size[2] = (rig.camera2.width, rig.camera2.height)
-    elif stereo is not None:
-        rig_size = {c: stereo[f"cam{c}_size"] for c in (1, 2) if stereo[f"cam{c}_size"] is not None}
-    else:
-        rig_size = {1: opencv["cam_size"]} if opencv["cam_size"] else {}
-    for c in sel:
-        rc = rig_size.get(c if rig_cams == 2 else 1)
-        if rc is not None and tuple(rc) != sizes[c]:
-            src = next(f.frames_of(c)[0] for f in files)
-            raise CalibrationError(src, f"camera {c}'s frames are {sizes[c][0]}x{sizes[c][1]}, the rig's camera"
-                                        f"{' 2' if rig_cams == 2 and c == 2 else ''} is {rc[0]}x{rc[1]}"
-                                        f"{f' ({rig_src})' if rig_src else ''}")
-    if rig is not None:
-        li = rig.light
-        if not isinstance(li, (PerspectiveLight, UncalibratedLight)):
-            raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
-        if (li.width, li.height) != tuple(projector):
-            raise CalibrationError(rig_src, f"import: --projector {projector[0]}x{projector[1]} does not match the "
-                                            f"rig's {li.width}x{li.height} projector")
-        if camera is not None and rig.camera2 is not None:
-            rig = _one_camera(rig, camera, rig_src)
-        elif rig.camera2 is None and not has_calibrated_light(rig):
-            raise CalibrationError(rig_src, "import: the rig's light must be perspective (a real projector)")
+        rig = _checked_rig(rig, projector, camera, rig_src)
     light = None
     if stereo is not None:
-        if stereo["cam1_size"] is None or stereo["cam2_size"] is None:
-            stereo = {**stereo, "cam1_size": stereo["cam1_size"] or sizes.get(1, sizes[sel[0]]),
-                      "cam2_size": stereo["cam2_size"] or sizes.get(2, sizes[sel[0]])}
-        if projector_rig is not None:
-            light = _procam_light(projector_rig, sources.get("projector_rig"), stereo["cam1_K"], projector)
-
-    # decode: a view's cameras at once, on threads of their own (NumPy's and OpenCV's loops and the
-    # image decoders release the GIL); each camera's result is the one it gets alone
-    workers = max(1, min(len(sel), cpu_cores()))
-    per_threads = max(1, cpu_cores() // workers)
-
-    def decode_camera(f, c):
-        cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
-                                 frame_bits=settings.frame_bits, threads=per_threads)
-        dec = decode_graycode(cap, settings=settings.graycode)
-        if settings.integer_only:
-            # an integer code whose finest bits do not stand clear of the noise is a guess: left out
-            guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
-            dec.low_modulation |= guess
-            dec.valid &= ~guess
-            dec.u = np.where(dec.valid, dec.col, np.nan)
-            dec.v = np.where(dec.valid, dec.row, np.nan)
-            dec.subpixel = np.zeros_like(dec.valid)
-        else:
-            subpixel_map(cap, dec, settings=settings.graycode)
-        return dec
-
-    decs, stats = [], {}
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ringscan-import") as pool:
-        for f, name in zip(files, names):
-            futs = {c: pool.submit(decode_camera, f, c) for c in sel}
-            try:
-                per_cam = {c: futs[c].result() for c in sel}  # camera 1's error first, as decoded in turn
-            finally:
-                for fu in futs.values():
-                    fu.cancel()
-            decs.append((f, name, per_cam))
-            st = {}
-            for c, dec in per_cam.items():
-                n = max(1, int(dec.valid.sum()))
-                coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
-                s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
-                     "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
-                     "noise": round(float(dec.noise), 3)}
-                weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
-                if weak > LOW_MODULATION_WARN_SHARE:
-                    log.warning("%s%s: the finest projector bits barely modulate at %.0f %% of the decoded pixels (a "
-                                "far, dark, grazing or defocused surface): %d of them take their positions from "
-                                "coarser bits, %d are left out (low_modulation)", name,
-                                " (camera 2)" if len(sel) == 2 and c == 2 else "", 100 * weak, int(coarse.sum()),
-                                s["low_modulation"])
-                if len(sel) == 2 and c == 2:
-                    st["camera2"] = s
-                else:
-                    st.update(s)
-            if f.kind == "named":  # the order the frames were taken in, for the user to check
-                st["frames_in_name_order"] = [f.cameras[0][0].name, f.cameras[0][-1].name]
-            stats[name] = st
-
-    # the rig
+        stereo, light = _stereo_with_light(stereo, projector_rig, sizes, sel, projector, sources)
+    decs, stats = _decode_captures(files, names, sel, projector, layout, settings)
     if opencv is not None:
-        dec0 = [d[sel[0]] for _, _, d in decs]
-        size = opencv["cam_size"] or sizes[sel[0]]
-        if depth is None:
-            zs = []
-            for dec in dec0:
-                yy, xx = np.nonzero(dec.valid[::8, ::8])
-                X = triangulate_codes(np.stack([xx * 8, yy * 8], 1), np.stack([dec.col[::8, ::8][yy, xx],
-                                                                             dec.row[::8, ::8][yy, xx]], 1),
-                                      cam_K=opencv["cam_K"], cam_dist=opencv["cam_dist"], proj_K=opencv["proj_K"],
-                                      proj_dist=opencv["proj_dist"], R=opencv["R"], T=opencv["T"])
-                zp = (X @ opencv["R"].T + opencv["T"])[:, 2]
-                zs.append(zp[np.isfinite(zp) & (zp > 0)])
-            z = np.concatenate(zs)
-            if z.size < 100:
-                raise CalibrationError(None, "import: too few decoded pixels to find the working depth; give --depth")
-            depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
-        rig = procam_rig(cam_K=opencv["cam_K"], cam_dist=opencv["cam_dist"], cam_size=size, proj_K=opencv["proj_K"],
-                         proj_dist=opencv["proj_dist"], proj_size=projector, R=opencv["R"], T=opencv["T"],
-                         z_range=depth)
+        rig = _opencv_rig(opencv, decs, sel, sizes, projector, depth)
     elif stereo is not None:
-        if depth is None:
-            if len(sel) == 2:
-                z = np.concatenate([_stereo_depths(d[1], d[2], stereo, projector) for _, _, d in decs])
-            else:
-                z = np.zeros(0)
-                for _, _, d in decs:  # one camera with the projector: camera 1 - projector
-                    dec = d[sel[0]]
-                    yy, xx = np.nonzero(dec.valid[::8, ::8])
-                    X = triangulate_codes(np.stack([xx * 8, yy * 8], 1),
-                                          np.stack([dec.col[::8, ::8][yy, xx], dec.row[::8, ::8][yy, xx]], 1),
-                                          cam_K=stereo[f"cam{sel[0]}_K"], cam_dist=stereo[f"cam{sel[0]}_dist"],
-                                          proj_K=light.K, proj_dist=light.dist, R=light.R, T=light.t)
-                    z = np.concatenate([z, X[:, 2][np.isfinite(X[:, 2]) & (X[:, 2] > 0)]])
-            if z.size < 100:
-                raise CalibrationError(rig_src, "import: too few pixels matched between the cameras to find the "
-                                                "working depth (a calibration that does not fit the captures?); give "
-                                                "--depth NEAR FAR")
-            depth = depth_range(np.percentile(z, [1, 99]), margin=0.25)
-        rig = stereo_rig(stereo, projector=projector, z_range=depth, light=light)
-        if camera is not None:
-            rig = _one_camera(rig, camera, rig_src)
-    rig = parse_rig(rig_to_dict(rig), source=rig_src or "the imported rig")  # the checks a saved rig gets
-    li = rig.light
-    if (rig.camera.width, rig.camera.height) != sizes[sel[0]]:
-        raise CalibrationError(files[0].source, f"frames are {sizes[sel[0]][0]}x{sizes[sel[0]][1]}, the rig's camera "
-                                                f"is {rig.camera.width}x{rig.camera.height}")
-    center = (float(li.K[0, 2]), float(li.K[1, 2])) if has_calibrated_light(rig) else \
-        ((li.width - 1) / 2.0, (li.height - 1) / 2.0)
-    spec = parse_patterns({"codec": "decoded", "width": li.width, "height": li.height, "center": list(center),
-                           "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits}, source="import")
-
-    out.mkdir(parents=True, exist_ok=True)
-    with lock_folder(out, what="import"):
-        if (out / "scan.json").exists():  # written by another import between the check above and the lock
-            raise FormatError(out, "already holds a scan (scan.json); choose another folder")
-        views = []
-
-        def write_camera(sub, dec):  # its three frames, encoded and written (PNG encoders release the GIL)
-            fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
-            rels = {}
-            for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
-                rels[key] = f"{sub}/{key}.png"
-                write_image(out / rels[key], img)
-            return rels
-
-        with ThreadPoolExecutor(max_workers=cpu_cores(), thread_name_prefix="ringscan-import-write") as pool:
-            written = [(f, name, {c: pool.submit(write_camera, f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2)
-                                                 else name, dec) for c, dec in per_cam.items()})
-                       for f, name, per_cam in decs]
-            for f, name, futs in written:
-                frames = {c: fu.result() for c, fu in futs.items()}  # the first failure in order is raised
-                second = View(name=name, turntable_deg=0.0, frames=frames[2]) if len(sel) == 2 else None
-                views.append(View(name=name, turntable_deg=0.0, frames=frames[sel[0]], camera2=second))
-        imported = {"layout": layout, "units": units, "captures": [str(f.source) for f, _, _ in decs],
-                    "kinds": [f.kind for f, _, _ in decs], "stats": stats}
-        if camera is not None:
-            imported["camera"] = camera
-        if settings.frame_bits is not None:  # the captures' bits (the decoded frames are coordinates: no frame_bits)
-            imported["frame_bits"] = settings.frame_bits
-        scan = Scan(folder=out, rig=rig, patterns=spec, views=tuple(views), extra={"imported": imported})
-        save_scan(scan)
-    log.info("imported %d capture(s) into %s", len(views), out)
+        rig = _stereo_import_rig(stereo, decs, sel, projector, depth, light, camera, rig_src)
+    rig = _saved_rig(rig, sizes[sel[0]], files[0].source, rig_src)
+    spec = _decoded_spec(rig, settings)
+    scan = _write_scan(out, rig, spec, decs, sel, _imported_extra(layout, units, decs, stats, camera, settings))
+    log.info("imported %d capture(s) into %s", len(scan.views), out)
     return scan, stats
