@@ -5,6 +5,11 @@ from shared/data/procam), prints per candidate: size on disk, and the best-of-N 
 read all frames into memory on one thread (files read from the page cache, decoded),
 next to PNG as OpenCV writes it by default and to copying the frames in memory (the
 floor). Blosc2's own format needs ``pip install blosc2`` (not a ringscan dependency).
+With zarr-python installed (``pip install '.[test]'``), the same store read through it
+too, and its read time against ringscan's in ``--rounds`` interleaved rounds, alone and
+behind ringscan's own checks, and writing the store both ways (issue 36 item 5: zarr-python's
+reader unless > 1.2x slower; the figures are in :mod:`ringscan.pipeline.formats.frame_store`'s
+docstring).
 
 Then the Blosc settings a Zarr v3 store can hold (:data:`CODECS`: codec, level, shuffle,
 block size), on both frame sets, measured in interleaved rounds (the machine is shared:
@@ -91,7 +96,68 @@ def blosc2_candidates(frames: np.ndarray, tmp: Path) -> list[tuple[str, Path, ca
     return out
 
 
-def measure(label: str, frames: np.ndarray, png_read) -> None:
+def zarr_ratio(info, zarr_read, rounds: int) -> str:
+    """Issue 36 item 5's figures: zarr-python's read of a view against ringscan's, in interleaved
+    rounds (each reader once per round, the best of the rounds kept: the machine is shared): on
+    one thread as the table reads it (zarr-python alone), the same behind ringscan's own checks
+    (zarr.json, and every chunk file's presence, kind, size and Blosc header: a read through
+    zarr-python would need them first, as it fills a missing chunk with zeros), and on all cores
+    (ringscan's ``threads`` = the CPU count against zarr-python's default concurrency). Then writing
+    the view both ways (the same codecs, chunks and attributes), best of 3, the chunk files compared."""
+    import os
+
+    import zarr
+
+    cores = os.cpu_count() or 1
+
+    def checked():
+        fs.check_chunk_files(fs.open_store(info.path), info.names)
+        return zarr_read()
+
+    readers = {"ringscan": lambda: fs.read_store(info.path), "zarr": zarr_read, "checked": checked,
+               "ringscan, all cores": lambda: fs.read_store(info.path, threads=cores),
+               "zarr, all cores": lambda: zarr.open_array(str(info.path), mode="r")[...]}
+    ts: dict = {k: [] for k in readers}
+    for _ in range(rounds):
+        for k, f in readers.items():
+            t = time.perf_counter()
+            f()
+            ts[k].append(time.perf_counter() - t)
+    t = {k: min(v) for k, v in ts.items()}
+    # writing: ringscan's write_store (atomic chunks, read back and compared) against zarr-python writing
+    # the same layout (codecs, chunks, attributes) on one thread; the chunk files must come out identical
+    frames = fs.read_store(info)
+    dtype = frames.dtype
+
+    def zarr_write(path):
+        z = zarr.create_array(str(path), shape=frames.shape, chunks=(1,) + frames.shape[1:], dtype=dtype.name,
+                              serializer=zarr.codecs.BytesCodec(endian="little"),
+                              compressors=[zarr.codecs.BloscCodec(typesize=dtype.itemsize, **fs.BLOSC),
+                                           zarr.codecs.Crc32cCodec()],
+                              attributes={"ringscan": {"format": fs.STORE_FORMAT, "frames": list(info.names)}},
+                              dimension_names=["frame", "y", "x"], fill_value=0, overwrite=True)
+        with zarr.config.set({"async.concurrency": 1}):
+            z[...] = frames
+
+    w: dict = {"ringscan": [], "zarr": []}
+    for _ in range(3):
+        for k, f in (("ringscan", lambda: fs.write_store(info.path.parent / "w_ours.zarr", frames, info.names)),
+                     ("zarr", lambda: zarr_write(info.path.parent / "w_zarr.zarr"))):
+            t0 = time.perf_counter()
+            f()
+            w[k].append(time.perf_counter() - t0)
+    same = all((info.path.parent / d / "c" / str(i) / "0" / "0").read_bytes() == info.chunk_path(i).read_bytes()
+               for d in ("w_ours.zarr", "w_zarr.zarr") for i in range(len(info.names)))
+    return (f"   zarr-python / ringscan, reading the view (best of {rounds} interleaved rounds): one thread "
+            f"{1000 * t['zarr']:.1f} / {1000 * t['ringscan']:.1f} ms = {t['zarr'] / t['ringscan']:.2f}x, behind "
+            f"ringscan's checks {1000 * t['checked']:.1f} ms = {t['checked'] / t['ringscan']:.2f}x; {cores} cores "
+            f"{1000 * t['zarr, all cores']:.1f} / {1000 * t['ringscan, all cores']:.1f} ms = "
+            f"{t['zarr, all cores'] / t['ringscan, all cores']:.2f}x\n"
+            f"   writing the view (best of 3): zarr-python {1000 * min(w['zarr']):.0f} ms, ringscan (its read-back "
+            f"included) {1000 * min(w['ringscan']):.0f} ms; chunk files {'identical' if same else 'DIFFERENT'}")
+
+
+def measure(label: str, frames: np.ndarray, png_read, rounds: int = REPS) -> None:
     import numcodecs.blosc
 
     numcodecs.blosc.use_threads = False  # Blosc on the calling thread alone
@@ -106,18 +172,20 @@ def measure(label: str, frames: np.ndarray, png_read) -> None:
         size_png = sum(len(b) for b in pngs)
         info = fs.write_store(tmp / "frames.zarr", frames, [f"f{i}" for i in range(len(frames))])
         rows = [("PNG, OpenCV's default parameters", size_png, t_png)]
+        ratio = ""
         rows.append(("Zarr v3 (ringscan): Blosc zstd 5, bit-shuffle, CRC32C", size_of(tmp / "frames.zarr"),
                      best(lambda: fs.read_store(info))))
         try:  # the same store through zarr-python v3 (issue 36: a library's reader unless > 1.2x slower)
             import zarr
 
             def zarr_read():
-                with zarr.config.set({"async.concurrency": 1, "threading.max_workers": 1}):
+                with zarr.config.set({"async.concurrency": 1}):  # one chunk at a time: one core
                     return zarr.open_array(str(tmp / "frames.zarr"), mode="r")[...]
 
             assert np.array_equal(zarr_read(), frames)
             rows.append((f"the same store through zarr-python {zarr.__version__} (1 thread)",
                          size_of(tmp / "frames.zarr"), best(zarr_read)))
+            ratio = zarr_ratio(info, zarr_read, rounds)
         except ImportError:
             print("zarr-python is not installed (pip install '.[test]'): its reader not measured")
         if png_read is not None:
@@ -131,6 +199,8 @@ def measure(label: str, frames: np.ndarray, png_read) -> None:
         for name, size, t in rows:
             print(f"   | {name} | {size / 1e6:.1f} MB | {size / size_png:.2f}x | {1000 * t:.1f} ms | "
                   f"{t_png / t:.1f}x faster | {t / floor:.1f}x |")
+        if ratio:
+            print(ratio)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         numcodecs.blosc.use_threads = None
@@ -197,7 +267,9 @@ def main() -> int:
     ap.add_argument("--scan", default=None, help="a full-size scan folder with PNG frames")
     ap.add_argument("--procam", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "procam"
                                             / "capture_1"))
-    ap.add_argument("--rounds", type=int, default=REPS, help="interleaved rounds of the codec table (default 7)")
+    ap.add_argument("--rounds", type=int, default=REPS,
+                    help="interleaved rounds of the codec table and of zarr-python's read against ringscan's "
+                         "(default 7)")
     a = ap.parse_args()
     scan_dir = Path(a.scan) if a.scan else Path("/tmp/ringscan_frame_store/scan")
     if not (scan_dir / "scan.json").is_file():
@@ -209,12 +281,12 @@ def main() -> int:
     frames = read_view_frames(scan, view, threads=1)
     png_size = sum(size_of(scan.frame_path(view, n)) for n in view.frames) if view.packed is None else None
     measure(f"simulated view ({scan_dir})", frames,
-            (png_size, lambda: read_view_frames(scan, view, threads=1)) if png_size else None)
+            (png_size, lambda: read_view_frames(scan, view, threads=1)) if png_size else None, a.rounds)
     sets = {"simulated": frames}
     procam = sorted(Path(a.procam).glob("graycode_*.png"))[:28]
     if len(procam) == 28:
         sets["real capture"] = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in procam])
-        measure(f"real capture ({a.procam}, graycode_00..27)", sets["real capture"], None)
+        measure(f"real capture ({a.procam}, graycode_00..27)", sets["real capture"], None, a.rounds)
     else:
         print(f"\n(real captures not found at {a.procam}: skipped)")
     codec_sweep(sets, a.rounds)

@@ -17,6 +17,44 @@ Stores are written whole into a temporary folder and renamed into place
 (:func:`write_store`), or created empty and filled frame by frame
 (:func:`create_store`, :func:`write_frame`; each chunk written atomically), so a
 killed writer leaves either nothing, or a store whose written frames are whole.
+A scan on object storage is staged into a local folder first
+(:mod:`~ringscan.pipeline.formats.storage`: zarr.json, then the chunks of the views
+computed), so this module reads and writes local paths only.
+
+Why not through zarr-python (issue 36 item 5: a library's reader unless it is more than
+1.2x slower on a view). zarr-python 3.1.6 (declared in the ``test`` extra only, not a
+runtime dependency) reads these stores bit-exactly and writes the same layout
+(tests/pipeline/formats/test_frame_store.py), but it reads a view 1.3x slower.
+``python benchmarks/frame_store.py --rounds 15`` (one 1280x1024 8-bit view, best of 15
+interleaved rounds, the 2-core development machine shared with other jobs at load
+average 2-5), zarr-python's time over this reader's, two runs:
+
+- 38 simulated frames: one thread 1.26x (64.4 against 51.2 ms) and 1.49x (72.5 / 48.7);
+  behind ringscan's checks 1.28x, 1.47x; 2 cores 1.35x (66.1 / 49.2), 2.06x (74.6 / 36.3).
+- 28 frames of shared/data/procam/capture_1: one thread 1.27x (59.7 / 46.8 ms) and 1.27x
+  (60.8 / 47.9); behind the checks 1.32x, 1.28x; 2 cores 1.47x (51.8 / 35.2), 1.33x.
+
+Three earlier runs of the same reads: one thread 1.23-1.36x, behind the checks
+1.29-1.36x, 2 cores 1.20-1.63x; one at load average ~7 measured 1.09-1.11x, the
+contention hiding the difference. "Behind the checks": after :func:`open_store` and
+:func:`check_chunk_files`, which a read through zarr-python would need first. Where the
+time goes: zarr-python reads each chunk file into new bytes, decodes it into a new
+array and copies that into the output; this reader reuses one buffer per thread and
+decodes straight into the output stack. ringscan's checks would also stay around it:
+zarr-python fills a missing chunk with zeros, its checksum error (``ValueError: Stored
+and computed checksum do not match``) names no chunk, and its concurrency is a
+process-wide setting (``async.concurrency``), not a call's own ``threads``.
+
+The writer stays too. zarr-python writes byte-identical chunk files (both encode with
+numcodecs' Blosc; the benchmark compares them) in about the same time (the runs above:
+667-722 against 637-757 ms for the 38 frames, 705-904 against 686-833 ms for the 28,
+ringscan's including its read-back), but its local store writes each chunk through
+``<key>.<uuid>.partial`` without fsync and removes that file only on an ``Exception``:
+a killed (or interrupted) writer leaves it behind, and nothing tells a live writer's
+file from a dead one's. ringscan's chunks go through :mod:`~ringscan.pipeline.formats.atomic`
+(fsync, temporaries named ``.<name>.<pid>-<hex>.tmp`` that
+:func:`remove_stale_chunk_temporaries` removes when a capture resumes), and a whole
+store is read back and compared before its rename.
 """
 
 from __future__ import annotations
