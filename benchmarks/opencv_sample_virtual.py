@@ -27,7 +27,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.pipeline.calibrate.importer import import_captures, read_stereo_calibration, triangulate_codes
+from ringscan.pipeline.calibrate.importer import import_captures, triangulate_codes
+
+from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration
 from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.scan import as_camera2, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures

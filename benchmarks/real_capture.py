@@ -50,9 +50,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ringscan.pipeline.calibrate.importer import read_stereo_calibration  # noqa: E402
+from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration  # noqa: E402
 from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
-from ringscan.tools.cli import main as cli  # noqa: E402
 from tests.support.opencv_graycode_rig import small_stereo_rig  # noqa: E402
 from two_camera_rig import run  # noqa: E402  (one ringscan command, its console output)
 

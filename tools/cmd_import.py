@@ -13,11 +13,9 @@ from pathlib import Path
 
 from ringscan.pipeline.calibrate.capture_files import CAPTURE_INPUTS
 from ringscan.pipeline.calibrate.graycode import LAYOUTS, GrayCodeSettings
-from ringscan.pipeline.calibrate.importer import (
-    ImportSettings,
-    import_captures,
+from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, parse_units
+from ringscan.pipeline.calibrate.opencv_files import (
     opencv_calibration_kind,
-    parse_units,
     read_opencv_calibration,
     read_stereo_calibration,
 )

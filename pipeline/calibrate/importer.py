@@ -9,7 +9,7 @@ principal point and picks the root by its polar angle. A capture of two cameras
 (OpenCV's structured-light sample) becomes a two-camera scan: camera 1's decoded
 frames are the view's, camera 2's go under the view's ``camera2``.
 
-:func:`read_opencv_calibration` (:mod:`.opencv_files`, as the other readers; re-exported here) reads an
+:func:`read_opencv_calibration` (:mod:`.opencv_files`, beside the writers) reads an
 OpenCV camera-projector calibration file
 (cam_int, cam_dist, proj_int, proj_dist, rotation (or 'roration'), translation;
 X_proj = R X_cam + T); :func:`read_stereo_calibration` a camera-camera one as
@@ -46,12 +46,7 @@ from ringscan.pipeline.calibrate.graycode import (
     decode_graycode,
     subpixel_map,
 )
-from ringscan.pipeline.calibrate.opencv_files import (  # the readers: re-exported, as they always were here
-    _stereo_message,
-    opencv_calibration_kind,
-    read_opencv_calibration,
-    read_stereo_calibration,
-)
+from ringscan.pipeline.calibrate.opencv_files import _stereo_message
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.formats.atomic import check_output_folder, lock_folder
 from ringscan.pipeline.formats.errors import FormatError
@@ -70,8 +65,7 @@ from ringscan.pipeline.formats.rig import (
 )
 from ringscan.pipeline.formats.scan import Scan, View, check_view_name, save_scan
 
-__all__ = ["ImportSettings", "UNITS", "parse_units", "to_millimetres", "read_opencv_calibration", "read_stereo_calibration", "opencv_calibration_kind",
-           "stereo_rig", "triangulate_codes", "import_captures", "check_import_names", "encode_decoded",
+__all__ = ["ImportSettings", "UNITS", "parse_units", "to_millimetres", "stereo_rig", "triangulate_codes", "import_captures", "check_import_names", "encode_decoded",
            "procam_pose", "CAMERA2_DIR"]
 
 CAMERA2_DIR = "cam2"

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from ringscan.pipeline.calibrate.graycode import graycode_bits
-from ringscan.pipeline.calibrate.importer import read_stereo_calibration, triangulate_codes
+from ringscan.pipeline.calibrate.importer import triangulate_codes
+from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import gray_decode
 from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig, Volume, look_at

@@ -17,7 +17,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
+from ringscan.pipeline.calibrate.importer import procam_pose
+
+from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration
 from ringscan.pipeline.calibrate.rig_refine import relative_pose, rotation_angle_deg
 from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import Rig, UncalibratedLight, load_rig, save_rig

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.board import Board
-from ringscan.pipeline.calibrate.importer import read_stereo_calibration
+from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration
 from ringscan.tools.cli import main
 from tests.support.synthetic_captures import render_charuco
 

@@ -155,7 +155,7 @@ def test_a_calibration_in_metres_is_doubted_aloud(capture, tmp_path, capsys, cap
 
 def test_units_that_do_not_apply_or_do_not_read_are_refused(capture, tmp_path, capsys):
     work, _ = capture
-    from ringscan.pipeline.calibrate.importer import read_opencv_calibration
+    from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration
     from ringscan.pipeline.calibrate.procam import procam_rig
     from ringscan.pipeline.formats.rig import save_rig
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration
+from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration, read_stereo_calibration
 from ringscan.pipeline.formats.images import read_image
 from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import has_calibrated_light

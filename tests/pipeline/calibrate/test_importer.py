@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration, stereo_rig
+from ringscan.pipeline.calibrate.importer import stereo_rig
+from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration, read_stereo_calibration
 from ringscan.pipeline.calibrate.procam import procam_rig
 from ringscan.pipeline.formats.rig import parse_rig, rig_to_dict
 from ringscan.pipeline.geometry import camera_pixels

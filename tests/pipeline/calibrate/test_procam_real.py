@@ -14,7 +14,7 @@ from ringscan.pipeline.calibrate.board import Board, BoardView, detect_board
 from ringscan.pipeline.calibrate.camera import CameraSettings, calibrate_camera
 from ringscan.pipeline.calibrate.capture_reader import read_capture
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.importer import read_opencv_calibration
+from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration
 from ringscan.pipeline.calibrate.procam import calibrate_procam, capture_corners
 from tests.support.shared_data import need_shared
 

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.importer import procam_pose, read_opencv_calibration
+from ringscan.pipeline.calibrate.importer import procam_pose
+from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration
 from ringscan.pipeline.calibrate.opencv_files import write_opencv_procam, write_opencv_stereo
 from ringscan.pipeline.calibrate.projector_fit import ProjectorSettings, fit_projector, procam_rig_from_fit
 from ringscan.pipeline.calibrate.rig_refine import (

@@ -12,7 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures, read_stereo_calibration
+from ringscan.pipeline.calibrate.importer import ImportSettings, import_captures
+
+from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings

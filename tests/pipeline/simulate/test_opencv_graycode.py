@@ -144,7 +144,7 @@ def test_two_cameras_in_opencv_sample_layout(tmp_path):
     image list, the stereo and procam files (what the rig says), and each camera's truth: camera 2's truth
     projector coordinates, through camera 2's own projection, land on the pixels that see them."""
     from ringscan.pipeline.calibrate.capture_files import list_capture
-    from ringscan.pipeline.calibrate.importer import read_opencv_calibration, read_stereo_calibration
+    from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration, read_stereo_calibration
     from ringscan.pipeline.geometry import camera_pixels
 
     rig = small_stereo_rig()
