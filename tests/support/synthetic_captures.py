@@ -16,7 +16,11 @@ def affine_map(w: int, h: int):
     return 5.3 + 0.55 * x + 0.05 * y, 4.1 + 0.02 * x + 0.56 * y
 
 
-def write_capture(folder: Path, *, cam=(160, 120), projector=(128, 96), wb_first=False, noise=1.0, seed=0,
+SMALL_PROJECTOR = (128, 96)
+"""The projector size (width, height) of :func:`write_capture` by default."""
+
+
+def write_capture(folder: Path, *, cam=(160, 120), projector=SMALL_PROJECTOR, wb_first=False, noise=1.0, seed=0,
                   gamma=1.0, levels=(20.0, 220.0), blur_px=0.0) -> tuple[np.ndarray, np.ndarray]:
     """Write graycode_NN.png frames of the affine scene; returns the true (u, v) maps.
 

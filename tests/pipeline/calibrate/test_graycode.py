@@ -9,16 +9,9 @@ import pytest
 
 from ringscan.pipeline.calibrate.capture_reader import read_capture
 from ringscan.pipeline.calibrate.graycode import GrayCodeSettings, decode_graycode, graycode_bits, subpixel_map
-from tests.support.synthetic_captures import write_capture
+from tests.support.synthetic_captures import SMALL_PROJECTOR, write_capture
 
-PROJ = (128, 96)
-
-
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("gc") / "capture"
-    u, v = write_capture(folder, projector=PROJ)
-    return folder, u, v
+PROJ = SMALL_PROJECTOR  # the capture fixture's projector (tests/pipeline/calibrate/conftest.py)
 
 
 def test_bits_of_projector_sizes():
