@@ -28,17 +28,9 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.tools.cli import main
+from tests.support.reconstruct_rig import PROJ, small_rig  # 0.65 mm per camera pixel at the object
 from tests.support.rings_truth import truth_rings
 
-PROJ = {"width": 1024, "height": 768, "center": [511.5, 383.5]}
-
-
-def small_rig():
-    """The default rig with a 320x256 camera (0.65 mm per pixel at the object)."""
-    rig = default_rig()
-    cam = dataclasses.replace(rig.camera, width=320, height=256,
-                              K=np.array([[650.0, 0, 159.5], [0, 650.0, 127.5], [0, 0, 1]]))
-    return dataclasses.replace(rig, camera=cam)
 
 
 def rings_spec(count, rho0, pitch, width):
