@@ -50,9 +50,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ("README.md", *(f"docs/{p.name}" for p in sorted((ROOT / "docs").glob("*.md")) if p.name != "batch.md"))
-"""The pages whose blocks run. docs/batch.md is listed apart (its blocks need a cluster or object storage;
-``tests/pipeline/batch`` runs the commands it describes on local folders)."""
+DOCS = ("README.md", *(f"docs/{p.name}" for p in sorted((ROOT / "docs").glob("*.md"))))
+"""The pages whose blocks are listed here: README.md and every page of docs/."""
 LANGS = ("sh", "bash", "python")
 """Fence languages of command blocks (an untagged block is output or a file, not commands)."""
 
@@ -95,6 +94,13 @@ BLOCKS = [
           "(network, minutes); run with --pip", cwd="copy"),
     Block("README.md", "report = reconstruct_scan(\"out/demo/scan\"", "suite",
           "tests/tools/test_doc_blocks.py::test_readme_python_block_runs_as_written", setup="demo_scan"),
+    # docs/batch.md
+    Block("docs/batch.md", "--backend ray --address ray-head:6379", "no",
+          "needs a Ray cluster (its head at ray-head:6379); tests/pipeline/batch/test_ray_backend.py runs the same "
+          "batch on a local Ray cluster (the same bytes as the local workers, a killed worker, a killed batch)"),
+    Block("docs/batch.md", "ringscan batch s3://scans/2026-12 --out s3://results/2026-12", "no",
+          "needs an S3 bucket and its credentials; tests/pipeline/batch/test_object_storage.py runs the same "
+          "batch and reconstruct commands against a local S3 server (moto)"),
     # docs/calibration.md
     Block("docs/calibration.md", "--board 9x7 --square 30 --charuco DICT_5X5_100", "no",
           "needs your photos of a ChArUco board through a wide-angle lens (shots/: the shared captures show a plain "
