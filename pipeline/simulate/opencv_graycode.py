@@ -261,6 +261,39 @@ def render_graycode_captures(
     """
     from ringscan.pipeline.formats.progress import progress_bar
 
+    proj = _checked_projector_size(rig, projector, settings)
+    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
+    two = rig.camera2 is not None
+    cams = [(1, rig)] + ([(2, dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))] if two else [])
+    renderers = {c: VirtualRig(crig, scene, settings=settings, device=device, projector_size=proj) for c, crig in cams}
+    patterns = graycode_patterns(proj)
+
+    out = Path(out_dir)
+    mesh_rel = _write_rig_and_mesh(out, rig, scene)
+    t0 = time.perf_counter()
+    n_frames = len(patterns)
+    bar = progress_bar(total=n_frames * len(cams), desc=f"simulate {LAYOUT} {scene.name}", unit="frame",
+                       disable=not progress)
+    try:
+        captures, lists = _render_cameras(out, rig, renderers, patterns, proj, settings, bar,
+                                          float(placed.get("wall_z", 0.0)))
+    finally:
+        bar.close()
+    doc = {"format": TRUTH_FORMAT, "layout": LAYOUT, "projector": list(proj),
+           "camera": [rig.camera.width, rig.camera.height], "rig": "rig.json", "mesh": mesh_rel,
+           "scene": scene.name, "size_mm": float(size_mm), "reference_plane_z": 0.0, **placed,
+           "object_min_height_mm": OBJECT_MIN_HEIGHT_MM, "settings": settings.to_dict(),
+           "captures": {CAPTURE: captures}}
+    if two:
+        _write_stereo_files(out, rig, lists, doc)
+    atomic_write_json(out / "truth.json", doc)
+    log.info("rendered %d %s frames x %d camera(s) of %s in %.1f s -> %s", n_frames, LAYOUT, len(cams), scene.name,
+             time.perf_counter() - t0, out)
+    return doc
+
+
+def _checked_projector_size(rig, projector, settings) -> tuple[int, int]:
+    """The rig's projector size (W_p, H_p), after checking the rig, ``projector`` and ``settings``."""
     if not isinstance(rig, Rig):
         raise ValueError(f"rig: expected a Rig, got {type(rig).__name__}")
     lw, lh = getattr(rig.light, "width", 0), getattr(rig.light, "height", 0)
@@ -274,80 +307,75 @@ def render_graycode_captures(
     proj = (int(lw), int(lh))
     if getattr(rig.light, "model", "") == "uncalibrated":
         raise ValueError("rig: the virtual rig renders with a calibrated projector (its light is 'uncalibrated')")
-    scene, placed = prepare_scene(scene, size_mm=size_mm, up=up, pose=pose, place=place, wall_z=wall_z)
-    two = rig.camera2 is not None
-    cams = [(1, rig)] + ([(2, dataclasses.replace(rig, camera=rig.camera2, camera2=rig.camera))] if two else [])
-    renderers = {c: VirtualRig(crig, scene, settings=settings, device=device, projector_size=proj) for c, crig in cams}
-    patterns = graycode_patterns(proj)
+    return proj
 
-    out = Path(out_dir)
-    cap_dir = out / CAPTURE
-    cap_dir.mkdir(parents=True, exist_ok=True)
+
+def _write_rig_and_mesh(out: Path, rig: Rig, scene: SceneMesh) -> str:
+    """Create the capture and truth folders, write rig.json and the scene's mesh; the mesh's relative path."""
+    (out / CAPTURE).mkdir(parents=True, exist_ok=True)
     (out / TRUTH_DIR).mkdir(parents=True, exist_ok=True)
     save_rig(out / "rig.json", rig)
     mesh_rel = f"{TRUTH_DIR}/object.ply"
     _write_mesh(out / mesh_rel, scene.vertices, scene.faces)
+    return mesh_rel
 
-    t0 = time.perf_counter()
-    n_frames = len(patterns)
-    bar = progress_bar(total=n_frames * len(cams), desc=f"simulate {LAYOUT} {scene.name}", unit="frame",
-                       disable=not progress)
-    floor = float(placed.get("wall_z", 0.0))
-    captures: dict = {"frames": n_frames}
+
+def _render_cameras(out: Path, rig: Rig, renderers: dict, patterns, proj: tuple[int, int],
+                    settings: RenderSettings, bar, floor: float) -> tuple[dict, dict]:
+    """Render every camera's frames and truth (each renderer freed once done); the captures entry and image lists."""
+    two = rig.camera2 is not None
+    captures: dict = {"frames": len(patterns)}
     lists = {}
-    try:
-        for c, _ in cams:
-            vr = renderers.pop(c)
-            names = graycode_frame_names(proj, camera=c if two else None)
-            for fi, (n, pat) in enumerate(zip(names, patterns)):
-                seed = _mix_seed(settings.seed, 0, fi) if c == 1 else _mix_seed(settings.seed, 0, fi, c)
-                write_image(cap_dir / f"{n}.png", vr.render(pat, seed=seed))
-                bar.update(1)
-            lists[c] = [f"{CAPTURE}/{n}.png" for n in names]
-            tr = vr.truth()
-            pts = tr["points"].astype(np.float64)
-            hit = np.all(np.isfinite(pts), axis=-1)
-            obj = hit & (np.where(hit, pts[..., 2], -np.inf) > floor + OBJECT_MIN_HEIGHT_MM)
-            uvp = np.full(hit.shape + (2,), np.nan, np.float32)
-            uvp[hit] = projector_pixels(rig, pts[hit]).astype(np.float32)
-            pre = f"{TRUTH_DIR}/{CAPTURE}_{'cam2_' if c == 2 else ''}"
-            rel = {k: f"{pre}{k}.{ext}" for k, ext in
-                   (("depth", "tiff"), ("lit", "png"), ("object", "png"), ("proj_u", "tiff"), ("proj_v", "tiff"))}
-            _write_depth(out / rel["depth"], tr["depth"])
-            _write_depth(out / rel["proj_u"], uvp[..., 0])
-            _write_depth(out / rel["proj_v"], uvp[..., 1])
-            write_image(out / rel["lit"], np.where(tr["lit"], 255, 0).astype(np.uint8))
-            write_image(out / rel["object"], np.where(obj, 255, 0).astype(np.uint8))
-            if c == 1:
-                captures.update(rel)
-            else:
-                captures["camera2"] = rel
-            del vr
-    finally:
-        bar.close()
-    doc = {"format": TRUTH_FORMAT, "layout": LAYOUT, "projector": list(proj),
-           "camera": [rig.camera.width, rig.camera.height], "rig": "rig.json", "mesh": mesh_rel,
-           "scene": scene.name, "size_mm": float(size_mm), "reference_plane_z": 0.0, **placed,
-           "object_min_height_mm": OBJECT_MIN_HEIGHT_MM, "settings": settings.to_dict(),
-           "captures": {CAPTURE: captures}}
-    if two:
-        def write_list(fs):
-            for c in (1, 2):
-                _write_seq(fs, f"cam{c}", lists[c])
+    for c in list(renderers):
+        vr = renderers.pop(c)
+        names = graycode_frame_names(proj, camera=c if two else None)
+        for fi, (n, pat) in enumerate(zip(names, patterns)):
+            seed = _mix_seed(settings.seed, 0, fi) if c == 1 else _mix_seed(settings.seed, 0, fi, c)
+            write_image(out / CAPTURE / f"{n}.png", vr.render(pat, seed=seed))
+            bar.update(1)
+        lists[c] = [f"{CAPTURE}/{n}.png" for n in names]
+        rel = _write_camera_truth(out, rig, vr.truth(), c, floor)
+        if c == 1:
+            captures.update(rel)
+        else:
+            captures["camera2"] = rel
+        del vr
+    return captures, lists
 
-        _write_storage(out / IMAGE_LIST, write_list)
-        write_stereo_calibration(out / STEREO_FILE, rig)
-        T1 = np.eye(4)
-        T1[:3, :3], T1[:3, 3] = rig.camera.R, rig.camera.t
-        doc.update({"camera2": [rig.camera2.width, rig.camera2.height], "image_list": IMAGE_LIST,
-                    "stereo_calibration": STEREO_FILE, "camera1_from_world": T1.tolist()})
-        if hasattr(rig.light, "K"):  # a perspective projector (a parallel light has no OpenCV procam file)
-            write_procam_calibration(out / PROCAM_FILE, rig)
-            doc["procam_calibration"] = PROCAM_FILE
-    atomic_write_json(out / "truth.json", doc)
-    log.info("rendered %d %s frames x %d camera(s) of %s in %.1f s -> %s", n_frames, LAYOUT, len(cams), scene.name,
-             time.perf_counter() - t0, out)
-    return doc
+
+def _write_camera_truth(out: Path, rig: Rig, tr: dict, c: int, floor: float) -> dict:
+    """Write camera ``c``'s truth images (depth, lit, object, projector u/v); their relative paths."""
+    pts = tr["points"].astype(np.float64)
+    hit = np.all(np.isfinite(pts), axis=-1)
+    obj = hit & (np.where(hit, pts[..., 2], -np.inf) > floor + OBJECT_MIN_HEIGHT_MM)
+    uvp = np.full(hit.shape + (2,), np.nan, np.float32)
+    uvp[hit] = projector_pixels(rig, pts[hit]).astype(np.float32)
+    pre = f"{TRUTH_DIR}/{CAPTURE}_{'cam2_' if c == 2 else ''}"
+    rel = {k: f"{pre}{k}.{ext}" for k, ext in
+           (("depth", "tiff"), ("lit", "png"), ("object", "png"), ("proj_u", "tiff"), ("proj_v", "tiff"))}
+    _write_depth(out / rel["depth"], tr["depth"])
+    _write_depth(out / rel["proj_u"], uvp[..., 0])
+    _write_depth(out / rel["proj_v"], uvp[..., 1])
+    write_image(out / rel["lit"], np.where(tr["lit"], 255, 0).astype(np.uint8))
+    write_image(out / rel["object"], np.where(obj, 255, 0).astype(np.uint8))
+    return rel
+
+
+def _write_stereo_files(out: Path, rig: Rig, lists: dict, doc: dict) -> None:
+    """Write a two-camera render's image list and calibration files, and record them in ``doc``."""
+    def write_list(fs):
+        for c in (1, 2):
+            _write_seq(fs, f"cam{c}", lists[c])
+
+    _write_storage(out / IMAGE_LIST, write_list)
+    write_stereo_calibration(out / STEREO_FILE, rig)
+    T1 = np.eye(4)
+    T1[:3, :3], T1[:3, 3] = rig.camera.R, rig.camera.t
+    doc.update({"camera2": [rig.camera2.width, rig.camera2.height], "image_list": IMAGE_LIST,
+                "stereo_calibration": STEREO_FILE, "camera1_from_world": T1.tolist()})
+    if hasattr(rig.light, "K"):  # a perspective projector (a parallel light has no OpenCV procam file)
+        write_procam_calibration(out / PROCAM_FILE, rig)
+        doc["procam_calibration"] = PROCAM_FILE
 
 
 def read_graycode_truth(folder: str | os.PathLike, capture: str = CAPTURE, *, camera: int = 1) -> dict:
