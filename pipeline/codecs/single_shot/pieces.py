@@ -54,9 +54,28 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
         :class:`Pieces`.
     """
     import scipy.sparse as sp
-    from scipy.sparse.csgraph import breadth_first_order
     from scipy.spatial import cKDTree
 
+    uv, normal, pixel, contrast = _centre_arrays(uv, normal, pixel, contrast)
+    n = uv.shape[0]
+    if n == 0:
+        return Pieces(np.full(n, -1, np.int32), np.full(n, -1, np.int32), normal.copy())
+    if pixel.min() < 0 or pixel.max() >= width * height or np.unique(pixel).size != n:
+        raise ValueError("build_pieces: pixel indices must be distinct and inside the image")
+    a, b = _neighbour_links(uv, normal, pixel, width, height, settings)
+    fork = _forks(uv, normal, a, b, settings)
+    tree = cKDTree(uv)
+    pairs = _junction_pairs(uv, normal, tree, settings)
+    a, b, drop = _drop_forks(uv, tree, a, b, fork, pairs, settings)
+    g = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr()
+    curve = _components(g, ~drop, settings.min_piece_samples)
+    sign = _normal_signs(g, curve, normal)
+    piece = _cut_pieces(uv, contrast, curve, a, b, pairs, settings)
+    return Pieces(curve, piece, normal * sign[:, None])
+
+
+def _centre_arrays(uv, normal, pixel, contrast) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The centres' uv, normal, pixel and contrast as flat arrays of the build's dtypes, checked to agree."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     normal = np.asarray(normal, np.float64).reshape(-1, 2)
     pixel = np.asarray(pixel, np.int64).ravel()
@@ -65,10 +84,13 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
     if normal.shape != (n, 2) or pixel.shape != (n,) or contrast.shape != (n,):
         raise ValueError(f"build_pieces: uv {uv.shape}, normal {normal.shape}, pixel {pixel.shape} and contrast "
                          f"{contrast.shape} disagree")
-    if n == 0:
-        return Pieces(np.full(n, -1, np.int32), np.full(n, -1, np.int32), normal.copy())
-    if pixel.min() < 0 or pixel.max() >= width * height or np.unique(pixel).size != n:
-        raise ValueError("build_pieces: pixel indices must be distinct and inside the image")
+    return uv, normal, pixel, contrast
+
+
+def _neighbour_links(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, width: int, height: int,
+                     settings: SingleShotSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Links (a, b) between 8-neighbour centres whose normals agree and that lie close across the line."""
+    n = uv.shape[0]
     smap = np.full(width * height, -1, np.int64)
     smap[pixel] = np.arange(n)
     x, y = pixel % width, pixel // width
@@ -86,7 +108,13 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
     cos = np.abs(np.sum(normal[a] * normal[b], 1))
     across = np.maximum(np.abs(np.sum(d * normal[a], 1)), np.abs(np.sum(d * normal[b], 1)))
     keep = (cos >= math.cos(math.radians(settings.max_normal_turn_deg))) & (across <= settings.max_piece_step_px)
-    a, b = a[keep], b[keep]
+    return a[keep], b[keep]
+
+
+def _forks(uv: np.ndarray, normal: np.ndarray, a: np.ndarray, b: np.ndarray,
+           settings: SingleShotSettings) -> np.ndarray:
+    """(n,) bool: centres at a fork (two linked neighbours on one side that lie apart across the line)."""
+    n = uv.shape[0]
     # Forks: two neighbours on the same side of a centre (along its tangent) that
     # lie apart across the line.
     ends, other = np.concatenate([a, b]), np.concatenate([b, a])
@@ -101,15 +129,29 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
         s = (ends[k:] == ends[:-k]) & (side[k:] == side[:-k])
         e, q1, q2 = ends[:-k][s], other[:-k][s], other[k:][s]
         fork[e[np.abs(np.sum((uv[q1] - uv[q2]) * normal[e], 1)) > settings.fork_px]] = True
+    return fork
+
+
+def _junction_pairs(uv: np.ndarray, normal: np.ndarray, tree, settings: SingleShotSettings) -> tuple:
+    """Centre pairs within ``junction_px``: (pairs, turn, distance, junction), junction where they turn too sharply."""
     # Sharp junctions and kinks: two centres d px apart (d <= ``junction_px``)
     # whose normals turn by more than ``junction_deg`` + d / ``min_curvature_radius_px``
     # (a ring ending on another where the object hides it, a kink where two
     # rings' images meet). A ring's own image turns by d / radius of curvature.
-    tree = cKDTree(uv)
     pr = tree.query_pairs(settings.junction_px, output_type="ndarray").reshape(-1, 2)
     turn = np.arccos(np.clip(np.abs(np.sum(normal[pr[:, 0]] * normal[pr[:, 1]], 1)), 0.0, 1.0))
     dist = np.linalg.norm(uv[pr[:, 0]] - uv[pr[:, 1]], axis=1)
     junction = turn > math.radians(settings.junction_deg) + dist / settings.min_curvature_radius_px
+    return pr, turn, dist, junction
+
+
+def _drop_forks(uv: np.ndarray, tree, a: np.ndarray, b: np.ndarray, fork: np.ndarray, pairs: tuple,
+                settings: SingleShotSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Leave out forks and sharp junctions (not on clean loops) and centres within 2 px: links kept and dropped mask."""
+    import scipy.sparse as sp
+
+    n = uv.shape[0]
+    pr, _, _, junction = pairs
     # A small ring's image (ring 0 of a pattern with a small rho0) bends more
     # tightly than any junction test allows; a chain that closes on itself, alone,
     # with nothing inside and all of it on one ellipse is one ring whatever its
@@ -125,9 +167,14 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
             drop[near] = True
         keep = ~drop[a] & ~drop[b]
         a, b = a[keep], b[keep]
-    g = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr()
-    curve = _components(g, ~drop, settings.min_piece_samples)
-    # Turn the normals to agree along each curve (breadth-first from one centre).
+    return a, b, drop
+
+
+def _normal_signs(g, curve: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(n,) +-1 that turn the normals to agree along each curve (breadth-first from one centre)."""
+    from scipy.sparse.csgraph import breadth_first_order
+
+    n = normal.shape[0]
     sign = np.ones(n)
     first = np.full(int(curve.max()) + 1, -1, np.int64)
     valid = np.nonzero(curve >= 0)[0]
@@ -137,6 +184,16 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
         for v in order[1:]:
             p = pred[v]
             sign[v] = sign[p] if normal[v] @ normal[p] >= 0 else -sign[p]
+    return sign
+
+
+def _cut_pieces(uv: np.ndarray, contrast: np.ndarray, curve: np.ndarray, a: np.ndarray, b: np.ndarray,
+                pairs: tuple, settings: SingleShotSettings) -> np.ndarray:
+    """(n,) int32 piece ids: the curves cut where they bend or their brightness steps."""
+    import scipy.sparse as sp
+
+    n = uv.shape[0]
+    pr, turn, dist, _ = pairs
     # Pieces: cut where the curve bends or its brightness steps, except on the
     # innermost closed loops (a loop around nothing is one ring whatever its
     # curvature; the centre anchor looks for one).
@@ -151,8 +208,7 @@ def build_pieces(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, contrast
     barrier[pr[cut].ravel()] = True
     keep = ~barrier[a] & ~barrier[b]
     gs = sp.coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n)).tocsr()
-    piece = _components(gs, (curve >= 0) & ~barrier, settings.min_piece_samples)
-    return Pieces(curve, piece, normal * sign[:, None])
+    return _components(gs, (curve >= 0) & ~barrier, settings.min_piece_samples)
 
 
 def _clean_loops(uv: np.ndarray, g, tree, settings: SingleShotSettings) -> np.ndarray:
