@@ -114,28 +114,13 @@ def reconstruct_scan(
 
 
 def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, held) -> dict:
+    """Check the inputs and outputs, prepare the folder, then reconstruct the views and write the report."""
     if not isinstance(scan, Scan):
         scan = load_scan(scan)
     out = check_output_folder(out_dir, what="reconstruction's output folder")
-    chosen = list(scan.views) if views is None else [v for v in scan.views if v.name in set(views)]
-    if views is not None and len(chosen) != len(set(views)):
-        unknown = sorted(set(views) - {v.name for v in scan.views})
-        raise ValueError(f"unknown view(s) {', '.join(unknown)} in {scan.path}")
-    for v in chosen:
-        check_view_name(v.name, source=scan.path, where=f"views[{scan.views.index(v)}].name")
-    report_path = out / "report.json"
-    outputs = [report_path, out / "settings.json", *(out / f"{v.name}.ply" for v in chosen)]
-    for o in outputs:
-        check_output_file(o, what="file the reconstruction writes")
-    check_no_overwrite(outputs, scan_inputs(scan))
-    for v in chosen:
-        check_view_frames(scan, v)  # every frame's header, before anything is written
-    check_rays(scan, chosen, settings)
+    chosen = _check_views(scan, out, views, settings)
     device = resolve_device(device)
-    out.mkdir(parents=True, exist_ok=True)
-    if held is not None:
-        held.enter_context(lock_folder(out, what="reconstruct"))
-    remove_stale_temporaries(out)
+    _prepare_folder(out, held)
     names = [v.name for v in chosen]
     if resume:
         check = check_done(scan, out, settings=settings, views=names)
@@ -144,7 +129,46 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
             log.info("%s: not kept from the earlier run (%s)", n, why)
     else:
         hashes, done = hash_inputs(scan, settings, views=names), {}
-    report = {
+    report = _new_report(scan, device, settings, hashes)
+    if resume:
+        report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
+    t_all = time.perf_counter()
+    _reconstruct_views(scan, out, chosen, done, report, hashes, settings, progress)
+    report["totals"] = _totals(report["views"])
+    report["time_s"] = time.perf_counter() - t_all
+    atomic_write_json(out / "report.json", report)
+    return report
+
+
+def _check_views(scan: Scan, out: Path, views, settings) -> list[View]:
+    """The views chosen, after checking their names, the files to write, their frames and rays."""
+    chosen = list(scan.views) if views is None else [v for v in scan.views if v.name in set(views)]
+    if views is not None and len(chosen) != len(set(views)):
+        unknown = sorted(set(views) - {v.name for v in scan.views})
+        raise ValueError(f"unknown view(s) {', '.join(unknown)} in {scan.path}")
+    for v in chosen:
+        check_view_name(v.name, source=scan.path, where=f"views[{scan.views.index(v)}].name")
+    outputs = [out / "report.json", out / "settings.json", *(out / f"{v.name}.ply" for v in chosen)]
+    for o in outputs:
+        check_output_file(o, what="file the reconstruction writes")
+    check_no_overwrite(outputs, scan_inputs(scan))
+    for v in chosen:
+        check_view_frames(scan, v)  # every frame's header, before anything is written
+    check_rays(scan, chosen, settings)
+    return chosen
+
+
+def _prepare_folder(out: Path, held) -> None:
+    """Create the output folder, lock it (unless ``held`` is None) and remove stale temporaries."""
+    out.mkdir(parents=True, exist_ok=True)
+    if held is not None:
+        held.enter_context(lock_folder(out, what="reconstruct"))
+    remove_stale_temporaries(out)
+
+
+def _new_report(scan: Scan, device: str, settings, hashes) -> dict:
+    """The report's header: the scan, codec, device, patterns, rig, settings and input hashes; no views yet."""
+    return {
         "format": REPORT_FORMAT,
         "scan": str(scan.folder.resolve()),
         "codec": scan.patterns.codec,
@@ -155,11 +179,15 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
         "inputs": hashes.to_dict(),
         "views": [],
     }
-    if resume:
-        report["resume"] = {"kept": [n for n in names if n in done], "redone": dict(check.redo)}
-    t_all = time.perf_counter()
+
+
+def _reconstruct_views(scan: Scan, out: Path, chosen: list[View], done: dict, report: dict, hashes, settings,
+                       progress: bool) -> None:
+    """Reconstruct the views not done (frames read ahead, files written behind), appending each entry to ``report``."""
     from ringscan.pipeline.formats.progress import progress_bar
 
+    device = report["device"]  # the resolved device, as the report records it
+    report_path = out / "report.json"
     todo = [v for v in chosen if v.name not in done]
     # Read the next view's frames while this one is reconstructed, and write
     # settings.json, each view's PLY and the report behind the compute (image
@@ -198,7 +226,7 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
             report["views"].append(entry)
             for f in written:  # a failed write stops the run before the next view
                 f.result()
-            # the last view's report is the final one, written below
+            # the last view's report is the final one, written by _reconstruct
             snapshot = {**report, "views": list(report["views"])} if k + 1 < len(todo) else None
             written = [writer.submit(_write_view, out, cloud, entry, index, report_path, snapshot)]
         for f in written:
@@ -208,10 +236,6 @@ def _reconstruct(scan, out_dir, *, settings, device, views, resume, progress, he
             f.cancel()
         reader.shutdown(wait=True)
         writer.shutdown(wait=True)
-    report["totals"] = _totals(report["views"])
-    report["time_s"] = time.perf_counter() - t_all
-    atomic_write_json(report_path, report)
-    return report
 
 
 _FRAME_BUFFERS = FrameBuffers(keep=2)
