@@ -141,6 +141,24 @@ def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.
 # ----------------------------------------------------------------------------- kernels
 
 
+@wp.func
+def all_terms(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
+              obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3, h: float):
+    """The Gauss-Newton terms of every ray of a point (the two cameras, and the light where ``use_light``),
+    each :func:`observation_terms`. Returns (H, g, chi2, sum of squared residuals px^2)."""
+    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    g = wp.vec3(0.0, 0.0, 0.0)
+    H, g, c1, r1 = observation_terms(cam1, light, 0, X, obs1, W1, h, H, g)
+    H, g, c2, r2 = observation_terms(cam2, light, 0, X, obs2, W2, h, H, g)
+    chi = c1 + c2
+    ss = r1 * r1 + r2 * r2
+    if use_light != 0:
+        H, g, c3, r3 = observation_terms(cam1, light, 1, X, obs_light, WL, h, H, g)
+        chi += c3
+        ss += r3 * r3
+    return H, g, chi, ss
+
+
 @wp.kernel
 def triangulate_rays_kernel(
     uv1: wp.array(dtype=wp.vec2),
@@ -205,16 +223,7 @@ def triangulate_rays_kernel(
     # a point with a large residual (rays that miss) multiplies into its steps
     h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
     for _it in range(NEWTON_STEPS):
-        H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        g = wp.vec3(0.0, 0.0, 0.0)
-        H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-        H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
-        chi = c1 + c2
-        ss = r1 * r1 + r2 * r2
-        if use_light != 0:
-            H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
-            chi += c3
-            ss += r3 * r3
+        H, g, chi, ss = all_terms(cam1, cam2, light, use_light, X, uv1[i], uv2[i], pL, W1, W2, WL, h)
         if not (wp.abs(wp.determinant(H)) > 0.0):
             break
         step = wp.inverse(H) * g
@@ -225,18 +234,8 @@ def triangulate_rays_kernel(
             converged = True
             break
     # the residual at the solution
-    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    g = wp.vec3(0.0, 0.0, 0.0)
-    H, g, c1, r1 = observation_terms(cam1, light, 0, X, uv1[i], W1, h, H, g)
-    H, g, c2, r2 = observation_terms(cam2, light, 0, X, uv2[i], W2, h, H, g)
-    chi = c1 + c2
-    ss = r1 * r1 + r2 * r2
-    nr = float(2.0)
-    if use_light != 0:
-        H, g, c3, r3 = observation_terms(cam1, light, 1, X, pL, WL, h, H, g)
-        chi += c3
-        ss += r3 * r3
-        nr = 3.0
+    H, g, chi, ss = all_terms(cam1, cam2, light, use_light, X, uv1[i], uv2[i], pL, W1, W2, WL, h)
+    nr = wp.where(use_light != 0, 3.0, 2.0)
     rms = wp.sqrt(ss / nr)
     if not converged:
         # rays that miss each other by far leave float32 noise in the steps: name it for what it is
