@@ -70,7 +70,8 @@ class ErrorModel(dict):
     calibration's miss), ``pairs`` (samples that measured them), ``measured_by``
     (``angle``: each sample's two depths, :func:`fit_error_model`; ``neighbours``: a
     ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), ``regions``
-    (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), and the pairs'
+    (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), ``lag_px``
+    (``neighbours`` only: the spacing of the check kept, ``NEIGHBOUR_LAGS``), and the pairs'
     normalised disagreement under the decode's model and under the fitted one
     (``z_median`` / ``z_median_fitted``: a Gaussian gives 0.67; ``beyond_3`` /
     ``beyond_3_fitted``: 0.27 %)."""
@@ -194,6 +195,86 @@ def region_scale(regions: dict | None, uv: np.ndarray) -> np.ndarray:
     return out
 
 
+NEIGHBOUR_LAGS = (1, 2, 4)
+"""Spacings (camera px along a ring; along the pixel grid for a dense code) at which
+each checked sample meets its neighbours: at 1 px, two on either side through a line;
+at k >= 2, four (at -2k, -k, k, 2k) through a cubic, which a smooth surface's depth
+follows over 4k px to far below the decode's errors. Errors that neighbouring pixels
+share (a blur spreading one pixel's noise over its neighbours, a sharp projector's
+staircase running over several pixels) cancel in the 1 px check and show at wider
+spacings; the widest fitted error of the checks is kept. On ringscan's far, faint
+plane the 1 px check saw a third of the ring's error (docs/accuracy.md)."""
+
+
+def _lag_nodes(uv, ring, at_pixel, width, centre, direction, k):
+    """(m, 4) sample indices (-1: none) of the same-ring samples nearest to
+    uv[centre] + s * k * direction for s = -2, -1, 1, 2 (each within the 5x5 pixels
+    around its target and within 0.3 k of it), and (m, 4) their signed places along
+    ``direction`` (px). ``at_pixel``: (H * W,) a sample index at each camera pixel (-1:
+    none; of two rings' samples at one pixel, one)."""
+    m = centre.size
+    height = at_pixel.size // width
+    nodes = np.full((m, 4), -1, np.int64)
+    place = np.zeros((m, 4))
+    for j, step in enumerate((-2, -1, 1, 2)):
+        target = uv[centre] + (step * k) * direction
+        tx, ty = np.rint(target[:, 0]).astype(np.int64), np.rint(target[:, 1]).astype(np.int64)
+        best = np.full(m, np.inf)
+        for dy in range(-2, 3):
+            for dx in range(-2, 3):
+                xx, yy = tx + dx, ty + dy
+                inside = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
+                idx = np.where(inside, at_pixel[np.where(inside, yy * width + xx, 0)], -1)
+                hit = (idx >= 0) & (ring[np.maximum(idx, 0)] == ring[centre])
+                dist = np.where(hit, np.linalg.norm(uv[np.maximum(idx, 0)] - target, axis=1), np.inf)
+                better = dist < best
+                best[better] = dist[better]
+                nodes[better, j] = idx[better]
+        nodes[best > max(1.5, 0.5 * k), j] = -1
+        place[:, j] = np.einsum("ij,ij->i", uv[np.maximum(nodes[:, j], 0)] - uv[centre], direction)
+    return nodes, place
+
+
+def _ring_directions(uv, ring, at_pixel, width, centre):
+    """(the centres with at least two other samples of their ring in the 5x5 pixels
+    around them, (m, 2) the unit direction of the ring there: the principal axis of
+    those samples' positions)."""
+    height = at_pixel.size // width
+    x, y = np.rint(uv[centre, 0]).astype(np.int64), np.rint(uv[centre, 1]).astype(np.int64)
+    count = np.zeros(centre.size)
+    mean = np.zeros((centre.size, 2))
+    cov = np.zeros((centre.size, 3))  # xx, xy, yy
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            xx, yy = x + dx, y + dy
+            inside = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
+            idx = np.where(inside, at_pixel[np.where(inside, yy * width + xx, 0)], -1)
+            hit = (idx >= 0) & (ring[np.maximum(idx, 0)] == ring[centre])
+            q = np.where(hit[:, None], uv[np.maximum(idx, 0)] - uv[centre], 0.0)
+            count += hit
+            mean += q
+            cov += np.stack([q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2], 1)
+    keep = count >= 3  # the centre itself and two more
+    n = np.maximum(count, 1)[:, None]
+    mean /= n
+    cxx, cxy, cyy = (cov / n).T
+    cxx, cxy, cyy = cxx - mean[:, 0] ** 2, cxy - mean[:, 0] * mean[:, 1], cyy - mean[:, 1] ** 2
+    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+    direction = np.stack([np.cos(angle), np.sin(angle)], 1)
+    return centre[keep], direction[keep]
+
+
+def _lagrange_at_zero(place: np.ndarray) -> np.ndarray:
+    """(m, n) weights w of the polynomial through n nodes at ``place`` (m, n), read at 0."""
+    w = np.ones_like(place)
+    n = place.shape[1]
+    for i in range(n):
+        for j in range(n):
+            if i != j:
+                w[:, i] *= -place[:, j] / (place[:, i] - place[:, j])
+    return w
+
+
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
                         ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
                         max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
@@ -206,9 +287,13 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     ~h^2 / R, ~5e-4 mm over 0.1 mm steps), while each sample's error comes from its
     own camera pixels: r = d - ((1 - t) d_a + t d_b), with a and b the neighbours on
     either side and t the sample's place between them, has the variance
-    V + (1 - t)^2 V_a + t^2 V_b. Fitted as the pairs of :func:`fit_error_model` are, with
-    two terms: k (on the predicted depth sigma s) and a floor in projector px. What is
-    smooth along a ring (a blurred edge's bias) is not seen: that needs the angle.
+    V + (1 - t)^2 V_a + t^2 V_b. Wider checks (``NEIGHBOUR_LAGS``) put a cubic through
+    four neighbours instead (r = d - sum w_i d_i, variance V + sum w_i^2 V_i): they see
+    the errors that neighbouring pixels share. Each check is fitted as the pairs of
+    :func:`fit_error_model` are, with two terms: k (on the predicted depth sigma s) and a
+    floor in projector px; the check that finds the widest errors is kept. What is
+    smooth along a ring over more than the widest check (a blurred edge's bias) is not
+    seen: that needs the angle.
 
     Args:
         depth: (n,) each sample's depth along its camera ray (mm), NaN where not placed.
@@ -225,7 +310,8 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
 
     Returns:
         :class:`ErrorModel` with k_rho and floor_rho_px (the other terms 1 and 0),
-        ``pairs`` = samples checked; :func:`identity_model` with fewer than ``MIN_PAIRS``.
+        ``pairs`` = samples the kept check used, ``lag_px`` its spacing;
+        :func:`identity_model` with fewer than ``MIN_PAIRS``.
     """
     d, s, p = (np.asarray(x, np.float64) for x in (depth, s, sigma_px))
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -237,14 +323,14 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         return identity_model(0)
     y = pixel // width
     x = pixel % width
-    # every R-th row's samples are checked, against the rows either side
+    # every R-th row's samples are checked, against any samples of theirs on the same ring
     period = max(3, int(np.ceil(n_ok / max_samples)))
-    cand = np.flatnonzero(ok & (y % period <= 2))
     npix = int(pixel.max()) + width + 2
-    key = ring[cand] * npix + pixel[cand]
-    order = np.argsort(key, kind="stable")
-    key, cand = key[order], cand[order]
-    centre = cand[(y[cand] % period) == 1]
+    every = np.flatnonzero(ok)
+    key = ring[every] * npix + pixel[every]
+    o = np.argsort(key, kind="stable")
+    key, order = key[o], every[o]
+    centre = order[(y[order] % period) == 1]
     offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
     nb = np.full((centre.size, len(offsets)), -1, np.int64)
     for j, (dx, dy) in enumerate(offsets):
@@ -252,7 +338,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         want = ring[centre] * npix + yy * width + xx
         at = np.minimum(np.searchsorted(key, want), key.size - 1)
         hit = (key[at] == want) & (xx >= 0) & (xx < width) & (yy >= 0)
-        nb[hit, j] = cand[at[hit]]
+        nb[hit, j] = order[at[hit]]
     # the two neighbours most nearly on opposite sides (at least 120 degrees apart)
     vec = uv[np.maximum(nb, 0)] - uv[centre][:, None, :]
     norm = np.linalg.norm(vec, axis=2)
@@ -269,28 +355,45 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         return identity_model(int(c.size))
     ab = uv[b] - uv[a]
     t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-    wa, wb = 1.0 - t, t
-    r = d[c] - (wa * d[a] + wb * d[b])
     g = s / p  # depth per projector px of rho
+    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))]
+    at_pixel = np.full(npix, -1, np.int64)
+    at_pixel[pixel[every]] = every
+    # the wider checks: every checked sample, with its ring's direction there from the
+    # ring's samples around it (a ring broken up by dropped samples still has one)
+    wide, direction = _ring_directions(uv, ring, at_pixel, width, centre)
+    for lag in NEIGHBOUR_LAGS[1:]:
+        nodes, place = _lag_nodes(uv, ring, at_pixel, width, wide, direction, lag)
+        fine = (nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0) & (place[:, 2] > 0)
+        if np.count_nonzero(fine) >= MIN_PAIRS:
+            checks.append((lag, wide[fine], nodes[fine], _lagrange_at_zero(place[fine])))
 
     def overlap(i, j):  # the share of error two pixels have in common under a window x window mean
-        dx = np.abs(x[i] - x[j])
-        dy = np.abs(y[i] - y[j])
-        return np.maximum(window - dx, 0) * np.maximum(window - dy, 0) / float(window * window)
+        return (np.maximum(window - np.abs(x[i] - x[j]), 0) * np.maximum(window - np.abs(y[i] - y[j]), 0)
+                / float(window * window))
 
-    rca, rcb, rab = (overlap(c, a), overlap(c, b), overlap(a, b)) if window > 1 else (0.0, 0.0, 0.0)
+    kept = None
+    for lag, cc, nodes, w in checks:
+        r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
 
-    def var(u):  # Var(e_c - wa e_a - wb e_b) for errors of standard deviations u, correlated as above
-        return (u[c] ** 2 + (wa * u[a]) ** 2 + (wb * u[b]) ** 2 - 2 * wa * rca * u[c] * u[a]
-                - 2 * wb * rcb * u[c] * u[b] + 2 * wa * wb * rab * u[a] * u[b])
+        def var(u):  # Var(e_c - sum w_i e_i) for errors of standard deviations u, correlated as above
+            v = u[cc] ** 2 + np.einsum("ij,ij->i", w ** 2, u[nodes] ** 2)
+            if window > 1:
+                for i in range(nodes.shape[1]):
+                    v = v - 2 * w[:, i] * overlap(cc, nodes[:, i]) * u[cc] * u[nodes[:, i]]
+                    for j in range(i + 1, nodes.shape[1]):
+                        v = v + 2 * w[:, i] * w[:, j] * overlap(nodes[:, i], nodes[:, j]) * u[nodes[:, i]] * u[nodes[:, j]]
+            return v
 
-    X = np.stack([var(s), var(g)], axis=1)
-    q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
-    z0 = np.abs(r) / np.sqrt(X[:, 0])
-    z1 = np.abs(r) / np.sqrt(X @ q)
+        X = np.stack([var(s), var(g)], axis=1)
+        q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
+        widening = float(np.median(np.sqrt(q[0] * s[cc] ** 2 + q[1] * g[cc] ** 2) / s[cc]))
+        if kept is None or widening > kept[0]:
+            kept = (widening, lag, cc.size, q, np.abs(r) / np.sqrt(X[:, 0]), np.abs(r) / np.sqrt(X @ q))
+    _, lag, pairs, q, z0, z1 = kept
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
-                      floor_tan_px=0.0, floor_px=0.0, pairs=int(c.size), measured_by="neighbours", regions=None,
-                      z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
+                      floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=None,
+                      lag_px=int(lag), z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
 
 
