@@ -24,7 +24,8 @@ from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["NAME", "GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view"]
+__all__ = ["NAME", "GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", "explain_binary_view",
+           "low_modulation_pixels"]
 
 NAME = "gray-rings"
 """The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
@@ -41,6 +42,34 @@ class GrayRingsSettings:
     angle: AngleSettings = field(default_factory=AngleSettings)
     """The angle code's decoder (with ``angle_steps`` > 0) and the camera noise of
     every sample's predicted standard deviation."""
+
+
+def low_modulation_pixels(labels, *, bits: int, min_contrast: float) -> tuple[int, int]:
+    """(low, lit): of the ``lit`` pixels (white - black >= ``min_contrast``, recorded
+    levels), the ``low`` ones whose finest band bit is weak (``labels.weak`` bit 0) while
+    their coarsest is strong, away from that bit's own edges (no two opposite neighbours
+    with the finest bit strong and different): a finest bit that barely modulates there
+    (a far, dark, grazing or defocused surface), whose rings are not found. A pixel on
+    one of the finest bit's edges is weak in that bit by design and is not counted.
+
+    labels: :class:`~ringscan.kernels.ring_labels.RingLabels` of ``bits`` band bits,
+    read to the host (weak, code, contrast)."""
+    weak = labels.weak.numpy()
+    code = labels.code.numpy()
+    lit = labels.contrast.numpy() >= min_contrast
+    finest_weak = (weak & 1) != 0
+    strong = lit & ~finest_weak
+    bit = code & 1
+    edge = np.zeros_like(finest_weak)
+    h, w = weak.shape
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        # neighbours p - (dy, dx) and p + (dy, dx) of every pixel p inside the frame
+        ys, xs = slice(dy, h - dy), slice(max(dx, -dx), w - max(dx, -dx))
+        a = (slice(0, h - 2 * dy), slice(max(0, -2 * dx), w - max(0, 2 * dx)))
+        b = (slice(2 * dy, h), slice(max(0, 2 * dx), w - max(0, -2 * dx)))
+        edge[ys, xs] |= strong[a] & strong[b] & (bit[a] != bit[b])
+    coarse_strong = (weak & (1 << (bits - 1))) == 0
+    return int(np.count_nonzero(lit & finest_weak & coarse_strong & ~edge)), int(np.count_nonzero(lit))
 
 
 def explain_binary_view(frames: np.ndarray, spec: PatternSpec, stats: dict, decode: DecodeSettings, *,
@@ -91,6 +120,7 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
     t2 = time.perf_counter()
     band = labels.band.numpy()
     decoded = int(np.count_nonzero(band >= 0))
+    low, lit = low_modulation_pixels(labels, bits=spec.bits, min_contrast=_recorded(settings.decode.min_contrast, frames))
     if decoded == 0 and len(samples):
         # Edges sampled where no pixel decodes (every pixel below decode.min_contrast, every bit weak) carry
         # a ring index no band label confirms and no sector: no point may come of them.
@@ -104,9 +134,15 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                      threads=threads)
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
-    stats = {"pixels_decoded": decoded, "samples": len(samples), **angle_stats,
+    stats = {"pixels_decoded": decoded, "samples": len(samples), "pixels_lit": lit, "low_modulation": low,
+             **angle_stats,
              "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
+
+
+def _recorded(levels: float, frames: wp.array) -> float:
+    """8-bit grey levels in the frames' recorded units (x257 for 16-bit)."""
+    return levels * (257.0 if frames.dtype == wp.uint16 else 1.0)
 
 
 def _no_samples(samples: Samples) -> Samples:

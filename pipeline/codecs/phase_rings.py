@@ -242,6 +242,9 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
         "pixels_decoded": decoded,
         "samples": len(pts),
         "phase_dropped": {name: int(counts[i]) for i, name in enumerate(PHASE_STATUS_NAMES) if i > 0},
+        # the fringe that barely modulates: pixels with contrast whose phase is dropped for it
+        "pixels_lit": int(st.size - counts[PHASE_STATUS_NAMES.index("dark")]),
+        "low_modulation": int(counts[PHASE_STATUS_NAMES.index("modulation")]),
         "camera_gamma": g_cam,
         "light_gamma": g_light,
         "precompensated_gamma": spec.precompensated_gamma,

@@ -57,6 +57,12 @@ decode model's own (a virtual rig shows about 1.3), above it the rig's (a real
 calibration shows 80-130)."""
 FLOOR_OUTLIER = 5.0
 """With a calibration floor c, a point is inconsistent only beyond this many c (and ``max_residual_px``)."""
+LOW_MODULATION_WARN = 0.05
+"""Share of a view's lit pixels whose finest code barely modulates (the codec's
+``low_modulation``) above which the view warns. gray-rings on ringscan's renderer:
+Spot 0-0.6 % (sharp, defocused 1.5 px, noise 4), a far dark plane 1.4 %, a far faint
+one (the finest bit at ~7 % of white) 10.6 %; phase-rings at pitch 4 under a 1.5 px
+defocus: ~all."""
 
 
 
@@ -126,6 +132,7 @@ def reconstruct_view(
     codec = codec_for(scan.patterns.codec, source=scan.path)
     samples, codec_stats = codec.extract(frames_w, scan, codec.settings_from(settings), threads=threads)
     times.update(codec_stats.pop("times_s"))
+    _warn_low_modulation(view, codec_stats)
     # A codec may decide sectors of its own (the rings codec: line orientation
     # sectors); it says how many bits they carry.
     sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
@@ -196,6 +203,17 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
                     "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
                     view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     return triangulated, calibration
+
+
+def _warn_low_modulation(view: View, stats: dict) -> None:
+    """One warning line where more than ``LOW_MODULATION_WARN`` of a view's lit pixels
+    have a finest code that barely modulates (the codec's ``low_modulation`` of its
+    ``pixels_lit``): what is lost there is lost silently otherwise."""
+    low, lit = stats.get("low_modulation", 0), stats.get("pixels_lit", 0)
+    if lit and low > LOW_MODULATION_WARN * lit:
+        log.warning("%s: the finest pattern barely modulates on %.0f %% of the lit pixels (%d, low_modulation): "
+                    "no point comes from them; a far, dark or grazing surface or a defocused projector (a "
+                    "coarser pattern or more light helps)", view.name, 100.0 * low / lit, low)
 
 
 def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bits: int, threads: int):

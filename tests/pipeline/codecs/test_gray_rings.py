@@ -39,3 +39,44 @@ def test_crossings_do_not_depend_on_the_light_gamma_or_its_compensation(medians)
         med, n = medians[name]
         assert abs(med / lin - 1.0) <= 0.10, (name, med, lin)
         assert abs(n / n_lin - 1.0) <= 0.05, (name, n, n_lin)
+
+
+@pytest.mark.parametrize("blur,least,most", [(0.0, 0.0, 0.0), (6.0, 0.5, 1.0)])
+def test_a_finest_bit_that_barely_modulates_is_counted_and_its_own_edges_are_not(blur, least, most):
+    """Sharp frames: every weak finest bit is on one of that bit's edges (none counted). Blurred by
+    6 px, the finest bit (a 16 px period at pitch 4: its modulation ~6 % of white, below the 12 %
+    margin) washes out over most of the frame while the coarsest (64 px) holds: most lit pixels count."""
+    import warp as wp
+
+    from ringscan.kernels.ring_labels import decode_gray_rings
+    from ringscan.pipeline.codecs.gray_rings import low_modulation_pixels
+    from tests.support.ring_frames import frame_stack, gray_rings_spec
+
+    spec = gray_rings_spec()
+    labels = decode_gray_rings(wp.array(frame_stack(spec, blur=blur), device="cpu"), bits=spec.bits,
+                               sector_bits=spec.sector_bits)
+    low, lit = low_modulation_pixels(labels, bits=spec.bits, min_contrast=12.0)
+    assert lit == spec.width * spec.height  # every pixel of a frame drawn straight from the pattern is lit
+    assert least * lit <= low <= most * lit
+
+
+def test_a_view_whose_finest_bit_washes_out_says_so_in_one_line(tmp_path, caplog):
+    """A projector defocused by 6 px on crop_rig (pitch 2: the finest bit's 8 px period is gone): the
+    view counts its low_modulation pixels and warns once with their share; in focus, it does not."""
+    import logging
+
+    from ringscan.pipeline.simulate.virtual_rig import RenderSettings
+
+    counts = {}
+    for name, defocus in (("focused", 0.7), ("defocused", 6.0)):
+        scan = simulate_scan(tmp_path / name, scene="sphere", rig=crop_rig(), patterns=parse_patterns(GRAY),
+                             settings=RenderSettings(defocus_px=defocus), progress=False)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="ringscan.pipeline.reconstruct.view"):
+            cloud = reconstruct_view(scan, scan.views[0])
+        lines = [r.getMessage() for r in caplog.records if "low_modulation" in r.getMessage()]
+        counts[name] = (cloud.stats["low_modulation"] / cloud.stats["pixels_lit"], lines)
+    share, lines = counts["defocused"]
+    assert share > 0.05 and len(lines) == 1 and f"{100 * share:.0f} %" in lines[0]
+    share, lines = counts["focused"]
+    assert share < 0.05 and not lines
