@@ -224,7 +224,8 @@ def main(argv=None) -> int:
         for name, m in models.items():
             if m:
                 print(f"  {name}: k_rho {m['k_rho']:.2f}, k_tan {m['k_tan']:.2f}, floor_rho {m['floor_rho_px']:.3f} px, "
-                      f"floor_tan {m['floor_tan_px']:.3f} px, calibration floor {m['floor_px']:.3f} px; before: "
+                      f"floor_tan {m['floor_tan_px']:.3f} px, indirect_rho {m.get('indirect_rho_px', 0.0):.3f} px, "
+                      f"indirect_tan {m.get('indirect_tan_px', 0.0):.3f} px, calibration floor {m['floor_px']:.3f} px; before: "
                       f"median |z| {m['z_median']:.2f}, {100 * m['beyond_3']:.1f} % beyond 3")
     for m in missed:
         print(f"MISSED {m}")

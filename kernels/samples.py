@@ -164,13 +164,19 @@ class Samples:
     sigma_tan: wp.array | None = None
     """float32 predicted standard deviation of the tangential position
     rho * phi (projector px), or None."""
+    indirect: wp.array | None = None
+    """float32 share (0..1) of the pixel's white - black that stays lit under both the
+    finest band patterns and their inverses: about half the light that reaches it other
+    than straight from the projector (inter-reflection, subsurface scattering: a fine
+    pattern and its inverse each light half of what bounces in), plus what blur mixes
+    across the patterns' edges; None where the codec gives none."""
 
     def __len__(self) -> int:
         return self.uv.shape[0]
 
     def numpy(self) -> dict[str, np.ndarray]:
         """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
-        names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan")
+        names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan", "indirect")
         return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}
 
 

@@ -22,7 +22,7 @@ from ringscan.kernels.samples import Samples
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
+__all__ = ["sample_indirect", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -66,6 +66,32 @@ def sample_contrast(frames: wp.array, spec: PatternSpec, uv: np.ndarray, *,
     white = frames[names.index("white")].numpy().astype(np.float32)
     black = frames[names.index("black")].numpy().astype(np.float32)
     return _bilinear(white - black, uv) / scale
+
+
+INDIRECT_BITS = 2
+"""The finest band bits whose pattern/inverse floor measures a sample's indirect light
+(:func:`sample_indirect`): the finer a pattern, the more evenly bounced light fills
+both halves of it."""
+
+
+def sample_indirect(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.ndarray:
+    """(n,) float32 :attr:`~ringscan.kernels.samples.Samples.indirect` at each sample's
+    nearest camera pixel: the mean over the ``INDIRECT_BITS`` finest band bits of
+    (min(pattern, inverse) - black) / (white - black), clipped to 0..1."""
+    names = frame_names(spec)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    h, w = frames.shape[1], frames.shape[2]
+    x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
+
+    def at(name):
+        return frames[names.index(name)].numpy()[y, x].astype(np.float32)
+
+    black = at("black")
+    span = np.maximum(at("white") - black, 1.0)
+    bits = range(spec.bits - 1, max(spec.bits - 1 - INDIRECT_BITS, -1), -1)
+    floor = np.mean([np.minimum(at(f"gray_{b}"), at(f"gray_{b}_inv")) for b in bits], axis=0) - black
+    return np.clip(floor / span, 0.0, 1.0).astype(np.float32)
 
 
 def edge_sigma(contrast: np.ndarray, noise: float) -> np.ndarray:

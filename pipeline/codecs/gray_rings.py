@@ -16,7 +16,7 @@ from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, sample_contrast
+from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, sample_contrast, sample_indirect
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
@@ -132,6 +132,8 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                      settings=settings.angle, camera_gamma=float(rig.camera.gamma),
                                      light_gamma=float(getattr(rig.light, "gamma", 1.0)) / spec.precompensated_gamma,
                                      threads=threads)
+    samples.indirect = wp.array(sample_indirect(frames, spec, samples.uv.numpy()), dtype=wp.float32,
+                                device=frames.device)
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
     stats = {"pixels_decoded": decoded, "samples": len(samples), "pixels_lit": lit, "low_modulation": low,

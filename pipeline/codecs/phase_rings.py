@@ -52,7 +52,7 @@ from ringscan.kernels.phase import (
 from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, sample_contrast
+from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, sample_contrast, sample_indirect
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.codecs.gray_rings import explain_binary_view
@@ -233,6 +233,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
                       smooth_radius=ps.smooth_radius)
     pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
                                  light_gamma=g_light, threads=threads)
+    pts.indirect = wp.array(sample_indirect(frames, spec, pts.uv.numpy()), dtype=wp.float32, device=dev)
     wp.synchronize_device(dev)
     t3 = time.perf_counter()
     st = sm.status.numpy()

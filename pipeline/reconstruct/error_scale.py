@@ -87,12 +87,12 @@ def sample_subset(n: int, max_samples: int = MAX_CHECK_SAMPLES) -> np.ndarray:
 def identity_model(pairs: int = 0) -> ErrorModel:
     """The decode's model as it is (no term added)."""
     return ErrorModel(k_rho=1.0, k_tan=1.0, floor_rho_px=0.0, floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs),
-                      measured_by=None, regions=None, z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
+                      measured_by=None, regions=None, indirect_rho_px=0.0, indirect_tan_px=0.0, z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
 
 
 def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndarray, s_tan: np.ndarray,
                     sigma_rho_px: np.ndarray, sigma_tan_px: np.ndarray, residual_var_px: np.ndarray,
-                    uv: np.ndarray) -> ErrorModel:
+                    uv: np.ndarray, indirect: np.ndarray | None = None) -> ErrorModel:
     """The error terms the decode's model misses, from the disagreement of the two depths.
 
     Args:
@@ -105,6 +105,11 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
             (projector px^2) of the same sample placed by both; <= 0 where unknown.
         uv: (n, 2) the samples' camera positions (px): the calibration's miss is
             the part of the disagreement that is smooth over ``TILE_PX`` tiles.
+        indirect: (n,) each sample's share of light that did not come straight from the
+            projector, above the view's typical share (:attr:`Samples.indirect
+            <ringscan.kernels.samples.Samples.indirect>` less its median, >= 0), or None:
+            light bounced into a concave part shifts both coordinates there by an amount
+            that grows with it (two more terms, in projector px per unit share).
 
     Returns:
         :class:`ErrorModel` (:func:`identity_model` with fewer than ``MIN_PAIRS`` pairs).
@@ -119,7 +124,12 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
     n = int(np.count_nonzero(m))
     if n < MIN_PAIRS:
         return identity_model(n)
-    dr, sr, dt, st, pr, pt, rv, uv = (x[m] for x in (dr, sr, dt, st, pr, pt, rv, uv))
+    gi = np.zeros(m.size) if indirect is None else np.asarray(indirect, np.float64)
+    m &= np.isfinite(gi)
+    n = int(np.count_nonzero(m))
+    if n < MIN_PAIRS:
+        return identity_model(n)
+    dr, sr, dt, st, pr, pt, rv, uv, gi = (x[m] for x in (dr, sr, dt, st, pr, pt, rv, uv, gi))
     diff = dr - dt
     model_var = sr * sr + st * st
     # The calibration's miss: the signed residual across the epipolar line
@@ -134,8 +144,12 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
     # the depth difference per projector px of each term: s / sigma_px for the two
     # coordinates; across the epipolar line the difference is the residual scaled
     # by sqrt(model_var / residual_var)
-    X = np.stack([sr * sr, st * st, (sr / pr) ** 2, (st / pt) ** 2], axis=1)
-    p = _fit_variances(X, diff * diff, np.array([1.0, 1.0, 0.0, 0.0]))  # k >= 1: the noise model is never shrunk
+    X = np.stack([sr * sr, st * st, (sr / pr) ** 2, (st / pt) ** 2, (sr / pr * gi) ** 2, (st / pt * gi) ** 2],
+                 axis=1)
+    terms = 6 if np.any(gi > 0) else 4  # no indirect light anywhere: its terms are 0
+    # k >= 1: the noise model is never shrunk
+    p = np.zeros(6)
+    p[:terms] = _fit_variances(X[:, :terms], diff * diff, np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])[:terms])
     var = X @ p
     regions = _region_scales(diff * diff, var, uv)
     z0 = np.abs(dr - dt) / np.sqrt(model_var)
@@ -143,6 +157,7 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
     return ErrorModel(k_rho=float(np.sqrt(max(p[0], 1.0))), k_tan=float(np.sqrt(max(p[1], 1.0))),
                       floor_rho_px=float(np.sqrt(p[2])), floor_tan_px=float(np.sqrt(p[3])),
                       floor_px=float(np.sqrt(calib_var)), pairs=n, measured_by="angle", regions=regions,
+                      indirect_rho_px=float(np.sqrt(p[4])), indirect_tan_px=float(np.sqrt(p[5])),
                       z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
 
@@ -393,6 +408,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     _, lag, pairs, q, z0, z1 = kept
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
                       floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=None,
+                      indirect_rho_px=0.0, indirect_tan_px=0.0,
                       lag_px=int(lag), z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
 
@@ -458,7 +474,12 @@ def _smooth_part(r: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
     return field, max(float(np.mean(field[used] ** 2) - np.mean(noise[inv][used])), 0.0)
 
 
-def apply_error_model(sigma_px: np.ndarray, k: float, floor_px: float) -> np.ndarray:
-    """sqrt(k^2 sigma^2 + floor^2), float32."""
+def apply_error_model(sigma_px: np.ndarray, k: float, floor_px: float, *, indirect_px: float = 0.0,
+                      indirect: np.ndarray | None = None) -> np.ndarray:
+    """sqrt(k^2 sigma^2 + floor^2 + (indirect_px * indirect)^2), float32 (``indirect``:
+    (n,) each sample's indirect-light share above the view's, :func:`fit_error_model`)."""
     s = np.asarray(sigma_px, np.float64)
-    return np.sqrt((k * s) ** 2 + floor_px ** 2).astype(np.float32)
+    var = (k * s) ** 2 + floor_px ** 2
+    if indirect_px > 0 and indirect is not None:
+        var = var + (indirect_px * np.asarray(indirect, np.float64)) ** 2
+    return np.sqrt(var).astype(np.float32)

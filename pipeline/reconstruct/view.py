@@ -247,18 +247,25 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     dt, st = depth(tri(settings=replace(settings.triangulate, constraint="angle")))
     both = tri(settings=replace(settings.triangulate, constraint="both"))
     rv = np.where(both.status.numpy() == 0, both.residual_var.numpy(), 0.0)
-    fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"])
+    # indirect light above the view's own typical floor (the blur that mixes every fine
+    # pattern's edges is the view's; light bounced into a corner is a region's)
+    indirect = None
+    if samples.indirect is not None:
+        g = samples.indirect.numpy().astype(np.float64)
+        indirect = np.maximum(g - np.median(g), 0.0)
+    fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"],
+                          indirect=None if indirect is None else indirect[pick])
     # parts of the view whose pairs disagree more than the view's model says (an object's
     # facets beside a plane) widen both coordinates alike: the weighting stays, sigma grows
     scale = np.sqrt(region_scale(fit["regions"], samples.uv.numpy())) if fit["regions"] else None
 
-    def widened(a, k, f):
-        if k == 1.0 and f == 0.0 and scale is None:
+    def widened(a, k, f, b):
+        if k == 1.0 and f == 0.0 and scale is None and b == 0.0:
             return a
-        w = apply_error_model(a.numpy(), k, f)
+        w = apply_error_model(a.numpy(), k, f, indirect_px=b, indirect=indirect)
         return wp.array(w if scale is None else (w * scale).astype(np.float32), dtype=wp.float32, device=dev)
-    return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"]),
-            widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"]), dict(fit))
+    return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"], fit["indirect_rho_px"]),
+            widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"], fit["indirect_tan_px"]), dict(fit))
 
 
 def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSettings):

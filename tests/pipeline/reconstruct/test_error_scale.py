@@ -55,6 +55,33 @@ def test_planted_terms_are_recovered():
     assert 0.6 < fit["z_median_fitted"] < 0.85 and fit["beyond_3_fitted"] < 0.03
 
 
+def test_indirect_light_terms_are_recovered_where_it_acts_and_stay_off_where_it_does_not():
+    """A part of the view lit by bounced light (an indirect share g up to 0.5 above the view's on
+    ~a third of the pairs) errs by a further b * g projector px per coordinate: the fit finds b;
+    pairs whose errors do not grow with g (the same g, no such error) leave b near 0."""
+    rng = np.random.default_rng(5)
+    n = 40000
+    args, _ = _pairs(rng, n)
+    dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv = args
+    g = np.where(rng.uniform(size=n) < 0.35, rng.uniform(0, 0.5, n), 0.0)
+    plain = fit_error_model(*args, indirect=g)
+    assert plain["indirect_rho_px"] < 0.02 and plain["indirect_tan_px"] < 0.02  # nothing to find
+    b_rho, b_tan = 0.3, 0.6
+    lit = (dr + rng.normal(0, b_rho * g * s_rho / p_rho), s_rho, dt + rng.normal(0, b_tan * g * s_tan / p_tan),
+           s_tan, p_rho, p_tan, rv, uv)
+    fit = fit_error_model(*lit, indirect=g)
+    # ~14k pairs carry the terms, each a part of their variance: 25 %
+    assert fit["indirect_rho_px"] == pytest.approx(b_rho, rel=0.25)
+    assert fit["indirect_tan_px"] == pytest.approx(b_tan, rel=0.25)
+    # the widened sigmas of the lit pairs hold against their planted ones (within 10 %)
+    idx = g > 0.2
+    sig = apply_error_model(p_rho, fit["k_rho"], fit["floor_rho_px"], indirect_px=fit["indirect_rho_px"], indirect=g)
+    planted = np.sqrt(p_rho ** 2 + (b_rho * g) ** 2)
+    assert np.median(sig[idx] / planted[idx]) == pytest.approx(1.0, abs=0.1)
+    blind = fit_error_model(*lit)  # without g: the view's one model, fitted mostly where no light bounced
+    assert blind["indirect_rho_px"] == 0.0 and blind["beyond_3_fitted"] > fit["beyond_3_fitted"]
+
+
 def test_too_few_pairs_change_nothing():
     rng = np.random.default_rng(3)
     args, _ = _pairs(rng, MIN_PAIRS - 1, k_rho=3.0)
