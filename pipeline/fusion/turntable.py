@@ -49,6 +49,12 @@ refinement keeps the turntable pose along it. Measured on 8-view scans (docs/fus
 its axis 1e-5 to 3e-3; Spot, Blub, the goat head and a lumpy blob 1.4e-2 and above."""
 
 
+LINE_RATIO = 0.05
+"""A point's normal neighbourhood is a line, not a surface, where its second covariance
+eigenvalue is below this fraction of its largest (the points spread across the line by
+under ~22 % of their spread along it)."""
+
+
 # ----------------------------------------------------------------------------- settings
 
 
@@ -308,14 +314,57 @@ def _clean_view(o3d, v: FusionView, T: np.ndarray, cam: np.ndarray, s: FuseSetti
     conf, sigma = conf[idx], sigma[idx]
     if len(pcd.points) >= 3:
         if not pcd.has_normals():
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm,
-                                                                      max_nn=s.normal_max_nn))
+            _estimate_surface_normals(o3d, pcd, s)
         pcd.normalize_normals()
         pcd.orient_normals_towards_camera_location(cam)
     return pcd, conf, sigma
 
 
+def _estimate_surface_normals(o3d, pcd, s: FuseSettings) -> None:
+    """Normals of ``pcd`` by PCA over ``normal_radius_mm`` (at most ``normal_max_nn``
+    points); where that neighbourhood is a line, not a surface (it holds the points of one
+    ring only: the paper's few rings, a coarse pattern, a far view), over the
+    ``normal_max_nn`` nearest points instead, which reach the neighbouring rings. A line's
+    PCA normal is any direction across it: on a symmetric object such normals hide the
+    symmetry from the overlap check (:func:`overlap_information`), and refinement turned a
+    6-view sphere of ring curves by ~60 degrees."""
+    param = o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_mm, max_nn=s.normal_max_nn)
+    pcd.estimate_normals(param)
+    pcd.estimate_covariances(param)
+    lam = np.linalg.eigvalsh(np.asarray(pcd.covariances))  # ascending, per point
+    line = lam[:, 1] < LINE_RATIO * lam[:, 2]
+    if not line.any():
+        return
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(pcd.points)
+    k = min(s.normal_max_nn, len(P))
+    _, idx = cKDTree(P).query(P[line], k=k)
+    Q = P[idx.reshape(-1, k)] - P[line][:, None, :]  # neighbours about the point itself
+    _, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", Q, Q))
+    # the plane's frame (e1, e2 in it, e3 its normal), then a quadric height
+    # h = a x^2 + b xy + c y^2 + d x + e y through the neighbours: the surface's normal at
+    # the point is (-d, -e, 1) in that frame (a plane's over a neighbourhood that spans
+    # several rings of a curved surface leans toward the side that holds more of them)
+    e1, e2, e3 = vec[:, :, 2], vec[:, :, 1], vec[:, :, 0]
+    x, y, h = (np.einsum("mki,mi->mk", Q, e) for e in (e1, e2, e3))
+    A = np.stack([x * x, x * y, y * y, x, y], axis=2)
+    AtA = np.einsum("mki,mkj->mij", A, A) + 1e-9 * np.eye(5)
+    coef = np.linalg.solve(AtA, np.einsum("mki,mk->mi", A, h)[..., None])[..., 0]
+    n = -coef[:, 3:4] * e1 - coef[:, 4:5] * e2 + e3
+    N = np.asarray(pcd.normals).copy()
+    N[line] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    pcd.normals = o3d.utility.Vector3dVector(N)
+
+
 # ----------------------------------------------------------------------------- registration
+
+
+def _rms_motion(T: np.ndarray, points: np.ndarray) -> float:
+    """RMS distance (mm) the 4x4 ``T`` moves ``points`` (N, 3) by (0 for none)."""
+    if not len(points):
+        return 0.0
+    return float(np.sqrt(np.mean(np.sum((apply_transform(T, points) - points) ** 2, axis=1))))
 
 
 def _icp_pair(o3d, src, dst, s: FuseSettings):
@@ -408,7 +457,12 @@ def overlap_information(points: np.ndarray, target_points: np.ndarray, target_no
     nns.knn_index()
     ok, idx = _matches(o3d, nns, p, max_distance_mm)
     n = np.asarray(target_normals, np.float64)[idx]
-    J = np.concatenate([np.cross(p[ok], n), n], axis=1)
+    # each row at its match on the target surface, where the plane n is tangent: a motion
+    # that slides the surface along itself (a sphere's turn about its centre) moves no
+    # target point off its plane; at the source point, up to a match distance away on a
+    # curved surface, the same turn reads as fixed by ~(distance / radius)^2 (sparse ring
+    # curves matched 1 mm apart on a 20 mm sphere: 1e-2 of the best-fixed motion)
+    J = np.concatenate([np.cross(q[idx], n), n], axis=1)
     return J.T @ J, p[ok]
 
 
@@ -564,7 +618,7 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
     for _ in range(n):
         graph.nodes.append(reg.PoseGraphNode(np.eye(4)))
     pairs = _pairs(order, s)
-    used = []
+    used, slid = [], []
     for i, j, uncertain in progress_bar(pairs, desc="registering views", unit="pair", disable=not progress):
         if len(downs[i].points) < 10 or len(downs[j].points) < 10:
             continue
@@ -582,12 +636,29 @@ def _refine(o3d, downs: list, angles: np.ndarray, s: FuseSettings, progress: boo
                                              max_distance_mm=s.icp_fine_mm)
             log.debug("views %d -> %d: their overlap leaves %d motion(s) free, kept at the turntable pose", i, j,
                       free)
+        moved = _rms_motion(T, src_pts)
+        if moved > s.icp_coarse_mm:
+            # ICP starts at the turntable pose and matches within icp_coarse_mm: a pair it
+            # carries further than that slid along a near-symmetry (sparse ring curves on
+            # a rounded shape snap onto the neighbour view's curves), not back to a truth it
+            # could see; the pair keeps the turntable's relative pose
+            slid.append((i, j, moved))
+            T = np.eye(4)
+            ev = reg.evaluate_registration(downs[i], downs[j], s.icp_fine_mm, T)
+            fitness, rmse = ev.fitness, ev.inlier_rmse
+            info = reg.get_information_matrix_from_point_clouds(downs[i], downs[j], s.icp_fine_mm, T)
+            H, matched = overlap_information(src_pts, dst_pts, dst_nrm, max_distance_mm=s.icp_fine_mm)
         if fitness < s.min_edge_fitness:
             log.info("views %d -> %d overlap too little (fitness %.2f): edge left out", i, j, fitness)
             continue
         log.debug("edge %d -> %d: fitness %.3f, rmse %.3f mm", i, j, fitness, rmse)
         graph.edges.append(reg.PoseGraphEdge(i, j, T, info, uncertain=uncertain))
         used.append((i, j, H, matched))
+    if slid:
+        log.warning("ICP carried %d of %d view pairs further than its %.3g mm matching window (up to %.1f mm): "
+                    "kept at the turntable's relative pose (a shape near-symmetric about the turntable axis, "
+                    "or views too sparse to fix each other: docs/fusion.md, \"Symmetric objects\")",
+                    len(slid), len(pairs), s.icp_coarse_mm, max(m for _, _, m in slid))
     if not used:
         log.warning("no pair of views overlaps enough to register: keeping the turntable poses")
         return [np.eye(4) for _ in range(n)], graph, None
