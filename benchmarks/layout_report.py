@@ -5,14 +5,17 @@ Prints, for the library (kernels/, pipeline/, hardware/, tools/, src/ringscan/):
 - each codec's name: the library files outside ``pipeline/codecs/`` and ``kernels/`` that
   name it (bar: <= 1 each; ``registry``-style lookups are what the rest should use);
 - modules over 800 lines (bar: none), command modules ``tools/cmd_*.py`` over 400 (bar: none);
-- functions over 80 lines or over 8 parameters (the issue: "a reason or a split"; counted,
-  no bar), the largest of each;
+- functions over 80 lines or over 8 parameters (the issue: "a reason or a split"), each either
+  explained or not: a function whose docstring has a line starting ``Size:`` (a sentence or two on
+  why it is this long or takes this many parameters) is explained (bar: none unexplained); the
+  largest unexplained of each;
 - settings dataclasses and their fields (counted);
 - whether ``lint-imports`` keeps every layer contract (bar).
 
 Exit 1 when a bar is missed. Static: reads the source with :mod:`ast`, imports nothing of ringscan.
 
     python benchmarks/layout_report.py [--list]     # --list: every file/function behind a figure
+                                                    # (explained functions marked)
 """
 
 from __future__ import annotations
@@ -62,6 +65,31 @@ def functions(tree: ast.AST):
             yield node, node.end_lineno - node.lineno + 1, len(params)
 
 
+def explained(node: ast.AST) -> bool:
+    """Whether a function's docstring states why it is long or wide: a line starting ``Size:``."""
+    doc = ast.get_docstring(node) or ""
+    return any(line.strip().startswith("Size:") for line in doc.splitlines())
+
+
+def oversized(files: list[Path], root: Path = ROOT) -> tuple[list, list]:
+    """The functions over ``LONG_FUNCTION`` lines and over ``MANY_PARAMETERS`` parameters in ``files``.
+
+    Two lists, largest first, of ``(size, "path:line name", explained)``; paths relative to ``root``.
+    """
+    long_fns, wide_fns = [], []
+    for f in files:
+        tree = ast.parse(f.read_text(encoding="utf-8"), filename=str(f))
+        for node, length, params in functions(tree):
+            where = f"{f.relative_to(root).as_posix()}:{node.lineno} {node.name}"
+            if length > LONG_FUNCTION:
+                long_fns.append((length, where, explained(node)))
+            if params > MANY_PARAMETERS:
+                wide_fns.append((params, where, explained(node)))
+    long_fns.sort(key=lambda x: (x[0], x[1]), reverse=True)
+    wide_fns.sort(key=lambda x: (x[0], x[1]), reverse=True)
+    return long_fns, wide_fns
+
+
 def is_settings_dataclass(node: ast.ClassDef) -> bool:
     decorated = any("dataclass" in ast.unparse(d) for d in node.decorator_list)
     return decorated and node.name.endswith("Settings")
@@ -97,27 +125,28 @@ def main(argv=None) -> int:
     if cmds:
         missed.append(f"{len(cmds)} command modules over {MAX_COMMAND} lines")
 
-    long_fns, wide_fns, settings, fields = [], [], 0, 0
+    settings, fields = 0, 0
     for f in files:
         tree = ast.parse(f.read_text(encoding="utf-8"), filename=str(f))
-        for node, length, params in functions(tree):
-            where = f"{rel(f)}:{node.lineno} {node.name}"
-            if length > LONG_FUNCTION:
-                long_fns.append((length, where))
-            if params > MANY_PARAMETERS:
-                wide_fns.append((params, where))
         for node in ast.walk(tree):
             if isinstance(node, ast.ClassDef) and is_settings_dataclass(node):
                 settings += 1
                 fields += sum(isinstance(b, ast.AnnAssign) for b in node.body)
-    long_fns.sort(reverse=True)
-    wide_fns.sort(reverse=True)
-    print(f"\nfunctions over {LONG_FUNCTION} lines: {len(long_fns)}; over {MANY_PARAMETERS} parameters: "
-          f"{len(wide_fns)} (each needs a reason or a split)")
-    for length, where in long_fns[: None if args.list else 5]:
-        print(f"  {length:4d} lines  {where}")
-    for params, where in wide_fns[: None if args.list else 5]:
-        print(f"  {params:4d} params {where}")
+    long_fns, wide_fns = oversized(files)
+    long_open = [x for x in long_fns if not x[2]]
+    wide_open = [x for x in wide_fns if not x[2]]
+    print(f"\nfunctions over {LONG_FUNCTION} lines: {len(long_fns)} ({len(long_fns) - len(long_open)} explained, "
+          f"{len(long_open)} not); over {MANY_PARAMETERS} parameters: {len(wide_fns)} "
+          f"({len(wide_fns) - len(wide_open)} explained, {len(wide_open)} not); "
+          f"each needs a reason (a docstring line 'Size: ...') or a split")
+    for length, where, ok in long_fns if args.list else long_open[:5]:
+        print(f"  {length:4d} lines  {where}{'  (Size: explained)' if ok else ''}")
+    for params, where, ok in wide_fns if args.list else wide_open[:5]:
+        print(f"  {params:4d} params {where}{'  (Size: explained)' if ok else ''}")
+    if long_open:
+        missed.append(f"{len(long_open)} functions over {LONG_FUNCTION} lines with neither a reason nor a split")
+    if wide_open:
+        missed.append(f"{len(wide_open)} functions over {MANY_PARAMETERS} parameters with neither a reason nor a split")
     print(f"\nsettings dataclasses: {settings}, {fields} fields")
 
     lint = shutil.which("lint-imports") or str(Path(sys.executable).with_name("lint-imports"))
