@@ -30,6 +30,8 @@ sigmas where the errors are Gaussian, and ~0.63 and ~2 % where they have a t's t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.optimize import minimize
 
@@ -113,6 +115,9 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
 
     Returns:
         :class:`ErrorModel` (:func:`identity_model` with fewer than ``MIN_PAIRS`` pairs).
+
+    Size: one argument per per-sample quantity (each (n,), read together as the pairs'
+    columns); a struct of them would only rename them.
     """
     a = [np.asarray(x, np.float64) for x in (depth_rho, s_rho, depth_tan, s_tan, sigma_rho_px, sigma_tan_px,
                                                residual_var_px)]
@@ -290,6 +295,98 @@ def _lagrange_at_zero(place: np.ndarray) -> np.ndarray:
     return w
 
 
+@dataclass(frozen=True)
+class _RingIndex:
+    """Where the usable samples of a view are: by ring and pixel, and by pixel."""
+
+    ring: np.ndarray
+    """(n,) int64 each sample's ring (0 for a dense code)."""
+    x: np.ndarray
+    """(n,) int64 its camera column."""
+    y: np.ndarray
+    """(n,) int64 its camera row."""
+    width: int
+    """Camera width (px)."""
+    npix: int
+    """More than any pixel index: the key's stride per ring."""
+    key: np.ndarray
+    """(m,) sorted ring * npix + pixel of the usable samples."""
+    order: np.ndarray
+    """(m,) the sample index of each key."""
+    at_pixel: np.ndarray
+    """(npix,) a usable sample's index at each pixel, -1 for none (of two rings' at one pixel, one)."""
+
+
+def _ring_index(ring: np.ndarray, pixel: np.ndarray, usable: np.ndarray, width: int) -> _RingIndex:
+    """The :class:`_RingIndex` of the ``usable`` samples (indices)."""
+    npix = int(pixel.max()) + width + 2
+    key = ring[usable] * npix + pixel[usable]
+    o = np.argsort(key, kind="stable")
+    at_pixel = np.full(npix, -1, np.int64)
+    at_pixel[pixel[usable]] = usable
+    return _RingIndex(ring=ring, x=pixel % width, y=pixel // width, width=width, npix=npix, key=key[o],
+                      order=usable[o], at_pixel=at_pixel)
+
+
+def _next_neighbours(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray):
+    """(c, a, b): the ``centre`` samples that have two samples of their own ring among
+    their 8 neighbouring pixels most nearly on opposite sides (at least 120 degrees
+    apart), and those two."""
+    offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
+    nb = np.full((centre.size, len(offsets)), -1, np.int64)
+    for j, (dx, dy) in enumerate(offsets):
+        xx, yy = idx.x[centre] + dx, idx.y[centre] + dy
+        want = idx.ring[centre] * idx.npix + yy * idx.width + xx
+        at = np.minimum(np.searchsorted(idx.key, want), idx.key.size - 1)
+        hit = (idx.key[at] == want) & (xx >= 0) & (xx < idx.width) & (yy >= 0)
+        nb[hit, j] = idx.order[at[hit]]
+    vec = uv[np.maximum(nb, 0)] - uv[centre][:, None, :]
+    norm = np.linalg.norm(vec, axis=2)
+    unit = vec / np.where(norm > 0, norm, 1.0)[..., None]
+    cos = np.einsum("mik,mjk->mij", unit, unit)
+    have = (nb >= 0) & (norm > 0)
+    cos = np.where(have[:, :, None] & have[:, None, :], cos, np.inf)
+    best = cos.reshape(centre.size, -1).argmin(axis=1)
+    ia, ib = np.divmod(best, len(offsets))
+    rows = np.arange(centre.size)
+    use = cos[rows, ia, ib] <= -0.5
+    return centre[use], nb[rows, ia][use], nb[rows, ib][use]
+
+
+def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray) -> list:
+    """The checks wider than 1 px (``NEIGHBOUR_LAGS``), each (lag, checked samples (m,),
+    their four same-ring nodes (m, 4), the cubic's weights (m, 4)), for the lags where at
+    least ``MIN_PAIRS`` samples have all four: every ``centre`` sample, with its ring's
+    direction there from the ring's samples around it (a ring broken up by dropped
+    samples still has one)."""
+    wide, direction = _ring_directions(uv, idx.ring, idx.at_pixel, idx.width, centre)
+    out = []
+    for lag in NEIGHBOUR_LAGS[1:]:
+        nodes, place = _lag_nodes(uv, idx.ring, idx.at_pixel, idx.width, wide, direction, lag)
+        fine = ((nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0)
+                & (place[:, 2] > 0))
+        if np.count_nonzero(fine) >= MIN_PAIRS:
+            out.append((lag, wide[fine], nodes[fine], _lagrange_at_zero(place[fine])))
+    return out
+
+
+def _check_variance(u, cc, nodes, w, x, y, window):
+    """Var(e_c - sum_i w_i e_i) per checked sample ``cc`` (m,) against its ``nodes`` (m, k)
+    with weights ``w`` (m, k), for errors of standard deviations ``u`` (n,) that pixels
+    (``x``, ``y``) share as far as their ``window`` x ``window`` means overlap."""
+    def overlap(i, j):  # the share of error two pixels have in common under a window x window mean
+        return (np.maximum(window - np.abs(x[i] - x[j]), 0) * np.maximum(window - np.abs(y[i] - y[j]), 0)
+                / float(window * window))
+
+    v = u[cc] ** 2 + np.einsum("ij,ij->i", w ** 2, u[nodes] ** 2)
+    if window > 1:
+        for i in range(nodes.shape[1]):
+            v = v - 2 * w[:, i] * overlap(cc, nodes[:, i]) * u[cc] * u[nodes[:, i]]
+            for j in range(i + 1, nodes.shape[1]):
+                v = v + 2 * w[:, i] * w[:, j] * overlap(nodes[:, i], nodes[:, j]) * u[nodes[:, i]] * u[nodes[:, j]]
+    return v
+
+
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
                         ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
                         max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
@@ -327,6 +424,9 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         :class:`ErrorModel` with k_rho and floor_rho_px (the other terms 1 and 0),
         ``pairs`` = samples the kept check used, ``lag_px`` its spacing;
         :func:`identity_model` with fewer than ``MIN_PAIRS``.
+
+    Size: one argument per per-sample quantity (each (n,)) and the camera's and the
+    decode's two facts (width, window) the checks need.
     """
     d, s, p = (np.asarray(x, np.float64) for x in (depth, s, sigma_px))
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -336,71 +436,21 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     n_ok = int(np.count_nonzero(ok))
     if n_ok < MIN_PAIRS:
         return identity_model(0)
-    y = pixel // width
-    x = pixel % width
+    idx = _ring_index(ring, pixel, np.flatnonzero(ok), width)
     # every R-th row's samples are checked, against any samples of theirs on the same ring
     period = max(3, int(np.ceil(n_ok / max_samples)))
-    npix = int(pixel.max()) + width + 2
-    every = np.flatnonzero(ok)
-    key = ring[every] * npix + pixel[every]
-    o = np.argsort(key, kind="stable")
-    key, order = key[o], every[o]
-    centre = order[(y[order] % period) == 1]
-    offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
-    nb = np.full((centre.size, len(offsets)), -1, np.int64)
-    for j, (dx, dy) in enumerate(offsets):
-        xx, yy = x[centre] + dx, y[centre] + dy
-        want = ring[centre] * npix + yy * width + xx
-        at = np.minimum(np.searchsorted(key, want), key.size - 1)
-        hit = (key[at] == want) & (xx >= 0) & (xx < width) & (yy >= 0)
-        nb[hit, j] = order[at[hit]]
-    # the two neighbours most nearly on opposite sides (at least 120 degrees apart)
-    vec = uv[np.maximum(nb, 0)] - uv[centre][:, None, :]
-    norm = np.linalg.norm(vec, axis=2)
-    unit = vec / np.where(norm > 0, norm, 1.0)[..., None]
-    cos = np.einsum("mik,mjk->mij", unit, unit)
-    have = (nb >= 0) & (norm > 0)
-    cos = np.where(have[:, :, None] & have[:, None, :], cos, np.inf)
-    best = cos.reshape(centre.size, -1).argmin(axis=1)
-    ia, ib = np.divmod(best, len(offsets))
-    rows = np.arange(centre.size)
-    use = cos[rows, ia, ib] <= -0.5
-    c, a, b = centre[use], nb[rows, ia][use], nb[rows, ib][use]
+    centre = idx.order[(idx.y[idx.order] % period) == 1]
+    c, a, b = _next_neighbours(uv, idx, centre)
     if c.size < MIN_PAIRS:
         return identity_model(int(c.size))
     ab = uv[b] - uv[a]
     t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
     g = s / p  # depth per projector px of rho
-    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))]
-    at_pixel = np.full(npix, -1, np.int64)
-    at_pixel[pixel[every]] = every
-    # the wider checks: every checked sample, with its ring's direction there from the
-    # ring's samples around it (a ring broken up by dropped samples still has one)
-    wide, direction = _ring_directions(uv, ring, at_pixel, width, centre)
-    for lag in NEIGHBOUR_LAGS[1:]:
-        nodes, place = _lag_nodes(uv, ring, at_pixel, width, wide, direction, lag)
-        fine = (nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0) & (place[:, 2] > 0)
-        if np.count_nonzero(fine) >= MIN_PAIRS:
-            checks.append((lag, wide[fine], nodes[fine], _lagrange_at_zero(place[fine])))
-
-    def overlap(i, j):  # the share of error two pixels have in common under a window x window mean
-        return (np.maximum(window - np.abs(x[i] - x[j]), 0) * np.maximum(window - np.abs(y[i] - y[j]), 0)
-                / float(window * window))
-
+    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre)
     kept = None
     for lag, cc, nodes, w in checks:
         r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
-
-        def var(u):  # Var(e_c - sum w_i e_i) for errors of standard deviations u, correlated as above
-            v = u[cc] ** 2 + np.einsum("ij,ij->i", w ** 2, u[nodes] ** 2)
-            if window > 1:
-                for i in range(nodes.shape[1]):
-                    v = v - 2 * w[:, i] * overlap(cc, nodes[:, i]) * u[cc] * u[nodes[:, i]]
-                    for j in range(i + 1, nodes.shape[1]):
-                        v = v + 2 * w[:, i] * w[:, j] * overlap(nodes[:, i], nodes[:, j]) * u[nodes[:, i]] * u[nodes[:, j]]
-            return v
-
-        X = np.stack([var(s), var(g)], axis=1)
+        X = np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
         q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
         widening = float(np.median(np.sqrt(q[0] * s[cc] ** 2 + q[1] * g[cc] ** 2) / s[cc]))
         if kept is None or widening > kept[0]:
