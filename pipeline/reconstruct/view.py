@@ -96,6 +96,44 @@ class ViewCloud:
     where the scan has no sectors. None: not recorded."""
 
 
+@dataclass
+class _ViewRun:
+    """What every stage of one view's reconstruction reads: the scan, the view, its
+    settings, where it runs, its frames and samples, and the stage times it adds to."""
+
+    scan: Scan
+    view: View
+    settings: ReconstructSettings
+    device: object
+    threads: int
+    frames: np.ndarray
+    """(F, H, W) the view's frames, host."""
+    samples: object
+    """The codec's :class:`~ringscan.kernels.samples.Samples` of camera 1."""
+    codec_stats: dict
+    times: dict
+    """Stage -> seconds, added to as stages run."""
+
+
+@dataclass
+class _Placed:
+    """Each sample's placed point and what :func:`_finish` keeps of it (Warp arrays, (n,))."""
+
+    points: object
+    """vec3 world points."""
+    status: object
+    """int32 status (0: placed)."""
+    confidence: object
+    sigma: object
+    """float32 predicted standard deviation along the camera ray (mm)."""
+    residual: object
+    """float32 residual (px where ``residual_px``, else sector widths; < 0 none)."""
+    residual_px: np.ndarray
+    """(n,) bool host: the residual is in px."""
+    extra: dict
+    """Report entries of the placement (calibration, checks)."""
+
+
 def reconstruct_view(
     scan: Scan,
     view: View,
@@ -137,11 +175,12 @@ def reconstruct_view(
     # sectors); it says how many bits they carry.
     sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
 
+    run = _ViewRun(scan=scan, view=view, settings=settings, device=device, threads=threads, frames=frames,
+                   samples=samples, codec_stats=codec_stats, times=times)
     t = time.perf_counter()
     rays = view_rays(scan, view, settings)
     if rays in ("camera-camera", "all"):
-        return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
-                       **_stereo_points(scan, view, settings, device, threads, samples, sector_bits, times))
+        return _finish(run, _stereo_points(run, sector_bits), rays=rays)
     triangulated, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
     neighbours = {}
     if samples.phi is None:  # no angle to measure the ring's errors against: its neighbours do
@@ -153,13 +192,12 @@ def reconstruct_view(
         check = {"kind": "ray-ray", "samples": calibration["samples"], "median_px": calibration["residual_px_median"],
                  "p95_px": calibration["residual_px_p95"],
                  "fits": bool(calibration["residual_px_median"] <= CALIBRATION_WARN_PX)}
-    return _finish(scan, view, settings, device, threads, frames, samples, codec_stats, times, rays=rays,
-                   points=triangulated.points, status=triangulated.status, confidence=triangulated.confidence,
-                   sigma=triangulated.sigma, residual=triangulated.residual,
-                   residual_px=_angle_used(samples, settings),
-                   extra={**({"calibration": calibration} if calibration else {}),
-                          **({"error_model": neighbours} if neighbours else {}),
-                          **({"calibration_check": check} if check else {})})
+    return _finish(run, _Placed(points=triangulated.points, status=triangulated.status,
+                                confidence=triangulated.confidence, sigma=triangulated.sigma,
+                                residual=triangulated.residual, residual_px=_angle_used(samples, settings),
+                                extra={**({"calibration": calibration} if calibration else {}),
+                                       **({"error_model": neighbours} if neighbours else {}),
+                                       **({"calibration_check": check} if check else {})}), rays=rays)
 
 
 def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, samples, sector_bits: int,
@@ -343,11 +381,12 @@ def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
             light_model_for(scan.rig)  # raises: the projector is not calibrated (its own message)
 
 
-def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, samples,
-                   sector_bits: int, times: dict) -> dict:
+def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     """Camera 1's samples matched in camera 2 and triangulated from two or three
     rays; with ``auto`` on a calibrated rig, the samples camera 2 does not match
-    fall back to camera-projector. Returns _finish's per-sample arrays."""
+    fall back to camera-projector."""
+    scan, view, settings, device, threads, samples, times = (run.scan, run.view, run.settings, run.device,
+                                                             run.threads, run.samples, run.times)
     rig = scan.rig
     vol = rig.volume
     t = time.perf_counter()
@@ -404,6 +443,20 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
     residual[i] = tri.residual.numpy()
     residual_px = _angle_used(samples, settings) if st.rays == "auto" and use_light else np.zeros(n, bool)
     residual_px[i] = True  # the rays' RMS reprojection error
+    _stereo_report(view, matches, tri, check, use_light, extra)
+    wp.synchronize_device(device)
+    times["triangulate"] = time.perf_counter() - t
+    return _Placed(points=wp.array(points, dtype=wp.vec3, device=device),
+                   status=wp.array(status, dtype=wp.int32, device=device),
+                   confidence=wp.array(confidence, dtype=wp.float32, device=device),
+                   sigma=wp.array(sigma, dtype=wp.float32, device=device),
+                   residual=wp.array(residual, dtype=wp.float32, device=device), residual_px=residual_px, extra=extra)
+
+
+def _stereo_report(view: View, matches, tri, check: dict, use_light: bool, extra: dict) -> None:
+    """Add a two-camera view's report entries to ``extra``: ``stereo`` (the matcher's counts,
+    three rays or two, the rays' median residual, the camera-projector fallback) and
+    ``calibration_check`` (the epipolar check, which warns where the rig misses)."""
     if check:
         check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
                  "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}
@@ -412,20 +465,13 @@ def _stereo_points(scan: Scan, view: View, settings: ReconstructSettings, device
                         "epipolar lines (median; p95 %.2f px; above %.1f px): check the cameras' calibration "
                         "(ringscan calibrate refine, docs/calibration.md)", view.name, check["median_px"],
                         check["p95_px"], EPIPOLAR_WARN_PX)
-    ok = tst == 0
+    ok = tri.status.numpy() == 0
     extra["stereo"] = {**matches.stats, "three_rays": bool(use_light),
                        "residual_px_median": float(np.median(tri.residual.numpy()[ok])) if ok.any() else None}
     if "fallback_camera_projector" in extra:
         extra["stereo"]["fallback_camera_projector"] = extra.pop("fallback_camera_projector")
     if check:
         extra["calibration_check"] = check
-    wp.synchronize_device(device)
-    times["triangulate"] = time.perf_counter() - t
-    return dict(points=wp.array(points, dtype=wp.vec3, device=device),
-                status=wp.array(status, dtype=wp.int32, device=device),
-                confidence=wp.array(confidence, dtype=wp.float32, device=device),
-                sigma=wp.array(sigma, dtype=wp.float32, device=device),
-                residual=wp.array(residual, dtype=wp.float32, device=device), residual_px=residual_px, extra=extra)
 
 
 def _angle_used(samples, settings: ReconstructSettings) -> np.ndarray:
@@ -438,11 +484,13 @@ def _angle_used(samples, settings: ReconstructSettings) -> np.ndarray:
     return np.isfinite(samples.phi.numpy())
 
 
-def _finish(scan: Scan, view: View, settings: ReconstructSettings, device, threads: int, frames: np.ndarray,
-            samples, codec_stats: dict, times: dict, *, rays: str, points, status, confidence, sigma, residual,
-            residual_px: np.ndarray,
-            extra: dict) -> ViewCloud:
+def _finish(run: _ViewRun, placed: _Placed, *, rays: str) -> ViewCloud:
     """Filter, compact and count a view's per-sample results into its cloud."""
+    scan, settings, device, threads, frames, samples, codec_stats, times = (
+        run.scan, run.settings, run.device, run.threads, run.frames, run.samples, run.codec_stats, run.times)
+    points, status, confidence, sigma, residual = (placed.points, placed.status, placed.confidence, placed.sigma,
+                                                   placed.residual)
+    residual_px, extra = placed.residual_px, placed.extra
     rig = scan.rig
     cam = camera_model_for(rig)
     t = time.perf_counter()
