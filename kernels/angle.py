@@ -234,6 +234,11 @@ def angle_kernel(
     uv (n,) vec2 camera position, rho (n,) float32, sector (n,) int32, read.
     params: the frame indices, thresholds and noise model (:class:`AngleParams`).
     phi, sigma_tan, modulation (n,) float32, status (n,) int32, written.
+
+    Size: one thread per sample; the phase fit over the angle frames, the zone's period, the sector (re-read
+    from the sector frames where unknown) and the unwrapping share the sample's locals. Over a third of its
+    length is its signature, its docstring and AngleParams unpacked into locals. Warp kernels take each array as
+    its own argument; the scalar settings already travel in AngleParams.
     """
     i = i0 + wp.tid()
     white = params.white
@@ -352,6 +357,10 @@ def decode_angle(
             sector code there; -1: none (they get no angle where P > 1).
         settings: thresholds and the noise model.
         threads: CPU threads; default all cores.
+
+    Size: a public function: its parameters are the sample arrays and its documented keyword-only options (frame
+    indices, pattern figures, tables, settings); most of its length is their signature, documentation and
+    checks, the rest packs AngleParams and launches one kernel.
     """
     if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
         raise ValueError("decode_angle: frames must be a (n, H, W) uint8/uint16 Warp array")

@@ -188,6 +188,9 @@ def ring_curvature_bias(t: float, q: float, cnt: float, sxx: float, sxy: float, 
     (least squares from the pairs' half differences: S g = b, S = sum h h^T,
     b = sum h (t_a - t_b) / 2) and |A h|^2 = |a|^2 |h|^2 (a conformal camera-to-
     projector map: tangential stretch = radial).
+
+    Size: a @wp.func called with smooth_phase_kernel's registers: the smoothed t, the modulation q, the pair
+    moments (cnt, sxx, sxy, syy, bx, by) the kernel accumulated and the pattern's rho0 and pitch, each a scalar.
     """
     rho = rho0 + pitch * t
     if rho < 0.5 * pitch:
@@ -239,6 +242,11 @@ def phase_unwrap_kernel(
     code, weak: (H, W) int32, contrast: (H, W) float32, read (the band decode).
     params: the frame layout and thresholds (:class:`PhaseParams`).
     t_out, modulation: (H, W) float32, status: (H, W) int32, written.
+
+    Size: one thread per run of a row's pixels, and each pixel's steps share their locals: the weighted normal
+    equations of the phase fit, their solution and the band code's edges are read by the unwrapping that
+    follows. Warp kernels take each array as its own argument; the scalar settings already travel in
+    PhaseParams.
     """
     bits = params.bits
     phase0 = params.phase0
@@ -382,6 +390,11 @@ def smooth_phase_kernel(
     (H, W) float32, read; rho0, pitch: the pattern's (t = (rho - rho0) / pitch).
     t_out: (H, W) float32, status_out, sector_out: (H, W) int32, flags: (H*W,)
     int32 (1 where the pixel stays a point, the count for the compaction), written.
+
+    Size: one thread per run of a row's pixels; a pixel's pair smoothing, the moments its curvature correction
+    needs and the sector gap fill share the window walk's locals. Warp kernels take each array as its own
+    argument; its six scalars (radius, tolerance, min_pairs, curvature, rho0, pitch) are loose arguments:
+    PhaseParams holds the settings of phase_unwrap_kernel, a launch of its own.
     """
     h = t.shape[0]
     w = t.shape[1]
@@ -486,6 +499,9 @@ def write_points_kernel(
     t, modulation (H, W) float32, status, sector (H, W) int32, offsets (H*W,)
     int32 (exclusive scan of the flags): read.
     uv (n,) vec2, rho/confidence (n,) float32, sector_out/pixel (n,) int32: written.
+
+    Size: Warp kernels take each array as its own argument: five read, five written, plus the pattern's rho0 and
+    pitch and the run's row0 and chunk.
     """
     w = t.shape[1]
     run = row_run(wp.tid(), w, row0, chunk)
@@ -561,6 +577,9 @@ def decode_phase(
 
     Returns:
         :class:`PhaseMap` on the frames' device (``sector`` unset).
+
+    Size: a public function: the frames, their band decode and its documented keyword-only options, one per
+    pattern figure, table or setting the caller chooses.
     """
     if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
         raise ValueError("decode_phase: frames must be a (n, H, W) uint8/uint16 Warp array")

@@ -102,6 +102,9 @@ def count_neighbours_kernel(
 
     points (n,) vec3 world, pixel/status (n,) int32, slots (2 * H * W,) int32: read.
     status_out (n,) int32: written.
+
+    Size: Warp kernels take each array and the camera as its own argument, plus the image size and the filter's
+    scalar settings (radius, tolerance, floor_mm, min_neighbours, the status to give).
     """
     i = i0 + wp.tid()
     status_out[i] = status[i]
@@ -190,6 +193,9 @@ def count_neighbours_sorted_kernel(
 
     points (n,) vec3 world, pixel/status (n,) int32, starts (n_blocks + 1,) int32
     (:func:`block_starts_kernel`): read. status_out (n,) int32: written.
+
+    Size: the same arguments as count_neighbours_kernel, with the block starts in place of the slot map, so the
+    two launch alike.
     """
     i = i0 + wp.tid()
     status_out[i] = status[i]
@@ -252,6 +258,9 @@ def mark_isolated_points(
         isolated_status: the status code given to dropped points.
         settings: filter settings.
         threads: CPU threads (spans of points); default: all cores.
+
+    Size: a public function: the point arrays and its documented keyword-only options (camera, image size, the
+    status to give, settings, threads).
     """
     if not isinstance(points, wp.array) or points.dtype != wp.vec3:
         raise ValueError("mark_isolated_points: points must be a Warp array of vec3")

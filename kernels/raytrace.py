@@ -196,6 +196,9 @@ def trace_geometry_kernel(
         points: (H, W) written: centre ray's world point, NaN where no hit.
         normals: (H, W) written: centre ray's facet normal (facing the camera), NaN where no hit.
         lit: (H, W) written: 1 where the centre ray hits a point lit by the projector image.
+
+    Size: Warp kernels take each array, the mesh, the camera and the light as its own argument: two read, six
+    written, and the scene's scalar settings (projector size, supersampling, albedo, ambient, shadow offset).
     """
     y, x = wp.tid()
     width = depth.shape[1]
@@ -267,6 +270,9 @@ def shade_kernel(
         emitted: (Hp * k, Wp * k) read: emitted projector light, 0..1 (after response and
             defocus), sampled k = ``upsample`` times finer than the projector pixels.
         out: (H, W) written: recorded value, 0..full_scale.
+
+    Size: Warp kernels take each array as its own argument: three read and one written, plus the scalars
+    shade_frame derives from its options and the geometry's supersampling.
     """
     y, x = wp.tid()
     width = base.shape[1]
@@ -398,6 +404,9 @@ def trace_geometry(
             faces carry their own (``make_trace_mesh(face_albedo=...)``).
         ambient: ambient irradiance relative to the projector's full white.
         shadow_eps: offset (mm) of a shadow ray's origin along the facet normal.
+
+    Size: a public function: the scene, camera and light and its documented keyword-only options, one per
+    user-facing setting of the geometry pass.
     """
     if width <= 0 or height <= 0:
         raise ValueError(f"camera size must be positive, got {width}x{height}")
@@ -459,6 +468,9 @@ def shade_frame(
 
     Returns:
         (H, W) uint16 Warp array of recorded values in 0..full_scale.
+
+    Size: a public function: the geometry, the emitted light and its documented keyword-only options, one per
+    user-facing setting of the camera's response and noise.
     """
     if emitted.ndim != 2 or emitted.dtype != wp.float32:
         raise ValueError(f"emitted: expected a 2D float32 array, got {emitted.ndim}D {emitted.dtype}")

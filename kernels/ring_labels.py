@@ -123,6 +123,9 @@ def decode_gray_rings_kernel(
     frames:   (n_frames, H, W) uint8/uint16, read.
     code, weak, band, sector: (H, W) int32, written.
     contrast: (H, W) float32, written.
+
+    Size: Warp kernels take each array as its own argument: the frames, five label arrays written, and the
+    decode's four scalars plus the run's row0 and chunk.
     """
     w = frames.shape[2]
     run = row_run(wp.tid(), w, row0, chunk)
@@ -274,6 +277,10 @@ def decode_gray_rings_swar_kernel(
     code, weak, band, sector: (H, W / 2) uint64 (the (H, W) int32 labels viewed as
               pixel pairs, little-endian), written.
     contrast: (H, W) float32, written.
+
+    Size: one thread per run of 64-bit words of a row: the lane arithmetic keeps eight pixels' codes, masks and
+    contrasts in registers across all frame pairs, and band, sector and the masks are finished in the lanes
+    before the per-pixel stores. Warp kernels take each array as its own argument.
     """
     tid = wp.tid()
     nw = words.shape[2]

@@ -283,6 +283,9 @@ def count_ridges_kernel(
     thread covers ``chunk`` pixels of one row.
 
     S: (H, W) float32 smoothed frame, read. counts: (H * W,) int32, written.
+
+    Size: Warp kernels take each array as its own argument; the five ridge thresholds are the ones
+    write_ridges_kernel tests again, passed the same way, plus the run's row0 and chunk.
     """
     w = S.shape[1]
     run = row_run(wp.tid(), w, row0, chunk)
@@ -319,6 +322,9 @@ def write_ridges_kernel(
     S (H, W) float32, counts and offsets (H * W,) int32 (their exclusive scan): read.
     uv, normal (n,) vec2; pixel (n,) int32; contrast, curvature, confidence (n,)
     float32: written.
+
+    Size: Warp kernels take each array as its own argument: three read, six written, and the ridge thresholds of
+    count_ridges_kernel plus the confidence's contrast.
     """
     w = S.shape[1]
     run = row_run(wp.tid(), w, row0, chunk)

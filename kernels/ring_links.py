@@ -65,6 +65,8 @@ def ring_roots_kernel(
 
     uv (n,) vec2 camera px and radii (k,) float32 projector px: read.
     points (n, k, 2) vec3, offset (n, k, 2) vec2, valid (n, k) int32: written.
+
+    Size: Warp kernels take each array, the camera, the light and the volume as its own argument.
     """
     i, k = wp.tid()
     d, ray_ok = camera_ray(cam, uv[i][0], uv[i][1])
@@ -123,6 +125,10 @@ def link_lines_kernel(
     neighbour (n, 2) int32 (sample met, -1 for none), gap (n, 2) float32 (its
     distance along the normal, px), bump (n, 2) int32 (1: the gap holds a bump):
     written.
+
+    Size: one thread per sample: both sides' marches share the sample's position and normal, and each march's
+    valley check reads the profile it walks. Warp kernels take each array as its own argument, plus the march's
+    four scalar settings.
     """
     i = wp.tid()
     h = sample_map.shape[0]
@@ -266,6 +272,9 @@ def link_lines(
 
     Returns:
         (neighbour (n, 2) int32, gap (n, 2) float32, bump (n, 2) int32) on uv's device.
+
+    Size: a public function: the sample arrays and its documented keyword-only options, one per setting of the
+    march.
     """
     n = uv.shape[0] if isinstance(uv, wp.array) else -1
     for name, a, dt in (("uv", uv, wp.vec2), ("normal", normal, wp.vec2), ("piece", piece, wp.int32),

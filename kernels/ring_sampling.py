@@ -134,6 +134,9 @@ def edge_pair(
     """Test the pair p = (y, x), q = (y + dy, x + dx).
 
     Returns vec4(found, fraction, boundary k, confidence).
+
+    Size: a @wp.func reading the frames and the three label arrays directly (Warp functions take arrays one by
+    one), plus the sampler's thresholds and the pair's pixel and direction.
     """
     h = code.shape[0]
     w = code.shape[1]
@@ -220,6 +223,9 @@ def edge_blur(
     d = frame - inverse at the crossing, less the 1/12 px^2 that the one-pixel
     difference itself adds; camera px -> projector px by pitch / (the mean camera
     distance along the normal to the neighbouring band edges on either side).
+
+    Size: a @wp.func reading the frames and labels directly (Warp functions take arrays one by one), plus the
+    pattern's pitch and the pair's pixel, direction and crossing.
     """
     h = code.shape[0]
     w = code.shape[1]
@@ -322,6 +328,10 @@ def count_edges_kernel(
         along the pair and its confidence.
     blur: (2*H*W,) float32 written likewise with ``curvature`` 1: the edge's blur
         variance (projector px^2, -1 unknown; :func:`edge_blur`).
+
+    Size: Warp kernels take each array as its own argument: five read (frames and the decode's labels) and seven
+    written for the write pass (counts and six per-pair arrays), plus the sampler's scalars and the run's row0
+    and chunk.
     """
     w = code.shape[1]
     tid = wp.tid()
@@ -386,6 +396,9 @@ def write_edges_kernel(
     uv (n_samples,) vec2, ring/sample_sector/pixel (n_samples,) int32,
     confidence (n_samples,) float32, sample_blur (n_samples,) float32 (with
     ``curvature`` 1): written.
+
+    Size: Warp kernels take each array as its own argument: the count pass's eight arrays read and six
+    per-sample arrays written.
     """
     tid = wp.tid()
     r = row0 * ((w + chunk - 1) / chunk) + tid
@@ -446,6 +459,10 @@ def sample_gray_rings(
     Returns:
         :class:`~ringscan.kernels.samples.Samples` on the frames' device, in
         raster order (``ring`` set, ``phi``/``sigma_*`` None).
+
+    Size: a public entry point running two kernel passes (count, then write) that share the arrays it allocates
+    and, with the pattern's radii, the ring-blur correction; over a third of its length is its signature,
+    documentation and input checks.
     """
     if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
         raise ValueError("sample_gray_rings: frames must be a (n, H, W) uint8/uint16 Warp array")

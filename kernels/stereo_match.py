@@ -212,7 +212,12 @@ def curve_offset(proj2: wp.array(dtype=wp.vec2), sigma2: wp.array(dtype=wp.float
     neighbours' across-coordinate a = (p - pm).v2 fitted as a quadratic in the
     along-coordinate s = (p - pm).v1 (a ring edge is an arc: a straight line
     would leave its sagitta, 0.4 px over 8 px of a 20 px ring), evaluated at the
-    query's (sq, aq). With fewer than 4 neighbours a straight line."""
+    query's (sq, aq). With fewer than 4 neighbours a straight line.
+
+    Size: a @wp.func reads camera 2's arrays and the query's neighbour list directly (Warp functions take no
+    tuples of arrays), plus the local frame (pm, v1, v2) and the query's coordinates in it that match_kernel has
+    already computed.
+    """
     M = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     b = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
@@ -319,7 +324,13 @@ def match_kernel(
     sigma2 (m,) float32 (camera 2's samples); offsets, counts (nx * ny,) int32,
     items (binned,) int32 (the grid): read. params: the grid and the fit's
     settings (:class:`MatchParams`). out_uv (n,) vec2, out_sigma2, out_sigma1,
-    out_gain, out_fit (n,) float32, status (n,) int32: written."""
+    out_gain, out_fit (n,) float32, status (n,) int32: written.
+
+    Size: one thread per query, and the steps share its registers: the k-nearest search fills the fixed-size
+    arrays nd/ni that the fit, its refits (a neighbour dropped from ni) and the variances then read, so the
+    search and the fit stay one body. Warp kernels take each array as its own argument; the scalar settings
+    already travel in MatchParams.
+    """
     i = i0 + wp.tid()
     cell = params.cell
     nx = params.nx

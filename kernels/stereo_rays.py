@@ -116,7 +116,11 @@ def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.
     the Jacobian by central differences over h mm (the lens's exact derivative was tried
     and not taken: it converges samples of a rig that does not fit that these leave
     ``not_converged``, a change of behaviour; docs/batch.md gives the figures).
-    Returns (H, g, chi2 term, |r| px)."""
+    Returns (H, g, chi2 term, |r| px).
+
+    Size: a @wp.func whose arguments are one ray's model, observation, weight, the difference step and the
+    running normal equations (H, g) it adds to.
+    """
     r = wp.vec2(0.0, 0.0)
     jx = wp.vec2(0.0, 0.0)
     jy = wp.vec2(0.0, 0.0)
@@ -145,7 +149,11 @@ def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.
 def all_terms(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
               obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3, h: float):
     """The Gauss-Newton terms of every ray of a point (the two cameras, and the light where ``use_light``),
-    each :func:`observation_terms`. Returns (H, g, chi2, sum of squared residuals px^2)."""
+    each :func:`observation_terms`. Returns (H, g, chi2, sum of squared residuals px^2).
+
+    Size: a @wp.func taking each ray's model, observation and weights as separate values (two cameras and the
+    light), as triangulate_rays_kernel holds them in registers.
+    """
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     g = wp.vec3(0.0, 0.0, 0.0)
     H, g, c1, r1 = observation_terms(cam1, light, 0, X, obs1, W1, h, H, g)
@@ -186,7 +194,12 @@ def triangulate_rays_kernel(
     px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
     (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. params:
     the third ray's switch and the bounds (:class:`RayParams`). points (n,)
-    vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written."""
+    vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written.
+
+    Size: one thread per match: the Gauss-Newton iteration (all_terms per step), the check at the solution and
+    the point's sigma share the point's registers. Warp kernels take each array, each camera and the light as
+    its own argument; the scalar settings already travel in RayParams.
+    """
     i = i0 + wp.tid()
     use_light = params.use_light
     min_sin = params.min_sin
@@ -322,6 +335,9 @@ def triangulate_rays(    uv1: wp.array,
             ray: below it the point is ``ill_conditioned``.
         max_residual_px: largest RMS reprojection error (px): above it ``inconsistent``.
         threads: CPU threads; default all cores.
+
+    Size: a public function: the four sample arrays and its documented keyword-only options (cameras, volume,
+    the optional third ray and its inputs, the two bounds, threads).
     """
     fn = "triangulate_rays"
     n = check_array("uv1", uv1, None, wp.vec2, fn)

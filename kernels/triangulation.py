@@ -238,7 +238,11 @@ def rings_solution(
 ):
     """The ring constraint alone: the ray meets the quadric of ring r; the sector
     picks the root. Returns (X, status, |cos| of incidence, sector residual, X's
-    pattern offset)."""
+    pattern offset).
+
+    Size: a @wp.func called twice by triangulate_kernel (the second time with a coarser sector): its arguments
+    are the ray, the ring and sector, and the settings the kernel has already unpacked from TriangulationParams.
+    """
     zero = wp.vec3(0.0, 0.0, 0.0)
     zero2 = wp.vec2(0.0, 0.0)
     roots, failed = ray_ring_roots(light, C, d, r, center)
@@ -317,7 +321,13 @@ def full_solution(
     calibration floor ``floor2`` (px^2) added as a covariance across the
     epipolar line (the only direction a calibration error can be seen in).
     Returns (X, status, conditioning in [0, 1], residual px across the epipolar
-    line, sigma mm along the ray, the decode's variance (px^2) across the line)."""
+    line, sigma mm along the ray, the decode's variance (px^2) across the line).
+
+    Size: a @wp.func of one sample's registers: the Gauss-Newton iteration, the conditioning of each coordinate
+    and the residual across the epipolar line share the point and its derivatives. Its arguments are the light,
+    the ray, the observation with its information, and the settings triangulate_kernel has already unpacked from
+    TriangulationParams.
+    """
     zero = wp.vec3(0.0, 0.0, 0.0)
     O, e, lok = light_pixel_ray(light, p_obs[0], p_obs[1])
     if not lok:
@@ -445,6 +455,11 @@ def triangulate_kernel(
     sigma (n,) float32 mm, residual_var (n,) float32 (projector px^2: the decode's
     predicted variance in the residual's direction; 0 for the ring constraint):
     written.
+
+    Size: one thread per sample; nearly half of its length is its signature, its docstring and
+    TriangulationParams unpacked into locals; the rest picks between rings_solution and full_solution (already
+    @wp.func) and writes six outputs. Warp kernels take each array, the camera, the light and the volume as its
+    own argument; the scalar settings already travel in TriangulationParams.
     """
     i = i0 + wp.tid()
     center = params.center
@@ -576,6 +591,10 @@ def triangulate_rings(
         floor: calibration floor (projector px, :func:`calibration_floor`): a
             standard deviation added across the epipolar line to samples with an angle.
         threads: CPU threads; default all cores.
+
+    Size: a public entry point: most of its length is its parameters (the sample arrays and documented
+    keyword-only options, one per user-facing setting), their documentation and the checks of each input (one
+    message each); the rest packs TriangulationParams and launches the two passes.
     """
     n = uv.shape[0] if isinstance(uv, wp.array) else None
     if n is None or uv.dtype != wp.vec2:
