@@ -81,6 +81,19 @@ def add_parser(sub):
                     "acknowledgement and the settle time, grab, write the frame and scan.json atomically. "
                     "--resume continues an interrupted capture; a device fault is retried, then the capture stops "
                     "with a valid partial scan.")
+    _add_scan_options(p)
+    _add_device_options(p.add_argument_group("devices"))
+    _add_virtual_options(p.add_argument_group("virtual rig"))
+    _add_settings_options(
+        p.add_argument_group("settings (defaults: --capture-settings file, else the resumed capture's, else built in)"))
+    basic_options(p, "--rig", "--patterns", "--views", "--resume", "--turntable", "--projector", "--camera",
+                  "--exposure", "--virtual")
+    return p
+
+
+def _add_scan_options(p):
+    """What to capture and where: the scan folder, rig, patterns and views, resuming, live
+    reconstruction and capture sessions of several poses."""
     p.add_argument("--out", required=True, metavar="SCAN",
                    help="scan folder (new or empty; the interrupted one with --resume)")
     p.add_argument("--rig", help="rig (calibration) file (required for a new capture)")
@@ -112,7 +125,9 @@ def add_parser(sub):
                    help="with --poses and --virtual: the scene's resting pose for each pose (as `ringscan simulate "
                         "--pose`; default upright, upside-down, side-x, side-y, ...)")
 
-    g = p.add_argument_group("devices")
+
+def _add_device_options(g):
+    """The real devices: turntable, projector and camera, their ports and the camera's controls."""
     g.add_argument("--turntable", metavar="PORT", help="GRBL/Horus turntable serial port (or pyserial URL); "
                                                        "may be left out for a single view")
     g.add_argument("--projector", metavar="PORT", help="pattern projector serial port (or pyserial URL), or "
@@ -137,7 +152,9 @@ def add_parser(sub):
                         "scan.json's frame_bits so that they are read scaled to 16 bits (docs/formats.md); every "
                         "frame is checked against it (default: the frames' own bits)")
 
-    v = p.add_argument_group("virtual rig")
+
+def _add_virtual_options(v):
+    """The emulated virtual rig in place of the devices."""
     v.add_argument("--virtual", metavar="SCENE", help="capture from the emulated virtual rig: turntable and "
                                                       "projector emulated on pseudo-terminals, camera rendered "
                                                       "(scene name or mesh file)")
@@ -148,7 +165,9 @@ def add_parser(sub):
                    help="emulated table moves this many times faster than a real one (default 100)")
     add_device_option(v)
 
-    s = p.add_argument_group("settings (defaults: --capture-settings file, else the resumed capture's, else built in)")
+
+def _add_settings_options(s):
+    """The capture settings (CaptureSettings): a settings file and one option per timing or retry setting."""
     s.add_argument("--capture-settings", dest="settings", metavar="JSON",
                    help="capture settings file (keys of CaptureSettings; --reconstruct-settings is the "
                         "reconstruction's)")
@@ -164,9 +183,6 @@ def add_parser(sub):
     s.add_argument("--image-format", "--frames", dest="image_format", choices=("png", "tiff", "packed"),
                    help="frame files (default png; tiff: uncompressed, 2.3x the space, ~4x faster to read; packed: "
                         "one frame store per view, frames appended as they arrive, about the PNGs' size)")
-    basic_options(p, "--rig", "--patterns", "--views", "--resume", "--turntable", "--projector", "--camera",
-                  "--exposure", "--virtual")
-    return p
 
 
 def _settings(args, out: Path) -> CaptureSettings:

@@ -127,25 +127,7 @@ def run(args) -> int:
             mm_per_unit = parse_units(args.units)
         except ValueError as e:
             raise UsageError(f"--units: {e}") from None
-    kw = {}
-    opencv_paths = [p for p in (rig_path, Path(args.projector_rig) if args.projector_rig else None)
-                    if p is not None and _is_opencv(p)]
-    if mm_per_unit is not None and not opencv_paths:
-        raise UsageError(f"--units: {rig_path} is a ringscan rig, which states its units (mm); --units is for an "
-                         "OpenCV calibration file, which states none")
-    if _is_opencv(rig_path):
-        if opencv_calibration_kind(rig_path) == "stereo":
-            kw["stereo"] = read_stereo_calibration(rig_path)
-        else:
-            kw["opencv"] = read_opencv_calibration(rig_path)
-    else:
-        kw["rig"] = load_rig(rig_path)
-    if args.projector_rig is not None:
-        if "stereo" not in kw:
-            raise UsageError("--projector-rig goes with a camera-camera (stereo) --rig: the projector's calibration "
-                             "to add to it")
-        pr = Path(args.projector_rig)
-        kw["projector_rig"] = read_opencv_calibration(pr) if _is_opencv(pr) else load_rig(pr)
+    kw, opencv_paths = _calibrations(args, rig_path, mm_per_unit)
     if not (args.min_contrast >= 0 and args.min_contrast < 255):
         raise UsageError(f"--min-contrast {args.min_contrast:g}: expected grey levels from 0 to below 255")
     if args.frame_bits is not None:
@@ -162,24 +144,7 @@ def run(args) -> int:
                                       sources={"rig": rig_path, "projector_rig": args.projector_rig},
                                       mm_per_unit=mm_per_unit, **kw)
     two = scan.rig.camera2 is not None
-
-    def coarse(st):
-        if not (st["coarse_share"] or st["low_modulation"]):
-            return ""
-        return (f" ({100 * st['coarse_share']:.0f} % from coarser bits where the finest barely modulate; "
-                f"{st['low_modulation']} left out: low_modulation)")
-
-    for name, st in stats.items():
-        if "frames_in_name_order" in st:
-            first, last = st["frames_in_name_order"]
-            print(f"  {name}: frames taken in name order, {first} (first) .. {last} (last); if that is not the "
-                  "capture order, give an image list (one path a line, docs/calibration.md)")
-        print(f"  {name}: {'camera 1: ' if two else ''}{st['decoded']} pixels decoded, "
-              f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions{coarse(st)}")
-        if "camera2" in st:
-            c2 = st["camera2"]
-            print(f"  {name}: camera 2: {c2['decoded']} pixels decoded, {100 * c2['subpixel_share']:.0f} % with "
-                  f"sub-pixel projector positions{coarse(c2)}")
+    _print_decoded(stats, two)
     names = ", ".join(str(p.name) for p in opencv_paths)
     if not opencv_paths:
         print(f"  units: mm ({rig_path.name} states them)")
@@ -199,3 +164,50 @@ def run(args) -> int:
         print(f"wrote {args.out}: {len(scan.views)} view(s), {'two cameras, ' if two else ''}codec decoded, "
               f"centre = the projector's principal point ({li.K[0, 2]:.1f}, {li.K[1, 2]:.1f})")
     return 0
+
+
+def _calibrations(args, rig_path: Path, mm_per_unit: float | None) -> tuple[dict, list[Path]]:
+    """The calibration keywords of ``import_captures`` (``rig``, ``opencv`` or ``stereo``, and
+    ``projector_rig``) read from ``--rig`` and ``--projector-rig``, and the OpenCV files among them."""
+    kw = {}
+    opencv_paths = [p for p in (rig_path, Path(args.projector_rig) if args.projector_rig else None)
+                    if p is not None and _is_opencv(p)]
+    if mm_per_unit is not None and not opencv_paths:
+        raise UsageError(f"--units: {rig_path} is a ringscan rig, which states its units (mm); --units is for an "
+                         "OpenCV calibration file, which states none")
+    if _is_opencv(rig_path):
+        if opencv_calibration_kind(rig_path) == "stereo":
+            kw["stereo"] = read_stereo_calibration(rig_path)
+        else:
+            kw["opencv"] = read_opencv_calibration(rig_path)
+    else:
+        kw["rig"] = load_rig(rig_path)
+    if args.projector_rig is not None:
+        if "stereo" not in kw:
+            raise UsageError("--projector-rig goes with a camera-camera (stereo) --rig: the projector's calibration "
+                             "to add to it")
+        pr = Path(args.projector_rig)
+        kw["projector_rig"] = read_opencv_calibration(pr) if _is_opencv(pr) else load_rig(pr)
+    return kw, opencv_paths
+
+
+def _print_decoded(stats: dict, two: bool) -> None:
+    """One line per view (and camera) of what was decoded, and the frame order where it was guessed."""
+
+    def coarse(st):
+        if not (st["coarse_share"] or st["low_modulation"]):
+            return ""
+        return (f" ({100 * st['coarse_share']:.0f} % from coarser bits where the finest barely modulate; "
+                f"{st['low_modulation']} left out: low_modulation)")
+
+    for name, st in stats.items():
+        if "frames_in_name_order" in st:
+            first, last = st["frames_in_name_order"]
+            print(f"  {name}: frames taken in name order, {first} (first) .. {last} (last); if that is not the "
+                  "capture order, give an image list (one path a line, docs/calibration.md)")
+        print(f"  {name}: {'camera 1: ' if two else ''}{st['decoded']} pixels decoded, "
+              f"{100 * st['subpixel_share']:.0f} % with sub-pixel projector positions{coarse(st)}")
+        if "camera2" in st:
+            c2 = st["camera2"]
+            print(f"  {name}: camera 2: {c2['decoded']} pixels decoded, {100 * c2['subpixel_share']:.0f} % with "
+                  f"sub-pixel projector positions{coarse(c2)}")

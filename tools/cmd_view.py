@@ -230,45 +230,10 @@ def run(args) -> int:
         if not hasattr(g, "triangles"):
             shade_cloud(g, towards=eye)  # normals face the camera: lit where it looks
     bar = None
-    g = geoms[0]
     if field == "error":
-        dist, floor = _truth_distances(args, g, cam)
-        obj = dist if floor is None else dist[~floor]
-        vmax = args.max_error if args.max_error else max(float(np.quantile(obj if len(obj) else dist, 0.99)), 1e-6)
-        geoms[0] = colorize(g, dist, vmin=0.0, vmax=vmax, cmap=args.cmap)
-        unit, k = readable_unit(vmax, "mm")  # 0..0.004 mm reads 0..4 um
-        bar = {"vmin": 0.0, "vmax": vmax * k, "cmap": args.cmap, "label": f"dist ({unit})"}
-        if floor is None:
-            print(f"distance to truth: mean {dist.mean():.4f} mm, median {np.median(dist):.4f} mm, "
-                  f"p95 {np.quantile(dist, 0.95):.4f} mm")
-        else:
-            stats = (f"mean {obj.mean():.4f} mm, median {np.median(obj):.4f} mm, p95 {np.quantile(obj, 0.95):.4f} mm"
-                     if len(obj) else "no point")
-            fl = dist[floor]
-            print(f"distance to truth, object ({len(obj)} points): {stats}; floor ({int(floor.sum())} points within "
-                  f"{FLOOR_MM} mm of the reference plane): " + (f"mean {fl.mean():.4f} mm" if len(fl) else "none"))
+        bar = _colour_by_error(args, geoms, cam)
     elif field != "none":
-        vals = cloud_field(args.files[0], field, g) if not hasattr(g, "triangles") else None
-        if vals is None:
-            if field != "height":
-                raise UsageError(f"--color-by {field}: {args.files[0]} is a mesh; a mesh has only height")
-            vals = np.asarray(g.vertices)[:, 2].astype(np.float64)
-        fin = vals[np.isfinite(vals)]
-        kinds = np.unique(fin) if field in CATEGORICAL else np.zeros(MAX_CATEGORIES + 1)
-        if len(kinds) <= MAX_CATEGORIES:  # one colour a view (or ring), named in a legend
-            rgb, ok = category_colours(len(kinds)), np.isfinite(vals)
-            colours = np.full((len(vals), 3), 0.5)  # no value: grey
-            if len(kinds):
-                colours[ok] = rgb[np.searchsorted(kinds, vals[ok])]
-            geoms[0] = painted(g, colours)
-            bar = {"label": field, "categories": [(f"{field} {v:g}", c) for v, c in zip(kinds, rgb)]}
-        else:
-            unit = length_unit(args.files[0])
-            lo, hi = (float(np.quantile(fin, 0.01)), float(np.quantile(fin, 0.99))) if len(fin) else (0.0, 1.0)
-            lo, hi = FIXED_RANGE.get(field, (lo, hi))
-            geoms[0] = colorize(g, vals, vmin=lo, vmax=hi, cmap=args.cmap)
-            bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
-                   "label": {"height": f"z ({unit})", "rho": "rho (px)"}.get(field, field)}
+        bar = _colour_by_field(args, geoms, field)
     with progress_step(f"rendering {out.name}", enabled=not args.no_progress):
         res = render_to_png(geoms, out, settings=s, camera=camera, colorbar_spec=bar,
                             scale_bar=not args.no_scale_bar, length_unit=length_unit(args.files[0]),
@@ -278,6 +243,56 @@ def run(args) -> int:
     sb = f", scale bar {res.scale_bar_label}" if res.scale_bar_mm else ""
     print(f"wrote {args.out} ({w}x{h}, {res.renderer} renderer{seen}{sb})")
     return 0
+
+
+def _colour_by_error(args, geoms: list, cam) -> dict:
+    """Colour the first geometry by its distance to ``--truth`` and print the distances' figures
+    (the object's and the reference plane's apart where the truth has a floor); returns the colour bar."""
+    g = geoms[0]
+    dist, floor = _truth_distances(args, g, cam)
+    obj = dist if floor is None else dist[~floor]
+    vmax = args.max_error if args.max_error else max(float(np.quantile(obj if len(obj) else dist, 0.99)), 1e-6)
+    geoms[0] = colorize(g, dist, vmin=0.0, vmax=vmax, cmap=args.cmap)
+    unit, k = readable_unit(vmax, "mm")  # 0..0.004 mm reads 0..4 um
+    bar = {"vmin": 0.0, "vmax": vmax * k, "cmap": args.cmap, "label": f"dist ({unit})"}
+    if floor is None:
+        print(f"distance to truth: mean {dist.mean():.4f} mm, median {np.median(dist):.4f} mm, "
+              f"p95 {np.quantile(dist, 0.95):.4f} mm")
+    else:
+        stats = (f"mean {obj.mean():.4f} mm, median {np.median(obj):.4f} mm, p95 {np.quantile(obj, 0.95):.4f} mm"
+                 if len(obj) else "no point")
+        fl = dist[floor]
+        print(f"distance to truth, object ({len(obj)} points): {stats}; floor ({int(floor.sum())} points within "
+              f"{FLOOR_MM} mm of the reference plane): " + (f"mean {fl.mean():.4f} mm" if len(fl) else "none"))
+    return bar
+
+
+def _colour_by_field(args, geoms: list, field: str) -> dict:
+    """Colour the first geometry by one of its per-point fields: one colour per value with a legend where
+    there are few (views, rings), else a colour map; returns the colour bar."""
+    g = geoms[0]
+    vals = cloud_field(args.files[0], field, g) if not hasattr(g, "triangles") else None
+    if vals is None:
+        if field != "height":
+            raise UsageError(f"--color-by {field}: {args.files[0]} is a mesh; a mesh has only height")
+        vals = np.asarray(g.vertices)[:, 2].astype(np.float64)
+    fin = vals[np.isfinite(vals)]
+    kinds = np.unique(fin) if field in CATEGORICAL else np.zeros(MAX_CATEGORIES + 1)
+    if len(kinds) <= MAX_CATEGORIES:  # one colour a view (or ring), named in a legend
+        rgb, ok = category_colours(len(kinds)), np.isfinite(vals)
+        colours = np.full((len(vals), 3), 0.5)  # no value: grey
+        if len(kinds):
+            colours[ok] = rgb[np.searchsorted(kinds, vals[ok])]
+        geoms[0] = painted(g, colours)
+        bar = {"label": field, "categories": [(f"{field} {v:g}", c) for v, c in zip(kinds, rgb)]}
+    else:
+        unit = length_unit(args.files[0])
+        lo, hi = (float(np.quantile(fin, 0.01)), float(np.quantile(fin, 0.99))) if len(fin) else (0.0, 1.0)
+        lo, hi = FIXED_RANGE.get(field, (lo, hi))
+        geoms[0] = colorize(g, vals, vmin=lo, vmax=hi, cmap=args.cmap)
+        bar = {"vmin": lo, "vmax": max(hi, lo + 1e-9), "cmap": args.cmap,
+               "label": {"height": f"z ({unit})", "rho": "rho (px)"}.get(field, field)}
+    return bar
 
 
 def painted(geom, rgb: np.ndarray):

@@ -195,20 +195,7 @@ def measure_latency(projector, camera, *, settings: LatencySettings = LatencySet
     s = settings
     step = s.step_s if s.step_s is not None else frame_period_s / 2.0
 
-    projector.show(black)
-    time.sleep(s.rest_s)
-    b_img = np.asarray(camera.grab())
-    projector.show(white)
-    time.sleep(s.rest_s)
-    w_img = np.asarray(camera.grab())
-    if b_img.shape != w_img.shape or b_img.ndim != 2:
-        raise CaptureError(f"the camera's frames changed shape ({b_img.shape} then {w_img.shape})")
-    lit = (w_img.astype(np.float32) - b_img.astype(np.float32)) >= s.min_contrast
-    n_lit = int(lit.sum())
-    if n_lit < s.min_lit_share * lit.size:
-        raise CaptureError(f"the camera does not see the projector: its white and black differ by {s.min_contrast:g} "
-                           f"grey levels or more in only {n_lit} of {lit.size} pixels; aim the camera at the projected "
-                           f"area, and set its exposure so that the white is bright but not saturated")
+    b_img, w_img, lit, n_lit = _reference_frames(projector, camera, s, black=black, white=white)
     log.info("latency: %d lit camera pixels (%.0f%%); step %.1f ms, up to %.0f ms", n_lit, 100.0 * n_lit / lit.size,
              step * 1e3, s.max_s * 1e3)
 
@@ -260,6 +247,26 @@ def measure_latency(projector, camera, *, settings: LatencySettings = LatencySet
     raise CaptureError(f"no delay up to {s.max_s * 1e3:.0f} ms showed the new frame in full {s.confirm} times in a "
                        f"row (last delays: {seen}); raise the longest delay (--max-delay), or check that nothing "
                        f"else changes the light (auto exposure, room light, the projector's dynamic contrast)")
+
+
+def _reference_frames(projector, camera, s: LatencySettings, *, black: int, white: int):
+    """The camera's steady black and white frames, the pixels the projector lights (white - black
+    >= ``min_contrast``) and their count. Raises CaptureError where too few are lit."""
+    projector.show(black)
+    time.sleep(s.rest_s)
+    b_img = np.asarray(camera.grab())
+    projector.show(white)
+    time.sleep(s.rest_s)
+    w_img = np.asarray(camera.grab())
+    if b_img.shape != w_img.shape or b_img.ndim != 2:
+        raise CaptureError(f"the camera's frames changed shape ({b_img.shape} then {w_img.shape})")
+    lit = (w_img.astype(np.float32) - b_img.astype(np.float32)) >= s.min_contrast
+    n_lit = int(lit.sum())
+    if n_lit < s.min_lit_share * lit.size:
+        raise CaptureError(f"the camera does not see the projector: its white and black differ by {s.min_contrast:g} "
+                           f"grey levels or more in only {n_lit} of {lit.size} pixels; aim the camera at the projected "
+                           f"area, and set its exposure so that the white is bright but not saturated")
+    return b_img, w_img, lit, n_lit
 
 
 def read_rig_latency(path: str | os.PathLike) -> float:

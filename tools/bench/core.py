@@ -95,57 +95,16 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     view = scan.views[0]
     frames = read_view_frames(scan, view)
     nf, h, w = frames.shape
-    rig = scan.rig
-    ds, ss, ts = DecodeSettings(), SampleSettings(), TriangulateSettings()
-    vol = (rig.volume.z_min, rig.volume.z_max, rig.volume.r_max)
-
-    # NumPy reference, same frames, same rules.
-    ref = {}
-    dec_np = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
-    ref["decode"] = best_of(lambda: decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits), repeats)
-    smp_np = sample_numpy(frames, dec_np, bits=spec.bits)
-    ref["sample"] = best_of(lambda: sample_numpy(frames, dec_np, bits=spec.bits), repeats)
-    rho_np = (spec.rho0 + smp_np["ring"] * spec.pitch).astype(np.float32)
-    ref["triangulate"] = best_of(lambda: triangulate_numpy(smp_np["uv"], rho_np, smp_np["sector"], rig,
-                                                         center=spec.center, sector_bits=spec.sector_bits), repeats)
-    ref["total"] = sum(ref.values())
-
+    ref, n_numpy = _time_numpy(frames, spec, scan.rig, repeats)
     if devices is None:
         devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
     cpus = os.cpu_count() or 1
-    runs = []
-    for dev in devices:
-        for threads in ([cpus, 1] if dev == "cpu" and cpus > 1 else [cpus]):
-            fr = wp.array(frames, device=dev)
-            cam, light = camera_model_for(rig), light_model_for(rig)
-            state = {}
-
-            def dec():
-                state["lab"] = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits, settings=ds,
-                                                 threads=threads)
-                wp.synchronize_device(dev)
-
-            def smp():
-                s = sample_gray_rings(fr, state["lab"], bits=spec.bits, settings=ss, threads=threads)
-                state["s"] = s
-                state["rho"] = ring_radii(s.ring, rho0=spec.rho0, pitch=spec.pitch)
-                wp.synchronize_device(dev)
-
-            def tri():
-                s = state["s"]
-                state["t"] = triangulate_rings(s.uv, state["rho"], s.sector, s.confidence, camera=cam, light=light,
-                                               volume=vol, center=spec.center, sector_bits=spec.sector_bits,
-                                               settings=ts, threads=threads)
-                wp.synchronize_device(dev)
-
-            dec(), smp(), tri()  # warm up: compile or load kernels
-            t = {"decode": best_of(dec, repeats), "sample": best_of(smp, repeats), "triangulate": best_of(tri, repeats)}
-            t["total"] = sum(t.values())
-            runs.append({"device": dev, "threads": threads, "times": t, "samples": len(state["s"])})
+    runs = [_time_warp(frames, spec, scan.rig, dev, threads, repeats)
+            for dev in devices for threads in ([cpus, 1] if dev == "cpu" and cpus > 1 else [cpus])]
 
     bw = memory_bandwidth()
     floor = frames.nbytes / (bw / 2)
-    out(f"one view: {nf} frames of {w}x{h} ({frames.dtype}), {len(smp_np['uv'])} samples (NumPy) / "
+    out(f"one view: {nf} frames of {w}x{h} ({frames.dtype}), {n_numpy} samples (NumPy) / "
         f"{runs[0]['samples']} (Warp); best of {repeats}")
     header = f"{'stage':<12}{'numpy ms':>10}" + "".join(
         f"{r['device'] + (' x' + str(r['threads']) if r['device'] == 'cpu' else ''):>14}{'ratio':>8}" for r in runs)
@@ -160,3 +119,51 @@ def run_bench(*, scan_dir: str | None = None, scene: str | None = None, repeats:
     if tmp is not None:
         tmp.cleanup()
     return {"numpy": ref, "warp": runs, "bandwidth_Bps": bw, "floor_s": floor}
+
+
+def _time_numpy(frames: np.ndarray, spec, rig, repeats: int) -> tuple[dict, int]:
+    """The NumPy reference's best times of the three stages (same frames, same rules) and its sample count."""
+    ref = {}
+    dec_np = decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits)
+    ref["decode"] = best_of(lambda: decode_numpy(frames, bits=spec.bits, sector_bits=spec.sector_bits), repeats)
+    smp_np = sample_numpy(frames, dec_np, bits=spec.bits)
+    ref["sample"] = best_of(lambda: sample_numpy(frames, dec_np, bits=spec.bits), repeats)
+    rho_np = (spec.rho0 + smp_np["ring"] * spec.pitch).astype(np.float32)
+    ref["triangulate"] = best_of(lambda: triangulate_numpy(smp_np["uv"], rho_np, smp_np["sector"], rig,
+                                                         center=spec.center, sector_bits=spec.sector_bits), repeats)
+    ref["total"] = sum(ref.values())
+    return ref, len(smp_np["uv"])
+
+
+def _time_warp(frames: np.ndarray, spec, rig, dev: str, threads: int, repeats: int) -> dict:
+    """The Warp kernels' best times of the three stages on one device (and CPU thread count), after a warm-up."""
+    import warp as wp
+
+    ds, ss, ts = DecodeSettings(), SampleSettings(), TriangulateSettings()
+    vol = (rig.volume.z_min, rig.volume.z_max, rig.volume.r_max)
+    fr = wp.array(frames, device=dev)
+    cam, light = camera_model_for(rig), light_model_for(rig)
+    state = {}
+
+    def dec():
+        state["lab"] = decode_gray_rings(fr, bits=spec.bits, sector_bits=spec.sector_bits, settings=ds,
+                                         threads=threads)
+        wp.synchronize_device(dev)
+
+    def smp():
+        s = sample_gray_rings(fr, state["lab"], bits=spec.bits, settings=ss, threads=threads)
+        state["s"] = s
+        state["rho"] = ring_radii(s.ring, rho0=spec.rho0, pitch=spec.pitch)
+        wp.synchronize_device(dev)
+
+    def tri():
+        s = state["s"]
+        state["t"] = triangulate_rings(s.uv, state["rho"], s.sector, s.confidence, camera=cam, light=light,
+                                       volume=vol, center=spec.center, sector_bits=spec.sector_bits,
+                                       settings=ts, threads=threads)
+        wp.synchronize_device(dev)
+
+    dec(), smp(), tri()  # warm up: compile or load kernels
+    t = {"decode": best_of(dec, repeats), "sample": best_of(smp, repeats), "triangulate": best_of(tri, repeats)}
+    t["total"] = sum(t.values())
+    return {"device": dev, "threads": threads, "times": t, "samples": len(state["s"])}

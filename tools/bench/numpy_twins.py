@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from ringscan.kernels.phase import PhaseSettings
+from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.formats.rig import ParallelLight, Rig
 from ringscan.pipeline.geometry import undistort_normalized
 
@@ -109,10 +110,13 @@ def sample_numpy(frames: np.ndarray, dec: dict, *, bits: int, min_contrast: floa
 
 
 def triangulate_numpy(uv: np.ndarray, rho: np.ndarray, sector: np.ndarray, rig: Rig, *, center, sector_bits: int,
-                      sector_tolerance: float = 0.75, sector_margin: float = 0.5,
-                      min_incidence_cos: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+                      settings: TriangulateSettings = TriangulateSettings()) -> tuple[np.ndarray, np.ndarray]:
     """NumPy twin of ``kernels.triangulation.triangulate_rings`` for the parallel
-    light (the default rig). Returns (points (n, 3), status (n,))."""
+    light (the default rig), the ring constraint alone (of ``settings``: ``sector_tolerance``,
+    ``sector_margin``, ``min_incidence_cos``). Returns (points (n, 3), status (n,))."""
+    sector_tolerance = settings.sector_tolerance
+    sector_margin = settings.sector_margin
+    min_incidence_cos = settings.min_incidence_cos
     li = rig.light
     if not isinstance(li, ParallelLight):
         raise ValueError("triangulate_numpy: only the parallel light model")
@@ -198,6 +202,10 @@ def phase_numpy(frames: np.ndarray, dec: dict, *, bits: int, sector_bits: int, s
 
     ``dec`` is the band decode as ``tools.numpy_twins.decode_numpy`` returns it
     (``code``, ``weak``, ``contrast``). Returns ``t``, ``modulation``, ``status``.
+
+    Size: the NumPy twin of decode_phase, with its arguments (less threads), and it takes phase_unwrap_kernel's
+    steps in the kernel's order (the weighted fit, its solution by Cramer's rule, the band code's edges, the
+    unwrapping), vectorised over the pixels, so that tests/kernels/test_phase.py can compare their results.
     """
     s = settings
     scale = 257.0 if frames.dtype == np.uint16 else 1.0
