@@ -603,6 +603,39 @@ def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sig
     return proj, sigma
 
 
+def _bin_by_projector(proj2: wp.array, size: tuple[int, int], settings: MatchSettings) -> tuple:
+    """Camera 2's samples binned by projector pixel into a grid of cells on their device.
+
+    Returns (cell px, rings of cells the search reads, nx, ny, offsets, counts, items): cell c's samples
+    are items[offsets[c]:offsets[c] + counts[c]].
+    """
+    W, Hh = size
+    m = proj2.shape[0]
+    dev = proj2.device
+    cell = float(settings.cell_px)
+    rings = int(np.ceil(settings.radius_px / cell))
+    nx = int(np.ceil(W / cell))
+    ny = int(np.ceil(Hh / cell))
+    # A dense map (camera 2 finer than the projector: ~100 samples a 4 px cell) is binned finer: each
+    # cell split in 2 x 2 while the cells would still hold a quarter of the neighbours on average, so
+    # a query reads ~50 samples, not ~900. The grid covers the same extent and the search the same
+    # radius (cell / 2^s, rings 2^s, both exact): the same neighbours, the same matches.
+    split = 0
+    while split < MAX_GRID_SPLIT and m / (nx * ny * 4.0 ** (split + 1)) >= settings.neighbours / 4.0:
+        split += 1
+    cell, rings, nx, ny = cell / 2 ** split, rings * 2 ** split, nx * 2 ** split, ny * 2 ** split
+    counts = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
+    if m:
+        wp.launch(count_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny], outputs=[counts], device=dev)
+    offsets, total = scan_counts(counts)
+    items = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
+    if total:
+        cursor = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
+        wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
+                  device=dev)
+    return cell, rings, nx, ny, offsets, counts, items
+
+
 def match_by_projector(
     query: wp.array,
     query_sigma: wp.array,
@@ -646,27 +679,7 @@ def match_by_projector(
                   fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
     if n == 0:
         return out
-    cell = float(settings.cell_px)
-    rings = int(np.ceil(settings.radius_px / cell))
-    nx = int(np.ceil(W / cell))
-    ny = int(np.ceil(Hh / cell))
-    # A dense map (camera 2 finer than the projector: ~100 samples a 4 px cell) is binned finer: each
-    # cell split in 2 x 2 while the cells would still hold a quarter of the neighbours on average, so
-    # a query reads ~50 samples, not ~900. The grid covers the same extent and the search the same
-    # radius (cell / 2^s, rings 2^s, both exact): the same neighbours, the same matches.
-    split = 0
-    while split < MAX_GRID_SPLIT and m / (nx * ny * 4.0 ** (split + 1)) >= settings.neighbours / 4.0:
-        split += 1
-    cell, rings, nx, ny = cell / 2 ** split, rings * 2 ** split, nx * 2 ** split, ny * 2 ** split
-    counts = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
-    if m:
-        wp.launch(count_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny], outputs=[counts], device=dev)
-    offsets, total = scan_counts(counts)
-    items = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
-    if total:
-        cursor = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
-        wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
-                  device=dev)
+    cell, rings, nx, ny, offsets, counts, items = _bin_by_projector(proj2, (W, Hh), settings)
     s = settings
     params = MatchParams()
     params.cell = cell

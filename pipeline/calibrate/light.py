@@ -264,6 +264,23 @@ def _fit_roll(psi: np.ndarray, sector: np.ndarray, bits: int) -> tuple[float, fl
     return math.atan2(math.sin(roll), math.cos(roll)), float(best) / lo.size
 
 
+def _check_planes(planes: list, settings: LightSettings) -> None:
+    """Raise unless ``planes`` are plane captures at heights spanning enough, all of one pattern."""
+    if not planes or not all(isinstance(p, PlaneSamples) for p in planes):
+        raise ValueError("planes: expected a non-empty list of PlaneSamples")
+    heights = [p.height_mm for p in planes]
+    if max(heights) - min(heights) < settings.min_height_span_mm:
+        raise CalibrationError(None, f"light calibration: the captures' heights ({', '.join(f'{h:g}' for h in heights)}"
+                                     f" mm) span less than {settings.min_height_span_mm:g} mm; one height pins the "
+                                     "pitch but not the light's direction: capture the plane at two or more heights")
+    ref = planes[0]
+    for p in planes[1:]:
+        if (p.center, p.sector_bits, p.size) != (ref.center, ref.sector_bits, ref.size):
+            raise CalibrationError(None, f"light calibration: {p.name} has another pattern (centre {p.center}, "
+                                         f"{p.sector_bits} sector bits, {p.size}) than {ref.name} ({ref.center}, "
+                                         f"{ref.sector_bits}, {ref.size})")
+
+
 def fit_parallel_light(
     planes: Sequence[PlaneSamples],
     *,
@@ -282,19 +299,9 @@ def fit_parallel_light(
         CalibrationError: too few captures or heights, patterns that differ, a fit that fails.
     """
     planes = list(planes)
-    if not planes or not all(isinstance(p, PlaneSamples) for p in planes):
-        raise ValueError("planes: expected a non-empty list of PlaneSamples")
+    _check_planes(planes, settings)
     heights = [p.height_mm for p in planes]
-    if max(heights) - min(heights) < settings.min_height_span_mm:
-        raise CalibrationError(None, f"light calibration: the captures' heights ({', '.join(f'{h:g}' for h in heights)}"
-                                     f" mm) span less than {settings.min_height_span_mm:g} mm; one height pins the "
-                                     "pitch but not the light's direction: capture the plane at two or more heights")
     ref = planes[0]
-    for p in planes[1:]:
-        if (p.center, p.sector_bits, p.size) != (ref.center, ref.sector_bits, ref.size):
-            raise CalibrationError(None, f"light calibration: {p.name} has another pattern (centre {p.center}, "
-                                         f"{p.sector_bits} sector bits, {p.size}) than {ref.name} ({ref.center}, "
-                                         f"{ref.sector_bits}, {ref.size})")
     X = np.concatenate([p.points for p in planes])
     rho = np.concatenate([p.rho for p in planes])
     which = np.concatenate([np.full(p.rho.size, i) for i, p in enumerate(planes)])

@@ -291,6 +291,11 @@ def _fit_axis(x0: np.ndarray, d0, e1, e2, obj: list, img: list, ang: np.ndarray,
     Returns:
         (fit, residuals of every view, RMS per view (px), mask of the views used,
         names of the views left out).
+
+    Size: a private step of calibrate_turntable: it takes the initial guess and the axis's basis (x0, d0, e1,
+    e2), the per-view board corners, image points, angles and names, and the camera and settings: separate
+    values the caller has already built, most of which (the basis, corners, angles, names) it reads again after
+    the fit.
     """
     use = np.ones(len(obj), bool)
     outliers: list[str] = []
@@ -343,20 +348,7 @@ def calibrate_turntable(
     """
     views = list(views)
     angles = np.asarray(angles_deg, float).ravel()
-    if len(views) != angles.size:
-        raise ValueError(f"angles_deg: one angle per view expected, got {angles.size} for {len(views)} views")
-    if not np.all(np.isfinite(angles)):
-        raise ValueError("angles_deg: contains non-finite values")
-    found = [i for i, v in enumerate(views) if v.found]
-    if len(found) < settings.min_views:
-        why = "; ".join(f"{v.name}: {v.reason}" for v in views if not v.found)[:400]
-        raise CalibrationError(None, f"turntable calibration: the {board.cols}x{board.rows} board was found in "
-                                     f"{len(found)} of {len(views)} views, need {settings.min_views}"
-                                     + (f" ({why})" if why else ""))
-    span = float(np.ptp(angles[found]))
-    if span < settings.min_span_deg:
-        raise CalibrationError(None, f"turntable calibration: the views with the board span {span:g} deg of table "
-                                     f"angle, need {settings.min_span_deg:g}: turn the table further")
+    found = _usable_views(views, angles, board, settings)
     pts = board_points(board).astype(np.float64)
     obj = [pts[views[i].ids] for i in found]
     img = [views[i].corners.astype(np.float64) for i in found]
@@ -407,6 +399,30 @@ def calibrate_turntable(
     log.info("turntable: axis through (%.3f, %.3f, %.3f) along (%.5f, %.5f, %.5f), RMS %.3f px over %d views",
              *tt.axis_point, *tt.axis_dir, rms, len(k_used))
     return cal
+
+
+def _usable_views(views: list, angles: np.ndarray, board: Board, settings: TurntableSettings) -> list[int]:
+    """The indices of the views with the board, checked to be enough and to span enough table angle.
+
+    Raises:
+        ValueError: not one finite angle per view.
+        CalibrationError: too few views with the board, or angles that span too little.
+    """
+    if len(views) != angles.size:
+        raise ValueError(f"angles_deg: one angle per view expected, got {angles.size} for {len(views)} views")
+    if not np.all(np.isfinite(angles)):
+        raise ValueError("angles_deg: contains non-finite values")
+    found = [i for i, v in enumerate(views) if v.found]
+    if len(found) < settings.min_views:
+        why = "; ".join(f"{v.name}: {v.reason}" for v in views if not v.found)[:400]
+        raise CalibrationError(None, f"turntable calibration: the {board.cols}x{board.rows} board was found in "
+                                     f"{len(found)} of {len(views)} views, need {settings.min_views}"
+                                     + (f" ({why})" if why else ""))
+    span = float(np.ptp(angles[found]))
+    if span < settings.min_span_deg:
+        raise CalibrationError(None, f"turntable calibration: the views with the board span {span:g} deg of table "
+                                     f"angle, need {settings.min_span_deg:g}: turn the table further")
+    return found
 
 
 def _outside_volume(tt: Turntable, corners_world: list[np.ndarray], volume: Volume) -> list[str]:

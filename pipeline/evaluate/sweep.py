@@ -199,7 +199,12 @@ def min_rings(runs: list[dict], targets_mm, min_coverage: float) -> dict:
 
 def _run_one(scan_dir: Path, scene, rig: Rig, spec: PatternSpec, render: RenderSettings, device, region: tuple,
              band_mm: float, settings: SweepSettings) -> dict:
+    """Simulate and reconstruct one pattern set; its figures against the truth (one row of the sweep).
 
+    Size: a private step of run_sweep: one run's scan folder, scene, rig, pattern set and render settings, and
+    what run_sweep works out once for every run (the device, the region of radii compared, the band's width in
+    mm) with the sweep's settings.
+    """
     t0 = time.perf_counter()
     scan = simulate_scan(scan_dir, scene=scene, rig=rig, patterns=spec, settings=render, device=device,
                          progress=False)
@@ -265,6 +270,10 @@ def run_sweep(
 
     Returns:
         The sweep result (also written to ``sweep.json``).
+
+    Size: a public function: the output folder and its documented keyword-only options, one per user-facing
+    setting (scene, rig, sweep and render settings, device, what to keep and show, the scene's size and up
+    axis).
     """
     from ringscan.pipeline.formats.progress import progress_bar
 
@@ -273,18 +282,7 @@ def run_sweep(
         raise ValueError(f"settings: expected SweepSettings, got {type(settings).__name__}")
     rig = default_rig() if rig is None else rig
     mesh = scene if isinstance(scene, SceneMesh) else make_scene(scene, size_mm=size_mm, up=up)
-    pw, ph = (rig.light.width, rig.light.height) if getattr(rig.light, "width", 0) else (1024, 768)
-    center = [(pw - 1) / 2.0, (ph - 1) / 2.0]
-    specs = []
-    for b in sorted(set(int(x) for x in settings.bits)):
-        specs.append(parse_patterns({"codec": gray_rings.NAME, "width": pw, "height": ph, "center": center,
-                                     "rho0": settings.rho0, "pitch": settings.pitch(b), "bits": b,
-                                     "sector_bits": settings.sector_bits}))
-    if settings.dense:
-        nb = max(1, math.ceil(math.log2((settings.radius - settings.rho0) / settings.dense_pitch)))
-        specs.append(parse_patterns({"codec": phase_rings.NAME, "width": pw, "height": ph, "center": center,
-                                     "rho0": settings.rho0, "pitch": settings.dense_pitch, "bits": nb,
-                                     "sector_bits": settings.sector_bits, "steps": settings.steps}))
+    specs = _sweep_patterns(rig, settings)
     big = max(s.pitch for s in specs)
     region = (settings.rho0 + big, settings.radius - big)
     out = Path(out_dir)
@@ -315,6 +313,31 @@ def run_sweep(
         "min_rings": min_rings(runs, settings.targets_mm, settings.min_coverage),
         "time_s": time.perf_counter() - t_all,
     }
+    _write_sweep(out, result, mesh.name, settings)
+    return result
+
+
+def _sweep_patterns(rig: Rig, settings: SweepSettings) -> list[PatternSpec]:
+    """The pattern sets of a sweep on ``rig``'s projector: gray-rings at each of ``settings.bits`` (one
+    ring count each), and phase-rings at the dense pitch where ``settings.dense``."""
+    pw, ph = (rig.light.width, rig.light.height) if getattr(rig.light, "width", 0) else (1024, 768)
+    center = [(pw - 1) / 2.0, (ph - 1) / 2.0]
+    specs = []
+    for b in sorted(set(int(x) for x in settings.bits)):
+        specs.append(parse_patterns({"codec": gray_rings.NAME, "width": pw, "height": ph, "center": center,
+                                     "rho0": settings.rho0, "pitch": settings.pitch(b), "bits": b,
+                                     "sector_bits": settings.sector_bits}))
+    if settings.dense:
+        nb = max(1, math.ceil(math.log2((settings.radius - settings.rho0) / settings.dense_pitch)))
+        specs.append(parse_patterns({"codec": phase_rings.NAME, "width": pw, "height": ph, "center": center,
+                                     "rho0": settings.rho0, "pitch": settings.dense_pitch, "bits": nb,
+                                     "sector_bits": settings.sector_bits, "steps": settings.steps}))
+    return specs
+
+
+def _write_sweep(out: Path, result: dict, scene_name: str, settings: SweepSettings) -> None:
+    """Write a sweep's result: sweep.json, sweep.csv (one row per run) and its figure (sweep.png, sweep.svg)."""
+    runs = result["runs"]
     atomic_write_json(out / "sweep.json", result)
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore", lineterminator="\n")
@@ -322,11 +345,10 @@ def run_sweep(
     for r in runs:
         w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in CSV_FIELDS})
     atomic_write_bytes(out / "sweep.csv", buf.getvalue().encode())
-    fig = sweep_figure(runs, title=f"{mesh.name}: surface error and coverage vs rings",
+    fig = sweep_figure(runs, title=f"{scene_name}: surface error and coverage vs rings",
                        targets_mm=settings.targets_mm, min_coverage=settings.min_coverage)
     write_image(out / "sweep.png", figure_to_image(fig))
     save_figure(fig, out / "sweep.svg")
-    return result
 
 
 # ----------------------------------------------------------------------------- plot

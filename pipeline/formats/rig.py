@@ -351,7 +351,25 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
     c2 = _obj(src, "", d, "camera2", required=False)
     camera2 = None if c2 is None else _camera(src, "camera2", c2)
 
-    li = _obj(src, "", d, "light")
+    light = _light(src, _obj(src, "", d, "light"), camera2)
+    _check_pixels(src, "light", light.width, light.height)
+    volume = _volume(src, _obj(src, "", d, "volume"))
+    turntable = _turntable(src, _obj(src, "", d, "turntable", required=False))
+
+    for name, cam in (("camera", camera), ("camera2", camera2)):
+        if cam is None:
+            continue
+        cam_in_front = (cam.R @ np.array([0.0, 0.0, 0.5 * (volume.z_min + volume.z_max)]) + cam.t)[2]
+        if cam_in_front <= 0:
+            raise FormatError(src, f"{name}: the working volume is behind the camera "
+                                   "(check R and t: X_c = R X_w + t)")
+    if camera2 is not None and np.linalg.norm(camera.center - camera2.center) < 1e-3:
+        raise FormatError(src, "camera2: at the same place as camera (no baseline: check camera2.R and t)")
+    return Rig(camera=camera, light=light, volume=volume, turntable=turntable, camera2=camera2)
+
+
+def _light(src, li: dict, camera2):
+    """The rig's ``light`` block: a parallel, perspective or (with a second camera) uncalibrated light."""
     model = li.get("model")
     if model == "parallel":
         s = _num(src, "light.pixel_pitch_mm", li.get("pixel_pitch_mm"))
@@ -385,9 +403,11 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
                                   gamma=_gamma(src, "light", li))
     else:
         raise FormatError(src, f"light.model: expected 'parallel', 'perspective' or 'uncalibrated', got {model!r}")
-    _check_pixels(src, "light", light.width, light.height)
+    return light
 
-    v = _obj(src, "", d, "volume")
+
+def _volume(src, v: dict) -> Volume:
+    """The rig's ``volume`` block: the working volume, z_min < z_max and r_max > 0."""
     volume = Volume(
         z_min=_num(src, "volume.z_min", v.get("z_min"), -MAX_LENGTH_MM, MAX_LENGTH_MM),
         z_max=_num(src, "volume.z_max", v.get("z_max"), -MAX_LENGTH_MM, MAX_LENGTH_MM),
@@ -397,8 +417,11 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
         raise FormatError(src, "volume: z_max must be greater than z_min")
     if volume.r_max <= 0:
         raise FormatError(src, "volume.r_max: must be > 0")
+    return volume
 
-    tt = _obj(src, "", d, "turntable", required=False)
+
+def _turntable(src, tt: dict | None):
+    """The rig's optional ``turntable`` block (None where there is none): its axis, the direction normalised."""
     turntable = None
     if tt is not None:
         ad = _arr(src, "turntable.axis_dir", tt.get("axis_dir"), (3,))
@@ -407,17 +430,7 @@ def parse_rig(d: dict, *, source: str | os.PathLike | None = None) -> Rig:
             raise FormatError(src, "turntable.axis_dir: must not be zero")
         turntable = Turntable(axis_point=_arr(src, "turntable.axis_point", tt.get("axis_point"), (3,), MAX_LENGTH_MM),
                               axis_dir=ad / n)
-
-    for name, cam in (("camera", camera), ("camera2", camera2)):
-        if cam is None:
-            continue
-        cam_in_front = (cam.R @ np.array([0.0, 0.0, 0.5 * (volume.z_min + volume.z_max)]) + cam.t)[2]
-        if cam_in_front <= 0:
-            raise FormatError(src, f"{name}: the working volume is behind the camera "
-                                   "(check R and t: X_c = R X_w + t)")
-    if camera2 is not None and np.linalg.norm(camera.center - camera2.center) < 1e-3:
-        raise FormatError(src, "camera2: at the same place as camera (no baseline: check camera2.R and t)")
-    return Rig(camera=camera, light=light, volume=volume, turntable=turntable, camera2=camera2)
+    return turntable
 
 
 def _camera(src, where: str, c: dict) -> Camera:

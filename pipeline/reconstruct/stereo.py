@@ -142,8 +142,6 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         sigma of the plane at the pixel, scaled by the window's scatter where that is larger), and
         (n, 2) bool: which coordinates were.
     """
-    import cv2
-
     proj = np.asarray(proj, np.float64)
     sigma_uv = np.asarray(sigma_uv, np.float64)
     out_p, out_s = proj.copy(), sigma_uv.copy()
@@ -153,15 +151,6 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         return out_p, out_s, refined
     pixel = np.asarray(pixel, np.int64)
     r = int(radius)
-    off = np.arange(-r, r + 1, dtype=np.float64)  # a window pixel's offset from its centre, along x or y
-    one = np.ones_like(off)
-    kernels = {"1": (one, one), "x": (off, one), "y": (one, off), "xx": (off * off, one), "xy": (off, off),
-               "yy": (one, off * off)}
-
-    def window(a, k):  # each pixel's window sum of a times the offsets' powers (separable), raveled
-        kx, ky = kernels[k]
-        return cv2.sepFilter2D(a, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).ravel()
-
     for axis in (0, 1):
         val = proj[:, axis]
         integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
@@ -182,12 +171,7 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
             at = np.arange(at.size)
         else:
             # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
-            wp_ = w * p0.reshape(height, width)
-            S, Sx, Sy = (window(w, k) for k in ("1", "x", "y"))
-            Sxx, Sxy, Syy = (window(w, k) for k in ("xx", "xy", "yy"))
-            wP, wPx, wPy = (window(wp_, k) for k in ("1", "x", "y"))
-            wPP = window(wp_ * p0.reshape(height, width), "1")
-            cnt = window((w > 0).astype(np.float64), "1")
+            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = _windows_all(w, p0, width, height, r)
         Sp, Sxp, Syp = wP - p0 * S, wPx - p0 * Sx, wPy - p0 * Sy
         Spp = wPP - 2 * p0 * wP + p0 * p0 * S
         # the 3x3 normal equations [S Sx Sy; Sx Sxx Sxy; Sy Sxy Syy] beta = (Sp, Sxp, Syp), by cofactors
@@ -208,6 +192,31 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         out_s[g, axis] = np.sqrt(c00[at] * inv_det[at] * np.maximum(1.0, chi2[at] / dof[at]))
         refined[g, axis] = True
     return out_p, out_s, refined
+
+
+def _windows_all(w: np.ndarray, p: np.ndarray, width: int, height: int, r: int) -> tuple:
+    """The window sums of :func:`refine_integer_codes` at every pixel, as :func:`_windows_at` gives
+    them at a few: (S, Sx, Sy, Sxx, Sxy, Syy, sum w p, sum w p dx, sum w p dy, sum w p^2, count of pixels
+    with w > 0), each (height * width,), separable filters over the (height, width) weights ``w`` and
+    the raveled coordinates ``p``."""
+    import cv2
+
+    off = np.arange(-r, r + 1, dtype=np.float64)  # a window pixel's offset from its centre, along x or y
+    one = np.ones_like(off)
+    kernels = {"1": (one, one), "x": (off, one), "y": (one, off), "xx": (off * off, one), "xy": (off, off),
+               "yy": (one, off * off)}
+
+    def window(a, k):  # each pixel's window sum of a times the offsets' powers (separable), raveled
+        kx, ky = kernels[k]
+        return cv2.sepFilter2D(a, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).ravel()
+
+    wp_ = w * p.reshape(height, width)
+    S, Sx, Sy = (window(w, k) for k in ("1", "x", "y"))
+    Sxx, Sxy, Syy = (window(w, k) for k in ("xx", "xy", "yy"))
+    wP, wPx, wPy = (window(wp_, k) for k in ("1", "x", "y"))
+    wPP = window(wp_ * p.reshape(height, width), "1")
+    cnt = window((w > 0).astype(np.float64), "1")
+    return S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt
 
 
 def _windows_at(w: np.ndarray, p: np.ndarray, at: np.ndarray, width: int, height: int, r: int) -> tuple:
