@@ -447,6 +447,10 @@ def capture_scan(out: str | os.PathLike, *, camera, projector, turntable, rig: R
             valid partial scan and ``resume`` continues it.
         KeyboardInterrupt: Ctrl-C (capture.json says "interrupted").
         FormatError, ValueError: bad input (nothing captured).
+
+    Size: a public function (ringscan capture's): the scan folder, the three devices and its documented
+    keyword-only options, one per user-facing setting (rig, patterns, views and angles, settings, resuming,
+    progress, the per-view callback, frame bits).
     """
     out = Path(out)
     if frame_bits is not None:
@@ -490,6 +494,11 @@ class _CaptureRun:
 
     def __init__(self, out: Path, scan: Scan, state: dict, *, camera, projector, turntable,
                  settings: CaptureSettings, table_deg: float, declared: bool):
+        """Hold a capture's folder, scan, state and devices, and start this run's record in the state.
+
+        Size: a private class built once by capture_scan: its arguments are the folder, scan and state it
+        writes, the three devices, and the settings and table angle capture_scan has already resolved.
+        """
         self.out, self.scan, self.state, self.settings = out, scan, state, settings
         self.camera, self.projector, self.turntable = camera, projector, turntable
         self.devices = (turntable, projector, camera)

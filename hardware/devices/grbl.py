@@ -190,6 +190,11 @@ class GrblTurntable(TurntableDevice):
                  timeout_s: float = 2.0, motion_timeout_s: float = 30.0, boot_timeout_s: float = 3.0,
                  poll_s: float = MIN_POLL_S, motor_enable: str = "auto", position_deg: float = 0.0,
                  connect: bool = True):
+        """Check the options, keep them and connect (see the class docstring for the arguments).
+
+        Size: its keyword-only arguments are the class's documented options, one per setting of the controller's
+        link and moves.
+        """
         if not feed_deg_per_min > 0:
             raise ValueError(f"feed_deg_per_min must be > 0, got {feed_deg_per_min}")
         if direction not in (1, -1):

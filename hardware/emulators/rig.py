@@ -176,7 +176,11 @@ class EmulatedRig:
                  start_deg: float = 0.0, seed: int | None = None, size_mm: float = 80.0, device=None,
                  serve_camera: bool = False, virtual_rig=None, latency_s: float = 0.0,
                  steps_per_deg: float = 8.889):
+        """Start the emulated devices (see the class docstring for the arguments).
 
+        Size: its keyword-only arguments are the class's documented options, one per setting of the emulated
+        devices (ringscan emulate's, ringscan capture --virtual's and the tests').
+        """
         self._own_folder = folder is None
         self._lock = contextlib.ExitStack()
         if folder is None:

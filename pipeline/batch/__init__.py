@@ -157,6 +157,10 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
             that does not answer (:class:`~ringscan.pipeline.formats.storage.StorageError`).
             Nothing is written then. The output bucket going away mid-batch stops the batch
             with a StorageError naming the URL.
+
+    Size: a public function (ringscan batch's): the input and output roots and its documented keyword-only
+    options, one per user-facing setting (settings, device, workers, backend and address, fusing and meshing,
+    CPU threads, progress, storage options).
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
@@ -201,6 +205,11 @@ def batch_reconstruct(root, out_root, *, settings: ReconstructSettings = Reconst
 
 def _batch(root, scans, skipped, out_root, *, settings, device, workers, backend, address, fuse, mesh, cpu_threads,
            progress, storage_options) -> dict:
+    """Run the jobs on the chosen backend and write the batch report as the results come in.
+
+    Size: the body of batch_reconstruct after its checks: it takes the scans found, the folders skipped, and
+    batch_reconstruct's own options, passed on one by one.
+    """
     from ringscan.pipeline.formats.progress import progress_bar
 
     remote_out = is_url(out_root)

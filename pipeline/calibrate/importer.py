@@ -656,6 +656,10 @@ def import_captures(
     Returns:
         (the scan, stats per view: decoded pixels and the share with sub-pixel positions,
         and ``camera2``'s likewise).
+
+    Size: a public function (ringscan import's): the capture folders and its documented keyword-only options,
+    one per user-facing setting (output, the calibration in one of its forms, projector size, layout, depths,
+    camera, settings, units) and the calibration files' names for messages.
     """
     _check_import_args(captures, rig, opencv, stereo, projector_rig, camera, mm_per_unit)
     sources = sources or {}

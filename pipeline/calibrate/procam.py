@@ -295,6 +295,10 @@ def procam_rig(
             working volume.
         r_max: largest distance from the projector axis in the volume (default: the
             far plane's half-diagonal of the projector image, x1.5).
+
+    Size: a public function: each array of an OpenCV camera-projector calibration (camera and projector
+    intrinsics, distortion and size, the pose R, T) is a keyword-only argument of its own, as OpenCV's stereo
+    calibration names them, plus the working depths and radius.
     """
     Kc, Kp = np.asarray(cam_K, float), np.asarray(proj_K, float)
     Rcp, Tcp = np.asarray(R, float), np.asarray(T, float).ravel()

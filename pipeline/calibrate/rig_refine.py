@@ -503,7 +503,12 @@ def _vergence(R, d, cov, p1, p2, n1, K1, K2, base: float, settings: "RefineSetti
     direction (camera 1's frame); a turn about it changes every disparity alike, so the depths
     scale by (turn x depth / baseline). Its standard deviation is the larger of the adjustment's
     covariance along it and the jackknife spread of the pose fitted with each quarter of
-    camera 1's image left out."""
+    camera 1's image left out.
+
+    Size: a private step of refine_extrinsics: the fitted rotation and baseline direction (R, d), their
+    covariance, the matches' pixels and camera 1's normalised coordinates (p1, p2, n1: the fields of a subset of
+    its matches), the two intrinsics, the baseline and the settings.
+    """
     v = np.c_[n1, np.ones(len(n1))].mean(axis=0)
     b = -R.T @ d  # camera 2's centre in camera 1's frame, a unit vector
     axis1 = np.cross(b, v)
@@ -688,6 +693,9 @@ def refine_extrinsics(dev1, dev2, uv1, uv2, *, baseline_mm: float | None = None,
 
     Raises:
         CalibrationError: too few matches, a zero baseline, or matches that determine no pose.
+
+    Size: a public function: the two devices and their matched pixels, and its documented keyword-only options:
+    the baseline, the settings, and the optional sigmas and third device (the light) with its pixels.
     """
     uv1 = _check_pixels(uv1, "refine_extrinsics: uv1")
     uv2 = _check_pixels(uv2, "refine_extrinsics: uv2", uv1.shape[0])
@@ -748,7 +756,11 @@ def refine_stereo_rig(rig: Rig, uv1, uv2, *, baseline_mm: float | None = None,
     """A two-camera rig with camera 2's pose re-estimated from matches (camera 1 and the world frame kept).
 
     Where the rig's projector is calibrated and ``uv_light`` (the matches' projector pixels) is given,
-    the projector (its pose held) joins the adjustment (:func:`refine_extrinsics`)."""
+    the projector (its pose held) joins the adjustment (:func:`refine_extrinsics`).
+
+    Size: the rig, the two cameras' matches and the keyword-only options it passes on to refine_extrinsics
+    (baseline, settings, sigmas, the light's pixels).
+    """
     cam2 = getattr(rig, "camera2", None)
     if cam2 is None:
         raise CalibrationError(None, "the rig has one camera; refining a stereo pose needs camera2")
@@ -774,6 +786,9 @@ def refine_procam_rig(rig: Rig, uv_cam, uv_proj, *, baseline_mm: float | None = 
             held) joins the adjustment as the third device (:func:`refine_extrinsics`).
         sigma_cam, sigma_proj, sigma_camera2: the matches' predicted standard deviations (px) in camera 1,
             the projector and camera 2 (None: equal); they weight the three-device adjustment.
+
+    Size: the rig, the camera-projector matches and its documented keyword-only options (baseline, which device
+    to move, settings, a second camera's pixels, the sigmas).
     """
     li = rig.light
     if not isinstance(li, PerspectiveLight):

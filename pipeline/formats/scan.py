@@ -250,7 +250,13 @@ def check_frame_bits(bits, *, source=None, where: str = "frame_bits") -> int:
 
 def _parse_frames(vd: dict, where: str, *, folder: Path, src: Path, fmt: str, name: str, needed: list[str],
                   codec: str, check_files: bool, allow_incomplete: bool) -> tuple[dict[str, str], str | None]:
-    """One camera's frames of a view: (frame name -> path, store or None)."""
+    """One camera's frames of a view: (frame name -> path, store or None).
+
+    Size: a private step of the scan parser: the camera's block and where it is (for messages), and as
+    keyword-only arguments the context the scan parser builds once per view (one dict, passed for each camera):
+    the scan folder and scan.json's path, the format, the view's name, the frames the codec needs, the checks to
+    make.
+    """
     store = None
     if "packed" in vd:
         store, frames = _parse_packed(folder, src, where, vd, fmt)

@@ -379,7 +379,12 @@ class Staged:
     def _download(self, fs, root: str, rels: list[str], dest: Path, base_url: str, *, limit: int, what: str,
                   infos: dict[str, dict], digests: dict | None = None) -> None:
         """Download objects ``rels`` (relative to ``root``) into ``dest``, each refused first when larger than
-        ``limit``, given its object's modification time."""
+        ``limit``, given its object's modification time.
+
+        Size: a private step of a fetch: the filesystem, the objects' root and names, the destination, and as
+        keyword-only arguments the size limit and its message's word, the object infos its caller has already
+        listed and the digests to fill.
+        """
         for rel in rels:
             size = _size(infos[rel])
             if size > limit:
@@ -394,6 +399,10 @@ class Staged:
             self.seconds["fetch"] += time.perf_counter() - t
 
     def _fetch(self, fs, root, rels, dest, base_url, *, limit, what, infos, digests) -> None:
+        """Read objects ``rels`` (relative to ``root``) in one request and write each into ``dest``.
+
+        Size: the arguments of _download, which it serves, passed on as they are.
+        """
         keys = [f"{root}/{r}" for r in rels]
         with _mapped(join_location(base_url, rels[0])):
             got = fs.cat(keys, on_error="return") if len(keys) > 1 else {keys[0]: fs.cat_file(keys[0])}

@@ -73,6 +73,11 @@ def fuse_and_mesh(recon_dir, out_dir: str | os.PathLike, *, fuse_settings=None,
 
     Returns:
         The report dictionary (also written to ``fuse_report.json``).
+
+    Size: a public function (ringscan fuse's whole workflow): the source and output folders and its documented
+    keyword-only options, one per user-facing setting (fusion, meshing, poses, formats, preview, rig, truth,
+    device, progress); over a third of its length is their documentation, the body's steps (fusing, meshing,
+    writing the outputs) are calls of their own, and the rest checks the inputs and builds the report.
     """
     fuse_settings = FuseSettings() if fuse_settings is None else fuse_settings
     pose_settings = PoseSettings() if pose_settings is None else pose_settings

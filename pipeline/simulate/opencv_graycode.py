@@ -258,6 +258,9 @@ def render_graycode_captures(
     Raises:
         ValueError: a light without a size, a ``projector`` that is not the light's,
             or a bad scene; all before anything is written.
+
+    Size: a public function: the output folder and its documented keyword-only options, one per user-facing
+    setting (rig, scene, projector size, rendering, device, placement and pose).
     """
     from ringscan.pipeline.formats.progress import progress_bar
 

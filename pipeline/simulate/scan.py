@@ -135,6 +135,10 @@ def simulate_scan(
 
     Returns:
         The written scan (as :func:`load_scan` reads it back).
+
+    Size: a public function (ringscan simulate's): the output folder and its documented keyword-only options,
+    one per user-facing setting (scene, rig, patterns, views, rendering, device, placement and pose, image
+    format, renderer).
     """
     _check_simulate_options(patterns, renderer, mitsuba, image_format)
     rig = default_rig() if rig is None else rig

@@ -103,6 +103,13 @@ class _Labeller:
     """Pieces, their links and the per-(piece, ring) roots; anchors and spreading."""
 
     def __init__(self, uv, normal, piece, curve, neighbour, bump, rig, spec, settings, device):
+        """Keep the line samples, their pieces and links, and the rig, pattern set, settings and device the
+        labelling reads.
+
+        Size: the samples' per-sample arrays (uv, normal, piece, curve, neighbour, bump) come from three places
+        (label_ring_lines's input, build_pieces, link_lines) and are kept as they are, plus the rig, pattern
+        set, settings and device.
+        """
         self.uv = uv
         self.normal = normal
         self.piece = piece
@@ -490,6 +497,10 @@ def label_ring_lines(
 
     Returns:
         :class:`RingLabelling`.
+
+    Size: the stage's one public entry point: over a third of its length is its signature, its documentation and
+    the stats dictionary's initial counts; the labelling itself is _Labeller's (spread, verify, choose), and the
+    loop here writes each labelled piece's samples and counts them.
     """
     if patterns.codec != "rings":
         raise ValueError(f"label_ring_lines: patterns must be the 'rings' codec, got {patterns.codec!r}")
