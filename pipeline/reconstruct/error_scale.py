@@ -221,9 +221,12 @@ each checked sample meets its neighbours: at 1 px, two on either side through a 
 at k >= 2, four (at -2k, -k, k, 2k) through a cubic, which a smooth surface's depth
 follows over 4k px to far below the decode's errors. Errors that neighbouring pixels
 share (a blur spreading one pixel's noise over its neighbours, a sharp projector's
-staircase running over several pixels) cancel in the 1 px check and show at wider
-spacings; the widest fitted error of the checks is kept. On ringscan's far, faint
-plane the 1 px check saw a third of the ring's error (docs/accuracy.md)."""
+staircase running over several pixels) cancel in the 1 px check and errors that
+alternate from pixel to pixel read too large in it; from ~3 px apart the reading stays
+level (ringscan's renderer: gray-rings 1.31, 1.47, 1.55, 1.54, 1.58 at 1, 2, 3, 4, 6 px
+on Spot; phase-rings under a sharp projector 113, 61, 47, 45, 45): the widest check
+that can be made is kept (fit_neighbour_model). The 1 px check is the fallback where
+rings are too short or broken for four neighbours."""
 
 
 def _lag_nodes(uv, ring, at_pixel, width, centre, direction, k):
@@ -403,9 +406,9 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     four neighbours instead (r = d - sum w_i d_i, variance V + sum w_i^2 V_i): they see
     the errors that neighbouring pixels share. Each check is fitted as the pairs of
     :func:`fit_error_model` are, with two terms: k (on the predicted depth sigma s) and a
-    floor in projector px; the check that finds the widest errors is kept. What is
-    smooth along a ring over more than the widest check (a blurred edge's bias) is not
-    seen: that needs the angle.
+    floor in projector px; the widest check that finds ``MIN_PAIRS`` samples is kept.
+    What is smooth along a ring over more than the widest check (a blurred edge's bias)
+    is not seen: that needs the angle.
 
     Args:
         depth: (n,) each sample's depth along its camera ray (mm), NaN where not placed.
@@ -447,15 +450,14 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
     g = s / p  # depth per projector px of rho
     checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre)
-    kept = None
-    for lag, cc, nodes, w in checks:
-        r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
-        X = np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
-        q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
-        widening = float(np.median(np.sqrt(q[0] * s[cc] ** 2 + q[1] * g[cc] ** 2) / s[cc]))
-        if kept is None or widening > kept[0]:
-            kept = (widening, lag, cc.size, q, np.abs(r) / np.sqrt(X[:, 0]), np.abs(r) / np.sqrt(X @ q))
-    _, lag, pairs, q, z0, z1 = kept
+    # the widest check that could be made: 1 px apart, neighbours share errors (a blur, a
+    # smoothing window: it reads low) or alternate (a sharp projector's staircase: it reads
+    # high); from ~3 px on the reading stays level (docs/accuracy.md)
+    lag, cc, nodes, w = checks[-1]
+    r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
+    X = np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
+    q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
+    pairs, z0, z1 = cc.size, np.abs(r) / np.sqrt(X[:, 0]), np.abs(r) / np.sqrt(X @ q)
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
                       floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=None,
                       indirect_rho_px=0.0, indirect_tan_px=0.0,
