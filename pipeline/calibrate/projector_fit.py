@@ -29,8 +29,9 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.rig_refine import ResidualStats, _check_pixels, _homog
+from ringscan.pipeline.calibrate.rig_refine import ResidualStats, _check_pixels
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
+from ringscan.pipeline.calibrate.two_view import _homog
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig
