@@ -91,7 +91,10 @@ def subpixel_lines_kernel(
 
     code (H, W) int32, valid (H, W) uint8, pairs (>= bits, 2, H, W) uint8, uint16 or float32 (levels:
     value * scale): read. out (H, W) float64,
-    ok (H, W) uint8: written on the line."""
+    ok (H, W) uint8: written on the line.
+
+    Size: a Warp kernel takes each array as its own argument (four in, two out); the
+    scalars are the pattern's bits, the line's axis and span and the levels' scale."""
     line = wp.tid()
     n = code.shape[1]
     if axis == 0:
