@@ -457,9 +457,11 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
     X = np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
     q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
-    pairs, z0, z1 = cc.size, np.abs(r) / np.sqrt(X[:, 0]), np.abs(r) / np.sqrt(X @ q)
+    regions = _region_scales(r * r, X @ q, uv[cc])
+    pairs, z0 = cc.size, np.abs(r) / np.sqrt(X[:, 0])
+    z1 = np.abs(r) / np.sqrt(X @ q * region_scale(regions, uv[cc]))
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
-                      floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=None,
+                      floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=regions,
                       indirect_rho_px=0.0, indirect_tan_px=0.0,
                       lag_px=int(lag), z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))

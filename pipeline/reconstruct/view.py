@@ -329,7 +329,11 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
                               window=1 if samples.ring is not None else 2 * settings.phase.smooth_radius + 1)
     if fit["measured_by"] is None:
         return triangulated, {}
-    widened = wp.array(widen_depth_sigma(sigma, sigma_px, fit), dtype=wp.float32, device=triangulated.sigma.device)
+    widened = widen_depth_sigma(sigma, sigma_px, fit)
+    if fit["regions"]:
+        # parts of the view whose neighbours disagree more than the view's model says
+        widened = (widened * np.sqrt(region_scale(fit["regions"], samples.uv.numpy()))).astype(np.float32)
+    widened = wp.array(widened, dtype=wp.float32, device=triangulated.sigma.device)
     return replace(triangulated, sigma=widened), dict(fit)
 
 

@@ -319,3 +319,21 @@ def test_a_part_of_the_view_that_errs_more_gets_its_own_scale():
     assert np.median(m[~obj]) == 1.0 and np.mean(m[~obj] > 1.3) < 0.02
     z = np.abs(dr - dt) / np.sqrt((s_rho ** 2 + s_tan ** 2) * m)
     assert 0.6 < np.median(z[obj]) < 0.8  # the object's pairs as a Gaussian's (0.674)
+
+
+def test_a_part_of_a_ring_only_view_whose_neighbours_disagree_more_gets_its_own_scale():
+    """The neighbours' model is one for the view; a part of it that errs 2x more (an object's
+    facets beside a plane) gets its tiles' variance factor, as the angle's model does."""
+    from ringscan.pipeline.reconstruct.error_scale import fit_neighbour_model, region_scale, widen_depth_sigma
+
+    rng = np.random.default_rng(12)
+    d = _ring_samples(rng, k_rho=1.0)
+    truth = 500 + 0.05 * d["uv"][:, 0] + 0.02 * d["uv"][:, 1] + 1e-4 * (d["uv"][:, 0] - 200) ** 2
+    hot = (d["uv"][:, 0] > 224) & (d["uv"][:, 1] > 160)  # one quarter-ish corner, in whole 32 px tiles
+    d["depth"] = truth + np.where(hot, 2.0, 1.0) * (d["depth"] - truth)
+    m = fit_neighbour_model(d["depth"], d["s"], d["sigma_px"], d["pixel"], d["ring"], d["uv"], width=d["width"])
+    sig = widen_depth_sigma(d["s"], d["sigma_px"], m) * np.sqrt(region_scale(m["regions"], d["uv"]))
+    z = np.abs(d["depth"] - truth) / sig
+    # the corner's tiles: a variance factor ~4 (2x the errors); its sigmas hold (a Gaussian: 0.67)
+    assert np.median(region_scale(m["regions"], d["uv"][hot])) == pytest.approx(4.0, rel=0.35)
+    assert 0.55 <= np.median(z[hot]) <= 0.8 and 0.55 <= np.median(z[~hot]) <= 0.8
