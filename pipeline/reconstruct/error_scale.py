@@ -229,6 +229,14 @@ that can be made is kept (fit_neighbour_model). The 1 px check is the fallback w
 rings are too short or broken for four neighbours."""
 
 
+def _same_ring_at(ring, at_pixel, width, height, centre, xx, yy):
+    """(idx, hit): the sample at pixel (xx, yy) (m,) of each ``centre`` sample (-1 for none
+    or outside the camera), and whether it is of the centre's ring."""
+    inside = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
+    idx = np.where(inside, at_pixel[np.where(inside, yy * width + xx, 0)], -1)
+    return idx, (idx >= 0) & (ring[np.maximum(idx, 0)] == ring[centre])
+
+
 def _lag_nodes(uv, ring, at_pixel, width, centre, direction, k):
     """(m, 4) sample indices (-1: none) of the same-ring samples nearest to
     uv[centre] + s * k * direction for s = -2, -1, 1, 2 (each within the 5x5 pixels
@@ -245,10 +253,7 @@ def _lag_nodes(uv, ring, at_pixel, width, centre, direction, k):
         best = np.full(m, np.inf)
         for dy in range(-2, 3):
             for dx in range(-2, 3):
-                xx, yy = tx + dx, ty + dy
-                inside = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
-                idx = np.where(inside, at_pixel[np.where(inside, yy * width + xx, 0)], -1)
-                hit = (idx >= 0) & (ring[np.maximum(idx, 0)] == ring[centre])
+                idx, hit = _same_ring_at(ring, at_pixel, width, height, centre, tx + dx, ty + dy)
                 dist = np.where(hit, np.linalg.norm(uv[np.maximum(idx, 0)] - target, axis=1), np.inf)
                 better = dist < best
                 best[better] = dist[better]
@@ -269,10 +274,7 @@ def _ring_directions(uv, ring, at_pixel, width, centre):
     cov = np.zeros((centre.size, 3))  # xx, xy, yy
     for dy in range(-2, 3):
         for dx in range(-2, 3):
-            xx, yy = x + dx, y + dy
-            inside = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
-            idx = np.where(inside, at_pixel[np.where(inside, yy * width + xx, 0)], -1)
-            hit = (idx >= 0) & (ring[np.maximum(idx, 0)] == ring[centre])
+            idx, hit = _same_ring_at(ring, at_pixel, width, height, centre, x + dx, y + dy)
             q = np.where(hit[:, None], uv[np.maximum(idx, 0)] - uv[centre], 0.0)
             count += hit
             mean += q
