@@ -33,6 +33,7 @@ against.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -226,6 +227,8 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     t1 = time.perf_counter()
     sm = smooth_phase(phase, labels.sector, settings=ps, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
+    st = sm.status.numpy()
+    pts, spikes = _drop_lone_fringes(pts, st)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
     contrast = sample_contrast(frames, spec, pts.uv.numpy(), contrast=labels.contrast)
@@ -236,8 +239,9 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     pts.indirect = wp.array(sample_indirect(frames, spec, pts.uv.numpy()), dtype=wp.float32, device=dev)
     wp.synchronize_device(dev)
     t3 = time.perf_counter()
-    st = sm.status.numpy()
     counts = np.bincount(st.ravel(), minlength=len(PHASE_STATUS_NAMES))
+    counts[PHASE_STATUS_NAMES.index("modulation")] += spikes
+    counts[PHASE_STATUS_NAMES.index("ok")] -= spikes
     decoded = int(np.count_nonzero(phase.status.numpy() == 0))
     stats = {
         "pixels_decoded": decoded,
@@ -253,6 +257,37 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
         "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2},
     }
     return pts, stats
+
+
+LONE_FRINGE_SHARE = 0.5
+"""A pixel whose fringe passes ``phase.min_modulation`` while more than this share of the
+lit pixels of the ``LONE_FRINGE_PX`` square around it are dropped for modulation is dropped too (as
+``modulation``): a fringe's modulation changes smoothly with the blur across a surface,
+so a lone pass where it has washed out is the camera's noise, not a fringe (phase-rings
+at pitch 4 under a projector defocused by 1.5 px: 514 such points, median error 0.22 mm
+against a predicted 0.002)."""
+LONE_FRINGE_PX = 5
+
+
+def _drop_lone_fringes(pts: Samples, status: np.ndarray) -> tuple[Samples, int]:
+    """(the samples less those whose neighbourhood's fringe washed out (``LONE_FRINGE_SHARE``),
+    how many were dropped). ``status``: (H, W) the phase map's statuses (host)."""
+    from scipy.ndimage import uniform_filter
+
+    washed = uniform_filter((status == PHASE_STATUS_NAMES.index("modulation")).astype(np.float32),
+                            size=LONE_FRINGE_PX, mode="constant")
+    lit = uniform_filter((status != PHASE_STATUS_NAMES.index("dark")).astype(np.float32), size=LONE_FRINGE_PX,
+                         mode="constant")
+    washed = washed / np.maximum(lit, 1e-6)  # of the lit pixels around (a shadow's edge is no fringe's)
+    if not len(pts) or washed.max() <= LONE_FRINGE_SHARE:
+        return pts, 0
+    keep = washed.ravel()[pts.pixel.numpy()] <= LONE_FRINGE_SHARE
+    if keep.all():
+        return pts, 0
+
+    def kept(a):
+        return None if a is None else wp.array(a.numpy()[keep], dtype=a.dtype, device=a.device)
+    return Samples(**{f.name: kept(getattr(pts, f.name)) for f in dataclasses.fields(pts)}), int((~keep).sum())
 
 
 class PhaseRingsCodec(Codec[PhaseRingsSettings]):
@@ -278,7 +313,14 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict,
                           settings: PhaseRingsSettings) -> str | None:
-        return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)
+        why = explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)
+        lit, low = stats.get("pixels_lit", 0), stats.get("low_modulation", 0)
+        if why is None and lit and low > 0.5 * lit:
+            return (f"no ring found: the phase fringes barely modulate on {100.0 * low / lit:.0f} % of the lit "
+                    f"pixels (below phase.min_modulation {settings.phase.min_modulation:g}): a projector out of "
+                    f"focus or a pitch ({scan.patterns.pitch:g} px) finer than the optics resolve; focus the "
+                    "projector or use a coarser --pitch")
+        return why
 
 
 # ----------------------------------------------------------------------------- NumPy twins

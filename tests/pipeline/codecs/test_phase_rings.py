@@ -220,3 +220,38 @@ def test_bench_dense_runs_both_sides(small_phase_scan):
 
 # The issue's figures on the full-size default rig (Spot, gamma 2.2 and 1.0): benchmarks/acceptance.py
 # (phase-rings-default-rig); the crop above keeps the same rig's pixels.
+
+
+def test_a_lone_fringe_where_the_fringe_washed_out_is_dropped_as_modulation():
+    """Around a pixel whose fringe passed, most lit pixels dropped for modulation (a shadow's
+    edge on a defocused view): it is the camera's noise, not a fringe, and goes too; a pixel
+    among passing neighbours, or beside dark ones only, stays."""
+    import numpy as np
+    import warp as wp
+
+    from ringscan.kernels.phase import PHASE_STATUS_NAMES
+    from ringscan.kernels.samples import Samples
+    from ringscan.pipeline.codecs.phase_rings import _drop_lone_fringes
+
+    ok, dark, mod = (PHASE_STATUS_NAMES.index(n) for n in ("ok", "dark", "modulation"))
+    st = np.full((20, 30), ok, np.int32)
+    st[:, 10:20] = mod          # a washed-out band...
+    st[:10, 10:13] = dark       # ...beside a shadow
+    st[5, 14] = ok              # a lone pass in it, next to the shadow
+    st[15, 15] = ok             # a lone pass in its middle
+    st[:, 25:] = dark
+    st[5, 26] = ok              # a pass beside dark pixels only: a small lit patch, kept
+    ys, xs = np.nonzero(st == ok)
+    pix = (ys * 30 + xs).astype(np.int32)
+    n = pix.size
+    dev = "cpu"
+    samples = Samples(uv=wp.array(np.stack([xs, ys], 1).astype(np.float32), dtype=wp.vec2, device=dev),
+                      rho=wp.array(np.arange(n, dtype=np.float32), dtype=wp.float32, device=dev), ring=None,
+                      sector=wp.zeros(n, dtype=wp.int32, device=dev), confidence=wp.ones(n, dtype=wp.float32, device=dev),
+                      pixel=wp.array(pix, dtype=wp.int32, device=dev))
+    kept, dropped = _drop_lone_fringes(samples, st)
+    gone = set(pix.tolist()) - set(kept.pixel.numpy().tolist())
+    assert {5 * 30 + 14, 15 * 30 + 15} <= gone and 5 * 30 + 26 not in gone
+    assert dropped == len(gone) and len(kept) == n - dropped
+    # the rest of each sample travels with it
+    assert np.array_equal(kept.rho.numpy(), samples.rho.numpy()[np.isin(pix, kept.pixel.numpy())])
