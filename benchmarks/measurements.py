@@ -155,7 +155,9 @@ def _git(*args: str) -> str:
 def machine() -> str:
     """The machine, the Python and the commit a section was measured on."""
     commit = _git("rev-parse", "--short", "HEAD") or "unknown"
-    changed = [ln[3:] for ln in _git("status", "--porcelain", "--untracked-files=no").splitlines() if ln.strip()]
+    page = PAGE.relative_to(ROOT).as_posix() if PAGE.is_relative_to(ROOT) else ""
+    changed = [ln[3:] for ln in _git("status", "--porcelain", "--untracked-files=no").splitlines()
+               if ln.strip() and ln[3:] != page]  # the page itself, being written, does not count
     shown = ", ".join(changed[:8]) + (f" and {len(changed) - 8} more" if len(changed) > 8 else "")
     tree = f"tree dirty, uncommitted changes to {shown}" if changed else "tree clean"
     cpu = platform.processor() or platform.machine()
