@@ -208,6 +208,9 @@ def main(argv=None) -> int:
             rows, models[name] = run_condition(name, work, renderer=args.renderer, light=light,
                                                camera_scale=args.camera_scale, patterns=args.patterns)
             for r in rows:
+                if not r["points"]:  # no point to judge (the view says why): not a sigma's miss
+                    print(f"| {r['condition']} | {r['constraint']} | 0 | | | | | |", flush=True)
+                    continue
                 cov = "" if r["coverage"] != r["coverage"] else f"{100 * r['coverage']:.1f} %"  # NaN: a region
                 print(f"| {r['condition']} | {r['constraint']} | {r['points']} | {r['median_mm']:.4f} | "
                       f"{cov} | {r['sigma_mm']:.4f} | {r['ratio']:.2f} | "
@@ -217,7 +220,8 @@ def main(argv=None) -> int:
                                   f"{100 * r['beyond_3']:.1f} % beyond 3 sigma")
             for cond in dict.fromkeys(r["condition"] for r in rows):
                 by = {r["constraint"]: r for r in rows if r["condition"] == cond}
-                if "both" in by and by["both"]["median_mm"] > NOT_WORSE * by["rings"]["median_mm"]:
+                if "both" in by and by["both"]["points"] and by["rings"]["points"] \
+                        and by["both"]["median_mm"] > NOT_WORSE * by["rings"]["median_mm"]:
                     missed.append(f"{cond}: the default {by['both']['median_mm']:.4f} mm is worse than rings alone "
                                   f"{by['rings']['median_mm']:.4f} mm")
         print("\nfitted error model of the default run (docs/reconstruction.md, \"Honest sigma\"):")

@@ -133,8 +133,12 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.n
     spec = scan.patterns
     dev = frames.device
     samples.sigma_rho = wp.array(np.asarray(sigma_rho, np.float32), dtype=wp.float32, device=dev)
-    if not spec.angle_steps or len(samples) == 0:
+    if not spec.angle_steps:
         return samples, {}
+    if len(samples) == 0:  # none to decode, but an angle code: the samples have one, of none
+        samples.phi = wp.empty(0, dtype=wp.float32, device=dev)
+        samples.sigma_tan = wp.empty(0, dtype=wp.float32, device=dev)
+        return samples, {"angle_decoded": 0, "angle_dropped": {k: 0 for k in ANGLE_STATUS_NAMES[1:]}}
     names = frame_names(spec)
     full = 255 if frames.dtype == wp.uint8 else 65535
     lut, _ = response_tables(full, camera_gamma=camera_gamma, weighted=False)

@@ -94,7 +94,8 @@ def identity_model(pairs: int = 0) -> ErrorModel:
 
 def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndarray, s_tan: np.ndarray,
                     sigma_rho_px: np.ndarray, sigma_tan_px: np.ndarray, residual_var_px: np.ndarray,
-                    uv: np.ndarray, indirect: np.ndarray | None = None) -> ErrorModel:
+                    uv: np.ndarray, indirect: np.ndarray | None = None,
+                    rho_terms: tuple[float, float] | None = None) -> ErrorModel:
     """The error terms the decode's model misses, from the disagreement of the two depths.
 
     Args:
@@ -112,6 +113,11 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
             <ringscan.kernels.samples.Samples.indirect>` less its median, >= 0), or None:
             light bounced into a concave part shifts both coordinates there by an amount
             that grows with it (two more terms, in projector px per unit share).
+        rho_terms: (k_rho, floor_rho_px) measured by the samples' own neighbours
+            (:func:`fit_neighbour_model`), or None. Where the two coordinates' predicted
+            errors scale alike (a dense code: both from the pixel's contrast), the pairs
+            alone cannot tell whose error they disagree by; the neighbours can for rho,
+            and the pairs then fit the angle's terms.
 
     Returns:
         :class:`ErrorModel` (:func:`identity_model` with fewer than ``MIN_PAIRS`` pairs).
@@ -153,8 +159,14 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
                  axis=1)
     terms = 6 if np.any(gi > 0) else 4  # no indirect light anywhere: its terms are 0
     # k >= 1: the noise model is never shrunk
+    lower = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])[:terms]
+    upper = None
+    if rho_terms is not None:
+        upper = np.full(terms, np.inf)
+        lower[0] = upper[0] = rho_terms[0] ** 2
+        lower[2] = upper[2] = rho_terms[1] ** 2
     p = np.zeros(6)
-    p[:terms] = _fit_variances(X[:, :terms], diff * diff, np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])[:terms])
+    p[:terms] = _fit_variances(X[:, :terms], diff * diff, lower, upper)
     var = X @ p
     regions = _region_scales(diff * diff, var, uv)
     z0 = np.abs(dr - dt) / np.sqrt(model_var)
@@ -479,10 +491,11 @@ def widen_depth_sigma(s: np.ndarray, sigma_px: np.ndarray, model: ErrorModel) ->
     return np.sqrt((model["k_rho"] * s64) ** 2 + (model["floor_rho_px"] * g) ** 2).astype(np.float32)
 
 
-def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray) -> np.ndarray:
-    """The variances P (>= ``lower``) of the model var_i = X_i @ P that fit the squared
-    differences ``d2`` (n,) best under a Student-t of ``T_DOF`` degrees of freedom read
-    back as Gaussian variances (``T_SCALE``). X: (n, m) each term's variance per unit."""
+def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
+    """The variances P (>= ``lower``, <= ``upper`` where given: equal bounds fix a term)
+    of the model var_i = X_i @ P that fit the squared differences ``d2`` (n,) best under
+    a Student-t of ``T_DOF`` degrees of freedom read back as Gaussian variances
+    (``T_SCALE``). X: (n, m) each term's variance per unit."""
     n = d2.size
     # in units where every column's and the squared differences' medians are 1:
     # var = Xs @ q with q = P * col / d2_scale
@@ -492,6 +505,10 @@ def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray) -> np.ndarr
     Xs = X / col
     d2 = d2 / d2_scale
     lower = lower * col / d2_scale
+    bounds = [(lo, None) for lo in lower]
+    if upper is not None:
+        hi = np.asarray(upper, np.float64) * col / d2_scale
+        bounds = [(lo, h if np.isfinite(h) else None) for lo, h in zip(lower, hi)]
 
     def nll(q):
         var = np.maximum(T_SCALE * T_SCALE * (Xs @ q), 1e-300)
@@ -500,7 +517,8 @@ def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray) -> np.ndarr
         g_var = 0.5 / var - 0.5 * (T_DOF + 1) * u / (var * (1 + u))
         return f / n, T_SCALE * T_SCALE * (Xs.T @ g_var) / n
 
-    res = minimize(nll, lower + 0.2, jac=True, method="L-BFGS-B", bounds=[(lo, None) for lo in lower],
+    start = np.array([lo + 0.2 if h is None else 0.5 * (lo + h) for lo, h in bounds])
+    res = minimize(nll, start, jac=True, method="L-BFGS-B", bounds=bounds,
                    options={"maxiter": 1000, "ftol": 1e-12, "gtol": 1e-9})
     return np.maximum(res.x, lower) * d2_scale / col
 

@@ -33,6 +33,7 @@ from ringscan.pipeline.formats.rig import has_calibrated_light
 from ringscan.pipeline.formats.scan import Scan, View, as_camera2, read_view_frames
 from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.reconstruct.error_scale import (
+    MAX_CHECK_SAMPLES,
     MIN_PAIRS,
     apply_error_model,
     fit_error_model,
@@ -254,6 +255,14 @@ def _warn_low_modulation(view: View, stats: dict) -> None:
                     "coarser pattern or more light helps)", view.name, 100.0 * low / lit, low)
 
 
+def _row_bands(rows: np.ndarray) -> np.ndarray:
+    """Indices of the samples in every R-th band of three camera rows (R chosen so that
+    at most ``MAX_CHECK_SAMPLES`` are kept): evenly spread over the view, each with the
+    rows above and below it, where a dense code's neighbouring pixels check rho."""
+    period = max(3, int(np.ceil(3 * rows.size / MAX_CHECK_SAMPLES)))
+    return np.flatnonzero(rows % period <= 2)
+
+
 def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bits: int, threads: int):
     """(sigma_rho, sigma_tan, the :class:`ErrorModel` or {}): the samples' predicted
     standard deviations with the error terms the view's own frames show the decode's
@@ -266,7 +275,9 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     vol = rig.volume
     dev = samples.uv.device
     pick = np.flatnonzero(np.isfinite(samples.phi.numpy()))
-    pick = pick[sample_subset(pick.size)]
+    dense = samples.ring is None  # one sample a pixel: its neighbours can check rho (below)
+    pick = pick[_row_bands(samples.pixel.numpy()[pick] // scan.rig.camera.width) if dense
+                else sample_subset(pick.size)]
     if pick.size < MIN_PAIRS:
         return samples.sigma_rho, samples.sigma_tan, {}
     host = {k: getattr(samples, k).numpy()[pick] for k in ("uv", "rho", "sector", "confidence", "phi", "sigma_rho",
@@ -285,6 +296,16 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     dt, st = depth(tri(settings=replace(settings.triangulate, constraint="angle")))
     both = tri(settings=replace(settings.triangulate, constraint="both"))
     rv = np.where(both.status.numpy() == 0, both.residual_var.numpy(), 0.0)
+    rho_terms = None
+    if dense:
+        # a dense code's two predicted errors both scale with the pixel's contrast, so the
+        # pairs cannot tell whose error they disagree by (phase-rings in linear light put
+        # it all on rho: k_rho 11, and the default read 3.4x worse than rings alone); the
+        # ring's neighbouring pixels measure rho's own
+        nb = fit_neighbour_model(dr, sr, host["sigma_rho"], samples.pixel.numpy()[pick], None, host["uv"],
+                                 width=scan.rig.camera.width, window=2 * settings.phase.smooth_radius + 1)
+        if nb["measured_by"] is not None:
+            rho_terms = (nb["k_rho"], nb["floor_rho_px"])
     # indirect light above the view's own typical floor (the blur that mixes every fine
     # pattern's edges is the view's; light bounced into a corner is a region's)
     indirect = None
@@ -292,7 +313,7 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
         g = samples.indirect.numpy().astype(np.float64)
         indirect = np.maximum(g - np.median(g), 0.0)
     fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"],
-                          indirect=None if indirect is None else indirect[pick])
+                          indirect=None if indirect is None else indirect[pick], rho_terms=rho_terms)
     # parts of the view whose pairs disagree more than the view's model says (an object's
     # facets beside a plane) widen both coordinates alike: the weighting stays, sigma grows
     scale = np.sqrt(region_scale(fit["regions"], samples.uv.numpy())) if fit["regions"] else None

@@ -337,3 +337,23 @@ def test_a_part_of_a_ring_only_view_whose_neighbours_disagree_more_gets_its_own_
     # the corner's tiles: a variance factor ~4 (2x the errors); its sigmas hold (a Gaussian: 0.67)
     assert np.median(region_scale(m["regions"], d["uv"][hot])) == pytest.approx(4.0, rel=0.35)
     assert 0.55 <= np.median(z[hot]) <= 0.8 and 0.55 <= np.median(z[~hot]) <= 0.8
+
+
+def test_rho_measured_by_its_neighbours_leaves_the_pairs_the_angles_terms():
+    """A dense code's two predicted errors both scale with the pixel's contrast: the pairs alone
+    cannot tell whose error they disagree by. Planted: rho as predicted, the angle 4x worse. Given
+    rho's terms (its neighbours measure them), the pairs fit the angle's: k_tan ~4."""
+    rng = np.random.default_rng(21)
+    n = 30000
+    args, _ = _pairs(rng, n)
+    dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv = args
+    s_tan = 3.0 * s_rho  # collinear: one contrast drives both
+    p_tan = s_tan / (s_rho / p_rho)
+    depth = 400.0
+    dr = depth + rng.normal(0, s_rho)
+    dt = depth + rng.normal(0, 4.0 * s_tan)
+    fit = fit_error_model(dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv, rho_terms=(1.0, 0.0))
+    assert fit["k_rho"] == 1.0 and fit["floor_rho_px"] == 0.0  # held as given
+    assert fit["k_tan"] == pytest.approx(4.0, rel=0.1)  # 30k pairs: ~1 % on a variance
+    blind = fit_error_model(dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv)
+    assert blind["k_rho"] > 2.0  # the pairs alone put much of it on rho (8.3 and 2.9 measured)
