@@ -68,3 +68,16 @@ def test_rings_codec_without_angle_refuses_constraint_both(tmp_path):
     assert scan.patterns.codec == "gray-rings" and not any(n.startswith("angle") for n in frame_names(scan.patterns))
     with pytest.raises(ValueError, match="needs samples with an angle"):
         reconstruct_scan(scan, tmp_path / "rec", settings=_settings("both"), progress=False)
+
+
+def test_a_view_with_no_sample_under_the_angle_alone_says_why(angle_scan):
+    """Frames with no light in them (every pixel below min_contrast): no sample, so no angle
+    either; the angle constraint has nothing to place and the view says why instead of
+    raising."""
+    from ringscan.pipeline.formats.scan import read_view_frames
+
+    frames = read_view_frames(angle_scan, angle_scan.views[0])
+    dark = np.zeros_like(frames)
+    cloud = reconstruct_view(angle_scan, angle_scan.views[0], settings=_settings("angle"), frames=dark)
+    assert cloud.stats["points"] == 0 and cloud.stats["samples"] == 0
+    assert cloud.stats["no_points"].startswith("no ring found: no contrast between the white and black frames")
