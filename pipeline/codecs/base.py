@@ -104,6 +104,14 @@ class Codec(ABC, Generic[S]):
         both says when."""
         return False
 
+    def pixel_window(self, settings) -> int | None:
+        """For a dense codec (one sample a camera pixel, ``Samples.ring`` None) whose
+        samples' errors neighbouring pixels can check: the side (px) of the square each
+        sample is averaged over (1: none), which neighbours share part of
+        (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`); None
+        where they cannot be checked that way (here). ``settings``: this codec's."""
+        return None
+
     def frame_names(self, spec: PatternSpec) -> list[str]:
         """The frame names, in projection order (may depend on any pattern parameter)."""
         return self.layout.frame_names(spec)

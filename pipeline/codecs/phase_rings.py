@@ -307,6 +307,11 @@ class PhaseRingsCodec(Codec[PhaseRingsSettings]):
     def settings_from(self, stages: StageSettings) -> PhaseRingsSettings:
         return PhaseRingsSettings(decode=stages.decode, phase=stages.phase, angle=stages.angle)
 
+    def pixel_window(self, settings: PhaseRingsSettings) -> int:
+        """The phase smoothing's window, 2 r + 1 (checked against the truth on ringscan's
+        renderer: docs/accuracy.md, "Codecs without the angle")."""
+        return 2 * settings.phase.smooth_radius + 1
+
     def extract(self, frames: wp.array, scan: Scan, settings: PhaseRingsSettings, *,
                 threads: int) -> tuple[Samples, dict]:
         return extract_phase_rings(frames, scan, settings, threads)

@@ -275,7 +275,9 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     vol = rig.volume
     dev = samples.uv.device
     pick = np.flatnonzero(np.isfinite(samples.phi.numpy()))
-    dense = samples.ring is None  # one sample a pixel: its neighbours can check rho (below)
+    codec = codec_for(scan.patterns.codec, source=scan.path)
+    window = codec.pixel_window(codec.settings_from(settings)) if samples.ring is None else None
+    dense = window is not None  # one sample a pixel that its neighbours can check (below)
     pick = pick[_row_bands(samples.pixel.numpy()[pick] // scan.rig.camera.width) if dense
                 else sample_subset(pick.size)]
     if pick.size < MIN_PAIRS:
@@ -303,7 +305,7 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
         # it all on rho: k_rho 11, and the default read 3.4x worse than rings alone); the
         # ring's neighbouring pixels measure rho's own
         nb = fit_neighbour_model(dr, sr, host["sigma_rho"], samples.pixel.numpy()[pick], None, host["uv"],
-                                 width=scan.rig.camera.width, window=2 * settings.phase.smooth_radius + 1)
+                                 width=scan.rig.camera.width, window=window)
         if nb["measured_by"] is not None:
             rho_terms = (nb["k_rho"], nb["floor_rho_px"])
     # indirect light above the view's own typical floor (the blur that mixes every fine
@@ -334,10 +336,16 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`). The points
     stay where they are (one coordinate places them; its sigma weighs nothing), so the
     depth sigmas are widened after the one triangulation. A dense code (one sample a
-    pixel: phase-rings) averages each pixel over a window; the errors its pixels share
-    are taken into account."""
+    pixel: phase-rings) averages each pixel over a window (``Codec.pixel_window``); the
+    errors its pixels share are taken into account."""
     if samples.sigma_rho is None or len(samples) < MIN_PAIRS:
         return triangulated, {}
+    window = 1
+    if samples.ring is None:
+        codec = codec_for(scan.patterns.codec, source=scan.path)
+        window = codec.pixel_window(codec.settings_from(settings))
+        if window is None:  # a dense code whose neighbouring pixels cannot check it
+            return triangulated, {}
     cam = scan.rig.camera
     center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
     ok = triangulated.status.numpy() == 0
@@ -346,8 +354,7 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     sigma_px = samples.sigma_rho.numpy()
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
                               samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
-                              width=cam.width,
-                              window=1 if samples.ring is not None else 2 * settings.phase.smooth_radius + 1)
+                              width=cam.width, window=window)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = widen_depth_sigma(sigma, sigma_px, fit)
