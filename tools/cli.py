@@ -55,6 +55,21 @@ class UsageError(ValueError):
     """Options that do not fit together or a value an option cannot take: exit status 2."""
 
 
+def check_frame_bits_option(bits: int | None) -> None:
+    """``--frame-bits``: None, or a value ``check_frame_bits`` accepts.
+
+    Raises:
+        UsageError: naming the option and what it takes.
+    """
+    from ringscan.pipeline.formats.scan import check_frame_bits
+
+    if bits is not None:
+        try:
+            check_frame_bits(bits, where="--frame-bits")
+        except RingscanError as e:
+            raise UsageError(str(e)) from None
+
+
 def _version() -> str:
     from ringscan import __version__
 

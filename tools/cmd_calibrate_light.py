@@ -40,7 +40,7 @@ from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import few_bits_hint, read_image
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import load_rig, parse_rig, save_rig
-from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
+from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.reconstruct.scan import scan_inputs
 from ringscan.tools.calibrate_options import (
     add_board_options,
@@ -51,7 +51,7 @@ from ringscan.tools.calibrate_options import (
     print_views,
     refuse_unless_forced,
 )
-from ringscan.tools.cli import UsageError, add_device_option, basic_options
+from ringscan.tools.cli import UsageError, add_device_option, basic_options, check_frame_bits_option
 
 
 # ----------------------------------------------------------------------------- response
@@ -83,11 +83,7 @@ def run_response(args) -> int:
     bad = [v for v in args.levels if not (np.isfinite(v) and 0 <= v <= 255)]
     if bad:
         raise UsageError(f"--levels: values must be finite and in 0..255, got {', '.join(f'{v:g}' for v in bad)}")
-    if args.frame_bits is not None:
-        try:
-            check_frame_bits(args.frame_bits, where="--frame-bits")
-        except FormatError as e:
-            raise UsageError(str(e)) from None
+    check_frame_bits_option(args.frame_bits)
     d = read_json(args.rig)
     rig = parse_rig(d, source=args.rig)
     imgs = [read_image(f) for f in args.frames]

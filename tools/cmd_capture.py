@@ -41,11 +41,10 @@ from ringscan.hardware.emulators.rig import EmulatedRig
 from ringscan.hardware.errors import CaptureError
 from ringscan.pipeline.codecs.render import render_frame
 from ringscan.pipeline.formats.atomic import read_json
-from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, parse_patterns
 from ringscan.pipeline.formats.rig import load_rig
-from ringscan.pipeline.formats.scan import check_frame_bits, load_scan
-from ringscan.tools.cli import UsageError, add_device_option, basic_options
+from ringscan.pipeline.formats.scan import load_scan
+from ringscan.tools.cli import UsageError, add_device_option, basic_options, check_frame_bits_option
 
 log = logging.getLogger(__name__)
 
@@ -294,11 +293,7 @@ def _check_options(args, rig, patterns: PatternSpec | None) -> None:
         raise UsageError("--reconstruct-settings only applies with --reconstruct")
     if args.allow_auto_exposure and args.exposure is None:
         raise UsageError("--allow-auto-exposure only applies with --exposure")
-    if args.frame_bits is not None:
-        try:
-            check_frame_bits(args.frame_bits, where="--frame-bits")
-        except FormatError as e:
-            raise UsageError(str(e)) from None
+    check_frame_bits_option(args.frame_bits)
 
 
 def _capture_settings(args, out: Path):

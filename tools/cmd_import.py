@@ -19,12 +19,10 @@ from ringscan.pipeline.calibrate.opencv_files import (
     read_opencv_calibration,
     read_stereo_calibration,
 )
-from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
-from ringscan.pipeline.formats.scan import check_frame_bits
 from ringscan.tools.calibrate_options import parse_size
-from ringscan.tools.cli import UsageError, basic_options
+from ringscan.tools.cli import UsageError, basic_options, check_frame_bits_option
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
 
@@ -130,11 +128,7 @@ def run(args) -> int:
     kw, opencv_paths = _calibrations(args, rig_path, mm_per_unit)
     if not (args.min_contrast >= 0 and args.min_contrast < 255):
         raise UsageError(f"--min-contrast {args.min_contrast:g}: expected grey levels from 0 to below 255")
-    if args.frame_bits is not None:
-        try:
-            check_frame_bits(args.frame_bits, where="--frame-bits")
-        except FormatError as e:
-            raise UsageError(str(e)) from None
+    check_frame_bits_option(args.frame_bits)
     settings = ImportSettings(sector_bits=args.sector_bits, integer_only=args.integer,
                               graycode=GrayCodeSettings(min_contrast=args.min_contrast), frame_bits=args.frame_bits)
     with progress_step(f"decoding {len(args.captures)} capture(s)", enabled=not args.no_progress):
