@@ -34,9 +34,12 @@ its points above the reference plane, where the condition acts (the bounds apply
 both).
 
 Bounds (exit 1 when one is missed): every row median(|e|/sigma) in 0.4-1.2 and
-<= 5 % beyond 3 sigma; the default's median error <= 1.02 x rings alone (2 %:
-the run-to-run spread of a median over ~130k points on different samples is
-well under 1 %).
+<= 5 % beyond 3 sigma; the default's median error <= 1.02 x rings alone on the
+samples both placed (matched by camera position; 2 %: the run-to-run spread of a
+median over ~130k points is well under 1 %). The whole clouds' medians compare
+different points: the default also places samples rings alone cannot (phase-rings
+with the angle: 99.7 % coverage against 95.9 %, whole-cloud medians 3-6 % above rings
+alone's, on the shared samples 1-2 % below).
 
     python benchmarks/sigma_honesty.py [--only NAME ...] [--out DIR] [--renderer warp|mitsuba]
                                        [--light parallel|perspective] [--camera-scale K]
@@ -167,7 +170,30 @@ def run_condition(name: str, work: Path, *, renderer: str = "warp", light: str =
                                 "median_mm": ob["median_mm"], "coverage": float("nan"),
                                 "sigma_mm": ob["sigma"]["median_sigma_mm"], "ratio": ob["sigma"]["median_ratio"],
                                 "beyond_3": ob["sigma"]["beyond_3"], "seconds": 0.0})
+    if scan.patterns.angle_steps:
+        rows[-1]["common_mm"] = common_medians(scan, work / name)
     return rows + region_rows, model
+
+
+def common_medians(scan, folder: Path) -> tuple[float, float] | None:
+    """(median error of rings alone, of the default) over the samples both placed (matched by their camera
+    position): the default also places samples rings alone cannot (its coverage), so the medians of the two
+    whole clouds compare different points; None where they share none."""
+    got = {}
+    for c in ("rings", "both"):
+        ply = read_ply(next((folder / c).glob("*.ply")))
+        key = np.round(np.stack([ply["u"], ply["v"]], 1).astype(np.float64) * 1000).astype(np.int64)
+        got[c] = (key[:, 0] * 10_000_000 + key[:, 1], np.stack([ply["x"], ply["y"], ply["z"]], -1).astype(np.float64),
+                  np.asarray(ply["sigma"], np.float64))
+    common = np.intersect1d(got["rings"][0], got["both"][0])
+    if not common.size:
+        return None
+    out = []
+    for c in ("rings", "both"):
+        k, P, sig = got[c]
+        m = np.isin(k, common)
+        out.append(evaluate_points(scan, [(scan.views[0].name, P[m], sig[m])])["all"]["median_mm"])
+    return out[0], out[1]
 
 
 def main(argv=None) -> int:
@@ -220,10 +246,13 @@ def main(argv=None) -> int:
                                   f"{100 * r['beyond_3']:.1f} % beyond 3 sigma")
             for cond in dict.fromkeys(r["condition"] for r in rows):
                 by = {r["constraint"]: r for r in rows if r["condition"] == cond}
-                if "both" in by and by["both"]["points"] and by["rings"]["points"] \
-                        and by["both"]["median_mm"] > NOT_WORSE * by["rings"]["median_mm"]:
-                    missed.append(f"{cond}: the default {by['both']['median_mm']:.4f} mm is worse than rings alone "
-                                  f"{by['rings']['median_mm']:.4f} mm")
+                common = by.get("both", {}).get("common_mm")
+                if common:  # on the samples both placed
+                    print(f"  {cond}: on the samples both placed, rings alone {common[0]:.4f} mm, the default "
+                          f"{common[1]:.4f} mm")
+                    if common[1] > NOT_WORSE * common[0]:
+                        missed.append(f"{cond}: the default {common[1]:.4f} mm is worse than rings alone "
+                                      f"{common[0]:.4f} mm on the samples both placed")
         print("\nfitted error model of the default run (docs/reconstruction.md, \"Honest sigma\"):")
         for name, m in models.items():
             if m:
