@@ -200,7 +200,10 @@ def _reconstruct_views(scan: Scan, out: Path, chosen: list[View], done: dict, re
     reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-read")
     writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ringscan-write")
     pending = {}
-    written = [writer.submit(atomic_write_json, out / "settings.json", report["settings"])]
+    # settings.json goes with the first view computed (or at once when every view is done): a frame whose
+    # header passed but whose body is corrupt stops the run before anything is written
+    written = [] if todo else [writer.submit(atomic_write_json, out / "settings.json", report["settings"])]
+    settings_pending = bool(todo)
 
     def prefetch(k):
         if k < len(todo) and todo[k].name not in pending:
@@ -228,7 +231,11 @@ def _reconstruct_views(scan: Scan, out: Path, chosen: list[View], done: dict, re
                 f.result()
             # the last view's report is the final one, written by _reconstruct
             snapshot = {**report, "views": list(report["views"])} if k + 1 < len(todo) else None
-            written = [writer.submit(_write_view, out, cloud, entry, index, report_path, snapshot)]
+            written = []
+            if settings_pending:
+                written.append(writer.submit(atomic_write_json, out / "settings.json", report["settings"]))
+                settings_pending = False
+            written.append(writer.submit(_write_view, out, cloud, entry, index, report_path, snapshot))
         for f in written:
             f.result()
     finally:

@@ -326,3 +326,20 @@ def test_explain_no_points_other_cases(scan):
                                            "dropped": {"no_root": 0, "outside_volume": 40}})
     assert why == ("every one of the 40 ring samples was dropped (outside_volume 40): check the rig's calibration "
                    "and working volume")
+
+
+def test_a_frame_whose_body_is_corrupt_stops_the_run_before_anything_is_written(tmp_path):
+    """The frames' headers are checked before anything is written; a PNG cut short after a good
+    header is found only when its view is read. In the first view to compute, it stops the run
+    with the file and the problem, and the output folder holds nothing (settings.json goes with
+    the first view's points)."""
+    from ringscan.pipeline.reconstruct.scan import reconstruct_scan
+
+    scan = simulate_tiny_scan(tmp_path / "scan")
+    frame = scan.folder / scan.views[0].frames["gray_1"]
+    data = frame.read_bytes()
+    frame.write_bytes(data[: len(data) // 2])  # the header intact, the image data cut
+    out = tmp_path / "rec"
+    with pytest.raises(FormatError, match="gray_1.png: not a readable image"):
+        reconstruct_scan(load_scan(scan.folder), out, progress=False)
+    assert not out.exists() or [p.name for p in out.iterdir()] == []
