@@ -278,8 +278,8 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     codec = codec_for(scan.patterns.codec, source=scan.path)
     window = codec.pixel_window(codec.settings_from(settings)) if samples.ring is None else None
     dense = window is not None  # one sample a pixel that its neighbours can check (below)
-    pick = pick[_row_bands(samples.pixel.numpy()[pick] // scan.rig.camera.width) if dense
-                else sample_subset(pick.size)]
+    pixel = samples.pixel.numpy() if dense else None
+    pick = pick[_row_bands(pixel[pick] // scan.rig.camera.width) if dense else sample_subset(pick.size)]
     if pick.size < MIN_PAIRS:
         return samples.sigma_rho, samples.sigma_tan, {}
     host = {k: getattr(samples, k).numpy()[pick] for k in ("uv", "rho", "sector", "confidence", "phi", "sigma_rho",
@@ -304,7 +304,7 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
         # pairs cannot tell whose error they disagree by (phase-rings in linear light put
         # it all on rho: k_rho 11, and the default read 3.4x worse than rings alone); the
         # ring's neighbouring pixels measure rho's own
-        nb = fit_neighbour_model(dr, sr, host["sigma_rho"], samples.pixel.numpy()[pick], None, host["uv"],
+        nb = fit_neighbour_model(dr, sr, host["sigma_rho"], pixel[pick], None, host["uv"],
                                  width=scan.rig.camera.width, window=window)
         if nb["measured_by"] is not None:
             rho_terms = (nb["k_rho"], nb["floor_rho_px"])
