@@ -12,44 +12,71 @@ instance; nothing outside ``pipeline.codecs`` branches on a codec's name.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Generic, Protocol, TypeVar
+from dataclasses import dataclass, field
+from typing import ClassVar, Generic, TypeVar
 
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.angle import AngleSettings
+from ringscan.kernels.phase import PhaseSettings
+from ringscan.kernels.ring_labels import DecodeSettings
+from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.single_shot import settings as single_shot_settings
+from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.images import few_bits_hint
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
+from ringscan.pipeline.formats.settings import WHY_GREY, WHY_MARGIN, WHY_MODULATION, Bound
 
-if TYPE_CHECKING:  # the stage blocks' types, for the protocol only: a codec's own module imports what it uses
-    from ringscan.kernels.angle import AngleSettings
-    from ringscan.kernels.phase import PhaseSettings
-    from ringscan.kernels.ring_labels import DecodeSettings
-    from ringscan.kernels.ring_sampling import SampleSettings
-    from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
-
-__all__ = ["Codec", "RigNeeds", "StageSettings", "describe_lighting", "frame_bits_hint"]
+__all__ = ["Codec", "RigNeeds", "StageSettings", "STAGE_SETTING_RANGES", "describe_lighting", "frame_bits_hint"]
 
 S = TypeVar("S")
 
 
-class StageSettings(Protocol):
-    """The per-stage settings blocks a run holds (``reconstruct.ReconstructSettings``
-    has them); each codec picks the blocks it uses into its own typed settings
-    (:meth:`Codec.settings_from`)."""
+@dataclass(frozen=True)
+class StageSettings:
+    """The settings blocks the codecs decode and sample with, one per stage or codec
+    (``reconstruct.ReconstructSettings`` holds them first, then the geometry's); each
+    codec picks the blocks it uses into its own typed settings
+    (:meth:`Codec.settings_from`). A codec with settings of its own adds its block
+    here and its ranges to :data:`STAGE_SETTING_RANGES`."""
 
-    @property
-    def decode(self) -> DecodeSettings: ...
-    @property
-    def sample(self) -> SampleSettings: ...
-    @property
-    def phase(self) -> PhaseSettings: ...
-    @property
-    def single_shot(self) -> SingleShotSettings: ...
-    @property
-    def angle(self) -> AngleSettings: ...
+    decode: DecodeSettings = field(default_factory=DecodeSettings)
+    """Per-pixel decoding thresholds."""
+    sample: SampleSettings = field(default_factory=SampleSettings)
+    """Sub-pixel ring sampling thresholds."""
+    phase: PhaseSettings = field(default_factory=PhaseSettings)
+    """Phase decoder of the ``phase-rings`` codec (response, modulation, unwrapping)."""
+    single_shot: SingleShotSettings = field(default_factory=SingleShotSettings)
+    """Line detection and nesting-order labelling of the single-shot ``rings`` codec."""
+    angle: AngleSettings = field(default_factory=AngleSettings)
+    """The angle code's decoder and the camera noise of the predicted standard deviations."""
+
+
+STAGE_SETTING_RANGES: dict[str, Bound] = {
+    "decode.min_contrast": Bound(1, 200, WHY_GREY),
+    "decode.bit_margin": Bound(0, 0.99, WHY_MARGIN, lo_open=True),
+    "sample.min_contrast": Bound(1, 200, WHY_GREY),
+    "sample.min_slope": Bound(0, 1.99, "|d_p - d_q| / contrast across an edge: d lies in +-contrast, so the "
+                                       "slope is below 2, and at 2 no edge is sampled"),
+    "phase.min_contrast": Bound(1, 200, WHY_GREY),
+    "phase.min_modulation": Bound(0, 0.99, WHY_MODULATION),
+    "phase.edge_ratio": Bound(0, 0.99, WHY_MARGIN, lo_open=True),
+    "phase.slip_tolerance": Bound(0, 1, "bands: beyond one band a pixel may slip past a whole edge"),
+    "phase.smooth_radius": Bound(0, 4, "pixels: the smoothing window's largest half-size"),
+    "phase.smooth_tolerance": Bound(0, 1, "bands: beyond one band pixels across an edge join the average"),
+    "phase.min_pairs": Bound(0, 40, "pairs: the largest window (radius 4, 9x9) holds 40"),
+    "angle.min_contrast": Bound(1, 200, WHY_GREY),
+    "angle.bit_margin": Bound(0, 0.99, WHY_MARGIN, lo_open=True),
+    "angle.min_modulation": Bound(0, 0.99, WHY_MODULATION),
+    "angle.noise": Bound(0, 64, "8-bit grey levels: 0 makes every angle exact (infinite weight); beyond 64 "
+                                "the noise fills a quarter of the camera's range", lo_open=True),
+    **{f"single_shot.{k}": b for k, b in single_shot_settings.SETTING_RANGES.items()},
+}
+"""The range of every numeric field of :class:`StageSettings`, and why, by its path
+(``decode.min_contrast``); ``reconstruct.SETTING_RANGES`` holds them with the rest."""
 
 
 @dataclass(frozen=True)

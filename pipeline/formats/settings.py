@@ -10,9 +10,11 @@ import dataclasses
 import functools
 import json
 import math
+from dataclasses import dataclass
 
 __all__ = ["settings_to_dict", "settings_from_dict", "check_finite_settings", "check_settings_types",
-           "settings_json_schema", "apply_setting"]
+           "settings_json_schema", "apply_setting", "Bound", "check_ranges",
+           "WHY_GREY", "WHY_MARGIN", "WHY_MODULATION", "WHY_FRACTION", "WHY_DEG", "WHY_ARC", "WHY_CAM_PX", "WHY_PROJ_PX", "WHY_MM", "WHY_LEVELS"]
 
 
 def settings_to_dict(s) -> dict:
@@ -28,9 +30,30 @@ def settings_from_dict(cls, d: dict):
     """
     if d is None:
         return cls()
+    d = _drop_retired(cls, d, "")
     _check_keys(cls, d, "")
     _validate(cls, d)
     return _build(cls, d)
+
+
+def _drop_retired(cls, d, where: str):
+    """``d`` without the fields a settings class no longer has (its ``RETIRED``: name ->
+    the value it was fixed at), so that a run's old settings.json still loads; a
+    retired field with another value is refused (the run would not be what it says)."""
+    if not isinstance(d, dict):
+        return d
+    retired = getattr(cls, "RETIRED", {})
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = {}
+    for k, v in d.items():
+        if k in retired and k not in fields:
+            if v != retired[k]:
+                raise ValueError(f"{where}{k}: no longer a setting (fixed at {retired[k]!r}); remove it from the file")
+            continue
+        f = fields.get(k)
+        sub = f.default_factory() if f is not None and f.default_factory is not dataclasses.MISSING else None
+        out[k] = _drop_retired(type(sub), v, f"{where}{k}.") if dataclasses.is_dataclass(sub) else v
+    return out
 
 
 def _check_keys(cls, d, where: str) -> None:
@@ -120,7 +143,16 @@ def _dataclasses_below(cls) -> list:
 
 
 def _field_docs(cls) -> dict:
-    """Each field's docstring (the string literal after it in the class body)."""
+    """Each field's docstring (the string literal after it in the class body), an
+    inherited field's from its base class."""
+    docs = {}
+    for c in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(c):
+            docs.update(_own_field_docs(c))
+    return docs
+
+
+def _own_field_docs(cls) -> dict:
     import ast
     import inspect
     import textwrap
@@ -179,3 +211,53 @@ def check_finite_settings(s, *, where: str | None = None) -> None:
             check_finite_settings(v, where=f"{where}.{f.name}")
         elif isinstance(v, float) and not math.isfinite(v):
             raise ValueError(f"{where}.{f.name} must be a finite number, got {v}")
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The range a numeric setting may take, and why (:func:`check_ranges`)."""
+
+    lo: float
+    hi: float
+    why: str
+    lo_open: bool = False
+    """True: ``lo`` itself is outside (``> lo``)."""
+
+    def holds(self, v: float) -> bool:
+        return (v > self.lo if self.lo_open else v >= self.lo) and v <= self.hi
+
+    def text(self) -> str:
+        lo = f"> {self.lo:g}" if self.lo_open else f"{self.lo:g}"
+        return f"{lo} .. {self.hi:g}" if not self.lo_open else f"{lo} and <= {self.hi:g}"
+
+
+WHY_GREY = "8-bit grey levels of white - black (x257 for 16-bit frames): below 1 an unlit pixel counts as lit; " \
+        "above 200 only a white - black step of nearly the camera's whole range (255) passes"
+WHY_MARGIN = "a fraction of white - black: 0 trusts a bit at the noise level, and |frame - inverse| never exceeds " \
+          "white - black, so at 1 no bit is strong"
+WHY_MODULATION = "a fringe modulation (1 for a perfect fringe): at 1 or more no pixel passes"
+WHY_FRACTION = "a fraction of the pairs or samples: at most all of them (1)"
+WHY_DEG = "degrees between two directions: at most 180"
+WHY_ARC = "degrees of a circle: at most 360"
+WHY_CAM_PX = "camera px: at most the largest camera side ringscan reads (65536)"
+WHY_PROJ_PX = "projector px: at most the largest projector side a rig may have (65536)"
+WHY_MM = "mm: at most the rig's sane length range (100 m)"
+WHY_LEVELS = "8-bit grey levels: a frame holds at most 255"
+
+
+def check_ranges(s, ranges: dict[str, Bound]) -> None:
+    """Refuse a numeric setting of ``s`` outside its range: ``ranges`` maps a field's
+    path (``decode.min_contrast``) to its :class:`Bound`.
+
+    Raises:
+        ValueError: naming the setting, e.g. ``decode.min_contrast: 1e+308 is outside 1 .. 200 (8-bit grey
+            levels ...)``.
+    """
+    for path, bound in ranges.items():
+        v = s
+        for part in path.split("."):
+            v = getattr(v, part)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue  # a value of the wrong type is check_settings_types's to name
+        if not bound.holds(v):
+            raise ValueError(f"{path}: {v:g} is outside {bound.text()} ({bound.why})")

@@ -29,6 +29,7 @@ def tiny_scan(tmp_path_factory):
     ({"triangulate": 3}, "triangulate: expected an object of settings, got 3"),
     ({"triangulate": {"margin": 0.3}}, "triangulate.margin: unknown setting of TriangulateSettings"),
     ({"min_confidence": 1.5}, "min_confidence: expected a confidence in 0..1, got 1.5"),
+    ({"single_shot": {"fork_px": 2.0}}, "single_shot.fork_px: no longer a setting (fixed at 0.9)"),
 ])
 def test_a_settings_file_of_the_wrong_type_is_one_line_naming_the_field(tiny_scan, tmp_path, capsys, settings,
                                                                          message):
@@ -40,6 +41,21 @@ def test_a_settings_file_of_the_wrong_type_is_one_line_naming_the_field(tiny_sca
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert err.startswith(f"ringscan reconstruct: error: {path}: {message}"), err
     assert not out.exists()
+
+
+def test_an_old_settings_file_naming_retired_fields_at_their_fixed_values_still_loads():
+    """The single-shot labeller's thresholds became fixed (``LabelTuning``); a run's
+    settings.json from before names each with the value it is fixed at."""
+    from ringscan.pipeline.codecs.single_shot.settings import TUNING, LabelTuning
+    from ringscan.pipeline.formats.settings import settings_from_dict
+    import dataclasses
+
+    old = {f.name: getattr(TUNING, f.name) for f in dataclasses.fields(LabelTuning)}
+    assert len(old) == 18
+    s = settings_from_dict(ReconstructSettings, {"single_shot": {**old, "min_piece_samples": 20}})
+    assert s.single_shot.min_piece_samples == 20
+    assert s == ReconstructSettings(single_shot=dataclasses.replace(ReconstructSettings().single_shot,
+                                                                    min_piece_samples=20))
 
 
 def test_set_and_min_confidence_flags_are_usage_errors_when_wrong(tiny_scan, tmp_path, capsys):

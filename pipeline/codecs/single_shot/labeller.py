@@ -21,7 +21,7 @@ import warp as wp
 
 from ringscan.kernels.ring_links import link_lines, ring_roots
 from ringscan.pipeline.codecs.single_shot.pieces import _closed_loop_order, _inside, build_pieces
-from ringscan.pipeline.codecs.single_shot.settings import PHI_BINS, RingLabelling, SingleShotSettings
+from ringscan.pipeline.codecs.single_shot.settings import PHI_BINS, TUNING, RingLabelling, SingleShotSettings
 from ringscan.pipeline.formats.patterns import PatternSpec
 from ringscan.pipeline.formats.rig import Rig
 from ringscan.pipeline.geometry import (
@@ -213,7 +213,7 @@ class _Labeller:
                 continue
             cut = np.nonzero((np.diff(pa) != 0) | (np.diff(pb) != 0))[0] + 1
             for grp in np.split(np.arange(i.size), cut):
-                if grp.size >= self.s.min_link_pairs:
+                if grp.size >= TUNING.min_link_pairs:
                     links[int(pa[grp[0]])].append(_Link(side, int(pb[grp[0]]), pos[i[grp]], pos[k[grp]],
                                                         float(np.mean(self.bump[i[grp], side] > 0))))
         return links
@@ -237,15 +237,15 @@ class _Labeller:
         gap, roots under both labels, and a lit, visible patch between them."""
         s = self.s
         b, pa, pb = link.b, link.pa, link.pb
-        if link.bumps > s.max_bump_fraction:
+        if link.bumps > TUNING.max_bump_fraction:
             return False
         ja, oa = int(self.state[a]), int(self.out[a])
-        if np.mean(self.choose(b, jb, ob) >= 0) < s.min_root_fraction:
+        if np.mean(self.choose(b, jb, ob) >= 0) < TUNING.min_root_fraction:
             return False
         ra = self.choose(a, ja, oa, pa)
         rb = self.choose(b, jb, ob, pb)
         use = (ra >= 0) & (rb >= 0)
-        if use.sum() < max(s.min_link_pairs, s.min_pass_fraction * use.size):
+        if use.sum() < max(TUNING.min_link_pairs, TUNING.min_pass_fraction * use.size):
             return False
         k = np.nonzero(use)[0]
         Ra, Rb = self.roots(a, ja), self.roots(b, jb)
@@ -261,8 +261,8 @@ class _Labeller:
         V = self.cam_center - 0.5 * (Xa + Xb)
         V /= np.linalg.norm(V, axis=1, keepdims=True)
         ok = ((nl > 0) & (np.sum(n * V, 1) >= s.min_view_cos) & (np.sum(n * L, 1) >= s.min_light_cos)
-              & (np.linalg.norm(D, axis=1) <= s.max_step_pitches * self.pitch_mm))
-        return ok.sum() >= max(s.min_link_pairs, s.min_pass_fraction * use.size)
+              & (np.linalg.norm(D, axis=1) <= TUNING.max_step_pitches * self.pitch_mm))
+        return ok.sum() >= max(TUNING.min_link_pairs, TUNING.min_pass_fraction * use.size)
 
     # -- arcs of each ring (one lit point per ring and polar angle)
 
@@ -297,14 +297,14 @@ class _Labeller:
             off = projector_offset(self.rig, X, self.spec.center)
             rho = np.hypot(off[:, 0], off[:, 1])
             j = np.argmin(np.abs(rho[:, None] - self.radii[None]), 1)
-            near = ok & (np.abs(rho - self.radii[j]) <= s.plane_tolerance_px)
+            near = ok & (np.abs(rho - self.radii[j]) <= TUNING.plane_tolerance_px)
             self.plane_like[p] = near.sum() >= 0.5 * idx.size
             if near.sum() < s.min_piece_samples:
                 continue
             jj = int(np.bincount(j[near]).argmax())
             on = near & (j == jj)
             phi = np.sort(np.arctan2(off[on, 1], off[on, 0]))
-            if _longest_run_deg(phi, max_gap_deg=2.0) < s.plane_min_arc_deg:
+            if _longest_run_deg(phi, max_gap_deg=2.0) < TUNING.plane_min_arc_deg:
                 continue
             # the plane root's orientation gives the outward side
             R = self.roots(p, jj)
@@ -332,7 +332,7 @@ class _Labeller:
             idx = np.nonzero(self.curve == cid)[0]
             q = self.uv[idx]
             c = q.mean(0)
-            order = _closed_loop_order(q, s.closed_max_gap_deg)
+            order = _closed_loop_order(q, TUNING.closed_max_gap_deg)
             if order is None:
                 continue
             radial = np.sign(np.sum((q - c) * self.normal[idx], 1))
@@ -347,7 +347,7 @@ class _Labeller:
             X, good = [], True
             for p in plist:
                 r = self.choose(p, 0, side)
-                if np.mean(r >= 0) < s.min_root_fraction:
+                if np.mean(r >= 0) < TUNING.min_root_fraction:
                     good = False
                     break
                 k = np.nonzero(r >= 0)[0]
@@ -540,7 +540,7 @@ def label_ring_lines(
         # where the ray nearly grazes the ring's quadric its two meetings close up
         # and their orientations cannot be told apart: leave the root undecided
         close = np.all(oo != 0, axis=1) & (np.linalg.norm(R["P"][:, 0] - R["P"][:, 1], axis=1)
-                                           < settings.min_root_separation_mm)
+                                           < TUNING.min_root_separation_mm)
         r = np.where(close, -1, r)
         keep = ~inconsistent
         ring[idx[keep]] = j

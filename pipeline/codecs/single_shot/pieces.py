@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
+from ringscan.pipeline.codecs.single_shot.settings import TUNING, SingleShotSettings
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ def _neighbour_links(uv: np.ndarray, normal: np.ndarray, pixel: np.ndarray, widt
     d = uv[b] - uv[a]
     cos = np.abs(np.sum(normal[a] * normal[b], 1))
     across = np.maximum(np.abs(np.sum(d * normal[a], 1)), np.abs(np.sum(d * normal[b], 1)))
-    keep = (cos >= math.cos(math.radians(settings.max_normal_turn_deg))) & (across <= settings.max_piece_step_px)
+    keep = (cos >= math.cos(math.radians(TUNING.max_normal_turn_deg))) & (across <= TUNING.max_piece_step_px)
     return a[keep], b[keep]
 
 
@@ -128,7 +128,7 @@ def _forks(uv: np.ndarray, normal: np.ndarray, a: np.ndarray, b: np.ndarray,
             break
         s = (ends[k:] == ends[:-k]) & (side[k:] == side[:-k])
         e, q1, q2 = ends[:-k][s], other[:-k][s], other[k:][s]
-        fork[e[np.abs(np.sum((uv[q1] - uv[q2]) * normal[e], 1)) > settings.fork_px]] = True
+        fork[e[np.abs(np.sum((uv[q1] - uv[q2]) * normal[e], 1)) > TUNING.fork_px]] = True
     return fork
 
 
@@ -138,10 +138,10 @@ def _junction_pairs(uv: np.ndarray, normal: np.ndarray, tree, settings: SingleSh
     # whose normals turn by more than ``junction_deg`` + d / ``min_curvature_radius_px``
     # (a ring ending on another where the object hides it, a kink where two
     # rings' images meet). A ring's own image turns by d / radius of curvature.
-    pr = tree.query_pairs(settings.junction_px, output_type="ndarray").reshape(-1, 2)
+    pr = tree.query_pairs(TUNING.junction_px, output_type="ndarray").reshape(-1, 2)
     turn = np.arccos(np.clip(np.abs(np.sum(normal[pr[:, 0]] * normal[pr[:, 1]], 1)), 0.0, 1.0))
     dist = np.linalg.norm(uv[pr[:, 0]] - uv[pr[:, 1]], axis=1)
-    junction = turn > math.radians(settings.junction_deg) + dist / settings.min_curvature_radius_px
+    junction = turn > math.radians(TUNING.junction_deg) + dist / TUNING.min_curvature_radius_px
     return pr, turn, dist, junction
 
 
@@ -198,12 +198,12 @@ def _cut_pieces(uv: np.ndarray, contrast: np.ndarray, curve: np.ndarray, a: np.n
     # innermost closed loops (a loop around nothing is one ring whatever its
     # curvature; the centre anchor looks for one).
     same = (curve[pr[:, 0]] == curve[pr[:, 1]]) & (curve[pr[:, 0]] >= 0)
-    loops = _innermost_loops(uv, curve, settings.closed_max_gap_deg)
+    loops = _innermost_loops(uv, curve, TUNING.closed_max_gap_deg)
     same &= ~np.isin(curve[pr[:, 0]], loops)
     step = np.abs(np.log(np.maximum(contrast[pr[:, 0]], 1e-6) / np.maximum(contrast[pr[:, 1]], 1e-6)))
-    soft = math.radians(settings.segment_deg)
-    cut = same & ((turn > soft + dist / settings.segment_curvature_radius_px)
-                  | ((turn > soft) & (step > math.log(settings.segment_contrast_ratio))))
+    soft = math.radians(TUNING.segment_deg)
+    cut = same & ((turn > soft + dist / TUNING.segment_curvature_radius_px)
+                  | ((turn > soft) & (step > math.log(TUNING.segment_contrast_ratio))))
     barrier = np.zeros(n, bool)
     barrier[pr[cut].ravel()] = True
     keep = ~barrier[a] & ~barrier[b]
@@ -232,9 +232,9 @@ def _clean_loops(uv: np.ndarray, g, tree, settings: SingleShotSettings) -> np.nd
             continue
         q = uv[idx]
         span = q.max(0) - q.min(0)
-        if span.min() > 4.0 * settings.min_curvature_radius_px:
+        if span.min() > 4.0 * TUNING.min_curvature_radius_px:
             continue  # bends gently enough for the junction test
-        if _closed_loop_order(q, settings.closed_max_gap_deg) is None:
+        if _closed_loop_order(q, TUNING.closed_max_gap_deg) is None:
             continue
         (cx, cy), (w, h), ang = cv2.fitEllipse(q.astype(np.float32).reshape(-1, 1, 2))
         if not (w > 0 and h > 0):
@@ -246,11 +246,11 @@ def _clean_loops(uv: np.ndarray, g, tree, settings: SingleShotSettings) -> np.nd
         sc = np.hypot(x / (0.5 * w), y / (0.5 * h))
         if np.max(np.hypot(x, y) * np.abs(1.0 - 1.0 / np.maximum(sc, 1e-9))) > settings.loop_fit_px:
             continue
-        near = np.unique(np.concatenate(tree.query_ball_point(q, settings.junction_px)))
+        near = np.unique(np.concatenate(tree.query_ball_point(q, TUNING.junction_px)))
         if np.setdiff1d(near, idx).size:
             continue  # another chain touches it
         others = np.setdiff1d(np.arange(n), idx)
-        order_q = _closed_loop_order(q, settings.closed_max_gap_deg)
+        order_q = _closed_loop_order(q, TUNING.closed_max_gap_deg)
         if np.any(_inside(uv[others], q[order_q])):
             continue
         out[idx] = True

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import ClassVar
 
 import numpy as np
 
 from ringscan.kernels.ring_lines import LineSettings
+from ringscan.pipeline.formats.settings import WHY_CAM_PX, WHY_LEVELS, WHY_MM, Bound
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SECTOR_BITS", "PHI_BINS", "SingleShotSettings", "RingLabelling"]
+__all__ = ["SECTOR_BITS", "PHI_BINS", "SingleShotSettings", "SETTING_RANGES", "LabelTuning", "TUNING", "RingLabelling"]
 
 
 SECTOR_BITS = 8
@@ -22,13 +24,13 @@ PHI_BINS = 720
 
 
 @dataclass(frozen=True)
-class SingleShotSettings:
-    """Settings of the single-shot ``rings`` stage (line detection and labelling)."""
+class LabelTuning:
+    """The labeller's fixed thresholds: how centres join pieces, where pieces are cut,
+    how a label is anchored and spread (``TUNING``). Not settings: no test, document or
+    benchmark has needed another value, and a user cannot judge them from a scan; they
+    were ``single_shot.*`` settings until 0.1 (a settings file that names one with its
+    old default still loads)."""
 
-    lines: LineSettings = field(default_factory=LineSettings)
-    """Line (ridge) detector thresholds."""
-    min_piece_samples: int = 12
-    """Pieces with fewer line centres are dropped (noise, scraps at occlusions)."""
     max_normal_turn_deg: float = 30.0
     """Neighbouring centres join the same piece only if their normals turn less."""
     max_piece_step_px: float = 0.8
@@ -49,12 +51,6 @@ class SingleShotSettings:
     """See ``junction_px``: the tightest curve (camera px) a ring's own image may
     make. A ring whose whole image is one small clean loop (ring 0 of a pattern
     with a small ``rho0``) may bend more tightly: see ``loop_fit_px``."""
-    loop_fit_px: float = 0.35
-    """A chain of centres that closes on itself, alone (no other centre within
-    ``junction_px``, none inside) and bends more tightly than
-    ``min_curvature_radius_px`` allows is still one ring's image when all of its
-    centres lie within this distance (camera px) of one fitted ellipse: its bends
-    are not taken for junctions, so it can serve as the centre anchor."""
     segment_deg: float = 6.0
     """Curves are cut into pieces (the units that get labels) where two centres
     up to ``junction_px`` apart turn by more than this + d /
@@ -66,9 +62,6 @@ class SingleShotSettings:
     """See ``segment_deg``."""
     segment_contrast_ratio: float = 1.5
     """See ``segment_deg``."""
-    max_gap_px: float = 0.0
-    """How far across the dark gap to look for the next ring (camera px);
-    0: three times the widest ring spacing on the reference plane."""
     plane_tolerance_px: float = 0.5
     """Plane anchor: largest distance (projector px) between a sample's ray's
     meeting with z = 0 and its ring's circle."""
@@ -78,10 +71,6 @@ class SingleShotSettings:
     closed_max_gap_deg: float = 20.0
     """A piece counts as a closed loop when its centres leave no angular gap wider
     than this around the piece's centroid."""
-    bump_contrast: float = 2.0
-    """A gap between two linked rings must be one clean valley: a rise and fall of
-    this many grey levels inside it (a faint ring left undetected between them)
-    marks the pair as crossing a hidden ring."""
     max_bump_fraction: float = 0.05
     """A link whose pairs cross a faint ring more often than this is not used."""
     min_link_pairs: int = 8
@@ -98,6 +87,37 @@ class SingleShotSettings:
     """Where a sample's two meetings with its ring lie closer than this (the ray
     nearly grazes the ring's quadric), the orientation does not choose between
     them: the sample's root is left undecided (sector -1)."""
+
+
+TUNING = LabelTuning()
+"""The values the labeller uses."""
+
+
+@dataclass(frozen=True)
+class SingleShotSettings:
+    """Settings of the single-shot ``rings`` stage (line detection and labelling)."""
+
+    RETIRED: ClassVar[dict] = {f.name: f.default for f in fields(LabelTuning)}
+    """Former fields, now the labeller's fixed :data:`TUNING`: a settings file that
+    names one with this value loads (``formats.settings``)."""
+
+    lines: LineSettings = field(default_factory=LineSettings)
+    """Line (ridge) detector thresholds."""
+    min_piece_samples: int = 12
+    """Pieces with fewer line centres are dropped (noise, scraps at occlusions)."""
+    loop_fit_px: float = 0.35
+    """A chain of centres that closes on itself, alone (no other centre within
+    ``TUNING.junction_px``, none inside) and bends more tightly than
+    ``TUNING.min_curvature_radius_px`` allows is still one ring's image when all of its
+    centres lie within this distance (camera px) of one fitted ellipse: its bends
+    are not taken for junctions, so it can serve as the centre anchor."""
+    max_gap_px: float = 0.0
+    """How far across the dark gap to look for the next ring (camera px);
+    0: three times the widest ring spacing on the reference plane."""
+    bump_contrast: float = 2.0
+    """A gap between two linked rings must be one clean valley: a rise and fall of
+    this many grey levels inside it (a faint ring left undetected between them)
+    marks the pair as crossing a hidden ring."""
     off_plane_mm: float = 1.0
     """A labelled sample whose root lies more than this above the reference plane
     counts as on the object (report: ``samples_labelled_off_plane``; none of them
@@ -111,24 +131,44 @@ class SingleShotSettings:
     def __post_init__(self):
         if not isinstance(self.lines, LineSettings):
             raise ValueError(f"SingleShotSettings.lines: expected LineSettings, got {type(self.lines).__name__}")
-        for name in ("min_piece_samples", "min_link_pairs"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"SingleShotSettings.{name}: expected an integer >= 1, got {v!r}")
-        for name in ("max_normal_turn_deg", "max_piece_step_px", "fork_px", "junction_px", "junction_deg",
-                     "min_curvature_radius_px", "loop_fit_px", "segment_deg", "segment_curvature_radius_px",
-                     "segment_contrast_ratio", "min_root_separation_mm", "off_plane_mm",
-                     "plane_tolerance_px", "bump_contrast",
-                     "plane_min_arc_deg", "closed_max_gap_deg", "max_step_pitches"):
+        v = self.min_piece_samples
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"SingleShotSettings.min_piece_samples: expected an integer >= 1, got {v!r}")
+        for name in ("loop_fit_px", "off_plane_mm", "bump_contrast"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"SingleShotSettings.{name}: must be a finite number > 0, got {v!r}")
-        for name in ("min_pass_fraction", "min_root_fraction", "min_view_cos", "min_light_cos", "max_bump_fraction"):
+        for name in ("min_view_cos", "min_light_cos"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 <= v <= 1):
                 raise ValueError(f"SingleShotSettings.{name}: must be in [0, 1], got {v!r}")
         if not (isinstance(self.max_gap_px, (int, float)) and math.isfinite(self.max_gap_px) and self.max_gap_px >= 0):
             raise ValueError(f"SingleShotSettings.max_gap_px: must be >= 0, got {self.max_gap_px!r}")
+
+
+SETTING_RANGES: dict[str, Bound] = {
+    "lines.sigma": Bound(0, 20, "camera px: a larger Gaussian merges neighbouring rings",
+                         lo_open=True),
+    "lines.min_contrast": Bound(0, 200, WHY_LEVELS + "; above 200 only a nearly full-range line passes"),
+    "lines.min_curvature": Bound(0, 1020, "grey levels per px^2: a second difference of 8-bit "
+                                          "values is at most 4 x 255"),
+    "lines.max_eigen_ratio": Bound(0, 1, "a ratio of eigenvalues: above 1 a blob passes as a line"),
+    "lines.max_tangent_slope": Bound(0, 100, "px times -lambda per px: beyond 100 every flank "
+                                             "passes as a centre"),
+    "lines.background_px": Bound(0, 64, "camera px: beyond 64 the background is read on the next "
+                                        "rings", lo_open=True),
+    "lines.confidence_contrast": Bound(0, 255, WHY_LEVELS, lo_open=True),
+    "min_piece_samples": Bound(1, 200000, "line centres: the longest ring on the largest camera "
+                                          "(2 pi 32768 px) has fewer"),
+    "loop_fit_px": Bound(0, 65536, WHY_CAM_PX, lo_open=True),
+    "max_gap_px": Bound(0, 65536, WHY_CAM_PX + "; 0: three ring spacings"),
+    "bump_contrast": Bound(0, 255, WHY_LEVELS, lo_open=True),
+    "off_plane_mm": Bound(0, 1e5, WHY_MM, lo_open=True),
+    "min_view_cos": Bound(0, 1, "a cosine: at most 1 (facing straight on)"),
+    "min_light_cos": Bound(0, 1, "a cosine: at most 1 (facing straight on)"),
+}
+"""Each numeric field's range, and why, by its path in :class:`SingleShotSettings`
+(``reconstruct.SETTING_RANGES`` holds them under ``single_shot.``)."""
 
 
 @dataclass

@@ -44,7 +44,7 @@ def _run_broken(target: str, body: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("target, codec_module", [
-    ("ringscan.kernels.phase", "angle_code"),             # a dependency of the codecs with an angle code
+    ("ringscan.kernels.phase", "codecs/base.py"),         # the phase codec's settings block (StageSettings)
     ("ringscan.pipeline.codecs.single_shot.labeller", "single_shot"),
 ])
 def test_import_failure_in_a_codec_surfaces_as_itself(target, codec_module):
