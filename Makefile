@@ -11,7 +11,7 @@ STAMP   = $(VENV)/.installed
 # each holds Warp, Open3D and a scan in memory (~1.5 GB), so more need the memory too.
 TEST_WORKERS ?= 2
 
-.PHONY: demo test bench setup sysdeps clean FORCE
+.PHONY: demo test docs-check bench setup sysdeps clean FORCE
 
 demo: setup
 	$(BIN)/ringscan demo --out out/demo
@@ -21,6 +21,11 @@ demo: setup
 test: setup
 	$(BIN)/lint-imports
 	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
+# Every command block of README.md and docs/ run as written (benchmarks/run_doc_blocks.py: the slow
+# ones the suite only parses and checks, ~60 min on a 2-core machine; see docs/index.md).
+docs-check: setup
+	$(BIN)/python benchmarks/run_doc_blocks.py
 
 bench: setup
 	$(BIN)/ringscan bench

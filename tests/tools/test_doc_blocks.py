@@ -4,25 +4,17 @@ needing hardware or your photos, with the reason (the list and its reasons: that
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.support.doc_blocks import load_run_doc_blocks
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("run_doc_blocks", ROOT / "benchmarks" / "run_doc_blocks.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("run_doc_blocks", mod)  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
-
-
-DB = _script()
+DB = load_run_doc_blocks()
 CLASSIFIED = DB.classify()
 
 
