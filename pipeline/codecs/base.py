@@ -139,6 +139,14 @@ class Codec(ABC, Generic[S]):
         where they cannot be checked that way (here). ``settings``: this codec's."""
         return None
 
+    def error_groups(self, spec: PatternSpec, ring: np.ndarray) -> np.ndarray | None:
+        """(n,) int: groups of samples whose errors differ by a factor the decode's
+        model does not know (the pattern whose edges place them, one modulating less
+        than another), each given its own factor where neighbours check the samples
+        (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`); -1: no
+        group. None (here): one group. ``ring``: the samples' ring indices."""
+        return None
+
     def frame_names(self, spec: PatternSpec) -> list[str]:
         """The frame names, in projection order (may depend on any pattern parameter)."""
         return self.layout.frame_names(spec)

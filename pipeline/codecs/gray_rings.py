@@ -30,6 +30,10 @@ __all__ = ["NAME", "GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", 
 NAME = "gray-rings"
 """The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
+ERROR_GROUPS = 3
+"""Edges grouped by the pattern that places them (:meth:`GrayRingsCodec.error_groups`): the
+finest, the next, and every coarser one together (an eighth of the samples and fewer each)."""
+
 
 @dataclass(frozen=True)
 class GrayRingsSettings:
@@ -175,6 +179,18 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
     def extract(self, frames: wp.array, scan: Scan, settings: GrayRingsSettings, *,
                 threads: int) -> tuple[Samples, dict]:
         return extract_gray_rings(frames, scan, settings, threads)
+
+    def error_groups(self, spec: PatternSpec, ring: np.ndarray) -> np.ndarray:
+        """The band bit whose frame pair places each edge: at boundary k it is the bit
+        that flips between the Gray codes of bands k - 1 and k (the lowest set bit of
+        k): 0 the finest pattern (every other edge), 1 the next, 2 every coarser one (-1:
+        boundary 0). The finest pattern is the first to wash out (a far, faint or
+        defocused surface: its edges' errors 1.5x the others' on ringscan's far faint
+        plane), and its edges are half the samples."""
+        k = np.asarray(ring, np.int64)
+        low = k & -k  # the lowest set bit of k
+        bit = np.where(k > 0, np.log2(np.maximum(low, 1)).astype(np.int64), -1)
+        return np.where(bit >= 0, np.minimum(bit, ERROR_GROUPS - 1), -1)
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: GrayRingsSettings) -> str | None:
         return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)

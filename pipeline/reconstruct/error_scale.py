@@ -60,6 +60,9 @@ model gives (an object beside a plane: its own facets, shadows, bounced light). 
 Mitsuba's renders (docs/accuracy.md) 32 px tiles left fewer points beyond 3 sigma on the
 object than 64 px (glossy Spot, angle: 7.7 -> 6.0 %; the corner's default 6.0 -> 5.7 %)."""
 MIN_REGION_PAIRS = 64
+GROUP_SCALE_RANGE = (0.25, 64.0)
+"""Bounds of a group's variance factor (``_group_scales``): a sixteenth of the view's sigma
+at least, 8x at most: the fit on a group's pairs beyond them is taken as the bound."""
 """Fewer pairs in a tile than this: the view's model alone there (64 pairs fix a
 scale to ~18 %; a tile's factor is never below 1, so that noise only widens)."""
 TERMS = ("k_rho", "k_tan", "floor_rho_px", "floor_tan_px", "floor_px")
@@ -195,18 +198,50 @@ def _region_scales(d2: np.ndarray, var: np.ndarray, uv: np.ndarray) -> dict:
     u_all = d2 / (T_SCALE * T_SCALE * np.maximum(var, 1e-300))
     scales = []
     for t in np.flatnonzero(counts >= MIN_REGION_PAIRS):
-        u = u_all[inv == t]
-        m = 1.0
-        for _ in range(50):  # the t likelihood's scale: m = mean((nu + 1) u / (nu + u / m))
-            m_new = float(np.mean((T_DOF + 1) * u / (T_DOF + u / m)))
-            if abs(m_new - m) <= 1e-4 * m:
-                m = m_new
-                break
-            m = m_new
+        m = _t_scale(u_all[inv == t])
         if m > 1.0:
             tx, ty = int(key[inv == t][0, 0]), int(key[inv == t][0, 1])
             scales.append([tx, ty, round(m, 4)])
     return {"tile_px": REGION_PX, "scales": scales}
+
+
+def _t_scale(u: np.ndarray) -> float:
+    """The variance factor m that squared, normalised differences ``u`` (d^2 / (T_SCALE^2
+    var)) fit under the Student-t of ``T_DOF`` degrees of freedom: the fixed point of its
+    likelihood, m = mean((nu + 1) u / (nu + u / m))."""
+    m = 1.0
+    for _ in range(50):
+        m_new = float(np.mean((T_DOF + 1) * u / (T_DOF + u / m)))
+        if abs(m_new - m) <= 1e-4 * m:
+            return m_new
+        m = m_new
+    return m
+
+
+def _group_scales(d2: np.ndarray, var: np.ndarray, group: np.ndarray) -> dict:
+    """Samples the codec says err differently (``Codec.error_groups``: the pattern whose
+    edge places them) get a variance factor each: per group with at least ``MIN_PAIRS``
+    checked samples, the factor its pairs fit (``_t_scale``; 1 for the others), within
+    ``GROUP_SCALE_RANGE``. Returns [[group, factor], ...]."""
+    u_all = d2 / (T_SCALE * T_SCALE * np.maximum(var, 1e-300))
+    out = []
+    for g in np.unique(group):
+        m = group == g
+        if g >= 0 and np.count_nonzero(m) >= MIN_PAIRS:
+            out.append([int(g), round(float(np.clip(_t_scale(u_all[m]), *GROUP_SCALE_RANGE)), 4)])
+    return out
+
+
+def group_scale(groups: list | None, group: np.ndarray | None) -> np.ndarray | float:
+    """Each sample's variance factor from :func:`_group_scales` ([[group, factor], ...]; 1
+    where its group has none)."""
+    if not groups or group is None:
+        return 1.0
+    group = np.asarray(group, np.int64)
+    table = np.ones(max(max(g for g, _ in groups), int(np.max(group, initial=0))) + 1)
+    for g, m in groups:
+        table[g] = m
+    return np.where(group >= 0, table[np.maximum(group, 0)], 1.0)
 
 
 def region_scale(regions: dict | None, uv: np.ndarray) -> np.ndarray:
@@ -227,7 +262,7 @@ def region_scale(regions: dict | None, uv: np.ndarray) -> np.ndarray:
     return out
 
 
-NEIGHBOUR_LAGS = (1, 2, 4)
+NEIGHBOUR_LAGS = (1, 2, 4, 8)
 """Spacings (camera px along a ring; along the pixel grid for a dense code) at which
 each checked sample meets its neighbours: at 1 px, two on either side through a line;
 at k >= 2, four (at -2k, -k, k, 2k) through a cubic, which a smooth surface's depth
@@ -238,7 +273,22 @@ alternate from pixel to pixel read too large in it; from ~3 px apart the reading
 level (ringscan's renderer: gray-rings 1.31, 1.47, 1.55, 1.54, 1.58 at 1, 2, 3, 4, 6 px
 on Spot; phase-rings under a sharp projector 113, 61, 47, 45, 45): the widest check
 that can be made is kept (fit_neighbour_model). The 1 px check is the fallback where
-rings are too short or broken for four neighbours."""
+rings are too short or broken for four neighbours. Along a ring, 8 px sees what a
+washed-out pattern's edges share over several pixels: gray-rings without the angle on
+ringscan's far faint plane, median |e|/sigma 1.16 and 9.4 % beyond 3 sigma with 4 px
+at most, 1.09 and 7.3 % with 8, every other condition as before or nearer 0.67 (16 px:
+1.07 and 6.7 %, but the far dark plane's fewer checks read it 5.4 % beyond). A dense
+code stops at ``DENSE_MAX_LAG_PX``."""
+
+REGION_MAX_LAG_PX = 4
+"""The widest check a region's factor (``_region_scales``) is measured with: an object's
+facet beside a plane holds more 4 px checks than 8 px ones (a planted 2x corner of a
+synthetic view read 2.4x in variance with 8 px, 4x with 4)."""
+
+DENSE_MAX_LAG_PX = 4
+"""The widest check of a dense code (along the pixel grid): its errors are so small
+(phase-rings: 0.002 mm on Spot) that a curved surface's departure from the cubic over
+32 px reads as error at 8 px (median |e|/sigma 0.31-0.37: sigma 2x too wide)."""
 
 
 def _same_ring_at(ring, at_pixel, width, height, centre, xx, yy):
@@ -370,15 +420,15 @@ def _next_neighbours(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray):
     return centre[use], nb[rows, ia][use], nb[rows, ib][use]
 
 
-def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray) -> list:
-    """The checks wider than 1 px (``NEIGHBOUR_LAGS``), each (lag, checked samples (m,),
+def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: int) -> list:
+    """The checks wider than 1 px (``NEIGHBOUR_LAGS`` up to ``max_lag``), each (lag, checked samples (m,),
     their four same-ring nodes (m, 4), the cubic's weights (m, 4)), for the lags where at
     least ``MIN_PAIRS`` samples have all four: every ``centre`` sample, with its ring's
     direction there from the ring's samples around it (a ring broken up by dropped
     samples still has one)."""
     wide, direction = _ring_directions(uv, idx.ring, idx.at_pixel, idx.width, centre)
     out = []
-    for lag in NEIGHBOUR_LAGS[1:]:
+    for lag in (k for k in NEIGHBOUR_LAGS[1:] if k <= max_lag):
         nodes, place = _lag_nodes(uv, idx.ring, idx.at_pixel, idx.width, wide, direction, lag)
         fine = ((nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0)
                 & (place[:, 2] > 0))
@@ -406,7 +456,7 @@ def _check_variance(u, cc, nodes, w, x, y, window):
 
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
                         ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
-                        max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
+                        group: np.ndarray | None = None, max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
     """The ring coordinate's missed error terms where no angle checks it: from each
     sample's disagreement with its neighbours on the same ring (or, for a dense code,
     the neighbouring pixels).
@@ -435,6 +485,10 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         window: the side (px) of the square a dense decode averages each pixel over
             (2 r + 1 for a smoothing radius r; 1: none): neighbouring pixels then share
             part of their errors (a box's overlap), which their difference would hide.
+        group: (n,) int, or None: the codec's groups of samples that err differently
+            (``Codec.error_groups``; -1: none); each group with enough checked samples
+            gets a variance factor of its own (``groups``; a check's samples share a ring,
+            so one group).
         max_samples: at most this many samples are checked (whole rows of them, evenly spread).
 
     Returns:
@@ -448,6 +502,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     d, s, p = (np.asarray(x, np.float64) for x in (depth, s, sigma_px))
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     pixel = np.asarray(pixel, np.int64)
+    max_lag = DENSE_MAX_LAG_PX if ring is None else NEIGHBOUR_LAGS[-1]
     ring = np.zeros(pixel.size, np.int64) if ring is None else np.asarray(ring, np.int64)
     ok = np.isfinite(d) & np.isfinite(s) & (s > 0) & np.isfinite(p) & (p > 0) & np.isfinite(uv).all(axis=1)
     n_ok = int(np.count_nonzero(ok))
@@ -463,19 +518,29 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     ab = uv[b] - uv[a]
     t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
     g = s / p  # depth per projector px of rho
-    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre)
+    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre, max_lag)
     # the widest check that could be made: 1 px apart, neighbours share errors (a blur, a
     # smoothing window: it reads low) or alternate (a sharp projector's staircase: it reads
     # high); from ~3 px on the reading stays level (docs/accuracy.md)
-    lag, cc, nodes, w = checks[-1]
-    r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
-    X = np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
+    def residuals(check):
+        _, cc, nodes, w = check
+        r = d[cc] - np.einsum("ij,ij->i", w, d[nodes])
+        return cc, r, np.stack([_check_variance(u, cc, nodes, w, idx.x, idx.y, window) for u in (s, g)], axis=1)
+
+    lag = checks[-1][0]
+    cc, r, X = residuals(checks[-1])
     q = _fit_variances(X, r * r, np.array([1.0, 0.0]))
-    regions = _region_scales(r * r, X @ q, uv[cc])
+    grp = (lambda at: np.asarray(group)[at]) if group is not None else (lambda at: None)
+    groups = _group_scales(r * r, X @ q, grp(cc)) if group is not None else []
+    gs = group_scale(groups, grp(cc))
+    # a part of the view (an object's facets) from the checks that fit in it: at most REGION_MAX_LAG_PX wide
+    rc, rr, rX = residuals([ch for ch in checks if ch[0] <= REGION_MAX_LAG_PX][-1])
+    regions = _region_scales(rr * rr, rX @ q * group_scale(groups, grp(rc)), uv[rc])
     pairs, z0 = cc.size, np.abs(r) / np.sqrt(X[:, 0])
-    z1 = np.abs(r) / np.sqrt(X @ q * region_scale(regions, uv[cc]))
+    z1 = np.abs(r) / np.sqrt(X @ q * gs * region_scale(regions, uv[cc]))
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
                       floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=regions,
+                      groups=groups,
                       indirect_rho_px=0.0, indirect_tan_px=0.0,
                       lag_px=int(lag), z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))

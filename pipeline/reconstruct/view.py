@@ -38,6 +38,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
     apply_error_model,
     fit_error_model,
     fit_neighbour_model,
+    group_scale,
     region_scale,
     sample_subset,
     widen_depth_sigma,
@@ -340,12 +341,14 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     errors its pixels share are taken into account."""
     if samples.sigma_rho is None or len(samples) < MIN_PAIRS:
         return triangulated, {}
-    window = 1
+    window, group = 1, None
+    codec = codec_for(scan.patterns.codec, source=scan.path)
     if samples.ring is None:
-        codec = codec_for(scan.patterns.codec, source=scan.path)
         window = codec.pixel_window(codec.settings_from(settings))
         if window is None:  # a dense code whose neighbouring pixels cannot check it
             return triangulated, {}
+    else:
+        group = codec.error_groups(scan.patterns, samples.ring.numpy())
     cam = scan.rig.camera
     center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
     ok = triangulated.status.numpy() == 0
@@ -354,10 +357,12 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     sigma_px = samples.sigma_rho.numpy()
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
                               samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
-                              width=cam.width, window=window)
+                              width=cam.width, window=window, group=group)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = widen_depth_sigma(sigma, sigma_px, fit)
+    if fit.get("groups"):  # the codec's groups of samples that err differently (Codec.error_groups)
+        widened = (widened * np.sqrt(group_scale(fit["groups"], group))).astype(np.float32)
     if fit["regions"]:
         # parts of the view whose neighbours disagree more than the view's model says
         widened = (widened * np.sqrt(region_scale(fit["regions"], samples.uv.numpy()))).astype(np.float32)

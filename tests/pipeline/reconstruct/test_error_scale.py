@@ -357,3 +357,31 @@ def test_rho_measured_by_its_neighbours_leaves_the_pairs_the_angles_terms():
     assert fit["k_tan"] == pytest.approx(4.0, rel=0.1)  # 30k pairs: ~1 % on a variance
     blind = fit_error_model(dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv)
     assert blind["k_rho"] > 2.0  # the pairs alone put much of it on rho (8.3 and 2.9 measured)
+
+
+def test_a_codecs_group_of_samples_that_errs_more_gets_its_own_factor():
+    """Gray-rings' finest pattern washes out first: the edges it places err more than the
+    others (Codec.error_groups). Planted: every odd ring's errors 2x; with the rings' parity as
+    groups their variance factors come out ~4 apart and each group's sigmas hold; without,
+    one factor for both leaves the odd rings over-confident."""
+    from ringscan.pipeline.codecs.registry import REGISTRY
+    from ringscan.pipeline.reconstruct.error_scale import fit_neighbour_model, group_scale, widen_depth_sigma
+
+    rng = np.random.default_rng(5)
+    d = _ring_samples(rng, k_rho=1.0)
+    truth = 500 + 0.05 * d["uv"][:, 0] + 0.02 * d["uv"][:, 1] + 1e-4 * (d["uv"][:, 0] - 200) ** 2
+    odd = d["ring"] % 2 == 1
+    d["depth"] = truth + np.where(odd, 2.0, 1.0) * (d["depth"] - truth)
+    args = (d["depth"], d["s"], d["sigma_px"], d["pixel"], d["ring"], d["uv"])
+    m = fit_neighbour_model(*args, width=d["width"], group=odd.astype(np.int64))
+    factor = dict(m["groups"])
+    assert factor[1] / factor[0] == pytest.approx(4.0, rel=0.2)  # ~2000 checks a group: ~5 % on a variance
+    sig = widen_depth_sigma(d["s"], d["sigma_px"], m) * np.sqrt(group_scale(m["groups"], odd.astype(np.int64)))
+    z = np.abs(d["depth"] - truth) / sig
+    assert 0.55 <= np.median(z[odd]) <= 0.8 and 0.55 <= np.median(z[~odd]) <= 0.8
+    one = fit_neighbour_model(*args, width=d["width"])
+    z1 = np.abs(d["depth"] - truth) / widen_depth_sigma(d["s"], d["sigma_px"], one)
+    assert np.median(z1[odd]) > 0.85 and np.mean(z1[odd] > 3) > 0.01
+    # gray-rings' groups: the bit that flips at boundary k (the lowest set bit of k)
+    groups = REGISTRY["gray-rings"].error_groups(None, np.array([0, 1, 2, 3, 4, 5, 6, 8, 12, 16]))
+    assert groups.tolist() == [-1, 0, 1, 0, 2, 0, 1, 2, 2, 2]
