@@ -238,17 +238,39 @@ def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
 
 
 def _code_steps(code: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """|code step| between decoded neighbours across (camera x) and down (camera y), steps over 2 (depth
-    edges, misreads) left out."""
-    c = code.astype(np.float64)
-    gx = np.abs(np.diff(c, axis=1))[valid[:, 1:] & valid[:, :-1]]
-    gy = np.abs(np.diff(c, axis=0))[valid[1:, :] & valid[:-1, :]]
-    return gx[gx <= 2], gy[gy <= 2]
+    """How many decoded neighbours' codes step by 0, 1 and 2 across (camera x) and down (camera y):
+    two (3,) counts (steps over 2, depth edges and misreads, left out). Counts, not the steps
+    themselves: their median and mean are all that is asked, and counting in the codes' own integers
+    is ~5x faster than a float64 copy of the steps (the same medians and means to the bit)."""
+    out = []
+    for axis in (1, 0):
+        a, b = (code[:, 1:], code[:, :-1]) if axis == 1 else (code[1:, :], code[:-1, :])
+        both = (valid[:, 1:] & valid[:, :-1]) if axis == 1 else (valid[1:, :] & valid[:-1, :])
+        step = np.abs(np.subtract(a, b, dtype=np.int32))
+        out.append(np.array([np.count_nonzero(both & (step == k)) for k in (0, 1, 2)], np.int64))
+    return out[0], out[1]
+
+
+def _median_step(counts: np.ndarray) -> float:
+    """The median of the steps of 1 and 2 that ``counts`` (of 0, 1, 2) holds (1.0 with none), as
+    ``np.median`` of those steps gives it."""
+    n1, n2 = int(counts[1]), int(counts[2])
+    n = n1 + n2
+    if n == 0:
+        return 1.0
+    at = lambda i: 1.0 if i < n1 else 2.0  # noqa: E731  (the i-th of the sorted steps)
+    return at(n // 2) if n % 2 else (at(n // 2 - 1) + at(n // 2)) / 2.0
+
+
+def _mean_step(counts: np.ndarray) -> float:
+    """The mean of the steps of 0, 1 and 2 that ``counts`` holds (0 with none)."""
+    n = int(counts.sum())
+    return float(counts[1] + 2 * counts[2]) / n if n else 0.0
 
 
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
                   noise: float, *, scale: float = 1.0) -> np.ndarray:
-    """(H, W) int: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
+    """(H, W) int8: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
 
     A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
     stripe's width, so that a pixel on a stripe's edge, where the bit flips and has no contrast by nature,
@@ -259,19 +281,18 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     ``MAX_COARSE_BITS + 1`` finest bits are judged (the coarser ones are as wide as the contrast tests).
     """
     bits = pairs.shape[0]
-    out = np.zeros(contrast.shape, np.int64)
+    out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
-    g = np.concatenate(_code_steps(code, valid))
-    g = g[g > 0]
-    rate = float(np.median(g)) if g.size else 1.0
+    rate = _median_step(np.add(*_code_steps(code, valid)))
     thresh = np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise, CLEAR_CONTRAST_FRACTION * contrast)
     for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
         b = bits - 1 - j
-        d = np.abs(pair_diff(pairs, b, scale))
+        d = pair_diff(pairs, b, scale)
+        np.abs(d, out=d)
         # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
         r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
         near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
-        out = np.where(near < thresh, j + 1, out)
+        out[near < thresh] = j + 1
     return out
 
 
@@ -315,7 +336,7 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
 
     def axis_of(code):
         gx, gy = _code_steps(code, dec.valid)
-        return 1 if (gx.mean() if gx.size else 0) >= (gy.mean() if gy.size else 0) else 0
+        return 1 if _mean_step(gx) >= _mean_step(gy) else 0
 
     ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
     coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
