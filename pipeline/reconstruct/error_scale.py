@@ -556,6 +556,19 @@ def widen_depth_sigma(s: np.ndarray, sigma_px: np.ndarray, model: ErrorModel) ->
     return np.sqrt((model["k_rho"] * s64) ** 2 + (model["floor_rho_px"] * g) ** 2).astype(np.float32)
 
 
+def widen_for_indirect(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, indirect: np.ndarray,
+                       px: float) -> np.ndarray:
+    """(n,) float32: ring-only depth sigmas ``widened`` (mm) with each sample's indirect-light
+    share above the view's median (``indirect``: ``Samples.indirect``) moving its rho by
+    ``px`` projector px per unit share, added in quadrature (through s / sigma_px, the
+    depth per projector px). A share at or below the view's median adds nothing."""
+    b = np.asarray(indirect, np.float64)
+    b = np.maximum(b - np.median(b), 0.0) * px if b.size else b
+    p = np.asarray(sigma_px, np.float64)
+    g = np.where(p > 0, np.asarray(s, np.float64) / np.where(p > 0, p, 1.0), 0.0)
+    return np.sqrt(np.asarray(widened, np.float64) ** 2 + (b * g) ** 2).astype(np.float32)
+
+
 def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
     """The variances P (>= ``lower``, <= ``upper`` where given: equal bounds fix a term)
     of the model var_i = X_i @ P that fit the squared differences ``d2`` (n,) best under

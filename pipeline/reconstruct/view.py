@@ -42,6 +42,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
     region_scale,
     sample_subset,
     widen_depth_sigma,
+    widen_for_indirect,
 )
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_samples
@@ -65,6 +66,11 @@ LOW_MODULATION_WARN = 0.05
 Spot 0-0.6 % (sharp, defocused 1.5 px, noise 4), a far dark plane 1.4 %, a far faint
 one (the finest bit at ~7 % of white) 10.6 %; phase-rings at pitch 4 under a 1.5 px
 defocus: ~all."""
+INDIRECT_PRIOR_PX = 0.67
+"""Without an angle: projector px a band edge moves per unit of measured indirect-light share
+(``Samples.indirect`` above the view's median), which its neighbours cannot see (the shift is smooth
+along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inter-reflection
+(docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
 
 
 
@@ -366,6 +372,12 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     if fit["regions"]:
         # parts of the view whose neighbours disagree more than the view's model says
         widened = (widened * np.sqrt(region_scale(fit["regions"], samples.uv.numpy()))).astype(np.float32)
+    if samples.indirect is not None and samples.ring is not None:
+        # bounced light shifts a ring's edges smoothly along it, which no neighbour sees: its measured
+        # share widens sigma by the shift per unit share the angle's pairs fit (INDIRECT_PRIOR_PX; a
+        # dense code's phase moves far less: phase-rings' sigma came out 2-4x too wide with it)
+        widened = widen_for_indirect(widened, sigma, sigma_px, samples.indirect.numpy(), INDIRECT_PRIOR_PX)
+        fit["indirect_rho_px"] = INDIRECT_PRIOR_PX
     widened = wp.array(widened, dtype=wp.float32, device=triangulated.sigma.device)
     return replace(triangulated, sigma=widened), dict(fit)
 

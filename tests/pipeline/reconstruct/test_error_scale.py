@@ -385,3 +385,20 @@ def test_a_codecs_group_of_samples_that_errs_more_gets_its_own_factor():
     # gray-rings' groups: the bit that flips at boundary k (the lowest set bit of k)
     groups = REGISTRY["gray-rings"].error_groups(None, np.array([0, 1, 2, 3, 4, 5, 6, 8, 12, 16]))
     assert groups.tolist() == [-1, 0, 1, 0, 2, 0, 1, 2, 2, 2]
+
+
+def test_bounced_light_widens_a_ring_only_sigma_by_its_share_above_the_views():
+    """Without an angle no neighbour sees an edge shift smooth along the ring (light bounced into
+    a groove): each sample's measured share above the view's median widens its sigma by
+    INDIRECT_PRIOR_PX per unit share, in quadrature; at or below the median, nothing."""
+    from ringscan.pipeline.reconstruct.error_scale import widen_for_indirect
+    from ringscan.pipeline.reconstruct.view import INDIRECT_PRIOR_PX
+
+    widened = np.array([0.01, 0.01, 0.01, 0.01], np.float32)  # mm
+    s = np.array([0.005, 0.005, 0.005, 0.005])  # the decode's depth sigma (mm) ...
+    sigma_px = np.array([0.05, 0.05, 0.05, 0.05])  # ... for 0.05 projector px: 0.1 mm a projector px
+    indirect = np.array([0.10, 0.10, 0.10, 0.40])  # shares: the view's median 0.10, one sample 0.3 above
+    out = widen_for_indirect(widened, s, sigma_px, indirect, INDIRECT_PRIOR_PX)
+    np.testing.assert_array_equal(out[:3], widened[:3])
+    expect = np.hypot(0.01, 0.3 * INDIRECT_PRIOR_PX * 0.1)  # 0.3 share x px per share x mm per px
+    assert out[3] == pytest.approx(expect, rel=1e-6)  # float32 rounding only
