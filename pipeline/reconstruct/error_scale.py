@@ -60,11 +60,11 @@ model gives (an object beside a plane: its own facets, shadows, bounced light). 
 Mitsuba's renders (docs/accuracy.md) 32 px tiles left fewer points beyond 3 sigma on the
 object than 64 px (glossy Spot, angle: 7.7 -> 6.0 %; the corner's default 6.0 -> 5.7 %)."""
 MIN_REGION_PAIRS = 64
-GROUP_SCALE_RANGE = (0.25, 64.0)
-"""Bounds of a group's variance factor (``_group_scales``): a sixteenth of the view's sigma
-at least, 8x at most: the fit on a group's pairs beyond them is taken as the bound."""
 """Fewer pairs in a tile than this: the view's model alone there (64 pairs fix a
 scale to ~18 %; a tile's factor is never below 1, so that noise only widens)."""
+GROUP_SCALE_RANGE = (0.25, 64.0)
+"""Bounds of a group's variance factor (``_group_scales``): half the view's sigma
+at least, 8x at most: the fit on a group's pairs beyond them is taken as the bound."""
 TERMS = ("k_rho", "k_tan", "floor_rho_px", "floor_tan_px", "floor_px")
 
 
