@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import warp as wp
@@ -36,6 +36,9 @@ import warp as wp
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 
 BORDER = wp.constant(2)
+CONFIDENCE_CONTRAST = 40.0
+"""Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting
+``single_shot.lines.confidence_contrast``: no test, document or benchmark moved it)."""
 RESULT = wp.types.vector(length=8, dtype=wp.float32)
 
 __all__ = ["LineSettings", "RingLines", "detect_ring_lines", "smooth_frame", "gaussian_weights"]
@@ -65,11 +68,13 @@ class LineSettings:
     background_px: float = 3.0
     """Distance (camera px) from the centre, along the normal, where the local
     background is read on each side."""
-    confidence_contrast: float = 40.0
-    """Contrast (grey levels) at which a sample's confidence reaches 1."""
+
+    RETIRED: ClassVar[dict] = {"confidence_contrast": CONFIDENCE_CONTRAST}
+    """Former fields, now fixed (``formats.settings``: a settings file that names one
+    with this value loads)."""
 
     def __post_init__(self):
-        for name in ("sigma", "background_px", "confidence_contrast"):
+        for name in ("sigma", "background_px"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"LineSettings.{name}: must be a finite number > 0, got {v!r}")
@@ -96,7 +101,7 @@ class RingLines:
     curvature: wp.array
     """float32 -lambda: how sharply the profile bends at the centre."""
     confidence: wp.array
-    """float32 in (0, 1]: contrast / ``confidence_contrast``, at most 1."""
+    """float32 in (0, 1]: contrast / ``CONFIDENCE_CONTRAST``, at most 1."""
     smoothed: wp.array | None = None
     """(H, W) float32 the smoothed frame the centres were found in (8-bit levels)."""
 
@@ -442,7 +447,7 @@ def detect_ring_lines(
     )
     if total:
         launch_rows(write_ridges_kernel, h, w,
-                    lambda r0, c: [S, counts, offsets, *params, float(settings.confidence_contrast), r0, c],
+                    lambda r0, c: [S, counts, offsets, *params, float(CONFIDENCE_CONTRAST), r0, c],
                     [out.uv, out.normal, out.pixel, out.contrast, out.curvature, out.confidence], dev, threads)
     return out
 

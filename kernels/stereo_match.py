@@ -24,6 +24,7 @@ or three rays). The matching has its own status codes (``MATCH_STATUS_NAMES``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import warp as wp
@@ -32,6 +33,11 @@ from ringscan.kernels.geometry import CameraModel, undistort
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
 
 MAX_NEIGHBOURS = 16
+LINE_RATIO = 0.02
+"""Where a match's neighbours' spread across their main direction (variance) is below this
+fraction of the spread along it, they lie on a line (a ring edge) and the map is fitted along
+the line only (was the setting ``stereo.match.line_ratio``: no test, document or benchmark
+moved it)."""
 """Largest ``MatchSettings.neighbours`` (the kernel's fixed local arrays)."""
 MAX_GRID_SPLIT = 4
 """Most halvings of ``MatchSettings.cell_px`` for a dense camera-2 map (:func:`match_by_projector`)."""
@@ -76,6 +82,10 @@ __all__ = [
 class MatchSettings:
     """How a camera-1 sample finds its camera-2 position."""
 
+    RETIRED: ClassVar[dict] = {"line_ratio": LINE_RATIO}
+    """Former fields, now fixed (``formats.settings``: a settings file that names one
+    with this value loads)."""
+
     cell_px: float = 4.0
     """The grid's cell size in projector pixels: the search grows ring of cells
     by ring of cells until it has found the nearest ``neighbours``."""
@@ -88,10 +98,6 @@ class MatchSettings:
     min_neighbours: int = 4
     """Fewest neighbours a fit needs (a line fit needs 2, an affine map 3; more
     gives the residual that detects a discontinuity)."""
-    line_ratio: float = 0.02
-    """Where the neighbours' spread across their main direction (variance) is
-    below this fraction of the spread along it, they lie on a line (a ring
-    edge) and the map is fitted along the line only."""
     max_offset_px: float = 0.1
     """On a line fit: the farthest (projector px) the query may lie off the
     neighbours' curve (a quadratic through them: a ring edge's arc); the map
@@ -113,7 +119,7 @@ class MatchSettings:
         if not (2 <= self.min_neighbours <= self.neighbours <= MAX_NEIGHBOURS):
             raise ValueError(f"match: need 2 <= min_neighbours <= neighbours <= {MAX_NEIGHBOURS}, "
                              f"got {self.min_neighbours}, {self.neighbours}")
-        for name in ("line_ratio", "max_offset_px", "max_extrapolation", "max_fit_px", "max_gain"):
+        for name in ("max_offset_px", "max_extrapolation", "max_fit_px", "max_gain"):
             if not (getattr(self, name) > 0):
                 raise ValueError(f"match.{name}: must be > 0, got {getattr(self, name)}")
 
@@ -136,7 +142,7 @@ class MatchParams:
     k_min: wp.int32
     """``MatchSettings.min_neighbours``."""
     line_ratio: wp.float32
-    """``MatchSettings.line_ratio``."""
+    """``LINE_RATIO``."""
     max_offset: wp.float32
     """``MatchSettings.max_offset_px``."""
     max_extrapolation: wp.float32
@@ -688,7 +694,7 @@ def match_by_projector(
     params.rings = rings
     params.k_max = int(s.neighbours)
     params.k_min = int(s.min_neighbours)
-    params.line_ratio = float(s.line_ratio)
+    params.line_ratio = float(LINE_RATIO)
     params.max_offset = float(s.max_offset_px)
     params.max_extrapolation = float(s.max_extrapolation)
     params.max_fit = float(s.max_fit_px)

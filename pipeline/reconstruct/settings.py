@@ -90,8 +90,6 @@ SETTING_RANGES: dict[str, Bound] = {
                                              "search grows as radius^2"),
     "stereo.match.neighbours": Bound(2, 64, "neighbours of a local fit"),
     "stereo.match.min_neighbours": Bound(2, 64, "neighbours of a local fit (a line needs 2)"),
-    "stereo.match.line_ratio": Bound(0, 1, "a ratio of variances: at 1 every neighbourhood is a line",
-                                     lo_open=True),
     "stereo.match.max_offset_px": Bound(0, 65536, WHY_PROJ_PX, lo_open=True),
     "stereo.match.max_extrapolation": Bound(0, 1000, "standard deviations: beyond 1000 the fit is used far "
                                                      "outside its neighbours", lo_open=True),

@@ -30,6 +30,7 @@ def tiny_scan(tmp_path_factory):
     ({"triangulate": {"margin": 0.3}}, "triangulate.margin: unknown setting of TriangulateSettings"),
     ({"min_confidence": 1.5}, "min_confidence: expected a confidence in 0..1, got 1.5"),
     ({"single_shot": {"fork_px": 2.0}}, "single_shot.fork_px: no longer a setting (fixed at 0.9)"),
+    ({"stereo": {"match": {"line_ratio": 0.05}}}, "stereo.match.line_ratio: no longer a setting (fixed at 0.02)"),
 ])
 def test_a_settings_file_of_the_wrong_type_is_one_line_naming_the_field(tiny_scan, tmp_path, capsys, settings,
                                                                          message):
@@ -52,7 +53,9 @@ def test_an_old_settings_file_naming_retired_fields_at_their_fixed_values_still_
 
     old = {f.name: getattr(TUNING, f.name) for f in dataclasses.fields(LabelTuning)}
     assert len(old) == 18
-    s = settings_from_dict(ReconstructSettings, {"single_shot": {**old, "min_piece_samples": 20}})
+    s = settings_from_dict(ReconstructSettings, {"single_shot": {**old, "min_piece_samples": 20,
+                                                                 "lines": {"confidence_contrast": 40.0}},
+                                                 "stereo": {"match": {"line_ratio": 0.02}}})
     assert s.single_shot.min_piece_samples == 20
     assert s == ReconstructSettings(single_shot=dataclasses.replace(ReconstructSettings().single_shot,
                                                                     min_piece_samples=20))

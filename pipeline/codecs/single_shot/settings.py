@@ -157,7 +157,6 @@ SETTING_RANGES: dict[str, Bound] = {
                                              "passes as a centre"),
     "lines.background_px": Bound(0, 64, "camera px: beyond 64 the background is read on the next "
                                         "rings", lo_open=True),
-    "lines.confidence_contrast": Bound(0, 255, WHY_LEVELS, lo_open=True),
     "min_piece_samples": Bound(1, 200000, "line centres: the longest ring on the largest camera "
                                           "(2 pi 32768 px) has fewer"),
     "loop_fit_px": Bound(0, 65536, WHY_CAM_PX, lo_open=True),
