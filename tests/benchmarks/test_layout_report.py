@@ -1,17 +1,15 @@
 """benchmarks/layout_report.py: a long or wide function counts as explained by a docstring line ``Size:``."""
 
-import importlib.util
 import textwrap
 from pathlib import Path
+
+from tests.support.benchmark_scripts import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _layout_report():
-    spec = importlib.util.spec_from_file_location("layout_report", ROOT / "benchmarks" / "layout_report.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("layout_report")
 
 
 def test_size_line_explains_a_long_or_wide_function(tmp_path):

@@ -2,19 +2,15 @@
 script's, with one section per entry in the list's order; ``--only`` reruns a section and keeps the others."""
 
 import datetime as dt
-import importlib.util
-import sys
 from pathlib import Path
+
+from tests.support.benchmark_scripts import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault(name, module)  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark(name)
 
 
 M = _load("measurements")

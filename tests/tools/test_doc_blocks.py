@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.doc_blocks import load_run_doc_blocks
+from tests.support.benchmark_scripts import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-DB = load_run_doc_blocks()
+DB = load_benchmark("run_doc_blocks")
 CLASSIFIED = DB.classify()
 
 

@@ -15,9 +15,9 @@ import pytest
 from pyflakes.api import check
 from pyflakes.reporter import Reporter
 
-from tests.support.doc_blocks import load_run_doc_blocks
+from tests.support.benchmark_scripts import load_benchmark
 
-PYTHON = [(b, line, text) for b, line, lang, text in load_run_doc_blocks().classify() if lang == "python" and b.where != "no"]
+PYTHON = [(b, line, text) for b, line, lang, text in load_benchmark("run_doc_blocks").classify() if lang == "python" and b.where != "no"]
 
 
 def test_the_docs_have_python_blocks_to_check():

@@ -3,18 +3,16 @@ with its default and docstring, as the code has them now."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
+
+from tests.support.benchmark_scripts import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("settings_doc", ROOT / "benchmarks" / "settings_doc.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("settings_doc")
 
 
 def test_settings_md_is_up_to_date():

@@ -20,6 +20,8 @@ from ringscan.pipeline.simulate.scan import simulate_scan
 from ringscan.pipeline.simulate.truth import load_truth
 from ringscan.pipeline.simulate.virtual_rig import RenderSettings
 
+from tests.support.benchmark_scripts import load_benchmark
+
 W, H, PW, PH = 160, 128, 256, 192     # camera and projector of the small rigs (the default rig's field of view)
 F_CAM = 325.0                          # the default rig's 2600 px focal length at 1/8 the size
 F_PROJ = 575.0 / 0.6                   # a perspective projector 600 mm up, 0.6 mm pixels at z = 25 mm
@@ -337,13 +339,7 @@ def test_sigma_honesty_refuses_mitsuba_only_conditions_on_ringscans_renderer(tmp
     """benchmarks/sigma_honesty.py: the conditions only Mitsuba renders (a corner's inter-reflection, a glossy
     coat) are refused for ringscan's renderer with one line, before anything is rendered; each names a
     scene or Mitsuba settings that exist."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[3] / "benchmarks" / "sigma_honesty.py"
-    spec = importlib.util.spec_from_file_location("sigma_honesty", path)
-    sh = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sh)
+    sh = load_benchmark("sigma_honesty")
     only = [n for n in sh.CONDITIONS if sh.condition_extras(n).get("mitsuba_only")]
     assert {"corner-interreflection", "glossy-coat-0.1"} <= set(only)
     for n in sh.CONDITIONS:
