@@ -48,7 +48,7 @@ def _drop_retired(cls, d, where: str):
     for k, v in d.items():
         if k in retired and k not in fields:
             if v != retired[k]:
-                raise ValueError(f"{where}{k}: no longer a setting (fixed at {retired[k]!r}); remove it from the file")
+                raise ValueError(f"{where}{k}: no longer a setting (fixed at {retired[k]!r}): leave it out")
             continue
         f = fields.get(k)
         sub = f.default_factory() if f is not None and f.default_factory is not dataclasses.MISSING else None
