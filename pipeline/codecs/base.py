@@ -23,7 +23,7 @@ from ringscan.kernels.phase import PhaseSettings
 from ringscan.kernels.ring_labels import DecodeSettings
 from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.single_shot import settings as single_shot_settings
+from ringscan.pipeline.codecs.single_shot.settings import SETTING_RANGES as SINGLE_SHOT_RANGES
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.images import few_bits_hint
 from ringscan.pipeline.formats.patterns import PatternLayout, PatternSpec
@@ -73,7 +73,7 @@ STAGE_SETTING_RANGES: dict[str, Bound] = {
     "angle.min_modulation": Bound(0, 0.99, WHY_MODULATION),
     "angle.noise": Bound(0, 64, "8-bit grey levels: 0 makes every angle exact (infinite weight); beyond 64 "
                                 "the noise fills a quarter of the camera's range", lo_open=True),
-    **{f"single_shot.{k}": b for k, b in single_shot_settings.SETTING_RANGES.items()},
+    **{f"single_shot.{k}": b for k, b in SINGLE_SHOT_RANGES.items()},
 }
 """The range of every numeric field of :class:`StageSettings`, and why, by its path
 (``decode.min_contrast``); ``reconstruct.SETTING_RANGES`` holds them with the rest."""
