@@ -189,6 +189,20 @@ def cell_of(p: wp.vec2, cell: float, nx: int, ny: int):
 
 
 @wp.func
+def box_count(sat: wp.array(dtype=wp.int32), nx: int, ny: int, x0: int, y0: int, x1: int, y1: int):
+    """Samples in the grid's cells x0..x1, y0..y1 (inclusive, clipped to the grid), from the summed-area
+    table ``sat`` ((ny + 1) * (nx + 1): sat[y * (nx + 1) + x] counts the cells left of x and above y)."""
+    a0 = wp.max(x0, 0)
+    b0 = wp.max(y0, 0)
+    a1 = wp.min(x1, nx - 1) + 1
+    b1 = wp.min(y1, ny - 1) + 1
+    if a0 >= a1 or b0 >= b1:
+        return 0
+    w = nx + 1
+    return sat[b1 * w + a1] - sat[b0 * w + a1] - sat[b1 * w + a0] + sat[b0 * w + a0]
+
+
+@wp.func
 def key_less(da: float, ia: int, db: float, ib: int):
     """(da, ia) < (db, ib): distance first, the sample index breaks ties (a deterministic neighbour set)."""
     return da < db or (da == db and ia < ib)
@@ -306,6 +320,47 @@ def write_cells_kernel(
 
 
 @wp.kernel
+def gather_cells_kernel(
+    items: wp.array(dtype=wp.int32),
+    proj: wp.array(dtype=wp.vec2),
+    uv: wp.array(dtype=wp.vec2),
+    sigma: wp.array(dtype=wp.float32),
+    proj_out: wp.array(dtype=wp.vec2),
+    uv_out: wp.array(dtype=wp.vec2),
+    sigma_out: wp.array(dtype=wp.float32),
+):
+    """Camera 2's samples in the grid's order: out[s] = in[items[s]] (a cell's samples side by side, so
+    the neighbour search reads memory in runs, not scattered over the view). items (binned,) int32;
+    proj, uv (m,) vec2, sigma (m,) float32: read. proj_out, uv_out (binned,) vec2, sigma_out
+    (binned,) float32: written."""
+    s = wp.tid()
+    j = items[s]
+    proj_out[s] = proj[j]
+    uv_out[s] = uv[j]
+    sigma_out[s] = sigma[j]
+
+
+@wp.kernel
+def sat_rows_kernel(counts: wp.array(dtype=wp.int32), nx: int, sat: wp.array(dtype=wp.int32)):
+    """Row y + 1 of the summed-area table: the running sum of grid row y's counts (one thread a row).
+    counts (ny * nx,) read; sat ((ny + 1) * (nx + 1),) zeroed, written."""
+    y = wp.tid()
+    acc = int(0)
+    for x in range(nx):
+        acc += counts[y * nx + x]
+        sat[(y + 1) * (nx + 1) + x + 1] = acc
+
+
+@wp.kernel
+def sat_cols_kernel(ny: int, nx: int, sat: wp.array(dtype=wp.int32)):
+    """The summed-area table's running sums down column x (one thread a column, after :func:`sat_rows_kernel`).
+    sat ((ny + 1) * (nx + 1),) read and written."""
+    x = wp.tid()
+    for y in range(2, ny + 1):
+        sat[y * (nx + 1) + x] = sat[y * (nx + 1) + x] + sat[(y - 1) * (nx + 1) + x]
+
+
+@wp.kernel
 def match_kernel(
     query: wp.array(dtype=wp.vec2),
     query_sigma: wp.array(dtype=wp.float32),
@@ -315,6 +370,7 @@ def match_kernel(
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     items: wp.array(dtype=wp.int32),
+    sat: wp.array(dtype=wp.int32),
     params: MatchParams,
     i0: int,
     out_uv: wp.array(dtype=wp.vec2),
@@ -326,14 +382,15 @@ def match_kernel(
 ):
     """Match query i0 + tid.
 
-    query (n,) vec2 projector px, query_sigma (n,) float32; proj2, uv2 (m,) vec2,
-    sigma2 (m,) float32 (camera 2's samples); offsets, counts (nx * ny,) int32,
-    items (binned,) int32 (the grid): read. params: the grid and the fit's
+    query (n,) vec2 projector px, query_sigma (n,) float32; proj2, uv2 (binned,) vec2,
+    sigma2 (binned,) float32 (camera 2's samples in the grid's order, :func:`gather_cells_kernel`);
+    offsets, counts (nx * ny,) int32, items (binned,) int32 (the grid: each place's sample index), sat
+    ((ny + 1) * (nx + 1),) int32 (its summed-area table, :func:`box_count`): read. params: the grid and the fit's
     settings (:class:`MatchParams`). out_uv (n,) vec2, out_sigma2, out_sigma1,
     out_gain, out_fit (n,) float32, status (n,) int32: written.
 
     Size: one thread per query, and the steps share its registers: the k-nearest search fills the fixed-size
-    arrays nd/ni that the fit, its refits (a neighbour dropped from ni) and the variances then read, so the
+    arrays nd/ni/ns that the fit, its refits (a neighbour dropped from ni, ns) and the variances then read, so the
     search and the fit stay one body. Warp kernels take each array as its own argument; the scalar settings
     already travel in MatchParams.
     """
@@ -361,25 +418,48 @@ def match_kernel(
     # the k nearest camera-2 samples within ``rings`` cells, sorted by (distance,
     # index)
     nd = VecKf()
-    ni = VecKi()
+    ni = VecKi()  # the neighbours' sample indices (the key's tie-break: the same set on every device)
+    ns = VecKi()  # ... and their places in the grid's order, where the fit reads them
     n = int(0)
     r2max = float(rings) * cell * float(rings) * cell
     cx = int(wp.floor(q[0] / cell))
     cy = int(wp.floor(q[1] / cell))
+    # q's distance to the edge of its own cell: rings 0 .. rr - 1 cover every sample within
+    # (rr - 1) * cell + margin of q (the search stops as soon as the k-th nearest lies within)
+    fx = q[0] - float(cx) * cell
+    fy = q[1] - float(cy) * cell
+    margin = wp.min(wp.min(fx, cell - fx), wp.min(fy, cell - fy))
+    # the summed-area table skips what holds no sample (a query beside a gap in camera 2's view
+    # would otherwise read every cell out to the radius): the whole square, a ring, a ring's row
+    if box_count(sat, nx, ny, cx - rings, cy - rings, cx + rings, cy + rings) < k_min:
+        status[i] = MATCH_TOO_FEW
+        return
+    inside = int(0)  # samples in rings 0 .. rr - 1
     for rr in range(rings + 1):
-        # rings 0 .. rr - 1 cover every sample within (rr - 1) * cell of q
-        covered = float(rr - 1) * cell
+        covered = float(rr - 1) * cell + margin
         if rr > 0 and n == k_max and nd[k_max - 1] <= covered * covered:
             break
+        square = box_count(sat, nx, ny, cx - rr, cy - rr, cx + rr, cy + rr)
+        if square == inside:
+            continue
+        inside = square
         for gy in range(wp.max(cy - rr, 0), wp.min(cy + rr, ny - 1) + 1):
             # ring rr's cells: its top and bottom rows whole, the two end cells of the rows between
-            step = wp.where(wp.abs(gy - cy) == rr, 1, wp.max(2 * rr, 1))
+            edge = wp.abs(gy - cy) == rr
+            if edge and box_count(sat, nx, ny, cx - rr, gy, cx + rr, gy) == 0:
+                continue
+            step = wp.where(edge, 1, wp.max(2 * rr, 1))
+            # the cell's nearest point to q, as y then x: a cell farther than the k-th nearest so far
+            # (or than the radius) holds no neighbour
+            ey = wp.max(wp.max(float(gy) * cell - q[1], q[1] - float(gy + 1) * cell), 0.0)
             for gx in range(cx - rr, cx + rr + 1, step):
-                if gx >= 0 and gx < nx:
+                ex = wp.max(wp.max(float(gx) * cell - q[0], q[0] - float(gx + 1) * cell), 0.0)
+                reach = wp.where(n == k_max, wp.min(nd[k_max - 1], r2max), r2max)
+                if gx >= 0 and gx < nx and ex * ex + ey * ey <= reach:
                     ci = gy * nx + gx
                     for s in range(offsets[ci], offsets[ci] + counts[ci]):
                         j = items[s]
-                        dp = proj2[j] - q
+                        dp = proj2[s] - q
                         d2 = wp.dot(dp, dp)
                         if d2 <= r2max:
                             pos = int(-1)
@@ -391,6 +471,7 @@ def match_kernel(
                             if pos >= 0:
                                 nd[pos] = d2
                                 ni[pos] = j
+                                ns[pos] = s
                                 while pos > 0 and key_less(nd[pos], ni[pos], nd[pos - 1], ni[pos - 1]):
                                     td = nd[pos]
                                     nd[pos] = nd[pos - 1]
@@ -398,6 +479,9 @@ def match_kernel(
                                     ti = ni[pos]
                                     ni[pos] = ni[pos - 1]
                                     ni[pos - 1] = ti
+                                    ts = ns[pos]
+                                    ns[pos] = ns[pos - 1]
+                                    ns[pos - 1] = ts
                                     pos -= 1
     if n < k_min:
         status[i] = MATCH_TOO_FEW
@@ -418,7 +502,7 @@ def match_kernel(
         pu = wp.vec2(0.0, 0.0)
         var_sum = float(0.0)
         for a in range(n):
-            j = ni[a]
+            j = ns[a]
             sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
             w = 1.0 / (sg * sg)
             sw += w
@@ -433,7 +517,7 @@ def match_kernel(
         B = wp.mat22(0.0, 0.0, 0.0, 0.0)
         Cu = wp.mat22(0.0, 0.0, 0.0, 0.0)
         for a in range(n):
-            j = ni[a]
+            j = ns[a]
             sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
             w = 1.0 / (sg * sg)
             dp = proj2[j] - pm
@@ -469,7 +553,7 @@ def match_kernel(
             if wp.abs(wp.dot(dqu, vu2)) > max_extrapolation * wp.sqrt(lu2) or not (l2 > 1.0e-6 * l1):
                 st = MATCH_EXTRAPOLATED
                 break
-        elif wp.abs(curve_offset(proj2, sigma2, ni, n, pm, v1, v2, a1, a2)) > max_offset:
+        elif wp.abs(curve_offset(proj2, sigma2, ns, n, pm, v1, v2, a1, a2)) > max_offset:
             # the query is off the neighbours' curve: the map across it is unknown
             st = MATCH_EXTRAPOLATED
             break
@@ -487,7 +571,7 @@ def match_kernel(
         worst = int(0)
         worst_r2 = float(-1.0)
         for a in range(n):
-            j = ni[a]
+            j = ns[a]
             sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
             r = uv2[j] - (xm + A * (proj2[j] - pm))
             r2 = wp.dot(r, r)
@@ -509,6 +593,7 @@ def match_kernel(
             if attempt < MAX_REFITS and n > k_min and n > 3:
                 # the worst-fitting neighbour out (the last one in its place), and fit again
                 ni[worst] = ni[n - 1]
+                ns[worst] = ns[n - 1]
                 n -= 1
                 continue
             st = MATCH_DISCONTINUITY
@@ -609,11 +694,13 @@ def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sig
     return proj, sigma
 
 
-def _bin_by_projector(proj2: wp.array, size: tuple[int, int], settings: MatchSettings) -> tuple:
+def _bin_by_projector(proj2: wp.array, uv2: wp.array, sigma2: wp.array, size: tuple[int, int],
+                      settings: MatchSettings) -> tuple[tuple, tuple]:
     """Camera 2's samples binned by projector pixel into a grid of cells on their device.
 
-    Returns (cell px, rings of cells the search reads, nx, ny, offsets, counts, items): cell c's samples
-    are items[offsets[c]:offsets[c] + counts[c]].
+    Returns the grid (cell px, rings of cells the search reads, nx, ny, offsets, counts, items, sat): cell
+    c's samples are items[offsets[c]:offsets[c] + counts[c]], sat the counts' summed-area table; and (proj2,
+    uv2, sigma2) in the grid's order (place s holds sample items[s]).
     """
     W, Hh = size
     m = proj2.shape[0]
@@ -634,12 +721,19 @@ def _bin_by_projector(proj2: wp.array, size: tuple[int, int], settings: MatchSet
     if m:
         wp.launch(count_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny], outputs=[counts], device=dev)
     offsets, total = scan_counts(counts)
-    items = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
+    sat = wp.zeros((nx + 1) * (ny + 1), dtype=wp.int32, device=dev)
+    wp.launch(sat_rows_kernel, dim=ny, inputs=[counts, nx], outputs=[sat], device=dev)
+    wp.launch(sat_cols_kernel, dim=nx + 1, inputs=[ny, nx], outputs=[sat], device=dev)
+    items = wp.zeros(max(total, 1), dtype=wp.int32, device=dev)
+    sorted_ = (wp.zeros(max(total, 1), dtype=wp.vec2, device=dev), wp.zeros(max(total, 1), dtype=wp.vec2, device=dev),
+               wp.zeros(max(total, 1), dtype=wp.float32, device=dev))
     if total:
         cursor = wp.zeros(nx * ny, dtype=wp.int32, device=dev)
         wp.launch(write_cells_kernel, dim=m, inputs=[proj2, cell, nx, ny, offsets], outputs=[cursor, items],
                   device=dev)
-    return cell, rings, nx, ny, offsets, counts, items
+        wp.launch(gather_cells_kernel, dim=total, inputs=[items, proj2, uv2, sigma2], outputs=list(sorted_),
+                  device=dev)
+    return (cell, rings, nx, ny, offsets, counts, items, sat), sorted_
 
 
 def match_by_projector(
@@ -685,7 +779,8 @@ def match_by_projector(
                   fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
     if n == 0:
         return out
-    cell, rings, nx, ny, offsets, counts, items = _bin_by_projector(proj2, (W, Hh), settings)
+    (cell, rings, nx, ny, offsets, counts, items, sat), (proj2s, uv2s, sigma2s) = _bin_by_projector(
+        proj2, uv2, sigma2, (W, Hh), settings)
     s = settings
     params = MatchParams()
     params.cell = cell
@@ -699,7 +794,7 @@ def match_by_projector(
     params.max_extrapolation = float(s.max_extrapolation)
     params.max_fit = float(s.max_fit_px)
     params.max_gain = float(s.max_gain)
-    args = [query, query_sigma, proj2, uv2, sigma2, offsets, counts, items, params]
+    args = [query, query_sigma, proj2s, uv2s, sigma2s, offsets, counts, items, sat, params]
     outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.fit_px, out.status]
     threads = default_threads() if threads is None else threads
     launch_spans(match_kernel, n, lambda i0: args + [i0], outputs, dev, threads)

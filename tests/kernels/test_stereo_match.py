@@ -322,3 +322,40 @@ def test_dense_map_binned_finer_finds_the_same_matches(monkeypatch):
     for k in fine:
         assert np.array_equal(fine[k], coarse[k], equal_nan=True), k
     assert (fine["status"] == 0).mean() > 0.8  # most queries inside the map matched
+
+
+def test_neighbour_search_skipping_empty_cells_finds_the_k_nearest():
+    """The search skips what its summed-area table and each cell's nearest point say holds no
+    neighbour (gaps in camera 2's view, far corners of a ring): its matches are those of the exact
+    k nearest (a brute-force search here) fitted by least squares, and a query with fewer than
+    ``min_neighbours`` samples within the radius is ``too_few_neighbours``, exactly."""
+    rng = np.random.default_rng(5)
+    # camera 2's samples in three patches with gaps between them (a view with occlusions)
+    pts = np.concatenate([rng.uniform((10, 10), (60, 40), (2500, 2)), rng.uniform((75, 12), (120, 60), (2500, 2)),
+                          rng.uniform((20, 55), (50, 90), (1500, 2))])
+    uv = np.stack([2.1 * pts[:, 0] + 0.2 * pts[:, 1] + 3e-3 * pts[:, 0] ** 2,
+                   1.9 * pts[:, 1] - 0.1 * pts[:, 0] + 2e-3 * pts[:, 0] * pts[:, 1]], 1)
+    uv += rng.normal(0, 0.05, uv.shape)  # another neighbour set would move a match by ~0.01 px
+    q = rng.uniform((0, 0), (128, 96), (1500, 2))
+    s = MatchSettings()
+    M = match_by_projector(wp.array(q.astype(np.float32), dtype=wp.vec2, device="cpu"),
+                           wp.array(np.full(len(q), 0.05, np.float32), dtype=wp.float32, device="cpu"),
+                           wp.array(pts.astype(np.float32), dtype=wp.vec2, device="cpu"),
+                           wp.array(uv.astype(np.float32), dtype=wp.vec2, device="cpu"),
+                           wp.array(np.full(len(pts), 0.05, np.float32), dtype=wp.float32, device="cpu"),
+                           projector_size=(128, 96), settings=s, threads=2)
+    st, got = M.status.numpy(), M.uv2.numpy()
+    p32 = pts.astype(np.float32).astype(np.float64)
+    d2 = ((q.astype(np.float32).astype(np.float64)[:, None, :] - p32[None]) ** 2).sum(-1)
+    within = (d2 <= s.radius_px ** 2).sum(1)
+    assert np.array_equal(st == 2, within < s.min_neighbours)
+    ok = np.flatnonzero(st == 0)
+    assert 0.3 * len(q) < ok.size < 0.9 * len(q)  # queries in the gaps and beyond the patches are not matched
+    worst = 0.0
+    for i in ok:
+        nn = np.argsort(d2[i], kind="stable")[:s.neighbours]
+        Aff = np.c_[p32[nn], np.ones(len(nn))]
+        coef, *_ = np.linalg.lstsq(Aff, uv.astype(np.float32)[nn].astype(np.float64), rcond=None)
+        worst = max(worst, np.abs(np.r_[q[i].astype(np.float32), 1.0] @ coef - got[i]).max())
+    # float32 arithmetic on coordinates of ~300 px: 1e-3 px; a neighbour missed or taken wrongly: ~1e-2
+    assert worst < 2e-3
