@@ -79,6 +79,7 @@ def subpixel_lines_kernel(
     code: wp.array2d(dtype=wp.int32),
     valid: wp.array2d(dtype=wp.uint8),
     pairs: wp.array4d(dtype=Any),
+    lines: wp.array(dtype=wp.int32),
     scale: wp.float32,
     bits: int,
     axis: int,
@@ -86,16 +87,16 @@ def subpixel_lines_kernel(
     out: wp.array2d(dtype=wp.float64),
     ok: wp.array2d(dtype=wp.uint8),
 ):
-    """One line (tid) of :func:`subpixel_lines`: each pixel between the last code boundary before it and the
+    """One line (lines[tid]) of :func:`subpixel_lines`: each pixel between the last code boundary before it and the
     first after it, in one walk (the boundary after a pixel is found once and becomes the one before the next).
 
     code (H, W) int32, valid (H, W) uint8, pairs (>= bits, 2, H, W) uint8, uint16 or float32 (levels:
-    value * scale): read. out (H, W) float64,
+    value * scale), lines (L,) int32 (rows for axis 1, columns for axis 0): read. out (H, W) float64,
     ok (H, W) uint8: written on the line.
 
-    Size: a Warp kernel takes each array as its own argument (four in, two out); the
+    Size: a Warp kernel takes each array as its own argument (five in, two out); the
     scalars are the pattern's bits, the line's axis and span and the levels' scale."""
-    line = wp.tid()
+    line = lines[wp.tid()]
     n = code.shape[1]
     if axis == 0:
         n = code.shape[0]
@@ -184,7 +185,8 @@ class Samples:
 
 
 def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bits: int, axis: int,
-                   max_span: float, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                   max_span: float, scale: float = 1.0,
+                   lines: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel projector coordinate of a dense Gray-code map along camera ``axis`` (1: across, 0: down).
 
     A boundary lies between neighbours that both decoded and whose codes are one apart, at the
@@ -199,6 +201,8 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
         pairs: (>= bits, 2, H, W) patterns and inverses, MSB first (the first ``bits`` are read): uint8,
             uint16 or float32 values, their levels ``float32(value) * scale`` (a frame stack as read).
         bits, axis, max_span: as above.
+        lines: the rows (axis 1) or columns (axis 0) to walk (None: all); the others' ``out`` and ``ok``
+            are left as they were allocated (``ok`` False, ``out`` NaN).
 
     Returns:
         (out (H, W) float64: the interpolated coordinate, the code itself where none;
@@ -214,19 +218,27 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
     if valid.shape != (H, W) or pairs.ndim != 4 or pairs.shape[1:] != (2, H, W) or not (0 < bits <= pairs.shape[0]):
         raise ValueError(f"subpixel_lines: code {code.shape}, valid {valid.shape}, pairs {pairs.shape}, "
                          f"bits {bits} do not agree")
-    out = np.empty((H, W), np.float64)
-    ok = np.empty((H, W), np.uint8)
-    if H and W:
+    n_lines = H if axis == 1 else W
+    if lines is None:
+        out, ok = np.empty((H, W), np.float64), np.empty((H, W), np.uint8)
+        lines = np.arange(n_lines, dtype=np.int32)
+    else:
+        out, ok = np.full((H, W), np.nan), np.zeros((H, W), np.uint8)
+        lines = np.ascontiguousarray(lines, np.int32)
+        if lines.ndim != 1 or (lines.size and (lines.min() < 0 or lines.max() >= n_lines)):
+            raise ValueError(f"subpixel_lines: lines must be 1-D indices below {n_lines}")
+    if H and W and lines.size:
         dev = "cpu"
         o_w, k_w = wp.array(out, dtype=wp.float64, device=dev, copy=False), wp.array(ok, dtype=wp.uint8, device=dev,
                                                                                       copy=False)
         inputs = [wp.array(code, dtype=wp.int32, device=dev, copy=False),
                   wp.array(valid, dtype=wp.uint8, device=dev, copy=False),
                   wp.array(pairs, dtype=wp.dtype_from_numpy(pairs.dtype), device=dev, copy=False),
+                  wp.array(lines, dtype=wp.int32, device=dev, copy=False),
                   wp.float32(scale), int(bits), int(axis), wp.float64(max_span)]
 
         def launch():
-            wp.launch(subpixel_lines_kernel, dim=H if axis == 1 else W, inputs=inputs, outputs=[o_w, k_w], device=dev)
+            wp.launch(subpixel_lines_kernel, dim=lines.size, inputs=inputs, outputs=[o_w, k_w], device=dev)
 
         key = (dev, pairs.dtype.str)
         if key in _loaded:

@@ -297,11 +297,13 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
 
 
 def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float,
-                scale: float = 1.0):
+                scale: float = 1.0, lines: np.ndarray | None = None):
     """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across): each decoded pixel
     interpolated between the code boundaries around it (one Warp kernel walk a line,
-    ``kernels.samples.subpixel_lines``; its figures are the NumPy construction's to the bit)."""
-    return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale)
+    ``kernels.samples.subpixel_lines``; its figures are the NumPy construction's to the bit), on
+    ``lines`` (None: all)."""
+    return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale,
+                          lines=lines)
 
 
 def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,
@@ -322,12 +324,15 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
             continue
         lvl_valid = valid & (coarse <= k)
         lvl_code = np.where(lvl_valid, code >> k, -1)
-        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k, scale)
+        # the finest level walks every line; a coarser one only the lines with a pixel still to place
+        lines = None if k == 0 else np.flatnonzero(todo.any(axis=axis))
+        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k, scale, lines)
         # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
         take = todo & good
-        out = np.where(take, res * 2 ** k + (2 ** k - 1) / 2.0, out)
+        out[take] = res[take] * 2 ** k + (2 ** k - 1) / 2.0
         ok |= take
-    out = np.where(valid & ~ok & (coarse == 0), code, out)
+    keep = valid & ~ok & (coarse == 0)
+    out[keep] = code[keep]
     return out, ok
 
 
@@ -350,7 +355,9 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
     dec.u = np.where(dec.valid, u, np.nan)
     dec.v = np.where(dec.valid, v, np.nan)
     dec.subpixel = oku & okv & dec.valid
-    log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated "
-             "(%d from coarser bits)", cap.folder, "x" if ax_u else "y", "x" if ax_v else "y",
-             int(dec.subpixel.sum()), int(dec.valid.sum()), int((dec.subpixel & (coarse.max(-1) > 0)).sum()))
+    if log.isEnabledFor(logging.INFO):
+        log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated "
+                 "(%d from coarser bits)", cap.folder, "x" if ax_u else "y", "x" if ax_v else "y",
+                 int(dec.subpixel.sum()), int(dec.valid.sum()),
+                 int((dec.subpixel & ((coarse[..., 0] | coarse[..., 1]) != 0)).sum()))
     return dec

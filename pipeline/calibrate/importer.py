@@ -426,7 +426,7 @@ def _decode_camera(f, c: int, projector, layout: str, settings: ImportSettings, 
     dec = decode_graycode(cap, settings=settings.graycode)
     if settings.integer_only:
         # an integer code whose finest bits do not stand clear of the noise is a guess: left out
-        guess = dec.valid & (dec.coarse.max(axis=-1) > 0)
+        guess = dec.valid & ((dec.coarse[..., 0] | dec.coarse[..., 1]) != 0)
         dec.low_modulation |= guess
         dec.valid &= ~guess
         dec.u = np.where(dec.valid, dec.col, np.nan)
@@ -442,7 +442,7 @@ def _decode_stats(name: str, per_cam: dict, sel) -> dict:
     st = {}
     for c, dec in per_cam.items():
         n = max(1, int(dec.valid.sum()))
-        coarse = dec.valid & (dec.coarse.max(axis=-1) > 0)
+        coarse = dec.valid & ((dec.coarse[..., 0] | dec.coarse[..., 1]) != 0)  # (a max over the last axis: 10x slower)
         s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
              "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
              "noise": round(float(dec.noise), 3)}

@@ -86,6 +86,17 @@ def test_subpixel_lines_equal_the_numpy_construction(axis):
     assert np.array_equal(t(ok), want_ok) and np.array_equal(t(out), want)
     assert want_ok.mean() > 0.6
     assert np.all(np.abs(out[ok] - code[ok]) <= 0.5 + 1e-12)  # between the boundaries c -+ 1/2
+    # some lines alone (a coarser level's walk, where few pixels are left to place): those lines'
+    # numbers as the whole walk gives them, nothing on the others
+    some = np.array([0, 3, 17, code.shape[0 if axis == 1 else 1] - 1])
+    part, part_ok = subpixel_lines(code, valid, pairs, bits=bits, axis=axis, max_span=12.0, lines=some)
+    on = np.zeros(code.shape, bool)
+    if axis == 1:
+        on[some] = True
+    else:
+        on[:, some] = True
+    assert np.array_equal(part[on], out[on]) and np.array_equal(part_ok[on], ok[on])
+    assert np.isnan(part[~on]).all() and not part_ok[~on].any()
 
 
 @pytest.mark.parametrize("dtype, scale", [(np.uint8, 1.0), (np.uint16, 1.0 / 257.0)])
