@@ -71,10 +71,15 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
                          f"{np.shape(contrast)}")
     ok = np.isfinite(u) & np.isfinite(v)
     pix = np.flatnonzero(ok.ravel()).astype(np.int32)
-    W = u.shape[1]
+    con = np.asarray(contrast, np.float64).ravel()[pix]
+    return _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits)
+
+
+def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray, W: int, *, center,
+                sector_bits: int) -> dict:
+    """:func:`decoded_samples` of the decoded pixels ``pix`` (linear indices in an image ``W`` wide), their
+    float64 coordinates ``up``, ``vp`` and contrast ``con`` (8-bit levels)."""
     uv = np.stack([pix % W, pix // W], 1).astype(np.float32)
-    up = u.ravel()[pix]
-    vp = v.ravel()[pix]
     du = up - center[0]
     dv = vp - center[1]
     rho = np.hypot(du, dv)
@@ -84,7 +89,6 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
         sector = np.clip(np.floor((phi + np.pi) / (2 * np.pi) * n), 0, n - 1).astype(np.int32)
     else:
         sector = np.full(pix.size, -1, np.int32)
-    con = np.asarray(contrast, np.float64).ravel()[pix]
     conf = np.clip(con / CONTRAST_FULL, 0.0, 1.0).astype(np.float32)
     su2 = coordinate_sigma(up, con) ** 2
     sv2 = coordinate_sigma(vp, con) ** 2
@@ -116,10 +120,12 @@ def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, thr
     fr = frames.numpy()
     if fr.ndim != 3 or fr.shape[0] != 3 or fr.dtype != np.uint16:
         raise ValueError(f"extract_decoded: expected (3, H, W) uint16 frames, got {fr.shape} {fr.dtype}")
-    good = (fr[0] > 0) & (fr[1] > 0)
-    u = np.where(good, fr[0] / DECODED_SCALE - 1.0, np.nan)
-    v = np.where(good, fr[1] / DECODED_SCALE - 1.0, np.nan)
-    d = decoded_samples(u, v, fr[2] / 257.0, center=spec.center, sector_bits=spec.sector_bits)
+    # the decoded pixels' values alone (as decoded_samples takes them from whole float maps, to the bit)
+    pix = np.flatnonzero(((fr[0] > 0) & (fr[1] > 0)).ravel()).astype(np.int32)
+    up = fr[0].ravel()[pix] / DECODED_SCALE - 1.0
+    vp = fr[1].ravel()[pix] / DECODED_SCALE - 1.0
+    d = _samples_at(pix, up, vp, fr[2].ravel()[pix] / 257.0, fr.shape[2], center=spec.center,
+                    sector_bits=spec.sector_bits)
     dev = frames.device
     f32 = {k: wp.array(d[k], dtype=wp.float32, device=dev) for k in ("rho", "phi", "confidence", "sigma_rho",
                                                                      "sigma_tan")}
