@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.samples import Samples
+from ringscan.kernels.samples import DecodedMapParams, Samples, decoded_map_samples
 from ringscan.pipeline.codecs.base import Codec, StageSettings
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
@@ -99,6 +99,19 @@ def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray
             "sigma_tan": np.sqrt(su2 * s2 + sv2 * c2).astype(np.float32)}
 
 
+def _map_params(spec: PatternSpec) -> DecodedMapParams:
+    """The kernel's reading of this codec's maps (:func:`decoded_samples`'s constants)."""
+    p = DecodedMapParams()
+    p.scale = float(DECODED_SCALE)
+    p.contrast_scale = 257.0
+    p.center = wp.vec2d(float(spec.center[0]), float(spec.center[1]))
+    p.sectors = 2 ** int(spec.sector_bits) if spec.sector_bits > 0 else 0
+    p.contrast_full = CONTRAST_FULL
+    p.sigma_subpixel = SIGMA_SUBPIXEL_PX
+    p.sigma_integer = SIGMA_INTEGER_PX
+    return p
+
+
 @dataclass(frozen=True)
 class DecodedSettings:
     """Settings of the ``decoded`` codec: none (the captures were decoded on import)."""
@@ -117,24 +130,11 @@ def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, thr
     if spec.codec != "decoded":
         raise ValueError(f"extract_decoded: the scan's codec is {spec.codec!r}, not decoded")
     t0 = time.perf_counter()
-    fr = frames.numpy()
-    if fr.ndim != 3 or fr.shape[0] != 3 or fr.dtype != np.uint16:
-        raise ValueError(f"extract_decoded: expected (3, H, W) uint16 frames, got {fr.shape} {fr.dtype}")
-    # the decoded pixels' values alone (as decoded_samples takes them from whole float maps, to the bit)
-    pix = np.flatnonzero(((fr[0] > 0) & (fr[1] > 0)).ravel()).astype(np.int32)
-    up = fr[0].ravel()[pix] / DECODED_SCALE - 1.0
-    vp = fr[1].ravel()[pix] / DECODED_SCALE - 1.0
-    d = _samples_at(pix, up, vp, fr[2].ravel()[pix] / 257.0, fr.shape[2], center=spec.center,
-                    sector_bits=spec.sector_bits)
-    dev = frames.device
-    f32 = {k: wp.array(d[k], dtype=wp.float32, device=dev) for k in ("rho", "phi", "confidence", "sigma_rho",
-                                                                     "sigma_tan")}
-    smp = Samples(uv=wp.array(d["uv"], dtype=wp.vec2, device=dev), rho=f32["rho"], ring=None,
-                  sector=wp.array(d["sector"], dtype=wp.int32, device=dev), confidence=f32["confidence"],
-                  pixel=wp.array(d["pixel"], dtype=wp.int32, device=dev), phi=f32["phi"],
-                  sigma_rho=f32["sigma_rho"], sigma_tan=f32["sigma_tan"])
-    pix = d["pixel"]
-    stats = {"pixels_decoded": int(pix.size), "samples": int(pix.size),
+    if frames.ndim != 3 or frames.shape[0] != 3 or frames.dtype != wp.uint16:
+        raise ValueError(f"extract_decoded: expected (3, H, W) uint16 frames, got {frames.shape} {frames.dtype}")
+    # on the frames' device: count, scan, write (kernels.samples); decoded_samples is its NumPy statement
+    smp = decoded_map_samples(frames, params=_map_params(spec), threads=threads)
+    stats = {"pixels_decoded": len(smp), "samples": len(smp),
              "times_s": {"decode": time.perf_counter() - t0}}
     return smp, stats
 
