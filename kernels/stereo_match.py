@@ -422,6 +422,9 @@ def match_kernel(
     ns = VecKi()  # ... and their places in the grid's order, where the fit reads them
     n = int(0)
     r2max = float(rings) * cell * float(rings) * cell
+    # what a sample's squared distance must not exceed to be a neighbour: the radius, then the k-th
+    # nearest so far (a tie goes to the lower index: key_less)
+    reach = r2max
     cx = int(wp.floor(q[0] / cell))
     cy = int(wp.floor(q[1] / cell))
     # q's distance to the edge of its own cell: rings 0 .. rr - 1 cover every sample within
@@ -454,14 +457,13 @@ def match_kernel(
             ey = wp.max(wp.max(float(gy) * cell - q[1], q[1] - float(gy + 1) * cell), 0.0)
             for gx in range(cx - rr, cx + rr + 1, step):
                 ex = wp.max(wp.max(float(gx) * cell - q[0], q[0] - float(gx + 1) * cell), 0.0)
-                reach = wp.where(n == k_max, wp.min(nd[k_max - 1], r2max), r2max)
                 if gx >= 0 and gx < nx and ex * ex + ey * ey <= reach:
                     ci = gy * nx + gx
                     for s in range(offsets[ci], offsets[ci] + counts[ci]):
-                        j = items[s]
                         dp = proj2[s] - q
                         d2 = wp.dot(dp, dp)
-                        if d2 <= r2max:
+                        if d2 <= reach:
+                            j = items[s]
                             pos = int(-1)
                             if n < k_max:
                                 pos = n
@@ -483,6 +485,8 @@ def match_kernel(
                                     ns[pos] = ns[pos - 1]
                                     ns[pos - 1] = ts
                                     pos -= 1
+                                if n == k_max:
+                                    reach = wp.min(nd[k_max - 1], r2max)
     if n < k_min:
         status[i] = MATCH_TOO_FEW
         return
