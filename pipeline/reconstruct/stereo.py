@@ -18,7 +18,10 @@ from ringscan.kernels.geometry import make_camera
 from ringscan.kernels.stereo_match import (
     MATCH_STATUS_NAMES,
     match_by_projector,
+    polar_sigmas,
     projector_coordinates,
+    uv_sigmas,
+    window_sums,
 )
 from ringscan.kernels.stereo_match import epipolar_distances as kernel_epipolar_distances
 from ringscan.pipeline.codecs.registry import codec_for
@@ -97,23 +100,27 @@ def _coordinates(scan: Scan, samples: Samples, which: str):
                                  center=scan.patterns.center)
 
 
+def _cpu(a: np.ndarray, dtype) -> wp.array:
+    """A NumPy array as a Warp array on the CPU (float64; no copy where it is already one)."""
+    return wp.array(np.ascontiguousarray(a, np.float64), dtype=dtype, device="cpu", copy=False)
+
+
 def _polar_to_uv(proj: np.ndarray, sigma_rho: np.ndarray, sigma_tan: np.ndarray, center) -> np.ndarray:
     """(n, 2) standard deviations along u_p and v_p of projector points whose errors are radial and
-    tangential about ``center``."""
-    off = proj - np.asarray(center, float)
-    r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
-    c, s = off[:, 0] / r, off[:, 1] / r
-    return np.stack([np.sqrt(sigma_rho ** 2 * c ** 2 + sigma_tan ** 2 * s ** 2),
-                     np.sqrt(sigma_rho ** 2 * s ** 2 + sigma_tan ** 2 * c ** 2)], 1)
+    tangential about ``center`` (``kernels.stereo_match.uv_sigmas``)."""
+    if len(proj) == 0:
+        return np.zeros((0, 2))
+    return uv_sigmas(_cpu(proj, wp.vec2d), _cpu(sigma_rho, wp.float64), _cpu(sigma_tan, wp.float64),
+                     center=(float(center[0]), float(center[1]))).numpy()
 
 
 def _uv_to_polar(proj: np.ndarray, sigma_uv: np.ndarray, center) -> tuple[np.ndarray, np.ndarray]:
-    """The radial and tangential standard deviations of projector points with independent u_p, v_p errors."""
-    off = proj - np.asarray(center, float)
-    r = np.maximum(np.hypot(off[:, 0], off[:, 1]), 1e-12)
-    c2, s2 = (off[:, 0] / r) ** 2, (off[:, 1] / r) ** 2
-    su2, sv2 = sigma_uv[:, 0] ** 2, sigma_uv[:, 1] ** 2
-    return np.sqrt(su2 * c2 + sv2 * s2), np.sqrt(su2 * s2 + sv2 * c2)
+    """The radial and tangential standard deviations of projector points with independent u_p, v_p errors
+    (``kernels.stereo_match.polar_sigmas``)."""
+    if len(proj) == 0:
+        return np.zeros(0), np.zeros(0)
+    sr, st = polar_sigmas(_cpu(proj, wp.vec2d), _cpu(sigma_uv, wp.vec2d), center=(float(center[0]), float(center[1])))
+    return sr.numpy(), st.numpy()
 
 
 def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarray, *, width: int, height: int,
@@ -151,26 +158,35 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         return out_p, out_s, refined
     pixel = np.asarray(pixel, np.int64)
     r = int(radius)
+    sample_of = None
     for axis in (0, 1):
         val = proj[:, axis]
         integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
         if not integer.any():
             continue
-        w = np.zeros((height, width))
-        w.flat[pixel] = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
-        p0 = np.zeros(height * width)
-        p0[pixel] = val
+        weight = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
         sel = np.flatnonzero(integer)
         at = pixel[sel]
         # weighted moments of each window about its centre pixel, the coordinate as an offset from the
         # centre's own code p0 (sums of w (p - p0), w dx (p - p0), ...)
         if at.size * (2 * r + 1) ** 2 < height * width:
-            # a few integer codes among sub-pixel ones: their own windows, offset by offset
-            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = _windows_at(w.ravel(), p0, at, width, height, r)
-            p0 = p0[at]
+            # a few integer codes among sub-pixel ones: their own windows (a kernel reads each window's
+            # samples through the pixels' sample index)
+            if sample_of is None:
+                sample_of = np.full(height * width, -1, np.int32)
+                sample_of[pixel] = np.arange(n, dtype=np.int32)
+            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = window_sums(
+                wp.array(at.astype(np.int32), dtype=wp.int32, device="cpu"),
+                wp.array(sample_of, dtype=wp.int32, device="cpu", copy=False), _cpu(val, wp.float64),
+                _cpu(weight, wp.float64), width=width, height=height, radius=r).numpy()
+            p0 = val[sel]
             at = np.arange(at.size)
         else:
             # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
+            w = np.zeros((height, width))
+            w.flat[pixel] = weight
+            p0 = np.zeros(height * width)
+            p0[pixel] = val
             S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = _windows_all(w, p0, width, height, r)
         Sp, Sxp, Syp = wP - p0 * S, wPx - p0 * Sx, wPy - p0 * Sy
         Spp = wPP - 2 * p0 * wP + p0 * p0 * S
@@ -195,7 +211,7 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
 
 
 def _windows_all(w: np.ndarray, p: np.ndarray, width: int, height: int, r: int) -> tuple:
-    """The window sums of :func:`refine_integer_codes` at every pixel, as :func:`_windows_at` gives
+    """The window sums of :func:`refine_integer_codes` at every pixel, as ``kernels.stereo_match.window_sums`` gives
     them at a few: (S, Sx, Sy, Sxx, Sxy, Syy, sum w p, sum w p dx, sum w p dy, sum w p^2, count of pixels
     with w > 0), each (height * width,), separable filters over the (height, width) weights ``w`` and
     the raveled coordinates ``p``."""
@@ -217,37 +233,6 @@ def _windows_all(w: np.ndarray, p: np.ndarray, width: int, height: int, r: int) 
     wPP = window(wp_ * p.reshape(height, width), "1")
     cnt = window((w > 0).astype(np.float64), "1")
     return S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt
-
-
-def _windows_at(w: np.ndarray, p: np.ndarray, at: np.ndarray, width: int, height: int, r: int) -> tuple:
-    """The window sums of :func:`refine_integer_codes` at the pixels ``at`` only: (S, Sx, Sy, Sxx, Sxy, Syy,
-    sum w p, sum w p dx, sum w p dy, sum w p^2, count of pixels with w > 0), each (len(at),), over the
-    (2 r + 1)^2 pixels around each (those outside the image count as w = 0, as the image's filters do).
-
-    Args:
-        w, p: (height * width,) float64 weights (0: no sample) and coordinates, raveled.
-        at: (m,) linear pixel indices."""
-    ys, xs = np.divmod(at, width)
-    sums = np.zeros((11, at.size))
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            y, x = ys + dy, xs + dx
-            inside = (y >= 0) & (y < height) & (x >= 0) & (x < width)
-            idx = np.where(inside, at + (dy * width + dx), 0)
-            wk = np.where(inside, w.take(idx), 0.0)
-            wpk = wk * p.take(idx)
-            sums[0] += wk
-            sums[1] += wk * dx
-            sums[2] += wk * dy
-            sums[3] += wk * (dx * dx)
-            sums[4] += wk * (dx * dy)
-            sums[5] += wk * (dy * dy)
-            sums[6] += wpk
-            sums[7] += wpk * dx
-            sums[8] += wpk * dy
-            sums[9] += wpk * p.take(idx)
-            sums[10] += wk > 0
-    return tuple(sums)
 
 
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,

@@ -119,16 +119,27 @@ def test_integer_codes_are_read_from_their_neighbourhood():
 
 def test_window_sums_at_a_few_pixels_equal_the_image_filters():
     """refine_integer_codes sums the windows of a few integer codes among sub-pixel ones at their own
-    pixels (_windows_at): the same sums as the image-wide separable filters, borders (outside = no
-    sample) included, to float64 rounding (the sums reach ~1e7; 1e-6 of slack is ~1e-13 relative)."""
-    from ringscan.pipeline.reconstruct.stereo import _windows_at
+    pixels (kernels.stereo_match.window_sums, reading each window's samples through the pixels' sample
+    index): the same sums as the image-wide separable filters, borders (outside = no sample) included,
+    to float64 rounding (the sums reach ~1e7; 1e-6 of slack is ~1e-13 relative)."""
+    import warp as wp
 
+    from ringscan.kernels import init_warp
+    from ringscan.kernels.stereo_match import window_sums
+
+    init_warp()
     rng = np.random.default_rng(3)
     H, W, r = 23, 31, 2
     w = np.where(rng.random((H, W)) < 0.8, rng.uniform(1, 100, (H, W)), 0.0)
     p = rng.uniform(0, 800, (H, W)) * (w > 0)
     at = np.r_[0, W - 1, W * H - 1, W * (H - 1), rng.choice(W * H, 40, replace=False)]
-    got = _windows_at(w.ravel(), p.ravel(), at, W, H, r)
+    pixel = np.flatnonzero(w.ravel() > 0)
+    sample_of = np.full(H * W, -1, np.int32)
+    sample_of[pixel] = np.arange(pixel.size)
+    got = window_sums(wp.array(at.astype(np.int32), dtype=wp.int32, device="cpu"),
+                      wp.array(sample_of, dtype=wp.int32, device="cpu"),
+                      wp.array(p.ravel()[pixel], dtype=wp.float64, device="cpu"),
+                      wp.array(w.ravel()[pixel], dtype=wp.float64, device="cpu"), width=W, height=H, radius=r).numpy()
     off = np.arange(-r, r + 1, dtype=np.float64)
     one = np.ones_like(off)
 
