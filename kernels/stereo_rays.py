@@ -45,6 +45,8 @@ from ringscan.kernels.triangulation import (
 JACOBIAN_STEP_MM = wp.constant(0.5)
 """Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
 point's distance from camera 1."""
+CHORD_STEP = wp.constant(0.1)
+"""A Gauss-Newton step shorter than this share of the difference step keeps the Jacobians for the next step."""
 JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
 """... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
 its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
@@ -140,6 +142,27 @@ def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.
         jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
     H, g = block_terms(r, jx, jy, jz, W, H, g)
     return H, g, quad(W, r, r), wp.length(r)
+
+
+@wp.func
+def ray_residual(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2):
+    """One ray's reprojection residual (px): a camera's, or the light's where ``is_light``."""
+    if is_light != 0:
+        return light_residual(light, X, obs)
+    return cam_residual(cam, X, obs)
+
+
+@wp.func
+def ray_jacobian(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2, h: float):
+    """The columns d r / d x, y, z of one ray's residual by central differences over h mm (as
+    :func:`observation_terms`)."""
+    ex = wp.vec3(h, 0.0, 0.0)
+    ey = wp.vec3(0.0, h, 0.0)
+    ez = wp.vec3(0.0, 0.0, h)
+    jx = (ray_residual(cam, light, is_light, X + ex, obs) - ray_residual(cam, light, is_light, X - ex, obs)) / (2.0 * h)
+    jy = (ray_residual(cam, light, is_light, X + ey, obs) - ray_residual(cam, light, is_light, X - ey, obs)) / (2.0 * h)
+    jz = (ray_residual(cam, light, is_light, X + ez, obs) - ray_residual(cam, light, is_light, X - ez, obs)) / (2.0 * h)
+    return jx, jy, jz
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -251,8 +274,33 @@ def triangulate_rays_kernel(
     # that scale, and a smaller step lets float32 noise into the Jacobian, which
     # a point with a large residual (rays that miss) multiplies into its steps
     h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C1))
+    o1 = uv1[i]
+    o2 = uv2[i]
+    j1x = wp.vec2(0.0, 0.0)
+    j1y = wp.vec2(0.0, 0.0)
+    j1z = wp.vec2(0.0, 0.0)
+    j2x = wp.vec2(0.0, 0.0)
+    j2y = wp.vec2(0.0, 0.0)
+    j2z = wp.vec2(0.0, 0.0)
+    jlx = wp.vec2(0.0, 0.0)
+    jly = wp.vec2(0.0, 0.0)
+    jlz = wp.vec2(0.0, 0.0)
+    fresh = bool(True)
     for _it in range(NEWTON_STEPS):
-        H, g, chi, ss = all_terms(cam1, cam2, light, use_light, X, uv1[i], uv2[i], pL, W1, W2, WL, h)
+        r1 = ray_residual(cam1, light, 0, X, o1)
+        r2 = ray_residual(cam2, light, 0, X, o2)
+        if fresh:
+            j1x, j1y, j1z = ray_jacobian(cam1, light, 0, X, o1, h)
+            j2x, j2y, j2z = ray_jacobian(cam2, light, 0, X, o2, h)
+        H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        g = wp.vec3(0.0, 0.0, 0.0)
+        H, g = block_terms(r1, j1x, j1y, j1z, W1, H, g)
+        H, g = block_terms(r2, j2x, j2y, j2z, W2, H, g)
+        if use_light != 0:
+            rl = ray_residual(cam1, light, 1, X, pL)
+            if fresh:
+                jlx, jly, jlz = ray_jacobian(cam1, light, 1, X, pL, h)
+            H, g = block_terms(rl, jlx, jly, jlz, WL, H, g)
         if not (wp.abs(wp.determinant(H)) > 0.0):
             break
         step = wp.inverse(H) * g
@@ -262,6 +310,9 @@ def triangulate_rays_kernel(
         if wp.length(step) < wp.max(1.0e-4, 0.02 * sd):
             converged = True
             break
+        # within a tenth of the difference step of where they were taken, the Jacobians stand (the next
+        # steps are the same Newton steps to float32, at one projection a ray instead of seven)
+        fresh = wp.length(step) > CHORD_STEP * h
     # the residual at the solution; its covariance from the last step's normal equations (the
     # step that converged moved the point by under 2 % of its sigma: H is the same to float32)
     chi, ss = all_residuals(cam1, cam2, light, use_light, X, uv1[i], uv2[i], pL, W1, W2, WL)

@@ -223,9 +223,18 @@ def check_import_names(captures: list) -> list[str]:
     return names
 
 
-def _stereo_depths(d1, d2, cal: dict, projector, step: int = 4) -> np.ndarray:
+DEPTH_PIXELS = 65536
+"""Most camera-1 pixels the working depth is triangulated from (every 4th pixel each way, or every 8th, 16th
+... where that is more): its 1st and 99th percentiles are as good from these, and OpenCV's triangulation of
+every 4th pixel of a statue-sized capture cost 0.06 s."""
+
+
+def _stereo_depths(d1, d2, cal: dict, projector) -> np.ndarray:
     """Camera-1 depths of pixels matched between the cameras by their integer projector code
     (camera 2's pixels of one code averaged): the plain way, for the working volume."""
+    step = 4
+    while int(d1.valid.sum()) > DEPTH_PIXELS * step * step:
+        step *= 2
     wp_, hp_ = projector
     n = int(wp_) * int(hp_)
     v2 = d2.valid

@@ -457,14 +457,14 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         kw = dict(light=light, proj=proj,
                   proj_info=polar_information(proj, f32(matches.sigma_rho.astype(np.float32)),
                                               f32(matches.sigma_tan.astype(np.float32)), center=scan.patterns.center))
-    check = epipolar_check(rig, matches)
+    uv1, uv2 = v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32))
+    check = epipolar_check(rig, matches, uv=(uv1, uv2))
     max_res = st.max_residual_px
     if check and not check["fits"]:
         # a rig that misses: its points miss by the miss; the cloud is still made
         # (and the view warns), an outlier is a point beyond 5 times the miss
         max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
-    tri = triangulate_rays(v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32)),
-                           f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
+    tri = triangulate_rays(uv1, uv2, f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
                            max_residual_px=max_res, threads=threads, **kw)
