@@ -193,8 +193,9 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
             g <<= 1
             g |= bit
             np.abs(d, out=d)
-            np.greater_equal(d, settings.min_bit_contrast, out=bit)
-            ok &= bit
+            if settings.min_bit_contrast > 0:  # (at 0, the default, every bit passes: two passes saved)
+                np.greater_equal(d, settings.min_bit_contrast, out=bit)
+                ok &= bit
             np.less(d, dim, out=bit)
             weak[...] += bit
         return gray_decode(g, len(pairs)), ok
