@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.samples import DecodedMapParams, Samples, decoded_map_samples
+from ringscan.kernels.decoded_maps import DecodedMapParams, decoded_map_samples
+from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.base import Codec, StageSettings
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
@@ -132,7 +133,7 @@ def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, thr
     t0 = time.perf_counter()
     if frames.ndim != 3 or frames.shape[0] != 3 or frames.dtype != wp.uint16:
         raise ValueError(f"extract_decoded: expected (3, H, W) uint16 frames, got {frames.shape} {frames.dtype}")
-    # on the frames' device: count, scan, write (kernels.samples); decoded_samples is its NumPy statement
+    # on the frames' device: count, scan, write (kernels.decoded_maps); decoded_samples is its NumPy statement
     smp = decoded_map_samples(frames, params=_map_params(spec), threads=threads)
     stats = {"pixels_decoded": len(smp), "samples": len(smp),
              "times_s": {"decode": time.perf_counter() - t0}}
