@@ -194,7 +194,10 @@ def all_terms(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light
 def all_residuals(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
                   obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3):
     """The residuals alone of :func:`all_terms` (no Jacobian: one projection a ray, not seven):
-    (chi2, sum of squared residuals px^2)."""
+    (chi2, sum of squared residuals px^2).
+
+    Size: all_terms' arguments less the difference step (each ray's model, observation and weights as the
+    kernel holds them in registers)."""
     r1 = cam_residual(cam1, X, obs1)
     r2 = cam_residual(cam2, X, obs2)
     chi = quad(W1, r1, r1) + quad(W2, r2, r2)

@@ -15,15 +15,9 @@ from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.geometry import make_camera
-from ringscan.kernels.stereo_match import (
-    MATCH_STATUS_NAMES,
-    match_by_projector,
-    polar_sigmas,
-    projector_coordinates,
-    uv_sigmas,
-    window_sums,
-)
-from ringscan.kernels.stereo_match import epipolar_distances as kernel_epipolar_distances
+from ringscan.kernels.stereo_match import MATCH_STATUS_NAMES, match_by_projector, projector_coordinates
+from ringscan.kernels.stereo_support import epipolar_distances as kernel_epipolar_distances
+from ringscan.kernels.stereo_support import polar_sigmas, uv_sigmas, window_sums
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Rig
@@ -107,7 +101,7 @@ def _cpu(a: np.ndarray, dtype) -> wp.array:
 
 def _polar_to_uv(proj: np.ndarray, sigma_rho: np.ndarray, sigma_tan: np.ndarray, center) -> np.ndarray:
     """(n, 2) standard deviations along u_p and v_p of projector points whose errors are radial and
-    tangential about ``center`` (``kernels.stereo_match.uv_sigmas``)."""
+    tangential about ``center`` (``kernels.stereo_support.uv_sigmas``)."""
     if len(proj) == 0:
         return np.zeros((0, 2))
     return uv_sigmas(_cpu(proj, wp.vec2d), _cpu(sigma_rho, wp.float64), _cpu(sigma_tan, wp.float64),
@@ -116,7 +110,7 @@ def _polar_to_uv(proj: np.ndarray, sigma_rho: np.ndarray, sigma_tan: np.ndarray,
 
 def _uv_to_polar(proj: np.ndarray, sigma_uv: np.ndarray, center) -> tuple[np.ndarray, np.ndarray]:
     """The radial and tangential standard deviations of projector points with independent u_p, v_p errors
-    (``kernels.stereo_match.polar_sigmas``)."""
+    (``kernels.stereo_support.polar_sigmas``)."""
     if len(proj) == 0:
         return np.zeros(0), np.zeros(0)
     sr, st = polar_sigmas(_cpu(proj, wp.vec2d), _cpu(sigma_uv, wp.vec2d), center=(float(center[0]), float(center[1])))
@@ -158,7 +152,6 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
         return out_p, out_s, refined
     pixel = np.asarray(pixel, np.int64)
     r = int(radius)
-    sample_of = None
     for axis in (0, 1):
         val = proj[:, axis]
         integer = np.abs(val - np.round(val)) < INTEGER_TOLERANCE_PX
@@ -166,28 +159,10 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
             continue
         weight = 1.0 / np.maximum(sigma_uv[:, axis], 1e-3) ** 2
         sel = np.flatnonzero(integer)
-        at = pixel[sel]
         # weighted moments of each window about its centre pixel, the coordinate as an offset from the
         # centre's own code p0 (sums of w (p - p0), w dx (p - p0), ...)
-        if at.size * (2 * r + 1) ** 2 < height * width:
-            # a few integer codes among sub-pixel ones: their own windows (a kernel reads each window's
-            # samples through the pixels' sample index)
-            if sample_of is None:
-                sample_of = np.full(height * width, -1, np.int32)
-                sample_of[pixel] = np.arange(n, dtype=np.int32)
-            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = window_sums(
-                wp.array(at.astype(np.int32), dtype=wp.int32, device="cpu"),
-                wp.array(sample_of, dtype=wp.int32, device="cpu", copy=False), _cpu(val, wp.float64),
-                _cpu(weight, wp.float64), width=width, height=height, radius=r).numpy()
-            p0 = val[sel]
-            at = np.arange(at.size)
-        else:
-            # every pixel's window at once (the image's arrays), then the integer codes' pixels taken
-            w = np.zeros((height, width))
-            w.flat[pixel] = weight
-            p0 = np.zeros(height * width)
-            p0[pixel] = val
-            S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt = _windows_all(w, p0, width, height, r)
+        (S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt), p0, at = _window_moments(pixel, val, weight, sel, width,
+                                                                                      height, r)
         Sp, Sxp, Syp = wP - p0 * S, wPx - p0 * Sx, wPy - p0 * Sy
         Spp = wPP - 2 * p0 * wP + p0 * p0 * S
         # the 3x3 normal equations [S Sx Sy; Sx Sxx Sxy; Sy Sxy Syy] beta = (Sp, Sxp, Syp), by cofactors
@@ -210,8 +185,28 @@ def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarr
     return out_p, out_s, refined
 
 
+def _window_moments(pixel: np.ndarray, val: np.ndarray, weight: np.ndarray, sel: np.ndarray, width: int,
+                    height: int, r: int) -> tuple[tuple, np.ndarray, np.ndarray]:
+    """The 11 window sums of :func:`refine_integer_codes` for the samples ``sel`` (their centres' codes p0,
+    and each one's index into the sums): at their own pixels where they are few (a kernel reads each
+    window's samples through the pixels' sample index), else at every pixel by the image's filters."""
+    at = pixel[sel]
+    if at.size * (2 * r + 1) ** 2 < height * width:
+        sample_of = np.full(height * width, -1, np.int32)
+        sample_of[pixel] = np.arange(pixel.size, dtype=np.int32)
+        sums = window_sums(wp.array(at.astype(np.int32), dtype=wp.int32, device="cpu"),
+                           wp.array(sample_of, dtype=wp.int32, device="cpu", copy=False), _cpu(val, wp.float64),
+                           _cpu(weight, wp.float64), width=width, height=height, radius=r).numpy()
+        return tuple(sums), val[sel], np.arange(at.size)
+    w = np.zeros((height, width))
+    w.flat[pixel] = weight
+    p0 = np.zeros(height * width)
+    p0[pixel] = val
+    return _windows_all(w, p0, width, height, r), p0, at
+
+
 def _windows_all(w: np.ndarray, p: np.ndarray, width: int, height: int, r: int) -> tuple:
-    """The window sums of :func:`refine_integer_codes` at every pixel, as ``kernels.stereo_match.window_sums`` gives
+    """The window sums of :func:`refine_integer_codes` at every pixel, as ``kernels.stereo_support.window_sums`` gives
     them at a few: (S, Sx, Sy, Sxx, Sxy, Syy, sum w p, sum w p dx, sum w p dy, sum w p^2, count of pixels
     with w > 0), each (height * width,), separable filters over the (height, width) weights ``w`` and
     the raveled coordinates ``p``."""
@@ -307,7 +302,7 @@ def epipolar_distances(rig: Rig, uv1: np.ndarray, uv2: np.ndarray, *, threads: i
     """(n,) distance (camera-2 px) of each uv2 from the epipolar line of its uv1
     under the rig's two cameras (lens distortion undone; NaN where a pixel has no
     undistorted point): what a rig that fits its images keeps near the matches' noise.
-    One Warp kernel (``kernels.stereo_match.epipolar_distances``, float32: within 1e-3 px of
+    One Warp kernel (``kernels.stereo_support.epipolar_distances``, float32: within 1e-3 px of
     the float64 arithmetic); ``uv1``, ``uv2`` NumPy (n, 2) or (n,) vec2 Warp arrays."""
     c1, c2 = rig.camera, rig.camera2
     if c2 is None:

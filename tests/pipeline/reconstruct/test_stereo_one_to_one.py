@@ -119,13 +119,13 @@ def test_integer_codes_are_read_from_their_neighbourhood():
 
 def test_window_sums_at_a_few_pixels_equal_the_image_filters():
     """refine_integer_codes sums the windows of a few integer codes among sub-pixel ones at their own
-    pixels (kernels.stereo_match.window_sums, reading each window's samples through the pixels' sample
+    pixels (kernels.stereo_support.window_sums, reading each window's samples through the pixels' sample
     index): the same sums as the image-wide separable filters, borders (outside = no sample) included,
     to float64 rounding (the sums reach ~1e7; 1e-6 of slack is ~1e-13 relative)."""
     import warp as wp
 
     from ringscan.kernels import init_warp
-    from ringscan.kernels.stereo_match import window_sums
+    from ringscan.kernels.stereo_support import window_sums
 
     init_warp()
     rng = np.random.default_rng(3)
