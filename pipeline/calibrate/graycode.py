@@ -320,18 +320,22 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     bits = pairs.shape[0]
     top = int(coarse[valid].max()) if valid.any() else 0
     for k in range(0, min(top, bits - 1) + 1):
-        todo = valid & (coarse <= k) & ~ok
+        # (the walk reads a pixel's code only where it is valid at this level: the codes go in unmasked)
+        lvl_valid = valid if top == 0 else valid & (coarse <= k)
+        todo = lvl_valid if k == 0 else lvl_valid & ~ok
         if not todo.any():
             continue
-        lvl_valid = valid & (coarse <= k)
-        lvl_code = np.where(lvl_valid, code >> k, -1)
         # the finest level walks every line; a coarser one only the lines with a pixel still to place
         lines = None if k == 0 else np.flatnonzero(todo.any(axis=axis))
-        res, good = _along_axis(lvl_code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k, scale, lines)
+        res, good = _along_axis(code >> k if k else code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k,
+                                scale, lines)
         # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
         take = todo & good
-        out[take] = res[take] * 2 ** k + (2 ** k - 1) / 2.0
-        ok |= take
+        if k == 0:
+            out, ok = np.where(take, res, np.nan), take
+        else:
+            out[take] = res[take] * 2 ** k + (2 ** k - 1) / 2.0
+            ok |= take
     keep = valid & ~ok & (coarse == 0)
     out[keep] = code[keep]
     return out, ok
