@@ -54,6 +54,7 @@ its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0
 __all__ = [
     "RayTriangulation",
     "triangulate_rays",
+    "place_matches",
     "polar_information",
 ]
 
@@ -353,7 +354,61 @@ def triangulate_rays_kernel(
     status[i] = st
 
 
+@wp.kernel
+def place_matches_kernel(
+    index: wp.array(dtype=wp.int32),
+    points_m: wp.array(dtype=wp.vec3),
+    status_m: wp.array(dtype=wp.int32),
+    sigma_m: wp.array(dtype=wp.float32),
+    residual_m: wp.array(dtype=wp.float32),
+    confidence_s: wp.array(dtype=wp.float32),
+    i0: int,
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    confidence: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+    residual: wp.array(dtype=wp.float32),
+):
+    """Match i0 + tid's triangulation written at its sample: index (m,) int32 the sample of each match;
+    points_m (m,) vec3, status_m (m,) int32, sigma_m, residual_m (m,) float32 the matches'; confidence_s (n,)
+    float32 the samples': read. points (n,) vec3, status (n,) int32, confidence, sigma, residual (n,)
+    float32: written at the matched samples (the others keep what they hold).
+
+    Size: the matches' four results and the samples' confidence in, the five per-sample arrays out."""
+    k = i0 + wp.tid()
+    i = index[k]
+    st = status_m[k]
+    points[i] = points_m[k]
+    status[i] = st
+    confidence[i] = wp.where(st == STATUS_OK, confidence_s[i], 0.0)
+    sigma[i] = sigma_m[k]
+    residual[i] = residual_m[k]
+
+
 # ----------------------------------------------------------------------------- host
+
+
+def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, *, points: wp.array,
+                  status: wp.array, sigma: wp.array, residual: wp.array, placed_confidence: wp.array,
+                  threads: int | None = None) -> None:
+    """Write each match's triangulation (``tri``, (m,)) at its sample (``index``, (m,) int32) into the
+    per-sample arrays ((n,): ``points`` vec3, ``status`` int32, ``sigma``, ``residual``, ``placed_confidence``
+    float32, the samples' ``confidence`` where the point is ok, else 0), on their device; the samples without
+    a match keep what the arrays hold.
+
+    Size: the matches' index and results and the samples' confidence in, the five per-sample arrays (each a
+    keyword: where the caller's fallback already stands) out, and the CPU threads."""
+    fn = "place_matches"
+    m = check_array("index", index, None, wp.int32, fn)
+    n = check_array("confidence", confidence, None, wp.float32, fn)
+    for name, a, dt in (("points", points, wp.vec3), ("status", status, wp.int32), ("sigma", sigma, wp.float32),
+                        ("residual", residual, wp.float32), ("placed_confidence", placed_confidence, wp.float32)):
+        check_array(name, a, n, dt, fn)
+    check_array("tri.points", tri.points, m, wp.vec3, fn)
+    dev = index.device
+    args = [index, tri.points, tri.status, tri.sigma, tri.residual, confidence]
+    launch_spans(place_matches_kernel, m, lambda i0: args + [i0], [points, status, placed_confidence, sigma, residual],
+                 dev, default_threads() if threads is None else threads)
 
 
 def polar_information(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,

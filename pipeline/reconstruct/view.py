@@ -16,7 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
-from ringscan.kernels.stereo_rays import polar_information, triangulate_rays
+from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
     STATUS_NAMES,
@@ -468,38 +468,32 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
                            max_residual_px=max_res, threads=threads, **kw)
-    points = np.zeros((n, 3), np.float32)
-    status = np.full(n, STATUS_UNMATCHED, np.int32)
-    confidence = np.zeros(n, np.float32)
-    sigma = np.zeros(n, np.float32)
-    residual = np.full(n, -1.0, np.float32)
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as
         # a one-camera view places them (the calibration floor included)
         tp, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
-        points, status = tp.points.numpy(), tp.status.numpy()
-        confidence, sigma, residual = tp.confidence.numpy(), tp.sigma.numpy(), tp.residual.numpy()
+        points, status, confidence, sigma, residual = tp.points, tp.status, tp.confidence, tp.sigma, tp.residual
         extra["fallback_camera_projector"] = int(n - len(matches))
         if calibration:
             extra["calibration"] = calibration
+    else:
+        points = wp.zeros(n, dtype=wp.vec3, device=device)
+        confidence = wp.zeros(n, dtype=wp.float32, device=device)
+        sigma = wp.zeros(n, dtype=wp.float32, device=device)
+        status = wp.full(n, STATUS_UNMATCHED, dtype=wp.int32, device=device)
+        residual = wp.full(n, -1.0, dtype=wp.float32, device=device)
     i = matches.index
-    tst = tri.status.numpy()
-    points[i] = tri.points.numpy()
-    status[i] = tst
-    confidence[i] = np.where(tst == 0, samples.confidence.numpy()[i], 0.0)
-    sigma[i] = tri.sigma.numpy()
-    residual[i] = tri.residual.numpy()
+    # each match's point written at its sample on the device (kernels.stereo_rays.place_matches)
+    place_matches(wp.array(i.astype(np.int32), dtype=wp.int32, device=device), tri, samples.confidence, points=points,
+                  status=status, sigma=sigma, residual=residual, placed_confidence=confidence, threads=threads)
     residual_px = _angle_used(samples, settings) if st.rays == "auto" and use_light else np.zeros(n, bool)
     residual_px[i] = True  # the rays' RMS reprojection error
     _stereo_report(view, matches, tri, check, use_light, extra)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
-    return _Placed(points=wp.array(points, dtype=wp.vec3, device=device),
-                   status=wp.array(status, dtype=wp.int32, device=device),
-                   confidence=wp.array(confidence, dtype=wp.float32, device=device),
-                   sigma=wp.array(sigma, dtype=wp.float32, device=device),
-                   residual=wp.array(residual, dtype=wp.float32, device=device), residual_px=residual_px, extra=extra)
+    return _Placed(points=points, status=status, confidence=confidence, sigma=sigma, residual=residual,
+                   residual_px=residual_px, extra=extra)
 
 
 def _stereo_report(view: View, matches, tri, check: dict, use_light: bool, extra: dict) -> None:

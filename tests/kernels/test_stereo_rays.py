@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_perspective_light
-from ringscan.kernels.stereo_rays import polar_information, triangulate_rays
+from ringscan.kernels.stereo_rays import RayTriangulation, place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import STATUS_NAMES
 from tests.support.stereo_rig import CAM1, CAM2, CENTER, PROJ, VOLUME, project_points, surface_hits, warp_array as _w
 
@@ -99,3 +99,30 @@ def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
     assert (st == 0).all(), np.bincount(st)
     err = np.linalg.norm(T.points.numpy() - X / 1000.0, axis=1)
     assert err.max() < 2e-6  # m: the 2e-3 mm of millimetres, float32 pixels limit it alike
+
+
+def test_place_matches_writes_each_match_at_its_sample_and_leaves_the_others():
+    """place_matches scatters the matches' points at their samples: a matched sample gets the match's point,
+    status, sigma and residual, and its own confidence only where the point is ok; an unmatched sample keeps
+    what the arrays held (the camera-projector fallback, or the defaults)."""
+    rng = np.random.default_rng(2)
+    n, m = 50, 20
+    index = rng.choice(n, m, replace=False).astype(np.int32)
+    pts = rng.normal(size=(m, 3)).astype(np.float32)
+    st = np.where(rng.random(m) < 0.7, 0, 3).astype(np.int32)
+    sig, res = rng.random(m).astype(np.float32), rng.random(m).astype(np.float32)
+    conf = rng.random(n).astype(np.float32)
+    f32 = lambda a: wp.array(a, dtype=wp.float32, device="cpu")  # noqa: E731
+    tri = RayTriangulation(points=wp.array(pts, dtype=wp.vec3, device="cpu"), status=wp.array(st, dtype=wp.int32,
+                           device="cpu"), residual=f32(res), chi2=f32(np.zeros(m)), sigma=f32(sig))
+    out = dict(points=wp.array(np.full((n, 3), 7.0, np.float32), dtype=wp.vec3, device="cpu"),
+               status=wp.array(np.full(n, 11, np.int32), dtype=wp.int32, device="cpu"), sigma=f32(np.full(n, 5.0)),
+               residual=f32(np.full(n, -1.0)), placed_confidence=f32(np.full(n, 9.0)))
+    place_matches(wp.array(index, dtype=wp.int32, device="cpu"), tri, f32(conf), threads=2, **out)
+    got = {k: a.numpy() for k, a in out.items()}
+    other = np.setdiff1d(np.arange(n), index)
+    assert np.array_equal(got["points"][index], pts) and np.all(got["points"][other] == 7.0)
+    assert np.array_equal(got["status"][index], st) and np.all(got["status"][other] == 11)
+    assert np.array_equal(got["sigma"][index], sig) and np.array_equal(got["residual"][index], res)
+    assert np.array_equal(got["placed_confidence"][index], np.where(st == 0, conf[index], 0.0).astype(np.float32))
+    assert np.all(got["placed_confidence"][other] == 9.0) and np.all(got["residual"][other] == -1.0)
