@@ -113,56 +113,28 @@ def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
 
 
 @wp.func
-def observation_terms(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2,
-                      W: wp.vec3, h: float, H: wp.mat33, g: wp.vec3):
-    """The Gauss-Newton terms of one ray (a camera, or the light where ``is_light``);
-    the Jacobian by central differences over h mm (the lens's exact derivative was tried
-    and not taken: it converges samples of a rig that does not fit that these leave
-    ``not_converged``, a change of behaviour; docs/batch.md gives the figures).
-    Returns (H, g, chi2 term, |r| px).
-
-    Size: a @wp.func whose arguments are one ray's model, observation, weight, the difference step and the
-    running normal equations (H, g) it adds to.
-    """
-    r = wp.vec2(0.0, 0.0)
-    jx = wp.vec2(0.0, 0.0)
-    jy = wp.vec2(0.0, 0.0)
-    jz = wp.vec2(0.0, 0.0)
+def cam_jacobian(cam: CameraModel, X: wp.vec3, obs: wp.vec2, h: float):
+    """The columns d r / d x, y, z of a camera ray's residual by central differences over h mm (the lens's
+    exact derivative was tried and not taken: it converges samples of a rig that does not fit that these
+    leave ``not_converged``, a change of behaviour; docs/batch.md gives the figures)."""
     ex = wp.vec3(h, 0.0, 0.0)
     ey = wp.vec3(0.0, h, 0.0)
     ez = wp.vec3(0.0, 0.0, h)
-    if is_light != 0:
-        r = light_residual(light, X, obs)
-        jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
-        jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
-        jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
-    else:
-        r = cam_residual(cam, X, obs)
-        jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
-        jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
-        jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
-    H, g = block_terms(r, jx, jy, jz, W, H, g)
-    return H, g, quad(W, r, r), wp.length(r)
+    jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
+    jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
+    jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
+    return jx, jy, jz
 
 
 @wp.func
-def ray_residual(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2):
-    """One ray's reprojection residual (px): a camera's, or the light's where ``is_light``."""
-    if is_light != 0:
-        return light_residual(light, X, obs)
-    return cam_residual(cam, X, obs)
-
-
-@wp.func
-def ray_jacobian(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3, obs: wp.vec2, h: float):
-    """The columns d r / d x, y, z of one ray's residual by central differences over h mm (as
-    :func:`observation_terms`)."""
+def light_jacobian(light: LightModel, X: wp.vec3, obs: wp.vec2, h: float):
+    """:func:`cam_jacobian` of the light's ray."""
     ex = wp.vec3(h, 0.0, 0.0)
     ey = wp.vec3(0.0, h, 0.0)
     ez = wp.vec3(0.0, 0.0, h)
-    jx = (ray_residual(cam, light, is_light, X + ex, obs) - ray_residual(cam, light, is_light, X - ex, obs)) / (2.0 * h)
-    jy = (ray_residual(cam, light, is_light, X + ey, obs) - ray_residual(cam, light, is_light, X - ey, obs)) / (2.0 * h)
-    jz = (ray_residual(cam, light, is_light, X + ez, obs) - ray_residual(cam, light, is_light, X - ez, obs)) / (2.0 * h)
+    jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
+    jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
+    jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
     return jx, jy, jz
 
 
@@ -170,35 +142,13 @@ def ray_jacobian(cam: CameraModel, light: LightModel, is_light: int, X: wp.vec3,
 
 
 @wp.func
-def all_terms(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
-              obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3, h: float):
-    """The Gauss-Newton terms of every ray of a point (the two cameras, and the light where ``use_light``),
-    each :func:`observation_terms`. Returns (H, g, chi2, sum of squared residuals px^2).
-
-    Size: a @wp.func taking each ray's model, observation and weights as separate values (two cameras and the
-    light), as triangulate_rays_kernel holds them in registers.
-    """
-    H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    g = wp.vec3(0.0, 0.0, 0.0)
-    H, g, c1, r1 = observation_terms(cam1, light, 0, X, obs1, W1, h, H, g)
-    H, g, c2, r2 = observation_terms(cam2, light, 0, X, obs2, W2, h, H, g)
-    chi = c1 + c2
-    ss = r1 * r1 + r2 * r2
-    if use_light != 0:
-        H, g, c3, r3 = observation_terms(cam1, light, 1, X, obs_light, WL, h, H, g)
-        chi += c3
-        ss += r3 * r3
-    return H, g, chi, ss
-
-
-@wp.func
 def all_residuals(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
                   obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3):
-    """The residuals alone of :func:`all_terms` (no Jacobian: one projection a ray, not seven):
-    (chi2, sum of squared residuals px^2).
+    """Every ray's reprojection residual at X (the two cameras, and the light where ``use_light``; one
+    projection a ray): (chi2, sum of squared residuals px^2).
 
-    Size: all_terms' arguments less the difference step (each ray's model, observation and weights as the
-    kernel holds them in registers)."""
+    Size: each ray's model, observation and weights as separate values (two cameras and the light), as
+    triangulate_rays_kernel holds them in registers."""
     r1 = cam_residual(cam1, X, obs1)
     r2 = cam_residual(cam2, X, obs2)
     chi = quad(W1, r1, r1) + quad(W2, r2, r2)
@@ -239,7 +189,8 @@ def triangulate_rays_kernel(
     the third ray's switch and the bounds (:class:`RayParams`). points (n,)
     vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written.
 
-    Size: one thread per match: the Gauss-Newton iteration (all_terms per step), the check at the solution and
+    Size: one thread per match: the Gauss-Newton iteration (each ray's residual and, where they moved, its
+    Jacobian per step), the check at the solution and
     the point's sigma share the point's registers. Warp kernels take each array, each camera and the light as
     its own argument; the scalar settings already travel in RayParams.
     """
@@ -291,19 +242,19 @@ def triangulate_rays_kernel(
     jlz = wp.vec2(0.0, 0.0)
     fresh = bool(True)
     for _it in range(NEWTON_STEPS):
-        r1 = ray_residual(cam1, light, 0, X, o1)
-        r2 = ray_residual(cam2, light, 0, X, o2)
+        r1 = cam_residual(cam1, X, o1)
+        r2 = cam_residual(cam2, X, o2)
         if fresh:
-            j1x, j1y, j1z = ray_jacobian(cam1, light, 0, X, o1, h)
-            j2x, j2y, j2z = ray_jacobian(cam2, light, 0, X, o2, h)
+            j1x, j1y, j1z = cam_jacobian(cam1, X, o1, h)
+            j2x, j2y, j2z = cam_jacobian(cam2, X, o2, h)
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
         H, g = block_terms(r1, j1x, j1y, j1z, W1, H, g)
         H, g = block_terms(r2, j2x, j2y, j2z, W2, H, g)
         if use_light != 0:
-            rl = ray_residual(cam1, light, 1, X, pL)
+            rl = light_residual(light, X, pL)
             if fresh:
-                jlx, jly, jlz = ray_jacobian(cam1, light, 1, X, pL, h)
+                jlx, jly, jlz = light_jacobian(light, X, pL, h)
             H, g = block_terms(rl, jlx, jly, jlz, WL, H, g)
         if not (wp.abs(wp.determinant(H)) > 0.0):
             break
