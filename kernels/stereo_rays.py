@@ -13,6 +13,7 @@ Status codes are those of ``kernels.triangulation`` (``STATUS_NAMES``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -101,40 +102,31 @@ def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H
 
 
 @wp.func
-def cam_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
+def ray_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
+    """A camera ray's reprojection residual (px); the overload below is the light's (each model's own
+    projection only: no switch between them inlined at every call)."""
     p = project_camera(cam, X)
     return wp.vec2(p[0] - uv[0], p[1] - uv[1])
 
 
 @wp.func
-def light_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):
+def ray_residual(light: LightModel, X: wp.vec3, p_obs: wp.vec2):  # noqa: F811  (Warp overload)
     p = light_pixel(light, X)
     return wp.vec2(p[0] - p_obs[0], p[1] - p_obs[1])
 
 
 @wp.func
-def cam_jacobian(cam: CameraModel, X: wp.vec3, obs: wp.vec2, h: float):
-    """The columns d r / d x, y, z of a camera ray's residual by central differences over h mm (the lens's
-    exact derivative was tried and not taken: it converges samples of a rig that does not fit that these
-    leave ``not_converged``, a change of behaviour; docs/batch.md gives the figures)."""
+def ray_jacobian(model: Any, X: wp.vec3, obs: wp.vec2, h: float):
+    """The columns d r / d x, y, z of a ray's residual (a camera's or the light's: one instance a model) by
+    central differences over h mm (the lens's exact derivative was tried and not taken: it converges samples
+    of a rig that does not fit that these leave ``not_converged``, a change of behaviour; docs/batch.md gives
+    the figures)."""
     ex = wp.vec3(h, 0.0, 0.0)
     ey = wp.vec3(0.0, h, 0.0)
     ez = wp.vec3(0.0, 0.0, h)
-    jx = (cam_residual(cam, X + ex, obs) - cam_residual(cam, X - ex, obs)) / (2.0 * h)
-    jy = (cam_residual(cam, X + ey, obs) - cam_residual(cam, X - ey, obs)) / (2.0 * h)
-    jz = (cam_residual(cam, X + ez, obs) - cam_residual(cam, X - ez, obs)) / (2.0 * h)
-    return jx, jy, jz
-
-
-@wp.func
-def light_jacobian(light: LightModel, X: wp.vec3, obs: wp.vec2, h: float):
-    """:func:`cam_jacobian` of the light's ray."""
-    ex = wp.vec3(h, 0.0, 0.0)
-    ey = wp.vec3(0.0, h, 0.0)
-    ez = wp.vec3(0.0, 0.0, h)
-    jx = (light_residual(light, X + ex, obs) - light_residual(light, X - ex, obs)) / (2.0 * h)
-    jy = (light_residual(light, X + ey, obs) - light_residual(light, X - ey, obs)) / (2.0 * h)
-    jz = (light_residual(light, X + ez, obs) - light_residual(light, X - ez, obs)) / (2.0 * h)
+    jx = (ray_residual(model, X + ex, obs) - ray_residual(model, X - ex, obs)) / (2.0 * h)
+    jy = (ray_residual(model, X + ey, obs) - ray_residual(model, X - ey, obs)) / (2.0 * h)
+    jz = (ray_residual(model, X + ez, obs) - ray_residual(model, X - ez, obs)) / (2.0 * h)
     return jx, jy, jz
 
 
@@ -149,12 +141,12 @@ def all_residuals(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_l
 
     Size: each ray's model, observation and weights as separate values (two cameras and the light), as
     triangulate_rays_kernel holds them in registers."""
-    r1 = cam_residual(cam1, X, obs1)
-    r2 = cam_residual(cam2, X, obs2)
+    r1 = ray_residual(cam1, X, obs1)
+    r2 = ray_residual(cam2, X, obs2)
     chi = quad(W1, r1, r1) + quad(W2, r2, r2)
     ss = wp.dot(r1, r1) + wp.dot(r2, r2)
     if use_light != 0:
-        r3 = light_residual(light, X, obs_light)
+        r3 = ray_residual(light, X, obs_light)
         chi += quad(WL, r3, r3)
         ss += wp.dot(r3, r3)
     return chi, ss
@@ -242,19 +234,19 @@ def triangulate_rays_kernel(
     jlz = wp.vec2(0.0, 0.0)
     fresh = bool(True)
     for _it in range(NEWTON_STEPS):
-        r1 = cam_residual(cam1, X, o1)
-        r2 = cam_residual(cam2, X, o2)
+        r1 = ray_residual(cam1, X, o1)
+        r2 = ray_residual(cam2, X, o2)
         if fresh:
-            j1x, j1y, j1z = cam_jacobian(cam1, X, o1, h)
-            j2x, j2y, j2z = cam_jacobian(cam2, X, o2, h)
+            j1x, j1y, j1z = ray_jacobian(cam1, X, o1, h)
+            j2x, j2y, j2z = ray_jacobian(cam2, X, o2, h)
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
         H, g = block_terms(r1, j1x, j1y, j1z, W1, H, g)
         H, g = block_terms(r2, j2x, j2y, j2z, W2, H, g)
         if use_light != 0:
-            rl = light_residual(light, X, pL)
+            rl = ray_residual(light, X, pL)
             if fresh:
-                jlx, jly, jlz = light_jacobian(light, X, pL, h)
+                jlx, jly, jlz = ray_jacobian(light, X, pL, h)
             H, g = block_terms(rl, jlx, jly, jlz, WL, H, g)
         if not (wp.abs(wp.determinant(H)) > 0.0):
             break
