@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 __all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "cpu_threads", "set_cpu_threads",
-           "scan_counts"]
+           "scan_counts", "check_array"]
 
 
 @wp.func
@@ -177,3 +177,12 @@ def cpu_threads() -> int:
 def default_threads() -> int:
     """Threads for one stage's CPU launches: the budget, at most 8."""
     return max(1, min(8, cpu_threads()))
+
+
+def check_array(name: str, a, n: int | None, dtype, fn: str) -> int:
+    """A host function's argument check: ``a`` a 1-D Warp array of ``dtype`` (of length ``n``
+    unless None); its length. ``fn`` names the function in the message."""
+    if not isinstance(a, wp.array) or a.dtype != dtype or a.ndim != 1 or (n is not None and a.shape[0] != n):
+        shape = f"({n},)" if n is not None else "1-D"
+        raise ValueError(f"{fn}: {name} must be a {shape} {dtype.__name__} Warp array")
+    return a.shape[0]

@@ -29,7 +29,7 @@ from typing import ClassVar
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
+from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
 MAX_NEIGHBOURS = 16
 LINE_RATIO = 0.02
@@ -70,7 +70,6 @@ __all__ = [
     "MATCH_STATUS_NAMES",
     "MAX_NEIGHBOURS",
     "SIGMA_FLOOR_PX",
-    "check_array",
     "projector_coordinates",
     "match_by_projector",
 ]
@@ -628,15 +627,6 @@ def match_kernel(
 
 
 # ----------------------------------------------------------------------------- host
-
-
-def check_array(name: str, a, n: int | None, dtype, fn: str) -> int:
-    """The host functions' argument check (here and in :mod:`ringscan.kernels.stereo_rays`):
-    ``a`` a 1-D Warp array of ``dtype`` (of length ``n`` unless None); its length."""
-    if not isinstance(a, wp.array) or a.dtype != dtype or a.ndim != 1 or (n is not None and a.shape[0] != n):
-        shape = f"({n},)" if n is not None else "1-D"
-        raise ValueError(f"{fn}: {name} must be a {shape} {dtype.__name__} Warp array")
-    return a.shape[0]
 
 
 def projector_coordinates(rho: wp.array, phi: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,

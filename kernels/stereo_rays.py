@@ -31,8 +31,8 @@ from ringscan.kernels.geometry import (
     make_volume,
     project_camera,
 )
-from ringscan.kernels.launch import default_threads, launch_spans
-from ringscan.kernels.stereo_match import SIGMA_FLOOR_PX, check_array
+from ringscan.kernels.launch import check_array, default_threads, launch_spans
+from ringscan.kernels.stereo_match import SIGMA_FLOOR_PX
 from ringscan.kernels.triangulation import (
     STATUS_ILL_CONDITIONED,
     STATUS_INCONSISTENT,

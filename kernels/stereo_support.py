@@ -10,8 +10,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import CameraModel, undistort
-from ringscan.kernels.launch import default_threads, launch_spans
-from ringscan.kernels.stereo_match import check_array
+from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
 __all__ = ["uv_sigmas", "polar_sigmas", "window_sums", "epipolar_distances"]
 

@@ -75,7 +75,9 @@ class ErrorModel(dict):
     calibration's miss), ``pairs`` (samples that measured them), ``measured_by``
     (``angle``: each sample's two depths, :func:`fit_error_model`; ``neighbours``: a
     ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), ``regions``
-    (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), ``lag_px``
+    (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), ``reach``
+    (``neighbours`` with a ring only: the variance factor of each class of samples the kept
+    check does not reach, :func:`reach_scale`), ``lag_px``
     (``neighbours`` only: the spacing of the check kept, ``NEIGHBOUR_LAGS``), and the pairs'
     normalised disagreement under the decode's model and under the fitted one
     (``z_median`` / ``z_median_fitted``: a Gaussian gives 0.67; ``beyond_3`` /
@@ -456,7 +458,8 @@ def _check_variance(u, cc, nodes, w, x, y, window):
 
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
                         ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
-                        group: np.ndarray | None = None, max_samples: int = MAX_CHECK_SAMPLES) -> ErrorModel:
+                        group: np.ndarray | None = None, max_samples: int = MAX_CHECK_SAMPLES,
+                        reach: np.ndarray | None = None) -> ErrorModel:
     """The ring coordinate's missed error terms where no angle checks it: from each
     sample's disagreement with its neighbours on the same ring (or, for a dense code,
     the neighbouring pixels).
@@ -490,6 +493,9 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
             gets a variance factor of its own (``groups``; a check's samples share a ring,
             so one group).
         max_samples: at most this many samples are checked (whole rows of them, evenly spread).
+        reach: (n,) each sample's widest check (:func:`check_reach`), or None: with a ring,
+            the samples the kept check does not reach get a variance factor per reach
+            (``reach``: [[reach, factor, checks], ...], :func:`reach_scale`).
 
     Returns:
         :class:`ErrorModel` with k_rho and floor_rho_px (the other terms 1 and 0),
@@ -536,14 +542,176 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     # a part of the view (an object's facets) from the checks that fit in it: at most REGION_MAX_LAG_PX wide
     rc, rr, rX = residuals([ch for ch in checks if ch[0] <= REGION_MAX_LAG_PX][-1])
     regions = _region_scales(rr * rr, rX @ q * group_scale(groups, grp(rc)), uv[rc])
+    reach_scales = []
+    if reach is not None and window == 1:
+        var = ((q[0] * s * s + q[1] * g * g) * group_scale(groups, None if group is None else np.asarray(group))
+               * region_scale(regions, uv))
+        reach_scales = _reach_scales(d, var, uv, idx, np.asarray(reach, np.int64), lag)
     pairs, z0 = cc.size, np.abs(r) / np.sqrt(X[:, 0])
     z1 = np.abs(r) / np.sqrt(X @ q * gs * region_scale(regions, uv[cc]))
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
                       floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs), measured_by="neighbours", regions=regions,
-                      groups=groups,
+                      groups=groups, reach=reach_scales,
                       indirect_rho_px=0.0, indirect_tan_px=0.0,
                       lag_px=int(lag), z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+CROSS_RADII_PX = (8, 12, 16)
+"""Radii (camera px) of the cross-ring check (``_cross_ring_checks``): for each reach class the
+first at which it gets ``MIN_REACH_CHECKS`` checks, and the checked samples are checked at the
+same radius for its factor. The samples of other rings within it fit a
+quadratic of depth over the image, which wants three rings. On the default rig (rings ~3 px
+apart in the image) 8 px holds two to either side; rings farther apart take a wider one (a
+surface's shape then weighs more in the check); beyond 16 px, no reach factor is fitted."""
+CROSS_REJECT = 4.0
+"""A neighbour farther off the first fit than this many times the fit's robust spread (and its
+own sigma) is left out of the second: another surface across an edge."""
+CROSS_GATE = 3.0
+"""A check whose neighbours spread more than this many of their sigmas (robustly) about their
+own fit is not made: the neighbourhood is no smooth surface (an edge, a fold), and the check
+would read its shape as error (on Spot, factors of thousands without this test)."""
+MAX_REACH_CHECKS = 2000
+"""Samples of each reach class checked across rings (evenly spread): a variance factor
+to ~5 %."""
+MIN_REACH_CHECKS = 100
+"""Fewer cross-ring checks in a reach class (or among the reference samples) than this:
+no factor for it (100 fix a variance factor to ~15 %; a factor is never below 1)."""
+
+
+def check_reach(depth: np.ndarray, pixel: np.ndarray, ring: np.ndarray, uv: np.ndarray, *, width: int) -> np.ndarray:
+    """(n,) int: each sample's widest check along its ring (:func:`fit_neighbour_model`):
+    the largest of ``NEIGHBOUR_LAGS`` at which it has its four same-ring nodes (1: only its
+    two next neighbours; 0: not even those: a fragment of a ring, an object's edge), -1
+    where its depth is not finite."""
+    d = np.asarray(depth, np.float64)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    pixel = np.asarray(pixel, np.int64)
+    ring = np.asarray(ring, np.int64)
+    ok = np.isfinite(d) & np.isfinite(uv).all(axis=1)
+    reach = np.where(ok, 0, -1)
+    usable = np.flatnonzero(ok)
+    if usable.size == 0:
+        return reach
+    idx = _ring_index(ring, pixel, usable, width)
+    c, _, _ = _next_neighbours(uv, idx, idx.order)
+    reach[c] = 1
+    wide, direction = _ring_directions(uv, idx.ring, idx.at_pixel, idx.width, idx.order)
+    for lag in NEIGHBOUR_LAGS[1:]:
+        nodes, place = _lag_nodes(uv, idx.ring, idx.at_pixel, idx.width, wide, direction, lag)
+        fine = ((nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0)
+                & (place[:, 2] > 0))
+        reach[wide[fine]] = lag
+    return reach
+
+
+def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingIndex,
+                       centre: np.ndarray, radius: int, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(checked samples (m,), r (m,), its predicted variance (m,)): each ``centre`` sample's depth
+    against the quadratic of depth over the image that the samples of other rings within
+    ``radius`` px fit (weighted by 1 / ``var``; refitted without the neighbours beyond
+    ``CROSS_REJECT``), read at the sample's own position. Made where samples of an inner and an
+    outer ring and of three rings in all surround the centre (the fit interpolates), at least
+    three per term, and their own spread about the fit is within ``CROSS_GATE``. Unlike a check
+    along the ring it reads the error along the ray itself: a ring sample's error moves it
+    across its ring, and neighbours on its own ring see only the ring surface's share of the
+    depth change (0.85 of the error on the far faint plane)."""
+    height = idx.at_pixel.size // idx.width
+    rad = int(radius)
+    off = np.array([(dx, dy) for dy in range(-rad, rad + 1) for dx in range(-rad, rad + 1)
+                    if 0 < dx * dx + dy * dy <= rad * rad])
+    out_c, out_r, out_v = [], [], []
+    for i0 in range(0, centre.size, chunk):
+        c = centre[i0:i0 + chunk]
+        m = c.size
+        xx, yy = idx.x[c][:, None] + off[:, 0], idx.y[c][:, None] + off[:, 1]
+        inside = (xx >= 0) & (xx < idx.width) & (yy >= 0) & (yy < height)
+        j = np.where(inside, idx.at_pixel[np.where(inside, yy * idx.width + xx, 0)], -1)
+        jj = np.maximum(j, 0)
+        kc = idx.ring[c][:, None]
+        have = (j >= 0) & (idx.ring[jj] != kc) & np.isfinite(d[jj]) & (var[jj] > 0)
+        du, dv = uv[jj, 0] - uv[c, 0][:, None], uv[jj, 1] - uv[c, 1][:, None]
+        A = np.stack([np.ones_like(du), du, dv, du * du, du * dv, dv * dv], -1)
+        p = A.shape[-1]
+        dj = np.where(have, d[jj], 0.0)
+        rk = np.where(have, idx.ring[jj], np.iinfo(np.int64).max)
+        srt = np.sort(rk, axis=1)
+        rings = np.count_nonzero((np.diff(srt, axis=1) != 0) & (srt[:, 1:] != np.iinfo(np.int64).max), axis=1) + (
+            srt[:, 0] != np.iinfo(np.int64).max)
+        good = ((have & (idx.ring[jj] < kc)).any(axis=1) & (have & (idx.ring[jj] > kc)).any(axis=1) & (rings >= 3))
+        sw = np.sqrt(np.where(have, 1.0 / np.where(have, var[jj], 1.0), 0.0))
+        for it in range(2):
+            w = np.where(have, sw * sw, 0.0)
+            good &= np.count_nonzero(have, axis=1) >= 3 * p
+            Aw = A * w[..., None]
+            N = np.matmul(Aw.transpose(0, 2, 1), A)
+            good &= np.linalg.cond(np.where(good[:, None, None], N, np.eye(p))) < 1e12  # six terms fixed
+            Ns = np.where(good[:, None, None], N, np.eye(p))
+            beta = np.linalg.solve(Ns, np.matmul(Aw.transpose(0, 2, 1), dj[..., None]))
+            zr = np.where(have, np.abs(dj - np.matmul(A, beta)[..., 0]) * sw, np.inf)
+            cnt = np.count_nonzero(have, axis=1)
+            srt_z = np.sort(zr, axis=1)  # each row's neighbours first, the missing (inf) last
+            mid = np.maximum(cnt - 1, 0)
+            spread = 0.5 * (srt_z[np.arange(m), mid // 2] + srt_z[np.arange(m), (mid + 1) // 2]) / 0.6745
+            if it == 0:
+                have &= ~(zr > CROSS_REJECT * np.maximum(spread, 1.0)[:, None])
+        good &= spread <= CROSS_GATE
+        b = np.linalg.solve(Ns, np.tile(np.eye(p)[0], (m, 1))[..., None])[..., 0]
+        wi = np.where(have, sw * sw, 0.0) * np.matmul(A, b[..., None])[..., 0]
+        fitted = (wi * dj).sum(axis=1)
+        v = (wi * wi * np.where(have, var[jj], 0.0)).sum(axis=1)
+        out_c.append(c[good])
+        out_r.append(d[c[good]] - fitted[good])
+        out_v.append(var[c[good]] + v[good])
+    if not out_c:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    return np.concatenate(out_c), np.concatenate(out_r), np.concatenate(out_v)
+
+
+def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingIndex, reach: np.ndarray,
+                  lag: int) -> list:
+    """Samples that no check of ``lag`` px along their ring reaches (``check_reach`` < lag: a
+    ring's fragments, an object's edges and grazing facets) err more than the checked ones
+    the fit saw (ringscan's renderer: Spot's 1 % without a neighbour 34 % beyond 3 sigma,
+    the far faint plane's half 11 %): per reach class, the variance factor of its cross-ring
+    checks (:func:`_cross_ring_checks`, ``var``: the fitted model's variances) over the
+    checked samples' (>= 1; a curved surface's departure from the check's plane is in both).
+    Returns [[reach, factor, checks], ...]."""
+    usable = idx.order
+    ref = usable[reach[usable] >= lag]
+    out = []
+    classes = [k for k in np.unique(reach[usable]) if 0 <= k < lag]
+    if not classes or ref.size == 0:
+        return out
+
+    def scale(cands, radius):
+        c, r, v = _cross_ring_checks(d, var, uv, idx, cands[sample_subset(cands.size, MAX_REACH_CHECKS)], radius)
+        return (_t_scale(r * r / (T_SCALE * T_SCALE * v)), c.size) if c.size >= MIN_REACH_CHECKS else (None, c.size)
+
+    refs = {}
+    for k in classes:
+        for radius in CROSS_RADII_PX:  # the same radius for the class and the checked samples it is set against
+            m_k, n = scale(usable[reach[usable] == k], radius)
+            if m_k is None:
+                continue
+            if radius not in refs:
+                refs[radius] = scale(ref, radius)[0]
+            if refs[radius] is not None:
+                out.append([int(k), round(float(np.clip(m_k / refs[radius], 1.0, GROUP_SCALE_RANGE[1])), 4), int(n)])
+            break
+    return out
+
+
+def reach_scale(scales: list | None, reach: np.ndarray | None) -> np.ndarray | float:
+    """Each sample's variance factor from :func:`_reach_scales` ([[reach, factor, checks], ...]; 1
+    for a reach with none)."""
+    if not scales or reach is None:
+        return 1.0
+    reach = np.asarray(reach, np.int64)
+    table = np.ones(max(NEIGHBOUR_LAGS) + 1)
+    for k, m, _ in scales:
+        table[k] = m
+    return np.where(reach >= 0, table[np.clip(reach, 0, table.size - 1)], 1.0)
 
 
 def widen_depth_sigma(s: np.ndarray, sigma_px: np.ndarray, model: ErrorModel) -> np.ndarray:

@@ -16,6 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
+from ringscan.kernels.ring_checks import sample_reach
 from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
@@ -39,6 +40,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
     fit_error_model,
     fit_neighbour_model,
     group_scale,
+    reach_scale,
     region_scale,
     sample_subset,
     widen_depth_sigma,
@@ -361,9 +363,13 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     depth = np.where(ok, np.linalg.norm(triangulated.points.numpy().astype(np.float64) - center, axis=1), np.nan)
     sigma = triangulated.sigma.numpy()
     sigma_px = samples.sigma_rho.numpy()
-    fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(),
-                              samples.ring.numpy() if samples.ring is not None else None, samples.uv.numpy(),
-                              width=cam.width, window=window, group=group)
+    ring = samples.ring.numpy() if samples.ring is not None else None
+    uv = samples.uv.numpy()
+    # how far along its ring each sample can be checked (kernels.ring_checks; error_scale.check_reach in NumPy)
+    reach = (sample_reach(samples.uv, samples.ring, samples.pixel, np.isfinite(depth), width=cam.width)
+             if ring is not None else None)
+    fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(), ring, uv,
+                              width=cam.width, window=window, group=group, reach=reach)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = widen_depth_sigma(sigma, sigma_px, fit)
@@ -371,7 +377,9 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
         widened = (widened * np.sqrt(group_scale(fit["groups"], group))).astype(np.float32)
     if fit["regions"]:
         # parts of the view whose neighbours disagree more than the view's model says
-        widened = (widened * np.sqrt(region_scale(fit["regions"], samples.uv.numpy()))).astype(np.float32)
+        widened = (widened * np.sqrt(region_scale(fit["regions"], uv))).astype(np.float32)
+    if fit.get("reach"):  # samples no check along their ring reached (fragments, edges): checked across rings
+        widened = (widened * np.sqrt(reach_scale(fit["reach"], reach))).astype(np.float32)
     if samples.indirect is not None and samples.ring is not None:
         # bounced light shifts a ring's edges smoothly along it, which no neighbour sees: its measured
         # share widens sigma by the shift per unit share the angle's pairs fit (INDIRECT_PRIOR_PX; a

@@ -1,0 +1,240 @@
+"""How far along its ring each sample can be checked (docs/reconstruction.md, "Honest sigma",
+"Without an angle"): the neighbour model (``pipeline.reconstruct.error_scale``) checks a sample
+against same-ring samples 1, 2, 4 and 8 px to either side; a sample no check reaches (a ring's
+fragment, an object's edge) errs more than those it fits, so every sample's reach is wanted,
+not only the fit's few thousand. One thread a sample: the same tests as the NumPy statement
+(``error_scale._next_neighbours``, ``_ring_directions``, ``_lag_nodes``), in float64."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.launch import check_array, default_threads, launch_spans
+
+__all__ = ["check_reach_kernel", "sample_reach"]
+
+# no gradients here, and loops left as loops: unrolled (Warp's default for short constant
+# ranges), the 3 lags x 4 nodes x 5 x 5 pixels took minutes to compile on the CPU
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+
+LAGS = wp.constant(wp.vec3i(2, 4, 8))
+"""The checks wider than 1 px (``error_scale.NEIGHBOUR_LAGS[1:]``)."""
+
+
+# ----------------------------------------------------------------------------- functions
+
+
+@wp.func
+def keyed_sample(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32), want: wp.int64):
+    """The sample whose ring * npix + pixel is ``want`` (binary search of the sorted ``key``), -1: none."""
+    lo = int(0)
+    hi = key.shape[0]
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if key[mid] < want:
+            lo = mid + 1
+        else:
+            hi = mid
+    found = int(-1)
+    if lo < key.shape[0]:
+        if key[lo] == want:
+            found = order[lo]
+    return found
+
+
+@wp.func
+def same_ring_at(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int32), width: int, height: int,
+                 k: int, x: int, y: int):
+    """The sample at pixel (x, y) where it is of ring ``k`` (-1: none, another ring's, or outside)."""
+    found = int(-1)
+    if x >= 0 and x < width and y >= 0 and y < height:
+        j = at_pixel[y * width + x]
+        if j >= 0:
+            if ring[j] == k:
+                found = j
+    return found
+
+
+@wp.func
+def uv64(uv: wp.array(dtype=wp.vec2), i: int):
+    return wp.vec2d(wp.float64(uv[i][0]), wp.float64(uv[i][1]))
+
+
+@wp.func
+def next_neighbours_ok(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                       k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
+    """Two samples of ring ``k`` among the 8 pixels around (x, y) at least 120 degrees apart as seen
+    from sample ``c`` (``_next_neighbours``' test)."""
+    pc = uv64(uv, c)
+    ok = int(0)
+    for a in range(8):
+        ia = a + wp.where(a >= 4, 1, 0)  # the 3x3 offsets without the centre
+        ax = x + ia % 3 - 1
+        ay = y + ia / 3 - 1
+        ja = int(-1)
+        if ax >= 0 and ax < width and ay >= 0:
+            ja = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
+        if ja >= 0:
+            va = uv64(uv, ja) - pc
+            na = wp.length(va)
+            if na > wp.float64(0.0):
+                for b in range(a + 1, 8):
+                    ib = b + wp.where(b >= 4, 1, 0)
+                    bx = x + ib % 3 - 1
+                    by = y + ib / 3 - 1
+                    jb = int(-1)
+                    if bx >= 0 and bx < width and by >= 0:
+                        jb = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(by * width + bx))
+                    if jb >= 0:
+                        vb = uv64(uv, jb) - pc
+                        nb = wp.length(vb)
+                        if nb > wp.float64(0.0):
+                            if wp.dot(va, vb) / (na * nb) <= wp.float64(-0.5):
+                                ok = 1
+    return ok
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def check_reach_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    ring: wp.array(dtype=wp.int32),
+    pixel: wp.array(dtype=wp.int32),
+    usable: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+    at_pixel: wp.array(dtype=wp.int32),
+    npix: wp.int64,
+    width: int,
+    i0: int,
+    reach: wp.array(dtype=wp.int32),
+):
+    """The widest check along its ring of sample usable[i0 + tid]: 8, 4 or 2 where it has four
+    same-ring nodes near -2k, -k, k, 2k px along the ring's direction there (within the 5x5 pixels
+    of each target and max(1.5, k / 2) px of it, their places strictly increasing, two on either
+    side), 1 where only its two next neighbours, 0 where neither.
+
+    uv (n,) vec2, ring and pixel (n,) int32 the samples' (pixel: y * width + x); usable (m,) int32 the samples to test; key (m,)
+    int64 sorted ring * npix + pixel of the usable samples and order (m,) int32 the sample of each;
+    at_pixel (npix,) int32 a usable sample at each pixel (-1: none): read. reach (n,) int32:
+    written at the usable samples.
+
+    Size: the samples' three arrays, the two lookups (by ring and pixel, by pixel), the span's i0, one
+    array out."""
+    c = usable[i0 + wp.tid()]
+    k = ring[c]
+    height = at_pixel.shape[0] / width
+    pc = uv64(uv, c)
+    r = int(0)
+    cx = int(wp.rint(pc[0]))
+    cy = int(wp.rint(pc[1]))
+    # the ring's direction: the principal axis of its samples in the 5x5 pixels around
+    count = wp.float64(0.0)
+    mx = wp.float64(0.0)
+    my = wp.float64(0.0)
+    sxx = wp.float64(0.0)
+    sxy = wp.float64(0.0)
+    syy = wp.float64(0.0)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            j = same_ring_at(at_pixel, ring, width, height, k, cx + dx, cy + dy)
+            if j >= 0:
+                q = uv64(uv, j) - pc
+                count += wp.float64(1.0)
+                mx += q[0]
+                my += q[1]
+                sxx += q[0] * q[0]
+                sxy += q[0] * q[1]
+                syy += q[1] * q[1]
+    if count >= wp.float64(3.0):
+        mx = mx / count
+        my = my / count
+        cxx = sxx / count - mx * mx
+        cxy = sxy / count - mx * my
+        cyy = syy / count - my * my
+        angle = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
+        direction = wp.vec2d(wp.cos(angle), wp.sin(angle))
+        for li in range(3):
+            lag = LAGS[li]
+            fine = int(1)
+            prev = wp.float64(-1.0e300)
+            for s in range(4):
+                step = s - 2 + wp.where(s >= 2, 1, 0)  # -2, -1, 1, 2
+                target = pc + wp.float64(float(step * lag)) * direction
+                tx = int(wp.rint(target[0]))
+                ty = int(wp.rint(target[1]))
+                best = wp.float64(1.0e300)
+                node = int(-1)
+                for dy in range(-2, 3):
+                    for dx in range(-2, 3):
+                        j = same_ring_at(at_pixel, ring, width, height, k, tx + dx, ty + dy)
+                        if j >= 0:
+                            dist = wp.length(uv64(uv, j) - target)
+                            if dist < best:
+                                best = dist
+                                node = j
+                if best > wp.max(wp.float64(1.5), wp.float64(0.5 * float(lag))):
+                    node = -1
+                if node < 0:
+                    fine = 0
+                else:
+                    place = wp.dot(uv64(uv, node) - pc, direction)
+                    if place <= prev:
+                        fine = 0
+                    if s == 1 and place >= wp.float64(0.0):
+                        fine = 0
+                    if s == 2 and place <= wp.float64(0.0):
+                        fine = 0
+                    prev = place
+            if fine == 1:
+                r = lag
+    if r == 0:  # the 1 px check, at the sample's own pixel
+        px = pixel[c]
+        r = next_neighbours_ok(uv, key, order, k, npix, width, px % width, px / width, c)
+    reach[c] = r
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarray, *, width: int,
+                 threads: int | None = None) -> np.ndarray:
+    """(n,) int32 each sample's widest check along its ring (:func:`check_reach_kernel`): 8, 4,
+    2, 1 or 0; -1 where not ``usable``.
+
+    Args:
+        uv: (n,) vec2 the samples' camera positions (px).
+        ring, pixel: (n,) int32 their rings and camera pixels (y * width + x).
+        usable: (n,) bool the samples to check and to check against (a finite depth).
+        width: camera width (px).
+        threads: CPU threads; default all cores.
+    """
+    fn = "sample_reach"
+    n = check_array("uv", uv, None, wp.vec2, fn)
+    check_array("ring", ring, n, wp.int32, fn)
+    check_array("pixel", pixel, n, wp.int32, fn)
+    usable = np.asarray(usable, bool)
+    if usable.shape != (n,):
+        raise ValueError(f"{fn}: usable must be ({n},) bool, got {usable.shape}")
+    reach = np.full(n, -1, np.int32)
+    use = np.flatnonzero(usable)
+    if use.size == 0:
+        return reach
+    dev = uv.device
+    px = pixel.numpy().astype(np.int64)
+    rg = ring.numpy().astype(np.int64)
+    npix = int(px[use].max()) + int(width) + 2  # more than any pixel: the key's stride per ring
+    key = rg[use] * npix + px[use]
+    o = np.argsort(key, kind="stable")
+    at_pixel = np.full(npix, -1, np.int32)
+    at_pixel[px[use]] = use  # of two rings' samples at one pixel, one (as the NumPy index keeps it)
+    out = wp.array(reach, dtype=wp.int32, device=dev)
+    args = [uv, ring, pixel, wp.array(use.astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(key[o], dtype=wp.int64, device=dev), wp.array(use[o].astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(at_pixel, dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
+    launch_spans(check_reach_kernel, use.size, lambda i0: args + [i0], [out], dev,
+                 default_threads() if threads is None else threads, min_span=1024)
+    return out.numpy()

@@ -1,0 +1,69 @@
+"""kernels.ring_checks: each sample's widest check along its ring, against the NumPy statement
+(``error_scale.check_reach``) and against what a ring's shape says it must be."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.ring_checks import sample_reach
+from ringscan.pipeline.reconstruct.error_scale import check_reach
+
+WIDTH, HEIGHT = 320, 240
+
+
+def _circle(k, r, cx=160.0, cy=120.0, arc=(0.0, 2 * np.pi)):
+    """One sample a camera pixel along a circle of radius r (px), as a ring's crossings are sampled."""
+    th = np.linspace(arc[0], arc[1], int((arc[1] - arc[0]) * r * 1.3), endpoint=False)
+    u, v = cx + r * np.cos(th), cy + r * np.sin(th)
+    p = np.round(v).astype(int) * WIDTH + np.round(u).astype(int)
+    _, first = np.unique(p, return_index=True)
+    first = np.sort(first)
+    return u[first], v[first], p[first], np.full(first.size, k)
+
+
+def _view(pieces):
+    u, v, p, k = (np.concatenate(a) for a in zip(*pieces))
+    return np.stack([u, v], 1).astype(np.float32), p.astype(np.int32), k.astype(np.int32)
+
+
+def _reach(uv, pixel, ring, depth=None):
+    depth = np.full(len(pixel), 500.0) if depth is None else depth
+    got = sample_reach(wp.array(uv, dtype=wp.vec2), wp.array(ring, dtype=wp.int32), wp.array(pixel, dtype=wp.int32),
+                       np.isfinite(depth), width=WIDTH, threads=2)
+    return got, check_reach(depth, pixel, ring, uv.astype(np.float64), width=WIDTH)
+
+
+def test_a_whole_ring_is_checked_8_px_wide_and_a_fragment_only_by_its_next_neighbours():
+    whole = _circle(0, 60.0)
+    # a short arc of another ring: 3 samples (the middle one has a neighbour on either side)
+    u, v, p, k = _circle(1, 90.0)
+    frag = (u[:3], v[:3], p[:3], k[:3])
+    lone = _circle(2, 100.0)
+    lone = tuple(a[:1] for a in lone)
+    uv, pixel, ring = _view([whole, frag, lone])
+    got, ref = _reach(uv, pixel, ring)
+    n = whole[0].size
+    assert np.array_equal(got, ref)
+    assert np.all(got[:n] == 8)  # a circle 60 px across: four nodes at +-8 and +-16 px everywhere
+    assert got[n:n + 3].tolist() == [0, 1, 0] and got[-1] == 0
+
+
+def test_the_kernel_reads_the_same_reach_as_the_numpy_statement_on_broken_rings():
+    rng = np.random.default_rng(5)
+    pieces = [_circle(k, 10 + 4.3 * k) for k in range(24)]
+    uv, pixel, ring = _view(pieces)
+    keep = rng.random(len(pixel)) > 0.25  # a quarter dropped at random: gaps, fragments, lone samples
+    depth = np.where(rng.random(keep.sum()) < 0.05, np.nan, 500.0)  # and some without a depth
+    got, ref = _reach(uv[keep], pixel[keep], ring[keep], depth)
+    assert np.array_equal(got, ref)
+    assert np.all(got[np.isnan(depth)] == -1)
+    # every class is there (the test sees each branch)
+    assert set(np.unique(got)) == {-1, 0, 1, 2, 4, 8}
+
+
+def test_bad_arguments_are_refused():
+    uv = wp.zeros(3, dtype=wp.vec2)
+    with pytest.raises(ValueError, match="ring must be"):
+        sample_reach(uv, wp.zeros(2, dtype=wp.int32), wp.zeros(3, dtype=wp.int32), np.ones(3, bool), width=8)
+    with pytest.raises(ValueError, match="usable must be"):
+        sample_reach(uv, wp.zeros(3, dtype=wp.int32), wp.zeros(3, dtype=wp.int32), np.ones(2, bool), width=8)
