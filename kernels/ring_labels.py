@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import default_threads, launch_rows, row_run
+from ringscan.kernels.launch import default_threads, launch_rows, launch_spans, row_run
 
 FRAME_WHITE = wp.constant(0)
 FRAME_BLACK = wp.constant(1)
@@ -48,7 +48,7 @@ LANES_513 = wp.constant(wp.uint64(0x0201020102010201))
 LANES_ONE = wp.constant(wp.uint64(0x0001000100010001))
 LANES_1024 = wp.constant(wp.uint64(0x0400040004000400))
 
-__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings"]
+__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings", "count_labels"]
 
 
 @dataclass(frozen=True)
@@ -377,6 +377,77 @@ for _t in (wp.uint8, wp.uint16):
     wp.overload(decode_gray_rings_kernel, {"frames": wp.array3d(dtype=_t)})
 
 
+@wp.func
+def finest_strong(contrast: wp.array2d(dtype=wp.float32), weak: wp.array2d(dtype=wp.int32), min_contrast: float,
+                  y: int, x: int):
+    """Lit, with the finest band bit strong."""
+    return contrast[y, x] >= min_contrast and (weak[y, x] & 1) == 0
+
+
+@wp.func
+def finest_edge(code: wp.array2d(dtype=wp.int32), weak: wp.array2d(dtype=wp.int32),
+                contrast: wp.array2d(dtype=wp.float32), min_contrast: float, y: int, x: int, dy: int, dx: int):
+    """Pixel (y, x) lies between two opposite neighbours (y -+ dy, x -+ dx) that are lit, hold
+    their finest bit strong and disagree on it: on one of that bit's own edges."""
+    edge = int(0)
+    if finest_strong(contrast, weak, min_contrast, y - dy, x - dx) and finest_strong(contrast, weak, min_contrast,
+                                                                                    y + dy, x + dx):
+        if (code[y - dy, x - dx] & 1) != (code[y + dy, x + dx] & 1):
+            edge = 1
+    return edge
+
+
+@wp.kernel
+def count_labels_kernel(
+    code: wp.array2d(dtype=wp.int32),
+    weak: wp.array2d(dtype=wp.int32),
+    band: wp.array2d(dtype=wp.int32),
+    contrast: wp.array2d(dtype=wp.float32),
+    bits: int,
+    min_contrast: float,
+    i0: int,
+    counts: wp.array2d(dtype=wp.int32),
+):
+    """Row i0 + tid of a decode's labels, counted: its decoded pixels (band >= 0), its lit ones
+    (white - black >= ``min_contrast``, recorded levels) and of those the ones whose finest band bit
+    is weak while the coarsest is strong, away from the finest bit's own edges (no two opposite
+    neighbours, along a row, a column or a diagonal, lit with that bit strong and different): the
+    pixels where the finest pattern barely modulates (``pipeline.codecs.gray_rings.low_modulation_pixels``
+    states the same in NumPy).
+
+    code, weak, band (H, W) int32, contrast (H, W) float32: read. counts (H, 3) int32: written at
+    the row (decoded, lit, low).
+
+    Size: the four label planes, the bits and the threshold, the span's i0, one array out."""
+    y = i0 + wp.tid()
+    h = code.shape[0]
+    w = code.shape[1]
+    coarse = int(1) << (bits - 1)
+    decoded = int(0)
+    lit = int(0)
+    low = int(0)
+    for x in range(w):
+        if band[y, x] >= 0:
+            decoded += 1
+        if contrast[y, x] >= min_contrast:
+            lit += 1
+            wk = weak[y, x]
+            if (wk & 1) != 0 and (wk & coarse) == 0:
+                edge = int(0)
+                if x >= 1 and x < w - 1:
+                    edge = edge | finest_edge(code, weak, contrast, min_contrast, y, x, 0, 1)
+                if y >= 1 and y < h - 1:
+                    edge = edge | finest_edge(code, weak, contrast, min_contrast, y, x, 1, 0)
+                    if x >= 1 and x < w - 1:
+                        edge = edge | finest_edge(code, weak, contrast, min_contrast, y, x, 1, 1)
+                        edge = edge | finest_edge(code, weak, contrast, min_contrast, y, x, 1, -1)
+                if edge == 0:
+                    low += 1
+    counts[y, 0] = decoded
+    counts[y, 1] = lit
+    counts[y, 2] = low
+
+
 # ----------------------------------------------------------------------------- host
 
 
@@ -473,3 +544,25 @@ def as_words(frames: wp.array) -> wp.array | None:
     words = wp.array(ptr=frames.ptr, dtype=wp.uint64, shape=(n, h, w // 8), device=frames.device)
     words._ref = frames  # keep the owner alive as long as the view
     return words
+
+
+def count_labels(labels: RingLabels, *, bits: int, min_contrast: float, threads: int | None = None) -> tuple[int, int, int]:
+    """(decoded, lit, low) pixels of a decode (:func:`count_labels_kernel`): one row of counts a
+    thread, summed from an (H, 3) read (the counts, not the planes).
+
+    Args:
+        labels: the decode of ``bits`` band bits.
+        bits: band Gray-code bits.
+        min_contrast: white - black a pixel needs to count as lit (the frames' recorded levels).
+        threads: CPU threads; default all cores.
+    """
+    h, w = labels.code.shape
+    if h * w == 0:
+        return 0, 0, 0
+    dev = labels.code.device
+    counts = wp.empty((h, 3), dtype=wp.int32, device=dev)
+    launch_spans(count_labels_kernel, h,
+                 lambda i0: [labels.code, labels.weak, labels.band, labels.contrast, int(bits), float(min_contrast), i0],
+                 [counts], dev, default_threads() if threads is None else threads, min_span=64)
+    total = counts.numpy().sum(axis=0, dtype=np.int64)
+    return int(total[0]), int(total[1]), int(total[2])

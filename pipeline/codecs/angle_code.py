@@ -22,7 +22,7 @@ from ringscan.kernels.samples import Samples
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["sample_indirect", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
+__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -89,9 +89,14 @@ def sample_indirect(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.n
 
     black = at("black")
     span = np.maximum(at("white") - black, 1.0)
-    bits = range(spec.bits - 1, max(spec.bits - 1 - INDIRECT_BITS, -1), -1)
-    floor = np.mean([np.minimum(at(f"gray_{b}"), at(f"gray_{b}_inv")) for b in bits], axis=0) - black
+    floor = np.mean([np.minimum(at(f"gray_{b}"), at(f"gray_{b}_inv")) for b in indirect_bits(spec)], axis=0) - black
     return np.clip(floor / span, 0.0, 1.0).astype(np.float32)
+
+
+def indirect_bits(spec: PatternSpec) -> range:
+    """The band bits whose pattern / inverse floor measures a sample's indirect light: the
+    ``INDIRECT_BITS`` finest, the finest first."""
+    return range(spec.bits - 1, max(spec.bits - 1 - INDIRECT_BITS, -1), -1)
 
 
 def edge_sigma(contrast: np.ndarray, noise: float) -> np.ndarray:
@@ -111,7 +116,7 @@ def phase_sigma(contrast: np.ndarray, modulation: np.ndarray, noise: float, *, p
     return pitch / (2 * math.pi) * math.sqrt(2.0 / steps) * noise / amp / (2 * smooth_radius + 1)
 
 
-def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.ndarray, settings: AngleSettings,
+def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: wp.array | np.ndarray, settings: AngleSettings,
               camera_gamma: float, light_gamma: float, threads: int) -> tuple[Samples, dict]:
     """The samples with their standard deviations, and their polar angle where
     the pattern has an angle code.
@@ -120,7 +125,8 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.n
         frames: (F, H, W) the view's frames (read).
         scan: the scan (patterns).
         samples: the codec's samples (uv, rho, sector set).
-        sigma_rho: (n,) the ring coordinate's standard deviation (projector px).
+        sigma_rho: (n,) the ring coordinate's standard deviation (projector px): float32 Warp
+            array on the frames' device (kept as it is) or NumPy.
         settings: the angle decoder's settings.
         camera_gamma, light_gamma: the responses to undo (1: linear).
         threads: CPU threads.
@@ -132,7 +138,8 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: np.n
     """
     spec = scan.patterns
     dev = frames.device
-    samples.sigma_rho = wp.array(np.asarray(sigma_rho, np.float32), dtype=wp.float32, device=dev)
+    samples.sigma_rho = (sigma_rho if isinstance(sigma_rho, wp.array) else
+                         wp.array(np.asarray(sigma_rho, np.float32), dtype=wp.float32, device=dev))
     if not spec.angle_steps:
         return samples, {}
     if len(samples) == 0:  # none to decode, but an angle code: the samples have one, of none

@@ -13,10 +13,11 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.angle import AngleSettings
-from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.ring_labels import DecodeSettings, count_labels, decode_gray_rings
 from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+from ringscan.kernels.sample_light import sample_light
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, edge_sigma, sample_contrast, sample_indirect
+from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, add_angle, indirect_bits
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
@@ -122,22 +123,28 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                 rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
-    band = labels.band.numpy()
-    decoded = int(np.count_nonzero(band >= 0))
-    low, lit = low_modulation_pixels(labels, bits=spec.bits, min_contrast=_recorded(settings.decode.min_contrast, frames))
+    # the view's counts on the frames' device: decoded pixels, lit ones, and the lit ones whose finest bit
+    # barely modulates (low_modulation_pixels states the test in NumPy)
+    decoded, lit, low = count_labels(labels, bits=spec.bits,
+                                     min_contrast=_recorded(settings.decode.min_contrast, frames), threads=threads)
     if decoded == 0 and len(samples):
         # Edges sampled where no pixel decodes (every pixel below decode.min_contrast, every bit weak) carry
         # a ring index no band label confirms and no sector: no point may come of them.
         log.info("%d edge samples, but no pixel decoded to a ring band: none kept", len(samples))
         samples = _no_samples(samples)
-    contrast = sample_contrast(frames, spec, samples.uv.numpy(), contrast=labels.contrast)
+    # each edge's sigma from the contrast under it and its indirect-light share, on the frames' device
+    # (angle_code.edge_sigma, sample_contrast and sample_indirect state them in NumPy)
+    names = frame_names(spec)
+    sigma_rho, indirect = sample_light(
+        frames, labels.contrast, samples.uv, white=names.index("white"), black=names.index("black"),
+        pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in indirect_bits(spec)],
+        edge_num=np.sqrt(2.0) * settings.angle.noise * EDGE_WIDTH_PX, threads=threads)
     rig = scan.rig
-    samples, angle_stats = add_angle(frames, scan, samples, sigma_rho=edge_sigma(contrast, settings.angle.noise),
+    samples, angle_stats = add_angle(frames, scan, samples, sigma_rho=sigma_rho,
                                      settings=settings.angle, camera_gamma=float(rig.camera.gamma),
                                      light_gamma=float(getattr(rig.light, "gamma", 1.0)) / spec.precompensated_gamma,
                                      threads=threads)
-    samples.indirect = wp.array(sample_indirect(frames, spec, samples.uv.numpy()), dtype=wp.float32,
-                                device=frames.device)
+    samples.indirect = indirect
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
     stats = {"pixels_decoded": decoded, "samples": len(samples), "pixels_lit": lit, "low_modulation": low,

@@ -129,3 +129,22 @@ def test_frames_off_an_eight_byte_boundary_decode_a_pixel_at_a_time(device):
         b = decode_gray_rings(fr, bits=4, sector_bits=2)
         for name in ("code", "weak", "band", "sector", "contrast"):
             assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()), (off, name)
+
+
+@pytest.mark.parametrize("blur,dtype", [(0.0, np.uint8), (6.0, np.uint8), (3.0, np.uint16)])
+def test_label_counts_on_the_device_are_the_numpy_statements(blur, dtype):
+    """count_labels (one row a thread, an (H, 3) read) against the NumPy statement of the low-modulation
+    test (pipeline.codecs.gray_rings.low_modulation_pixels) and the decoded count, with half the frame
+    dark (unlit pixels beside lit ones) so that every branch of the test is taken."""
+    from ringscan.kernels.ring_labels import count_labels
+    from ringscan.pipeline.codecs.gray_rings import low_modulation_pixels
+
+    spec = gray_rings_spec()
+    frames = frame_stack(spec, blur=blur, dtype=dtype)
+    frames[:, :, : frames.shape[2] // 3] //= 32  # a dark third: contrast below the threshold there
+    labels = decode_gray_rings(wp.array(frames, device="cpu"), bits=spec.bits, sector_bits=spec.sector_bits)
+    mc = 12.0 * (257 if dtype == np.uint16 else 1)
+    decoded, lit, low = count_labels(labels, bits=spec.bits, min_contrast=mc, threads=2)
+    expect_low, expect_lit = low_modulation_pixels(labels, bits=spec.bits, min_contrast=mc)
+    assert (decoded, lit, low) == (int(np.count_nonzero(labels.band.numpy() >= 0)), expect_lit, expect_low)
+    assert 0 < lit < frames.shape[1] * frames.shape[2] and (low > 0) == (blur >= 3.0)

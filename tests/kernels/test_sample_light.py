@@ -1,0 +1,64 @@
+"""kernels.sample_light: each sample's edge sigma and indirect share on the frames' device, the same
+values to the bit as their NumPy statements (pipeline.codecs.angle_code), and a planted floor read."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.sample_light import sample_light
+from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, edge_sigma, sample_contrast, sample_indirect
+from ringscan.pipeline.formats.patterns import frame_names
+from tests.support.ring_frames import frame_stack, gray_rings_spec
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_the_kernel_reads_what_the_numpy_statements_read(dtype):
+    spec = gray_rings_spec()
+    rng = np.random.default_rng(4)
+    frames = frame_stack(spec, blur=1.5, dtype=dtype)
+    # a darker, noisier camera: contrast and floors that vary from pixel to pixel
+    scale = 257 if dtype == np.uint16 else 1
+    noisy = np.clip(frames.astype(np.float64) * 0.6 + rng.normal(20 * scale, 6 * scale, frames.shape), 0,
+                    np.iinfo(dtype).max).astype(dtype)
+    fw = wp.array(noisy, device="cpu")
+    labels = decode_gray_rings(fw, bits=spec.bits, sector_bits=spec.sector_bits)
+    h, w = noisy.shape[1:]
+    # positions anywhere, the image's borders and past them included (clamped alike)
+    uv = np.concatenate([rng.uniform([-2, -2], [w + 2, h + 2], (3000, 2)),
+                         [[0, 0], [w - 1, h - 1], [w - 1.0005, 5.5], [3.5, h - 1.0002], [w + 3, -4]]]).astype(np.float32)
+    names = frame_names(spec)
+    bits = range(spec.bits - 1, spec.bits - 3, -1)  # angle_code.INDIRECT_BITS, the finest first
+    noise = 1.7
+    sigma, indirect = sample_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), white=names.index("white"),
+                                   black=names.index("black"),
+                                   pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in bits],
+                                   edge_num=np.sqrt(2.0) * noise * EDGE_WIDTH_PX, threads=2)
+    expect_sigma = np.asarray(edge_sigma(sample_contrast(fw, spec, uv, contrast=labels.contrast), noise), np.float32)
+    np.testing.assert_array_equal(sigma.numpy(), expect_sigma)
+    np.testing.assert_array_equal(indirect.numpy(), sample_indirect(fw, spec, uv))
+
+
+def test_a_planted_floor_is_read_as_its_share_of_white_minus_black():
+    """White 200, black 20; the two finest pairs' darker frames at 65 and 47: a floor (mean 56) 36 above
+    black, 0.2 of the 180 span."""
+    spec = gray_rings_spec()
+    names = frame_names(spec)
+    frames = np.full((len(names), 8, 8), 120, np.uint8)
+    frames[names.index("white")], frames[names.index("black")] = 200, 20
+    pairs = [(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in (3, 2)]
+    frames[pairs[0][1]], frames[pairs[1][0]] = 65, 47
+    sigma, indirect = sample_light(wp.array(frames, device="cpu"), wp.full((8, 8), 180.0, dtype=wp.float32),
+                                   wp.array(np.array([[3.2, 4.7]], np.float32), dtype=wp.vec2), white=0, black=1,
+                                   pairs=pairs, edge_num=2.0)
+    assert indirect.numpy()[0] == pytest.approx(0.2, abs=1e-6)
+    assert sigma.numpy()[0] == pytest.approx(2.0 / 360.0, rel=1e-6)  # edge_num / (2 x contrast 180)
+
+
+def test_bad_arguments_are_refused():
+    f = wp.zeros((4, 6, 8), dtype=wp.uint8)
+    uv = wp.zeros(2, dtype=wp.vec2)
+    with pytest.raises(ValueError, match="contrast must be"):
+        sample_light(f, wp.zeros((6, 7), dtype=wp.float32), uv, white=0, black=1, pairs=[(2, 3)], edge_num=1.0)
+    with pytest.raises(ValueError, match="frame pairs"):
+        sample_light(f, wp.zeros((6, 8), dtype=wp.float32), uv, white=0, black=1, pairs=[], edge_num=1.0)
