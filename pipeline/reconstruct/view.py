@@ -14,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.error_terms import finite_indices, gather, median, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -36,7 +37,6 @@ from ringscan.pipeline.geometry import camera_model_for, light_model_for
 from ringscan.pipeline.reconstruct.error_scale import (
     MAX_CHECK_SAMPLES,
     MIN_PAIRS,
-    apply_error_model,
     fit_error_model,
     fit_neighbour_model,
     group_scale,
@@ -283,17 +283,24 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     rig = scan.rig
     vol = rig.volume
     dev = samples.uv.device
-    pick = np.flatnonzero(np.isfinite(samples.phi.numpy()))
     codec = codec_for(scan.patterns.codec, source=scan.path)
     window = codec.pixel_window(codec.settings_from(settings)) if samples.ring is None else None
     dense = window is not None  # one sample a pixel that its neighbours can check (below)
-    pixel = samples.pixel.numpy() if dense else None
-    pick = pick[_row_bands(pixel[pick] // scan.rig.camera.width) if dense else sample_subset(pick.size)]
-    if pick.size < MIN_PAIRS:
+    # the samples with an angle, and of them an evenly spread subset, found and gathered on the device:
+    # the fit reads the subset (at most MAX_CHECK_SAMPLES), not the view
+    with_angle = finite_indices(samples.phi, threads=threads)
+    if dense:
+        rows = gather(samples.pixel, with_angle, threads=threads).numpy() // scan.rig.camera.width
+        chosen = _row_bands(rows)
+    else:
+        chosen = sample_subset(len(with_angle))
+    if chosen.size < MIN_PAIRS:
         return samples.sigma_rho, samples.sigma_tan, {}
-    host = {k: getattr(samples, k).numpy()[pick] for k in ("uv", "rho", "sector", "confidence", "phi", "sigma_rho",
-                                                           "sigma_tan")}
-    sub = {k: wp.array(v, dtype=getattr(samples, k).dtype, device=dev) for k, v in host.items()}
+    pick = gather(with_angle, wp.array(chosen.astype(np.int32), dtype=wp.int32, device=dev), threads=threads)
+    sub = {k: gather(getattr(samples, k), pick, threads=threads)
+           for k in ("uv", "rho", "sector", "confidence", "phi", "sigma_rho", "sigma_tan")}
+    host = {k: sub[k].numpy() for k in ("uv", "sigma_rho", "sigma_tan")}
+    pixel = gather(samples.pixel, pick, threads=threads).numpy() if dense else None
     tri = partial(triangulate_rings, sub["uv"], sub["rho"], sub["sector"], sub["confidence"],
                   camera=camera_model_for(rig), light=light_model_for(rig),
                   volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center, sector_bits=sector_bits,
@@ -313,27 +320,27 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
         # pairs cannot tell whose error they disagree by (phase-rings in linear light put
         # it all on rho: k_rho 11, and the default read 3.4x worse than rings alone); the
         # ring's neighbouring pixels measure rho's own
-        nb = fit_neighbour_model(dr, sr, host["sigma_rho"], pixel[pick], None, host["uv"],
+        nb = fit_neighbour_model(dr, sr, host["sigma_rho"], pixel, None, host["uv"],
                                  width=scan.rig.camera.width, window=window)
         if nb["measured_by"] is not None:
             rho_terms = (nb["k_rho"], nb["floor_rho_px"])
     # indirect light above the view's own typical floor (the blur that mixes every fine
     # pattern's edges is the view's; light bounced into a corner is a region's)
-    indirect = None
+    indirect, middle = None, 0.0
     if samples.indirect is not None:
-        g = samples.indirect.numpy().astype(np.float64)
-        indirect = np.maximum(g - np.median(g), 0.0)
+        middle = median(samples.indirect)
+        indirect = np.maximum(gather(samples.indirect, pick, threads=threads).numpy().astype(np.float64) - middle, 0.0)
     fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"],
-                          indirect=None if indirect is None else indirect[pick], rho_terms=rho_terms)
-    # parts of the view whose pairs disagree more than the view's model says (an object's
-    # facets beside a plane) widen both coordinates alike: the weighting stays, sigma grows
-    scale = np.sqrt(region_scale(fit["regions"], samples.uv.numpy())) if fit["regions"] else None
+                          indirect=indirect, rho_terms=rho_terms)
 
+    # every sample widened on the device (error_scale.apply_error_model and region_scale state it in NumPy);
+    # parts of the view whose pairs disagree more than the view's model says (an object's facets beside a
+    # plane) widen both coordinates alike: the weighting stays, sigma grows
     def widened(a, k, f, b):
-        if k == 1.0 and f == 0.0 and scale is None and b == 0.0:
+        if k == 1.0 and f == 0.0 and not fit["regions"] and b == 0.0:
             return a
-        w = apply_error_model(a.numpy(), k, f, indirect_px=b, indirect=indirect)
-        return wp.array(w if scale is None else (w * scale).astype(np.float32), dtype=wp.float32, device=dev)
+        return widen_sigmas(a, k=k, floor=f, indirect=samples.indirect, indirect_px=b, indirect_median=middle,
+                            uv=samples.uv, regions=fit["regions"], threads=threads)
     return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"], fit["indirect_rho_px"]),
             widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"], fit["indirect_tan_px"]), dict(fit))
 
