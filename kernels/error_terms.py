@@ -1,20 +1,17 @@
 """The error model's per-sample work on the samples' device (docs/reconstruction.md, "Honest
 sigma"): ``pipeline.reconstruct.error_scale`` fits the model on the host from a bounded subset of
-the samples (at most ``MAX_CHECK_SAMPLES``); what touches every sample stays here: the samples
-with an angle (their indices: count, scan, write), a subset's fields gathered, a per-sample
-share's median, and the fitted terms applied to every sample (``widen_sigmas``: the same values to
+the samples (at most ``MAX_CHECK_SAMPLES``, gathered by ``kernels.compact``); what touches every
+sample stays here: a per-sample share's median and the fitted terms applied to every sample (``widen_sigmas``: the same values to
 the bit as ``error_scale.apply_error_model`` and ``region_scale`` in NumPy)."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
+from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["ErrorTerms", "finite_indices", "gather", "median", "widen_sigmas"]
+__all__ = ["ErrorTerms", "median", "widen_sigmas"]
 
 
 @wp.struct
@@ -38,33 +35,6 @@ class ErrorTerms:
 
 
 # ----------------------------------------------------------------------------- kernels
-
-
-@wp.kernel
-def flag_finite_kernel(a: wp.array(dtype=wp.float32), i0: int, flags: wp.array(dtype=wp.int32)):
-    """flags[i] = 1 where a[i] is finite. a (n,) float32: read; flags (n,) int32: written."""
-    i = i0 + wp.tid()
-    flags[i] = wp.where(wp.isfinite(a[i]), 1, 0)
-
-
-@wp.kernel
-def write_indices_kernel(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), i0: int,
-                         out: wp.array(dtype=wp.int32)):
-    """out[offsets[i]] = i where flags[i]. flags, offsets (n,) int32: read; out (count,) int32: written."""
-    i = i0 + wp.tid()
-    if flags[i] != 0:
-        out[offsets[i]] = i
-
-
-@wp.kernel
-def gather_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=wp.int32), i0: int, out: wp.array(dtype=Any)):
-    """out[j] = src[index[j]]. src (n,), index (m,) int32: read; out (m,): written."""
-    j = i0 + wp.tid()
-    out[j] = src[index[j]]
-
-
-for _t in (wp.float32, wp.int32, wp.vec2):
-    wp.overload(gather_kernel, {"src": wp.array(dtype=_t), "out": wp.array(dtype=_t)})
 
 
 @wp.kernel
@@ -104,32 +74,6 @@ def widen_kernel(
 
 
 # ----------------------------------------------------------------------------- host
-
-
-def finite_indices(a: wp.array, *, threads: int | None = None) -> wp.array:
-    """(m,) int32 the indices of ``a``'s ((n,) float32) finite values, in order, on a's device
-    (count, scan, write: one read, the count)."""
-    n = check_array("a", a, None, wp.float32, "finite_indices")
-    dev = a.device
-    threads = default_threads() if threads is None else threads
-    flags = wp.empty(n, dtype=wp.int32, device=dev)
-    launch_spans(flag_finite_kernel, n, lambda i0: [a, i0], [flags], dev, threads)
-    offsets, total = scan_counts(flags)
-    out = wp.empty(total, dtype=wp.int32, device=dev)
-    if total:
-        launch_spans(write_indices_kernel, n, lambda i0: [flags, offsets, i0], [out], dev, threads)
-    return out
-
-
-def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:
-    """src[index] ((m,), src's dtype: float32, int32 or vec2) on src's device; ``index`` (m,) int32."""
-    if not isinstance(src, wp.array) or src.ndim != 1 or src.dtype not in (wp.float32, wp.int32, wp.vec2):
-        raise ValueError("gather: src must be a 1-D float32, int32 or vec2 Warp array")
-    m = check_array("index", index, None, wp.int32, "gather")
-    out = wp.empty(m, dtype=src.dtype, device=src.device)
-    launch_spans(gather_kernel, m, lambda i0: [src, index, i0], [out], src.device,
-                 default_threads() if threads is None else threads)
-    return out
 
 
 def median(a: wp.array) -> float:

@@ -14,7 +14,8 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
-from ringscan.kernels.error_terms import finite_indices, gather, median, widen_sigmas
+from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather
+from ringscan.kernels.error_terms import median, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -138,8 +139,8 @@ class _Placed:
     """float32 predicted standard deviation along the camera ray (mm)."""
     residual: object
     """float32 residual (px where ``residual_px``, else sector widths; < 0 none)."""
-    residual_px: np.ndarray
-    """(n,) bool host: the residual is in px."""
+    residual_px: wp.array
+    """(n,) int32 1 where the residual is in px (on the device)."""
     extra: dict
     """Report entries of the placement (calibration, checks)."""
 
@@ -502,8 +503,9 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     # each match's point written at its sample on the device (kernels.stereo_rays.place_matches)
     place_matches(wp.array(i.astype(np.int32), dtype=wp.int32, device=device), tri, samples.confidence, points=points,
                   status=status, sigma=sigma, residual=residual, placed_confidence=confidence, threads=threads)
-    residual_px = _angle_used(samples, settings) if st.rays == "auto" and use_light else np.zeros(n, bool)
-    residual_px[i] = True  # the rays' RMS reprojection error
+    residual_px = _angle_used(samples, settings).numpy() if st.rays == "auto" and use_light else np.zeros(n, np.int32)
+    residual_px[i] = 1  # the rays' RMS reprojection error
+    residual_px = wp.array(residual_px, dtype=wp.int32, device=device)
     _stereo_report(view, matches, tri, check, use_light, extra)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
@@ -532,14 +534,14 @@ def _stereo_report(view: View, matches, tri, check: dict, use_light: bool, extra
         extra["calibration_check"] = check
 
 
-def _angle_used(samples, settings: ReconstructSettings) -> np.ndarray:
-    """(n,) bool: the samples the camera-projector triangulation places with the angle
-    (their residual is in projector px; the others' in sector widths): as
-    ``kernels.triangulation``'s kernel decides, a finite angle and a constraint other
-    than the rings (every codec gives an angle's ``sigma_tan`` > 0)."""
+def _angle_used(samples, settings: ReconstructSettings) -> wp.array:
+    """(n,) int32 on the device, 1 for the samples the camera-projector triangulation places with the
+    angle (their residual is in projector px; the others' in sector widths): as
+    ``kernels.triangulation``'s kernel decides, a finite angle and a constraint other than the rings
+    (every codec gives an angle's ``sigma_tan`` > 0)."""
     if samples.phi is None or settings.triangulate.constraint == "rings":
-        return np.zeros(len(samples), bool)
-    return np.isfinite(samples.phi.numpy())
+        return wp.zeros(len(samples), dtype=wp.int32, device=samples.uv.device)
+    return finite_flags(samples.phi)
 
 
 def _finish(run: _ViewRun, placed: _Placed, *, rays: str) -> ViewCloud:
@@ -560,15 +562,14 @@ def _finish(run: _ViewRun, placed: _Placed, *, rays: str) -> ViewCloud:
     times["filter"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    idx_np = idx.numpy()
-    status = status_dev.numpy()
-    counts = np.bincount(status, minlength=len(STATUS_NAMES)) if status.size else np.zeros(len(STATUS_NAMES), int)
-    def kept(a):  # take(): the rows a[idx_np] names, without fancy indexing's cost on (n, 2) and (n, 3) rows
-        return a.numpy().take(idx_np, axis=0)
+    # the kept points' fields gathered on the device, then read: the one download of a view (and its counts)
+    counts = count_values(status_dev, len(STATUS_NAMES), threads=threads)
+    def kept(a):
+        return gather(a, idx, threads=threads).numpy()
 
     cloud = ViewCloud(
         points=kept(points),
-        ring=kept(samples.ring) if samples.ring is not None else np.full(idx_np.size, -1, np.int32),
+        ring=kept(samples.ring) if samples.ring is not None else np.full(len(idx), -1, np.int32),
         rho=kept(samples.rho),
         confidence=kept(confidence),
         uv=kept(samples.uv),
@@ -577,7 +578,7 @@ def _finish(run: _ViewRun, placed: _Placed, *, rays: str) -> ViewCloud:
     )
     # one unit a property: px where the angle or a second camera placed the point, sector widths
     # (the rings alone) apart, NaN where the point has none
-    res, in_px = kept(residual), residual_px.take(idx_np)
+    res, in_px = kept(residual), kept(residual_px) != 0
     cloud.residual = np.where(in_px, res, np.float32(np.nan))
     cloud.sector_residual = np.where(~in_px & (res >= 0), res, np.float32(np.nan))
     low_confidence = 0

@@ -5,24 +5,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.error_terms import finite_indices, gather, median, widen_sigmas
+from ringscan.kernels.error_terms import median, widen_sigmas
 from ringscan.pipeline.reconstruct.error_scale import apply_error_model, region_scale
 
 
 def _f32(a):
     return wp.array(np.asarray(a, np.float32), dtype=wp.float32, device="cpu")
-
-
-def test_finite_indices_and_gather_are_flatnonzero_and_take():
-    rng = np.random.default_rng(1)
-    a = rng.normal(size=20000).astype(np.float32)
-    a[rng.random(a.size) < 0.3] = np.nan
-    a[:3] = [np.inf, -np.inf, np.nan]
-    idx = finite_indices(_f32(a), threads=2)
-    np.testing.assert_array_equal(idx.numpy(), np.flatnonzero(np.isfinite(a)))
-    uv = rng.uniform(0, 100, (a.size, 2)).astype(np.float32)
-    np.testing.assert_array_equal(gather(wp.array(uv, dtype=wp.vec2), idx).numpy(), uv[np.isfinite(a)])
-    assert finite_indices(_f32(np.full(5, np.nan))).shape == (0,)
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 10000, 10001])

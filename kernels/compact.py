@@ -1,0 +1,114 @@
+"""Generic per-item moves on the device: the finite items of an array (flags, and their indices:
+count, scan, write), a gather by index, and a histogram of small integer values (one row of counts
+a span, the rows summed on the host: the counts, not the items, are read)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
+
+__all__ = ["finite_flags", "finite_indices", "gather", "count_values"]
+
+SPAN = wp.constant(4096)
+"""Items a histogram row counts (one thread a row)."""
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def flag_finite_kernel(a: wp.array(dtype=wp.float32), i0: int, flags: wp.array(dtype=wp.int32)):
+    """flags[i] = 1 where a[i] is finite. a (n,) float32: read; flags (n,) int32: written."""
+    i = i0 + wp.tid()
+    flags[i] = wp.where(wp.isfinite(a[i]), 1, 0)
+
+
+@wp.kernel
+def write_indices_kernel(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), i0: int,
+                         out: wp.array(dtype=wp.int32)):
+    """out[offsets[i]] = i where flags[i]. flags, offsets (n,) int32: read; out (count,) int32: written."""
+    i = i0 + wp.tid()
+    if flags[i] != 0:
+        out[offsets[i]] = i
+
+
+@wp.kernel
+def gather_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=wp.int32), i0: int, out: wp.array(dtype=Any)):
+    """out[j] = src[index[j]]. src (n,), index (m,) int32: read; out (m,): written."""
+    j = i0 + wp.tid()
+    out[j] = src[index[j]]
+
+
+for _t in (wp.float32, wp.int32, wp.vec2, wp.vec3):
+    wp.overload(gather_kernel, {"src": wp.array(dtype=_t), "out": wp.array(dtype=_t)})
+
+
+@wp.kernel
+def count_values_kernel(values: wp.array(dtype=wp.int32), bins: int, i0: int, counts: wp.array2d(dtype=wp.int32)):
+    """Row i0 + tid of ``counts``: how often each of 0 .. bins - 1 occurs among values[row * SPAN, (row + 1) *
+    SPAN) (others not counted). values (n,) int32: read; counts (rows, bins) int32: written."""
+    r = i0 + wp.tid()
+    for b in range(bins):
+        counts[r, b] = 0
+    end = wp.min((r + 1) * SPAN, values.shape[0])
+    for i in range(r * SPAN, end):
+        v = values[i]
+        if v >= 0 and v < bins:
+            counts[r, v] = counts[r, v] + 1
+
+
+# ----------------------------------------------------------------------------- host
+
+
+def finite_flags(a: wp.array, *, threads: int | None = None) -> wp.array:
+    """(n,) int32 1 where ``a`` ((n,) float32) is finite, else 0, on a's device."""
+    n = check_array("a", a, None, wp.float32, "finite_flags")
+    flags = wp.empty(n, dtype=wp.int32, device=a.device)
+    launch_spans(flag_finite_kernel, n, lambda i0: [a, i0], [flags], a.device,
+                 default_threads() if threads is None else threads)
+    return flags
+
+
+def finite_indices(a: wp.array, *, threads: int | None = None) -> wp.array:
+    """(m,) int32 the indices of ``a``'s ((n,) float32) finite values, in order, on a's device
+    (count, scan, write: one read, the count)."""
+    n = check_array("a", a, None, wp.float32, "finite_indices")
+    dev = a.device
+    threads = default_threads() if threads is None else threads
+    flags = finite_flags(a, threads=threads)
+    offsets, total = scan_counts(flags)
+    out = wp.empty(total, dtype=wp.int32, device=dev)
+    if total:
+        launch_spans(write_indices_kernel, n, lambda i0: [flags, offsets, i0], [out], dev, threads)
+    return out
+
+
+def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:
+    """src[index] ((m,), src's dtype: float32, int32, vec2 or vec3) on src's device; ``index`` (m,) int32."""
+    if not isinstance(src, wp.array) or src.ndim != 1 or src.dtype not in (wp.float32, wp.int32, wp.vec2, wp.vec3):
+        raise ValueError("gather: src must be a 1-D float32, int32, vec2 or vec3 Warp array")
+    m = check_array("index", index, None, wp.int32, "gather")
+    out = wp.empty(m, dtype=src.dtype, device=src.device)
+    launch_spans(gather_kernel, m, lambda i0: [src, index, i0], [out], src.device,
+                 default_threads() if threads is None else threads)
+    return out
+
+
+
+
+
+def count_values(values: wp.array, bins: int, *, threads: int | None = None) -> np.ndarray:
+    """(bins,) int64 how often each of 0 .. bins - 1 occurs in ``values`` ((n,) int32; others not
+    counted): ``np.bincount(values, minlength=bins)[:bins]`` from a (ceil(n / SPAN), bins) read."""
+    n = check_array("values", values, None, wp.int32, "count_values")
+    rows = (n + SPAN - 1) // SPAN
+    if rows == 0:
+        return np.zeros(bins, np.int64)
+    counts = wp.empty((rows, bins), dtype=wp.int32, device=values.device)
+    launch_spans(count_values_kernel, rows, lambda i0: [values, int(bins), i0], [counts], values.device,
+                 default_threads() if threads is None else threads, min_span=1)
+    return counts.numpy().sum(axis=0, dtype=np.int64)
