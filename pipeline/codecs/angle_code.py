@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
+from ringscan.kernels.compact import count_values
 from ringscan.kernels.phase import response_tables
 from ringscan.kernels.samples import Samples
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
@@ -157,7 +158,6 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: wp.a
                        settings=settings, threads=threads)
     samples.phi = res.phi
     samples.sigma_tan = res.sigma_tan
-    st = res.status.numpy()
-    counts = np.bincount(st, minlength=len(ANGLE_STATUS_NAMES))
+    counts = count_values(res.status, len(ANGLE_STATUS_NAMES), threads=threads)  # counted on the device
     return samples, {"angle_decoded": int(counts[0]),
                      "angle_dropped": {k: int(counts[i]) for i, k in enumerate(ANGLE_STATUS_NAMES) if i > 0}}
