@@ -1,6 +1,8 @@
 """Generic per-item moves on the device: the finite items of an array (flags, and their indices:
-count, scan, write), a gather by index, and a histogram of small integer values (one row of counts
-a span, the rows summed on the host: the counts, not the items, are read)."""
+count, scan, write), a gather by index, a value set at indices, a histogram of small integer values
+(one row of counts a span, the rows summed on the host: the counts, not the items, are read), and
+order statistics (a radix sort on the device, the few values they need read: ``median`` and
+``percentiles`` as NumPy's give them)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
-__all__ = ["finite_flags", "finite_indices", "gather", "count_values"]
+__all__ = ["finite_flags", "finite_indices", "gather", "set_at", "count_values", "median", "percentiles"]
 
 SPAN = wp.constant(4096)
 """Items a histogram row counts (one thread a row)."""
@@ -45,6 +47,12 @@ def gather_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=wp.int32), i0:
 
 for _t in (wp.float32, wp.int32, wp.vec2, wp.vec3):
     wp.overload(gather_kernel, {"src": wp.array(dtype=_t), "out": wp.array(dtype=_t)})
+
+
+@wp.kernel
+def set_at_kernel(index: wp.array(dtype=wp.int32), value: int, i0: int, a: wp.array(dtype=wp.int32)):
+    """a[index[j]] = value. index (m,) int32: read; a (n,) int32: written at the indices."""
+    a[index[i0 + wp.tid()]] = value
 
 
 @wp.kernel
@@ -112,3 +120,61 @@ def count_values(values: wp.array, bins: int, *, threads: int | None = None) -> 
     launch_spans(count_values_kernel, rows, lambda i0: [values, int(bins), i0], [counts], values.device,
                  default_threads() if threads is None else threads, min_span=1)
     return counts.numpy().sum(axis=0, dtype=np.int64)
+
+
+def set_at(a: wp.array, index: wp.array, value: int, *, threads: int | None = None) -> None:
+    """a[index] = value on a's device (a (n,) int32, index (m,) int32)."""
+    check_array("a", a, None, wp.int32, "set_at")
+    m = check_array("index", index, None, wp.int32, "set_at")
+    launch_spans(set_at_kernel, m, lambda i0: [index, int(value), i0], [a], a.device,
+                 default_threads() if threads is None else threads)
+
+
+def _sorted_finite(a: wp.array, fn: str) -> wp.array:
+    """``a``'s ((n,) float32) finite values sorted ascending (a radix sort on a's device), with room for
+    the sort's scratch (the first len(finite) are the values)."""
+    check_array("a", a, None, wp.float32, fn)
+    idx = finite_indices(a)
+    m = idx.shape[0]
+    if m == 0:
+        return wp.empty(0, dtype=wp.float32, device=a.device)
+    keys = wp.empty(2 * m, dtype=wp.float32, device=a.device)
+    wp.copy(keys, gather(a, idx), count=m)
+    values = wp.empty(2 * m, dtype=wp.int32, device=a.device)
+    wp.utils.radix_sort_pairs(keys, values, m)
+    return keys[:m]
+
+
+def median(a: wp.array, *, dtype=np.float64) -> float:
+    """The median of ``a``'s ((n,) float32) finite values as ``np.median`` gives it for them in ``dtype``
+    (float64: of their float64 copy; float32: of the values as they are; the mean of the two middle ones
+    for an even count; NaN for none): two values read."""
+    s = _sorted_finite(a, "median")
+    m = s.shape[0]
+    if m == 0:
+        return float("nan")
+    mid = s[(m - 1) // 2:m // 2 + 1].numpy()
+    return float(np.mean(mid.astype(dtype)))
+
+
+def percentiles(a: wp.array, q) -> tuple[list[float], int]:
+    """(``np.percentile`` (its linear method) of ``a``'s ((n,) float32) finite values in float64 at each
+    of ``q`` (percent; NaN for no value), how many values are finite): two values read a percentile."""
+    s = _sorted_finite(a, "percentiles")
+    m = s.shape[0]
+    qs = np.true_divide(np.asanyarray(q, np.float64), 100)
+    if m == 0:
+        return [float("nan")] * qs.size, 0
+    out = []
+    for qq in qs.ravel():
+        virtual = (m - 1) * qq  # NumPy's linear method: its index, neighbours, weight and interpolation
+        lo = int(np.floor(virtual))
+        if virtual >= m - 1:
+            lo = hi = m - 1
+        else:
+            hi = lo + 1
+        a_lo, a_hi = (np.float64(v) for v in s[lo:hi + 1].numpy()[[0, -1]])
+        t = np.float64(virtual - np.float64(lo)) if virtual < m - 1 else np.float64(virtual - np.float64(m - 1))
+        diff = a_hi - a_lo
+        out.append(float(a_hi - diff * (1 - t) if t >= 0.5 else a_lo + diff * t))
+    return out, m

@@ -1,7 +1,7 @@
 """The error model's per-sample work on the samples' device (docs/reconstruction.md, "Honest
 sigma"): ``pipeline.reconstruct.error_scale`` fits the model on the host from a bounded subset of
 the samples (at most ``MAX_CHECK_SAMPLES``, gathered by ``kernels.compact``); what touches every
-sample stays here: a per-sample share's median and the fitted terms applied to every sample (``widen_sigmas``: the same values to
+sample stays here: the fitted terms applied to every sample (``widen_sigmas``: the same values to
 the bit as ``error_scale.apply_error_model`` and ``region_scale`` in NumPy)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["ErrorTerms", "median", "widen_sigmas"]
+__all__ = ["ErrorTerms", "widen_sigmas"]
 
 
 @wp.struct
@@ -74,20 +74,6 @@ def widen_kernel(
 
 
 # ----------------------------------------------------------------------------- host
-
-
-def median(a: wp.array) -> float:
-    """The median of ``a`` ((n,) float32, n >= 1, no NaN) as ``np.median`` gives it for the values in
-    float64 (the mean of the two middle ones for an even n): a radix sort on a's device, two values read."""
-    n = check_array("a", a, None, wp.float32, "median")
-    if n == 0:
-        raise ValueError("median: no values")
-    keys = wp.empty(2 * n, dtype=wp.float32, device=a.device)
-    wp.copy(keys, a, count=n)
-    values = wp.empty(2 * n, dtype=wp.int32, device=a.device)
-    wp.utils.radix_sort_pairs(keys, values, n)
-    mid = keys[(n - 1) // 2:n // 2 + 1].numpy()
-    return float(np.mean(mid.astype(np.float64)))
 
 
 def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array | None = None,

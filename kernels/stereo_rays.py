@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import (
@@ -328,6 +327,39 @@ def place_matches_kernel(
     residual[i] = residual_m[k]
 
 
+@wp.kernel
+def polar_information_kernel(
+    proj: wp.array(dtype=wp.vec2),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    center: wp.vec2d,
+    i0: int,
+    info: wp.array(dtype=wp.vec3),
+):
+    """The information matrix (W00, W01, W11; 1/px^2) of projector pixel proj[i] whose errors are radial
+    (sigma_rho, at least 1e-3 px) and tangential (sigma_tan) about ``center``: R diag(1/sr^2, 1/st^2) R^T
+    with R the radial direction's rotation (the u axis at the centre itself).
+
+    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32: read; info (n,) vec3: written.
+
+    Size: three per-sample arrays, the centre, the span's i0, one array out."""
+    i = i0 + wp.tid()
+    ox = wp.float64(proj[i][0]) - center[0]
+    oy = wp.float64(proj[i][1]) - center[1]
+    r = wp.sqrt(ox * ox + oy * oy)
+    c = wp.float64(1.0)
+    s = wp.float64(0.0)
+    if r > wp.float64(0.0):
+        c = ox / r
+        s = oy / r
+    sr = wp.max(wp.float64(sigma_rho[i]), wp.float64(1e-3))
+    st = wp.max(wp.float64(sigma_tan[i]), wp.float64(1e-3))
+    ir = wp.float64(1.0) / (sr * sr)
+    it = wp.float64(1.0) / (st * st)
+    info[i] = wp.vec3(wp.float32(ir * c * c + it * s * s), wp.float32((ir - it) * c * s),
+                      wp.float32(ir * s * s + it * c * c))
+
+
 # ----------------------------------------------------------------------------- host
 
 
@@ -355,24 +387,21 @@ def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, 
 
 
 def polar_information(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,
-                      center: tuple[float, float]) -> wp.array:
+                      center: tuple[float, float], threads: int | None = None) -> wp.array:
     """Information matrices (W00, W01, W11; 1/px^2) of projector pixels whose
-    errors are radial (sigma_rho) and tangential (sigma_tan) about ``center``.
+    errors are radial (sigma_rho) and tangential (sigma_tan) about ``center``
+    (:func:`polar_information_kernel`, float64 as NumPy computed them before).
 
-    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32 -> (n,) vec3 (host
-    arithmetic: a small array, once per view)."""
-    n = check_array("proj", proj, None, wp.vec2, "polar_information")
-    check_array("sigma_rho", sigma_rho, n, wp.float32, "polar_information")
-    check_array("sigma_tan", sigma_tan, n, wp.float32, "polar_information")
-    p = proj.numpy().astype(np.float64)
-    off = p - np.asarray(center, float)
-    r = np.hypot(off[:, 0], off[:, 1])
-    c = np.where(r > 0, off[:, 0] / np.where(r > 0, r, 1), 1.0)
-    s = np.where(r > 0, off[:, 1] / np.where(r > 0, r, 1), 0.0)
-    ir = 1.0 / np.maximum(sigma_rho.numpy().astype(np.float64), 1e-3) ** 2
-    it = 1.0 / np.maximum(sigma_tan.numpy().astype(np.float64), 1e-3) ** 2
-    W = np.stack([ir * c * c + it * s * s, (ir - it) * c * s, ir * s * s + it * c * c], axis=1)
-    return wp.array(W.astype(np.float32), dtype=wp.vec3, device=proj.device)
+    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32 -> (n,) vec3 on proj's device."""
+    fn = "polar_information"
+    n = check_array("proj", proj, None, wp.vec2, fn)
+    check_array("sigma_rho", sigma_rho, n, wp.float32, fn)
+    check_array("sigma_tan", sigma_tan, n, wp.float32, fn)
+    out = wp.empty(n, dtype=wp.vec3, device=proj.device)
+    args = [proj, sigma_rho, sigma_tan, wp.vec2d(float(center[0]), float(center[1]))]
+    launch_spans(polar_information_kernel, n, lambda i0: args + [i0], [out], proj.device,
+                 default_threads() if threads is None else threads)
+    return out
 
 
 def triangulate_rays(    uv1: wp.array,

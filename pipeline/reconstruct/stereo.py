@@ -7,17 +7,20 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.compact import count_values, gather, percentiles
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.geometry import make_camera
 from ringscan.kernels.stereo_match import MATCH_STATUS_NAMES, match_by_projector, projector_coordinates
 from ringscan.kernels.stereo_support import epipolar_distances as kernel_epipolar_distances
 from ringscan.kernels.stereo_support import polar_sigmas, uv_sigmas, window_sums
+from ringscan.kernels.triangulation import compact_points
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Rig
@@ -26,7 +29,7 @@ from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StereoMatches", "match_view", "match_samples", "decode_view", "epipolar_distances",
+__all__ = ["StereoMatches", "DeviceMatches", "match_view", "match_samples", "match_on_device", "decode_view", "epipolar_distances",
            "refine_integer_codes", "EPIPOLAR_WARN_PX"]
 
 EPIPOLAR_WARN_PX = 1.0
@@ -230,46 +233,101 @@ def _windows_all(w: np.ndarray, p: np.ndarray, width: int, height: int, r: int) 
     return S, Sx, Sy, Sxx, Sxy, Syy, wP, wPx, wPy, wPP, cnt
 
 
-def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
-                  settings: ReconstructSettings = ReconstructSettings(), threads: int | None = None) -> StereoMatches:
+@dataclass
+class DeviceMatches:
+    """Camera 1's samples with a camera-2 match, as Warp arrays (n matches) on the samples' device:
+    what :func:`match_on_device` hands the two-camera triangulation without a host round trip."""
+
+    index: wp.array
+    """(n,) int32 each match's sample in camera 1."""
+    uv1: wp.array
+    """(n,) vec2 camera-1 pixels as observed (distorted)."""
+    uv2: wp.array
+    """(n,) vec2 camera-2 pixels where camera 2's projector coordinate equals camera 1's."""
+    sigma1: wp.array
+    """(n,) float32 predicted standard deviation of uv1 (px, per axis)."""
+    sigma2: wp.array
+    """(n,) float32 predicted standard deviation of uv2 (px, per axis)."""
+    proj: wp.array
+    """(n,) vec2 projector pixels (u_p, v_p) decoded by camera 1."""
+    sigma_rho: wp.array
+    """(n,) float32 proj's standard deviation along its radius about the pattern centre (projector px)."""
+    sigma_tan: wp.array
+    """(n,) float32 proj's across its radius (projector px)."""
+    stats: dict = field(default_factory=dict)
+    """As :class:`StereoMatches`' ``stats``."""
+
+    def __len__(self) -> int:
+        return self.index.shape[0]
+
+
+def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
+                    settings: ReconstructSettings = ReconstructSettings(),
+                    threads: int | None = None) -> tuple[DeviceMatches, tuple | None]:
     """Match camera 1's samples to camera 2's by equal projector coordinate
-    (``kernels.stereo_match.match_by_projector``); the rig's extrinsics are not used. Camera 1's
-    integer codes of a dense map (an imported Gray code that kept them) are first read from
-    their neighbourhood (:func:`refine_integer_codes`)."""
+    (``kernels.stereo_match.match_by_projector``; the rig's extrinsics are not used), the matches
+    compacted and gathered on the samples' device (the statuses counted there). Camera 1's integer
+    codes of a dense map (an imported Gray code that kept them) are first read from their
+    neighbourhood (:func:`refine_integer_codes`, on the host).
+
+    Returns:
+        (matches, refined): ``refined`` None, or where the refinement changed camera 1's codes
+        (proj1 (n1, 2), sigma_rho (n1,), sigma_tan (n1,)) in float64 on the host, as refined (the
+        matches hold them in float32).
+    """
     p1, s1 = _coordinates(scan, samples1, "camera 1")
     p2, s2 = _coordinates(scan, samples2, "camera 2")
     light = scan.rig.light
     center = scan.patterns.center
-    proj1 = p1.numpy().astype(np.float64)
-    sr1 = samples1.sigma_rho.numpy().astype(np.float64)
-    st1 = samples1.sigma_tan.numpy().astype(np.float64)
-    refined = np.zeros(proj1.shape, bool)
+    dev = p1.device
+    threads = threads or cpu_threads()
+    host = None
+    sr_dev, st_dev = samples1.sigma_rho, samples1.sigma_tan
+    n_refined = 0
     if samples1.ring is None and len(samples1):  # one sample per pixel: a dense map
         cam = scan.rig.camera
+        proj1 = p1.numpy().astype(np.float64)
+        sr1 = samples1.sigma_rho.numpy().astype(np.float64)
+        st1 = samples1.sigma_tan.numpy().astype(np.float64)
         proj1, suv, refined = refine_integer_codes(samples1.pixel.numpy(), proj1, _polar_to_uv(proj1, sr1, st1, center),
                                                    width=cam.width, height=cam.height)
         if refined.any():
-            sr1, st1 = _uv_to_polar(proj1, suv, center)
-            dev = p1.device
+            n_refined = int(refined.any(axis=1).sum())
+            sr, st = _uv_to_polar(proj1, suv, center)
+            host = (proj1, sr, st)
             p1 = wp.array(proj1.astype(np.float32), dtype=wp.vec2, device=dev)
-            s1 = wp.array(np.sqrt(0.5 * (sr1 ** 2 + st1 ** 2)).astype(np.float32), dtype=wp.float32, device=dev)
+            s1 = wp.array(np.sqrt(0.5 * (sr ** 2 + st ** 2)).astype(np.float32), dtype=wp.float32, device=dev)
+            sr_dev = wp.array(sr.astype(np.float32), dtype=wp.float32, device=dev)
+            st_dev = wp.array(st.astype(np.float32), dtype=wp.float32, device=dev)
     M = match_by_projector(p1, s1, p2, samples2.uv, s2, projector_size=(light.width, light.height),
                            settings=settings.stereo.match, threads=threads)
-    status = M.status.numpy()
-    ok = np.flatnonzero(status == 0)
-    proj = proj1[ok]
-    sr = sr1[ok]
-    st = st1[ok]
-    sigma_proj = _polar_to_uv(proj, sr, st, center)
-    counts = np.bincount(status, minlength=len(MATCH_STATUS_NAMES))
-    stats = {"samples_camera1": int(len(samples1)), "samples_camera2": int(len(samples2)), "matches": int(ok.size),
+    ok = compact_points(M.status)  # the matched samples (status 0), in order
+    counts = count_values(M.status, len(MATCH_STATUS_NAMES), threads=threads)
+    stats = {"samples_camera1": int(len(samples1)), "samples_camera2": int(len(samples2)), "matches": int(len(ok)),
              "unmatched": {name: int(counts[i]) for i, name in enumerate(MATCH_STATUS_NAMES) if i > 0}}
-    if refined.any():
-        stats["integer_codes_refined"] = int(refined.any(axis=1).sum())
-    return StereoMatches(uv1=samples1.uv.numpy()[ok].astype(np.float64), uv2=M.uv2.numpy()[ok].astype(np.float64),
-                         proj=proj, sigma1=M.sigma1.numpy()[ok].astype(np.float64),
-                         sigma2=M.sigma2.numpy()[ok].astype(np.float64), sigma_proj=sigma_proj, sigma_rho=sr,
-                         sigma_tan=st, index=ok.astype(np.int64), stats=stats)
+    if n_refined:
+        stats["integer_codes_refined"] = n_refined
+    g = partial(gather, index=ok, threads=threads)
+    return (DeviceMatches(index=ok, uv1=g(samples1.uv), uv2=g(M.uv2), sigma1=g(M.sigma1), sigma2=g(M.sigma2),
+                          proj=g(p1), sigma_rho=g(sr_dev), sigma_tan=g(st_dev), stats=stats), host)
+
+
+def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
+                  settings: ReconstructSettings = ReconstructSettings(), threads: int | None = None) -> StereoMatches:
+    """Match camera 1's samples to camera 2's by equal projector coordinate
+    (:func:`match_on_device`), read to the host as :class:`StereoMatches`."""
+    m, refined = match_on_device(scan, samples1, samples2, settings=settings, threads=threads)
+    ok = m.index.numpy().astype(np.int64)
+    center = scan.patterns.center
+    if refined is not None:  # refined integer codes: their float64 coordinates and sigmas, as refined
+        proj, sr, st = (a[ok] for a in refined)
+    else:
+        proj = m.proj.numpy().astype(np.float64)
+        sr, st = m.sigma_rho.numpy().astype(np.float64), m.sigma_tan.numpy().astype(np.float64)
+    return StereoMatches(uv1=m.uv1.numpy().astype(np.float64), uv2=m.uv2.numpy().astype(np.float64), proj=proj,
+                         sigma1=m.sigma1.numpy().astype(np.float64), sigma2=m.sigma2.numpy().astype(np.float64),
+                         sigma_proj=_polar_to_uv(proj, sr, st, center), sigma_rho=sr, sigma_tan=st, index=ok,
+                         stats=m.stats)
 
 
 def match_view(scan: Scan, view: View, *, settings: ReconstructSettings = ReconstructSettings(),
@@ -298,14 +356,27 @@ def match_view(scan: Scan, view: View, *, settings: ReconstructSettings = Recons
     return match_samples(scan, samples1, samples2, settings=settings, threads=threads)
 
 
+def _epipolar_device(rig: Rig, w1: wp.array, w2: wp.array, threads: int | None) -> wp.array:
+    """(n,) float32 on w1's device: :func:`epipolar_distances` of (n,) vec2 Warp arrays."""
+    c1, c2 = rig.camera, rig.camera2
+    if c2 is None:
+        raise ValueError("epipolar_distances: the rig has one camera")
+    R = c2.R @ c1.R.T
+    t = c2.t - R @ c1.t
+    t = t / max(np.linalg.norm(t), 1e-300)  # the line's scale cancels: a unit baseline keeps float32 in range
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return kernel_epipolar_distances(w1, w2, camera1=make_camera(c1.K, c1.dist, c1.R, c1.t),
+                                     camera2=make_camera(c2.K, c2.dist, c2.R, c2.t), E=tx @ R,
+                                     scale=float(np.sqrt(c2.K[0, 0] * c2.K[1, 1])), threads=threads)
+
+
 def epipolar_distances(rig: Rig, uv1: np.ndarray, uv2: np.ndarray, *, threads: int | None = None) -> np.ndarray:
     """(n,) distance (camera-2 px) of each uv2 from the epipolar line of its uv1
     under the rig's two cameras (lens distortion undone; NaN where a pixel has no
     undistorted point): what a rig that fits its images keeps near the matches' noise.
     One Warp kernel (``kernels.stereo_support.epipolar_distances``, float32: within 1e-3 px of
     the float64 arithmetic); ``uv1``, ``uv2`` NumPy (n, 2) or (n,) vec2 Warp arrays."""
-    c1, c2 = rig.camera, rig.camera2
-    if c2 is None:
+    if rig.camera2 is None:
         raise ValueError("epipolar_distances: the rig has one camera")
     init_warp()
     w1, w2 = (a if isinstance(a, wp.array) else
@@ -313,24 +384,25 @@ def epipolar_distances(rig: Rig, uv1: np.ndarray, uv2: np.ndarray, *, threads: i
                        device="cpu") for a in (uv1, uv2))
     if w1.shape[0] == 0:
         return np.zeros(0)
-    R = c2.R @ c1.R.T
-    t = c2.t - R @ c1.t
-    t = t / max(np.linalg.norm(t), 1e-300)  # the line's scale cancels: a unit baseline keeps float32 in range
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    d = kernel_epipolar_distances(w1, w2, camera1=make_camera(c1.K, c1.dist, c1.R, c1.t),
-                                  camera2=make_camera(c2.K, c2.dist, c2.R, c2.t), E=tx @ R,
-                                  scale=float(np.sqrt(c2.K[0, 0] * c2.K[1, 1])), threads=threads)
-    return d.numpy().astype(np.float64)
+    return _epipolar_device(rig, w1, w2, threads).numpy().astype(np.float64)
 
 
-def epipolar_check(rig: Rig, matches: StereoMatches, *, uv: tuple[wp.array, wp.array] | None = None) -> dict:
+def epipolar_check(rig: Rig, matches, *, uv: tuple[wp.array, wp.array] | None = None) -> dict:
     """The calibration check of a two-camera view: the epipolar distance of its
     matches (px), median and p95, and whether it warns (median above ``EPIPOLAR_WARN_PX``).
-    ``uv``: the matches' uv1, uv2 as (n,) vec2 Warp arrays where the caller has them (not converted again)."""
-    d = epipolar_distances(rig, *(uv if uv is not None else (matches.uv1, matches.uv2)))
-    d = d[np.isfinite(d)]
-    if d.size == 0:
+    ``uv``: the matches' uv1, uv2 as (n,) vec2 Warp arrays where the caller has them: the distances
+    and their percentiles are then taken on their device (four values read)."""
+    if uv is not None:
+        if uv[0].shape[0] == 0:
+            return {}
+        (med, p95), count = percentiles(_epipolar_device(rig, uv[0], uv[1], None), [50, 95])
+    else:
+        d = epipolar_distances(rig, matches.uv1, matches.uv2)
+        d = d[np.isfinite(d)]
+        count = int(d.size)
+        if count:
+            med, p95 = (float(x) for x in np.percentile(d, [50, 95]))  # one partition for both
+    if count == 0:
         return {}
-    med, p95 = (float(x) for x in np.percentile(d, [50, 95]))  # one partition for both
-    return {"kind": "epipolar", "matches": int(d.size), "epipolar_px_median": med,
+    return {"kind": "epipolar", "matches": int(count), "epipolar_px_median": med,
             "epipolar_px_p95": p95, "fits": bool(med <= EPIPOLAR_WARN_PX)}

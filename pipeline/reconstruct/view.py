@@ -14,8 +14,8 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
-from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather
-from ringscan.kernels.error_terms import median, widen_sigmas
+from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
+from ringscan.kernels.error_terms import widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -48,7 +48,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
     widen_for_indirect,
 )
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
-from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_samples
+from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_on_device
 
 log = logging.getLogger(__name__)
 
@@ -458,29 +458,26 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     samples2, _, _ = decode_view(as_camera2(scan), view.camera2, settings=settings, device=device, threads=threads)
     times["decode_camera2"] = time.perf_counter() - t
     t = time.perf_counter()
-    matches = match_samples(scan, samples, samples2, settings=settings, threads=threads)
+    matches, _ = match_on_device(scan, samples, samples2, settings=settings, threads=threads)
     times["match"] = time.perf_counter() - t
     t = time.perf_counter()
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
     light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
     n = len(samples)
-    f32 = partial(wp.array, dtype=wp.float32, device=device)
-    v2 = partial(wp.array, dtype=wp.vec2, device=device)
     kw = {}
     if use_light:
-        proj = v2(matches.proj.astype(np.float32))
-        kw = dict(light=light, proj=proj,
-                  proj_info=polar_information(proj, f32(matches.sigma_rho.astype(np.float32)),
-                                              f32(matches.sigma_tan.astype(np.float32)), center=scan.patterns.center))
-    uv1, uv2 = v2(matches.uv1.astype(np.float32)), v2(matches.uv2.astype(np.float32))
+        kw = dict(light=light, proj=matches.proj,
+                  proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
+                                              center=scan.patterns.center, threads=threads))
+    uv1, uv2 = matches.uv1, matches.uv2
     check = epipolar_check(rig, matches, uv=(uv1, uv2))
     max_res = st.max_residual_px
     if check and not check["fits"]:
         # a rig that misses: its points miss by the miss; the cloud is still made
         # (and the view warns), an outlier is a point beyond 5 times the miss
         max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
-    tri = triangulate_rays(uv1, uv2, f32(matches.sigma1.astype(np.float32)), f32(matches.sigma2.astype(np.float32)),
+    tri = triangulate_rays(uv1, uv2, matches.sigma1, matches.sigma2,
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
                            max_residual_px=max_res, threads=threads, **kw)
@@ -499,13 +496,12 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         sigma = wp.zeros(n, dtype=wp.float32, device=device)
         status = wp.full(n, STATUS_UNMATCHED, dtype=wp.int32, device=device)
         residual = wp.full(n, -1.0, dtype=wp.float32, device=device)
-    i = matches.index
     # each match's point written at its sample on the device (kernels.stereo_rays.place_matches)
-    place_matches(wp.array(i.astype(np.int32), dtype=wp.int32, device=device), tri, samples.confidence, points=points,
-                  status=status, sigma=sigma, residual=residual, placed_confidence=confidence, threads=threads)
-    residual_px = _angle_used(samples, settings).numpy() if st.rays == "auto" and use_light else np.zeros(n, np.int32)
-    residual_px[i] = 1  # the rays' RMS reprojection error
-    residual_px = wp.array(residual_px, dtype=wp.int32, device=device)
+    place_matches(matches.index, tri, samples.confidence, points=points, status=status, sigma=sigma,
+                  residual=residual, placed_confidence=confidence, threads=threads)
+    residual_px = (_angle_used(samples, settings) if st.rays == "auto" and use_light
+                   else wp.zeros(n, dtype=wp.int32, device=device))
+    set_at(residual_px, matches.index, 1, threads=threads)  # the rays' RMS reprojection error
     _stereo_report(view, matches, tri, check, use_light, extra)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
@@ -525,9 +521,10 @@ def _stereo_report(view: View, matches, tri, check: dict, use_light: bool, extra
                         "epipolar lines (median; p95 %.2f px; above %.1f px): check the cameras' calibration "
                         "(ringscan calibrate refine, docs/calibration.md)", view.name, check["median_px"],
                         check["p95_px"], EPIPOLAR_WARN_PX)
-    ok = tri.status.numpy() == 0
+    placed = compact_points(tri.status)  # the rays' residuals' median, on the device (two values read)
     extra["stereo"] = {**matches.stats, "three_rays": bool(use_light),
-                       "residual_px_median": float(np.median(tri.residual.numpy()[ok])) if ok.any() else None}
+                       "residual_px_median": median(gather(tri.residual, placed), dtype=np.float32)
+                       if len(placed) else None}
     if "fallback_camera_projector" in extra:
         extra["stereo"]["fallback_camera_projector"] = extra.pop("fallback_camera_projector")
     if check:

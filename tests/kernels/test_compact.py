@@ -36,3 +36,27 @@ def test_count_values_is_bincount(n):
 def test_gather_refuses_other_types():
     with pytest.raises(ValueError, match="gather: src must be"):
         gather(wp.zeros(3, dtype=wp.float64), wp.zeros(2, dtype=wp.int32))
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 20, 9999, 10000])
+def test_median_and_percentiles_are_numpys(n):
+    from ringscan.kernels.compact import median, percentiles
+
+    rng = np.random.default_rng(n)
+    a = (rng.gamma(2.0, 0.3, n) * 3).astype(np.float32)
+    if n > 3:
+        a[rng.random(n) < 0.1] = np.nan  # left out, as the callers filter them
+    fin = a[np.isfinite(a)]
+    assert median(_f32(a)) == np.median(fin.astype(np.float64))
+    assert median(_f32(a), dtype=np.float32) == float(np.median(fin))
+    got, count = percentiles(_f32(a), [50, 95, 5, 100])
+    assert count == fin.size and got == [float(x) for x in np.percentile(fin.astype(np.float64), [50, 95, 5, 100])]
+    assert np.isnan(median(_f32(np.full(4, np.nan)))) and percentiles(_f32(np.full(4, np.nan)), [50])[1] == 0
+
+
+def test_set_at_writes_the_value_at_the_indices_only():
+    from ringscan.kernels.compact import set_at
+
+    a = wp.zeros(10, dtype=wp.int32)
+    set_at(a, wp.array(np.array([1, 4, 9], np.int32)), 1)
+    assert a.numpy().tolist() == [0, 1, 0, 0, 1, 0, 0, 0, 0, 1]

@@ -126,3 +126,27 @@ def test_place_matches_writes_each_match_at_its_sample_and_leaves_the_others():
     assert np.array_equal(got["sigma"][index], sig) and np.array_equal(got["residual"][index], res)
     assert np.array_equal(got["placed_confidence"][index], np.where(st == 0, conf[index], 0.0).astype(np.float32))
     assert np.all(got["placed_confidence"][other] == 9.0) and np.all(got["residual"][other] == -1.0)
+
+
+def test_polar_information_on_the_device_is_the_numpy_statement():
+    """The information matrices by a kernel (float64 inside, float32 out) against NumPy's float64 arithmetic."""
+    from ringscan.kernels.stereo_rays import polar_information
+
+    rng = np.random.default_rng(8)
+    n = 20000
+    p = rng.uniform(0, 1024, (n, 2)).astype(np.float32)
+    p[0] = (511.5, 383.5)  # at the centre itself: the radial direction is u
+    sr = rng.uniform(0.0, 0.5, n).astype(np.float32)  # below 1e-3 included: floored
+    st = rng.uniform(0.0005, 0.8, n).astype(np.float32)
+    got = polar_information(wp.array(p, dtype=wp.vec2), wp.array(sr), wp.array(st), center=(511.5, 383.5),
+                            threads=2).numpy()
+    off = p.astype(np.float64) - (511.5, 383.5)
+    r = np.hypot(off[:, 0], off[:, 1])
+    c = np.where(r > 0, off[:, 0] / np.where(r > 0, r, 1), 1.0)
+    s = np.where(r > 0, off[:, 1] / np.where(r > 0, r, 1), 0.0)
+    ir = 1.0 / np.maximum(sr.astype(np.float64), 1e-3) ** 2
+    it = 1.0 / np.maximum(st.astype(np.float64), 1e-3) ** 2
+    W = np.stack([ir * c * c + it * s * s, (ir - it) * c * s, ir * s * s + it * c * c], axis=1).astype(np.float32)
+    # (sqrt(x^2 + y^2) for NumPy's hypot: a float64 last bit apart at most, which float32 hides: equal here)
+    np.testing.assert_array_equal(got, W)
+    assert got[0].tolist() == pytest.approx([1 / max(sr[0], 1e-3) ** 2, 0.0, 1 / st[0] ** 2], rel=1e-6)
