@@ -13,7 +13,7 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
-__all__ = ["finite_flags", "finite_indices", "gather", "set_at", "count_values", "median", "percentiles"]
+__all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median", "percentiles"]
 
 SPAN = wp.constant(4096)
 """Items a histogram row counts (one thread a row)."""
@@ -27,6 +27,13 @@ def flag_finite_kernel(a: wp.array(dtype=wp.float32), i0: int, flags: wp.array(d
     """flags[i] = 1 where a[i] is finite. a (n,) float32: read; flags (n,) int32: written."""
     i = i0 + wp.tid()
     flags[i] = wp.where(wp.isfinite(a[i]), 1, 0)
+
+
+@wp.kernel
+def flag_nonzero_kernel(values: wp.array(dtype=wp.int32), i0: int, flags: wp.array(dtype=wp.int32)):
+    """flags[i] = 1 where values[i] != 0. values (n,) int32: read; flags (n,) int32: written."""
+    i = i0 + wp.tid()
+    flags[i] = wp.where(values[i] != 0, 1, 0)
 
 
 @wp.kernel
@@ -81,18 +88,26 @@ def finite_flags(a: wp.array, *, threads: int | None = None) -> wp.array:
     return flags
 
 
+def nonzero_indices(flags: wp.array, *, threads: int | None = None) -> wp.array:
+    """(m,) int32 the indices where ``flags`` ((n,) int32) is not 0, in order, on its device (count,
+    scan, write: one read, the count)."""
+    n = check_array("flags", flags, None, wp.int32, "nonzero_indices")
+    dev = flags.device
+    ones = wp.empty(n, dtype=wp.int32, device=dev)
+    threads = default_threads() if threads is None else threads
+    launch_spans(flag_nonzero_kernel, n, lambda i0: [flags, i0], [ones], dev, threads)
+    offsets, total = scan_counts(ones)
+    out = wp.empty(total, dtype=wp.int32, device=dev)
+    if total:
+        launch_spans(write_indices_kernel, n, lambda i0: [ones, offsets, i0], [out], dev, threads)
+    return out
+
+
 def finite_indices(a: wp.array, *, threads: int | None = None) -> wp.array:
     """(m,) int32 the indices of ``a``'s ((n,) float32) finite values, in order, on a's device
     (count, scan, write: one read, the count)."""
-    n = check_array("a", a, None, wp.float32, "finite_indices")
-    dev = a.device
-    threads = default_threads() if threads is None else threads
-    flags = finite_flags(a, threads=threads)
-    offsets, total = scan_counts(flags)
-    out = wp.empty(total, dtype=wp.int32, device=dev)
-    if total:
-        launch_spans(write_indices_kernel, n, lambda i0: [flags, offsets, i0], [out], dev, threads)
-    return out
+    check_array("a", a, None, wp.float32, "finite_indices")
+    return nonzero_indices(finite_flags(a, threads=threads), threads=threads)
 
 
 def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:

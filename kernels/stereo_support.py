@@ -10,9 +10,24 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import CameraModel, undistort
+from ringscan.kernels.compact import count_values, nonzero_indices
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["uv_sigmas", "polar_sigmas", "window_sums", "epipolar_distances"]
+__all__ = ["RefineSettings", "uv_sigmas", "polar_sigmas", "window_sums", "refine_codes", "epipolar_distances"]
+
+
+@wp.struct
+class RefineSettings:
+    """How an integer code is read from its window (``pipeline.reconstruct.stereo.refine_integer_codes``)."""
+
+    radius: int
+    """The window's half width (camera px)."""
+    min_pixels: int
+    """Fewest decoded pixels in the window for a plane."""
+    max_chi2: wp.float64
+    """Largest scatter about the plane, in variances the codes' sigmas predict, a degree of freedom."""
+    tolerance: wp.float64
+    """A coordinate this close to an integer is an integer code (projector px)."""
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -138,6 +153,178 @@ def window_sums_kernel(
 
 
 @wp.kernel
+def split_proj_kernel(
+    proj: wp.array(dtype=wp.vec2),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    i0: int,
+    proj64: wp.array(dtype=wp.vec2d),
+    sigma_rho64: wp.array(dtype=wp.float64),
+    sigma_tan64: wp.array(dtype=wp.float64),
+):
+    """Projector points and their polar sigmas in float64 (the refinement's arithmetic). proj (n,) vec2,
+    sigma_rho, sigma_tan (n,) float32: read; their float64 copies: written."""
+    i = i0 + wp.tid()
+    proj64[i] = wp.vec2d(wp.float64(proj[i][0]), wp.float64(proj[i][1]))
+    sigma_rho64[i] = wp.float64(sigma_rho[i])
+    sigma_tan64[i] = wp.float64(sigma_tan[i])
+
+
+@wp.kernel
+def axis_terms_kernel(
+    proj: wp.array(dtype=wp.vec2d),
+    sigma_uv: wp.array(dtype=wp.vec2d),
+    axis: int,
+    tolerance: wp.float64,
+    i0: int,
+    value: wp.array(dtype=wp.float64),
+    weight: wp.array(dtype=wp.float64),
+    integer: wp.array(dtype=wp.int32),
+):
+    """One axis of the refinement, per sample: its coordinate, its weight 1 / max(sigma, 1e-3)^2 and
+    whether it is an integer code. proj, sigma_uv (n,) vec2d: read; value, weight (n,) float64 and
+    integer (n,) int32: written."""
+    i = i0 + wp.tid()
+    v = proj[i][axis]
+    value[i] = v
+    sg = wp.max(sigma_uv[i][axis], wp.float64(1.0e-3))
+    weight[i] = wp.float64(1.0) / (sg * sg)
+    integer[i] = wp.where(wp.abs(v - wp.round(v)) < tolerance, 1, 0)
+
+
+@wp.kernel
+def refine_axis_kernel(
+    sel: wp.array(dtype=wp.int32),
+    pixel: wp.array(dtype=wp.int32),
+    sample_of: wp.array(dtype=wp.int32),
+    value: wp.array(dtype=wp.float64),
+    weight: wp.array(dtype=wp.float64),
+    width: int,
+    height: int,
+    settings: RefineSettings,
+    axis: int,
+    i0: int,
+    proj_out: wp.array(dtype=wp.vec2d),
+    sigma_out: wp.array(dtype=wp.vec2d),
+    refined: wp.array(dtype=wp.int32),
+):
+    """Integer code sel[i0 + tid] on ``axis`` read from its window: the plane fitted (weights 1 / sigma^2)
+    to the codes of the (2 r + 1)^2 pixels around its pixel, read at the pixel, where the window holds
+    ``min_pixels`` codes, its normal equations are well conditioned and its scatter is within
+    ``max_chi2`` a degree of freedom; the plane's sigma there (scaled by the scatter where larger). The
+    window's moments row by row (as :func:`window_sums_kernel`), the 3x3 solve by cofactors (as the
+    NumPy statement ``refine_integer_codes``).
+
+    sel (m,) int32 the integer codes' samples; pixel (n,) int32; sample_of (width * height,) int32 each
+    pixel's sample (-1: none); value, weight (n,) float64: read. proj_out, sigma_out (n,) vec2d: written
+    on ``axis`` where refined; refined (n,) int32: bit ``axis`` set there.
+
+    Size: the selection, the samples' pixels and pixel -> sample map, the axis' values and weights, the
+    image's size, the settings and axis, the span's i0, three arrays out."""
+    i = sel[i0 + wp.tid()]
+    a = pixel[i]
+    ys = a / width
+    xs = a - ys * width
+    r = settings.radius
+    S = wp.float64(0.0)
+    Sx = wp.float64(0.0)
+    Sy = wp.float64(0.0)
+    Sxx = wp.float64(0.0)
+    Sxy = wp.float64(0.0)
+    Syy = wp.float64(0.0)
+    wP = wp.float64(0.0)
+    wPx = wp.float64(0.0)
+    wPy = wp.float64(0.0)
+    wPP = wp.float64(0.0)
+    cnt = wp.float64(0.0)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            y = ys + dy
+            x = xs + dx
+            wk = wp.float64(0.0)
+            pk = wp.float64(0.0)
+            if y >= 0 and y < height and x >= 0 and x < width:
+                j = sample_of[y * width + x]
+                if j >= 0:
+                    wk = weight[j]
+                    pk = value[j]
+            fx = wp.float64(dx)
+            fy = wp.float64(dy)
+            wpk = wk * pk
+            S += wk
+            Sx += wk * fx
+            Sy += wk * fy
+            Sxx += wk * (fx * fx)
+            Sxy += wk * (fx * fy)
+            Syy += wk * (fy * fy)
+            wP += wpk
+            wPx += wpk * fx
+            wPy += wpk * fy
+            wPP += wpk * pk
+            cnt += wp.where(wk > wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    p0 = value[i]
+    Sp = wP - p0 * S
+    Sxp = wPx - p0 * Sx
+    Syp = wPy - p0 * Sy
+    Spp = wPP - wp.float64(2.0) * p0 * wP + p0 * p0 * S
+    c00 = Sxx * Syy - Sxy * Sxy
+    c01 = Sxy * Sy - Sx * Syy
+    c02 = Sx * Sxy - Sxx * Sy
+    c11 = S * Syy - Sy * Sy
+    c12 = Sx * Sy - S * Sxy
+    c22 = S * Sxx - Sx * Sx
+    det = S * c00 + Sx * c01 + Sy * c02
+    tiny = wp.float64(1.0e-30)
+    good = cnt >= wp.float64(float(settings.min_pixels)) and det > wp.float64(1.0e-9) * wp.max(S, tiny) * wp.max(c00, tiny)
+    if not good:
+        return
+    inv_det = wp.float64(1.0) / det
+    b0 = (c00 * Sp + c01 * Sxp + c02 * Syp) * inv_det
+    b1 = (c01 * Sp + c11 * Sxp + c12 * Syp) * inv_det
+    b2 = (c02 * Sp + c12 * Sxp + c22 * Syp) * inv_det
+    chi2 = wp.max(Spp - (b0 * Sp + b1 * Sxp + b2 * Syp), wp.float64(0.0))
+    dof = wp.max(cnt - wp.float64(3.0), wp.float64(1.0))
+    if not (chi2 <= settings.max_chi2 * dof):
+        return
+    p = proj_out[i]
+    sg = sigma_out[i]
+    p[axis] = p0 + b0
+    sg[axis] = wp.sqrt(c00 * inv_det * wp.max(wp.float64(1.0), chi2 / dof))
+    proj_out[i] = p
+    sigma_out[i] = sg
+    refined[i] = refined[i] | (1 << axis)
+
+
+@wp.kernel
+def join_proj_kernel(
+    proj64: wp.array(dtype=wp.vec2d),
+    sigma_rho64: wp.array(dtype=wp.float64),
+    sigma_tan64: wp.array(dtype=wp.float64),
+    i0: int,
+    proj: wp.array(dtype=wp.vec2),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+):
+    """The refined points and sigmas in float32 for the match, and the isotropic sqrt((sr^2 + st^2) / 2).
+    proj64 (n,) vec2d, sigma_rho64, sigma_tan64 (n,) float64: read; the rest (n,): written."""
+    i = i0 + wp.tid()
+    proj[i] = wp.vec2(wp.float32(proj64[i][0]), wp.float32(proj64[i][1]))
+    sr = sigma_rho64[i]
+    st = sigma_tan64[i]
+    sigma_rho[i] = wp.float32(sr)
+    sigma_tan[i] = wp.float32(st)
+    sigma[i] = wp.float32(wp.sqrt(wp.float64(0.5) * (sr * sr + st * st)))
+
+
+@wp.kernel
+def scatter_index_kernel(pixel: wp.array(dtype=wp.int32), i0: int, sample_of: wp.array(dtype=wp.int32)):
+    """sample_of[pixel[i]] = i. pixel (n,) int32: read; sample_of (width * height,) int32: written there."""
+    i = i0 + wp.tid()
+    sample_of[pixel[i]] = i
+
+
+@wp.kernel
 def epipolar_kernel(
     uv1: wp.array(dtype=wp.vec2),
     uv2: wp.array(dtype=wp.vec2),
@@ -220,6 +407,73 @@ def window_sums(at: wp.array, sample_of: wp.array, value: wp.array, weight: wp.a
     args = [at, sample_of, value, weight, int(width), int(height), int(radius)]
     launch_spans(window_sums_kernel, m, lambda i0: args + [i0], [out], dev,
                  default_threads() if threads is None else threads)
+    return out
+
+
+def refine_codes(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, pixel: wp.array, *,
+                 center: tuple[float, float], width: int, height: int, settings: RefineSettings,
+                 threads: int | None = None) -> dict | None:
+    """Integer projector codes of a dense per-pixel map read to a fraction of a projector pixel from
+    their camera neighbourhood, on the samples' device (:func:`refine_axis_kernel` per axis; the NumPy
+    statement is ``pipeline.reconstruct.stereo.refine_integer_codes``, which sums a window the same way
+    where it has few codes to refine and by the image's filters where it has many).
+
+    Args:
+        proj: (n,) vec2 projector points (one sample a camera pixel).
+        sigma_rho, sigma_tan: (n,) float32 their polar standard deviations (projector px).
+        pixel: (n,) int32 each sample's camera pixel (y * width + x).
+        center: the pattern centre (projector px).
+        width, height: the camera's size.
+        settings: the window and its tests.
+        threads: CPU threads; default all cores.
+
+    Returns:
+        None where no code was refined, else {"proj", "sigma_rho", "sigma_tan", "sigma"} in float32 for the
+        match (sigma: the isotropic sqrt((sr^2 + st^2) / 2)), the same in float64 ("proj64", "sigma_rho64",
+        "sigma_tan64": every sample's polar sigmas through u, v and back), and "refined" (n,) int32 bits
+        (1: u_p, 2: v_p) and its count of samples, all but the count on the device.
+    """
+    fn = "refine_codes"
+    n = check_array("proj", proj, None, wp.vec2, fn)
+    for name, a in (("sigma_rho", sigma_rho), ("sigma_tan", sigma_tan)):
+        check_array(name, a, n, wp.float32, fn)
+    check_array("pixel", pixel, n, wp.int32, fn)
+    if n == 0:
+        return None
+    dev = proj.device
+    threads = default_threads() if threads is None else threads
+    c = (float(center[0]), float(center[1]))
+    p64 = wp.empty(n, dtype=wp.vec2d, device=dev)
+    sr64 = wp.empty(n, dtype=wp.float64, device=dev)
+    st64 = wp.empty(n, dtype=wp.float64, device=dev)
+    launch_spans(split_proj_kernel, n, lambda i0: [proj, sigma_rho, sigma_tan, i0], [p64, sr64, st64], dev, threads)
+    suv = uv_sigmas(p64, sr64, st64, center=c, threads=threads)
+    sample_of = wp.full(int(width) * int(height), -1, dtype=wp.int32, device=dev)
+    launch_spans(scatter_index_kernel, n, lambda i0: [pixel, i0], [sample_of], dev, threads)
+    out_p = wp.clone(p64)
+    out_s = wp.clone(suv)
+    refined = wp.zeros(n, dtype=wp.int32, device=dev)
+    value = wp.empty(n, dtype=wp.float64, device=dev)
+    weight = wp.empty(n, dtype=wp.float64, device=dev)
+    integer = wp.empty(n, dtype=wp.int32, device=dev)
+    for axis in (0, 1):  # each axis from the codes and sigmas as decoded, not as the other axis refined them
+        launch_spans(axis_terms_kernel, n, lambda i0: [p64, suv, axis, wp.float64(settings.tolerance), i0],
+                     [value, weight, integer], dev, threads)
+        sel = nonzero_indices(integer, threads=threads)
+        if len(sel):
+            launch_spans(refine_axis_kernel, len(sel),
+                         lambda i0: [sel, pixel, sample_of, value, weight, int(width), int(height), settings, axis,
+                                     i0], [out_p, out_s, refined], dev, threads)
+    counts = count_values(refined, 4, threads=threads)
+    done = int(counts[1:].sum())
+    if done == 0:
+        return None
+    sr, st = polar_sigmas(out_p, out_s, center=c, threads=threads)
+    out = {"proj": wp.empty(n, dtype=wp.vec2, device=dev), "sigma_rho": wp.empty(n, dtype=wp.float32, device=dev),
+           "sigma_tan": wp.empty(n, dtype=wp.float32, device=dev), "sigma": wp.empty(n, dtype=wp.float32, device=dev)}
+    launch_spans(join_proj_kernel, n, lambda i0: [out_p, sr, st, i0],
+                 [out["proj"], out["sigma_rho"], out["sigma_tan"], out["sigma"]], dev, threads)
+    out.update(proj64=out_p, sigma_rho64=sr, sigma_tan64=st, refined=refined, count=done)
     return out
 
 

@@ -19,7 +19,7 @@ from ringscan.kernels.samples import Samples
 from ringscan.kernels.geometry import make_camera
 from ringscan.kernels.stereo_match import MATCH_STATUS_NAMES, match_by_projector, projector_coordinates
 from ringscan.kernels.stereo_support import epipolar_distances as kernel_epipolar_distances
-from ringscan.kernels.stereo_support import polar_sigmas, uv_sigmas, window_sums
+from ringscan.kernels.stereo_support import RefineSettings, polar_sigmas, refine_codes, uv_sigmas, window_sums
 from ringscan.kernels.triangulation import compact_points
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
@@ -118,6 +118,14 @@ def _uv_to_polar(proj: np.ndarray, sigma_uv: np.ndarray, center) -> tuple[np.nda
         return np.zeros(0), np.zeros(0)
     sr, st = polar_sigmas(_cpu(proj, wp.vec2d), _cpu(sigma_uv, wp.vec2d), center=(float(center[0]), float(center[1])))
     return sr.numpy(), st.numpy()
+
+
+def _refine_settings() -> RefineSettings:
+    """The window and tests of :func:`refine_integer_codes` for ``kernels.stereo_support.refine_codes``."""
+    st = RefineSettings()
+    st.radius, st.min_pixels = QUERY_WINDOW_PX, QUERY_MIN_PIXELS
+    st.max_chi2, st.tolerance = QUERY_FIT_CHI2, INTEGER_TOLERANCE_PX
+    return st
 
 
 def refine_integer_codes(pixel: np.ndarray, proj: np.ndarray, sigma_uv: np.ndarray, *, width: int, height: int,
@@ -272,33 +280,25 @@ def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
 
     Returns:
         (matches, refined): ``refined`` None, or where the refinement changed camera 1's codes
-        (proj1 (n1, 2), sigma_rho (n1,), sigma_tan (n1,)) in float64 on the host, as refined (the
-        matches hold them in float32).
+        (proj1 (n1,) vec2d, sigma_rho (n1,), sigma_tan (n1,) float64 Warp arrays on the device), as
+        refined (the matches hold them in float32).
     """
     p1, s1 = _coordinates(scan, samples1, "camera 1")
     p2, s2 = _coordinates(scan, samples2, "camera 2")
     light = scan.rig.light
     center = scan.patterns.center
-    dev = p1.device
     threads = threads or cpu_threads()
     host = None
     sr_dev, st_dev = samples1.sigma_rho, samples1.sigma_tan
     n_refined = 0
     if samples1.ring is None and len(samples1):  # one sample per pixel: a dense map
         cam = scan.rig.camera
-        proj1 = p1.numpy().astype(np.float64)
-        sr1 = samples1.sigma_rho.numpy().astype(np.float64)
-        st1 = samples1.sigma_tan.numpy().astype(np.float64)
-        proj1, suv, refined = refine_integer_codes(samples1.pixel.numpy(), proj1, _polar_to_uv(proj1, sr1, st1, center),
-                                                   width=cam.width, height=cam.height)
-        if refined.any():
-            n_refined = int(refined.any(axis=1).sum())
-            sr, st = _uv_to_polar(proj1, suv, center)
-            host = (proj1, sr, st)
-            p1 = wp.array(proj1.astype(np.float32), dtype=wp.vec2, device=dev)
-            s1 = wp.array(np.sqrt(0.5 * (sr ** 2 + st ** 2)).astype(np.float32), dtype=wp.float32, device=dev)
-            sr_dev = wp.array(sr.astype(np.float32), dtype=wp.float32, device=dev)
-            st_dev = wp.array(st.astype(np.float32), dtype=wp.float32, device=dev)
+        ref = refine_codes(p1, samples1.sigma_rho, samples1.sigma_tan, samples1.pixel, center=center, width=cam.width,
+                           height=cam.height, settings=_refine_settings(), threads=threads)
+        if ref is not None:
+            n_refined = ref["count"]
+            host = (ref["proj64"], ref["sigma_rho64"], ref["sigma_tan64"])
+            p1, s1, sr_dev, st_dev = ref["proj"], ref["sigma"], ref["sigma_rho"], ref["sigma_tan"]
     M = match_by_projector(p1, s1, p2, samples2.uv, s2, projector_size=(light.width, light.height),
                            settings=settings.stereo.match, threads=threads)
     ok = compact_points(M.status)  # the matched samples (status 0), in order
@@ -320,7 +320,7 @@ def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
     ok = m.index.numpy().astype(np.int64)
     center = scan.patterns.center
     if refined is not None:  # refined integer codes: their float64 coordinates and sigmas, as refined
-        proj, sr, st = (a[ok] for a in refined)
+        proj, sr, st = (a.numpy()[ok] for a in refined)
     else:
         proj = m.proj.numpy().astype(np.float64)
         sr, st = m.sigma_rho.numpy().astype(np.float64), m.sigma_tan.numpy().astype(np.float64)

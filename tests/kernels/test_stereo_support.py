@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera
@@ -51,3 +52,58 @@ def test_epipolar_distances_match_float64_geometry():
     moved = kernel(uv1, uv2_moved)
     assert np.max(np.abs(moved - reference(uv1, uv2_moved))) < 1e-3
     assert np.median(moved) > 0.3  # the moves are seen: ~N(0, 1.5) across the lines
+
+
+def _integer_view(rng, w=96, h=72, share=1.0):
+    """A dense map of projector codes over a tilted plane with noise, ``share`` of them rounded to whole
+    projector pixels (an imported Gray code without sub-pixel refinement), the rest sub-pixel; a hole."""
+    y, x = np.mgrid[0:h, 0:w]
+    u = 100 + 0.83 * x + 0.11 * y + rng.normal(0, 0.05, x.shape)
+    v = 40 + 0.07 * x + 0.91 * y + rng.normal(0, 0.05, x.shape)
+    keep = ~((x > 30) & (x < 40) & (y > 20) & (y < 28))
+    pix = (y * w + x)[keep].astype(np.int32)
+    p = np.stack([u[keep], v[keep]], 1)
+    whole = rng.random(len(p)) < share
+    frac = p - np.round(p)  # the sub-pixel codes kept clear of whole pixels (no accidental integer code)
+    p = np.where(np.abs(frac) < 0.1, np.round(p) + np.copysign(0.1, frac), p)
+    p[whole] = np.round(p[whole])
+    sr = np.where(whole, 0.29, 0.05).astype(np.float32)
+    st = np.where(whole, 0.29, 0.06).astype(np.float32)
+    return p.astype(np.float32), sr, st, pix, w, h
+
+
+@pytest.mark.parametrize("share", [0.01, 1.0])
+def test_integer_codes_refined_on_the_device_are_the_numpy_statement(share):
+    """A few integer codes: the NumPy statement sums their windows the same way (equal to the bit); every
+    code integer: it sums them by the image's filters, in another order (float64 sums ~1e-16 apart; the
+    plane's sigma, from the normal equations' inverse, ~1e-10: 1e-9 relative)."""
+    from ringscan.kernels.stereo_support import RefineSettings, polar_sigmas, refine_codes
+    from ringscan.pipeline.reconstruct.stereo import (INTEGER_TOLERANCE_PX, QUERY_FIT_CHI2, QUERY_MIN_PIXELS,
+                                                      QUERY_WINDOW_PX, _polar_to_uv, refine_integer_codes)
+
+    p, sr, st, pix, w, h = _integer_view(np.random.default_rng(3), share=share)
+    center = (512.0, 384.0)
+    settings = RefineSettings()
+    settings.radius, settings.min_pixels = QUERY_WINDOW_PX, QUERY_MIN_PIXELS
+    settings.max_chi2, settings.tolerance = QUERY_FIT_CHI2, INTEGER_TOLERANCE_PX
+    got = refine_codes(wp.array(p, dtype=wp.vec2), wp.array(sr), wp.array(st), wp.array(pix), center=center, width=w,
+                       height=h, settings=settings, threads=2)
+    p64 = p.astype(np.float64)
+    ref_p, ref_s, refined = refine_integer_codes(pix, p64, _polar_to_uv(p64, sr.astype(np.float64),
+                                                                         st.astype(np.float64), center), width=w, height=h)
+    bits = got["refined"].numpy()
+    np.testing.assert_array_equal(bits, refined[:, 0] * 1 + refined[:, 1] * 2)
+    assert got["count"] == int(refined.any(axis=1).sum()) > 0
+    exact = share < 0.5
+    check = np.testing.assert_array_equal if exact else (lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-9))
+    check(got["proj64"].numpy(), ref_p)
+    ref_sr, ref_st = polar_sigmas(wp.array(ref_p, dtype=wp.vec2d), wp.array(ref_s, dtype=wp.vec2d), center=center)
+    check(got["sigma_rho64"].numpy(), ref_sr.numpy())
+    check(got["sigma_tan64"].numpy(), ref_st.numpy())
+    # float32 for the match, and the isotropic sigma
+    np.testing.assert_array_equal(got["proj"].numpy(), got["proj64"].numpy().astype(np.float32))
+    s64 = np.sqrt(0.5 * (got["sigma_rho64"].numpy() ** 2 + got["sigma_tan64"].numpy() ** 2))
+    np.testing.assert_array_equal(got["sigma"].numpy(), s64.astype(np.float32))
+    # a plane through 25 whole-pixel codes: a few times better than one code's 0.29 px
+    if not exact:
+        assert np.median(got["sigma_rho64"].numpy()[bits == 3]) < 0.15
