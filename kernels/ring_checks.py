@@ -62,36 +62,39 @@ def uv64(uv: wp.array(dtype=wp.vec2), i: int):
 
 
 @wp.func
+def neighbour_offset(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                     k: int, npix: wp.int64, width: int, x: int, y: int, a: int, pc: wp.vec2d):
+    """The offset from ``pc`` of the sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (0, 0:
+    none there)."""
+    ia = a + wp.where(a >= 4, 1, 0)  # the 3x3 offsets without the centre
+    ax = x + ia % 3 - 1
+    ay = y + ia / 3 - 1
+    j = int(-1)
+    if ax >= 0 and ax < width and ay >= 0:
+        j = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
+    off = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    if j >= 0:
+        off = uv64(uv, j) - pc
+    return off
+
+
+@wp.func
 def next_neighbours_ok(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
                        k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
     """Two samples of ring ``k`` among the 8 pixels around (x, y) at least 120 degrees apart as seen
-    from sample ``c`` (``_next_neighbours``' test)."""
+    from sample ``c`` (``_next_neighbours``' test; a neighbour at the centre's own place counts as none)."""
     pc = uv64(uv, c)
     ok = int(0)
     for a in range(8):
-        ia = a + wp.where(a >= 4, 1, 0)  # the 3x3 offsets without the centre
-        ax = x + ia % 3 - 1
-        ay = y + ia / 3 - 1
-        ja = int(-1)
-        if ax >= 0 and ax < width and ay >= 0:
-            ja = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
-        if ja >= 0:
-            va = uv64(uv, ja) - pc
-            na = wp.length(va)
-            if na > wp.float64(0.0):
-                for b in range(a + 1, 8):
-                    ib = b + wp.where(b >= 4, 1, 0)
-                    bx = x + ib % 3 - 1
-                    by = y + ib / 3 - 1
-                    jb = int(-1)
-                    if bx >= 0 and bx < width and by >= 0:
-                        jb = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(by * width + bx))
-                    if jb >= 0:
-                        vb = uv64(uv, jb) - pc
-                        nb = wp.length(vb)
-                        if nb > wp.float64(0.0):
-                            if wp.dot(va, vb) / (na * nb) <= wp.float64(-0.5):
-                                ok = 1
+        va = neighbour_offset(uv, key, order, k, npix, width, x, y, a, pc)
+        na = wp.length(va)
+        if na > wp.float64(0.0):
+            for b in range(a + 1, 8):
+                vb = neighbour_offset(uv, key, order, k, npix, width, x, y, b, pc)
+                nb = wp.length(vb)
+                if nb > wp.float64(0.0):
+                    if wp.dot(va, vb) / (na * nb) <= wp.float64(-0.5):
+                        ok = 1
     return ok
 
 

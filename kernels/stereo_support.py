@@ -30,6 +30,69 @@ class RefineSettings:
     """A coordinate this close to an integer is an integer code (projector px)."""
 
 
+@wp.struct
+class WindowMoments:
+    """The weighted moments of a code's window (``window_sums_kernel``' eleven sums)."""
+
+    S: wp.float64
+    Sx: wp.float64
+    Sy: wp.float64
+    Sxx: wp.float64
+    Sxy: wp.float64
+    Syy: wp.float64
+    wP: wp.float64
+    wPx: wp.float64
+    wPy: wp.float64
+    wPP: wp.float64
+    cnt: wp.float64
+
+
+@wp.func
+def window_moments(sample_of: wp.array(dtype=wp.int32), value: wp.array(dtype=wp.float64),
+                   weight: wp.array(dtype=wp.float64), width: int, height: int, r: int, xs: int, ys: int):
+    """The moments of the (2 r + 1)^2 pixels around (xs, ys), row by row (the order the NumPy statement
+    adds them in): sum w, w dx, w dy, w dx^2, w dx dy, w dy^2, w p, w p dx, w p dy, w p^2 and the count
+    of pixels with w > 0 (a pixel without a sample, or outside the image: w = 0)."""
+    m = WindowMoments()
+    m.S = wp.float64(0.0)
+    m.Sx = wp.float64(0.0)
+    m.Sy = wp.float64(0.0)
+    m.Sxx = wp.float64(0.0)
+    m.Sxy = wp.float64(0.0)
+    m.Syy = wp.float64(0.0)
+    m.wP = wp.float64(0.0)
+    m.wPx = wp.float64(0.0)
+    m.wPy = wp.float64(0.0)
+    m.wPP = wp.float64(0.0)
+    m.cnt = wp.float64(0.0)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            y = ys + dy
+            x = xs + dx
+            wk = wp.float64(0.0)
+            pk = wp.float64(0.0)
+            if y >= 0 and y < height and x >= 0 and x < width:
+                j = sample_of[y * width + x]
+                if j >= 0:
+                    wk = weight[j]
+                    pk = value[j]
+            fx = wp.float64(dx)
+            fy = wp.float64(dy)
+            wpk = wk * pk
+            m.S = m.S + wk
+            m.Sx = m.Sx + wk * fx
+            m.Sy = m.Sy + wk * fy
+            m.Sxx = m.Sxx + wk * (fx * fx)
+            m.Sxy = m.Sxy + wk * (fx * fy)
+            m.Syy = m.Syy + wk * (fy * fy)
+            m.wP = m.wP + wpk
+            m.wPx = m.wPx + wpk * fx
+            m.wPy = m.wPy + wpk * fy
+            m.wPP = m.wPP + wpk * pk
+            m.cnt = m.cnt + wp.where(wk > wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    return m
+
+
 # ----------------------------------------------------------------------------- kernels
 
 
@@ -102,54 +165,18 @@ def window_sums_kernel(
     k = i0 + wp.tid()
     a = at[k]
     ys = a / width
-    xs = a - ys * width
-    s0 = wp.float64(0.0)
-    s1 = wp.float64(0.0)
-    s2 = wp.float64(0.0)
-    s3 = wp.float64(0.0)
-    s4 = wp.float64(0.0)
-    s5 = wp.float64(0.0)
-    s6 = wp.float64(0.0)
-    s7 = wp.float64(0.0)
-    s8 = wp.float64(0.0)
-    s9 = wp.float64(0.0)
-    s10 = wp.float64(0.0)
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            y = ys + dy
-            x = xs + dx
-            wk = wp.float64(0.0)
-            pk = wp.float64(0.0)
-            if y >= 0 and y < height and x >= 0 and x < width:
-                j = sample_of[y * width + x]
-                if j >= 0:
-                    wk = weight[j]
-                    pk = value[j]
-            fx = wp.float64(dx)
-            fy = wp.float64(dy)
-            wpk = wk * pk
-            s0 += wk
-            s1 += wk * fx
-            s2 += wk * fy
-            s3 += wk * (fx * fx)
-            s4 += wk * (fx * fy)
-            s5 += wk * (fy * fy)
-            s6 += wpk
-            s7 += wpk * fx
-            s8 += wpk * fy
-            s9 += wpk * pk
-            s10 += wp.where(wk > wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
-    sums[0, k] = s0
-    sums[1, k] = s1
-    sums[2, k] = s2
-    sums[3, k] = s3
-    sums[4, k] = s4
-    sums[5, k] = s5
-    sums[6, k] = s6
-    sums[7, k] = s7
-    sums[8, k] = s8
-    sums[9, k] = s9
-    sums[10, k] = s10
+    m = window_moments(sample_of, value, weight, width, height, r, a - ys * width, ys)
+    sums[0, k] = m.S
+    sums[1, k] = m.Sx
+    sums[2, k] = m.Sy
+    sums[3, k] = m.Sxx
+    sums[4, k] = m.Sxy
+    sums[5, k] = m.Syy
+    sums[6, k] = m.wP
+    sums[7, k] = m.wPx
+    sums[8, k] = m.wPy
+    sums[9, k] = m.wPP
+    sums[10, k] = m.cnt
 
 
 @wp.kernel
@@ -212,8 +239,8 @@ def refine_axis_kernel(
     to the codes of the (2 r + 1)^2 pixels around its pixel, read at the pixel, where the window holds
     ``min_pixels`` codes, its normal equations are well conditioned and its scatter is within
     ``max_chi2`` a degree of freedom; the plane's sigma there (scaled by the scatter where larger). The
-    window's moments row by row (as :func:`window_sums_kernel`), the 3x3 solve by cofactors (as the
-    NumPy statement ``refine_integer_codes``).
+    window's moments by :func:`window_moments`, the 3x3 solve by cofactors (as the NumPy statement
+    ``refine_integer_codes``).
 
     sel (m,) int32 the integer codes' samples; pixel (n,) int32; sample_of (width * height,) int32 each
     pixel's sample (-1: none); value, weight (n,) float64: read. proj_out, sigma_out (n,) vec2d: written
@@ -224,44 +251,18 @@ def refine_axis_kernel(
     i = sel[i0 + wp.tid()]
     a = pixel[i]
     ys = a / width
-    xs = a - ys * width
-    r = settings.radius
-    S = wp.float64(0.0)
-    Sx = wp.float64(0.0)
-    Sy = wp.float64(0.0)
-    Sxx = wp.float64(0.0)
-    Sxy = wp.float64(0.0)
-    Syy = wp.float64(0.0)
-    wP = wp.float64(0.0)
-    wPx = wp.float64(0.0)
-    wPy = wp.float64(0.0)
-    wPP = wp.float64(0.0)
-    cnt = wp.float64(0.0)
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            y = ys + dy
-            x = xs + dx
-            wk = wp.float64(0.0)
-            pk = wp.float64(0.0)
-            if y >= 0 and y < height and x >= 0 and x < width:
-                j = sample_of[y * width + x]
-                if j >= 0:
-                    wk = weight[j]
-                    pk = value[j]
-            fx = wp.float64(dx)
-            fy = wp.float64(dy)
-            wpk = wk * pk
-            S += wk
-            Sx += wk * fx
-            Sy += wk * fy
-            Sxx += wk * (fx * fx)
-            Sxy += wk * (fx * fy)
-            Syy += wk * (fy * fy)
-            wP += wpk
-            wPx += wpk * fx
-            wPy += wpk * fy
-            wPP += wpk * pk
-            cnt += wp.where(wk > wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    m = window_moments(sample_of, value, weight, width, height, settings.radius, a - ys * width, ys)
+    S = m.S
+    Sx = m.Sx
+    Sy = m.Sy
+    Sxx = m.Sxx
+    Sxy = m.Sxy
+    Syy = m.Syy
+    wP = m.wP
+    wPx = m.wPx
+    wPy = m.wPy
+    wPP = m.wPP
+    cnt = m.cnt
     p0 = value[i]
     Sp = wP - p0 * S
     Sxp = wPx - p0 * Sx

@@ -704,14 +704,8 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
 
 def reach_scale(scales: list | None, reach: np.ndarray | None) -> np.ndarray | float:
     """Each sample's variance factor from :func:`_reach_scales` ([[reach, factor, checks], ...]; 1
-    for a reach with none)."""
-    if not scales or reach is None:
-        return 1.0
-    reach = np.asarray(reach, np.int64)
-    table = np.ones(max(NEIGHBOUR_LAGS) + 1)
-    for k, m, _ in scales:
-        table[k] = m
-    return np.where(reach >= 0, table[np.clip(reach, 0, table.size - 1)], 1.0)
+    for a reach with none, and where the reach is -1), as :func:`group_scale` reads a group's."""
+    return group_scale([[k, m] for k, m, _ in scales] if scales else None, reach)
 
 
 def widen_depth_sigma(s: np.ndarray, sigma_px: np.ndarray, model: ErrorModel) -> np.ndarray:
