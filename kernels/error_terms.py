@@ -82,7 +82,10 @@ def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array 
     """(n,) float32 sigmas widened by one coordinate's fitted terms (:func:`widen_kernel`), on sigma's
     device: ``error_scale.apply_error_model`` (k, floor, the indirect share above ``indirect_median``
     at ``indirect_px`` a unit) times the square root of ``regions``' tile factor
-    (``error_scale.region_scale``: {"tile_px", "scales": [[tx, ty, factor], ...]}) under ``uv``."""
+    (``error_scale.region_scale``: {"tile_px", "scales": [[tx, ty, factor], ...]}) under ``uv``.
+
+    Size: the sigmas, the model's four terms for this coordinate (k, floor, indirect px and median),
+    the two per-sample arrays they read (indirect, uv), the tiles, the thread count."""
     fn = "widen_sigmas"
     n = check_array("sigma", sigma, None, wp.float32, fn)
     dev = sigma.device

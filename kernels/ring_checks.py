@@ -65,7 +65,10 @@ def uv64(uv: wp.array(dtype=wp.vec2), i: int):
 def neighbour_offset(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
                      k: int, npix: wp.int64, width: int, x: int, y: int, a: int, pc: wp.vec2d):
     """The offset from ``pc`` of the sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (0, 0:
-    none there)."""
+    none there).
+
+    Size: a @wp.func reading the samples and the ring index directly (Warp functions take arrays one by
+    one), plus the ring, the index's stride, the pixel, the neighbour and the centre's place."""
     ia = a + wp.where(a >= 4, 1, 0)  # the 3x3 offsets without the centre
     ax = x + ia % 3 - 1
     ay = y + ia / 3 - 1
@@ -82,7 +85,10 @@ def neighbour_offset(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64),
 def next_neighbours_ok(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
                        k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
     """Two samples of ring ``k`` among the 8 pixels around (x, y) at least 120 degrees apart as seen
-    from sample ``c`` (``_next_neighbours``' test; a neighbour at the centre's own place counts as none)."""
+    from sample ``c`` (``_next_neighbours``' test; a neighbour at the centre's own place counts as none).
+
+    Size: a @wp.func reading the samples and the ring index directly, plus the ring, the index's stride,
+    the pixel and the sample."""
     pc = uv64(uv, c)
     ok = int(0)
     for a in range(8):

@@ -433,6 +433,9 @@ def refine_codes(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, pixel
         match (sigma: the isotropic sqrt((sr^2 + st^2) / 2)), the same in float64 ("proj64", "sigma_rho64",
         "sigma_tan64": every sample's polar sigmas through u, v and back), and "refined" (n,) int32 bits
         (1: u_p, 2: v_p) and its count of samples, all but the count on the device.
+
+    Size: four per-sample arrays, the pattern centre and the camera's size the windows need, the
+    window's settings, the thread count.
     """
     fn = "refine_codes"
     n = check_array("proj", proj, None, wp.vec2, fn)
