@@ -13,7 +13,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
-__all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median", "percentiles"]
+__all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median",
+           "median64", "percentiles", "percentile32"]
 
 SPAN = wp.constant(4096)
 """Items a histogram row counts (one thread a row)."""
@@ -52,7 +53,7 @@ def gather_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=wp.int32), i0:
     out[j] = src[index[j]]
 
 
-for _t in (wp.float32, wp.int32, wp.vec2, wp.vec3):
+for _t in (wp.float32, wp.float64, wp.int32, wp.vec2, wp.vec3):
     wp.overload(gather_kernel, {"src": wp.array(dtype=_t), "out": wp.array(dtype=_t)})
 
 
@@ -111,9 +112,10 @@ def finite_indices(a: wp.array, *, threads: int | None = None) -> wp.array:
 
 
 def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:
-    """src[index] ((m,), src's dtype: float32, int32, vec2 or vec3) on src's device; ``index`` (m,) int32."""
-    if not isinstance(src, wp.array) or src.ndim != 1 or src.dtype not in (wp.float32, wp.int32, wp.vec2, wp.vec3):
-        raise ValueError("gather: src must be a 1-D float32, int32, vec2 or vec3 Warp array")
+    """src[index] ((m,), src's dtype: float32, float64, int32, vec2 or vec3) on src's device; ``index`` (m,) int32."""
+    if not isinstance(src, wp.array) or src.ndim != 1 or src.dtype not in (wp.float32, wp.float64, wp.int32, wp.vec2,
+                                                                            wp.vec3):
+        raise ValueError("gather: src must be a 1-D float32, float64, int32, vec2 or vec3 Warp array")
     m = check_array("index", index, None, wp.int32, "gather")
     out = wp.empty(m, dtype=src.dtype, device=src.device)
     launch_spans(gather_kernel, m, lambda i0: [src, index, i0], [out], src.device,
@@ -193,3 +195,35 @@ def percentiles(a: wp.array, q) -> tuple[list[float], int]:
         diff = a_hi - a_lo
         out.append(float(a_hi - diff * (1 - t) if t >= 0.5 else a_lo + diff * t))
     return out, m
+
+
+def percentile32(a: wp.array, q: float) -> float:
+    """``np.percentile`` of ``a``'s ((n,) float32) finite values at one scalar ``q`` (percent), as NumPy gives
+    it for a float32 array and a scalar q: its linear method in float32 (NaN for no value)."""
+    s = _sorted_finite(a, "percentile32")
+    m = s.shape[0]
+    if m == 0:
+        return float("nan")
+    t = float(np.true_divide(q, 100)) * (m - 1)
+    lo = int(np.floor(t))
+    hi = min(lo + 1, m - 1) if t < m - 1 else m - 1
+    lo = min(lo, m - 1)
+    a_lo, a_hi = (np.float32(v) for v in s[lo:hi + 1].numpy()[[0, -1]])
+    g = t - lo if t < m - 1 else t - (m - 1)
+    diff = a_hi - a_lo
+    return float(a_hi - diff * (1 - g) if g >= 0.5 else a_lo + diff * g)
+
+
+def median64(a: wp.array) -> float:
+    """``np.median`` of ``a`` ((n,) float64, n >= 1, every value >= 0 and finite): a radix sort of the
+    values' bits as int64 keys (their order for non-negative floats) on a's device, two values read."""
+    n = check_array("a", a, None, wp.float64, "median64")
+    if n == 0:
+        raise ValueError("median64: no values")
+    keys = wp.empty(2 * n, dtype=wp.float64, device=a.device)
+    wp.copy(keys, a, count=n)
+    bits = wp.array(ptr=keys.ptr, dtype=wp.int64, shape=(2 * n,), device=a.device)
+    values = wp.empty(2 * n, dtype=wp.int32, device=a.device)
+    wp.utils.radix_sort_pairs(bits, values, n)
+    mid = keys[(n - 1) // 2:n // 2 + 1].numpy()
+    return float(np.mean(mid))

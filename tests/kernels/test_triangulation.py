@@ -452,3 +452,50 @@ def test_parallel_light_sigma_is_the_float64_central_difference(device):
     slope = np.abs(np.linalg.norm(o + h * v, axis=1) - np.linalg.norm(o - h * v, axis=1)) / (2 * h)
     rel = np.abs(T.sigma.numpy()[m] / (NOMINAL_SIGMA_PX / slope) - 1)
     assert np.median(rel) < 1e-6 and rel.max() < 1e-4, (np.median(rel), rel.max())
+
+
+def _floor_numpy(res, var):
+    """The calibration floor as NumPy states it (the function's former body): its medians by sorts."""
+    from ringscan.kernels.triangulation import CHI2_1_MEDIAN
+
+    m = (var > 0) & (res >= 0) & np.isfinite(res)
+    if np.count_nonzero(m) < 20:
+        return 0.0, {}
+    r2 = res[m].astype(np.float64) ** 2
+    v = var[m].astype(np.float64)
+    stats = {"samples": int(m.sum()), "residual_px_median": float(np.median(res[m])),
+             "residual_px_p95": float(np.percentile(res[m], 95)), "chi2_median": float(np.median(r2 / v))}
+    if stats["chi2_median"] <= CHI2_1_MEDIAN:
+        return 0.0, stats
+    lo, hi = 0.0, float(np.sqrt(r2.max())) + 1e-9
+    for _ in range(60):
+        c = 0.5 * (lo + hi)
+        if np.median(r2 / (v + c * c)) > CHI2_1_MEDIAN:
+            lo = c
+        else:
+            hi = c
+    return hi, stats
+
+
+@pytest.mark.parametrize("n,miss", [(5001, 0.3), (5000, 0.3), (4096 * 3 + 17, 0.05), (3000, 0.0), (19, 0.3)])
+def test_calibration_floor_on_the_device_is_the_numpy_statement(n, miss):
+    """Residuals of a decode whose sigma is right, plus a miss of ``miss`` px across the epipolar line
+    (0: none, no floor), some samples without a residual: the floor and its stats to the bit, odd and
+    even counts (an even count's median is the mean of its two middle values), more than one row."""
+    from types import SimpleNamespace
+
+    from ringscan.kernels.triangulation import calibration_floor
+
+    rng = np.random.default_rng(n)
+    sd = rng.uniform(0.05, 0.4, n)
+    res = np.abs(rng.normal(0, np.sqrt(sd ** 2 + miss ** 2))).astype(np.float32)
+    var = (sd ** 2).astype(np.float32)
+    res[rng.random(n) < 0.05] = -1.0  # no residual
+    var[rng.random(n) < 0.02] = 0.0
+    res[:2] = np.nan
+    tri = SimpleNamespace(residual=wp.array(res), residual_var=wp.array(var))
+    got = calibration_floor(tri, threads=2)
+    want = _floor_numpy(res, var)
+    assert got == want
+    if miss and n >= 20:
+        assert got[0] == pytest.approx(miss, rel=0.2)  # the planted miss, to its sampling noise
