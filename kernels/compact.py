@@ -14,7 +14,7 @@ import warp as wp
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
 __all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median",
-           "median64", "percentiles", "percentile32"]
+           "median64", "percentiles", "percentile32", "sort_finite"]
 
 SPAN = wp.constant(4096)
 """Items a histogram row counts (one thread a row)."""
@@ -162,11 +162,18 @@ def _sorted_finite(a: wp.array, fn: str) -> wp.array:
     return keys[:m]
 
 
-def median(a: wp.array, *, dtype=np.float64) -> float:
+def sort_finite(a: wp.array) -> wp.array:
+    """``a``'s ((n,) float32) finite values sorted ascending, on a's device (a radix sort): for more
+    than one order statistic of the same values (``median``, ``percentile32`` take it as ``a`` with
+    ``presorted=True``)."""
+    return _sorted_finite(a, "sort_finite")
+
+
+def median(a: wp.array, *, dtype=np.float64, presorted: bool = False) -> float:
     """The median of ``a``'s ((n,) float32) finite values as ``np.median`` gives it for them in ``dtype``
     (float64: of their float64 copy; float32: of the values as they are; the mean of the two middle ones
-    for an even count; NaN for none): two values read."""
-    s = _sorted_finite(a, "median")
+    for an even count; NaN for none): two values read. ``presorted``: ``a`` is :func:`sort_finite`'s."""
+    s = a if presorted else _sorted_finite(a, "median")
     m = s.shape[0]
     if m == 0:
         return float("nan")
@@ -197,10 +204,11 @@ def percentiles(a: wp.array, q) -> tuple[list[float], int]:
     return out, m
 
 
-def percentile32(a: wp.array, q: float) -> float:
+def percentile32(a: wp.array, q: float, *, presorted: bool = False) -> float:
     """``np.percentile`` of ``a``'s ((n,) float32) finite values at one scalar ``q`` (percent), as NumPy gives
-    it for a float32 array and a scalar q: its linear method in float32 (NaN for no value)."""
-    s = _sorted_finite(a, "percentile32")
+    it for a float32 array and a scalar q: its linear method in float32 (NaN for no value). ``presorted``:
+    ``a`` is :func:`sort_finite`'s."""
+    s = a if presorted else _sorted_finite(a, "percentile32")
     m = s.shape[0]
     if m == 0:
         return float("nan")

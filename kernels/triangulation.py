@@ -40,7 +40,7 @@ from ringscan.kernels.geometry import (
     make_volume,
     polar_angle,
 )
-from ringscan.kernels.compact import gather, median, median64, nonzero_indices, percentile32
+from ringscan.kernels.compact import gather, median, median64, nonzero_indices, percentile32, sort_finite
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
 from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
@@ -796,8 +796,9 @@ def calibration_floor(tri: Triangulation, *, threads: int | None = None) -> tupl
 
     x = wp.empty(m, dtype=wp.float64, device=dev)
     launch_spans(chi2_kernel, m, lambda i0: [r2, v, i0], [x], dev, threads)
-    stats = {"samples": int(m), "residual_px_median": median(res, dtype=np.float32),
-             "residual_px_p95": percentile32(res, 95), "chi2_median": median64(x)}
+    ranked = sort_finite(res)
+    stats = {"samples": int(m), "residual_px_median": median(ranked, dtype=np.float32, presorted=True),
+             "residual_px_p95": percentile32(ranked, 95, presorted=True), "chi2_median": median64(x)}
     if stats["chi2_median"] <= CHI2_1_MEDIAN:
         return 0.0, stats
     lo, hi = 0.0, float(np.sqrt(counts(0.0, CHI2_1_MEDIAN)[3])) + 1e-9
