@@ -47,6 +47,8 @@ from ringscan.kernels.geometry import polar_angle
 from ringscan.kernels.launch import default_threads, launch_spans
 from ringscan.kernels.ring_labels import gray_to_binary
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 ANGLE_OK = wp.constant(0)
 ANGLE_DARK = wp.constant(1)
 ANGLE_MODULATION = wp.constant(2)

@@ -13,6 +13,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median",
            "median64", "percentiles", "percentile32", "sort_finite"]
 

@@ -9,6 +9,8 @@ import warp as wp
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.samples import Samples
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["DecodedMapParams", "decoded_map_samples"]
 
 

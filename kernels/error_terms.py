@@ -11,6 +11,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["ErrorTerms", "widen_sigmas"]
 
 

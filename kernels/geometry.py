@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 LIGHT_PARALLEL = wp.constant(0)
 LIGHT_PERSPECTIVE = wp.constant(1)
 UNDISTORT_ITERS = wp.constant(20)

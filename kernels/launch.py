@@ -21,6 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "cpu_threads", "set_cpu_threads",
            "scan_counts", "check_array"]
 

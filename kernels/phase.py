@@ -24,6 +24,8 @@ from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_
 from ringscan.kernels.ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, gray_to_binary
 from ringscan.kernels.samples import Samples
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 PHASE_OK = wp.constant(0)
 PHASE_DARK = wp.constant(1)
 PHASE_CODE = wp.constant(2)

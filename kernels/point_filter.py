@@ -24,6 +24,8 @@ import warp as wp
 from ringscan.kernels.geometry import CameraModel
 from ringscan.kernels.launch import default_threads, launch_spans
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 MAX_PER_PIXEL = wp.constant(2)
 FLOOR_FOOTPRINTS = wp.constant(0.5)
 """The filter's noise floor is at most this many pixel footprints (``NeighbourFilterSettings.floor_mm``)."""

@@ -30,6 +30,8 @@ from ringscan.kernels.geometry import (
     light_pixel,
 )
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 RAY_MAX_T = wp.constant(1.0e7)
 NO_HIT_T = wp.constant(1.0e30)
 

@@ -34,6 +34,8 @@ import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, launch_spans, row_run
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 FRAME_WHITE = wp.constant(0)
 FRAME_BLACK = wp.constant(1)
 FRAME_FIRST_BIT = wp.constant(2)

@@ -35,6 +35,8 @@ import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 BORDER = wp.constant(2)
 CONFIDENCE_CONTRAST = 40.0
 """Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting

@@ -30,6 +30,8 @@ from ringscan.kernels.geometry import (
 from ringscan.kernels.ring_lines import bilinear
 from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["RingRoots", "ring_roots", "link_lines"]
 
 

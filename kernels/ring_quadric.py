@@ -24,6 +24,8 @@ from ringscan.kernels.geometry import (
     light_point_local,
 )
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 ROOT_TOL_PX = wp.constant(0.01)
 ROOT_FAILED_1 = wp.constant(1)
 ROOT_FAILED_2 = wp.constant(2)

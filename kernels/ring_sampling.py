@@ -30,6 +30,8 @@ from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_
 from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
 from ringscan.kernels.samples import Samples
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["SampleSettings", "sample_gray_rings", "ring_radii", "ring_blur_variance"]
 
 log = logging.getLogger(__name__)

@@ -14,6 +14,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["sample_light_kernel", "sample_light"]
 
 MAX_INDIRECT_BITS = 4

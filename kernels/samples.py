@@ -15,6 +15,8 @@ import warp as wp
 
 from ringscan.kernels.runtime import init_warp
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["Samples", "subpixel_lines"]
 
 _first_launch = threading.Lock()

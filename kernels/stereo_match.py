@@ -31,6 +31,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 MAX_NEIGHBOURS = 16
 LINE_RATIO = 0.02
 """Where a match's neighbours' spread across their main direction (variance) is below this

@@ -42,6 +42,8 @@ from ringscan.kernels.triangulation import (
     quad,
 )
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 JACOBIAN_STEP_MM = wp.constant(0.5)
 """Central-difference step of the triangulation's Jacobians (mm), at most ``JACOBIAN_STEP_DEPTH`` of the
 point's distance from camera 1."""

@@ -13,6 +13,8 @@ from ringscan.kernels.geometry import CameraModel, undistort
 from ringscan.kernels.compact import count_values, nonzero_indices
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 __all__ = ["RefineSettings", "uv_sigmas", "polar_sigmas", "window_sums", "refine_codes", "epipolar_distances"]
 
 

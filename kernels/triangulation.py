@@ -44,6 +44,8 @@ from ringscan.kernels.compact import gather, median, median64, nonzero_indices, 
 from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
 from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
+
 STATUS_OK = wp.constant(0)
 STATUS_NO_ROOT = wp.constant(1)
 STATUS_OUTSIDE = wp.constant(2)
