@@ -33,7 +33,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 __all__ = ["ErrorModel", "fit_error_model", "region_scale", "fit_neighbour_model", "widen_depth_sigma", "sample_subset", "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
 
@@ -756,6 +755,8 @@ def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray, upper: np.n
         f = 0.5 * np.sum(np.log(var)) + 0.5 * (T_DOF + 1) * np.sum(np.log1p(u))
         g_var = 0.5 / var - 0.5 * (T_DOF + 1) * u / (var * (1 + u))
         return f / n, T_SCALE * T_SCALE * (Xs.T @ g_var) / n
+
+    from scipy.optimize import minimize  # here, not at import: SciPy's optimisers cost every command 0.3 s of start-up
 
     start = np.array([lo + 0.2 if h is None else 0.5 * (lo + h) for lo, h in bounds])
     res = minimize(nll, start, jac=True, method="L-BFGS-B", bounds=bounds,
