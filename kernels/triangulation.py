@@ -85,6 +85,8 @@ class TriangulationParams:
     """The decode's error floor, projector px (added in quadrature)."""
     fallback_sector_px: wp.float32
     """Where > 0: a sector mismatch is retried with coarser sectors at least this wide (projector px)."""
+    widen_angle: wp.int32
+    """1: an angle-alone point's sigma grows by its coordinates' disagreement (``triangulate_rings``)."""
 CONSTRAINT_RINGS = wp.constant(0)
 CONSTRAINT_ANGLE = wp.constant(1)
 CONSTRAINT_BOTH = wp.constant(2)
@@ -315,7 +317,7 @@ def rings_solution(
 @wp.func
 def full_solution(
     light: LightModel, C: wp.vec3, d: wp.vec3, p_obs: wp.vec2, e_r: wp.vec2, info_r: float, info_t: float,
-    floor2: float, vol: Volume, min_incidence_cos: float, max_residual_px: float,
+    var_r: float, floor2: float, vol: Volume, min_incidence_cos: float, max_residual_px: float,
 ):
     """Both projector coordinates: the point on the ray whose projector pixel is
     nearest the observed one in the decode's own metric (Gauss-Newton in t from
@@ -326,7 +328,9 @@ def full_solution(
     calibration floor ``floor2`` (px^2) added as a covariance across the
     epipolar line (the only direction a calibration error can be seen in).
     Returns (X, status, conditioning in [0, 1], residual px across the epipolar
-    line, sigma mm along the ray, the decode's variance (px^2) across the line).
+    line, sigma mm along the ray, the decode's variance (px^2) across the line, and
+    that variance with the ring's ``var_r`` (px^2) counted where the angle alone
+    places the point: what the residual is set against to widen its sigma).
 
     Size: a @wp.func of one sample's registers: the Gauss-Newton iteration, the conditioning of each coordinate
     and the residual across the epipolar line share the point and its derivatives. Its arguments are the light,
@@ -336,7 +340,7 @@ def full_solution(
     zero = wp.vec3(0.0, 0.0, 0.0)
     O, e, lok = light_pixel_ray(light, p_obs[0], p_obs[1])
     if not lok:
-        return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0, 0.0
+        return zero, STATUS_UNDISTORT_FAILED, 0.0, -1.0, 0.0, 0.0, 0.0
     t = closest_on_ray(C, d, O, e)
     h = wp.max(0.05, 1.0e-4 * wp.abs(t))
     e_t = wp.vec2(-e_r[1], e_r[0])
@@ -373,10 +377,10 @@ def full_solution(
         # in the steps: name it for what it is
         res_nc = wp.length(pixel_offset(light, X, p_obs))
         if res_nc > max_residual_px:
-            return zero, STATUS_INCONSISTENT, 0.0, res_nc, 0.0, 0.0
-        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0, 0.0
+            return zero, STATUS_INCONSISTENT, 0.0, res_nc, 0.0, 0.0, 0.0
+        return zero, STATUS_NOT_CONVERGED, 0.0, -1.0, 0.0, 0.0, 0.0
     if not root_usable(light, X, t, vol):
-        return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0, 0.0
+        return zero, STATUS_OUTSIDE, 0.0, -1.0, 0.0, 0.0, 0.0
     # Conditioning, of each coordinate on its own: |cos| between the ray and the
     # normal of the surface of constant rho (the ring's cone) and of constant phi
     # (the angle's half-plane); the point is ill-conditioned only where both graze.
@@ -399,19 +403,21 @@ def full_solution(
     el = wp.length(Jd)
     res = wp.length(rv)
     var = float(0.0)
+    var_both = float(0.0)
     if el > 0.0:
         n = wp.vec2(-Jd[1] / el, Jd[0] / el)
         res = wp.abs(wp.dot(n, rv))
+        cr = wp.dot(n, e_r)
+        ct = wp.dot(n, e_t)
         if info_r > 0.0:
-            cr = wp.dot(n, e_r)
-            ct = wp.dot(n, e_t)
             var = cr * cr / info_r + ct * ct / info_t
+        var_both = cr * cr * var_r + ct * ct / info_t
     status = int(STATUS_OK)
     if cond < min_incidence_cos:
         status = STATUS_ILL_CONDITIONED
     elif res > max_residual_px:
         status = STATUS_INCONSISTENT
-    return X, status, cond, res, sigma, var
+    return X, status, cond, res, sigma, var, var_both
 
 
 @wp.kernel
@@ -502,8 +508,15 @@ def triangulate_kernel(
         sr = wp.max(sigma_rho[i], 1.0e-6)
         st_t = wp.max(st_t, 1.0e-6)
         info_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / (sr * sr))
-        X, st, q, res, sg, rvar = full_solution(light, C, d, p_obs, e_r, info_r, 1.0 / (st_t * st_t),
-                                                floor * floor, vol, min_incidence_cos, max_residual_px)
+        X, st, q, res, sg, rvar, vboth = full_solution(light, C, d, p_obs, e_r, info_r, 1.0 / (st_t * st_t), sr * sr,
+                                                       floor * floor, vol, min_incidence_cos, max_residual_px)
+        if constraint == CONSTRAINT_ANGLE and params.widen_angle != 0 and vboth > 0.0 and res >= 0.0:
+            # the angle alone places the point; where its ring coordinate disagrees across the epipolar
+            # line beyond what both sigmas allow (a mixed pixel at a silhouette, a fringe a highlight
+            # bent), the angle is no better known than that disagreement: sigma grows by its chi
+            chi2 = res * res / (vboth + floor * floor)
+            if chi2 > 1.0:
+                sg = sg * wp.sqrt(chi2)
     else:
         X, st, q, res, off = rings_solution(light, C, d, r, sector[i], vol, center, n_sectors, sector_tolerance,
                                        sector_margin, min_incidence_cos)
@@ -632,6 +645,7 @@ def triangulate_rings(
     sigma_tan: wp.array | None = None,
     settings: TriangulateSettings = TriangulateSettings(),
     floor: float = 0.0,
+    widen_angle: bool = True,
     threads: int | None = None,
 ) -> Triangulation:
     """Triangulate samples: each camera ray meets its ring's quadric, or, where a
@@ -656,6 +670,10 @@ def triangulate_rings(
         settings: root-choice and constraint settings.
         floor: calibration floor (projector px, :func:`calibration_floor`): a
             standard deviation added across the epipolar line to samples with an angle.
+        widen_angle: with the angle alone (``settings.constraint`` angle), a point's sigma grows by the
+            chi of its two coordinates' disagreement across the epipolar line where it is above 1 (a mixed
+            pixel, a fringe bent by a highlight: the angle is no better known than that). False: the
+            decode's sigma as it is (the error model's fit, which measures what the decode misses).
         threads: CPU threads; default all cores.
 
     Size: a public entry point: most of its length is its parameters (the sample arrays and documented
@@ -720,6 +738,7 @@ def triangulate_rings(
     params.min_incidence_cos = settings.min_incidence_cos
     params.max_residual_px = settings.max_residual_px
     params.floor = float(floor)
+    params.widen_angle = int(bool(widen_angle))
     params.fallback_sector_px = float(settings.fallback_sector_px) if has_angle and constraint != 0 else 0.0
     args = [rays, rho, phi, sigma_rho, sigma_tan, sector, sample_confidence, camera, light, vol, params]
     outputs = [out.points, out.status, out.confidence, out.residual, out.sigma, out.residual_var]

@@ -305,7 +305,8 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     tri = partial(triangulate_rings, sub["uv"], sub["rho"], sub["sector"], sub["confidence"],
                   camera=camera_model_for(rig), light=light_model_for(rig),
                   volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center, sector_bits=sector_bits,
-                  phi=sub["phi"], sigma_rho=sub["sigma_rho"], sigma_tan=sub["sigma_tan"], threads=threads)
+                  phi=sub["phi"], sigma_rho=sub["sigma_rho"], sigma_tan=sub["sigma_tan"], widen_angle=False,
+                  threads=threads)
     cam = rig.camera
     center = -np.asarray(cam.R, np.float64).T @ np.asarray(cam.t, np.float64)
     def depth(t):

@@ -499,3 +499,36 @@ def test_calibration_floor_on_the_device_is_the_numpy_statement(n, miss):
     assert got == want
     if miss and n >= 20:
         assert got[0] == pytest.approx(miss, rel=0.2)  # the planted miss, to its sampling noise
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_an_angle_alone_point_is_no_better_known_than_its_coordinates_agree(device, model):
+    """The angle alone places the point (the ring's rho does not move it); where rho disagrees with it by
+    k times their joint sigma across the epipolar line, the point's sigma grows by k (k > 1), and stays as
+    the decode's where they agree. widen_angle=False (the error model's fit): the decode's sigma always."""
+    from ringscan.pipeline.reconstruct.settings import TriangulateSettings
+
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    phi = _polar(model, P, rig.light)
+    angle = TriangulateSettings(constraint="angle")
+    agree = _run_full(device, cam, light, uv, rho, phi, 0.05, 0.05, settings=angle)
+    off = rho + np.float32(1.0)  # 1 projector px off along the radius: 20 sigmas of rho
+    far = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, settings=angle)
+    plain = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, settings=angle, widen_angle=False)
+    ok = (agree.status.numpy() == 0) & (far.status.numpy() == 0) & (plain.status.numpy() == 0)
+    assert ok.mean() > 0.9
+    # the points are the angle's: rho moves none of them (but for where the Gauss-Newton starts: it stops
+    # within 2 % of a sigma, a few 1e-4 mm here)
+    np.testing.assert_allclose(far.points.numpy()[ok], agree.points.numpy()[ok], atol=1e-3)
+    s0, s1, s2 = (t.sigma.numpy()[ok] for t in (agree, far, plain))
+    np.testing.assert_allclose(s2, s0, rtol=1e-3)  # no widening asked: the decode's sigma (same point, to 2 %
+    # of a sigma); agreeing coordinates (chi well below 1) widen nothing
+    plain_agree = _run_full(device, cam, light, uv, rho, phi, 0.05, 0.05, settings=angle, widen_angle=False)
+    np.testing.assert_array_equal(agree.sigma.numpy()[ok], plain_agree.sigma.numpy()[ok])
+    # the chi of a 1 px radial offset across the epipolar line: its residual there over the joint sigma in that
+    # direction (cos^2 0.05^2 + sin^2 0.05^2: 0.05, equal sigmas); the line lies in no fixed direction to the
+    # radius, so the factor spreads
+    ratio = s1 / s2  # the same samples and points, with and without the widening
+    chi = far.residual.numpy()[ok] / 0.05
+    np.testing.assert_allclose(ratio[chi > 1.0], chi[chi > 1.0], rtol=2e-3)
+    assert np.all(ratio[chi <= 1.0] == 1.0) and np.mean(chi > 1.0) > 0.5
