@@ -702,8 +702,7 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
 
 
 def reach_scale(scales: list | None, reach: np.ndarray | None) -> np.ndarray | float:
-    """Each sample's variance factor from :func:`_reach_scales` ([[reach, factor, checks], ...]; 1
-    for a reach with none, and where the reach is -1), as :func:`group_scale` reads a group's."""
+    """Each sample's variance factor from :func:`_reach_scales` (as :func:`group_scale`: 1 where none)."""
     return group_scale([[k, m] for k, m, _ in scales] if scales else None, reach)
 
 

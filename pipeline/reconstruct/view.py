@@ -14,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
+from ringscan.kernels.calibration_floor import calibration_floor
 from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
 from ringscan.kernels.error_terms import widen_sigmas
 from ringscan.kernels.launch import cpu_threads
@@ -24,7 +25,6 @@ from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
     STATUS_NAMES,
     STATUS_UNMATCHED,
-    calibration_floor,
     compact_points,
     triangulate_rings,
 )

@@ -332,7 +332,7 @@ def test_calibration_floor_discounts_errors_across_the_epipolar_line(device):
     """A calibration that misses by 0.5 px across the epipolar lines (what a
     wrong rig does to a real decode): the floor finds the 0.5 px, and with it the
     miss no longer leaks into depth through the anisotropic decode weights."""
-    from ringscan.kernels.triangulation import calibration_floor
+    from ringscan.kernels.calibration_floor import calibration_floor
 
     rig, cam, light, P, uv, rho, sec = _setup("perspective", n=3000, seed=21)
     L = rig.light
@@ -456,7 +456,7 @@ def test_parallel_light_sigma_is_the_float64_central_difference(device):
 
 def _floor_numpy(res, var):
     """The calibration floor as NumPy states it (the function's former body): its medians by sorts."""
-    from ringscan.kernels.triangulation import CHI2_1_MEDIAN
+    from ringscan.kernels.calibration_floor import CHI2_1_MEDIAN
 
     m = (var > 0) & (res >= 0) & np.isfinite(res)
     if np.count_nonzero(m) < 20:
@@ -484,7 +484,7 @@ def test_calibration_floor_on_the_device_is_the_numpy_statement(n, miss):
     even counts (an even count's median is the mean of its two middle values), more than one row."""
     from types import SimpleNamespace
 
-    from ringscan.kernels.triangulation import calibration_floor
+    from ringscan.kernels.calibration_floor import calibration_floor
 
     rng = np.random.default_rng(n)
     sd = rng.uniform(0.05, 0.4, n)
