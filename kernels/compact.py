@@ -183,27 +183,30 @@ def median(a: wp.array, *, dtype=np.float64, presorted: bool = False) -> float:
     return float(np.mean(mid.astype(dtype)))
 
 
+def _lerp_sorted(s: wp.array, q: float, dtype) -> float:
+    """NumPy's linear method at the fraction ``q`` (0..1) of the sorted values ``s`` (m >= 1): the virtual
+    index (m - 1) q, its two neighbours read as ``dtype`` and their interpolation (from the upper one where
+    the weight is >= 0.5), as ``np.percentile`` computes it."""
+    m = s.shape[0]
+    virtual = (m - 1) * float(q)
+    lo = hi = m - 1
+    if virtual < m - 1:
+        lo = int(np.floor(virtual))
+        hi = lo + 1
+    a_lo, a_hi = (dtype(v) for v in s[lo:hi + 1].numpy()[[0, -1]])
+    t = virtual - lo
+    diff = a_hi - a_lo
+    return float(a_hi - diff * (1 - t) if t >= 0.5 else a_lo + diff * t)
+
+
 def percentiles(a: wp.array, q) -> tuple[list[float], int]:
     """(``np.percentile`` (its linear method) of ``a``'s ((n,) float32) finite values in float64 at each
     of ``q`` (percent; NaN for no value), how many values are finite): two values read a percentile."""
     s = _sorted_finite(a, "percentiles")
-    m = s.shape[0]
-    qs = np.true_divide(np.asanyarray(q, np.float64), 100)
-    if m == 0:
+    qs = np.true_divide(np.asanyarray(q, np.float64), 100).ravel()
+    if s.shape[0] == 0:
         return [float("nan")] * qs.size, 0
-    out = []
-    for qq in qs.ravel():
-        virtual = (m - 1) * qq  # NumPy's linear method: its index, neighbours, weight and interpolation
-        lo = int(np.floor(virtual))
-        if virtual >= m - 1:
-            lo = hi = m - 1
-        else:
-            hi = lo + 1
-        a_lo, a_hi = (np.float64(v) for v in s[lo:hi + 1].numpy()[[0, -1]])
-        t = np.float64(virtual - np.float64(lo)) if virtual < m - 1 else np.float64(virtual - np.float64(m - 1))
-        diff = a_hi - a_lo
-        out.append(float(a_hi - diff * (1 - t) if t >= 0.5 else a_lo + diff * t))
-    return out, m
+    return [_lerp_sorted(s, qq, np.float64) for qq in qs], s.shape[0]
 
 
 def percentile32(a: wp.array, q: float, *, presorted: bool = False) -> float:
@@ -211,17 +214,7 @@ def percentile32(a: wp.array, q: float, *, presorted: bool = False) -> float:
     it for a float32 array and a scalar q: its linear method in float32 (NaN for no value). ``presorted``:
     ``a`` is :func:`sort_finite`'s."""
     s = a if presorted else _sorted_finite(a, "percentile32")
-    m = s.shape[0]
-    if m == 0:
-        return float("nan")
-    t = float(np.true_divide(q, 100)) * (m - 1)
-    lo = int(np.floor(t))
-    hi = min(lo + 1, m - 1) if t < m - 1 else m - 1
-    lo = min(lo, m - 1)
-    a_lo, a_hi = (np.float32(v) for v in s[lo:hi + 1].numpy()[[0, -1]])
-    g = t - lo if t < m - 1 else t - (m - 1)
-    diff = a_hi - a_lo
-    return float(a_hi - diff * (1 - g) if g >= 0.5 else a_lo + diff * g)
+    return _lerp_sorted(s, float(np.true_divide(q, 100)), np.float32) if s.shape[0] else float("nan")
 
 
 def median64(a: wp.array) -> float:
