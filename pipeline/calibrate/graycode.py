@@ -43,7 +43,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.kernels.samples import subpixel_lines
+from ringscan.kernels.graycode_map import subpixel_lines, subpixel_points
 from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "graycode_bits", "decode_graycode",
@@ -69,6 +69,10 @@ mercy of anything else the pixel sees (stray light, a JPEG's ringing, a gamma's 
 MAX_COARSE_BITS = 3
 """Finest bits a pixel may leave untrusted and still get a sub-pixel position from the coarser ones (the
 boundaries of blocks of up to 2**3 = 8 projector pixels); more and it is dropped as ``low_modulation``."""
+POINT_SEARCH_COST = 16
+"""Line pixels of a walk that a search around one pixel costs, about (a coarser level places its pixels by
+searches where fewer than this share of their lines' pixels: 0.58 us a search, 0.04 us a walked pixel at
+level 2 of a capture defocused by 3.5 projector px, on one CPU core)."""
 LOW_MODULATION_WARN_SHARE = 0.2
 """A view whose finest bit is untrusted at more than this share of its decoded pixels gets a warning."""
 
@@ -176,11 +180,39 @@ def _levels_of(a: np.ndarray) -> np.ndarray:
     return out
 
 
+def _integer_levels(cap: GrayCodeCapture) -> bool:
+    """Whether ``cap``'s pairs are 8-bit frames read as they are: their |pattern - inverse| is then an
+    integer level, compared in 8 bits (the float32 figures' outcomes, a quarter of the memory traffic)."""
+    return cap.col_pairs.dtype == np.uint8 and cap.scale == 1.0
+
+
+def _level_threshold(t: np.ndarray, ints: bool) -> np.ndarray:
+    """Float32 thresholds ``t`` as a modulation (:func:`_modulation`) is compared with them (``a < t``): for
+    integer levels the least integer not below ``t`` (for an integer ``a``, ``a < t`` exactly where
+    ``a < ceil(t)``), as uint16 (0..256: a threshold above 255 keeps every 8-bit ``a`` below it)."""
+    if not ints:
+        return t
+    return np.clip(np.ceil(t), 0, 256).astype(np.uint16)
+
+
+def _modulation(pairs: np.ndarray, b: int, scale: float, ints: bool, bit: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """|pattern - inverse| of bit ``b`` (8-bit levels: uint8 for 8-bit frames, else float32 in ``d``), with
+    ``bit`` set to pattern > inverse (the sign of :func:`pair_diff`: levels of integer frames keep their order)."""
+    if ints:
+        p, inv = pairs[b, 0], pairs[b, 1]
+        np.greater(p, inv, out=bit)
+        return cv2.absdiff(p, inv)
+    pair_diff(pairs, b, scale, out=d)
+    np.greater(d, 0, out=bit)
+    return np.abs(d, out=d)
+
+
 def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
     """Integer projector column and row of every camera pixel (the plain decode)."""
     contrast = cap.white - cap.black
-    weak = np.zeros(contrast.shape, np.int32)
-    dim = DIM_BIT_FRACTION * contrast
+    weak = np.zeros(contrast.shape, np.uint8)  # (at most 2 x 30 bits)
+    ints = _integer_levels(cap)
+    dim = _level_threshold(DIM_BIT_FRACTION * contrast, ints)
     d = np.empty_like(contrast)
     bit = np.empty(contrast.shape, bool)
 
@@ -188,15 +220,13 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
         g = np.zeros(contrast.shape, np.int64 if len(pairs) > 30 else np.int32)
         ok = np.ones(contrast.shape, bool)
         for b in range(len(pairs)):
-            pair_diff(pairs, b, cap.scale, out=d)
-            np.greater(d, 0, out=bit)
+            a = _modulation(pairs, b, cap.scale, ints, bit, d)
             g <<= 1
             g |= bit
-            np.abs(d, out=d)
             if settings.min_bit_contrast > 0:  # (at 0, the default, every bit passes: two passes saved)
-                np.greater_equal(d, settings.min_bit_contrast, out=bit)
+                np.greater_equal(a, np.float32(settings.min_bit_contrast), out=bit)
                 ok &= bit
-            np.less(d, dim, out=bit)
+            np.less(a, dim, out=bit)
             weak[...] += bit
         return gray_decode(g, len(pairs)), ok
 
@@ -285,11 +315,12 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
     rate = _median_step(np.add(*_code_steps(code, valid)))
-    thresh = np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise, CLEAR_CONTRAST_FRACTION * contrast)
+    ints = pairs.dtype == np.uint8 and scale == 1.0
+    thresh = _level_threshold(np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise,
+                                         CLEAR_CONTRAST_FRACTION * contrast), ints)
+    bit, work = np.empty(contrast.shape, bool), np.empty(contrast.shape, np.float32)
     for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
-        b = bits - 1 - j
-        d = pair_diff(pairs, b, scale)
-        np.abs(d, out=d)
+        d = _modulation(pairs, bits - 1 - j, scale, ints, bit, work)
         # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
         r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
         near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
@@ -301,7 +332,7 @@ def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: in
                 scale: float = 1.0, lines: np.ndarray | None = None):
     """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across): each decoded pixel
     interpolated between the code boundaries around it (one Warp kernel walk a line,
-    ``kernels.samples.subpixel_lines``; its figures are the NumPy construction's to the bit), on
+    ``kernels.graycode_map.subpixel_lines``; its figures are the NumPy construction's to the bit), on
     ``lines`` (None: all)."""
     return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale,
                           lines=lines)
@@ -318,18 +349,27 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     out = np.full(code.shape, np.nan)
     ok = np.zeros(code.shape, bool)
     bits = pairs.shape[0]
-    top = int(coarse[valid].max()) if valid.any() else 0
+    coarse = np.ascontiguousarray(coarse)
+    top = int(coarse.max(where=valid, initial=0))
     for k in range(0, min(top, bits - 1) + 1):
         # (the walk reads a pixel's code only where it is valid at this level: the codes go in unmasked)
         lvl_valid = valid if top == 0 else valid & (coarse <= k)
         todo = lvl_valid if k == 0 else lvl_valid & ~ok
-        if not todo.any():
+        n = np.count_nonzero(todo)
+        if not n:
             continue
-        # the finest level walks every line; a coarser one only the lines with a pixel still to place
+        ck, pk, span = (code >> k if k else code), pairs[:bits - k], max_span * 2 ** k
+        # the finest level walks every line; a coarser one only the lines with a pixel still to place, or,
+        # where those are few (a sharp capture's handful beside a silhouette), searches around each of them
         lines = None if k == 0 else np.flatnonzero(todo.any(axis=axis))
-        res, good = _along_axis(code >> k if k else code, lvl_valid, pairs[:bits - k], axis, max_span * 2 ** k,
-                                scale, lines)
-        # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
+        if k and n * POINT_SEARCH_COST < lines.size * code.shape[1 - axis]:
+            at = np.flatnonzero(todo)
+            res, good = subpixel_points(ck, lvl_valid, pk, at, bits=bits - k, axis=axis, max_span=span, scale=scale)
+            # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
+            out.reshape(-1)[at[good]] = res[good] * 2 ** k + (2 ** k - 1) / 2.0
+            ok.reshape(-1)[at[good]] = True
+            continue
+        res, good = _along_axis(ck, lvl_valid, pk, axis, span, scale, lines)
         take = todo & good
         if k == 0:
             out, ok = np.where(take, res, np.nan), take

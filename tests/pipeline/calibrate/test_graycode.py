@@ -141,11 +141,13 @@ def test_a_pixel_whose_coarser_bits_barely_modulate_is_dropped_as_low_modulation
     assert dec.valid[:30].mean() > 0.9  # outside the patch, decoded as before
 
 
-def test_a_capture_kept_as_read_decodes_as_its_float_levels(capture, tmp_path):
-    """The frames are kept as read (8-bit here; 16-bit with scale 1 / 257): the decode and the sub-pixel map
-    of the capture equal those of the same capture as float32 levels, to the bit."""
-    folder, u, v = capture
-    cap = read_capture(folder, projector=PROJ)
+@pytest.mark.parametrize("which", ["sharp", "defocused"])
+def test_a_capture_kept_as_read_decodes_as_its_float_levels(which, capture, defocused):
+    """The frames are kept as read (8-bit here, whose bits and modulations are then compared as integer
+    levels; 16-bit with scale 1 / 257): the decode and the sub-pixel map of the capture equal those of the
+    same capture as float32 levels, to the bit, on a sharp projector and on a defocused one whose pixels
+    take their positions from coarser bits."""
+    cap = read_capture(capture[0], projector=PROJ) if which == "sharp" else defocused[0]
     assert cap.col_pairs.dtype == np.uint8 and cap.scale == 1.0
     flt = dataclasses.replace(cap, col_pairs=cap.col_pairs.astype(np.float32),
                               row_pairs=cap.row_pairs.astype(np.float32))
@@ -154,3 +156,5 @@ def test_a_capture_kept_as_read_decodes_as_its_float_levels(capture, tmp_path):
         assert np.array_equal(getattr(a, f), getattr(b, f)), f
     assert a.noise == b.noise
     assert np.array_equal(a.u, b.u, equal_nan=True) and np.array_equal(a.v, b.v, equal_nan=True)
+    if which == "defocused":
+        assert (a.coarse[a.valid] > 0).mean() > 0.9 and a.subpixel.mean() > 0.5  # the coarser levels placed them
