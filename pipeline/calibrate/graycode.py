@@ -346,8 +346,7 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     trust at least those bits. A pixel that finds no two boundaries around it at its own level (beside a
     region of coarser pixels, say) takes the next coarser level that has them; where none has, a pixel
     that trusts every bit keeps its integer code (and is not sub-pixel)."""
-    out = np.full(code.shape, np.nan)
-    ok = np.zeros(code.shape, bool)
+    out, ok = None, np.zeros(code.shape, bool)
     bits = pairs.shape[0]
     coarse = np.ascontiguousarray(coarse)
     top = int(coarse.max(where=valid, initial=0))
@@ -357,12 +356,14 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
         todo = lvl_valid if k == 0 else lvl_valid & ~ok
         n = np.count_nonzero(todo)
         if not n:
+            if k == 0:  # (k = 0 comes first: out is set there)
+                out = np.full(code.shape, np.nan)
             continue
         ck, pk, span = (code >> k if k else code), pairs[:bits - k], max_span * 2 ** k
         # the finest level walks every line; a coarser one only the lines with a pixel still to place, or,
         # where those are few (a sharp capture's handful beside a silhouette), searches around each of them
         lines = None if k == 0 else np.flatnonzero(todo.any(axis=axis))
-        if k and n * POINT_SEARCH_COST < lines.size * code.shape[1 - axis]:
+        if k and n * POINT_SEARCH_COST < lines.size * code.shape[axis]:
             at = np.flatnonzero(todo)
             res, good = subpixel_points(ck, lvl_valid, pk, at, bits=bits - k, axis=axis, max_span=span, scale=scale)
             # block c of 2**k projector pixels has its centre at 2**k * c + (2**k - 1) / 2
@@ -371,8 +372,9 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
             continue
         res, good = _along_axis(ck, lvl_valid, pk, axis, span, scale, lines)
         take = todo & good
-        if k == 0:
-            out, ok = np.where(take, res, np.nan), take
+        if k == 0:  # (the walk's array itself: a fresh one, kept)
+            np.copyto(res, np.nan, where=~take)
+            out, ok = res, take
         else:
             out[take] = res[take] * 2 ** k + (2 ** k - 1) / 2.0
             ok |= take
@@ -397,8 +399,9 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
     if dec.low_modulation is not None:
         dec.low_modulation |= lost
     dec.valid = dec.valid & ~lost
-    dec.u = np.where(dec.valid, u, np.nan)
-    dec.v = np.where(dec.valid, v, np.nan)
+    for a in (u, v):  # (arrays of _levels' own: NaN'd in place)
+        np.copyto(a, np.nan, where=~dec.valid)
+    dec.u, dec.v = u, v
     dec.subpixel = oku & okv & dec.valid
     if log.isEnabledFor(logging.INFO):
         log.info("%s: sub-pixel u along camera %s, v along camera %s; %d of %d decoded pixels interpolated "
