@@ -85,7 +85,8 @@ class TriangulationParams:
     fallback_sector_px: wp.float32
     """Where > 0: a sector mismatch is retried with coarser sectors at least this wide (projector px)."""
     widen_angle: wp.int32
-    """1: an angle-alone point's sigma grows by its coordinates' disagreement (``triangulate_rings``)."""
+    """1: a point placed with the angle (alone or with its ring) grows its sigma by its coordinates'
+    disagreement (``triangulate_rings``)."""
 CONSTRAINT_RINGS = wp.constant(0)
 CONSTRAINT_ANGLE = wp.constant(1)
 CONSTRAINT_BOTH = wp.constant(2)
@@ -505,10 +506,11 @@ def triangulate_kernel(
         info_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / (sr * sr))
         X, st, q, res, sg, rvar, vboth = full_solution(light, C, d, p_obs, e_r, info_r, 1.0 / (st_t * st_t), sr * sr,
                                                        floor * floor, vol, min_incidence_cos, max_residual_px)
-        if constraint == CONSTRAINT_ANGLE and params.widen_angle != 0 and vboth > 0.0 and res >= 0.0:
-            # the angle alone places the point; where its ring coordinate disagrees across the epipolar
-            # line beyond what both sigmas allow (a mixed pixel at a silhouette, a fringe a highlight
-            # bent), the angle is no better known than that disagreement: sigma grows by its chi
+        if params.widen_angle != 0 and vboth > 0.0 and res >= 0.0:
+            # where the two coordinates disagree across the epipolar line beyond what both sigmas allow
+            # (a mixed pixel at a silhouette, a fringe a highlight or a blur bent), the point is no better
+            # known than that disagreement: sigma grows by its chi (the Birge ratio of one degree of
+            # freedom), with the angle alone or with both
             chi2 = res * res / (vboth + floor * floor)
             if chi2 > 1.0:
                 sg = sg * wp.sqrt(chi2)
@@ -604,10 +606,10 @@ def triangulate_rings(
         settings: root-choice and constraint settings.
         floor: calibration floor (projector px, :func:`calibration_floor`): a
             standard deviation added across the epipolar line to samples with an angle.
-        widen_angle: with the angle alone (``settings.constraint`` angle), a point's sigma grows by the
-            chi of its two coordinates' disagreement across the epipolar line where it is above 1 (a mixed
-            pixel, a fringe bent by a highlight: the angle is no better known than that). False: the
-            decode's sigma as it is (the error model's fit, which measures what the decode misses).
+        widen_angle: a point placed with the angle (``settings.constraint`` angle or both) grows its sigma
+            by the chi of its two coordinates' disagreement across the epipolar line where it is above 1 (a
+            mixed pixel, a fringe bent by a highlight or a blur: the point is no better known than that).
+            False: the decode's sigma as it is (the error model's fit, which measures what the decode misses).
         threads: CPU threads; default all cores.
 
     Size: a public entry point: most of its length is its parameters (the sample arrays and documented

@@ -532,3 +532,26 @@ def test_an_angle_alone_point_is_no_better_known_than_its_coordinates_agree(devi
     chi = far.residual.numpy()[ok] / 0.05
     np.testing.assert_allclose(ratio[chi > 1.0], chi[chi > 1.0], rtol=2e-3)
     assert np.all(ratio[chi <= 1.0] == 1.0) and np.mean(chi > 1.0) > 0.5
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_a_point_of_both_coordinates_is_no_better_known_than_they_agree(device, model):
+    """With both coordinates (the default), a point whose ring and angle disagree across the epipolar line by
+    chi times their joint sigma there has its sigma grown by chi where chi > 1, and the decode's where they
+    agree; the widening moves no point. widen_angle=False (the error model's fit): the decode's sigma."""
+    from ringscan.pipeline.reconstruct.settings import TriangulateSettings
+
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    phi = _polar(model, P, rig.light)
+    both = TriangulateSettings(constraint="both")
+    off = rho + np.float32(0.1)  # 0.1 projector px off along the radius: 2 sigmas of rho
+    wide = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, settings=both)
+    plain = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, settings=both, widen_angle=False)
+    ok = (wide.status.numpy() == 0) & (plain.status.numpy() == 0)
+    assert ok.mean() > 0.9
+    np.testing.assert_array_equal(wide.points.numpy()[ok], plain.points.numpy()[ok])
+    chi = plain.residual.numpy()[ok] / np.sqrt(plain.residual_var.numpy()[ok])
+    ratio = wide.sigma.numpy()[ok] / plain.sigma.numpy()[ok]
+    assert 0.2 < np.mean(chi > 1.0) < 0.9  # the offset's share across the line spreads chi over both sides of 1
+    np.testing.assert_allclose(ratio[chi > 1.0], chi[chi > 1.0], rtol=2e-3)  # float32 sigma and residual
+    assert np.all(ratio[chi <= 1.0] == 1.0)
