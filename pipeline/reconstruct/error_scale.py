@@ -195,14 +195,15 @@ def _region_scales(d2: np.ndarray, var: np.ndarray, uv: np.ndarray) -> dict:
     """
     key = np.floor(uv / REGION_PX).astype(np.int64)
     tile = key[:, 0] * 1_000_003 + key[:, 1]
-    ids, inv, counts = np.unique(tile, return_inverse=True, return_counts=True)
-    u_all = d2 / (T_SCALE * T_SCALE * np.maximum(var, 1e-300))
+    _, inv, counts = np.unique(tile, return_inverse=True, return_counts=True)
+    order = np.argsort(inv, kind="stable")  # a tile's pairs a slice, in their order (as a mask takes them)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    u_all = (d2 / (T_SCALE * T_SCALE * np.maximum(var, 1e-300)))[order]
     scales = []
     for t in np.flatnonzero(counts >= MIN_REGION_PAIRS):
-        m = _t_scale(u_all[inv == t])
-        if m > 1.0:
-            tx, ty = int(key[inv == t][0, 0]), int(key[inv == t][0, 1])
-            scales.append([tx, ty, round(m, 4)])
+        m = _t_scale(u_all[starts[t]:starts[t] + counts[t]])
+        if m > 1.0:  # [tile x, tile y, m]
+            scales.append([*map(int, key[order[starts[t]]]), round(m, 4)])
     return {"tile_px": REGION_PX, "scales": scales}
 
 
