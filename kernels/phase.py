@@ -13,6 +13,7 @@ and code disagree), 5 lonely (no agreeing neighbour pair).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +50,7 @@ __all__ = [
     "response_tables",
     "decode_phase",
     "smooth_phase",
+    "drop_lone_fringes",
     "compact_phase_points",
 ]
 
@@ -479,6 +481,44 @@ def smooth_phase_kernel(
 
 
 @wp.kernel
+def lone_fringe_kernel(
+    status: wp.array2d(dtype=wp.int32),
+    half: int,
+    share: float,
+    row0: int,
+    chunk: int,
+    status_out: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """A valid pixel whose fringe washed out around it: more than ``share`` of the lit pixels (status not
+    dark) of the (2 half + 1)^2 square about it (clipped at the image's edges) dropped for modulation; it
+    becomes ``modulation`` too. ``chunk`` pixels of one row per thread.
+
+    status (H, W) int32: read. status_out (H, W) int32, flags (H*W,) int32 (1 where status_out is ok): written.
+    """
+    h = status.shape[0]
+    w = status.shape[1]
+    run = row_run(wp.tid(), w, row0, chunk)
+    y = run[0]
+    for x in range(run[1], run[2]):
+        s = status[y, x]
+        if s == PHASE_OK:
+            washed = int(0)
+            lit = int(0)
+            for yy in range(wp.max(y - half, 0), wp.min(y + half + 1, h)):
+                for xx in range(wp.max(x - half, 0), wp.min(x + half + 1, w)):
+                    t = status[yy, xx]
+                    if t == PHASE_MODULATION:
+                        washed += 1
+                    if t != PHASE_DARK:
+                        lit += 1
+            if float(washed) > share * float(lit):
+                s = PHASE_MODULATION
+        status_out[y, x] = s
+        flags[y * w + x] = wp.where(s == PHASE_OK, 1, 0)
+
+
+@wp.kernel
 def write_points_kernel(
     t: wp.array2d(dtype=wp.float32),
     modulation: wp.array2d(dtype=wp.float32),
@@ -674,6 +714,22 @@ def smooth_phase(
                            float(pitch or 1.0), r0, chunk],
         [out.t, out.status, out.sector, out.flags], dev, default_threads() if threads is None else threads,
     )
+    return out
+
+
+def drop_lone_fringes(phase: PhaseMap, *, size: int, share: float, threads: int | None = None) -> PhaseMap:
+    """The phase map with each valid pixel whose fringe washed out around it dropped as ``modulation``
+    (:func:`lone_fringe_kernel`: more than ``share`` of the lit pixels of the ``size`` x ``size`` square
+    about it dropped for modulation, ``size`` odd): a new status and new flags, the other fields shared."""
+    if phase.flags is None:
+        raise ValueError("drop_lone_fringes: the phase map has no flags (run smooth_phase first)")
+    if size < 1 or size % 2 == 0 or not 0.0 <= share <= 1.0:
+        raise ValueError(f"drop_lone_fringes: size must be odd and >= 1, share within 0..1; got {size}, {share}")
+    h, w = phase.status.shape
+    out = dataclasses.replace(phase, status=wp.empty_like(phase.status), flags=wp.empty_like(phase.flags))
+    if h * w:
+        launch_rows(lone_fringe_kernel, h, w, lambda r0, chunk: [phase.status, size // 2, float(share), r0, chunk],
+                    [out.status, out.flags], phase.status.device, default_threads() if threads is None else threads)
     return out
 
 

@@ -33,7 +33,6 @@ against.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -42,22 +41,25 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.compact import count_values
 from ringscan.kernels.phase import (
     PHASE_STATUS_NAMES,
     PhaseSettings,
     compact_phase_points,
     decode_phase,
+    drop_lone_fringes,
     response_tables,
     smooth_phase,
 )
 from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.sample_light import phase_light
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import add_angle, phase_sigma, sample_contrast, sample_indirect
+from ringscan.pipeline.codecs.angle_code import add_angle, indirect_bits
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.codecs.gray_rings import explain_binary_view
-from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec
+from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
 from ringscan.pipeline.formats.scan import Scan
 
 log = logging.getLogger(__name__)
@@ -226,29 +228,32 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     wp.synchronize_device(dev)
     t1 = time.perf_counter()
     sm = smooth_phase(phase, labels.sector, settings=ps, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
+    sm = drop_lone_fringes(sm, size=LONE_FRINGE_PX, share=LONE_FRINGE_SHARE, threads=threads)
     pts = compact_phase_points(sm, rho0=spec.rho0, pitch=spec.pitch, threads=threads)
-    st = sm.status.numpy()
-    pts, spikes = _drop_lone_fringes(pts, st)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
-    contrast = sample_contrast(frames, spec, pts.uv.numpy(), contrast=labels.contrast)
-    sig = phase_sigma(contrast, pts.confidence.numpy(), settings.angle.noise, pitch=spec.pitch, steps=spec.steps,
-                      smooth_radius=ps.smooth_radius)
+    # each sample's sigma of rho from its fringe and the contrast under it, and its indirect-light share, on
+    # the frames' device (angle_code.phase_sigma, sample_contrast and sample_indirect state them in NumPy)
+    names = frame_names(spec)
+    sig, indirect = phase_light(
+        frames, labels.contrast, pts.uv, pts.confidence, white=names.index("white"), black=names.index("black"),
+        pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in indirect_bits(spec)],
+        noise=settings.angle.noise, pitch=spec.pitch, steps=spec.steps, smooth_radius=ps.smooth_radius,
+        threads=threads)
     pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
                                  light_gamma=g_light, threads=threads)
-    pts.indirect = wp.array(sample_indirect(frames, spec, pts.uv.numpy()), dtype=wp.float32, device=dev)
+    pts.indirect = indirect
     wp.synchronize_device(dev)
     t3 = time.perf_counter()
-    counts = np.bincount(st.ravel(), minlength=len(PHASE_STATUS_NAMES))
-    counts[PHASE_STATUS_NAMES.index("modulation")] += spikes
-    counts[PHASE_STATUS_NAMES.index("ok")] -= spikes
-    decoded = int(np.count_nonzero(phase.status.numpy() == 0))
+    # the statuses counted on the device (the lone fringes dropped are counted as modulation)
+    counts = count_values(sm.status.flatten(), len(PHASE_STATUS_NAMES), threads=threads)
+    decoded = int(count_values(phase.status.flatten(), 1, threads=threads)[0])
     stats = {
         "pixels_decoded": decoded,
         "samples": len(pts),
         "phase_dropped": {name: int(counts[i]) for i, name in enumerate(PHASE_STATUS_NAMES) if i > 0},
         # the fringe that barely modulates: pixels with contrast whose phase is dropped for it
-        "pixels_lit": int(st.size - counts[PHASE_STATUS_NAMES.index("dark")]),
+        "pixels_lit": int(counts.sum() - counts[PHASE_STATUS_NAMES.index("dark")]),
         "low_modulation": int(counts[PHASE_STATUS_NAMES.index("modulation")]),
         "camera_gamma": g_cam,
         "light_gamma": g_light,
@@ -262,32 +267,11 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
 LONE_FRINGE_SHARE = 0.5
 """A pixel whose fringe passes ``phase.min_modulation`` while more than this share of the
 lit pixels of the ``LONE_FRINGE_PX`` square around it are dropped for modulation is dropped too (as
-``modulation``): a fringe's modulation changes smoothly with the blur across a surface,
-so a lone pass where it has washed out is the camera's noise, not a fringe (phase-rings
-at pitch 4 under a projector defocused by 1.5 px: 514 such points, median error 0.22 mm
+``modulation``; ``kernels.phase.drop_lone_fringes``): a fringe's modulation changes smoothly with the
+blur across a surface, so a lone pass where it has washed out is the camera's noise, not a fringe
+(phase-rings at pitch 4 under a projector defocused by 1.5 px: 514 such points, median error 0.22 mm
 against a predicted 0.002)."""
 LONE_FRINGE_PX = 5
-
-
-def _drop_lone_fringes(pts: Samples, status: np.ndarray) -> tuple[Samples, int]:
-    """(the samples less those whose neighbourhood's fringe washed out (``LONE_FRINGE_SHARE``),
-    how many were dropped). ``status``: (H, W) the phase map's statuses (host)."""
-    from scipy.ndimage import uniform_filter
-
-    washed = uniform_filter((status == PHASE_STATUS_NAMES.index("modulation")).astype(np.float32),
-                            size=LONE_FRINGE_PX, mode="constant")
-    lit = uniform_filter((status != PHASE_STATUS_NAMES.index("dark")).astype(np.float32), size=LONE_FRINGE_PX,
-                         mode="constant")
-    washed = washed / np.maximum(lit, 1e-6)  # of the lit pixels around (a shadow's edge is no fringe's)
-    if not len(pts) or washed.max() <= LONE_FRINGE_SHARE:
-        return pts, 0
-    keep = washed.ravel()[pts.pixel.numpy()] <= LONE_FRINGE_SHARE
-    if keep.all():
-        return pts, 0
-
-    def kept(a):
-        return None if a is None else wp.array(a.numpy()[keep], dtype=a.dtype, device=a.device)
-    return Samples(**{f.name: kept(getattr(pts, f.name)) for f in dataclasses.fields(pts)}), int((~keep).sum())
 
 
 class PhaseRingsCodec(Codec[PhaseRingsSettings]):

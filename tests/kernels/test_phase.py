@@ -12,6 +12,7 @@ from ringscan.kernels.phase import (
     PhaseSettings,
     compact_phase_points,
     decode_phase,
+    drop_lone_fringes,
     response_tables,
     smooth_phase,
 )
@@ -258,3 +259,51 @@ def test_sixteen_bit_frames(device):
     assert ok.sum() > 0.95 * _annulus(spec, rho).sum()
     assert np.abs(ph.t.numpy()[ok] - t_true[ok]).max() < 0.05
     assert math.isfinite(float(ph.modulation.numpy().max()))
+
+
+def _lone_fringes_numpy(status, size, share):
+    """The NumPy statement the kernel replaced (phase_rings._drop_lone_fringes before issue 33): each
+    pixel's share of its lit neighbours dropped for modulation, by SciPy's box filters; a valid pixel above
+    ``share`` is dropped."""
+    from scipy.ndimage import uniform_filter
+
+    washed = uniform_filter((status == STATUS["modulation"]).astype(np.float32), size=size, mode="constant")
+    lit = uniform_filter((status != STATUS["dark"]).astype(np.float32), size=size, mode="constant")
+    return (status == STATUS["ok"]) & (washed / np.maximum(lit, 1e-6) > share)
+
+
+def test_lone_fringes_are_dropped_as_the_box_filters_drop_them():
+    """A map of valid fringes, shadows and washed-out patches (modulation) with valid pixels scattered
+    through them (the camera's noise passing the test), its edges included: the kernel drops, as
+    modulation, the valid pixels the box-filter statement drops, keeps the flags equal to the valid statuses, and
+    touches no other status; at an exact tie (half of a square's lit pixels washed) the kernel's counts keep
+    the pixel, where the filters' float32 means read a hair over half and dropped it."""
+    rng = np.random.default_rng(8)
+    h, w = 70, 90
+    status = np.zeros((h, w), np.int32)
+    status[:, 60:] = STATUS["dark"]
+    washed = np.zeros((h, w), bool)
+    washed[10:40, 5:50] = True
+    washed[50:, 40:75] = True  # across the shadow's edge: its dark pixels are no fringe's
+    status[washed & (rng.random((h, w)) > 0.15) & (status == 0)] = STATUS["modulation"]
+    status[rng.random((h, w)) < 0.03] = STATUS["slip"]
+    status[0, :3] = [STATUS["modulation"], STATUS["modulation"], STATUS["ok"]]  # a corner's clipped square
+    tie = np.zeros((5, 5), np.int32)  # 12 of the 25 lit pixels washed and one dark: share exactly 0.5
+    tie.flat[[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]] = STATUS["modulation"]
+    tie[4, 4] = STATUS["dark"]
+    status[62:67, 2:7] = tie
+    pm = PhaseMap(t=wp.zeros((h, w), dtype=wp.float32), modulation=wp.zeros((h, w), dtype=wp.float32),
+                  status=wp.array(status, dtype=wp.int32), sector=wp.zeros((h, w), dtype=wp.int32),
+                  flags=wp.array((status == 0).astype(np.int32).ravel(), dtype=wp.int32))
+    out = drop_lone_fringes(pm, size=5, share=0.5, threads=2)
+    drop = _lone_fringes_numpy(status, 5, 0.5)
+    assert 50 < drop.sum() < (status == 0).sum() - 1000  # some dropped, most valid pixels kept
+    # the tie: the box filters' float32 means (12 / 25 over 24 / 25) read a hair above 0.5 and drop it; the
+    # kernel counts (12 of 24 is not more than half) and keeps it, as LONE_FRINGE_SHARE says
+    assert drop[64, 4] and out.status.numpy()[64, 4] == STATUS["ok"]
+    drop[64, 4] = False
+    np.testing.assert_array_equal(out.status.numpy(), np.where(drop, STATUS["modulation"], status))
+    np.testing.assert_array_equal(out.flags.numpy(), (out.status.numpy() == 0).astype(np.int32).ravel())
+    assert pm.status.numpy() is not out.status.numpy() and (pm.status.numpy() == status).all()  # input kept
+    with pytest.raises(ValueError, match="odd"):
+        drop_lone_fringes(pm, size=4, share=0.5)

@@ -6,8 +6,8 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.kernels.sample_light import sample_light
-from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, edge_sigma, sample_contrast, sample_indirect
+from ringscan.kernels.sample_light import phase_light, sample_light
+from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, edge_sigma, phase_sigma, sample_contrast, sample_indirect
 from ringscan.pipeline.formats.patterns import frame_names
 from tests.support.ring_frames import frame_stack, gray_rings_spec
 
@@ -37,6 +37,16 @@ def test_the_kernel_reads_what_the_numpy_statements_read(dtype):
     expect_sigma = np.asarray(edge_sigma(sample_contrast(fw, spec, uv, contrast=labels.contrast), noise), np.float32)
     np.testing.assert_array_equal(sigma.numpy(), expect_sigma)
     np.testing.assert_array_equal(indirect.numpy(), sample_indirect(fw, spec, uv))
+    # phase-rings' sigma of rho from its fringes' modulation (some below the 1e-3 floor, some over 1)
+    mod = np.concatenate([rng.uniform(0.0, 1.2, len(uv) - 3), [0.0, 5e-4, 1e-3]]).astype(np.float32)
+    psig, pind = phase_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), wp.array(mod, dtype=wp.float32),
+                             white=names.index("white"), black=names.index("black"),
+                             pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in bits],
+                             noise=noise, pitch=4.0, steps=4, smooth_radius=1, threads=2)
+    expect = phase_sigma(sample_contrast(fw, spec, uv, contrast=labels.contrast), mod, noise, pitch=4.0, steps=4,
+                         smooth_radius=1)
+    np.testing.assert_array_equal(psig.numpy(), np.asarray(expect, np.float32))
+    np.testing.assert_array_equal(pind.numpy(), sample_indirect(fw, spec, uv))
 
 
 def test_a_planted_floor_is_read_as_its_share_of_white_minus_black():

@@ -224,14 +224,14 @@ def test_bench_dense_runs_both_sides(small_phase_scan):
 
 def test_a_lone_fringe_where_the_fringe_washed_out_is_dropped_as_modulation():
     """Around a pixel whose fringe passed, most lit pixels dropped for modulation (a shadow's
-    edge on a defocused view): it is the camera's noise, not a fringe, and goes too; a pixel
-    among passing neighbours, or beside dark ones only, stays."""
+    edge on a defocused view): it is the camera's noise, not a fringe, and goes too (the codec's
+    LONE_FRINGE_PX and LONE_FRINGE_SHARE, ``kernels.phase.drop_lone_fringes``); a pixel among
+    passing neighbours, or beside dark ones only, stays."""
     import numpy as np
     import warp as wp
 
-    from ringscan.kernels.phase import PHASE_STATUS_NAMES
-    from ringscan.kernels.samples import Samples
-    from ringscan.pipeline.codecs.phase_rings import _drop_lone_fringes
+    from ringscan.kernels.phase import PHASE_STATUS_NAMES, PhaseMap, drop_lone_fringes
+    from ringscan.pipeline.codecs.phase_rings import LONE_FRINGE_PX, LONE_FRINGE_SHARE
 
     ok, dark, mod = (PHASE_STATUS_NAMES.index(n) for n in ("ok", "dark", "modulation"))
     st = np.full((20, 30), ok, np.int32)
@@ -241,17 +241,11 @@ def test_a_lone_fringe_where_the_fringe_washed_out_is_dropped_as_modulation():
     st[15, 15] = ok             # a lone pass in its middle
     st[:, 25:] = dark
     st[5, 26] = ok              # a pass beside dark pixels only: a small lit patch, kept
-    ys, xs = np.nonzero(st == ok)
-    pix = (ys * 30 + xs).astype(np.int32)
-    n = pix.size
-    dev = "cpu"
-    samples = Samples(uv=wp.array(np.stack([xs, ys], 1).astype(np.float32), dtype=wp.vec2, device=dev),
-                      rho=wp.array(np.arange(n, dtype=np.float32), dtype=wp.float32, device=dev), ring=None,
-                      sector=wp.zeros(n, dtype=wp.int32, device=dev), confidence=wp.ones(n, dtype=wp.float32, device=dev),
-                      pixel=wp.array(pix, dtype=wp.int32, device=dev))
-    kept, dropped = _drop_lone_fringes(samples, st)
-    gone = set(pix.tolist()) - set(kept.pixel.numpy().tolist())
-    assert {5 * 30 + 14, 15 * 30 + 15} <= gone and 5 * 30 + 26 not in gone
-    assert dropped == len(gone) and len(kept) == n - dropped
-    # the rest of each sample travels with it
-    assert np.array_equal(kept.rho.numpy(), samples.rho.numpy()[np.isin(pix, kept.pixel.numpy())])
+    pm = PhaseMap(t=wp.zeros(st.shape, dtype=wp.float32), modulation=wp.zeros(st.shape, dtype=wp.float32),
+                  status=wp.array(st, dtype=wp.int32), sector=wp.zeros(st.shape, dtype=wp.int32),
+                  flags=wp.array((st == ok).astype(np.int32).ravel(), dtype=wp.int32))
+    out = drop_lone_fringes(pm, size=LONE_FRINGE_PX, share=LONE_FRINGE_SHARE).status.numpy()
+    gone = np.flatnonzero((st == ok) & (out != ok))
+    assert {5 * 30 + 14, 15 * 30 + 15} <= set(gone.tolist()) and 5 * 30 + 26 not in set(gone.tolist())
+    assert (out[st != ok] == st[st != ok]).all() and (out.ravel()[gone] == mod).all()
+    assert (st == ok).sum() - (out == ok).sum() == gone.size
