@@ -1,9 +1,9 @@
 """How far along its ring each sample can be checked (docs/reconstruction.md, "Honest sigma",
-"Without an angle"): the neighbour model (``pipeline.reconstruct.error_scale``) checks a sample
+"Without an angle"): the neighbour model (``pipeline.reconstruct.neighbour_checks``) checks a sample
 against same-ring samples 1, 2, 4 and 8 px to either side; a sample no check reaches (a ring's
 fragment, an object's edge) errs more than those it fits, so every sample's reach is wanted,
 not only the fit's few thousand. One thread a sample: the same tests as the NumPy statement
-(``error_scale._next_neighbours``, ``_ring_directions``, ``_lag_nodes``), in float64."""
+(``neighbour_checks._next_neighbours``, ``_ring_directions``, ``_lag_nodes``), in float64."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ __all__ = ["check_reach_kernel", "sample_reach"]
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 LAGS = wp.constant(wp.vec3i(2, 4, 8))
-"""The checks wider than 1 px (``error_scale.NEIGHBOUR_LAGS[1:]``)."""
+"""The checks wider than 1 px (``neighbour_checks.NEIGHBOUR_LAGS[1:]``)."""
 
 
 # ----------------------------------------------------------------------------- functions

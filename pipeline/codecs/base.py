@@ -135,7 +135,7 @@ class Codec(ABC, Generic[S]):
         """For a dense codec (one sample a camera pixel, ``Samples.ring`` None) whose
         samples' errors neighbouring pixels can check: the side (px) of the square each
         sample is averaged over (1: none), which neighbours share part of
-        (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`); None
+        (:func:`~ringscan.pipeline.reconstruct.neighbour_checks.fit_neighbour_model`); None
         where they cannot be checked that way (here). ``settings``: this codec's."""
         return None
 
@@ -143,7 +143,7 @@ class Codec(ABC, Generic[S]):
         """(n,) int: groups of samples whose errors differ by a factor the decode's
         model does not know (the pattern whose edges place them, one modulating less
         than another), each given its own factor where neighbours check the samples
-        (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`); -1: no
+        (:func:`~ringscan.pipeline.reconstruct.neighbour_checks.fit_neighbour_model`); -1: no
         group. None (here): one group. ``ring``: the samples' ring indices."""
         return None
 

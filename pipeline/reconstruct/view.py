@@ -39,11 +39,13 @@ from ringscan.pipeline.reconstruct.error_scale import (
     MAX_CHECK_SAMPLES,
     MIN_PAIRS,
     fit_error_model,
-    fit_neighbour_model,
     group_scale,
-    reach_scale,
     region_scale,
     sample_subset,
+)
+from ringscan.pipeline.reconstruct.neighbour_checks import (
+    fit_neighbour_model,
+    reach_scale,
     widen_depth_sigma,
     widen_for_indirect,
 )
@@ -351,7 +353,7 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     """(triangulated with its sigma widened, the :class:`ErrorModel` or {}): where no
     angle checks the ring coordinate, its missed error terms measured from each point's
     disagreement with its neighbours on the same ring
-    (:func:`~ringscan.pipeline.reconstruct.error_scale.fit_neighbour_model`). The points
+    (:func:`~ringscan.pipeline.reconstruct.neighbour_checks.fit_neighbour_model`). The points
     stay where they are (one coordinate places them; its sigma weighs nothing), so the
     depth sigmas are widened after the one triangulation. A dense code (one sample a
     pixel: phase-rings) averages each pixel over a window (``Codec.pixel_window``); the
@@ -374,7 +376,7 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     sigma_px = samples.sigma_rho.numpy()
     ring = samples.ring.numpy() if samples.ring is not None else None
     uv = samples.uv.numpy()
-    # how far along its ring each sample can be checked (kernels.ring_checks; error_scale.check_reach in NumPy)
+    # how far along its ring each sample can be checked (kernels.ring_checks; neighbour_checks.check_reach in NumPy)
     reach = (sample_reach(samples.uv, samples.ring, samples.pixel, np.isfinite(depth), width=cam.width)
              if ring is not None else None)
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(), ring, uv,

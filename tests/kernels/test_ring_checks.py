@@ -1,12 +1,12 @@
 """kernels.ring_checks: each sample's widest check along its ring, against the NumPy statement
-(``error_scale.check_reach``) and against what a ring's shape says it must be."""
+(``neighbour_checks.check_reach``) and against what a ring's shape says it must be."""
 
 import numpy as np
 import pytest
 import warp as wp
 
 from ringscan.kernels.ring_checks import sample_reach
-from ringscan.pipeline.reconstruct.error_scale import check_reach
+from ringscan.pipeline.reconstruct.neighbour_checks import check_reach
 
 WIDTH, HEIGHT = 320, 240
 
