@@ -300,6 +300,16 @@ def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray, upper: np.n
     return np.maximum(res.x, lower) * d2_scale / col
 
 
+def _tile_medians(x: np.ndarray, inv: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Each tile's ``np.median`` of ``x`` (tile ``inv`` of each value; the tiles' ``starts`` and ``counts`` in
+    tile order), from one sort of all the values by tile and value: the middle value, or the mean of the two
+    middle ones as np.median takes it ((a + b) / 2)."""
+    v = x[np.lexsort((x, inv))]
+    hi = v[starts + counts // 2]
+    lo = v[starts + np.maximum(counts - 1, 0) // 2]
+    return np.where(counts % 2 == 1, hi, (lo + hi) / 2)
+
+
 def _smooth_part(r: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
     """Each sample's share of the residual field that is smooth over ``TILE_PX``
     camera tiles (the median of its tile's signed residuals, 0 in tiles of fewer than
@@ -308,16 +318,11 @@ def _smooth_part(r: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
     key = np.floor(uv / TILE_PX).astype(np.int64)
     tile = key[:, 0] * 1_000_003 + key[:, 1]
     _, inv, counts = np.unique(tile, return_inverse=True, return_counts=True)
-    order = np.argsort(inv, kind="stable")
     starts = np.r_[0, np.cumsum(counts)[:-1]]
-    med = np.zeros(counts.size)
-    noise = np.zeros(counts.size)
-    rs = r[order]
-    for t in np.flatnonzero(counts >= MIN_TILE):
-        x = rs[starts[t]:starts[t] + counts[t]]
-        med[t] = np.median(x)
-        mad = np.median(np.abs(x - med[t])) / 0.6745
-        noise[t] = 1.571 * mad * mad / counts[t]  # a median's variance, pi / 2 sigma^2 / n
+    big = counts >= MIN_TILE
+    med = np.where(big, _tile_medians(r, inv, starts, counts), 0.0)
+    mad = _tile_medians(np.abs(r - med[inv]), inv, starts, counts) / 0.6745
+    noise = np.where(big, 1.571 * mad * mad / counts, 0.0)  # a median's variance, pi / 2 sigma^2 / n
     field = med[inv]
     used = counts[inv] >= MIN_TILE
     if not used.any():
