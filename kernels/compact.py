@@ -149,6 +149,20 @@ def set_at(a: wp.array, index: wp.array, value: int, *, threads: int | None = No
                  default_threads() if threads is None else threads)
 
 
+def _host_order_stats(dev) -> bool:
+    """Whether an order statistic of an array on ``dev`` is taken by NumPy on the array itself: on the CPU the
+    array is host memory (no transfer), and NumPy's selection (``np.partition``: O(n)) beats a full radix sort
+    (1.2M samples: a median 13 against 34 ms here). One name for the choice, so that the tests can run the
+    device path on the CPU backend."""
+    return dev.is_cpu
+
+
+def _finite_host(a: wp.array) -> np.ndarray:
+    """``a``'s finite values (a host array's own memory, read in place)."""
+    x = a.numpy()
+    return x[np.isfinite(x)]
+
+
 def _sorted_finite(a: wp.array, fn: str) -> wp.array:
     """``a``'s ((n,) float32) finite values sorted ascending (a radix sort on a's device), with room for
     the sort's scratch (the first len(finite) are the values)."""
@@ -175,6 +189,11 @@ def median(a: wp.array, *, dtype=np.float64, presorted: bool = False) -> float:
     """The median of ``a``'s ((n,) float32) finite values as ``np.median`` gives it for them in ``dtype``
     (float64: of their float64 copy; float32: of the values as they are; the mean of the two middle ones
     for an even count; NaN for none): two values read. ``presorted``: ``a`` is :func:`sort_finite`'s."""
+    if not presorted:
+        check_array("a", a, None, wp.float32, "median")
+    if not presorted and _host_order_stats(a.device):
+        fin = _finite_host(a)
+        return float(np.median(fin.astype(dtype))) if fin.size else float("nan")
     s = a if presorted else _sorted_finite(a, "median")
     m = s.shape[0]
     if m == 0:
@@ -202,8 +221,14 @@ def _lerp_sorted(s: wp.array, q: float, dtype) -> float:
 def percentiles(a: wp.array, q) -> tuple[list[float], int]:
     """(``np.percentile`` (its linear method) of ``a``'s ((n,) float32) finite values in float64 at each
     of ``q`` (percent; NaN for no value), how many values are finite): two values read a percentile."""
-    s = _sorted_finite(a, "percentiles")
+    check_array("a", a, None, wp.float32, "percentiles")
     qs = np.true_divide(np.asanyarray(q, np.float64), 100).ravel()
+    if _host_order_stats(a.device):
+        fin = _finite_host(a)
+        if not fin.size:
+            return [float("nan")] * qs.size, 0
+        return [float(v) for v in np.percentile(fin.astype(np.float64), np.asanyarray(q, np.float64).ravel())], fin.size
+    s = _sorted_finite(a, "percentiles")
     if s.shape[0] == 0:
         return [float("nan")] * qs.size, 0
     return [_lerp_sorted(s, qq, np.float64) for qq in qs], s.shape[0]
@@ -213,6 +238,11 @@ def percentile32(a: wp.array, q: float, *, presorted: bool = False) -> float:
     """``np.percentile`` of ``a``'s ((n,) float32) finite values at one scalar ``q`` (percent), as NumPy gives
     it for a float32 array and a scalar q: its linear method in float32 (NaN for no value). ``presorted``:
     ``a`` is :func:`sort_finite`'s."""
+    if not presorted:
+        check_array("a", a, None, wp.float32, "percentile32")
+    if not presorted and _host_order_stats(a.device):
+        fin = _finite_host(a)
+        return float(np.percentile(fin, q)) if fin.size else float("nan")
     s = a if presorted else _sorted_finite(a, "percentile32")
     return _lerp_sorted(s, float(np.true_divide(q, 100)), np.float32) if s.shape[0] else float("nan")
 
@@ -223,6 +253,8 @@ def median64(a: wp.array) -> float:
     n = check_array("a", a, None, wp.float64, "median64")
     if n == 0:
         raise ValueError("median64: no values")
+    if _host_order_stats(a.device):
+        return float(np.median(a.numpy()))
     keys = wp.empty(2 * n, dtype=wp.float64, device=a.device)
     wp.copy(keys, a, count=n)
     bits = wp.array(ptr=keys.ptr, dtype=wp.int64, shape=(2 * n,), device=a.device)

@@ -38,10 +38,15 @@ def test_gather_refuses_other_types():
         gather(wp.zeros(3, dtype=wp.uint8), wp.zeros(2, dtype=wp.int32))
 
 
+@pytest.mark.parametrize("host", [True, False], ids=["numpy-in-place", "device-sort"])
 @pytest.mark.parametrize("n", [1, 2, 3, 20, 9999, 10000])
-def test_median_and_percentiles_are_numpys(n):
-    from ringscan.kernels.compact import median, percentiles
+def test_median_and_percentiles_are_numpys(n, host, monkeypatch):
+    """On the CPU NumPy selects in place; the device's radix sort (CUDA's path, forced here on the CPU)
+    reads the same values to the bit."""
+    import ringscan.kernels.compact as compact
+    from ringscan.kernels.compact import median, median64, percentile32, percentiles
 
+    monkeypatch.setattr(compact, "_host_order_stats", lambda dev: host)
     rng = np.random.default_rng(n)
     a = (rng.gamma(2.0, 0.3, n) * 3).astype(np.float32)
     if n > 3:
@@ -52,6 +57,9 @@ def test_median_and_percentiles_are_numpys(n):
     got, count = percentiles(_f32(a), [50, 95, 5, 100])
     assert count == fin.size and got == [float(x) for x in np.percentile(fin.astype(np.float64), [50, 95, 5, 100])]
     assert np.isnan(median(_f32(np.full(4, np.nan)))) and percentiles(_f32(np.full(4, np.nan)), [50])[1] == 0
+    assert percentile32(_f32(a), 95) == float(np.percentile(fin, 95))
+    pos = np.abs(rng.normal(size=n))
+    assert median64(wp.array(pos, dtype=wp.float64)) == float(np.median(pos))
 
 
 def test_set_at_writes_the_value_at_the_indices_only():
