@@ -307,8 +307,9 @@ def subpixel_points(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, pixe
                          f"bits {bits} do not agree")
     if pixels.ndim != 1 or (pixels.size and (pixels.min() < 0 or pixels.max() >= H * W)):
         raise ValueError(f"subpixel_points: pixels must be 1-D indices below {H * W}")
-    if not math.isfinite(max_span) or max_span > max(H, W):
-        max_span = float(max(H, W))  # (no span is longer than a line)
+    if math.isnan(max_span):  # no span passes (as in the walk)
+        return code.reshape(-1)[pixels].astype(np.float64), np.zeros(pixels.size, bool)
+    max_span = min(float(max_span), float(max(H, W)))  # (no span is longer than a line: the search's bound)
     out, ok = np.empty(pixels.size, np.float64), np.empty(pixels.size, np.uint8)
     if pixels.size:
         _launch(subpixel_points_kernel, pixels.size,

@@ -157,3 +157,10 @@ def test_subpixel_points_check_their_pixels():
         subpixel_points(code, valid, pairs, np.array([160]), bits=5, axis=1, max_span=8.0)
     res, good = subpixel_points(code, valid, pairs, np.zeros(0, np.int64), bits=5, axis=1, max_span=8.0)
     assert res.shape == (0,) and good.shape == (0,)
+    # spans without a bound (inf: the line's length bounds the search) and none passing (NaN), as the walk
+    every = np.arange(code.size)
+    for span in (np.inf, np.nan):
+        want, want_ok = subpixel_lines(code, valid, pairs, bits=5, axis=1, max_span=span)
+        res, good = subpixel_points(code, valid, pairs, every, bits=5, axis=1, max_span=span)
+        assert np.array_equal(good, want_ok.ravel()) and np.array_equal(res[good], want.ravel()[good])
+        assert good.any() == (span == np.inf)
