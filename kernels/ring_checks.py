@@ -12,7 +12,7 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["check_reach_kernel", "sample_reach"]
+__all__ = ["check_reach_kernel", "ring_sums_kernel", "lag_nodes_kernel", "sample_reach", "ring_lag_nodes"]
 
 # no gradients here, and loops left as loops: unrolled (Warp's default for short constant
 # ranges), the 3 lags x 4 nodes x 5 x 5 pixels took minutes to compile on the CPU
@@ -104,6 +104,87 @@ def next_neighbours_ok(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64
     return ok
 
 
+@wp.func
+def ring_sums(uv: wp.array(dtype=wp.vec2), ring: wp.array(dtype=wp.int32), at_pixel: wp.array(dtype=wp.int32),
+              width: int, height: int, k: int, pc: wp.vec2d):
+    """(count, sum of x, of y, of x^2, of x y, of y^2) of the offsets from ``pc`` of ring ``k``'s samples in
+    the 5x5 pixels around it (the centre's own included), added in ``_ring_directions``' order."""
+    cx = int(wp.rint(pc[0]))
+    cy = int(wp.rint(pc[1]))
+    count = wp.float64(0.0)
+    mx = wp.float64(0.0)
+    my = wp.float64(0.0)
+    sxx = wp.float64(0.0)
+    sxy = wp.float64(0.0)
+    syy = wp.float64(0.0)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            j = same_ring_at(at_pixel, ring, width, height, k, cx + dx, cy + dy)
+            if j >= 0:
+                q = uv64(uv, j) - pc
+                count += wp.float64(1.0)
+                mx += q[0]
+                my += q[1]
+                sxx += q[0] * q[0]
+                sxy += q[0] * q[1]
+                syy += q[1] * q[1]
+    return wp.spatial_vectord(count, mx, my, sxx, sxy, syy)
+
+
+@wp.func
+def ring_direction(uv: wp.array(dtype=wp.vec2), ring: wp.array(dtype=wp.int32), at_pixel: wp.array(dtype=wp.int32),
+                   width: int, height: int, k: int, pc: wp.vec2d):
+    """(whether ring ``k`` has the centre and two more samples in the 5x5 pixels around ``pc``, the unit
+    direction of the ring there: the principal axis of those samples' positions): ``_ring_directions``."""
+    sums = ring_sums(uv, ring, at_pixel, width, height, k, pc)
+    count = sums[0]
+    mx = sums[1]
+    my = sums[2]
+    sxx = sums[3]
+    sxy = sums[4]
+    syy = sums[5]
+    direction = wp.vec2d(wp.float64(1.0), wp.float64(0.0))
+    if count >= wp.float64(3.0):
+        mx = mx / count
+        my = my / count
+        cxx = sxx / count - mx * mx
+        cxy = sxy / count - mx * my
+        cyy = syy / count - my * my
+        angle = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
+        direction = wp.vec2d(wp.cos(angle), wp.sin(angle))
+    return count >= wp.float64(3.0), direction
+
+
+@wp.func
+def lag_node(uv: wp.array(dtype=wp.vec2), ring: wp.array(dtype=wp.int32), at_pixel: wp.array(dtype=wp.int32),
+             width: int, height: int, k: int, pc: wp.vec2d, direction: wp.vec2d, step: int, lag: int):
+    """(the sample of ring ``k`` nearest to pc + step * lag * direction among the 5x5 pixels around that
+    target and within max(1.5, lag / 2) px of it (-1: none), its signed place along ``direction``):
+    ``_lag_nodes``' for one node.
+
+    Size: a @wp.func reading the samples and the pixel lookup directly, plus the ring, the centre's place,
+    the ring's direction there, the node's step and the lag."""
+    target = pc + wp.float64(float(step * lag)) * direction
+    tx = int(wp.rint(target[0]))
+    ty = int(wp.rint(target[1]))
+    best = wp.float64(1.0e300)
+    node = int(-1)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            j = same_ring_at(at_pixel, ring, width, height, k, tx + dx, ty + dy)
+            if j >= 0:
+                dist = wp.length(uv64(uv, j) - target)
+                if dist < best:
+                    best = dist
+                    node = j
+    if best > wp.max(wp.float64(1.5), wp.float64(0.5 * float(lag))):
+        node = -1
+    place = wp.float64(0.0)
+    if node >= 0:
+        place = wp.dot(uv64(uv, node) - pc, direction)
+    return node, place
+
+
 # ----------------------------------------------------------------------------- kernels
 
 
@@ -138,59 +219,19 @@ def check_reach_kernel(
     height = at_pixel.shape[0] / width
     pc = uv64(uv, c)
     r = int(0)
-    cx = int(wp.rint(pc[0]))
-    cy = int(wp.rint(pc[1]))
     # the ring's direction: the principal axis of its samples in the 5x5 pixels around
-    count = wp.float64(0.0)
-    mx = wp.float64(0.0)
-    my = wp.float64(0.0)
-    sxx = wp.float64(0.0)
-    sxy = wp.float64(0.0)
-    syy = wp.float64(0.0)
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            j = same_ring_at(at_pixel, ring, width, height, k, cx + dx, cy + dy)
-            if j >= 0:
-                q = uv64(uv, j) - pc
-                count += wp.float64(1.0)
-                mx += q[0]
-                my += q[1]
-                sxx += q[0] * q[0]
-                sxy += q[0] * q[1]
-                syy += q[1] * q[1]
-    if count >= wp.float64(3.0):
-        mx = mx / count
-        my = my / count
-        cxx = sxx / count - mx * mx
-        cxy = sxy / count - mx * my
-        cyy = syy / count - my * my
-        angle = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * cxy, cxx - cyy)
-        direction = wp.vec2d(wp.cos(angle), wp.sin(angle))
+    has, direction = ring_direction(uv, ring, at_pixel, width, height, k, pc)
+    if has:
         for li in range(3):
             lag = LAGS[li]
             fine = int(1)
             prev = wp.float64(-1.0e300)
             for s in range(4):
-                step = s - 2 + wp.where(s >= 2, 1, 0)  # -2, -1, 1, 2
-                target = pc + wp.float64(float(step * lag)) * direction
-                tx = int(wp.rint(target[0]))
-                ty = int(wp.rint(target[1]))
-                best = wp.float64(1.0e300)
-                node = int(-1)
-                for dy in range(-2, 3):
-                    for dx in range(-2, 3):
-                        j = same_ring_at(at_pixel, ring, width, height, k, tx + dx, ty + dy)
-                        if j >= 0:
-                            dist = wp.length(uv64(uv, j) - target)
-                            if dist < best:
-                                best = dist
-                                node = j
-                if best > wp.max(wp.float64(1.5), wp.float64(0.5 * float(lag))):
-                    node = -1
+                node, place = lag_node(uv, ring, at_pixel, width, height, k, pc, direction,
+                                       s - 2 + wp.where(s >= 2, 1, 0), lag)  # steps -2, -1, 1, 2
                 if node < 0:
                     fine = 0
                 else:
-                    place = wp.dot(uv64(uv, node) - pc, direction)
                     if place <= prev:
                         fine = 0
                     if s == 1 and place >= wp.float64(0.0):
@@ -204,6 +245,60 @@ def check_reach_kernel(
         px = pixel[c]
         r = next_neighbours_ok(uv, key, order, k, npix, width, px % width, px / width, c)
     reach[c] = r
+
+
+@wp.kernel
+def ring_sums_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    ring: wp.array(dtype=wp.int32),
+    centre: wp.array(dtype=wp.int32),
+    at_pixel: wp.array(dtype=wp.int32),
+    width: int,
+    i0: int,
+    sums: wp.array(dtype=wp.spatial_vectord),
+):
+    """Sample centre[i0 + tid]'s :func:`ring_sums` (the host turns them into the ring's direction with
+    NumPy's own arctan2, cos and sin, as ``_ring_directions`` does).
+
+    uv (n,) vec2, ring (n,) int32, centre (m,) int32, at_pixel (npix,) int32: read. sums (m,) spatial_vectord:
+    written."""
+    i = i0 + wp.tid()
+    c = centre[i]
+    sums[i] = ring_sums(uv, ring, at_pixel, width, at_pixel.shape[0] / width, ring[c], uv64(uv, c))
+
+
+@wp.kernel
+def lag_nodes_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    ring: wp.array(dtype=wp.int32),
+    centre: wp.array(dtype=wp.int32),
+    direction: wp.array(dtype=wp.vec2d),
+    at_pixel: wp.array(dtype=wp.int32),
+    width: int,
+    lags: int,
+    i0: int,
+    nodes: wp.array2d(dtype=wp.int32),
+    place: wp.array2d(dtype=wp.float64),
+):
+    """Sample centre[i0 + tid]'s four same-ring nodes near -2k, -k, k, 2k px along ``direction`` for each of
+    the first ``lags`` of ``LAGS``, and their places (:func:`lag_node`; ``_lag_nodes``).
+
+    uv (n,) vec2, ring (n,) int32, centre (m,) int32, direction (m,) vec2d, at_pixel (npix,) int32 a usable
+    sample at each pixel (-1: none): read. nodes (m, 4 lags) int32 (-1: none), place (m, 4 lags) float64:
+    written.
+
+    Size: the samples' two arrays, the centres and their directions, the pixel lookup, the camera's width,
+    the lags, the span's i0, two arrays out."""
+    i = i0 + wp.tid()
+    c = centre[i]
+    height = at_pixel.shape[0] / width
+    pc = uv64(uv, c)
+    for li in range(lags):
+        for s in range(4):
+            node, pl = lag_node(uv, ring, at_pixel, width, height, ring[c], pc, direction[i],
+                                s - 2 + wp.where(s >= 2, 1, 0), LAGS[li])
+            nodes[i, 4 * li + s] = node
+            place[i, 4 * li + s] = pl
 
 
 # ----------------------------------------------------------------------------- host
@@ -247,3 +342,55 @@ def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarr
     launch_spans(check_reach_kernel, use.size, lambda i0: args + [i0], [out], dev,
                  default_threads() if threads is None else threads, min_span=1024)
     return out.numpy()
+
+
+def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centre: np.ndarray, *, width: int,
+                   lags: int, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(the ``centre`` samples whose ring has a direction there (k,), that direction (k, 2), their nodes
+    (k, lags, 4) int64 (-1: none) and the nodes' places (k, lags, 4) float64) for the first ``lags`` of
+    (2, 4, 8) px: ``neighbour_checks._ring_directions`` and ``_lag_nodes``, the same samples, directions
+    and places to the bit (the positions' sums by :func:`ring_sums_kernel`, the direction from them by
+    NumPy as there, the nodes by :func:`lag_nodes_kernel`).
+
+    Args:
+        uv: (n, 2) float the samples' camera positions (float32 values, as the samples hold them).
+        ring: (n,) int each sample's ring.
+        at_pixel: (H * W,) int a usable sample's index at each camera pixel (-1: none).
+        centre: (m,) int the samples to find nodes for.
+        width: camera width (px).
+        lags: how many of the lags (1..3).
+        threads: CPU threads; default all cores.
+    """
+    if not 1 <= lags <= 3:
+        raise ValueError(f"ring_lag_nodes: lags must be 1..3, got {lags}")
+    centre = np.asarray(centre, np.int64)
+    dev, threads = "cpu", default_threads() if threads is None else threads
+    uv32 = wp.array(np.ascontiguousarray(np.asarray(uv).reshape(-1, 2), np.float32), dtype=wp.vec2, device=dev)
+    ring_w = wp.array(np.asarray(ring, np.int32), dtype=wp.int32, device=dev)
+    at_w = wp.array(np.asarray(at_pixel, np.int32), dtype=wp.int32, device=dev)
+    sums = np.zeros((centre.size, 6))
+    if centre.size:
+        c_w = wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev)
+        launch_spans(ring_sums_kernel, centre.size, lambda i0: [uv32, ring_w, c_w, at_w, int(width), i0],
+                     [wp.array(sums, dtype=wp.spatial_vectord, device=dev, copy=False)], dev, threads, min_span=1024)
+        wp.synchronize_device(dev)
+    # _ring_directions' arithmetic on the sums
+    count, mean, cov = sums[:, 0], sums[:, 1:3].copy(), sums[:, 3:6]
+    keep = count >= 3
+    n = np.maximum(count, 1)[:, None]
+    mean /= n
+    cxx, cxy, cyy = (cov / n).T
+    cxx, cxy, cyy = cxx - mean[:, 0] ** 2, cxy - mean[:, 0] * mean[:, 1], cyy - mean[:, 1] ** 2
+    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+    direction = np.stack([np.cos(angle), np.sin(angle)], 1)[keep]
+    kept = centre[keep]
+    nodes = np.full((kept.size, 4 * lags), -1, np.int32)
+    place = np.zeros((kept.size, 4 * lags), np.float64)
+    if kept.size:
+        args = [uv32, ring_w, wp.array(kept.astype(np.int32), dtype=wp.int32, device=dev),
+                wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), int(lags)]
+        launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0],
+                     [wp.array(nodes, dtype=wp.int32, device=dev, copy=False),
+                      wp.array(place, dtype=wp.float64, device=dev, copy=False)], dev, threads, min_span=1024)
+        wp.synchronize_device(dev)
+    return kept, direction, nodes.reshape(-1, lags, 4).astype(np.int64), place.reshape(-1, lags, 4)

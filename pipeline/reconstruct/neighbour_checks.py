@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ringscan.kernels.ring_checks import ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
     GROUP_SCALE_RANGE,
     MAX_CHECK_SAMPLES,
@@ -200,10 +201,15 @@ def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: i
     least ``MIN_PAIRS`` samples have all four: every ``centre`` sample, with its ring's
     direction there from the ring's samples around it (a ring broken up by dropped
     samples still has one)."""
-    wide, direction = _ring_directions(uv, idx.ring, idx.at_pixel, idx.width, centre)
+    lags = [k for k in NEIGHBOUR_LAGS[1:] if k <= max_lag]
+    if not lags:
+        return []
+    # the ring's direction at each centre and its nodes at each lag: kernels.ring_checks (the same samples and
+    # places as _ring_directions and _lag_nodes state them in NumPy, ~30x faster)
+    wide, _, nodes_at, place_at = ring_lag_nodes(uv, idx.ring, idx.at_pixel, centre, width=idx.width, lags=len(lags))
     out = []
-    for lag in (k for k in NEIGHBOUR_LAGS[1:] if k <= max_lag):
-        nodes, place = _lag_nodes(uv, idx.ring, idx.at_pixel, idx.width, wide, direction, lag)
+    for li, lag in enumerate(lags):
+        nodes, place = nodes_at[:, li], place_at[:, li]
         fine = ((nodes >= 0).all(axis=1) & (np.diff(place, axis=1) > 0).all(axis=1) & (place[:, 1] < 0)
                 & (place[:, 2] > 0))
         if np.count_nonzero(fine) >= MIN_PAIRS:

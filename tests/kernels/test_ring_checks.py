@@ -67,3 +67,29 @@ def test_bad_arguments_are_refused():
         sample_reach(uv, wp.zeros(2, dtype=wp.int32), wp.zeros(3, dtype=wp.int32), np.ones(3, bool), width=8)
     with pytest.raises(ValueError, match="usable must be"):
         sample_reach(uv, wp.zeros(3, dtype=wp.int32), wp.zeros(3, dtype=wp.int32), np.ones(2, bool), width=8)
+
+
+def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit():
+    """The nodes the neighbour model's wide checks use (its centres' ring directions, their four same-ring
+    nodes at 2, 4 and 8 px and the nodes' places) are _ring_directions' and _lag_nodes' to the bit, on
+    broken rings whose centres have every outcome (no direction; some nodes missing; all four)."""
+    from ringscan.kernels.ring_checks import LAGS, ring_lag_nodes
+    from ringscan.pipeline.reconstruct.neighbour_checks import NEIGHBOUR_LAGS, _lag_nodes, _ring_directions, _ring_index
+
+    assert tuple(int(x) for x in LAGS) == NEIGHBOUR_LAGS[1:]  # the kernel's lags are the model's
+    rng = np.random.default_rng(12)
+    uv, pixel, ring = _view([_circle(k, 10 + 4.3 * k) for k in range(24)])
+    keep = rng.random(len(pixel)) > 0.3
+    uv, pixel, ring = uv[keep], pixel[keep], ring[keep]
+    uv64 = uv.astype(np.float64)
+    idx = _ring_index(ring.astype(np.int64), pixel.astype(np.int64), np.arange(len(pixel)), WIDTH)
+    centre = idx.order[rng.random(idx.order.size) < 0.5]
+    wide, direction = _ring_directions(uv64, idx.ring, idx.at_pixel, WIDTH, centre)
+    kept, dirs, nodes, place = ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=3)
+    assert np.array_equal(kept, wide) and np.array_equal(dirs, direction) and 0 < kept.size < centre.size
+    for li, lag in enumerate(NEIGHBOUR_LAGS[1:]):
+        want_nodes, want_place = _lag_nodes(uv64, idx.ring, idx.at_pixel, WIDTH, wide, direction, lag)
+        assert np.array_equal(nodes[:, li], want_nodes)
+        found = want_nodes >= 0
+        assert np.array_equal(place[:, li][found], want_place[found]) and (place[:, li][~found] == 0).all()
+        assert 0 < found.all(axis=1).sum() < found.shape[0]  # some centres with all four nodes, some without
