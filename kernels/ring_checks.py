@@ -12,7 +12,8 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["check_reach_kernel", "ring_sums_kernel", "lag_nodes_kernel", "sample_reach", "ring_lag_nodes"]
+__all__ = ["check_reach_kernel", "next_neighbours_kernel", "ring_sums_kernel", "lag_nodes_kernel", "sample_reach",
+           "next_neighbours", "ring_lag_nodes"]
 
 # no gradients here, and loops left as loops: unrolled (Warp's default for short constant
 # ranges), the 3 lags x 4 nodes x 5 x 5 pixels took minutes to compile on the CPU
@@ -59,6 +60,20 @@ def same_ring_at(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int
 @wp.func
 def uv64(uv: wp.array(dtype=wp.vec2), i: int):
     return wp.vec2d(wp.float64(uv[i][0]), wp.float64(uv[i][1]))
+
+
+@wp.func
+def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32), k: int, npix: wp.int64,
+                    width: int, x: int, y: int, a: int):
+    """The sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (row by row, the centre left out;
+    -1: none there)."""
+    ia = a + wp.where(a >= 4, 1, 0)
+    ax = x + ia % 3 - 1
+    ay = y + ia / 3 - 1
+    j = int(-1)
+    if ax >= 0 and ax < width and ay >= 0:
+        j = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
+    return j
 
 
 @wp.func
@@ -248,6 +263,63 @@ def check_reach_kernel(
 
 
 @wp.kernel
+def next_neighbours_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    ring: wp.array(dtype=wp.int32),
+    pixel: wp.array(dtype=wp.int32),
+    centre: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+    npix: wp.int64,
+    width: int,
+    i0: int,
+    pair: wp.array(dtype=wp.vec2i),
+):
+    """Sample centre[i0 + tid]'s two samples of its ring among its 8 neighbouring pixels most nearly on
+    opposite sides, where at least 120 degrees apart (``_next_neighbours``: the pair of least cosine between
+    their unit offsets, the first such in the 8 x 8 order, both with an offset; (-1, -1): none).
+
+    uv (n,) vec2, ring and pixel (n,) int32, centre (m,) int32, key (u,) int64 sorted ring * npix + pixel of
+    the usable samples and order (u,) int32 the sample of each: read. pair (m,) vec2i: written.
+
+    Size: the samples' three arrays, the centres, the ring index (keys, their samples, its stride), the
+    camera's width, the span's i0, one array out."""
+    i = i0 + wp.tid()
+    c = centre[i]
+    k = ring[c]
+    x = pixel[c] % width
+    y = pixel[c] / width
+    pc = uv64(uv, c)
+    best = wp.float64(1.0e308)
+    found = int(0)
+    ba = int(-1)
+    bb = int(-1)
+    for a in range(8):
+        ja = keyed_neighbour(key, order, k, npix, width, x, y, a)
+        if ja >= 0:
+            va = uv64(uv, ja) - pc
+            na = wp.length(va)
+            if na > wp.float64(0.0):
+                ua = wp.vec2d(va[0] / na, va[1] / na)
+                for b in range(8):
+                    jb = keyed_neighbour(key, order, k, npix, width, x, y, b)
+                    if jb >= 0:
+                        vb = uv64(uv, jb) - pc
+                        nb = wp.length(vb)
+                        if nb > wp.float64(0.0):
+                            cos = ua[0] * (vb[0] / nb) + ua[1] * (vb[1] / nb)
+                            if found == 0 or cos < best:
+                                best = cos
+                                found = 1
+                                ba = ja
+                                bb = jb
+    if found == 0 or best > wp.float64(-0.5):
+        ba = -1
+        bb = -1
+    pair[i] = wp.vec2i(ba, bb)
+
+
+@wp.kernel
 def ring_sums_kernel(
     uv: wp.array(dtype=wp.vec2),
     ring: wp.array(dtype=wp.int32),
@@ -394,3 +466,31 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
                       wp.array(place, dtype=wp.float64, device=dev, copy=False)], dev, threads, min_span=1024)
         wp.synchronize_device(dev)
     return kept, direction, nodes.reshape(-1, lags, 4).astype(np.int64), place.reshape(-1, lags, 4)
+
+
+def next_neighbours(uv: np.ndarray, ring: np.ndarray, pixel: np.ndarray, key: np.ndarray, order: np.ndarray,
+                    npix: int, centre: np.ndarray, *, width: int,
+                    threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(c, a, b): the ``centre`` samples with two samples of their ring among their 8 neighbouring pixels
+    at least 120 degrees apart, and those two (:func:`next_neighbours_kernel`; the NumPy statement
+    ``neighbour_checks._next_neighbours``, the same samples). ``key``/``order``/``npix``: the ring index
+    (``neighbour_checks._RingIndex``); ``uv`` (n, 2) float32 values, ``ring``, ``pixel`` (n,) int.
+
+    Size: the samples' three arrays, the ring index's three parts, the centres, the camera's width and the
+    threads."""
+    centre = np.asarray(centre, np.int64)
+    pair = np.full((centre.size, 2), -1, np.int32)
+    if centre.size:
+        dev = "cpu"
+        args = [wp.array(np.ascontiguousarray(np.asarray(uv).reshape(-1, 2), np.float32), dtype=wp.vec2, device=dev),
+                wp.array(np.asarray(ring, np.int32), dtype=wp.int32, device=dev),
+                wp.array(np.asarray(pixel, np.int32), dtype=wp.int32, device=dev),
+                wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev),
+                wp.array(np.asarray(key, np.int64), dtype=wp.int64, device=dev),
+                wp.array(np.asarray(order, np.int32), dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
+        launch_spans(next_neighbours_kernel, centre.size, lambda i0: args + [i0],
+                     [wp.array(pair, dtype=wp.vec2i, device=dev, copy=False)], dev,
+                     default_threads() if threads is None else threads, min_span=1024)
+        wp.synchronize_device(dev)
+    use = pair[:, 0] >= 0
+    return centre[use], pair[use, 0].astype(np.int64), pair[use, 1].astype(np.int64)

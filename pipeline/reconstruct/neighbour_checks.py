@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ringscan.kernels.ring_checks import ring_lag_nodes
+from ringscan.kernels.ring_checks import next_neighbours, ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
     GROUP_SCALE_RANGE,
     MAX_CHECK_SAMPLES,
@@ -296,7 +296,8 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     # every R-th row's samples are checked, against any samples of theirs on the same ring
     period = max(3, int(np.ceil(n_ok / max_samples)))
     centre = idx.order[(idx.y[idx.order] % period) == 1]
-    c, a, b = _next_neighbours(uv, idx, centre)
+    # (kernels.ring_checks.next_neighbours: _next_neighbours' samples, by a kernel)
+    c, a, b = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.npix, centre, width=width)
     if c.size < MIN_PAIRS:
         return identity_model(int(c.size))
     ab = uv[b] - uv[a]

@@ -93,3 +93,20 @@ def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit():
         found = want_nodes >= 0
         assert np.array_equal(place[:, li][found], want_place[found]) and (place[:, li][~found] == 0).all()
         assert 0 < found.all(axis=1).sum() < found.shape[0]  # some centres with all four nodes, some without
+
+
+def test_next_neighbours_are_the_numpy_statements():
+    """The 1 px check's pairs (two same-ring samples among a centre's 8 neighbouring pixels, at least 120
+    degrees apart, the most nearly opposite first) are _next_neighbours' to the sample, on broken rings."""
+    from ringscan.kernels.ring_checks import next_neighbours
+    from ringscan.pipeline.reconstruct.neighbour_checks import _next_neighbours, _ring_index
+
+    rng = np.random.default_rng(13)
+    uv, pixel, ring = _view([_circle(k, 10 + 4.3 * k) for k in range(24)])
+    keep = rng.random(len(pixel)) > 0.3
+    uv, pixel, ring = uv[keep], pixel[keep].astype(np.int64), ring[keep].astype(np.int64)
+    idx = _ring_index(ring, pixel, np.arange(len(pixel)), WIDTH)
+    want = _next_neighbours(uv.astype(np.float64), idx, idx.order)
+    got = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.npix, idx.order, width=WIDTH)
+    assert all(np.array_equal(a, b) for a, b in zip(got, want))
+    assert 0 < want[0].size < idx.order.size  # some centres with a pair, some without
