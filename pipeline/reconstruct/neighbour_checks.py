@@ -385,7 +385,7 @@ def check_reach(depth: np.ndarray, pixel: np.ndarray, ring: np.ndarray, uv: np.n
 
 
 def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingIndex,
-                       centre: np.ndarray, radius: int, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       centre: np.ndarray, radius: int, chunk: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(checked samples (m,), r (m,), its predicted variance (m,)): each ``centre`` sample's depth
     against the quadratic of depth over the image that the samples of other rings within
     ``radius`` px fit (weighted by 1 / ``var``; refitted without the neighbours beyond
@@ -402,22 +402,24 @@ def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _Rin
     out_c, out_r, out_v = [], [], []
     for i0 in range(0, centre.size, chunk):
         c = centre[i0:i0 + chunk]
-        m = c.size
         xx, yy = idx.x[c][:, None] + off[:, 0], idx.y[c][:, None] + off[:, 1]
         inside = (xx >= 0) & (xx < idx.width) & (yy >= 0) & (yy < height)
         j = np.where(inside, idx.at_pixel[np.where(inside, yy * idx.width + xx, 0)], -1)
         jj = np.maximum(j, 0)
         kc = idx.ring[c][:, None]
         have = (j >= 0) & (idx.ring[jj] != kc) & np.isfinite(d[jj]) & (var[jj] > 0)
-        du, dv = uv[jj, 0] - uv[c, 0][:, None], uv[jj, 1] - uv[c, 1][:, None]
-        A = np.stack([np.ones_like(du), du, dv, du * du, du * dv, dv * dv], -1)
-        p = A.shape[-1]
-        dj = np.where(have, d[jj], 0.0)
         rk = np.where(have, idx.ring[jj], np.iinfo(np.int64).max)
         srt = np.sort(rk, axis=1)
         rings = np.count_nonzero((np.diff(srt, axis=1) != 0) & (srt[:, 1:] != np.iinfo(np.int64).max), axis=1) + (
             srt[:, 0] != np.iinfo(np.int64).max)
         good = ((have & (idx.ring[jj] < kc)).any(axis=1) & (have & (idx.ring[jj] > kc)).any(axis=1) & (rings >= 3))
+        # the fits only where a check can be made (each row's numbers are its own)
+        c, jj, have, good = c[good], jj[good], have[good], good[good]
+        m = c.size
+        du, dv = uv[jj, 0] - uv[c, 0][:, None], uv[jj, 1] - uv[c, 1][:, None]
+        A = np.stack([np.ones_like(du), du, dv, du * du, du * dv, dv * dv], -1)
+        p = A.shape[-1]
+        dj = np.where(have, d[jj], 0.0)
         sw = np.sqrt(np.where(have, 1.0 / np.where(have, var[jj], 1.0), 0.0))
         for it in range(2):
             w = np.where(have, sw * sw, 0.0)
