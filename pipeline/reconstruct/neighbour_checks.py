@@ -384,6 +384,27 @@ def check_reach(depth: np.ndarray, pixel: np.ndarray, ring: np.ndarray, uv: np.n
     return reach
 
 
+def _cross_fit(A: np.ndarray, dj: np.ndarray, have: np.ndarray, sw: np.ndarray,
+               good: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One weighted fit of :func:`_cross_ring_checks` a row: (the normal matrices, the identity where the
+    fit cannot be made (m, p, p); ``good`` less those rows; each row's robust spread of its neighbours'
+    normalised residuals (m,); those residuals (m, K), inf where no neighbour)."""
+    m, p = A.shape[0], A.shape[-1]
+    w = np.where(have, sw * sw, 0.0)
+    good = good & (np.count_nonzero(have, axis=1) >= 3 * p)
+    Aw = A * w[..., None]
+    N = np.matmul(Aw.transpose(0, 2, 1), A)
+    good &= np.linalg.cond(np.where(good[:, None, None], N, np.eye(p))) < 1e12  # six terms fixed
+    Ns = np.where(good[:, None, None], N, np.eye(p))
+    beta = np.linalg.solve(Ns, np.matmul(Aw.transpose(0, 2, 1), dj[..., None]))
+    zr = np.where(have, np.abs(dj - np.matmul(A, beta)[..., 0]) * sw, np.inf)
+    cnt = np.count_nonzero(have, axis=1)
+    srt_z = np.sort(zr, axis=1)  # each row's neighbours first, the missing (inf) last
+    mid = np.maximum(cnt - 1, 0)
+    spread = 0.5 * (srt_z[np.arange(m), mid // 2] + srt_z[np.arange(m), (mid + 1) // 2]) / 0.6745
+    return Ns, good, spread, zr
+
+
 def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingIndex,
                        centre: np.ndarray, radius: int, chunk: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(checked samples (m,), r (m,), its predicted variance (m,)): each ``centre`` sample's depth
@@ -421,21 +442,14 @@ def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _Rin
         p = A.shape[-1]
         dj = np.where(have, d[jj], 0.0)
         sw = np.sqrt(np.where(have, 1.0 / np.where(have, var[jj], 1.0), 0.0))
-        for it in range(2):
-            w = np.where(have, sw * sw, 0.0)
-            good &= np.count_nonzero(have, axis=1) >= 3 * p
-            Aw = A * w[..., None]
-            N = np.matmul(Aw.transpose(0, 2, 1), A)
-            good &= np.linalg.cond(np.where(good[:, None, None], N, np.eye(p))) < 1e12  # six terms fixed
-            Ns = np.where(good[:, None, None], N, np.eye(p))
-            beta = np.linalg.solve(Ns, np.matmul(Aw.transpose(0, 2, 1), dj[..., None]))
-            zr = np.where(have, np.abs(dj - np.matmul(A, beta)[..., 0]) * sw, np.inf)
-            cnt = np.count_nonzero(have, axis=1)
-            srt_z = np.sort(zr, axis=1)  # each row's neighbours first, the missing (inf) last
-            mid = np.maximum(cnt - 1, 0)
-            spread = 0.5 * (srt_z[np.arange(m), mid // 2] + srt_z[np.arange(m), (mid + 1) // 2]) / 0.6745
-            if it == 0:
-                have &= ~(zr > CROSS_REJECT * np.maximum(spread, 1.0)[:, None])
+        Ns, good, spread, zr = _cross_fit(A, dj, have, sw, good)
+        # refitted without the neighbours far off the first fit: only the rows that lose one (the others'
+        # second fit is their first, to the bit)
+        far = have & (zr > CROSS_REJECT * np.maximum(spread, 1.0)[:, None])
+        redo = np.flatnonzero(far.any(axis=1))
+        if redo.size:
+            have[redo] &= ~far[redo]
+            Ns[redo], good[redo], spread[redo], _ = _cross_fit(A[redo], dj[redo], have[redo], sw[redo], good[redo])
         good &= spread <= CROSS_GATE
         b = np.linalg.solve(Ns, np.tile(np.eye(p)[0], (m, 1))[..., None])[..., 0]
         wi = np.where(have, sw * sw, 0.0) * np.matmul(A, b[..., None])[..., 0]
