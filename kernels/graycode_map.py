@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.launch import cpu_pool
 from ringscan.kernels.runtime import init_warp
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
@@ -243,8 +244,8 @@ def _cpu(a: np.ndarray, dtype) -> wp.array:
 
 
 def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bits: int, axis: int,
-                   max_span: float, scale: float = 1.0,
-                   lines: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   max_span: float, scale: float = 1.0, lines: np.ndarray | None = None,
+                   threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel projector coordinate of a dense Gray-code map along camera ``axis`` (1: across, 0: down).
 
     A boundary lies between neighbours that both decoded and whose codes are one apart, at the
@@ -261,6 +262,10 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
         bits, axis, max_span: as above.
         lines: the rows (axis 1) or columns (axis 0) to walk (None: all); the others' ``out`` and ``ok``
             are left as they were allocated (``ok`` False, ``out`` NaN).
+        threads: CPU threads the lines are shared out among (each line's numbers are its own).
+
+    Size: the map's three arrays and the walk's own settings (bits, axis, span, the levels' scale), the lines
+    to walk and the threads, each keyword-only.
 
     Returns:
         (out (H, W) float64: the interpolated coordinate, the code itself where none;
@@ -284,10 +289,18 @@ def subpixel_lines(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, *, bi
         if lines.ndim != 1 or (lines.size and (lines.min() < 0 or lines.max() >= n_lines)):
             raise ValueError(f"subpixel_lines: lines must be 1-D indices below {n_lines}")
     if H and W and lines.size:
-        _launch(subpixel_lines_kernel, lines.size,
-                [_cpu(code, wp.int32), _cpu(valid, wp.uint8), _cpu(pairs, wp.dtype_from_numpy(pairs.dtype)),
-                 _cpu(lines, wp.int32), wp.float32(scale), int(bits), int(axis), wp.float64(max_span)],
-                [_cpu(out, wp.float64), _cpu(ok, wp.uint8)], pairs.dtype)
+        arrays = [_cpu(code, wp.int32), _cpu(valid, wp.uint8), _cpu(pairs, wp.dtype_from_numpy(pairs.dtype))]
+        outputs = [_cpu(out, wp.float64), _cpu(ok, wp.uint8)]
+
+        def walk(part: np.ndarray) -> None:
+            _launch(subpixel_lines_kernel, part.size,
+                    arrays + [_cpu(part, wp.int32), wp.float32(scale), int(bits), int(axis), wp.float64(max_span)],
+                    outputs, pairs.dtype)
+
+        parts = [p for p in np.array_split(lines, max(1, min(int(threads), lines.size // 64))) if p.size]
+        walk(parts[0])  # (the first on this thread: it loads the module under the lock)
+        if len(parts) > 1:
+            list(cpu_pool(len(parts) - 1).map(walk, parts[1:]))
     return out, ok.view(bool)
 
 

@@ -24,7 +24,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
 __all__ = ["row_run", "launch_rows", "launch_spans", "default_threads", "cpu_threads", "set_cpu_threads",
-           "scan_counts", "check_array"]
+           "scan_counts", "check_array", "cpu_pool"]
 
 
 @wp.func
@@ -109,6 +109,12 @@ _pools: dict = {}
 
 
 _pool_lock = threading.Lock()
+
+
+def cpu_pool(threads: int):
+    """The process-wide pool of ``threads`` threads (for host code that launches CPU kernels on threads of its
+    own, as :func:`launch_rows` does)."""
+    return _pool(threads)
 
 
 def _pool(threads: int):

@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from ringscan.kernels.graycode_map import subpixel_lines, subpixel_points
+from ringscan.kernels.launch import cpu_pool
 from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "graycode_bits", "decode_graycode",
@@ -207,31 +208,45 @@ def _modulation(pairs: np.ndarray, b: int, scale: float, ints: bool, bit: np.nda
     return np.abs(d, out=d)
 
 
-def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
-    """Integer projector column and row of every camera pixel (the plain decode)."""
+def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCodeSettings(),
+                    threads: int = 1) -> Decoded:
+    """Integer projector column and row of every camera pixel (the plain decode; ``threads``: row bands
+    decoded at once, each pixel's numbers its own)."""
     contrast = cap.white - cap.black
     weak = np.zeros(contrast.shape, np.uint8)  # (at most 2 x 30 bits)
     ints = _integer_levels(cap)
     dim = _level_threshold(DIM_BIT_FRACTION * contrast, ints)
-    d = np.empty_like(contrast)
-    bit = np.empty(contrast.shape, bool)
+    wide = len(cap.col_pairs) > 30 or len(cap.row_pairs) > 30
+    col, row = (np.empty(contrast.shape, np.int64 if wide else np.int32) for _ in range(2))
+    okc, okr = np.empty(contrast.shape, bool), np.empty(contrast.shape, bool)
 
-    def code(pairs):
-        g = np.zeros(contrast.shape, np.int64 if len(pairs) > 30 else np.int32)
-        ok = np.ones(contrast.shape, bool)
+    def code(pairs, rows, out, ok, bit, d):
+        g = np.zeros(bit.shape, out.dtype)
+        ok[rows] = True
         for b in range(len(pairs)):
-            a = _modulation(pairs, b, cap.scale, ints, bit, d)
+            a = _modulation(pairs[:, :, rows], b, cap.scale, ints, bit, d)
             g <<= 1
             g |= bit
             if settings.min_bit_contrast > 0:  # (at 0, the default, every bit passes: two passes saved)
                 np.greater_equal(a, np.float32(settings.min_bit_contrast), out=bit)
-                ok &= bit
-            np.less(a, dim, out=bit)
-            weak[...] += bit
-        return gray_decode(g, len(pairs)), ok
+                ok[rows] &= bit
+            np.less(a, dim[rows], out=bit)
+            weak[rows] += bit
+        out[rows] = gray_decode(g, len(pairs))
 
-    col, okc = code(cap.col_pairs)
-    row, okr = code(cap.row_pairs)
+    def band(rows):
+        shape = (rows.stop - rows.start, contrast.shape[1])
+        bit, d = np.empty(shape, bool), np.empty(shape, np.float32)
+        code(cap.col_pairs, rows, col, okc, bit, d)
+        code(cap.row_pairs, rows, row, okr, bit, d)
+
+    edges = np.linspace(0, contrast.shape[0], max(1, min(int(threads), contrast.shape[0] // 64)) + 1).astype(int)
+    bands = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    if len(bands) > 1:  # (NumPy's loops release the GIL)
+        list(cpu_pool(len(bands)).map(band, bands))
+    else:
+        for rows in bands:
+            band(rows)
     valid = (contrast >= settings.min_contrast) | ((contrast >= settings.dim_contrast) & (weak <= DIM_MAX_WEAK))
     valid &= okc & okr & (col < cap.projector[0]) & (row < cap.projector[1])
     noise = frame_noise(cap, valid)
@@ -329,17 +344,17 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
 
 
 def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float,
-                scale: float = 1.0, lines: np.ndarray | None = None):
+                scale: float = 1.0, lines: np.ndarray | None = None, threads: int = 1):
     """Sub-pixel coordinate along ``axis`` (0: camera rows, i.e. down; 1: across): each decoded pixel
     interpolated between the code boundaries around it (one Warp kernel walk a line,
     ``kernels.graycode_map.subpixel_lines``; its figures are the NumPy construction's to the bit), on
     ``lines`` (None: all)."""
     return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale,
-                          lines=lines)
+                          lines=lines, threads=threads)
 
 
 def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,
-            max_span: float, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+            max_span: float, scale: float = 1.0, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel coordinate of every pixel from the bits it trusts: a pixel that leaves its ``k`` finest bits
     untrusted is interpolated between the boundaries of blocks of 2**k projector pixels (the code without
     those bits: ``code >> k``, whose Gray bits are the first ``bits - k``), found between the pixels that
@@ -370,7 +385,7 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
             out.reshape(-1)[at[good]] = res[good] * 2 ** k + (2 ** k - 1) / 2.0
             ok.reshape(-1)[at[good]] = True
             continue
-        res, good = _along_axis(ck, lvl_valid, pk, axis, span, scale, lines)
+        res, good = _along_axis(ck, lvl_valid, pk, axis, span, scale, lines, threads)
         take = todo & good
         if k == 0:  # (the walk's array itself: a fresh one, kept)
             np.copyto(res, np.nan, where=~take)
@@ -383,8 +398,10 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     return out, ok
 
 
-def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettings = GrayCodeSettings()) -> Decoded:
-    """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``."""
+def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettings = GrayCodeSettings(),
+                 threads: int = 1) -> Decoded:
+    """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``
+    (``threads``: the lines walked at once, each line's numbers its own)."""
 
     def axis_of(code):
         gx, gy = _code_steps(code, dec.valid)
@@ -392,8 +409,10 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
 
     ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
     coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
-    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale)
-    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale)
+    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale,
+                     threads)
+    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale,
+                     threads)
     # a pixel whose finest bits are untrusted has no integer code to fall back on: it is dropped
     lost = dec.valid & (((coarse[..., 0] > 0) & ~oku) | ((coarse[..., 1] > 0) & ~okv))
     if dec.low_modulation is not None:

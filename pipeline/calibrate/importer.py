@@ -432,7 +432,7 @@ def _decode_camera(f, c: int, projector, layout: str, settings: ImportSettings, 
     """Camera ``c``'s frames of capture ``f`` decoded to projector positions (sub-pixel unless integer_only)."""
     cap = read_capture_files(f.frames_of(c), projector=projector, layout=layout, source=f.source,
                              frame_bits=settings.frame_bits, threads=threads)
-    dec = decode_graycode(cap, settings=settings.graycode)
+    dec = decode_graycode(cap, settings=settings.graycode, threads=threads)
     if settings.integer_only:
         # an integer code whose finest bits do not stand clear of the noise is a guess: left out
         guess = dec.valid & ((dec.coarse[..., 0] | dec.coarse[..., 1]) != 0)
@@ -442,7 +442,7 @@ def _decode_camera(f, c: int, projector, layout: str, settings: ImportSettings, 
         dec.v = np.where(dec.valid, dec.row, np.nan)
         dec.subpixel = np.zeros_like(dec.valid)
     else:
-        subpixel_map(cap, dec, settings=settings.graycode)
+        subpixel_map(cap, dec, settings=settings.graycode, threads=threads)
     return dec
 
 

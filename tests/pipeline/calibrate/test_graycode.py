@@ -158,3 +158,16 @@ def test_a_capture_kept_as_read_decodes_as_its_float_levels(which, capture, defo
     assert np.array_equal(a.u, b.u, equal_nan=True) and np.array_equal(a.v, b.v, equal_nan=True)
     if which == "defocused":
         assert (a.coarse[a.valid] > 0).mean() > 0.9 and a.subpixel.mean() > 0.5  # the coarser levels placed them
+
+
+def test_threads_share_out_rows_and_lines_with_the_same_numbers(defocused):
+    """The decode's row bands and the walk's lines shared out among threads (a one-camera import's two
+    cores) give the one-thread decode and maps to the bit, coarser levels included."""
+    cap, _, _ = defocused
+    one = subpixel_map(cap, decode_graycode(cap))
+    two = subpixel_map(cap, decode_graycode(cap, threads=2), threads=2)
+    assert cap.white.shape[0] >= 128  # two bands of at least 64 rows: the threaded path runs
+    for f in ("col", "row", "valid", "contrast", "coarse", "low_modulation", "subpixel"):
+        assert np.array_equal(getattr(one, f), getattr(two, f)), f
+    assert one.noise == two.noise
+    assert np.array_equal(one.u, two.u, equal_nan=True) and np.array_equal(one.v, two.v, equal_nan=True)
