@@ -77,46 +77,42 @@ def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int3
 
 
 @wp.func
-def neighbour_offset(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
-                     k: int, npix: wp.int64, width: int, x: int, y: int, a: int, pc: wp.vec2d):
-    """The offset from ``pc`` of the sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (0, 0:
-    none there).
-
-    Size: a @wp.func reading the samples and the ring index directly (Warp functions take arrays one by
-    one), plus the ring, the index's stride, the pixel, the neighbour and the centre's place."""
-    ia = a + wp.where(a >= 4, 1, 0)  # the 3x3 offsets without the centre
-    ax = x + ia % 3 - 1
-    ay = y + ia / 3 - 1
-    j = int(-1)
-    if ax >= 0 and ax < width and ay >= 0:
-        j = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
-    off = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    if j >= 0:
-        off = uv64(uv, j) - pc
-    return off
-
-
-@wp.func
-def next_neighbours_ok(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
-                       k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
-    """Two samples of ring ``k`` among the 8 pixels around (x, y) at least 120 degrees apart as seen
-    from sample ``c`` (``_next_neighbours``' test; a neighbour at the centre's own place counts as none).
+def opposite_pair(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                  k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
+    """The two samples of ring ``k`` among the 8 pixels around (x, y) most nearly on opposite sides of sample
+    ``c`` (the pair of least cosine between their unit offsets, the first such in the 8 x 8 order, both with
+    an offset), where at least 120 degrees apart; (-1, -1): none (``_next_neighbours``' test and choice).
 
     Size: a @wp.func reading the samples and the ring index directly, plus the ring, the index's stride,
     the pixel and the sample."""
     pc = uv64(uv, c)
-    ok = int(0)
+    best = wp.float64(1.0e308)
+    found = int(0)
+    ba = int(-1)
+    bb = int(-1)
     for a in range(8):
-        va = neighbour_offset(uv, key, order, k, npix, width, x, y, a, pc)
-        na = wp.length(va)
-        if na > wp.float64(0.0):
-            for b in range(a + 1, 8):
-                vb = neighbour_offset(uv, key, order, k, npix, width, x, y, b, pc)
-                nb = wp.length(vb)
-                if nb > wp.float64(0.0):
-                    if wp.dot(va, vb) / (na * nb) <= wp.float64(-0.5):
-                        ok = 1
-    return ok
+        ja = keyed_neighbour(key, order, k, npix, width, x, y, a)
+        if ja >= 0:
+            va = uv64(uv, ja) - pc
+            na = wp.length(va)
+            if na > wp.float64(0.0):
+                ua = wp.vec2d(va[0] / na, va[1] / na)
+                for b in range(8):
+                    jb = keyed_neighbour(key, order, k, npix, width, x, y, b)
+                    if jb >= 0:
+                        vb = uv64(uv, jb) - pc
+                        nb = wp.length(vb)
+                        if nb > wp.float64(0.0):
+                            cos = ua[0] * (vb[0] / nb) + ua[1] * (vb[1] / nb)
+                            if found == 0 or cos < best:
+                                best = cos
+                                found = 1
+                                ba = ja
+                                bb = jb
+    if found == 0 or best > wp.float64(-0.5):
+        ba = -1
+        bb = -1
+    return wp.vec2i(ba, bb)
 
 
 @wp.func
@@ -258,7 +254,7 @@ def check_reach_kernel(
                 r = lag
     if r == 0:  # the 1 px check, at the sample's own pixel
         px = pixel[c]
-        r = next_neighbours_ok(uv, key, order, k, npix, width, px % width, px / width, c)
+        r = wp.where(opposite_pair(uv, key, order, k, npix, width, px % width, px / width, c)[0] >= 0, 1, 0)
     reach[c] = r
 
 
@@ -276,8 +272,7 @@ def next_neighbours_kernel(
     pair: wp.array(dtype=wp.vec2i),
 ):
     """Sample centre[i0 + tid]'s two samples of its ring among its 8 neighbouring pixels most nearly on
-    opposite sides, where at least 120 degrees apart (``_next_neighbours``: the pair of least cosine between
-    their unit offsets, the first such in the 8 x 8 order, both with an offset; (-1, -1): none).
+    opposite sides, where at least 120 degrees apart (:func:`opposite_pair`; (-1, -1): none).
 
     uv (n,) vec2, ring and pixel (n,) int32, centre (m,) int32, key (u,) int64 sorted ring * npix + pixel of
     the usable samples and order (u,) int32 the sample of each: read. pair (m,) vec2i: written.
@@ -286,37 +281,7 @@ def next_neighbours_kernel(
     camera's width, the span's i0, one array out."""
     i = i0 + wp.tid()
     c = centre[i]
-    k = ring[c]
-    x = pixel[c] % width
-    y = pixel[c] / width
-    pc = uv64(uv, c)
-    best = wp.float64(1.0e308)
-    found = int(0)
-    ba = int(-1)
-    bb = int(-1)
-    for a in range(8):
-        ja = keyed_neighbour(key, order, k, npix, width, x, y, a)
-        if ja >= 0:
-            va = uv64(uv, ja) - pc
-            na = wp.length(va)
-            if na > wp.float64(0.0):
-                ua = wp.vec2d(va[0] / na, va[1] / na)
-                for b in range(8):
-                    jb = keyed_neighbour(key, order, k, npix, width, x, y, b)
-                    if jb >= 0:
-                        vb = uv64(uv, jb) - pc
-                        nb = wp.length(vb)
-                        if nb > wp.float64(0.0):
-                            cos = ua[0] * (vb[0] / nb) + ua[1] * (vb[1] / nb)
-                            if found == 0 or cos < best:
-                                best = cos
-                                found = 1
-                                ba = ja
-                                bb = jb
-    if found == 0 or best > wp.float64(-0.5):
-        ba = -1
-        bb = -1
-    pair[i] = wp.vec2i(ba, bb)
+    pair[i] = opposite_pair(uv, key, order, ring[c], npix, width, pixel[c] % width, pixel[c] / width, c)
 
 
 @wp.kernel
