@@ -181,10 +181,10 @@ def _levels_of(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _integer_levels(cap: GrayCodeCapture) -> bool:
-    """Whether ``cap``'s pairs are 8-bit frames read as they are: their |pattern - inverse| is then an
-    integer level, compared in 8 bits (the float32 figures' outcomes, a quarter of the memory traffic)."""
-    return cap.col_pairs.dtype == np.uint8 and cap.scale == 1.0
+def _integer_levels(pairs: np.ndarray, scale: float) -> bool:
+    """Whether ``pairs`` are 8-bit frames read as they are: their |pattern - inverse| is then an integer
+    level, compared in 8 bits (the float32 figures' outcomes, a quarter of the memory traffic)."""
+    return pairs.dtype == np.uint8 and scale == 1.0
 
 
 def _level_threshold(t: np.ndarray, ints: bool) -> np.ndarray:
@@ -214,8 +214,9 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     decoded at once, each pixel's numbers its own)."""
     contrast = cap.white - cap.black
     weak = np.zeros(contrast.shape, np.uint8)  # (at most 2 x 30 bits)
-    ints = _integer_levels(cap)
-    dim = _level_threshold(DIM_BIT_FRACTION * contrast, ints)
+    dim_levels = DIM_BIT_FRACTION * contrast
+    dims = {ints: _level_threshold(dim_levels, ints)  # each kind of pairs' thresholds (a capture's share one)
+            for ints in {_integer_levels(p, cap.scale) for p in (cap.col_pairs, cap.row_pairs)}}
     wide = len(cap.col_pairs) > 30 or len(cap.row_pairs) > 30
     col, row = (np.empty(contrast.shape, np.int64 if wide else np.int32) for _ in range(2))
     okc, okr = np.empty(contrast.shape, bool), np.empty(contrast.shape, bool)
@@ -223,6 +224,8 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     def code(pairs, rows, out, ok, bit, d):
         g = np.zeros(bit.shape, out.dtype)
         ok[rows] = True
+        ints = _integer_levels(pairs, cap.scale)
+        dim = dims[ints]
         for b in range(len(pairs)):
             a = _modulation(pairs[:, :, rows], b, cap.scale, ints, bit, d)
             g <<= 1
@@ -330,7 +333,7 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
     rate = _median_step(np.add(*_code_steps(code, valid)))
-    ints = pairs.dtype == np.uint8 and scale == 1.0
+    ints = _integer_levels(pairs, scale)
     thresh = _level_threshold(np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise,
                                          CLEAR_CONTRAST_FRACTION * contrast), ints)
     bit, work = np.empty(contrast.shape, bool), np.empty(contrast.shape, np.float32)
