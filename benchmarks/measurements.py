@@ -102,6 +102,10 @@ ENTRIES: tuple[Entry, ...] = (
     Entry("Sigma honesty, phase-rings without the angle",
           "python benchmarks/sigma_honesty.py --patterns phase-rings-no-angle", 600,
           "The same bounds with phase-rings (dense rho) but no angle code; ringscan's renderer, Spot."),
+    Entry("Sigma honesty, the single-shot rings codec",
+          "python benchmarks/sigma_honesty.py --patterns rings", 600,
+          "The same bounds with the paper's one frame of ring lines (9 rings, 3 px wide, 40 px apart); "
+          "ringscan's renderer, Spot and the corner (the far planes give it no ring)."),
     Entry("Fusion accuracy", "python benchmarks/fusion_accuracy.py", 900,
           "An 8-view turntable scan reconstructed, fused and meshed, measured against the truth mesh (chamfer "
           "both ways, share within 0.5 mm), also with the turntable axis off and with and without the ICP / "

@@ -38,12 +38,18 @@ from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
 BORDER = wp.constant(2)
+SHADE_PX = wp.constant(2.0)
+"""Distance (camera px) along the line at which the light's gradient is read (``RingLines.shading``)."""
 CONFIDENCE_CONTRAST = 40.0
 """Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting
 ``single_shot.lines.confidence_contrast``: no test, document or benchmark moved it)."""
-RESULT = wp.types.vector(length=8, dtype=wp.float32)
+RESULT = wp.types.vector(length=10, dtype=wp.float32)
+NOISE_LEVELS = 1.0
+"""Camera noise (8-bit grey levels) a line centre's predicted sigma assumes (``centre_sigmas``): the
+decode's model of the other codecs (``AngleSettings.noise``); the view's neighbour checks fit the
+factor its frames show (docs/reconstruction.md, "Honest sigma")."""
 
-__all__ = ["LineSettings", "RingLines", "detect_ring_lines", "smooth_frame", "gaussian_weights"]
+__all__ = ["LineSettings", "RingLines", "detect_ring_lines", "smooth_frame", "gaussian_weights", "centre_sigmas"]
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,10 @@ class RingLines:
     """float32 -lambda: how sharply the profile bends at the centre."""
     confidence: wp.array
     """float32 in (0, 1]: contrast / ``CONFIDENCE_CONTRAST``, at most 1."""
+    shading: wp.array
+    """float32 camera px: how far the light's gradient may move the centre across the line (its log's
+    slope along the line, a proxy for the one across it, times the profile's variance; and the
+    background's slope across the line over the curvature), in quadrature."""
     smoothed: wp.array | None = None
     """(H, W) float32 the smoothed frame the centres were found in (8-bit levels)."""
 
@@ -113,7 +123,7 @@ class RingLines:
     def numpy(self) -> dict[str, np.ndarray]:
         return {"uv": self.uv.numpy(), "normal": self.normal.numpy(), "pixel": self.pixel.numpy(),
                 "contrast": self.contrast.numpy(), "curvature": self.curvature.numpy(),
-                "confidence": self.confidence.numpy()}
+                "confidence": self.confidence.numpy(), "shading": self.shading.numpy()}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -150,9 +160,10 @@ def ridge_at(
 ):
     """Test pixel (y, x) of the smoothed image for a line centre.
 
-    Returns RESULT(found, u, v, n_x, n_y, contrast, curvature, 0).
+    Returns RESULT(found, u, v, n_x, n_y, contrast, curvature, the log's slope along the line (per px),
+    the profile's variance (px^2: its height over its curvature), the background's tilt (px)).
     """
-    none = RESULT(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    none = RESULT(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     h = S.shape[0]
     w = S.shape[1]
     if x < BORDER or y < BORDER or x >= w - BORDER or y >= h - BORDER:
@@ -208,7 +219,20 @@ def ridge_at(
     contrast = peak - wp.max(b1, b2)
     if contrast < min_contrast:
         return none
-    return RESULT(1.0, u, v, nx, ny, contrast, -lam, 0.0)
+    # A gradient of the light across the line moves a symmetric profile's peak by the gradient of
+    # its log times the profile's variance and leaves its shape as is: nothing at the centre shows
+    # it. Along the line the same shading shows (on average as steep: a proxy), read 2 px to
+    # either side, over the height above the background.
+    bg = 0.5 * (b1 + b2)
+    fa = bilinear(S, u - SHADE_PX * ny, v + SHADE_PX * nx) - bg
+    fb = bilinear(S, u + SHADE_PX * ny, v - SHADE_PX * nx) - bg
+    slope = float(0.0)
+    if fa > 0.0 and fb > 0.0:
+        slope = wp.abs(wp.log(fa / fb)) / (2.0 * SHADE_PX)
+    # a background that differs across the line (light bounced in from one side, a shadow's edge)
+    # tilts the profile: its slope over the curvature is how far it moves the peak
+    tilt = wp.abs(b1 - b2) / (2.0 * background_px) / (-lam)
+    return RESULT(1.0, u, v, nx, ny, contrast, -lam, slope, (peak - bg) / (-lam), tilt)
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -323,14 +347,15 @@ def write_ridges_kernel(
     contrast: wp.array(dtype=wp.float32),
     curvature: wp.array(dtype=wp.float32),
     confidence: wp.array(dtype=wp.float32),
+    shading: wp.array(dtype=wp.float32),
 ):
     """Write each line centre at its pixel's scanned offset.
 
     S (H, W) float32, counts and offsets (H * W,) int32 (their exclusive scan): read.
-    uv, normal (n,) vec2; pixel (n,) int32; contrast, curvature, confidence (n,)
+    uv, normal (n,) vec2; pixel (n,) int32; contrast, curvature, confidence, shading (n,)
     float32: written.
 
-    Size: Warp kernels take each array as its own argument: three read, six written, and the ridge thresholds of
+    Size: Warp kernels take each array as its own argument: three read, seven written, and the ridge thresholds of
     count_ridges_kernel plus the confidence's contrast.
     """
     w = S.shape[1]
@@ -349,6 +374,12 @@ def write_ridges_kernel(
             contrast[o] = r[5]
             curvature[o] = r[6]
             confidence[o] = wp.min(r[5] / confidence_contrast, 1.0)
+            # the light's gradient moves the centre by its slope times the variance of the line as it
+            # lies on the surface; taken as the profile's whole (the bound where all blur comes before
+            # the surface): the gradient across is read along the line, a proxy whose scatter the
+            # bound covers (the profile's less the smoothing's left 5.3 % beyond 3 sigma on Spot)
+            shade = r[7] * r[8]
+            shading[o] = wp.sqrt(shade * shade + r[9] * r[9])
 
 
 for _t in (wp.uint8, wp.uint16):
@@ -364,6 +395,20 @@ def gaussian_weights(sigma: float) -> np.ndarray:
     x = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (x / sigma) ** 2)
     return (g / g.sum()).astype(np.float32)
+
+
+def centre_sigmas(curvature: np.ndarray, *, sigma: float, noise: float = NOISE_LEVELS) -> np.ndarray:
+    """(n,) float32 standard deviation (camera px, across the line) of line centres found at
+    ``curvature`` (-lambda, 8-bit levels per px^2) in a frame smoothed by a Gaussian of ``sigma``
+    px with white camera noise of ``noise`` levels: the centre t = -(g . n) / lambda moves by
+    the noise of the smoothed gradient over the curvature (the gradient's central difference
+    through the separable Gaussian: noise^2 sum(c_m^2) sum(G_j^2), c_m = (G_{m-1} - G_{m+1}) / 2;
+    the curvature's own noise moves t by t times less, |t| <= 0.7 px)."""
+    g = gaussian_weights(sigma).astype(np.float64)
+    padded = np.concatenate([[0.0, 0.0], g, [0.0, 0.0]])
+    c = 0.5 * (padded[:-2] - padded[2:])
+    gain = noise * math.sqrt(float(np.sum(c * c)) * float(np.sum(g * g)))
+    return (gain / np.maximum(np.asarray(curvature, np.float64), 1e-6)).astype(np.float32)
 
 
 def smooth_frame(frames: wp.array, *, frame: int = 0, sigma: float = 1.2, threads: int | None = None) -> wp.array:
@@ -445,12 +490,13 @@ def detect_ring_lines(
         contrast=wp.empty(total, dtype=wp.float32, device=dev),
         curvature=wp.empty(total, dtype=wp.float32, device=dev),
         confidence=wp.empty(total, dtype=wp.float32, device=dev),
+        shading=wp.empty(total, dtype=wp.float32, device=dev),
         smoothed=S,
     )
     if total:
         launch_rows(write_ridges_kernel, h, w,
                     lambda r0, c: [S, counts, offsets, *params, float(CONFIDENCE_CONTRAST), r0, c],
-                    [out.uv, out.normal, out.pixel, out.contrast, out.curvature, out.confidence], dev, threads)
+                    [out.uv, out.normal, out.pixel, out.contrast, out.curvature, out.confidence, out.shading], dev, threads)
     return out
 
 

@@ -44,6 +44,15 @@ class Samples:
     sigma_tan: wp.array | None = None
     """float32 predicted standard deviation of the tangential position
     rho * phi (projector px), or None."""
+    sigma_uv: wp.array | None = None
+    """vec2 the camera-side standard deviation of a sample placed across a line (the single-shot
+    codec's line centres): its length in camera px, its direction across the line; None where the
+    codec's errors are on the projector's side (``sigma_rho``; triangulation turns this one into
+    it: ``kernels.error_terms.camera_side_sigmas``)."""
+    bias_uv: wp.array | None = None
+    """float32 camera px: how far a line centre may sit off its line by what its neighbours along the
+    line share and so cannot check (the light's gradient across it: ``RingLines.shading``), along
+    ``sigma_uv``; None where the codec has none."""
     indirect: wp.array | None = None
     """float32 share (0..1) of the pixel's white - black that stays lit under both the
     finest band patterns and their inverses: about half the light that reaches it other
@@ -56,6 +65,7 @@ class Samples:
 
     def numpy(self) -> dict[str, np.ndarray]:
         """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
-        names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan", "indirect")
+        names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan", "sigma_uv",
+                 "bias_uv", "indirect")
         return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}
 

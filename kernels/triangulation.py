@@ -40,7 +40,7 @@ from ringscan.kernels.geometry import (
     make_volume,
     polar_angle,
 )
-from ringscan.kernels.launch import default_threads, launch_spans, scan_counts
+from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 from ringscan.kernels.ring_quadric import pattern_offset, ray_ring_roots, root_usable
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
@@ -95,8 +95,8 @@ CONSTRAINTS = ("auto", "rings", "angle", "both")
 NOMINAL_SIGMA_PX = 0.05
 """Standard deviation (projector px) assumed for samples whose codec predicts none."""
 
-__all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "STATUS_NAMES",
-           "STATUS_UNMATCHED",
+__all__ = ["TriangulateSettings", "Triangulation", "triangulate_rings", "compact_points", "camera_side_sigmas",
+           "STATUS_NAMES", "STATUS_UNMATCHED",
            "CONSTRAINTS", "NOMINAL_SIGMA_PX"]
 
 
@@ -562,6 +562,54 @@ def compact_kernel(
         index[offsets[i]] = i
 
 
+@wp.func
+def rho_at(camera: CameraModel, light: LightModel, center: wp.vec2, u: float, v: float, dist: float):
+    """Radius (projector px) about ``center`` of the point ``dist`` mm along the camera ray of
+    pixel (u, v); -1 where that ray or its light pixel does not exist."""
+    r = camera_ray(camera, u, v)
+    if not r[1]:
+        return -1.0
+    p = light_pixel(light, camera.center + dist * r[0])
+    if p[2] <= 0.0:
+        return -1.0
+    return wp.length(wp.vec2(p[0] - center[0], p[1] - center[1]))
+
+
+@wp.kernel
+def camera_side_kernel(
+    uv: wp.array(dtype=wp.vec2),
+    sigma_uv: wp.array(dtype=wp.vec2),
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    camera: CameraModel,
+    light: LightModel,
+    center: wp.vec2,
+    i0: int,
+    out: wp.array(dtype=wp.float32),
+):
+    """out[i] = the standard deviation of rho (projector px) that moves a placed point along its
+    camera ray as much as the sample's camera-side error does: |sigma_uv[i]| times the change of
+    rho per camera px along sigma_uv[i]'s direction at the point's distance from the camera
+    (the implicit function: the ray's depth error is that over the ring's slope along the ray,
+    what triangulation divides sigma_rho by). |sigma_uv[i]| itself where the point is not placed.
+
+    uv, sigma_uv (n,) vec2 camera px; points (n,) vec3; status (n,) int32 (``kernels.triangulation``):
+    read. out (n,) float32: written.
+
+    Size: the four per-sample arrays, the two models and the pattern centre, the span's i0, one out."""
+    i = i0 + wp.tid()
+    s = wp.length(sigma_uv[i])
+    out[i] = s
+    st = status[i]
+    if s > 0.0 and (st == STATUS_OK or st == STATUS_GRAZING):
+        n = sigma_uv[i] / s
+        dist = wp.length(points[i] - camera.center)
+        a = rho_at(camera, light, center, uv[i][0] + 0.5 * n[0], uv[i][1] + 0.5 * n[1], dist)
+        b = rho_at(camera, light, center, uv[i][0] - 0.5 * n[0], uv[i][1] - 0.5 * n[1], dist)
+        if a >= 0.0 and b >= 0.0:
+            out[i] = s * wp.abs(a - b)
+
+
 # ----------------------------------------------------------------------------- host
 
 
@@ -695,3 +743,24 @@ def compact_points(status: wp.array) -> wp.array:
     if total:
         wp.launch(compact_kernel, dim=n, inputs=[status, offsets], outputs=[index], device=dev)
     return index
+
+
+def camera_side_sigmas(uv: wp.array, sigma_uv: wp.array, points: wp.array, status: wp.array, *,
+                       camera: CameraModel, light: LightModel, center: tuple[float, float],
+                       threads: int | None = None) -> wp.array:
+    """(n,) float32 sigma_rho (projector px) for samples whose error is on the camera's side
+    (:func:`camera_side_kernel`: a line centre placed across its line), from the points one
+    triangulation placed them at; on uv's device.
+
+    Size: the four per-sample arrays, the two models, the pattern centre, the thread count."""
+    fn = "camera_side_sigmas"
+    n = check_array("uv", uv, None, wp.vec2, fn)
+    check_array("sigma_uv", sigma_uv, n, wp.vec2, fn)
+    check_array("points", points, n, wp.vec3, fn)
+    check_array("status", status, n, wp.int32, fn)
+    dev = uv.device
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    args = [uv, sigma_uv, points, status, camera, light, wp.vec2(float(center[0]), float(center[1]))]
+    launch_spans(camera_side_kernel, n, lambda i0: args + [i0], [out], dev,
+                 default_threads() if threads is None else threads)
+    return out

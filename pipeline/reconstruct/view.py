@@ -25,6 +25,7 @@ from ringscan.kernels.triangulation import (
     STATUS_ISOLATED,
     STATUS_NAMES,
     STATUS_UNMATCHED,
+    camera_side_sigmas,
     compact_points,
     triangulate_rings,
 )
@@ -194,10 +195,15 @@ def reconstruct_view(
     rays = view_rays(scan, view, settings)
     if rays in ("camera-camera", "all"):
         return _finish(run, _stereo_points(run, sector_bits), rays=rays)
+    if samples.sigma_uv is not None and samples.sigma_rho is None:
+        samples = run.samples = _camera_side(scan, samples, settings, sector_bits, threads)
     triangulated, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
     neighbours = {}
     if samples.phi is None:  # no angle to measure the ring's errors against: its neighbours do
+        base = triangulated.sigma
         triangulated, neighbours = _neighbour_sigmas(scan, samples, triangulated, settings)
+        if samples.bias_uv is not None and samples.sigma_uv is not None:
+            triangulated = _with_line_bias(samples, triangulated, base)
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     check = {}
@@ -254,6 +260,33 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
                     "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
                     view.name, calibration["residual_px_median"], calibration["residual_px_p95"])
     return triangulated, calibration
+
+
+def _camera_side(scan: Scan, samples, settings: ReconstructSettings, sector_bits: int, threads: int):
+    """The samples with ``sigma_rho`` from their camera-side error (``sigma_uv``: a line centre's
+    across its line): the rings place each point once, and the change of rho per camera px there
+    turns the one into the other (:func:`~ringscan.kernels.error_terms.camera_side_sigmas`)."""
+    rig = scan.rig
+    vol = rig.volume
+    camera, light = camera_model_for(rig), light_model_for(rig)
+    first = triangulate_rings(samples.uv, samples.rho, samples.sector, samples.confidence, camera=camera, light=light,
+                              volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
+                              sector_bits=sector_bits, threads=threads,
+                              settings=replace(settings.triangulate, constraint="rings"))
+    sigma_rho = camera_side_sigmas(samples.uv, samples.sigma_uv, first.points, first.status, camera=camera,
+                                   light=light, center=scan.patterns.center, threads=threads)
+    return replace(samples, sigma_rho=sigma_rho)
+
+
+def _with_line_bias(samples, triangulated, base: wp.array):
+    """``triangulated`` with each depth sigma grown by its sample's ``bias_uv`` (camera px, what the
+    neighbours along its line share and cannot check), in depth as the sample's camera-side sigma
+    ``sigma_uv`` is: ``base`` (the depth sigma before the neighbours' terms) per its length."""
+    s_uv = np.linalg.norm(samples.sigma_uv.numpy().astype(np.float64), axis=1)
+    b = np.asarray(base.numpy(), np.float64) * samples.bias_uv.numpy() / np.maximum(s_uv, 1e-12)
+    sigma = np.asarray(triangulated.sigma.numpy(), np.float64)
+    out = np.sqrt(sigma * sigma + b * b).astype(np.float32)
+    return replace(triangulated, sigma=wp.array(out, dtype=wp.float32, device=triangulated.sigma.device))
 
 
 def _warn_low_modulation(view: View, stats: dict) -> None:

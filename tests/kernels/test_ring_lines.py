@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.ring_lines import LineSettings, detect_ring_lines, smooth_frame
+from ringscan.kernels.ring_lines import LineSettings, centre_sigmas, detect_ring_lines, smooth_frame
 from ringscan.kernels.ring_links import link_lines, ring_roots
 from ringscan.pipeline.formats.rig import default_rig
 from tests.support.ring_lines_image import CENTER, RADII, circles_image
@@ -51,6 +51,61 @@ def test_line_centre_is_unbiased_by_blur_and_width(device):
         d = _detect(np.rint(img).astype(np.uint8), device).numpy()
         assert len(d["uv"]) >= 30
         assert np.abs(d["uv"][:, 0] - x0).max() < 0.05, (x0, width, blur)
+
+
+def _line_image(x0, *, rows=200, cols=64, noise=0.0, shade=0.0, step=0.0, seed=0):
+    """A 3 px wide line at column x0, 100 levels on 20, blurred by 1.5 px, as 16-bit (x257: no rounding
+    of 8-bit levels); ``shade``: the light's log-gradient at 45 deg to it (as steep along as across);
+    ``step``: the background ``step`` levels higher on its right."""
+    s = 16
+    uu = (np.arange(cols * s) + 0.5) / s - 0.5
+    prof = (np.abs(uu - x0) <= 1.5).reshape(cols, s).mean(1)
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    light = np.exp(shade * ((x - x0) + (y - rows / 2)) / np.sqrt(2.0))
+    img = cv2.GaussianBlur(100 * prof[None, :] * light + 20 + step * (x > x0), (0, 0), 1.5)
+    img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
+    return np.clip(np.rint(img * 257), 0, 65535).astype(np.uint16)
+
+
+def test_centre_sigma_is_the_scatter_of_the_centres(device):
+    """centre_sigmas: the noise of the smoothed gradient over the curvature, against how far ~3800
+    centres of a line at sub-pixel positions across a pixel move in 1.5 and 3 levels of noise (each
+    against the same pixel's centre without noise: the estimator's own sub-pixel bias, ~0.02 px RMS
+    for this line, is the same in both and left out)."""
+    for noise in (1.5, 3.0):
+        moved, pred = [], []
+        for i, x0 in enumerate(np.linspace(30.0, 31.0, 21)):
+            clean = _detect(_line_image(x0), device).numpy()
+            d = _detect(_line_image(x0, noise=noise, seed=i), device).numpy()
+            at = dict(zip(clean["pixel"], clean["uv"][:, 0]))
+            m = (d["uv"][:, 1] > 10) & (d["uv"][:, 1] < 190) & np.isin(d["pixel"], clean["pixel"])
+            moved.append(d["uv"][m, 0] - np.array([at[p] for p in d["pixel"][m]]))
+            pred.append(centre_sigmas(d["curvature"][m], sigma=LineSettings().sigma, noise=noise))
+        moved, pred = np.concatenate(moved), np.concatenate(pred)
+        assert moved.size > 3000
+        # 10 %: the model leaves out the curvature's own noise (~5 % at |t| = 0.5 px); a std of ~3000
+        # centres is known to ~2 %
+        assert np.std(moved) == pytest.approx(np.median(pred), rel=0.1), noise
+        assert np.median(pred) == pytest.approx(0.0104 * noise, rel=0.1)  # hundredths of a px a level
+
+
+def test_shading_bounds_a_light_gradient_and_a_tilted_background(device):
+    """``shading``: ~0 on an evenly lit line; under a gradient of the light it grows with it and is no
+    less than the shift it causes (a bound: all blur counted before the surface); a background
+    higher on one side shows too."""
+    def centre(img):
+        d = _detect(img, device).numpy()
+        m = (d["uv"][:, 1] > 80) & (d["uv"][:, 1] < 120)
+        return float(np.median(d["uv"][m, 0])), float(np.median(d["shading"][m]))
+
+    x0 = 30.3
+    _, flat = centre(_line_image(x0))
+    assert flat < 0.02
+    (u1, s1), (u2, s2) = centre(_line_image(x0, shade=0.05)), centre(_line_image(x0, shade=0.1))
+    assert s1 >= abs(u1 - x0) > 0.01 and s2 >= abs(u2 - x0)
+    assert s2 / s1 == pytest.approx(2.0, rel=0.1)  # linear in the gradient
+    (_, t1), (_, t2) = centre(_line_image(x0, step=5.0)), centre(_line_image(x0, step=10.0))
+    assert t1 > 0.02 and t2 / t1 == pytest.approx(2.0, rel=0.25)
 
 
 def test_flat_and_empty_frames_give_no_centres(device):

@@ -12,6 +12,7 @@ from ringscan.kernels.triangulation import (
     PI,
     STATUS_NAMES,
     TriangulateSettings,
+    camera_side_sigmas,
     compact_points,
     sector_residual,
     triangulate_rings,
@@ -555,3 +556,34 @@ def test_a_point_of_both_coordinates_is_no_better_known_than_they_agree(device, 
     assert 0.2 < np.mean(chi > 1.0) < 0.9  # the offset's share across the line spreads chi over both sides of 1
     np.testing.assert_allclose(ratio[chi > 1.0], chi[chi > 1.0], rtol=2e-3)  # float32 sigma and residual
     assert np.all(ratio[chi <= 1.0] == 1.0)
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_a_camera_side_error_moves_the_depth_as_the_ray_moved_would(model):
+    """camera_side_sigmas: the rho sigma whose depth sigma (over the ring's slope, as triangulation
+    divides) is the depth change of the same ring met by the camera ray moved along sigma_uv: the
+    implicit function against a finite difference of two triangulations."""
+    rig, cam, light, P, uv, rho, sec = _setup(model, n=300, seed=4)
+    rng = np.random.default_rng(5)
+    ang = rng.uniform(0, 2 * np.pi, len(uv))
+    s = rng.uniform(0.05, 0.3, len(uv))
+    n = np.c_[np.cos(ang), np.sin(ang)]
+    first = _run("cpu", cam, light, uv, rho, sec)
+    ok = first.status.numpy() == 0
+    assert ok.mean() > 0.9
+    sr = camera_side_sigmas(wp.array(uv, dtype=wp.vec2), wp.array((n * s[:, None]).astype(np.float32), dtype=wp.vec2),
+                            first.points, first.status, camera=cam, light=light, center=CENTER, threads=2).numpy()
+    # the depth sigma triangulation gives that rho sigma (nominal sigma scaled: points do not move)
+    depth_sigma = first.sigma.numpy() * sr / NOMINAL_SIGMA_PX
+    C = np.asarray(rig.camera.R).T @ -np.asarray(rig.camera.t)
+    h = 0.1  # px each way (the kernel differences rho over +-0.5 px: both linear to ~1 % here)
+    moved = [_run("cpu", cam, light, (uv + sgn * h * n).astype(np.float32), rho, sec) for sgn in (1, -1)]
+    ok &= (moved[0].status.numpy() == 0) & (moved[1].status.numpy() == 0)
+    dist = [np.linalg.norm(m.points.numpy().astype(np.float64) - C, axis=1) for m in moved]
+    fd = np.abs(dist[0] - dist[1]) / (2 * h) * s
+    # 2 %: both linear to ~1 % over their steps; atol: float32 points (~3e-5 mm at ~500 mm) differenced
+    # over 0.2 px and scaled by s <= 0.3 px
+    np.testing.assert_allclose(depth_sigma[ok], fd[ok], rtol=0.02, atol=1e-4)
+    # an unplaced sample keeps its camera-side length
+    gone = ~(first.status.numpy() == 0) & ~(first.status.numpy() == 5)
+    np.testing.assert_allclose(sr[gone], s[gone], rtol=1e-6)

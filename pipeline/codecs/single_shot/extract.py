@@ -10,7 +10,7 @@ import time
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.ring_lines import detect_ring_lines
+from ringscan.kernels.ring_lines import centre_sigmas, detect_ring_lines
 from ringscan.kernels.samples import Samples
 from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines
 from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, SingleShotSettings
@@ -62,6 +62,8 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
     sector = np.where(np.isfinite(phi), np.floor((np.nan_to_num(phi) + np.pi) / (2 * np.pi) * n_sec), -1)
     sector = np.clip(sector, -1, n_sec - 1).astype(np.int32)
     rho = (spec.rho0 + spec.pitch * ring).astype(np.float32)
+    # each centre's error lies across its line, in the camera: triangulation states it in projector px
+    sigma_uv = d["normal"][keep] * centre_sigmas(d["curvature"][keep], sigma=ss.lines.sigma)[:, None]
     samples = Samples(
         uv=wp.array(d["uv"][keep], dtype=wp.vec2, device=dev),
         rho=wp.array(rho, dtype=wp.float32, device=dev),
@@ -69,6 +71,8 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
         sector=wp.array(sector, dtype=wp.int32, device=dev),
         confidence=wp.array(d["confidence"][keep], dtype=wp.float32, device=dev),
         pixel=wp.array(d["pixel"][keep], dtype=wp.int32, device=dev),
+        sigma_uv=wp.array(sigma_uv.astype(np.float32), dtype=wp.vec2, device=dev),
+        bias_uv=wp.array(_line_bias(d, lab.gap)[keep], dtype=wp.float32, device=dev),
     )
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
@@ -79,3 +83,19 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
     if "object_unlabelled" in lab.stats:
         log.warning("rings (%s): %s", scan.folder, lab.stats["object_unlabelled"])
     return samples, stats
+
+
+def _line_bias(d: dict, gap) -> np.ndarray:
+    """(n,) float32 camera px: how far each centre may sit off its line by what its neighbours along
+    the line share: the light's gradient (``RingLines.shading``) and the image's scale changing across
+    the line (a surface turning away: the lines on either side at unequal gaps, d ln(gap) / dn, times
+    the profile's variance, its height over its curvature), in quadrature."""
+    b = d["shading"].astype(np.float64)
+    if gap is None:
+        return b.astype(np.float32)
+    g0, g1 = gap[:, 0].astype(np.float64), gap[:, 1].astype(np.float64)
+    both = (g0 > 0) & (g1 > 0)
+    grad = np.zeros_like(b)
+    grad[both] = np.abs(np.log(g0[both] / g1[both])) / (0.5 * (g0[both] + g1[both]))
+    var = d["contrast"].astype(np.float64) / np.maximum(d["curvature"].astype(np.float64), 1e-6)
+    return np.sqrt(b * b + (grad * var) ** 2).astype(np.float32)

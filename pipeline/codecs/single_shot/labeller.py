@@ -521,7 +521,7 @@ def label_ring_lines(
         return RingLabelling(ring, root, phi, piece, curve, stats)
     max_gap = settings.max_gap_px or min(400.0, max(10.0, 3.0 * _plane_ring_spacing_px(rig, patterns)))
     device = smoothed.device
-    nb, _, bump = link_lines(wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device),
+    nb, gap, bump = link_lines(wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device),
                              wp.array(nrm.astype(np.float32), dtype=wp.vec2, device=device),
                              wp.array(curve, dtype=wp.int32, device=device), image=smoothed,
                              pixel=wp.array(np.asarray(pixel, np.int32), dtype=wp.int32, device=device),
@@ -555,7 +555,8 @@ def label_ring_lines(
     stats.update({k: v for k, v in lab.stats.items() if k != "pieces"})
     stats["curves"] = int(curve.max()) + 1
     stats.update(_dropped_report(lab, bad, ring, settings))
-    return RingLabelling(ring, root, phi, piece, curve, stats)
+    gap = np.where(nb.numpy() >= 0, gap.numpy(), 0.0).astype(np.float32)
+    return RingLabelling(ring, root, phi, piece, curve, stats, gap)
 
 
 def _dropped_report(lab: _Labeller, bad: np.ndarray, ring: np.ndarray, settings: SingleShotSettings) -> dict:

@@ -188,3 +188,6 @@ class RingLabelling:
     """(n,) int32 curve of each sample (-1: in no curve)."""
     stats: dict
     """Counts: pieces, labelled pieces, anchors, links, conflicts, dropped samples."""
+    gap: np.ndarray | None = None
+    """(n, 2) float32 distance (camera px) along +normal and -normal to the next line met across
+    the sample's (``kernels.ring_links.link_lines``), 0 where none; None where no line was linked."""

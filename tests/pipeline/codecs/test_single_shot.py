@@ -184,6 +184,33 @@ def test_reconstruct_sphere_accuracy(small_scans, tmp_path):
     assert res["frac_over_1mm"] <= 0.01 and res["median_mm"] < 0.1, res
 
 
+@pytest.fixture(scope="module")
+def default_rig_scans(tmp_path_factory):
+    """Sphere and terrain on the default rig (1280x1024), the benchmark's rings: 9 rings 40 px apart, 3 px
+    wide (docs/accuracy.md, ``benchmarks/sigma_honesty.py --patterns rings``)."""
+    spec = parse_patterns({"codec": "rings", "count": 9, "line_width": 3.0, "pitch": 40.0, "rho0": 40.0,
+                           "width": 1024, "height": 768, "center": [511.5, 383.5]})
+    return {scene: simulate_scan(tmp_path_factory.mktemp(scene) / "scan", scene=scene, rig=default_rig(),
+                                 patterns=spec, progress=False)
+            for scene in ("sphere", "terrain")}
+
+
+# (scene, most beyond 3 sigma): a Gaussian leaves 0.27 %, the benchmark's bound is 5 %; the sphere's limb,
+# where the rings crowd and the light grazes, is under-predicted (docs/accuracy.md: 6.9 % there)
+@pytest.mark.parametrize("scene,beyond", [("terrain", 0.05), ("sphere", 0.08)])
+def test_sigma_means_what_it_says(default_rig_scans, scene, beyond, tmp_path):
+    """Each line centre's sigma: the camera noise over its line's curvature, stated in projector px
+    through the geometry, the factor its neighbours along the line measure, and the light's gradients
+    they cannot see (issue 32: the codec kept a nominal 0.05 px, median |e|/sigma 0.30-0.35 here),
+    against the truth surface along each camera ray."""
+    rep = reconstruct_scan(default_rig_scans[scene], tmp_path / "rec", progress=False)
+    model = rep["views"][0]["error_model"]
+    assert model["measured_by"] == "neighbours" and model["k_rho"] > 1.0
+    s = evaluate_recon(tmp_path / "rec", default_rig_scans[scene])["views"]["view_000"]["sigma"]
+    # a Gaussian: 0.674; every row of the benchmark is held to 0.4-1.2
+    assert s["points"] > 5000 and 0.4 <= s["median_ratio"] <= 1.2 and s["beyond_3"] <= beyond, s
+
+
 # ----------------------------------------------------------------------------- empty and bad input
 
 
