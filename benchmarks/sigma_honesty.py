@@ -43,6 +43,7 @@ alone's, on the shared samples 1-2 % below).
 
     python benchmarks/sigma_honesty.py [--only NAME ...] [--out DIR] [--renderer warp|mitsuba]
                                        [--light parallel|perspective] [--camera-scale K]
+                                       [--rig RIG.json] [--scene MESH_OR_NAME]
 """
 
 from __future__ import annotations
@@ -126,7 +127,8 @@ def condition_extras(name: str) -> dict:
 
 
 def run_condition(name: str, work: Path, *, renderer: str = "warp", light: str = "parallel",
-                  camera_scale: int = 1, patterns: str = "default") -> tuple[list[dict], dict]:
+                  camera_scale: int = 1, patterns: str = "default", rig=None,
+                  scene: str | None = None) -> tuple[list[dict], dict]:
     gamma, render = CONDITIONS[name][:2]
     extras = condition_extras(name)
     if renderer != "mitsuba" and extras.get("mitsuba_only"):
@@ -137,10 +139,10 @@ def run_condition(name: str, work: Path, *, renderer: str = "warp", light: str =
         from ringscan.pipeline.simulate.mitsuba_render import MitsubaSettings
 
         mitsuba = MitsubaSettings(**extras.get("mitsuba", {}))
-    rig = default_rig(light_model=light)
+    rig = default_rig(light_model=light) if rig is None else rig
     rig = replace(rig, light=replace(rig.light, gamma=gamma), camera=scaled_camera(rig.camera, camera_scale))
     folder = work / name / "scan"
-    simulate_scan(folder, scene=extras.get("scene", str(SHARED_DATA / "models" / "odedstein_spot.obj")), rig=rig,
+    simulate_scan(folder, scene=extras.get("scene", scene or str(SHARED_DATA / "models" / "odedstein_spot.obj")), rig=rig,
                   patterns=parse_patterns(PATTERN_SETS[patterns]), settings=RenderSettings(**render), progress=False,
                   renderer=renderer, mitsuba=mitsuba)
     d = json.loads((folder / "scan.json").read_text())
@@ -208,8 +210,24 @@ def main(argv=None) -> int:
                     help="the default rig's light (default parallel; perspective with --renderer mitsuba)")
     ap.add_argument("--camera-scale", type=int, default=1, metavar="K",
                     help="divide the camera's size and focal length by K (default 1)")
+    ap.add_argument("--rig", type=Path, help="a rig file (ringscan's rig JSON) instead of the default rig: "
+                                              "the sigmas checked on your own geometry (each condition sets "
+                                              "its light's gamma; --light is then ignored)")
+    ap.add_argument("--scene", help="a mesh file or a built-in scene instead of Spot (the corner and the far "
+                                    "planes keep their own)")
     args = ap.parse_args(argv)
     light = args.light or ("perspective" if args.renderer == "mitsuba" else "parallel")
+    user_rig = None
+    if args.rig is not None:
+        from ringscan.pipeline.formats.errors import RingscanError
+        from ringscan.pipeline.formats.rig import load_rig
+
+        try:
+            user_rig = load_rig(args.rig)
+        except (OSError, RingscanError) as e:
+            print(f"error: {e}")
+            return 1
+        light = "perspective" if type(user_rig.light).__name__ == "PerspectiveLight" else "parallel"
     if args.camera_scale < 1:
         ap.error("--camera-scale: must be >= 1")
     names = args.only or [n for n in CONDITIONS
@@ -225,14 +243,16 @@ def main(argv=None) -> int:
     missed = []
     with tempfile.TemporaryDirectory() as tmp:
         work = args.out or Path(tmp)
-        print(f"renderer {args.renderer}, {light} light, camera 1/{args.camera_scale} size, patterns {args.patterns}")
+        print(f"renderer {args.renderer}, {light} light{f' (rig {args.rig})' if args.rig else ''}, camera "
+              f"1/{args.camera_scale} size, patterns {args.patterns}{f', scene {args.scene}' if args.scene else ''}")
         print("| condition | constraint | points | median mm | coverage | sigma mm | median abs(e)/sigma "
               "| beyond 3 sigma |")
         print("|---|---|---|---|---|---|---|---|")
         models = {}
         for name in names:
             rows, models[name] = run_condition(name, work, renderer=args.renderer, light=light,
-                                               camera_scale=args.camera_scale, patterns=args.patterns)
+                                               camera_scale=args.camera_scale, patterns=args.patterns,
+                                               rig=user_rig, scene=args.scene)
             for r in rows:
                 if not r["points"]:  # no point to judge (the view says why): not a sigma's miss
                     print(f"| {r['condition']} | {r['constraint']} | 0 | | | | | |", flush=True)
