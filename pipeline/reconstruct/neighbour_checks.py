@@ -16,8 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
-from ringscan.kernels.ring_checks import next_neighbours, ring_lag_nodes
+from ringscan.kernels.ring_checks import cross_ring_checks, next_neighbours, ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
     GROUP_SCALE_RANGE,
     MAX_CHECK_SAMPLES,
@@ -495,8 +496,19 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
     if not classes or ref.size == 0:
         return out
 
+    # the view's arrays for the kernel, made once (kernels.ring_checks.cross_ring_checks: the checks of
+    # _cross_ring_checks, their numbers to rounding)
+    # (on the host, where the model's arrays are)
+    view = dict(depth=wp.array(np.ascontiguousarray(d, np.float64), dtype=wp.float64, device="cpu"),
+                var=wp.array(np.ascontiguousarray(var, np.float64), dtype=wp.float64, device="cpu"),
+                uv=wp.array(np.ascontiguousarray(uv, np.float64), dtype=wp.vec2d, device="cpu"),
+                ring=wp.array(idx.ring.astype(np.int32), dtype=wp.int32, device="cpu"),
+                pixel=wp.array((idx.y * idx.width + idx.x).astype(np.int32), dtype=wp.int32, device="cpu"),
+                at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32, device="cpu"))
+
     def scale(cands, radius):
-        c, r, v = _cross_ring_checks(d, var, uv, idx, cands[sample_subset(cands.size, MAX_REACH_CHECKS)], radius)
+        c, r, v = cross_ring_checks(**view, centre=cands[sample_subset(cands.size, MAX_REACH_CHECKS)], radius=radius,
+                                    width=idx.width, reject=CROSS_REJECT, gate=CROSS_GATE)
         return (_t_scale(r * r / (T_SCALE * T_SCALE * v)), c.size) if c.size >= MIN_REACH_CHECKS else (None, c.size)
 
     refs = {}
