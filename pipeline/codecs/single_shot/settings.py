@@ -80,9 +80,12 @@ class LabelTuning:
     min_root_fraction: float = 0.8
     """Least fraction of a piece's samples that must have their root (the one
     whose orientation matches the piece's outward side) under its label."""
-    max_step_pitches: float = 8.0
+    max_step_pitches: float = 3.0
     """Longest 3D step between two linked samples, in ring pitches at the object
-    (a continuous surface between two neighbouring rings up to ~83 degrees steep)."""
+    (a continuous surface between two neighbouring rings up to ~71 degrees steep).
+    A steeper step may hide a ring on a face the light does not reach (a block's
+    front face): with 8 pitches the corner scene's V-groove was labelled one ring
+    off (10-30 mm); a piece reached only across such a step is left unlabelled."""
     min_root_separation_mm: float = 3.0
     """Where a sample's two meetings with its ring lie closer than this (the ray
     nearly grazes the ring's quadric), the orientation does not choose between
