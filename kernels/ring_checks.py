@@ -227,17 +227,19 @@ def design_row(du: wp.float64, dv: wp.float64):
 
 @wp.func
 def symmetric_condition(N: MAT66D):
-    """The 2-norm condition number of the symmetric N (its eigenvalues by cyclic Jacobi rotations);
-    FAR where the smallest is 0."""
+    """The 2-norm condition number of the symmetric N to ~0.2 % (its eigenvalues by cyclic Jacobi
+    rotations until each is known to 1e-3 of the smallest); FAR where the smallest is 0."""
     A = N
     for sweep in range(30):
         off = wp.float64(0.0)
-        diag = wp.float64(0.0)
+        low = wp.abs(A[0, 0])
         for p in range(6):
-            diag += A[p, p] * A[p, p]
+            low = wp.min(low, wp.abs(A[p, p]))
             for q in range(p + 1, 6):
                 off += A[p, q] * A[p, q]
-        if off <= wp.float64(1e-30) * diag:  # the eigenvalues to ~1e-15 of the largest: the diagonal
+        # every eigenvalue lies within the off-diagonal's norm of a diagonal entry (Weyl): below 1e-3 of
+        # the smallest, the condition number is the diagonal's to 0.2 % (a test against 1e12 only)
+        if off <= wp.float64(1e-6) * low * low:
             break
         for p in range(6):
             for q in range(p + 1, 6):
@@ -350,21 +352,19 @@ def cross_neighbour(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.
 
 
 @wp.func
-def cross_fit(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
-              depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2i),
-              c: int, x: int, y: int, limit: wp.float64, store: bool, cc: CrossCheck, row: int,
-              res: wp.array2d(dtype=wp.float64), work: wp.array2d(dtype=wp.float64)):
-    """One weighted fit of sample c's check (``neighbour_checks._cross_fit``) to its neighbours whose
-    res[row] is at most ``limit``: (the normal matrix, whether the fit can be made, the robust spread
-    of their normalised residuals); with ``store`` their residuals go to res[row] (FAR: no neighbour
-    there); work[row] holds them for the median."""
-    kc = ring[c]
+def cross_fit(uv: wp.array(dtype=wp.vec2d), depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64),
+              c: int, count: int, limit: wp.float64, store: bool, cc: CrossCheck, row: int,
+              nbr: wp.array2d(dtype=wp.int32), res: wp.array2d(dtype=wp.float64), work: wp.array2d(dtype=wp.float64)):
+    """One weighted fit of sample c's check (``neighbour_checks._cross_fit``) to its ``count`` neighbours
+    nbr[row, :count] whose res[row] is at most ``limit``: (the normal matrix, whether the fit can be made,
+    the robust spread of their normalised residuals); with ``store`` their residuals go to res[row] (FAR:
+    left out); work[row] holds them for the median."""
     N = MAT66D()
     rhs = VEC6D()
     cnt = int(0)
-    for o in range(offsets.shape[0]):
-        j = cross_neighbour(at_pixel, ring, depth, var, x, y, kc, offsets[o], cc)
-        if j >= 0 and res[row, o] <= limit:
+    for t in range(count):
+        if res[row, t] <= limit:
+            j = nbr[row, t]
             a = design_row(uv[j][0] - uv[c][0], uv[j][1] - uv[c][1])
             w = wp.float64(1.0) / var[j]
             for p in range(6):
@@ -383,16 +383,16 @@ def cross_fit(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int32)
     if good:
         beta = solve6(N, rhs)
         n = int(0)
-        for o in range(offsets.shape[0]):
-            j = cross_neighbour(at_pixel, ring, depth, var, x, y, kc, offsets[o], cc)
+        for t in range(count):
             zo = FAR
-            if j >= 0 and res[row, o] <= limit:
+            if res[row, t] <= limit:
+                j = nbr[row, t]
                 a = design_row(uv[j][0] - uv[c][0], uv[j][1] - uv[c][1])
                 zo = wp.abs(depth[j] - wp.dot(a, beta)) * wp.sqrt(wp.float64(1.0) / var[j])
                 work[row, n] = zo
                 n += 1
             if store:
-                res[row, o] = zo
+                res[row, t] = zo
         # the median as the NumPy statement reads it off each sorted row: (m // 2 + (m + 1) // 2) / 2, m = n - 1
         mid = wp.max(n - 1, 0)
         k1 = mid / 2
@@ -560,6 +560,7 @@ def cross_check_kernel(
     centre: wp.array(dtype=wp.int32),
     cc: CrossCheck,
     i0: int,
+    nbr: wp.array2d(dtype=wp.int32),
     res: wp.array2d(dtype=wp.float64),
     work: wp.array2d(dtype=wp.float64),
     made: wp.array(dtype=wp.int32),
@@ -574,11 +575,12 @@ def cross_check_kernel(
     ``cc.gate``), r[i] its residual and v[i] its predicted variance.
 
     at_pixel (npix,) int32 the sample at each pixel (-1: none); ring, pixel (n,) int32; uv (n,) vec2d;
-    depth, var (n,) float64; offsets (K,) vec2i; centre (m,) int32: read. res, work (m, K) float64:
-    scratch. made (m,) int32, r, v (m,) float64: written.
+    depth, var (n,) float64; offsets (K,) vec2i; centre (m,) int32: read. nbr (m, K) int32, res, work
+    (m, K) float64: scratch (a centre's neighbours, found once, and their residuals). made (m,) int32,
+    r, v (m,) float64: written.
 
     Size: the view's index and per-sample arrays, the offsets, the centres and settings, the span's
-    i0, two scratch rows a centre and the three results."""
+    i0, three scratch rows a centre and the three results."""
     i = i0 + wp.tid()
     c = centre[i]
     kc = ring[c]
@@ -592,10 +594,13 @@ def cross_check_kernel(
     first = int(-1)
     second = int(-1)
     rings = int(0)
-    for o in range(offsets.shape[0]):
-        res[i, o] = wp.float64(0.0)  # the first fit takes every neighbour
+    count = int(0)
+    for o in range(offsets.shape[0]):  # the neighbours, once: the fits read them from nbr[i]
         j = cross_neighbour(at_pixel, ring, depth, var, x, y, kc, offsets[o], cc)
         if j >= 0:
+            nbr[i, count] = j
+            res[i, count] = wp.float64(0.0)  # the first fit takes every neighbour
+            count += 1
             k = ring[j]
             if k < kc:
                 inner = True
@@ -611,19 +616,18 @@ def cross_check_kernel(
                 rings = 3
     if not (inner and outer and rings >= 3):
         return
-    N, good, spread = cross_fit(at_pixel, ring, uv, depth, var, offsets, c, x, y, FAR, True, cc, i, res, work)
+    N, good, spread = cross_fit(uv, depth, var, c, count, FAR, True, cc, i, nbr, res, work)
     if not good:
         return
     limit = FAR
     thr = cc.reject * wp.max(spread, wp.float64(1.0))
     far = bool(False)
-    for o in range(offsets.shape[0]):
-        if res[i, o] > thr and res[i, o] < FAR:
+    for t in range(count):
+        if res[i, t] > thr:
             far = True
     if far:
         limit = thr
-        N2, good2, spread2 = cross_fit(at_pixel, ring, uv, depth, var, offsets, c, x, y, limit, False, cc, i, res,
-                                       work)
+        N2, good2, spread2 = cross_fit(uv, depth, var, c, count, limit, False, cc, i, nbr, res, work)
         if not good2:
             return
         N = N2
@@ -634,9 +638,9 @@ def cross_check_kernel(
                         wp.float64(0.0)))
     fitted = wp.float64(0.0)
     vv = wp.float64(0.0)
-    for o in range(offsets.shape[0]):
-        j = cross_neighbour(at_pixel, ring, depth, var, x, y, kc, offsets[o], cc)
-        if j >= 0 and res[i, o] <= limit:
+    for t in range(count):
+        if res[i, t] <= limit:
+            j = nbr[i, t]
             wi = wp.dot(design_row(uv[j][0] - uv[c][0], uv[j][1] - uv[c][1]), b) / var[j]
             fitted += wi * depth[j]
             vv += wi * wi * var[j]
@@ -812,6 +816,7 @@ def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.arr
     cc.gate = float(gate)
     cc.max_cond = 1e12
     k = off.shape[0]
+    nbr = wp.empty((m, k), dtype=wp.int32, device=dev)
     res = wp.empty((m, k), dtype=wp.float64, device=dev)
     work = wp.empty((m, k), dtype=wp.float64, device=dev)
     made = wp.empty(m, dtype=wp.int32, device=dev)
@@ -819,7 +824,7 @@ def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.arr
     v = wp.empty(m, dtype=wp.float64, device=dev)
     args = [at_pixel, ring, pixel, uv, depth, var, wp.array(off, dtype=wp.vec2i, device=dev),
             wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev), cc]
-    launch_spans(cross_check_kernel, m, lambda i0: args + [i0], [res, work, made, r, v], dev,
+    launch_spans(cross_check_kernel, m, lambda i0: args + [i0], [nbr, res, work, made, r, v], dev,
                  default_threads() if threads is None else threads, min_span=64)
     ok = made.numpy().astype(bool)
     return centre[ok], r.numpy()[ok], v.numpy()[ok]
