@@ -373,6 +373,10 @@ would read its shape as error (on Spot, factors of thousands without this test).
 MAX_REACH_CHECKS = 2000
 """Samples of each reach class checked across rings (evenly spread): a variance factor
 to ~5 %."""
+REF_PER_CHECK = 3
+"""The checked samples a reach class is set against: this many for each of its own checks (at most
+``MAX_REACH_CHECKS``): a small class's factor is no better known for a larger reference (a variance
+ratio of n and 3 n checks: 1.15x the error of n alone), and a small view's fits cost."""
 MIN_REACH_CHECKS = 100
 """Fewer cross-ring checks in a reach class (or among the reference samples) than this:
 no factor for it (100 fix a variance factor to ~15 %; a factor is never below 1)."""
@@ -509,22 +513,29 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
                 pixel=wp.array((idx.y * idx.width + idx.x).astype(np.int32), dtype=wp.int32, device="cpu"),
                 at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32, device="cpu"))
 
-    def scale(cands, radius):
-        c, r, v = cross_ring_checks(**view, centre=cands[sample_subset(cands.size, MAX_REACH_CHECKS)], radius=radius,
+    def checks(cands, radius, most):
+        c, r, v = cross_ring_checks(**view, centre=cands[sample_subset(cands.size, most)], radius=radius,
                                     width=idx.width, reject=CROSS_REJECT, gate=CROSS_GATE)
         return (_t_scale(r * r / (T_SCALE * T_SCALE * v)), c.size) if c.size >= MIN_REACH_CHECKS else (None, c.size)
 
-    refs = {}
+    found = []  # (class, radius, its scale, its checks): the first radius that gives a class enough checks
     for k in classes:
         for radius in CROSS_RADII_PX:  # the same radius for the class and the checked samples it is set against
-            m_k, n = scale(usable[reach[usable] == k], radius)
-            if m_k is None:
-                continue
-            if radius not in refs:
-                refs[radius] = scale(ref, radius)[0]
-            if refs[radius] is not None:
-                out.append([int(k), round(float(np.clip(m_k / refs[radius], 1.0, GROUP_SCALE_RANGE[1])), 4), int(n)])
-            break
+            m_k, n = checks(usable[reach[usable] == k], radius, MAX_REACH_CHECKS)
+            if m_k is not None:
+                found.append((k, radius, m_k, n))
+                break
+    refs = {}
+    for radius in dict.fromkeys(f[1] for f in found):
+        # the checked samples at that radius: REF_PER_CHECK times the largest class's checks (its own count
+        # bounds the ratio's precision), at least MIN_REACH_CHECKS, at most MAX_REACH_CHECKS
+        most = max(n for _, rad, _, n in found if rad == radius)
+        refs[radius] = checks(ref, radius, int(np.clip(REF_PER_CHECK * most, MIN_REACH_CHECKS,
+                                                       MAX_REACH_CHECKS)))[0]
+    out = []
+    for k, radius, m_k, n in found:
+        if refs[radius] is not None:
+            out.append([int(k), round(float(np.clip(m_k / refs[radius], 1.0, GROUP_SCALE_RANGE[1])), 4), int(n)])
     return out
 
 
