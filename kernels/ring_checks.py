@@ -443,25 +443,28 @@ def check_reach_kernel(
     # the ring's direction: the principal axis of its samples in the 5x5 pixels around
     has, direction = ring_direction(uv, ring, at_pixel, width, height, k, pc)
     if has:
-        for li in range(3):
-            lag = LAGS[li]
+        # the widest lag first: the first whose four nodes are fine is the reach (the rest not searched)
+        for lj in range(3):
+            lag = LAGS[2 - lj]
             fine = int(1)
             prev = wp.float64(-1.0e300)
             for s in range(4):
-                node, place = lag_node(uv, ring, at_pixel, width, height, k, pc, direction,
-                                       s - 2 + wp.where(s >= 2, 1, 0), lag)  # steps -2, -1, 1, 2
-                if node < 0:
-                    fine = 0
-                else:
-                    if place <= prev:
+                if fine == 1:
+                    node, place = lag_node(uv, ring, at_pixel, width, height, k, pc, direction,
+                                           s - 2 + wp.where(s >= 2, 1, 0), lag)  # steps -2, -1, 1, 2
+                    if node < 0:
                         fine = 0
-                    if s == 1 and place >= wp.float64(0.0):
-                        fine = 0
-                    if s == 2 and place <= wp.float64(0.0):
-                        fine = 0
-                    prev = place
-            if fine == 1:
+                    else:
+                        if place <= prev:
+                            fine = 0
+                        if s == 1 and place >= wp.float64(0.0):
+                            fine = 0
+                        if s == 2 and place <= wp.float64(0.0):
+                            fine = 0
+                        prev = place
+            if fine == 1 and r == 0:
                 r = lag
+                break
     if r == 0:  # the 1 px check, at the sample's own pixel
         px = pixel[c]
         r = wp.where(opposite_pair(uv, key, order, k, npix, width, px % width, px / width, c)[0] >= 0, 1, 0)
