@@ -223,3 +223,18 @@ def test_rho_measured_by_its_neighbours_leaves_the_pairs_the_angles_terms():
     assert fit["k_tan"] == pytest.approx(4.0, rel=0.1)  # 30k pairs: ~1 % on a variance
     blind = fit_error_model(dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv)
     assert blind["k_rho"] > 2.0  # the pairs alone put much of it on rho (8.3 and 2.9 measured)
+
+
+def test_tile_factors_all_at_once_are_each_tiles_own():
+    """_t_scales (the tiles' factors in one pass) against _t_scale of each tile: the same fixed points to
+    rounding (its means summed in order rather than pairwise), over tiles of 20-600 pairs."""
+    from ringscan.pipeline.reconstruct.error_scale import _t_scale, _t_scales
+
+    rng = np.random.default_rng(3)
+    counts = rng.integers(20, 600, 300)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    u = (rng.standard_t(5, counts.sum()) * rng.uniform(0.5, 3, counts.sum())) ** 2
+    one = np.array([_t_scale(u[a:a + c]) for a, c in zip(starts, counts)])
+    np.testing.assert_allclose(_t_scales(u, starts, counts), one, rtol=1e-12)
+    assert np.ptp(one) > 1.0  # the tiles' factors differ: a test of each tile's own
+    assert _t_scales(u, starts[:0], counts[:0]).size == 0
