@@ -162,6 +162,10 @@ def ridge_at(
 
     Returns RESULT(found, u, v, n_x, n_y, contrast, curvature, the log's slope along the line (per px),
     the profile's variance (px^2: its height over its curvature), the background's tilt (px)).
+
+    Size: one pixel's whole test, each step feeding the next (the Hessian, its eigenvector, the
+    flank test, the sub-pixel centre, the contrast, the shading read around it), in one function
+    that both passes (count, write) call.
     """
     none = RESULT(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     h = S.shape[0]

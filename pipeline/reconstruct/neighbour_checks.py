@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.ring_checks import cross_ring_checks, next_neighbours, ring_lag_nodes
+from ringscan.kernels.cross_checks import cross_ring_checks
+from ringscan.kernels.ring_checks import next_neighbours, ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
     GROUP_SCALE_RANGE,
     MAX_CHECK_SAMPLES,
@@ -503,7 +504,7 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
     if not classes or ref.size == 0:
         return out
 
-    # the view's arrays for the kernel, made once (kernels.ring_checks.cross_ring_checks: the checks of
+    # the view's arrays for the kernel, made once (kernels.cross_checks.cross_ring_checks: the checks of
     # _cross_ring_checks, their numbers to rounding)
     # (on the host, where the model's arrays are)
     view = dict(depth=wp.array(np.ascontiguousarray(d, np.float64), dtype=wp.float64, device="cpu"),

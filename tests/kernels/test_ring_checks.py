@@ -7,23 +7,9 @@ import warp as wp
 
 from ringscan.kernels.ring_checks import sample_reach
 from ringscan.pipeline.reconstruct.neighbour_checks import check_reach
+from tests.support.ring_views import WIDTH, ring_circle, ring_view
 
-WIDTH, HEIGHT = 320, 240
-
-
-def _circle(k, r, cx=160.0, cy=120.0, arc=(0.0, 2 * np.pi)):
-    """One sample a camera pixel along a circle of radius r (px), as a ring's crossings are sampled."""
-    th = np.linspace(arc[0], arc[1], int((arc[1] - arc[0]) * r * 1.3), endpoint=False)
-    u, v = cx + r * np.cos(th), cy + r * np.sin(th)
-    p = np.round(v).astype(int) * WIDTH + np.round(u).astype(int)
-    _, first = np.unique(p, return_index=True)
-    first = np.sort(first)
-    return u[first], v[first], p[first], np.full(first.size, k)
-
-
-def _view(pieces):
-    u, v, p, k = (np.concatenate(a) for a in zip(*pieces))
-    return np.stack([u, v], 1).astype(np.float32), p.astype(np.int32), k.astype(np.int32)
+_circle, _view = ring_circle, ring_view
 
 
 def _reach(uv, pixel, ring, depth=None):
@@ -111,37 +97,3 @@ def test_next_neighbours_are_the_numpy_statements():
     assert all(np.array_equal(a, b) for a, b in zip(got, want))
     assert 0 < want[0].size < idx.order.size  # some centres with a pair, some without
 
-
-def test_cross_ring_checks_are_the_numpy_statements():
-    """The checks across rings (kernels.ring_checks.cross_ring_checks) against the NumPy statement
-    (neighbour_checks._cross_ring_checks) on rings 4.3 px apart over a curved depth with noise, some
-    samples far off (refitted without them) and holes (centres without neighbours on both sides, gated
-    neighbourhoods): the same checked samples, r to 1e-6 of its scale and the variances to 1e-10."""
-    from ringscan.kernels.ring_checks import cross_ring_checks
-    from ringscan.pipeline.reconstruct.neighbour_checks import CROSS_GATE, CROSS_REJECT, _cross_ring_checks, _ring_index
-
-    rng = np.random.default_rng(21)
-    uv, pixel, ring = _view([_circle(k, 10 + 4.3 * k) for k in range(24)])
-    keep = rng.random(len(pixel)) > 0.2
-    uv, pixel, ring = uv[keep].astype(np.float64), pixel[keep], ring[keep]
-    n = len(pixel)
-    var = rng.uniform(0.5, 2.0, n) * 1e-4
-    depth = 500 + 0.03 * uv[:, 0] + 2e-4 * (uv[:, 1] - 120) ** 2 + np.sqrt(var) * rng.standard_normal(n)
-    depth[rng.random(n) < 0.03] += 0.5  # far off their neighbours' fit
-    depth[rng.random(n) < 0.02] = np.nan  # not placed
-    ok = np.flatnonzero(np.isfinite(depth))
-    idx = _ring_index(ring.astype(np.int64), pixel.astype(np.int64), ok, WIDTH)
-    view = dict(depth=wp.array(depth, dtype=wp.float64), var=wp.array(var, dtype=wp.float64),
-                uv=wp.array(uv, dtype=wp.vec2d), ring=wp.array(ring, dtype=wp.int32),
-                pixel=wp.array(pixel, dtype=wp.int32), at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32))
-    centre = ok[rng.random(ok.size) < 0.4]
-    for radius in (8, 12):
-        want = _cross_ring_checks(depth, var, uv, idx, centre, radius)
-        got = cross_ring_checks(**view, centre=centre, radius=radius, width=WIDTH, reject=CROSS_REJECT,
-                                gate=CROSS_GATE, threads=2)
-        assert np.array_equal(got[0], want[0]) and 0.2 * centre.size < want[0].size < centre.size
-        # r: depth (~500 mm) less a fit of it, so rounding of ~1e-13 of the depth shows as ~1e-9 mm
-        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-6 * np.std(want[1]))
-        np.testing.assert_allclose(got[2], want[2], rtol=1e-10)
-    with pytest.raises(ValueError, match="centre"):
-        cross_ring_checks(**view, centre=np.array([n + 3]), radius=8, width=WIDTH, reject=CROSS_REJECT, gate=CROSS_GATE)
