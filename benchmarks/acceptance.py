@@ -117,7 +117,8 @@ def case_phase_rings_default_rig(work: Path) -> list:
 def case_single_shot_default_rig(work: Path) -> list:
     """The paper's single-shot rings on the codec's defaults (9 rings; 30 at pitch 12 px; ring 0 at 8 px, a
     loop ~15 camera px across), the sphere and the terrain on the default rig: every ring labelled with its
-    true index (none mislabelled), >= 97 % of the line samples kept, one centre anchor, >= 40 % of the
+    true index (none mislabelled; the sphere's 30 rings one short: a ring reached only across a step of
+    more than 3 ring pitches is left out), >= 97 % of the line samples kept, one centre anchor, >= 40 % of the
     points and of the object's lit surface on the object, <= 1 % over 1 mm, median < 0.02 mm.
     Suite: tests/pipeline/codecs/test_single_shot.py (the same checks on a 320x256 camera; an object left
     unlabelled on the full-size small-ring scan)."""
@@ -148,8 +149,14 @@ def case_single_shot_default_rig(work: Path) -> list:
         print(json.dumps({"case": name, **{k: v[k] for k in ("points", "median_mm", "p95_mm", "frac_over_1mm",
                                                              "coverage_object")}, "on_object": on_object}))
         checks += [(f"{name}: samples with a wrong ring label", int(np.sum(ring[ok] != j[ok])), "<=", 0),
-                   (f"{name}: rings labelled other than 0..count-1 or missing",
-                    len(set(np.unique(ring).tolist()) ^ set(range(scan.patterns.count))), "<=", 0),
+                   (f"{name}: rings labelled other than 0..count-1",
+                    len(set(np.unique(ring).tolist()) - set(range(scan.patterns.count))), "<=", 0),
+                   # a ring reached only across a 3D step of more than 3 ring pitches is left unlabelled
+                   # (docs/single_shot.md): on the sphere's steep rim at 30 rings one is, where 2 of the 4
+                   # such links had been wrong with 8 pitches allowed
+                   (f"{name}: rings missing",
+                    len(set(range(scan.patterns.count)) - set(np.unique(ring).tolist())), "<=",
+                    1 if case == "defaults-30" and scene == "sphere" else 0),
                    (f"{name}: samples / line samples", stats["samples"] / stats["line_samples"], ">=", 0.97),
                    (f"{name}: centre anchors", stats["anchors_centre"], ">=", 1),
                    (f"{name}: object unlabelled", int("object_unlabelled" in stats), "<=", 0),
