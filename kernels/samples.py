@@ -49,6 +49,11 @@ class Samples:
     codec's line centres): its length in camera px, its direction across the line; None where the
     codec's errors are on the projector's side (``sigma_rho``; triangulation turns this one into
     it: ``kernels.error_terms.camera_side_sigmas``)."""
+    across: wp.array | None = None
+    """vec2i the samples of the next lines across a line sample's, along +``sigma_uv`` and against it
+    (-1: none): where the surface's depth slope across the line is read; None where the codec has none."""
+    across_px: wp.array | None = None
+    """vec2 their distances (camera px) along that direction, each side (0: none)."""
     bias_uv: wp.array | None = None
     """float32 camera px: how far a line centre may sit off its line by what its neighbours along the
     line share and so cannot check (the light's gradient across it: ``RingLines.shading``), along
@@ -66,6 +71,6 @@ class Samples:
     def numpy(self) -> dict[str, np.ndarray]:
         """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
         names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan", "sigma_uv",
-                 "bias_uv", "indirect")
+                 "across", "across_px", "bias_uv", "indirect")
         return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}
 

@@ -22,8 +22,10 @@ from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
 from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
+    STATUS_GRAZING,
     STATUS_ISOLATED,
     STATUS_NAMES,
+    STATUS_OK,
     STATUS_UNMATCHED,
     camera_side_sigmas,
     compact_points,
@@ -265,7 +267,8 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
 def _camera_side(scan: Scan, samples, settings: ReconstructSettings, sector_bits: int, threads: int):
     """The samples with ``sigma_rho`` from their camera-side error (``sigma_uv``: a line centre's
     across its line): the rings place each point once, and the change of rho per camera px there
-    turns the one into the other (:func:`~ringscan.kernels.error_terms.camera_side_sigmas`)."""
+    turns the one into the other (:func:`~ringscan.kernels.triangulation.camera_side_sigmas`), times
+    what the error does along the ray over that (:func:`_surface_slope`)."""
     rig = scan.rig
     vol = rig.volume
     camera, light = camera_model_for(rig), light_model_for(rig)
@@ -275,7 +278,53 @@ def _camera_side(scan: Scan, samples, settings: ReconstructSettings, sector_bits
                               settings=replace(settings.triangulate, constraint="rings"))
     sigma_rho = camera_side_sigmas(samples.uv, samples.sigma_uv, first.points, first.status, camera=camera,
                                    light=light, center=scan.patterns.center, threads=threads)
+    if samples.across is not None and len(samples):
+        # along its ray a point errs by the surface's slope too (_surface_slope); the neighbours along the
+        # line then fit their factor to the sigma as it stands along the ray (they see the ring's share:
+        # their factor takes the view's average of this one, each sample keeps its own ratio)
+        def placed(uv):  # the samples' rays through uv, on their rings
+            return triangulate_rings(uv, samples.rho, samples.sector, samples.confidence, camera=camera, light=light,
+                                     volume=(vol.z_min, vol.z_max, vol.r_max), center=scan.patterns.center,
+                                     sector_bits=sector_bits, threads=threads,
+                                     settings=replace(settings.triangulate, constraint="rings"))
+        along_ray = _surface_slope(samples, first, placed, np.asarray(rig.camera.center, np.float64))
+        sigma_rho = wp.array((sigma_rho.numpy() * along_ray).astype(np.float32), dtype=wp.float32,
+                             device=sigma_rho.device)
     return replace(samples, sigma_rho=sigma_rho)
+
+
+def _surface_slope(samples, first, triangulate, center: np.ndarray) -> np.ndarray:
+    """(n,) float64 what camera-side samples' errors do along their rays over what their rings' share
+    is: a centre off by du across its line puts the point on its ring's surface at the wrong ray, so
+    along the ray it is off by (dt_ring/du - dt_surface/du) du, where ``camera_side_sigmas`` (and the
+    neighbours along the line, which see the placed depths) count the ring's term alone. The surface's
+    is read from the depths of the next lines across (``Samples.across``), the ring's from the ray
+    moved +-0.5 px and placed on the same ring; 1 where either is missing, never below 1. Where the view
+    grazes the surface (a silhouette) the second term rules. Host NumPy over the view's samples (this codec's few)."""
+    s_uv = samples.sigma_uv.numpy().astype(np.float64)
+    length = np.linalg.norm(s_uv, axis=1)
+    n = s_uv / np.maximum(length, 1e-12)[:, None]
+    uv = samples.uv.numpy().astype(np.float64)
+
+    def depths(t):
+        P = t.points.numpy().astype(np.float64)
+        ok = (t.status.numpy() == STATUS_OK) | (t.status.numpy() == STATUS_GRAZING)
+        return np.where(ok, np.linalg.norm(P - center, axis=1), np.nan)
+
+    t0 = depths(first)
+    moved = [depths(triangulate(wp.array((uv + sgn * 0.5 * n).astype(np.float32), dtype=wp.vec2,
+                                         device=samples.uv.device))) for sgn in (1.0, -1.0)]
+    ring_slope = moved[0] - moved[1]  # along the ray, per camera px along n, on the same ring
+    across, gap = samples.across.numpy(), samples.across_px.numpy().astype(np.float64)
+    ta = np.where(across >= 0, t0[np.maximum(across, 0)], np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        one = np.stack([(ta[:, 0] - t0) / gap[:, 0], (t0 - ta[:, 1]) / gap[:, 1]], 1)
+        surface = np.where(np.isfinite(one).all(axis=1), (ta[:, 0] - ta[:, 1]) / (gap[:, 0] + gap[:, 1]),
+                           np.where(np.isfinite(one[:, 0]), one[:, 0], one[:, 1]))
+        factor = np.abs(ring_slope - surface) / np.abs(ring_slope)
+    # never below 1: where the two slopes nearly cancel, the surface's (read over the ~40 px to the next
+    # lines) is not known well enough to shrink a sigma by it (on the sphere such samples erred 5x theirs)
+    return np.where(np.isfinite(factor), np.maximum(factor, 1.0), 1.0)
 
 
 def _with_line_bias(samples, triangulated, base: wp.array):

@@ -62,8 +62,17 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
     sector = np.where(np.isfinite(phi), np.floor((np.nan_to_num(phi) + np.pi) / (2 * np.pi) * n_sec), -1)
     sector = np.clip(sector, -1, n_sec - 1).astype(np.int32)
     rho = (spec.rho0 + spec.pitch * ring).astype(np.float32)
-    # each centre's error lies across its line, in the camera: triangulation states it in projector px
-    sigma_uv = d["normal"][keep] * centre_sigmas(d["curvature"][keep], sigma=ss.lines.sigma)[:, None]
+    # each centre's error lies across its line, in the camera: triangulation states it in projector px;
+    # along the normal the labeller linked the next lines by (their depths give the surface's slope)
+    normal = lab.normal if lab.normal is not None else d["normal"]
+    sigma_uv = normal[keep] * centre_sigmas(d["curvature"][keep], sigma=ss.lines.sigma)[:, None]
+    kept_at = np.full(len(d["uv"]) + 1, -1, np.int64)
+    kept_at[keep] = np.arange(keep.size)
+    if lab.across is not None:
+        across = kept_at[np.where(lab.across[keep] >= 0, lab.across[keep], len(d["uv"]))]
+        across_px = np.where(across >= 0, lab.gap[keep], 0.0)
+    else:
+        across, across_px = np.full((keep.size, 2), -1), np.zeros((keep.size, 2))
     samples = Samples(
         uv=wp.array(d["uv"][keep], dtype=wp.vec2, device=dev),
         rho=wp.array(rho, dtype=wp.float32, device=dev),
@@ -72,6 +81,8 @@ def extract_rings(frames: wp.array, scan: Scan, settings: SingleShotSettings,
         confidence=wp.array(d["confidence"][keep], dtype=wp.float32, device=dev),
         pixel=wp.array(d["pixel"][keep], dtype=wp.int32, device=dev),
         sigma_uv=wp.array(sigma_uv.astype(np.float32), dtype=wp.vec2, device=dev),
+        across=wp.array(across.astype(np.int32), dtype=wp.vec2i, device=dev),
+        across_px=wp.array(across_px.astype(np.float32), dtype=wp.vec2, device=dev),
         bias_uv=wp.array(_line_bias(d, lab.gap)[keep], dtype=wp.float32, device=dev),
     )
     wp.synchronize_device(dev)

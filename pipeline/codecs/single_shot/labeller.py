@@ -555,8 +555,9 @@ def label_ring_lines(
     stats.update({k: v for k, v in lab.stats.items() if k != "pieces"})
     stats["curves"] = int(curve.max()) + 1
     stats.update(_dropped_report(lab, bad, ring, settings))
-    gap = np.where(nb.numpy() >= 0, gap.numpy(), 0.0).astype(np.float32)
-    return RingLabelling(ring, root, phi, piece, curve, stats, gap)
+    nb = nb.numpy()
+    gap = np.where(nb >= 0, gap.numpy(), 0.0).astype(np.float32)
+    return RingLabelling(ring, root, phi, piece, curve, stats, gap, nb.astype(np.int32), nrm.astype(np.float32))
 
 
 def _dropped_report(lab: _Labeller, bad: np.ndarray, ring: np.ndarray, settings: SingleShotSettings) -> dict:

@@ -194,3 +194,7 @@ class RingLabelling:
     gap: np.ndarray | None = None
     """(n, 2) float32 distance (camera px) along +normal and -normal to the next line met across
     the sample's (``kernels.ring_links.link_lines``), 0 where none; None where no line was linked."""
+    across: np.ndarray | None = None
+    """(n, 2) int32 the line sample met there (-1: none); None where no line was linked."""
+    normal: np.ndarray | None = None
+    """(n, 2) float32 the normals ``gap`` and ``across`` are along (each curve's oriented one)."""
