@@ -237,6 +237,13 @@ def main(argv=None) -> int:
         if args.renderer != "mitsuba" and why:
             print(f"error: condition {n} needs --renderer mitsuba: ringscan's own renderer cannot render {why}")
             return 1
+    if args.scene is not None:
+        from ringscan.pipeline.simulate.scenes import SCENES, SHIPPED_MESHES
+
+        names = SCENES + tuple(SHIPPED_MESHES)
+        if args.scene not in names and not Path(args.scene).is_file():
+            print(f"error: --scene {args.scene}: neither a built-in scene ({', '.join(names)}) nor a mesh file")
+            return 1
     if not (SHARED_DATA / "models" / "odedstein_spot.obj").is_file():
         print(f"error: {SHARED_DATA / 'models' / 'odedstein_spot.obj'} not found (set RINGSCAN_SHARED_DATA)")
         return 1
