@@ -65,7 +65,8 @@ def _check_ancestors(p: Path, what: str) -> None:
     for a in p.parents:
         if a.is_dir():
             return
-        if a.exists() or a.is_symlink():
+        # a.is_dir() again: another writer (the import's threads) may have made the folder in between
+        if (a.exists() or a.is_symlink()) and not a.is_dir():
             raise FormatError(p, f"cannot be the {what}: it lies under {a}, which is {_kind(a)}, not a folder")
 
 
@@ -82,7 +83,7 @@ def check_output_folder(path: str | os.PathLike, *, what: str = "output folder")
         raise FormatError(p, f"cannot be the {what}: the path contains a NUL character")
     if p.is_dir():
         return p
-    if p.exists() or p.is_symlink():
+    if (p.exists() or p.is_symlink()) and not p.is_dir():  # (made by another writer in between: a folder)
         raise FormatError(p, f"cannot be the {what}: it exists and is {_kind(p)}, not a folder")
     _check_ancestors(p, what)
     return p

@@ -225,3 +225,28 @@ def test_a_lock_file_that_is_a_link_a_fifo_or_a_hard_link_is_refused_and_left_al
                                 "ringscan run uses it then)"), name
         assert os.path.lexists(lock) and other.read_text() == "keep me\n", name
         lock.unlink()
+
+
+def test_a_folder_another_writer_makes_meanwhile_is_a_folder(tmp_path, monkeypatch):
+    """The output checks look at a path twice (is it a folder? does it exist?); a folder another writer
+    (the import's threads, each writing one camera's files) makes between the two is a folder, not an
+    error ("... which is a folder, not a folder" failed a fresh-clone CI run once)."""
+    import pathlib
+
+    from ringscan.pipeline.formats.atomic import check_output_file, check_output_folder
+
+    target = tmp_path / "out" / "capture_0"
+    real_is_dir = pathlib.Path.is_dir
+    first = {}
+
+    def racing_is_dir(self, *a, **k):
+        if self in (target, target.parent) and self not in first:
+            first[self] = True
+            self.mkdir(parents=True, exist_ok=True)  # the other writer, just now
+            return False
+        return real_is_dir(self, *a, **k)
+
+    monkeypatch.setattr(pathlib.Path, "is_dir", racing_is_dir)
+    assert check_output_folder(target) == target
+    assert check_output_file(target / "proj_u.png") == target / "proj_u.png"
+    assert len(first) >= 1  # the race was taken
