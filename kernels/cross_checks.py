@@ -97,6 +97,63 @@ def symmetric_condition(N: MAT66D):
 
 
 @wp.func
+def condition_below(N: MAT66D, limit: wp.float64):
+    """Whether the symmetric positive semi-definite N's 2-norm condition number is below ``limit``:
+    decided by cheap bounds where they settle it, else by :func:`symmetric_condition` (a third of the
+    checks' time when run on every fit). With N = L L^T (Cholesky), lambda_max lies in
+    [max diag N, trace N] and 1 / lambda_min in [max diag N^-1, trace N^-1]; their products bound the
+    condition number within a factor of 36, and a typical fit's lies far below the limit."""
+    L = MAT66D()
+    ok = bool(True)
+    for j in range(6):
+        d = N[j, j]
+        for k in range(j):
+            d = d - L[j, k] * L[j, k]
+        if d <= wp.float64(0.0):
+            ok = False
+        if ok:
+            L[j, j] = wp.sqrt(d)
+            for i in range(j + 1, 6):
+                acc = N[i, j]
+                for k in range(j):
+                    acc = acc - L[i, k] * L[j, k]
+                L[i, j] = acc / L[j, j]
+    decided = bool(False)
+    below = bool(False)
+    if ok:
+        # L^-1 (lower triangular) by forward substitution; diag(N^-1)_i = sum_k (L^-1)[k, i]^2
+        Li = MAT66D()
+        for j in range(6):
+            Li[j, j] = wp.float64(1.0) / L[j, j]
+            for i in range(j + 1, 6):
+                acc = wp.float64(0.0)
+                for k in range(j, i):
+                    acc = acc + L[i, k] * Li[k, j]
+                Li[i, j] = -acc / L[i, i]
+        tr = wp.float64(0.0)
+        dmax = wp.float64(0.0)
+        tri = wp.float64(0.0)
+        imax = wp.float64(0.0)
+        for i in range(6):
+            tr = tr + N[i, i]
+            dmax = wp.max(dmax, N[i, i])
+            di = wp.float64(0.0)
+            for k in range(i, 6):
+                di = di + Li[k, i] * Li[k, i]
+            tri = tri + di
+            imax = wp.max(imax, di)
+        # a margin of 1 % over the rounding of a condition number up to the limit (1e12 * 1e-16 relative)
+        if tr * tri < wp.float64(0.99) * limit:
+            decided = True
+            below = True
+        elif dmax * imax > wp.float64(1.01) * limit:
+            decided = True
+    if not decided:
+        below = symmetric_condition(N) < limit
+    return below
+
+
+@wp.func
 def solve6(N: MAT66D, b: VEC6D):
     """x with N x = b (Gaussian elimination with partial pivoting)."""
     A = N
@@ -160,21 +217,16 @@ def select_kth(z: wp.array2d(dtype=wp.float64), row: int, n: int, k: int):
 
 @wp.func
 def cross_neighbour(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int32),
-                    depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64), x: int, y: int, kc: int,
-                    off: wp.vec2i, cc: CrossCheck):
-    """The sample at ``off`` from pixel (x, y) that a check across rings uses (another ring's, with a
-    finite depth and a variance > 0), -1: none.
+                    depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64), at: int, kc: int):
+    """The sample at linear pixel ``at`` if a check across rings uses it (another ring's than ``kc``,
+    with a finite depth and a variance > 0), -1: none.
 
-    Size: the pixel lookup and the three per-sample arrays it tests, the centre's pixel, ring and
-    offset, the settings (for the image's size)."""
-    xx = x + off[0]
-    yy = y + off[1]
+    Size: the pixel lookup and the three per-sample arrays it tests, the pixel and the centre's ring."""
     found = int(-1)
-    if xx >= 0 and xx < cc.width and yy >= 0 and yy < cc.height:
-        j = at_pixel[yy * cc.width + xx]
-        if j >= 0:
-            if ring[j] != kc and wp.isfinite(depth[j]) and var[j] > wp.float64(0.0):
-                found = j
+    j = at_pixel[at]
+    if j >= 0:
+        if ring[j] != kc and wp.isfinite(depth[j]) and var[j] > wp.float64(0.0):
+            found = j
     return found
 
 
@@ -196,19 +248,16 @@ def cross_fit(uv: wp.array(dtype=wp.vec2d), depth: wp.array(dtype=wp.float64), v
         if res[row, t] <= limit:
             j = nbr[row, t]
             a = design_row(uv[j][0] - uv[c][0], uv[j][1] - uv[c][1])
-            w = wp.float64(1.0) / var[j]
-            for p in range(6):
-                wa = w * a[p]
-                rhs[p] = rhs[p] + wa * depth[j]
-                for q in range(p, 6):
-                    N[p, q] = N[p, q] + wa * a[q]
+            wa = (wp.float64(1.0) / var[j]) * a
+            rhs = rhs + wa * depth[j]
+            N = N + wp.outer(wa, a)  # whole (the compiler's to unroll); only its upper triangle is kept
             cnt += 1
-    for p in range(6):  # the lower triangle: the upper's mirror
+    for p in range(6):  # the lower triangle: the upper's mirror (N exactly symmetric, as the NumPy statement's)
         for q in range(p):
             N[p, q] = N[q, p]
     good = cnt >= MIN_CROSS_NEIGHBOURS
     if good:
-        good = symmetric_condition(N) < cc.max_cond
+        good = condition_below(N, cc.max_cond)
     spread = wp.float64(0.0)
     if good:
         beta = solve6(N, rhs)
@@ -247,7 +296,7 @@ def cross_check_kernel(
     uv: wp.array(dtype=wp.vec2d),
     depth: wp.array(dtype=wp.float64),
     var: wp.array(dtype=wp.float64),
-    offsets: wp.array(dtype=wp.vec2i),
+    half_width: wp.array(dtype=wp.int32),
     centre: wp.array(dtype=wp.int32),
     cc: CrossCheck,
     i0: int,
@@ -259,18 +308,19 @@ def cross_check_kernel(
     v: wp.array(dtype=wp.float64),
 ):
     """Each centre sample's depth against the quadratic of depth over the image that the samples of
-    other rings at ``offsets`` fit, weighted by 1 / var, refitted without the neighbours beyond
+    other rings within the disc ``half_width`` spans fit, weighted by 1 / var, refitted without the neighbours beyond
     ``cc.reject`` robust spreads (``neighbour_checks._cross_ring_checks``, the NumPy statement):
     made[i] = 1 where the check is made (neighbours of an inner and an outer ring, three rings in
     all, at least three a term, a condition number under ``cc.max_cond``, a spread within
     ``cc.gate``), r[i] its residual and v[i] its predicted variance.
 
     at_pixel (npix,) int32 the sample at each pixel (-1: none); ring, pixel (n,) int32; uv (n,) vec2d;
-    depth, var (n,) float64; offsets (K,) vec2i; centre (m,) int32: read. nbr (m, K) int32, res, work
+    depth, var (n,) float64; half_width (2 R + 1,) int32 the disc's half-width in each row dy = -R..R
+    (its pixel itself left out); centre (m,) int32: read. nbr (m, K) int32, res, work
     (m, K) float64: scratch (a centre's neighbours, found once, and their residuals). made (m,) int32,
     r, v (m,) float64: written.
 
-    Size: the view's index and per-sample arrays, the offsets, the centres and settings, the span's
+    Size: the view's index and per-sample arrays, the disc, the centres and settings, the span's
     i0, three scratch rows a centre and the three results."""
     i = i0 + wp.tid()
     c = centre[i]
@@ -286,9 +336,20 @@ def cross_check_kernel(
     second = int(-1)
     rings = int(0)
     count = int(0)
-    for o in range(offsets.shape[0]):  # the neighbours, once: the fits read them from nbr[i]
-        j = cross_neighbour(at_pixel, ring, depth, var, x, y, kc, offsets[o], cc)
-        if j >= 0:
+    rad = (half_width.shape[0] - 1) / 2
+    # the neighbours, once, row by row over the disc (dy, then dx: the NumPy statement's order, so its
+    # sums): the fits read them from nbr[i]
+    for row in range(half_width.shape[0]):
+        yy = y + row - rad
+        if yy < 0 or yy >= cc.height:
+            continue
+        w = half_width[row]
+        for xx in range(wp.max(x - w, 0), wp.min(x + w, cc.width - 1) + 1):
+            if xx == x and yy == y:
+                continue
+            j = cross_neighbour(at_pixel, ring, depth, var, yy * cc.width + xx, kc)
+            if j < 0:
+                continue
             nbr[i, count] = j
             res[i, count] = wp.float64(0.0)  # the first fit takes every neighbour
             count += 1
@@ -378,22 +439,21 @@ def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.arr
         raise ValueError(f"{fn}: centre indices must lie in [0, {n})")
     dev = depth.device
     rad = int(radius)
-    off = np.array([(dx, dy) for dy in range(-rad, rad + 1) for dx in range(-rad, rad + 1)
-                    if 0 < dx * dx + dy * dy <= rad * rad], np.int32).reshape(-1, 2)
+    half = np.array([int(np.floor(np.sqrt(rad * rad - dy * dy))) for dy in range(-rad, rad + 1)], np.int32)
     cc = CrossCheck()
     cc.width = int(width)
     cc.height = int(at_pixel.shape[0] // width)
     cc.reject = float(reject)
     cc.gate = float(gate)
     cc.max_cond = 1e12
-    k = off.shape[0]
+    k = int(2 * half.sum() + half.size) - 1  # the disc's pixels less its centre
     nbr = wp.empty((m, k), dtype=wp.int32, device=dev)
     res = wp.empty((m, k), dtype=wp.float64, device=dev)
     work = wp.empty((m, k), dtype=wp.float64, device=dev)
     made = wp.empty(m, dtype=wp.int32, device=dev)
     r = wp.empty(m, dtype=wp.float64, device=dev)
     v = wp.empty(m, dtype=wp.float64, device=dev)
-    args = [at_pixel, ring, pixel, uv, depth, var, wp.array(off, dtype=wp.vec2i, device=dev),
+    args = [at_pixel, ring, pixel, uv, depth, var, wp.array(half, dtype=wp.int32, device=dev),
             wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev), cc]
     launch_spans(cross_check_kernel, m, lambda i0: args + [i0], [nbr, res, work, made, r, v], dev,
                  default_threads() if threads is None else threads, min_span=64)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.cross_checks import cross_ring_checks
+from ringscan.kernels.cross_checks import MAT66D, condition_below, cross_ring_checks
 from tests.support.ring_views import WIDTH, ring_circle, ring_view
 
 
@@ -41,3 +41,33 @@ def test_cross_ring_checks_are_the_numpy_statements():
         np.testing.assert_allclose(got[2], want[2], rtol=1e-10)
     with pytest.raises(ValueError, match="centre"):
         cross_ring_checks(**view, centre=np.array([n + 3]), radius=8, width=WIDTH, reject=CROSS_REJECT, gate=CROSS_GATE)
+
+
+@wp.kernel
+def _condition_below_kernel(N: wp.array(dtype=MAT66D), limit: wp.float64, below: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    below[i] = wp.where(condition_below(N[i], limit), 1, 0)
+
+
+def test_condition_below_decides_as_the_condition_number():
+    """condition_below (the fits' test, cheap bounds and the Jacobi eigenvalues where they do not
+    settle it) against NumPy's 2-norm condition number for 6x6 symmetric matrices of known spectra:
+    far below and above the limit (the bounds decide), within 3 % of it on either side (the bounds
+    are 36x apart: Jacobi decides), beyond what a Cholesky factor survives, and singular."""
+    rng = np.random.default_rng(5)
+    limit = 1e12
+    conds = [1e2, 1e8, 3e10, 0.97e12, 0.99e12 * 0.98, 1.03e12, 3e12, 1e14, 1e17]
+    mats = []
+    for cond in conds:
+        q, _ = np.linalg.qr(rng.standard_normal((6, 6)))
+        lam = np.geomspace(1.0, cond, 6) * 50.0
+        mats.append((q * lam) @ q.T)
+    singular = rng.standard_normal((6, 5))
+    mats.append(singular @ singular.T)
+    mats = [0.5 * (m + m.T) for m in mats]
+    want = [np.linalg.cond(m) < limit for m in mats]
+    assert want == [True] * 5 + [False] * 5  # the spectra as built
+    below = wp.zeros(len(mats), dtype=wp.int32)
+    wp.launch(_condition_below_kernel, dim=len(mats), inputs=[wp.array(np.array(mats), dtype=MAT66D), limit],
+              outputs=[below])
+    assert below.numpy().astype(bool).tolist() == want
