@@ -148,6 +148,28 @@ def bilinear(img: wp.array2d(dtype=wp.float32), u: float, v: float):
 
 
 @wp.func
+def quadratic_at(img: wp.array2d(dtype=wp.float32), u: float, v: float):
+    """img at (u, v) from its second-order Taylor expansion about the nearest pixel (central
+    differences), clamped to the image. On a line's crest a bilinear read errs by up to an
+    eighth of the profile's curvature (~3 % of its height for a 2 px profile), varying with the
+    crest's sub-pixel place: two reads along a line then differ by that much though the light
+    does not; this one errs by the fourth derivative's share (well under 0.1 %)."""
+    h = img.shape[0]
+    w = img.shape[1]
+    x = wp.clamp(int(wp.round(u)), 1, w - 2)
+    y = wp.clamp(int(wp.round(v)), 1, h - 2)
+    dx = wp.clamp(u, 0.0, float(w - 1)) - float(x)
+    dy = wp.clamp(v, 0.0, float(h - 1)) - float(y)
+    c = img[y, x]
+    gx = 0.5 * (img[y, x + 1] - img[y, x - 1])
+    gy = 0.5 * (img[y + 1, x] - img[y - 1, x])
+    hxx = img[y, x + 1] - 2.0 * c + img[y, x - 1]
+    hyy = img[y + 1, x] - 2.0 * c + img[y - 1, x]
+    hxy = 0.25 * (img[y + 1, x + 1] - img[y + 1, x - 1] - img[y - 1, x + 1] + img[y - 1, x - 1])
+    return c + gx * dx + gy * dy + 0.5 * (hxx * dx * dx + 2.0 * hxy * dx * dy + hyy * dy * dy)
+
+
+@wp.func
 def ridge_at(
     S: wp.array2d(dtype=wp.float32),
     y: int,
@@ -228,14 +250,17 @@ def ridge_at(
     # it. Along the line the same shading shows (on average as steep: a proxy), read 2 px to
     # either side, over the height above the background.
     bg = 0.5 * (b1 + b2)
-    fa = bilinear(S, u - SHADE_PX * ny, v + SHADE_PX * nx) - bg
-    fb = bilinear(S, u + SHADE_PX * ny, v - SHADE_PX * nx) - bg
+    fa = quadratic_at(S, u - SHADE_PX * ny, v + SHADE_PX * nx) - bg
+    fb = quadratic_at(S, u + SHADE_PX * ny, v - SHADE_PX * nx) - bg
     slope = float(0.0)
     if fa > 0.0 and fb > 0.0:
         slope = wp.abs(wp.log(fa / fb)) / (2.0 * SHADE_PX)
     # a background that differs across the line (light bounced in from one side, a shadow's edge)
     # tilts the profile: its slope over the curvature is how far it moves the peak
-    tilt = wp.abs(b1 - b2) / (2.0 * background_px) / (-lam)
+    # (read as the crest is: a bilinear read on the profile's flank errs by as much as the tilt it would show)
+    q1 = quadratic_at(S, u + background_px * nx, v + background_px * ny)
+    q2 = quadratic_at(S, u - background_px * nx, v - background_px * ny)
+    tilt = wp.abs(q1 - q2) / (2.0 * background_px) / (-lam)
     return RESULT(1.0, u, v, nx, ny, contrast, -lam, slope, (peak - bg) / (-lam), tilt)
 
 
