@@ -295,11 +295,16 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     if n_ok < MIN_PAIRS:
         return identity_model(0)
     idx = _ring_index(ring, pixel, np.flatnonzero(ok), width)
-    # every R-th row's samples are checked, against any samples of theirs on the same ring
-    period = max(3, int(np.ceil(n_ok / max_samples)))
-    centre = idx.order[(idx.y[idx.order] % period) == 1]
-    # (kernels.ring_checks.next_neighbours: _next_neighbours' samples, by a kernel)
-    c, a, b = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.npix, centre, width=width)
+    # every R-th row's samples are checked, against any samples of theirs on the same ring; a view too
+    # small for MIN_PAIRS checks so has every sample checked (its checks then share samples: k is still
+    # what they read, known a little less well than their count says) rather than none (the decode's
+    # sigma as it is: on a small view of Mitsuba's corner 4x its errors)
+    for period in dict.fromkeys((max(3, int(np.ceil(n_ok / max_samples))), 1)):
+        centre = idx.order[(idx.y[idx.order] % period) == min(1, period - 1)]
+        # (kernels.ring_checks.next_neighbours: _next_neighbours' samples, by a kernel)
+        c, a, b = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.npix, centre, width=width)
+        if c.size >= MIN_PAIRS:
+            break
     if c.size < MIN_PAIRS:
         return identity_model(int(c.size))
     ab = uv[b] - uv[a]

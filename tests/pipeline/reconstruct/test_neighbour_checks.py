@@ -45,6 +45,24 @@ def test_neighbours_recover_planted_terms(k_rho, f_rho):
     assert 0.6 <= np.median(np.abs(d["depth"] - truth) / fitted) <= 0.75
 
 
+def test_a_small_view_checks_every_row_rather_than_none():
+    """A view whose every third row gives fewer than MIN_PAIRS checks (here the inner 7 rings, ~860
+    samples, ~290 such checks) has each sample checked instead: k measured, not the decode's sigma
+    kept as it is (the identity model: on a small view of Mitsuba's corner, 4x too confident)."""
+    from ringscan.pipeline.reconstruct.error_scale import MIN_PAIRS
+    from ringscan.pipeline.reconstruct.neighbour_checks import fit_neighbour_model
+
+    d = _ring_samples(np.random.default_rng(5), k_rho=3.0)
+    keep = d["ring"] < 7
+    args = [d[k][keep] for k in ("depth", "s", "sigma_px", "pixel", "ring", "uv")]
+    y = d["pixel"][keep] // d["width"]
+    assert np.count_nonzero(y % 3 == 1) < MIN_PAIRS < keep.sum()  # the case: every third row too few
+    m = fit_neighbour_model(*args, width=d["width"])
+    assert m["measured_by"] == "neighbours" and m["pairs"] >= MIN_PAIRS
+    # ~800 residuals that share samples: k to ~15 %
+    assert m["k_rho"] == pytest.approx(3.0, rel=0.15)
+
+
 def test_a_few_bad_samples_do_not_widen_every_sigma():
     """4 % of the samples off by 30-100 sigma (a fringe's order, a pixel across an edge): each spoils
     the checks it is one of five in (~20 % of them), which read k ~2x the planted one under the
