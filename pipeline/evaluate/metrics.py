@@ -66,7 +66,9 @@ def truth_surface(scan: Scan, turntable_deg: float):
     mesh_path = scan.folder / truth["mesh"]
     if not mesh_path.is_file():
         raise FormatError(mesh_path, "truth mesh not found")
-    mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+    # a scene of bare planes has an empty object mesh: no warning for it (the plane is added below)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(str(mesh_path))
     V = np.asarray(mesh.vertices, np.float64)
     F = np.asarray(mesh.triangles, np.int64)
     if len(V):
