@@ -240,9 +240,9 @@ def main(argv=None) -> int:
     if args.scene is not None:
         from ringscan.pipeline.simulate.scenes import SCENES, SHIPPED_MESHES
 
-        names = SCENES + tuple(SHIPPED_MESHES)
-        if args.scene not in names and not Path(args.scene).is_file():
-            print(f"error: --scene {args.scene}: neither a built-in scene ({', '.join(names)}) nor a mesh file")
+        scenes = SCENES + tuple(SHIPPED_MESHES)
+        if args.scene not in scenes and not Path(args.scene).is_file():
+            print(f"error: --scene {args.scene}: neither a built-in scene ({', '.join(scenes)}) nor a mesh file")
             return 1
     if not (SHARED_DATA / "models" / "odedstein_spot.obj").is_file():
         print(f"error: {SHARED_DATA / 'models' / 'odedstein_spot.obj'} not found (set RINGSCAN_SHARED_DATA)")
