@@ -44,6 +44,8 @@ CONFIDENCE_CONTRAST = 40.0
 """Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting
 ``single_shot.lines.confidence_contrast``: no test, document or benchmark moved it)."""
 RESULT = wp.types.vector(length=10, dtype=wp.float32)
+TAYLOR = wp.types.vector(length=6, dtype=wp.float32)
+"""A pixel's value, gradient and Hessian (:func:`pixel_taylor`)."""
 NOISE_LEVELS = 1.0
 """Camera noise (8-bit grey levels) a line centre's predicted sigma assumes (``centre_sigmas``): the
 decode's model of the other codecs (``AngleSettings.noise``); the view's neighbour checks fit the
@@ -148,6 +150,16 @@ def bilinear(img: wp.array2d(dtype=wp.float32), u: float, v: float):
 
 
 @wp.func
+def pixel_taylor(img: wp.array2d(dtype=wp.float32), y: int, x: int):
+    """img's value, gradient and Hessian at pixel (y, x) by central differences: TAYLOR(c, gx, gy,
+    hxx, hyy, hxy)."""
+    c = img[y, x]
+    return TAYLOR(c, 0.5 * (img[y, x + 1] - img[y, x - 1]), 0.5 * (img[y + 1, x] - img[y - 1, x]),
+                  img[y, x + 1] - 2.0 * c + img[y, x - 1], img[y + 1, x] - 2.0 * c + img[y - 1, x],
+                  0.25 * (img[y + 1, x + 1] - img[y + 1, x - 1] - img[y - 1, x + 1] + img[y - 1, x - 1]))
+
+
+@wp.func
 def quadratic_at(img: wp.array2d(dtype=wp.float32), u: float, v: float):
     """img at (u, v) from its second-order Taylor expansion about the nearest pixel (central
     differences), clamped to the image. On a line's crest a bilinear read errs by up to an
@@ -160,13 +172,8 @@ def quadratic_at(img: wp.array2d(dtype=wp.float32), u: float, v: float):
     y = wp.clamp(int(wp.round(v)), 1, h - 2)
     dx = wp.clamp(u, 0.0, float(w - 1)) - float(x)
     dy = wp.clamp(v, 0.0, float(h - 1)) - float(y)
-    c = img[y, x]
-    gx = 0.5 * (img[y, x + 1] - img[y, x - 1])
-    gy = 0.5 * (img[y + 1, x] - img[y - 1, x])
-    hxx = img[y, x + 1] - 2.0 * c + img[y, x - 1]
-    hyy = img[y + 1, x] - 2.0 * c + img[y - 1, x]
-    hxy = 0.25 * (img[y + 1, x + 1] - img[y + 1, x - 1] - img[y - 1, x + 1] + img[y - 1, x - 1])
-    return c + gx * dx + gy * dy + 0.5 * (hxx * dx * dx + 2.0 * hxy * dx * dy + hyy * dy * dy)
+    q = pixel_taylor(img, y, x)
+    return q[0] + q[1] * dx + q[2] * dy + 0.5 * (q[3] * dx * dx + 2.0 * q[5] * dx * dy + q[4] * dy * dy)
 
 
 @wp.func
@@ -194,12 +201,13 @@ def ridge_at(
     w = S.shape[1]
     if x < BORDER or y < BORDER or x >= w - BORDER or y >= h - BORDER:
         return none
-    c = S[y, x]
-    gx = 0.5 * (S[y, x + 1] - S[y, x - 1])
-    gy = 0.5 * (S[y + 1, x] - S[y - 1, x])
-    hxx = S[y, x + 1] - 2.0 * c + S[y, x - 1]
-    hyy = S[y + 1, x] - 2.0 * c + S[y - 1, x]
-    hxy = 0.25 * (S[y + 1, x + 1] - S[y + 1, x - 1] - S[y - 1, x + 1] + S[y - 1, x - 1])
+    q = pixel_taylor(S, y, x)
+    c = q[0]
+    gx = q[1]
+    gy = q[2]
+    hxx = q[3]
+    hyy = q[4]
+    hxy = q[5]
     half = 0.5 * (hxx + hyy)
     disc = wp.sqrt(0.25 * (hxx - hyy) * (hxx - hyy) + hxy * hxy)
     lam = half - disc  # most negative eigenvalue
