@@ -2,7 +2,8 @@
 sigma"): ``pipeline.reconstruct.error_scale`` fits the model on the host from a bounded subset of
 the samples (at most ``MAX_CHECK_SAMPLES``, gathered by ``kernels.compact``); what touches every
 sample stays here: the fitted terms applied to every sample (``widen_sigmas``: the same values to
-the bit as ``error_scale.apply_error_model`` and ``region_scale`` in NumPy)."""
+the bit as ``error_scale.apply_error_model`` and ``region_scale`` in NumPy), and the error both
+coordinates share on a steep surface (``widen_for_slope``)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,12 @@ from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["ErrorTerms", "widen_sigmas"]
+__all__ = ["ErrorTerms", "SLOPE_RADIUS_PX", "widen_for_slope", "widen_sigmas"]
+
+SLOPE_RADIUS_PX = 6
+"""Half-side (camera px) of the square whose points give a point's depth gradient across the image
+(``widen_for_slope``): wide enough to hold the next rings' samples (a few px apart on the default
+rig), narrow enough to stay on one surface."""
 
 
 @wp.struct
@@ -75,7 +81,128 @@ def widen_kernel(
     out[i] = w
 
 
+@wp.kernel
+def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=wp.int32), i0: int,
+                        at_pixel: wp.array(dtype=wp.int32)):
+    """at_pixel[pixel[i]] = the least i of the placed points (status 0) at each pixel (atomic: the same
+    on every device). pixel, status (n,) int32: read; at_pixel (npix,) int32 (set to n before): written."""
+    i = i0 + wp.tid()
+    if status[i] == 0:
+        wp.atomic_min(at_pixel, pixel[i], i)
+
+
+@wp.kernel
+def slope_kernel(
+    at_pixel: wp.array(dtype=wp.int32),
+    uv: wp.array(dtype=wp.vec2),
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    sigma: wp.array(dtype=wp.float32),
+    center: wp.vec3d,
+    width: int,
+    radius: int,
+    position_px: wp.float64,
+    i0: int,
+    gradient: wp.array(dtype=wp.float32),
+    out: wp.array(dtype=wp.float32),
+):
+    """Each placed point's depth gradient across the image (mm per camera px: a plane fitted to the
+    depths of the placed points within ``radius`` px, 0 where fewer than 6 or all along one line) and
+    its sigma widened by it: out = sqrt(sigma^2 + (position_px * gradient)^2); out = sigma elsewhere.
+
+    at_pixel (npix,) int32 the point at each pixel (>= n: none); uv (n,) vec2; points (n,) vec3;
+    status (n,) int32; sigma (n,) float32: read. gradient, out (n,) float32: written.
+
+    Size: the pixel index and the four per-sample arrays the fit reads, the camera's centre and width,
+    the square's half-side, the position error, the span's i0, two arrays out."""
+    i = i0 + wp.tid()
+    n = points.shape[0]
+    out[i] = sigma[i]
+    gradient[i] = wp.float32(0.0)
+    if status[i] != 0:
+        return
+    height = at_pixel.shape[0] / width
+    di = wp.length(wp.vec3d(points[i]) - center)
+    x = int(wp.round(uv[i][0]))
+    y = int(wp.round(uv[i][1]))
+    s1 = wp.float64(0.0)
+    su = wp.float64(0.0)
+    sv = wp.float64(0.0)
+    suu = wp.float64(0.0)
+    suv = wp.float64(0.0)
+    svv = wp.float64(0.0)
+    sd = wp.float64(0.0)
+    sud = wp.float64(0.0)
+    svd = wp.float64(0.0)
+    for yy in range(wp.max(y - radius, 0), wp.min(y + radius, height - 1) + 1):
+        for xx in range(wp.max(x - radius, 0), wp.min(x + radius, width - 1) + 1):
+            j = at_pixel[yy * width + xx]
+            if j < n:
+                du = wp.float64(uv[j][0] - uv[i][0])
+                dv = wp.float64(uv[j][1] - uv[i][1])
+                dd = wp.length(wp.vec3d(points[j]) - center) - di
+                s1 += wp.float64(1.0)
+                su += du
+                sv += dv
+                suu += du * du
+                suv += du * dv
+                svv += dv * dv
+                sd += dd
+                sud += du * dd
+                svd += dv * dd
+    if s1 < wp.float64(6.0):
+        return
+    # the plane's slope from the centred sums; both directions spread (a lone ring is a line)
+    cuu = suu - su * su / s1
+    cuv = suv - su * sv / s1
+    cvv = svv - sv * sv / s1
+    bu = sud - su * sd / s1
+    bv = svd - sv * sd / s1
+    det = cuu * cvv - cuv * cuv
+    half = wp.float64(0.5) * (cuu + cvv)
+    if det <= wp.float64(0.05) * half * half:
+        return
+    gu = (cvv * bu - cuv * bv) / det
+    gv = (cuu * bv - cuv * bu) / det
+    g = wp.sqrt(gu * gu + gv * gv)
+    gradient[i] = wp.float32(g)
+    e = position_px * g
+    out[i] = wp.float32(wp.sqrt(wp.float64(sigma[i]) * wp.float64(sigma[i]) + e * e))
+
+
 # ----------------------------------------------------------------------------- host
+
+
+def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.array, pixel: wp.array, *,
+                    center, width: int, height: int, position_px: float, radius: int = SLOPE_RADIUS_PX,
+                    threads: int | None = None) -> tuple[wp.array, wp.array]:
+    """((n,) float32 sigmas widened by the error both projector coordinates share on a steep surface,
+    (n,) float32 each point's depth gradient across the image, mm per camera px; :func:`slope_kernel`),
+    on the points' device. A camera-side error of the sample's place moves the ray, and along a
+    surface that the view grazes the depth changes fast across the image: both coordinates' points
+    then err alike by ``position_px`` times that gradient, which their disagreement cannot show.
+
+    Size: the triangulation's three per-point arrays, the samples' positions and pixels, the camera
+    (centre, size), the position error, the square's half-side, the thread count."""
+    fn = "widen_for_slope"
+    n = check_array("points", points, None, wp.vec3, fn)
+    check_array("status", status, n, wp.int32, fn)
+    check_array("sigma", sigma, n, wp.float32, fn)
+    check_array("uv", uv, n, wp.vec2, fn)
+    check_array("pixel", pixel, n, wp.int32, fn)
+    dev = points.device
+    th = default_threads() if threads is None else threads
+    at_pixel = wp.full(int(width) * int(height), n, dtype=wp.int32, device=dev)
+    gradient = wp.empty(n, dtype=wp.float32, device=dev)
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    if n == 0:
+        return out, gradient
+    launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, i0], [at_pixel], dev, 1)
+    c = np.asarray(center, np.float64).reshape(3)
+    args = [at_pixel, uv, points, status, sigma, wp.vec3d(*c), int(width), int(radius), float(position_px)]
+    launch_spans(slope_kernel, n, lambda i0: args + [i0], [gradient, out], dev, th)
+    return out, gradient
+
 
 
 def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array | None = None,

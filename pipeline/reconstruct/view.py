@@ -16,7 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.calibration_floor import calibration_floor
 from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
-from ringscan.kernels.error_terms import widen_sigmas
+from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -79,6 +79,12 @@ INDIRECT_PRIOR_PX = 0.67
 (``Samples.indirect`` above the view's median), which its neighbours cannot see (the shift is smooth
 along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inter-reflection
 (docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
+SHARED_POSITION_PX = 0.04
+"""Camera px that a sample's place errs by in common to both projector coordinates (the ray itself
+moved): along a surface the view grazes it moves the point by that times the depth gradient across
+the image, and the two coordinates' disagreement, which fits every other term, cancels it. Neither
+the pairs nor a ring's neighbours can measure it: the value both renderers show on a sphere's limb
+(ringscan's 0.030-0.042 px, Mitsuba's 0.039-0.045 px: docs/accuracy.md)."""
 
 
 
@@ -257,6 +263,9 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
             ts = replace(settings.triangulate,
                          max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
             triangulated = triangulate(sigma_rho=sigma_rho, sigma_tan=sigma_tan, settings=ts, floor=floor)
+    if fit:
+        # the pairs' fit cannot see what both coordinates share (their disagreement cancels it)
+        triangulated = _with_shared_slope(scan, samples, triangulated, threads)
     if calibration and calibration["residual_px_median"] > CALIBRATION_WARN_PX:
         log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
                     "point by %.2f px (median; p95 %.2f px): check the calibration (docs/calibration.md)",
@@ -325,6 +334,17 @@ def _surface_slope(samples, first, triangulate, center: np.ndarray) -> np.ndarra
     # never below 1: where the two slopes nearly cancel, the surface's (read over the ~40 px to the next
     # lines) is not known well enough to shrink a sigma by it (on the sphere such samples erred 5x theirs)
     return np.where(np.isfinite(factor), np.maximum(factor, 1.0), 1.0)
+
+
+def _with_shared_slope(scan: Scan, samples, triangulated, threads: int):
+    """``triangulated`` with each point's sigma grown by the error its two coordinates share on a
+    steep surface: ``SHARED_POSITION_PX`` times its depth gradient across the image, read from the
+    points around it (:func:`~ringscan.kernels.error_terms.widen_for_slope`)."""
+    cam = scan.rig.camera
+    sigma, _ = widen_for_slope(triangulated.points, triangulated.status, triangulated.sigma, samples.uv,
+                               samples.pixel, center=np.asarray(cam.center, np.float64), width=cam.width,
+                               height=cam.height, position_px=SHARED_POSITION_PX, threads=threads)
+    return replace(triangulated, sigma=sigma)
 
 
 def _with_line_bias(samples, triangulated, base: wp.array):

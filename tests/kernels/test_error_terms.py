@@ -2,10 +2,9 @@
 (pipeline.reconstruct.error_scale) to the bit."""
 
 import numpy as np
-import pytest
 import warp as wp
 
-from ringscan.kernels.error_terms import widen_sigmas
+from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.pipeline.reconstruct.error_scale import apply_error_model, region_scale
 
 
@@ -32,3 +31,49 @@ def test_widened_sigmas_are_the_numpy_statements_to_the_bit():
             w = (w * np.sqrt(region_scale(reg, uv))).astype(np.float32)
             assert np.count_nonzero(region_scale(reg, uv) != 1.0) > 100  # the tiles hold samples
         np.testing.assert_array_equal(got, w)
+
+
+def _rings_on_a_plane(gu, gv, *, width=200, height=160, spacing=3.0, d0=400.0):
+    """Samples along rings spacing px apart (one a pixel, as a ring's edge crossings are) whose depths
+    along their rays lie on the plane d0 + gu u + gv v over the image (the camera at the origin, each
+    point straight along +z at that depth: the kernel reads depths and image positions only)."""
+    uv = []
+    for r in np.arange(10.0, 70.0, spacing):
+        th = np.linspace(0, 2 * np.pi, int(2 * np.pi * r), endpoint=False)
+        uv.append(np.stack([100 + r * np.cos(th), 80 + r * np.sin(th)], 1))
+    uv = np.concatenate(uv)
+    pixel = (np.round(uv[:, 1]).astype(np.int64) * width + np.round(uv[:, 0]).astype(np.int64)).astype(np.int32)
+    depth = d0 + gu * uv[:, 0] + gv * uv[:, 1]
+    points = np.stack([np.zeros_like(depth), np.zeros_like(depth), depth], 1)
+    return uv.astype(np.float32), pixel, points.astype(np.float32), width, height
+
+
+def test_a_steep_surface_widens_sigma_by_its_depth_gradient():
+    """widen_for_slope: a plane's depth gradient across the image read back from the points around each
+    sample (exact for a plane, to float32 rounding of the depths: 1e-3 relative), and sigma grown to
+    sqrt(s^2 + (position_px gradient)^2); points not placed and samples on one ring alone (a line: no
+    gradient across it) keep theirs."""
+    for gu, gv in ((0.0, 0.0), (0.3, -0.4), (2.0, 0.5)):
+        uv, pixel, points, w, h = _rings_on_a_plane(gu, gv)
+        n = len(uv)
+        status = np.zeros(n, np.int32)
+        status[::17] = 3  # not placed: neither widened nor used by their neighbours
+        s = np.full(n, 0.01, np.float32)
+        out, grad = widen_for_slope(wp.array(points, dtype=wp.vec3), wp.array(status, dtype=wp.int32), _f32(s),
+                                    wp.array(uv, dtype=wp.vec2), wp.array(pixel, dtype=wp.int32), center=(0, 0, 0),
+                                    width=w, height=h, position_px=0.04, threads=2)
+        out, grad = out.numpy(), grad.numpy()
+        placed = status == 0
+        assert np.allclose(grad[placed], np.hypot(gu, gv), rtol=1e-3, atol=2e-4), (gu, gv)
+        assert np.allclose(out[placed], np.sqrt(0.01 ** 2 + (0.04 * np.hypot(gu, gv)) ** 2), rtol=1e-4)
+        assert np.array_equal(out[~placed], s[~placed]) and np.all(grad[~placed] == 0)
+    # samples along one straight line (a ring's edge seen edge-on): no gradient across it, sigma kept
+    u = np.arange(20.0, 180.0, 1.0)
+    uv = np.stack([u, 0.3 * u + 20.0], 1).astype(np.float32)
+    pixel = (np.round(uv[:, 1]).astype(np.int64) * 200 + np.round(uv[:, 0]).astype(np.int64)).astype(np.int32)
+    points = np.stack([0 * u, 0 * u, 400 + 0.5 * u], 1).astype(np.float32)
+    n = len(u)
+    out, grad = widen_for_slope(wp.array(points, dtype=wp.vec3), wp.zeros(n, dtype=wp.int32),
+                                _f32(np.full(n, 0.01)), wp.array(uv, dtype=wp.vec2), wp.array(pixel, dtype=wp.int32),
+                                center=(0, 0, 0), width=200, height=160, position_px=0.04)
+    assert np.all(grad.numpy() == 0) and np.all(out.numpy() == np.float32(0.01))
