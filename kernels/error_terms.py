@@ -17,9 +17,10 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken here
 __all__ = ["ErrorTerms", "SLOPE_RADIUS_PX", "widen_for_slope", "widen_sigmas"]
 
 SLOPE_RADIUS_PX = 6
-"""Half-side (camera px) of the square whose points give a point's depth gradient across the image
-(``widen_for_slope``): wide enough to hold the next rings' samples (a few px apart on the default
-rig), narrow enough to stay on one surface."""
+"""Half-side (camera px) of the square whose points give a ring sample's depth gradient across the
+image (``widen_for_slope``): wide enough to hold the next rings' samples (a few px apart on the
+default rig), narrow enough to stay on one surface (a sample a pixel needs only 1: its 3 x 3 pixels
+fix the plane)."""
 
 
 @wp.struct
@@ -82,11 +83,14 @@ def widen_kernel(
 
 
 @wp.kernel
-def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=wp.int32), i0: int,
-                        at_pixel: wp.array(dtype=wp.int32)):
+def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=wp.int32),
+                        points: wp.array(dtype=wp.vec3), center: wp.vec3d, i0: int,
+                        at_pixel: wp.array(dtype=wp.int32), depth: wp.array(dtype=wp.float64)):
     """at_pixel[pixel[i]] = the least i of the placed points (status 0) at each pixel (atomic: the same
-    on every device). pixel, status (n,) int32: read; at_pixel (npix,) int32 (set to n before): written."""
+    on every device); depth[i] = the point's distance from the camera centre (mm). pixel, status (n,)
+    int32, points (n,) vec3: read; at_pixel (npix,) int32 (set to n before), depth (n,) float64: written."""
     i = i0 + wp.tid()
+    depth[i] = wp.length(wp.vec3d(points[i]) - center)
     if status[i] == 0:
         wp.atomic_min(at_pixel, pixel[i], i)
 
@@ -95,10 +99,9 @@ def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=
 def slope_kernel(
     at_pixel: wp.array(dtype=wp.int32),
     uv: wp.array(dtype=wp.vec2),
-    points: wp.array(dtype=wp.vec3),
+    depth: wp.array(dtype=wp.float64),
     status: wp.array(dtype=wp.int32),
     sigma: wp.array(dtype=wp.float32),
-    center: wp.vec3d,
     width: int,
     radius: int,
     position_px: wp.float64,
@@ -110,19 +113,19 @@ def slope_kernel(
     depths of the placed points within ``radius`` px, 0 where fewer than 6 or all along one line) and
     its sigma widened by it: out = sqrt(sigma^2 + (position_px * gradient)^2); out = sigma elsewhere.
 
-    at_pixel (npix,) int32 the point at each pixel (>= n: none); uv (n,) vec2; points (n,) vec3;
-    status (n,) int32; sigma (n,) float32: read. gradient, out (n,) float32: written.
+    at_pixel (npix,) int32 the point at each pixel (>= n: none); uv (n,) vec2; depth (n,) float64 along
+    the rays; status (n,) int32; sigma (n,) float32: read. gradient, out (n,) float32: written.
 
-    Size: the pixel index and the four per-sample arrays the fit reads, the camera's centre and width,
-    the square's half-side, the position error, the span's i0, two arrays out."""
+    Size: the pixel index and the four per-sample arrays the fit reads, the camera's width, the
+    square's half-side, the position error, the span's i0, two arrays out."""
     i = i0 + wp.tid()
-    n = points.shape[0]
+    n = depth.shape[0]
     out[i] = sigma[i]
     gradient[i] = wp.float32(0.0)
     if status[i] != 0:
         return
     height = at_pixel.shape[0] / width
-    di = wp.length(wp.vec3d(points[i]) - center)
+    di = depth[i]
     x = int(wp.round(uv[i][0]))
     y = int(wp.round(uv[i][1]))
     s1 = wp.float64(0.0)
@@ -140,7 +143,7 @@ def slope_kernel(
             if j < n:
                 du = wp.float64(uv[j][0] - uv[i][0])
                 dv = wp.float64(uv[j][1] - uv[i][1])
-                dd = wp.length(wp.vec3d(points[j]) - center) - di
+                dd = depth[j] - di
                 s1 += wp.float64(1.0)
                 su += du
                 sv += dv
@@ -197,9 +200,11 @@ def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.
     out = wp.empty(n, dtype=wp.float32, device=dev)
     if n == 0:
         return out, gradient
-    launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, i0], [at_pixel], dev, 1)
+    depth = wp.empty(n, dtype=wp.float64, device=dev)
     c = np.asarray(center, np.float64).reshape(3)
-    args = [at_pixel, uv, points, status, sigma, wp.vec3d(*c), int(width), int(radius), float(position_px)]
+    launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, points, wp.vec3d(*c), i0], [at_pixel, depth],
+                 dev, 1)
+    args = [at_pixel, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
     launch_spans(slope_kernel, n, lambda i0: args + [i0], [gradient, out], dev, th)
     return out, gradient
 

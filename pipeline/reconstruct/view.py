@@ -16,7 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.calibration_floor import calibration_floor
 from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
-from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
+from ringscan.kernels.error_terms import SLOPE_RADIUS_PX, widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -80,8 +80,8 @@ INDIRECT_PRIOR_PX = 0.67
 along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inter-reflection
 (docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
 SHARED_POSITION_PX = 0.04
-"""Camera px that a sample's place errs by in common to both projector coordinates (the ray itself
-moved): along a surface the view grazes it moves the point by that times the depth gradient across
+"""Camera px that a ring edge's measured place errs by in common to both projector coordinates (the
+ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a surface the view grazes it moves the point by that times the depth gradient across
 the image, and the two coordinates' disagreement, which fits every other term, cancels it. Neither
 the pairs nor a ring's neighbours can measure it: the value both renderers show on a sphere's limb
 (ringscan's 0.030-0.042 px, Mitsuba's 0.039-0.045 px: docs/accuracy.md)."""
@@ -263,8 +263,9 @@ def _camera_projector(scan: Scan, view: View, settings: ReconstructSettings, sam
             ts = replace(settings.triangulate,
                          max_residual_px=max(settings.triangulate.max_residual_px, FLOOR_OUTLIER * floor))
             triangulated = triangulate(sigma_rho=sigma_rho, sigma_tan=sigma_tan, settings=ts, floor=floor)
-    if fit:
-        # the pairs' fit cannot see what both coordinates share (their disagreement cancels it)
+    if fit and samples.ring is not None:
+        # the pairs' fit cannot see what both coordinates share (their disagreement cancels it): a ring
+        # edge's place in the camera is measured; a dense code's samples sit at pixel centres
         triangulated = _with_shared_slope(scan, samples, triangulated, threads)
     if calibration and calibration["residual_px_median"] > CALIBRATION_WARN_PX:
         log.warning("%s: the rig does not fit these images: the two projector coordinates miss each other's "
@@ -343,7 +344,8 @@ def _with_shared_slope(scan: Scan, samples, triangulated, threads: int):
     cam = scan.rig.camera
     sigma, _ = widen_for_slope(triangulated.points, triangulated.status, triangulated.sigma, samples.uv,
                                samples.pixel, center=np.asarray(cam.center, np.float64), width=cam.width,
-                               height=cam.height, position_px=SHARED_POSITION_PX, threads=threads)
+                               height=cam.height, position_px=SHARED_POSITION_PX, radius=SLOPE_RADIUS_PX,
+                               threads=threads)
     return replace(triangulated, sigma=sigma)
 
 

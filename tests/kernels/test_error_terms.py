@@ -67,6 +67,19 @@ def test_a_steep_surface_widens_sigma_by_its_depth_gradient():
         assert np.allclose(grad[placed], np.hypot(gu, gv), rtol=1e-3, atol=2e-4), (gu, gv)
         assert np.allclose(out[placed], np.sqrt(0.01 ** 2 + (0.04 * np.hypot(gu, gv)) ** 2), rtol=1e-4)
         assert np.array_equal(out[~placed], s[~placed]) and np.all(grad[~placed] == 0)
+    # a dense code (a sample a pixel) reads its plane from its 3 x 3 pixels
+    y, x = np.mgrid[0:40, 0:50].astype(np.float64)
+    uv = np.stack([x.ravel(), y.ravel()], 1).astype(np.float32)
+    pixel = (y.ravel() * 50 + x.ravel()).astype(np.int32)
+    depth = 400 + 0.7 * x.ravel() - 0.2 * y.ravel()
+    points = np.stack([0 * depth, 0 * depth, depth], 1).astype(np.float32)
+    n = len(uv)
+    out, grad = widen_for_slope(wp.array(points, dtype=wp.vec3), wp.zeros(n, dtype=wp.int32),
+                                _f32(np.full(n, 0.01)), wp.array(uv, dtype=wp.vec2), wp.array(pixel, dtype=wp.int32),
+                                center=(0, 0, 0), width=50, height=40, position_px=0.04, radius=1)
+    corner = ((x == 0) | (x == 49)).ravel() & ((y == 0) | (y == 39)).ravel()  # 4 points: fewer than 6
+    g = grad.numpy()
+    assert np.allclose(g[~corner], np.hypot(0.7, 0.2), rtol=1e-3) and np.all(g[corner] == 0)
     # samples along one straight line (a ring's edge seen edge-on): no gradient across it, sigma kept
     u = np.arange(20.0, 180.0, 1.0)
     uv = np.stack([u, 0.3 * u + 20.0], 1).astype(np.float32)
