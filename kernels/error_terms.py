@@ -19,8 +19,7 @@ __all__ = ["ErrorTerms", "SLOPE_RADIUS_PX", "widen_for_slope", "widen_sigmas"]
 SLOPE_RADIUS_PX = 6
 """Half-side (camera px) of the square whose points give a ring sample's depth gradient across the
 image (``widen_for_slope``): wide enough to hold the next rings' samples (a few px apart on the
-default rig), narrow enough to stay on one surface (a sample a pixel needs only 1: its 3 x 3 pixels
-fix the plane)."""
+default rig), narrow enough to stay on one surface."""
 
 
 @wp.struct

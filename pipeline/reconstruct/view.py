@@ -16,7 +16,7 @@ import warp as wp
 from ringscan.kernels import init_warp, resolve_device
 from ringscan.kernels.calibration_floor import calibration_floor
 from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
-from ringscan.kernels.error_terms import SLOPE_RADIUS_PX, widen_for_slope, widen_sigmas
+from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
 from ringscan.kernels.ring_checks import sample_reach
@@ -81,9 +81,10 @@ along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inte
 (docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
 SHARED_POSITION_PX = 0.04
 """Camera px that a ring edge's measured place errs by in common to both projector coordinates (the
-ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a surface the view grazes it moves the point by that times the depth gradient across
-the image, and the two coordinates' disagreement, which fits every other term, cancels it. Neither
-the pairs nor a ring's neighbours can measure it: the value both renderers show on a sphere's limb
+ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a
+surface the view grazes it moves the point by that times the depth gradient across the image, and
+the two coordinates' disagreement, which fits every other term, cancels it. Neither the pairs nor a
+ring's neighbours can measure it: the value both renderers show on a sphere's limb
 (ringscan's 0.030-0.042 px, Mitsuba's 0.039-0.045 px: docs/accuracy.md)."""
 
 
@@ -344,8 +345,7 @@ def _with_shared_slope(scan: Scan, samples, triangulated, threads: int):
     cam = scan.rig.camera
     sigma, _ = widen_for_slope(triangulated.points, triangulated.status, triangulated.sigma, samples.uv,
                                samples.pixel, center=np.asarray(cam.center, np.float64), width=cam.width,
-                               height=cam.height, position_px=SHARED_POSITION_PX, radius=SLOPE_RADIUS_PX,
-                               threads=threads)
+                               height=cam.height, position_px=SHARED_POSITION_PX, threads=threads)
     return replace(triangulated, sigma=sigma)
 
 
