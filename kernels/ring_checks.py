@@ -21,6 +21,8 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 LAGS = wp.constant(wp.vec3i(2, 4, 8))
 """The checks wider than 1 px (``neighbour_checks.NEIGHBOUR_LAGS[1:]``)."""
+VEC8I = wp.types.vector(length=8, dtype=wp.int32)
+VEC8D = wp.types.vector(length=8, dtype=wp.float64)
 
 # ----------------------------------------------------------------------------- functions
 
@@ -62,8 +64,8 @@ def uv64(uv: wp.array(dtype=wp.vec2), i: int):
 
 
 @wp.func
-def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32), k: int, npix: wp.int64,
-                    width: int, x: int, y: int, a: int):
+def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                    at_pixel: wp.array(dtype=wp.int32), k: int, npix: wp.int64, width: int, x: int, y: int, a: int):
     """The sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (row by row, the centre left out;
     -1: none there)."""
     ia = a + wp.where(a >= 4, 1, 0)
@@ -71,13 +73,16 @@ def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int3
     ay = y + ia / 3 - 1
     j = int(-1)
     if ax >= 0 and ax < width and ay >= 0:
-        j = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
+        # a pixel with no sample of any ring needs no search (one with one may hold two of a ring: the key
+        # decides which)
+        if at_pixel[ay * width + ax] >= 0:
+            j = keyed_sample(key, order, wp.int64(k) * npix + wp.int64(ay * width + ax))
     return j
 
 
 @wp.func
 def opposite_pair(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
-                  k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
+                  at_pixel: wp.array(dtype=wp.int32), k: int, npix: wp.int64, width: int, x: int, y: int, c: int):
     """The two samples of ring ``k`` among the 8 pixels around (x, y) most nearly on opposite sides of sample
     ``c`` (the pair of least cosine between their unit offsets, the first such in the 8 x 8 order, both with
     an offset), where at least 120 degrees apart; (-1, -1): none (``_next_neighbours``' test and choice).
@@ -85,29 +90,36 @@ def opposite_pair(uv: wp.array(dtype=wp.vec2), key: wp.array(dtype=wp.int64), or
     Size: a @wp.func reading the samples and the ring index directly, plus the ring, the index's stride,
     the pixel and the sample."""
     pc = uv64(uv, c)
+    # each neighbour looked up once (a binary search of the key each), its unit offset kept: the 8 x 8 pairs
+    # then read them (the same pairs, order and tie-break as looking each up inside the pair loop)
+    nbr = VEC8I()
+    ux = VEC8D()
+    uy = VEC8D()
+    for a in range(8):
+        ja = keyed_neighbour(key, order, at_pixel, k, npix, width, x, y, a)
+        if ja >= 0:
+            va = uv64(uv, ja) - pc
+            na = wp.length(va)
+            if na > wp.float64(0.0):
+                ux[a] = va[0] / na
+                uy[a] = va[1] / na
+            else:
+                ja = -1
+        nbr[a] = ja
     best = wp.float64(1.0e308)
     found = int(0)
     ba = int(-1)
     bb = int(-1)
     for a in range(8):
-        ja = keyed_neighbour(key, order, k, npix, width, x, y, a)
-        if ja >= 0:
-            va = uv64(uv, ja) - pc
-            na = wp.length(va)
-            if na > wp.float64(0.0):
-                ua = wp.vec2d(va[0] / na, va[1] / na)
-                for b in range(8):
-                    jb = keyed_neighbour(key, order, k, npix, width, x, y, b)
-                    if jb >= 0:
-                        vb = uv64(uv, jb) - pc
-                        nb = wp.length(vb)
-                        if nb > wp.float64(0.0):
-                            cos = ua[0] * (vb[0] / nb) + ua[1] * (vb[1] / nb)
-                            if found == 0 or cos < best:
-                                best = cos
-                                found = 1
-                                ba = ja
-                                bb = jb
+        if nbr[a] >= 0:
+            for b in range(8):
+                if nbr[b] >= 0:
+                    cos = ux[a] * ux[b] + uy[a] * uy[b]
+                    if found == 0 or cos < best:
+                        best = cos
+                        found = 1
+                        ba = nbr[a]
+                        bb = nbr[b]
     if found == 0 or best > wp.float64(-0.5):
         ba = -1
         bb = -1
@@ -256,7 +268,7 @@ def check_reach_kernel(
                 break
     if r == 0:  # the 1 px check, at the sample's own pixel
         px = pixel[c]
-        r = wp.where(opposite_pair(uv, key, order, k, npix, width, px % width, px / width, c)[0] >= 0, 1, 0)
+        r = wp.where(opposite_pair(uv, key, order, at_pixel, k, npix, width, px % width, px / width, c)[0] >= 0, 1, 0)
     reach[c] = r
 
 
@@ -268,6 +280,7 @@ def next_neighbours_kernel(
     centre: wp.array(dtype=wp.int32),
     key: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
+    at_pixel: wp.array(dtype=wp.int32),
     npix: wp.int64,
     width: int,
     i0: int,
@@ -277,13 +290,14 @@ def next_neighbours_kernel(
     opposite sides, where at least 120 degrees apart (:func:`opposite_pair`; (-1, -1): none).
 
     uv (n,) vec2, ring and pixel (n,) int32, centre (m,) int32, key (u,) int64 sorted ring * npix + pixel of
-    the usable samples and order (u,) int32 the sample of each: read. pair (m,) vec2i: written.
+    the usable samples and order (u,) int32 the sample of each, at_pixel (npix,) int32 a usable sample at
+    each pixel (-1: none): read. pair (m,) vec2i: written.
 
-    Size: the samples' three arrays, the centres, the ring index (keys, their samples, its stride), the
-    camera's width, the span's i0, one array out."""
+    Size: the samples' three arrays, the centres, the ring index (keys, their samples, the pixel lookup, its
+    stride), the camera's width, the span's i0, one array out."""
     i = i0 + wp.tid()
     c = centre[i]
-    pair[i] = opposite_pair(uv, key, order, ring[c], npix, width, pixel[c] % width, pixel[c] / width, c)
+    pair[i] = opposite_pair(uv, key, order, at_pixel, ring[c], npix, width, pixel[c] % width, pixel[c] / width, c)
 
 
 @wp.kernel
@@ -314,13 +328,14 @@ def lag_nodes_kernel(
     direction: wp.array(dtype=wp.vec2d),
     at_pixel: wp.array(dtype=wp.int32),
     width: int,
+    first: int,
     lags: int,
     i0: int,
     nodes: wp.array2d(dtype=wp.int32),
     place: wp.array2d(dtype=wp.float64),
 ):
     """Sample centre[i0 + tid]'s four same-ring nodes near -2k, -k, k, 2k px along ``direction`` for each of
-    the first ``lags`` of ``LAGS``, and their places (:func:`lag_node`; ``_lag_nodes``).
+    ``lags`` of ``LAGS`` from its ``first``, and their places (:func:`lag_node`; ``_lag_nodes``).
 
     uv (n,) vec2, ring (n,) int32, centre (m,) int32, direction (m,) vec2d, at_pixel (npix,) int32 a usable
     sample at each pixel (-1: none): read. nodes (m, 4 lags) int32 (-1: none), place (m, 4 lags) float64:
@@ -335,7 +350,7 @@ def lag_nodes_kernel(
     for li in range(lags):
         for s in range(4):
             node, pl = lag_node(uv, ring, at_pixel, width, height, ring[c], pc, direction[i],
-                                s - 2 + wp.where(s >= 2, 1, 0), LAGS[li])
+                                s - 2 + wp.where(s >= 2, 1, 0), LAGS[first + li])
             nodes[i, 4 * li + s] = node
             place[i, 4 * li + s] = pl
 
@@ -384,9 +399,9 @@ def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarr
 
 
 def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centre: np.ndarray, *, width: int,
-                   lags: int, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   lags: tuple, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(the ``centre`` samples whose ring has a direction there (k,), that direction (k, 2), their nodes
-    (k, lags, 4) int64 (-1: none) and the nodes' places (k, lags, 4) float64) for the first ``lags`` of
+    (k, len(lags), 4) int64 (-1: none) and the nodes' places (k, len(lags), 4) float64) for ``lags`` of
     (2, 4, 8) px: ``neighbour_checks._ring_directions`` and ``_lag_nodes``, the same samples, directions
     and places to the bit (the positions' sums by :func:`ring_sums_kernel`, the direction from them by
     NumPy as there, the nodes by :func:`lag_nodes_kernel`).
@@ -397,11 +412,14 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
         at_pixel: (H * W,) int a usable sample's index at each camera pixel (-1: none).
         centre: (m,) int the samples to find nodes for.
         width: camera width (px).
-        lags: how many of the lags (1..3).
+        lags: the lags (px), in order, without a gap: (2,), (4, 8), (2, 4, 8), ...
         threads: CPU threads; default all cores.
     """
-    if not 1 <= lags <= 3:
-        raise ValueError(f"ring_lag_nodes: lags must be 1..3, got {lags}")
+    every = tuple(int(k) for k in LAGS)
+    lags = tuple(int(k) for k in lags)
+    if not lags or lags[0] not in every or every[every.index(lags[0]):][:len(lags)] != lags:
+        raise ValueError(f"ring_lag_nodes: lags must be a run of {every}, got {lags}")
+    first, lags = every.index(lags[0]), len(lags)
     centre = np.asarray(centre, np.int64)
     dev, threads = "cpu", default_threads() if threads is None else threads
     uv32 = wp.array(np.ascontiguousarray(np.asarray(uv).reshape(-1, 2), np.float32), dtype=wp.vec2, device=dev)
@@ -427,7 +445,7 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
     place = np.zeros((kept.size, 4 * lags), np.float64)
     if kept.size:
         args = [uv32, ring_w, wp.array(kept.astype(np.int32), dtype=wp.int32, device=dev),
-                wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), int(lags)]
+                wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), first, lags]
         launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0],
                      [wp.array(nodes, dtype=wp.int32, device=dev, copy=False),
                       wp.array(place, dtype=wp.float64, device=dev, copy=False)], dev, threads, min_span=1024)
@@ -436,14 +454,14 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
 
 
 def next_neighbours(uv: np.ndarray, ring: np.ndarray, pixel: np.ndarray, key: np.ndarray, order: np.ndarray,
-                    npix: int, centre: np.ndarray, *, width: int,
+                    at_pixel: np.ndarray, npix: int, centre: np.ndarray, *, width: int,
                     threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(c, a, b): the ``centre`` samples with two samples of their ring among their 8 neighbouring pixels
     at least 120 degrees apart, and those two (:func:`next_neighbours_kernel`; the NumPy statement
-    ``neighbour_checks._next_neighbours``, the same samples). ``key``/``order``/``npix``: the ring index
-    (``neighbour_checks._RingIndex``); ``uv`` (n, 2) float32 values, ``ring``, ``pixel`` (n,) int.
+    ``neighbour_checks._next_neighbours``, the same samples). ``key``/``order``/``at_pixel``/``npix``: the ring
+    index (``neighbour_checks._RingIndex``); ``uv`` (n, 2) float32 values, ``ring``, ``pixel`` (n,) int.
 
-    Size: the samples' three arrays, the ring index's three parts, the centres, the camera's width and the
+    Size: the samples' three arrays, the ring index's four parts, the centres, the camera's width and the
     threads."""
     centre = np.asarray(centre, np.int64)
     pair = np.full((centre.size, 2), -1, np.int32)
@@ -454,7 +472,8 @@ def next_neighbours(uv: np.ndarray, ring: np.ndarray, pixel: np.ndarray, key: np
                 wp.array(np.asarray(pixel, np.int32), dtype=wp.int32, device=dev),
                 wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev),
                 wp.array(np.asarray(key, np.int64), dtype=wp.int64, device=dev),
-                wp.array(np.asarray(order, np.int32), dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
+                wp.array(np.asarray(order, np.int32), dtype=wp.int32, device=dev),
+                wp.array(np.asarray(at_pixel, np.int32), dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
         launch_spans(next_neighbours_kernel, centre.size, lambda i0: args + [i0],
                      [wp.array(pair, dtype=wp.vec2i, device=dev, copy=False)], dev,
                      default_threads() if threads is None else threads, min_span=1024)
