@@ -533,6 +533,21 @@ def triangulate_kernel(
         if st == STATUS_OK or st == STATUS_GRAZING:
             slope = ring_slope(light, X, d, center, off)
             sg = wp.where(slope > 0.0, sigma_rho[i] / slope, 1.0e9)
+            if params.widen_angle != 0 and f == f and st_t > 0.0:
+                # the angle was read but the ring alone places the point (``constraint`` rings): where the two
+                # coordinates disagree beyond both sigmas (bounced light bending both, a mixed pixel), the
+                # ring's point is no better known than that disagreement either (as with the angle or both)
+                e_r = wp.vec2(wp.cos(f), wp.sin(f))
+                p_obs = wp.vec2(center[0] + r * e_r[0], center[1] + r * e_r[1])
+                sr = wp.max(sigma_rho[i], 1.0e-6)
+                stt = wp.max(st_t, 1.0e-6)
+                X2, st2, q2, res2, sg2, rvar2, vboth2 = full_solution(
+                    light, C, d, p_obs, e_r, 1.0 / (sr * sr), 1.0 / (stt * stt), sr * sr, floor * floor, vol,
+                    min_incidence_cos, max_residual_px)
+                if vboth2 > 0.0 and res2 >= 0.0:
+                    chi2 = res2 * res2 / (vboth2 + floor * floor)
+                    if chi2 > 1.0:
+                        sg = sg * wp.sqrt(chi2)
     status[i] = st
     residual[i] = res
     residual_var[i] = rvar
@@ -654,9 +669,10 @@ def triangulate_rings(
         settings: root-choice and constraint settings.
         floor: calibration floor (projector px, :func:`calibration_floor`): a
             standard deviation added across the epipolar line to samples with an angle.
-        widen_angle: a point placed with the angle (``settings.constraint`` angle or both) grows its sigma
-            by the chi of its two coordinates' disagreement across the epipolar line where it is above 1 (a
-            mixed pixel, a fringe bent by a highlight or a blur: the point is no better known than that).
+        widen_angle: a point of a sample with an angle grows its sigma by the chi of its two coordinates'
+            disagreement across the epipolar line where it is above 1 (a mixed pixel, a fringe bent by a
+            highlight, a blur or bounced light: the point is no better known than that), whichever
+            ``settings.constraint`` places it.
             False: the decode's sigma as it is (the error model's fit, which measures what the decode misses).
         threads: CPU threads; default all cores.
 

@@ -559,6 +559,37 @@ def test_a_point_of_both_coordinates_is_no_better_known_than_they_agree(device, 
 
 
 @pytest.mark.parametrize("model", ["parallel", "perspective"])
+def test_a_ring_alone_point_is_no_better_known_than_its_coordinates_agree(device, model):
+    """The ring alone places the point (``constraint`` rings) on a sample whose angle was read too: where the two
+    disagree across the epipolar line by chi times their joint sigma there (the chi the default's fit of both
+    reads), its sigma grows by chi (chi > 1) and stays the ring's own where they agree; the point is the
+    ring's, the angle moves none. widen_angle=False: the ring's sigma always."""
+    from ringscan.pipeline.reconstruct.settings import TriangulateSettings
+
+    rig, cam, light, P, uv, rho, sec = _setup(model)
+    phi = _polar(model, P, rig.light)
+    rings = TriangulateSettings(constraint="rings")
+    off = rho + np.float32(0.1)  # 0.1 projector px off along the radius: 2 sigmas of rho
+    kw = dict(sec=sec, sector_bits=SB, settings=rings)  # the ring's root chosen by its sector
+    wide = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, **kw)
+    plain = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, widen_angle=False, **kw)
+    no_angle = np.full(len(uv), np.nan, np.float32)  # no angle read: the ring's point and sigma
+    alone = _run_full(device, cam, light, uv, off, no_angle, 0.05, 0.05, **kw)
+    both = _run_full(device, cam, light, uv, off, phi, 0.05, 0.05, settings=TriangulateSettings(constraint="both"),
+                     widen_angle=False)
+    ok = (wide.status.numpy() == 0) & (plain.status.numpy() == 0) & (alone.status.numpy() == 0)
+    ok &= both.status.numpy() == 0
+    assert ok.mean() > 0.9
+    np.testing.assert_array_equal(wide.points.numpy()[ok], alone.points.numpy()[ok])
+    np.testing.assert_array_equal(plain.sigma.numpy()[ok], alone.sigma.numpy()[ok])
+    chi = both.residual.numpy()[ok] / np.sqrt(both.residual_var.numpy()[ok])
+    ratio = wide.sigma.numpy()[ok] / plain.sigma.numpy()[ok]
+    assert 0.2 < np.mean(chi > 1.0) < 0.9
+    np.testing.assert_allclose(ratio[chi > 1.0], chi[chi > 1.0], rtol=2e-3)  # float32 sigma and residual
+    assert np.all(ratio[chi <= 1.0] == 1.0)
+
+
+@pytest.mark.parametrize("model", ["parallel", "perspective"])
 def test_a_camera_side_error_moves_the_depth_as_the_ray_moved_would(model):
     """camera_side_sigmas: the rho sigma whose depth sigma (over the ring's slope, as triangulation
     divides) is the depth change of the same ring met by the camera ray moved along sigma_uv: the
