@@ -50,6 +50,22 @@ def design_row(du: wp.float64, dv: wp.float64):
 
 
 @wp.func
+def moment_matrix(m00: wp.float64, m10: wp.float64, m01: wp.float64, m20: wp.float64, m11: wp.float64,
+                  m02: wp.float64, m30: wp.float64, m21: wp.float64, m12: wp.float64, m03: wp.float64,
+                  m40: wp.float64, m31: wp.float64, m22: wp.float64, m13: wp.float64, m04: wp.float64):
+    """The normal matrix sum w a a^T of the quadratic's terms a = (1, u, v, u^2, u v, v^2) from the weighted
+    moments m_ik = sum w u^i v^k.
+
+    Size: the 15 moments of order up to 4."""
+    return MAT66D(m00, m10, m01, m20, m11, m02,
+                  m10, m20, m11, m30, m21, m12,
+                  m01, m11, m02, m21, m12, m03,
+                  m20, m30, m21, m40, m31, m22,
+                  m11, m21, m12, m31, m22, m13,
+                  m02, m12, m03, m22, m13, m04)
+
+
+@wp.func
 def symmetric_condition(N: MAT66D):
     """The 2-norm condition number of the symmetric N to ~0.2 % (its eigenvalues by cyclic Jacobi
     rotations until each is known to 1e-3 of the smallest); FAR where the smallest is 0."""
@@ -241,20 +257,54 @@ def cross_fit(uv: wp.array(dtype=wp.vec2d), depth: wp.array(dtype=wp.float64), v
 
     Size: the three per-sample arrays a fit reads, the centre and its neighbours' count, the mask's
     limit and whether to keep the residuals, the settings, the centre's row and its three scratch rows."""
-    N = MAT66D()
+    # N's 36 entries are 15 weighted moments sum w u^i v^k (i + k <= 4) of the quadratic's terms: summed
+    # once each (a third of the outer products' work), N then filled from them (exactly symmetric)
     rhs = VEC6D()
+    m00 = wp.float64(0.0)
+    m10 = wp.float64(0.0)
+    m01 = wp.float64(0.0)
+    m20 = wp.float64(0.0)
+    m11 = wp.float64(0.0)
+    m02 = wp.float64(0.0)
+    m30 = wp.float64(0.0)
+    m21 = wp.float64(0.0)
+    m12 = wp.float64(0.0)
+    m03 = wp.float64(0.0)
+    m40 = wp.float64(0.0)
+    m31 = wp.float64(0.0)
+    m22 = wp.float64(0.0)
+    m13 = wp.float64(0.0)
+    m04 = wp.float64(0.0)
     cnt = int(0)
     for t in range(count):
         if res[row, t] <= limit:
             j = nbr[row, t]
-            a = design_row(uv[j][0] - uv[c][0], uv[j][1] - uv[c][1])
-            wa = (wp.float64(1.0) / var[j]) * a
-            rhs = rhs + wa * depth[j]
-            N = N + wp.outer(wa, a)  # whole (the compiler's to unroll); only its upper triangle is kept
+            du = uv[j][0] - uv[c][0]
+            dv = uv[j][1] - uv[c][1]
+            w = wp.float64(1.0) / var[j]
+            rhs = rhs + (w * depth[j]) * design_row(du, dv)
+            wu = w * du
+            wv = w * dv
+            wuu = wu * du
+            wuv = wu * dv
+            wvv = wv * dv
+            m00 += w
+            m10 += wu
+            m01 += wv
+            m20 += wuu
+            m11 += wuv
+            m02 += wvv
+            m30 += wuu * du
+            m21 += wuu * dv
+            m12 += wuv * dv
+            m03 += wvv * dv
+            m40 += wuu * du * du
+            m31 += wuu * du * dv
+            m22 += wuu * dv * dv
+            m13 += wuv * dv * dv
+            m04 += wvv * dv * dv
             cnt += 1
-    for p in range(6):  # the lower triangle: the upper's mirror (N exactly symmetric, as the NumPy statement's)
-        for q in range(p):
-            N[p, q] = N[q, p]
+    N = moment_matrix(m00, m10, m01, m20, m11, m02, m30, m21, m12, m03, m40, m31, m22, m13, m04)
     good = cnt >= MIN_CROSS_NEIGHBOURS
     if good:
         good = condition_below(N, cc.max_cond)
