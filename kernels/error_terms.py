@@ -95,8 +95,29 @@ def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=
 
 
 @wp.kernel
+def occupied_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, flag: wp.array(dtype=wp.int32)):
+    """flag[p] = 1 where pixel p holds a point (at_pixel[p] < n), else 0; flag's last entry (one past the
+    pixels) stays 0. at_pixel (npix,) int32: read; flag (npix + 1,) int32: written."""
+    p = wp.tid()
+    flag[p] = wp.where(at_pixel[p] < n, 1, 0)
+
+
+@wp.kernel
+def occupied_list_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, rank: wp.array(dtype=wp.int32),
+                         listed: wp.array(dtype=wp.int32)):
+    """listed[rank[p]] = at_pixel[p] at every pixel holding a point: the points in pixel order (row by row,
+    x rising). at_pixel (npix,), rank (npix + 1,) int32 (the occupied pixels before each): read; listed
+    (occupied,) int32: written."""
+    p = wp.tid()
+    j = at_pixel[p]
+    if j < n:
+        listed[rank[p]] = j
+
+
+@wp.kernel
 def slope_kernel(
-    at_pixel: wp.array(dtype=wp.int32),
+    rank: wp.array(dtype=wp.int32),
+    listed: wp.array(dtype=wp.int32),
     uv: wp.array(dtype=wp.vec2),
     depth: wp.array(dtype=wp.float64),
     status: wp.array(dtype=wp.int32),
@@ -112,18 +133,19 @@ def slope_kernel(
     depths of the placed points within ``radius`` px, 0 where fewer than 6 or all along one line) and
     its sigma widened by it: out = sqrt(sigma^2 + (position_px * gradient)^2); out = sigma elsewhere.
 
-    at_pixel (npix,) int32 the point at each pixel (>= n: none); uv (n,) vec2; depth (n,) float64 along
-    the rays; status (n,) int32; sigma (n,) float32: read. gradient, out (n,) float32: written.
+    rank (npix + 1,) int32 the occupied pixels before each pixel (row-major) and listed (occupied,) int32
+    the point at each occupied pixel in that order (a row's points from x0 to x1 are listed[rank[y W + x0]]
+    .. listed[rank[y W + x1 + 1] - 1]); uv (n,) vec2; depth (n,) float64 along the rays; status (n,) int32;
+    sigma (n,) float32: read. gradient, out (n,) float32: written.
 
-    Size: the pixel index and the four per-sample arrays the fit reads, the camera's width, the
+    Size: the pixel index (two arrays) and the four per-sample arrays the fit reads, the camera's width, the
     square's half-side, the position error, the span's i0, two arrays out."""
     i = i0 + wp.tid()
-    n = depth.shape[0]
     out[i] = sigma[i]
     gradient[i] = wp.float32(0.0)
     if status[i] != 0:
         return
-    height = at_pixel.shape[0] / width
+    height = (rank.shape[0] - 1) / width
     di = depth[i]
     x = int(wp.round(uv[i][0]))
     y = int(wp.round(uv[i][1]))
@@ -136,22 +158,25 @@ def slope_kernel(
     sd = wp.float64(0.0)
     sud = wp.float64(0.0)
     svd = wp.float64(0.0)
+    x0 = wp.max(x - radius, 0)
+    x1 = wp.min(x + radius, width - 1)
     for yy in range(wp.max(y - radius, 0), wp.min(y + radius, height - 1) + 1):
-        for xx in range(wp.max(x - radius, 0), wp.min(x + radius, width - 1) + 1):
-            j = at_pixel[yy * width + xx]
-            if j < n:
-                du = wp.float64(uv[j][0] - uv[i][0])
-                dv = wp.float64(uv[j][1] - uv[i][1])
-                dd = depth[j] - di
-                s1 += wp.float64(1.0)
-                su += du
-                sv += dv
-                suu += du * du
-                suv += du * dv
-                svv += dv * dv
-                sd += dd
-                sud += du * dd
-                svd += dv * dd
+        # the row's points within the square, in x order (the empty pixels are not visited: two thirds
+        # of the square on a full-size view; the sums are added in the same order as a scan of every pixel)
+        for k in range(rank[yy * width + x0], rank[yy * width + x1 + 1]):
+            j = listed[k]
+            du = wp.float64(uv[j][0] - uv[i][0])
+            dv = wp.float64(uv[j][1] - uv[i][1])
+            dd = depth[j] - di
+            s1 += wp.float64(1.0)
+            su += du
+            sv += dv
+            suu += du * du
+            suv += du * dv
+            svv += dv * dv
+            sd += dd
+            sud += du * dd
+            svd += dv * dd
     if s1 < wp.float64(6.0):
         return
     # the plane's slope from the centred sums; both directions spread (a lone ring is a line)
@@ -203,7 +228,15 @@ def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.
     c = np.asarray(center, np.float64).reshape(3)
     launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, points, wp.vec3d(*c), i0], [at_pixel, depth],
                  dev, 1)
-    args = [at_pixel, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
+    # the occupied pixels, row by row: count, scan, write (each row's points then read in x order)
+    npix = at_pixel.shape[0]
+    flag = wp.zeros(npix + 1, dtype=wp.int32, device=dev)
+    wp.launch(occupied_kernel, dim=npix, inputs=[at_pixel, n], outputs=[flag], device=dev)
+    rank = wp.empty(npix + 1, dtype=wp.int32, device=dev)
+    wp.utils.array_scan(flag, rank, inclusive=False)
+    listed = wp.empty(n, dtype=wp.int32, device=dev)  # a point lies at one pixel: at most n are listed
+    wp.launch(occupied_list_kernel, dim=npix, inputs=[at_pixel, n, rank], outputs=[listed], device=dev)
+    args = [rank, listed, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
     launch_spans(slope_kernel, n, lambda i0: args + [i0], [gradient, out], dev, th)
     return out, gradient
 

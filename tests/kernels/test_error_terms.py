@@ -90,3 +90,50 @@ def test_a_steep_surface_widens_sigma_by_its_depth_gradient():
                                 _f32(np.full(n, 0.01)), wp.array(uv, dtype=wp.vec2), wp.array(pixel, dtype=wp.int32),
                                 center=(0, 0, 0), width=200, height=160, position_px=0.04)
     assert np.all(grad.numpy() == 0) and np.all(out.numpy() == np.float32(0.01))
+
+
+def _slope_numpy(uv, pixel, depth, placed, width, height, radius):
+    """The plane fit of widen_for_slope stated in NumPy: for each placed sample, the placed points (the
+    first at each pixel) in the (2 radius + 1)^2 pixels around its rounded position, the centred sums'
+    2x2 solve; 0 with fewer than 6 points or a degenerate spread."""
+    first = np.full(width * height, -1)
+    for i in np.flatnonzero(placed)[::-1]:
+        first[pixel[i]] = i
+    g = np.zeros(len(uv))
+    for i in np.flatnonzero(placed):
+        x, y = (int(np.floor(c + 0.5)) for c in uv[i])
+        js = [first[yy * width + xx] for yy in range(max(y - radius, 0), min(y + radius, height - 1) + 1)
+              for xx in range(max(x - radius, 0), min(x + radius, width - 1) + 1) if first[yy * width + xx] >= 0]
+        if len(js) < 6:
+            continue
+        du, dv = (uv[js] - uv[i]).astype(np.float64).T
+        dd = depth[js] - depth[i]
+        cuu, cuv, cvv = np.cov(np.stack([du, dv]), bias=True).ravel()[[0, 1, 3]] * len(js)
+        bu, bv = len(js) * np.mean((du - du.mean()) * (dd - dd.mean())), len(js) * np.mean((dv - dv.mean()) * (dd - dd.mean()))
+        det = cuu * cvv - cuv * cuv
+        if det <= 0.05 * (0.5 * (cuu + cvv)) ** 2:
+            continue
+        g[i] = np.hypot((cvv * bu - cuv * bv) / det, (cuu * bv - cuv * bu) / det)
+    return g
+
+
+def test_the_slope_reads_every_point_in_its_square_on_a_rough_surface():
+    """widen_for_slope on scattered samples over a rough surface (no plane: every point of the square
+    moves the fit), some pixels holding two samples (the first counts), some not placed, the image's
+    edges in reach: the gradients of the NumPy statement of the square's fit, to rounding."""
+    rng = np.random.default_rng(3)
+    w, h, n = 60, 45, 1500
+    uv = np.stack([rng.uniform(-0.4, w - 0.6, n), rng.uniform(-0.4, h - 0.6, n)], 1).astype(np.float32)
+    uv[1::50] = uv[::50][: len(uv[1::50])] + np.float32(0.1)  # a second sample at some pixels
+    pixel = (np.floor(uv[:, 1] + 0.5).astype(np.int64) * w + np.floor(uv[:, 0] + 0.5).astype(np.int64)).astype(np.int32)
+    depth = 400.0 + 0.3 * uv[:, 0] - 0.1 * uv[:, 1] + rng.normal(0, 0.5, n)
+    points = np.stack([0 * depth, 0 * depth, depth], 1).astype(np.float32)
+    status = np.where(rng.random(n) < 0.1, 3, 0).astype(np.int32)
+    out, grad = widen_for_slope(wp.array(points, dtype=wp.vec3), wp.array(status, dtype=wp.int32),
+                                _f32(np.full(n, 0.01)), wp.array(uv, dtype=wp.vec2), wp.array(pixel, dtype=wp.int32),
+                                center=(0, 0, 0), width=w, height=h, position_px=0.04, radius=3, threads=2)
+    want = _slope_numpy(uv, pixel, np.linalg.norm(points.astype(np.float64), axis=1), status == 0, w, h, 3)
+    got = grad.numpy()
+    assert (want > 0).mean() > 0.8
+    # float32 out; the sums in another order (NumPy's means): 1e-5 relative
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
