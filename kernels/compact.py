@@ -1,5 +1,5 @@
 """Generic per-item moves on the device: the finite items of an array (flags, and their indices:
-count, scan, write), a gather by index, a value set at indices, a histogram of small integer values
+count, scan, write), a pixel map's occupied pixels in row order (``pixel_rows``), a gather by index, a value set at indices, a histogram of small integer values
 (one row of counts a span, the rows summed on the host: the counts, not the items, are read), and
 order statistics (a radix sort on the device, the few values they need read: ``median`` and
 ``percentiles`` as NumPy's give them)."""
@@ -16,7 +16,7 @@ from ringscan.kernels.launch import check_array, default_threads, launch_spans, 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
 __all__ = ["finite_flags", "finite_indices", "nonzero_indices", "gather", "set_at", "count_values", "median",
-           "median64", "percentiles", "percentile32", "sort_finite"]
+           "median64", "percentiles", "percentile32", "sort_finite", "pixel_rows"]
 
 SPAN = wp.constant(4096)
 """Items a histogram row counts (one thread a row)."""
@@ -46,6 +46,27 @@ def write_indices_kernel(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtyp
     i = i0 + wp.tid()
     if flags[i] != 0:
         out[offsets[i]] = i
+
+
+@wp.kernel
+def occupied_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, flag: wp.array(dtype=wp.int32)):
+    """flag[p] = 1 where pixel p holds an item (0 <= at_pixel[p] < n), else 0; flag's last entry (one past
+    the pixels) stays 0. at_pixel (npix,) int32: read; flag (npix + 1,) int32: written."""
+    p = wp.tid()
+    j = at_pixel[p]
+    flag[p] = wp.where(j >= 0 and j < n, 1, 0)
+
+
+@wp.kernel
+def occupied_list_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, rank: wp.array(dtype=wp.int32),
+                         listed: wp.array(dtype=wp.int32)):
+    """listed[rank[p]] = at_pixel[p] at every pixel holding an item: the items in pixel order. at_pixel
+    (npix,), rank (npix + 1,) int32 (the occupied pixels before each): read; listed (n,) int32 (its first
+    rank[npix]): written."""
+    p = wp.tid()
+    j = at_pixel[p]
+    if j >= 0 and j < n:
+        listed[rank[p]] = j
 
 
 @wp.kernel
@@ -111,6 +132,26 @@ def finite_indices(a: wp.array, *, threads: int | None = None) -> wp.array:
     (count, scan, write: one read, the count)."""
     check_array("a", a, None, wp.float32, "finite_indices")
     return nonzero_indices(finite_flags(a, threads=threads), threads=threads)
+
+
+def pixel_rows(at_pixel: wp.array, n: int) -> tuple[wp.array, wp.array]:
+    """(rank (npix + 1,) int32: the occupied pixels before each pixel, listed (n,) int32: the item at each
+    occupied pixel in pixel order) of a pixel map whose pixels hold an item index (``at_pixel`` (npix,)
+    int32; occupied where 0 <= index < n; an item at one pixel at most): the items of row y from x0 to
+    x1 are listed[rank[y W + x0]] .. listed[rank[y W + x1 + 1] - 1], in x order. A window then reads its
+    rows' items and skips their empty pixels (count, scan, write; nothing read to the host)."""
+    check_array("at_pixel", at_pixel, None, wp.int32, "pixel_rows")
+    dev = at_pixel.device
+    npix = at_pixel.shape[0]
+    flag = wp.zeros(npix + 1, dtype=wp.int32, device=dev)
+    rank = wp.empty(npix + 1, dtype=wp.int32, device=dev)
+    listed = wp.empty(max(int(n), 1), dtype=wp.int32, device=dev)
+    if npix:
+        wp.launch(occupied_kernel, dim=npix, inputs=[at_pixel, int(n)], outputs=[flag], device=dev)
+    wp.utils.array_scan(flag, rank, inclusive=False)
+    if npix:
+        wp.launch(occupied_list_kernel, dim=npix, inputs=[at_pixel, int(n), rank], outputs=[listed], device=dev)
+    return rank, listed
 
 
 def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.compact import pixel_rows
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
 __all__ = ["CrossCheck", "cross_check_kernel", "cross_ring_checks"]
@@ -232,18 +233,11 @@ def select_kth(z: wp.array2d(dtype=wp.float64), row: int, n: int, k: int):
 
 
 @wp.func
-def cross_neighbour(at_pixel: wp.array(dtype=wp.int32), ring: wp.array(dtype=wp.int32),
-                    depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64), at: int, kc: int):
-    """The sample at linear pixel ``at`` if a check across rings uses it (another ring's than ``kc``,
-    with a finite depth and a variance > 0), -1: none.
-
-    Size: the pixel lookup and the three per-sample arrays it tests, the pixel and the centre's ring."""
-    found = int(-1)
-    j = at_pixel[at]
-    if j >= 0:
-        if ring[j] != kc and wp.isfinite(depth[j]) and var[j] > wp.float64(0.0):
-            found = j
-    return found
+def cross_usable(ring: wp.array(dtype=wp.int32), depth: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64),
+                 j: int, kc: int):
+    """Whether a check across rings uses sample j: another ring's than ``kc``, with a finite depth and a
+    variance > 0."""
+    return ring[j] != kc and wp.isfinite(depth[j]) and var[j] > wp.float64(0.0)
 
 
 @wp.func
@@ -340,7 +334,8 @@ def cross_fit(uv: wp.array(dtype=wp.vec2d), depth: wp.array(dtype=wp.float64), v
 
 @wp.kernel
 def cross_check_kernel(
-    at_pixel: wp.array(dtype=wp.int32),
+    rank: wp.array(dtype=wp.int32),
+    listed: wp.array(dtype=wp.int32),
     ring: wp.array(dtype=wp.int32),
     pixel: wp.array(dtype=wp.int32),
     uv: wp.array(dtype=wp.vec2d),
@@ -364,7 +359,8 @@ def cross_check_kernel(
     all, at least three a term, a condition number under ``cc.max_cond``, a spread within
     ``cc.gate``), r[i] its residual and v[i] its predicted variance.
 
-    at_pixel (npix,) int32 the sample at each pixel (-1: none); ring, pixel (n,) int32; uv (n,) vec2d;
+    rank (npix + 1,), listed (n,) int32 the samples at the pixels row by row (``compact.pixel_rows`` of the
+    sample at each pixel); ring, pixel (n,) int32; uv (n,) vec2d;
     depth, var (n,) float64; half_width (2 R + 1,) int32 the disc's half-width in each row dy = -R..R
     (its pixel itself left out); centre (m,) int32: read. nbr (m, K) int32, res, work
     (m, K) float64: scratch (a centre's neighbours, found once, and their residuals). made (m,) int32,
@@ -394,11 +390,13 @@ def cross_check_kernel(
         if yy < 0 or yy >= cc.height:
             continue
         w = half_width[row]
-        for xx in range(wp.max(x - w, 0), wp.min(x + w, cc.width - 1) + 1):
-            if xx == x and yy == y:
+        base = yy * cc.width
+        # the row's samples within the disc, in x order (its empty pixels not visited)
+        for t in range(rank[base + wp.max(x - w, 0)], rank[base + wp.min(x + w, cc.width - 1) + 1]):
+            j = listed[t]
+            if pixel[j] == pixel[c]:  # the centre's own pixel
                 continue
-            j = cross_neighbour(at_pixel, ring, depth, var, yy * cc.width + xx, kc)
-            if j < 0:
+            if not cross_usable(ring, depth, var, j, kc):
                 continue
             nbr[i, count] = j
             res[i, count] = wp.float64(0.0)  # the first fit takes every neighbour
@@ -456,7 +454,8 @@ def cross_check_kernel(
 
 def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.array, pixel: wp.array,
                       at_pixel: wp.array, centre: np.ndarray, *, radius: int, width: int, reject: float,
-                      gate: float, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      gate: float, rows: tuple | None = None,
+                      threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(checked samples (k,) int64, r (k,), predicted variance (k,)) of :func:`cross_check_kernel`
     for the ``centre`` samples, in their order: the checks of the NumPy statement
     (``neighbour_checks._cross_ring_checks``), the same samples where no threshold's test falls
@@ -466,12 +465,15 @@ def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.arr
     Args:
         depth, var: (n,) float64 each sample's depth (NaN: not placed) and its predicted variance.
         uv: (n,) vec2d camera positions (px). ring, pixel: (n,) int32 rings and pixels (y * width + x).
-        at_pixel: (npix,) int32 the sample at each pixel (-1: none); npix // width rows are looked in.
+        at_pixel: (npix,) int32 the sample at each pixel (-1: none; a sample j only at pixel[j]); npix //
+            width rows are looked in.
         centre: (m,) the samples to check. radius: the neighbourhood (px). width: camera width.
         reject, gate: ``neighbour_checks.CROSS_REJECT`` and ``CROSS_GATE``.
+        rows: ``compact.pixel_rows(at_pixel, n)``, where the caller checks one view several times (made
+            here otherwise).
         threads: CPU threads; default all cores.
 
-    Size: the view's six arrays (made once for every call of a view), the centres, the
+    Size: the view's six arrays and their row index (made once for every call of a view), the centres, the
     neighbourhood's radius, the camera's width, the two thresholds and the thread count.
     """
     fn = "cross_ring_checks"
@@ -503,7 +505,8 @@ def cross_ring_checks(depth: wp.array, var: wp.array, uv: wp.array, ring: wp.arr
     made = wp.empty(m, dtype=wp.int32, device=dev)
     r = wp.empty(m, dtype=wp.float64, device=dev)
     v = wp.empty(m, dtype=wp.float64, device=dev)
-    args = [at_pixel, ring, pixel, uv, depth, var, wp.array(half, dtype=wp.int32, device=dev),
+    rank, listed = pixel_rows(at_pixel, n) if rows is None else rows
+    args = [rank, listed, ring, pixel, uv, depth, var, wp.array(half, dtype=wp.int32, device=dev),
             wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev), cc]
     launch_spans(cross_check_kernel, m, lambda i0: args + [i0], [nbr, res, work, made, r, v], dev,
                  default_threads() if threads is None else threads, min_span=64)

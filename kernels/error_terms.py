@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.compact import pixel_rows
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
@@ -92,26 +93,6 @@ def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=
     depth[i] = wp.length(wp.vec3d(points[i]) - center)
     if status[i] == 0:
         wp.atomic_min(at_pixel, pixel[i], i)
-
-
-@wp.kernel
-def occupied_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, flag: wp.array(dtype=wp.int32)):
-    """flag[p] = 1 where pixel p holds a point (at_pixel[p] < n), else 0; flag's last entry (one past the
-    pixels) stays 0. at_pixel (npix,) int32: read; flag (npix + 1,) int32: written."""
-    p = wp.tid()
-    flag[p] = wp.where(at_pixel[p] < n, 1, 0)
-
-
-@wp.kernel
-def occupied_list_kernel(at_pixel: wp.array(dtype=wp.int32), n: int, rank: wp.array(dtype=wp.int32),
-                         listed: wp.array(dtype=wp.int32)):
-    """listed[rank[p]] = at_pixel[p] at every pixel holding a point: the points in pixel order (row by row,
-    x rising). at_pixel (npix,), rank (npix + 1,) int32 (the occupied pixels before each): read; listed
-    (occupied,) int32: written."""
-    p = wp.tid()
-    j = at_pixel[p]
-    if j < n:
-        listed[rank[p]] = j
 
 
 @wp.kernel
@@ -228,14 +209,7 @@ def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.
     c = np.asarray(center, np.float64).reshape(3)
     launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, points, wp.vec3d(*c), i0], [at_pixel, depth],
                  dev, 1)
-    # the occupied pixels, row by row: count, scan, write (each row's points then read in x order)
-    npix = at_pixel.shape[0]
-    flag = wp.zeros(npix + 1, dtype=wp.int32, device=dev)
-    wp.launch(occupied_kernel, dim=npix, inputs=[at_pixel, n], outputs=[flag], device=dev)
-    rank = wp.empty(npix + 1, dtype=wp.int32, device=dev)
-    wp.utils.array_scan(flag, rank, inclusive=False)
-    listed = wp.empty(n, dtype=wp.int32, device=dev)  # a point lies at one pixel: at most n are listed
-    wp.launch(occupied_list_kernel, dim=npix, inputs=[at_pixel, n, rank], outputs=[listed], device=dev)
+    rank, listed = pixel_rows(at_pixel, n)  # the occupied pixels row by row: each row's points read in x order
     args = [rank, listed, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
     launch_spans(slope_kernel, n, lambda i0: args + [i0], [gradient, out], dev, th)
     return out, gradient

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ringscan.kernels.compact import pixel_rows
 from ringscan.kernels.cross_checks import cross_ring_checks
 from ringscan.kernels.ring_checks import next_neighbours, ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
@@ -530,6 +531,7 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
                 ring=wp.array(idx.ring.astype(np.int32), dtype=wp.int32, device="cpu"),
                 pixel=wp.array((idx.y * idx.width + idx.x).astype(np.int32), dtype=wp.int32, device="cpu"),
                 at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32, device="cpu"))
+    view["rows"] = pixel_rows(view["at_pixel"], len(d))  # its pixels' samples row by row, once for every call
 
     def checks(cands, radius, most):
         c, r, v = cross_ring_checks(**view, centre=cands[sample_subset(cands.size, most)], radius=radius,
