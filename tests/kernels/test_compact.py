@@ -68,3 +68,22 @@ def test_set_at_writes_the_value_at_the_indices_only():
     a = wp.zeros(10, dtype=wp.int32)
     set_at(a, wp.array(np.array([1, 4, 9], np.int32)), 1)
     assert a.numpy().tolist() == [0, 1, 0, 0, 1, 0, 0, 0, 0, 1]
+
+
+def test_pixel_rows_list_a_maps_items_row_by_row():
+    """pixel_rows: the occupied pixels before each pixel (a 0..n-1 index: occupied; -1 or >= n: not) and
+    their items in pixel order, so a row's items between two columns are one slice of the list."""
+    from ringscan.kernels.compact import pixel_rows
+
+    rng = np.random.default_rng(5)
+    width, height, n = 37, 23, 300
+    at = np.where(rng.random(width * height) < 0.5, -1, n + 4).astype(np.int32)  # none: -1 or >= n
+    occ = rng.choice(width * height, n, replace=False)
+    at[occ] = rng.permutation(n)
+    rank, listed = (a.numpy() for a in pixel_rows(wp.array(at, dtype=wp.int32), n))
+    have = (at >= 0) & (at < n)
+    assert np.array_equal(rank, np.concatenate([[0], np.cumsum(have)]))
+    assert np.array_equal(listed, at[have])  # n items, each at one pixel
+    y, x0, x1 = 11, 5, 30
+    row = at[y * width + x0: y * width + x1 + 1]
+    assert np.array_equal(listed[rank[y * width + x0]: rank[y * width + x1 + 1]], row[(row >= 0) & (row < n)])
