@@ -70,11 +70,14 @@ def test_set_at_writes_the_value_at_the_indices_only():
     assert a.numpy().tolist() == [0, 1, 0, 0, 1, 0, 0, 0, 0, 1]
 
 
-def test_pixel_rows_list_a_maps_items_row_by_row():
+@pytest.mark.parametrize("way", ["pixel_rows", "_pixel_rows_launched"])
+def test_pixel_rows_list_a_maps_items_row_by_row(way):
     """pixel_rows: the occupied pixels before each pixel (a 0..n-1 index: occupied; -1 or >= n: not) and
-    their items in pixel order, so a row's items between two columns are one slice of the list."""
-    from ringscan.kernels.compact import pixel_rows
+    their items in pixel order, so a row's items between two columns are one slice of the list; on the
+    CPU by NumPy, on a GPU by kernels (run here on the CPU too)."""
+    import ringscan.kernels.compact as compact
 
+    pixel_rows = getattr(compact, way)
     rng = np.random.default_rng(5)
     width, height, n = 37, 23, 300
     at = np.where(rng.random(width * height) < 0.5, -1, n + 4).astype(np.int32)  # none: -1 or >= n
