@@ -114,8 +114,8 @@ def slope_kernel(
     depths of the placed points within ``radius`` px, 0 where fewer than 6 or all along one line) and
     its sigma widened by it: out = sqrt(sigma^2 + (position_px * gradient)^2); out = sigma elsewhere.
 
-    rank (npix + 1,) int32 the occupied pixels before each pixel (row-major) and listed (occupied,) int32
-    the point at each occupied pixel in that order (a row's points from x0 to x1 are listed[rank[y W + x0]]
+    rank (npix + 1,) int32 the occupied pixels before each pixel (row-major) and listed (n,) int32 the
+    point at each occupied pixel in that order (its first rank[npix] entries; ``compact.pixel_rows``) (a row's points from x0 to x1 are listed[rank[y W + x0]]
     .. listed[rank[y W + x1 + 1] - 1]); uv (n,) vec2; depth (n,) float64 along the rays; status (n,) int32;
     sigma (n,) float32: read. gradient, out (n,) float32: written.
 
