@@ -416,6 +416,20 @@ def full_solution(
     return X, status, cond, res, sigma, var, var_both
 
 
+@wp.func
+def disagreement_factor(res: float, vboth: float, floor: float):
+    """The factor a point's sigma grows by where its two projector coordinates disagree across the epipolar
+    line (``res`` px, from :func:`full_solution`) beyond what both sigmas and the calibration floor allow
+    (``vboth`` + floor^2 px^2: a mixed pixel at a silhouette, a fringe a highlight or a blur bent, bounced
+    light): its chi (the Birge ratio of one degree of freedom) where above 1, else 1 (1 without a residual)."""
+    factor = float(1.0)
+    if vboth > 0.0 and res >= 0.0:
+        chi2 = res * res / (vboth + floor * floor)
+        if chi2 > 1.0:
+            factor = wp.sqrt(chi2)
+    return factor
+
+
 @wp.kernel
 def camera_rays_kernel(uv: wp.array(dtype=wp.vec2), cam: CameraModel, i0: int, rays: wp.array(dtype=wp.vec4)):
     """The camera ray of sample i = i0 + tid (:func:`camera_ray`).
@@ -506,14 +520,8 @@ def triangulate_kernel(
         info_r = wp.where(constraint == CONSTRAINT_ANGLE, 0.0, 1.0 / (sr * sr))
         X, st, q, res, sg, rvar, vboth = full_solution(light, C, d, p_obs, e_r, info_r, 1.0 / (st_t * st_t), sr * sr,
                                                        floor * floor, vol, min_incidence_cos, max_residual_px)
-        if params.widen_angle != 0 and vboth > 0.0 and res >= 0.0:
-            # where the two coordinates disagree across the epipolar line beyond what both sigmas allow
-            # (a mixed pixel at a silhouette, a fringe a highlight or a blur bent), the point is no better
-            # known than that disagreement: sigma grows by its chi (the Birge ratio of one degree of
-            # freedom), with the angle alone or with both
-            chi2 = res * res / (vboth + floor * floor)
-            if chi2 > 1.0:
-                sg = sg * wp.sqrt(chi2)
+        if params.widen_angle != 0:
+            sg = sg * disagreement_factor(res, vboth, floor)
     else:
         X, st, q, res, off = rings_solution(light, C, d, r, sector[i], vol, center, n_sectors, sector_tolerance,
                                        sector_margin, min_incidence_cos)
@@ -534,9 +542,9 @@ def triangulate_kernel(
             slope = ring_slope(light, X, d, center, off)
             sg = wp.where(slope > 0.0, sigma_rho[i] / slope, 1.0e9)
             if params.widen_angle != 0 and f == f and st_t > 0.0:
-                # the angle was read but the ring alone places the point (``constraint`` rings): where the two
-                # coordinates disagree beyond both sigmas (bounced light bending both, a mixed pixel), the
-                # ring's point is no better known than that disagreement either (as with the angle or both)
+                # the angle was read but the ring alone places the point (``constraint`` rings): the pair's
+                # solve only for its disagreement (bounced light bending both, a mixed pixel), which widens
+                # the ring's sigma as it does the angle's and both's
                 e_r = wp.vec2(wp.cos(f), wp.sin(f))
                 p_obs = wp.vec2(center[0] + r * e_r[0], center[1] + r * e_r[1])
                 sr = wp.max(sigma_rho[i], 1.0e-6)
@@ -544,10 +552,7 @@ def triangulate_kernel(
                 X2, st2, q2, res2, sg2, rvar2, vboth2 = full_solution(
                     light, C, d, p_obs, e_r, 1.0 / (sr * sr), 1.0 / (stt * stt), sr * sr, floor * floor, vol,
                     min_incidence_cos, max_residual_px)
-                if vboth2 > 0.0 and res2 >= 0.0:
-                    chi2 = res2 * res2 / (vboth2 + floor * floor)
-                    if chi2 > 1.0:
-                        sg = sg * wp.sqrt(chi2)
+                sg = sg * disagreement_factor(res2, vboth2, floor)
     status[i] = st
     residual[i] = res
     residual_var[i] = rvar
