@@ -35,6 +35,8 @@ class ErrorTerms:
     """px per unit of indirect share above the view's median (0: no term)."""
     indirect_median: wp.float64
     """The view's median share (``median``)."""
+    shading_px: wp.float64
+    """px per unit of the light's gradient |grad ln(white - black)| (per camera px; 0: no term)."""
     tile_px: wp.float64
     """Side of the tiles of the factor grid (px)."""
     tx0: int
@@ -50,27 +52,33 @@ class ErrorTerms:
 def widen_kernel(
     sigma: wp.array(dtype=wp.float32),
     indirect: wp.array(dtype=wp.float32),
+    shading: wp.array(dtype=wp.float32),
     uv: wp.array(dtype=wp.vec2),
     grid: wp.array2d(dtype=wp.float64),
     terms: ErrorTerms,
     i0: int,
     out: wp.array(dtype=wp.float32),
 ):
-    """out[i] = float32(sqrt(k^2 s^2 + floor^2 + (indirect_px max(b - median, 0))^2)), times the square
-    root of the factor of the tile under uv[i] where ``grid`` has tiles (rounded to float32 after).
+    """out[i] = float32(sqrt(k^2 s^2 + floor^2 + (indirect_px max(b - median, 0))^2 + (shading_px g)^2)),
+    times the square root of the factor of the tile under uv[i] where ``grid`` has tiles (rounded to
+    float32 after).
 
     sigma (n,) float32 the decode's s (projector px); indirect (n,) float32 each sample's share b
-    (read only with indirect_px > 0); uv (n,) vec2 (read only with a grid of tiles); grid (rows,
+    (read only with indirect_px > 0); shading (n,) float32 its light's gradient g (read only with
+    shading_px > 0); uv (n,) vec2 (read only with a grid of tiles); grid (rows,
     cols) float64 the tiles' variance factors (1 where none; (0, 0): no tiles): read. out (n,)
     float32: written.
 
-    Size: the three per-sample arrays, the tiles' grid, the terms, the span's i0, one array out."""
+    Size: the four per-sample arrays, the tiles' grid, the terms, the span's i0, one array out."""
     i = i0 + wp.tid()
     ks = terms.k * wp.float64(sigma[i])
     var = ks * ks + terms.floor2
     if terms.indirect_px > wp.float64(0.0):
         b = terms.indirect_px * wp.max(wp.float64(indirect[i]) - terms.indirect_median, wp.float64(0.0))
         var = var + b * b
+    if terms.shading_px > wp.float64(0.0):
+        g = terms.shading_px * wp.float64(shading[i])
+        var = var + g * g
     w = wp.float32(wp.sqrt(var))
     if grid.shape[0] > 0:
         tx = int(wp.floor(wp.float64(uv[i][0]) / terms.tile_px)) - terms.tx0
@@ -217,27 +225,34 @@ def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.
 
 
 def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array | None = None,
-                 indirect_px: float = 0.0, indirect_median: float = 0.0, uv: wp.array | None = None,
-                 regions: dict | None = None, threads: int | None = None) -> wp.array:
+                 indirect_px: float = 0.0, indirect_median: float = 0.0, shading: wp.array | None = None,
+                 shading_px: float = 0.0, uv: wp.array | None = None, regions: dict | None = None,
+                 threads: int | None = None) -> wp.array:
     """(n,) float32 sigmas widened by one coordinate's fitted terms (:func:`widen_kernel`), on sigma's
     device: ``error_scale.apply_error_model`` (k, floor, the indirect share above ``indirect_median``
-    at ``indirect_px`` a unit) times the square root of ``regions``' tile factor
-    (``error_scale.region_scale``: {"tile_px", "scales": [[tx, ty, factor], ...]}) under ``uv``.
+    at ``indirect_px`` a unit, the light's gradient ``shading`` at ``shading_px`` a unit) times the
+    square root of ``regions``' tile factor (``error_scale.region_scale``: {"tile_px", "scales":
+    [[tx, ty, factor], ...]}) under ``uv``.
 
-    Size: the sigmas, the model's four terms for this coordinate (k, floor, indirect px and median),
-    the two per-sample arrays they read (indirect, uv), the tiles, the thread count."""
+    Size: the sigmas, the model's five terms for this coordinate (k, floor, indirect px and median,
+    shading px), the three per-sample arrays they read (indirect, shading, uv), the tiles, the thread
+    count."""
     fn = "widen_sigmas"
     n = check_array("sigma", sigma, None, wp.float32, fn)
     dev = sigma.device
     use_indirect = indirect_px > 0 and indirect is not None
     if use_indirect:
         check_array("indirect", indirect, n, wp.float32, fn)
+    use_shading = shading_px > 0 and shading is not None
+    if use_shading:
+        check_array("shading", shading, n, wp.float32, fn)
     table = np.asarray(regions["scales"], np.float64).reshape(-1, 3) if regions and regions.get("scales") else None
     terms = ErrorTerms()
     terms.k = float(k)
     terms.floor2 = float(floor) ** 2
     terms.indirect_px = float(indirect_px) if use_indirect else 0.0
     terms.indirect_median = float(indirect_median)
+    terms.shading_px = float(shading_px) if use_shading else 0.0
     terms.tile_px = float(regions["tile_px"]) if table is not None else 1.0
     if table is not None:
         check_array("uv", uv, n, wp.vec2, fn)
@@ -250,7 +265,7 @@ def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array 
         terms.tx0 = terms.ty0 = 0
         grid = wp.empty((0, 0), dtype=wp.float64, device=dev)
     out = wp.empty(n, dtype=wp.float32, device=dev)
-    args = [sigma, indirect if use_indirect else sigma, uv if table is not None else wp.empty(0, dtype=wp.vec2, device=dev),
+    args = [sigma, indirect if use_indirect else sigma, shading if use_shading else sigma, uv if table is not None else wp.empty(0, dtype=wp.vec2, device=dev),
             grid, terms]
     launch_spans(widen_kernel, n, lambda i0: args + [i0], [out], dev, default_threads() if threads is None else threads)
     return out

@@ -1,11 +1,12 @@
 """What each sample's frames say of its light (docs/reconstruction.md, "Honest sigma"): the
 white - black contrast under it (bilinear in the decode's contrast plane), a band edge's
 predicted sigma from that contrast (gray-rings: :func:`sample_light`) or a phase's from that
-contrast and its fringe's modulation (phase-rings: :func:`phase_light`), and its share of light
-that did not come straight from the projector (the finest band bits' pattern / inverse floor).
+contrast and its fringe's modulation (phase-rings: :func:`phase_light`), its share of light
+that did not come straight from the projector (the finest band bits' pattern / inverse floor),
+and how fast the light its surface sends back changes across the image there (the shading).
 One thread a sample, on the frames' device: the NumPy statements are
-``pipeline.codecs.angle_code.sample_contrast``, ``edge_sigma``, ``phase_sigma`` and
-``sample_indirect`` (the same values to the bit)."""
+``pipeline.codecs.angle_code.sample_contrast``, ``edge_sigma``, ``phase_sigma``,
+``sample_indirect`` and ``sample_shading`` (the same values to the bit)."""
 
 from __future__ import annotations
 
@@ -67,6 +68,34 @@ def indirect_at(frames: wp.array3d(dtype=Any), uv: wp.vec2, planes: wp.vec4i, pa
     return wp.min(wp.max(floor / span, 0.0), 1.0)
 
 
+@wp.func
+def log_contrast(contrast: wp.array2d(dtype=wp.float32), x: int, y: int, scale: wp.float64):
+    """ln(max(contrast[y, x] / scale, 1)): the light in 8-bit levels, its log (a level at least)."""
+    return wp.log(wp.max(wp.float64(contrast[y, x]) / scale, wp.float64(1.0)))
+
+
+@wp.func
+def shading_at(contrast: wp.array2d(dtype=wp.float32), uv: wp.vec2, scale: wp.float64):
+    """|grad ln(white - black)| (per camera px) at uv's nearest pixel, moved inside by one px at the
+    border: the 3 x 3 Sobel of :func:`log_contrast` over 8 (0 on an image under 3 px a side):
+    ``angle_code.sample_shading``. The camera's blur weighs an edge or a fringe by the light around
+    it, so a pattern seen across a light that changes fast reads off its place."""
+    h = contrast.shape[0]
+    w = contrast.shape[1]
+    if h < 3 or w < 3:
+        return wp.float64(0.0)
+    x = wp.min(wp.max(int(wp.rint(wp.float64(uv[0]))), 1), w - 2)
+    y = wp.min(wp.max(int(wp.rint(wp.float64(uv[1]))), 1), h - 2)
+    two = wp.float64(2.0)
+    gx = (log_contrast(contrast, x + 1, y - 1, scale) + two * log_contrast(contrast, x + 1, y, scale)
+          + log_contrast(contrast, x + 1, y + 1, scale)) - (log_contrast(contrast, x - 1, y - 1, scale)
+          + two * log_contrast(contrast, x - 1, y, scale) + log_contrast(contrast, x - 1, y + 1, scale))
+    gy = (log_contrast(contrast, x - 1, y + 1, scale) + two * log_contrast(contrast, x, y + 1, scale)
+          + log_contrast(contrast, x + 1, y + 1, scale)) - (log_contrast(contrast, x - 1, y - 1, scale)
+          + two * log_contrast(contrast, x, y - 1, scale) + log_contrast(contrast, x + 1, y - 1, scale))
+    return wp.sqrt(gx * gx + gy * gy) / wp.float64(8.0)
+
+
 @wp.kernel
 def sample_light_kernel(
     frames: wp.array3d(dtype=Any),
@@ -79,21 +108,23 @@ def sample_light_kernel(
     i0: int,
     sigma: wp.array(dtype=wp.float32),
     indirect: wp.array(dtype=wp.float32),
+    shading: wp.array(dtype=wp.float32),
 ):
-    """Sample i0 + tid's edge sigma (projector px) and indirect share.
+    """Sample i0 + tid's edge sigma (projector px), indirect share and shading.
 
     The contrast c (:func:`contrast_at`); sigma = ``edge_num`` / (2 max(c, 1)) (``edge_num``: sqrt(2) noise x
-    the edge's width). The share: :func:`indirect_at`.
+    the edge's width). The share: :func:`indirect_at`; the shading: :func:`shading_at`.
 
     frames (F, H, W) uint8/uint16, contrast (H, W) float32, uv (n,) vec2, pairs (2 k,) int32 frame
-    indices: read; ``planes``: (white, black, k, 0). sigma, indirect (n,) float32: written.
+    indices: read; ``planes``: (white, black, k, 0). sigma, indirect, shading (n,) float32: written.
 
     Size: the frames, the contrast plane, the samples' positions, the frames' indices (white, black
-    and the pairs), the two scalars of the sigma, the span's i0, two arrays out."""
+    and the pairs), the two scalars of the sigma, the span's i0, three arrays out."""
     i = i0 + wp.tid()
     c = contrast_at(contrast, uv[i], scale)
     sigma[i] = wp.float32(edge_num / (wp.float64(2.0) * wp.max(c, wp.float64(1.0))))
     indirect[i] = indirect_at(frames, uv[i], planes, pairs)
+    shading[i] = wp.float32(shading_at(contrast, uv[i], scale))
 
 
 @wp.kernel
@@ -109,15 +140,17 @@ def phase_light_kernel(
     i0: int,
     sigma: wp.array(dtype=wp.float32),
     indirect: wp.array(dtype=wp.float32),
+    shading: wp.array(dtype=wp.float32),
 ):
-    """Sample i0 + tid's phase sigma of rho (projector px) and indirect share (phase-rings).
+    """Sample i0 + tid's phase sigma of rho (projector px), indirect share and shading (phase-rings).
 
     sigma = ``phase_num[0]`` / amp / ``phase_num[1]``, amp = 0.5 max(modulation, 1e-3) (float32) x
     max(c, 1) (:func:`contrast_at`): ``angle_code.phase_sigma`` (``phase_num``: its pitch / 2 pi x
-    sqrt(2 / N) x noise, and the smoothing window's side). The share: :func:`indirect_at`.
+    sqrt(2 / N) x noise, and the smoothing window's side). The share: :func:`indirect_at`; the
+    shading: :func:`shading_at`.
 
     frames (F, H, W) uint8/uint16, contrast (H, W) float32, uv (n,) vec2, modulation (n,) float32, pairs
-    (2 k,) int32: read; ``planes``: (white, black, k, 0). sigma, indirect (n,) float32: written.
+    (2 k,) int32: read; ``planes``: (white, black, k, 0). sigma, indirect, shading (n,) float32: written.
 
     Size: :func:`sample_light_kernel`'s, with each sample's fringe modulation."""
     i = i0 + wp.tid()
@@ -125,6 +158,7 @@ def phase_light_kernel(
     amp = wp.float64(wp.float32(0.5) * wp.max(modulation[i], wp.float32(1.0e-3))) * wp.max(c, wp.float64(1.0))
     sigma[i] = wp.float32(phase_num[0] / amp / phase_num[1])
     indirect[i] = indirect_at(frames, uv[i], planes, pairs)
+    shading[i] = wp.float32(shading_at(contrast, uv[i], scale))
 
 
 for _t in (wp.uint8, wp.uint16):
@@ -153,9 +187,9 @@ def _light_inputs(fn: str, frames: wp.array, contrast: wp.array, uv: wp.array, w
 
 def sample_light(frames: wp.array, contrast: wp.array, uv: wp.array, *, white: int, black: int,
                  pairs: list[tuple[int, int]], edge_num: float,
-                 threads: int | None = None) -> tuple[wp.array, wp.array]:
-    """((n,) float32 edge sigma, (n,) float32 indirect share) of the samples at ``uv``, on the
-    frames' device (:func:`sample_light_kernel`).
+                 threads: int | None = None) -> tuple[wp.array, wp.array, wp.array]:
+    """((n,) float32 edge sigma, (n,) float32 indirect share, (n,) float32 shading) of the samples at
+    ``uv``, on the frames' device (:func:`sample_light_kernel`).
 
     Args:
         frames: (F, H, W) uint8/uint16 the view's frames.
@@ -172,9 +206,9 @@ def sample_light(frames: wp.array, contrast: wp.array, uv: wp.array, *, white: i
 
 def phase_light(frames: wp.array, contrast: wp.array, uv: wp.array, modulation: wp.array, *, white: int, black: int,
                 pairs: list[tuple[int, int]], noise: float, pitch: float, steps: int, smooth_radius: int,
-                threads: int | None = None) -> tuple[wp.array, wp.array]:
-    """((n,) float32 sigma of rho from the radial phase, (n,) float32 indirect share) of phase-rings'
-    samples at ``uv`` with fringe ``modulation`` ((n,) float32), on the frames' device
+                threads: int | None = None) -> tuple[wp.array, wp.array, wp.array]:
+    """((n,) float32 sigma of rho from the radial phase, (n,) float32 indirect share, (n,) float32
+    shading) of phase-rings' samples at ``uv`` with fringe ``modulation`` ((n,) float32), on the frames' device
     (:func:`phase_light_kernel`; ``angle_code.phase_sigma`` with ``sample_contrast`` and
     ``sample_indirect`` state it in NumPy). ``noise``, ``pitch``, ``steps``, ``smooth_radius``: as
     ``phase_sigma``'s; the others as :func:`sample_light`'s.
@@ -188,10 +222,8 @@ def phase_light(frames: wp.array, contrast: wp.array, uv: wp.array, modulation: 
     return _launch_light(phase_light_kernel, n, inputs, frames.device, threads)
 
 
-def _launch_light(kernel, n: int, inputs: list, dev, threads: int | None) -> tuple[wp.array, wp.array]:
-    sigma = wp.empty(n, dtype=wp.float32, device=dev)
-    indirect = wp.empty(n, dtype=wp.float32, device=dev)
+def _launch_light(kernel, n: int, inputs: list, dev, threads: int | None) -> tuple[wp.array, wp.array, wp.array]:
+    out = [wp.empty(n, dtype=wp.float32, device=dev) for _ in range(3)]  # sigma, indirect, shading
     if n:
-        launch_spans(kernel, n, lambda i0: inputs + [i0], [sigma, indirect], dev,
-                     default_threads() if threads is None else threads)
-    return sigma, indirect
+        launch_spans(kernel, n, lambda i0: inputs + [i0], out, dev, default_threads() if threads is None else threads)
+    return out[0], out[1], out[2]

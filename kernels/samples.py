@@ -65,12 +65,19 @@ class Samples:
     pattern and its inverse each light half of what bounces in), plus what blur mixes
     across the patterns' edges; None where the codec gives none."""
 
+    shading: wp.array | None = None
+    """float32 |grad ln(white - black)| at the sample (per camera px): how fast the light its surface
+    sends back changes across the image there (shading, texture, a highlight, a silhouette). The
+    camera's blur weighs every edge and fringe by that light, so both coordinates read off their
+    place by more where it is steep (``pipeline.reconstruct.error_scale``); None where the codec
+    gives none."""
+
     def __len__(self) -> int:
         return self.uv.shape[0]
 
     def numpy(self) -> dict[str, np.ndarray]:
         """The fields that are set, as NumPy arrays (name -> (n,) or (n, 2))."""
         names = ("uv", "rho", "ring", "sector", "confidence", "pixel", "phi", "sigma_rho", "sigma_tan", "sigma_uv",
-                 "across", "across_px", "bias_uv", "indirect")
+                 "across", "across_px", "bias_uv", "indirect", "shading")
         return {k: getattr(self, k).numpy() for k in names if getattr(self, k) is not None}
 

@@ -94,6 +94,27 @@ def sample_indirect(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.n
     return np.clip(floor / span, 0.0, 1.0).astype(np.float32)
 
 
+def sample_shading(contrast: np.ndarray, uv: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(n,) float32 :attr:`~ringscan.kernels.samples.Samples.shading` at each sample's nearest
+    camera pixel (moved one px inside at the border): |grad ln(max(white - black, 1))| per camera
+    px, the 3 x 3 Sobel over 8 of the (H, W) ``contrast`` plane in 8-bit levels (its values over
+    ``scale``); 0 on an image under 3 px a side."""
+    c = np.asarray(contrast, np.float64)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    h, w = c.shape
+    if h < 3 or w < 3:
+        return np.zeros(len(uv), np.float32)
+    x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 1, w - 2)
+    y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 1, h - 2)
+
+    def lg(dx, dy):
+        return np.log(np.maximum(c[y + dy, x + dx] / scale, 1.0))
+
+    gx = (lg(1, -1) + 2.0 * lg(1, 0) + lg(1, 1)) - (lg(-1, -1) + 2.0 * lg(-1, 0) + lg(-1, 1))
+    gy = (lg(-1, 1) + 2.0 * lg(0, 1) + lg(1, 1)) - (lg(-1, -1) + 2.0 * lg(0, -1) + lg(1, -1))
+    return (np.sqrt(gx * gx + gy * gy) / 8.0).astype(np.float32)
+
+
 def indirect_bits(spec: PatternSpec) -> range:
     """The band bits whose pattern / inverse floor measures a sample's indirect light: the
     ``INDIRECT_BITS`` finest, the finest first."""

@@ -135,7 +135,7 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
     # each edge's sigma from the contrast under it and its indirect-light share, on the frames' device
     # (angle_code.edge_sigma, sample_contrast and sample_indirect state them in NumPy)
     names = frame_names(spec)
-    sigma_rho, indirect = sample_light(
+    sigma_rho, indirect, shading = sample_light(
         frames, labels.contrast, samples.uv, white=names.index("white"), black=names.index("black"),
         pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in indirect_bits(spec)],
         edge_num=np.sqrt(2.0) * settings.angle.noise * EDGE_WIDTH_PX, threads=threads)
@@ -145,6 +145,7 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                      light_gamma=float(getattr(rig.light, "gamma", 1.0)) / spec.precompensated_gamma,
                                      threads=threads)
     samples.indirect = indirect
+    samples.shading = shading
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
     stats = {"pixels_decoded": decoded, "samples": len(samples), "pixels_lit": lit, "low_modulation": low,

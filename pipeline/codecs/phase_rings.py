@@ -235,7 +235,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     # each sample's sigma of rho from its fringe and the contrast under it, and its indirect-light share, on
     # the frames' device (angle_code.phase_sigma, sample_contrast and sample_indirect state them in NumPy)
     names = frame_names(spec)
-    sig, indirect = phase_light(
+    sig, indirect, shading = phase_light(
         frames, labels.contrast, pts.uv, pts.confidence, white=names.index("white"), black=names.index("black"),
         pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in indirect_bits(spec)],
         noise=settings.angle.noise, pitch=spec.pitch, steps=spec.steps, smooth_radius=ps.smooth_radius,
@@ -243,6 +243,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
     pts, angle_stats = add_angle(frames, scan, pts, sigma_rho=sig, settings=settings.angle, camera_gamma=g_cam,
                                  light_gamma=g_light, threads=threads)
     pts.indirect = indirect
+    pts.shading = shading
     wp.synchronize_device(dev)
     t3 = time.perf_counter()
     # the statuses counted on the device (the lone fringes dropped are counted as modulation)

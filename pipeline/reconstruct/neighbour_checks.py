@@ -38,7 +38,7 @@ from ringscan.pipeline.reconstruct.error_scale import (
 )
 
 __all__ = ["NEIGHBOUR_LAGS", "fit_neighbour_model", "check_reach", "reach_scale", "widen_depth_sigma",
-           "widen_for_indirect"]
+           "widen_for_indirect", "widen_for_shading"]
 
 NEIGHBOUR_LAGS = (1, 2, 4, 8)
 """Spacings (camera px along a ring; along the pixel grid for a dense code) at which
@@ -581,7 +581,19 @@ def widen_for_indirect(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray,
     ``px`` projector px per unit share, added in quadrature (through s / sigma_px, the
     depth per projector px). A share at or below the view's median adds nothing."""
     b = np.asarray(indirect, np.float64)
-    b = np.maximum(b - np.median(b), 0.0) * px if b.size else b
+    return _widen_by_shift(widened, s, sigma_px, np.maximum(b - np.median(b), 0.0) * px if b.size else b)
+
+
+def widen_for_shading(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, shading: np.ndarray,
+                      px: float) -> np.ndarray:
+    """(n,) float32: ring-only depth sigmas ``widened`` (mm) with each sample's light gradient
+    (``shading``: ``Samples.shading``, |grad ln(white - black)| per camera px) moving its rho by
+    ``px`` projector px per unit gradient, added in quadrature (through s / sigma_px)."""
+    return _widen_by_shift(widened, s, sigma_px, np.asarray(shading, np.float64) * px)
+
+
+def _widen_by_shift(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, shift_px: np.ndarray) -> np.ndarray:
+    """sqrt(widened^2 + (shift_px s / sigma_px)^2), float32: a rho shift (projector px) in depth."""
     p = np.asarray(sigma_px, np.float64)
     g = np.where(p > 0, np.asarray(s, np.float64) / np.where(p > 0, p, 1.0), 0.0)
-    return np.sqrt(np.asarray(widened, np.float64) ** 2 + (b * g) ** 2).astype(np.float32)
+    return np.sqrt(np.asarray(widened, np.float64) ** 2 + (shift_px * g) ** 2).astype(np.float32)

@@ -51,6 +51,7 @@ from ringscan.pipeline.reconstruct.neighbour_checks import (
     reach_scale,
     widen_depth_sigma,
     widen_for_indirect,
+    widen_for_shading,
 )
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_on_device
@@ -79,6 +80,11 @@ INDIRECT_PRIOR_PX = 0.67
 (``Samples.indirect`` above the view's median), which its neighbours cannot see (the shift is smooth
 along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inter-reflection
 (docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
+SHADING_PRIOR_PX = 0.64
+"""Without an angle: projector px a band edge moves per unit of the light's gradient across the image
+(``Samples.shading``, |grad ln(white - black)| per camera px: the camera's blur weighs the edge by the
+light around it), which its neighbours see only where the gradient changes along the ring. The value
+the angle's pairs fit on Mitsuba's renders (docs/accuracy.md)."""
 SHARED_POSITION_PX = 0.04
 """Camera px that a ring edge's measured place errs by in common to both projector coordinates (the
 ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a
@@ -438,19 +444,21 @@ def _honest_sigmas(scan: Scan, samples, settings: ReconstructSettings, sector_bi
     if samples.indirect is not None:
         middle = median(samples.indirect)
         indirect = np.maximum(gather(samples.indirect, pick, threads=threads).numpy().astype(np.float64) - middle, 0.0)
+    shading = gather(samples.shading, pick, threads=threads).numpy() if samples.shading is not None else None
     fit = fit_error_model(dr, sr, dt, st, host["sigma_rho"], host["sigma_tan"], rv, host["uv"],
-                          indirect=indirect, rho_terms=rho_terms)
+                          indirect=indirect, rho_terms=rho_terms, shading=shading)
 
     # every sample widened on the device (error_scale.apply_error_model and region_scale state it in NumPy);
     # parts of the view whose pairs disagree more than the view's model says (an object's facets beside a
     # plane) widen both coordinates alike: the weighting stays, sigma grows
-    def widened(a, k, f, b):
-        if k == 1.0 and f == 0.0 and not fit["regions"] and b == 0.0:
+    def widened(a, c):
+        k, f, b, g = fit[f"k_{c}"], fit[f"floor_{c}_px"], fit[f"indirect_{c}_px"], fit[f"shading_{c}_px"]
+        if k == 1.0 and f == 0.0 and not fit["regions"] and b == 0.0 and g == 0.0:
             return a
         return widen_sigmas(a, k=k, floor=f, indirect=samples.indirect, indirect_px=b, indirect_median=middle,
-                            uv=samples.uv, regions=fit["regions"], threads=threads)
-    return (widened(samples.sigma_rho, fit["k_rho"], fit["floor_rho_px"], fit["indirect_rho_px"]),
-            widened(samples.sigma_tan, fit["k_tan"], fit["floor_tan_px"], fit["indirect_tan_px"]), dict(fit))
+                            shading=samples.shading, shading_px=g, uv=samples.uv, regions=fit["regions"],
+                            threads=threads)
+    return widened(samples.sigma_rho, "rho"), widened(samples.sigma_tan, "tan"), dict(fit)
 
 
 def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSettings):
@@ -501,6 +509,11 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
         # dense code's phase moves far less: phase-rings' sigma came out 2-4x too wide with it)
         widened = widen_for_indirect(widened, sigma, sigma_px, samples.indirect.numpy(), INDIRECT_PRIOR_PX)
         fit["indirect_rho_px"] = INDIRECT_PRIOR_PX
+    if samples.shading is not None and samples.ring is not None:
+        # the camera's blur moves an edge where the light changes fast across the image (error_scale), smoothly
+        # where the light does: the shift per unit gradient the angle's pairs fit (SHADING_PRIOR_PX)
+        widened = widen_for_shading(widened, sigma, sigma_px, samples.shading.numpy(), SHADING_PRIOR_PX)
+        fit["shading_rho_px"] = SHADING_PRIOR_PX
     widened = wp.array(widened, dtype=wp.float32, device=triangulated.sigma.device)
     return replace(triangulated, sigma=widened), dict(fit)
 

@@ -7,7 +7,14 @@ import warp as wp
 
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.sample_light import phase_light, sample_light
-from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, edge_sigma, phase_sigma, sample_contrast, sample_indirect
+from ringscan.pipeline.codecs.angle_code import (
+    EDGE_WIDTH_PX,
+    edge_sigma,
+    phase_sigma,
+    sample_contrast,
+    sample_indirect,
+    sample_shading,
+)
 from ringscan.pipeline.formats.patterns import frame_names
 from tests.support.ring_frames import frame_stack, gray_rings_spec
 
@@ -30,16 +37,19 @@ def test_the_kernel_reads_what_the_numpy_statements_read(dtype):
     names = frame_names(spec)
     bits = range(spec.bits - 1, spec.bits - 3, -1)  # angle_code.INDIRECT_BITS, the finest first
     noise = 1.7
-    sigma, indirect = sample_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), white=names.index("white"),
+    sigma, indirect, shading = sample_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), white=names.index("white"),
                                    black=names.index("black"),
                                    pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in bits],
                                    edge_num=np.sqrt(2.0) * noise * EDGE_WIDTH_PX, threads=2)
     expect_sigma = np.asarray(edge_sigma(sample_contrast(fw, spec, uv, contrast=labels.contrast), noise), np.float32)
     np.testing.assert_array_equal(sigma.numpy(), expect_sigma)
     np.testing.assert_array_equal(indirect.numpy(), sample_indirect(fw, spec, uv))
+    expect_shading = sample_shading(labels.contrast.numpy(), uv, scale)
+    assert np.count_nonzero(expect_shading > 0.05) > 100  # the blurred rings' light changes across the image
+    np.testing.assert_array_equal(shading.numpy(), expect_shading)
     # phase-rings' sigma of rho from its fringes' modulation (some below the 1e-3 floor, some over 1)
     mod = np.concatenate([rng.uniform(0.0, 1.2, len(uv) - 3), [0.0, 5e-4, 1e-3]]).astype(np.float32)
-    psig, pind = phase_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), wp.array(mod, dtype=wp.float32),
+    psig, pind, pshade = phase_light(fw, labels.contrast, wp.array(uv, dtype=wp.vec2), wp.array(mod, dtype=wp.float32),
                              white=names.index("white"), black=names.index("black"),
                              pairs=[(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in bits],
                              noise=noise, pitch=4.0, steps=4, smooth_radius=1, threads=2)
@@ -47,6 +57,7 @@ def test_the_kernel_reads_what_the_numpy_statements_read(dtype):
                          smooth_radius=1)
     np.testing.assert_array_equal(psig.numpy(), np.asarray(expect, np.float32))
     np.testing.assert_array_equal(pind.numpy(), sample_indirect(fw, spec, uv))
+    np.testing.assert_array_equal(pshade.numpy(), expect_shading)
 
 
 def test_a_planted_floor_is_read_as_its_share_of_white_minus_black():
@@ -58,7 +69,7 @@ def test_a_planted_floor_is_read_as_its_share_of_white_minus_black():
     frames[names.index("white")], frames[names.index("black")] = 200, 20
     pairs = [(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in (3, 2)]
     frames[pairs[0][1]], frames[pairs[1][0]] = 65, 47
-    sigma, indirect = sample_light(wp.array(frames, device="cpu"), wp.full((8, 8), 180.0, dtype=wp.float32),
+    sigma, indirect, _ = sample_light(wp.array(frames, device="cpu"), wp.full((8, 8), 180.0, dtype=wp.float32),
                                    wp.array(np.array([[3.2, 4.7]], np.float32), dtype=wp.vec2), white=0, black=1,
                                    pairs=pairs, edge_num=2.0)
     assert indirect.numpy()[0] == pytest.approx(0.2, abs=1e-6)
@@ -72,3 +83,21 @@ def test_bad_arguments_are_refused():
         sample_light(f, wp.zeros((6, 7), dtype=wp.float32), uv, white=0, black=1, pairs=[(2, 3)], edge_num=1.0)
     with pytest.raises(ValueError, match="frame pairs"):
         sample_light(f, wp.zeros((6, 8), dtype=wp.float32), uv, white=0, black=1, pairs=[], edge_num=1.0)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_the_shading_is_the_gradient_of_the_lights_log(dtype):
+    """White - black = 40 exp(0.3 x - 0.1 y) levels (an exponential ramp: its log's gradient is (0.3, -0.1)
+    everywhere): |grad ln| = sqrt(0.1) per px at every inner pixel, the border's read one px inside; a flat
+    light reads 0; where the light is under a level its log is taken at one (dark pixels read no slope)."""
+    scale = 257.0 if dtype == np.uint16 else 1.0
+    yy, xx = np.mgrid[0:12, 0:16].astype(np.float64)
+    ramp = (40.0 * np.exp(0.3 * xx - 0.1 * yy) * scale).astype(np.float32)
+    frames = wp.zeros((4, 12, 16), dtype=wp.uint8 if dtype == np.uint8 else wp.uint16, device="cpu")
+    uv = np.array([[5.2, 4.7], [0.0, 0.0], [15.4, 11.0], [9.0, 6.49]], np.float32)
+    for plane, want in ((ramp, np.sqrt(0.1)), (np.full((12, 16), 90.0 * scale, np.float32), 0.0),
+                        (np.full((12, 16), 0.3 * scale, np.float32), 0.0)):
+        _, _, shading = sample_light(frames, wp.array(plane, device="cpu"), wp.array(uv, dtype=wp.vec2), white=0,
+                                     black=1, pairs=[(2, 3)], edge_num=1.0)
+        # float32 levels, a float32 result: ~1e-6 relative
+        np.testing.assert_allclose(shading.numpy(), want, rtol=1e-5, atol=1e-6)

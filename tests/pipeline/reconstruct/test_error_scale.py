@@ -82,6 +82,33 @@ def test_indirect_light_terms_are_recovered_where_it_acts_and_stay_off_where_it_
     assert blind["indirect_rho_px"] == 0.0 and blind["beyond_3_fitted"] > fit["beyond_3_fitted"]
 
 
+def test_the_shading_term_is_recovered_and_widens_both_coordinates_alike():
+    """Where the light changes fast across the image (a gradient g of its log, per camera px: a shading
+    edge, a highlight, a silhouette) the camera's blur moves the sample's place by ~a g camera px in a
+    direction of its own: each coordinate errs by a g projector px (the rig's ~1 projector px a camera px)
+    along its own normal, independently. The fit finds a, the one magnitude both coordinates take;
+    pairs whose errors do not grow with g leave it near 0, and without g nothing is fitted."""
+    rng = np.random.default_rng(6)
+    n = 40000
+    args, _ = _pairs(rng, n)
+    dr, s_rho, dt, s_tan, p_rho, p_tan, rv, uv = args
+    g = np.where(rng.uniform(size=n) < 0.3, rng.lognormal(np.log(0.1), 1.0, n), rng.uniform(0, 0.02, n))
+    plain = fit_error_model(*args, shading=g)
+    assert plain["shading_rho_px"] < 0.02 and plain["shading_tan_px"] == plain["shading_rho_px"]
+    a = 0.5
+    steep = (dr + rng.normal(0, a * g * s_rho / p_rho), s_rho, dt + rng.normal(0, a * g * s_tan / p_tan), s_tan,
+             p_rho, p_tan, rv, uv)
+    fit = fit_error_model(*steep, shading=g)
+    # ~12k pairs carry the term, each a part of their variance: 20 %
+    assert fit["shading_rho_px"] == pytest.approx(a, rel=0.2) and fit["shading_tan_px"] == fit["shading_rho_px"]
+    idx = g > 0.3
+    sig = apply_error_model(p_tan, fit["k_tan"], fit["floor_tan_px"], shading_px=fit["shading_tan_px"], shading=g)
+    planted = np.sqrt(p_tan ** 2 + (a * g) ** 2)
+    assert np.median(sig[idx] / planted[idx]) == pytest.approx(1.0, abs=0.1)
+    blind = fit_error_model(*steep)
+    assert blind["shading_rho_px"] == 0.0 and blind["beyond_3_fitted"] > fit["beyond_3_fitted"]
+
+
 def test_terms_that_act_on_few_pairs_do_not_stall_the_fit():
     """An indirect share that is a trace on most pairs (1e-5, the median of a view lit straight) and
     large on a few (5 %): each column of the fit is scaled by its median over the pairs where it acts.

@@ -227,6 +227,23 @@ def test_bounced_light_widens_a_ring_only_sigma_by_its_share_above_the_views():
     assert out[3] == pytest.approx(expect, rel=1e-6)  # float32 rounding only
 
 
+def test_a_steep_light_widens_a_ring_only_sigma_by_its_gradient():
+    """The camera's blur moves an edge where the light changes fast across the image: each sample's
+    gradient (per camera px) widens its sigma by SHADING_PRIOR_PX per unit, in quadrature; a flat
+    light adds nothing."""
+    from ringscan.pipeline.reconstruct.neighbour_checks import widen_for_shading
+    from ringscan.pipeline.reconstruct.view import SHADING_PRIOR_PX
+
+    widened = np.array([0.01, 0.01, 0.02], np.float32)  # mm
+    s = np.array([0.005, 0.005, 0.004])  # the decode's depth sigma (mm) ...
+    sigma_px = np.array([0.05, 0.05, 0.02])  # ... for these projector px: 0.1 and 0.2 mm a projector px
+    shading = np.array([0.0, 0.4, 1.5])
+    out = widen_for_shading(widened, s, sigma_px, shading, SHADING_PRIOR_PX)
+    assert out[0] == widened[0]
+    expect = np.hypot(widened[1:].astype(np.float64), shading[1:] * SHADING_PRIOR_PX * np.array([0.1, 0.2]))
+    np.testing.assert_allclose(out[1:], expect, rtol=1e-6)  # float32 rounding only
+
+
 def _fragmented(d, region):
     """The samples of ``d`` (a :func:`_ring_samples` view) less most of those in ``region`` (a mask):
     there a ring keeps pieces 6 px long, 14 px apart (a far, faint surface's broken rings; an
