@@ -265,7 +265,8 @@ def widen_sigmas(sigma: wp.array, *, k: float, floor: float, indirect: wp.array 
         terms.tx0 = terms.ty0 = 0
         grid = wp.empty((0, 0), dtype=wp.float64, device=dev)
     out = wp.empty(n, dtype=wp.float32, device=dev)
-    args = [sigma, indirect if use_indirect else sigma, shading if use_shading else sigma, uv if table is not None else wp.empty(0, dtype=wp.vec2, device=dev),
-            grid, terms]
+    no_uv = wp.empty(0, dtype=wp.vec2, device=dev)
+    args = [sigma, indirect if use_indirect else sigma, shading if use_shading else sigma,
+            uv if table is not None else no_uv, grid, terms]
     launch_spans(widen_kernel, n, lambda i0: args + [i0], [out], dev, default_threads() if threads is None else threads)
     return out

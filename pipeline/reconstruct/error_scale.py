@@ -82,7 +82,8 @@ class ErrorModel(dict):
     quadrature to each coordinate's), ``floor_px`` (across the epipolar line: the
     calibration's miss), ``indirect_rho_px``, ``indirect_tan_px`` (projector px per unit indirect
     share above the view's median), ``shading_rho_px`` = ``shading_tan_px`` (projector px per unit
-    of the light's gradient, ``Samples.shading``; one term for both), ``pairs`` (samples that measured them), ``measured_by``
+    of the light's gradient, ``Samples.shading``; one term for both), ``pairs`` (samples that
+    measured them), ``measured_by``
     (``angle``: each sample's two depths, :func:`fit_error_model`; ``neighbours``: a
     ring's neighbouring samples, :func:`fit_neighbour_model`; None: not measured), ``regions``
     (camera tiles whose pairs need a larger variance factor, :func:`region_scale`), ``reach``
@@ -104,7 +105,8 @@ def sample_subset(n: int, max_samples: int = MAX_CHECK_SAMPLES) -> np.ndarray:
 def identity_model(pairs: int = 0) -> ErrorModel:
     """The decode's model as it is (no term added)."""
     return ErrorModel(k_rho=1.0, k_tan=1.0, floor_rho_px=0.0, floor_tan_px=0.0, floor_px=0.0, pairs=int(pairs),
-                      measured_by=None, regions=None, indirect_rho_px=0.0, indirect_tan_px=0.0, shading_rho_px=0.0, shading_tan_px=0.0,
+                      measured_by=None, regions=None, indirect_rho_px=0.0, indirect_tan_px=0.0, shading_rho_px=0.0,
+                      shading_tan_px=0.0,
                       z_median=None, beyond_3=None, z_median_fitted=None, beyond_3_fitted=None)
 
 
