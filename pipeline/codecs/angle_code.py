@@ -107,11 +107,12 @@ def sample_shading(contrast: np.ndarray, uv: np.ndarray, scale: float = 1.0) -> 
     x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 1, w - 2)
     y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 1, h - 2)
 
-    def lg(dx, dy):
-        return np.log(np.maximum(c[y + dy, x + dx] / scale, 1.0))
+    def at(dx, dy):
+        return np.maximum(c[y + dy, x + dx] / scale, 1.0)
 
-    gx = (lg(1, -1) + 2.0 * lg(1, 0) + lg(1, 1)) - (lg(-1, -1) + 2.0 * lg(-1, 0) + lg(-1, 1))
-    gy = (lg(-1, 1) + 2.0 * lg(0, 1) + lg(1, 1)) - (lg(-1, -1) + 2.0 * lg(0, -1) + lg(1, -1))
+    # each side's weights 1, 2, 1 as the log of a product (the kernel's order of operations)
+    gx = np.log((at(1, -1) * at(1, 0) * at(1, 0) * at(1, 1)) / (at(-1, -1) * at(-1, 0) * at(-1, 0) * at(-1, 1)))
+    gy = np.log((at(-1, 1) * at(0, 1) * at(0, 1) * at(1, 1)) / (at(-1, -1) * at(0, -1) * at(0, -1) * at(1, -1)))
     return (np.sqrt(gx * gx + gy * gy) / 8.0).astype(np.float32)
 
 
