@@ -7,6 +7,7 @@ from __future__ import annotations
 import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
+from ringscan.kernels.light_gradient import shading_at
 from ringscan.kernels.samples import Samples
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
@@ -78,15 +79,17 @@ def decoded_samples_kernel(
     pixel: wp.array(dtype=wp.int32),
     sigma_rho: wp.array(dtype=wp.float32),
     sigma_tan: wp.array(dtype=wp.float32),
+    shading: wp.array(dtype=wp.float32),
 ):
     """Each decoded pixel's sample at its scanned offset, ``chunk`` pixels of one row per thread: the polar
-    coordinates about the centre and the u and v sigmas turned radial and tangential (float64, then float32).
+    coordinates about the centre and the u and v sigmas turned radial and tangential (float64, then float32),
+    and the light's gradient there (``kernels.light_gradient.shading_at`` on the contrast frame).
 
     fu, fv, fc (H, W) uint16 (proj_u, proj_v, contrast), offsets (H * W,) int32 (the flags' exclusive scan):
-    read. uv (n,) vec2, rho, phi, confidence, sigma_rho, sigma_tan (n,) float32, sector, pixel (n,) int32:
-    written.
+    read. uv (n,) vec2, rho, phi, confidence, sigma_rho, sigma_tan, shading (n,) float32, sector, pixel (n,)
+    int32: written.
 
-    Size: Warp kernels take each array as its own argument: the three frames and the offsets in, the eight
+    Size: Warp kernels take each array as its own argument: the three frames and the offsets in, the nine
     fields of :class:`Samples` out; the codec's constants travel in DecodedMapParams.
     """
     w = fu.shape[1]
@@ -123,6 +126,7 @@ def decoded_samples_kernel(
             pixel[o] = i
             sigma_rho[o] = wp.float32(wp.sqrt(su * su * c2 + sv * sv * s2))
             sigma_tan[o] = wp.float32(wp.sqrt(su * su * s2 + sv * sv * c2))
+            shading[o] = wp.float32(shading_at(fc, uv[o], prm.contrast_scale))
 
 
 def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: int | None = None) -> Samples:
@@ -136,7 +140,7 @@ def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: 
 
     Returns:
         :class:`Samples` with ``uv`` the pixel, ``rho``/``phi`` about the centre, ``sector`` (-1 without
-        sectors), ``confidence``, ``pixel``, ``sigma_rho``/``sigma_tan``; ``ring`` None.
+        sectors), ``confidence``, ``pixel``, ``sigma_rho``/``sigma_tan``, ``shading``; ``ring`` None.
     """
     if not isinstance(frames, wp.array) or frames.dtype != wp.uint16 or frames.ndim != 3 or frames.shape[0] != 3:
         raise ValueError("decoded_map_samples: frames must be a (3, H, W) uint16 Warp array")
@@ -152,9 +156,11 @@ def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: 
     f32 = lambda: wp.empty(total, dtype=wp.float32, device=dev)  # noqa: E731
     out = Samples(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=f32(), ring=None,
                   sector=wp.empty(total, dtype=wp.int32, device=dev), confidence=f32(),
-                  pixel=wp.empty(total, dtype=wp.int32, device=dev), phi=f32(), sigma_rho=f32(), sigma_tan=f32())
+                  pixel=wp.empty(total, dtype=wp.int32, device=dev), phi=f32(), sigma_rho=f32(), sigma_tan=f32(),
+                  shading=f32())
     if total:
         launch_rows(decoded_samples_kernel, h, w, lambda r0, chunk: [fu, fv, fc, offsets, params, r0, chunk],
-                    [out.uv, out.rho, out.phi, out.sector, out.confidence, out.pixel, out.sigma_rho, out.sigma_tan],
+                    [out.uv, out.rho, out.phi, out.sector, out.confidence, out.pixel, out.sigma_rho, out.sigma_tan,
+                     out.shading],
                     dev, threads)
     return out

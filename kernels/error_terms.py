@@ -36,7 +36,7 @@ class ErrorTerms:
     indirect_median: wp.float64
     """The view's median share (``median``)."""
     shading_px: wp.float64
-    """px per unit of the light's gradient |grad ln(white - black)| (per camera px; 0: no term)."""
+    """px per unit of the light's relative gradient (``Samples.shading``, per camera px; 0: no term)."""
     tile_px: wp.float64
     """Side of the tiles of the factor grid (px)."""
     tx0: int

@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
+from ringscan.kernels.light_gradient import shading_at
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
@@ -68,38 +69,6 @@ def indirect_at(frames: wp.array3d(dtype=Any), uv: wp.vec2, planes: wp.vec4i, pa
     return wp.min(wp.max(floor / span, 0.0), 1.0)
 
 
-@wp.func
-def light_at(contrast: wp.array2d(dtype=wp.float32), x: int, y: int, scale: wp.float64):
-    """max(contrast[y, x] / scale, 1): the light in 8-bit levels, a level at least (its log is taken)."""
-    return wp.max(wp.float64(contrast[y, x]) / scale, wp.float64(1.0))
-
-
-@wp.func
-def shading_at(contrast: wp.array2d(dtype=wp.float32), uv: wp.vec2, scale: wp.float64):
-    """|grad ln(white - black)| (per camera px) at uv's nearest pixel, moved inside by one px at the
-    border: the 3 x 3 Sobel of ln :func:`light_at` over 8, each side's three logs taken as the log of
-    their product (two logs, not twelve; 0 on an image under 3 px a side): ``angle_code.sample_shading``.
-    The camera's blur weighs an edge or a fringe by the light around it, so a pattern seen across a
-    light that changes fast reads off its place."""
-    h = contrast.shape[0]
-    w = contrast.shape[1]
-    if h < 3 or w < 3:
-        return wp.float64(0.0)
-    x = wp.min(wp.max(int(wp.rint(wp.float64(uv[0]))), 1), w - 2)
-    y = wp.min(wp.max(int(wp.rint(wp.float64(uv[1]))), 1), h - 2)
-    right = light_at(contrast, x + 1, y - 1, scale) * light_at(contrast, x + 1, y, scale) * light_at(
-        contrast, x + 1, y, scale) * light_at(contrast, x + 1, y + 1, scale)
-    left = light_at(contrast, x - 1, y - 1, scale) * light_at(contrast, x - 1, y, scale) * light_at(
-        contrast, x - 1, y, scale) * light_at(contrast, x - 1, y + 1, scale)
-    below = light_at(contrast, x - 1, y + 1, scale) * light_at(contrast, x, y + 1, scale) * light_at(
-        contrast, x, y + 1, scale) * light_at(contrast, x + 1, y + 1, scale)
-    above = light_at(contrast, x - 1, y - 1, scale) * light_at(contrast, x, y - 1, scale) * light_at(
-        contrast, x, y - 1, scale) * light_at(contrast, x + 1, y - 1, scale)
-    gx = wp.log(right / left)
-    gy = wp.log(below / above)
-    return wp.sqrt(gx * gx + gy * gy) / wp.float64(8.0)
-
-
 @wp.kernel
 def sample_light_kernel(
     frames: wp.array3d(dtype=Any),
@@ -117,7 +86,7 @@ def sample_light_kernel(
     """Sample i0 + tid's edge sigma (projector px), indirect share and shading.
 
     The contrast c (:func:`contrast_at`); sigma = ``edge_num`` / (2 max(c, 1)) (``edge_num``: sqrt(2) noise x
-    the edge's width). The share: :func:`indirect_at`; the shading: :func:`shading_at`.
+    the edge's width). The share: :func:`indirect_at`; the shading: ``light_gradient.shading_at``.
 
     frames (F, H, W) uint8/uint16, contrast (H, W) float32, uv (n,) vec2, pairs (2 k,) int32 frame
     indices: read; ``planes``: (white, black, k, 0). sigma, indirect, shading (n,) float32: written.

@@ -66,7 +66,8 @@ class Samples:
     across the patterns' edges; None where the codec gives none."""
 
     shading: wp.array | None = None
-    """float32 |grad ln(white - black)| at the sample (per camera px): how fast the light its surface
+    """float32 the relative gradient of white - black at the sample (per camera px; |grad ln| where
+    it changes smoothly, at most 1 across a step: ``kernels.light_gradient``): how fast the light its surface
     sends back changes across the image there (shading, texture, a highlight, a silhouette). The
     camera's blur weighs every edge and fringe by that light, so both coordinates read off their
     place by more where it is steep (``pipeline.reconstruct.error_scale``); None where the codec

@@ -96,9 +96,11 @@ def sample_indirect(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.n
 
 def sample_shading(contrast: np.ndarray, uv: np.ndarray, scale: float = 1.0) -> np.ndarray:
     """(n,) float32 :attr:`~ringscan.kernels.samples.Samples.shading` at each sample's nearest
-    camera pixel (moved one px inside at the border): |grad ln(max(white - black, 1))| per camera
-    px, the 3 x 3 Sobel over 8 of the (H, W) ``contrast`` plane in 8-bit levels (its values over
-    ``scale``); 0 on an image under 3 px a side."""
+    camera pixel (moved one px inside at the border): the light's relative gradient per camera px,
+    each direction's two 3 x 3 Sobel sums (weights 1, 2, 1) of max(white - black, 1) on either side,
+    their difference over their sum, of the (H, W) ``contrast`` plane in 8-bit levels (its values over
+    ``scale``); tanh of the log's gradient on an exponential ramp, so |grad ln(white - black)| where
+    the light changes smoothly and at most 1 across a step; 0 on an image under 3 px a side."""
     c = np.asarray(contrast, np.float64)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     h, w = c.shape
@@ -110,10 +112,13 @@ def sample_shading(contrast: np.ndarray, uv: np.ndarray, scale: float = 1.0) -> 
     def at(dx, dy):
         return np.maximum(c[y + dy, x + dx] / scale, 1.0)
 
-    # each side's weights 1, 2, 1 as the log of a product (the kernel's order of operations)
-    gx = np.log((at(1, -1) * at(1, 0) * at(1, 0) * at(1, 1)) / (at(-1, -1) * at(-1, 0) * at(-1, 0) * at(-1, 1)))
-    gy = np.log((at(-1, 1) * at(0, 1) * at(0, 1) * at(1, 1)) / (at(-1, -1) * at(0, -1) * at(0, -1) * at(1, -1)))
-    return (np.sqrt(gx * gx + gy * gy) / 8.0).astype(np.float32)
+    right = at(1, -1) + 2.0 * at(1, 0) + at(1, 1)  # the kernel's order of operations
+    left = at(-1, -1) + 2.0 * at(-1, 0) + at(-1, 1)
+    below = at(-1, 1) + 2.0 * at(0, 1) + at(1, 1)
+    above = at(-1, -1) + 2.0 * at(0, -1) + at(1, -1)
+    gx = (right - left) / (right + left)
+    gy = (below - above) / (below + above)
+    return np.sqrt(gx * gx + gy * gy).astype(np.float32)
 
 
 def indirect_bits(spec: PatternSpec) -> range:

@@ -22,6 +22,7 @@ import warp as wp
 
 from ringscan.kernels.decoded_maps import DecodedMapParams, decoded_map_samples
 from ringscan.kernels.samples import Samples
+from ringscan.pipeline.codecs.angle_code import sample_shading
 from ringscan.pipeline.codecs.base import Codec, StageSettings
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
@@ -63,7 +64,8 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
         dict of (n,) arrays: ``uv`` (n, 2) float32 camera pixel, ``rho`` float32,
         ``phi`` float32 polar angle (rad), ``sector`` int32, ``confidence``
         float32, ``pixel`` int32, ``sigma_rho`` and ``sigma_tan`` float32 (projector
-        px: the u and v errors turned into the radial and tangential directions).
+        px: the u and v errors turned into the radial and tangential directions), ``shading``
+        float32 (the contrast's relative gradient per camera px: ``angle_code.sample_shading``).
     """
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
@@ -73,7 +75,9 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
     ok = np.isfinite(u) & np.isfinite(v)
     pix = np.flatnonzero(ok.ravel()).astype(np.int32)
     con = np.asarray(contrast, np.float64).ravel()[pix]
-    return _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits)
+    out = _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits)
+    out["shading"] = sample_shading(np.asarray(contrast, np.float64), out["uv"])
+    return out
 
 
 def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray, W: int, *, center,

@@ -136,7 +136,7 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
             errors scale alike (a dense code: both from the pixel's contrast), the pairs
             alone cannot tell whose error they disagree by; the neighbours can for rho,
             and the pairs then fit the angle's terms.
-        shading: (n,) each sample's |grad ln(white - black)| (per camera px: the light its
+        shading: (n,) each sample's ``Samples.shading`` (per camera px: the light its
             surface sends back changing across the image, by its shading, texture or a
             highlight), or None: the camera's blur weighs every edge and fringe by that light,
             which moves the sample's place by an amount that grows with it: one more
@@ -382,7 +382,7 @@ def apply_error_model(sigma_px: np.ndarray, k: float, floor_px: float, *, indire
                       shading: np.ndarray | None = None) -> np.ndarray:
     """sqrt(k^2 sigma^2 + floor^2 + (indirect_px * indirect)^2 + (shading_px * shading)^2), float32
     (``indirect``: (n,) each sample's indirect-light share above the view's; ``shading``: (n,) its
-    |grad ln(white - black)|; :func:`fit_error_model`)."""
+    light's relative gradient, ``Samples.shading``; :func:`fit_error_model`)."""
     s = np.asarray(sigma_px, np.float64)
     var = (k * s) ** 2 + floor_px ** 2
     if indirect_px > 0 and indirect is not None:

@@ -587,7 +587,7 @@ def widen_for_indirect(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray,
 def widen_for_shading(widened: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, shading: np.ndarray,
                       px: float) -> np.ndarray:
     """(n,) float32: ring-only depth sigmas ``widened`` (mm) with each sample's light gradient
-    (``shading``: ``Samples.shading``, |grad ln(white - black)| per camera px) moving its rho by
+    (``shading``: ``Samples.shading``, its relative gradient per camera px) moving its rho by
     ``px`` projector px per unit gradient, added in quadrature (through s / sigma_px)."""
     return _widen_by_shift(widened, s, sigma_px, np.asarray(shading, np.float64) * px)
 

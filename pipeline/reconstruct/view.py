@@ -80,11 +80,13 @@ INDIRECT_PRIOR_PX = 0.67
 (``Samples.indirect`` above the view's median), which its neighbours cannot see (the shift is smooth
 along the ring). The value the angle's pairs fit on Mitsuba's V-groove with inter-reflection
 (docs/accuracy.md); on ringscan's renderer the fits read 0.14-0.54 px on Spot and the corner."""
-SHADING_PRIOR_PX = 0.64
+SHADING_PRIOR_PX = 0.85
 """Without an angle: projector px a band edge moves per unit of the light's gradient across the image
-(``Samples.shading``, |grad ln(white - black)| per camera px: the camera's blur weighs the edge by the
-light around it), which its neighbours see only where the gradient changes along the ring. The value
-the angle's pairs fit on Mitsuba's renders (docs/accuracy.md)."""
+(``Samples.shading``, its relative gradient per camera px: the camera's blur weighs the edge by the
+light around it), which its neighbours see only where the gradient changes along the ring. The median
+of the values the angle's pairs fit on Mitsuba's renders (0.31-1.43 px, eleven views: docs/accuracy.md,
+"Then: the light's gradient"); on ringscan's own renderer, which blurs the pattern but not the light,
+they read under 0.2 px."""
 SHARED_POSITION_PX = 0.04
 """Camera px that a ring edge's measured place errs by in common to both projector coordinates (the
 ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a
