@@ -86,7 +86,7 @@ SHADING_PRIOR_PX = 0.85
 light around it), which its neighbours see only where the gradient changes along the ring. The median
 of the values the angle's pairs fit on Mitsuba's renders (0.31-1.43 px, eleven views: docs/accuracy.md,
 "Then: the light's gradient"); on ringscan's own renderer, which blurs the pattern but not the light,
-they read under 0.2 px."""
+0.12-0.19 px on Spot."""
 SHARED_POSITION_PX = 0.04
 """Camera px that a ring edge's measured place errs by in common to both projector coordinates (the
 ray itself moved; a dense code's samples sit at pixel centres and take no such term): along a
