@@ -398,8 +398,22 @@ def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarr
     return out.numpy()
 
 
+def _host_out(a: np.ndarray, dtype, dev) -> wp.array:
+    """A kernel's output over the host array ``a`` (its initial values): ``a``'s own memory on the CPU, a
+    copy on another device (:func:`_read_back` brings it back)."""
+    return wp.array(a, dtype=dtype, device=dev, copy=not dev.is_cpu)
+
+
+def _read_back(out: wp.array, a: np.ndarray) -> np.ndarray:
+    """``a`` with the kernel's results in ``out`` (:func:`_host_out`): ``a`` itself on the CPU (once the
+    device is done), the device's values read back elsewhere."""
+    wp.synchronize_device(out.device)
+    return a if out.device.is_cpu else out.numpy().reshape(a.shape)
+
+
 def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centre: np.ndarray, *, width: int,
-                   lags: tuple, threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   lags: tuple, threads: int | None = None,
+                   device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(the ``centre`` samples whose ring has a direction there (k,), that direction (k, 2), their nodes
     (k, len(lags), 4) int64 (-1: none) and the nodes' places (k, len(lags), 4) float64) for ``lags`` of
     (2, 4, 8) px: ``neighbour_checks._ring_directions`` and ``_lag_nodes``, the same samples, directions
@@ -414,6 +428,7 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
         width: camera width (px).
         lags: the lags (px), in order, without a gap: (2,), (4, 8), (2, 4, 8), ...
         threads: CPU threads; default all cores.
+        device: where the kernels run (the view's device; NumPy in and out).
     """
     every = tuple(int(k) for k in LAGS)
     lags = tuple(int(k) for k in lags)
@@ -421,16 +436,17 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
         raise ValueError(f"ring_lag_nodes: lags must be a run of {every}, got {lags}")
     first, lags = every.index(lags[0]), len(lags)
     centre = np.asarray(centre, np.int64)
-    dev, threads = "cpu", default_threads() if threads is None else threads
+    dev, threads = wp.get_device(device), default_threads() if threads is None else threads
     uv32 = wp.array(np.ascontiguousarray(np.asarray(uv).reshape(-1, 2), np.float32), dtype=wp.vec2, device=dev)
     ring_w = wp.array(np.asarray(ring, np.int32), dtype=wp.int32, device=dev)
     at_w = wp.array(np.asarray(at_pixel, np.int32), dtype=wp.int32, device=dev)
     sums = np.zeros((centre.size, 6))
     if centre.size:
         c_w = wp.array(centre.astype(np.int32), dtype=wp.int32, device=dev)
-        launch_spans(ring_sums_kernel, centre.size, lambda i0: [uv32, ring_w, c_w, at_w, int(width), i0],
-                     [wp.array(sums, dtype=wp.spatial_vectord, device=dev, copy=False)], dev, threads, min_span=1024)
-        wp.synchronize_device(dev)
+        out = _host_out(sums, wp.spatial_vectord, dev)
+        launch_spans(ring_sums_kernel, centre.size, lambda i0: [uv32, ring_w, c_w, at_w, int(width), i0], [out],
+                     dev, threads, min_span=1024)
+        sums = _read_back(out, sums)
     # _ring_directions' arithmetic on the sums
     count, mean, cov = sums[:, 0], sums[:, 1:3].copy(), sums[:, 3:6]
     keep = count >= 3
@@ -446,27 +462,27 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
     if kept.size:
         args = [uv32, ring_w, wp.array(kept.astype(np.int32), dtype=wp.int32, device=dev),
                 wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), first, lags]
-        launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0],
-                     [wp.array(nodes, dtype=wp.int32, device=dev, copy=False),
-                      wp.array(place, dtype=wp.float64, device=dev, copy=False)], dev, threads, min_span=1024)
-        wp.synchronize_device(dev)
+        outs = [_host_out(nodes, wp.int32, dev), _host_out(place, wp.float64, dev)]
+        launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0], outs, dev, threads, min_span=1024)
+        nodes, place = _read_back(outs[0], nodes), _read_back(outs[1], place)
     return kept, direction, nodes.reshape(-1, lags, 4).astype(np.int64), place.reshape(-1, lags, 4)
 
 
 def next_neighbours(uv: np.ndarray, ring: np.ndarray, pixel: np.ndarray, key: np.ndarray, order: np.ndarray,
                     at_pixel: np.ndarray, npix: int, centre: np.ndarray, *, width: int,
-                    threads: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    threads: int | None = None, device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(c, a, b): the ``centre`` samples with two samples of their ring among their 8 neighbouring pixels
     at least 120 degrees apart, and those two (:func:`next_neighbours_kernel`; the NumPy statement
     ``neighbour_checks._next_neighbours``, the same samples). ``key``/``order``/``at_pixel``/``npix``: the ring
-    index (``neighbour_checks._RingIndex``); ``uv`` (n, 2) float32 values, ``ring``, ``pixel`` (n,) int.
+    index (``neighbour_checks._RingIndex``); ``uv`` (n, 2) float32 values, ``ring``, ``pixel`` (n,) int;
+    ``device``: where the kernel runs (NumPy in and out).
 
-    Size: the samples' three arrays, the ring index's four parts, the centres, the camera's width and the
-    threads."""
+    Size: the samples' three arrays, the ring index's four parts, the centres, the camera's width, the
+    threads and the device."""
     centre = np.asarray(centre, np.int64)
     pair = np.full((centre.size, 2), -1, np.int32)
     if centre.size:
-        dev = "cpu"
+        dev = wp.get_device(device)
         args = [wp.array(np.ascontiguousarray(np.asarray(uv).reshape(-1, 2), np.float32), dtype=wp.vec2, device=dev),
                 wp.array(np.asarray(ring, np.int32), dtype=wp.int32, device=dev),
                 wp.array(np.asarray(pixel, np.int32), dtype=wp.int32, device=dev),
@@ -474,9 +490,9 @@ def next_neighbours(uv: np.ndarray, ring: np.ndarray, pixel: np.ndarray, key: np
                 wp.array(np.asarray(key, np.int64), dtype=wp.int64, device=dev),
                 wp.array(np.asarray(order, np.int32), dtype=wp.int32, device=dev),
                 wp.array(np.asarray(at_pixel, np.int32), dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
-        launch_spans(next_neighbours_kernel, centre.size, lambda i0: args + [i0],
-                     [wp.array(pair, dtype=wp.vec2i, device=dev, copy=False)], dev,
+        out = _host_out(pair, wp.vec2i, dev)
+        launch_spans(next_neighbours_kernel, centre.size, lambda i0: args + [i0], [out], dev,
                      default_threads() if threads is None else threads, min_span=1024)
-        wp.synchronize_device(dev)
+        pair = _read_back(out, pair)
     use = pair[:, 0] >= 0
     return centre[use], pair[use, 0].astype(np.int64), pair[use, 1].astype(np.int64)

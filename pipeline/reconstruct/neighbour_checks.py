@@ -198,13 +198,14 @@ def _next_neighbours(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray):
     return centre[use], nb[rows, ia][use], nb[rows, ib][use]
 
 
-def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: int) -> list:
+def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: int, device="cpu") -> list:
     """The checks wider than 1 px (``NEIGHBOUR_LAGS`` up to ``max_lag``), each (lag, checked samples (m,),
     their four same-ring nodes (m, 4), the cubic's weights (m, 4)), for the lags where at
     least ``MIN_PAIRS`` samples have all four: every ``centre`` sample, with its ring's
     direction there from the ring's samples around it (a ring broken up by dropped
     samples still has one). The lags below ``REGION_MAX_LAG_PX`` only where none from it up
-    to it holds (the model reads the widest check and the widest up to that one)."""
+    to it holds (the model reads the widest check and the widest up to that one). ``device``: where the
+    node search's kernels run."""
     lags = [k for k in NEIGHBOUR_LAGS[1:] if k <= max_lag]
     if not lags:
         return []
@@ -212,7 +213,8 @@ def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: i
     def at(run):
         # the ring's direction at each centre and its nodes at each lag: kernels.ring_checks (the same samples
         # and places as _ring_directions and _lag_nodes state them in NumPy, ~30x faster)
-        wide, _, nodes_at, place_at = ring_lag_nodes(uv, idx.ring, idx.at_pixel, centre, width=idx.width, lags=run)
+        wide, _, nodes_at, place_at = ring_lag_nodes(uv, idx.ring, idx.at_pixel, centre, width=idx.width, lags=run,
+                                                     device=device)
         out = {}
         for li, lag in enumerate(run):
             nodes, place = nodes_at[:, li], place_at[:, li]
@@ -251,7 +253,7 @@ def _check_variance(u, cc, nodes, w, x, y, window):
 def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, pixel: np.ndarray,
                         ring: np.ndarray | None, uv: np.ndarray, *, width: int, window: int = 1,
                         group: np.ndarray | None = None, max_samples: int = MAX_CHECK_SAMPLES,
-                        reach: np.ndarray | None = None) -> ErrorModel:
+                        reach: np.ndarray | None = None, device="cpu") -> ErrorModel:
     """The ring coordinate's missed error terms where no angle checks it: from each
     sample's disagreement with its neighbours on the same ring (or, for a dense code,
     the neighbouring pixels).
@@ -288,6 +290,8 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         reach: (n,) each sample's widest check (:func:`check_reach`), or None: with a ring,
             the samples the kept check does not reach get a variance factor per reach
             (``reach``: [[reach, factor, checks], ...], :func:`reach_scale`).
+        device: where the checks' kernels run (the view's device; the arrays here are NumPy,
+            copied there for them and their results read back).
 
     Returns:
         :class:`ErrorModel` with k_rho and floor_rho_px (the other terms 1 and 0),
@@ -315,7 +319,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
         centre = idx.order[(idx.y[idx.order] % period) == min(1, period - 1)]
         # (kernels.ring_checks.next_neighbours: _next_neighbours' samples, by a kernel)
         c, a, b = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.at_pixel, idx.npix, centre,
-                                  width=width)
+                                  width=width, device=device)
         if c.size >= MIN_PAIRS:
             break
     if c.size < MIN_PAIRS:
@@ -323,7 +327,8 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     ab = uv[b] - uv[a]
     t = np.clip(np.einsum("ij,ij->i", uv[c] - uv[a], ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
     g = s / p  # depth per projector px of rho
-    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre, max_lag)
+    checks = [(1, c, np.stack([a, b], 1), np.stack([1.0 - t, t], 1))] + _wide_checks(uv, idx, centre, max_lag,
+                                                                                     device)
     # the widest check that could be made: 1 px apart, neighbours share errors (a blur, a
     # smoothing window: it reads low) or alternate (a sharp projector's staircase: it reads
     # high); from ~3 px on the reading stays level (docs/accuracy.md)
@@ -354,7 +359,7 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     if reach is not None and window == 1:
         var = ((q[0] * s * s + q[1] * g * g) * group_scale(groups, None if group is None else np.asarray(group))
                * region_scale(regions, uv))
-        reach_scales = _reach_scales(d, var, uv, idx, np.asarray(reach, np.int64), lag)
+        reach_scales = _reach_scales(d, var, uv, idx, np.asarray(reach, np.int64), lag, device)
     pairs, z0 = cc.size, np.abs(r) / np.sqrt(X[:, 0])
     z1 = np.abs(r) / np.sqrt(X @ q * gs * region_scale(regions, uv[cc]))
     return ErrorModel(k_rho=float(np.sqrt(max(q[0], 1.0))), k_tan=1.0, floor_rho_px=float(np.sqrt(q[1])),
@@ -507,14 +512,15 @@ def _cross_ring_checks(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _Rin
 
 
 def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingIndex, reach: np.ndarray,
-                  lag: int) -> list:
+                  lag: int, device="cpu") -> list:
     """Samples that no check of ``lag`` px along their ring reaches (``check_reach`` < lag: a
     ring's fragments, an object's edges and grazing facets) err more than the checked ones
     the fit saw (ringscan's renderer: Spot's 1 % without a neighbour 34 % beyond 3 sigma,
     the far faint plane's half 11 %): per reach class, the variance factor of its cross-ring
     checks (:func:`_cross_ring_checks`, ``var``: the fitted model's variances) over the
     checked samples' (>= 1; a curved surface's departure from the check's plane is in both).
-    Returns [[reach, factor, checks], ...]."""
+    ``device``: where the checks' kernel runs (the view's arrays copied there once). Returns [[reach,
+    factor, checks], ...]."""
     usable = idx.order
     ref = usable[reach[usable] >= lag]
     out = []
@@ -524,13 +530,13 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
 
     # the view's arrays for the kernel, made once (kernels.cross_checks.cross_ring_checks: the checks of
     # _cross_ring_checks, their numbers to rounding)
-    # (on the host, where the model's arrays are)
-    view = dict(depth=wp.array(np.ascontiguousarray(d, np.float64), dtype=wp.float64, device="cpu"),
-                var=wp.array(np.ascontiguousarray(var, np.float64), dtype=wp.float64, device="cpu"),
-                uv=wp.array(np.ascontiguousarray(uv, np.float64), dtype=wp.vec2d, device="cpu"),
-                ring=wp.array(idx.ring.astype(np.int32), dtype=wp.int32, device="cpu"),
-                pixel=wp.array((idx.y * idx.width + idx.x).astype(np.int32), dtype=wp.int32, device="cpu"),
-                at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32, device="cpu"))
+    # (on the view's device: the checks are the model's largest cost, and a GPU's to take)
+    view = dict(depth=wp.array(np.ascontiguousarray(d, np.float64), dtype=wp.float64, device=device),
+                var=wp.array(np.ascontiguousarray(var, np.float64), dtype=wp.float64, device=device),
+                uv=wp.array(np.ascontiguousarray(uv, np.float64), dtype=wp.vec2d, device=device),
+                ring=wp.array(idx.ring.astype(np.int32), dtype=wp.int32, device=device),
+                pixel=wp.array((idx.y * idx.width + idx.x).astype(np.int32), dtype=wp.int32, device=device),
+                at_pixel=wp.array(idx.at_pixel.astype(np.int32), dtype=wp.int32, device=device))
     view["rows"] = pixel_rows(view["at_pixel"], len(d))  # its pixels' samples row by row, once for every call
 
     def checks(cands, radius, most):

@@ -494,7 +494,8 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     reach = (sample_reach(samples.uv, samples.ring, samples.pixel, np.isfinite(depth), width=cam.width)
              if ring is not None else None)
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(), ring, uv,
-                              width=cam.width, window=window, group=group, reach=reach)
+                              width=cam.width, window=window, group=group, reach=reach,
+                              device=triangulated.points.device)
     if fit["measured_by"] is None:
         return triangulated, {}
     widened = widen_depth_sigma(sigma, sigma_px, fit)
