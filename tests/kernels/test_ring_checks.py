@@ -55,7 +55,7 @@ def test_bad_arguments_are_refused():
         sample_reach(uv, wp.zeros(3, dtype=wp.int32), wp.zeros(3, dtype=wp.int32), np.ones(2, bool), width=8)
 
 
-def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit():
+def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit(device):
     """The nodes the neighbour model's wide checks use (its centres' ring directions, their four same-ring
     nodes at 2, 4 and 8 px and the nodes' places) are _ring_directions' and _lag_nodes' to the bit, on
     broken rings whose centres have every outcome (no direction; some nodes missing; all four)."""
@@ -71,7 +71,8 @@ def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit():
     idx = _ring_index(ring.astype(np.int64), pixel.astype(np.int64), np.arange(len(pixel)), WIDTH)
     centre = idx.order[rng.random(idx.order.size) < 0.5]
     wide, direction = _ring_directions(uv64, idx.ring, idx.at_pixel, WIDTH, centre)
-    kept, dirs, nodes, place = ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=(2, 4, 8))
+    kept, dirs, nodes, place = ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=(2, 4, 8),
+                                              device=device)
     assert np.array_equal(kept, wide) and np.array_equal(dirs, direction) and 0 < kept.size < centre.size
     for li, lag in enumerate(NEIGHBOUR_LAGS[1:]):
         want_nodes, want_place = _lag_nodes(uv64, idx.ring, idx.at_pixel, WIDTH, wide, direction, lag)
@@ -80,14 +81,14 @@ def test_ring_lag_nodes_are_the_numpy_statements_to_the_bit():
         assert np.array_equal(place[:, li][found], want_place[found]) and (place[:, li][~found] == 0).all()
         assert 0 < found.all(axis=1).sum() < found.shape[0]  # some centres with all four nodes, some without
     # a run of the lags alone: the same nodes as in the whole run
-    _, _, part, _ = ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=(4, 8))
+    _, _, part, _ = ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=(4, 8), device=device)
     assert np.array_equal(part, nodes[:, 1:])
     for bad in ((2, 8), (8, 4), (3,), ()):
         with pytest.raises(ValueError, match="a run of"):
             ring_lag_nodes(uv64, idx.ring, idx.at_pixel, centre, width=WIDTH, lags=bad)
 
 
-def test_next_neighbours_are_the_numpy_statements():
+def test_next_neighbours_are_the_numpy_statements(device):
     """The 1 px check's pairs (two same-ring samples among a centre's 8 neighbouring pixels, at least 120
     degrees apart, the most nearly opposite first) are _next_neighbours' to the sample, on broken rings."""
     from ringscan.kernels.ring_checks import next_neighbours
@@ -99,7 +100,8 @@ def test_next_neighbours_are_the_numpy_statements():
     uv, pixel, ring = uv[keep], pixel[keep].astype(np.int64), ring[keep].astype(np.int64)
     idx = _ring_index(ring, pixel, np.arange(len(pixel)), WIDTH)
     want = _next_neighbours(uv.astype(np.float64), idx, idx.order)
-    got = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.at_pixel, idx.npix, idx.order, width=WIDTH)
+    got = next_neighbours(uv, ring, pixel, idx.key, idx.order, idx.at_pixel, idx.npix, idx.order, width=WIDTH,
+                          device=device)
     assert all(np.array_equal(a, b) for a, b in zip(got, want))
     assert 0 < want[0].size < idx.order.size  # some centres with a pair, some without
 

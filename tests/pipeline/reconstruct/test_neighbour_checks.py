@@ -254,11 +254,11 @@ def _fragmented(d, region):
     return {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in d.items()}, keep
 
 
-def test_samples_no_check_along_their_ring_reaches_get_the_factor_their_cross_ring_checks_fit():
+def test_samples_no_check_along_their_ring_reaches_get_the_factor_their_cross_ring_checks_fit(device):
     """The fit sees the samples its checks reach; fragments of rings err more (they are where a
     pattern barely modulates) and no check along a ring reaches them. Planted: 2x errors on a
     region's fragments. Their reach classes get variance factors ~4 from the cross-ring checks and
-    their sigmas hold; the checked samples' stay as they were."""
+    their sigmas hold; the checked samples' stay as they were. The model's kernels on each device."""
     from ringscan.kernels.ring_checks import sample_reach
     from ringscan.pipeline.reconstruct.neighbour_checks import fit_neighbour_model, reach_scale, widen_depth_sigma
 
@@ -272,7 +272,7 @@ def test_samples_no_check_along_their_ring_reaches_get_the_factor_their_cross_ri
     reach = sample_reach(wp.array(d["uv"].astype(np.float32), dtype=wp.vec2), wp.array(d["ring"].astype(np.int32)),
                          wp.array(d["pixel"].astype(np.int32)), np.isfinite(d["depth"]), width=d["width"])
     args = (d["depth"], d["s"], d["sigma_px"], d["pixel"], d["ring"], d["uv"])
-    m = fit_neighbour_model(*args, width=d["width"], reach=reach)
+    m = fit_neighbour_model(*args, width=d["width"], reach=reach, device=device)
     factor = {k: f for k, f, _ in m["reach"]}
     unreached = reach < m["lag_px"]
     assert np.mean(unreached[region]) > 0.9 and np.mean(region[reach <= 1]) > 0.9  # the fragments are the region's
