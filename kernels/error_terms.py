@@ -104,9 +104,33 @@ def first_sample_kernel(pixel: wp.array(dtype=wp.int32), status: wp.array(dtype=
 
 
 @wp.kernel
+def row_sums_kernel(rank: wp.array(dtype=wp.int32), listed: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2),
+                    depth: wp.array(dtype=wp.float64), width: int, y0: int, first: wp.array(dtype=wp.spatial_vectord),
+                    second: wp.array(dtype=wp.vec3d)):
+    """Each image row's running sums of its listed points' moments, in ``compact.pixel_rows``' order (one
+    thread a row, from y0): first[k] = the sums of (1, u, v, u^2, u v, v^2) and second[k] = of (d, u d, v d)
+    over the row's points up to and including the k-th listed one. A window's row then sums its points
+    by one difference, whatever their number. rank (H W + 1,), listed (n,) int32, uv (n,) vec2, depth (n,)
+    float64: read; first (n,) spatial_vectord, second (n,) vec3d: written (the listed entries)."""
+    y = y0 + wp.tid()
+    a = wp.spatial_vectord()
+    b = wp.vec3d()
+    for k in range(rank[y * width], rank[(y + 1) * width]):
+        j = listed[k]
+        u = wp.float64(uv[j][0])
+        v = wp.float64(uv[j][1])
+        d = depth[j]
+        a = a + wp.spatial_vectord(wp.float64(1.0), u, v, u * u, u * v, v * v)
+        b = b + wp.vec3d(d, u * d, v * d)
+        first[k] = a
+        second[k] = b
+
+
+@wp.kernel
 def slope_kernel(
     rank: wp.array(dtype=wp.int32),
-    listed: wp.array(dtype=wp.int32),
+    first: wp.array(dtype=wp.spatial_vectord),
+    second: wp.array(dtype=wp.vec3d),
     uv: wp.array(dtype=wp.vec2),
     depth: wp.array(dtype=wp.float64),
     status: wp.array(dtype=wp.int32),
@@ -122,13 +146,13 @@ def slope_kernel(
     depths of the placed points within ``radius`` px, 0 where fewer than 6 or all along one line) and
     its sigma widened by it: out = sqrt(sigma^2 + (position_px * gradient)^2); out = sigma elsewhere.
 
-    rank (npix + 1,) int32 the occupied pixels before each pixel (row-major) and listed (n,) int32 the
-    point at each occupied pixel in that order (its first rank[npix] entries; ``compact.pixel_rows``) (a row's points from x0 to x1 are listed[rank[y W + x0]]
-    .. listed[rank[y W + x1 + 1] - 1]); uv (n,) vec2; depth (n,) float64 along the rays; status (n,) int32;
-    sigma (n,) float32: read. gradient, out (n,) float32: written.
+    rank (npix + 1,) int32 the occupied pixels before each pixel (row-major, ``compact.pixel_rows``: a row's
+    points from x0 to x1 are its entries rank[y W + x0] .. rank[y W + x1 + 1] - 1), first, second (n,) the
+    rows' running moment sums (:func:`row_sums_kernel`); uv (n,) vec2; depth (n,) float64 along the rays;
+    status (n,) int32; sigma (n,) float32: read. gradient, out (n,) float32: written.
 
-    Size: the pixel index (two arrays) and the four per-sample arrays the fit reads, the camera's width, the
-    square's half-side, the position error, the span's i0, two arrays out."""
+    Size: the pixel index and the rows' sums (three arrays), the four per-sample arrays the fit reads, the
+    camera's width, the square's half-side, the position error, the span's i0, two arrays out."""
     i = i0 + wp.tid()
     out[i] = sigma[i]
     gradient[i] = wp.float32(0.0)
@@ -136,39 +160,37 @@ def slope_kernel(
         return
     height = (rank.shape[0] - 1) / width
     di = depth[i]
+    ui = wp.float64(uv[i][0])
+    vi = wp.float64(uv[i][1])
     x = int(wp.round(uv[i][0]))
     y = int(wp.round(uv[i][1]))
-    s1 = wp.float64(0.0)
-    su = wp.float64(0.0)
-    sv = wp.float64(0.0)
-    suu = wp.float64(0.0)
-    suv = wp.float64(0.0)
-    svv = wp.float64(0.0)
-    sd = wp.float64(0.0)
-    sud = wp.float64(0.0)
-    svd = wp.float64(0.0)
+    a = wp.spatial_vectord()
+    b = wp.vec3d()
     x0 = wp.max(x - radius, 0)
     x1 = wp.min(x + radius, width - 1)
     for yy in range(wp.max(y - radius, 0), wp.min(y + radius, height - 1) + 1):
-        # the row's points within the square, in x order (the empty pixels are not visited: two thirds
-        # of the square on a full-size view; the sums are added in the same order as a scan of every pixel)
-        for k in range(rank[yy * width + x0], rank[yy * width + x1 + 1]):
-            j = listed[k]
-            du = wp.float64(uv[j][0] - uv[i][0])
-            dv = wp.float64(uv[j][1] - uv[i][1])
-            dd = depth[j] - di
-            s1 += wp.float64(1.0)
-            su += du
-            sv += dv
-            suu += du * du
-            suv += du * dv
-            svv += dv * dv
-            sd += dd
-            sud += du * dd
-            svd += dv * dd
+        # the row's points within the square: its running sums at the last one less those before the first
+        k0 = rank[yy * width + x0]
+        k1 = rank[yy * width + x1 + 1]
+        if k1 > k0:
+            a = a + first[k1 - 1]
+            b = b + second[k1 - 1]
+            if k0 > rank[yy * width]:
+                a = a - first[k0 - 1]
+                b = b - second[k0 - 1]
+    s1 = a[0]
     if s1 < wp.float64(6.0):
         return
-    # the plane's slope from the centred sums; both directions spread (a lone ring is a line)
+    # the moments about the point, then the plane's slope from the centred sums; both directions spread (a
+    # lone ring is a line)
+    su = a[1] - s1 * ui
+    sv = a[2] - s1 * vi
+    suu = a[3] - wp.float64(2.0) * ui * a[1] + s1 * ui * ui
+    suv = a[4] - ui * a[2] - vi * a[1] + s1 * ui * vi
+    svv = a[5] - wp.float64(2.0) * vi * a[2] + s1 * vi * vi
+    sd = b[0] - s1 * di
+    sud = b[1] - ui * b[0] - di * a[1] + s1 * ui * di
+    svd = b[2] - vi * b[0] - di * a[2] + s1 * vi * di
     cuu = suu - su * su / s1
     cuv = suv - su * sv / s1
     cvv = svv - sv * sv / s1
@@ -218,7 +240,11 @@ def widen_for_slope(points: wp.array, status: wp.array, sigma: wp.array, uv: wp.
     launch_spans(first_sample_kernel, n, lambda i0: [pixel, status, points, wp.vec3d(*c), i0], [at_pixel, depth],
                  dev, 1)
     rank, listed = pixel_rows(at_pixel, n)  # the occupied pixels row by row: each row's points read in x order
-    args = [rank, listed, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
+    first = wp.empty(n, dtype=wp.spatial_vectord, device=dev)
+    second = wp.empty(n, dtype=wp.vec3d, device=dev)
+    launch_spans(row_sums_kernel, int(height), lambda y0: [rank, listed, uv, depth, int(width), y0], [first, second],
+                 dev, th, min_span=64)
+    args = [rank, first, second, uv, depth, status, sigma, int(width), int(radius), float(position_px)]
     launch_spans(slope_kernel, n, lambda i0: args + [i0], [gradient, out], dev, th)
     return out, gradient
 
