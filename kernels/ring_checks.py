@@ -67,7 +67,10 @@ def uv64(uv: wp.array(dtype=wp.vec2), i: int):
 def keyed_neighbour(key: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
                     at_pixel: wp.array(dtype=wp.int32), k: int, npix: wp.int64, width: int, x: int, y: int, a: int):
     """The sample of ring ``k`` at the a-th of the 8 pixels around (x, y) (row by row, the centre left out;
-    -1: none there)."""
+    -1: none there).
+
+    Size: a @wp.func reading the ring index's three arrays directly, plus the ring, the index's stride, the
+    camera's width, the pixel and which of its neighbours."""
     ia = a + wp.where(a >= 4, 1, 0)
     ax = x + ia % 3 - 1
     ay = y + ia / 3 - 1
