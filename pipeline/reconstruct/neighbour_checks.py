@@ -394,9 +394,10 @@ CROSS_GATE = 3.0
 """A check whose neighbours spread more than this many of their sigmas (robustly) about their
 own fit is not made: the neighbourhood is no smooth surface (an edge, a fold), and the check
 would read its shape as error (on Spot, factors of thousands without this test)."""
-MAX_REACH_CHECKS = 2000
-"""Samples of each reach class checked across rings (evenly spread): a variance factor
-to ~5 %."""
+MAX_REACH_CHECKS = 1000
+"""Samples of each reach class checked across rings (evenly spread): a variance factor to ~5 %
+(``MIN_REACH_CHECKS``' 100 fix one to ~15 %). 2000 until 2026-12-07: a small view's fits then cost
+more than the rest of its model, and the factors moved by less than their own spread."""
 REF_PER_CHECK = 3
 """The checked samples a reach class is set against: this many for each of its own checks (at most
 ``MAX_REACH_CHECKS``): a small class's factor is no better known for a larger reference (a variance
