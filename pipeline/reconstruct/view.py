@@ -513,8 +513,9 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
         widened = widen_for_indirect(widened, sigma, sigma_px, samples.indirect.numpy(), INDIRECT_PRIOR_PX)
         fit["indirect_rho_px"] = INDIRECT_PRIOR_PX
     if samples.shading is not None and samples.ring is not None:
-        # the camera's blur moves an edge where the light changes fast across the image (error_scale), smoothly
-        # where the light does: the shift per unit gradient the angle's pairs fit (SHADING_PRIOR_PX)
+        # the camera's blur moves an edge where the light changes fast across the image (error_scale), by as
+        # much on its neighbours where the light changes alike along the ring (no check sees it there): the
+        # shift per unit gradient the angle's pairs fit (SHADING_PRIOR_PX)
         widened = widen_for_shading(widened, sigma, sigma_px, samples.shading.numpy(), SHADING_PRIOR_PX)
         fit["shading_rho_px"] = SHADING_PRIOR_PX
     widened = wp.array(widened, dtype=wp.float32, device=triangulated.sigma.device)
