@@ -58,6 +58,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ringscan.kernels.triangulation import TriangulateSettings
+from ringscan.pipeline.formats.errors import RingscanError
 import numpy as np
 
 from ringscan.pipeline.evaluate.metrics import evaluate_points, evaluate_recon
@@ -224,7 +225,6 @@ def main(argv=None) -> int:
     light = args.light or ("perspective" if args.renderer == "mitsuba" else "parallel")
     user_rig = None
     if args.rig is not None:
-        from ringscan.pipeline.formats.errors import RingscanError
         from ringscan.pipeline.formats.rig import load_rig
 
         try:
@@ -264,9 +264,13 @@ def main(argv=None) -> int:
         print("|---|---|---|---|---|---|---|---|")
         models = {}
         for name in names:
-            rows, models[name] = run_condition(name, work, renderer=args.renderer, light=light,
-                                               camera_scale=args.camera_scale, patterns=args.patterns,
-                                               rig=user_rig, scene=args.scene, reuse=args.reuse)
+            try:
+                rows, models[name] = run_condition(name, work, renderer=args.renderer, light=light,
+                                                   camera_scale=args.camera_scale, patterns=args.patterns,
+                                                   rig=user_rig, scene=args.scene, reuse=args.reuse)
+            except RingscanError as e:  # a scan folder --reuse found that is no scan (or one cut short)
+                print(f"error: {e}")
+                return 1
             for r in rows:
                 if not r["points"]:  # no point to judge (the view says why): not a sigma's miss
                     print(f"| {r['condition']} | {r['constraint']} | 0 | | | | | |", flush=True)

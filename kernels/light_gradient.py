@@ -1,7 +1,8 @@
 """How fast the light a surface sends back changes across the camera image: its relative gradient
 (|grad ln(white - black)| where it changes smoothly) at a sample's pixel, one ``@wp.func`` that the
-samplers call in their kernels (``kernels.sample_light`` for the ring and phase codecs, ``kernels.decoded_maps`` for imported captures). The camera's blur weighs every edge
-and fringe by the light around it, so where that light changes fast the sample reads off its place
+samplers call in their kernels (``kernels.sample_light`` for the ring and phase codecs,
+``kernels.decoded_maps`` for imported captures). The camera's blur weighs every edge and fringe by the
+light around it, so where that light changes fast the sample reads off its place
 (``pipeline.reconstruct.error_scale``). The NumPy statement is ``pipeline.codecs.angle_code.sample_shading``."""
 
 from __future__ import annotations

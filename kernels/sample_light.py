@@ -120,7 +120,7 @@ def phase_light_kernel(
     sigma = ``phase_num[0]`` / amp / ``phase_num[1]``, amp = 0.5 max(modulation, 1e-3) (float32) x
     max(c, 1) (:func:`contrast_at`): ``angle_code.phase_sigma`` (``phase_num``: its pitch / 2 pi x
     sqrt(2 / N) x noise, and the smoothing window's side). The share: :func:`indirect_at`; the
-    shading: :func:`shading_at`.
+    shading: ``light_gradient.shading_at``.
 
     frames (F, H, W) uint8/uint16, contrast (H, W) float32, uv (n,) vec2, modulation (n,) float32, pairs
     (2 k,) int32: read; ``planes``: (white, black, k, 0). sigma, indirect, shading (n,) float32: written.
