@@ -34,7 +34,6 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
 from ringscan.pipeline.calibrate.two_view import (
@@ -286,6 +285,8 @@ def _adjust(R0, d0, p1, p2, K1, K2, settings: RefineSettings):
         (R, unit baseline direction, cost, the scale of the last pass, (5, 5) covariance of
         the rotation vector and the direction's two tangent offsets, in radians).
     """
+    from scipy.optimize import least_squares  # here, not at import: ringscan import's start-up (0.35 s)
+
     scale = settings.loss_scale_px
     for rnd in range(2):
         e1, e2 = _tangent_basis(d0)
@@ -365,6 +366,8 @@ def _adjust_three(R0, t0, light_pose, obs, wts, settings: RefineSettings, scale0
 
     Two passes as in :func:`_adjust`, the second with the robust loss's scale at 3 standard deviations
     of the weighted residuals. Returns (R, t, scale of the last pass, (5, 5) covariance)."""
+    from scipy.optimize import least_squares  # here, not at import: ringscan import's start-up (0.35 s)
+
     base = float(np.linalg.norm(t0))
     d0 = np.asarray(t0, float) / base
     e1, e2 = _tangent_basis(d0)
