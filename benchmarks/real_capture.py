@@ -19,11 +19,16 @@ Then, paired and interleaved in one run (``--rounds`` rounds, the median of each
    ``cv2.structured_light`` (it is in opencv-contrib-python-headless, the project's dependency),
    the decode is a NumPy re-implementation of the same steps (the bits from pattern/inverse
    pairs, the shadow mask from white - black, the Gray code to binary, the disparity of a
-   projector pixel's camera 1 and camera 2 pixels' mean columns), and the benchmark says so.
+   projector pixel's camera 1 and camera 2 pixels' mean columns), and the benchmark says so
+   (``benchmarks/opencv_graycode_sample.py``: OpenCV and NumPy only);
+4. the same as 1 and 3 as a user runs them, each its own process (``python -m ringscan.tools.cli
+   import ...``, ``... reconstruct ...``, ``python benchmarks/opencv_graycode_sample.py ...``):
+   start-up, imports and exit included, as the issue measured.
 
-It prints per stage (report.json ``times_s``, the import's wall time) microseconds a sample and
-samples a second, the ratio ringscan (import + two-camera reconstruct) / OpenCV (bar
-``peer_speed`` <= 1.0), and the one-camera triangulation of the decoded view on one core
+It prints per stage (report.json ``times_s``, the import's wall time; from the warm runs of 1-3 in
+this process) microseconds a sample and samples a second, the ratio ringscan (import + two-camera
+reconstruct) / OpenCV's sample as whole processes (4: bar ``peer_speed`` <= 1.0) and in this warm
+process, and the one-camera triangulation of the decoded view on one core
 (``triangulate_rings threads=1``, us a sample of the thread's CPU time; bar <= 0.5). Exits 1 when a bar is missed,
 naming it.
 
@@ -40,26 +45,25 @@ import dataclasses
 import json
 import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration  # noqa: E402
 from ringscan.pipeline.formats.rig import save_rig  # noqa: E402
 from tests.support.opencv_graycode_rig import small_stereo_rig  # noqa: E402
+from opencv_graycode_sample import DECODER, opencv_sample, read_list  # noqa: E402  (this folder's)
 from two_camera_rig import run  # noqa: E402  (one ringscan command, its console output)
 
 BASE_WIDTH, BASE_HEIGHT, BASE_SCALE = 1920, 1280, 6
 """The issue's cameras (1920x1280): the test rig's 320x256 cameras 6 times larger, cropped to 1280 rows."""
 PEER_SPEED_BAR = 1.0
 TRIANGULATE_US_BAR = 0.5
-WHITE_THRESHOLD, BLACK_THRESHOLD = 5, 40
 """OpenCV GrayCodePattern thresholds (the sample's command-line values)."""
 
 
@@ -116,94 +120,6 @@ def ringscan_reconstruct(scan: Path, out: Path, rays: str) -> tuple[float, dict]
     return wall, view
 
 
-def read_list(src: Path) -> dict[int, list[Path]]:
-    fs = cv2.FileStorage(str(src / "capture_0.yml"), cv2.FILE_STORAGE_READ)
-    out = {}
-    for c in (1, 2):
-        node = fs.getNode(f"cam{c}")
-        out[c] = [src / node.at(i).string() for i in range(node.size())]
-    fs.release()
-    return out
-
-
-def numpy_graycode_decode(pats, blacks, whites, proj: tuple[int, int]) -> np.ndarray:
-    """OpenCV's GrayCodePattern.decode (DECODE_3D_UNDERWORLD) re-implemented in NumPy: the disparity map of
-    camera 1 (its column minus the mean column of camera 2's pixels of the same projector pixel; 0 where none)."""
-    pw, ph = proj
-    cb, rb = int(np.ceil(np.log2(pw))), int(np.ceil(np.log2(ph)))
-    codes = []
-    for cam in range(2):
-        p = pats[cam]
-        lit = (whites[cam].astype(np.int16) - blacks[cam]) > BLACK_THRESHOLD
-        ok = lit.copy()
-
-        def bits(first, n):
-            g = np.zeros(p[0].shape, np.int32)
-            for k in range(n):
-                a, b = p[first + 2 * k].astype(np.int16), p[first + 2 * k + 1].astype(np.int16)
-                ok[np.abs(a - b) < WHITE_THRESHOLD] = False
-                g = (g << 1) | (a > b)
-            shift = 1
-            while shift < n:
-                g ^= g >> shift
-                shift <<= 1
-            return g
-
-        x, y = bits(0, cb), bits(2 * cb, rb)
-        ok &= (x < pw) & (y < ph)
-        codes.append(np.where(ok, y * pw + x, -1))
-    n = pw * ph
-    c2 = codes[1].ravel()
-    m2 = c2 >= 0
-    cols2 = np.tile(np.arange(pats[1][0].shape[1]), pats[1][0].shape[0])[m2]
-    cnt = np.bincount(c2[m2], minlength=n)
-    sx = np.bincount(c2[m2], cols2, minlength=n)
-    c1 = codes[0]
-    disp = np.zeros(c1.shape, np.float64)
-    hit = (c1 >= 0) & (cnt[np.maximum(c1, 0)] > 0)
-    cols1 = np.broadcast_to(np.arange(c1.shape[1])[None, :], c1.shape)
-    disp[hit] = cols1[hit] - sx[c1[hit]] / cnt[c1[hit]]
-    return disp
-
-
-def opencv_sample(src: Path, proj: tuple[int, int]) -> tuple[dict, int]:
-    """OpenCV's structured-light sample pipeline on the capture: (seconds per stage, pixels with a disparity)."""
-    times = {}
-    t = time.perf_counter()
-    lists = read_list(src)
-    imgs = {c: [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in lists[c]] for c in (1, 2)}
-    times["read"] = time.perf_counter() - t
-    t = time.perf_counter()
-    cal = read_stereo_calibration(src / "calibrationParameters.yml")
-    h, w = imgs[1][0].shape
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(cal["cam1_K"], cal["cam1_dist"], cal["cam2_K"], cal["cam2_dist"],
-                                                (w, h), cal["R"], cal["T"].reshape(3, 1), flags=0, alpha=-1)
-    maps = {1: cv2.initUndistortRectifyMap(cal["cam1_K"], cal["cam1_dist"], R1, P1, (w, h), cv2.CV_32FC1),
-            2: cv2.initUndistortRectifyMap(cal["cam2_K"], cal["cam2_dist"], R2, P2, (w, h), cv2.CV_32FC1)}
-    rect = {c: [cv2.remap(im, *maps[c], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) for im in imgs[c]]
-            for c in (1, 2)}
-    times["rectify"] = time.perf_counter() - t
-    t = time.perf_counter()
-    pats = [rect[c][:-2] for c in (1, 2)]
-    whites = [rect[c][-2] for c in (1, 2)]
-    blacks = [rect[c][-1] for c in (1, 2)]
-    if hasattr(cv2, "structured_light"):
-        gc = cv2.structured_light.GrayCodePattern.create(proj[0], proj[1])
-        gc.setWhiteThreshold(WHITE_THRESHOLD)
-        gc.setBlackThreshold(BLACK_THRESHOLD)
-        ok, disp = gc.decode(pats, blackImages=blacks, whiteImages=whites,
-                             flags=cv2.structured_light.DECODE_3D_UNDERWORLD)
-    else:
-        disp = numpy_graycode_decode(pats, blacks, whites, proj)
-    times["decode"] = time.perf_counter() - t
-    t = time.perf_counter()
-    cloud = cv2.reprojectImageTo3D(disp.astype(np.float32), Q, handleMissingValues=True, ddepth=-1)
-    mask = disp > 0
-    _ = cloud[mask]
-    times["reproject"] = time.perf_counter() - t
-    return times, int(mask.sum())
-
-
 def triangulate_one_core(scan_dir: Path, repeats: int = 3) -> tuple[float, float, int]:
     """The one-camera triangulation of the imported view's decoded samples on one thread (``triangulate_rings
     threads=1``: its kernels run on the calling thread): (us a sample of that thread's CPU time, us a sample of
@@ -235,6 +151,33 @@ def triangulate_one_core(scan_dir: Path, repeats: int = 3) -> tuple[float, float
     return 1e6 * cpu / n, 1e6 * wall / n, len(samples)
 
 
+def process_seconds(*cmd) -> float:
+    """Wall seconds of one command run as its own process (start-up, imports and exit included), which must
+    succeed."""
+    t = time.perf_counter()
+    done = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(map(str, cmd))} failed ({done.returncode}):\n{done.stdout}{done.stderr}")
+    return wall
+
+
+def processes(src: Path, scan: Path, rec: Path, proj: tuple[int, int]) -> tuple[float, float, float]:
+    """(ringscan import, ringscan reconstruct --rays camera-camera, OpenCV's sample): each its own process, as a
+    user runs them (the issue's figure: whole processes)."""
+    shutil.rmtree(scan, ignore_errors=True)
+    shutil.rmtree(rec, ignore_errors=True)
+    cli = [sys.executable, "-m", "ringscan.tools.cli"]
+    t_imp = process_seconds(*cli, "import", src / "capture_0.yml", "--rig", src / "calibrationParameters.yml",
+                            "--projector-rig", src / "procam.yml", "--projector", f"{proj[0]}x{proj[1]}", "--out",
+                            scan, "-q")
+    t_rec = process_seconds(*cli, "reconstruct", scan, "--rays", "camera-camera", "--out", rec, "--no-progress",
+                            "-q")
+    t_cv = process_seconds(sys.executable, Path(__file__).with_name("opencv_graycode_sample.py"), src,
+                           "--projector", f"{proj[0]}x{proj[1]}")
+    return t_imp, t_rec, t_cv
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=None, help="keep the rendering (and the runs' outputs) here; reused")
@@ -249,10 +192,7 @@ def main() -> int:
     cw, ch = truth["camera"]
     print(f"capture: two {cw}x{ch} cameras, a {proj[0]}x{proj[1]} projector, {len(read_list(src)[1])} frames a "
           f"camera ({src})")
-    print(f"OpenCV {cv2.__version__}; decode: " + ("cv2.structured_light.GrayCodePattern.decode"
-                                                  if hasattr(cv2, "structured_light") else
-                                                  "cv2.structured_light ABSENT in this build: a NumPy "
-                                                  "re-implementation of its decode"))
+    print(f"OpenCV {cv2.__version__}; decode: {DECODER}")
     scan = work / f"scan_{args.scale:g}"
     rec = {r: work / f"rec_{r}_{args.scale:g}" for r in ("camera-camera", "camera-projector")}
     # a warm-up of each (kernel compile and load, file caches), not counted
@@ -260,7 +200,8 @@ def main() -> int:
     for r, out in rec.items():
         ringscan_reconstruct(scan, out, r)
     opencv_sample(src, proj)
-    rows = {"import": [], "two": [], "one": [], "opencv": [], "ratio": []}
+    rows = {"import": [], "two": [], "one": [], "opencv": [], "ratio": [], "p_import": [], "p_two": [],
+            "p_opencv": [], "p_ratio": []}
     stage = {"two": {}, "one": {}, "opencv": {}}
     views = {}
     for i in range(args.rounds):
@@ -281,8 +222,14 @@ def main() -> int:
         for k, s in cv_stage.items():
             stage["opencv"].setdefault(k, []).append(s)
         views = {"two": v_two, "one": v_one}
-        print(f"  round {i + 1}: import {t_imp:.2f} s, reconstruct camera-camera {t_two:.2f} s, camera-projector "
-              f"{t_one:.2f} s; OpenCV {t_cv_total:.2f} s; ratio {rows['ratio'][-1]:.2f}")
+        p_imp, p_two, p_cv = processes(src, work / f"scan_process_{args.scale:g}",
+                                       work / f"rec_process_{args.scale:g}", proj)
+        for k, v in (("p_import", p_imp), ("p_two", p_two), ("p_opencv", p_cv), ("p_ratio", (p_imp + p_two) / p_cv)):
+            rows[k].append(v)
+        print(f"  round {i + 1}: in this process: import {t_imp:.2f} s, reconstruct camera-camera {t_two:.2f} s, "
+              f"camera-projector {t_one:.2f} s; OpenCV {t_cv_total:.2f} s; ratio {rows['ratio'][-1]:.2f}. As "
+              f"processes: import {p_imp:.2f} s, reconstruct camera-camera {p_two:.2f} s, OpenCV's sample "
+              f"{p_cv:.2f} s; ratio {rows['p_ratio'][-1]:.2f}")
     _, cv_pixels = opencv_sample(src, proj)
     med = {k: statistics.median(v) for k, v in rows.items()}
     n_two = views["two"].get("samples") or views["two"].get("pixels_decoded")
@@ -307,9 +254,13 @@ def main() -> int:
     line("OpenCV sample", "all", med["opencv"], n_two)
     print(f"points: two cameras {views['two']['points']}, camera + projector {views['one']['points']}")
     tri_us, tri_wall, tri_n = triangulate_one_core(scan)
-    peer = med["ratio"]
-    print(f"\npeer_speed (ringscan import + camera-camera reconstruct / OpenCV sample, paired): {peer:.2f} "
-          f"(rounds: {', '.join(f'{r:.2f}' for r in rows['ratio'])}; bar <= {PEER_SPEED_BAR})")
+    peer = med["p_ratio"]
+    print(f"\nas processes (start-up, imports and exit included): ringscan import {med['p_import']:.2f} s + "
+          f"reconstruct camera-camera {med['p_two']:.2f} s, OpenCV's sample {med['p_opencv']:.2f} s")
+    print(f"peer_speed (ringscan import + camera-camera reconstruct / OpenCV's sample, whole processes, paired): "
+          f"{peer:.2f} (rounds: {', '.join(f'{r:.2f}' for r in rows['p_ratio'])}; bar <= {PEER_SPEED_BAR}); in "
+          f"one warm process (the stage table): {med['ratio']:.2f} (rounds: "
+          f"{', '.join(f'{r:.2f}' for r in rows['ratio'])})")
     print(f"triangulation us a sample on one core (triangulate_rings threads=1, {tri_n} samples of the imported "
           f"view; the thread's CPU time): {tri_us:.3f} (bar <= {TRIANGULATE_US_BAR}; wall {tri_wall:.3f})")
     missed = []
