@@ -34,7 +34,8 @@ def main():
     import warp as wp
 
     from ringscan.kernels.ring_labels import decode_gray_rings
-    from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+    from ringscan.kernels.ring_sampling import sample_gray_rings
+    from ringscan.kernels.settings import SampleSettings
     from ringscan.pipeline.formats.patterns import parse_patterns
     from ringscan.pipeline.formats.scan import load_scan, read_view_frames
     from ringscan.pipeline.simulate.scan import simulate_scan

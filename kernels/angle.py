@@ -36,7 +36,6 @@ Per sample (a sub-pixel camera position and its decoded rho and sector):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +45,7 @@ import warp as wp
 from ringscan.kernels.geometry import polar_angle
 from ringscan.kernels.launch import default_threads, launch_spans
 from ringscan.kernels.ring_labels import gray_to_binary
+from ringscan.kernels.settings import AngleSettings
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
@@ -57,33 +57,7 @@ ANGLE_STATUS_NAMES = ("ok", "dark", "modulation", "no_sector")
 PI = wp.constant(3.141592653589793)
 TWO_PI = wp.constant(6.283185307179586)
 
-__all__ = ["AngleSettings", "AngleSamples", "ANGLE_STATUS_NAMES", "decode_angle"]
-
-
-@dataclass(frozen=True)
-class AngleSettings:
-    """Settings of the angle decoder."""
-
-    min_contrast: float = 12.0
-    """Least white - black difference at the sample, in 8-bit grey levels (x257 for 16-bit)."""
-    bit_margin: float = 0.12
-    """A sector bit re-read at a sample's own position (where its pixels' sector
-    did not decode) is weak when |frame - inverse| < bit_margin x (white - black),
-    as the band decode's ``bit_margin``."""
-    min_modulation: float = 0.3
-    """Least fringe modulation q (linear units, 1 for a perfect fringe): mixed
-    pixels, blur finer than the fringe and zone edges fall below it, and the
-    sample keeps its ring alone."""
-    noise: float = 1.0
-    """Camera noise sigma in 8-bit grey levels, for the predicted standard
-    deviation of the angle (only its ratio to the ring's matters for the
-    weighting; its size sets the reported sigma in mm)."""
-
-    def __post_init__(self):
-        for k in ("min_contrast", "bit_margin", "min_modulation", "noise"):
-            v = getattr(self, k)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"AngleSettings.{k}: must be a finite number >= 0, got {v!r}")
+__all__ = ["AngleSamples", "ANGLE_STATUS_NAMES", "decode_angle"]
 
 
 @wp.struct
@@ -352,7 +326,7 @@ def decode_angle(
         sector_bits: the scan's sector bits S.
         zones: (rho_start, periods) from ``pipeline.formats.patterns.angle_zones``.
         lut: (full_scale + 1,) float32 Warp array: recorded value -> linear
-            irradiance (``kernels.phase.response_tables``).
+            irradiance (``kernels.response.response_tables``).
         light_gamma: the light's response exponent (1: linear).
         sector0: frame index of ``sector_0`` (its inverse follows, then the
             next bit's pair): samples without a sector re-read the coarse

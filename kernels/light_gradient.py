@@ -3,7 +3,7 @@
 samplers call in their kernels (``kernels.sample_light`` for the ring and phase codecs,
 ``kernels.decoded_maps`` for imported captures). The camera's blur weighs every edge and fringe by the
 light around it, so where that light changes fast the sample reads off its place
-(``pipeline.reconstruct.error_scale``). The NumPy statement is ``pipeline.codecs.angle_code.sample_shading``."""
+(``pipeline.reconstruct.error_scale``). The NumPy statement is ``pipeline.codecs.shading.sample_shading``."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def light_at(contrast: wp.array2d(dtype=Any), x: int, y: int, scale: wp.float64)
 def shading_at(contrast: wp.array2d(dtype=Any), uv: wp.vec2, scale: wp.float64):
     """The light's relative gradient (per camera px) at uv's nearest pixel, moved inside by one px at the
     border: each direction's 3 x 3 Sobel sums (weights 1, 2, 1 of :func:`light_at`) on either side, their
-    difference over their sum (``angle_code.sample_shading``; 0 on an image under 3 px a side). That is
+    difference over their sum (``pipeline.codecs.shading.sample_shading``; 0 on an image under 3 px a side). That is
     |grad ln(white - black)| where the light changes smoothly (the log of the sides' ratio over the 2 px
     between them, to first order) and at most 1 across a step, with no logarithm to take. The camera's
     blur weighs an edge or a fringe by the light around it, so a pattern seen across a light that

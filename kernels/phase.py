@@ -24,6 +24,7 @@ from ringscan.kernels.geometry import polar_angle
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_BLACK, FRAME_FIRST_BIT, FRAME_WHITE, RingLabels, gray_to_binary
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import PhaseSettings
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
@@ -39,71 +40,15 @@ SECTOR_FILL_RADIUS = wp.constant(2)
 MODULATION_FLOOR = wp.constant(0.05)
 """The ring-curvature correction reads a blur variance off the fringe modulation
 q as -2 ln(q) (pitch / 2 pi)^2; below this q it reads it as at this q."""
-RESPONSE_FLOOR = 0.02
-"""Recorded values below this fraction of full scale get the weight of this value
-(the slope of a gamma curve vanishes at 0; sensor noise does not)."""
 
 __all__ = [
-    "PhaseSettings",
     "PhaseMap",
     "PHASE_STATUS_NAMES",
-    "response_tables",
     "decode_phase",
     "smooth_phase",
     "drop_lone_fringes",
     "compact_phase_points",
 ]
-
-
-@dataclass(frozen=True)
-class PhaseSettings:
-    """Settings of the phase decoder (``phase-rings``)."""
-
-    response: str = "rig"
-    """How recorded values are linearised: ``rig`` uses the rig's camera and light
-    gammas; ``estimate`` estimates the camera gamma from the view's own frames
-    (light gamma from the rig); ``linear`` takes the frames as they are."""
-    weighted: bool = True
-    """Weight each phase sample by the inverse of its noise variance after
-    linearisation (weighted least squares). Off: the classic N-step formula."""
-    min_contrast: float = 12.0
-    """Least white - black difference, in 8-bit grey levels (x257 for 16-bit)."""
-    min_modulation: float = 0.3
-    """Least fringe modulation q = 2 B / (white - black), linear units: a clean
-    fringe at the default pitch gives 0.8 - 1; mixed, blurred or grazing pixels
-    fall below 0.3."""
-    edge_ratio: float = 0.5
-    """A pixel is in an edge's transition zone where that edge's bit has
-    |frame - inverse| < edge_ratio * (white - black): the band code may name
-    either side there, so the edge itself anchors the unwrapping."""
-    slip_tolerance: float = 0.05
-    """How far (bands) the phase may put a pixel across an edge against a strong
-    edge bit before the pixel is dropped as a slip."""
-    smooth_radius: int = 1
-    """Half-size of the smoothing window in pixels (0: no smoothing)."""
-    smooth_tolerance: float = 0.05
-    """A neighbour pair joins the average when its mean t is within this many
-    bands of the pixel's own t."""
-    min_pairs: int = 1
-    """With smoothing, pixels with valid neighbours but fewer agreeing pairs than
-    this are dropped as lonely (0: keep them)."""
-    ring_curvature: bool = True
-    """Remove the outward bias of averaged rings: any averaging across a ring (the
-    projector's pixel and defocus, the camera pixel, the smoothing window) reads
-    rho too large by (tangential variance) / (2 rho), since rho = |p - c| is
-    convex. The light's and the camera pixel's variance comes from the lost
-    fringe modulation, the window's from its pairs and the gradient of t
-    (docs/dense.md, "Ring curvature"). Off: rho as averaged."""
-
-    def __post_init__(self):
-        if self.response not in ("rig", "estimate", "linear"):
-            raise ValueError(f"PhaseSettings.response: expected rig, estimate or linear, got {self.response!r}")
-        if not 0 <= self.smooth_radius <= 4:
-            raise ValueError(f"PhaseSettings.smooth_radius: must be in 0..4, got {self.smooth_radius}")
-        if not 0 < self.edge_ratio < 1:
-            raise ValueError(f"PhaseSettings.edge_ratio: must be in (0, 1), got {self.edge_ratio}")
-        if self.min_modulation < 0 or self.slip_tolerance < 0 or self.smooth_tolerance < 0 or self.min_pairs < 0:
-            raise ValueError("PhaseSettings: min_modulation, slip_tolerance, smooth_tolerance and min_pairs must be >= 0")
 
 
 @wp.struct
@@ -564,33 +509,6 @@ def write_points_kernel(
 # ----------------------------------------------------------------------------- host
 
 
-def response_tables(full_scale: int, *, camera_gamma: float = 1.0, weighted: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Linearisation and weight tables for recorded values 0..full_scale.
-
-    lut[r] = (r / full)^gamma (linear irradiance, full white = 1); wlut[r] =
-    1 / (d lut / d r)^2 up to a constant (the inverse noise variance of the
-    linearised value under additive sensor noise), the slope taken at no less
-    than ``RESPONSE_FLOOR`` of full scale; all ones when not ``weighted``.
-
-    Returns:
-        (lut, wlut), two (full_scale + 1,) float32 arrays.
-    """
-    if full_scale not in (255, 65535):
-        raise ValueError(f"response_tables: full_scale must be 255 or 65535, got {full_scale}")
-    g = float(camera_gamma)
-    if not np.isfinite(g) or g <= 0:
-        raise ValueError(f"response_tables: camera_gamma must be > 0, got {camera_gamma}")
-    x = np.arange(full_scale + 1, dtype=np.float64) / full_scale
-    lut = x ** g
-    if weighted and g != 1.0:
-        xf = np.maximum(x, RESPONSE_FLOOR)
-        wlut = xf ** (-2.0 * (g - 1.0))
-        wlut /= wlut.max()
-    else:
-        wlut = np.ones_like(x)
-    return lut.astype(np.float32), wlut.astype(np.float32)
-
-
 def decode_phase(
     frames: wp.array,
     labels: RingLabels,
@@ -612,7 +530,7 @@ def decode_phase(
         labels: the band (and sector) decode of the same frames
             (:func:`ringscan.kernels.ring_labels.decode_gray_rings`).
         bits, sector_bits, steps: the pattern's band bits, sector bits and phase steps.
-        lut, wlut: (full_scale + 1,) float32 Warp arrays from :func:`response_tables`.
+        lut, wlut: (full_scale + 1,) float32 Warp arrays from :func:`~ringscan.kernels.response.response_tables`.
         light_gamma: the light's response exponent (1: linear).
         settings: thresholds.
         threads: CPU threads (row slices); default: all cores.

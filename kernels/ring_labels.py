@@ -33,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, launch_spans, row_run
+from ringscan.kernels.settings import DecodeSettings
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
@@ -50,21 +51,7 @@ LANES_513 = wp.constant(wp.uint64(0x0201020102010201))
 LANES_ONE = wp.constant(wp.uint64(0x0001000100010001))
 LANES_1024 = wp.constant(wp.uint64(0x0400040004000400))
 
-__all__ = ["DecodeSettings", "RingLabels", "decode_gray_rings", "count_labels"]
-
-
-@dataclass(frozen=True)
-class DecodeSettings:
-    """Thresholds of the per-pixel decoder."""
-
-    min_contrast: float = 12.0
-    """Least white - black difference, in 8-bit grey levels (scaled by 257 for
-    16-bit frames), for a pixel to be decoded at all. Shadowed and unlit pixels
-    fall below it."""
-    bit_margin: float = 0.12
-    """A bit is strong when |frame - inverse| >= bit_margin * (white - black). A weak
-    bit is not trusted: the pixel keeps no band label (edge sampling still uses it
-    as the one bit that flips between two strong neighbours)."""
+__all__ = ["RingLabels", "decode_gray_rings", "count_labels"]
 
 
 @dataclass

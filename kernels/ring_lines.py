@@ -28,21 +28,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import warp as wp
 
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
+from ringscan.kernels.settings import CONFIDENCE_CONTRAST, LineSettings
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
 BORDER = wp.constant(2)
 SHADE_PX = wp.constant(2.0)
 """Distance (camera px) along the line at which the light's gradient is read (``RingLines.shading``)."""
-CONFIDENCE_CONTRAST = 40.0
-"""Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting
-``single_shot.lines.confidence_contrast``: no test, document or benchmark moved it)."""
 RESULT = wp.types.vector(length=10, dtype=wp.float32)
 TAYLOR = wp.types.vector(length=6, dtype=wp.float32)
 """A pixel's value, gradient and Hessian (:func:`pixel_taylor`)."""
@@ -51,49 +49,7 @@ NOISE_LEVELS = 1.0
 decode's model of the other codecs (``AngleSettings.noise``); the view's neighbour checks fit the
 factor its frames show (docs/reconstruction.md, "Honest sigma")."""
 
-__all__ = ["LineSettings", "RingLines", "detect_ring_lines", "smooth_frame", "gaussian_weights", "centre_sigmas"]
-
-
-@dataclass(frozen=True)
-class LineSettings:
-    """Settings of the line (ridge) detector."""
-
-    sigma: float = 1.2
-    """Gaussian smoothing in camera pixels before differentiation. A line of width
-    w camera pixels needs sigma >= w / (2 sqrt 3) for one clean maximum across it;
-    a larger sigma merges rings that lie close together in the image."""
-    min_contrast: float = 6.0
-    """Least height of the line's peak above the local background on both of its
-    sides, in 8-bit grey levels (of the smoothed image)."""
-    min_curvature: float = 0.4
-    """Least -lambda (grey levels per px^2 of the smoothed image): the profile
-    across the line must bend down at least this much at its centre."""
-    max_eigen_ratio: float = 0.6
-    """The eigenvalue along the line may be at most this fraction of |lambda|:
-    blobs and crossings (both eigenvalues alike) are not lines."""
-    max_tangent_slope: float = 1.0
-    """Along the line the image may climb at most this many px times -lambda per
-    px: the flanks of a tightly curved line (where the profile along the line's
-    tangent also bends down) are not line centres."""
-    background_px: float = 3.0
-    """Distance (camera px) from the centre, along the normal, where the local
-    background is read on each side."""
-
-    RETIRED: ClassVar[dict] = {"confidence_contrast": CONFIDENCE_CONTRAST}
-    """Former fields, now fixed (``formats.settings``: a settings file that names one
-    with this value loads)."""
-
-    def __post_init__(self):
-        for name in ("sigma", "background_px"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"LineSettings.{name}: must be a finite number > 0, got {v!r}")
-        for name in ("min_contrast", "min_curvature", "max_eigen_ratio", "max_tangent_slope"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"LineSettings.{name}: must be a finite number >= 0, got {v!r}")
-        if self.sigma > 20:
-            raise ValueError(f"LineSettings.sigma: {self.sigma} px is too large (at most 20)")
+__all__ = ["RingLines", "detect_ring_lines", "smooth_frame", "gaussian_weights", "centre_sigmas"]
 
 
 @dataclass

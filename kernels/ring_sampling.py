@@ -18,7 +18,6 @@ run's slots, so the write pass only copies them to their scanned offsets.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import logging
@@ -29,10 +28,11 @@ import warp as wp
 from ringscan.kernels.launch import default_threads, launch_rows, row_run, scan_counts
 from ringscan.kernels.ring_labels import FRAME_FIRST_BIT, RingLabels, gray_to_binary
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import SampleSettings
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["SampleSettings", "sample_gray_rings", "ring_radii", "ring_blur_variance"]
+__all__ = ["sample_gray_rings", "ring_radii", "ring_blur_variance"]
 
 log = logging.getLogger(__name__)
 
@@ -43,38 +43,6 @@ WALK_MAX = wp.constant(64.0)
 """Longest walk (camera px): wider bands give the sample no blur estimate."""
 MIN_RING_ESTIMATES = 16
 """Rings with fewer blur estimates than this take the median of all rings'."""
-
-
-@dataclass(frozen=True)
-class SampleSettings:
-    """Settings of the edge sampler."""
-
-    min_contrast: float = 12.0
-    """Least white - black (8-bit grey levels; x257 for 16-bit) at both pixels."""
-    min_slope: float = 0.3
-    """Least |d_p - d_q| / contrast across the edge: flatter crossings (blurred,
-    noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
-    band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
-    position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
-    ring_curvature: bool = False
-    """Remove the inward shift of blurred ring edges: the crossing of a circle of
-    radius rho and its inverse, both blurred by a Gaussian of sigma (projector px
-    along the radius: projector pixel and defocus, camera pixel and defocus), lies
-    inward by sigma^2 / (2 rho), so the sample's rho (its ring's nominal radius)
-    reads too large by that much. Each sample's sigma comes from its own edge: the
-    slope of frame - inverse at the crossing is 2 C / (sqrt(2 pi) sigma) camera px
-    (C: white - black), scaled to projector px by the camera distance to the
-    neighbouring band edges (one pitch each); sigma^2 is then the median over the
-    samples of each ring (the bias is smooth; single edges are noisy) and rho
-    = rho0 + k pitch - sigma^2 / (2 rho) (docs/reconstruction.md, "Sample").
-    Off by default: on the virtual rigs the shift is small (0.05 px at rho < 50
-    on the two-camera test rig, 0.015 px on the default rig) and, where the camera
-    resolves the projector's pixels (the default rig), the estimate reads the
-    blur ~2x too large and over-corrects (demo mesh 0.0100 -> 0.0112 mm); where
-    camera pixels are coarse (~3 projector px: the two-camera rig) it removes the
-    shift and projector-from-scan's position error falls by ~20 % (``ringscan
-    calibrate refine`` and ``projector-from-scan`` turn it on by default).
-    Off: rho = rho0 + k pitch."""
 
 
 # ----------------------------------------------------------------------------- helpers

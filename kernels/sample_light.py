@@ -6,7 +6,7 @@ that did not come straight from the projector (the finest band bits' pattern / i
 and how fast the light its surface sends back changes across the image there (the shading).
 One thread a sample, on the frames' device: the NumPy statements are
 ``pipeline.codecs.angle_code.sample_contrast``, ``edge_sigma``, ``phase_sigma``,
-``sample_indirect`` and ``sample_shading`` (the same values to the bit)."""
+``sample_indirect``, and ``pipeline.codecs.shading.sample_shading`` (the same values to the bit)."""
 
 from __future__ import annotations
 

@@ -24,14 +24,11 @@ import warp as wp
 from scipy.optimize import least_squares
 
 from ringscan.kernels import init_warp, resolve_device
-from ringscan.kernels.angle import AngleSettings
 from ringscan.kernels.launch import cpu_threads
-from ringscan.kernels.phase import PhaseSettings
-from ringscan.kernels.ring_labels import DecodeSettings
-from ringscan.kernels.ring_sampling import SampleSettings
+from ringscan.kernels.settings import AngleSettings, DecodeSettings, PhaseSettings, SampleSettings
 from ringscan.pipeline.calibrate.board import Board, BoardView, board_points
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.codecs.registry import REGISTRY, extract_samples
+from ringscan.pipeline.codecs.registry import all_codecs, extract_samples
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig, parse_rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 from ringscan.pipeline.geometry import camera_rays, project_points
@@ -42,7 +39,7 @@ __all__ = ["LightSettings", "PlaneSamples", "LightCalibration", "plane_samples",
 
 log = logging.getLogger(__name__)
 
-LIGHT_CODECS = tuple(name for name, codec in REGISTRY.items() if codec.calibrates_light)
+LIGHT_CODECS = tuple(name for name, codec in all_codecs().items() if codec.calibrates_light)
 """Codecs whose captures calibrate the light: projected, and decoded without the rig's
 geometry (``Codec.calibrates_light``): gray-rings and phase-rings."""
 

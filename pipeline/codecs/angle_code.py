@@ -16,14 +16,15 @@ import math
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
+from ringscan.kernels.angle import ANGLE_STATUS_NAMES, decode_angle
 from ringscan.kernels.compact import count_values
-from ringscan.kernels.phase import response_tables
+from ringscan.kernels.response import response_tables
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import AngleSettings
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX", "NO_ANGLE_CODE"]
+__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -31,10 +32,6 @@ predicted standard deviation: the frames' one-pixel box filter widened by the
 projector's defocus (a Gaussian of sigma 0.7 px, the virtual rig's default and a
 sharp real projector's, spreads a box edge's 10-90 % rise over ~2.8 px). With 1 px
 the virtual rig's edges scatter three times their prediction."""
-NO_ANGLE_CODE = " (no angle code: patterns.angle_steps 0); record the angle code (--angle-steps > 0) or"
-"""How a scan of a codec that can carry the angle code (``Codec.has_angle_code``) but
-does not gets the full projector coordinate (the middle of an error message that
-ends "use --rays camera-projector")."""
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -92,33 +89,6 @@ def sample_indirect(frames: wp.array, spec: PatternSpec, uv: np.ndarray) -> np.n
     span = np.maximum(at("white") - black, 1.0)
     floor = np.mean([np.minimum(at(f"gray_{b}"), at(f"gray_{b}_inv")) for b in indirect_bits(spec)], axis=0) - black
     return np.clip(floor / span, 0.0, 1.0).astype(np.float32)
-
-
-def sample_shading(contrast: np.ndarray, uv: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """(n,) float32 :attr:`~ringscan.kernels.samples.Samples.shading` at each sample's nearest
-    camera pixel (moved one px inside at the border): the light's relative gradient per camera px,
-    each direction's two 3 x 3 Sobel sums (weights 1, 2, 1) of max(white - black, 1) on either side,
-    their difference over their sum, of the (H, W) ``contrast`` plane in 8-bit levels (its values over
-    ``scale``); tanh of the log's gradient on an exponential ramp, so |grad ln(white - black)| where
-    the light changes smoothly and at most 1 across a step; 0 on an image under 3 px a side."""
-    c = np.asarray(contrast, np.float64)
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    h, w = c.shape
-    if h < 3 or w < 3:
-        return np.zeros(len(uv), np.float32)
-    x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 1, w - 2)
-    y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 1, h - 2)
-
-    def at(dx, dy):
-        return np.maximum(c[y + dy, x + dx] / scale, 1.0)
-
-    right = at(1, -1) + 2.0 * at(1, 0) + at(1, 1)  # the kernel's order of operations
-    left = at(-1, -1) + 2.0 * at(-1, 0) + at(-1, 1)
-    below = at(-1, 1) + 2.0 * at(0, 1) + at(1, 1)
-    above = at(-1, -1) + 2.0 * at(0, -1) + at(1, -1)
-    gx = (right - left) / (right + left)
-    gy = (below - above) / (below + above)
-    return np.sqrt(gx * gx + gy * gy).astype(np.float32)
 
 
 def indirect_bits(spec: PatternSpec) -> range:

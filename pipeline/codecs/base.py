@@ -18,11 +18,8 @@ from typing import ClassVar, Generic, TypeVar
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.angle import AngleSettings
-from ringscan.kernels.phase import PhaseSettings
-from ringscan.kernels.ring_labels import DecodeSettings
-from ringscan.kernels.ring_sampling import SampleSettings
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import AngleSettings, DecodeSettings, PhaseSettings, SampleSettings
 from ringscan.pipeline.codecs.single_shot.settings import SETTING_RANGES as SINGLE_SHOT_RANGES
 from ringscan.pipeline.codecs.single_shot.settings import SingleShotSettings
 from ringscan.pipeline.formats.images import few_bits_hint

@@ -22,7 +22,7 @@ import warp as wp
 
 from ringscan.kernels.decoded_maps import DecodedMapParams, decoded_map_samples
 from ringscan.kernels.samples import Samples
-from ringscan.pipeline.codecs.angle_code import sample_shading
+from ringscan.pipeline.codecs.shading import sample_shading
 from ringscan.pipeline.codecs.base import Codec, StageSettings
 from ringscan.pipeline.formats.patterns import DECODED_SCALE, PATTERN_LAYOUTS, PatternSpec
 from ringscan.pipeline.formats.scan import Scan
@@ -65,7 +65,7 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
         ``phi`` float32 polar angle (rad), ``sector`` int32, ``confidence``
         float32, ``pixel`` int32, ``sigma_rho`` and ``sigma_tan`` float32 (projector
         px: the u and v errors turned into the radial and tangential directions), ``shading``
-        float32 (the contrast's relative gradient per camera px: ``angle_code.sample_shading``).
+        float32 (the contrast's relative gradient per camera px: ``shading.sample_shading``).
     """
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)

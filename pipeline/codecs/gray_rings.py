@@ -12,11 +12,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.angle import AngleSettings
-from ringscan.kernels.ring_labels import DecodeSettings, count_labels, decode_gray_rings
-from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+from ringscan.kernels.ring_labels import count_labels, decode_gray_rings
+from ringscan.kernels.ring_sampling import sample_gray_rings
 from ringscan.kernels.sample_light import sample_light
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import AngleSettings, DecodeSettings, SampleSettings
 from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, add_angle, indirect_bits
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame

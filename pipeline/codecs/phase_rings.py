@@ -44,17 +44,16 @@ import warp as wp
 from ringscan.kernels.compact import count_values
 from ringscan.kernels.phase import (
     PHASE_STATUS_NAMES,
-    PhaseSettings,
     compact_phase_points,
     decode_phase,
     drop_lone_fringes,
-    response_tables,
     smooth_phase,
 )
-from ringscan.kernels.angle import AngleSettings
-from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.response import response_tables
+from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.sample_light import phase_light
 from ringscan.kernels.samples import Samples
+from ringscan.kernels.settings import AngleSettings, DecodeSettings, PhaseSettings
 from ringscan.pipeline.codecs.angle_code import add_angle, indirect_bits
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
 from ringscan.pipeline.codecs.drawing import draw_frame

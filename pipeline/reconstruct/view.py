@@ -31,7 +31,7 @@ from ringscan.kernels.triangulation import (
     compact_points,
     triangulate_rings,
 )
-from ringscan.pipeline.codecs.angle_code import NO_ANGLE_CODE
+from ringscan.pipeline.codecs import NO_ANGLE_CODE
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.ply import write_ply

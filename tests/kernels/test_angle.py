@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.angle import ANGLE_STATUS_NAMES, AngleSettings, decode_angle
+from ringscan.kernels.angle import ANGLE_STATUS_NAMES, decode_angle
+from ringscan.kernels.settings import AngleSettings
 from ringscan.pipeline.formats.patterns import angle_periods, angle_zones
 from tests.support.angle_frames import (
     BANDS,

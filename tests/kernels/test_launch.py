@@ -114,7 +114,8 @@ def test_gray_rings_decode_and_samples_in_cuda_geometry(cuda_geometry, dtype, wi
     """Decode (8-bit words at width 160, the pixel kernel at 157 or 16 bits) and the
     count / scan / write of the edge samples, with the blur correction."""
     from ringscan.kernels.ring_labels import decode_gray_rings
-    from ringscan.kernels.ring_sampling import SampleSettings, sample_gray_rings
+    from ringscan.kernels.ring_sampling import sample_gray_rings
+    from ringscan.kernels.settings import SampleSettings
     from tests.support.ring_frames import frame_stack, gray_rings_spec
 
     spec = gray_rings_spec(width=width, height=96, center=(77.3, 47.6), bits=4, sector_bits=3, pitch=3.0, rho0=5.0)

@@ -9,13 +9,13 @@ import warp as wp
 from ringscan.kernels.phase import (
     PHASE_STATUS_NAMES,
     PhaseMap,
-    PhaseSettings,
     compact_phase_points,
     decode_phase,
     drop_lone_fringes,
-    response_tables,
     smooth_phase,
 )
+from ringscan.kernels.response import response_tables
+from ringscan.kernels.settings import PhaseSettings
 from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.pipeline.formats.patterns import frame_names, gray_decode
 from tests.support.phase_frames import phase_decode, phase_spec, phase_stack

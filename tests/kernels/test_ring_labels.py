@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.settings import DecodeSettings
 from tests.support.ring_frames import frame_stack, gray_rings_spec
 
 

@@ -7,8 +7,9 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_parallel_light, make_perspective_light
-from ringscan.kernels.ring_lines import LineSettings, centre_sigmas, detect_ring_lines, smooth_frame
+from ringscan.kernels.ring_lines import centre_sigmas, detect_ring_lines, smooth_frame
 from ringscan.kernels.ring_links import link_lines, ring_roots
+from ringscan.kernels.settings import LineSettings
 from ringscan.pipeline.formats.rig import default_rig
 from tests.support.ring_lines_image import CENTER, RADII, circles_image
 

@@ -5,7 +5,8 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.ring_labels import decode_gray_rings
-from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
+from ringscan.kernels.ring_sampling import ring_radii, sample_gray_rings
+from ringscan.kernels.settings import SampleSettings
 from tests.support.ring_frames import frame_stack, gray_rings_spec
 
 

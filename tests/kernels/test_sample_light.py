@@ -13,8 +13,8 @@ from ringscan.pipeline.codecs.angle_code import (
     phase_sigma,
     sample_contrast,
     sample_indirect,
-    sample_shading,
 )
+from ringscan.pipeline.codecs.shading import sample_shading
 from ringscan.pipeline.formats.patterns import frame_names
 from tests.support.ring_frames import frame_stack, gray_rings_spec
 

@@ -5,7 +5,8 @@ would record them (known truth at every sub-pixel position), and their decode, f
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.angle import AngleSettings, decode_angle
+from ringscan.kernels.angle import decode_angle
+from ringscan.kernels.settings import AngleSettings
 from ringscan.pipeline.formats.patterns import angle_periods
 
 C = (200.3, 150.7)

@@ -5,8 +5,10 @@ import cv2
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.phase import PhaseSettings, decode_phase, response_tables
+from ringscan.kernels.phase import decode_phase
+from ringscan.kernels.response import response_tables
 from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.settings import PhaseSettings
 from ringscan.pipeline.codecs.render import render_frames
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names
 

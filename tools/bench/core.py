@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.kernels import init_warp
-from ringscan.kernels.ring_labels import DecodeSettings, decode_gray_rings
-from ringscan.kernels.ring_sampling import SampleSettings, ring_radii, sample_gray_rings
+from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.ring_sampling import ring_radii, sample_gray_rings
+from ringscan.kernels.settings import DecodeSettings, SampleSettings
 from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
 from ringscan.pipeline.codecs import gray_rings, phase_rings
 from ringscan.pipeline.formats.patterns import parse_patterns

@@ -12,8 +12,10 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp
-from ringscan.kernels.phase import PhaseSettings, compact_phase_points, decode_phase, response_tables, smooth_phase
+from ringscan.kernels.phase import compact_phase_points, decode_phase, smooth_phase
+from ringscan.kernels.response import response_tables
 from ringscan.kernels.ring_labels import decode_gray_rings
+from ringscan.kernels.settings import PhaseSettings
 from ringscan.kernels.triangulation import TriangulateSettings, triangulate_rings
 from ringscan.pipeline.codecs import phase_rings
 from ringscan.pipeline.codecs.phase_rings import residual_light_gamma

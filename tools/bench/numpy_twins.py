@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from ringscan.kernels.phase import PhaseSettings
+from ringscan.kernels.settings import PhaseSettings
 from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.formats.rig import ParallelLight, Rig
 from ringscan.pipeline.geometry import undistort_normalized

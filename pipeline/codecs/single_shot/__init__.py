@@ -1,11 +1,6 @@
 """The paper's single-shot ``rings`` codec: line detection (kernels), pieces
-(:mod:`.pieces`), the nesting labeller (:mod:`.labeller`) and the reconstruct hook
-(:mod:`.extract`)."""
+(:mod:`.pieces`), the nesting labeller (:mod:`.labeller`), the reconstruct hook
+(:mod:`.extract`) and its settings (:mod:`.settings`).
 
-from ringscan.pipeline.codecs.single_shot.extract import extract_rings
-from ringscan.pipeline.codecs.single_shot.labeller import label_ring_lines, orientation_sign
-from ringscan.pipeline.codecs.single_shot.pieces import build_pieces
-from ringscan.pipeline.codecs.single_shot.settings import SECTOR_BITS, RingLabelling, SingleShotSettings
-
-__all__ = ["extract_rings", "label_ring_lines", "orientation_sign", "build_pieces", "SECTOR_BITS", "RingLabelling",
-           "SingleShotSettings"]
+This package module itself loads nothing: a run that reads the codec's settings (every
+reconstruct's settings do) imports :mod:`.settings` alone, not the line kernels."""

@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ringscan.kernels.ring_lines import LineSettings
+from ringscan.kernels.settings import LineSettings
 from ringscan.pipeline.formats.settings import WHY_CAM_PX, WHY_LEVELS, WHY_MM, Bound
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.kernels.phase import PhaseSettings
+from ringscan.kernels.settings import PhaseSettings
 from ringscan.pipeline.codecs.phase_rings import PhaseRingsSettings, estimate_camera_gamma, extract_phase_rings
 from ringscan.pipeline.evaluate.metrics import evaluate_view, truth_points
 from ringscan.pipeline.formats.atomic import read_json

@@ -1,6 +1,6 @@
 """The codec registry: a codec module that fails to import surfaces as its own
-ImportError (never as "no reconstruction for codec"), and an unknown codec is a
-clear FormatError naming the scan."""
+ImportError (never as "no reconstruction for codec"), an unknown codec is a
+clear FormatError naming the scan, and a run loads only its own codec's module."""
 
 import dataclasses
 import json
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from ringscan.pipeline.codecs.registry import REGISTRY, extract_samples
+from ringscan.pipeline.codecs.registry import CODEC_CLASSES, all_codecs, extract_samples
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.patterns import CODECS, IMPORTED_CODECS, PATTERN_LAYOUTS, parse_patterns
 from ringscan.pipeline.formats.rig import default_rig
@@ -43,24 +43,24 @@ def _run_broken(target: str, body: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
 
 
-@pytest.mark.parametrize("target, codec_module", [
-    ("ringscan.kernels.phase", "codecs/base.py"),         # the phase codec's settings block (StageSettings)
-    ("ringscan.pipeline.codecs.single_shot.labeller", "single_shot"),
+@pytest.mark.parametrize("target, codec, codec_module", [
+    ("ringscan.kernels.phase", "phase-rings", "codecs/phase_rings.py"),
+    ("ringscan.pipeline.codecs.single_shot.labeller", "rings", "single_shot"),
 ])
-def test_import_failure_in_a_codec_surfaces_as_itself(target, codec_module):
-    r = _run_broken(target, "import ringscan.pipeline.codecs.registry\n")
+def test_import_failure_in_a_codec_surfaces_as_itself(target, codec, codec_module):
+    r = _run_broken(target, f"from ringscan.pipeline.codecs.registry import codec_for\ncodec_for({codec!r})\n")
     assert r.returncode != 0
     assert "ImportError: libcodec_test.so: cannot open shared object file (simulated)" in r.stderr
     assert codec_module in r.stderr          # the traceback runs through the codec module
     assert "no reconstruction for codec" not in r.stderr + r.stdout
 
 
-def test_import_failure_reaches_the_command_line_as_itself(tmp_path):
-    """``ringscan reconstruct`` with a codec module that cannot load: the user sees
+def test_import_failure_reaches_the_command_line_as_itself(small_scan, tmp_path):
+    """``ringscan reconstruct`` of a scan whose codec's module cannot load: the user sees
     the import error (what to fix), not a claim that the codec is not built in."""
-    r = _run_broken("ringscan.kernels.phase", f"""
+    r = _run_broken("ringscan.kernels.ring_labels", f"""
         from ringscan.tools.cli import main
-        raise SystemExit(main(["reconstruct", {str(tmp_path / 'scan')!r}, "--out", {str(tmp_path / 'out')!r}]))
+        raise SystemExit(main(["reconstruct", {str(small_scan.folder)!r}, "--out", {str(tmp_path / 'out')!r}]))
     """)
     assert r.returncode != 0
     assert "libcodec_test.so: cannot open shared object file (simulated)" in r.stderr
@@ -68,9 +68,28 @@ def test_import_failure_reaches_the_command_line_as_itself(tmp_path):
 
 
 def test_every_known_codec_has_a_reconstruction():
-    assert set(REGISTRY) == set(CODECS) | set(IMPORTED_CODECS)
-    for name, codec in REGISTRY.items():
+    assert set(CODEC_CLASSES) == set(CODECS) | set(IMPORTED_CODECS)
+    for name, codec in all_codecs().items():
         assert codec.name == name and codec.layout is PATTERN_LAYOUTS[name]
+
+
+def test_a_run_loads_its_own_codec_only():
+    """Reading every codec's settings and reconstructing an imported capture's view load no kernel of the
+    other codecs (Warp parses a module's kernels as it is imported: ~0.1 s of every command)."""
+    r = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+        import sys
+        from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+        from ringscan.pipeline.reconstruct.view import reconstruct_view
+        from ringscan.pipeline.codecs.registry import codec_for
+        ReconstructSettings()
+        codec_for("decoded")
+        print(sorted(m for m in sys.modules if m.startswith("ringscan.kernels.")))
+    """)], capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})
+    assert r.returncode == 0, r.stderr
+    loaded = r.stdout.strip()
+    for other in ("phase", "ring_labels", "ring_sampling", "angle", "ring_lines", "sample_light"):
+        assert f"'ringscan.kernels.{other}'" not in loaded, other
+    assert "'ringscan.kernels.settings'" in loaded and "'ringscan.kernels.decoded_maps'" in loaded
 
 
 @pytest.fixture(scope="module")
@@ -122,7 +141,7 @@ def test_codec_capabilities_come_from_the_codec_objects():
 
 
 def test_full_coordinate_says_which_samples_carry_both_projector_coordinates():
-    from ringscan.pipeline.codecs.registry import REGISTRY, codec_for
+    from ringscan.pipeline.codecs.registry import codec_for
 
     base = {"width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 8.0, "pitch": 16.0}
     decoded = parse_patterns({**base, "codec": "decoded", "rho0": 0.0, "pitch": 1.0})
@@ -134,7 +153,7 @@ def test_full_coordinate_says_which_samples_carry_both_projector_coordinates():
         assert codec_for(name).full_coordinate(with_angle) and not codec_for(name).full_coordinate(without), name
     rings = parse_patterns({**base, "codec": "rings", "count": 20})
     assert not codec_for("rings").full_coordinate(rings)
-    assert set(REGISTRY) == {"rings", "gray-rings", "phase-rings", "decoded"}  # a new codec: add it above
+    assert set(CODEC_CLASSES) == {"rings", "gray-rings", "phase-rings", "decoded"}  # a new codec: add it above
 
 
 def test_code_outside_the_codecs_names_them_through_the_codecs_package():
@@ -143,6 +162,6 @@ def test_code_outside_the_codecs_names_them_through_the_codecs_package():
     from ringscan.pipeline.codecs import DEFAULT_CODEC, decoded, gray_rings, phase_rings, rings
 
     assert DEFAULT_CODEC in CODECS
-    assert [m.NAME for m in (rings, gray_rings, phase_rings, decoded)] == list(REGISTRY)
-    assert {n: c.has_angle_code for n, c in REGISTRY.items()} == {"rings": False, "gray-rings": True,
+    assert [m.NAME for m in (rings, gray_rings, phase_rings, decoded)] == list(CODEC_CLASSES)
+    assert {n: c.has_angle_code for n, c in all_codecs().items()} == {"rings": False, "gray-rings": True,
                                                                    "phase-rings": True, "decoded": False}

@@ -186,7 +186,7 @@ def test_a_codecs_group_of_samples_that_errs_more_gets_its_own_factor():
     others (Codec.error_groups). Planted: every odd ring's errors 2x; with the rings' parity as
     groups their variance factors come out ~4 apart and each group's sigmas hold; without,
     one factor for both leaves the odd rings over-confident."""
-    from ringscan.pipeline.codecs.registry import REGISTRY
+    from ringscan.pipeline.codecs.registry import codec_for
     from ringscan.pipeline.reconstruct.error_scale import group_scale
     from ringscan.pipeline.reconstruct.neighbour_checks import fit_neighbour_model, widen_depth_sigma
 
@@ -206,7 +206,7 @@ def test_a_codecs_group_of_samples_that_errs_more_gets_its_own_factor():
     z1 = np.abs(d["depth"] - truth) / widen_depth_sigma(d["s"], d["sigma_px"], one)
     assert np.median(z1[odd]) > 0.85 and np.mean(z1[odd] > 3) > 0.01
     # gray-rings' groups: the bit that flips at boundary k (the lowest set bit of k)
-    groups = REGISTRY["gray-rings"].error_groups(None, np.array([0, 1, 2, 3, 4, 5, 6, 8, 12, 16]))
+    groups = codec_for("gray-rings").error_groups(None, np.array([0, 1, 2, 3, 4, 5, 6, 8, 12, 16]))
     assert groups.tolist() == [-1, 0, 1, 0, 2, 0, 1, 2, 2, 2]
 
 
