@@ -10,8 +10,8 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.geometry import CameraModel, undistort
-from ringscan.kernels.compact import count_values, nonzero_indices
-from ringscan.kernels.launch import check_array, default_threads, launch_spans
+from ringscan.kernels.compact import count_values
+from ringscan.kernels.launch import check_array, default_threads, launch_spans, scan_counts
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
@@ -95,6 +95,71 @@ def window_moments(sample_of: wp.array(dtype=wp.int32), value: wp.array(dtype=wp
     return m
 
 
+@wp.func
+def polar_to_uv(proj: wp.vec2d, sigma_rho: wp.float64, sigma_tan: wp.float64, center: wp.vec2d):
+    """Standard deviations along u_p and v_p of a projector point whose errors are radial and tangential
+    about ``center``."""
+    off = proj - center
+    r = wp.max(wp.length(off), wp.float64(1.0e-12))
+    c = off[0] / r
+    s = off[1] / r
+    a = sigma_rho * sigma_rho
+    b = sigma_tan * sigma_tan
+    return wp.vec2d(wp.sqrt(a * (c * c) + b * (s * s)), wp.sqrt(a * (s * s) + b * (c * c)))
+
+
+@wp.func
+def uv_to_polar(proj: wp.vec2d, sigma_uv: wp.vec2d, center: wp.vec2d):
+    """The radial and tangential standard deviations of a projector point with independent u_p, v_p errors."""
+    off = proj - center
+    r = wp.max(wp.length(off), wp.float64(1.0e-12))
+    c = off[0] / r
+    s = off[1] / r
+    c2 = c * c
+    s2 = s * s
+    a = sigma_uv[0] * sigma_uv[0]
+    b = sigma_uv[1] * sigma_uv[1]
+    return wp.sqrt(a * c2 + b * s2), wp.sqrt(a * s2 + b * c2)
+
+
+@wp.func
+def plane_at_code(m: WindowMoments, p0: wp.float64, settings: RefineSettings):
+    """The plane fitted to a code's window (its moments ``m`` about the code's own value ``p0``), read at
+    the code's pixel: (whether it holds: ``min_pixels`` codes, well-conditioned normal equations, a scatter
+    within ``max_chi2`` a degree of freedom; the refined value; its sigma, scaled by the scatter where
+    larger). The 3x3 solve by cofactors, as the NumPy statement ``refine_integer_codes``."""
+    S = m.S
+    Sx = m.Sx
+    Sy = m.Sy
+    Sxx = m.Sxx
+    Sxy = m.Sxy
+    Syy = m.Syy
+    Sp = m.wP - p0 * S
+    Sxp = m.wPx - p0 * Sx
+    Syp = m.wPy - p0 * Sy
+    Spp = m.wPP - wp.float64(2.0) * p0 * m.wP + p0 * p0 * S
+    c00 = Sxx * Syy - Sxy * Sxy
+    c01 = Sxy * Sy - Sx * Syy
+    c02 = Sx * Sxy - Sxx * Sy
+    c11 = S * Syy - Sy * Sy
+    c12 = Sx * Sy - S * Sxy
+    c22 = S * Sxx - Sx * Sx
+    det = S * c00 + Sx * c01 + Sy * c02
+    tiny = wp.float64(1.0e-30)
+    good = m.cnt >= wp.float64(float(settings.min_pixels)) and det > wp.float64(1.0e-9) * wp.max(S, tiny) * wp.max(c00, tiny)
+    if not good:
+        return False, p0, wp.float64(0.0)
+    inv_det = wp.float64(1.0) / det
+    b0 = (c00 * Sp + c01 * Sxp + c02 * Syp) * inv_det
+    b1 = (c01 * Sp + c11 * Sxp + c12 * Syp) * inv_det
+    b2 = (c02 * Sp + c12 * Sxp + c22 * Syp) * inv_det
+    chi2 = wp.max(Spp - (b0 * Sp + b1 * Sxp + b2 * Syp), wp.float64(0.0))
+    dof = wp.max(m.cnt - wp.float64(3.0), wp.float64(1.0))
+    if not (chi2 <= settings.max_chi2 * dof):
+        return False, p0, wp.float64(0.0)
+    return True, p0 + b0, wp.sqrt(c00 * inv_det * wp.max(wp.float64(1.0), chi2 / dof))
+
+
 # ----------------------------------------------------------------------------- kernels
 
 
@@ -108,16 +173,10 @@ def polar_to_uv_sigma_kernel(
     out: wp.array(dtype=wp.vec2d),
 ):
     """Standard deviations along u_p and v_p of projector point i0 + tid whose errors are radial and
-    tangential about ``center``. proj (n,) vec2d, sigma_rho, sigma_tan (n,) float64: read; out (n,) vec2d:
-    written."""
+    tangential about ``center`` (:func:`polar_to_uv`). proj (n,) vec2d, sigma_rho, sigma_tan (n,) float64:
+    read; out (n,) vec2d: written."""
     i = i0 + wp.tid()
-    off = proj[i] - center
-    r = wp.max(wp.length(off), wp.float64(1.0e-12))
-    c = off[0] / r
-    s = off[1] / r
-    a = sigma_rho[i] * sigma_rho[i]
-    b = sigma_tan[i] * sigma_tan[i]
-    out[i] = wp.vec2d(wp.sqrt(a * (c * c) + b * (s * s)), wp.sqrt(a * (s * s) + b * (c * c)))
+    out[i] = polar_to_uv(proj[i], sigma_rho[i], sigma_tan[i], center)
 
 
 @wp.kernel
@@ -130,18 +189,12 @@ def uv_to_polar_sigma_kernel(
     sigma_tan: wp.array(dtype=wp.float64),
 ):
     """The radial and tangential standard deviations of projector point i0 + tid with independent u_p,
-    v_p errors. proj, sigma_uv (n,) vec2d: read; sigma_rho, sigma_tan (n,) float64: written."""
+    v_p errors (:func:`uv_to_polar`). proj, sigma_uv (n,) vec2d: read; sigma_rho, sigma_tan (n,) float64:
+    written."""
     i = i0 + wp.tid()
-    off = proj[i] - center
-    r = wp.max(wp.length(off), wp.float64(1.0e-12))
-    c = off[0] / r
-    s = off[1] / r
-    c2 = c * c
-    s2 = s * s
-    a = sigma_uv[i][0] * sigma_uv[i][0]
-    b = sigma_uv[i][1] * sigma_uv[i][1]
-    sigma_rho[i] = wp.sqrt(a * c2 + b * s2)
-    sigma_tan[i] = wp.sqrt(a * s2 + b * c2)
+    sr, st = uv_to_polar(proj[i], sigma_uv[i], center)
+    sigma_rho[i] = sr
+    sigma_tan[i] = st
 
 
 @wp.kernel
@@ -182,149 +235,174 @@ def window_sums_kernel(
 
 
 @wp.kernel
-def split_proj_kernel(
+def refine_terms_kernel(
     proj: wp.array(dtype=wp.vec2),
     sigma_rho: wp.array(dtype=wp.float32),
     sigma_tan: wp.array(dtype=wp.float32),
-    i0: int,
-    proj64: wp.array(dtype=wp.vec2d),
-    sigma_rho64: wp.array(dtype=wp.float64),
-    sigma_tan64: wp.array(dtype=wp.float64),
-):
-    """Projector points and their polar sigmas in float64 (the refinement's arithmetic). proj (n,) vec2,
-    sigma_rho, sigma_tan (n,) float32: read; their float64 copies: written."""
-    i = i0 + wp.tid()
-    proj64[i] = wp.vec2d(wp.float64(proj[i][0]), wp.float64(proj[i][1]))
-    sigma_rho64[i] = wp.float64(sigma_rho[i])
-    sigma_tan64[i] = wp.float64(sigma_tan[i])
-
-
-@wp.kernel
-def axis_terms_kernel(
-    proj: wp.array(dtype=wp.vec2d),
-    sigma_uv: wp.array(dtype=wp.vec2d),
-    axis: int,
+    pixel: wp.array(dtype=wp.int32),
+    center: wp.vec2d,
     tolerance: wp.float64,
     i0: int,
-    value: wp.array(dtype=wp.float64),
-    weight: wp.array(dtype=wp.float64),
+    value_u: wp.array(dtype=wp.float64),
+    value_v: wp.array(dtype=wp.float64),
+    weight_u: wp.array(dtype=wp.float64),
+    weight_v: wp.array(dtype=wp.float64),
     integer: wp.array(dtype=wp.int32),
+    sample_of: wp.array(dtype=wp.int32),
 ):
-    """One axis of the refinement, per sample: its coordinate, its weight 1 / max(sigma, 1e-3)^2 and
-    whether it is an integer code. proj, sigma_uv (n,) vec2d: read; value, weight (n,) float64 and
-    integer (n,) int32: written."""
+    """Sample i0 + tid's terms of the refinement, in float64: each axis' coordinate and weight 1 / max(sigma,
+    1e-3)^2 (its u_p, v_p sigmas from its polar ones, :func:`polar_to_uv`), which axes hold an integer code
+    (bit 0: u_p, bit 1: v_p), and its pixel's entry of the pixel -> sample map.
+
+    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32, pixel (n,) int32: read. value_u, value_v, weight_u,
+    weight_v (n,) float64, integer (n,) int32: written; sample_of (width * height,) int32: written at pixel[i].
+
+    Size: the samples' four arrays, the pattern centre and the integer test's tolerance, the span's i0; the
+    five per-sample outputs and the pixel map."""
     i = i0 + wp.tid()
-    v = proj[i][axis]
-    value[i] = v
-    sg = wp.max(sigma_uv[i][axis], wp.float64(1.0e-3))
-    weight[i] = wp.float64(1.0) / (sg * sg)
-    integer[i] = wp.where(wp.abs(v - wp.round(v)) < tolerance, 1, 0)
+    p = wp.vec2d(wp.float64(proj[i][0]), wp.float64(proj[i][1]))
+    suv = polar_to_uv(p, wp.float64(sigma_rho[i]), wp.float64(sigma_tan[i]), center)
+    su = wp.max(suv[0], wp.float64(1.0e-3))
+    sv = wp.max(suv[1], wp.float64(1.0e-3))
+    value_u[i] = p[0]
+    value_v[i] = p[1]
+    weight_u[i] = wp.float64(1.0) / (su * su)
+    weight_v[i] = wp.float64(1.0) / (sv * sv)
+    bits = int(0)
+    if wp.abs(p[0] - wp.round(p[0])) < tolerance:
+        bits = bits | 1
+    if wp.abs(p[1] - wp.round(p[1])) < tolerance:
+        bits = bits | 2
+    integer[i] = bits
+    sample_of[pixel[i]] = i
 
 
 @wp.kernel
-def refine_axis_kernel(
+def refine_codes_kernel(
     sel: wp.array(dtype=wp.int32),
     pixel: wp.array(dtype=wp.int32),
     sample_of: wp.array(dtype=wp.int32),
-    value: wp.array(dtype=wp.float64),
-    weight: wp.array(dtype=wp.float64),
+    value_u: wp.array(dtype=wp.float64),
+    value_v: wp.array(dtype=wp.float64),
+    weight_u: wp.array(dtype=wp.float64),
+    weight_v: wp.array(dtype=wp.float64),
+    integer: wp.array(dtype=wp.int32),
+    sigma_rho: wp.array(dtype=wp.float32),
+    sigma_tan: wp.array(dtype=wp.float32),
     width: int,
     height: int,
+    center: wp.vec2d,
     settings: RefineSettings,
-    axis: int,
     i0: int,
     proj_out: wp.array(dtype=wp.vec2d),
     sigma_out: wp.array(dtype=wp.vec2d),
     refined: wp.array(dtype=wp.int32),
 ):
-    """Integer code sel[i0 + tid] on ``axis`` read from its window: the plane fitted (weights 1 / sigma^2)
-    to the codes of the (2 r + 1)^2 pixels around its pixel, read at the pixel, where the window holds
-    ``min_pixels`` codes, its normal equations are well conditioned and its scatter is within
-    ``max_chi2`` a degree of freedom; the plane's sigma there (scaled by the scatter where larger). The
-    window's moments by :func:`window_moments`, the 3x3 solve by cofactors (as the NumPy statement
-    ``refine_integer_codes``).
+    """Sample sel[i0 + tid] (one with an integer code), each integer axis read from its window: the plane
+    fitted (weights 1 / sigma^2) to the codes of the (2 r + 1)^2 pixels around its pixel, read at the pixel
+    (:func:`plane_at_code`; the window's moments by :func:`window_moments`, from the codes and sigmas as
+    decoded: an axis never reads the other's refinement). proj_out, sigma_out get the sample's point and u_p,
+    v_p sigmas with its refined axes in place (slot i0 + tid); refined its bits (1: u_p, 2: v_p).
 
-    sel (m,) int32 the integer codes' samples; pixel (n,) int32; sample_of (width * height,) int32 each
-    pixel's sample (-1: none); value, weight (n,) float64: read. proj_out, sigma_out (n,) vec2d: written
-    on ``axis`` where refined; refined (n,) int32: bit ``axis`` set there.
+    sel (m,) int32 the samples with an integer code; pixel (n,) int32; sample_of (width * height,) int32 each
+    pixel's sample (-1: none); value_u, value_v, weight_u, weight_v (n,) float64, integer (n,) int32,
+    sigma_rho, sigma_tan (n,) float32 (:func:`refine_terms_kernel`): read. proj_out, sigma_out (m,) vec2d:
+    written; refined (n,) int32: written at sel[i0 + tid].
 
-    Size: the selection, the samples' pixels and pixel -> sample map, the axis' values and weights, the
-    image's size, the settings and axis, the span's i0, three arrays out."""
-    i = sel[i0 + wp.tid()]
+    Size: the selection, the samples' pixels and pixel -> sample map, both axes' values and weights, the
+    integer bits and polar sigmas, the image's size, the centre and settings, the span's i0, three arrays out."""
+    k = i0 + wp.tid()
+    i = sel[k]
     a = pixel[i]
     ys = a / width
-    m = window_moments(sample_of, value, weight, width, height, settings.radius, a - ys * width, ys)
-    S = m.S
-    Sx = m.Sx
-    Sy = m.Sy
-    Sxx = m.Sxx
-    Sxy = m.Sxy
-    Syy = m.Syy
-    wP = m.wP
-    wPx = m.wPx
-    wPy = m.wPy
-    wPP = m.wPP
-    cnt = m.cnt
-    p0 = value[i]
-    Sp = wP - p0 * S
-    Sxp = wPx - p0 * Sx
-    Syp = wPy - p0 * Sy
-    Spp = wPP - wp.float64(2.0) * p0 * wP + p0 * p0 * S
-    c00 = Sxx * Syy - Sxy * Sxy
-    c01 = Sxy * Sy - Sx * Syy
-    c02 = Sx * Sxy - Sxx * Sy
-    c11 = S * Syy - Sy * Sy
-    c12 = Sx * Sy - S * Sxy
-    c22 = S * Sxx - Sx * Sx
-    det = S * c00 + Sx * c01 + Sy * c02
-    tiny = wp.float64(1.0e-30)
-    good = cnt >= wp.float64(float(settings.min_pixels)) and det > wp.float64(1.0e-9) * wp.max(S, tiny) * wp.max(c00, tiny)
-    if not good:
-        return
-    inv_det = wp.float64(1.0) / det
-    b0 = (c00 * Sp + c01 * Sxp + c02 * Syp) * inv_det
-    b1 = (c01 * Sp + c11 * Sxp + c12 * Syp) * inv_det
-    b2 = (c02 * Sp + c12 * Sxp + c22 * Syp) * inv_det
-    chi2 = wp.max(Spp - (b0 * Sp + b1 * Sxp + b2 * Syp), wp.float64(0.0))
-    dof = wp.max(cnt - wp.float64(3.0), wp.float64(1.0))
-    if not (chi2 <= settings.max_chi2 * dof):
-        return
-    p = proj_out[i]
-    sg = sigma_out[i]
-    p[axis] = p0 + b0
-    sg[axis] = wp.sqrt(c00 * inv_det * wp.max(wp.float64(1.0), chi2 / dof))
-    proj_out[i] = p
-    sigma_out[i] = sg
-    refined[i] = refined[i] | (1 << axis)
+    xs = a - ys * width
+    p = wp.vec2d(value_u[i], value_v[i])
+    sg = polar_to_uv(p, wp.float64(sigma_rho[i]), wp.float64(sigma_tan[i]), center)
+    bits = integer[i]
+    done = int(0)
+    if (bits & 1) != 0:
+        m = window_moments(sample_of, value_u, weight_u, width, height, settings.radius, xs, ys)
+        ok, v, s = plane_at_code(m, p[0], settings)
+        if ok:
+            p[0] = v
+            sg[0] = s
+            done = done | 1
+    if (bits & 2) != 0:
+        m = window_moments(sample_of, value_v, weight_v, width, height, settings.radius, xs, ys)
+        ok, v, s = plane_at_code(m, p[1], settings)
+        if ok:
+            p[1] = v
+            sg[1] = s
+            done = done | 2
+    proj_out[k] = p
+    sigma_out[k] = sg
+    refined[i] = done
 
 
 @wp.kernel
-def join_proj_kernel(
-    proj64: wp.array(dtype=wp.vec2d),
-    sigma_rho64: wp.array(dtype=wp.float64),
-    sigma_tan64: wp.array(dtype=wp.float64),
-    i0: int,
+def join_refined_kernel(
     proj: wp.array(dtype=wp.vec2),
     sigma_rho: wp.array(dtype=wp.float32),
     sigma_tan: wp.array(dtype=wp.float32),
-    sigma: wp.array(dtype=wp.float32),
+    slot: wp.array(dtype=wp.int32),
+    has_slot: wp.array(dtype=wp.int32),
+    proj_ref: wp.array(dtype=wp.vec2d),
+    sigma_ref: wp.array(dtype=wp.vec2d),
+    center: wp.vec2d,
+    i0: int,
+    proj64: wp.array(dtype=wp.vec2d),
+    sigma_rho64: wp.array(dtype=wp.float64),
+    sigma_tan64: wp.array(dtype=wp.float64),
+    proj_out: wp.array(dtype=wp.vec2),
+    sigma_rho_out: wp.array(dtype=wp.float32),
+    sigma_tan_out: wp.array(dtype=wp.float32),
+    sigma_out: wp.array(dtype=wp.float32),
 ):
-    """The refined points and sigmas in float32 for the match, and the isotropic sqrt((sr^2 + st^2) / 2).
-    proj64 (n,) vec2d, sigma_rho64, sigma_tan64 (n,) float64: read; the rest (n,): written."""
+    """Sample i0 + tid's point and polar sigmas after the refinement, in float64 and in float32 for the match
+    (and the isotropic sqrt((sr^2 + st^2) / 2)): a sample with an integer code (has_slot) takes its slot of
+    proj_ref, sigma_ref; the others their point as decoded and their sigmas through u_p, v_p and back, as
+    every sample's are.
+
+    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32, slot, has_slot (n,) int32, proj_ref, sigma_ref (m,)
+    vec2d: read. proj64 (n,) vec2d, sigma_rho64, sigma_tan64 (n,) float64, proj_out (n,) vec2, sigma_rho_out,
+    sigma_tan_out, sigma_out (n,) float32: written.
+
+    Size: the samples' three arrays, the refined slots (where and which), the centre, the span's i0; the
+    float64 and the float32 results (seven arrays)."""
     i = i0 + wp.tid()
-    proj[i] = wp.vec2(wp.float32(proj64[i][0]), wp.float32(proj64[i][1]))
-    sr = sigma_rho64[i]
-    st = sigma_tan64[i]
-    sigma_rho[i] = wp.float32(sr)
-    sigma_tan[i] = wp.float32(st)
-    sigma[i] = wp.float32(wp.sqrt(wp.float64(0.5) * (sr * sr + st * st)))
+    p = wp.vec2d(wp.float64(proj[i][0]), wp.float64(proj[i][1]))
+    suv = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    if has_slot[i] != 0:
+        p = proj_ref[slot[i]]
+        suv = sigma_ref[slot[i]]
+    else:
+        suv = polar_to_uv(p, wp.float64(sigma_rho[i]), wp.float64(sigma_tan[i]), center)
+    sr, st = uv_to_polar(p, suv, center)
+    proj64[i] = p
+    sigma_rho64[i] = sr
+    sigma_tan64[i] = st
+    proj_out[i] = wp.vec2(wp.float32(p[0]), wp.float32(p[1]))
+    sigma_rho_out[i] = wp.float32(sr)
+    sigma_tan_out[i] = wp.float32(st)
+    sigma_out[i] = wp.float32(wp.sqrt(wp.float64(0.5) * (sr * sr + st * st)))
 
 
 @wp.kernel
-def scatter_index_kernel(pixel: wp.array(dtype=wp.int32), i0: int, sample_of: wp.array(dtype=wp.int32)):
-    """sample_of[pixel[i]] = i. pixel (n,) int32: read; sample_of (width * height,) int32: written there."""
+def flag_any_kernel(integer: wp.array(dtype=wp.int32), i0: int, flags: wp.array(dtype=wp.int32)):
+    """flags[i] = 1 where sample i has an integer code on either axis. integer (n,) int32: read; flags (n,)
+    int32: written."""
     i = i0 + wp.tid()
-    sample_of[pixel[i]] = i
+    flags[i] = wp.where(integer[i] != 0, 1, 0)
+
+
+@wp.kernel
+def write_slots_kernel(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), i0: int,
+                       sel: wp.array(dtype=wp.int32)):
+    """sel[offsets[i]] = i where flags[i] (count, scan, write). flags, offsets (n,) int32: read; sel (m,)
+    int32: written."""
+    i = i0 + wp.tid()
+    if flags[i] != 0:
+        sel[offsets[i]] = i
 
 
 @wp.kernel
@@ -417,7 +495,7 @@ def refine_codes(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, pixel
                  center: tuple[float, float], width: int, height: int, settings: RefineSettings,
                  threads: int | None = None) -> dict | None:
     """Integer projector codes of a dense per-pixel map read to a fraction of a projector pixel from
-    their camera neighbourhood, on the samples' device (:func:`refine_axis_kernel` per axis; the NumPy
+    their camera neighbourhood, on the samples' device (:func:`refine_codes_kernel`; the NumPy
     statement is ``pipeline.reconstruct.stereo.refine_integer_codes``, which sums a window the same way
     where it has few codes to refine and by the image's filters where it has many).
 
@@ -448,38 +526,42 @@ def refine_codes(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, pixel
         return None
     dev = proj.device
     threads = default_threads() if threads is None else threads
-    c = (float(center[0]), float(center[1]))
-    p64 = wp.empty(n, dtype=wp.vec2d, device=dev)
-    sr64 = wp.empty(n, dtype=wp.float64, device=dev)
-    st64 = wp.empty(n, dtype=wp.float64, device=dev)
-    launch_spans(split_proj_kernel, n, lambda i0: [proj, sigma_rho, sigma_tan, i0], [p64, sr64, st64], dev, threads)
-    suv = uv_sigmas(p64, sr64, st64, center=c, threads=threads)
-    sample_of = wp.full(int(width) * int(height), -1, dtype=wp.int32, device=dev)
-    launch_spans(scatter_index_kernel, n, lambda i0: [pixel, i0], [sample_of], dev, threads)
-    out_p = wp.clone(p64)
-    out_s = wp.clone(suv)
-    refined = wp.zeros(n, dtype=wp.int32, device=dev)
-    value = wp.empty(n, dtype=wp.float64, device=dev)
-    weight = wp.empty(n, dtype=wp.float64, device=dev)
+    c = wp.vec2d(float(center[0]), float(center[1]))
+    # one pass for the terms of every sample, the windows only around the integer codes, one pass for the
+    # results: no float64 copy of every sample but the terms the windows read (~40 B a sample fewer)
+    f64 = lambda: wp.empty(n, dtype=wp.float64, device=dev)  # noqa: E731
+    value_u, value_v, weight_u, weight_v = f64(), f64(), f64(), f64()
     integer = wp.empty(n, dtype=wp.int32, device=dev)
-    for axis in (0, 1):  # each axis from the codes and sigmas as decoded, not as the other axis refined them
-        launch_spans(axis_terms_kernel, n, lambda i0: [p64, suv, axis, wp.float64(settings.tolerance), i0],
-                     [value, weight, integer], dev, threads)
-        sel = nonzero_indices(integer, threads=threads)
-        if len(sel):
-            launch_spans(refine_axis_kernel, len(sel),
-                         lambda i0: [sel, pixel, sample_of, value, weight, int(width), int(height), settings, axis,
-                                     i0], [out_p, out_s, refined], dev, threads)
+    sample_of = wp.full(int(width) * int(height), -1, dtype=wp.int32, device=dev)
+    launch_spans(refine_terms_kernel, n, lambda i0: [proj, sigma_rho, sigma_tan, pixel, c,
+                                                     wp.float64(settings.tolerance), i0],
+                 [value_u, value_v, weight_u, weight_v, integer, sample_of], dev, threads)
+    flags = wp.empty(n, dtype=wp.int32, device=dev)
+    launch_spans(flag_any_kernel, n, lambda i0: [integer, i0], [flags], dev, threads)
+    slot, m = scan_counts(flags)
+    if m == 0:
+        return None
+    sel = wp.empty(m, dtype=wp.int32, device=dev)
+    launch_spans(write_slots_kernel, n, lambda i0: [flags, slot, i0], [sel], dev, threads)
+    proj_ref = wp.empty(m, dtype=wp.vec2d, device=dev)
+    sigma_ref = wp.empty(m, dtype=wp.vec2d, device=dev)
+    refined = wp.zeros(n, dtype=wp.int32, device=dev)
+    launch_spans(refine_codes_kernel, m,
+                 lambda i0: [sel, pixel, sample_of, value_u, value_v, weight_u, weight_v, integer, sigma_rho,
+                             sigma_tan, int(width), int(height), c, settings, i0],
+                 [proj_ref, sigma_ref, refined], dev, threads)
     counts = count_values(refined, 4, threads=threads)
     done = int(counts[1:].sum())
     if done == 0:
         return None
-    sr, st = polar_sigmas(out_p, out_s, center=c, threads=threads)
-    out = {"proj": wp.empty(n, dtype=wp.vec2, device=dev), "sigma_rho": wp.empty(n, dtype=wp.float32, device=dev),
+    out = {"proj64": wp.empty(n, dtype=wp.vec2d, device=dev), "sigma_rho64": f64(), "sigma_tan64": f64(),
+           "proj": wp.empty(n, dtype=wp.vec2, device=dev), "sigma_rho": wp.empty(n, dtype=wp.float32, device=dev),
            "sigma_tan": wp.empty(n, dtype=wp.float32, device=dev), "sigma": wp.empty(n, dtype=wp.float32, device=dev)}
-    launch_spans(join_proj_kernel, n, lambda i0: [out_p, sr, st, i0],
-                 [out["proj"], out["sigma_rho"], out["sigma_tan"], out["sigma"]], dev, threads)
-    out.update(proj64=out_p, sigma_rho64=sr, sigma_tan64=st, refined=refined, count=done)
+    launch_spans(join_refined_kernel, n,
+                 lambda i0: [proj, sigma_rho, sigma_tan, slot, flags, proj_ref, sigma_ref, c, i0],
+                 [out["proj64"], out["sigma_rho64"], out["sigma_tan64"], out["proj"], out["sigma_rho"],
+                  out["sigma_tan"], out["sigma"]], dev, threads)
+    out.update(refined=refined, count=done)
     return out
 
 
