@@ -33,6 +33,9 @@ class DecodedMapParams:
     """Sigma (projector px) of a sub-pixel coordinate at ``contrast_full`` (as 1 / contrast)."""
     sigma_integer: wp.float64
     """Sigma of an integer coordinate (1 / sqrt 12)."""
+    light_gradient: wp.int32
+    """1: each sample's ``shading`` (the light's gradient) is computed; 0: not (camera 2 of a two-camera
+    view: matching reads none), and ``shading`` is not written."""
 
 
 @wp.func
@@ -86,8 +89,8 @@ def decoded_samples_kernel(
     and the light's gradient there (``kernels.light_gradient.shading_at`` on the contrast frame).
 
     fu, fv, fc (H, W) uint16 (proj_u, proj_v, contrast), offsets (H * W,) int32 (the flags' exclusive scan):
-    read. uv (n,) vec2, rho, phi, confidence, sigma_rho, sigma_tan, shading (n,) float32, sector, pixel (n,)
-    int32: written.
+    read. uv (n,) vec2, rho, phi, confidence, sigma_rho, sigma_tan, shading (n,) float32 (shading: with
+    ``prm.light_gradient``; else unread, any size), sector, pixel (n,) int32: written.
 
     Size: Warp kernels take each array as its own argument: the three frames and the offsets in, the nine
     fields of :class:`Samples` out; the codec's constants travel in DecodedMapParams.
@@ -126,7 +129,8 @@ def decoded_samples_kernel(
             pixel[o] = i
             sigma_rho[o] = wp.float32(wp.sqrt(su * su * c2 + sv * sv * s2))
             sigma_tan[o] = wp.float32(wp.sqrt(su * su * s2 + sv * sv * c2))
-            shading[o] = wp.float32(shading_at(fc, uv[o], prm.contrast_scale))
+            if prm.light_gradient != 0:
+                shading[o] = wp.float32(shading_at(fc, uv[o], prm.contrast_scale))
 
 
 def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: int | None = None) -> Samples:
@@ -140,7 +144,8 @@ def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: 
 
     Returns:
         :class:`Samples` with ``uv`` the pixel, ``rho``/``phi`` about the centre, ``sector`` (-1 without
-        sectors), ``confidence``, ``pixel``, ``sigma_rho``/``sigma_tan``, ``shading``; ``ring`` None.
+        sectors), ``confidence``, ``pixel``, ``sigma_rho``/``sigma_tan``, ``shading`` (None where
+        ``params.light_gradient`` is 0); ``ring`` None.
     """
     if not isinstance(frames, wp.array) or frames.dtype != wp.uint16 or frames.ndim != 3 or frames.shape[0] != 3:
         raise ValueError("decoded_map_samples: frames must be a (3, H, W) uint16 Warp array")
@@ -157,10 +162,11 @@ def decoded_map_samples(frames: wp.array, *, params: DecodedMapParams, threads: 
     out = Samples(uv=wp.empty(total, dtype=wp.vec2, device=dev), rho=f32(), ring=None,
                   sector=wp.empty(total, dtype=wp.int32, device=dev), confidence=f32(),
                   pixel=wp.empty(total, dtype=wp.int32, device=dev), phi=f32(), sigma_rho=f32(), sigma_tan=f32(),
-                  shading=f32())
+                  shading=f32() if params.light_gradient else None)
     if total:
+        shading = out.shading if out.shading is not None else wp.empty(0, dtype=wp.float32, device=dev)
         launch_rows(decoded_samples_kernel, h, w, lambda r0, chunk: [fu, fv, fc, offsets, params, r0, chunk],
                     [out.uv, out.rho, out.phi, out.sector, out.confidence, out.pixel, out.sigma_rho, out.sigma_tan,
-                     out.shading],
+                     shading],
                     dev, threads)
     return out

@@ -176,6 +176,12 @@ class Codec(ABC, Generic[S]):
             sectors of its own.
         """
 
+    def extract_for_matching(self, frames: wp.array, scan: Scan, settings: S, *, threads: int) -> tuple[Samples, dict]:
+        """:meth:`extract` for a two-camera match (camera 2 of a view, ``pipeline.reconstruct.stereo``): the
+        samples matching reads (their positions, projector coordinates and sigmas); a codec may leave out
+        what only a point's own error model reads (``Samples.shading``). By default :meth:`extract`."""
+        return self.extract(frames, scan, settings, threads=threads)
+
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: S) -> str | None:
         """Why a view gave no point, where the codec can tell from its frames (one
         sentence for the user), else None (``reconstruct`` then says what the counts say).

@@ -104,9 +104,11 @@ def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray
             "sigma_tan": np.sqrt(su2 * s2 + sv2 * c2).astype(np.float32)}
 
 
-def _map_params(spec: PatternSpec) -> DecodedMapParams:
-    """The kernel's reading of this codec's maps (:func:`decoded_samples`'s constants)."""
+def _map_params(spec: PatternSpec, light_gradient: bool = True) -> DecodedMapParams:
+    """The kernel's reading of this codec's maps (:func:`decoded_samples`'s constants; ``light_gradient``: each
+    sample's ``shading`` too)."""
     p = DecodedMapParams()
+    p.light_gradient = 1 if light_gradient else 0
     p.scale = float(DECODED_SCALE)
     p.contrast_scale = 257.0
     p.center = wp.vec2d(float(spec.center[0]), float(spec.center[1]))
@@ -122,11 +124,13 @@ class DecodedSettings:
     """Settings of the ``decoded`` codec: none (the captures were decoded on import)."""
 
 
-def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, threads: int) -> tuple[Samples, dict]:
+def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, threads: int, *,
+                    light_gradient: bool = True) -> tuple[Samples, dict]:
     """Decode + sampling stage of the ``decoded`` codec (:class:`DecodedCodec`).
 
     Args:
         frames: (3, H, W) uint16 Warp array: proj_u, proj_v, contrast.
+        light_gradient: each sample's ``shading`` too (False: None, for matching, which reads none).
 
     Returns:
         (Samples, stats) with ``pixels_decoded`` and ``times_s``.
@@ -138,7 +142,7 @@ def extract_decoded(frames: wp.array, scan: Scan, settings: DecodedSettings, thr
     if frames.ndim != 3 or frames.shape[0] != 3 or frames.dtype != wp.uint16:
         raise ValueError(f"extract_decoded: expected (3, H, W) uint16 frames, got {frames.shape} {frames.dtype}")
     # on the frames' device: count, scan, write (kernels.decoded_maps); decoded_samples is its NumPy statement
-    smp = decoded_map_samples(frames, params=_map_params(spec), threads=threads)
+    smp = decoded_map_samples(frames, params=_map_params(spec, light_gradient), threads=threads)
     stats = {"pixels_decoded": len(smp), "samples": len(smp),
              "times_s": {"decode": time.perf_counter() - t0}}
     return smp, stats
@@ -160,3 +164,8 @@ class DecodedCodec(Codec[DecodedSettings]):
     def extract(self, frames: wp.array, scan: Scan, settings: DecodedSettings, *,
                 threads: int) -> tuple[Samples, dict]:
         return extract_decoded(frames, scan, settings, threads)
+
+    def extract_for_matching(self, frames: wp.array, scan: Scan, settings: DecodedSettings, *,
+                             threads: int) -> tuple[Samples, dict]:
+        # every pixel a sample: its light gradient is a sixth of the stage's time, and matching reads none
+        return extract_decoded(frames, scan, settings, threads, light_gradient=False)

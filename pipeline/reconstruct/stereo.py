@@ -76,7 +76,8 @@ class StereoMatches:
 
 def decode_view(scan: Scan, view: View, *, settings: ReconstructSettings, device, frames: np.ndarray | None = None,
                 threads: int | None = None) -> tuple[Samples, dict, np.ndarray]:
-    """One camera's samples of a view with the scan's codec: (samples, codec stats, frames)."""
+    """One camera's samples of a view with the scan's codec, as matching reads them
+    (``Codec.extract_for_matching``): (samples, codec stats, frames)."""
     threads = threads or cpu_threads()
     if frames is None:
         frames = read_view_frames(scan, view, threads=threads)
@@ -84,7 +85,7 @@ def decode_view(scan: Scan, view: View, *, settings: ReconstructSettings, device
     frames_w = wp.array(frames, dtype=wp.uint8 if frames.dtype == np.uint8 else wp.uint16, device=device,
                         copy=not on_cpu)
     codec = codec_for(scan.patterns.codec, source=scan.path)
-    samples, stats = codec.extract(frames_w, scan, codec.settings_from(settings), threads=threads)
+    samples, stats = codec.extract_for_matching(frames_w, scan, codec.settings_from(settings), threads=threads)
     return samples, stats, frames
 
 

@@ -44,3 +44,25 @@ def test_the_codec_kernel_gives_decoded_samples_figures():
                 np.testing.assert_allclose(got[k], a, rtol=2e-7, atol=0, err_msg=k)
             else:
                 assert np.array_equal(got[k], a), k
+
+
+def test_samples_for_matching_leave_out_the_light_gradient_only():
+    """Without the light's gradient (camera 2 of a two-camera view: ``DecodedCodec.extract_for_matching``) the
+    samples are the same to the bit, field by field, and ``shading`` is None."""
+    init_warp()
+    rng = np.random.default_rng(5)
+    h, w = 29, 41
+    u = rng.uniform(0, 1023, (h, w))
+    v = rng.uniform(0, 767, (h, w))
+    u[rng.random((h, w)) < 0.2] = np.nan
+    fu, fv, fc = encode_decoded(u, v, rng.uniform(2, 200, (h, w)))
+    frames = wp.array(np.stack([fu, fv, fc]), dtype=wp.uint16, device="cpu")
+    spec = parse_patterns({"codec": "decoded", "width": 1024, "height": 768, "center": [511.5, 383.5], "rho0": 0.0,
+                           "pitch": 1.0, "sector_bits": 3}, source="test")
+    full = decoded_map_samples(frames, params=_map_params(spec), threads=2)
+    lean = decoded_map_samples(frames, params=_map_params(spec, light_gradient=False), threads=2)
+    assert full.shading is not None and np.all(np.isfinite(full.shading.numpy())) and lean.shading is None
+    a, b = full.numpy(), lean.numpy()
+    assert set(a) - set(b) <= {"shading"} and len(b["pixel"]) == len(a["pixel"]) > 0
+    for k in b:
+        assert np.array_equal(a[k], b[k]), k
