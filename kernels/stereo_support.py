@@ -320,20 +320,17 @@ def refine_codes_kernel(
     sg = polar_to_uv(p, wp.float64(sigma_rho[i]), wp.float64(sigma_tan[i]), center)
     bits = integer[i]
     done = int(0)
-    if (bits & 1) != 0:
-        m = window_moments(sample_of, value_u, weight_u, width, height, settings.radius, xs, ys)
-        ok, v, s = plane_at_code(m, p[0], settings)
-        if ok:
-            p[0] = v
-            sg[0] = s
-            done = done | 1
-    if (bits & 2) != 0:
-        m = window_moments(sample_of, value_v, weight_v, width, height, settings.radius, xs, ys)
-        ok, v, s = plane_at_code(m, p[1], settings)
-        if ok:
-            p[1] = v
-            sg[1] = s
-            done = done | 2
+    for axis in range(2):
+        if (bits & (1 << axis)) != 0:
+            if axis == 0:
+                m = window_moments(sample_of, value_u, weight_u, width, height, settings.radius, xs, ys)
+            else:
+                m = window_moments(sample_of, value_v, weight_v, width, height, settings.radius, xs, ys)
+            ok, v, s = plane_at_code(m, p[axis], settings)
+            if ok:
+                p[axis] = v
+                sg[axis] = s
+                done = done | (1 << axis)
     proj_out[k] = p
     sigma_out[k] = sg
     refined[i] = done
