@@ -248,17 +248,20 @@ def refine_terms_kernel(
     weight_u: wp.array(dtype=wp.float64),
     weight_v: wp.array(dtype=wp.float64),
     integer: wp.array(dtype=wp.int32),
+    any_integer: wp.array(dtype=wp.int32),
     sample_of: wp.array(dtype=wp.int32),
 ):
     """Sample i0 + tid's terms of the refinement, in float64: each axis' coordinate and weight 1 / max(sigma,
     1e-3)^2 (its u_p, v_p sigmas from its polar ones, :func:`polar_to_uv`), which axes hold an integer code
-    (bit 0: u_p, bit 1: v_p), and its pixel's entry of the pixel -> sample map.
+    (bit 0: u_p, bit 1: v_p; any_integer 1 where either does: the count to scan), and its pixel's entry of the
+    pixel -> sample map.
 
     proj (n,) vec2, sigma_rho, sigma_tan (n,) float32, pixel (n,) int32: read. value_u, value_v, weight_u,
-    weight_v (n,) float64, integer (n,) int32: written; sample_of (width * height,) int32: written at pixel[i].
+    weight_v (n,) float64, integer, any_integer (n,) int32: written; sample_of (width * height,) int32: written
+    at pixel[i].
 
     Size: the samples' four arrays, the pattern centre and the integer test's tolerance, the span's i0; the
-    five per-sample outputs and the pixel map."""
+    six per-sample outputs and the pixel map."""
     i = i0 + wp.tid()
     p = wp.vec2d(wp.float64(proj[i][0]), wp.float64(proj[i][1]))
     suv = polar_to_uv(p, wp.float64(sigma_rho[i]), wp.float64(sigma_tan[i]), center)
@@ -274,6 +277,7 @@ def refine_terms_kernel(
     if wp.abs(p[1] - wp.round(p[1])) < tolerance:
         bits = bits | 2
     integer[i] = bits
+    any_integer[i] = wp.where(bits != 0, 1, 0)
     sample_of[pixel[i]] = i
 
 
@@ -382,14 +386,6 @@ def join_refined_kernel(
     sigma_rho_out[i] = wp.float32(sr)
     sigma_tan_out[i] = wp.float32(st)
     sigma_out[i] = wp.float32(wp.sqrt(wp.float64(0.5) * (sr * sr + st * st)))
-
-
-@wp.kernel
-def flag_any_kernel(integer: wp.array(dtype=wp.int32), i0: int, flags: wp.array(dtype=wp.int32)):
-    """flags[i] = 1 where sample i has an integer code on either axis. integer (n,) int32: read; flags (n,)
-    int32: written."""
-    i = i0 + wp.tid()
-    flags[i] = wp.where(integer[i] != 0, 1, 0)
 
 
 @wp.kernel
@@ -529,12 +525,11 @@ def refine_codes(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, pixel
     f64 = lambda: wp.empty(n, dtype=wp.float64, device=dev)  # noqa: E731
     value_u, value_v, weight_u, weight_v = f64(), f64(), f64(), f64()
     integer = wp.empty(n, dtype=wp.int32, device=dev)
+    flags = wp.empty(n, dtype=wp.int32, device=dev)
     sample_of = wp.full(int(width) * int(height), -1, dtype=wp.int32, device=dev)
     launch_spans(refine_terms_kernel, n, lambda i0: [proj, sigma_rho, sigma_tan, pixel, c,
                                                      wp.float64(settings.tolerance), i0],
-                 [value_u, value_v, weight_u, weight_v, integer, sample_of], dev, threads)
-    flags = wp.empty(n, dtype=wp.int32, device=dev)
-    launch_spans(flag_any_kernel, n, lambda i0: [integer, i0], [flags], dev, threads)
+                 [value_u, value_v, weight_u, weight_v, integer, flags, sample_of], dev, threads)
     slot, m = scan_counts(flags)
     if m == 0:
         return None
