@@ -32,11 +32,13 @@ DEMO_SCENE = "spot"
 """The demo's default object: the mesh the package ships (pipeline/simulate/data/spot.obj, with its licence)."""
 DEMO_VIEW = ViewSettings(azimuth_deg=-30.0, elevation_deg=25.0)
 """The preview's view: Spot in three-quarter view, 25 degrees above (head, ears, back and legs in sight)."""
-DEMO_KERNELS = ("raytrace", "angle", "ring_labels", "ring_sampling", "triangulation", "point_filter")
-"""The Warp modules of ringscan.kernels a demo run launches (what Warp compiled into an empty kernel cache)."""
-COLD_COMPILE_S = 30
-"""What compiling them adds to a demo run on the 2-core development machine, measured: 139 s from an
-empty kernel cache against 108 s with it filled (docs/demo.md); a first run announces it."""
+DEMO_KERNELS = ("raytrace", "ring_labels", "ring_sampling", "angle", "sample_light", "compact", "error_terms",
+                "calibration_floor", "triangulation", "point_filter")
+"""The Warp modules of ringscan.kernels a demo run launches (what Warp compiled into an empty kernel cache,
+2026-12-07)."""
+COLD_COMPILE_S = 10
+"""What compiling them adds to a demo run on the 2-core development machine, measured: 60 s from an
+empty kernel cache against 53 s with it filled (docs/demo.md); a first run announces it."""
 
 
 def add_parser(sub):
