@@ -96,13 +96,18 @@ def window_moments(sample_of: wp.array(dtype=wp.int32), value: wp.array(dtype=wp
 
 
 @wp.func
+def radial_direction(proj: wp.vec2d, center: wp.vec2d):
+    """(cos, sin) of a projector point's direction from ``center`` (the radial unit vector)."""
+    off = proj - center
+    r = wp.max(wp.length(off), wp.float64(1.0e-12))
+    return off[0] / r, off[1] / r
+
+
+@wp.func
 def polar_to_uv(proj: wp.vec2d, sigma_rho: wp.float64, sigma_tan: wp.float64, center: wp.vec2d):
     """Standard deviations along u_p and v_p of a projector point whose errors are radial and tangential
     about ``center``."""
-    off = proj - center
-    r = wp.max(wp.length(off), wp.float64(1.0e-12))
-    c = off[0] / r
-    s = off[1] / r
+    c, s = radial_direction(proj, center)
     a = sigma_rho * sigma_rho
     b = sigma_tan * sigma_tan
     return wp.vec2d(wp.sqrt(a * (c * c) + b * (s * s)), wp.sqrt(a * (s * s) + b * (c * c)))
@@ -111,10 +116,7 @@ def polar_to_uv(proj: wp.vec2d, sigma_rho: wp.float64, sigma_tan: wp.float64, ce
 @wp.func
 def uv_to_polar(proj: wp.vec2d, sigma_uv: wp.vec2d, center: wp.vec2d):
     """The radial and tangential standard deviations of a projector point with independent u_p, v_p errors."""
-    off = proj - center
-    r = wp.max(wp.length(off), wp.float64(1.0e-12))
-    c = off[0] / r
-    s = off[1] / r
+    c, s = radial_direction(proj, center)
     c2 = c * c
     s2 = s * s
     a = sigma_uv[0] * sigma_uv[0]
