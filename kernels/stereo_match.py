@@ -202,9 +202,11 @@ def box_count(sat: wp.array(dtype=wp.int32), nx: int, ny: int, x0: int, y0: int,
 
 
 @wp.func
-def key_less(da: float, ia: int, db: float, ib: int):
-    """(da, ia) < (db, ib): distance first, the sample index breaks ties (a deterministic neighbour set)."""
-    return da < db or (da == db and ia < ib)
+def key_less(da: float, sa: int, db: float, sb: int, items: wp.array(dtype=wp.int32)):
+    """Whether the sample at grid place sa, at squared distance da, comes before the one at sb: distance
+    first, the sample index (``items``) breaks ties, so the neighbour set is the same on every device (a
+    cell's places are in atomic order on CUDA). Ties are rare: the index is read only for one."""
+    return da < db or (da == db and items[sa] < items[sb])
 
 
 @wp.func
@@ -225,7 +227,7 @@ def sym_eigen(C: wp.mat22):
 
 
 @wp.func
-def curve_offset(proj2: wp.array(dtype=wp.vec2), sigma2: wp.array(dtype=wp.float32), ni: VecKi, n: int,
+def curve_offset(proj2: wp.array(dtype=wp.vec2), sigma2: wp.array(dtype=wp.float32), ns: VecKi, n: int,
                  pm: wp.vec2, v1: wp.vec2, v2: wp.vec2, sq: float, aq: float):
     """How far (projector px) the query lies across the neighbours' curve: the
     neighbours' across-coordinate a = (p - pm).v2 fitted as a quadratic in the
@@ -240,7 +242,7 @@ def curve_offset(proj2: wp.array(dtype=wp.vec2), sigma2: wp.array(dtype=wp.float
     M = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     b = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        j = ni[k]
+        j = ns[k]
         sg = wp.max(sigma2[j], SIGMA_FLOOR_PX)
         w = 1.0 / (sg * sg)
         dp = proj2[j] - pm
@@ -389,7 +391,7 @@ def match_kernel(
     out_gain, out_fit (n,) float32, status (n,) int32: written.
 
     Size: one thread per query, and the steps share its registers: the k-nearest search fills the fixed-size
-    arrays nd/ni/ns that the fit, its refits (a neighbour dropped from ni, ns) and the variances then read, so the
+    arrays nd/ns that the fit, its refits (a neighbour dropped from ns) and the variances then read, so the
     search and the fit stay one body. Warp kernels take each array as its own argument; the scalar settings
     already travel in MatchParams.
     """
@@ -417,8 +419,7 @@ def match_kernel(
     # the k nearest camera-2 samples within ``rings`` cells, sorted by (distance,
     # index)
     nd = VecKf()
-    ni = VecKi()  # the neighbours' sample indices (the key's tie-break: the same set on every device)
-    ns = VecKi()  # ... and their places in the grid's order, where the fit reads them
+    ns = VecKi()  # the neighbours' places in the grid's order, where the fit reads them
     n = int(0)
     r2max = float(rings) * cell * float(rings) * cell
     # what a sample's squared distance must not exceed to be a neighbour: the radius, then the k-th
@@ -462,28 +463,20 @@ def match_kernel(
                         dp = proj2[s] - q
                         d2 = wp.dot(dp, dp)
                         if d2 <= reach:
-                            j = items[s]
+                            # an insertion into the sorted list: the larger keys shift up one place
                             pos = int(-1)
                             if n < k_max:
                                 pos = n
                                 n += 1
-                            elif key_less(d2, j, nd[k_max - 1], ni[k_max - 1]):
+                            elif key_less(d2, s, nd[k_max - 1], ns[k_max - 1], items):
                                 pos = k_max - 1
                             if pos >= 0:
-                                nd[pos] = d2
-                                ni[pos] = j
-                                ns[pos] = s
-                                while pos > 0 and key_less(nd[pos], ni[pos], nd[pos - 1], ni[pos - 1]):
-                                    td = nd[pos]
+                                while pos > 0 and key_less(d2, s, nd[pos - 1], ns[pos - 1], items):
                                     nd[pos] = nd[pos - 1]
-                                    nd[pos - 1] = td
-                                    ti = ni[pos]
-                                    ni[pos] = ni[pos - 1]
-                                    ni[pos - 1] = ti
-                                    ts = ns[pos]
                                     ns[pos] = ns[pos - 1]
-                                    ns[pos - 1] = ts
                                     pos -= 1
+                                nd[pos] = d2
+                                ns[pos] = s
                                 if n == k_max:
                                     reach = wp.min(nd[k_max - 1], r2max)
     if n < k_min:
@@ -595,7 +588,6 @@ def match_kernel(
         if fit > wp.max(max_fit, FIT_SIGMAS * noise_fit) or gain > max_gain:
             if attempt < MAX_REFITS and n > k_min and n > 3:
                 # the worst-fitting neighbour out (the last one in its place), and fit again
-                ni[worst] = ni[n - 1]
                 ns[worst] = ns[n - 1]
                 n -= 1
                 continue

@@ -37,14 +37,13 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ringscan.kernels.graycode_map import subpixel_lines, subpixel_points
-from ringscan.kernels.launch import cpu_pool
 from ringscan.pipeline.formats.patterns import gray_decode
 
 __all__ = ["LAYOUTS", "GrayCodeSettings", "GrayCodeCapture", "Decoded", "graycode_bits", "decode_graycode",
@@ -245,8 +244,9 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
 
     edges = np.linspace(0, contrast.shape[0], max(1, min(int(threads), contrast.shape[0] // 64)) + 1).astype(int)
     bands = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-    if len(bands) > 1:  # (NumPy's loops release the GIL)
-        list(cpu_pool(len(bands)).map(band, bands))
+    if len(bands) > 1:  # (NumPy's loops release the GIL; a pool of its own: no Warp, see load_subpixel_kernels)
+        with ThreadPoolExecutor(max_workers=len(bands), thread_name_prefix="ringscan-decode") as ex:
+            list(ex.map(band, bands))
     else:
         for rows in bands:
             band(rows)
@@ -352,6 +352,8 @@ def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: in
     interpolated between the code boundaries around it (one Warp kernel walk a line,
     ``kernels.graycode_map.subpixel_lines``; its figures are the NumPy construction's to the bit), on
     ``lines`` (None: all)."""
+    from ringscan.kernels.graycode_map import subpixel_lines  # (see load_subpixel_kernels)
+
     return subpixel_lines(code, valid, pairs, bits=pairs.shape[0], axis=axis, max_span=max_span, scale=scale,
                           lines=lines, threads=threads)
 
@@ -364,6 +366,8 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     trust at least those bits. A pixel that finds no two boundaries around it at its own level (beside a
     region of coarser pixels, say) takes the next coarser level that has them; where none has, a pixel
     that trusts every bit keeps its integer code (and is not sub-pixel)."""
+    from ringscan.kernels.graycode_map import subpixel_points  # (see load_subpixel_kernels)
+
     out, ok = None, np.zeros(code.shape, bool)
     bits = pairs.shape[0]
     coarse = np.ascontiguousarray(coarse)
@@ -399,6 +403,16 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
     keep = valid & ~ok & (coarse == 0)
     out[keep] = code[keep]
     return out, ok
+
+
+def load_subpixel_kernels() -> None:
+    """Import the sub-pixel kernels' module (``kernels.graycode_map``: Warp's import, ~0.2 s of one core).
+
+    This module imports it where it is first used, so that ``ringscan import`` can start reading frames at
+    once and load it on a thread of its own meanwhile (``importer``): a plain decode needs no Warp."""
+    import importlib
+
+    importlib.import_module("ringscan.kernels.graycode_map")
 
 
 def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettings = GrayCodeSettings(),

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,7 @@ from ringscan.pipeline.calibrate.graycode import (
     LOW_MODULATION_WARN_SHARE,
     GrayCodeSettings,
     decode_graycode,
+    load_subpixel_kernels,
     subpixel_map,
 )
 from ringscan.pipeline.calibrate.opencv_files import _stereo_message
@@ -469,12 +471,24 @@ def _decode_stats(name: str, per_cam: dict, sel) -> dict:
     return st
 
 
+def _load_kernels_aside() -> None:
+    try:
+        load_subpixel_kernels()
+    except Exception:  # noqa: BLE001 (the camera that needs the module imports it again and raises this as itself)
+        log.debug("the sub-pixel kernels' import failed on its own thread", exc_info=True)
+
+
 def _decode_captures(files: list, names: list, sel, projector, layout: str, settings: ImportSettings):
     """(decs: (capture, name, {camera: decoded}) per view, stats per view): a view's cameras at once."""
     # decode: a view's cameras at once, on threads of their own (NumPy's and OpenCV's loops and the
     # image decoders release the GIL); each camera's result is the one it gets alone
     workers = max(1, min(len(sel), cpu_cores()))
     per_threads = max(1, cpu_cores() // workers)
+    if not settings.integer_only:
+        # the sub-pixel kernels' import (Warp's: ~0.2 s of Python) runs beside the frames' reading, which
+        # leaves the interpreter free; a camera that needs them first waits for it (Python's import lock),
+        # and an import that fails there fails again, with its own error, in that camera's thread
+        threading.Thread(target=_load_kernels_aside, name="ringscan-import-kernels", daemon=True).start()
     decs, stats = [], {}
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ringscan-import") as pool:
         for f, name in zip(files, names):

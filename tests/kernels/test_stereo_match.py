@@ -312,3 +312,30 @@ def test_neighbour_search_skipping_empty_cells_finds_the_k_nearest():
         worst = max(worst, np.abs(np.r_[q[i].astype(np.float32), 1.0] @ coef - got[i]).max())
     # float32 arithmetic on coordinates of ~300 px: 1e-3 px; a neighbour missed or taken wrongly: ~1e-2
     assert worst < 2e-3
+
+
+def test_neighbours_at_equal_distance_are_taken_by_sample_index():
+    """Queries at the centres of a grid of camera-2 samples have their neighbours at equal distances (4 at
+    0.5 px^2, 8 at 2.5 px^2): of the 8 at 2.5 the search keeps the 4 of lowest sample index, whatever the
+    cells' order (the samples are given shuffled), as a brute-force search sorted by (distance, index)."""
+    rng = np.random.default_rng(8)
+    gx, gy = np.meshgrid(np.arange(4.0, 44.0), np.arange(4.0, 36.0))
+    pts = np.c_[gx.ravel(), gy.ravel()][rng.permutation(gx.size)]
+    uv = pts @ np.array([[2.0, 0.1], [-0.2, 1.8]]) + rng.normal(0, 0.2, pts.shape)  # a set's choice: ~0.05 px
+    q = np.c_[rng.integers(8, 38, 300) + 0.5, rng.integers(8, 30, 300) + 0.5]
+    s = MatchSettings()
+    f32 = lambda a: wp.array(np.asarray(a, np.float32), dtype=wp.float32, device="cpu")  # noqa: E731
+    v2 = lambda a: wp.array(np.asarray(a, np.float32), dtype=wp.vec2, device="cpu")  # noqa: E731
+    M = match_by_projector(v2(q), f32(np.full(len(q), 0.05)), v2(pts), v2(uv), f32(np.full(len(pts), 0.05)),
+                           projector_size=(48, 40), settings=s, threads=2)
+    st, got = M.status.numpy(), M.uv2.numpy()
+    assert (st == 0).all(), np.bincount(st)
+    d2 = ((q[:, None, :] - pts[None]) ** 2).sum(-1)  # (exact: halves and integers)
+    worst = 0.0
+    for i in range(len(q)):
+        nn = np.lexsort((np.arange(len(pts)), d2[i]))[:s.neighbours]
+        assert d2[i, nn[-1]] == 2.5 and (d2[i] == 2.5).sum() == 8  # the choice among ties is the test
+        Aff = np.c_[pts[nn], np.ones(len(nn))]
+        coef, *_ = np.linalg.lstsq(Aff, uv.astype(np.float32)[nn].astype(np.float64), rcond=None)
+        worst = max(worst, np.abs(np.r_[q[i], 1.0] @ coef - got[i]).max())
+    assert worst < 2e-3  # float32 on coordinates of ~80 px; another set of 4 among the ties: ~0.05 px

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -28,6 +30,27 @@ def test_integer_decode_matches_the_projected_pixel(capture):
     inner = (np.abs(u - np.round(u)) < 0.3) & (np.abs(v - np.round(v)) < 0.3) & dec.valid
     assert np.mean(dec.col[inner] == np.round(u[inner])) > 0.999
     assert np.mean(dec.row[inner] == np.round(v[inner])) > 0.999
+
+
+def test_the_plain_decode_needs_no_warp_the_subpixel_map_loads_it(defocused):
+    """`ringscan import` reads its frames before Warp is imported (the import loads the sub-pixel kernels on a
+    thread meanwhile): neither the command's modules nor the plain decode import Warp; the sub-pixel map does."""
+    probe = (
+        "import sys\n"
+        "import ringscan.tools.cmd_import\n"
+        "from ringscan.pipeline.calibrate.capture_reader import read_capture\n"
+        "from ringscan.pipeline.calibrate.graycode import decode_graycode, subpixel_map\n"
+        f"cap = read_capture({str(defocused[0].folder)!r}, projector=(256, 192))\n"
+        "dec = decode_graycode(cap, threads=2)\n"  # (240 rows: two bands on two threads)
+        "print('warp' in sys.modules, int(dec.valid.sum()))\n"
+        "subpixel_map(cap, dec)\n"
+        "print('warp' in sys.modules, int(dec.subpixel.sum()))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    (before, decoded), (after, subpixel) = (line.split() for line in r.stdout.split("\n")[:2])
+    assert (before, after) == ("False", "True")
+    assert int(decoded) > 0 and int(subpixel) > 0
 
 
 def test_subpixel_beats_the_integer_floor(capture):

@@ -45,6 +45,31 @@ def test_matches_land_where_camera_2_sees_the_point(stereo_scan):
     assert m.proj.shape == (len(m), 2) and m.uv1.shape == m.uv2.shape
 
 
+def test_the_epipolar_check_reads_an_even_stride_of_a_large_views_matches(stereo_scan, monkeypatch):
+    """Beyond EPIPOLAR_CHECK_MATCHES the check reads every k-th match (k the least that keeps it under): its
+    median and p95 are those of exactly those matches' distances, and near the whole view's."""
+    import warp as wp
+
+    import ringscan.pipeline.reconstruct.stereo as stereo
+
+    scan = stereo_scan
+    m = match_view(scan, scan.views[0], device="cpu")
+    d = epipolar_distances(scan.rig, m.uv1, m.uv2)
+    n = len(m)
+    uv = tuple(wp.array(a.astype(np.float32), dtype=wp.vec2, device="cpu") for a in (m.uv1, m.uv2))
+    whole = stereo.epipolar_check(scan.rig, m, uv=uv)
+    assert whole["matches"] == n
+    monkeypatch.setattr(stereo, "EPIPOLAR_CHECK_MATCHES", n // 7)
+    part = stereo.epipolar_check(scan.rig, m, uv=uv)
+    every = -(-n // (n // 7))
+    sub = d[::every]
+    assert part["matches"] == sub.size <= n // 7 and every > 1
+    # the kernel's float32 distances: within 1e-3 px of the host's float64 (epipolar_distances' docstring)
+    assert abs(part["epipolar_px_median"] - np.median(sub)) < 1e-3
+    assert abs(part["epipolar_px_p95"] - np.percentile(sub, 95)) < 1e-3
+    assert abs(part["epipolar_px_median"] - whole["epipolar_px_median"]) < 0.1 * whole["epipolar_px_median"]
+
+
 def test_camera_camera_camera_projector_and_all_three(stereo_scan, tmp_path):
     out = {}
     for rays in ("camera-projector", "camera-camera", "all", "auto"):
