@@ -19,8 +19,6 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.compact import pixel_rows
-from ringscan.kernels.cross_checks import cross_ring_checks
-from ringscan.kernels.ring_checks import next_neighbours, ring_lag_nodes
 from ringscan.pipeline.reconstruct.error_scale import (
     GROUP_SCALE_RANGE,
     MAX_CHECK_SAMPLES,
@@ -213,6 +211,7 @@ def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: i
     def at(run):
         # the ring's direction at each centre and its nodes at each lag: kernels.ring_checks (the same samples
         # and places as _ring_directions and _lag_nodes state them in NumPy, ~30x faster)
+        from ringscan.kernels.ring_checks import ring_lag_nodes  # (the neighbour model's only)
         wide, _, nodes_at, place_at = ring_lag_nodes(uv, idx.ring, idx.at_pixel, centre, width=idx.width, lags=run,
                                                      device=device)
         out = {}
@@ -311,6 +310,9 @@ def fit_neighbour_model(depth: np.ndarray, s: np.ndarray, sigma_px: np.ndarray, 
     if n_ok < MIN_PAIRS:
         return identity_model(0)
     idx = _ring_index(ring, pixel, np.flatnonzero(ok), width)
+    # (the neighbour model's kernels load with it: a view with an angle code or two cameras never runs them)
+    from ringscan.kernels.ring_checks import next_neighbours
+
     # every R-th row's samples are checked, against any samples of theirs on the same ring; a view too
     # small for MIN_PAIRS checks so has every sample checked (its checks then share samples: k is still
     # what they read, known a little less well than their count says) rather than none (the decode's
@@ -541,6 +543,7 @@ def _reach_scales(d: np.ndarray, var: np.ndarray, uv: np.ndarray, idx: _RingInde
     view["rows"] = pixel_rows(view["at_pixel"], len(d))  # its pixels' samples row by row, once for every call
 
     def checks(cands, radius, most):
+        from ringscan.kernels.cross_checks import cross_ring_checks  # (the neighbour model's only)
         c, r, v = cross_ring_checks(**view, centre=cands[sample_subset(cands.size, most)], radius=radius,
                                     width=idx.width, reject=CROSS_REJECT, gate=CROSS_GATE)
         return (_t_scale(r * r / (T_SCALE * T_SCALE * v)), c.size) if c.size >= MIN_REACH_CHECKS else (None, c.size)

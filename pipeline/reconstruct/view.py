@@ -19,7 +19,6 @@ from ringscan.kernels.compact import count_values, finite_flags, finite_indices,
 from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
-from ringscan.kernels.ring_checks import sample_reach
 from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_GRAZING,
@@ -490,7 +489,10 @@ def _neighbour_sigmas(scan: Scan, samples, triangulated, settings: ReconstructSe
     sigma_px = samples.sigma_rho.numpy()
     ring = samples.ring.numpy() if samples.ring is not None else None
     uv = samples.uv.numpy()
-    # how far along its ring each sample can be checked (kernels.ring_checks; neighbour_checks.check_reach in NumPy)
+    # how far along its ring each sample can be checked (kernels.ring_checks; neighbour_checks.check_reach in NumPy;
+    # imported here: a view with an angle code or two cameras never loads the neighbour model's kernels)
+    from ringscan.kernels.ring_checks import sample_reach
+
     reach = (sample_reach(samples.uv, samples.ring, samples.pixel, np.isfinite(depth), width=cam.width)
              if ring is not None else None)
     fit = fit_neighbour_model(depth, sigma, sigma_px, samples.pixel.numpy(), ring, uv,

@@ -75,7 +75,8 @@ def test_every_known_codec_has_a_reconstruction():
 
 def test_a_run_loads_its_own_codec_only():
     """Reading every codec's settings and reconstructing an imported capture's view load no kernel of the
-    other codecs (Warp parses a module's kernels as it is imported: ~0.1 s of every command)."""
+    other codecs, nor the neighbour model's (views without an angle code), until they are used (Warp parses
+    a module's kernels as it is imported: ~0.1 s of every command)."""
     r = subprocess.run([sys.executable, "-c", textwrap.dedent("""
         import sys
         from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -87,7 +88,8 @@ def test_a_run_loads_its_own_codec_only():
     """)], capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})
     assert r.returncode == 0, r.stderr
     loaded = r.stdout.strip()
-    for other in ("phase", "ring_labels", "ring_sampling", "angle", "ring_lines", "sample_light"):
+    for other in ("phase", "ring_labels", "ring_sampling", "angle", "ring_lines", "sample_light", "ring_checks",
+                  "cross_checks"):
         assert f"'ringscan.kernels.{other}'" not in loaded, other
     assert "'ringscan.kernels.settings'" in loaded and "'ringscan.kernels.decoded_maps'" in loaded
 
