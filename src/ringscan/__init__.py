@@ -21,13 +21,7 @@ of the API is imported on its first use.
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
-
-try:
-    __version__ = version("ringscan")
-except PackageNotFoundError:  # imported from a source tree that was never installed
-    __version__ = "0+unknown"
 
 if TYPE_CHECKING:
     # The API as plain imports, for import-linter (which reads imports under TYPE_CHECKING
@@ -42,12 +36,24 @@ __all__ = ["__version__", *_API]
 
 
 def __getattr__(name: str):
-    if name not in _API:
+    if name == "__version__":  # (read from the installed metadata when asked: importlib.metadata costs ~25 ms)
+        value = _installed_version()
+    elif name in _API:
+        value = getattr(importlib.import_module("ringscan.api"), name)
+    else:
         raise AttributeError(f"module 'ringscan' has no attribute {name!r}")
-    value = getattr(importlib.import_module("ringscan.api"), name)
     globals()[name] = value
     return value
 
 
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ringscan")
+    except PackageNotFoundError:  # imported from a source tree that was never installed
+        return "0+unknown"
+
+
 def __dir__():
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | {"__version__", *_API})
