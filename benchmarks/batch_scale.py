@@ -46,7 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.kernels.runtime import retain_freed_memory
+from ringscan.kernels.process import retain_freed_memory
 from ringscan.pipeline.batch import batch_reconstruct, plan_batch
 from ringscan.pipeline.batch.report import read_results
 from ringscan.pipeline.formats.patterns import parse_patterns
@@ -248,7 +248,7 @@ def throughput(root: Path, work: Path, views: int, ref: dict | None, spec: dict 
     the medians are the figures)."""
     cores = os.cpu_count() or 1
     configs = (("w1", 1, None), ("w2", 2, None), ("s1", 1, 1), ("s2", 2, 1), ("p1", 1, 1))
-    # p1: s1 with the allocator policy off in the worker (RINGSCAN_KEEP_FREED_MB=0, kernels.runtime)
+    # p1: s1 with the allocator policy off in the worker (RINGSCAN_KEEP_FREED_MB=0, kernels.process)
 
     def steady(r):  # views/s between the first scan back (workers started, Warp and its kernel cache loaded) and
         # the last (closing the pool and the final report write after it are not a rate)

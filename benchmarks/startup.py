@@ -6,7 +6,7 @@ Runs, in turn, ``--rounds`` times each:
   module of the command it runs (every sub-command's module imported to build the
   parser: SciPy's optimisers, pygame, the calibration code ...);
 - ``last collection``: the process as it was before it ended without the garbage
-  collector's last pass over every object (``kernels.runtime.skip_final_collection``
+  collector's last pass over every object (``kernels.process.skip_final_collection``
   made a no-op);
 - ``reconstruct``: ``python -m ringscan.tools.cli reconstruct SCAN --out DIR`` as it is;
 
@@ -37,7 +37,7 @@ import numpy as np
 EVERY = ("import sys, ringscan.tools.cli as c; c.build_parser(); "  # as before: every command's module
          "sys.exit(c.main(sys.argv[1:]))")
 ONE = "import sys, ringscan.tools.cli as c; sys.exit(c.main(sys.argv[1:]))"
-COLLECT = ("import sys, ringscan.kernels.runtime as r, ringscan.tools.cli as c; "  # as before: a last collection
+COLLECT = ("import sys, ringscan.kernels.process as r, ringscan.tools.cli as c; "  # as before: a last collection
            "r.skip_final_collection = lambda: None; sys.exit(c.main(sys.argv[1:]))")
 
 

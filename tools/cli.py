@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     # This process is ringscan's: keep freed arrays' pages for the next view. Imported
     # here, not at the top, so that importing the capture command (real drivers) loads
     # no kernels and no Warp (tests/hardware/devices/test_camera.py).
-    from ringscan.kernels.runtime import retain_freed_memory, skip_final_collection
+    from ringscan.kernels.process import retain_freed_memory, skip_final_collection
 
     retain_freed_memory()
     skip_final_collection()  # the command's process ends without a last collection (~0.4 s)

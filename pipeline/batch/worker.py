@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device, retain_freed_memory
 from ringscan.kernels.launch import set_cpu_threads
-from ringscan.kernels.runtime import skip_final_collection
+from ringscan.kernels.process import skip_final_collection
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remove_stale_temporaries
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud

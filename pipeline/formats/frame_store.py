@@ -280,7 +280,7 @@ def check_chunk_files(info: StoreInfo, names: Sequence[str]) -> None:
 
 def _read_chunk(path: Path, limit: int) -> memoryview:
     """A chunk file's bytes, in this thread's reusable buffer: no allocation per frame (without
-    ringscan's allocator policy, ``kernels.runtime.retain_freed_memory``, each new ~0.6 MB
+    ringscan's allocator policy, ``kernels.process.retain_freed_memory``, each new ~0.6 MB
     ``bytes`` is mapped and faulted in afresh: 9 ms a view against 1 ms). Valid until this
     thread's next call."""
     try:

@@ -34,7 +34,7 @@ import numpy as np
 
 from ringscan.kernels import resolve_device
 from ringscan.kernels.launch import cpu_threads
-from ringscan.kernels.runtime import freed_memory_kept_mb
+from ringscan.kernels.process import freed_memory_kept_mb
 from ringscan.pipeline.formats.atomic import (
     atomic_write_json,
     check_no_overwrite,
@@ -247,7 +247,7 @@ def _reconstruct_views(scan: Scan, out: Path, chosen: list[View], done: dict, re
 
 _FRAME_BUFFERS = FrameBuffers(keep=2)
 """The process's frame stacks, kept from scan to scan where the process keeps freed memory
-(:func:`~ringscan.kernels.runtime.retain_freed_memory`: the ringscan command, batch workers,
+(:func:`~ringscan.kernels.process.retain_freed_memory`: the ringscan command, batch workers,
 Ray tasks), within the memory it keeps (``RINGSCAN_KEEP_FREED_MB``, 512 MiB by default):
 one being reconstructed, one being read ahead."""
 

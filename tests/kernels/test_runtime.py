@@ -1,4 +1,4 @@
-"""kernels.runtime: device names checked at the edge; the host allocator's policy."""
+"""kernels.runtime: device names checked at the edge; kernels.process: the host allocator's policy."""
 
 import subprocess
 import sys
@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from ringscan.kernels.runtime import resolve_device, retain_freed_memory
+from ringscan.kernels.process import retain_freed_memory
+from ringscan.kernels.runtime import resolve_device
 
 PROBE = textwrap.dedent("""
     import resource, sys
     import numpy as np
-    from ringscan.kernels.runtime import retain_freed_memory
+    from ringscan.kernels.process import retain_freed_memory
     if sys.argv[1] == "retain" and not retain_freed_memory():
         sys.exit(3)
     if sys.argv[1] == "off" and retain_freed_memory():  # RINGSCAN_KEEP_FREED_MB=0
@@ -56,6 +57,32 @@ def test_retained_memory_is_not_faulted_in_again():
     assert off > 0.5 * default
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator policy: Linux only")
+def test_the_policy_keeps_numpys_arrays_on_base_pages():
+    """With the policy on, NumPy no longer advises huge pages for its arrays (its setter returns the setting it
+    replaces); off (RINGSCAN_KEEP_FREED_MB=0), NumPy's own default stands."""
+    import os
+
+    probe = ("import sys\nfrom numpy._core.multiarray import _set_madvise_hugepage as s\n"
+             "from ringscan.kernels.process import retain_freed_memory\n"
+             "default = s(True); s(default)\n"
+             "on = retain_freed_memory()\n"
+             "print(default, on, s(True))\n")
+    outs = []
+    for env in ({}, {"RINGSCAN_KEEP_FREED_MB": "0"}):
+        r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, **env})
+        assert r.returncode == 0, r.stderr
+        outs.append(r.stdout.split())
+    (default, on, after), (default_off, on_off, after_off) = outs
+    if on == "False":
+        pytest.skip("this C library has no mallopt (not glibc): retain_freed_memory changes nothing")
+    if default == "False":
+        pytest.skip("NumPy advises no huge pages on this kernel: nothing to turn off")
+    assert after == "False"  # advice off while the policy holds
+    assert on_off == "False" and after_off == default_off  # policy off: NumPy's default as it was
+
+
 def test_retain_freed_memory_is_safe_to_call_again():
     first = retain_freed_memory()
     assert retain_freed_memory() == first
@@ -87,7 +114,7 @@ EXIT_PROBE = textwrap.dedent("""
     gc.disable()  # the cycle stays for the exit to find
     atexit.register(lambda: (out / "frozen").write_text(str(gc.get_freeze_count())))  # runs after skip's handler
     if sys.argv[2] == "skip":
-        from ringscan.kernels.runtime import skip_final_collection
+        from ringscan.kernels.process import skip_final_collection
         skip_final_collection()
         skip_final_collection()  # registered once
 """)

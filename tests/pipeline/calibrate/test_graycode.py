@@ -32,11 +32,14 @@ def test_integer_decode_matches_the_projected_pixel(capture):
     assert np.mean(dec.row[inner] == np.round(v[inner])) > 0.999
 
 
-def test_the_plain_decode_needs_no_warp_the_subpixel_map_loads_it(defocused):
+def test_the_plain_decode_needs_no_warp_the_subpixel_map_loads_it(defocused, tmp_path):
     """`ringscan import` reads its frames before Warp is imported (the import loads the sub-pixel kernels on a
-    thread meanwhile): neither the command's modules nor the plain decode import Warp; the sub-pixel map does."""
+    thread meanwhile): neither the command (its process policy, its modules, its checks) nor the plain decode
+    import Warp; the sub-pixel map does."""
     probe = (
         "import sys\n"
+        "from ringscan.tools.cli import main\n"  # (the command's process policy, its checks: no Warp)
+        "assert main(['import', 'nowhere.yml', '--rig', 'none.yml', '--projector', '256x192', '--out', 'x']) == 1\n"
         "import ringscan.tools.cmd_import\n"
         "from ringscan.pipeline.calibrate.capture_reader import read_capture\n"
         "from ringscan.pipeline.calibrate.graycode import decode_graycode, subpixel_map\n"
@@ -46,7 +49,7 @@ def test_the_plain_decode_needs_no_warp_the_subpixel_map_loads_it(defocused):
         "subpixel_map(cap, dec)\n"
         "print('warp' in sys.modules, int(dec.subpixel.sum()))\n"
     )
-    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     (before, decoded), (after, subpixel) = (line.split() for line in r.stdout.split("\n")[:2])
     assert (before, after) == ("False", "True")
