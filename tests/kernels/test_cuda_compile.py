@@ -12,8 +12,9 @@ import warp as wp
 
 import ringscan.kernels as kernels_pkg
 
-# Warp's start-up, the Samples dataclass, the stages' settings, the response tables: no Warp code
-HOST_ONLY = {"runtime", "samples", "settings", "response"}
+# Warp's start-up, the processes' host policy, the Samples dataclass, the stages' settings, the response tables:
+# no Warp code
+HOST_ONLY = {"runtime", "process", "samples", "settings", "response"}
 KERNEL_MODULES = sorted(
     m.name for m in pkgutil.iter_modules(kernels_pkg.__path__) if not m.name.startswith("_") and m.name not in HOST_ONLY
 )
