@@ -82,12 +82,21 @@ _EXPECTED = {"float_type": "a number", "int_type": "a whole number", "bool_type"
              "dataclass_type": "an object of settings", "int_from_float": "a whole number"}
 
 
+_SCALAR_CHECKS = {
+    float: ("float_type", lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)),
+    int: ("int_type", lambda v: isinstance(v, int) and not isinstance(v, bool)),
+    bool: ("bool_type", lambda v: isinstance(v, bool)),
+    str: ("string_type", lambda v: isinstance(v, str)),
+}
+"""A number, a whole number, true/false and a string, as pydantic's strict JSON rules have them (a bool is no
+number), checked here: pydantic's own check costs its import (~0.05 s of a command given ``--set``)."""
+
+
 def _validate(cls, d: dict, where: str = "") -> None:
     """Check every value of ``d`` against the type of its field of ``cls``: a nested settings class's values
-    in turn, every other value against its field's own type (pydantic's schema of that type only: a whole
-    settings class's costs ~0.07 s, of one field's type a millisecond)."""
-    from pydantic import ValidationError
-
+    in turn, a scalar as :data:`_SCALAR_CHECKS` says, any other value against its field's own type (pydantic's
+    schema of that type only: a whole settings class's costs ~0.07 s, one field's type a millisecond). Each
+    value as JSON has it (a NumPy scalar as its Python value, anything else JSON cannot hold as its text)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for k, v in d.items():
         f = fields[k]
@@ -95,16 +104,30 @@ def _validate(cls, d: dict, where: str = "") -> None:
         if dataclasses.is_dataclass(sub) and isinstance(v, dict):
             _validate(type(sub), v, f"{where}{k}.")
             continue
-        try:
-            text = json.dumps(v, allow_nan=True, default=lambda o: o.item() if hasattr(o, "item") else str(o))
-            _adapter(_field_types(cls)[k]).validate_json(text, strict=True)
-        except ValidationError as e:
-            err = e.errors(include_url=False)[0]
-            path = ".".join(str(p) for p in (k, *err["loc"]))
-            want = _EXPECTED.get(err["type"])
-            what = f"expected {want}" if want else err["msg"][0].lower() + err["msg"][1:]
-            got = f", got {err['input']!r}" if "input" in err and not isinstance(err["input"], dict) else ""
-            raise ValueError(f"{where}{path}: {what}{got}") from None
+        text = json.dumps(v, allow_nan=True, default=lambda o: o.item() if hasattr(o, "item") else str(o))
+        t = _field_types(cls)[k]
+        if t in _SCALAR_CHECKS:
+            kind, ok = _SCALAR_CHECKS[t]
+            value = json.loads(text)
+            if not ok(value):
+                got = "" if isinstance(value, dict) else f", got {value!r}"
+                raise ValueError(f"{where}{k}: expected {_EXPECTED[kind]}{got}")
+            continue
+        _validate_with_pydantic(t, text, f"{where}{k}")
+
+
+def _validate_with_pydantic(t, text: str, path: str) -> None:
+    from pydantic import ValidationError
+
+    try:
+        _adapter(t).validate_json(text, strict=True)
+    except ValidationError as e:
+        err = e.errors(include_url=False)[0]
+        path = ".".join(str(p) for p in (path, *err["loc"]))
+        want = _EXPECTED.get(err["type"])
+        what = f"expected {want}" if want else err["msg"][0].lower() + err["msg"][1:]
+        got = f", got {err['input']!r}" if "input" in err and not isinstance(err["input"], dict) else ""
+        raise ValueError(f"{path}: {what}{got}") from None
 
 
 @functools.cache
