@@ -36,3 +36,13 @@ def test_full_parser_lists_every_command(capsys):
     assert set(sub.choices) == set(COMMANDS)
     assert main(["-v"]) == 2  # no command: a usage error, with the command listing
     assert "usage: ringscan" in capsys.readouterr().err
+
+
+def test_the_version_is_read_only_when_asked_for():
+    """The installed metadata (importlib.metadata, ~15 ms) is read for ``--version``, not by every command's start."""
+    probe = ("import sys\nfrom ringscan.tools.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n"
+             "    pass\nprint('METADATA', 'importlib.metadata' in sys.modules)\n")
+    runs = {a: subprocess.run([sys.executable, "-c", probe, a, *(["--help"] if a == "pack" else [])],
+                              capture_output=True, text=True, timeout=300, cwd=REPO) for a in ("pack", "--version")}
+    assert runs["pack"].stdout.split("METADATA")[1].split() == ["False"]
+    assert runs["--version"].stdout.startswith("ringscan ") and runs["--version"].stdout.split("METADATA")[1].split() == ["True"]
