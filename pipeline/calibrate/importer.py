@@ -566,7 +566,7 @@ def _write_camera(out: Path, sub: str, dec) -> dict:
     rels = {}
     for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
         rels[key] = f"{sub}/{key}.png"
-        write_image(out / rels[key], img)
+        write_image(out / rels[key], img, smooth=True)
     return rels
 
 

@@ -430,3 +430,17 @@ def test_truth_mesh_through_a_link_out_of_the_folder(tmp_path):
     (tmp_path / "scan" / "truth").unlink()
     t = check_truth(scan)
     assert t["mesh"] == "truth/object.ply" and t["views"] == GOOD_TRUTH["views"] and t["reference_plane"] is True
+
+
+def test_a_smooth_map_is_written_smaller_than_a_frame_and_read_back_exactly(tmp_path):
+    """A decoded map (smooth 16-bit projector coordinates, as `ringscan import` writes them) is written with zlib's
+    default strategy (``smooth=True``): read back to the bit, and far smaller than the run-length strategy that
+    suits noisy camera frames makes it (where zlib finds long matches, run-length coding cannot use them)."""
+    from ringscan.pipeline.formats.images import read_image
+
+    y, x = np.mgrid[0:384, 0:512].astype(np.float64)
+    u = np.round((40 + 0.37 * x + 0.02 * y + 3e-4 * x * y) * 64).astype(np.uint16)  # 1/64 px steps
+    write_image(tmp_path / "map.png", u, smooth=True)
+    write_image(tmp_path / "frame.png", u)
+    assert np.array_equal(read_image(tmp_path / "map.png"), u) and np.array_equal(read_image(tmp_path / "frame.png"), u)
+    assert (tmp_path / "map.png").stat().st_size < 0.8 * (tmp_path / "frame.png").stat().st_size
