@@ -12,7 +12,7 @@ import warp as wp
 
 from ringscan.kernels.launch import check_array, default_threads, launch_spans
 
-__all__ = ["check_reach_kernel", "next_neighbours_kernel", "ring_sums_kernel", "lag_nodes_kernel", "sample_reach",
+__all__ = ["check_reach_kernel", "next_neighbours_kernel", "ring_sums_kernel", "lag_nodes_kernel", "sample_reach", "pixel_offsets",
            "next_neighbours", "ring_lag_nodes"]
 
 # no gradients here, and loops left as loops: unrolled (Warp's default for short constant
@@ -182,26 +182,48 @@ def ring_direction(uv: wp.array(dtype=wp.vec2), ring: wp.array(dtype=wp.int32), 
 
 @wp.func
 def lag_node(uv: wp.array(dtype=wp.vec2), ring: wp.array(dtype=wp.int32), at_pixel: wp.array(dtype=wp.int32),
-             width: int, height: int, k: int, pc: wp.vec2d, direction: wp.vec2d, step: int, lag: int):
+             width: int, height: int, k: int, pc: wp.vec2d, direction: wp.vec2d, step: int, lag: int,
+             offsets: wp.vec4d):
     """(the sample of ring ``k`` nearest to pc + step * lag * direction among the 5x5 pixels around that
     target and within max(1.5, lag / 2) px of it (-1: none), its signed place along ``direction``):
     ``_lag_nodes``' for one node.
 
+    The 3 x 3 pixels around the target are read first: ``offsets`` (lo_x, hi_x, lo_y, hi_y) bound where a
+    sample lies in the pixel that holds it (x + lo_x .. x + hi_x; :func:`pixel_offsets`), so a sample of the
+    outer 16 pixels is at least as far as their nearest side, and a nearer one found inside is the nearest;
+    otherwise all 25 are read in their order, as before (the same node, ties included).
+
     Size: a @wp.func reading the samples and the pixel lookup directly, plus the ring, the centre's place,
-    the ring's direction there, the node's step and the lag."""
+    the ring's direction there, the node's step and the lag, the samples' offset bounds."""
     target = pc + wp.float64(float(step * lag)) * direction
     tx = int(wp.rint(target[0]))
     ty = int(wp.rint(target[1]))
     best = wp.float64(1.0e300)
     node = int(-1)
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
             j = same_ring_at(at_pixel, ring, width, height, k, tx + dx, ty + dy)
             if j >= 0:
                 dist = wp.length(uv64(uv, j) - target)
                 if dist < best:
                     best = dist
                     node = j
+    # the outer pixels' nearest side: columns tx -+ 2, rows ty -+ 2 (a margin for the distances' rounding)
+    fx = target[0] - wp.float64(float(tx))
+    fy = target[1] - wp.float64(float(ty))
+    two = wp.float64(2.0)
+    outer = wp.min(wp.min(fx + two - offsets[1], two + offsets[0] - fx), wp.min(fy + two - offsets[3], two + offsets[2] - fy))
+    if not (best < outer * wp.float64(0.999999) - wp.float64(1.0e-9)):
+        best = wp.float64(1.0e300)
+        node = int(-1)
+        for dy in range(-2, 3):
+            for dx in range(-2, 3):
+                j = same_ring_at(at_pixel, ring, width, height, k, tx + dx, ty + dy)
+                if j >= 0:
+                    dist = wp.length(uv64(uv, j) - target)
+                    if dist < best:
+                        best = dist
+                        node = j
     if best > wp.max(wp.float64(1.5), wp.float64(0.5 * float(lag))):
         node = -1
     place = wp.float64(0.0)
@@ -224,6 +246,7 @@ def check_reach_kernel(
     at_pixel: wp.array(dtype=wp.int32),
     npix: wp.int64,
     width: int,
+    offsets: wp.vec4d,
     i0: int,
     reach: wp.array(dtype=wp.int32),
 ):
@@ -234,8 +257,8 @@ def check_reach_kernel(
 
     uv (n,) vec2, ring and pixel (n,) int32 the samples' (pixel: y * width + x); usable (m,) int32 the samples to test; key (m,)
     int64 sorted ring * npix + pixel of the usable samples and order (m,) int32 the sample of each;
-    at_pixel (npix,) int32 a usable sample at each pixel (-1: none): read. reach (n,) int32:
-    written at the usable samples.
+    at_pixel (npix,) int32 a usable sample at each pixel (-1: none); offsets their bounds in their pixels
+    (:func:`pixel_offsets`): read. reach (n,) int32: written at the usable samples.
 
     Size: the samples' three arrays, the two lookups (by ring and pixel, by pixel), the span's i0, one
     array out."""
@@ -255,7 +278,7 @@ def check_reach_kernel(
             for s in range(4):
                 if fine == 1:
                     node, place = lag_node(uv, ring, at_pixel, width, height, k, pc, direction,
-                                           s - 2 + wp.where(s >= 2, 1, 0), lag)  # steps -2, -1, 1, 2
+                                           s - 2 + wp.where(s >= 2, 1, 0), lag, offsets)  # steps -2, -1, 1, 2
                     if node < 0:
                         fine = 0
                     else:
@@ -333,6 +356,7 @@ def lag_nodes_kernel(
     width: int,
     first: int,
     lags: int,
+    offsets: wp.vec4d,
     i0: int,
     nodes: wp.array2d(dtype=wp.int32),
     place: wp.array2d(dtype=wp.float64),
@@ -341,7 +365,7 @@ def lag_nodes_kernel(
     ``lags`` of ``LAGS`` from its ``first``, and their places (:func:`lag_node`; ``_lag_nodes``).
 
     uv (n,) vec2, ring (n,) int32, centre (m,) int32, direction (m,) vec2d, at_pixel (npix,) int32 a usable
-    sample at each pixel (-1: none): read. nodes (m, 4 lags) int32 (-1: none), place (m, 4 lags) float64:
+    sample at each pixel (-1: none), offsets their bounds in their pixels (:func:`pixel_offsets`): read. nodes (m, 4 lags) int32 (-1: none), place (m, 4 lags) float64:
     written.
 
     Size: the samples' two arrays, the centres and their directions, the pixel lookup, the camera's width,
@@ -353,12 +377,25 @@ def lag_nodes_kernel(
     for li in range(lags):
         for s in range(4):
             node, pl = lag_node(uv, ring, at_pixel, width, height, ring[c], pc, direction[i],
-                                s - 2 + wp.where(s >= 2, 1, 0), LAGS[first + li])
+                                s - 2 + wp.where(s >= 2, 1, 0), LAGS[first + li], offsets)
             nodes[i, 4 * li + s] = node
             place[i, 4 * li + s] = pl
 
 
 # ----------------------------------------------------------------------------- host
+
+
+def pixel_offsets(uv: np.ndarray, at_pixel: np.ndarray, width: int) -> wp.vec4d:
+    """(lo_x, hi_x, lo_y, hi_y): where the samples ``at_pixel`` holds ((H * W,) int, -1: none) lie in their pixels,
+    x + lo_x .. x + hi_x (``uv`` (n, 2) their float32 positions, read as the kernels read them): the bounds by
+    which :func:`lag_node` settles a node from the 3 x 3 pixels (edge samples lie 0..1 px from their
+    pixel's corner, others elsewhere: each view's own)."""
+    p = np.flatnonzero(np.asarray(at_pixel) >= 0)
+    if p.size == 0:
+        return wp.vec4d(0.0, 0.0, 0.0, 0.0)
+    at = np.asarray(uv, np.float32).reshape(-1, 2)[np.asarray(at_pixel)[p]].astype(np.float64)
+    ox, oy = at[:, 0] - (p % int(width)), at[:, 1] - (p // int(width))
+    return wp.vec4d(float(ox.min()), float(ox.max()), float(oy.min()), float(oy.max()))
 
 
 def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarray, *, width: int,
@@ -395,7 +432,8 @@ def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarr
     out = wp.array(reach, dtype=wp.int32, device=dev)
     args = [uv, ring, pixel, wp.array(use.astype(np.int32), dtype=wp.int32, device=dev),
             wp.array(key[o], dtype=wp.int64, device=dev), wp.array(use[o].astype(np.int32), dtype=wp.int32, device=dev),
-            wp.array(at_pixel, dtype=wp.int32, device=dev), wp.int64(npix), int(width)]
+            wp.array(at_pixel, dtype=wp.int32, device=dev), wp.int64(npix), int(width),
+            pixel_offsets(uv.numpy(), at_pixel, int(width))]
     launch_spans(check_reach_kernel, use.size, lambda i0: args + [i0], [out], dev,
                  default_threads() if threads is None else threads, min_span=1024)
     return out.numpy()
@@ -464,7 +502,8 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
     place = np.zeros((kept.size, 4 * lags), np.float64)
     if kept.size:
         args = [uv32, ring_w, wp.array(kept.astype(np.int32), dtype=wp.int32, device=dev),
-                wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), first, lags]
+                wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), first, lags,
+                pixel_offsets(uv, at_pixel, int(width))]
         outs = [_host_out(nodes, wp.int32, dev), _host_out(place, wp.float64, dev)]
         launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0], outs, dev, threads, min_span=1024)
         nodes, place = _read_back(outs[0], nodes), _read_back(outs[1], place)

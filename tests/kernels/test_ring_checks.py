@@ -105,3 +105,34 @@ def test_next_neighbours_are_the_numpy_statements(device):
     assert all(np.array_equal(a, b) for a, b in zip(got, want))
     assert 0 < want[0].size < idx.order.size  # some centres with a pair, some without
 
+
+
+@pytest.mark.parametrize("held", ["corner", "far"])
+def test_the_reach_is_the_numpy_statements_wherever_a_sample_lies_in_its_pixel(held):
+    """The node search settles a node from the 3 x 3 pixels around its target when the samples' own offsets in
+    their pixels (``pixel_offsets``: each view's) say none of the outer 16 can be nearer: the same reaches as
+    the NumPy statement, which reads all 25, with samples held by the pixel at their corner (edge samples:
+    0..1 px from it) and by one 1.4 px away (a bound that leaves the 3 x 3 nothing to settle)."""
+    from ringscan.kernels.ring_checks import pixel_offsets
+    from tests.support.ring_views import WIDTH as W
+
+    rng = np.random.default_rng(7)
+    pieces = [_circle(k, 10 + 4.3 * k) for k in range(24)]
+    uv, _, ring = _view(pieces)
+    shift = 0.0 if held == "corner" else 1.4
+    x = np.floor(uv[:, 0] - shift).astype(np.int64)
+    y = np.floor(uv[:, 1]).astype(np.int64)
+    pixel = y * W + x
+    _, first = np.unique(pixel, return_index=True)  # one sample a pixel
+    keep = np.zeros(len(pixel), bool)
+    keep[first] = True
+    keep &= rng.random(len(pixel)) > 0.2
+    uv, pixel, ring = uv[keep], pixel[keep].astype(np.int32), ring[keep]
+    at = np.full(int(pixel.max()) + W + 2, -1)
+    at[pixel] = np.arange(len(pixel))
+    lo_x, hi_x, lo_y, hi_y = pixel_offsets(uv, at, W)
+    # (float32 positions of ~200 px: within 1e-4 px of the held offsets)
+    assert lo_x > shift - 1e-4 and lo_y > -1e-4 and hi_x < shift + 1.0 + 1e-4 and hi_y < 1.0 + 1e-4
+    got, ref = _reach(uv, pixel, ring)
+    assert np.array_equal(got, ref)
+    assert set(np.unique(got)) >= {0, 1, 8}
