@@ -387,17 +387,23 @@ def lag_nodes_kernel(
 # ----------------------------------------------------------------------------- host
 
 
-def pixel_offsets(uv: np.ndarray, at_pixel: np.ndarray, width: int) -> wp.vec4d:
-    """(lo_x, hi_x, lo_y, hi_y): where the samples ``at_pixel`` holds ((H * W,) int, -1: none) lie in their pixels,
-    x + lo_x .. x + hi_x (``uv`` (n, 2) their float32 positions, read as the kernels read them): the bounds by
-    which :func:`lag_node` settles a node from the 3 x 3 pixels (edge samples lie 0..1 px from their
-    pixel's corner, others elsewhere: each view's own)."""
-    p = np.flatnonzero(np.asarray(at_pixel) >= 0)
-    if p.size == 0:
+def pixel_offsets(uv: np.ndarray, pixel: np.ndarray, width: int) -> wp.vec4d:
+    """(lo_x, hi_x, lo_y, hi_y): where samples lie in their pixels, x + lo_x .. x + hi_x (``uv`` (n, 2) their
+    float32 positions, read as the kernels read them; ``pixel`` (n,) y * width + x): the bounds by which
+    :func:`lag_node` settles a node from the 3 x 3 pixels. Given the samples a pixel lookup may hold (or more:
+    wider bounds only read more pixels). Edge samples lie 0..1 px from their pixel's corner, others elsewhere:
+    each view's own."""
+    pixel = np.asarray(pixel, np.int64)
+    if pixel.size == 0:
         return wp.vec4d(0.0, 0.0, 0.0, 0.0)
-    at = np.asarray(uv, np.float32).reshape(-1, 2)[np.asarray(at_pixel)[p]].astype(np.float64)
-    ox, oy = at[:, 0] - (p % int(width)), at[:, 1] - (p // int(width))
+    at = np.asarray(uv, np.float32).reshape(-1, 2).astype(np.float64)
+    ox, oy = at[:, 0] - (pixel % int(width)), at[:, 1] - (pixel // int(width))
     return wp.vec4d(float(ox.min()), float(ox.max()), float(oy.min()), float(oy.max()))
+
+
+def _held_offsets(uv: np.ndarray, at_pixel: np.ndarray, width: int) -> wp.vec4d:
+    p = np.flatnonzero(np.asarray(at_pixel) >= 0)
+    return pixel_offsets(np.asarray(uv).reshape(-1, 2)[np.asarray(at_pixel)[p]], p, width)
 
 
 def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarray, *, width: int,
@@ -435,7 +441,7 @@ def sample_reach(uv: wp.array, ring: wp.array, pixel: wp.array, usable: np.ndarr
     args = [uv, ring, pixel, wp.array(use.astype(np.int32), dtype=wp.int32, device=dev),
             wp.array(key[o], dtype=wp.int64, device=dev), wp.array(use[o].astype(np.int32), dtype=wp.int32, device=dev),
             wp.array(at_pixel, dtype=wp.int32, device=dev), wp.int64(npix), int(width),
-            pixel_offsets(uv.numpy(), at_pixel, int(width))]
+            pixel_offsets(uv.numpy()[use], px[use], int(width))]
     launch_spans(check_reach_kernel, use.size, lambda i0: args + [i0], [out], dev,
                  default_threads() if threads is None else threads, min_span=1024)
     return out.numpy()
@@ -455,7 +461,7 @@ def _read_back(out: wp.array, a: np.ndarray) -> np.ndarray:
 
 
 def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centre: np.ndarray, *, width: int,
-                   lags: tuple, threads: int | None = None,
+                   lags: tuple, offsets: wp.vec4d | None = None, threads: int | None = None,
                    device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(the ``centre`` samples whose ring has a direction there (k,), that direction (k, 2), their nodes
     (k, len(lags), 4) int64 (-1: none) and the nodes' places (k, len(lags), 4) float64) for ``lags`` of
@@ -470,6 +476,8 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
         centre: (m,) int the samples to find nodes for.
         width: camera width (px).
         lags: the lags (px), in order, without a gap: (2,), (4, 8), (2, 4, 8), ...
+        offsets: :func:`pixel_offsets` of the samples ``at_pixel`` holds, where the caller has them (None: read
+            from ``at_pixel``, a pass over every pixel).
         threads: CPU threads; default all cores.
         device: where the kernels run (the view's device; NumPy in and out).
     """
@@ -505,7 +513,7 @@ def ring_lag_nodes(uv: np.ndarray, ring: np.ndarray, at_pixel: np.ndarray, centr
     if kept.size:
         args = [uv32, ring_w, wp.array(kept.astype(np.int32), dtype=wp.int32, device=dev),
                 wp.array(np.ascontiguousarray(direction), dtype=wp.vec2d, device=dev), at_w, int(width), first, lags,
-                pixel_offsets(uv, at_pixel, int(width))]
+                offsets if offsets is not None else _held_offsets(uv, at_pixel, int(width))]
         outs = [_host_out(nodes, wp.int32, dev), _host_out(place, wp.float64, dev)]
         launch_spans(lag_nodes_kernel, kept.size, lambda i0: args + [i0], outs, dev, threads, min_span=1024)
         nodes, place = _read_back(outs[0], nodes), _read_back(outs[1], place)

@@ -208,12 +208,16 @@ def _wide_checks(uv: np.ndarray, idx: _RingIndex, centre: np.ndarray, max_lag: i
     if not lags:
         return []
 
+    from ringscan.kernels.ring_checks import pixel_offsets, ring_lag_nodes  # (the neighbour model's only)
+
+    # where the usable samples lie in their pixels (the ones the pixel lookup holds among them)
+    held = pixel_offsets(uv[idx.order], idx.y[idx.order] * idx.width + idx.x[idx.order], idx.width)
+
     def at(run):
         # the ring's direction at each centre and its nodes at each lag: kernels.ring_checks (the same samples
         # and places as _ring_directions and _lag_nodes state them in NumPy, ~30x faster)
-        from ringscan.kernels.ring_checks import ring_lag_nodes  # (the neighbour model's only)
         wide, _, nodes_at, place_at = ring_lag_nodes(uv, idx.ring, idx.at_pixel, centre, width=idx.width, lags=run,
-                                                     device=device)
+                                                     offsets=held, device=device)
         out = {}
         for li, lag in enumerate(run):
             nodes, place = nodes_at[:, li], place_at[:, li]
