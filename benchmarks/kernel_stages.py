@@ -32,7 +32,7 @@ import warp as wp
 
 from ringscan.kernels import init_warp
 from ringscan.kernels.launch import set_cpu_threads
-from ringscan.kernels.runtime import retain_freed_memory
+from ringscan.kernels.process import retain_freed_memory
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 
