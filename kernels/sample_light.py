@@ -16,15 +16,31 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ringscan.kernels.launch import check_array, default_threads, launch_spans
+from ringscan.kernels.launch import check_array, default_threads, launch_rows, launch_spans, row_run
 from ringscan.kernels.light_gradient import shading_at
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["sample_light_kernel", "phase_light_kernel", "sample_light", "phase_light"]
+__all__ = ["sample_light_kernel", "phase_light_kernel", "pair_sums_kernel", "pair_noise_kernel", "noise_widen_kernel", "sample_light",
+           "phase_light", "sample_pair_noise", "widen_for_pair_noise"]
 
 MAX_INDIRECT_BITS = 4
 """Most band bits whose pattern / inverse floor a sample's indirect share averages."""
+NOISE_STRIDE = 2
+"""A sample's frame noise is read on every other pixel in x and y (a quarter of the pixels: summing 7 pairs at
+every pixel of a full-size view took 60 ms on one thread, this ~15)."""
+NOISE_RADIUS = 2
+"""... over the (2 r + 1)^2 such pixels nearest it (5 x 5 of them, 9 x 9 camera px: with a code's 7 band
+pairs ~150 degrees of freedom, its noise to ~6 %)."""
+MAX_NOISE_PAIRS = 32
+"""Most frame pairs a sample's noise is measured over."""
+CLEAR_PAIR_TENTHS = 9
+"""A pair measures the noise at a pixel where |frame - inverse| is at least this many tenths of white - black: on
+a blurred edge the two mix, and a camera's response curve (or a renderer's) makes their sum differ from the
+unmixed one by far more than the noise (gamma 2.2 at a 90 / 10 mix: 30 % of the span); at 0.9 the virtual
+rig's frames read their own noise (1.8 levels for 1.5 rendered; 6.3 where 6 more were added)."""
+CLEAR_TENTHS = wp.constant(CLEAR_PAIR_TENTHS)
+NOISE_STEP = wp.constant(NOISE_STRIDE)
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -134,9 +150,109 @@ def phase_light_kernel(
     shading[i] = wp.float32(shading_at(contrast, uv[i], scale))
 
 
+@wp.kernel
+def pair_sums_kernel(
+    frames: wp.array3d(dtype=Any),
+    planes: wp.vec4i,
+    pairs: wp.array(dtype=wp.int32),
+    row0: int,
+    chunk: int,
+    ss: wp.array2d(dtype=wp.float32),
+    dof: wp.array2d(dtype=wp.int32),
+):
+    """Every ``NOISE_STRIDE``-th pixel's spread of its clear pairs' sums (in x and y: grid pixel (gy, gx) is
+    camera pixel (2 gy, 2 gx)), ``chunk`` grid pixels of one grid row per thread: where a pair
+    stands clear (10 |frame - inverse| >= ``CLEAR_PAIR_TENTHS`` x (white - black): the one lit, the other dark,
+    away from the pair's edges), frame + inverse is the same light whatever the pattern and whatever the
+    camera's response, so the clear pairs' sums s_j differ by the noise alone: ss = sum_j (s_j - mean)^2 =
+    (m sum s_j^2 - (sum s_j)^2) / m over the m clear pairs (integer sums, the quotient in float64, then
+    float32) and dof = m - 1 (both 0 with fewer than two clear pairs).
+
+    frames (F, H, W) uint8/uint16, pairs (2 k,) int32 frame indices (frame, inverse, ...): read; ``planes``:
+    (white, black, 0, 0). ss (ceil(H / 2), ceil(W / 2)) float32 and dof likewise int32: written.
+    ``angle_code.pair_noise``
+    states it in NumPy, the same sums in the same order."""
+    run = row_run(wp.tid(), ss.shape[1], row0, chunk)
+    gy = run[0]
+    y = gy * NOISE_STEP
+    k = pairs.shape[0] / 2
+    for gx in range(run[1], run[2]):
+        x = gx * NOISE_STEP
+        # in whole levels (exact, and ~3x faster than float64): clear where 10 |a - b| >= 9 (white - black)
+        span = CLEAR_TENTHS * (int(frames[planes[0], y, x]) - int(frames[planes[1], y, x]))
+        s1 = wp.int64(0)
+        s2 = wp.int64(0)
+        used = int(0)
+        for j in range(k):
+            a = int(frames[pairs[2 * j], y, x])
+            b = int(frames[pairs[2 * j + 1], y, x])
+            on = wp.where(10 * wp.abs(a - b) >= span, 1, 0)
+            s1 += wp.int64(on * (a + b))
+            s2 += wp.int64(on * (a + b)) * wp.int64(a + b)
+            used += on
+        if used >= 2:
+            # (used s2 - s1^2) / used: the sum of squared deviations, its numerator exact
+            ss[gy, gx] = wp.float32(wp.float64(wp.int64(used) * s2 - s1 * s1) / wp.float64(float(used)))
+            dof[gy, gx] = used - 1
+        else:
+            ss[gy, gx] = wp.float32(0.0)
+            dof[gy, gx] = 0
+
+
+@wp.kernel
+def pair_noise_kernel(
+    ss: wp.array2d(dtype=wp.float32),
+    dof: wp.array2d(dtype=wp.int32),
+    uv: wp.array(dtype=wp.vec2),
+    radius: int,
+    scale: wp.float64,
+    i0: int,
+    noise: wp.array(dtype=wp.float32),
+):
+    """Sample i0 + tid's frame noise (8-bit levels): the grid pixels' spreads (:func:`pair_sums_kernel`)
+    pooled over the (2 radius + 1)^2 grid pixels around its nearest one (uv / 2 rounded; those inside the
+    image), sqrt(sum ss / sum dof / 2) (Var(frame + inverse) = 2 noise^2) over ``scale``; 0 where no pixel
+    there has two clear pairs.
+
+    ss, dof (grid), uv (n,) vec2: read. noise (n,) float32: written."""
+    i = i0 + wp.tid()
+    h = ss.shape[0]
+    w = ss.shape[1]
+    step = wp.float64(float(NOISE_STEP))
+    px = wp.min(wp.max(int(wp.rint(wp.float64(uv[i][0]) / step)), 0), w - 1)
+    py = wp.min(wp.max(int(wp.rint(wp.float64(uv[i][1]) / step)), 0), h - 1)
+    total = wp.float64(0.0)
+    count = int(0)
+    for y in range(wp.max(py - radius, 0), wp.min(py + radius + 1, h)):
+        for x in range(wp.max(px - radius, 0), wp.min(px + radius + 1, w)):
+            total += wp.float64(ss[y, x])
+            count += dof[y, x]
+    out = wp.float64(0.0)
+    if count > 0:
+        out = wp.sqrt(total / wp.float64(float(count)) / wp.float64(2.0)) / scale
+    noise[i] = wp.float32(out)
+
+
+@wp.kernel
+def noise_widen_kernel(
+    noise: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+    reference: wp.float64,
+    i0: int,
+    out: wp.array(dtype=wp.float32),
+):
+    """out = sigma x max(1, noise / reference) at sample i0 + tid (float64, then float32).
+
+    noise, sigma (n,) float32: read. out (n,) float32: written."""
+    i = i0 + wp.tid()
+    f = wp.max(wp.float64(1.0), wp.float64(noise[i]) / reference)
+    out[i] = wp.float32(wp.float64(sigma[i]) * f)
+
+
 for _t in (wp.uint8, wp.uint16):
     wp.overload(sample_light_kernel, {"frames": wp.array3d(dtype=_t)})
     wp.overload(phase_light_kernel, {"frames": wp.array3d(dtype=_t)})
+    wp.overload(pair_sums_kernel, {"frames": wp.array3d(dtype=_t)})
 
 
 # ----------------------------------------------------------------------------- host
@@ -200,3 +316,64 @@ def _launch_light(kernel, n: int, inputs: list, dev, threads: int | None) -> tup
     if n:
         launch_spans(kernel, n, lambda i0: inputs + [i0], out, dev, default_threads() if threads is None else threads)
     return out[0], out[1], out[2]
+
+
+def sample_pair_noise(frames: wp.array, uv: wp.array, *, white: int, black: int, pairs: list[tuple[int, int]],
+                      radius: int = NOISE_RADIUS, threads: int | None = None) -> wp.array:
+    """(n,) float32 each sample's frame noise (8-bit levels) measured from its own frames: the pattern /
+    inverse ``pairs`` (frame indices) that stand clear summed, over the (2 ``radius`` + 1)^2 pixels of every
+    other row and column around it (:func:`pair_sums_kernel`, :func:`pair_noise_kernel`), on the frames'
+    device.
+
+    Args:
+        frames: (F, H, W) uint8/uint16 the view's frames.
+        uv: (n,) vec2 the samples' camera positions.
+        white, black: the frames' indices of the white and black frames.
+        pairs: (frame, inverse) indices, at least 2.
+        radius: the window's half side, in grid pixels (``NOISE_STRIDE`` camera px each).
+        threads: CPU threads; default all cores.
+    """
+    fn = "sample_pair_noise"
+    n = check_array("uv", uv, None, wp.vec2, fn)
+    if not isinstance(frames, wp.array) or frames.ndim != 3 or frames.dtype not in (wp.uint8, wp.uint16):
+        raise ValueError(f"{fn}: frames must be a (F, H, W) uint8/uint16 Warp array")
+    if not 2 <= len(pairs) <= MAX_NOISE_PAIRS:
+        raise ValueError(f"{fn}: 2 to {MAX_NOISE_PAIRS} frame pairs, got {len(pairs)}")
+    if not 0 <= int(radius) <= 8:
+        raise ValueError(f"{fn}: radius must be 0..8 px, got {radius!r}")
+    dev = frames.device
+    th = default_threads() if threads is None else threads
+    idx = wp.array(np.asarray(pairs, np.int32).reshape(-1), dtype=wp.int32, device=dev)
+    h, w = -(-frames.shape[1] // NOISE_STRIDE), -(-frames.shape[2] // NOISE_STRIDE)
+    ss = wp.empty((h, w), dtype=wp.float32, device=dev)
+    dof = wp.empty((h, w), dtype=wp.int32, device=dev)
+    planes = wp.vec4i(int(white), int(black), 0, 0)
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    if n:
+        # each grid pixel's spread once, then each sample's window of them (summing 7 pairs x 25 pixels a
+        # sample instead took 125 ms a full-size view on one thread)
+        launch_rows(pair_sums_kernel, h, w, lambda r0, c: [frames, planes, idx, r0, c], [ss, dof], dev, th)
+        scale = wp.float64(257.0 if frames.dtype == wp.uint16 else 1.0)
+        launch_spans(pair_noise_kernel, n, lambda i0: [ss, dof, uv, int(radius), scale, i0], [out], dev, th)
+    return out
+
+
+def widen_for_pair_noise(noise: wp.array, sigmas: list[wp.array | None], *, reference: float,
+                         threads: int | None = None) -> list[wp.array | None]:
+    """Each of ``sigmas`` ((n,) float32, None left as None) times max(1, ``noise`` / ``reference``), on
+    their device (:func:`noise_widen_kernel`)."""
+    n = check_array("noise", noise, None, wp.float32, "widen_for_pair_noise")
+    if not reference > 0:
+        raise ValueError(f"widen_for_pair_noise: reference must be > 0, got {reference!r}")
+    out = []
+    for s in sigmas:
+        if s is None:
+            out.append(None)
+            continue
+        check_array("sigma", s, n, wp.float32, "widen_for_pair_noise")
+        o = wp.empty(n, dtype=wp.float32, device=s.device)
+        if n:
+            launch_spans(noise_widen_kernel, n, lambda i0, s=s: [noise, s, wp.float64(reference), i0], [o], s.device,
+                         default_threads() if threads is None else threads)
+        out.append(o)
+    return out

@@ -17,14 +17,22 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels.angle import ANGLE_STATUS_NAMES, decode_angle
-from ringscan.kernels.compact import count_values
+from ringscan.kernels.compact import count_values, median, percentile32
 from ringscan.kernels.response import response_tables
+from ringscan.kernels.sample_light import (
+    CLEAR_PAIR_TENTHS,
+    NOISE_RADIUS,
+    NOISE_STRIDE,
+    sample_pair_noise,
+    widen_for_pair_noise,
+)
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.settings import AngleSettings
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX"]
+__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX",
+           "noise_pairs", "pair_noise", "widen_for_frame_noise"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
@@ -95,6 +103,83 @@ def indirect_bits(spec: PatternSpec) -> range:
     """The band bits whose pattern / inverse floor measures a sample's indirect light: the
     ``INDIRECT_BITS`` finest, the finest first."""
     return range(spec.bits - 1, max(spec.bits - 1 - INDIRECT_BITS, -1), -1)
+
+
+def noise_pairs(spec: PatternSpec) -> list[tuple[int, int]]:
+    """The (frame, inverse) indices of every band bit: the pairs a sample's frame noise is measured over
+    (:func:`widen_for_frame_noise`)."""
+    names = frame_names(spec)
+    return [(names.index(f"gray_{b}"), names.index(f"gray_{b}_inv")) for b in range(spec.bits)]
+
+
+def pair_noise(frames: np.ndarray, uv: np.ndarray, white: int, black: int, pairs: list[tuple[int, int]],
+               radius: int = NOISE_RADIUS) -> np.ndarray:
+    """(n,) float32 each sample's frame noise (8-bit levels) around its nearest pixel, the NumPy statement
+    of ``kernels.sample_light.sample_pair_noise`` (the same sums in the same order): at every other pixel
+    of every other row (``NOISE_STRIDE``), s_j =
+    frame_j + inverse_j of the pairs that stand clear (10 |frame - inverse| >= 9 (white - black)), their
+    squared deviations from their mean summed (float32; 0 with fewer than two) with their count - 1; both
+    summed over the (2 radius + 1)^2 such pixels nearest the sample (uv / 2 rounded) inside the image;
+    sqrt(sum / count / 2), over 257 for 16-bit
+    frames. ``frames`` (F, H, W) uint8/uint16."""
+    f = np.asarray(frames)[:, ::NOISE_STRIDE, ::NOISE_STRIDE]
+    scale = 257.0 if f.dtype == np.uint16 else 1.0
+    h, w = f.shape[1], f.shape[2]
+    span = CLEAR_PAIR_TENTHS * (f[white].astype(np.int64) - f[black].astype(np.int64))
+    s1, s2, used = np.zeros((h, w), np.int64), np.zeros((h, w), np.int64), np.zeros((h, w), np.int64)
+    for a, b in pairs:
+        fa, fb = f[a].astype(np.int64), f[b].astype(np.int64)
+        on = (10 * np.abs(fa - fb) >= span).astype(np.int64)
+        s1 += on * (fa + fb)
+        s2 += on * (fa + fb) * (fa + fb)
+        used += on
+    two = used >= 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = (used * s2 - s1 * s1).astype(np.float64) / np.maximum(used, 1).astype(np.float64)
+    ss = np.where(two, q.astype(np.float32), np.float32(0.0))
+    dof = np.where(two, used - 1, 0)
+    uv = np.asarray(uv, np.float32).reshape(-1, 2).astype(np.float64)
+    px = np.clip(np.rint(uv[:, 0] / NOISE_STRIDE).astype(np.int64), 0, w - 1)
+    py = np.clip(np.rint(uv[:, 1] / NOISE_STRIDE).astype(np.int64), 0, h - 1)
+    total, count = np.zeros(len(uv)), np.zeros(len(uv), np.int64)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            y, x = py + dy, px + dx
+            inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+            yc, xc = np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)
+            total = np.where(inside, total + ss[yc, xc].astype(np.float64), total)
+            count += np.where(inside, dof[yc, xc], 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(count > 0, np.sqrt(total / np.maximum(count, 1) / 2.0) / scale, 0.0)
+    return out.astype(np.float32)
+
+
+NOISE_STAT_PERCENT = 90
+"""The percentile of the samples' measured noise a view reports beside its median."""
+
+
+def widen_for_frame_noise(frames: wp.array, spec: PatternSpec, samples: Samples, *, noise: float,
+                          threads: int) -> dict:
+    """Each sample's standard deviations (``sigma_rho``, and ``sigma_tan`` where set) times its pixel's
+    measured frame noise over the view's, where that is larger: the decode's model carries one noise for
+    the view (``angle.noise``, which the error model's fit then scales to what the frames show), but a
+    camera's noise is not even (shot noise grows with the light; light bounced into a concave part, or a
+    renderer's Monte Carlo, adds its own), and a sample in a noisier part errs more than the view's one
+    number says. Measured from the frames themselves (:func:`pair_noise`, every band bit's pair over the
+    5 x 5 pixels of every other row and column around it), against the view's median (floored at ``noise``, for near-noiseless frames); never narrowed.
+    On the samples' device; returns the view's stats ``frame_noise``: median and 90th percentile, levels."""
+    pairs = noise_pairs(spec)
+    if len(pairs) < 2 or len(samples) == 0 or samples.sigma_rho is None:
+        return {}
+    names = frame_names(spec)
+    m = sample_pair_noise(frames, samples.uv, white=names.index("white"), black=names.index("black"), pairs=pairs,
+                          threads=threads)
+    mid = median(m)
+    reference = max(mid, float(noise))
+    samples.sigma_rho, samples.sigma_tan = widen_for_pair_noise(m, [samples.sigma_rho, samples.sigma_tan],
+                                                                reference=reference, threads=threads)
+    return {"frame_noise": {"median_levels": round(mid, 3),
+                            f"p{NOISE_STAT_PERCENT}_levels": round(percentile32(m, NOISE_STAT_PERCENT), 3)}}
 
 
 def edge_sigma(contrast: np.ndarray, noise: float) -> np.ndarray:

@@ -17,7 +17,7 @@ from ringscan.kernels.ring_sampling import sample_gray_rings
 from ringscan.kernels.sample_light import sample_light
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.settings import AngleSettings, DecodeSettings, SampleSettings
-from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, add_angle, indirect_bits
+from ringscan.pipeline.codecs.angle_code import EDGE_WIDTH_PX, add_angle, indirect_bits, widen_for_frame_noise
 from ringscan.pipeline.codecs.base import Codec, StageSettings, describe_lighting, frame_bits_hint
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.formats.patterns import PATTERN_LAYOUTS, PatternSpec, frame_names
@@ -146,10 +146,12 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                      threads=threads)
     samples.indirect = indirect
     samples.shading = shading
+    noise_stats = widen_for_frame_noise(frames, spec, samples, noise=settings.angle.noise, threads=threads)
     wp.synchronize_device(frames.device)
     t3 = time.perf_counter()
     stats = {"pixels_decoded": decoded, "samples": len(samples), "pixels_lit": lit, "low_modulation": low,
              **angle_stats,
+             **noise_stats,
              "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
 

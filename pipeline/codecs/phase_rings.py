@@ -54,7 +54,7 @@ from ringscan.kernels.ring_labels import decode_gray_rings
 from ringscan.kernels.sample_light import phase_light
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.settings import AngleSettings, DecodeSettings, PhaseSettings
-from ringscan.pipeline.codecs.angle_code import add_angle, indirect_bits
+from ringscan.pipeline.codecs.angle_code import add_angle, indirect_bits, widen_for_frame_noise
 from ringscan.pipeline.codecs.base import Codec, RigNeeds, StageSettings
 from ringscan.pipeline.codecs.drawing import draw_frame
 from ringscan.pipeline.codecs.gray_rings import explain_binary_view
@@ -243,6 +243,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
                                  light_gamma=g_light, threads=threads)
     pts.indirect = indirect
     pts.shading = shading
+    noise_stats = widen_for_frame_noise(frames, spec, pts, noise=settings.angle.noise, threads=threads)
     wp.synchronize_device(dev)
     t3 = time.perf_counter()
     # the statuses counted on the device (the lone fringes dropped are counted as modulation)
@@ -259,6 +260,7 @@ def extract_phase_rings(frames: wp.array, scan: Scan, settings: PhaseRingsSettin
         "light_gamma": g_light,
         "precompensated_gamma": spec.precompensated_gamma,
         **angle_stats,
+        **noise_stats,
         "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2},
     }
     return pts, stats

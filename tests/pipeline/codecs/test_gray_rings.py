@@ -80,3 +80,39 @@ def test_a_view_whose_finest_bit_washes_out_says_so_in_one_line(tmp_path, caplog
     assert share > 0.05 and len(lines) == 1 and f"{100 * share:.0f} %" in lines[0]
     share, lines = counts["focused"]
     assert share < 0.05 and not lines
+
+
+def test_a_noisier_part_of_the_view_gets_wider_sigmas_than_the_rest(tmp_path):
+    """A view whose right quarter's frames carry 6 levels more noise (independently in every frame, as a
+    noisier part of a camera's image, or Monte Carlo light, does): there each sample's sigma of rho grows
+    by its measured noise over the view's median (~4x: the rendered noise is 1.5 levels); elsewhere it
+    stays as the decode's model put it (the view's median is the quiet part's noise). The view reports
+    the noise it measured."""
+    import numpy as np
+    import warp as wp
+
+    from ringscan.pipeline.codecs.registry import codec_for
+    from ringscan.pipeline.formats.scan import read_view_frames
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+    scan = simulate_scan(tmp_path / "s", scene="sphere", rig=crop_rig(), patterns=parse_patterns(GRAY), progress=False)
+    view = scan.views[0]
+    clean = read_view_frames(scan, view)
+    w = clean.shape[2]
+    rng = np.random.default_rng(7)
+    noisy = clean.astype(np.float64)
+    noisy[:, :, 3 * w // 4:] += rng.normal(0.0, 6.0, noisy[:, :, 3 * w // 4:].shape)
+    noisy = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    codec = codec_for(scan.patterns.codec)
+    st = codec.settings_from(ReconstructSettings())
+    ratios = {}
+    for tag, frames in (("clean", clean), ("noisy", noisy)):
+        samples, stats = codec.extract(wp.array(frames, device="cpu"), scan, st, threads=1)
+        u = samples.uv.numpy()[:, 0]
+        s = samples.sigma_rho.numpy()
+        ratios[tag] = (np.median(s[u >= 3 * w // 4 + 3]), np.median(s[u < 3 * w // 4 - 3]), stats["frame_noise"])
+    (loud_c, quiet_c, noise_c), (loud_n, quiet_n, noise_n) = ratios["clean"], ratios["noisy"]
+    assert loud_n / loud_c > 2.5  # sqrt(1.5^2 + 6^2) / ~1.5-2 levels
+    assert quiet_n / quiet_c == pytest.approx(1.0, abs=0.1)  # the quiet part's own scatter about the median
+    assert noise_n["p90_levels"] > 2.5 * noise_n["median_levels"]  # the loud quarter is the top fourth
+    assert noise_c["p90_levels"] < 1.5 * noise_c["median_levels"]
