@@ -157,8 +157,7 @@ def pair_sums_kernel(
     pairs: wp.array(dtype=wp.int32),
     row0: int,
     chunk: int,
-    ss: wp.array2d(dtype=wp.float32),
-    dof: wp.array2d(dtype=wp.int32),
+    spread: wp.array2d(dtype=wp.vec2),
 ):
     """Every ``NOISE_STRIDE``-th pixel's spread of its clear pairs' sums (in x and y: grid pixel (gy, gx) is
     camera pixel (2 gy, 2 gx)), ``chunk`` grid pixels of one grid row per thread: where a pair
@@ -169,10 +168,11 @@ def pair_sums_kernel(
     float32) and dof = m - 1 (both 0 with fewer than two clear pairs).
 
     frames (F, H, W) uint8/uint16, pairs (2 k,) int32 frame indices (frame, inverse, ...): read; ``planes``:
-    (white, black, 0, 0). ss (ceil(H / 2), ceil(W / 2)) float32 and dof likewise int32: written.
+    (white, black, 0, 0). spread (ceil(H / 2), ceil(W / 2)) vec2 (ss, dof: one read a grid pixel for the
+    samples' windows): written.
     ``angle_code.pair_noise``
     states it in NumPy, the same sums in the same order."""
-    run = row_run(wp.tid(), ss.shape[1], row0, chunk)
+    run = row_run(wp.tid(), spread.shape[1], row0, chunk)
     gy = run[0]
     y = gy * NOISE_STEP
     k = pairs.shape[0] / 2
@@ -192,17 +192,15 @@ def pair_sums_kernel(
             used += on
         if used >= 2:
             # (used s2 - s1^2) / used: the sum of squared deviations, its numerator exact
-            ss[gy, gx] = wp.float32(wp.float64(wp.int64(used) * s2 - s1 * s1) / wp.float64(float(used)))
-            dof[gy, gx] = used - 1
+            spread[gy, gx] = wp.vec2(wp.float32(wp.float64(wp.int64(used) * s2 - s1 * s1) / wp.float64(float(used))),
+                                     wp.float32(used - 1))
         else:
-            ss[gy, gx] = wp.float32(0.0)
-            dof[gy, gx] = 0
+            spread[gy, gx] = wp.vec2(0.0, 0.0)
 
 
 @wp.kernel
 def pair_noise_kernel(
-    ss: wp.array2d(dtype=wp.float32),
-    dof: wp.array2d(dtype=wp.int32),
+    spread: wp.array2d(dtype=wp.vec2),
     uv: wp.array(dtype=wp.vec2),
     radius: int,
     scale: wp.float64,
@@ -214,22 +212,23 @@ def pair_noise_kernel(
     image), sqrt(sum ss / sum dof / 2) (Var(frame + inverse) = 2 noise^2) over ``scale``; 0 where no pixel
     there has two clear pairs.
 
-    ss, dof (grid), uv (n,) vec2: read. noise (n,) float32: written."""
+    spread (grid) vec2, uv (n,) vec2: read. noise (n,) float32: written."""
     i = i0 + wp.tid()
-    h = ss.shape[0]
-    w = ss.shape[1]
+    h = spread.shape[0]
+    w = spread.shape[1]
     step = wp.float64(float(NOISE_STEP))
     px = wp.min(wp.max(int(wp.rint(wp.float64(uv[i][0]) / step)), 0), w - 1)
     py = wp.min(wp.max(int(wp.rint(wp.float64(uv[i][1]) / step)), 0), h - 1)
     total = wp.float64(0.0)
-    count = int(0)
+    count = float(0.0)  # (whole numbers, exact in float32 up to 2^24)
     for y in range(wp.max(py - radius, 0), wp.min(py + radius + 1, h)):
         for x in range(wp.max(px - radius, 0), wp.min(px + radius + 1, w)):
-            total += wp.float64(ss[y, x])
-            count += dof[y, x]
+            c = spread[y, x]
+            total += wp.float64(c[0])
+            count += c[1]
     out = wp.float64(0.0)
-    if count > 0:
-        out = wp.sqrt(total / wp.float64(float(count)) / wp.float64(2.0)) / scale
+    if count > 0.0:
+        out = wp.sqrt(total / wp.float64(count) / wp.float64(2.0)) / scale
     noise[i] = wp.float32(out)
 
 
@@ -345,16 +344,15 @@ def sample_pair_noise(frames: wp.array, uv: wp.array, *, white: int, black: int,
     th = default_threads() if threads is None else threads
     idx = wp.array(np.asarray(pairs, np.int32).reshape(-1), dtype=wp.int32, device=dev)
     h, w = -(-frames.shape[1] // NOISE_STRIDE), -(-frames.shape[2] // NOISE_STRIDE)
-    ss = wp.empty((h, w), dtype=wp.float32, device=dev)
-    dof = wp.empty((h, w), dtype=wp.int32, device=dev)
+    spread = wp.empty((h, w), dtype=wp.vec2, device=dev)
     planes = wp.vec4i(int(white), int(black), 0, 0)
     out = wp.empty(n, dtype=wp.float32, device=dev)
     if n:
         # each grid pixel's spread once, then each sample's window of them (summing 7 pairs x 25 pixels a
         # sample instead took 125 ms a full-size view on one thread)
-        launch_rows(pair_sums_kernel, h, w, lambda r0, c: [frames, planes, idx, r0, c], [ss, dof], dev, th)
+        launch_rows(pair_sums_kernel, h, w, lambda r0, c: [frames, planes, idx, r0, c], [spread], dev, th)
         scale = wp.float64(257.0 if frames.dtype == wp.uint16 else 1.0)
-        launch_spans(pair_noise_kernel, n, lambda i0: [ss, dof, uv, int(radius), scale, i0], [out], dev, th)
+        launch_spans(pair_noise_kernel, n, lambda i0: [spread, uv, int(radius), scale, i0], [out], dev, th)
     return out
 
 
