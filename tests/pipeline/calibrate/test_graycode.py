@@ -197,3 +197,17 @@ def test_threads_share_out_rows_and_lines_with_the_same_numbers(defocused):
         assert np.array_equal(getattr(one, f), getattr(two, f)), f
     assert one.noise == two.noise
     assert np.array_equal(one.u, two.u, equal_nan=True) and np.array_equal(one.v, two.v, equal_nan=True)
+
+
+@pytest.mark.parametrize("per", [1, 2])
+@pytest.mark.parametrize("n", [1, 2, 3, 1000, 1001])
+def test_the_counted_median_is_numpys(n, per):
+    """frame_noise's medians of whole (per 1) and half (per 2) levels, counted by value: np.median's to
+    the bit, for odd and even counts (the mean of the two middle ones), at the range's ends too."""
+    from ringscan.pipeline.calibrate.graycode import _whole_median
+
+    rng = np.random.default_rng(n * per)
+    x = rng.integers(-1024 * per, 1024 * per + 1, n) / per
+    assert _whole_median(x, per) == np.median(x)
+    x = np.full(n, 1024.0)
+    assert _whole_median(x, per) == 1024.0
