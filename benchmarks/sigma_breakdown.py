@@ -11,7 +11,10 @@ Reads a scan with its truth and a reconstruction of it (the folders ``sigma_hone
   (light bounced onto the surface) correlates, a per-sample noise does not;
 - the error model's tile factors (report.json ``regions``) against the factor each 32 px tile would need
   for its points' median |e|/sigma to be a Gaussian's (the truth's, so an upper bound on what any fit from the
-  frames could do): the tiles' shortfall, and what the beyond-3-sigma share would be with the truth's factors.
+  frames could do): the tiles' shortfall, and what the beyond-3-sigma share would be with the truth's factors;
+- by fifth of each point's camera noise as its frames show it (``kernels.sample_light.sample_pair_noise``,
+  which the sigmas already take where it is above the view's median: docs/reconstruction.md, "Honest sigma"):
+  the share beyond 3 sigma and the median |e|/sigma; a noise the sigmas still miss shows as a rise with it.
 
 The errors are along camera 1's ray, as ``evaluate.metrics`` measures them for sigma.
 
@@ -103,6 +106,43 @@ def tiles(s: np.ndarray, e: np.ndarray, uv: np.ndarray, regions: dict | None) ->
           f"{np.median(r):.2f} (what a per-tile factor could reach at best)")
 
 
+def noise_rows(noise: np.ndarray, s: np.ndarray, e: np.ndarray) -> list[dict]:
+    """By fifth of the measured frame ``noise`` (grey levels): share beyond 3 sigma, median |e|/sigma, median
+    noise."""
+    r = np.abs(e) / s
+    at = np.digitize(noise, np.quantile(noise, np.linspace(0, 1, 6))[1:-1])
+    return [{"beyond_3": float(np.mean(r[at == i] > 3)), "ratio": float(np.median(r[at == i])),
+             "noise": float(np.median(noise[at == i]))} for i in range(5)]
+
+
+def view_noise(scan, uv: np.ndarray) -> np.ndarray | None:
+    """Each point's frame noise (grey levels) read from the view's frames at its camera position, or None for
+    a codec without band pairs."""
+    import warp as wp
+
+    from ringscan.kernels import init_warp
+    from ringscan.kernels.sample_light import sample_pair_noise
+    from ringscan.pipeline.codecs.angle_code import noise_pairs
+    from ringscan.pipeline.formats.patterns import frame_names
+    from ringscan.pipeline.formats.scan import read_view_frames
+
+    names = frame_names(scan.patterns)
+    if "white" not in names or scan.patterns.bits < 2 or "gray_0" not in names:
+        return None
+    init_warp()
+    frames = wp.array(read_view_frames(scan, scan.views[0]), device="cpu")
+    return sample_pair_noise(frames, wp.array(uv.astype(np.float32), dtype=wp.vec2, device="cpu"),
+                             white=names.index("white"), black=names.index("black"),
+                             pairs=noise_pairs(scan.patterns)).numpy().astype(np.float64)
+
+
+def noises(noise: np.ndarray, s: np.ndarray, e: np.ndarray) -> None:
+    print("  frame noise fifth | beyond 3 sigma | median |e|/sigma | median noise (levels)")
+    for i, row in enumerate(noise_rows(noise, s, e)):
+        print(f"  {i + 1}                 | {row['beyond_3'] * 100:5.1f} %        | {row['ratio']:.2f}             "
+              f"| {row['noise']:.2f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("condition", type=Path, help="a condition's folder of sigma_honesty.py --out DIR (scan/ inside)")
@@ -126,12 +166,15 @@ def main(argv=None) -> int:
     ring = np.asarray(ply["ring"])
     ok = np.isfinite(e) & (s > 0)
     model = view.get("error_model") or view.get("calibration", {}).get("error_model") or {}
+    noise = view_noise(scan, uv)
     for name, m in (("object", ok & (P[:, 2] > a.object_z)), ("the rest", ok & ~(P[:, 2] > a.object_z))):
         if m.sum() < 100:
             continue
         octiles(name, s[m], e[m])
         correlations(e[m], uv[m], ring[m])
         tiles(s[m], e[m], uv[m], model.get("regions"))
+        if noise is not None:
+            noises(noise[m], s[m], e[m])
     return 0
 
 

@@ -36,3 +36,19 @@ def test_a_folder_without_a_run_is_one_line(tmp_path, capsys):
     assert sb.main([str(tmp_path)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(tmp_path) in err[0]
+
+
+def test_errors_that_grow_with_the_frame_noise_show_by_its_fifths():
+    """Errors whose scale is the sigma times the noise over 2 levels (noise 1 to 4 levels; the sigmas blind to
+    it): the top fifth's median |e|/sigma ~3x the bottom's (noise ~3.7 against ~1.3 levels), and most of its
+    points beyond 3 sigma; noise the sigmas already carry (errors of scale sigma): every fifth a Gaussian's."""
+    sb = load_benchmark("sigma_breakdown")
+    rng = np.random.default_rng(4)
+    n = 100_000
+    s = rng.uniform(0.01, 0.05, n)
+    noise = rng.uniform(1.0, 4.0, n)
+    rows = sb.noise_rows(noise, s, rng.normal(0, s * noise / 2.0))
+    assert rows[-1]["ratio"] > 2.5 * rows[0]["ratio"] and rows[-1]["beyond_3"] > 0.1
+    assert [abs(r["noise"] - (1.3 + 0.6 * i)) < 0.05 for i, r in enumerate(rows)] == [True] * 5
+    for r in sb.noise_rows(noise, s, rng.normal(0, s)):  # 20k points a fifth: the median to ~1 %
+        assert abs(r["ratio"] - sb.GAUSS_MEDIAN_RATIO) < 0.03 and r["beyond_3"] < 0.006
