@@ -116,12 +116,11 @@ def pair_noise(frames: np.ndarray, uv: np.ndarray, white: int, black: int, pairs
                radius: int = NOISE_RADIUS) -> np.ndarray:
     """(n,) float32 each sample's frame noise (8-bit levels) around its nearest pixel, the NumPy statement
     of ``kernels.sample_light.sample_pair_noise`` (the same sums in the same order): at every other pixel
-    of every other row (``NOISE_STRIDE``), s_j =
-    frame_j + inverse_j of the pairs that stand clear (10 |frame - inverse| >= 9 (white - black)), their
-    squared deviations from their mean summed (float32; 0 with fewer than two) with their count - 1; both
-    summed over the (2 radius + 1)^2 such pixels nearest the sample (uv / 2 rounded) inside the image;
-    sqrt(sum / count / 2), over 257 for 16-bit
-    frames. ``frames`` (F, H, W) uint8/uint16."""
+    of every other row (``NOISE_STRIDE``), s_j = frame_j + inverse_j of the pairs that stand clear
+    (10 |frame - inverse| >= 9 (white - black)), their squared deviations from their mean summed (float32;
+    0 with fewer than two) with their count - 1; both summed over the (2 radius + 1)^2 such pixels nearest
+    the sample (uv / 2 rounded) inside the image; sqrt(sum / count / 2), over 257 for 16-bit frames.
+    ``frames`` (F, H, W) uint8/uint16."""
     f = np.asarray(frames)[:, ::NOISE_STRIDE, ::NOISE_STRIDE]
     scale = 257.0 if f.dtype == np.uint16 else 1.0
     h, w = f.shape[1], f.shape[2]
@@ -166,8 +165,9 @@ def widen_for_frame_noise(frames: wp.array, spec: PatternSpec, samples: Samples,
     camera's noise is not even (shot noise grows with the light; light bounced into a concave part, or a
     renderer's Monte Carlo, adds its own), and a sample in a noisier part errs more than the view's one
     number says. Measured from the frames themselves (:func:`pair_noise`, every band bit's pair over the
-    5 x 5 pixels of every other row and column around it), against the view's median (floored at ``noise``, for near-noiseless frames); never narrowed.
-    On the samples' device; returns the view's stats ``frame_noise``: median and 90th percentile, levels."""
+    5 x 5 pixels of every other row and column around it), against the view's median (floored at
+    ``noise``, for near-noiseless frames); never narrowed. On the samples' device; returns the view's
+    stats ``frame_noise``: median and 90th percentile, levels."""
     pairs = noise_pairs(spec)
     if len(pairs) < 2 or len(samples) == 0 or samples.sigma_rho is None:
         return {}
