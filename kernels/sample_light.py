@@ -21,8 +21,8 @@ from ringscan.kernels.light_gradient import shading_at
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["sample_light_kernel", "phase_light_kernel", "pair_sums_kernel", "pair_noise_kernel", "noise_widen_kernel", "sample_light",
-           "phase_light", "sample_pair_noise", "widen_for_pair_noise"]
+__all__ = ["sample_light_kernel", "phase_light_kernel", "pair_sums_kernel", "pair_noise_kernel", "noise_widen_kernel",
+           "sample_light", "phase_light", "sample_pair_noise", "widen_for_pair_noise"]
 
 MAX_INDIRECT_BITS = 4
 """Most band bits whose pattern / inverse floor a sample's indirect share averages."""

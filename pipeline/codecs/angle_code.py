@@ -31,8 +31,8 @@ from ringscan.kernels.settings import AngleSettings
 from ringscan.pipeline.formats.patterns import PatternSpec, frame_names, spec_angle_zones
 from ringscan.pipeline.formats.scan import Scan
 
-__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast", "EDGE_WIDTH_PX",
-           "noise_pairs", "pair_noise", "widen_for_frame_noise"]
+__all__ = ["sample_indirect", "indirect_bits", "add_angle", "edge_sigma", "phase_sigma", "sample_contrast",
+           "EDGE_WIDTH_PX", "noise_pairs", "pair_noise", "widen_for_frame_noise"]
 
 EDGE_WIDTH_PX = 3.0
 """Width (projector px) over which a band edge goes from dark to lit, for the edge's
