@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ringscan.kernels import retain_freed_memory
+from ringscan.kernels.process import one_blas_thread
 from ringscan.pipeline.batch import batch_reconstruct
 
 
@@ -39,6 +40,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     a = ap.parse_args()
     retain_freed_memory()
+    one_blas_thread()  # as a batch worker
     tmp = Path(tempfile.mkdtemp(prefix="ringscan_batch_inline_"))
     try:
         cpu, wall = [], []

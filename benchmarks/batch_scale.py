@@ -46,7 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ringscan.kernels.process import retain_freed_memory
+from ringscan.kernels.process import one_blas_thread, retain_freed_memory
 from ringscan.pipeline.batch import batch_reconstruct, plan_batch
 from ringscan.pipeline.batch.report import read_results
 from ringscan.pipeline.formats.patterns import parse_patterns
@@ -520,8 +520,10 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=1,
                     help="measure part 2 this many times in turn and print the medians (default 1)")
     a = ap.parse_args()
-    # the NumPy reference runs in this process: the same allocator policy as the batch workers (fair to both)
+    # the NumPy reference runs in this process: the same allocator and BLAS policy as the batch workers (fair
+    # to both)
     retain_freed_memory()
+    one_blas_thread()
     size = None if a.full else tuple(int(x) for x in a.camera.split("x"))
     spec = FULL_SPEC if a.full else SPEC
     work = Path(a.work)

@@ -32,7 +32,7 @@ import warp as wp
 
 from ringscan.kernels import init_warp
 from ringscan.kernels.launch import set_cpu_threads
-from ringscan.kernels.process import retain_freed_memory
+from ringscan.kernels.process import one_blas_thread, retain_freed_memory
 from ringscan.pipeline.formats.scan import load_scan
 from ringscan.pipeline.reconstruct.view import reconstruct_view
 
@@ -49,6 +49,7 @@ def main() -> int:
         print(f"{a.root}: no scan.json in its subfolders", file=sys.stderr)
         return 1
     retain_freed_memory()  # as ringscan's own processes
+    one_blas_thread()
     set_cpu_threads(1)
     init_warp()
 

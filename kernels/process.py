@@ -1,6 +1,6 @@
 """The host side of a process ringscan owns (no Warp here: a command that reads frames first, ``ringscan
-import``, imports Warp only when its kernels are needed): the allocator's policy and the exit without a last
-collection."""
+import``, imports Warp only when its kernels are needed): the allocator's policy, BLAS on one thread and the
+exit without a last collection."""
 
 from __future__ import annotations
 
@@ -18,6 +18,9 @@ M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD_MAX = 32 << 20
 """glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit systems."""
+BLAS_THREADS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""Environment variables that set a BLAS library's threads: where the user set one, :func:`one_blas_thread`
+leaves the choice to them."""
 KEEP_FREED_ENV = "RINGSCAN_KEEP_FREED_MB"
 """Environment variable: the most freed memory ringscan's processes keep, in MiB (0: off)."""
 DEFAULT_KEEP_FREED_MB = 512
@@ -90,6 +93,32 @@ def _numpy_base_pages() -> None:
         except ImportError:
             return
     _set_madvise_hugepage(False)
+
+
+def one_blas_thread() -> bool:
+    """BLAS on one thread in this process and in the processes it starts (batch workers).
+
+    ringscan's BLAS calls are small (the error model's fit: products of ~40k x 8 matrices, 6 x 6
+    solves) and run between Warp's CPU kernels, which take every core. OpenBLAS (NumPy's and SciPy's)
+    starts a thread a core and lets its threads spin after each call, waiting for the next: they then
+    take the cores from the kernels and from the other batch workers. On this project's 2-core
+    machine two batch workers of small views ran at 12-17 views/s, no faster than one, and at 30-31
+    with one BLAS thread (1.86x one worker; docs/batch.md). Sets ``OPENBLAS_NUM_THREADS=1`` for the
+    libraries loaded from now on and for child processes, and limits those already loaded
+    (threadpoolctl). Where the user set ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
+    ``MKL_NUM_THREADS``, nothing is changed. Called by the processes ringscan owns, like
+    :func:`retain_freed_memory`; never on import.
+
+    Returns:
+        True where BLAS was set to one thread; False where the user's environment decides.
+    """
+    if any(os.environ.get(k, "").strip() for k in BLAS_THREADS_ENV):
+        return False
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")  # (kept for the process's life: not used as a context)
+    return True
 
 
 def skip_final_collection() -> None:

@@ -83,6 +83,47 @@ def test_the_policy_keeps_numpys_arrays_on_base_pages():
     assert on_off == "False" and after_off == default_off  # policy off: NumPy's default as it was
 
 
+BLAS_PROBE = """
+import json, subprocess, sys
+import numpy, scipy.linalg
+from threadpoolctl import threadpool_info
+from ringscan.kernels.process import one_blas_thread
+def blas():
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+before = blas()
+done = one_blas_thread()
+child = subprocess.run([sys.executable, "-c", "import os; print(os.environ.get('OPENBLAS_NUM_THREADS'))"],
+                       capture_output=True, text=True).stdout.strip()
+print(json.dumps({"done": done, "before": before, "after": blas(), "child": child}))
+"""
+
+
+def test_blas_runs_on_one_thread_in_ringscans_processes_unless_the_user_says():
+    """After one_blas_thread NumPy's and SciPy's OpenBLAS (both loaded before it) run one thread each, and
+    a child process (a batch worker) starts with OPENBLAS_NUM_THREADS=1; with the user's OMP_NUM_THREADS
+    set, nothing changes. (Where BLAS already runs one thread, a one-core machine, there is nothing to
+    limit: skipped.)"""
+    import json
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                          "MKL_NUM_THREADS")}
+
+    def probe(extra):
+        r = subprocess.run([sys.executable, "-c", BLAS_PROBE], capture_output=True, text=True, timeout=120,
+                           env={**env, **extra})
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    mine = probe({})
+    assert mine["before"]  # NumPy's (and SciPy's own, with the wheels)
+    if max(mine["before"]) <= 1:
+        pytest.skip("BLAS already runs one thread here (one core)")
+    assert mine["done"] and mine["after"] == [1] * len(mine["before"]) and mine["child"] == "1"
+    theirs = probe({"OMP_NUM_THREADS": "2"})
+    assert not theirs["done"] and theirs["after"] == theirs["before"] and theirs["child"] == "None"
+
+
 def test_retain_freed_memory_is_safe_to_call_again():
     first = retain_freed_memory()
     assert retain_freed_memory() == first
