@@ -76,6 +76,10 @@ ENTRIES: tuple[Entry, ...] = (
     Entry("Gray-code clearance", "python benchmarks/graycode_clearance.py", 300,
           "Which Gray-code bits stand clear of the camera noise, and how smooth the decoded projector column is "
           "trusting every bit or only those; real captures in ../shared/data/procam."),
+    Entry("Far panel", 'python benchmarks/far_panel.py --work "$(mktemp -d)"', 300,
+          "A far panel whose finest Gray-code bits barely modulate (one camera, a 512x384 projector, 1 m): the "
+          "import's bit clearance against trusting every bit, errors, roughness and sigmas against the plane; "
+          "ringscan's renderer (OpenCV's Gray code on a virtual rig, the panel its truth)."),
     Entry("Procam plane", "python benchmarks/procam_plane.py", 600,
           "How flat the calibration board comes out: ringscan's import and triangulation (rings alone, and rings "
           "and angle) against plain OpenCV triangulation of integer codes, the plane fit's residuals; real "
