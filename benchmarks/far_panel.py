@@ -84,10 +84,14 @@ def far_rig() -> dict:
             "volume": {"z_min": -20.0, "z_max": 200.0, "r_max": 400.0}}
 
 
-def run(cmd: list[str]) -> None:
-    print("$ " + " ".join(shlex.quote(c) for c in cmd), flush=True)
-    if subprocess.run(cmd).returncode != 0:
-        raise SystemExit(f"far_panel: the command above failed: {cmd[1:4]}")
+def run(cmd: list[str], work: Path) -> None:
+    """Run ``cmd``, printed first with ``work`` written as WORK (its own output kept for a failure)."""
+    print("$ " + " ".join(shlex.quote(c) for c in cmd).replace(str(work), "WORK").replace(sys.executable, "python"),
+          flush=True)
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.stderr.write(done.stdout + done.stderr)
+        raise SystemExit(f"far_panel: the command above failed (exit status {done.returncode})")
 
 
 def modulation(capture: Path, bits: int) -> list[float]:
@@ -165,7 +169,7 @@ def main(argv=None) -> int:
         if not (a.reuse and (render / "capture_0").is_dir()):
             shutil.rmtree(render, ignore_errors=True)
             run([sys.executable, "-m", "ringscan.tools.cli", "simulate", "--rig", str(rig_path), "--captures",
-                 "opencv-graycode", "--scene", "plane", *CONDITIONS[name], "--out", str(render), "-q"])
+                 "opencv-graycode", "--scene", "plane", *CONDITIONS[name], "--out", str(render), "-q"], a.work)
         truth = json.loads((render / "truth.json").read_text())
         lit = cv2.imread(str(render / "truth" / "capture_0_lit.png"), cv2.IMREAD_UNCHANGED) > 0
         mod = modulation(render / "capture_0", int(np.ceil(np.log2(PROJECTOR[0]))))
@@ -186,7 +190,7 @@ def main(argv=None) -> int:
         print(f"| {name} | {how} | {constraint} | {f['points']} | {100 * f['of_lit']:.1f} % | {f['median']:.3f} | "
               f"{f['p95']:.3f} | {f['rms_plane']:.3f} | {f['rough_median']:.3f} / {f['rough_p95']:.3f} | "
               f"{f['sigma']:.3f} | {f['ratio']:.2f} | {100 * f['beyond_3']:.1f} % |")
-    print(f"({time.perf_counter() - t0:.0f} s; {a.work})")
+    print(f"({time.perf_counter() - t0:.0f} s; WORK = {a.work})")
     return 0
 
 
