@@ -189,10 +189,14 @@ def _print_decoded(stats: dict, two: bool) -> None:
     """One line per view (and camera) of what was decoded, and the frame order where it was guessed."""
 
     def coarse(st):
-        if not (st["coarse_share"] or st["low_modulation"]):
-            return ""
-        return (f" ({100 * st['coarse_share']:.0f} % from coarser bits where the finest barely modulate; "
-                f"{st['low_modulation']} left out: low_modulation)")
+        parts = []
+        if st.get("unresolved_share", 0.0) >= 0.01:  # (a sliver at 1.0 projector px a camera px is no news)
+            parts.append(f"{100 * st['unresolved_share']:.0f} % from coarser bits where a camera pixel spans more "
+                         "than one projector pixel")
+        if st["coarse_share"] or st["low_modulation"]:
+            parts.append(f"{100 * st['coarse_share']:.0f} % from coarser bits where the finest barely modulate; "
+                         f"{st['low_modulation']} left out: low_modulation")
+        return f" ({'; '.join(parts)})" if parts else ""
 
     for name, st in stats.items():
         if "frames_in_name_order" in st:

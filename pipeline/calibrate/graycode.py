@@ -69,6 +69,19 @@ mercy of anything else the pixel sees (stray light, a JPEG's ringing, a gamma's 
 MAX_COARSE_BITS = 3
 """Finest bits a pixel may leave untrusted and still get a sub-pixel position from the coarser ones (the
 boundaries of blocks of up to 2**3 = 8 projector pixels); more and it is dropped as ``low_modulation``."""
+RESOLUTION_REACH = 4
+"""Camera px on either side of a pixel over which :func:`resolution_levels` reads how many projector px a camera
+px spans (the code's change over 2 x 4 px: a misread finest bit moves it by ~2 of ~8 and more)."""
+RESOLUTION_WINDOW = 31
+"""Side (camera px) of the square whose median gives a pixel its resolution level: the code's slope is a property
+of the surface and the rig, smooth but for depth edges and misreads, which the median sets aside (a depth edge's
+band of wide steps, 2 x 4 px across, is under half of any such square)."""
+RESOLUTION_MAX_LEVEL = 4
+"""Most bits a camera may leave unresolved (a camera px spanning up to 16 projector px; a 4K projector on a VGA
+camera spans 6): a code that runs faster is read as one that does not resolve more."""
+RESOLUTION_GRID = 6
+"""The code's slope is read at every 6th pixel along both axes (a 36th of the work; the level is that smooth; the
+window then 5 x 5 grid points, OpenCV's fast median)."""
 POINT_SEARCH_COST = 16
 """Line pixels of a walk that a search around one pixel costs, about (a coarser level places its pixels by
 searches where fewer than this share of their lines' pixels: 0.58 us a search, 0.04 us a walked pixel at
@@ -159,6 +172,13 @@ class Decoded:
     low_modulation: np.ndarray | None = None
     """(H, W) bool: dropped (not ``valid``) because a bit coarser than ``MAX_COARSE_BITS`` from the finest
     barely modulates: the pixel's code would be a guess along the epipolar line."""
+    unresolved: np.ndarray | None = None
+    """(H, W, 2) int8: finest column and row bits the camera cannot resolve at each pixel (it spans more than
+    one projector px there: :func:`resolution_levels`); 0 where it spans at most one. Positions come from the
+    coarser bits, as for ``coarse``; ``coarse`` counts only the bits that barely modulate beyond these."""
+    axes: tuple[int, int] | None = None
+    """The camera axes (1: across, 0: down) along which the column and the row code change fastest: their
+    sub-pixel walks' (:func:`fast_axis`; None: found again)."""
     noise: float = 0.0
     """Standard deviation (8-bit levels) of one frame's camera noise, measured from the capture."""
 
@@ -254,18 +274,32 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     valid &= okc & okr & (col < cap.projector[0]) & (row < cap.projector[1])
     noise = frame_noise(cap, valid)
     coarse = np.zeros(contrast.shape + (2,), np.int8)
+    unresolved = np.zeros(contrast.shape + (2,), np.int8)
     low = np.zeros(contrast.shape, bool)
+    axes = []
     for a, (pairs, c) in enumerate(((cap.col_pairs, col), (cap.row_pairs, row))):
-        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale)
-        low |= k > MAX_COARSE_BITS
-        coarse[..., a] = np.minimum(k, MAX_COARSE_BITS)
+        axes.append(fast_axis(c, valid))
+        res, rate = resolution_levels(c, valid, axes[-1], bits=len(pairs))
+        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale, unresolved=res, rate=rate)
+        if res is not None:  # the camera spans more than a projector px somewhere
+            low |= k > res.astype(np.int16) + MAX_COARSE_BITS
+            coarse[..., a] = np.where(k > res, np.minimum(k, res + MAX_COARSE_BITS), 0)
+            unresolved[..., a] = res
+        else:
+            low |= k > MAX_COARSE_BITS
+            coarse[..., a] = np.minimum(k, MAX_COARSE_BITS)
     low &= valid
     valid &= ~low
     col = np.where(valid, col, -1).astype(np.int32)
     row = np.where(valid, row, -1).astype(np.int32)
     log.info("%s: %d of %d pixels decoded (%d dropped: low_modulation)", cap.folder, int(valid.sum()), valid.size,
              int(low.sum()))
-    return Decoded(col=col, row=row, valid=valid, contrast=contrast, coarse=coarse, low_modulation=low, noise=noise)
+    if unresolved.any() and log.isEnabledFor(logging.INFO):
+        log.info("%s: the camera spans more than one projector px at %d decoded pixels: their finest bits "
+                 "(up to %d) are below its resolution; their positions come from the coarser bits", cap.folder,
+                 int(np.count_nonzero(valid & (unresolved.max(axis=2) > 0))), int(unresolved.max()))
+    return Decoded(col=col, row=row, valid=valid, contrast=contrast, coarse=coarse, low_modulation=low, noise=noise,
+                   unresolved=unresolved, axes=(axes[0], axes[1]))
 
 
 def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
@@ -334,7 +368,8 @@ def _mean_step(counts: np.ndarray) -> float:
 
 
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
-                  noise: float, *, scale: float = 1.0) -> np.ndarray:
+                  noise: float, *, scale: float = 1.0, unresolved: np.ndarray | None = None,
+                  rate: float = 0.0) -> np.ndarray:
     """(H, W) int8: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
 
     A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
@@ -343,23 +378,107 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     difference's noise and ``CLEAR_CONTRAST_FRACTION`` of the pixel's white - black. A far, dark, grazing
     or defocused surface blurs the finest stripes into grey: their bits are then read by the noise, a
     zigzag of whole projector pixels along the epipolar line that no calibration check can see. The
-    ``MAX_COARSE_BITS + 1`` finest bits are judged (the coarser ones are as wide as the contrast tests).
+    ``MAX_COARSE_BITS + 1`` finest bits are judged (the coarser ones are as wide as the contrast tests), and as
+    many more as the camera resolves fewer somewhere (``unresolved``: :func:`resolution_levels`, whose ``rate``
+    the projector px a camera px spans, where above the codes' own steps, sets how near a stripe's middle is).
     """
     bits = pairs.shape[0]
-    out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2
+    extra = int(unresolved.max(initial=0)) if unresolved is not None else 0
+    out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2 + extra
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
-    rate = _median_step(np.add(*_code_steps(code, valid)))
+    rate = max(_median_step(np.add(*_code_steps(code, valid))), rate)
     ints = _integer_levels(pairs, scale)
     thresh = _level_threshold(np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise,
                                          CLEAR_CONTRAST_FRACTION * contrast), ints)
     bit, work = np.empty(contrast.shape, bool), np.empty(contrast.shape, np.float32)
-    for j in range(min(bits, MAX_COARSE_BITS + 2)):  # j = 0: the finest bit
+    for j in range(min(bits, MAX_COARSE_BITS + 2 + extra)):  # j = 0: the finest bit
         d = _modulation(pairs, bits - 1 - j, scale, ints, bit, work)
         # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
         r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
         near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
         out[near < thresh] = j + 1
     return out
+
+
+FAST_AXIS_CAP = 64
+"""A step between neighbouring pixels' codes counts at most this much towards the fast axis (a depth edge's
+jump is not the code's slope)."""
+
+
+def fast_axis(code: np.ndarray, valid: np.ndarray) -> int:
+    """The camera axis along which a code changes fastest (1: across, x; 0: down, y): its sub-pixel walk's.
+
+    Where most codes step by 0, 1 or 2 between neighbours (a camera that resolves the projector's pixels), the
+    axis of the larger mean of those steps; else (a camera pixel spanning more than two projector px along
+    some axis) the axis of the larger mean step, each counted up to ``FAST_AXIS_CAP``."""
+    counts, wide = [], []
+    for axis in (1, 0):
+        a, b = (code[:, 1:], code[:, :-1]) if axis == 1 else (code[1:, :], code[:-1, :])
+        both = (valid[:, 1:] & valid[:, :-1]) if axis == 1 else (valid[1:, :] & valid[:-1, :])
+        step = np.abs(np.subtract(a, b, dtype=np.int32))
+        c = np.array([np.count_nonzero(both & (step == k)) for k in (0, 1, 2)], np.int64)
+        over = both & (step > 2)
+        counts.append(c)
+        wide.append((np.count_nonzero(over), int(np.minimum(step[over], FAST_AXIS_CAP).sum())))
+    if all(w[0] < c[1] + c[2] for c, w in zip(counts, wide)):
+        return 1 if _mean_step(counts[0]) >= _mean_step(counts[1]) else 0
+    mean = [(c[1] + 2 * c[2] + w[1]) / max(1, c.sum() + w[0]) for c, w in zip(counts, wide)]
+    return 1 if mean[0] >= mean[1] else 0
+
+
+def resolution_levels(code: np.ndarray, valid: np.ndarray, axis: int, *,
+                      bits: int) -> tuple[np.ndarray | None, float]:
+    """((H, W) int8 or None, float): how many of a code's finest bits the camera cannot resolve at each pixel
+    (None: none anywhere), and the median of the projector px a camera px spans along ``axis`` over the decoded
+    pixels (0 where that is at most one).
+
+    Where a camera px spans r > 1 projector px, the stripes of the finer bits are narrower than a camera pixel:
+    it averages a pattern and its inverse, the bit is read by what is left (a moire, or the noise), the integer
+    code zigzags by whole projector px, and neighbouring pixels' codes step by r, so that no boundary between
+    them places one to sub-pixel precision. The smallest k with 2**k >= r is the level whose blocks of 2**k
+    projector px the camera resolves: the pixel takes its position from their boundaries (as a pixel whose
+    finest bits barely modulate does). r is read as |code(x + 4) - code(x - 4)| / 8 along ``axis``
+    (``RESOLUTION_REACH``) on a grid of every ``RESOLUTION_GRID``-th pixel, its level's median over a
+    ``RESOLUTION_WINDOW`` square; 0 (no change) wherever a camera px spans at most one projector px, as on most
+    rigs."""
+    h, w = code.shape
+    reach, g = RESOLUTION_REACH, RESOLUTION_GRID
+    n = w if axis == 1 else h
+    if n <= 2 * reach + 1 or min(h, w) < g:
+        return None, 0.0
+    at = np.arange(reach, n - reach, g)  # grid points along the axis, each with its reach inside the image
+    other = np.arange(g // 2, h if axis == 1 else w, g)
+    ix = (lambda d: np.ix_(other, at + d)) if axis == 1 else (lambda d: np.ix_(at + d, other))  # noqa: E731
+    a, m, b = (code[ix(d)].astype(np.int32) for d in (reach, 0, -reach))
+    both = valid[ix(reach)] & valid[ix(0)] & valid[ix(-reach)]
+    hi, lo = a - m, m - b
+    step = np.abs(a - b)
+    # a surface's code runs one way and evenly (a misread finest bit moves each half by ~1-2 of >= 4): halves
+    # of one sign within 2:1 of each other; codes that jump about (a depth edge, the noise of an unlit wall
+    # read as a code) are left at 0
+    even = (hi * lo > 0) & (np.abs(hi - lo) * 3 <= step)
+    step[~(both & even)] = 0
+    level = (step > 2 * reach).astype(np.uint8)
+    k = RESOLUTION_WINDOW // g | 1  # the window in grid points (odd)
+    if np.count_nonzero(level) * 2 < k * k:  # (no window's median can be above 0)
+        return None, 0.0
+    t = 4 * reach
+    while level.max() < min(bits - 1, RESOLUTION_MAX_LEVEL) and np.count_nonzero(step > t):
+        level += step > t
+        t *= 2
+    level = cv2.medianBlur(level, k)
+    if not level.any():
+        return None, 0.0
+    out = np.zeros((h, w), np.int8)
+    # back to every pixel: grid point i stands for the g x g pixels around it (the few at the image's edges
+    # beyond the grid keep 0)
+    big = cv2.resize(level, (level.shape[1] * g, level.shape[0] * g), interpolation=cv2.INTER_NEAREST)
+    y0, x0 = ((other[0], at[0]) if axis == 1 else (at[0], other[0]))
+    y0, x0 = y0 - g // 2, x0 - g // 2
+    hh, ww = min(h - y0, big.shape[0]), min(w - x0, big.shape[1])
+    np.copyto(out[y0:y0 + hh, x0:x0 + ww], big[:hh, :ww], casting="unsafe", where=valid[y0:y0 + hh, x0:x0 + ww])
+    rate = float(np.median(step[both & even])) / (2.0 * reach) if (both & even).any() else 0.0
+    return out, rate if rate > 1.0 else 0.0
 
 
 def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: int, max_span: float,
@@ -375,13 +494,15 @@ def _along_axis(code: np.ndarray, valid: np.ndarray, pairs: np.ndarray, axis: in
 
 
 def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.ndarray, axis: int,
-            max_span: float, scale: float = 1.0, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+            max_span: float, scale: float = 1.0, threads: int = 1,
+            weak: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel coordinate of every pixel from the bits it trusts: a pixel that leaves its ``k`` finest bits
     untrusted is interpolated between the boundaries of blocks of 2**k projector pixels (the code without
     those bits: ``code >> k``, whose Gray bits are the first ``bits - k``), found between the pixels that
     trust at least those bits. A pixel that finds no two boundaries around it at its own level (beside a
     region of coarser pixels, say) takes the next coarser level that has them; where none has, a pixel
-    that trusts every bit keeps its integer code (and is not sub-pixel)."""
+    whose bits all stand clear of the noise (``weak`` 0: (H, W) the bits that barely modulate, of ``coarse``'s;
+    None: ``coarse`` itself) keeps its integer code (and is not sub-pixel)."""
     from ringscan.kernels.graycode_map import subpixel_points  # (see load_subpixel_kernels)
 
     out, ok = None, np.zeros(code.shape, bool)
@@ -416,7 +537,7 @@ def _levels(code: np.ndarray, valid: np.ndarray, coarse: np.ndarray, pairs: np.n
         else:
             out[take] = res[take] * 2 ** k + (2 ** k - 1) / 2.0
             ok |= take
-    keep = valid & ~ok & (coarse == 0)
+    keep = valid & ~ok & ((coarse if weak is None else weak) == 0)
     out[keep] = code[keep]
     return out, ok
 
@@ -436,16 +557,15 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
     """Fill ``dec.u``, ``dec.v`` and ``dec.subpixel`` (see the module docstring); returns ``dec``
     (``threads``: the lines walked at once, each line's numbers its own)."""
 
-    def axis_of(code):
-        gx, gy = _code_steps(code, dec.valid)
-        return 1 if _mean_step(gx) >= _mean_step(gy) else 0
-
-    ax_u, ax_v = axis_of(dec.col), axis_of(dec.row)
+    ax_u, ax_v = dec.axes if dec.axes is not None else (fast_axis(dec.col, dec.valid), fast_axis(dec.row, dec.valid))
     coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
-    u, oku = _levels(dec.col, dec.valid, coarse[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale,
-                     threads)
-    v, okv = _levels(dec.row, dec.valid, coarse[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale,
-                     threads)
+    levels = coarse
+    if dec.unresolved is not None and dec.unresolved.any():  # the bits the camera cannot resolve, then those
+        levels = np.maximum(coarse, dec.unresolved)           # that barely modulate beyond them
+    u, oku = _levels(dec.col, dec.valid, levels[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale,
+                     threads, weak=coarse[..., 0])
+    v, okv = _levels(dec.row, dec.valid, levels[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale,
+                     threads, weak=coarse[..., 1])
     # a pixel whose finest bits are untrusted has no integer code to fall back on: it is dropped
     lost = dec.valid & (((coarse[..., 0] > 0) & ~oku) | ((coarse[..., 1] > 0) & ~okv))
     if dec.low_modulation is not None:

@@ -448,6 +448,14 @@ def _decode_camera(f, c: int, projector, layout: str, settings: ImportSettings, 
     return dec
 
 
+def _unresolved_share(dec, n: int) -> float:
+    """The share of a camera's ``n`` decoded pixels where it spans more than one projector px (its finest bits
+    unresolved: positions from coarser ones; ``graycode.resolution_levels``)."""
+    if dec.unresolved is None or not dec.unresolved.any():
+        return 0.0
+    return float(np.count_nonzero(dec.valid & ((dec.unresolved[..., 0] | dec.unresolved[..., 1]) != 0)) / n)
+
+
 def _decode_stats(name: str, per_cam: dict, sel) -> dict:
     """A view's decode stats (camera 2's under ``camera2``), with a warning where the finest bits barely modulate."""
     st = {}
@@ -456,6 +464,7 @@ def _decode_stats(name: str, per_cam: dict, sel) -> dict:
         coarse = dec.valid & ((dec.coarse[..., 0] | dec.coarse[..., 1]) != 0)  # (a max over the last axis: 10x slower)
         s = {"decoded": int(dec.valid.sum()), "subpixel_share": float(dec.subpixel.sum() / n),
              "low_modulation": int(dec.low_modulation.sum()), "coarse_share": float(coarse.sum() / n),
+             "unresolved_share": _unresolved_share(dec, n),
              "noise": round(float(dec.noise), 3)}
         weak = (int(coarse.sum()) + s["low_modulation"]) / max(1, s["decoded"] + s["low_modulation"])
         if weak > LOW_MODULATION_WARN_SHARE:

@@ -10,10 +10,11 @@ import numpy as np
 from ringscan.pipeline.calibrate.graycode import graycode_bits
 
 
-def affine_map(w: int, h: int):
-    """Projector (u, v) at camera pixel centres (x, y): an affine map, 0.55 projector px per camera px."""
+def affine_map(w: int, h: int, slope: float = 1.0):
+    """Projector (u, v) at camera pixel centres (x, y): an affine map, 0.55 projector px per camera px (times
+    ``slope``)."""
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    return 5.3 + 0.55 * x + 0.05 * y, 4.1 + 0.02 * x + 0.56 * y
+    return 5.3 + slope * (0.55 * x + 0.05 * y), 4.1 + slope * (0.02 * x + 0.56 * y)
 
 
 SMALL_PROJECTOR = (128, 96)
@@ -21,23 +22,24 @@ SMALL_PROJECTOR = (128, 96)
 
 
 def write_capture(folder: Path, *, cam=(160, 120), projector=SMALL_PROJECTOR, wb_first=False, noise=1.0, seed=0,
-                  gamma=1.0, levels=(20.0, 220.0), blur_px=0.0) -> tuple[np.ndarray, np.ndarray]:
+                  gamma=1.0, levels=(20.0, 220.0), blur_px=0.0, slope=1.0) -> tuple[np.ndarray, np.ndarray]:
     """Write graycode_NN.png frames of the affine scene; returns the true (u, v) maps.
 
     Each camera pixel averages 4x4 sub-samples of the projected binary pattern
-    (pixel centres at integers: projector pixel k covers [k - 0.5, k + 0.5)).
+    (pixel centres at integers: projector pixel k covers [k - 0.5, k + 0.5)); ``slope`` > 1: a camera pixel
+    spans 0.55 x slope projector px, and averages as many more sub-samples (4 a projector px at least).
     ``blur_px``: a defocused projector, a Gaussian of this standard deviation in projector pixels
     (the pattern drawn 8 times finer, blurred, and looked up bilinearly at each sub-sample).
     """
     rng = np.random.default_rng(seed)
     w, h = cam
-    ss = 4
+    ss = max(4, int(np.ceil(4 * 0.56 * slope)))
     off = (np.arange(ss) + 0.5) / ss - 0.5
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     X = (xs[..., None, None] + off[None, None, None, :])
     Y = (ys[..., None, None] + off[None, None, :, None])
-    U = 5.3 + 0.55 * X + 0.05 * Y
-    V = 4.1 + 0.02 * X + 0.56 * Y
+    U = 5.3 + slope * (0.55 * X + 0.05 * Y)
+    V = 4.1 + slope * (0.02 * X + 0.56 * Y)
     col = np.floor(U + 0.5).astype(np.int64)
     row = np.floor(V + 0.5).astype(np.int64)
     cb, rb = graycode_bits(projector)
@@ -68,7 +70,7 @@ def write_capture(folder: Path, *, cam=(160, 120), projector=SMALL_PROJECTOR, wb
     folder.mkdir(parents=True, exist_ok=True)
     for i, f in enumerate(frames):
         cv2.imwrite(str(folder / f"graycode_{i:02d}.png"), f)
-    return affine_map(w, h)
+    return affine_map(w, h, slope)
 
 
 def point_toward(px, z, K, dist):

@@ -211,3 +211,65 @@ def test_the_counted_median_is_numpys(n, per):
     assert _whole_median(x, per) == np.median(x)
     x = np.full(n, 1024.0)
     assert _whole_median(x, per) == 1024.0
+
+
+# ----------------------------------------------------------------------------- a projector finer than the camera
+
+
+@pytest.fixture(scope="module")
+def coarse_camera(tmp_path_factory):
+    """The affine scene at 3.3 projector px per camera px (a 512 x 384 projector seen by a 128 x 96 camera: each
+    camera pixel averages every projector pixel it spans): the finest two bits' stripes (2 and 4 projector px)
+    are narrower than a camera pixel."""
+    folder = tmp_path_factory.mktemp("coarse") / "capture"
+    u, v = write_capture(folder, cam=(128, 96), projector=(512, 384), slope=6.0, noise=1.0, blur_px=0.7)
+    return read_capture(folder, projector=(512, 384)), u, v
+
+
+def test_bits_finer_than_the_camera_resolves_give_way_to_coarser_ones(coarse_camera):
+    """Neighbouring pixels' codes step by ~3, so no boundary between two of them is one projector pixel's: the
+    walk finds none and the decode kept the integer codes (each the projector pixel under the camera pixel's
+    middle: +-0.5 px, uniform). Each pixel now takes its position from the boundaries of the blocks of 2**2
+    projector px that the camera resolves: sub-pixel."""
+    cap, u, v = coarse_camera
+    dec = decode_graycode(cap)
+    ok = dec.valid
+    assert ok.mean() > 0.99
+    assert (dec.unresolved[..., 0][ok] == 2).mean() > 0.9 and (dec.unresolved[..., 1][ok] == 2).mean() > 0.9
+    assert dec.coarse.sum() < 0.01 * ok.sum()  # (the finest bits are not counted as barely modulating)
+    # the decode before: no level left unresolved, so the walk looks for one-pixel boundaries
+    before = subpixel_map(cap, dataclasses.replace(dec, unresolved=None, u=None, v=None))
+    assert before.subpixel[ok].mean() < 0.05
+    e_int = np.abs(before.u - u)[before.valid & ~before.subpixel]
+    assert 0.25 < np.median(e_int) < 0.35 and np.percentile(e_int, 95) > 0.45  # uniform over a projector px
+    dec = subpixel_map(cap, dec)
+    assert dec.subpixel[dec.valid].mean() > 0.9
+    sp = dec.valid & dec.subpixel
+    for got, want in ((dec.u, u), (dec.v, v)):
+        e = np.abs(got - want)[sp]
+        assert np.median(e) < 0.2 and np.percentile(e, 95) < 0.3, (np.median(e), np.percentile(e, 95))
+
+
+def test_the_resolution_level_is_a_regions_own(capture):
+    """resolution_levels reads each region's own code slope: 0 where a camera pixel spans 0.5 projector px,
+    2 where it spans 3, 1 where 1.5; a depth edge (a code that jumps once) and codes that jump about (an unlit
+    wall's noise read as a code) stay at 0; a capture whose camera resolves every bit gets None."""
+    from ringscan.pipeline.calibrate.graycode import resolution_levels
+
+    h, w = 120, 300
+    y, x = np.mgrid[0:h, 0:w]
+    code = np.where(x < 100, 0.5 * x, np.where(x < 200, 50 + 3.0 * (x - 100), 350 + 1.5 * (x - 200)))
+    code = np.floor(code + np.random.default_rng(1).integers(-1, 2, (h, w))).astype(np.int32)  # misreads of +-1
+    code[60:, :100] += 500 * (x[60:, :100] >= 50)  # a depth edge in the left region's lower half
+    noise = (slice(0, 40), slice(205, 260))
+    code[noise] = np.random.default_rng(2).integers(0, 1024, (40, 55))
+    valid = np.ones((h, w), bool)
+    lv, rate = resolution_levels(code, valid, 1, bits=11)
+    assert (lv[:, 10:90] == 0).all()  # the edge at x = 50 included
+    assert (lv[10:-10, 120:180] == 2).all()
+    assert (lv[60:-10, 220:280] == 1).all()
+    assert (lv[5:35, 215:250] == 0).all()  # the noise
+    assert 1.0 < rate < 3.5  # the median of the slopes over the decoded pixels
+    cap = read_capture(capture[0], projector=PROJ)
+    dec = decode_graycode(cap)
+    assert resolution_levels(dec.col, dec.valid, 1, bits=7) == (None, 0.0) and not dec.unresolved.any()
