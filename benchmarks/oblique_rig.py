@@ -58,9 +58,11 @@ triangulation, not a calibration; a real rig adds calibration error on top.
 A full-size run (1920x1280, 44 frames) takes 3.5 minutes on two CPU cores;
 ``--scale 0.5`` renders with the camera's K and size scaled by 0.5 (1 minute; the
 import uses the scaled rig written next to the render). Then a camera pixel sees
-about 1.5 projector pixels and the sub-pixel decode degrades (measured: decode ray-ray
-0.30 mm object median instead of 0.05, rings-only 2.3 mm instead of 0.18, integer
-unchanged at 0.70): a smoke run, not figures.
+about 1.5 projector pixels: the finest bit is below the camera's resolution and the
+import places the pixels between the boundaries of 2-pixel blocks (docs/calibration.md, "A
+projector finer than the camera"; measured 2026-12-07: decode ray-ray 0.097 mm object
+median, 0.137 on the wall; the decode before that 0.103 and 0.168; integer 0.69): a smoke
+run, not figures.
 """
 
 from __future__ import annotations

@@ -29,8 +29,10 @@ its inverse, and the zero of (pattern - inverse), interpolated linearly between
 the two pixels, places the boundary to sub-pixel precision in the camera. Each
 pixel's projector coordinate is then interpolated linearly between the boundaries
 on either side of it. Pixels without two consecutive boundaries around them
-(code errors, depth edges, a camera that sees more than one projector pixel per
-camera pixel) keep their integer code and are flagged.
+(code errors, depth edges) keep their integer code and are flagged. Where a camera
+pixel spans more than one projector pixel (:func:`resolution_levels`), or the finest
+bits barely modulate (:func:`bit_clearance`), the boundaries are those of the blocks
+of 2**k projector pixels whose bits the pixel can trust.
 """
 
 from __future__ import annotations
