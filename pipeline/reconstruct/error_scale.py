@@ -332,19 +332,70 @@ def _fit_variances(X: np.ndarray, d2: np.ndarray, lower: np.ndarray, upper: np.n
         hi = np.asarray(upper, np.float64) * col / d2_scale
         bounds = [(lo, h if np.isfinite(h) else None) for lo, h in zip(lower, hi)]
 
+    s2 = T_SCALE * T_SCALE
+    c = d2 / T_DOF
+
     def nll(q):
-        var = np.maximum(T_SCALE * T_SCALE * (Xs @ q), 1e-300)
-        u = d2 / (T_DOF * var)
-        f = 0.5 * np.sum(np.log(var)) + 0.5 * (T_DOF + 1) * np.sum(np.log1p(u))
-        g_var = 0.5 / var - 0.5 * (T_DOF + 1) * u / (var * (1 + u))
-        return f / n, T_SCALE * T_SCALE * (Xs.T @ g_var) / n
+        var = np.maximum(s2 * (Xs @ q), 1e-300)
+        return (0.5 * np.sum(np.log(var)) + 0.5 * (T_DOF + 1) * np.sum(np.log1p(c / var))) / n
 
-    from scipy.optimize import minimize  # here, not at import: SciPy's optimisers cost every command 0.3 s of start-up
+    def derivatives(q):  # the gradient and the Hessian of nll
+        var = np.maximum(s2 * (Xs @ q), 1e-300)
+        vc = var + c
+        g_var = 0.5 / var - 0.5 * (T_DOF + 1) * c / (var * vc)
+        h_var = -0.5 / (var * var) + 0.5 * (T_DOF + 1) * c * (2 * var + c) / (var * var * vc * vc)
+        return s2 * (Xs.T @ g_var) / n, (s2 * s2 / n) * (Xs.T @ (h_var[:, None] * Xs))
 
-    start = np.array([lo + 0.2 if h is None else 0.5 * (lo + h) for lo, h in bounds])
-    res = minimize(nll, start, jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": 1000, "ftol": 1e-12, "gtol": 1e-9})
-    return np.maximum(res.x, lower) * d2_scale / col
+    lo = np.array([b[0] for b in bounds], np.float64)
+    hi = np.array([np.inf if b[1] is None else b[1] for b in bounds], np.float64)
+    start = np.where(np.isfinite(hi), 0.5 * (lo + hi), lo + 0.2)
+    q = minimize_in_box(nll, derivatives, start, lo, hi)
+    return np.maximum(q, lower) * d2_scale / col
+
+
+def minimize_in_box(f, derivatives, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
+                    max_iter: int = 200) -> np.ndarray:
+    """The minimum of a smooth function of a few variables within lo <= x <= hi (hi may hold inf; lo = hi
+    fixes a variable), by projected Newton steps: ``f(x)`` its value, ``derivatives(x)`` its gradient (m,) and
+    Hessian (m, m). A variable at a bound whose gradient pushes it outward is held there; the others take their
+    block's Newton step (the Hessian made positive definite by the least multiple of the identity that does
+    it), projected into the box and halved until f falls by Armijo's rule. Stops where the projected gradient
+    is below 1e-10 (the fit's units: its values and variables are of order 1) or f no longer falls.
+
+    NumPy only: SciPy's optimisers (L-BFGS-B, the fit's solver before) cost a ``ringscan reconstruct``
+    process 0.27 s of imports, a fifth of a one-view run; their optimum is this one's to ~1e-9 (tested)."""
+    x = np.clip(np.asarray(x0, np.float64), lo, hi)
+    movable = hi > lo
+    fx = f(x)
+    for _ in range(max_iter):
+        g, H = derivatives(x)
+        free = movable & ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
+        if not free.any() or np.max(np.abs(g[free])) <= 1e-10:
+            break
+        Hf, gf = H[np.ix_(free, free)], g[free]
+        shift = 0.0
+        while True:
+            try:
+                L = np.linalg.cholesky(Hf + shift * np.eye(gf.size))
+                break
+            except np.linalg.LinAlgError:
+                shift = max(2.0 * shift, 1e-10 * max(float(np.max(np.abs(np.diag(Hf)))), 1e-12))
+        step = np.zeros_like(x)
+        step[free] = -np.linalg.solve(L.T, np.linalg.solve(L, gf))
+        t = 1.0
+        while True:
+            xn = np.clip(x + t * step, lo, hi)
+            fn = f(xn)
+            if fn <= fx + 1e-4 * min(float(g @ (xn - x)), 0.0):
+                break
+            t *= 0.5
+            if t < 1e-12:
+                return x
+        done = fx - fn <= 1e-15 * max(1.0, abs(fx))
+        x, fx = xn, fn
+        if done:
+            break
+    return x
 
 
 def _tile_medians(x: np.ndarray, inv: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
