@@ -10,7 +10,8 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
-__all__ = ["AngleSettings", "DecodeSettings", "LineSettings", "PhaseSettings", "SampleSettings", "CONFIDENCE_CONTRAST"]
+__all__ = ["AngleSettings", "DecodeSettings", "LineSettings", "MatchSettings", "PhaseSettings", "SampleSettings",
+           "CONFIDENCE_CONTRAST", "LINE_RATIO", "MAX_NEIGHBOURS"]
 
 CONFIDENCE_CONTRAST = 40.0
 """Contrast (grey levels) at which a line sample's confidence reaches 1 (was the setting
@@ -180,3 +181,58 @@ class LineSettings:
                 raise ValueError(f"LineSettings.{name}: must be a finite number >= 0, got {v!r}")
         if self.sigma > 20:
             raise ValueError(f"LineSettings.sigma: {self.sigma} px is too large (at most 20)")
+
+
+MAX_NEIGHBOURS = 16
+"""Largest ``MatchSettings.neighbours`` (the match kernel's fixed local arrays)."""
+LINE_RATIO = 0.02
+"""Where a match's neighbours' spread across their main direction (variance) is below this
+fraction of the spread along it, they lie on a line (a ring edge) and the map is fitted along
+the line only (was the setting ``stereo.match.line_ratio``: no test, document or benchmark
+moved it)."""
+
+
+@dataclass(frozen=True)
+class MatchSettings:
+    """How a camera-1 sample finds its camera-2 position."""
+
+    RETIRED: ClassVar[dict] = {"line_ratio": LINE_RATIO}
+    """Former fields, now fixed (``formats.settings``: a settings file that names one
+    with this value loads)."""
+
+    cell_px: float = 4.0
+    """The grid's cell size in projector pixels: the search grows ring of cells
+    by ring of cells until it has found the nearest ``neighbours``."""
+    radius_px: float = 16.0
+    """Largest search radius in projector pixels: wide enough for the samples'
+    spacing (a camera pixel is ~4 projector pixels on a coarse camera)."""
+    neighbours: int = 8
+    """How many nearest camera-2 samples (in projector space) the local affine
+    fit uses, at most ``MAX_NEIGHBOURS``."""
+    min_neighbours: int = 4
+    """Fewest neighbours a fit needs (a line fit needs 2, an affine map 3; more
+    gives the residual that detects a discontinuity)."""
+    max_offset_px: float = 0.1
+    """On a line fit: the farthest (projector px) the query may lie off the
+    neighbours' curve (a quadratic through them: a ring edge's arc); the map
+    across it is unknown, so each 0.1 px off costs ~0.1 camera px."""
+    max_extrapolation: float = 2.0
+    """The farthest the query may lie from the neighbours' weighted mean, in
+    their standard deviations along each fitted direction."""
+    max_fit_px: float = 0.5
+    """Largest RMS residual (camera-2 px) of the affine fit: above it the
+    neighbours straddle a depth discontinuity (or a decode error)."""
+    max_gain: float = 20.0
+    """Largest camera-2 px per projector px of the fitted map (Frobenius norm /
+    sqrt 2): beyond it neighbours close in projector space are far apart in the
+    image (a discontinuity)."""
+
+    def __post_init__(self):
+        if not (self.cell_px > 0 and self.radius_px >= self.cell_px):
+            raise ValueError(f"match: need 0 < cell_px <= radius_px, got {self.cell_px}, {self.radius_px}")
+        if not (2 <= self.min_neighbours <= self.neighbours <= MAX_NEIGHBOURS):
+            raise ValueError(f"match: need 2 <= min_neighbours <= neighbours <= {MAX_NEIGHBOURS}, "
+                             f"got {self.min_neighbours}, {self.neighbours}")
+        for name in ("max_offset_px", "max_extrapolation", "max_fit_px", "max_gain"):
+            if not (getattr(self, name) > 0):
+                raise ValueError(f"match.{name}: must be > 0, got {getattr(self, name)}")

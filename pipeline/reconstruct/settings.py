@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ringscan.kernels.point_filter import NeighbourFilterSettings
-from ringscan.kernels.stereo_match import MatchSettings
+from ringscan.kernels.settings import MatchSettings
 from ringscan.kernels.triangulation import TriangulateSettings
 from ringscan.pipeline.codecs.base import STAGE_SETTING_RANGES, StageSettings
 from ringscan.pipeline.formats.settings import WHY_CAM_PX, WHY_PROJ_PX, Bound, check_ranges

@@ -19,7 +19,6 @@ from ringscan.kernels.compact import count_values, finite_flags, finite_indices,
 from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.point_filter import mark_isolated_points
-from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
 from ringscan.kernels.triangulation import (
     STATUS_GRAZING,
     STATUS_ISOLATED,
@@ -53,7 +52,6 @@ from ringscan.pipeline.reconstruct.neighbour_checks import (
     widen_for_shading,
 )
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
-from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX, decode_view, epipolar_check, match_on_device
 
 log = logging.getLogger(__name__)
 
@@ -576,6 +574,10 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     """Camera 1's samples matched in camera 2 and triangulated from two or three
     rays; with ``auto`` on a calibrated rig, the samples camera 2 does not match
     fall back to camera-projector."""
+    # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
+    from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
+    from ringscan.pipeline.reconstruct.stereo import decode_view, epipolar_check, match_on_device
+
     scan, view, settings, device, threads, samples, times = (run.scan, run.view, run.settings, run.device,
                                                              run.threads, run.samples, run.times)
     rig = scan.rig
@@ -643,6 +645,8 @@ def _stereo_report(view: View, matches, tri, check: dict, use_light: bool, extra
         check = {"kind": check.pop("kind"), "samples": check.pop("matches"),
                  "median_px": check.pop("epipolar_px_median"), "p95_px": check.pop("epipolar_px_p95"), **check}
         if not check["fits"]:
+            from ringscan.pipeline.reconstruct.stereo import EPIPOLAR_WARN_PX  # (loaded: a two-camera view)
+
             log.warning("%s: the rig file does not fit the images: camera 2's matches lie %.2f px from their "
                         "epipolar lines (median; p95 %.2f px; above %.1f px): check the cameras' calibration "
                         "(ringscan calibrate refine, docs/calibration.md)", view.name, check["median_px"],
