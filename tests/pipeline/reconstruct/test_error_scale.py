@@ -348,7 +348,8 @@ def test_the_variance_fit_reaches_scipys_optimum(seed):
 
 def test_a_default_reconstruct_loads_no_scipy(tmp_path):
     """The view's error model fits with NumPy alone: a ``ringscan reconstruct`` of a scan with the angle code
-    (the default patterns) imports no SciPy (its optimisers cost a process ~0.3 s, a fifth of a one-view run)."""
+    (the default patterns) imports no SciPy (its optimisers cost a process ~0.3 s, a fifth of a one-view run),
+    nor, with one camera, the two-camera modules."""
     import subprocess
     import sys
 
@@ -367,9 +368,12 @@ def test_a_default_reconstruct_loads_no_scipy(tmp_path):
         f"rep = reconstruct_scan(folder, {str(tmp_path / 'rec')!r}, progress=False)\n"
         "print('FIT', 'error_model' in rep['views'][0]['calibration'])\n"
         "print('SCIPY', any(m == 'scipy' or m.startswith('scipy.') for m in sys.modules))\n"
+        "print('STEREO', any(m.startswith(('ringscan.kernels.stereo', 'ringscan.pipeline.reconstruct.stereo'))\n"
+        "                    for m in sys.modules))\n"
     )
     del PROJ, small_rig  # (imported above only to fail here, not in the probe, if the helper moves)
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=600,
                        cwd=Path(__file__).resolve().parents[3])
     assert r.returncode == 0, r.stderr[-2000:]
     assert "FIT True" in r.stdout and "SCIPY False" in r.stdout, r.stdout
+    assert "STEREO False" in r.stdout  # (one camera: the matcher's and the rays' modules stay unloaded, ~75 ms)
