@@ -85,7 +85,6 @@ from ringscan.pipeline.calibrate.graycode import decode_graycode
 from ringscan.pipeline.calibrate.importer import procam_pose, triangulate_codes
 from ringscan.pipeline.evaluate.metrics import evaluate_view, point_distances
 from ringscan.pipeline.formats.images import read_image
-from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.ply import read_ply
 from ringscan.pipeline.formats.rig import load_rig, save_rig
 from ringscan.pipeline.formats.scan import load_scan
@@ -348,7 +347,7 @@ def main(argv=None) -> int:
     fv = read_image(imported / CAPTURE / "proj_v.png").astype(np.float64)
     good = (fu > 0) & (fv > 0)
     yy, xx = np.nonzero(good)
-    uv = np.stack([fu[yy, xx], fv[yy, xx]], 1) / DECODED_SCALE - 1.0
+    uv = np.stack([fu[yy, xx], fv[yy, xx]], 1) / load_scan(imported).patterns.scale - 1.0
     dpx = np.stack([xx, yy], 1)
     rows.append(measure("decode ray-ray", dpx, ray_ray(rig, dpx, uv), truth, mesh, keep))
     # the truth projector coordinates

@@ -30,7 +30,6 @@ import numpy as np
 from ringscan.pipeline.calibrate.importer import import_captures, triangulate_codes
 
 from ringscan.pipeline.calibrate.opencv_files import read_stereo_calibration
-from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.scan import as_camera2, read_view_frames
 from ringscan.pipeline.simulate.opencv_graycode import read_graycode_truth, render_graycode_captures
 
@@ -66,7 +65,8 @@ def decoded(scan, view, camera):
     v = view.camera2 if camera == 2 else view
     fr = read_view_frames(s, v, ["proj_u", "proj_v"]).astype(np.float64)
     ok = (fr[0] > 0) & (fr[1] > 0)
-    return np.where(ok, fr[0] / DECODED_SCALE - 1, np.nan), np.where(ok, fr[1] / DECODED_SCALE - 1, np.nan)
+    k = scan.patterns.scale
+    return np.where(ok, fr[0] / k - 1, np.nan), np.where(ok, fr[1] / k - 1, np.nan)
 
 
 def main() -> int:

@@ -53,7 +53,7 @@ from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.formats.atomic import check_output_folder, lock_folder
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.images import write_image
-from ringscan.pipeline.formats.patterns import DECODED_SCALE, parse_patterns
+from ringscan.pipeline.formats.patterns import DECODED_SCALE, decoded_scale, parse_patterns
 from ringscan.pipeline.formats.rig import (
     Camera,
     PerspectiveLight,
@@ -186,11 +186,21 @@ def triangulate_codes(cam_px: np.ndarray, proj_px: np.ndarray, *, cam_K, cam_dis
     return (X[:3] / X[3]).T
 
 
-def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ``decoded`` codec's three 16-bit frames of sub-pixel maps (NaN = not decoded)."""
+def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray,
+                   scale: int = DECODED_SCALE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``decoded`` codec's three 16-bit frames of sub-pixel maps (NaN = not decoded; ``scale``: fixed-point
+    steps a projector px, ``patterns.decoded_scale`` of the projector).
+
+    A whole-pixel value is an integer code (a pixel the sub-pixel walk could not place: the reader gives it an
+    integer code's sigma); a sub-pixel value that rounds onto a whole pixel (1 in ``scale``) is written one step
+    beside it, on its own side (at most 1 / scale px off), so that the reader does not take it for one."""
     def enc(a):
-        ok = np.isfinite(a) & (a > -1 + 1.0 / DECODED_SCALE) & (a < 65535.0 / DECODED_SCALE - 1)
-        return np.where(ok, np.round((np.where(ok, a, 0) + 1.0) * DECODED_SCALE), 0).astype(np.uint16)
+        ok = np.isfinite(a) & (a > -1 + 1.0 / scale) & (a < 65535.0 / scale - 1)
+        x = (np.where(ok, a, 0) + 1.0) * scale
+        q = np.round(x)
+        whole = (q % scale == 0) & (a != np.round(a)) & (scale > 1)  # sub-pixel, yet on the integer grid
+        q = np.where(whole, q + np.where(x >= q, 1.0, -1.0), q)
+        return np.where(ok, q, 0).astype(np.uint16)
 
     fu, fv = enc(u), enc(v)
     bad = (fu == 0) | (fv == 0)
@@ -566,12 +576,13 @@ def _decoded_spec(rig: Rig, settings: ImportSettings):
     center = (float(li.K[0, 2]), float(li.K[1, 2])) if has_calibrated_light(rig) else \
         ((li.width - 1) / 2.0, (li.height - 1) / 2.0)
     return parse_patterns({"codec": "decoded", "width": li.width, "height": li.height, "center": list(center),
-                           "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits}, source="import")
+                           "rho0": 0.0, "pitch": 1.0, "sector_bits": settings.sector_bits,
+                           "scale": decoded_scale(li.width, li.height)}, source="import")
 
 
-def _write_camera(out: Path, sub: str, dec) -> dict:
+def _write_camera(out: Path, sub: str, dec, scale: int) -> dict:
     """A camera's three decoded frames, encoded and written (PNG encoders release the GIL): their paths."""
-    fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast)
+    fu, fv, fc = encode_decoded(dec.u, dec.v, dec.contrast, scale)
     rels = {}
     for key, img in (("proj_u", fu), ("proj_v", fv), ("contrast", fc)):
         rels[key] = f"{sub}/{key}.png"
@@ -590,7 +601,7 @@ def _write_scan(out: Path, rig: Rig, spec, decs: list, sel, imported: dict) -> S
             written = []
             for f, name, per_cam in decs:
                 subs = {c: f"{name}/{CAMERA2_DIR}" if (len(sel) == 2 and c == 2) else name for c in per_cam}
-                written.append((f, name, {c: pool.submit(_write_camera, out, subs[c], dec)
+                written.append((f, name, {c: pool.submit(_write_camera, out, subs[c], dec, spec.scale)
                                           for c, dec in per_cam.items()}))
             for f, name, futs in written:
                 frames = {c: fu.result() for c, fu in futs.items()}  # the first failure in order is raised

@@ -33,7 +33,6 @@ from ringscan.pipeline.calibrate.rig_refine import ResidualStats, _check_pixels
 from ringscan.pipeline.calibrate.procam import depth_range, procam_rig
 from ringscan.pipeline.calibrate.two_view import _homog
 from ringscan.pipeline.formats.errors import FormatError
-from ringscan.pipeline.formats.patterns import DECODED_SCALE
 from ringscan.pipeline.formats.rig import Camera, PerspectiveLight, Rig
 from ringscan.pipeline.formats.scan import Scan, View, read_view_frames
 
@@ -755,7 +754,7 @@ def decoded_pairs(scan: Scan, view: View, *, max_pairs: int = 200_000, seed: int
         pick = np.sort(np.random.default_rng(seed).choice(yy.size, max_pairs, replace=False))
         yy, xx = yy[pick], xx[pick]
     uv = np.stack([xx, yy], 1).astype(np.float64)
-    proj = np.stack([fr[0][yy, xx], fr[1][yy, xx]], 1).astype(np.float64) / DECODED_SCALE - 1.0
+    proj = np.stack([fr[0][yy, xx], fr[1][yy, xx]], 1).astype(np.float64) / scan.patterns.scale - 1.0
     return uv, proj
 
 

@@ -2,7 +2,8 @@
 decoded projector position (``ringscan import``, docs/formats.md).
 
 Frames ``proj_u``, ``proj_v`` (16-bit fixed point: value = round((coordinate + 1) *
-``DECODED_SCALE``), 0 = not decoded) and ``contrast`` (white - black, 16-bit).
+``scale``), 0 = not decoded; ``scale`` is scan.json's ``patterns.scale``, ``DECODED_SCALE`` = 32 up to a
+2047 px projector) and ``contrast`` (white - black, 16-bit).
 Each decoded pixel becomes one sample that keeps both projector coordinates: rho =
 |p - c| around the pattern centre c (the projector's principal point) and the polar
 angle phi = atan2(v_p - c_v, u_p - c_u), each with a predicted standard deviation,
@@ -44,17 +45,18 @@ SIGMA_INTEGER_PX = 1.0 / math.sqrt(12.0)
 """Standard deviation of an integer code (a uniform error over one projector pixel)."""
 
 
-def coordinate_sigma(x: np.ndarray, contrast: np.ndarray) -> np.ndarray:
-    """Predicted standard deviation (projector px) of decoded coordinates ``x``:
-    integer codes (the importer's fallback, or ``--integer``) are uniform over a
+def coordinate_sigma(x: np.ndarray, contrast: np.ndarray, scale: int = DECODED_SCALE) -> np.ndarray:
+    """Predicted standard deviation (projector px) of decoded coordinates ``x`` (read from maps of ``scale``
+    steps a px): integer codes (the importer's fallback, or ``--integer``) are uniform over a
     pixel; sub-pixel ones follow the contrast."""
-    integer = np.abs(x - np.round(x)) < 0.5 / DECODED_SCALE
-    floor = 1.0 / (DECODED_SCALE * math.sqrt(12.0))
+    integer = np.abs(x - np.round(x)) < 0.5 / scale
+    floor = 1.0 / (scale * math.sqrt(12.0))
     sub = np.maximum(SIGMA_SUBPIXEL_PX * CONTRAST_FULL / np.maximum(contrast, 1.0), floor)
     return np.where(integer, SIGMA_INTEGER_PX, sub)
 
 
-def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, center, sector_bits: int) -> dict:
+def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, center, sector_bits: int,
+                    scale: int = DECODED_SCALE) -> dict:
     """NumPy samples of decoded maps.
 
     ``u``, ``v``: (H, W) float projector coordinates, NaN where not decoded;
@@ -75,13 +77,14 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
     ok = np.isfinite(u) & np.isfinite(v)
     pix = np.flatnonzero(ok.ravel()).astype(np.int32)
     con = np.asarray(contrast, np.float64).ravel()[pix]
-    out = _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits)
+    out = _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits,
+                      scale=scale)
     out["shading"] = sample_shading(np.asarray(contrast, np.float64), out["uv"])
     return out
 
 
 def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray, W: int, *, center,
-                sector_bits: int) -> dict:
+                sector_bits: int, scale: int = DECODED_SCALE) -> dict:
     """:func:`decoded_samples` of the decoded pixels ``pix`` (linear indices in an image ``W`` wide), their
     float64 coordinates ``up``, ``vp`` and contrast ``con`` (8-bit levels)."""
     uv = np.stack([pix % W, pix // W], 1).astype(np.float32)
@@ -95,8 +98,8 @@ def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray
     else:
         sector = np.full(pix.size, -1, np.int32)
     conf = np.clip(con / CONTRAST_FULL, 0.0, 1.0).astype(np.float32)
-    su2 = coordinate_sigma(up, con) ** 2
-    sv2 = coordinate_sigma(vp, con) ** 2
+    su2 = coordinate_sigma(up, con, scale) ** 2
+    sv2 = coordinate_sigma(vp, con, scale) ** 2
     c2, s2 = np.cos(phi) ** 2, np.sin(phi) ** 2
     return {"uv": uv, "rho": rho.astype(np.float32), "phi": phi.astype(np.float32), "sector": sector,
             "confidence": conf, "pixel": pix,
@@ -109,7 +112,7 @@ def _map_params(spec: PatternSpec, light_gradient: bool = True) -> DecodedMapPar
     sample's ``shading`` too)."""
     p = DecodedMapParams()
     p.light_gradient = 1 if light_gradient else 0
-    p.scale = float(DECODED_SCALE)
+    p.scale = float(spec.scale)
     p.contrast_scale = 257.0
     p.center = wp.vec2d(float(spec.center[0]), float(spec.center[1]))
     p.sectors = 2 ** int(spec.sector_bits) if spec.sector_bits > 0 else 0

@@ -49,9 +49,27 @@ PRECOMPENSATED_GAMMA_RANGE = (0.1, 10.0)
 MAX_ANGLE_ZONES = 16
 """Most zones of the angle code (P doubles from one to the next)."""
 DECODED_SCALE = 32
-"""``decoded`` frames: 16-bit value = round((projector coordinate + 1) * DECODED_SCALE), 0 = not decoded."""
+"""``decoded`` frames: 16-bit value = round((projector coordinate + 1) * scale), 0 = not decoded; ``scale``
+(scan.json ``patterns.scale``) is this for a projector of up to 2047 px a side, and halves for each doubling
+beyond (:func:`decoded_scale`), so that every coordinate fits 16 bits."""
 
-__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec",
+
+def decoded_scale(width: int, height: int) -> int:
+    """The ``decoded`` maps' fixed-point steps a projector px for a projector of ``width`` x ``height``: the
+    largest power of two up to ``DECODED_SCALE`` at which (the largest coordinate + 1) fits 16 bits (a
+    coordinate reaches side - 0.5): 32 up to 2047 px, 16 up to 4095, 8 up to 8191, ... 1 up to 65534.
+
+    Raises:
+        ValueError: a side of 65535 px or more (no 16-bit map holds it)."""
+    side = max(int(width), int(height))
+    s = DECODED_SCALE
+    while s > 1 and (side + 0.5) * s > 65535:
+        s //= 2
+    if (side + 0.5) * s > 65535:
+        raise ValueError(f"a projector side of {side} px does not fit the 16-bit decoded maps (at most 65534)")
+    return s
+
+__all__ = ["CODECS", "IMPORTED_CODECS", "DECODED_SCALE", "decoded_scale", "PRECOMPENSATED_GAMMA_RANGE", "CODEC_DEFAULTS", "PatternSpec",
            "PatternLayout", "Parameter", "PATTERN_LAYOUTS", "angle_zones", "angle_periods", "spec_angle_zones", "pattern_layout", "parse_patterns", "default_patterns",
            "frame_names", "gray_encode", "gray_decode",
            "PatternOption", "pattern_options"]
@@ -106,6 +124,8 @@ class PatternSpec:
     angle_period: float = 12.0
     """Least period (projector px) of the angular fringes at the inner radius of each
     zone; the number of periods doubles outward in zones (:func:`angle_zones`)."""
+    scale: int = DECODED_SCALE
+    """Fixed-point steps a projector px of the ``decoded`` maps (:func:`decoded_scale`)."""
 
     @property
     def layout(self) -> PatternLayout:
@@ -372,7 +392,9 @@ class DecodedLayout(PatternLayout):
     name = "decoded"
     projectable = False
     dense = True
-    parameters = (Parameter("sector_bits", int, 8, 0, 12, doc="bits of the polar-angle sector for the root choice"),)
+    parameters = (Parameter("sector_bits", int, 8, 0, 12, doc="bits of the polar-angle sector for the root choice"),
+                  Parameter("scale", int, DECODED_SCALE, 1, DECODED_SCALE,
+                            doc="the maps' fixed-point steps a projector px (decoded_scale: 32 up to 2047 px)"))
 
     def frame_names(self, spec: PatternSpec) -> list[str]:
         return ["proj_u", "proj_v", "contrast"]

@@ -85,3 +85,24 @@ def test_other_lens_models_are_refused_naming_the_file_and_key(tmp_path, cam_dis
     with pytest.raises(CalibrationError, match=match) as e:
         read_opencv_calibration(p)
     assert str(p) in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("width,scale", [(1920, 32), (2560, 16), (3840, 16)])
+def test_the_decoded_maps_take_a_scale_that_holds_the_projectors_width(width, scale):
+    """The imported scan's maps (16-bit fixed point) at 32 steps a px held coordinates up to 2046 px: a 2560 or
+    3840 px projector's farther columns were dropped as they were written. The spec now carries the scale
+    that holds the projector (16 for these), and scan.json keeps it."""
+    import dataclasses
+
+    from ringscan.pipeline.calibrate.importer import ImportSettings, _decoded_spec
+    from ringscan.pipeline.formats.patterns import parse_patterns
+    from ringscan.pipeline.formats.rig import default_rig
+
+    rig = default_rig(light_model="perspective")
+    K = rig.light.K.copy()
+    K[0, 2], K[1, 2] = (width - 1) / 2, 539.5
+    rig = dataclasses.replace(rig, light=dataclasses.replace(rig.light, width=width, height=1080, K=K))
+    spec = _decoded_spec(rig, ImportSettings())
+    assert spec.scale == scale and spec.to_dict()["scale"] == scale
+    assert parse_patterns(spec.to_dict(), source="test").scale == scale  # read back from scan.json
+    assert (width - 0.5 + 1) * spec.scale <= 65535  # the last column's centre fits
