@@ -84,6 +84,14 @@ camera spans 6): a code that runs faster is read as one that does not resolve mo
 RESOLUTION_GRID = 6
 """The code's slope is read at every 6th pixel along both axes (a 36th of the work; the level is that smooth; the
 window then 5 x 5 grid points, OpenCV's fast median)."""
+MIN_WIDE_SPACING = 2.0
+"""Camera px a projector px spans beyond which a bit's clearance window is its half stripe in camera px (below,
+the window of the codes' steps, as it was: the same decode for every camera that resolves the projector)."""
+MAX_CLEAR_RADIUS = 64
+"""Largest half-side (camera px) of the window in which a bit's modulation is judged."""
+SPAN_PROJECTOR_PX = 4.0
+"""Projector px apart that two boundaries may lie and still be interpolated between, where that is more camera
+px than ``GrayCodeSettings.max_span_px`` (a camera far finer than the projector: 15 camera px a projector px)."""
 POINT_SEARCH_COST = 16
 """Line pixels of a walk that a search around one pixel costs, about (a coarser level places its pixels by
 searches where fewer than this share of their lines' pixels: 0.58 us a search, 0.04 us a walked pixel at
@@ -181,6 +189,8 @@ class Decoded:
     axes: tuple[int, int] | None = None
     """The camera axes (1: across, 0: down) along which the column and the row code change fastest: their
     sub-pixel walks' (:func:`fast_axis`; None: found again)."""
+    spacing: tuple[float, float] | None = None
+    """Camera px a projector px spans along each walk's axis, at least 1 (:func:`axis_and_spacing`; None: 1)."""
     noise: float = 0.0
     """Standard deviation (8-bit levels) of one frame's camera noise, measured from the capture."""
 
@@ -278,11 +288,13 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     coarse = np.zeros(contrast.shape + (2,), np.int8)
     unresolved = np.zeros(contrast.shape + (2,), np.int8)
     low = np.zeros(contrast.shape, bool)
-    axes = []
+    axes, spacing = [], []
     for a, (pairs, c) in enumerate(((cap.col_pairs, col), (cap.row_pairs, row))):
-        axes.append(fast_axis(c, valid))
-        res, rate = resolution_levels(c, valid, axes[-1], bits=len(pairs))
-        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale, unresolved=res, rate=rate)
+        ax, sp = axis_and_spacing(c, valid)
+        axes.append(ax)
+        spacing.append(sp)
+        res, rate = resolution_levels(c, valid, ax, bits=len(pairs))
+        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale, unresolved=res, rate=rate, spacing=sp)
         if res is not None:  # the camera spans more than a projector px somewhere
             low |= k > res.astype(np.int16) + MAX_COARSE_BITS
             coarse[..., a] = np.where(k > res, np.minimum(k, res + MAX_COARSE_BITS), 0)
@@ -301,7 +313,7 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
                  "(up to %d) are below its resolution; their positions come from the coarser bits", cap.folder,
                  int(np.count_nonzero(valid & (unresolved.max(axis=2) > 0))), int(unresolved.max()))
     return Decoded(col=col, row=row, valid=valid, contrast=contrast, coarse=coarse, low_modulation=low, noise=noise,
-                   unresolved=unresolved, axes=(axes[0], axes[1]))
+                   unresolved=unresolved, axes=(axes[0], axes[1]), spacing=(spacing[0], spacing[1]))
 
 
 def frame_noise(cap: GrayCodeCapture, valid: np.ndarray) -> float:
@@ -371,7 +383,7 @@ def _mean_step(counts: np.ndarray) -> float:
 
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
                   noise: float, *, scale: float = 1.0, unresolved: np.ndarray | None = None,
-                  rate: float = 0.0) -> np.ndarray:
+                  rate: float = 0.0, spacing: float = 1.0) -> np.ndarray:
     """(H, W) int8: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
 
     A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
@@ -396,7 +408,9 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     for j in range(min(bits, MAX_COARSE_BITS + 2 + extra)):  # j = 0: the finest bit
         d = _modulation(pairs, bits - 1 - j, scale, ints, bit, work)
         # bit j's stripes are 2**(j + 1) projector px wide: a pixel lies within half that of a stripe's middle
-        r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1), 32))
+        # (``spacing`` camera px a projector px where a projector px spans more than two: a camera far finer)
+        r = int(min(max(math.ceil(2 ** j / max(rate, 1e-3)), 1,
+                        math.ceil(2 ** j * spacing) if spacing > MIN_WIDE_SPACING else 1), MAX_CLEAR_RADIUS))
         near = cv2.dilate(d, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
         out[near < thresh] = j + 1
     return out
@@ -413,6 +427,12 @@ def fast_axis(code: np.ndarray, valid: np.ndarray) -> int:
     Where most codes step by 0, 1 or 2 between neighbours (a camera that resolves the projector's pixels), the
     axis of the larger mean of those steps; else (a camera pixel spanning more than two projector px along
     some axis) the axis of the larger mean step, each counted up to ``FAST_AXIS_CAP``."""
+    return axis_and_spacing(code, valid)[0]
+
+
+def axis_and_spacing(code: np.ndarray, valid: np.ndarray) -> tuple[int, float]:
+    """(:func:`fast_axis`, the camera px a projector px spans along it: 1 / the mean step of neighbouring codes
+    there, at least 1; e.g. 15 for a 20-megapixel camera on a small projector's pixels)."""
     counts, wide = [], []
     for axis in (1, 0):
         a, b = (code[:, 1:], code[:, :-1]) if axis == 1 else (code[1:, :], code[:-1, :])
@@ -422,10 +442,13 @@ def fast_axis(code: np.ndarray, valid: np.ndarray) -> int:
         over = both & (step > 2)
         counts.append(c)
         wide.append((np.count_nonzero(over), int(np.minimum(step[over], FAST_AXIS_CAP).sum())))
-    if all(w[0] < c[1] + c[2] for c, w in zip(counts, wide)):
-        return 1 if _mean_step(counts[0]) >= _mean_step(counts[1]) else 0
     mean = [(c[1] + 2 * c[2] + w[1]) / max(1, c.sum() + w[0]) for c, w in zip(counts, wide)]
-    return 1 if mean[0] >= mean[1] else 0
+    if all(w[0] < c[1] + c[2] for c, w in zip(counts, wide)):
+        axis = 1 if _mean_step(counts[0]) >= _mean_step(counts[1]) else 0
+    else:
+        axis = 1 if mean[0] >= mean[1] else 0
+    m = mean[0 if axis == 1 else 1]
+    return axis, (1.0 / m if 0 < m < 1 else 1.0)
 
 
 def resolution_levels(code: np.ndarray, valid: np.ndarray, axis: int, *,
@@ -560,14 +583,18 @@ def subpixel_map(cap: GrayCodeCapture, dec: Decoded, *, settings: GrayCodeSettin
     (``threads``: the lines walked at once, each line's numbers its own)."""
 
     ax_u, ax_v = dec.axes if dec.axes is not None else (fast_axis(dec.col, dec.valid), fast_axis(dec.row, dec.valid))
+    # boundaries farther apart than max_span_px are not interpolated between, unless a projector px itself spans
+    # more (a camera far finer than the projector): then as far as SPAN_PROJECTOR_PX projector px
+    sp_u, sp_v = dec.spacing if dec.spacing is not None else (1.0, 1.0)
+    span_u, span_v = (max(settings.max_span_px, SPAN_PROJECTOR_PX * sp) for sp in (sp_u, sp_v))
     coarse = dec.coarse if dec.coarse is not None else np.zeros(dec.valid.shape + (2,), np.int8)
     levels = coarse
     if dec.unresolved is not None and dec.unresolved.any():  # the bits the camera cannot resolve, then those
         levels = np.maximum(coarse, dec.unresolved)           # that barely modulate beyond them
-    u, oku = _levels(dec.col, dec.valid, levels[..., 0], cap.col_pairs, ax_u, settings.max_span_px, cap.scale,
-                     threads, weak=coarse[..., 0])
-    v, okv = _levels(dec.row, dec.valid, levels[..., 1], cap.row_pairs, ax_v, settings.max_span_px, cap.scale,
-                     threads, weak=coarse[..., 1])
+    u, oku = _levels(dec.col, dec.valid, levels[..., 0], cap.col_pairs, ax_u, span_u, cap.scale, threads,
+                     weak=coarse[..., 0])
+    v, okv = _levels(dec.row, dec.valid, levels[..., 1], cap.row_pairs, ax_v, span_v, cap.scale, threads,
+                     weak=coarse[..., 1])
     # a pixel whose finest bits are untrusted has no integer code to fall back on: it is dropped
     lost = dec.valid & (((coarse[..., 0] > 0) & ~oku) | ((coarse[..., 1] > 0) & ~okv))
     if dec.low_modulation is not None:

@@ -273,3 +273,24 @@ def test_the_resolution_level_is_a_regions_own(capture):
     cap = read_capture(capture[0], projector=PROJ)
     dec = decode_graycode(cap)
     assert resolution_levels(dec.col, dec.valid, 1, bits=7) == (None, 0.0) and not dec.unresolved.any()
+
+
+def test_a_camera_far_finer_than_the_projector_places_its_pixels_between_boundaries(tmp_path):
+    """At 15 camera px a projector px (a 20-megapixel camera on a small projector's pixels, close up) the
+    boundaries lie 15 px apart, beyond ``max_span_px`` (12), and a stripe's middle beyond the clearance window
+    of the codes' steps (1 px): the decode kept every pixel's integer code (a staircase of whole projector
+    px) and left the pixels beside each boundary out as barely modulating. Now the span and the window follow
+    the projector px: nearly every pixel sub-pixel, to ~a hundredth of a projector px."""
+    folder = tmp_path / "capture"
+    u, v = write_capture(folder, cam=(320, 240), projector=PROJ, slope=0.12, noise=1.0, blur_px=0.3)
+    cap = read_capture(folder, projector=PROJ)
+    dec = decode_graycode(cap)
+    assert dec.spacing[0] > 12 and dec.spacing[1] > 12  # 1 / (0.12 x 0.55)
+    assert dec.low_modulation.mean() < 0.01
+    dec = subpixel_map(cap, dec)
+    ok = dec.valid
+    # (the pixels before the first boundary or after the last, ~15 px at each edge, keep their integer codes)
+    assert ok.mean() > 0.95 and dec.subpixel[ok].mean() > 0.8
+    for got, want in ((dec.u, u), (dec.v, v)):
+        e = np.abs(got - want)[ok & dec.subpixel]
+        assert np.median(e) < 0.03 and np.percentile(e, 95) < 0.1, (np.median(e), np.percentile(e, 95))
