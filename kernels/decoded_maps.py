@@ -39,13 +39,56 @@ class DecodedMapParams:
 
 
 @wp.func
+def is_integer_code(x: wp.float64, prm: DecodedMapParams):
+    """Whether decoded coordinate x is an integer code (a whole pixel: the import writes sub-pixel ones off it)."""
+    return wp.abs(x - wp.round(x)) < wp.float64(0.5) / prm.scale
+
+
+@wp.func
 def decoded_sigma(x: wp.float64, con: wp.float64, prm: DecodedMapParams):
     """Predicted sigma (projector px) of decoded coordinate x at contrast con: an integer code's, or a
     sub-pixel one's (as 1 / contrast, floored at the fixed point's step)."""
-    if wp.abs(x - wp.round(x)) < wp.float64(0.5) / prm.scale:
+    if is_integer_code(x, prm):
         return prm.sigma_integer
     floor = wp.float64(1.0) / (prm.scale * wp.sqrt(wp.float64(12.0)))
     return wp.max(prm.sigma_subpixel * prm.contrast_full / wp.max(con, wp.float64(1.0)), floor)
+
+
+@wp.func
+def coordinate_at(f: wp.array2d(dtype=wp.uint16), y: int, x: int, prm: DecodedMapParams):
+    """The map's projector coordinate at (y, x) (float64), and whether it was decoded (False outside)."""
+    if y < 0 or x < 0 or y >= f.shape[0] or x >= f.shape[1]:
+        return wp.float64(0.0), False
+    a = f[y, x]
+    return wp.float64(a) / prm.scale - wp.float64(1.0), a > wp.uint16(0)
+
+
+@wp.func
+def axis_step(f: wp.array2d(dtype=wp.uint16), y: int, x: int, dy: int, dx: int, c: wp.float64,
+              prm: DecodedMapParams):
+    """|change| of the map's coordinate (projector px) to the next decoded pixel along (dy, dx), the smaller
+    of the two sides (a depth edge on one side is not the map's slope); 0 with neither decoded."""
+    a, ok_a = coordinate_at(f, y + dy, x + dx, prm)
+    b, ok_b = coordinate_at(f, y - dy, x - dx, prm)
+    da = wp.abs(a - c)
+    db = wp.abs(c - b)
+    if ok_a and ok_b:
+        return wp.min(da, db)
+    if ok_a:
+        return da
+    if ok_b:
+        return db
+    return wp.float64(0.0)
+
+
+@wp.func
+def map_rate(f: wp.array2d(dtype=wp.uint16), y: int, x: int, c: wp.float64, prm: DecodedMapParams):
+    """Projector px per camera px of the map at (y, x) (the norm of its smaller one-sided steps across and
+    down): a sub-pixel position's error is the crossing's in the camera times this where above 1 (a camera
+    coarser than the projector; ``graycode.resolution_levels``)."""
+    gx = axis_step(f, y, x, 0, 1, c, prm)
+    gy = axis_step(f, y, x, 1, 0, c, prm)
+    return wp.sqrt(gx * gx + gy * gy)
 
 
 @wp.kernel
@@ -112,6 +155,12 @@ def decoded_samples_kernel(
             con = wp.float64(fc[y, x]) / prm.contrast_scale
             su = decoded_sigma(up, con, prm)
             sv = decoded_sigma(vp, con, prm)
+            # a sub-pixel coordinate's sigma is the crossing's, in the camera: where a camera px spans more
+            # than one projector px, that many times more (an integer code's is its own)
+            if not is_integer_code(up, prm):
+                su = su * wp.max(map_rate(fu, y, x, up, prm), wp.float64(1.0))
+            if not is_integer_code(vp, prm):
+                sv = sv * wp.max(map_rate(fv, y, x, vp, prm), wp.float64(1.0))
             c = wp.cos(f)
             s = wp.sin(f)
             c2 = c * c

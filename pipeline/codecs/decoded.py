@@ -78,13 +78,27 @@ def decoded_samples(u: np.ndarray, v: np.ndarray, contrast: np.ndarray, *, cente
     pix = np.flatnonzero(ok.ravel()).astype(np.int32)
     con = np.asarray(contrast, np.float64).ravel()[pix]
     out = _samples_at(pix, u.ravel()[pix], v.ravel()[pix], con, u.shape[1], center=center, sector_bits=sector_bits,
-                      scale=scale)
+                      scale=scale, rates=(map_rate(u).ravel()[pix], map_rate(v).ravel()[pix]))
     out["shading"] = sample_shading(np.asarray(contrast, np.float64), out["uv"])
     return out
 
 
+def map_rate(a: np.ndarray) -> np.ndarray:
+    """(H, W) projector px per camera px of a decoded map ``a`` (NaN: not decoded) at each pixel: the norm of
+    its steps across and down, each the smaller of the two sides' |change| to a decoded neighbour (a depth edge
+    on one side is not the map's slope), the one side where the other is not decoded, 0 where neither is."""
+    def step(axis):
+        pad = np.pad(a, [(1, 1) if k == axis else (0, 0) for k in (0, 1)], constant_values=np.nan)
+        sl = lambda k: tuple(slice(1 + k, pad.shape[i] - 1 + k) if i == axis else slice(None) for i in (0, 1))  # noqa: E731
+        fwd, back = np.abs(pad[sl(1)] - a), np.abs(a - pad[sl(-1)])
+        both = np.fmin(fwd, back)  # (NaN where a side is not decoded: fmin takes the other)
+        return np.where(np.isnan(both), 0.0, both)
+    gx, gy = step(1), step(0)
+    return np.sqrt(gx * gx + gy * gy)
+
+
 def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray, W: int, *, center,
-                sector_bits: int, scale: int = DECODED_SCALE) -> dict:
+                sector_bits: int, scale: int = DECODED_SCALE, rates: tuple | None = None) -> dict:
     """:func:`decoded_samples` of the decoded pixels ``pix`` (linear indices in an image ``W`` wide), their
     float64 coordinates ``up``, ``vp`` and contrast ``con`` (8-bit levels)."""
     uv = np.stack([pix % W, pix // W], 1).astype(np.float32)
@@ -98,8 +112,12 @@ def _samples_at(pix: np.ndarray, up: np.ndarray, vp: np.ndarray, con: np.ndarray
     else:
         sector = np.full(pix.size, -1, np.int32)
     conf = np.clip(con / CONTRAST_FULL, 0.0, 1.0).astype(np.float32)
-    su2 = coordinate_sigma(up, con, scale) ** 2
-    sv2 = coordinate_sigma(vp, con, scale) ** 2
+    su, sv = coordinate_sigma(up, con, scale), coordinate_sigma(vp, con, scale)
+    if rates is not None:  # where a camera px spans more than one projector px, a crossing's error as many more
+        for s_, x, r in ((su, up, rates[0]), (sv, vp, rates[1])):
+            sub = np.abs(x - np.round(x)) >= 0.5 / scale  # (coordinate_sigma's integer codes keep theirs)
+            s_[sub] *= np.maximum(r[sub], 1.0)
+    su2, sv2 = su ** 2, sv ** 2
     c2, s2 = np.cos(phi) ** 2, np.sin(phi) ** 2
     return {"uv": uv, "rho": rho.astype(np.float32), "phi": phi.astype(np.float32), "sector": sector,
             "confidence": conf, "pixel": pix,
