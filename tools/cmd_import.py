@@ -19,6 +19,7 @@ from ringscan.pipeline.calibrate.opencv_files import (
     read_opencv_calibration,
     read_stereo_calibration,
 )
+from ringscan.pipeline.formats.patterns import decoded_scale
 from ringscan.pipeline.formats.progress import progress_step
 from ringscan.pipeline.formats.rig import has_calibrated_light, load_rig
 from ringscan.tools.calibrate_options import parse_size
@@ -116,6 +117,10 @@ def _hint_units(kw: dict) -> None:
 
 def run(args) -> int:
     proj = parse_size(args.projector, "--projector")
+    try:
+        decoded_scale(*proj)  # (the scan's 16-bit maps hold a side of at most 65534 px)
+    except ValueError as e:
+        raise UsageError(f"--projector {args.projector}: {e}") from None
     if args.depth is not None and not (0 < args.depth[0] < args.depth[1]):
         raise UsageError(f"--depth: expected 0 < NEAR < FAR, got {args.depth[0]:g} {args.depth[1]:g}")
     rig_path = Path(args.rig)

@@ -303,7 +303,8 @@ def _one_camera(rig: Rig, camera: int, source) -> Rig:
     return Rig(camera=cam, light=rig.light, volume=rig.volume, turntable=rig.turntable)
 
 
-def _check_import_args(captures: list, rig, opencv, stereo, projector_rig, camera, mm_per_unit) -> None:
+def _check_import_args(captures: list, rig, opencv, stereo, projector_rig, camera, mm_per_unit,
+                       projector) -> None:
     """Raise ValueError for a call of :func:`import_captures` that cannot be right, before anything is read."""
     if sum(x is not None for x in (rig, opencv, stereo)) != 1:
         raise ValueError("import_captures: give exactly one of rig, opencv and stereo")
@@ -315,6 +316,7 @@ def _check_import_args(captures: list, rig, opencv, stereo, projector_rig, camer
         raise ValueError("import_captures: no capture folders")
     if mm_per_unit is not None and not (np.isfinite(mm_per_unit) and 0 < mm_per_unit <= MAX_MM_PER_UNIT):
         raise ValueError(f"import_captures: mm_per_unit must be in (0, {MAX_MM_PER_UNIT:g}], got {mm_per_unit!r}")
+    decoded_scale(*projector)  # (raises ValueError: a side the scan's 16-bit maps cannot hold)
 
 
 def _in_millimetres(opencv, stereo, projector_rig, depth, mm_per_unit, sources: dict):
@@ -704,7 +706,7 @@ def import_captures(
     one per user-facing setting (output, the calibration in one of its forms, projector size, layout, depths,
     camera, settings, units) and the calibration files' names for messages.
     """
-    _check_import_args(captures, rig, opencv, stereo, projector_rig, camera, mm_per_unit)
+    _check_import_args(captures, rig, opencv, stereo, projector_rig, camera, mm_per_unit, projector)
     sources = sources or {}
     opencv, stereo, projector_rig, depth, units = _in_millimetres(opencv, stereo, projector_rig, depth,
                                                                   mm_per_unit, sources)

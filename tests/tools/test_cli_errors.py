@@ -229,3 +229,14 @@ def test_a_lock_file_linked_to_another_file_is_refused_and_that_file_left_alone(
                                f"{other}), not a plain file: it is ringscan's own lock file, a plain file: remove it "
                                "(no ringscan run uses it then)"), err
     assert other.read_text() == "keep me\n" and sorted(p.name for p in out.iterdir()) == [".ringscan.lock"]
+
+
+def test_import_refuses_a_projector_its_maps_cannot_hold(tmp_path, capsys):
+    """A projector side of 65535 px or more: the scan's 16-bit maps cannot hold its coordinates (65534 at one
+    step a px); one line naming the option, exit 2, before anything is read or written."""
+    out = tmp_path / "scan"
+    assert main(["import", str(tmp_path / "nowhere"), "--rig", str(tmp_path / "rig.json"), "--projector", "65535x384",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--projector 65535x384" in err[0] and "65534" in err[0]
+    assert not out.exists()
