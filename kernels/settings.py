@@ -42,7 +42,9 @@ class SampleSettings:
     """Least |d_p - d_q| / contrast across the edge: flatter crossings (blurred,
     noisy or mixed pixels) are dropped. At 0.15 a projector blur of more than a
     band width (pitch 2 px, sigma 2.5 px) still let through samples whose sub-pixel
-    position was off by more than half a band; 0.3 drops them (docs/dense.md)."""
+    position was off by more than half a band; 0.3 drops them (docs/dense.md). Where
+    a projector px spans more than 1.5 camera px (a camera finer than the projector),
+    this over that span: the step per projector px (docs/reconstruction.md, "Sample")."""
     ring_curvature: bool = False
     """Remove the inward shift of blurred ring edges: the crossing of a circle of
     radius rho and its inverse, both blurred by a Gaussian of sigma (projector px

@@ -31,6 +31,10 @@ __all__ = ["NAME", "GrayRingsCodec", "GrayRingsSettings", "extract_gray_rings", 
 NAME = "gray-rings"
 """The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
+MIN_OVERSAMPLING = 1.5
+"""Camera px a projector px spans (``projector_px_span``) above which the sampler's ``min_slope`` is taken per
+projector px, not per camera px: a camera zoomed 3x on the default rig's projector found 1.4 % of its edges, 4x
+none. At most 1.5 (the default rig: 0.9) nothing changes."""
 ERROR_GROUPS = 3
 """Edges grouped by the pattern that places them (:meth:`GrayRingsCodec.error_groups`): the
 finest, the next, and every coarser one together (an eighth of the samples and fewer each)."""
@@ -119,7 +123,13 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                threads=threads)
     wp.synchronize_device(frames.device)
     t1 = time.perf_counter()
-    samples = sample_gray_rings(frames, labels, bits=spec.bits, settings=settings.sample, threads=threads,
+    span = projector_px_span(scan.rig)
+    sample = settings.sample
+    if span > MIN_OVERSAMPLING:
+        # a projector px spread over `span` camera px: an edge's step between two neighbouring pixels is that
+        # much flatter at the same sharpness against the band (what min_slope judges)
+        sample = dataclasses.replace(sample, min_slope=sample.min_slope / span)
+    samples = sample_gray_rings(frames, labels, bits=spec.bits, settings=sample, threads=threads,
                                 rho0=spec.rho0, pitch=spec.pitch)
     wp.synchronize_device(frames.device)
     t2 = time.perf_counter()
@@ -154,6 +164,25 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
              **noise_stats,
              "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
+
+
+def projector_px_span(rig) -> float:
+    """Camera px that one projector px spans in the middle of the rig's working volume (on the world z axis, the
+    light's, halfway between z_min and z_max; the mean of a step along x and along y), 1 where the rig cannot say
+    (an uncalibrated light)."""
+    from ringscan.pipeline.geometry import camera_pixels, projector_pixels
+
+    vol = rig.volume
+    X0 = np.array([0.0, 0.0, 0.5 * (vol.z_min + vol.z_max)])
+    X = np.stack([X0, X0 + [0.1, 0.0, 0.0], X0 + [0.0, 0.1, 0.0]])
+    try:
+        p, c = projector_pixels(rig, X), camera_pixels(rig, X)
+    except (ValueError, TypeError):  # (no calibrated light: nothing to say)
+        return 1.0
+    dp = np.linalg.norm(p[1:] - p[0], axis=1)
+    dc = np.linalg.norm(c[1:] - c[0], axis=1)
+    ok = (dp > 0) & np.isfinite(dp) & np.isfinite(dc)
+    return float(np.mean(dc[ok] / dp[ok])) if ok.any() else 1.0
 
 
 def _recorded(levels: float, frames: wp.array) -> float:

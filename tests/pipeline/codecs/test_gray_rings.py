@@ -116,3 +116,37 @@ def test_a_noisier_part_of_the_view_gets_wider_sigmas_than_the_rest(tmp_path):
     assert quiet_n / quiet_c == pytest.approx(1.0, abs=0.1)  # the quiet part's own scatter about the median
     assert noise_n["p90_levels"] > 2.5 * noise_n["median_levels"]  # the loud quarter is the top fourth
     assert noise_c["p90_levels"] < 1.5 * noise_c["median_levels"]
+
+
+def test_a_camera_that_spreads_each_projector_pixel_over_several_keeps_its_ring_edges(tmp_path, monkeypatch):
+    """crop_rig's camera zoomed 4x (a projector px over ~3.4 camera px: a high-resolution camera, or a close
+    one): an edge's step between two neighbouring pixels is ~3.4x flatter at the same sharpness against the
+    band, and the sampler's min_slope (per camera px) had dropped nearly every edge (3x: 1.4 % of them, 4x and
+    more: none, ``no ring edge was sampled``). Taken per projector px (``projector_px_span``), the edges are
+    sampled, at the accuracy of the unzoomed camera's, and their sigmas hold."""
+    import numpy as np
+    import warp as wp
+
+    import ringscan.pipeline.codecs.gray_rings as gr
+    from ringscan.pipeline.codecs.registry import codec_for
+    from ringscan.pipeline.formats.scan import read_view_frames
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+
+    rig = crop_rig(width=160, height=128)
+    K = rig.camera.K.copy()
+    K[0, 0] *= 4
+    K[1, 1] *= 4
+    rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, K=K))
+    span = gr.projector_px_span(rig)
+    assert 3.0 < span < 4.0 and gr.projector_px_span(crop_rig()) < 1.0  # (unzoomed: no change)
+    scan = simulate_scan(tmp_path / "s", scene="sphere", rig=rig, patterns=parse_patterns(GRAY), progress=False)
+    cloud = reconstruct_view(scan, scan.views[0])
+    ev = evaluate_view(scan, "view_000", cloud.points, sigma=cloud.sigma)
+    assert len(cloud.points) > 1000 and ev["coverage"] > 0.9, (len(cloud.points), ev["coverage"])  # (~23 rings across)
+    assert ev["median_mm"] < 0.01 and 0.4 < ev["sigma"]["median_ratio"] < 1.2
+    # the same frames with min_slope per camera px, as before
+    monkeypatch.setattr(gr, "MIN_OVERSAMPLING", np.inf)
+    frames = wp.array(read_view_frames(scan, scan.views[0]), dtype=wp.uint8, device="cpu")
+    settings = codec_for(scan.patterns.codec).settings_from(ReconstructSettings())
+    samples, _ = gr.extract_gray_rings(frames, scan, settings, threads=2)
+    assert len(samples) < 0.1 * len(cloud.points)
