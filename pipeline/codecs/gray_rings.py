@@ -175,6 +175,9 @@ def projector_px_span(rig) -> float:
     vol = rig.volume
     X0 = np.array([0.0, 0.0, 0.5 * (vol.z_min + vol.z_max)])
     X = np.stack([X0, X0 + [0.1, 0.0, 0.0], X0 + [0.0, 0.1, 0.0]])
+    cam = rig.camera
+    if not (np.asarray(cam.R, np.float64) @ X0 + np.asarray(cam.t, np.float64))[2] > 0:
+        return 1.0  # (the volume's middle is not before the camera: a rig whose world says nothing of it)
     try:
         p, c = projector_pixels(rig, X), camera_pixels(rig, X)
     except (ValueError, TypeError):  # (no calibrated light: nothing to say)
