@@ -80,6 +80,10 @@ ENTRIES: tuple[Entry, ...] = (
           "A far panel whose finest Gray-code bits barely modulate (one camera, a 512x384 projector, 1 m): the "
           "import's bit clearance against trusting every bit, errors, roughness and sigmas against the plane; "
           "ringscan's renderer (OpenCV's Gray code on a virtual rig, the panel its truth)."),
+    Entry("Pixel ratio", 'python benchmarks/pixel_ratio.py --work "$(mktemp -d)"', 600,
+          "Every ratio of projector to camera pixels, from a camera far finer than the projector to one far "
+          "coarser: OpenCV's Gray code imported (the decode and the points against the truth) and the default "
+          "patterns with the camera zoomed; ringscan's renderer."),
     Entry("Procam plane", "python benchmarks/procam_plane.py", 600,
           "How flat the calibration board comes out: ringscan's import and triangulation (rings alone, and rings "
           "and angle) against plain OpenCV triangulation of integer codes, the plane fit's residuals; real "
