@@ -290,11 +290,12 @@ def decode_graycode(cap: GrayCodeCapture, *, settings: GrayCodeSettings = GrayCo
     low = np.zeros(contrast.shape, bool)
     axes, spacing = [], []
     for a, (pairs, c) in enumerate(((cap.col_pairs, col), (cap.row_pairs, row))):
-        ax, sp = axis_and_spacing(c, valid)
+        ax, sp, steps = axis_and_spacing(c, valid)
         axes.append(ax)
         spacing.append(sp)
         res, rate = resolution_levels(c, valid, ax, bits=len(pairs))
-        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale, unresolved=res, rate=rate, spacing=sp)
+        k = bit_clearance(pairs, contrast, valid, c, noise, scale=cap.scale, unresolved=res, rate=rate, spacing=sp,
+                          steps=steps)
         if res is not None:  # the camera spans more than a projector px somewhere
             low |= k > res.astype(np.int16) + MAX_COARSE_BITS
             coarse[..., a] = np.where(k > res, np.minimum(k, res + MAX_COARSE_BITS), 0)
@@ -383,7 +384,8 @@ def _mean_step(counts: np.ndarray) -> float:
 
 def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, code: np.ndarray,
                   noise: float, *, scale: float = 1.0, unresolved: np.ndarray | None = None,
-                  rate: float = 0.0, spacing: float = 1.0) -> np.ndarray:
+                  rate: float = 0.0, spacing: float = 1.0,
+                  steps: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(H, W) int8: how many of a code's finest bits, counted from the finest, do not stand clear at each pixel.
 
     A bit stands clear where its modulation |pattern - inverse| near the pixel (the largest within half a
@@ -394,13 +396,14 @@ def bit_clearance(pairs: np.ndarray, contrast: np.ndarray, valid: np.ndarray, co
     zigzag of whole projector pixels along the epipolar line that no calibration check can see. The
     ``MAX_COARSE_BITS + 1`` finest bits are judged (the coarser ones are as wide as the contrast tests), and as
     many more as the camera resolves fewer somewhere (``unresolved``: :func:`resolution_levels`, whose ``rate``
-    the projector px a camera px spans, where above the codes' own steps, sets how near a stripe's middle is).
+    the projector px a camera px spans, where above the codes' own steps, sets how near a stripe's middle is;
+    ``steps``: the codes' step counts where already counted, :func:`axis_and_spacing`).
     """
     bits = pairs.shape[0]
     extra = int(unresolved.max(initial=0)) if unresolved is not None else 0
     out = np.zeros(contrast.shape, np.int8)  # at most MAX_COARSE_BITS + 2 + extra
     # projector px per camera px along the code's fast axis: the finest stripe's period in camera px
-    rate = max(_median_step(np.add(*_code_steps(code, valid))), rate)
+    rate = max(_median_step(np.add(*(steps if steps is not None else _code_steps(code, valid)))), rate)
     ints = _integer_levels(pairs, scale)
     thresh = _level_threshold(np.maximum(CLEAR_NOISE_SIGMAS * math.sqrt(2.0) * noise,
                                          CLEAR_CONTRAST_FRACTION * contrast), ints)
@@ -430,9 +433,10 @@ def fast_axis(code: np.ndarray, valid: np.ndarray) -> int:
     return axis_and_spacing(code, valid)[0]
 
 
-def axis_and_spacing(code: np.ndarray, valid: np.ndarray) -> tuple[int, float]:
+def axis_and_spacing(code: np.ndarray, valid: np.ndarray) -> tuple[int, float, tuple[np.ndarray, np.ndarray]]:
     """(:func:`fast_axis`, the camera px a projector px spans along it: 1 / the mean step of neighbouring codes
-    there, at least 1; e.g. 15 for a 20-megapixel camera on a small projector's pixels)."""
+    there, at least 1 (e.g. 15 for a 20-megapixel camera on a small projector's pixels), and the steps' counts
+    across and down: :func:`_code_steps`'s, counted once for all three)."""
     counts, wide = [], []
     for axis in (1, 0):
         a, b = (code[:, 1:], code[:, :-1]) if axis == 1 else (code[1:, :], code[:-1, :])
@@ -448,7 +452,7 @@ def axis_and_spacing(code: np.ndarray, valid: np.ndarray) -> tuple[int, float]:
     else:
         axis = 1 if mean[0] >= mean[1] else 0
     m = mean[0 if axis == 1 else 1]
-    return axis, (1.0 / m if 0 < m < 1 else 1.0)
+    return axis, (1.0 / m if 0 < m < 1 else 1.0), (counts[0], counts[1])
 
 
 def resolution_levels(code: np.ndarray, valid: np.ndarray, axis: int, *,
