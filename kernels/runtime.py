@@ -8,24 +8,32 @@ import logging
 import os
 import sys
 import tempfile
+import threading
 
 import warp as wp
 
 log = logging.getLogger(__name__)
 _initialised = False
+_init_lock = threading.Lock()
 
 
 def init_warp() -> None:
-    """Initialise Warp once, quietly (the kernel cache makes later runs fast)."""
+    """Initialise Warp once, quietly (the kernel cache makes later runs fast); safe from any thread.
+
+    ``wp.init()`` itself is not: threads that call it at once (an import's cameras) each make a runtime, and
+    each marks every kernel module modified, under a module another thread is loading."""
     global _initialised
     if _initialised:
         return
-    verbose = os.environ.get("RINGSCAN_WARP_VERBOSE", "") != ""
-    wp.config.quiet = not verbose
-    wp.config.log_level = logging.INFO if verbose else logging.ERROR
-    with contextlib.nullcontext() if verbose else _native_stderr_to_log():
-        wp.init()
-    _initialised = True
+    with _init_lock:
+        if _initialised:
+            return
+        verbose = os.environ.get("RINGSCAN_WARP_VERBOSE", "") != ""
+        wp.config.quiet = not verbose
+        wp.config.log_level = logging.INFO if verbose else logging.ERROR
+        with contextlib.nullcontext() if verbose else _native_stderr_to_log():
+            wp.init()
+        _initialised = True
 
 
 @contextlib.contextmanager

@@ -186,3 +186,40 @@ def test_uncached_kernel_modules_reads_warps_kernel_cache(tmp_path, monkeypatch)
     assert {"ringscan.kernels.raytrace", "ringscan.kernels.ring_lines", "ringscan.kernels.triangulation"} <= set(cold)
     assert "ringscan.kernels.runtime" not in cold
     assert not any(tmp_path.iterdir())
+
+
+INIT_RACE = textwrap.dedent("""
+    import threading
+    import warp._src.context as ctx
+    from ringscan.kernels.runtime import init_warp
+
+    made = []
+    real = ctx.Runtime.__init__
+
+    def counted(self, *a, **k):  # Warp's runtime, counted as it is made
+        made.append(threading.get_ident())
+        real(self, *a, **k)
+
+    ctx.Runtime.__init__ = counted
+    gate = threading.Barrier(4)
+
+    def start():
+        gate.wait()
+        init_warp()
+
+    threads = [threading.Thread(target=start) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    print(len(made))
+""")
+
+
+def test_threads_that_start_warp_at_once_start_it_once():
+    # Two cameras of an import start Warp on their own threads; a second wp.init() there made a second
+    # runtime and marked every module modified while the other thread loaded one (a KeyError out of
+    # Warp's Module.load on a first run).
+    r = subprocess.run([sys.executable, "-c", INIT_RACE], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-1] == "1"
