@@ -11,8 +11,14 @@ and ringscan's default patterns, from a camera far finer than the projector to o
 2. ``gray-rings``: the default rig (perspective light) and patterns on the sphere, the camera's focal length x
    z (z = 1, 2, 3, 4, 8: a projector px over 0.8 ... 6.7 camera px); rendered, reconstructed and evaluated
    (``evaluate_view``): points, coverage, median error, the sigmas' honesty.
+3. ``two-cameras``: two 640x512 cameras either side of a 1920x1080 projector (``simulate --camera2``'s
+   symmetric pair) over the sphere on its plane, the projector's focal length such that a camera px spans r
+   projector px (r = 1.25, 2.5, 5); OpenCV's Gray code rendered, imported with the stereo file and the
+   projector's calibration, reconstructed camera to camera and by all three rays; the points against camera
+   1's truth depth: median error, median |e|/sigma, share beyond 3 sigma, and the same as the matcher predicts
+   them (the matches' error model left out, ``reconstruct.stereo.match_error_model``), with the fitted model.
 
-    python benchmarks/pixel_ratio.py --work DIR [--only import gray-rings] [--reuse]
+    python benchmarks/pixel_ratio.py --work DIR [--only import gray-rings two-cameras] [--reuse]
 
 About 3 minutes on two cores. Figures from ringscan's own renderer (docs/calibration.md, "A projector finer
 than the camera" and "A camera far finer than the projector"; docs/reconstruction.md, "Sample").
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -43,6 +50,8 @@ from ringscan.pipeline.simulate.scan import simulate_scan
 
 RATIOS = (1 / 15, 1 / 5, 0.75, 1.25, 2.5, 5.0)
 """Projector px a camera px spans in the import part."""
+TWO_CAMERA_RATIOS = (1.25, 2.5, 5.0)
+"""Projector px a camera px spans in the two-camera part."""
 ZOOMS = (1, 2, 3, 4, 8)
 """The camera's focal length over the default rig's in the gray-rings part."""
 CAMERA_PX_PER_MM = 2600.0 / 1031.0
@@ -139,10 +148,83 @@ def run_gray_rings(work: Path, reuse: bool) -> None:
               flush=True)
 
 
+def two_camera_rig(r: float):
+    """Two 640x512 cameras (f 1300 px, a barrel lens) 1 m from the sphere's plane, 250 mm either side of a
+    1920x1080 projector whose focal length makes a camera px span ``r`` projector px there (the far panel's
+    camera position, ``simulate --camera2``'s mirror of it about the light axis)."""
+    from ringscan.pipeline.formats.rig import parse_rig
+    from ringscan.pipeline.simulate.scan import add_camera2
+
+    rig = import_rig(1.0)[0]
+    rig["camera"].update(width=640, height=512, K=[[1300.0, 0, 319.5], [0, 1300.0, 255.5], [0, 0, 1]],
+                         dist=[-0.3, 0.12, 0, 0, 0])
+    fp = r * 1300.0 * 1000.0 / 1031.0  # a camera px at the plane over a projector px there
+    rig["light"].update(width=1920, height=1080, K=[[fp, 0, 959.5], [0, fp, 539.5], [0, 0, 1]])
+    rig["volume"] = {"z_min": -20.0, "z_max": 200.0, "r_max": 400.0}
+    return add_camera2(parse_rig(rig))
+
+
+def two_camera_figures(render: Path, rec: Path) -> dict:
+    """Camera 1's points (world = camera 1's frame after the import) against its truth depth along the ray."""
+    p = read_ply(rec / "capture_0.ply")
+    P = np.stack([p["x"], p["y"], p["z"]], 1).astype(np.float64)
+    depth = cv2.imread(str(render / "truth" / "capture_0_depth.tiff"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    d = depth[np.rint(p["v"]).astype(int), np.rint(p["u"]).astype(int)]
+    good = np.isfinite(d) & (d > 0)
+    e = (P[good, 2] - d[good]) * np.linalg.norm(P[good], axis=1) / P[good, 2]
+    ratio = np.abs(e) / p["sigma"][good]
+    return {"points": int(good.sum()), "median": float(np.median(np.abs(e))), "ratio": float(np.median(ratio)),
+            "beyond_3": float(np.mean(ratio > 3))}
+
+
+def run_two_cameras(work: Path, reuse: bool) -> None:
+    from ringscan.pipeline.reconstruct import stereo
+    from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings
+
+    print("| projector px a camera px | rays | points | median mm | median abs(e)/sigma | beyond 3 sigma | "
+          "as the matcher predicts: median abs(e)/sigma | beyond 3 sigma | fitted k | floor px |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    fit = stereo.match_error_model
+    for r in TWO_CAMERA_RATIOS:
+        tag = f"r{r:.3f}"
+        render, scan_dir = work / f"two_{tag}", work / f"two_{tag}_scan"
+        if not (reuse and (render / "capture_0").is_dir()):
+            shutil.rmtree(render, ignore_errors=True)
+            render_graycode_captures(render, rig=two_camera_rig(r), scene="sphere", progress=False)
+        if not (reuse and (scan_dir / "scan.json").is_file()):
+            shutil.rmtree(scan_dir, ignore_errors=True)
+            # (as a user types it: the stereo file and the projector's own calibration)
+            done = subprocess.run([sys.executable, "-m", "ringscan", "import", str(render / "capture_0.yml"), "--rig",
+                                   str(render / "calibrationParameters.yml"), "--projector-rig",
+                                   str(render / "procam.yml"), "--projector", "1920x1080", "--out", str(scan_dir),
+                                   "-q", "--no-progress"], capture_output=True, text=True)
+            if done.returncode != 0:
+                sys.stderr.write(done.stdout + done.stderr)
+                raise SystemExit(f"pixel_ratio: the import of {render} failed (exit status {done.returncode})")
+        scan = load_scan(scan_dir)
+        for rays in ("camera-camera", "all"):
+            settings = ReconstructSettings(stereo=StereoSettings(rays=rays))
+            out = {}
+            for key, model in (("fitted", fit), ("predicted", lambda *a, **k: {})):
+                stereo.match_error_model = model
+                try:
+                    rec = work / f"two_{tag}_{rays}_{key}"
+                    shutil.rmtree(rec, ignore_errors=True)
+                    rep = reconstruct_scan(scan, rec, settings=settings, progress=False)
+                finally:
+                    stereo.match_error_model = fit
+                out[key] = (two_camera_figures(render, rec), rep["views"][0]["stereo"].get("error_model", {}))
+            (f, m), (g, _) = out["fitted"], out["predicted"]
+            print(f"| {r:.3g} | {rays} | {f['points']} | {f['median']:.4f} | {f['ratio']:.2f} | "
+                  f"{100 * f['beyond_3']:.1f} % | {g['ratio']:.2f} | {100 * g['beyond_3']:.1f} % | "
+                  f"{m.get('k', 1.0):.2f} | {m.get('floor_px', 0.0):.4f} |", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="folder for the renders and their reconstructions")
-    ap.add_argument("--only", nargs="+", choices=["import", "gray-rings"], default=["import", "gray-rings"])
+    parts = ["import", "gray-rings", "two-cameras"]
+    ap.add_argument("--only", nargs="+", choices=parts, default=parts)
     ap.add_argument("--reuse", action="store_true", help="reuse the renders (and imports) already in WORK")
     a = ap.parse_args(argv)
     a.work.mkdir(parents=True, exist_ok=True)
@@ -152,6 +234,9 @@ def main(argv=None) -> int:
         print()
     if "gray-rings" in a.only:
         run_gray_rings(a.work, a.reuse)
+        print()
+    if "two-cameras" in a.only:
+        run_two_cameras(a.work, a.reuse)
     print(f"({time.perf_counter() - t0:.0f} s)")
     return 0
 

@@ -15,7 +15,12 @@ from ringscan.kernels.launch import check_array, default_threads, launch_spans, 
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["RefineSettings", "uv_sigmas", "polar_sigmas", "window_sums", "refine_codes", "epipolar_distances"]
+EPIPOLAR_STEP_PX = wp.constant(0.5)
+"""Half the central difference of :func:`epipolar_slopes_kernel` (camera-1 px): the line moves smoothly over
+a pixel, and float32 distances keep ~1e-3 px (far below a step's change, ~0.5 px)."""
+
+__all__ = ["RefineSettings", "uv_sigmas", "polar_sigmas", "window_sums", "refine_codes", "epipolar_distances",
+           "epipolar_slopes"]
 
 
 @wp.struct
@@ -400,6 +405,26 @@ def write_slots_kernel(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=
         sel[offsets[i]] = i
 
 
+@wp.func
+def signed_epipolar(cam1: CameraModel, cam2: CameraModel, E: wp.mat33, scale: float, p1: wp.vec2, n2: wp.vec3):
+    """Signed distance (camera-2 px) of camera 2's undistorted normalised point n2 (n2[2] > 0: it has one) from
+    the epipolar line of camera 1's distorted pixel p1; NaN where p1 has no undistorted point."""
+    y1 = (p1[1] - cam1.cy) / cam1.fy
+    n1 = undistort(cam1, (p1[0] - cam1.cx - cam1.skew * y1) / cam1.fx, y1)
+    if not (n1[2] > 0.0):
+        return wp.nan
+    line = E * wp.vec3(n1[0], n1[1], 1.0)
+    den = wp.sqrt(line[0] * line[0] + line[1] * line[1])
+    return wp.where(den > 0.0, (line[0] * n2[0] + line[1] * n2[1] + line[2]) / den * scale, wp.nan)
+
+
+@wp.func
+def undistorted_camera2(cam2: CameraModel, p2: wp.vec2):
+    """Camera 2's distorted pixel p2 as an undistorted normalised point (its [2] <= 0: none)."""
+    y2 = (p2[1] - cam2.cy) / cam2.fy
+    return undistort(cam2, (p2[0] - cam2.cx - cam2.skew * y2) / cam2.fx, y2)
+
+
 @wp.kernel
 def epipolar_kernel(
     uv1: wp.array(dtype=wp.vec2),
@@ -419,18 +444,46 @@ def epipolar_kernel(
     float32: written, NaN where a pixel has no undistorted point
     (:func:`~ringscan.kernels.geometry.undistort`)."""
     i = i0 + wp.tid()
-    p1 = uv1[i]
-    p2 = uv2[i]
-    y1 = (p1[1] - cam1.cy) / cam1.fy
-    n1 = undistort(cam1, (p1[0] - cam1.cx - cam1.skew * y1) / cam1.fx, y1)
-    y2 = (p2[1] - cam2.cy) / cam2.fy
-    n2 = undistort(cam2, (p2[0] - cam2.cx - cam2.skew * y2) / cam2.fx, y2)
-    if not (n1[2] > 0.0 and n2[2] > 0.0):
+    n2 = undistorted_camera2(cam2, uv2[i])
+    if not (n2[2] > 0.0):
         dist[i] = wp.nan
         return
-    line = E * wp.vec3(n1[0], n1[1], 1.0)
-    den = wp.sqrt(line[0] * line[0] + line[1] * line[1])
-    dist[i] = wp.where(den > 0.0, wp.abs(line[0] * n2[0] + line[1] * n2[1] + line[2]) / den * scale, wp.nan)
+    dist[i] = wp.abs(signed_epipolar(cam1, cam2, E, scale, uv1[i], n2))
+
+
+@wp.kernel
+def epipolar_slopes_kernel(
+    uv1: wp.array(dtype=wp.vec2),
+    uv2: wp.array(dtype=wp.vec2),
+    cam1: CameraModel,
+    cam2: CameraModel,
+    E: wp.mat33,
+    scale: float,
+    i0: int,
+    dist: wp.array(dtype=wp.float32),
+    slope2: wp.array(dtype=wp.float32),
+):
+    """The signed distance (camera-2 px) of uv2[i] from the epipolar line of uv1[i], and the squared norm of
+    its derivative by uv1[i] (camera-2 px per camera-1 px, squared: how far camera 1's error moves the line),
+    i = i0 + tid; central differences over ``EPIPOLAR_STEP_PX``.
+
+    uv1, uv2 (n,) vec2; E, scale as :func:`epipolar_kernel`'s: read. dist, slope2 (n,) float32: written (NaN
+    where a pixel has no undistorted point)."""
+    i = i0 + wp.tid()
+    n2 = undistorted_camera2(cam2, uv2[i])
+    p1 = uv1[i]
+    h = EPIPOLAR_STEP_PX
+    d = wp.nan
+    g2 = wp.nan
+    if n2[2] > 0.0:
+        d = signed_epipolar(cam1, cam2, E, scale, p1, n2)
+        gx = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(h, 0.0), n2)
+              - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(h, 0.0), n2)) / (2.0 * h)
+        gy = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(0.0, h), n2)
+              - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(0.0, h), n2)) / (2.0 * h)
+        g2 = gx * gx + gy * gy
+    dist[i] = d
+    slope2[i] = g2
 
 
 # ----------------------------------------------------------------------------- host
@@ -582,3 +635,23 @@ def epipolar_distances(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, ca
         launch_spans(epipolar_kernel, n, lambda i0: args + [i0], [out], dev,
                      default_threads() if threads is None else threads)
     return out
+
+
+def epipolar_slopes(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, camera2: CameraModel, E: np.ndarray,
+                    scale: float, threads: int | None = None) -> tuple[wp.array, wp.array]:
+    """Each match's signed distance from its epipolar line and how fast camera 1 moves it
+    (:func:`epipolar_slopes_kernel`): ((n,) float32 camera-2 px, (n,) float32 its squared derivative by uv1,
+    (camera-2 px per camera-1 px)^2), NaN where a pixel has no undistorted point; arguments as
+    :func:`epipolar_distances`'."""
+    fn = "epipolar_slopes"
+    n = check_array("uv1", uv1, None, wp.vec2, fn)
+    check_array("uv2", uv2, n, wp.vec2, fn)
+    dev = uv1.device
+    dist = wp.empty(n, dtype=wp.float32, device=dev)
+    slope2 = wp.empty(n, dtype=wp.float32, device=dev)
+    if n:
+        Em = wp.mat33(*np.asarray(E, np.float64).astype(np.float32).ravel().tolist())
+        args = [uv1, uv2, camera1, camera2, Em, float(scale)]
+        launch_spans(epipolar_slopes_kernel, n, lambda i0: args + [i0], [dist, slope2], dev,
+                     default_threads() if threads is None else threads)
+    return dist, slope2

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ErrorModel", "fit_error_model", "region_scale", "group_scale", "apply_error_model", "sample_subset",
+__all__ = ["ErrorModel", "fit_error_model", "fit_match_model", "region_scale", "group_scale", "apply_error_model", "sample_subset",
            "MAX_CHECK_SAMPLES", "MIN_PAIRS"]
 
 MAX_CHECK_SAMPLES = 40000
@@ -206,6 +206,57 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
                       shading_rho_px=float(np.sqrt(p[6])), shading_tan_px=float(np.sqrt(p[6])),
                       z_median=float(np.median(z0)), beyond_3=float(np.mean(z0 > 3)),
                       z_median_fitted=float(np.median(z1)), beyond_3_fitted=float(np.mean(z1 > 3)))
+
+
+def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, sigma2: np.ndarray,
+                    uv: np.ndarray, *, floor: bool = True) -> dict:
+    """What two cameras' matches miss of their own errors, from their distances to their epipolar lines.
+
+    A match (camera 1's pixel, camera 2's position where its projector coordinate is the same) has one
+    redundant number: its signed distance d from the epipolar line, with the predicted variance
+    sigma2^2 + g^2 sigma1^2 (g: how far a camera-1 px moves the line). The part of d that is smooth over
+    ``TILE_PX`` tiles is the calibration's miss (across the line: no depth) and is left out; the rest is fitted
+    (Student-t, as :func:`fit_error_model`) by the variance k^2 (sigma2^2 + g^2 sigma1^2) + f^2 (1 + g^2): a
+    factor k >= 1 on both sigmas and a floor f (px) added to each in quadrature. A decode's model can miss
+    what neither camera's noise holds (a camera pixel over several projector pixels reads its place from
+    the boundaries of coarser stripes, an error of the same size at every pixel there), and what the two
+    cameras miss across the line they miss along it, where the depth is.
+
+    Args:
+        dist: (n,) signed distances (camera-2 px), NaN where unknown.
+        slope2: (n,) g^2.
+        sigma1, sigma2: (n,) the matches' predicted standard deviations (camera-1 px, camera-2 px).
+        uv: (n, 2) camera 1's pixels.
+        floor: False: the factor k alone (f = 0), for rays whose relative weights must stay as they are
+            (a third ray, the projector's, that the fit does not see: all three take the one factor).
+
+    Returns:
+        {} with fewer than ``MIN_PAIRS`` usable matches; else {``k``, ``floor_px``, ``miss_px`` (the
+        smooth part's RMS), ``pairs``, ``z_median``, ``beyond_3`` (|d| over its predicted sigma, as
+        predicted), ``z_median_fitted``, ``beyond_3_fitted`` (the smooth part out, as fitted)}.
+    """
+    d, g2, s1, s2 = (np.asarray(x, np.float64).ravel() for x in (dist, slope2, sigma1, sigma2))
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    v = s2 * s2 + g2 * s1 * s1
+    m = np.isfinite(d) & np.isfinite(g2) & np.isfinite(v) & (v > 0) & np.isfinite(uv).all(axis=1)
+    n = int(np.count_nonzero(m))
+    if n < MIN_PAIRS:
+        return {}
+    d, g2, v, uv = d[m], g2[m], v[m], uv[m]
+    calib, calib_var = _smooth_part(d, uv)
+    r = d - calib
+    X = np.stack([v, 1.0 + g2], axis=1)
+    if floor:
+        p = _fit_variances(X, r * r, np.array([1.0, 0.0]))
+    else:
+        X = X[:, :1]
+        p = np.r_[_fit_variances(X, r * r, np.array([1.0])), 0.0]
+    z0 = np.abs(d) / np.sqrt(v)
+    z1 = np.abs(r) / np.sqrt(X @ p[:X.shape[1]])
+    return {"k": float(np.sqrt(max(p[0], 1.0))), "floor_px": float(np.sqrt(max(p[1], 0.0))),
+            "miss_px": float(np.sqrt(calib_var)), "pairs": n,
+            "z_median": float(np.median(z0)), "beyond_3": float(np.mean(z0 > 3)),
+            "z_median_fitted": float(np.median(z1)), "beyond_3_fitted": float(np.mean(z1 > 3))}
 
 
 def _region_scales(d2: np.ndarray, var: np.ndarray, uv: np.ndarray) -> dict:

@@ -6,7 +6,7 @@ matches, and the two- or three-ray points (docs/reconstruction.md "Two cameras")
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -18,18 +18,22 @@ from ringscan.kernels.launch import cpu_threads
 from ringscan.kernels.samples import Samples
 from ringscan.kernels.geometry import make_camera
 from ringscan.kernels.stereo_match import MATCH_STATUS_NAMES, match_by_projector, projector_coordinates
+from ringscan.kernels.error_terms import widen_sigmas
 from ringscan.kernels.stereo_support import epipolar_distances as kernel_epipolar_distances
+from ringscan.kernels.stereo_support import epipolar_slopes
 from ringscan.kernels.stereo_support import RefineSettings, polar_sigmas, refine_codes, uv_sigmas, window_sums
 from ringscan.kernels.triangulation import compact_points
 from ringscan.pipeline.codecs.registry import codec_for
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Rig
 from ringscan.pipeline.formats.scan import Scan, View, as_camera2, read_view_frames
+from ringscan.pipeline.reconstruct.error_scale import fit_match_model, sample_subset
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger(__name__)
 
 __all__ = ["StereoMatches", "DeviceMatches", "match_view", "match_samples", "match_on_device", "decode_view", "epipolar_distances",
+           "match_error_model", "widen_matches",
            "refine_integer_codes", "EPIPOLAR_WARN_PX"]
 
 EPIPOLAR_WARN_PX = 1.0
@@ -361,8 +365,9 @@ def match_view(scan: Scan, view: View, *, settings: ReconstructSettings = Recons
     return match_samples(scan, samples1, samples2, settings=settings, threads=threads)
 
 
-def _epipolar_device(rig: Rig, w1: wp.array, w2: wp.array, threads: int | None) -> wp.array:
-    """(n,) float32 on w1's device: :func:`epipolar_distances` of (n,) vec2 Warp arrays."""
+def _epipolar_geometry(rig: Rig) -> dict:
+    """The two cameras' models, the essential matrix (unit baseline) and camera 2's px per normalised unit:
+    the keywords of ``kernels.stereo_support``'s epipolar kernels."""
     c1, c2 = rig.camera, rig.camera2
     if c2 is None:
         raise ValueError("epipolar_distances: the rig has one camera")
@@ -370,9 +375,45 @@ def _epipolar_device(rig: Rig, w1: wp.array, w2: wp.array, threads: int | None) 
     t = c2.t - R @ c1.t
     t = t / max(np.linalg.norm(t), 1e-300)  # the line's scale cancels: a unit baseline keeps float32 in range
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return kernel_epipolar_distances(w1, w2, camera1=make_camera(c1.K, c1.dist, c1.R, c1.t),
-                                     camera2=make_camera(c2.K, c2.dist, c2.R, c2.t), E=tx @ R,
-                                     scale=float(np.sqrt(c2.K[0, 0] * c2.K[1, 1])), threads=threads)
+    return dict(camera1=make_camera(c1.K, c1.dist, c1.R, c1.t), camera2=make_camera(c2.K, c2.dist, c2.R, c2.t),
+                E=tx @ R, scale=float(np.sqrt(c2.K[0, 0] * c2.K[1, 1])))
+
+
+def _epipolar_device(rig: Rig, w1: wp.array, w2: wp.array, threads: int | None) -> wp.array:
+    """(n,) float32 on w1's device: :func:`epipolar_distances` of (n,) vec2 Warp arrays."""
+    return kernel_epipolar_distances(w1, w2, **_epipolar_geometry(rig), threads=threads)
+
+
+def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, threads: int | None = None) -> dict:
+    """What the matches' predicted sigmas miss, measured by their own distances from their epipolar lines
+    (``error_scale.fit_match_model``, on at most ``error_scale.MAX_CHECK_SAMPLES`` matches spread over the
+    view: their distances and slopes computed on the device, read once): {} with too few matches, else
+    the fit ({k, floor_px, miss_px, pairs, z_median, beyond_3, z_median_fitted, beyond_3_fitted}), whose
+    k and floor_px :func:`widen_matches` applies (``floor`` False: k alone, ``fit_match_model``'s)."""
+    n = len(matches)
+    if n == 0 or rig.camera2 is None:
+        return {}
+    dev = matches.uv1.device
+    pick = wp.array(sample_subset(n).astype(np.int32), dtype=wp.int32, device=dev)
+    g = partial(gather, index=pick, threads=threads)
+    uv1, uv2 = g(matches.uv1), g(matches.uv2)
+    dist, slope2 = epipolar_slopes(uv1, uv2, **_epipolar_geometry(rig), threads=threads)
+    return fit_match_model(dist.numpy(), slope2.numpy(), g(matches.sigma1).numpy(), g(matches.sigma2).numpy(),
+                           uv1.numpy(), floor=floor)
+
+
+def widen_matches(matches: DeviceMatches, model: dict, *, threads: int | None = None) -> DeviceMatches:
+    """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit) and
+    their projector coordinates' (``sigma_rho``, ``sigma_tan``) k times theirs where the fit has no floor (the
+    third ray's, three rays keeping their relative weights); the same matches where the fit is empty or changes
+    nothing; on their device."""
+    if not model or (model["k"] <= 1.0 and model["floor_px"] <= 0.0):
+        return matches
+    widen = partial(widen_sigmas, k=model["k"], floor=model["floor_px"], threads=threads)
+    out = replace(matches, sigma1=widen(matches.sigma1), sigma2=widen(matches.sigma2))
+    if model["floor_px"] <= 0.0:
+        out = replace(out, sigma_rho=widen(matches.sigma_rho), sigma_tan=widen(matches.sigma_tan))
+    return out
 
 
 def epipolar_distances(rig: Rig, uv1: np.ndarray, uv2: np.ndarray, *, threads: int | None = None) -> np.ndarray:

@@ -576,7 +576,8 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     fall back to camera-projector."""
     # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
     from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
-    from ringscan.pipeline.reconstruct.stereo import decode_view, epipolar_check, match_on_device
+    from ringscan.pipeline.reconstruct.stereo import (decode_view, epipolar_check, match_error_model,
+                                                      match_on_device, widen_matches)
 
     scan, view, settings, device, threads, samples, times = (run.scan, run.view, run.settings, run.device,
                                                              run.threads, run.samples, run.times)
@@ -592,6 +593,11 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
     light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
+    # What the matches' sigmas miss, measured across their epipolar lines (the calibration's smooth miss
+    # left out), widens both cameras' alike: the same errors act along the lines, in depth. With the
+    # projector's ray (which the lines do not see) one factor on all three: the rays' weights as they were.
+    error_model = match_error_model(rig, matches, floor=not use_light, threads=threads)
+    matches = widen_matches(matches, error_model, threads=threads)
     n = len(samples)
     kw = {}
     if use_light:
@@ -631,6 +637,8 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
                    else wp.zeros(n, dtype=wp.int32, device=device))
     set_at(residual_px, matches.index, 1, threads=threads)  # the rays' RMS reprojection error
     _stereo_report(view, matches, tri, check, use_light, extra)
+    if error_model:
+        extra["stereo"]["error_model"] = error_model
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     return _Placed(points=points, status=status, confidence=confidence, sigma=sigma, residual=residual,

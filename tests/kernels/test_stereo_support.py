@@ -6,7 +6,7 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera
-from ringscan.kernels.stereo_support import epipolar_distances
+from ringscan.kernels.stereo_support import epipolar_distances, epipolar_slopes
 from tests.support.stereo_rig import CAM1, CAM2, project_points, surface_hits
 
 
@@ -52,6 +52,53 @@ def test_epipolar_distances_match_float64_geometry():
     moved = kernel(uv1, uv2_moved)
     assert np.max(np.abs(moved - reference(uv1, uv2_moved))) < 1e-3
     assert np.median(moved) > 0.3  # the moves are seen: ~N(0, 1.5) across the lines
+
+
+def test_epipolar_slopes_sign_the_distance_and_measure_how_camera_1_moves_the_line():
+    """The signed distance's size is :func:`epipolar_distances`' and its sign the side of the line a move
+    puts camera 2's pixel on; the slope is the float64 derivative of the signed distance by camera 1's
+    pixel (central differences of OpenCV's undistortion over 1e-3 px: the kernel's own differences over
+    0.5 px in float32 keep it within 2 % where the line moves ~1 px a px)."""
+    rng = np.random.default_rng(5)
+    uv1 = np.c_[rng.uniform(300, 980, 300), rng.uniform(250, 780, 300)]
+    X = surface_hits(CAM1, uv1)
+    X = X[np.isfinite(X).all(axis=1)]
+    uv1, uv2 = project_points(CAM1, X), project_points(CAM2, X)
+    R = CAM2.R @ CAM1.R.T
+    t = CAM2.t - R @ CAM1.t
+    t = t / np.linalg.norm(t)
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    scale = float(np.sqrt(CAM2.K[0, 0] * CAM2.K[1, 1]))
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+    def signed(a, b):
+        n1 = cv2.undistortPoints(a.reshape(-1, 1, 2), CAM1.K, CAM1.dist, criteria=crit)[:, 0]
+        n2 = cv2.undistortPoints(b.reshape(-1, 1, 2), CAM2.K, CAM2.dist, criteria=crit)[:, 0]
+        line = np.c_[n1, np.ones(len(n1))] @ E.T
+        return np.sum(line * np.c_[n2, np.ones(len(n2))], 1) / np.hypot(line[:, 0], line[:, 1]) * scale
+
+    # camera 2's pixels moved across their lines by +-0.6 px (each its own side)
+    side = np.where(rng.random(len(uv1)) < 0.5, -1.0, 1.0)
+    h = 1e-3
+    grad = np.stack([(signed(uv1 + [h, 0], uv2) - signed(uv1 - [h, 0], uv2)) / (2 * h),
+                     (signed(uv1 + [0, h], uv2) - signed(uv1 - [0, h], uv2)) / (2 * h)], 1)
+    n_line = np.stack([(signed(uv1, uv2 + [h, 0]) - signed(uv1, uv2 - [h, 0])) / (2 * h),
+                       (signed(uv1, uv2 + [0, h]) - signed(uv1, uv2 - [0, h])) / (2 * h)], 1)
+    uv2_moved = (uv2 + 0.6 * side[:, None] * n_line / np.linalg.norm(n_line, axis=1, keepdims=True))
+    uv1, uv2_moved = (a.astype(np.float32).astype(np.float64) for a in (uv1, uv2_moved))
+    w = lambda a: wp.array(a.astype(np.float32), dtype=wp.vec2, device="cpu")  # noqa: E731
+    cams = dict(camera1=make_camera(CAM1.K, CAM1.dist, CAM1.R, CAM1.t),
+                camera2=make_camera(CAM2.K, CAM2.dist, CAM2.R, CAM2.t), E=E, scale=scale, threads=2)
+    d, g2 = (a.numpy().astype(np.float64) for a in epipolar_slopes(w(uv1), w(uv2_moved), **cams))
+    ref = signed(uv1, uv2_moved)
+    assert len(d) > 150 and np.all(np.isfinite(d)) and np.all(np.isfinite(g2))
+    assert np.max(np.abs(d - ref)) < 1e-3  # float32 arithmetic, as epipolar_distances
+    assert np.all(np.sign(d) == np.sign(ref)) and np.median(np.abs(np.abs(d) - 0.6)) < 0.05
+    unsigned = epipolar_distances(w(uv1), w(uv2_moved), **cams).numpy()
+    assert np.max(np.abs(np.abs(d) - unsigned)) < 1e-5  # one construction
+    g2_ref = np.sum(grad ** 2, 1)
+    assert 0.3 < np.median(g2_ref) < 3  # the line moves about a pixel a pixel: the check is not vacuous
+    assert np.max(np.abs(g2 / g2_ref - 1)) < 0.02
 
 
 def _integer_view(rng, w=96, h=72, share=1.0):

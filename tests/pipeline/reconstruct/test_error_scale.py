@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ringscan.pipeline.reconstruct.error_scale import MIN_PAIRS, apply_error_model, fit_error_model, sample_subset
+from ringscan.pipeline.reconstruct.error_scale import (MIN_PAIRS, apply_error_model, fit_error_model, fit_match_model,
+                                                      sample_subset)
 
 
 def _pairs(rng, n, *, k_rho=1.0, k_tan=1.0, f_rho=0.0, f_tan=0.0, miss_px=0.0):
@@ -377,3 +378,50 @@ def test_a_default_reconstruct_loads_no_scipy(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "FIT True" in r.stdout and "SCIPY False" in r.stdout, r.stdout
     assert "STEREO False" in r.stdout  # (one camera: the matcher's and the rays' modules stay unloaded, ~75 ms)
+
+
+def _matches(rng, n, *, k=1.0, f=0.0, miss_px=0.0):
+    """n matches' epipolar distances drawn from the two-camera model (args of fit_match_model): camera 1's and
+    camera 2's predicted sigmas, the line's slope g^2, and a smooth miss of amplitude ``miss_px``."""
+    uv = rng.uniform(0, [640, 512], size=(n, 2))
+    s1 = rng.lognormal(np.log(0.02), 0.5, n)
+    s2 = rng.lognormal(np.log(0.012), 0.5, n)
+    g2 = rng.lognormal(np.log(1.0), 0.3, n)
+    var = k * k * (s2 * s2 + g2 * s1 * s1) + f * f * (1 + g2)
+    # a rig's miss across the lines: an offset that drifts over the image (a camera turned a little)
+    miss = miss_px * (1.0 + 0.3 * (uv[:, 0] - 320) / 320 - 0.2 * ((uv[:, 1] - 256) / 256) ** 2)
+    return rng.normal(0.0, np.sqrt(var)) + miss, g2, s1, s2, uv, miss
+
+
+@pytest.mark.parametrize("k, f", [(1.0, 0.0), (1.8, 0.0), (1.0, 0.03), (1.5, 0.02)])
+def test_the_match_model_recovers_a_planted_factor_and_floor_past_a_calibrations_miss(k, f):
+    """Planted k and floor come back (40k matches fix them to a few %; a model that is already right fits
+    k 1 and a floor far below the sigmas), and a smooth miss of ~0.5 px across the lines (a rig off by more
+    than ten sigmas) is left out of both: it is reported as ``miss_px``, not taken for the decode's error."""
+    rng = np.random.default_rng(int(k * 100 + f * 1000))
+    d, g2, s1, s2, uv, miss = _matches(rng, 40000, k=k, f=f, miss_px=0.5)
+    m = fit_match_model(d, g2, s1, s2, uv)
+    assert m["pairs"] == 40000
+    assert abs(m["k"] - k) < 0.05 * k
+    # the floor to a few thousandths px: what is left of the miss's drift within a 32 px tile (~0.004 px
+    # RMS here) reads as floor; it widens the sigmas the planted model gives by < 5 %
+    assert abs(m["floor_px"] - f) < 0.007
+    v = s2 * s2 + g2 * s1 * s1
+    planted = np.sqrt(k * k * v + f * f * (1 + g2))
+    fitted = np.sqrt(m["k"] ** 2 * v + m["floor_px"] ** 2 * (1 + g2))
+    assert 0.97 < np.median(fitted / planted) < 1.05
+    assert abs(m["miss_px"] / np.sqrt(np.mean(miss ** 2)) - 1) < 0.05
+    assert 0.6 < m["z_median_fitted"] < 0.75 and m["beyond_3_fitted"] < 0.01
+    assert m["z_median"] > 3.0  # as predicted, the miss dominates
+
+
+def test_the_match_model_without_a_floor_fits_one_factor_and_needs_enough_matches():
+    rng = np.random.default_rng(4)
+    d, g2, s1, s2, uv, _ = _matches(rng, 20000, k=1.0, f=0.03)
+    m = fit_match_model(d, g2, s1, s2, uv, floor=False)
+    assert m["floor_px"] == 0.0 and m["k"] > 1.5  # the floor's share taken by the one factor
+    assert 0.55 < m["z_median_fitted"] < 0.8
+    few = fit_match_model(d[:MIN_PAIRS - 1], g2[:MIN_PAIRS - 1], s1[:MIN_PAIRS - 1], s2[:MIN_PAIRS - 1],
+                          uv[:MIN_PAIRS - 1])
+    assert few == {}
+

@@ -206,3 +206,58 @@ def test_predicted_match_sigmas_are_the_errors_scale(stereo_scan):
     mad = 1.4826 * np.median(np.abs(zn - np.median(zn, axis=0)), axis=0)
     assert np.all((0.8 < mad) & (mad < 1.3)), mad
     assert 0.55 < np.mean(np.abs(zn) < 1) < 0.8
+
+
+def test_matches_whose_decode_errs_beyond_its_sigmas_are_widened_by_their_epipolar_distances(tmp_path, monkeypatch):
+    """Both cameras' decoded maps carry an error their sigmas do not hold: 0.15 projector px (RMS) added to
+    every coordinate, alike over ~3 camera px (a pixel's neighbours share it, as where a camera pixel spans
+    several projector pixels and reads its place from the same coarser stripes' boundaries: the matcher's fit
+    through camera 2's neighbours takes it for the surface), where the contrast predicts ~0.02 px. The matches'
+    distances from their epipolar lines measure it, and the points' sigmas then mean what they say (median |e|/sigma within 0.4-1.2, <= 5 % beyond
+    3 sigma: the issue's bounds). Without the fit (monkeypatched out) the same points are over-confident, and
+    with three rays the one factor leaves every point where it was."""
+    import shutil
+
+    from ringscan.pipeline.formats.images import read_image, write_image
+    from ringscan.pipeline.reconstruct import stereo
+    from tests.support.two_camera_scan import simulate_decoded_two_camera_scan
+
+    exact = simulate_decoded_two_camera_scan(tmp_path / "exact", integer=False)
+    folder = tmp_path / "noisy"
+    shutil.copytree(exact.folder, folder)
+    rng = np.random.default_rng(11)
+    scale = exact.patterns.scale
+    view = exact.views[0]
+    for frames in (view.frames, view.camera2.frames):
+        for name in ("proj_u", "proj_v"):
+            q = read_image(folder / frames[name]).astype(np.float64)
+            err = cv2.GaussianBlur(rng.normal(0.0, 1.0, q.shape), (0, 0), 3.0)
+            noisy = np.round(q + err * (0.15 * scale / np.std(err)))
+            write_image(folder / frames[name], np.where(q > 0, np.clip(noisy, 1, 65535), 0).astype(np.uint16))
+    scan = load_scan(folder)
+
+    def run(rays, out):
+        rep = reconstruct_scan(scan, tmp_path / out, settings=_rays(rays), progress=False)
+        figures = evaluate_recon(tmp_path / out, scan)["all"]
+        return rep["views"][0], figures, read_ply(tmp_path / out / "view_000.ply")
+
+    v, fitted, _ = run("camera-camera", "fitted")
+    model = v["stereo"]["error_model"]
+    assert model["k"] > 1.2 and model["z_median"] > 1.2  # the maps' error, measured
+    assert 0.4 < fitted["sigma"]["median_ratio"] < 1.2 and fitted["sigma"]["beyond_3"] <= 0.05, fitted["sigma"]
+    with monkeypatch.context() as mp:
+        mp.setattr(stereo, "match_error_model", lambda *a, **k: {})
+        _, raw, _ = run("camera-camera", "raw")
+    assert raw["sigma"]["median_ratio"] > 1.5 and raw["sigma"]["beyond_3"] > 0.15, raw["sigma"]
+    assert abs(fitted["median_mm"] - raw["median_mm"]) < 0.1 * raw["median_mm"]  # the points stay put
+
+    v3, three, ply3 = run("all", "three")
+    assert v3["stereo"]["error_model"]["floor_px"] == 0.0 and v3["stereo"]["error_model"]["k"] > 2.0
+    assert 0.4 < three["sigma"]["median_ratio"] < 1.2 and three["sigma"]["beyond_3"] <= 0.05, three["sigma"]
+    with monkeypatch.context() as mp:
+        mp.setattr(stereo, "match_error_model", lambda *a, **k: {})
+        _, _, ply3_raw = run("all", "three_raw")
+    for axis in "xyz":  # one factor on all three rays: the same weighted solution (float32 sums)
+        assert np.allclose(ply3[axis], ply3_raw[axis], atol=1e-3)
+    ratio = ply3["sigma"] / ply3_raw["sigma"]
+    assert np.allclose(ratio, v3["stereo"]["error_model"]["k"], rtol=1e-3)
