@@ -16,7 +16,7 @@ from ringscan.kernels.launch import check_array, default_threads, launch_spans, 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
 EPIPOLAR_STEP_PX = wp.constant(0.5)
-"""Half the central difference of :func:`epipolar_slopes_kernel` (camera-1 px): the line moves smoothly over
+"""Half the central difference of :func:`epipolar_kernel`'s slope (camera-1 px): the line moves smoothly over
 a pixel, and float32 distances keep ~1e-3 px (far below a step's change, ~0.5 px)."""
 
 __all__ = ["RefineSettings", "uv_sigmas", "polar_sigmas", "window_sums", "refine_codes", "epipolar_distances",
@@ -433,57 +433,38 @@ def epipolar_kernel(
     cam2: CameraModel,
     E: wp.mat33,
     scale: float,
-    i0: int,
-    dist: wp.array(dtype=wp.float32),
-):
-    """Distance (camera-2 px) of uv2[i] from the epipolar line of uv1[i], i = i0 + tid.
-
-    uv1, uv2 (n,) vec2 distorted pixels: read. E: the essential matrix (unit
-    baseline) taking camera 1's undistorted normalised point to its line in
-    camera 2's normalised plane; scale: camera 2's sqrt(fx fy). dist (n,)
-    float32: written, NaN where a pixel has no undistorted point
-    (:func:`~ringscan.kernels.geometry.undistort`)."""
-    i = i0 + wp.tid()
-    n2 = undistorted_camera2(cam2, uv2[i])
-    if not (n2[2] > 0.0):
-        dist[i] = wp.nan
-        return
-    dist[i] = wp.abs(signed_epipolar(cam1, cam2, E, scale, uv1[i], n2))
-
-
-@wp.kernel
-def epipolar_slopes_kernel(
-    uv1: wp.array(dtype=wp.vec2),
-    uv2: wp.array(dtype=wp.vec2),
-    cam1: CameraModel,
-    cam2: CameraModel,
-    E: wp.mat33,
-    scale: float,
+    keep_sign: int,
     i0: int,
     dist: wp.array(dtype=wp.float32),
     slope2: wp.array(dtype=wp.float32),
 ):
-    """The signed distance (camera-2 px) of uv2[i] from the epipolar line of uv1[i], and the squared norm of
-    its derivative by uv1[i] (camera-2 px per camera-1 px, squared: how far camera 1's error moves the line),
-    i = i0 + tid; central differences over ``EPIPOLAR_STEP_PX``.
+    """Distance (camera-2 px) of uv2[i] from the epipolar line of uv1[i], i = i0 + tid: its size, or with
+    ``keep_sign`` its sign too; and where ``slope2`` has n places, the squared norm of its derivative by uv1[i]
+    ((camera-2 px per camera-1 px)^2: how far camera 1's error moves the line; central differences over
+    ``EPIPOLAR_STEP_PX``).
 
-    uv1, uv2 (n,) vec2; E, scale as :func:`epipolar_kernel`'s: read. dist, slope2 (n,) float32: written (NaN
-    where a pixel has no undistorted point)."""
+    uv1, uv2 (n,) vec2 distorted pixels: read. E: the essential matrix (unit
+    baseline) taking camera 1's undistorted normalised point to its line in
+    camera 2's normalised plane; scale: camera 2's sqrt(fx fy). dist (n,), slope2 (n,) or (0,)
+    float32: written, NaN where a pixel has no undistorted point
+    (:func:`~ringscan.kernels.geometry.undistort`)."""
     i = i0 + wp.tid()
     n2 = undistorted_camera2(cam2, uv2[i])
     p1 = uv1[i]
-    h = EPIPOLAR_STEP_PX
     d = wp.nan
     g2 = wp.nan
     if n2[2] > 0.0:
         d = signed_epipolar(cam1, cam2, E, scale, p1, n2)
-        gx = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(h, 0.0), n2)
-              - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(h, 0.0), n2)) / (2.0 * h)
-        gy = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(0.0, h), n2)
-              - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(0.0, h), n2)) / (2.0 * h)
-        g2 = gx * gx + gy * gy
-    dist[i] = d
-    slope2[i] = g2
+        if slope2.shape[0] > 0:
+            h = EPIPOLAR_STEP_PX
+            gx = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(h, 0.0), n2)
+                  - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(h, 0.0), n2)) / (2.0 * h)
+            gy = (signed_epipolar(cam1, cam2, E, scale, p1 + wp.vec2(0.0, h), n2)
+                  - signed_epipolar(cam1, cam2, E, scale, p1 - wp.vec2(0.0, h), n2)) / (2.0 * h)
+            g2 = gx * gx + gy * gy
+    dist[i] = wp.where(keep_sign != 0, d, wp.abs(d))
+    if slope2.shape[0] > 0:
+        slope2[i] = g2
 
 
 # ----------------------------------------------------------------------------- host
@@ -629,18 +610,24 @@ def epipolar_distances(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, ca
     check_array("uv2", uv2, n, wp.vec2, fn)
     dev = uv1.device
     out = wp.empty(n, dtype=wp.float32, device=dev)
+    _epipolar_launch(uv1, uv2, camera1, camera2, E, scale, 0, [out, wp.empty(0, dtype=wp.float32, device=dev)],
+                     threads)
+    return out
+
+
+def _epipolar_launch(uv1, uv2, camera1, camera2, E, scale, keep_sign: int, outputs: list, threads) -> None:
+    n = uv1.shape[0]
     if n:
         Em = wp.mat33(*np.asarray(E, np.float64).astype(np.float32).ravel().tolist())
-        args = [uv1, uv2, camera1, camera2, Em, float(scale)]
-        launch_spans(epipolar_kernel, n, lambda i0: args + [i0], [out], dev,
+        args = [uv1, uv2, camera1, camera2, Em, float(scale), int(keep_sign)]
+        launch_spans(epipolar_kernel, n, lambda i0: args + [i0], outputs, uv1.device,
                      default_threads() if threads is None else threads)
-    return out
 
 
 def epipolar_slopes(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, camera2: CameraModel, E: np.ndarray,
                     scale: float, threads: int | None = None) -> tuple[wp.array, wp.array]:
     """Each match's signed distance from its epipolar line and how fast camera 1 moves it
-    (:func:`epipolar_slopes_kernel`): ((n,) float32 camera-2 px, (n,) float32 its squared derivative by uv1,
+    (:func:`epipolar_kernel`): ((n,) float32 camera-2 px, (n,) float32 its squared derivative by uv1,
     (camera-2 px per camera-1 px)^2), NaN where a pixel has no undistorted point; arguments as
     :func:`epipolar_distances`'."""
     fn = "epipolar_slopes"
@@ -649,9 +636,5 @@ def epipolar_slopes(uv1: wp.array, uv2: wp.array, *, camera1: CameraModel, camer
     dev = uv1.device
     dist = wp.empty(n, dtype=wp.float32, device=dev)
     slope2 = wp.empty(n, dtype=wp.float32, device=dev)
-    if n:
-        Em = wp.mat33(*np.asarray(E, np.float64).astype(np.float32).ravel().tolist())
-        args = [uv1, uv2, camera1, camera2, Em, float(scale)]
-        launch_spans(epipolar_slopes_kernel, n, lambda i0: args + [i0], [dist, slope2], dev,
-                     default_threads() if threads is None else threads)
+    _epipolar_launch(uv1, uv2, camera1, camera2, E, scale, 1, [dist, slope2], threads)
     return dist, slope2
