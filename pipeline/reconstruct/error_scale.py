@@ -209,7 +209,7 @@ def fit_error_model(depth_rho: np.ndarray, s_rho: np.ndarray, depth_tan: np.ndar
 
 
 def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, sigma2: np.ndarray,
-                    uv: np.ndarray, *, floor: bool = True) -> dict:
+                    uv: np.ndarray, *, floor: bool = True, max_distance_px: float = np.inf) -> dict:
     """What two cameras' matches miss of their own errors, from their distances to their epipolar lines.
 
     A match (camera 1's pixel, camera 2's position where its projector coordinate is the same) has one
@@ -229,6 +229,8 @@ def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, si
         uv: (n, 2) camera 1's pixels.
         floor: False: the factor k alone (f = 0), for rays whose relative weights must stay as they are
             (a third ray, the projector's, that the fit does not see: all three take the one factor).
+        max_distance_px: matches farther from their lines are left out (a mismatch, which the triangulation
+            drops as inconsistent: the view's fit is of the points it keeps).
 
     Returns:
         {} with fewer than ``MIN_PAIRS`` usable matches; else {``k``, ``floor_px``, ``miss_px`` (the
@@ -239,6 +241,7 @@ def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, si
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     v = s2 * s2 + g2 * s1 * s1
     m = np.isfinite(d) & np.isfinite(g2) & np.isfinite(v) & (v > 0) & np.isfinite(uv).all(axis=1)
+    m &= np.abs(np.where(np.isfinite(d), d, 0.0)) <= max_distance_px
     n = int(np.count_nonzero(m))
     if n < MIN_PAIRS:
         return {}

@@ -384,12 +384,14 @@ def _epipolar_device(rig: Rig, w1: wp.array, w2: wp.array, threads: int | None) 
     return kernel_epipolar_distances(w1, w2, **_epipolar_geometry(rig), threads=threads)
 
 
-def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, threads: int | None = None) -> dict:
+def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, max_distance_px: float = np.inf,
+                      threads: int | None = None) -> dict:
     """What the matches' predicted sigmas miss, measured by their own distances from their epipolar lines
     (``error_scale.fit_match_model``, on at most ``error_scale.MAX_CHECK_SAMPLES`` matches spread over the
     view: their distances and slopes computed on the device, read once): {} with too few matches, else
     the fit ({k, floor_px, miss_px, pairs, z_median, beyond_3, z_median_fitted, beyond_3_fitted}), whose
-    k and floor_px :func:`widen_matches` applies (``floor`` False: k alone, ``fit_match_model``'s)."""
+    k and floor_px :func:`widen_matches` applies (``floor`` False: k alone; ``max_distance_px``: matches farther
+    from their lines left out, as ``fit_match_model`` takes them)."""
     n = len(matches)
     if n == 0 or rig.camera2 is None:
         return {}
@@ -399,7 +401,7 @@ def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, t
     uv1, uv2 = g(matches.uv1), g(matches.uv2)
     dist, slope2 = epipolar_slopes(uv1, uv2, **_epipolar_geometry(rig), threads=threads)
     return fit_match_model(dist.numpy(), slope2.numpy(), g(matches.sigma1).numpy(), g(matches.sigma2).numpy(),
-                           uv1.numpy(), floor=floor)
+                           uv1.numpy(), floor=floor, max_distance_px=max_distance_px)
 
 
 def widen_matches(matches: DeviceMatches, model: dict, *, threads: int | None = None) -> DeviceMatches:

@@ -593,17 +593,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
     light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
-    # What the matches' sigmas miss, measured across their epipolar lines (the calibration's smooth miss
-    # left out), widens both cameras' alike: the same errors act along the lines, in depth. With the
-    # projector's ray (which the lines do not see) one factor on all three: the rays' weights as they were.
-    error_model = match_error_model(rig, matches, floor=not use_light, threads=threads)
-    matches = widen_matches(matches, error_model, threads=threads)
     n = len(samples)
-    kw = {}
-    if use_light:
-        kw = dict(light=light, proj=matches.proj,
-                  proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
-                                              center=scan.patterns.center, threads=threads))
     uv1, uv2 = matches.uv1, matches.uv2
     check = epipolar_check(rig, matches, uv=(uv1, uv2))
     max_res = st.max_residual_px
@@ -611,6 +601,18 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         # a rig that misses: its points miss by the miss; the cloud is still made
         # (and the view warns), an outlier is a point beyond 5 times the miss
         max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
+    # What the matches' sigmas miss, measured across their epipolar lines (the calibration's smooth miss
+    # left out; matches too far off to become points, two rays' residual over max_res, left out too), widens
+    # both cameras' alike: the same errors act along the lines, in depth. With the projector's ray (which the
+    # lines do not see) one factor on all three: the rays' weights as they were.
+    error_model = match_error_model(rig, matches, floor=not use_light, max_distance_px=2.0 * max_res,
+                                    threads=threads)
+    matches = widen_matches(matches, error_model, threads=threads)
+    kw = {}
+    if use_light:
+        kw = dict(light=light, proj=matches.proj,
+                  proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
+                                              center=scan.patterns.center, threads=threads))
     tri = triangulate_rays(uv1, uv2, matches.sigma1, matches.sigma2,
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,

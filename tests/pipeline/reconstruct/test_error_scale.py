@@ -425,3 +425,17 @@ def test_the_match_model_without_a_floor_fits_one_factor_and_needs_enough_matche
                           uv[:MIN_PAIRS - 1])
     assert few == {}
 
+
+def test_the_match_model_leaves_out_mismatches_the_triangulation_drops():
+    """2 % of the matches 5-30 px off their lines (camera 2's code found on another surface: the two rays'
+    residual drops them as inconsistent) pull the fit wider; beyond ``max_distance_px`` they are not fitted."""
+    rng = np.random.default_rng(9)
+    d, g2, s1, s2, uv, _ = _matches(rng, 20000, k=1.2, f=0.01)
+    bad = rng.random(d.size) < 0.02
+    d = np.where(bad, rng.uniform(5, 30, d.size) * np.sign(rng.normal(size=d.size)), d)
+    kept = fit_match_model(d, g2, s1, s2, uv, max_distance_px=4.0)
+    assert kept["pairs"] == int(np.count_nonzero(~bad))
+    assert abs(kept["k"] - 1.2) < 0.06 and abs(kept["floor_px"] - 0.01) < 0.004
+    every = fit_match_model(d, g2, s1, s2, uv)
+    assert every["k"] > kept["k"] + 0.05  # (the Student-t holds them to ~8 % of k; left out, none)
+
