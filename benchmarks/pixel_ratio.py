@@ -9,7 +9,7 @@ and ringscan's default patterns, from a camera far finer than the projector to o
    truth's projector coordinates (median |du|, projector px), the points' error along the camera ray against
    the truth's depth (median, p95 mm) and median |e|/sigma and the share beyond 3 sigma.
 2. ``gray-rings``: the default rig (perspective light) and patterns on the sphere, the camera's focal length x
-   z (z = 1, 2, 3, 4, 8: a projector px over 0.8 ... 6.7 camera px); rendered, reconstructed and evaluated
+   z (z = 0.25 ... 8: a projector px over 0.2 ... 6.7 camera px); rendered, reconstructed and evaluated
    (``evaluate_view``): points, coverage, median error, the sigmas' honesty.
 3. ``two-cameras``: two 640x512 cameras either side of a 1920x1080 projector (``simulate --camera2``'s
    symmetric pair) over the sphere on its plane, the projector's focal length such that a camera px spans r
@@ -52,7 +52,7 @@ RATIOS = (1 / 15, 1 / 5, 0.75, 1.25, 2.5, 5.0)
 """Projector px a camera px spans in the import part."""
 TWO_CAMERA_RATIOS = (1.25, 2.5, 5.0)
 """Projector px a camera px spans in the two-camera part."""
-ZOOMS = (1, 2, 3, 4, 8)
+ZOOMS = (0.25, 0.35, 0.5, 1, 2, 3, 4, 8)
 """The camera's focal length over the default rig's in the gray-rings part."""
 CAMERA_PX_PER_MM = 2600.0 / 1031.0
 """The import rig's camera px a mm at the plane (f 2600 px, 1031 mm away)."""

@@ -31,7 +31,8 @@ from ringscan.kernels.geometry import (
 from ringscan.pipeline.formats.errors import FormatError
 from ringscan.pipeline.formats.rig import Camera, ParallelLight, Rig, UncalibratedLight
 
-__all__ = ["UNDISTORT_CRITERIA", "in_lens_region", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point"]
+__all__ = ["UNDISTORT_CRITERIA", "in_lens_region", "camera_model_for", "light_model_for", "undistort_normalized", "project_points", "camera_rays", "camera_pixels", "projector_pixels", "projector_offset", "projector_polar", "light_ray", "light_directions", "plane_point",
+           "projector_px_span"]
 
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 """Stopping rule of the iterative undistortion: 100 iterations or a step below 1e-14
@@ -227,3 +228,23 @@ def plane_point(rig: Rig, p) -> np.ndarray:
     """Where the light's ray through projector pixel p meets the reference plane z = 0."""
     o, d = light_ray(rig, np.asarray(p, np.float64))
     return o + (-o[2] / d[2]) * d
+
+
+def projector_px_span(rig) -> float:
+    """Camera px that one projector px spans in the middle of the rig's working volume (on the world z axis, the
+    light's, halfway between z_min and z_max; the mean of a step along x and along y), 1 where the rig cannot say
+    (an uncalibrated light)."""
+    vol = rig.volume
+    X0 = np.array([0.0, 0.0, 0.5 * (vol.z_min + vol.z_max)])
+    X = np.stack([X0, X0 + [0.1, 0.0, 0.0], X0 + [0.0, 0.1, 0.0]])
+    cam = rig.camera
+    if not (np.asarray(cam.R, np.float64) @ X0 + np.asarray(cam.t, np.float64))[2] > 0:
+        return 1.0  # (the volume's middle is not before the camera: a rig whose world says nothing of it)
+    try:
+        p, c = projector_pixels(rig, X), camera_pixels(rig, X)
+    except (ValueError, TypeError):  # (no calibrated light: nothing to say)
+        return 1.0
+    dp = np.linalg.norm(p[1:] - p[0], axis=1)
+    dc = np.linalg.norm(c[1:] - c[0], axis=1)
+    ok = (dp > 0) & np.isfinite(dp) & np.isfinite(dc)
+    return float(np.mean(dc[ok] / dp[ok])) if ok.any() else 1.0

@@ -123,6 +123,8 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
                                threads=threads)
     wp.synchronize_device(frames.device)
     t1 = time.perf_counter()
+    from ringscan.pipeline.geometry import projector_px_span  # (cv2's import: only where a view is decoded)
+
     span = projector_px_span(scan.rig)
     sample = settings.sample
     if span > MIN_OVERSAMPLING:
@@ -164,28 +166,6 @@ def extract_gray_rings(frames: wp.array, scan: Scan, settings: GrayRingsSettings
              **noise_stats,
              "times_s": {"decode": t1 - t0, "sample": t2 - t1, "angle": t3 - t2}}
     return samples, stats
-
-
-def projector_px_span(rig) -> float:
-    """Camera px that one projector px spans in the middle of the rig's working volume (on the world z axis, the
-    light's, halfway between z_min and z_max; the mean of a step along x and along y), 1 where the rig cannot say
-    (an uncalibrated light)."""
-    from ringscan.pipeline.geometry import camera_pixels, projector_pixels
-
-    vol = rig.volume
-    X0 = np.array([0.0, 0.0, 0.5 * (vol.z_min + vol.z_max)])
-    X = np.stack([X0, X0 + [0.1, 0.0, 0.0], X0 + [0.0, 0.1, 0.0]])
-    cam = rig.camera
-    if not (np.asarray(cam.R, np.float64) @ X0 + np.asarray(cam.t, np.float64))[2] > 0:
-        return 1.0  # (the volume's middle is not before the camera: a rig whose world says nothing of it)
-    try:
-        p, c = projector_pixels(rig, X), camera_pixels(rig, X)
-    except (ValueError, TypeError):  # (no calibrated light: nothing to say)
-        return 1.0
-    dp = np.linalg.norm(p[1:] - p[0], axis=1)
-    dc = np.linalg.norm(c[1:] - c[0], axis=1)
-    ok = (dp > 0) & np.isfinite(dp) & np.isfinite(dc)
-    return float(np.mean(dc[ok] / dp[ok])) if ok.any() else 1.0
 
 
 def _recorded(levels: float, frames: wp.array) -> float:
@@ -236,3 +216,11 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: GrayRingsSettings) -> str | None:
         return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)
+
+
+def projector_px_span(rig) -> float:
+    """:func:`ringscan.pipeline.geometry.projector_px_span` (camera px a projector px spans mid-volume)."""
+    from ringscan.pipeline.geometry import projector_px_span as span
+
+    return span(rig)
+

@@ -150,3 +150,41 @@ def test_a_camera_that_spreads_each_projector_pixel_over_several_keeps_its_ring_
     settings = codec_for(scan.patterns.codec).settings_from(ReconstructSettings())
     samples, _ = gr.extract_gray_rings(frames, scan, settings, threads=2)
     assert len(samples) < 0.1 * len(cloud.points)
+
+
+def test_a_camera_too_coarse_for_the_angle_code_leaves_it_out_and_says_so(tmp_path, caplog):
+    """The default rig's camera at a quarter of its resolution (a projector px over ~0.21 camera px: a camera
+    far coarser than the projector) under the default patterns: the angle's periods (8-16 projector px) span
+    1.7-3.4 camera px, where the 4-step fit reads an alias with an amplitude that says nothing of it (trusted,
+    ~10 % of the points beyond 3 sigma, each off by a fraction of a period). Periods under
+    ``MIN_PERIOD_CAMERA_PX`` are not read (``unresolved``; those samples placed by their rings), the view warns
+    with the period this camera needs, and the sigmas hold (issue 32's bounds). (The advised patterns,
+    ``--angle-period 16``, on the same rig: every angle read, 0.0130 mm median against 0.0280, 1.7 % beyond 3
+    sigma: docs/dense.md.)"""
+    import logging
+
+    import numpy as np
+
+    from ringscan.pipeline.codecs import angle_code
+    from ringscan.pipeline.formats.rig import default_rig
+    from ringscan.pipeline.geometry import projector_px_span
+
+    rig = default_rig(light_model="perspective")
+    K = rig.camera.K.copy()
+    K[:2] *= 0.25
+    rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, width=320, height=256, K=K))
+    span = projector_px_span(rig)
+    assert 0.15 < span < 0.3
+    spec = parse_patterns({"codec": "gray-rings", "width": 1024, "height": 768, "center": [511.5, 383.5],
+                           "rho0": 8.0, "pitch": 4.0, "bits": 7, "sector_bits": 9, "angle_steps": 4,
+                           "angle_period": 8.0})
+    scan = simulate_scan(tmp_path / "s", scene="sphere", rig=rig, patterns=spec, progress=False)
+    with caplog.at_level(logging.WARNING):
+        cloud = reconstruct_view(scan, scan.views[0])
+    ev = evaluate_view(scan, "view_000", cloud.points, sigma=cloud.sigma)
+    dropped = cloud.stats["angle_dropped"]["unresolved"]
+    assert dropped > 0.2 * cloud.stats["samples"]
+    need = angle_code.MIN_PERIOD_CAMERA_PX / span  # ~12 projector px; the advice a third more: 16
+    advice = int(4 * np.ceil(1.3 * need / 4))
+    assert advice == 16 and any(f"--angle-period {advice}" in r.message for r in caplog.records)
+    assert ev["coverage"] > 0.9 and 0.4 < ev["sigma"]["median_ratio"] < 1.2 and ev["sigma"]["beyond_3"] <= 0.05, ev
