@@ -53,8 +53,7 @@ ANGLE_OK = wp.constant(0)
 ANGLE_DARK = wp.constant(1)
 ANGLE_MODULATION = wp.constant(2)
 ANGLE_NO_SECTOR = wp.constant(3)
-ANGLE_UNRESOLVED = wp.constant(4)
-ANGLE_STATUS_NAMES = ("ok", "dark", "modulation", "no_sector", "unresolved")
+ANGLE_STATUS_NAMES = ("ok", "dark", "modulation", "no_sector")
 PI = wp.constant(3.141592653589793)
 TWO_PI = wp.constant(6.283185307179586)
 
@@ -90,8 +89,6 @@ class AngleParams:
     """``AngleSettings.min_modulation``."""
     noise: wp.float32
     """``AngleSettings.noise`` (8-bit grey levels)."""
-    min_period_px: wp.float32
-    """Projector px a period must span for the camera to resolve it (0: any)."""
 
 
 @dataclass
@@ -265,10 +262,6 @@ def angle_kernel(
     for z in range(zone_rho.shape[0]):
         if r >= zone_rho[z]:
             p = zone_periods[z]
-    if TWO_PI * r < params.min_period_px * float(p):
-        # a period over fewer camera px than resolve it: the phase read is an alias, not the angle
-        status[i] = ANGLE_UNRESOLVED
-        return
     psi = polar_angle(bs, bc)
     a = psi
     if p > 1:
@@ -320,7 +313,6 @@ def decode_angle(
     light_gamma: float = 1.0,
     sector0: int = -1,
     settings: AngleSettings = AngleSettings(),
-    min_period_px: float = 0.0,
     threads: int | None = None,
 ) -> AngleSamples:
     """The polar angle of every sample from the angle frames.
@@ -340,8 +332,6 @@ def decode_angle(
             next bit's pair): samples without a sector re-read the coarse
             sector code there; -1: none (they get no angle where P > 1).
         settings: thresholds and the noise model.
-        min_period_px: projector px a period (2 pi rho / P) must span for the camera to resolve it: shorter
-            ones are aliased (status ``unresolved``); 0: any.
         threads: CPU threads; default all cores.
 
     Size: a public function: its parameters are the sample arrays and its documented keyword-only options (frame
@@ -389,7 +379,6 @@ def decode_angle(
     params.bit_margin = float(settings.bit_margin)
     params.min_modulation = float(settings.min_modulation)
     params.noise = float(settings.noise)
-    params.min_period_px = float(min_period_px)
     args = [frames, lut, trig, wp.array(starts.astype(np.float32), device=dev),
             wp.array(periods.astype(np.int32), device=dev), uv, rho, sector, params]
     outputs = [out.phi, out.sigma_tan, out.modulation, out.status]

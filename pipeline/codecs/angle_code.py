@@ -42,11 +42,14 @@ sharp real projector's, spreads a box edge's 10-90 % rise over ~2.8 px). With 1 
 the virtual rig's edges scatter three times their prediction."""
 
 MIN_PERIOD_CAMERA_PX = 2.5
-"""Camera px an angle period must span to be read (``kernels.angle``: status ``unresolved`` below). A 4-step
-fit of a fringe sampled at 2 px a period or fewer reads an alias as its phase, with an amplitude that says
-nothing of it: the default patterns (periods of 8-16 projector px) on the sphere with the camera's focal
-length x0.25 (1.7-3.4 camera px a period) put 9.6 % of the points beyond 3 sigma, off by a fraction of a
-period; x0.35 (2.3-4.7) 3.4 %, x0.5 0.7 % (``benchmarks/pixel_ratio.py``)."""
+"""Camera px the angle code's least period should span in the middle of the rig's volume; below it the view
+warns with the ``--angle-period`` this camera needs. Finer fringes fade (the lens and the pixel's area) or,
+under sharp optics, alias: the default patterns (periods of 8-16 projector px) on the sphere with a camera at a
+quarter of the default's resolution (1.7-3.4 camera px a period): on Mitsuba's render 0.0269 mm median, p95
+0.119 mm (the fit drops the faded fringes for their modulation), with ``--angle-period 16`` 0.0204 mm, p95
+0.081; on ringscan's sharper render the aliases stay and put 11 % of the points beyond 3 sigma (16: 1.7 %).
+Nothing is dropped for it: a period's reach in the camera changes across a view, and on Mitsuba's render leaving
+out the angles of the periods under 2.5 px by the mid-volume figure cost 0.0269 -> 0.0356 mm."""
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -224,8 +227,8 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: wp.a
     Returns:
         (samples with ``sigma_rho`` and, with an angle code, ``phi`` (NaN where it
         did not decode) and ``sigma_tan``; stats ``angle_decoded`` and
-        ``angle_dropped`` by reason, and where periods were too short for the camera
-        (``unresolved``) ``angle_min_period_px``, the projector px a period had to span).
+        ``angle_dropped`` by reason, and where the least period spans fewer than
+        ``MIN_PERIOD_CAMERA_PX`` camera px mid-volume ``angle_period_camera_px``, what it spans).
     """
     spec = scan.patterns
     dev = frames.device
@@ -242,20 +245,19 @@ def add_angle(frames: wp.array, scan: Scan, samples: Samples, *, sigma_rho: wp.a
     names = frame_names(spec)
     full = 255 if frames.dtype == wp.uint8 else 65535
     lut, _ = response_tables(full, camera_gamma=camera_gamma, weighted=False)
-    # a camera coarser than the projector sees a period over fewer of its px: below MIN_PERIOD_CAMERA_PX the
-    # fit reads an alias (the rig's mid-volume scale; 1 camera px a projector px where the rig cannot say)
-    min_period_px = MIN_PERIOD_CAMERA_PX / max(projector_px_span(scan.rig), 1e-6)
+    # what the least period spans in the camera mid-volume (1 camera px a projector px where the rig cannot say)
+    least = float(spec.angle_period) * projector_px_span(scan.rig)
     res = decode_angle(frames, samples.uv, samples.rho, samples.sector, white=names.index("white"),
                        black=names.index("black"), angle0=names.index("angle_0"), steps=spec.angle_steps,
                        sector_bits=spec.sector_bits, zones=spec_angle_zones(spec),
                        lut=wp.array(lut, dtype=wp.float32, device=dev), light_gamma=light_gamma,
                        sector0=names.index("sector_0") if spec.sector_bits else -1,
-                       settings=settings, min_period_px=min_period_px, threads=threads)
+                       settings=settings, threads=threads)
     samples.phi = res.phi
     samples.sigma_tan = res.sigma_tan
     counts = count_values(res.status, len(ANGLE_STATUS_NAMES), threads=threads)  # counted on the device
     stats = {"angle_decoded": int(counts[0]),
              "angle_dropped": {k: int(counts[i]) for i, k in enumerate(ANGLE_STATUS_NAMES) if i > 0}}
-    if stats["angle_dropped"]["unresolved"]:
-        stats["angle_min_period_px"] = round(float(min_period_px), 2)  # (what a period had to span, for the warning)
+    if least < MIN_PERIOD_CAMERA_PX:
+        stats["angle_period_camera_px"] = round(least, 2)  # (for the view's warning)
     return samples, stats

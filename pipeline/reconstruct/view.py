@@ -199,7 +199,7 @@ def reconstruct_view(
     samples, codec_stats = codec.extract(frames_w, scan, codec.settings_from(settings), threads=threads)
     times.update(codec_stats.pop("times_s"))
     _warn_low_modulation(view, codec_stats)
-    _warn_unresolved_angle(view, codec_stats)
+    _warn_fine_angle(view, codec_stats, scan.patterns)
     # A codec may decide sectors of its own (the rings codec: line orientation
     # sectors); it says how many bits they carry.
     sector_bits = int(codec_stats.pop("sector_bits", scan.patterns.sector_bits))
@@ -377,21 +377,22 @@ def _warn_low_modulation(view: View, stats: dict) -> None:
                     "coarser pattern or more light helps)", view.name, 100.0 * low / lit, low)
 
 
-def _warn_unresolved_angle(view: View, stats: dict) -> None:
-    """One warning line where more than ``LOW_MODULATION_WARN`` of a view's samples lost their angle because
-    its periods span fewer camera px than the camera resolves (``angle_dropped.unresolved``): the camera is
-    too coarse for the patterns, and the way out is a pattern, not a setting."""
-    unresolved = stats.get("angle_dropped", {}).get("unresolved", 0)
-    n = stats.get("samples", 0)
-    if n and unresolved > LOW_MODULATION_WARN * n:
-        need = stats.get("angle_min_period_px", 0.0)
-        # a third more, to a multiple of 4 px: at the least period itself its reads are honest only just
-        # (the sphere at a quarter of the default camera's resolution: 12 px 4.0 % beyond 3 sigma, 16 px 1.7 %)
-        advice = int(4 * np.ceil(1.3 * need / 4))
-        log.warning("%s: the angle code's periods span too few camera px to be read on %.0f %% of the samples "
-                    "(%d, unresolved: placed by their rings alone); this camera needs periods of %.0f projector px "
-                    "or more: record the patterns with --angle-period %d (docs/dense.md)", view.name,
-                    100.0 * unresolved / n, unresolved, need, advice)
+def _warn_fine_angle(view: View, stats: dict, spec) -> None:
+    """One warning line where the angle code's least period spans fewer than ``MIN_PERIOD_CAMERA_PX`` camera px
+    in the middle of the rig's volume (the codec's ``angle_period_camera_px``): the camera is too coarse for the
+    patterns, and the way out is a pattern, not a setting (docs/dense.md)."""
+    least = stats.get("angle_period_camera_px")
+    if least is None:
+        return
+    from ringscan.pipeline.codecs.angle_code import MIN_PERIOD_CAMERA_PX
+
+    # a third over the least period that spans MIN_PERIOD_CAMERA_PX, to a multiple of 4 px (the sphere at a
+    # quarter of the default camera's resolution: 12 px still 4.0 % beyond 3 sigma on ringscan's render, 16 1.7 %)
+    need = float(spec.angle_period) * MIN_PERIOD_CAMERA_PX / least
+    advice = int(4 * np.ceil(1.3 * need / 4))
+    log.warning("%s: the angle code's least period spans %.1f camera px here (under %.1f: its fringes fade or alias "
+                "in this camera); record the patterns with --angle-period %d (docs/dense.md)", view.name, least,
+                MIN_PERIOD_CAMERA_PX, advice)
 
 
 def _row_bands(rows: np.ndarray) -> np.ndarray:

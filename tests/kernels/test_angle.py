@@ -75,26 +75,6 @@ def test_sigma_matches_the_scatter_and_sectors_unwrap(device):
     assert 0.4 < np.median(ratio) < 1.2
 
 
-def test_periods_too_short_for_the_camera_are_unresolved(device):
-    """A period of 2 pi rho / P projector px under ``min_period_px`` (what the camera needs of it, given by the
-    codec from the rig) is not read: status ``unresolved``, no angle; the same samples decode without it, and
-    those whose period is long enough decode either way to the same angle."""
-    zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
-    frames, _, _ = angle_frames(zones=zones)
-    pts, r, a, sector = angle_samples(n=600, seed=5)
-    period = 2 * np.pi * r / angle_periods(r, *zones)  # projector px, 12 to 24
-    need = 18.0
-    A = angle_decode(device, frames, pts, r, sector, zones, angle_lut(1.0), min_period_px=need)
-    B = angle_decode(device, frames, pts, r, sector, zones, angle_lut(1.0))
-    st, st_all = A.status.numpy(), B.status.numpy()
-    short = period < need
-    assert 0.2 < short.mean() < 0.8  # both kinds present
-    assert np.all(st[short] == STATUS["unresolved"]) and np.all(np.isnan(A.phi.numpy()[short]))
-    assert np.mean(st_all[short] == 0) > 0.9
-    long_ok = ~short & (st_all == 0)
-    assert long_ok.sum() > 50 and np.array_equal(A.phi.numpy()[long_ok], B.phi.numpy()[long_ok])
-
-
 def test_unknown_sector_dark_and_flat(device):
     zones = angle_zones(rho0=RHO0, pitch=PITCH, bands=BANDS, sector_bits=SB, min_period_px=12.0)
     frames, _, _ = angle_frames(zones=zones)

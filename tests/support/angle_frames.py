@@ -43,12 +43,12 @@ def angle_lut(gamma_cam, contrast=200.0):
     return lin.astype(np.float32)
 
 
-def angle_decode(device, frames, pts, rho, sector, zones, lut, settings=AngleSettings(), min_period_px=0.0):
+def angle_decode(device, frames, pts, rho, sector, zones, lut, settings=AngleSettings()):
     """decode_angle of the samples ``pts`` (their radius and sector given) in ``frames`` on ``device``."""
     return decode_angle(wp.array(frames, device=device), wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device),
                         wp.array(rho.astype(np.float32), device=device), wp.array(sector.astype(np.int32), device=device),
                         white=0, black=1, angle0=2, steps=STEPS, sector_bits=SB, zones=zones,
-                        lut=wp.array(lut, device=device), settings=settings, min_period_px=min_period_px)
+                        lut=wp.array(lut, device=device), settings=settings)
 
 
 def angle_samples(n=3000, seed=1):
