@@ -404,16 +404,17 @@ def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, m
                            uv1.numpy(), floor=floor, max_distance_px=max_distance_px)
 
 
-def widen_matches(matches: DeviceMatches, model: dict, *, threads: int | None = None) -> DeviceMatches:
-    """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit) and
-    their projector coordinates' (``sigma_rho``, ``sigma_tan``) k times theirs where the fit has no floor (the
-    third ray's, three rays keeping their relative weights); the same matches where the fit is empty or changes
-    nothing; on their device."""
+def widen_matches(matches: DeviceMatches, model: dict, *, projector: bool = False,
+                  threads: int | None = None) -> DeviceMatches:
+    """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit), and with
+    ``projector`` their projector coordinates' (``sigma_rho``, ``sigma_tan``: the third ray's) k times theirs too
+    (a fit without a floor: three rays keep their relative weights); the same matches where the fit is empty or
+    changes nothing; on their device."""
     if not model or (model["k"] <= 1.0 and model["floor_px"] <= 0.0):
         return matches
     widen = partial(widen_sigmas, k=model["k"], floor=model["floor_px"], threads=threads)
     out = replace(matches, sigma1=widen(matches.sigma1), sigma2=widen(matches.sigma2))
-    if model["floor_px"] <= 0.0:
+    if projector:
         out = replace(out, sigma_rho=widen(matches.sigma_rho), sigma_tan=widen(matches.sigma_tan))
     return out
 

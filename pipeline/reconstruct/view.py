@@ -626,7 +626,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     # lines do not see) one factor on all three: the rays' weights as they were.
     error_model = match_error_model(rig, matches, floor=not use_light, max_distance_px=2.0 * max_res,
                                     threads=threads)
-    matches = widen_matches(matches, error_model, threads=threads)
+    matches = widen_matches(matches, error_model, projector=use_light, threads=threads)
     kw = {}
     if use_light:
         kw = dict(light=light, proj=matches.proj,
