@@ -70,6 +70,7 @@ def _one_launch(dev) -> bool:
 
 
 _warmed: set = set()
+_warm_lock = threading.Lock()
 MIN_SLICE_PIXELS = 1 << 16
 """The fewest pixels a CPU slice of a row-run launch covers (:func:`launch_rows`)."""
 
@@ -83,7 +84,7 @@ def _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads: int) -> Non
     """Launch ``kernel`` once per ``(a, b)`` slice (dim ``b - a``), from a thread pool.
 
     The first launch of a kernel signature (which builds or loads its module)
-    runs on the calling thread: Warp's module loading is not thread-safe.
+    runs on the calling thread, one caller at a time: Warp's module loading is not thread-safe.
     """
     slices = list(slices)
     if not slices:
@@ -94,14 +95,16 @@ def _launch_slices(kernel, slices, inputs_fn, outputs, dev, threads: int) -> Non
         wp.launch(kernel, dim=b - a, inputs=inputs_fn(a), outputs=outputs, device=dev)
 
     key = _launch_key(kernel, inputs_fn(slices[0][0]) + list(outputs), dev)
+    if key not in _warmed:
+        # callers on threads of their own (an import's cameras) meet here too: one loads, the others wait
+        with _warm_lock:
+            if key not in _warmed:
+                run(slices.pop(0))
+                _warmed.add(key)
     if threads <= 1:
         for sl in slices:
             run(sl)
-        _warmed.add(key)
         return
-    if key not in _warmed:
-        run(slices.pop(0))
-        _warmed.add(key)
     if len(slices) <= 1:  # one slice: the pool's hand-off would cost more than it gives
         for sl in slices:
             run(sl)

@@ -192,3 +192,39 @@ def test_spans_in_cuda_geometry(cuda_geometry):
         return out
 
     _assert_same_bytes(*_both(cuda_geometry, run))
+
+
+def test_callers_on_threads_of_their_own_load_a_kernel_once(monkeypatch):
+    """Four callers (an import's cameras, say) launch the same kernel at once, each on its own thread, the
+    kernel not yet launched in this process (``_warmed`` emptied): one of them makes the first launch, which
+    loads the module (not thread-safe in Warp), and the others wait for it; then all launch alike."""
+    import threading
+
+    from ringscan.kernels import launch as L
+    from ringscan.kernels.compact import gather
+
+    monkeypatch.setattr(L, "_warmed", set())
+    cold, real = [], wp.launch
+
+    def counted(*a, **k):
+        if not L._warmed:
+            cold.append(threading.get_ident())
+        return real(*a, **k)
+
+    monkeypatch.setattr(L.wp, "launch", counted)
+    src = wp.array(np.arange(100, dtype=np.float32), device="cpu")
+    index = wp.array(np.arange(0, 100, 3, dtype=np.int32), device="cpu")
+    gate = threading.Barrier(4)
+    out = {}
+
+    def call(t):
+        gate.wait()
+        out[t] = gather(src, index, threads=1).numpy()
+
+    threads = [threading.Thread(target=call, args=(t,)) for t in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(cold) == 1
+    assert all(np.array_equal(out[t], np.arange(0, 100, 3, dtype=np.float32)) for t in range(4))
