@@ -119,7 +119,7 @@ def run_import(work: Path, reuse: bool) -> None:
 
 
 def run_gray_rings(work: Path, reuse: bool) -> None:
-    from ringscan.pipeline.codecs.gray_rings import projector_px_span
+    from ringscan.pipeline.geometry import projector_px_span
 
     print("| camera focal x | camera px a projector px | points | coverage | median mm | median abs(e)/sigma | "
           "beyond 3 sigma |")

@@ -32,7 +32,7 @@ NAME = "gray-rings"
 """The codec's name (scan.json ``patterns.codec``): what code outside the codec spells it by."""
 
 MIN_OVERSAMPLING = 1.5
-"""Camera px a projector px spans (``projector_px_span``) above which the sampler's ``min_slope`` is taken per
+"""Camera px a projector px spans (``pipeline.geometry.projector_px_span``) above which the sampler's ``min_slope`` is taken per
 projector px, not per camera px: a camera zoomed 3x on the default rig's projector found 1.4 % of its edges, 4x
 none. At most 1.5 (the default rig: 0.9) nothing changes."""
 ERROR_GROUPS = 3
@@ -216,11 +216,3 @@ class GrayRingsCodec(Codec[GrayRingsSettings]):
 
     def explain_no_points(self, frames: np.ndarray, scan: Scan, stats: dict, settings: GrayRingsSettings) -> str | None:
         return explain_binary_view(frames, scan.patterns, stats, settings.decode, frame_bits=scan.frame_bits)
-
-
-def projector_px_span(rig) -> float:
-    """:func:`ringscan.pipeline.geometry.projector_px_span` (camera px a projector px spans mid-volume)."""
-    from ringscan.pipeline.geometry import projector_px_span as span
-
-    return span(rig)
-

@@ -128,6 +128,7 @@ def test_a_camera_that_spreads_each_projector_pixel_over_several_keeps_its_ring_
     import warp as wp
 
     import ringscan.pipeline.codecs.gray_rings as gr
+    from ringscan.pipeline.geometry import projector_px_span
     from ringscan.pipeline.codecs.registry import codec_for
     from ringscan.pipeline.formats.scan import read_view_frames
     from ringscan.pipeline.reconstruct.settings import ReconstructSettings
@@ -137,8 +138,8 @@ def test_a_camera_that_spreads_each_projector_pixel_over_several_keeps_its_ring_
     K[0, 0] *= 4
     K[1, 1] *= 4
     rig = dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, K=K))
-    span = gr.projector_px_span(rig)
-    assert 3.0 < span < 4.0 and gr.projector_px_span(crop_rig()) < 1.0  # (unzoomed: no change)
+    span = projector_px_span(rig)
+    assert 3.0 < span < 4.0 and projector_px_span(crop_rig()) < 1.0  # (unzoomed: no change)
     scan = simulate_scan(tmp_path / "s", scene="sphere", rig=rig, patterns=parse_patterns(GRAY), progress=False)
     cloud = reconstruct_view(scan, scan.views[0])
     ev = evaluate_view(scan, "view_000", cloud.points, sigma=cloud.sigma)
