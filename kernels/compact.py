@@ -76,7 +76,7 @@ def gather_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=wp.int32), i0:
     out[j] = src[index[j]]
 
 
-for _t in (wp.float32, wp.float64, wp.int32, wp.vec2, wp.vec3):
+for _t in (wp.float32, wp.float64, wp.int32, wp.vec2, wp.vec3, wp.vec4):
     wp.overload(gather_kernel, {"src": wp.array(dtype=_t), "out": wp.array(dtype=_t)})
 
 
@@ -174,10 +174,11 @@ def _pixel_rows_launched(at_pixel: wp.array, n: int) -> tuple[wp.array, wp.array
 
 
 def gather(src: wp.array, index: wp.array, *, threads: int | None = None) -> wp.array:
-    """src[index] ((m,), src's dtype: float32, float64, int32, vec2 or vec3) on src's device; ``index`` (m,) int32."""
+    """src[index] ((m,), src's dtype: float32, float64, int32, vec2, vec3 or vec4) on src's device; ``index`` (m,)
+    int32."""
     if not isinstance(src, wp.array) or src.ndim != 1 or src.dtype not in (wp.float32, wp.float64, wp.int32, wp.vec2,
-                                                                            wp.vec3):
-        raise ValueError("gather: src must be a 1-D float32, float64, int32, vec2 or vec3 Warp array")
+                                                                            wp.vec3, wp.vec4):
+        raise ValueError("gather: src must be a 1-D float32, float64, int32, vec2, vec3 or vec4 Warp array")
     m = check_array("index", index, None, wp.int32, "gather")
     out = wp.empty(m, dtype=src.dtype, device=src.device)
     launch_spans(gather_kernel, m, lambda i0: [src, index, i0], [out], src.device,

@@ -115,6 +115,14 @@ class Matches:
     and the other half of that excess scatter."""
     gain: wp.array
     """float32 fitted camera-2 px per projector px."""
+    proj_map: wp.array
+    """vec4 the fitted map's linear part A (row-major: d uv2 / d p, camera-2 px per projector px): how uv2
+    moves with the query's projector point, so that an error of that point (which the projector's ray in a
+    three-ray triangulation carries as well) moves uv2 by A times it; 0 where the neighbours lie on a line
+    (ring edges: the map across the line is unknown) and where status != 0."""
+    query_model: wp.array
+    """float32 sigma1's second term alone: the query's half of that excess scatter (camera-2 px), what the
+    query's projector point carries beyond its own sigma (over ``gain`` in projector px); 0 where status != 0."""
     fit_px: wp.array
     """float32 RMS residual of the neighbours' fit (camera-2 px)."""
     status: wp.array
@@ -325,6 +333,8 @@ def match_kernel(
     out_sigma2: wp.array(dtype=wp.float32),
     out_sigma1: wp.array(dtype=wp.float32),
     out_gain: wp.array(dtype=wp.float32),
+    out_map: wp.array(dtype=wp.vec4),
+    out_query_model: wp.array(dtype=wp.float32),
     out_fit: wp.array(dtype=wp.float32),
     status: wp.array(dtype=wp.int32),
 ):
@@ -335,7 +345,8 @@ def match_kernel(
     offsets, counts (nx * ny,) int32, items (binned,) int32 (the grid: each place's sample index), sat
     ((ny + 1) * (nx + 1),) int32 (its summed-area table, :func:`box_count`): read. params: the grid and the fit's
     settings (:class:`MatchParams`). out_uv (n,) vec2, out_sigma2, out_sigma1,
-    out_gain, out_fit (n,) float32, status (n,) int32: written.
+    out_gain (n,) float32, out_map (n,) vec4, out_query_model, out_fit (n,) float32, status (n,) int32: written
+    (:class:`Matches`).
 
     Size: one thread per query, and the steps share its registers: the k-nearest search fills the fixed-size
     arrays nd/ns that the fit, its refits (a neighbour dropped from ns) and the variances then read, so the
@@ -359,6 +370,8 @@ def match_kernel(
     out_sigma2[i] = 0.0
     out_sigma1[i] = 0.0
     out_gain[i] = 0.0
+    out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    out_query_model[i] = 0.0
     out_fit[i] = -1.0
     if not (q[0] == q[0] and q[1] == q[1]):
         status[i] = MATCH_NO_COORDINATE
@@ -558,12 +571,19 @@ def match_kernel(
         out_uv[i] = x
         out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
         out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
+        if full:
+            out_map[i] = wp.vec4(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
+        else:
+            out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)  # along the neighbours' line only: across it unknown
+        out_query_model[i] = wp.sqrt(MODEL_SHARE * model2)
         st = MATCH_OK
         break
     if st != MATCH_OK:
         out_uv[i] = wp.vec2(0.0, 0.0)
         out_sigma2[i] = 0.0
         out_sigma1[i] = 0.0
+        out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+        out_query_model[i] = 0.0
     status[i] = st
 
 
@@ -676,6 +696,7 @@ def match_by_projector(
         raise ValueError(f"{fn}: camera 2's samples are on {proj2.device}, the queries on {dev}")
     out = Matches(uv2=wp.empty(n, dtype=wp.vec2, device=dev), sigma2=wp.empty(n, dtype=wp.float32, device=dev),
                   sigma1=wp.empty(n, dtype=wp.float32, device=dev), gain=wp.empty(n, dtype=wp.float32, device=dev),
+                  proj_map=wp.empty(n, dtype=wp.vec4, device=dev), query_model=wp.empty(n, dtype=wp.float32, device=dev),
                   fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
     if n == 0:
         return out
@@ -695,7 +716,7 @@ def match_by_projector(
     params.max_fit = float(s.max_fit_px)
     params.max_gain = float(s.max_gain)
     args = [query, query_sigma, proj2s, uv2s, sigma2s, offsets, counts, items, sat, params]
-    outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.fit_px, out.status]
+    outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.proj_map, out.query_model, out.fit_px, out.status]
     threads = default_threads() if threads is None else threads
     launch_spans(match_kernel, n, lambda i0: args + [i0], outputs, dev, threads)
     return out

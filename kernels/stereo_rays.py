@@ -53,8 +53,15 @@ JACOBIAN_STEP_DEPTH = wp.constant(2.0e-3)
 """... so that a scene in other units than mm (metres: a point 1 unit away) is differentiated over a step
 its size allows; from 250 mm on (every rig in mm ringscan has met) the step is 0.5 mm as it was."""
 
+PIXEL_RAY_PX = wp.constant(0.01)
+"""Camera 1's pixel's own standard deviation (px) in a three-ray triangulation through the matcher's map: its
+ray is where the code was read, so the code's error is the projector ray's alone; a hundredth of a pixel keeps
+the normal equations well conditioned in float32."""
+
 __all__ = [
+    "PIXEL_RAY_PX",
     "RayTriangulation",
+    "through_map",
     "triangulate_rays",
     "place_matches",
     "polar_information",
@@ -67,6 +74,9 @@ class RayParams:
 
     use_light: wp.int32
     """1: the calibrated projector is a third ray; 0: the two cameras alone."""
+    use_map: wp.int32
+    """1 (with the light): uv2 was found from the projector point (the matcher's ``proj_map``), so camera 2's
+    residual is taken less the map times the light's; 0: the three rays' errors are independent."""
     min_sin: wp.float32
     """Least sine of the widest angle between camera 1's ray and another ray (below: ill-conditioned)."""
     max_residual_px: wp.float32
@@ -135,21 +145,27 @@ def ray_jacobian(model: Any, X: wp.vec3, obs: wp.vec2, h: float):
 
 
 @wp.func
-def all_residuals(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, X: wp.vec3,
-                  obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3, W2: wp.vec3, WL: wp.vec3):
+def all_residuals(cam1: CameraModel, cam2: CameraModel, light: LightModel, use_light: int, use_map: int,
+                  A: wp.mat22, X: wp.vec3, obs1: wp.vec2, obs2: wp.vec2, obs_light: wp.vec2, W1: wp.vec3,
+                  W2: wp.vec3, WL: wp.vec3):
     """Every ray's reprojection residual at X (the two cameras, and the light where ``use_light``; one
-    projection a ray): (chi2, sum of squared residuals px^2).
+    projection a ray): (chi2, sum of squared residuals px^2). With ``use_map`` camera 2's residual enters
+    chi2 less A times the light's (the part of it that the projector point's error makes, counted once,
+    in the light's own); the sum of squares is of the plain residuals.
 
-    Size: each ray's model, observation and weights as separate values (two cameras and the light), as
-    triangulate_rays_kernel holds them in registers."""
+    Size: each ray's model, observation and weights as separate values (two cameras and the light), the
+    map, as triangulate_rays_kernel holds them in registers."""
     r1 = ray_residual(cam1, X, obs1)
     r2 = ray_residual(cam2, X, obs2)
-    chi = quad(W1, r1, r1) + quad(W2, r2, r2)
     ss = wp.dot(r1, r1) + wp.dot(r2, r2)
+    chi = quad(W1, r1, r1)
     if use_light != 0:
         r3 = ray_residual(light, X, obs_light)
         chi += quad(WL, r3, r3)
         ss += wp.dot(r3, r3)
+        if use_map != 0:
+            r2 = r2 - A * r3
+    chi += quad(W2, r2, r2)
     return chi, ss
 
 
@@ -161,6 +177,7 @@ def triangulate_rays_kernel(
     sigma2: wp.array(dtype=wp.float32),
     proj: wp.array(dtype=wp.vec2),
     proj_info: wp.array(dtype=wp.vec3),
+    proj_map: wp.array(dtype=wp.vec4),
     cam1: CameraModel,
     cam2: CameraModel,
     light: LightModel,
@@ -178,8 +195,9 @@ def triangulate_rays_kernel(
 
     uv1, uv2 (n,) vec2 camera pixels (distorted), sigma1, sigma2 (n,) float32
     px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
-    (W00, W01, W11; 1/px^2) (both unread without ``use_light``): read. params:
-    the third ray's switch and the bounds (:class:`RayParams`). points (n,)
+    (W00, W01, W11; 1/px^2) (both unread without ``use_light``), proj_map (n,) vec4 the matcher's map
+    (:class:`~ringscan.kernels.stereo_match.Matches` ``proj_map``; unread without ``use_map``): read. params:
+    the third ray's and the map's switches and the bounds (:class:`RayParams`). points (n,)
     vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written.
 
     Size: one thread per match: the Gauss-Newton iteration (each ray's residual and, where they moved, its
@@ -189,6 +207,7 @@ def triangulate_rays_kernel(
     """
     i = i0 + wp.tid()
     use_light = params.use_light
+    use_map = params.use_map
     min_sin = params.min_sin
     max_residual_px = params.max_residual_px
     points[i] = wp.vec3(0.0, 0.0, 0.0)
@@ -211,9 +230,13 @@ def triangulate_rays_kernel(
     W2 = wp.vec3(1.0 / (s2 * s2), 0.0, 1.0 / (s2 * s2))
     WL = wp.vec3(0.0, 0.0, 0.0)
     pL = wp.vec2(0.0, 0.0)
+    A = wp.mat22(0.0, 0.0, 0.0, 0.0)
     if use_light != 0:
         WL = proj_info[i]
         pL = proj[i]
+        if use_map != 0:
+            m = proj_map[i]
+            A = wp.mat22(m[0], m[1], m[2], m[3])
     converged = bool(False)
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
@@ -243,12 +266,20 @@ def triangulate_rays_kernel(
         H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         g = wp.vec3(0.0, 0.0, 0.0)
         H, g = block_terms(r1, j1x, j1y, j1z, W1, H, g)
-        H, g = block_terms(r2, j2x, j2y, j2z, W2, H, g)
         if use_light != 0:
             rl = ray_residual(light, X, pL)
             if fresh:
                 jlx, jly, jlz = ray_jacobian(light, X, pL, h)
+                if use_map != 0:
+                    # camera 2's residual less what the projector point's error made of it (uv2 = where
+                    # camera 2 reads that point): its Jacobian alike, kept with the others
+                    j2x = j2x - A * jlx
+                    j2y = j2y - A * jly
+                    j2z = j2z - A * jlz
+            if use_map != 0:
+                r2 = r2 - A * rl
             H, g = block_terms(rl, jlx, jly, jlz, WL, H, g)
+        H, g = block_terms(r2, j2x, j2y, j2z, W2, H, g)
         if not (wp.abs(wp.determinant(H)) > 0.0):
             break
         step = wp.inverse(H) * g
@@ -263,7 +294,7 @@ def triangulate_rays_kernel(
         fresh = wp.length(step) > CHORD_STEP * h
     # the residual at the solution; its covariance from the last step's normal equations (the
     # step that converged moved the point by under 2 % of its sigma: H is the same to float32)
-    chi, ss = all_residuals(cam1, cam2, light, use_light, X, uv1[i], uv2[i], pL, W1, W2, WL)
+    chi, ss = all_residuals(cam1, cam2, light, use_light, use_map, A, X, uv1[i], uv2[i], pL, W1, W2, WL)
     nr = wp.where(use_light != 0, 3.0, 2.0)
     rms = wp.sqrt(ss / nr)
     if not converged:
@@ -334,6 +365,9 @@ def polar_information_kernel(
     proj: wp.array(dtype=wp.vec2),
     sigma_rho: wp.array(dtype=wp.float32),
     sigma_tan: wp.array(dtype=wp.float32),
+    extra: wp.array(dtype=wp.float32),
+    gain: wp.array(dtype=wp.float32),
+    use_extra: int,
     center: wp.vec2d,
     i0: int,
     info: wp.array(dtype=wp.vec3),
@@ -342,9 +376,13 @@ def polar_information_kernel(
     (sigma_rho, at least 1e-3 px) and tangential (sigma_tan) about ``center``: R diag(1/sr^2, 1/st^2) R^T
     with R the radial direction's rotation (the u axis at the centre itself).
 
-    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32: read; info (n,) vec3: written.
+    With ``use_extra`` an isotropic error ``extra`` (camera px, over ``gain``: camera px per projector px) is
+    added to both in quadrature.
 
-    Size: three per-sample arrays, the centre, the span's i0, one array out."""
+    proj (n,) vec2, sigma_rho, sigma_tan, extra, gain (n,) float32 (the last two unread without use_extra):
+    read; info (n,) vec3: written.
+
+    Size: five per-sample arrays and extra's switch, the centre, the span's i0, one array out."""
     i = i0 + wp.tid()
     ox = wp.float64(proj[i][0]) - center[0]
     oy = wp.float64(proj[i][1]) - center[1]
@@ -354,15 +392,65 @@ def polar_information_kernel(
     if r > wp.float64(0.0):
         c = ox / r
         s = oy / r
-    sr = wp.max(wp.float64(sigma_rho[i]), wp.float64(1e-3))
-    st = wp.max(wp.float64(sigma_tan[i]), wp.float64(1e-3))
+    sr = wp.float64(sigma_rho[i])
+    st = wp.float64(sigma_tan[i])
+    if use_extra != 0:
+        e = wp.float64(extra[i]) / wp.max(wp.float64(gain[i]), wp.float64(1.0e-6))
+        sr = wp.sqrt(sr * sr + e * e)
+        st = wp.sqrt(st * st + e * e)
+    sr = wp.max(sr, wp.float64(1e-3))
+    st = wp.max(st, wp.float64(1e-3))
     ir = wp.float64(1.0) / (sr * sr)
     it = wp.float64(1.0) / (st * st)
     info[i] = wp.vec3(wp.float32(ir * c * c + it * s * s), wp.float32((ir - it) * c * s),
                       wp.float32(ir * s * s + it * c * c))
 
 
+@wp.kernel
+def through_map_kernel(
+    sigma1: wp.array(dtype=wp.float32),
+    query_model: wp.array(dtype=wp.float32),
+    proj_map: wp.array(dtype=wp.vec4),
+    i0: int,
+    sigma1_out: wp.array(dtype=wp.float32),
+    extra: wp.array(dtype=wp.float32),
+):
+    """Match i0 + tid's camera-1 sigma and projector extra for three rays: where the matcher's map is known
+    (not 0) camera 1's pixel is its ray (``PIXEL_RAY_PX``) and the query's share of the scatter goes to the
+    projector's point (``extra``, camera px); elsewhere (a map along a line) the rays stay independent: sigma1
+    as it is, no extra.
+
+    sigma1, query_model (n,) float32, proj_map (n,) vec4: read; sigma1_out, extra (n,) float32: written.
+
+    Size: the three match arrays in, two out."""
+    i = i0 + wp.tid()
+    m = proj_map[i]
+    if m[0] != 0.0 or m[1] != 0.0 or m[2] != 0.0 or m[3] != 0.0:
+        sigma1_out[i] = PIXEL_RAY_PX
+        extra[i] = query_model[i]
+    else:
+        sigma1_out[i] = sigma1[i]
+        extra[i] = 0.0
+
+
 # ----------------------------------------------------------------------------- host
+
+
+def through_map(sigma1: wp.array, query_model: wp.array, proj_map: wp.array, *,
+                threads: int | None = None) -> tuple[wp.array, wp.array]:
+    """Three rays through the matcher's map (:func:`through_map_kernel`): (sigma1 for
+    :func:`triangulate_rays`, ``extra`` for :func:`polar_information`), (n,) float32 each on sigma1's device.
+
+    sigma1, query_model (n,) float32, proj_map (n,) vec4 (``kernels.stereo_match.Matches``, widened)."""
+    fn = "through_map"
+    n = check_array("sigma1", sigma1, None, wp.float32, fn)
+    check_array("query_model", query_model, n, wp.float32, fn)
+    check_array("proj_map", proj_map, n, wp.vec4, fn)
+    dev = sigma1.device
+    out, extra = wp.empty(n, dtype=wp.float32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
+    launch_spans(through_map_kernel, n, lambda i0: [sigma1, query_model, proj_map, i0], [out, extra], dev,
+                 default_threads() if threads is None else threads)
+    return out, extra
 
 
 def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, *, points: wp.array,
@@ -389,18 +477,28 @@ def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, 
 
 
 def polar_information(proj: wp.array, sigma_rho: wp.array, sigma_tan: wp.array, *,
-                      center: tuple[float, float], threads: int | None = None) -> wp.array:
+                      center: tuple[float, float], extra: wp.array | None = None, gain: wp.array | None = None,
+                      threads: int | None = None) -> wp.array:
     """Information matrices (W00, W01, W11; 1/px^2) of projector pixels whose
     errors are radial (sigma_rho) and tangential (sigma_tan) about ``center``
-    (:func:`polar_information_kernel`, float64 as NumPy computed them before).
+    (:func:`polar_information_kernel`, float64 as NumPy computed them before), and isotropic
+    (``extra`` camera px over ``gain`` camera px per projector px, where given: added to both in quadrature).
 
-    proj (n,) vec2, sigma_rho, sigma_tan (n,) float32 -> (n,) vec3 on proj's device."""
+    proj (n,) vec2, sigma_rho, sigma_tan, extra, gain (n,) float32 -> (n,) vec3 on proj's device."""
     fn = "polar_information"
     n = check_array("proj", proj, None, wp.vec2, fn)
     check_array("sigma_rho", sigma_rho, n, wp.float32, fn)
     check_array("sigma_tan", sigma_tan, n, wp.float32, fn)
+    if (extra is None) != (gain is None):
+        raise ValueError(f"{fn}: extra and gain go together")
+    if extra is not None:
+        check_array("extra", extra, n, wp.float32, fn)
+        check_array("gain", gain, n, wp.float32, fn)
     out = wp.empty(n, dtype=wp.vec3, device=proj.device)
-    args = [proj, sigma_rho, sigma_tan, wp.vec2d(float(center[0]), float(center[1]))]
+    use_extra = 0 if extra is None else 1
+    if extra is None:
+        extra = gain = wp.zeros(1, dtype=wp.float32, device=proj.device)
+    args = [proj, sigma_rho, sigma_tan, extra, gain, use_extra, wp.vec2d(float(center[0]), float(center[1]))]
     launch_spans(polar_information_kernel, n, lambda i0: args + [i0], [out], proj.device,
                  default_threads() if threads is None else threads)
     return out
@@ -417,6 +515,7 @@ def triangulate_rays(    uv1: wp.array,
     light: LightModel | None = None,
     proj: wp.array | None = None,
     proj_info: wp.array | None = None,
+    proj_map: wp.array | None = None,
     min_sin: float = 0.03,
     max_residual_px: float = 2.0,
     threads: int | None = None,
@@ -431,6 +530,11 @@ def triangulate_rays(    uv1: wp.array,
         light: the calibrated projector (or parallel light) for a third ray; None: two rays.
         proj: (n,) vec2 projector pixels (with ``light``).
         proj_info: (n,) vec3 their information matrices (with ``light``; :func:`polar_information`).
+        proj_map: (n,) vec4 (with ``light``; optional) how uv2 moves with ``proj`` (row-major 2x2, camera-2 px
+            per projector px: the matcher's ``proj_map``) where uv2 was found as the place camera 2 reads
+            ``proj``: its error then carries proj's through the map, and camera 2's residual is taken less the
+            map times the light's (counted once). ``sigma1`` is then camera 1's pixel's own error (the code read
+            there carries the rest, in ``proj_info``). None: the three rays' errors are independent.
         min_sin: least sine of the widest angle between camera 1's ray and another
             ray: below it the point is ``ill_conditioned``.
         max_residual_px: largest RMS reprojection error (px): above it ``inconsistent``.
@@ -449,6 +553,10 @@ def triangulate_rays(    uv1: wp.array,
     if light is not None:
         check_array("proj", proj, n, wp.vec2, fn)
         check_array("proj_info", proj_info, n, wp.vec3, fn)
+    if proj_map is not None:
+        if light is None:
+            raise ValueError(f"{fn}: proj_map needs the light (a third ray)")
+        check_array("proj_map", proj_map, n, wp.vec4, fn)
     z_min, z_max, r_max = (float(x) for x in volume)
     if not (z_max > z_min and r_max > 0):
         raise ValueError(f"{fn}: bad volume {volume}")
@@ -463,6 +571,9 @@ def triangulate_rays(    uv1: wp.array,
     if n == 0:
         return out
     use_light = 1 if light is not None else 0
+    use_map = 1 if proj_map is not None else 0
+    if proj_map is None:
+        proj_map = wp.zeros(1, dtype=wp.vec4, device=dev)
     if light is None:
         # an unused struct: the kernel reads no field of it
         from_cam = LightModel()
@@ -475,10 +586,11 @@ def triangulate_rays(    uv1: wp.array,
         proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
     params = RayParams()
     params.use_light = use_light
+    params.use_map = use_map
     params.min_sin = float(min_sin)
     params.max_residual_px = float(max_residual_px)
-    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, camera1, camera2, light, make_volume(z_min, z_max, r_max),
-            params]
+    args = [uv1, uv2, sigma1, sigma2, proj, proj_info, proj_map, camera1, camera2, light,
+            make_volume(z_min, z_max, r_max), params]
     outputs = [out.points, out.status, out.residual, out.chi2, out.sigma]
     threads = default_threads() if threads is None else threads
     launch_spans(triangulate_rays_kernel, n, lambda i0: args + [i0], outputs, dev, threads)

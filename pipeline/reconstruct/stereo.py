@@ -271,6 +271,14 @@ class DeviceMatches:
     """(n,) float32 proj's standard deviation along its radius about the pattern centre (projector px)."""
     sigma_tan: wp.array
     """(n,) float32 proj's across its radius (projector px)."""
+    proj_map: wp.array | None = None
+    """(n,) vec4 how uv2 moves with proj (the matcher's local map, row-major 2x2, camera-2 px per projector
+    px: ``kernels.stereo_match.Matches.proj_map``): uv2 carries proj's error through it."""
+    query_model: wp.array | None = None
+    """(n,) float32 sigma1's second term alone (camera-2 px): what proj carries beyond sigma_rho and sigma_tan,
+    isotropic (the query's share of its neighbourhood's scatter about the map, ``Matches.query_model``)."""
+    gain: wp.array | None = None
+    """(n,) float32 the map's camera-2 px per projector px (``Matches.gain``)."""
     stats: dict = field(default_factory=dict)
     """As :class:`StereoMatches`' ``stats``."""
 
@@ -318,7 +326,8 @@ def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
         stats["integer_codes_refined"] = n_refined
     g = partial(gather, index=ok, threads=threads)
     return (DeviceMatches(index=ok, uv1=g(samples1.uv), uv2=g(M.uv2), sigma1=g(M.sigma1), sigma2=g(M.sigma2),
-                          proj=g(p1), sigma_rho=g(sr_dev), sigma_tan=g(st_dev), stats=stats), host)
+                          proj=g(p1), sigma_rho=g(sr_dev), sigma_tan=g(st_dev), proj_map=g(M.proj_map),
+                          query_model=g(M.query_model), gain=g(M.gain), stats=stats), host)
 
 
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
@@ -407,15 +416,17 @@ def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, m
 def widen_matches(matches: DeviceMatches, model: dict, *, projector: bool = False,
                   threads: int | None = None) -> DeviceMatches:
     """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit), and with
-    ``projector`` their projector coordinates' (``sigma_rho``, ``sigma_tan``: the third ray's) k times theirs too
-    (a fit without a floor: three rays keep their relative weights); the same matches where the fit is empty or
-    changes nothing; on their device."""
+    ``projector`` the query's projector point's alike (the third ray's: ``sigma_rho`` and ``sigma_tan`` k times
+    theirs, ``query_model`` as the cameras', the floor in camera px, which the third ray reads over the gain); the
+    same matches where the fit is empty or changes nothing; on their device."""
     if not model or (model["k"] <= 1.0 and model["floor_px"] <= 0.0):
         return matches
     widen = partial(widen_sigmas, k=model["k"], floor=model["floor_px"], threads=threads)
     out = replace(matches, sigma1=widen(matches.sigma1), sigma2=widen(matches.sigma2))
     if projector:
-        out = replace(out, sigma_rho=widen(matches.sigma_rho), sigma_tan=widen(matches.sigma_tan))
+        scale = partial(widen_sigmas, k=model["k"], floor=0.0, threads=threads)
+        out = replace(out, sigma_rho=scale(matches.sigma_rho), sigma_tan=scale(matches.sigma_tan),
+                      query_model=widen(matches.query_model))
     return out
 
 

@@ -594,7 +594,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     rays; with ``auto`` on a calibrated rig, the samples camera 2 does not match
     fall back to camera-projector."""
     # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
-    from ringscan.kernels.stereo_rays import place_matches, polar_information, triangulate_rays
+    from ringscan.kernels.stereo_rays import place_matches, polar_information, through_map, triangulate_rays
     from ringscan.pipeline.reconstruct.stereo import (decode_view, epipolar_check, match_error_model,
                                                       match_on_device, widen_matches)
 
@@ -622,17 +622,23 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         max_res = max(max_res, FLOOR_OUTLIER * check["epipolar_px_median"])
     # What the matches' sigmas miss, measured across their epipolar lines (the calibration's smooth miss
     # left out; matches too far off to become points, two rays' residual over max_res, left out too), widens
-    # both cameras' alike: the same errors act along the lines, in depth. With the projector's ray (which the
-    # lines do not see) one factor on all three: the rays' weights as they were.
-    error_model = match_error_model(rig, matches, floor=not use_light, max_distance_px=2.0 * max_res,
-                                    threads=threads)
+    # both codes' errors alike: the same errors act along the lines, in depth. With the projector's ray the
+    # query's code is the projector point, widened as camera 1's would be.
+    error_model = match_error_model(rig, matches, max_distance_px=2.0 * max_res, threads=threads)
     matches = widen_matches(matches, error_model, projector=use_light, threads=threads)
     kw = {}
+    sigma1 = matches.sigma1
     if use_light:
-        kw = dict(light=light, proj=matches.proj,
+        # uv2 is where camera 2 reads camera 1's projector point: that point's error (the projector's ray
+        # carries it) moves uv2 through the matcher's map, and camera 1's pixel carries none of it; counted
+        # once, in the projector's ray (docs/design.md §19)
+        # (where the map is known: ring edges' neighbours lie along their ring, and those rays stay independent)
+        sigma1, extra = through_map(matches.sigma1, matches.query_model, matches.proj_map, threads=threads)
+        kw = dict(light=light, proj=matches.proj, proj_map=matches.proj_map,
                   proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
-                                              center=scan.patterns.center, threads=threads))
-    tri = triangulate_rays(uv1, uv2, matches.sigma1, matches.sigma2,
+                                              center=scan.patterns.center, extra=extra, gain=matches.gain,
+                                              threads=threads))
+    tri = triangulate_rays(uv1, uv2, sigma1, matches.sigma2,
                            camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
                            volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
                            max_residual_px=max_res, threads=threads, **kw)

@@ -76,12 +76,70 @@ def test_noise_three_rays_beat_two_and_sigma_and_chi2_are_honest(device):
     assert out["three"] < 0.8 * out["two"], out
 
 
+def _surface_map(p, h=0.5):
+    """(n, 2, 2) d uv2 / d p along the sphere: where camera 2 sees the surface point of projector pixel p, moved
+    +-h px in u and in v (the map the matcher fits through camera 2's neighbours)."""
+    cols = []
+    for e in (np.array([h, 0.0]), np.array([0.0, h])):
+        cols.append((project_points(CAM2, surface_hits(PROJ, p + e)) - project_points(CAM2, surface_hits(PROJ, p - e)))
+                    / (2 * h))
+    return np.stack(cols, axis=2)
+
+
+def test_three_rays_through_the_matchers_map_count_the_projector_points_error_once(device):
+    """A match as the matcher makes it: camera 1's pixel exact, its projector point p off by e1, and uv2 where
+    camera 2 reads p, so off by A (e1 - e2) (A the surface's map from projector to camera-2 px, e2 camera 2's
+    code error). Given the map, the three rays take camera 2's residual less A times the projector's: the
+    sigma means what it says (std of error / sigma ~1) and the points beat the rays taken as independent
+    (camera 1 given the stand-in sigma |A| sigma_p, as two rays take it), which count e1 twice: on this rig
+    the two copies pull the point the same way, and the sigma is too narrow (too wide on others: wrong either
+    way), the points twice as far off."""
+    rng = np.random.default_rng(8)
+    uv1, X, _, p = _tri_inputs(rng, 4000)
+    A = _surface_map(p)
+    ok = np.isfinite(A).all(axis=(1, 2))
+    uv1, X, p, A = uv1[ok], X[ok], p[ok], A[ok]
+    c1, c2, light = _models()
+    n = len(uv1)
+    sp, s2 = 0.08, 0.05  # projector px: camera 1's code error; camera 2's (through the map)
+    e1 = rng.normal(0, sp, p.shape)
+    e2 = rng.normal(0, s2, p.shape)
+    pn = p + e1
+    uv2 = project_points(CAM2, X) + np.einsum("nij,nj->ni", A, e1 - e2)
+    gain = np.sqrt(0.5 * (A ** 2).sum(axis=(1, 2)))
+    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    pj = _w(pn, wp.vec2, device)
+    spa = _w(np.full(n, sp), wp.float32, device)
+    common = dict(camera2=c2, volume=VOLUME, light=light, proj=pj,
+                  proj_info=polar_information(pj, spa, spa, center=CENTER), camera1=c1)
+    out = {}
+    for name, sigma1, kw in (
+            ("map", np.full(n, 0.01), {"proj_map": _w(A.reshape(n, 4), wp.vec4, device)}),
+            ("independent", gain * sp, {})):
+        T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), _w(sigma1, wp.float32, device),
+                             _w(gain * s2, wp.float32, device), **common, **kw)
+        st = T.status.numpy()
+        assert (st == 0).mean() > 0.99, [STATUS_NAMES[k] for k in np.unique(st)]
+        good = st == 0
+        e = T.points.numpy()[good] - X[good]
+        z = np.sum(e * d1[good], axis=1) / T.sigma.numpy()[good]
+        out[name] = (np.median(np.linalg.norm(e, axis=1)), np.std(z))
+    # (4000 draws: the std of a unit Gaussian's sample std is ~1.1 %; the camera-2 sigma |A| s2 is isotropic
+    # where A e2 is not: the bounds allow a quarter for it)
+    assert 0.75 < out["map"][1] < 1.25, out
+    assert not 0.75 < out["independent"][1] < 1.25, out  # e1 counted twice
+    assert out["map"][0] < 0.7 * out["independent"][0], out
+
+
 def test_bad_inputs_raise(device):
     a = wp.zeros(3, dtype=wp.vec2, device=device)
     f = wp.zeros(3, dtype=wp.float32, device=device)
     c1, c2, light = _models()
     with pytest.raises(ValueError, match="go together"):
         triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, light=light)
+    with pytest.raises(ValueError, match="needs the light"):
+        triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, proj_map=wp.zeros(3, dtype=wp.vec4,
+                                                                                             device=device))
 
 
 def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
@@ -150,3 +208,47 @@ def test_polar_information_on_the_device_is_the_numpy_statement():
     # (sqrt(x^2 + y^2) for NumPy's hypot: a float64 last bit apart at most, which float32 hides: equal here)
     np.testing.assert_array_equal(got, W)
     assert got[0].tolist() == pytest.approx([1 / max(sr[0], 1e-3) ** 2, 0.0, 1 / st[0] ** 2], rel=1e-6)
+
+
+def test_polar_information_adds_an_isotropic_error_over_the_gain():
+    """``extra`` (camera px) over ``gain`` (camera px per projector px) adds to both directions in quadrature:
+    the covariance's inverse is the information, and with extra 0 nothing changes."""
+    rng = np.random.default_rng(9)
+    n = 2000
+    p = rng.uniform(0, 1024, (n, 2)).astype(np.float32)
+    sr = rng.uniform(0.01, 0.5, n).astype(np.float32)
+    st = rng.uniform(0.01, 0.8, n).astype(np.float32)
+    extra = rng.uniform(0.0, 0.3, n).astype(np.float32)
+    extra[:100] = 0.0
+    gain = rng.uniform(0.2, 3.0, n).astype(np.float32)
+    args = (wp.array(p, dtype=wp.vec2), wp.array(sr), wp.array(st))
+    got = polar_information(*args, center=CENTER, extra=wp.array(extra), gain=wp.array(gain), threads=2).numpy()
+    plain = polar_information(*args, center=CENTER, threads=2).numpy()
+    e = extra.astype(np.float64) / gain
+    wider = polar_information(wp.array(p, dtype=wp.vec2), wp.array(np.sqrt(sr.astype(np.float64) ** 2 + e ** 2)
+                                                                   .astype(np.float32)),
+                              wp.array(np.sqrt(st.astype(np.float64) ** 2 + e ** 2).astype(np.float32)),
+                              center=CENTER, threads=2).numpy()
+    # (float32 rounding of the widened sigmas, which the off-diagonal's difference of two terms magnifies: to
+    # the diagonal's scale)
+    assert np.all(np.abs(got - wider) <= 1e-5 * (got[:, :1] + got[:, 2:]))
+    np.testing.assert_array_equal(got[:100], plain[:100])
+    W = np.stack([np.array([[g[0], g[1]], [g[1], g[2]]]) for g in got.astype(np.float64)])
+    cov = np.linalg.inv(W)
+    want = sr.astype(np.float64) ** 2 + st ** 2 + 2 * e ** 2
+    assert np.allclose(np.trace(cov, axis1=1, axis2=2), want, rtol=1e-3)  # (the float32 information inverted)
+    with pytest.raises(ValueError, match="go together"):
+        polar_information(*args, center=CENTER, extra=wp.array(extra))
+
+
+def test_through_map_keeps_the_rays_independent_where_the_map_is_unknown():
+    """A known map: camera 1's pixel is its ray and the query's scatter share goes to the projector; a map the
+    matcher could not fit across (0: neighbours along a ring) leaves sigma1 as it is and adds nothing."""
+    from ringscan.kernels.stereo_rays import PIXEL_RAY_PX, through_map
+
+    sigma1 = wp.array(np.array([0.3, 0.4], np.float32))
+    model = wp.array(np.array([0.05, 0.07], np.float32))
+    maps = wp.array(np.array([[1.2, 0.1, -0.2, 0.9], [0, 0, 0, 0]], np.float32), dtype=wp.vec4)
+    s1, extra = through_map(sigma1, model, maps, threads=1)
+    assert s1.numpy().tolist() == pytest.approx([PIXEL_RAY_PX, 0.4])
+    assert extra.numpy().tolist() == pytest.approx([0.05, 0.0])
