@@ -287,13 +287,15 @@ class DeviceMatches:
 
 
 def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
-                    settings: ReconstructSettings = ReconstructSettings(),
+                    settings: ReconstructSettings = ReconstructSettings(), maps: bool = True,
                     threads: int | None = None) -> tuple[DeviceMatches, tuple | None]:
     """Match camera 1's samples to camera 2's by equal projector coordinate
     (``kernels.stereo_match.match_by_projector``; the rig's extrinsics are not used), the matches
     compacted and gathered on the samples' device (the statuses counted there). Camera 1's integer
     codes of a dense map (an imported Gray code that kept them) are first read from their
     neighbourhood (:func:`refine_integer_codes`, on the host).
+
+    ``maps``: gather what three rays read (``proj_map``, ``query_model``, ``gain``; None without).
 
     Returns:
         (matches, refined): ``refined`` None, or where the refinement changed camera 1's codes
@@ -325,9 +327,9 @@ def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
     if n_refined:
         stats["integer_codes_refined"] = n_refined
     g = partial(gather, index=ok, threads=threads)
+    three = {"proj_map": g(M.proj_map), "query_model": g(M.query_model), "gain": g(M.gain)} if maps else {}
     return (DeviceMatches(index=ok, uv1=g(samples1.uv), uv2=g(M.uv2), sigma1=g(M.sigma1), sigma2=g(M.sigma2),
-                          proj=g(p1), sigma_rho=g(sr_dev), sigma_tan=g(st_dev), proj_map=g(M.proj_map),
-                          query_model=g(M.query_model), gain=g(M.gain), stats=stats), host)
+                          proj=g(p1), sigma_rho=g(sr_dev), sigma_tan=g(st_dev), stats=stats, **three), host)
 
 
 def match_samples(scan: Scan, samples1: Samples, samples2: Samples, *,
@@ -426,7 +428,7 @@ def widen_matches(matches: DeviceMatches, model: dict, *, projector: bool = Fals
     if projector:
         scale = partial(widen_sigmas, k=model["k"], floor=0.0, threads=threads)
         out = replace(out, sigma_rho=scale(matches.sigma_rho), sigma_tan=scale(matches.sigma_tan),
-                      query_model=widen(matches.query_model))
+                      query_model=None if matches.query_model is None else widen(matches.query_model))
     return out
 
 

@@ -606,11 +606,11 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     samples2, _, _ = decode_view(as_camera2(scan), view.camera2, settings=settings, device=device, threads=threads)
     times["decode_camera2"] = time.perf_counter() - t
     t = time.perf_counter()
-    matches, _ = match_on_device(scan, samples, samples2, settings=settings, threads=threads)
-    times["match"] = time.perf_counter() - t
-    t = time.perf_counter()
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
+    matches, _ = match_on_device(scan, samples, samples2, settings=settings, maps=use_light, threads=threads)
+    times["match"] = time.perf_counter() - t
+    t = time.perf_counter()
     light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
     n = len(samples)
     uv1, uv2 = matches.uv1, matches.uv2
