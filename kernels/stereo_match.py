@@ -97,6 +97,8 @@ class MatchParams:
     """``MatchSettings.max_fit_px``."""
     max_gain: wp.float32
     """``MatchSettings.max_gain``."""
+    maps: wp.int32
+    """1: write ``proj_map`` and ``query_model`` (what three rays read); 0: they are one-element placeholders."""
 
 
 @dataclass
@@ -346,7 +348,7 @@ def match_kernel(
     ((ny + 1) * (nx + 1),) int32 (its summed-area table, :func:`box_count`): read. params: the grid and the fit's
     settings (:class:`MatchParams`). out_uv (n,) vec2, out_sigma2, out_sigma1,
     out_gain (n,) float32, out_map (n,) vec4, out_query_model, out_fit (n,) float32, status (n,) int32: written
-    (:class:`Matches`).
+    (:class:`Matches`; out_map and out_query_model only with ``params.maps``).
 
     Size: one thread per query, and the steps share its registers: the k-nearest search fills the fixed-size
     arrays nd/ns that the fit, its refits (a neighbour dropped from ns) and the variances then read, so the
@@ -370,8 +372,10 @@ def match_kernel(
     out_sigma2[i] = 0.0
     out_sigma1[i] = 0.0
     out_gain[i] = 0.0
-    out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    out_query_model[i] = 0.0
+    maps = params.maps != 0
+    if maps:
+        out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+        out_query_model[i] = 0.0
     out_fit[i] = -1.0
     if not (q[0] == q[0] and q[1] == q[1]):
         status[i] = MATCH_NO_COORDINATE
@@ -571,19 +575,21 @@ def match_kernel(
         out_uv[i] = x
         out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
         out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
-        if full:
-            out_map[i] = wp.vec4(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
-        else:
-            out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)  # along the neighbours' line only: across it unknown
-        out_query_model[i] = wp.sqrt(MODEL_SHARE * model2)
+        if maps:
+            if full:
+                out_map[i] = wp.vec4(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
+            else:
+                out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)  # along the neighbours' line only: across it unknown
+            out_query_model[i] = wp.sqrt(MODEL_SHARE * model2)
         st = MATCH_OK
         break
     if st != MATCH_OK:
         out_uv[i] = wp.vec2(0.0, 0.0)
         out_sigma2[i] = 0.0
         out_sigma1[i] = 0.0
-        out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
-        out_query_model[i] = 0.0
+        if maps:
+            out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+            out_query_model[i] = 0.0
     status[i] = st
 
 
@@ -665,6 +671,7 @@ def match_by_projector(
     *,
     projector_size: tuple[int, int],
     settings: MatchSettings = MatchSettings(),
+    maps: bool = True,
     threads: int | None = None,
 ) -> Matches:
     """Camera-2 positions of equal projector coordinate (no extrinsics used).
@@ -677,6 +684,8 @@ def match_by_projector(
         sigma2: (m,) float32 standard deviations of proj2 (projector px).
         projector_size: (width, height) of the projector grid; samples outside are not binned.
         settings: :class:`MatchSettings`.
+        maps: write ``proj_map`` and ``query_model`` (what a three-ray triangulation reads); False: each is a
+            one-element placeholder.
         threads: CPU threads; default all cores.
 
     Returns:
@@ -696,7 +705,8 @@ def match_by_projector(
         raise ValueError(f"{fn}: camera 2's samples are on {proj2.device}, the queries on {dev}")
     out = Matches(uv2=wp.empty(n, dtype=wp.vec2, device=dev), sigma2=wp.empty(n, dtype=wp.float32, device=dev),
                   sigma1=wp.empty(n, dtype=wp.float32, device=dev), gain=wp.empty(n, dtype=wp.float32, device=dev),
-                  proj_map=wp.empty(n, dtype=wp.vec4, device=dev), query_model=wp.empty(n, dtype=wp.float32, device=dev),
+                  proj_map=wp.empty(n if maps else 1, dtype=wp.vec4, device=dev),
+                  query_model=wp.empty(n if maps else 1, dtype=wp.float32, device=dev),
                   fit_px=wp.empty(n, dtype=wp.float32, device=dev), status=wp.empty(n, dtype=wp.int32, device=dev))
     if n == 0:
         return out
@@ -715,6 +725,7 @@ def match_by_projector(
     params.max_extrapolation = float(s.max_extrapolation)
     params.max_fit = float(s.max_fit_px)
     params.max_gain = float(s.max_gain)
+    params.maps = 1 if maps else 0
     args = [query, query_sigma, proj2s, uv2s, sigma2s, offsets, counts, items, sat, params]
     outputs = [out.uv2, out.sigma2, out.sigma1, out.gain, out.proj_map, out.query_model, out.fit_px, out.status]
     threads = default_threads() if threads is None else threads

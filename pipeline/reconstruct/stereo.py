@@ -319,7 +319,7 @@ def match_on_device(scan: Scan, samples1: Samples, samples2: Samples, *,
             host = (ref["proj64"], ref["sigma_rho64"], ref["sigma_tan64"])
             p1, s1, sr_dev, st_dev = ref["proj"], ref["sigma"], ref["sigma_rho"], ref["sigma_tan"]
     M = match_by_projector(p1, s1, p2, samples2.uv, s2, projector_size=(light.width, light.height),
-                           settings=settings.stereo.match, threads=threads)
+                           settings=settings.stereo.match, maps=maps, threads=threads)
     ok = compact_points(M.status)  # the matched samples (status 0), in order
     counts = count_values(M.status, len(MATCH_STATUS_NAMES), threads=threads)
     stats = {"samples_camera1": int(len(samples1)), "samples_camera2": int(len(samples2)), "matches": int(len(ok)),

@@ -53,6 +53,18 @@ def test_dense_map_matches_to_hundredths_of_a_pixel(device):
     # the affine map's curvature error: sub-hundredth where the sphere faces the
     # camera, a tenth of a pixel at most near its silhouette
     assert np.median(err) < 0.005 and np.percentile(err, 99) < 0.03 and err.max() < 0.15
+    # the map's linear part is the surface's d uv2 / d p (what three rays decorrelate by): the truth by
+    # central differences of +-0.5 projector px through the sphere
+    ok = st == 0
+    cols = [(project_points(CAM2, surface_hits(PROJ, q[ok] + e)) - project_points(CAM2, surface_hits(PROJ, q[ok] - e)))
+            for e in (np.array([0.5, 0.0]), np.array([0.0, 0.5]))]
+    A_true = np.stack(cols, axis=2)  # (m, 2, 2): per 1 projector px
+    A = M.proj_map.numpy()[ok].reshape(-1, 2, 2)
+    rel = np.linalg.norm(A - A_true, axis=(1, 2)) / np.linalg.norm(A_true, axis=(1, 2))
+    assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.05, np.percentile(rel, [50, 95])
+    # without maps the same matches, and one-element placeholders
+    M0 = _match(device, q, np.full(len(q), 0.05), p2, g, np.full(len(g), 0.05), maps=False)
+    assert np.array_equal(M0.uv2.numpy(), M.uv2.numpy()) and M0.proj_map.shape == (1,)
     # outside the map: no neighbours, never a guess
     far = _match(device, np.array([[5.0, 5.0], [np.nan, 1.0]]), np.full(2, 0.05), p2, g, np.full(len(g), 0.05))
     assert [MATCH_STATUS_NAMES[s] for s in far.status.numpy()] == ["too_few_neighbours", "no_coordinate"]
@@ -87,6 +99,10 @@ def test_ring_samples_match_along_their_ring_with_predicted_sigma(device):
     assert 0.6 < ratio < 1.6, ratio
     gain = M.gain.numpy()[st == 0]
     assert 0.7 < np.median(gain) < 1.5  # ~1 camera px per projector px on this rig
+    # neighbours along a ring: the map across it is unknown, and none is given (three rays keep the
+    # rays independent there)
+    line = M.proj_map.numpy()[st == 0]
+    assert (np.abs(line).sum(axis=1) == 0).mean() > 0.9
 
 
 def test_a_depth_step_is_dropped_not_blended(device):
