@@ -15,7 +15,7 @@ from ringscan.kernels.triangulation import Triangulation
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken here: no adjoint code to compile
 
-__all__ = ["CHI2_1_MEDIAN", "calibration_floor"]
+__all__ = ["CHI2_1_MEDIAN", "calibration_floor", "residual_floor"]
 
 CHI2_1_MEDIAN = 0.454936423119572
 """Median of a chi-square variable with one degree of freedom."""
@@ -91,7 +91,15 @@ def chi2_kernel(r2: wp.array(dtype=wp.float64), v: wp.array(dtype=wp.float64), i
 
 
 def calibration_floor(tri: Triangulation, *, threads: int | None = None) -> tuple[float, dict]:
-    """The projector-pixel error the decode's own model does not explain.
+    """The projector-pixel error the decode's own model does not explain, across the epipolar line: the
+    triangulation's ``residual`` and ``residual_var`` through :func:`residual_floor` (its docstring)."""
+    return residual_floor(tri.residual, tri.residual_var, threads=threads)
+
+
+def residual_floor(residual: wp.array, residual_var: wp.array, *,
+                   threads: int | None = None) -> tuple[float, dict]:
+    """The projector-pixel error the decode's own model does not explain, from residuals with one degree of
+    freedom each and their predicted variances.
 
     Each sample triangulated with both coordinates has one degree of freedom
     left: its residual (the distance between the observed projector pixel and the
@@ -107,25 +115,29 @@ def calibration_floor(tri: Triangulation, *, threads: int | None = None) -> tupl
     level, and the two nearest it where the count is half: the median of an even count is their
     mean): the values NumPy's medians give, with partial sums read, not the samples.
 
+    residual, residual_var: (n,) float32 each sample's residual (px, >= 0) and its predicted variance
+    (px^2); a sample is usable where the variance is > 0 and the residual finite and >= 0 (a two-camera
+    view's projector check, ``kernels.stereo_rays.projector_misses``, reads its residuals so too).
+
     Returns:
         (c in projector px, {"samples", "residual_px_median", "residual_px_p95",
         "chi2_median"}); c = 0 and an empty dict without such samples.
     """
-    n = tri.residual.shape[0]
-    dev = tri.residual.device
+    n = residual.shape[0]
+    dev = residual.device
     threads = default_threads() if threads is None else threads
     if n == 0:
         return 0.0, {}
     usable = wp.empty(n, dtype=wp.int32, device=dev)
     r2_all = wp.empty(n, dtype=wp.float64, device=dev)
     v_all = wp.empty(n, dtype=wp.float64, device=dev)
-    launch_spans(floor_terms_kernel, n, lambda i0: [tri.residual, tri.residual_var, i0], [usable, r2_all, v_all], dev,
+    launch_spans(floor_terms_kernel, n, lambda i0: [residual, residual_var, i0], [usable, r2_all, v_all], dev,
                  threads)
     idx = nonzero_indices(usable, threads=threads)
     m = idx.shape[0]
     if m < 20:
         return 0.0, {}
-    res = gather(tri.residual, idx, threads=threads)
+    res = gather(residual, idx, threads=threads)
     r2, v = gather(r2_all, idx, threads=threads), gather(v_all, idx, threads=threads)
     rows = (m + FLOOR_SPAN - 1) // FLOOR_SPAN
     part = wp.empty((rows, 4), dtype=wp.float64, device=dev)

@@ -61,6 +61,7 @@ the normal equations well conditioned in float32."""
 __all__ = [
     "PIXEL_RAY_PX",
     "RayTriangulation",
+    "projector_misses",
     "through_map",
     "triangulate_rays",
     "place_matches",
@@ -77,6 +78,9 @@ class RayParams:
     use_map: wp.int32
     """1 (with the light): uv2 was found from the projector point (the matcher's ``proj_map``), so camera 2's
     residual is taken less the map times the light's; 0: the three rays' errors are independent."""
+    projector_floor: wp.float32
+    """With the light: what the projector's calibration misses (px, isotropic; 0: nothing), an error of its
+    point that uv2 does not share."""
     min_sin: wp.float32
     """Least sine of the widest angle between camera 1's ray and another ray (below: ill-conditioned)."""
     max_residual_px: wp.float32
@@ -237,6 +241,21 @@ def triangulate_rays_kernel(
         if use_map != 0:
             m = proj_map[i]
             A = wp.mat22(m[0], m[1], m[2], m[3])
+        f2 = params.projector_floor * params.projector_floor
+        if f2 > 0.0:
+            # the projector's calibration misses by f px (isotropic), which moves its point but not uv2 (camera
+            # 2 reads the code): the projector's covariance S + f^2 I, camera 2's residual less B = A G times
+            # the projector's (G = (I + f^2 W)^-1 = S (S + f^2 I)^-1), the rest of the code's error,
+            # f^2 A G A^T, left on camera 2 (exact Gaussian conditioning; information form: W may be singular)
+            Wm = wp.mat22(WL[0], WL[1], WL[1], WL[2])
+            G = wp.inverse(wp.mat22(1.0, 0.0, 0.0, 1.0) + f2 * Wm)
+            WG = Wm * G
+            WL = wp.vec3(WG[0, 0], 0.5 * (WG[0, 1] + WG[1, 0]), WG[1, 1])
+            B = A * G
+            Cov2 = f2 * (B * wp.transpose(A)) + wp.mat22(s2 * s2, 0.0, 0.0, s2 * s2)
+            C2i = wp.inverse(Cov2)
+            W2 = wp.vec3(C2i[0, 0], 0.5 * (C2i[0, 1] + C2i[1, 0]), C2i[1, 1])
+            A = B
     converged = bool(False)
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
@@ -433,6 +452,52 @@ def through_map_kernel(
         extra[i] = 0.0
 
 
+@wp.kernel
+def projector_miss_kernel(
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    sigma: wp.array(dtype=wp.float32),
+    proj: wp.array(dtype=wp.vec2),
+    proj_info: wp.array(dtype=wp.vec3),
+    cam1: CameraModel,
+    light: LightModel,
+    i0: int,
+    residual: wp.array(dtype=wp.float32),
+    residual_var: wp.array(dtype=wp.float32),
+):
+    """Match i0 + tid's projector point against the two cameras' point: the projector pixel's residual
+    along the direction in which camera 1's ray runs through the projector (where a miss moves the point),
+    and its predicted variance (the projector point's, from its information matrix, and the cameras' point's
+    along camera 1's ray through that direction); residual -1 and variance 0 where the cameras placed no
+    point or the information is singular there.
+
+    points (n,) vec3, status (n,) int32, sigma (n,) float32 (the two-ray triangulation's), proj (n,) vec2,
+    proj_info (n,) vec3: read; residual, residual_var (n,) float32: written.
+
+    Size: the two rays' three results and the projector point's two arrays, both models."""
+    i = i0 + wp.tid()
+    residual[i] = -1.0
+    residual_var[i] = 0.0
+    if status[i] != STATUS_OK:
+        return
+    X = points[i]
+    d = wp.normalize(X - cam1.center)
+    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - cam1.center))
+    pL = proj[i]
+    g = (ray_residual(light, X + d * h, pL) - ray_residual(light, X - d * h, pL)) / (2.0 * h)  # px per mm
+    gl = wp.length(g)
+    W = proj_info[i]
+    det = W[0] * W[2] - W[1] * W[1]
+    if not (gl > 0.0 and det > 0.0):
+        return
+    u = g / gl
+    # u^T W^-1 u
+    var_p = (W[2] * u[0] * u[0] - 2.0 * W[1] * u[0] * u[1] + W[0] * u[1] * u[1]) / det
+    s = gl * sigma[i]
+    residual[i] = wp.abs(wp.dot(u, ray_residual(light, X, pL)))
+    residual_var[i] = var_p + s * s
+
+
 # ----------------------------------------------------------------------------- host
 
 
@@ -451,6 +516,27 @@ def through_map(sigma1: wp.array, query_model: wp.array, proj_map: wp.array, *,
     launch_spans(through_map_kernel, n, lambda i0: [sigma1, query_model, proj_map, i0], [out, extra], dev,
                  default_threads() if threads is None else threads)
     return out, extra
+
+
+def projector_misses(tri: RayTriangulation, proj: wp.array, proj_info: wp.array, *, camera1: CameraModel,
+                     light: LightModel, threads: int | None = None) -> tuple[wp.array, wp.array]:
+    """Each match's projector point against the two cameras' point (:func:`projector_miss_kernel`):
+    (residual, residual_var), (n,) float32 each on proj's device, for
+    ``kernels.calibration_floor.residual_floor``: what the projector's calibration misses where the cameras
+    agree.
+
+    tri: a two-ray :func:`triangulate_rays` of the matches; proj (n,) vec2, proj_info (n,) vec3 as the third
+    ray takes them."""
+    fn = "projector_misses"
+    n = check_array("proj", proj, None, wp.vec2, fn)
+    check_array("proj_info", proj_info, n, wp.vec3, fn)
+    check_array("tri.points", tri.points, n, wp.vec3, fn)
+    dev = proj.device
+    res, var = wp.empty(n, dtype=wp.float32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
+    launch_spans(projector_miss_kernel, n, lambda i0: [tri.points, tri.status, tri.sigma, proj, proj_info, camera1,
+                                                          light, i0], [res, var], dev,
+                 default_threads() if threads is None else threads)
+    return res, var
 
 
 def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, *, points: wp.array,
@@ -516,6 +602,7 @@ def triangulate_rays(    uv1: wp.array,
     proj: wp.array | None = None,
     proj_info: wp.array | None = None,
     proj_map: wp.array | None = None,
+    projector_floor_px: float = 0.0,
     min_sin: float = 0.03,
     max_residual_px: float = 2.0,
     threads: int | None = None,
@@ -535,6 +622,8 @@ def triangulate_rays(    uv1: wp.array,
             ``proj``: its error then carries proj's through the map, and camera 2's residual is taken less the
             map times the light's (counted once). ``sigma1`` is then camera 1's pixel's own error (the code read
             there carries the rest, in ``proj_info``). None: the three rays' errors are independent.
+        projector_floor_px: (with ``light``) the projector calibration's miss (px, isotropic: added to proj's
+            covariance; uv2 does not share it, so the map's share of proj's error is conditioned on it).
         min_sin: least sine of the widest angle between camera 1's ray and another
             ray: below it the point is ``ill_conditioned``.
         max_residual_px: largest RMS reprojection error (px): above it ``inconsistent``.
@@ -557,6 +646,8 @@ def triangulate_rays(    uv1: wp.array,
         if light is None:
             raise ValueError(f"{fn}: proj_map needs the light (a third ray)")
         check_array("proj_map", proj_map, n, wp.vec4, fn)
+    if not (projector_floor_px >= 0) or (projector_floor_px > 0 and light is None):
+        raise ValueError(f"{fn}: projector_floor_px must be >= 0, and needs the light")
     z_min, z_max, r_max = (float(x) for x in volume)
     if not (z_max > z_min and r_max > 0):
         raise ValueError(f"{fn}: bad volume {volume}")
@@ -587,6 +678,7 @@ def triangulate_rays(    uv1: wp.array,
     params = RayParams()
     params.use_light = use_light
     params.use_map = use_map
+    params.projector_floor = float(projector_floor_px)
     params.min_sin = float(min_sin)
     params.max_residual_px = float(max_residual_px)
     args = [uv1, uv2, sigma1, sigma2, proj, proj_info, proj_map, camera1, camera2, light,

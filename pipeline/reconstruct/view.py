@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from ringscan.kernels import init_warp, resolve_device
-from ringscan.kernels.calibration_floor import calibration_floor
+from ringscan.kernels.calibration_floor import calibration_floor, residual_floor
 from ringscan.kernels.compact import count_values, finite_flags, finite_indices, gather, median, set_at
 from ringscan.kernels.error_terms import widen_for_slope, widen_sigmas
 from ringscan.kernels.launch import cpu_threads
@@ -64,6 +64,9 @@ FLOOR_CHI2 = 9 * 0.455
 (residuals three times the decode's predicted errors): below it the miss is the
 decode model's own (a virtual rig shows about 1.3), above it the rig's (a real
 calibration shows 80-130)."""
+PROJECTOR_FLOOR_CHI2 = 2 * 0.455
+"""Two cameras and the projector: the projector's floor is applied where the median chi-square of its
+misses from the cameras' points is above this (its sigmas already carry the codes' fitted errors)."""
 FLOOR_OUTLIER = 5.0
 """With a calibration floor c, a point is inconsistent only beyond this many c (and ``max_residual_px``)."""
 LOW_MODULATION_WARN = 0.05
@@ -594,7 +597,8 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     rays; with ``auto`` on a calibrated rig, the samples camera 2 does not match
     fall back to camera-projector."""
     # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
-    from ringscan.kernels.stereo_rays import place_matches, polar_information, through_map, triangulate_rays
+    from ringscan.kernels.stereo_rays import (place_matches, polar_information, projector_misses, through_map,
+                                              triangulate_rays)
     from ringscan.pipeline.reconstruct.stereo import (decode_view, epipolar_check, match_error_model,
                                                       match_on_device, widen_matches)
 
@@ -626,22 +630,48 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     # query's code is the projector point, widened as camera 1's would be.
     error_model = match_error_model(rig, matches, max_distance_px=2.0 * max_res, threads=threads)
     matches = widen_matches(matches, error_model, projector=use_light, threads=threads)
+    camera1, camera2 = camera_model_for(rig), camera_model_for(as_camera2(scan).rig)
+    rays = partial(triangulate_rays, uv1, uv2, camera1=camera1, camera2=camera2,
+                   volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin, max_residual_px=max_res,
+                   threads=threads)
     kw = {}
     sigma1 = matches.sigma1
+    projector_check = {}
     if use_light:
         # uv2 is where camera 2 reads camera 1's projector point: that point's error (the projector's ray
         # carries it) moves uv2 through the matcher's map, and camera 1's pixel carries none of it; counted
         # once, in the projector's ray (docs/design.md §19)
         # (where the map is known: ring edges' neighbours lie along their ring, and those rays stay independent)
-        sigma1, extra = through_map(matches.sigma1, matches.query_model, matches.proj_map, threads=threads)
+        sigma1, query_extra = through_map(matches.sigma1, matches.query_model, matches.proj_map, threads=threads)
+
         kw = dict(light=light, proj=matches.proj, proj_map=matches.proj_map,
                   proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
-                                              center=scan.patterns.center, extra=extra, gain=matches.gain,
+                                              center=scan.patterns.center, extra=query_extra, gain=matches.gain,
                                               threads=threads))
-    tri = triangulate_rays(uv1, uv2, sigma1, matches.sigma2,
-                           camera1=camera_model_for(rig), camera2=camera_model_for(as_camera2(scan).rig),
-                           volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
-                           max_residual_px=max_res, threads=threads, **kw)
+        # The two cameras fix each point without the projector: where the projector's calibration misses
+        # their points by more than its sigmas allow (along camera 1's ray through it, where a miss moves the
+        # point and no camera-projector check sees it), its ray is discounted by that miss (measured on at
+        # most MAX_CHECK_SAMPLES matches spread over the view: a view's median)
+        pick = wp.array(sample_subset(len(matches)).astype(np.int32), dtype=wp.int32, device=device)
+        g = partial(gather, index=pick, threads=threads)
+        two = triangulate_rays(g(uv1), g(uv2), g(matches.sigma1), g(matches.sigma2), camera1=camera1,
+                               camera2=camera2, volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
+                               max_residual_px=max_res, threads=threads)
+        floor_p, projector_check = residual_floor(*projector_misses(two, g(matches.proj), g(kw["proj_info"]),
+                                                                    camera1=camera1, light=light, threads=threads),
+                                                  threads=threads)
+        if projector_check:
+            applied = bool(floor_p > 0 and projector_check["chi2_median"] > PROJECTOR_FLOOR_CHI2)
+            projector_check.update(floor_px=floor_p, floor_applied=applied)
+            if applied:
+                kw["projector_floor_px"] = floor_p
+            if projector_check["residual_px_median"] > CALIBRATION_WARN_PX:
+                log.warning("%s: the projector's calibration does not fit the two cameras': it misses their points "
+                            "by %.2f px (median; p95 %.2f px), and its ray is discounted by that (or the cameras' "
+                            "vergence is off, which their epipolar check cannot see): check the calibrations "
+                            "(docs/calibration.md)",
+                            view.name, projector_check["residual_px_median"], projector_check["residual_px_p95"])
+    tri = rays(sigma1, matches.sigma2, **kw)
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as
@@ -666,6 +696,8 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     _stereo_report(view, matches, tri, check, use_light, extra)
     if error_model:
         extra["stereo"]["error_model"] = error_model
+    if projector_check:
+        extra["stereo"]["projector_check"] = projector_check
     wp.synchronize_device(device)
     times["triangulate"] = time.perf_counter() - t
     return _Placed(points=points, status=status, confidence=confidence, sigma=sigma, residual=residual,

@@ -252,3 +252,69 @@ def test_through_map_keeps_the_rays_independent_where_the_map_is_unknown():
     s1, extra = through_map(sigma1, model, maps, threads=1)
     assert s1.numpy().tolist() == pytest.approx([PIXEL_RAY_PX, 0.4])
     assert extra.numpy().tolist() == pytest.approx([0.05, 0.0])
+
+
+def test_projector_misses_measure_the_projectors_miss_from_the_cameras_points(device):
+    """Two cameras place each point (noise 0.05 px); the projector's pixel against it, along camera 1's ray
+    through the projector: a chi-square with one degree of freedom where the projector is right (median 0.455),
+    and the miss itself where its pixels are all 0.6 px off along it."""
+    from ringscan.kernels.stereo_rays import projector_misses
+
+    rng = np.random.default_rng(12)
+    uv1, X, uv2, p = _tri_inputs(rng, 4000)
+    c1, c2, light = _models()
+    n = len(uv1)
+    s, sp = 0.05, 0.05
+    two = triangulate_rays(_w(uv1 + rng.normal(0, s, uv1.shape), wp.vec2, device),
+                           _w(uv2 + rng.normal(0, s, uv2.shape), wp.vec2, device), _w(np.full(n, s), wp.float32, device),
+                           _w(np.full(n, s), wp.float32, device), camera1=c1, camera2=c2, volume=VOLUME)
+    spa = _w(np.full(n, sp), wp.float32, device)
+    pn = p + rng.normal(0, sp, p.shape)
+    # (camera 1's rays run through this projector along its v axis: the miss along v)
+    for off, check in ((np.zeros(2), "honest"), (np.array([0.0, 0.6]), "miss")):
+        pj = _w(pn + off, wp.vec2, device)
+        r, v = projector_misses(two, pj, polar_information(pj, spa, spa, center=CENTER), camera1=c1, light=light)
+        r, v = r.numpy(), v.numpy()
+        ok = v > 0
+        assert ok.mean() > 0.99
+        if check == "honest":
+            # (4000 draws: the median's standard error is ~3 %; the cameras' point's error across camera 1's
+            # ray is not in the variance, which leaves it ~1.4 times above here, where the cameras' noise is the
+            # projector's: the view applies a floor above twice it, PROJECTOR_FLOOR_CHI2)
+            assert 0.9 < np.median(r[ok] ** 2 / v[ok]) / 0.455 < 1.7
+        else:
+            assert 0.4 < np.median(r[ok]) < 0.65  # the 0.6 px, through each ray's direction
+
+
+def test_a_projector_floor_conditions_the_map_on_the_projectors_miss(device):
+    """The matcher's three rays (as in the map test above) with the projector's pixels all 0.5 px off: taken
+    as the code's error alone the map carries the miss into camera 2's residual and the points follow it;
+    given the miss as a floor they keep to the cameras, within the noise."""
+    rng = np.random.default_rng(13)
+    uv1, X, _, p = _tri_inputs(rng, 3000)
+    A = _surface_map(p)
+    ok = np.isfinite(A).all(axis=(1, 2))
+    uv1, X, p, A = uv1[ok], X[ok], p[ok], A[ok]
+    c1, c2, light = _models()
+    n = len(uv1)
+    sp, s2 = 0.05, 0.05
+    e1, e2 = rng.normal(0, sp, p.shape), rng.normal(0, s2, p.shape)
+    uv2 = project_points(CAM2, X) + np.einsum("nij,nj->ni", A, e1 - e2)
+    pj = _w(p + e1 + np.array([0.5, 0.0]), wp.vec2, device)  # the projector's calibration 0.5 px off
+    gain = np.sqrt(0.5 * (A ** 2).sum(axis=(1, 2)))
+    spa = _w(np.full(n, sp), wp.float32, device)
+    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    out = {}
+    for floor in (0.0, 0.5):
+        T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), _w(np.full(n, 0.01), wp.float32,
+                                                                                    device),
+                             _w(gain * s2, wp.float32, device), camera1=c1, camera2=c2, volume=VOLUME, light=light,
+                             proj=pj, proj_info=polar_information(pj, spa, spa, center=CENTER),
+                             proj_map=_w(A.reshape(n, 4), wp.vec4, device), projector_floor_px=floor)
+        good = T.status.numpy() == 0
+        e = np.sum((T.points.numpy()[good] - X[good]) * d1[good], axis=1)
+        out[floor] = (np.median(np.abs(e)), np.mean(np.abs(e / T.sigma.numpy()[good]) > 3))
+    assert out[0.5][0] < 0.5 * out[0.0][0], out
+    assert out[0.5][1] < 0.05 < out[0.0][1], out
+    with pytest.raises(ValueError, match="needs the light"):
+        triangulate_rays(pj, pj, spa, spa, camera1=c1, camera2=c2, volume=VOLUME, projector_floor_px=0.5)
