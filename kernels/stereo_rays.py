@@ -63,6 +63,7 @@ __all__ = [
     "RayTriangulation",
     "projector_misses",
     "through_map",
+    "widen_along_rays",
     "triangulate_rays",
     "place_matches",
     "polar_information",
@@ -481,10 +482,8 @@ def projector_miss_kernel(
     if status[i] != STATUS_OK:
         return
     X = points[i]
-    d = wp.normalize(X - cam1.center)
-    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - cam1.center))
     pL = proj[i]
-    g = (ray_residual(light, X + d * h, pL) - ray_residual(light, X - d * h, pL)) / (2.0 * h)  # px per mm
+    g = px_per_mm_along(light, cam1.center, X)
     gl = wp.length(g)
     W = proj_info[i]
     det = W[0] * W[2] - W[1] * W[1]
@@ -496,6 +495,45 @@ def projector_miss_kernel(
     s = gl * sigma[i]
     residual[i] = wp.abs(wp.dot(u, ray_residual(light, X, pL)))
     residual_var[i] = var_p + s * s
+
+
+@wp.func
+def px_per_mm_along(light: LightModel, C: wp.vec3, X: wp.vec3):
+    """How far (projector px per mm) the projector pixel of X moves as X moves along the ray from C through
+    it (central differences over the rays' Jacobian step)."""
+    d = wp.normalize(X - C)
+    h = wp.min(float(JACOBIAN_STEP_MM), JACOBIAN_STEP_DEPTH * wp.length(X - C))
+    pa = light_pixel(light, X + d * h)
+    pb = light_pixel(light, X - d * h)
+    return wp.vec2(pa[0] - pb[0], pa[1] - pb[1]) / (2.0 * h)
+
+
+@wp.kernel
+def along_ray_floor_kernel(
+    points: wp.array(dtype=wp.vec3),
+    status: wp.array(dtype=wp.int32),
+    sigma: wp.array(dtype=wp.float32),
+    floor: float,
+    cam1: CameraModel,
+    light: LightModel,
+    i0: int,
+    out: wp.array(dtype=wp.float32),
+):
+    """Point i0 + tid's sigma along camera 1's ray with a projector miss of ``floor`` px along that ray's
+    course through the projector added in quadrature (floor over the px a mm there); unplaced points (status
+    not ok) as they were.
+
+    points (n,) vec3, status (n,) int32, sigma (n,) float32: read; out (n,) float32: written.
+
+    Size: a triangulation's three arrays, the miss, both models."""
+    i = i0 + wp.tid()
+    out[i] = sigma[i]
+    if status[i] != STATUS_OK:
+        return
+    gl = wp.length(px_per_mm_along(light, cam1.center, points[i]))
+    if gl > 0.0:
+        e = floor / gl
+        out[i] = wp.sqrt(sigma[i] * sigma[i] + e * e)
 
 
 # ----------------------------------------------------------------------------- host
@@ -537,6 +575,24 @@ def projector_misses(tri: RayTriangulation, proj: wp.array, proj_info: wp.array,
                                                           light, i0], [res, var], dev,
                  default_threads() if threads is None else threads)
     return res, var
+
+
+def widen_along_rays(tri, floor_px: float, *, camera1: CameraModel, light: LightModel,
+                     threads: int | None = None) -> wp.array:
+    """(n,) float32 the points' sigmas (``tri``: a triangulation's ``points``, ``status``, ``sigma``, camera 1's
+    samples) with a projector miss of ``floor_px`` along camera 1's rays added (:func:`along_ray_floor_kernel`):
+    camera-projector points of a view whose two cameras found the projector missing them (the miss runs where
+    no camera-projector check sees it)."""
+    fn = "widen_along_rays"
+    n = check_array("tri.points", tri.points, None, wp.vec3, fn)
+    check_array("tri.status", tri.status, n, wp.int32, fn)
+    check_array("tri.sigma", tri.sigma, n, wp.float32, fn)
+    dev = tri.points.device
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    launch_spans(along_ray_floor_kernel, n, lambda i0: [tri.points, tri.status, tri.sigma, float(floor_px), camera1,
+                                                           light, i0], [out], dev,
+                 default_threads() if threads is None else threads)
+    return out
 
 
 def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, *, points: wp.array,

@@ -598,7 +598,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     fall back to camera-projector."""
     # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
     from ringscan.kernels.stereo_rays import (place_matches, polar_information, projector_misses, through_map,
-                                              triangulate_rays)
+                                              triangulate_rays, widen_along_rays)
     from ringscan.pipeline.reconstruct.stereo import (decode_view, epipolar_check, match_error_model,
                                                       match_on_device, widen_matches)
 
@@ -678,6 +678,9 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         # a one-camera view places them (the calibration floor included)
         tp, calibration = _camera_projector(scan, view, settings, samples, sector_bits, threads)
         points, status, confidence, sigma, residual = tp.points, tp.status, tp.confidence, tp.sigma, tp.residual
+        if projector_check.get("floor_applied"):
+            # the projector's miss the cameras found runs along camera 1's rays, unseen by these points' checks
+            sigma = widen_along_rays(tp, projector_check["floor_px"], camera1=camera1, light=light, threads=threads)
         extra["fallback_camera_projector"] = int(n - len(matches))
         if calibration:
             extra["calibration"] = calibration

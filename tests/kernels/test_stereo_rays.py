@@ -318,3 +318,26 @@ def test_a_projector_floor_conditions_the_map_on_the_projectors_miss(device):
     assert out[0.5][1] < 0.05 < out[0.0][1], out
     with pytest.raises(ValueError, match="needs the light"):
         triangulate_rays(pj, pj, spa, spa, camera1=c1, camera2=c2, volume=VOLUME, projector_floor_px=0.5)
+
+
+def test_widen_along_rays_adds_the_projector_miss_as_depth():
+    """A miss of f projector px along camera 1's ray's course through the projector is f over the px a mm
+    there, along the ray (OpenCV's projection of the points moved +-0.5 mm); points without status ok keep
+    their sigma."""
+    from ringscan.kernels.stereo_rays import widen_along_rays
+
+    uv1, X, _, _ = _tri_inputs(np.random.default_rng(14), 500)
+    c1, _, light = _models()
+    n = len(X)
+    status = np.zeros(n, np.int32)
+    status[:10] = 3
+    sig = np.full(n, 0.01, np.float32)
+    tri = RayTriangulation(points=wp.array(X.astype(np.float32), dtype=wp.vec3), status=wp.array(status),
+                           residual=wp.zeros(n, dtype=wp.float32), chi2=wp.zeros(n, dtype=wp.float32),
+                           sigma=wp.array(sig))
+    got = widen_along_rays(tri, 0.3, camera1=c1, light=light, threads=2).numpy()
+    d = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    gl = np.linalg.norm(project_points(PROJ, X + 0.5 * d) - project_points(PROJ, X - 0.5 * d), axis=1) / 1.0
+    want = np.sqrt(0.01 ** 2 + (0.3 / gl) ** 2)
+    np.testing.assert_allclose(got[10:], want[10:], rtol=1e-3)  # (float32 points, central differences)
+    assert np.all(got[:10] == sig[:10])

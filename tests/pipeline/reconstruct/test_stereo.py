@@ -172,8 +172,8 @@ def test_imported_integer_gray_code_is_matched_sub_pixel(tmp_path):
 
 def test_auto_fallback_places_points_as_one_camera_does(stereo_scan):
     """--rays auto on a rig whose projector misses by more than the decode's errors: the camera-1 samples camera 2
-    does not match fall back to camera-projector with the calibration floor, exactly as a one-camera
-    reconstruction of the same scan places them."""
+    does not match fall back to camera-projector with the calibration floor, exactly where a one-camera
+    reconstruction of the same scan places them (their sigmas wider by the miss the two cameras see)."""
     rig = stereo_scan.rig
     li = rig.light
     dR = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(0.3)]))[0]  # the projector turned 0.3 deg about its axis
@@ -191,8 +191,11 @@ def test_auto_fallback_places_points_as_one_camera_does(stereo_scan):
           if (float(u), float(v)) not in matched and (float(u), float(v)) in by_uv]
     assert len(fb) > 0.5 * auto.stats["stereo"]["fallback_camera_projector"] and len(fb) > 500, len(fb)
     a, b = np.array([i for i, _ in fb]), np.array([j for _, j in fb])
-    assert np.array_equal(auto.points[a], one.points[b])
-    assert np.array_equal(auto.sigma[a], one.sigma[b]) and np.array_equal(auto.residual[a], one.residual[b])
+    assert np.array_equal(auto.points[a], one.points[b]) and np.array_equal(auto.residual[a], one.residual[b])
+    # the two cameras see the projector miss along camera 1's rays too (which no camera-projector check sees):
+    # the fallback points' sigmas take that miss in depth, never narrower
+    assert auto.stats["stereo"]["projector_check"]["floor_applied"]
+    assert np.all(auto.sigma[a] >= one.sigma[b]) and np.median(auto.sigma[a] / one.sigma[b]) > 1.2
 
 
 def test_predicted_match_sigmas_are_the_errors_scale(stereo_scan):
@@ -294,9 +297,15 @@ def test_a_projector_that_misses_the_cameras_points_is_discounted(tmp_path, monk
     assert fixed["median_mm"] < 1.5 * cc["median_mm"], (fixed["median_mm"], cc["median_mm"])
     assert fixed["sigma"]["median_ratio"] < 1.2 and fixed["sigma"]["beyond_3"] <= 0.05, fixed["sigma"]
     assert "the projector's calibration" not in caplog.text  # half a pixel: discounted, under the warning's 1 px
+    # auto: camera 1's samples camera 2 does not see are camera-projector points, off by the miss: their
+    # sigmas take it along the ray
+    _, auto = run(bad, "auto", "auto")
+    assert auto["sigma"]["beyond_3"] <= 0.05, auto["sigma"]
     monkeypatch.setattr(view_module, "PROJECTOR_FLOOR_CHI2", np.inf)  # no floor: the projector's ray followed
     _, followed = run(bad, "all", "followed")
     assert followed["median_mm"] > 5 * fixed["median_mm"] and followed["sigma"]["beyond_3"] > 0.3, followed
+    _, auto_followed = run(bad, "auto", "auto_followed")
+    assert auto_followed["sigma"]["beyond_3"] > 0.3, auto_followed["sigma"]
     assert good["median_mm"] < cc["median_mm"]  # (a true projector's ray helps)
     worse = dataclasses.replace(scan, rig=dataclasses.replace(scan.rig, light=dataclasses.replace(
         li, t=li.t + 4 * shift)))  # two pixels off: said
