@@ -86,6 +86,15 @@ def _surface_map(p, h=0.5):
     return np.stack(cols, axis=2)
 
 
+def _mapped_inputs(rng, n):
+    """_tri_inputs' camera-1 pixels, points and projector pixels with the surface's map at each (where the
+    projector's moved pixels still meet the sphere)."""
+    uv1, X, _, p = _tri_inputs(rng, n)
+    A = _surface_map(p)
+    ok = np.isfinite(A).all(axis=(1, 2))
+    return uv1[ok], X[ok], p[ok], A[ok]
+
+
 def test_three_rays_through_the_matchers_map_count_the_projector_points_error_once(device):
     """A match as the matcher makes it: camera 1's pixel exact, its projector point p off by e1, and uv2 where
     camera 2 reads p, so off by A (e1 - e2) (A the surface's map from projector to camera-2 px, e2 camera 2's
@@ -95,10 +104,7 @@ def test_three_rays_through_the_matchers_map_count_the_projector_points_error_on
     the two copies pull the point the same way, and the sigma is too narrow (too wide on others: wrong either
     way), the points twice as far off."""
     rng = np.random.default_rng(8)
-    uv1, X, _, p = _tri_inputs(rng, 4000)
-    A = _surface_map(p)
-    ok = np.isfinite(A).all(axis=(1, 2))
-    uv1, X, p, A = uv1[ok], X[ok], p[ok], A[ok]
+    uv1, X, p, A = _mapped_inputs(rng, 4000)
     c1, c2, light = _models()
     n = len(uv1)
     sp, s2 = 0.08, 0.05  # projector px: camera 1's code error; camera 2's (through the map)
@@ -291,10 +297,7 @@ def test_a_projector_floor_conditions_the_map_on_the_projectors_miss(device):
     as the code's error alone the map carries the miss into camera 2's residual and the points follow it;
     given the miss as a floor they keep to the cameras, within the noise."""
     rng = np.random.default_rng(13)
-    uv1, X, _, p = _tri_inputs(rng, 3000)
-    A = _surface_map(p)
-    ok = np.isfinite(A).all(axis=(1, 2))
-    uv1, X, p, A = uv1[ok], X[ok], p[ok], A[ok]
+    uv1, X, p, A = _mapped_inputs(rng, 3000)
     c1, c2, light = _models()
     n = len(uv1)
     sp, s2 = 0.05, 0.05
