@@ -145,7 +145,8 @@ def settings_from_args(args) -> ReconstructSettings:
 
 def print_calibration_checks(views: list[dict]) -> None:
     """One line per view with its calibration check (report.json ``calibration_check``),
-    and a warning line where the rig file does not fit the images."""
+    and a warning line where the rig file does not fit the images; with three rays one more, the
+    projector against the two cameras' points (``stereo.projector_check``)."""
     for v in views:
         c = v.get("calibration_check")
         if not c:
@@ -157,6 +158,11 @@ def print_calibration_checks(views: list[dict]) -> None:
         if not c["fits"]:
             print(f"{v['name']}: warning: the rig file does not fit the images (median above 1 px): check the "
                   "calibration (docs/calibration.md)")
+        p = v.get("stereo", {}).get("projector_check")
+        if p:  # three rays: the projector against the two cameras' points
+            said = f"; its ray discounted by {p['floor_px']:.2f} px" if p["floor_applied"] else ""
+            print(f"{v['name']}: {v.get('rays')}: projector against the cameras' points: median "
+                  f"{p['residual_px_median']:.2f} px, p95 {p['residual_px_p95']:.2f} px ({p['samples']} samples){said}")
 
 
 def run(args) -> int:

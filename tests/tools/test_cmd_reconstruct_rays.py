@@ -43,6 +43,17 @@ def test_rays_camera_camera_prints_the_epipolar_check(stereo_folder, tmp_path, c
     assert (tmp_path / "res.png").stat().st_size > 1000
 
 
+def test_rays_all_prints_the_projector_against_the_cameras(stereo_folder, tmp_path, capsys):
+    out = tmp_path / "rec"
+    assert main(["reconstruct", str(stereo_folder), "--out", str(out), "--rays", "all", "--device", "cpu",
+                 "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    chk = json.loads((out / "report.json").read_text())["views"][0]["stereo"]["projector_check"]
+    line = [t for t in text.splitlines() if "projector against the cameras' points" in t]
+    assert len(line) == 1 and line[0].startswith("view_000: all: ") and f"({chk['samples']} samples)" in line[0]
+    assert not chk["floor_applied"] and "discounted" not in line[0]  # the virtual rig's projector is right
+
+
 def test_two_camera_rays_on_a_one_camera_scan_is_one_line(tmp_path, capsys):
     scan = simulate_tiny_scan(tmp_path / "tiny")
     assert main(["reconstruct", str(scan.folder), "--out", str(tmp_path / "rec"), "--rays", "all", "--device", "cpu",
