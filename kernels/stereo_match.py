@@ -576,10 +576,8 @@ def match_kernel(
         out_sigma2[i] = wp.max(wp.sqrt(gain * gain * scale * var + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
         out_sigma1[i] = wp.max(wp.sqrt(qs * qs + MODEL_SHARE * model2), SIGMA_FLOOR_PX)
         if maps:
-            if full:
-                out_map[i] = wp.vec4(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
-            else:
-                out_map[i] = wp.vec4(0.0, 0.0, 0.0, 0.0)  # along the neighbours' line only: across it unknown
+            # (rank one where the neighbours lie on a line: along it only, across it unknown)
+            out_map[i] = wp.vec4(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
             out_query_model[i] = wp.sqrt(MODEL_SHARE * model2)
         st = MATCH_OK
         break

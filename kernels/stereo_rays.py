@@ -58,6 +58,12 @@ PIXEL_RAY_PX = wp.constant(0.01)
 ray is where the code was read, so the code's error is the projector ray's alone; a hundredth of a pixel keeps
 the normal equations well conditioned in float32."""
 
+LINE_MAP_DET = wp.constant(1.0e-4)
+"""A matcher's map whose |det| is under this share of its mean squared entry is rank one (neighbours on a
+line; float32 leaves ~1e-8 there, a surface's map ~1)."""
+EXACT_RADIUS_PX = wp.constant(1.0e-3)
+"""A ring edge's radius (projector px): the ring's own, exact to the floor the projector's weights take."""
+
 __all__ = [
     "PIXEL_RAY_PX",
     "RayTriangulation",
@@ -431,26 +437,43 @@ def through_map_kernel(
     sigma1: wp.array(dtype=wp.float32),
     query_model: wp.array(dtype=wp.float32),
     proj_map: wp.array(dtype=wp.vec4),
+    sigma_rho: wp.array(dtype=wp.float32),
+    gain: wp.array(dtype=wp.float32),
+    ring_edges: int,
     i0: int,
     sigma1_out: wp.array(dtype=wp.float32),
     extra: wp.array(dtype=wp.float32),
+    sigma_rho_out: wp.array(dtype=wp.float32),
 ):
-    """Match i0 + tid's camera-1 sigma and projector extra for three rays: where the matcher's map is known
-    (not 0) camera 1's pixel is its ray (``PIXEL_RAY_PX``) and the query's share of the scatter goes to the
-    projector's point (``extra``, camera px); elsewhere (a map along a line) the rays stay independent: sigma1
-    as it is, no extra.
+    """Match i0 + tid's camera-1 sigma, projector extra and radial sigma for three rays.
 
-    sigma1, query_model (n,) float32, proj_map (n,) vec4: read; sigma1_out, extra (n,) float32: written.
+    A full map (both columns known: a dense code): camera 1's pixel is its ray (``PIXEL_RAY_PX``), the query's
+    share of the scatter goes to the projector's point (``extra``, camera px), its radial sigma as it is.
+    A map along a line where the samples are ring edges (``ring_edges``: camera 2's neighbours on the query's
+    ring, the map across it unknown): the ring's radius is the code's own, exact (``EXACT_RADIUS_PX``), and
+    the edge's error is where it was measured, camera 1's place (sigma_rho through the gain, and the query's
+    share, camera px); uv2 carries the angle's error alone, which the rank-one map takes. No map (0), or a
+    line of another code's samples (whose radius errs too): the rays independent, as given.
 
-    Size: the three match arrays in, two out."""
+    sigma1, query_model, sigma_rho, gain (n,) float32, proj_map (n,) vec4: read; sigma1_out, extra,
+    sigma_rho_out (n,) float32: written.
+
+    Size: the five match arrays in, three out."""
     i = i0 + wp.tid()
     m = proj_map[i]
-    if m[0] != 0.0 or m[1] != 0.0 or m[2] != 0.0 or m[3] != 0.0:
-        sigma1_out[i] = PIXEL_RAY_PX
-        extra[i] = query_model[i]
-    else:
-        sigma1_out[i] = sigma1[i]
-        extra[i] = 0.0
+    n2 = 0.5 * (m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3])
+    det = m[0] * m[3] - m[1] * m[2]
+    sigma1_out[i] = sigma1[i]
+    extra[i] = 0.0
+    sigma_rho_out[i] = sigma_rho[i]
+    if n2 > 0.0:
+        if wp.abs(det) > LINE_MAP_DET * n2:
+            sigma1_out[i] = PIXEL_RAY_PX
+            extra[i] = query_model[i]
+        elif ring_edges != 0:
+            g = gain[i] * sigma_rho[i]
+            sigma1_out[i] = wp.sqrt(g * g + query_model[i] * query_model[i])
+            sigma_rho_out[i] = EXACT_RADIUS_PX
 
 
 @wp.kernel
@@ -539,21 +562,26 @@ def along_ray_floor_kernel(
 # ----------------------------------------------------------------------------- host
 
 
-def through_map(sigma1: wp.array, query_model: wp.array, proj_map: wp.array, *,
-                threads: int | None = None) -> tuple[wp.array, wp.array]:
+def through_map(sigma1: wp.array, query_model: wp.array, proj_map: wp.array, sigma_rho: wp.array, gain: wp.array, *,
+                ring_edges: bool, threads: int | None = None) -> tuple[wp.array, wp.array, wp.array]:
     """Three rays through the matcher's map (:func:`through_map_kernel`): (sigma1 for
-    :func:`triangulate_rays`, ``extra`` for :func:`polar_information`), (n,) float32 each on sigma1's device.
+    :func:`triangulate_rays`, ``extra`` and sigma_rho for :func:`polar_information`), (n,) float32 each on
+    sigma1's device.
 
-    sigma1, query_model (n,) float32, proj_map (n,) vec4 (``kernels.stereo_match.Matches``, widened)."""
+    sigma1, query_model, sigma_rho, gain (n,) float32, proj_map (n,) vec4 (``kernels.stereo_match.Matches``,
+    widened); ``ring_edges``: camera 1's samples are ring edges (their radius the ring's)."""
     fn = "through_map"
     n = check_array("sigma1", sigma1, None, wp.float32, fn)
     check_array("query_model", query_model, n, wp.float32, fn)
     check_array("proj_map", proj_map, n, wp.vec4, fn)
+    check_array("sigma_rho", sigma_rho, n, wp.float32, fn)
+    check_array("gain", gain, n, wp.float32, fn)
     dev = sigma1.device
-    out, extra = wp.empty(n, dtype=wp.float32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
-    launch_spans(through_map_kernel, n, lambda i0: [sigma1, query_model, proj_map, i0], [out, extra], dev,
+    out = [wp.empty(n, dtype=wp.float32, device=dev) for _ in range(3)]
+    args = [sigma1, query_model, proj_map, sigma_rho, gain, 1 if ring_edges else 0]
+    launch_spans(through_map_kernel, n, lambda i0: args + [i0], out, dev,
                  default_threads() if threads is None else threads)
-    return out, extra
+    return out[0], out[1], out[2]
 
 
 def projector_misses(tri: RayTriangulation, proj: wp.array, proj_info: wp.array, *, camera1: CameraModel,

@@ -642,10 +642,11 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         # carries it) moves uv2 through the matcher's map, and camera 1's pixel carries none of it; counted
         # once, in the projector's ray (docs/design.md §19)
         # (where the map is known: ring edges' neighbours lie along their ring, and those rays stay independent)
-        sigma1, query_extra = through_map(matches.sigma1, matches.query_model, matches.proj_map, threads=threads)
-
+        sigma1, query_extra, sigma_rho = through_map(matches.sigma1, matches.query_model, matches.proj_map,
+                                                     matches.sigma_rho, matches.gain,
+                                                     ring_edges=samples.ring is not None, threads=threads)
         kw = dict(light=light, proj=matches.proj, proj_map=matches.proj_map,
-                  proj_info=polar_information(matches.proj, matches.sigma_rho, matches.sigma_tan,
+                  proj_info=polar_information(matches.proj, sigma_rho, matches.sigma_tan,
                                               center=scan.patterns.center, extra=query_extra, gain=matches.gain,
                                               threads=threads))
         # The two cameras fix each point without the projector: where the projector's calibration misses

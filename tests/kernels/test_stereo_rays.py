@@ -247,17 +247,27 @@ def test_polar_information_adds_an_isotropic_error_over_the_gain():
         polar_information(*args, center=CENTER, extra=wp.array(extra))
 
 
-def test_through_map_keeps_the_rays_independent_where_the_map_is_unknown():
-    """A known map: camera 1's pixel is its ray and the query's scatter share goes to the projector; a map the
-    matcher could not fit across (0: neighbours along a ring) leaves sigma1 as it is and adds nothing."""
-    from ringscan.kernels.stereo_rays import PIXEL_RAY_PX, through_map
+def test_through_map_takes_each_kind_of_map_as_it_is():
+    """A full map: camera 1's pixel is its ray, the query's scatter share goes to the projector. A map along a
+    line (a ring edge): the ring's radius exact, the edge's error at camera 1 (sigma_rho through the gain, and
+    the share). No map (0), or a line of a dense code: sigma1 as it is, nothing added."""
+    from ringscan.kernels.stereo_rays import EXACT_RADIUS_PX, PIXEL_RAY_PX, through_map
 
-    sigma1 = wp.array(np.array([0.3, 0.4], np.float32))
-    model = wp.array(np.array([0.05, 0.07], np.float32))
-    maps = wp.array(np.array([[1.2, 0.1, -0.2, 0.9], [0, 0, 0, 0]], np.float32), dtype=wp.vec4)
-    s1, extra = through_map(sigma1, model, maps, threads=1)
-    assert s1.numpy().tolist() == pytest.approx([PIXEL_RAY_PX, 0.4])
-    assert extra.numpy().tolist() == pytest.approx([0.05, 0.0])
+    f = np.float32
+    sigma1 = wp.array(np.array([0.3, 0.4, 0.5], f))
+    model = wp.array(np.array([0.05, 0.07, 0.09], f))
+    maps = wp.array(np.array([[1.2, 0.1, -0.2, 0.9], [0.6, 0.3, 1.2, 0.6], [0, 0, 0, 0]], f), dtype=wp.vec4)
+    sigma_rho = wp.array(np.array([0.02, 0.03, 0.04], f))
+    gain = wp.array(np.array([1.1, 2.0, 1.5], f))
+    s1, extra, sr = (a.numpy().tolist() for a in through_map(sigma1, model, maps, sigma_rho, gain, ring_edges=True,
+                                                             threads=1))
+    assert s1 == pytest.approx([PIXEL_RAY_PX, np.hypot(2.0 * 0.03, 0.07), 0.5], rel=1e-6)
+    assert extra == pytest.approx([0.05, 0.0, 0.0])
+    assert sr == pytest.approx([0.02, EXACT_RADIUS_PX, 0.04], rel=1e-6)
+    # a dense code's samples along a line (its radius errs too): independent
+    s1, extra, sr = (a.numpy().tolist() for a in through_map(sigma1, model, maps, sigma_rho, gain, ring_edges=False,
+                                                             threads=1))
+    assert s1[1:] == pytest.approx([0.4, 0.5]) and extra[1:] == [0.0, 0.0] and sr[1:] == pytest.approx([0.03, 0.04])
 
 
 def test_projector_misses_measure_the_projectors_miss_from_the_cameras_points(device):
@@ -272,7 +282,8 @@ def test_projector_misses_measure_the_projectors_miss_from_the_cameras_points(de
     n = len(uv1)
     s, sp = 0.05, 0.05
     two = triangulate_rays(_w(uv1 + rng.normal(0, s, uv1.shape), wp.vec2, device),
-                           _w(uv2 + rng.normal(0, s, uv2.shape), wp.vec2, device), _w(np.full(n, s), wp.float32, device),
+                           _w(uv2 + rng.normal(0, s, uv2.shape), wp.vec2, device),
+                           _w(np.full(n, s), wp.float32, device),
                            _w(np.full(n, s), wp.float32, device), camera1=c1, camera2=c2, volume=VOLUME)
     spa = _w(np.full(n, sp), wp.float32, device)
     pn = p + rng.normal(0, sp, p.shape)
