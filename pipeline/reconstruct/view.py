@@ -632,8 +632,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     matches = widen_matches(matches, error_model, projector=use_light, threads=threads)
     camera1, camera2 = camera_model_for(rig), camera_model_for(as_camera2(scan).rig)
     rays = partial(triangulate_rays, uv1, uv2, camera1=camera1, camera2=camera2,
-                   volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin, max_residual_px=max_res,
-                   threads=threads)
+                   volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin, threads=threads)
     kw = {}
     sigma1 = matches.sigma1
     projector_check = {}
@@ -665,14 +664,16 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
             applied = bool(floor_p > 0 and projector_check["chi2_median"] > PROJECTOR_FLOOR_CHI2)
             projector_check.update(floor_px=floor_p, floor_applied=applied)
             if applied:
+                # (and, as a one-camera view's calibration floor, a point is inconsistent only beyond 5 times it)
                 kw["projector_floor_px"] = floor_p
+                kw["max_residual_px"] = max(max_res, FLOOR_OUTLIER * floor_p)
             if projector_check["residual_px_median"] > CALIBRATION_WARN_PX:
                 log.warning("%s: the projector's calibration does not fit the two cameras': it misses their points "
                             "by %.2f px (median; p95 %.2f px), and its ray is discounted by that (or the cameras' "
                             "vergence is off, which their epipolar check cannot see): check the calibrations "
                             "(docs/calibration.md)",
                             view.name, projector_check["residual_px_median"], projector_check["residual_px_p95"])
-    tri = rays(sigma1, matches.sigma2, **kw)
+    tri = rays(sigma1, matches.sigma2, **{"max_residual_px": max_res, **kw})
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as
