@@ -71,7 +71,8 @@ def format_table(entries: list[dict], totals: dict) -> str:
 
 def format_calibration_checks(entries: list[dict]) -> list[str]:
     """One line per scan with a calibration check (its entry's ``calibration_check``:
-    the worst view's), with a warning where the rig file does not fit the images."""
+    the worst view's), with a warning where the rig file does not fit the images; with three
+    rays the projector against the cameras' points (``projector_check``), warned alike."""
     lines = []
     for e in entries:
         c = e.get("calibration_check")
@@ -84,6 +85,16 @@ def format_calibration_checks(entries: list[dict]) -> list[str]:
         if c.get("views_not_fitting"):
             line += (f"; warning: the rig file does not fit the images in {c['views_not_fitting']} view(s) "
                      "(median above 1 px): check the calibration (docs/calibration.md)")
+        p = c.get("projector_check")
+        if p:
+            line += (f"; projector against the cameras' points, worst view {p['view']}: median "
+                     f"{p['residual_px_median']:.2f} px, p95 {p['residual_px_p95']:.2f} px")
+            if p.get("views_discounted"):
+                line += f", its ray discounted in {p['views_discounted']} view(s)"
+            if p.get("views_not_fitting"):
+                line += (f"; warning: the projector's calibration does not fit the cameras' in "
+                         f"{p['views_not_fitting']} view(s) (median above 1 px): check the calibrations "
+                         "(docs/calibration.md)")
         lines.append(line)
     return lines
 

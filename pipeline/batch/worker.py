@@ -32,6 +32,7 @@ from ringscan.pipeline.fusion.workflow import fuse_and_mesh
 from ringscan.pipeline.reconstruct.freshness import check_done
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings
+from ringscan.pipeline.reconstruct.view import CALIBRATION_WARN_PX
 
 log = logging.getLogger(__name__)
 
@@ -243,14 +244,28 @@ def _process(job: ScanJob, st, entry: dict) -> None:
 def worst_calibration_check(views: list[dict]) -> dict:
     """A scan's calibration check for the batch report: the check (report.json
     ``calibration_check``) of its view with the largest median, with that view's
-    ``view`` name and ``rays``, and ``views_not_fitting`` (how many views warn); {}
-    where no view has one."""
+    ``view`` name and ``rays``, and ``views_not_fitting`` (how many views warn); with three rays
+    ``projector_check``: the projector against the two cameras' points in the view where it misses most
+    (``view``, ``residual_px_median``, ``residual_px_p95``), ``views_discounted`` (its ray discounted) and
+    ``views_not_fitting`` (a median miss above 1 px, which warns); {} where no view has a check."""
     checked = [v for v in views if isinstance(v.get("calibration_check"), dict) and v["calibration_check"]]
     if not checked:
         return {}
     w = max(checked, key=lambda v: float(v["calibration_check"].get("median_px", 0.0)))
-    return {"view": w["name"], "rays": w.get("rays", "camera-projector"), **w["calibration_check"],
-            "views_not_fitting": sum(not v["calibration_check"].get("fits", True) for v in checked)}
+    out = {"view": w["name"], "rays": w.get("rays", "camera-projector"), **w["calibration_check"],
+           "views_not_fitting": sum(not v["calibration_check"].get("fits", True) for v in checked)}
+    # three rays: the projector against the two cameras' points (report.json stereo.projector_check)
+    proj = [v for v in views if isinstance(v.get("stereo"), dict) and v["stereo"].get("projector_check")]
+    if proj:
+        p = max(proj, key=lambda v: float(v["stereo"]["projector_check"]["residual_px_median"]))
+        c = p["stereo"]["projector_check"]
+        out["projector_check"] = {"view": p["name"], "residual_px_median": c["residual_px_median"],
+                                  "residual_px_p95": c["residual_px_p95"],
+                                  "views_discounted": sum(bool(v["stereo"]["projector_check"]["floor_applied"])
+                                                          for v in proj),
+                                  "views_not_fitting": sum(v["stereo"]["projector_check"]["residual_px_median"]
+                                                           > CALIBRATION_WARN_PX for v in proj)}
+    return out
 
 
 def describe_error(e: BaseException) -> str:

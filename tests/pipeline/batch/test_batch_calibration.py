@@ -55,3 +55,29 @@ def test_batch_prints_and_reports_each_scans_calibration_check(tmp_path, capsys)
                  "--device", "cpu", "--no-progress"]) == 0
     text = capsys.readouterr().out
     assert "skipped" in text and text.count("calibration check, worst view") == 2, text
+
+
+def test_batch_reports_a_projector_that_misses_the_cameras(tmp_path, capsys):
+    """Three rays: each scan's line says how far the projector misses the two cameras' points, and warns
+    where its calibration is off by pixels (the light moved 2 projector px, which camera-projector checks
+    cannot see along camera 1's rays); batch_report.json carries it."""
+    root = tmp_path / "scans"
+    simulate_two_camera_scan(root / "good")
+    shutil.copytree(root / "good", root / "off")
+    scan = load_scan(root / "off")
+    li = scan.rig.light
+    moved = dataclasses.replace(li, t=li.t + li.pixel_pitch_mm * np.array([1.6, 1.2, 0.0]))
+    save_scan(dataclasses.replace(scan, rig_ref=None, rig=dataclasses.replace(scan.rig, light=moved)))
+    out = tmp_path / "out"
+    assert main(["batch", str(root), "--out", str(out), "--workers", "0", "--rays", "all", "--device", "cpu",
+                 "--no-progress"]) == 0
+    lines = {ln.split(":")[0]: ln for ln in capsys.readouterr().out.splitlines() if "calibration check" in ln}
+    assert "projector against the cameras' points, worst view view_000" in lines["good"]
+    assert "discounted" not in lines["good"] and "warning" not in lines["good"], lines["good"]
+    assert "its ray discounted in 1 view(s)" in lines["off"]
+    assert "warning: the projector's calibration does not fit the cameras' in 1 view(s)" in lines["off"]
+    rep = {e["scan"]: e for e in json.loads((out / "batch_report.json").read_text())["scans"]}
+    p_good = rep["good"]["calibration_check"]["projector_check"]
+    p_off = rep["off"]["calibration_check"]["projector_check"]
+    assert p_good["residual_px_median"] < 0.5 < 1.0 < p_off["residual_px_median"]
+    assert p_off["views_discounted"] == p_off["views_not_fitting"] == 1
