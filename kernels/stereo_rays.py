@@ -83,8 +83,9 @@ class RayParams:
     use_light: wp.int32
     """1: the calibrated projector is a third ray; 0: the two cameras alone."""
     use_map: wp.int32
-    """1 (with the light): uv2 was found from the projector point (the matcher's ``proj_map``), so camera 2's
-    residual is taken less the map times the light's; 0: the three rays' errors are independent."""
+    """1: uv2 was found from the query's projector point (the matcher's ``proj_map``): with the light camera 2's
+    residual is taken less the map times the light's, without it camera 2's covariance takes the point's
+    error through the map; 0: the rays' errors are independent."""
     projector_floor: wp.float32
     """With the light: what the projector's calibration misses (px, isotropic; 0: nothing), an error of its
     point that uv2 does not share."""
@@ -206,7 +207,8 @@ def triangulate_rays_kernel(
 
     uv1, uv2 (n,) vec2 camera pixels (distorted), sigma1, sigma2 (n,) float32
     px, proj (n,) vec2 projector px, proj_info (n,) vec3 its information matrix
-    (W00, W01, W11; 1/px^2) (both unread without ``use_light``), proj_map (n,) vec4 the matcher's map
+    (W00, W01, W11; 1/px^2) (proj unread without ``use_light``, proj_info without it and ``use_map``), proj_map
+    (n,) vec4 the matcher's map
     (:class:`~ringscan.kernels.stereo_match.Matches` ``proj_map``; unread without ``use_map``): read. params:
     the third ray's and the map's switches and the bounds (:class:`RayParams`). points (n,)
     vec3, status (n,) int32, residual, chi2, sigma (n,) float32: written.
@@ -263,6 +265,16 @@ def triangulate_rays_kernel(
             C2i = wp.inverse(Cov2)
             W2 = wp.vec3(C2i[0, 0], 0.5 * (C2i[0, 1] + C2i[1, 0]), C2i[1, 1])
             A = B
+    elif use_map != 0:
+        # two rays through the map: uv2 carries the query's code error through it, camera 2's covariance
+        # s2^2 I + A S A^T (S: the query's, from its information; the three rays' floor f -> infinity)
+        m = proj_map[i]
+        Am = wp.mat22(m[0], m[1], m[2], m[3])
+        Wq = proj_info[i]
+        S = wp.inverse(wp.mat22(Wq[0], Wq[1], Wq[1], Wq[2]))
+        Cov2 = Am * S * wp.transpose(Am) + wp.mat22(s2 * s2, 0.0, 0.0, s2 * s2)
+        C2i = wp.inverse(Cov2)
+        W2 = wp.vec3(C2i[0, 0], 0.5 * (C2i[0, 1] + C2i[1, 0]), C2i[1, 1])
     converged = bool(False)
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)
@@ -700,12 +712,14 @@ def triangulate_rays(    uv1: wp.array,
         volume: (z_min, z_max, r_max) of the working volume, world mm.
         light: the calibrated projector (or parallel light) for a third ray; None: two rays.
         proj: (n,) vec2 projector pixels (with ``light``).
-        proj_info: (n,) vec3 their information matrices (with ``light``; :func:`polar_information`).
-        proj_map: (n,) vec4 (with ``light``; optional) how uv2 moves with ``proj`` (row-major 2x2, camera-2 px
-            per projector px: the matcher's ``proj_map``) where uv2 was found as the place camera 2 reads
-            ``proj``: its error then carries proj's through the map, and camera 2's residual is taken less the
-            map times the light's (counted once). ``sigma1`` is then camera 1's pixel's own error (the code read
-            there carries the rest, in ``proj_info``). None: the three rays' errors are independent.
+        proj_info: (n,) vec3 their information matrices (with ``light``, or with ``proj_map``: the query's
+            projector point's; :func:`polar_information`).
+        proj_map: (n,) vec4 (optional) how uv2 moves with the query's projector point (row-major 2x2,
+            camera-2 px per projector px: the matcher's ``proj_map``) where uv2 was found as the place camera 2
+            reads it: its error then carries the point's through the map. With ``light`` camera 2's residual is
+            taken less the map times the light's (counted once); without, camera 2's covariance is s2^2 I +
+            A S A^T (S: the point's, from ``proj_info``). ``sigma1`` is then camera 1's pixel's own error (the
+            code read there carries the rest, in ``proj_info``). None: the rays' errors are independent.
         projector_floor_px: (with ``light``) the projector calibration's miss (px, isotropic: added to proj's
             covariance; uv2 does not share it, so the map's share of proj's error is conditioned on it).
         min_sin: least sine of the widest angle between camera 1's ray and another
@@ -721,15 +735,18 @@ def triangulate_rays(    uv1: wp.array,
     check_array("uv2", uv2, n, wp.vec2, fn)
     check_array("sigma1", sigma1, n, wp.float32, fn)
     check_array("sigma2", sigma2, n, wp.float32, fn)
-    if (light is None) != (proj is None) or (light is None) != (proj_info is None):
+    if (light is None) != (proj is None) or (light is not None and proj_info is None):
         raise ValueError(f"{fn}: light, proj and proj_info go together")
     if light is not None:
         check_array("proj", proj, n, wp.vec2, fn)
-        check_array("proj_info", proj_info, n, wp.vec3, fn)
     if proj_map is not None:
-        if light is None:
-            raise ValueError(f"{fn}: proj_map needs the light (a third ray)")
+        if proj_info is None:
+            raise ValueError(f"{fn}: proj_map needs proj_info (the query's information)")
         check_array("proj_map", proj_map, n, wp.vec4, fn)
+    elif light is None and proj_info is not None:
+        raise ValueError(f"{fn}: proj_info without the light needs proj_map (two rays through the map)")
+    if proj_info is not None:
+        check_array("proj_info", proj_info, n, wp.vec3, fn)
     if not (projector_floor_px >= 0) or (projector_floor_px > 0 and light is None):
         raise ValueError(f"{fn}: projector_floor_px must be >= 0, and needs the light")
     z_min, z_max, r_max = (float(x) for x in volume)
@@ -758,7 +775,8 @@ def triangulate_rays(    uv1: wp.array,
         from_cam.R = wp.mat33(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
         light = from_cam
         proj = wp.zeros(1, dtype=wp.vec2, device=dev)
-        proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
+        if proj_info is None:
+            proj_info = wp.zeros(1, dtype=wp.vec3, device=dev)
     params = RayParams()
     params.use_light = use_light
     params.use_map = use_map

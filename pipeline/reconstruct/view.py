@@ -612,7 +612,12 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     t = time.perf_counter()
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
-    matches, _ = match_on_device(scan, samples, samples2, settings=settings, maps=use_light, threads=threads)
+    # ring edges matched camera to camera take their code's error through the map too (as three rays do):
+    # its radial and angular parts differ by far, and a stand-in on camera 1 cannot say which runs along
+    # the epipolar lines (dense codes keep the stand-in: their statue-size path reads no map)
+    cc_map = not use_light and samples.ring is not None
+    matches, _ = match_on_device(scan, samples, samples2, settings=settings, maps=use_light or cc_map,
+                                 threads=threads)
     times["match"] = time.perf_counter() - t
     t = time.perf_counter()
     light = light_model_for(rig) if use_light else None  # raises for an uncalibrated projector
@@ -629,13 +634,21 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     # both codes' errors alike: the same errors act along the lines, in depth. With the projector's ray the
     # query's code is the projector point, widened as camera 1's would be.
     error_model = match_error_model(rig, matches, max_distance_px=2.0 * max_res, threads=threads)
-    matches = widen_matches(matches, error_model, projector=use_light, threads=threads)
+    matches = widen_matches(matches, error_model, projector=use_light or cc_map, threads=threads)
     camera1, camera2 = camera_model_for(rig), camera_model_for(as_camera2(scan).rig)
     rays = partial(triangulate_rays, uv1, uv2, camera1=camera1, camera2=camera2,
                    volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin, threads=threads)
     kw = {}
     sigma1 = matches.sigma1
     projector_check = {}
+    if cc_map:
+        sigma1, query_extra, sigma_rho = through_map(matches.sigma1, matches.query_model, matches.proj_map,
+                                                     matches.sigma_rho, matches.gain, ring_edges=True,
+                                                     threads=threads)
+        kw = dict(proj_map=matches.proj_map,
+                  proj_info=polar_information(matches.proj, sigma_rho, matches.sigma_tan,
+                                              center=scan.patterns.center, extra=query_extra, gain=matches.gain,
+                                              threads=threads))
     if use_light:
         # uv2 is where camera 2 reads camera 1's projector point: that point's error (the projector's ray
         # carries it) moves uv2 through the matcher's map, and camera 1's pixel carries none of it; counted

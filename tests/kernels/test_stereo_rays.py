@@ -143,9 +143,12 @@ def test_bad_inputs_raise(device):
     c1, c2, light = _models()
     with pytest.raises(ValueError, match="go together"):
         triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, light=light)
-    with pytest.raises(ValueError, match="needs the light"):
+    with pytest.raises(ValueError, match="needs proj_info"):
         triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, proj_map=wp.zeros(3, dtype=wp.vec4,
                                                                                              device=device))
+    with pytest.raises(ValueError, match="needs proj_map"):
+        triangulate_rays(a, a, f, f, camera1=c1, camera2=c2, volume=VOLUME, proj_info=wp.zeros(3, dtype=wp.vec3,
+                                                                                              device=device))
 
 
 def test_a_scene_in_metres_is_triangulated_as_in_millimetres(device):
@@ -355,3 +358,34 @@ def test_widen_along_rays_adds_the_projector_miss_as_depth():
     want = np.sqrt(0.01 ** 2 + (0.3 / gl) ** 2)
     np.testing.assert_allclose(got[10:], want[10:], rtol=1e-3)  # (float32 points, central differences)
     assert np.all(got[:10] == sig[:10])
+
+
+def test_two_rays_through_the_map_take_an_anisotropic_code_error_along_the_epipolar_lines(device):
+    """Two rays of a match as the matcher makes it, the query's code error anisotropic (0.02 projector px
+    along u, 0.2 along v: as a ring edge's radius against its angle): camera 1's pixel its ray, uv2 off by
+    A (e1 - e2). Through the map camera 2's covariance takes A S A^T and the sigma means what it says; the
+    isotropic stand-in on camera 1 (|A| times the mean of the two) cannot tell which part runs along the
+    epipolar lines, and misses it."""
+    rng = np.random.default_rng(15)
+    uv1, X, p, A = _mapped_inputs(rng, 4000)
+    c1, c2, _ = _models()
+    n = len(uv1)
+    su, sv, s2 = 0.02, 0.2, 0.01
+    e1 = np.c_[rng.normal(0, su, n), rng.normal(0, sv, n)]
+    uv2 = project_points(CAM2, X) + np.einsum("nij,nj->ni", A, e1 - rng.normal(0, s2, p.shape))
+    gain = np.sqrt(0.5 * (A ** 2).sum(axis=(1, 2)))
+    # the query's information in u, v: a polar frame whose "radius" is u (the point at the centre's right)
+    info = np.tile([1 / su ** 2, 0.0, 1 / sv ** 2], (n, 1))
+    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    out = {}
+    for name, sigma1, kw in (
+            ("map", np.full(n, 0.01), {"proj_map": _w(A.reshape(n, 4), wp.vec4, device),
+                                       "proj_info": _w(info, wp.vec3, device)}),
+            ("stand-in", gain * np.sqrt(0.5 * (su ** 2 + sv ** 2)), {})):
+        T = triangulate_rays(_w(uv1, wp.vec2, device), _w(uv2, wp.vec2, device), _w(sigma1, wp.float32, device),
+                             _w(gain * s2, wp.float32, device), camera1=c1, camera2=c2, volume=VOLUME, **kw)
+        good = T.status.numpy() == 0
+        assert good.mean() > 0.99
+        z = np.sum((T.points.numpy()[good] - X[good]) * d1[good], axis=1) / T.sigma.numpy()[good]
+        out[name] = np.std(z)
+    assert 0.8 < out["map"] < 1.25 and not 0.8 < out["stand-in"] < 1.25, out
