@@ -641,26 +641,19 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     kw = {}
     sigma1 = matches.sigma1
     projector_check = {}
-    if cc_map:
+    if use_light or cc_map:
+        # uv2 is where camera 2 reads camera 1's projector point: that point's error moves uv2 through the
+        # matcher's map, and camera 1's pixel carries none of it (a ring edge: its radial part); counted once,
+        # in the projector's ray, or without it in camera 2's covariance (docs/design.md §19)
         sigma1, query_extra, sigma_rho = through_map(matches.sigma1, matches.query_model, matches.proj_map,
-                                                     matches.sigma_rho, matches.gain, ring_edges=True,
-                                                     threads=threads)
+                                                     matches.sigma_rho, matches.gain,
+                                                     ring_edges=samples.ring is not None, threads=threads)
         kw = dict(proj_map=matches.proj_map,
                   proj_info=polar_information(matches.proj, sigma_rho, matches.sigma_tan,
                                               center=scan.patterns.center, extra=query_extra, gain=matches.gain,
                                               threads=threads))
     if use_light:
-        # uv2 is where camera 2 reads camera 1's projector point: that point's error (the projector's ray
-        # carries it) moves uv2 through the matcher's map, and camera 1's pixel carries none of it; counted
-        # once, in the projector's ray (docs/design.md §19)
-        # (where the map is known: ring edges' neighbours lie along their ring, and those rays stay independent)
-        sigma1, query_extra, sigma_rho = through_map(matches.sigma1, matches.query_model, matches.proj_map,
-                                                     matches.sigma_rho, matches.gain,
-                                                     ring_edges=samples.ring is not None, threads=threads)
-        kw = dict(light=light, proj=matches.proj, proj_map=matches.proj_map,
-                  proj_info=polar_information(matches.proj, sigma_rho, matches.sigma_tan,
-                                              center=scan.patterns.center, extra=query_extra, gain=matches.gain,
-                                              threads=threads))
+        kw.update(light=light, proj=matches.proj)
         # The two cameras fix each point without the projector: where the projector's calibration misses
         # their points by more than its sigmas allow (along camera 1's ray through it, where a miss moves the
         # point and no camera-projector check sees it), its ray is discounted by that miss (measured on at
