@@ -125,6 +125,13 @@ def block_terms(r: wp.vec2, jx: wp.vec2, jy: wp.vec2, jz: wp.vec2, W: wp.vec3, H
 
 
 @wp.func
+def sym_vec(M: wp.mat22):
+    """A symmetric 2x2 (float32 rounding's asymmetry averaged out) as (M00, M01, M11), the form
+    :func:`block_terms` weighs by."""
+    return wp.vec3(M[0, 0], 0.5 * (M[0, 1] + M[1, 0]), M[1, 1])
+
+
+@wp.func
 def ray_residual(cam: CameraModel, X: wp.vec3, uv: wp.vec2):
     """A camera ray's reprojection residual (px); the overload below is the light's (each model's own
     projection only: no switch between them inlined at every call)."""
@@ -259,11 +266,10 @@ def triangulate_rays_kernel(
             Wm = wp.mat22(WL[0], WL[1], WL[1], WL[2])
             G = wp.inverse(wp.mat22(1.0, 0.0, 0.0, 1.0) + f2 * Wm)
             WG = Wm * G
-            WL = wp.vec3(WG[0, 0], 0.5 * (WG[0, 1] + WG[1, 0]), WG[1, 1])
+            WL = sym_vec(WG)
             B = A * G
             Cov2 = f2 * (B * wp.transpose(A)) + wp.mat22(s2 * s2, 0.0, 0.0, s2 * s2)
-            C2i = wp.inverse(Cov2)
-            W2 = wp.vec3(C2i[0, 0], 0.5 * (C2i[0, 1] + C2i[1, 0]), C2i[1, 1])
+            W2 = sym_vec(wp.inverse(Cov2))
             A = B
     elif use_map != 0:
         # two rays through the map: uv2 carries the query's code error through it, camera 2's covariance
@@ -273,8 +279,7 @@ def triangulate_rays_kernel(
         Wq = proj_info[i]
         S = wp.inverse(wp.mat22(Wq[0], Wq[1], Wq[1], Wq[2]))
         Cov2 = Am * S * wp.transpose(Am) + wp.mat22(s2 * s2, 0.0, 0.0, s2 * s2)
-        C2i = wp.inverse(Cov2)
-        W2 = wp.vec3(C2i[0, 0], 0.5 * (C2i[0, 1] + C2i[1, 0]), C2i[1, 1])
+        W2 = sym_vec(wp.inverse(Cov2))
     converged = bool(False)
     H = wp.mat33(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     chi = float(0.0)

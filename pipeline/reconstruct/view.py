@@ -636,8 +636,8 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     error_model = match_error_model(rig, matches, max_distance_px=2.0 * max_res, threads=threads)
     matches = widen_matches(matches, error_model, projector=use_light or cc_map, threads=threads)
     camera1, camera2 = camera_model_for(rig), camera_model_for(as_camera2(scan).rig)
-    rays = partial(triangulate_rays, uv1, uv2, camera1=camera1, camera2=camera2,
-                   volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin, threads=threads)
+    rays = partial(triangulate_rays, camera1=camera1, camera2=camera2, volume=(vol.z_min, vol.z_max, vol.r_max),
+                   min_sin=st.min_ray_sin, threads=threads)
     kw = {}
     sigma1 = matches.sigma1
     projector_check = {}
@@ -660,9 +660,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
         # most MAX_CHECK_SAMPLES matches spread over the view: a view's median)
         pick = wp.array(sample_subset(len(matches)).astype(np.int32), dtype=wp.int32, device=device)
         g = partial(gather, index=pick, threads=threads)
-        two = triangulate_rays(g(uv1), g(uv2), g(matches.sigma1), g(matches.sigma2), camera1=camera1,
-                               camera2=camera2, volume=(vol.z_min, vol.z_max, vol.r_max), min_sin=st.min_ray_sin,
-                               max_residual_px=max_res, threads=threads)
+        two = rays(g(uv1), g(uv2), g(matches.sigma1), g(matches.sigma2), max_residual_px=max_res)
         floor_p, projector_check = residual_floor(*projector_misses(two, g(matches.proj), g(kw["proj_info"]),
                                                                     camera1=camera1, light=light, threads=threads),
                                                   threads=threads)
@@ -679,7 +677,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
                             "vergence is off, which their epipolar check cannot see): check the calibrations "
                             "(docs/calibration.md)",
                             view.name, projector_check["residual_px_median"], projector_check["residual_px_p95"])
-    tri = rays(sigma1, matches.sigma2, **{"max_residual_px": max_res, **kw})
+    tri = rays(uv1, uv2, sigma1, matches.sigma2, **{"max_residual_px": max_res, **kw})
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as
