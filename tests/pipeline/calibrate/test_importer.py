@@ -1,13 +1,13 @@
 """pipeline.calibrate.importer: OpenCV calibration files with the rational and thin-prism lens
 models (8, 12 and zero-tilt 14 coefficients) are read as given; a tilted sensor and other counts
-are refused naming the file and the key."""
+are refused naming the file and the key; the decoded maps' encoding is its plain statement's."""
 
 import cv2
 import numpy as np
 import pytest
 
 from ringscan.pipeline.calibrate.errors import CalibrationError
-from ringscan.pipeline.calibrate.importer import stereo_rig
+from ringscan.pipeline.calibrate.importer import encode_decoded, stereo_rig
 from ringscan.pipeline.calibrate.opencv_files import read_opencv_calibration, read_stereo_calibration
 from ringscan.pipeline.calibrate.procam import procam_rig
 from ringscan.pipeline.formats.rig import parse_rig, rig_to_dict
@@ -106,3 +106,44 @@ def test_the_decoded_maps_take_a_scale_that_holds_the_projectors_width(width, sc
     assert spec.scale == scale and spec.to_dict()["scale"] == scale
     assert parse_patterns(spec.to_dict(), source="test").scale == scale  # read back from scan.json
     assert (width - 0.5 + 1) * spec.scale <= 65535  # the last column's centre fits
+
+
+def _plain_encode(u, v, contrast, scale):
+    """encode_decoded's statement, one plain expression a step (the import's maps before its in-place form)."""
+    def enc(a):
+        ok = np.isfinite(a) & (a > -1 + 1.0 / scale) & (a < 65535.0 / scale - 1)
+        x = (np.where(ok, a, 0) + 1.0) * scale
+        q = np.round(x)
+        whole = (q % scale == 0) & (a != np.round(a)) & (scale > 1)
+        q = np.where(whole, q + np.where(x >= q, 1.0, -1.0), q)
+        return np.where(ok, q, 0).astype(np.uint16)
+
+    fu, fv = enc(u), enc(v)
+    bad = (fu == 0) | (fv == 0)
+    fu[bad] = 0
+    fv[bad] = 0
+    return fu, fv, np.clip(np.asarray(contrast, np.float64) * 257.0, 0, 65535).astype(np.uint16)
+
+
+@pytest.mark.parametrize("scale", [32, 16, 3, 1])
+def test_encode_decoded_writes_what_its_plain_statement_writes(scale):
+    """The maps' in-place encoding gives the plain expressions' values to the bit: sub-pixel, whole-pixel and
+    near-grid coordinates (written one step aside), NaN, +-inf, out of the 16-bit range, both map orders, a
+    scale that is not a power of two; contrast clipped to 16 bits."""
+    rng = np.random.default_rng(scale)
+    h, w = 61, 47
+    top = 65535.0 / scale
+    u, v = rng.uniform(-2, top + 1, (h, w)), rng.uniform(-0.99, 700, (h, w))
+    u[rng.random((h, w)) < 0.1] = np.nan
+    v[rng.random((h, w)) < 0.1] = np.nan
+    some = rng.random((h, w)) < 0.2
+    u[some] = np.round(u[some])
+    near = rng.random((h, w)) < 0.2
+    v[near] = np.round(v[near] * scale) / scale + rng.choice([-1e-4, 1e-4, 0.0], int(near.sum()))
+    u[0, :4] = [np.inf, -np.inf, top - 1, -1 + 1.0 / scale]
+    c = rng.uniform(-5, 300, (h, w)).astype(np.float32)
+    for a, b, cc in ((u, v, c), (np.asfortranarray(u), np.asfortranarray(v), np.asfortranarray(c))):
+        got, want = encode_decoded(a, b, cc, scale), _plain_encode(a, b, cc, scale)
+        for g, x in zip(got, want):
+            assert g.dtype == np.uint16 and np.array_equal(g, x)
+    assert (got[0] > 0).sum() > 0.5 * h * w and (got[1] % max(scale, 2) == 0).any()
