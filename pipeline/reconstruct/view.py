@@ -838,14 +838,12 @@ def explain_no_points(frames: np.ndarray, scan: Scan, stats: dict,
 
 def write_view_ply(path: Path, cloud: ViewCloud, view_index: int) -> None:
     n = cloud.points.shape[0]
+    f32 = lambda a: a.astype(np.float32, copy=False)  # noqa: E731  (float32 already: not copied before write_ply's own copy)
     write_ply(path, {
-        "x": cloud.points[:, 0].astype(np.float32), "y": cloud.points[:, 1].astype(np.float32),
-        "z": cloud.points[:, 2].astype(np.float32),
-        "ring": cloud.ring.astype(np.int32), "rho": cloud.rho.astype(np.float32),
-        "view": np.full(n, view_index, np.int32), "confidence": cloud.confidence.astype(np.float32),
-        "u": cloud.uv[:, 0].astype(np.float32), "v": cloud.uv[:, 1].astype(np.float32),
-        "sigma": cloud.sigma.astype(np.float32),
-        **({"residual": cloud.residual.astype(np.float32)} if cloud.residual is not None else {}),
-        **({"sector_residual": cloud.sector_residual.astype(np.float32)} if cloud.sector_residual is not None
-           else {}),
+        "x": f32(cloud.points[:, 0]), "y": f32(cloud.points[:, 1]), "z": f32(cloud.points[:, 2]),
+        "ring": cloud.ring.astype(np.int32, copy=False), "rho": f32(cloud.rho),
+        "view": np.full(n, view_index, np.int32), "confidence": f32(cloud.confidence),
+        "u": f32(cloud.uv[:, 0]), "v": f32(cloud.uv[:, 1]), "sigma": f32(cloud.sigma),
+        **({"residual": f32(cloud.residual)} if cloud.residual is not None else {}),
+        **({"sector_residual": f32(cloud.sector_residual)} if cloud.sector_residual is not None else {}),
     }, comments=["ringscan point cloud, world frame, mm"])
