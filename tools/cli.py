@@ -267,11 +267,13 @@ def main(argv: list[str] | None = None) -> int:
     # This process is ringscan's: keep freed arrays' pages for the next view. Imported
     # here, not at the top, so that importing the capture command (real drivers) loads
     # no kernels and no Warp (tests/hardware/devices/test_camera.py).
-    from ringscan.kernels.process import one_blas_thread, retain_freed_memory, skip_final_collection
+    from ringscan.kernels.process import (freeze_imported_objects, one_blas_thread, retain_freed_memory,
+                                          skip_final_collection)
 
     retain_freed_memory()
     one_blas_thread()  # BLAS threads spinning beside the kernels took the cores from them (docs/batch.md)
     skip_final_collection()  # the command's process ends without a last collection (~0.4 s)
+    freeze_imported_objects()  # (the command's modules are imported: build_parser)
     name = " ".join([args.command, *([args.what] if getattr(args, "what", None) else [])])
     try:
         return int(args._run(args) or 0)

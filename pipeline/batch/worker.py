@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ringscan.kernels import init_warp, resolve_device, retain_freed_memory
 from ringscan.kernels.launch import set_cpu_threads
-from ringscan.kernels.process import one_blas_thread, skip_final_collection
+from ringscan.kernels.process import freeze_imported_objects, one_blas_thread, skip_final_collection
 from ringscan.pipeline.formats.atomic import atomic_write_json, read_json, remove_stale_temporaries
 from ringscan.pipeline.formats.errors import RingscanError
 from ringscan.pipeline.formats.meshes import write_cloud
@@ -125,6 +125,7 @@ def init_worker(device: str | None = None, devices=None, parent: int | None = No
     one_blas_thread()  # (two workers' BLAS threads spinning took the cores from each other's kernels)
     if record_start:
         skip_final_collection()  # a worker process (pool or Ray): it ends without a last collection
+        freeze_imported_objects()  # (its modules are imported: every view's collections skip them)
     if parent is not None:
         init_child(parent)
     init_warp()
