@@ -16,7 +16,12 @@ the test scan of tests/support/two_camera_scan.py, camera 2 turned
    the shares within 1 and 2 predicted sigmas (0.68 and 0.95 for a Gaussian);
    the same for two ``decoded`` two-camera scans of the sphere made from the
    truth (every pixel's projector coordinate as an imported Gray code gives it:
-   integer codes, and exact codes in the codec's 1/32 px).
+   integer codes, and exact codes in the codec's 1/32 px);
+4. the same sphere under phase-rings (the same rings and angle code, 4 fringe steps): camera-camera,
+   camera-camera with camera 1's code error stood in isotropically on camera 1 (before 2026-12-08, when
+   such codes went through the matcher's map as ring edges do), and all three rays.
+
+Each row of 1 and 4 has the points' median abs(e)/sigma and share beyond 3 sigma (``ringscan evaluate``'s).
 
 Usage::
 
@@ -41,16 +46,51 @@ from ringscan.pipeline.formats.rig import UncalibratedLight  # noqa: E402
 from ringscan.pipeline.formats.scan import load_scan, save_scan  # noqa: E402
 from ringscan.pipeline.reconstruct.scan import reconstruct_scan  # noqa: E402
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, StereoSettings  # noqa: E402
-from tests.support.two_camera_scan import simulate_two_camera_scan  # noqa: E402
+from tests.support.two_camera_scan import ANGLE_PATTERNS, simulate_two_camera_scan  # noqa: E402
+
+
+HEADER = ("| rays | points | median mm | p95 mm | coverage | median residual | calibration check (median / p95) | "
+          "median abs(e)/sigma | beyond 3 sigma |\n|---|---|---|---|---|---|---|---|---|")
+PHASE_PATTERNS = {**ANGLE_PATTERNS, "codec": "phase-rings", "steps": 4}
+"""The test scan's patterns as phase-rings (the same rings' pitch, sectors and angle code, 4 fringe steps)."""
 
 
 def _row(name, rep, ev):
     v = rep["views"][0]
     c = v.get("calibration_check", {})
     a = ev["all"]
+    sg = a.get("sigma") or {}
     print(f"| {name} | {v['points']} | {a['median_mm']:.4f} | {a['p95_mm']:.4f} | "
           f"{100 * ev['views']['view_000']['coverage']:.1f} % | {v.get('median_residual') or 0:.3f} | "
-          f"{c.get('kind', '-')} {c.get('median_px', float('nan')):.3f} / {c.get('p95_px', float('nan')):.3f} px |")
+          f"{c.get('kind', '-')} {c.get('median_px', float('nan')):.3f} / {c.get('p95_px', float('nan')):.3f} px | "
+          f"{sg.get('median_ratio', float('nan')):.2f} | {100 * sg.get('beyond_3', float('nan')):.1f} % |")
+
+
+def _phase_rings(work: Path) -> None:
+    """The same sphere under phase-rings: camera to camera through the matcher's map (the default since
+    2026-12-08), the same with camera 1's code error stood in isotropically on camera 1 (as before), and all
+    three rays."""
+    from ringscan.pipeline.codecs.phase_rings import PhaseRingsCodec
+
+    folder = work / "scan_phase"
+    if not (folder / "scan.json").is_file():
+        shutil.rmtree(folder, ignore_errors=True)
+        simulate_two_camera_scan(folder, patterns=PHASE_PATTERNS)
+    scan = load_scan(folder)
+    print()
+    print("phase-rings, the same sphere:")
+    print(HEADER)
+    for name, rays, stand_in in (("camera-camera", "camera-camera", False),
+                                 ("camera-camera, code error stood in on camera 1 (before)", "camera-camera", True),
+                                 ("all", "all", False)):
+        out = work / f"rec_phase_{rays}{'_stand_in' if stand_in else ''}"
+        PhaseRingsCodec.isotropic_code_error = stand_in  # (a class attribute over the base's property)
+        try:
+            rep = reconstruct_scan(scan, out, settings=ReconstructSettings(stereo=StereoSettings(rays=rays)),
+                                   progress=False)
+        finally:
+            del PhaseRingsCodec.isotropic_code_error
+        _row(name, rep, evaluate_recon(out, scan))
 
 
 def main() -> int:
@@ -64,8 +104,7 @@ def main() -> int:
         work.mkdir(parents=True)
         simulate_two_camera_scan(folder)
     scan = load_scan(folder)
-    print("| rays | points | median mm | p95 mm | coverage | median residual | calibration check (median / p95) |")
-    print("|---|---|---|---|---|---|---|")
+    print(HEADER)
     for rays in ("camera-projector", "camera-camera", "all", "auto"):
         out = work / f"rec_{rays}"
         rep = reconstruct_scan(scan, out, settings=ReconstructSettings(stereo=StereoSettings(rays=rays)),
@@ -102,6 +141,7 @@ def main() -> int:
             simulate_decoded_two_camera_scan(dec, integer=integer)
         print(f"decoded two-camera scan, {'integer' if integer else 'exact (1/32 px)'} codes:", end="")
         _sigma_honesty(load_scan(dec))
+    _phase_rings(work)
     return 0
 
 

@@ -128,6 +128,15 @@ class Codec(ABC, Generic[S]):
         both says when."""
         return False
 
+    @property
+    def isotropic_code_error(self) -> bool:
+        """Its samples' projector coordinate errs about alike in every direction (a decoded u, v map: its
+        radius's and angle's sigmas are both made of the same u and v sigmas), so that camera 1's code error,
+        matched camera to camera, is stood in for isotropically on camera 1 and the matcher's map is not read
+        (docs/design.md §19). False here: a ring's radius and its angle err by far different amounts, and
+        only the map says which part of that runs along the epipolar lines."""
+        return False
+
     def pixel_window(self, settings) -> int | None:
         """For a dense codec (one sample a camera pixel, ``Samples.ring`` None) whose
         samples' errors neighbouring pixels can check: the side (px) of the square each

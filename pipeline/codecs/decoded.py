@@ -176,6 +176,10 @@ class DecodedCodec(Codec[DecodedSettings]):
     layout = PATTERN_LAYOUTS[NAME]
     settings_type = DecodedSettings
 
+    @property
+    def isotropic_code_error(self) -> bool:
+        return True  # u's and v's sigmas alike: the radius's and the angle's are turns of them
+
     def full_coordinate(self, spec: PatternSpec) -> bool:
         return True  # every sample is a decoded (u_p, v_p)
 

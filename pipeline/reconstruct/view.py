@@ -612,10 +612,11 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     t = time.perf_counter()
     st = settings.stereo
     use_light = st.rays == "all" or (st.rays == "auto" and has_calibrated_light(rig))
-    # ring edges matched camera to camera take their code's error through the map too (as three rays do):
-    # its radial and angular parts differ by far, and a stand-in on camera 1 cannot say which runs along
-    # the epipolar lines (dense codes keep the stand-in: their statue-size path reads no map)
-    cc_map = not use_light and samples.ring is not None
+    # matched camera to camera, camera 1's code error goes through the map too (as three rays do) where its
+    # radial and angular parts differ by far (ring edges, phase-rings): a stand-in on camera 1 cannot say which
+    # part runs along the epipolar lines. An imported u, v map errs alike both ways: it keeps the stand-in
+    # (exact for it; the statue-size path reads no map)
+    cc_map = not use_light and not codec_for(scan.patterns.codec, source=scan.path).isotropic_code_error
     matches, _ = match_on_device(scan, samples, samples2, settings=settings, maps=use_light or cc_map,
                                  threads=threads)
     times["match"] = time.perf_counter() - t

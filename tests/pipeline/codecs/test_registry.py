@@ -73,6 +73,15 @@ def test_every_known_codec_has_a_reconstruction():
         assert codec.name == name and codec.layout is PATTERN_LAYOUTS[name]
 
 
+def test_only_an_imported_map_says_its_code_errs_alike_both_ways():
+    """Two cameras matched camera to camera take camera 1's code error through the matcher's map wherever the
+    radius and the angle err differently (every projected codec: ring edges, phase-rings' fringes); an imported
+    u, v map, whose polar sigmas are turns of its two alike ones, keeps the isotropic stand-in."""
+    iso = {name: codec.isotropic_code_error for name, codec in all_codecs().items()}
+    assert iso == {name: name in IMPORTED_CODECS for name in CODEC_CLASSES}
+    assert any(iso.values()) and not all(iso.values())
+
+
 def test_a_run_loads_its_own_codec_only():
     """Reading every codec's settings and reconstructing an imported capture's view load no kernel of the
     other codecs, nor the neighbour model's (views without an angle code), until they are used (Warp parses
