@@ -195,7 +195,7 @@ def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray,
     integer code's sigma); a sub-pixel value that rounds onto a whole pixel (1 in ``scale``) is written one step
     beside it, on its own side (at most 1 / scale px off), so that the reader does not take it for one."""
     lo, hi = -1 + 1.0 / scale, 65535.0 / scale - 1
-    pow2 = scale & (scale - 1) == 0
+    pow2 = float(scale).is_integer() and int(scale) & (int(scale) - 1) == 0  # (the codec's scales are)
 
     def enc(a):
         # in place and in uint16 where it can be (the same values as the plain expressions, ~2.5x faster: a
@@ -210,7 +210,11 @@ def encode_decoded(u: np.ndarray, v: np.ndarray, contrast: np.ndarray,
             out = q.astype(np.uint16, order="C")
         np.copyto(out, 0, where=~ok)
         if scale > 1:  # a sub-pixel value on the integer grid: one step beside it, on its own side
-            grid = (out & np.uint16(scale - 1)) == 0 if pow2 else out % np.uint16(scale) == 0
+            if pow2:
+                grid = (out & np.uint16(int(scale) - 1)) == 0
+            else:
+                with np.errstate(invalid="ignore"):  # (NaN and inf: not ok)
+                    grid = q % scale == 0
             grid &= ok
             at = np.flatnonzero(grid)
             a1, x1, q1 = a.ravel()[at], x.ravel()[at], q.ravel()[at]
