@@ -56,7 +56,7 @@ from ringscan.pipeline.formats.scan import (
 from ringscan.pipeline.formats.settings import check_finite_settings, check_settings_types, settings_to_dict
 from ringscan.pipeline.reconstruct.freshness import REPORT_FORMAT, check_done, hash_inputs
 from ringscan.pipeline.reconstruct.settings import ReconstructSettings, check_setting_ranges
-from ringscan.pipeline.reconstruct.view import check_rays, reconstruct_view, write_view_ply
+from ringscan.pipeline.reconstruct.view import check_rays, load_view_modules, reconstruct_view, write_view_ply
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +219,8 @@ def _reconstruct_views(scan: Scan, out: Path, chosen: list[View], done: dict, re
                 continue
             k = todo.index(view)
             prefetch(k)
+            if k == 0:
+                load_view_modules(scan)  # while the first frames are read
             frames, read_s = pending.pop(view.name).result()
             prefetch(k + 1)
             cloud = reconstruct_view(scan, view, settings=settings, device=device, frames=frames)

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import importlib
 import logging
 import time
 from dataclasses import dataclass, replace
@@ -590,6 +591,16 @@ def check_rays(scan: Scan, views, settings: ReconstructSettings) -> None:
                                             "projector-from-scan, docs/calibration.md)"))
         if rays != "camera-camera" and not has_calibrated_light(scan.rig):
             light_model_for(scan.rig)  # raises: the projector is not calibrated (its own message)
+
+
+def load_view_modules(scan: Scan) -> None:
+    """Import the modules a view of ``scan`` runs: its codec's, and with two cameras the matcher's and the
+    rays'. Warp parses a module's kernels as it is imported (~0.1 s of Python for a two-camera view); called
+    while the first view's frames are read (the image decoders release the interpreter), it costs no time."""
+    codec_for(scan.patterns.codec, source=scan.path)
+    if scan.rig.camera2 is not None:
+        for name in ("ringscan.kernels.stereo_rays", "ringscan.pipeline.reconstruct.stereo"):
+            importlib.import_module(name)
 
 
 def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
