@@ -235,7 +235,9 @@ def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, si
     Returns:
         {} with fewer than ``MIN_PAIRS`` usable matches; else {``k``, ``floor_px``, ``miss_px`` (the
         smooth part's RMS), ``pairs``, ``z_median``, ``beyond_3`` (|d| over its predicted sigma, as
-        predicted), ``z_median_fitted``, ``beyond_3_fitted`` (the smooth part out, as fitted)}.
+        predicted), ``z_median_fitted``, ``beyond_3_fitted`` (the smooth part out, as fitted, with the
+        regions' factors), ``regions`` (camera 1's tiles whose matches need a larger variance factor than
+        the view's fit: :func:`region_scale`, as a one-camera view's model has them)}.
     """
     d, g2, s1, s2 = (np.asarray(x, np.float64).ravel() for x in (dist, slope2, sigma1, sigma2))
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -255,11 +257,13 @@ def fit_match_model(dist: np.ndarray, slope2: np.ndarray, sigma1: np.ndarray, si
         X = X[:, :1]
         p = np.r_[_fit_variances(X, r * r, np.array([1.0])), 0.0]
     z0 = np.abs(d) / np.sqrt(v)
-    z1 = np.abs(r) / np.sqrt(X @ p[:X.shape[1]])
+    fitted = X @ p[:X.shape[1]]
+    regions = _region_scales(r * r, fitted, uv)
+    z1 = np.abs(r) / np.sqrt(fitted * region_scale(regions, uv))
     return {"k": float(np.sqrt(max(p[0], 1.0))), "floor_px": float(np.sqrt(max(p[1], 0.0))),
             "miss_px": float(np.sqrt(calib_var)), "pairs": n,
             "z_median": float(np.median(z0)), "beyond_3": float(np.mean(z0 > 3)),
-            "z_median_fitted": float(np.median(z1)), "beyond_3_fitted": float(np.mean(z1 > 3))}
+            "z_median_fitted": float(np.median(z1)), "beyond_3_fitted": float(np.mean(z1 > 3)), "regions": regions}
 
 
 def _region_scales(d2: np.ndarray, var: np.ndarray, uv: np.ndarray) -> dict:

@@ -400,9 +400,9 @@ def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, m
     """What the matches' predicted sigmas miss, measured by their own distances from their epipolar lines
     (``error_scale.fit_match_model``, on at most ``error_scale.MAX_CHECK_SAMPLES`` matches spread over the
     view: their distances and slopes computed on the device, read once): {} with too few matches, else
-    the fit ({k, floor_px, miss_px, pairs, z_median, beyond_3, z_median_fitted, beyond_3_fitted}), whose
-    k and floor_px :func:`widen_matches` applies (``floor`` False: k alone; ``max_distance_px``: matches farther
-    from their lines left out, as ``fit_match_model`` takes them)."""
+    the fit ({k, floor_px, miss_px, pairs, z_median, beyond_3, z_median_fitted, beyond_3_fitted, regions}),
+    whose k, floor_px and regions :func:`widen_matches` applies (``floor`` False: k alone; ``max_distance_px``:
+    matches farther from their lines left out, as ``fit_match_model`` takes them)."""
     n = len(matches)
     if n == 0 or rig.camera2 is None:
         return {}
@@ -417,16 +417,19 @@ def match_error_model(rig: Rig, matches: DeviceMatches, *, floor: bool = True, m
 
 def widen_matches(matches: DeviceMatches, model: dict, *, projector: bool = False,
                   threads: int | None = None) -> DeviceMatches:
-    """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit), and with
+    """The matches with both cameras' sigmas sqrt(k^2 s^2 + floor^2) (:func:`match_error_model`'s fit; times the
+    square root of its region's factor where camera 1's pixel lies in a tile the fit widened), and with
     ``projector`` the query's projector point's alike (the third ray's: ``sigma_rho`` and ``sigma_tan`` k times
     theirs, ``query_model`` as the cameras', the floor in camera px, which the third ray reads over the gain); the
     same matches where the fit is empty or changes nothing; on their device."""
-    if not model or (model["k"] <= 1.0 and model["floor_px"] <= 0.0):
+    regions = model.get("regions") if model else None
+    if not model or (model["k"] <= 1.0 and model["floor_px"] <= 0.0 and not (regions and regions.get("scales"))):
         return matches
-    widen = partial(widen_sigmas, k=model["k"], floor=model["floor_px"], threads=threads)
+    tiles = dict(uv=matches.uv1, regions=regions) if regions and regions.get("scales") else {}
+    widen = partial(widen_sigmas, k=model["k"], floor=model["floor_px"], threads=threads, **tiles)
     out = replace(matches, sigma1=widen(matches.sigma1), sigma2=widen(matches.sigma2))
     if projector:
-        scale = partial(widen_sigmas, k=model["k"], floor=0.0, threads=threads)
+        scale = partial(widen_sigmas, k=model["k"], floor=0.0, threads=threads, **tiles)
         out = replace(out, sigma_rho=scale(matches.sigma_rho), sigma_tan=scale(matches.sigma_tan),
                       query_model=None if matches.query_model is None else widen(matches.query_model))
     return out

@@ -426,6 +426,26 @@ def test_the_match_model_without_a_floor_fits_one_factor_and_needs_enough_matche
     assert few == {}
 
 
+def test_the_match_model_widens_the_tiles_whose_matches_disagree_more():
+    """Matches in one 64 x 64 px corner of camera 1 err 3 times their predicted sigmas (a grazing silhouette, a
+    shadow edge), the rest as predicted: the view's k stays near 1, the corner's tiles get a variance factor
+    near 9 (``regions``, as a one-camera model has them), none of the rest more than a little, and the
+    fitted distances hold: beyond 3 sigma the corner's 30 % falls to a few %."""
+    from ringscan.pipeline.reconstruct.error_scale import region_scale
+
+    rng = np.random.default_rng(12)
+    d, g2, s1, s2, uv, _ = _matches(rng, 40000)
+    corner = (uv[:, 0] < 64) & (uv[:, 1] < 64)
+    d = np.where(corner, 3.0 * d, d)
+    m = fit_match_model(d, g2, s1, s2, uv)
+    assert m["k"] < 1.1 and m["regions"]["tile_px"] == 32
+    scale = region_scale(m["regions"], uv)
+    assert 6.0 < np.median(scale[corner]) < 12.0 and np.quantile(scale[~corner], 0.99) < 1.5
+    z = np.abs(d) / np.sqrt((m["k"] ** 2 * (s2 * s2 + g2 * s1 * s1) + m["floor_px"] ** 2 * (1 + g2)) * scale)
+    assert np.mean(np.abs(d[corner]) / np.sqrt(s2[corner] ** 2 + g2[corner] * s1[corner] ** 2) > 3) > 0.25
+    assert np.mean(z[corner] > 3) < 0.05 and m["beyond_3_fitted"] < 0.01
+
+
 def test_the_match_model_leaves_out_mismatches_the_triangulation_drops():
     """2 % of the matches 5-30 px off their lines (camera 2's code found on another surface: the two rays'
     residual drops them as inconsistent) pull the fit wider; beyond ``max_distance_px`` they are not fitted."""

@@ -267,6 +267,41 @@ def test_matches_whose_decode_errs_beyond_its_sigmas_are_widened_by_their_epipol
     assert three["median_mm"] < 0.8 * fitted["median_mm"] and three["median_mm"] < raw3["median_mm"]
 
 
+def test_the_matches_tile_factors_widen_sigmas_and_barely_move_the_points(stereo_scan, tmp_path, monkeypatch):
+    """Camera 1's tiles whose matches disagree more than the view's fit (``stereo.error_model.regions``) widen
+    both cameras' sigmas of a match alike (and, with three rays, the projector point's): a factor of 4 in
+    variance planted on the left half of camera 1 doubles those points' sigmas (a little less where camera 1's
+    pixel ray, which no tile widens, holds a share), leaves every other point as it was, and moves none by
+    more than a fifth of its sigma (the pixel ray's weight against the others': 0.07 camera to camera, 0.19
+    with three rays here)."""
+    from ringscan.pipeline.reconstruct import stereo
+
+    fit = stereo.match_error_model
+
+    def with_tiles(scales):
+        def fitted(*a, **k):  # the view's own fit, its tiles replaced
+            return {**fit(*a, **k), "regions": {"tile_px": 32, "scales": scales}}
+        return fitted
+
+    left = [[tx, ty, 4.0] for tx in range(5) for ty in range(8)]  # u < 160
+    for rays in ("camera-camera", "all"):
+        clouds = {}
+        for name, scales in (("none", []), ("left", left)):
+            with monkeypatch.context() as mp:
+                mp.setattr(stereo, "match_error_model", with_tiles(scales))
+                reconstruct_scan(stereo_scan, tmp_path / f"{name}_{rays}", settings=_rays(rays), progress=False)
+            clouds[name] = read_ply(tmp_path / f"{name}_{rays}" / "view_000.ply")
+        plain, wide = clouds["none"], clouds["left"]
+        moved = np.sqrt(sum((wide[c].astype(np.float64) - plain[c]) ** 2 for c in ("x", "y", "z")))
+        inside = wide["u"] < 160
+        ratio = wide["sigma"] / plain["sigma"]
+        assert inside.sum() > 500 and (~inside).sum() > 500
+        # (a hair over 2 with three rays: the projector's floor, which no tile widens, reweighs a little)
+        assert np.all((ratio[inside] > 1.5) & (ratio[inside] < 2.01)) and np.median(ratio[inside]) > 1.95, rays
+        assert np.allclose(ratio[~inside], 1.0, rtol=1e-5), rays
+        assert np.max(moved / plain["sigma"]) < 0.25 and np.all(moved[~inside] < 1e-4), rays
+
+
 def test_a_projector_that_misses_the_cameras_points_is_discounted(tmp_path, monkeypatch, caplog):
     """The projector's calibration off (its light frame moved by half a projector pixel: every point half a
     pixel off, as much along camera 1's rays through it, where a camera-projector check sees nothing) and the
