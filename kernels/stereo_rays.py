@@ -12,7 +12,7 @@ Status codes are those of ``kernels.triangulation`` (``STATUS_NAMES``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import warp as wp
@@ -70,6 +70,7 @@ __all__ = [
     "projector_misses",
     "through_map",
     "widen_along_rays",
+    "widen_by_chi",
     "triangulate_rays",
     "place_matches",
     "polar_information",
@@ -576,6 +577,27 @@ def along_ray_floor_kernel(
         out[i] = wp.sqrt(sigma[i] * sigma[i] + e * e)
 
 
+@wp.kernel
+def chi_widen_kernel(
+    status: wp.array(dtype=wp.int32),
+    chi2: wp.array(dtype=wp.float32),
+    sigma: wp.array(dtype=wp.float32),
+    dof: float,
+    i0: int,
+    out: wp.array(dtype=wp.float32),
+):
+    """Point i0 + tid's sigma times its chi (sqrt(chi2 / dof): the Birge ratio of its fit's ``dof`` degrees of
+    freedom) where that is above 1; as it was elsewhere and where the point is not placed.
+
+    status (n,) int32, chi2, sigma (n,) float32: read; out (n,) float32: written."""
+    i = i0 + wp.tid()
+    out[i] = sigma[i]
+    if status[i] == STATUS_OK:
+        r = chi2[i] / dof
+        if r > 1.0:
+            out[i] = sigma[i] * wp.sqrt(r)
+
+
 # ----------------------------------------------------------------------------- host
 
 
@@ -638,6 +660,25 @@ def widen_along_rays(tri, floor_px: float, *, camera1: CameraModel, light: Light
                                                            light, i0], [out], dev,
                  default_threads() if threads is None else threads)
     return out
+
+
+def widen_by_chi(tri: RayTriangulation, *, dof: int, threads: int | None = None) -> RayTriangulation:
+    """``tri`` with each placed point's sigma grown by its chi where its rays disagree more than their sigmas
+    allow (:func:`chi_widen_kernel`; ``dof``: the fit's degrees of freedom, 1 for two rays, 3 for three), as a
+    one-camera point of both coordinates grows by its own (``kernels.triangulation.disagreement_factor``):
+    what no model of the view predicts (a mixed pixel at camera 1's silhouette, a misread edge) shows in the
+    point's own residual."""
+    fn = "widen_by_chi"
+    n = check_array("tri.status", tri.status, None, wp.int32, fn)
+    check_array("tri.chi2", tri.chi2, n, wp.float32, fn)
+    check_array("tri.sigma", tri.sigma, n, wp.float32, fn)
+    if dof < 1:
+        raise ValueError(f"{fn}: dof must be at least 1, got {dof}")
+    dev = tri.sigma.device
+    out = wp.empty(n, dtype=wp.float32, device=dev)
+    launch_spans(chi_widen_kernel, n, lambda i0: [tri.status, tri.chi2, tri.sigma, float(dof), i0], [out], dev,
+                 default_threads() if threads is None else threads)
+    return replace(tri, sigma=out)
 
 
 def place_matches(index: wp.array, tri: RayTriangulation, confidence: wp.array, *, points: wp.array,

@@ -609,7 +609,7 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
     fall back to camera-projector."""
     # (the matcher's and the rays' modules and kernels load here: a one-camera run needs none, ~75 ms of imports)
     from ringscan.kernels.stereo_rays import (place_matches, polar_information, projector_misses, through_map,
-                                              triangulate_rays, widen_along_rays)
+                                              triangulate_rays, widen_along_rays, widen_by_chi)
     from ringscan.pipeline.reconstruct.stereo import (decode_view, epipolar_check, match_error_model,
                                                       match_on_device, widen_matches)
 
@@ -690,6 +690,9 @@ def _stereo_points(run: _ViewRun, sector_bits: int) -> _Placed:
                             "(docs/calibration.md)",
                             view.name, projector_check["residual_px_median"], projector_check["residual_px_p95"])
     tri = rays(uv1, uv2, sigma1, matches.sigma2, **{"max_residual_px": max_res, **kw})
+    # a point whose rays disagree beyond their sigmas is less sure than they say: its sigma grows by its chi
+    # (three rays: 6 numbers for 3, two: 4), as a one-camera point of both coordinates does
+    tri = widen_by_chi(tri, dof=3 if use_light else 1, threads=threads)
     extra = {}
     if st.rays == "auto" and use_light:
         # camera 1's samples without a match in camera 2 (hidden from it): camera-projector, exactly as

@@ -7,7 +7,8 @@ import pytest
 import warp as wp
 
 from ringscan.kernels.geometry import make_camera, make_perspective_light
-from ringscan.kernels.stereo_rays import RayTriangulation, place_matches, polar_information, triangulate_rays
+from ringscan.kernels.stereo_rays import (RayTriangulation, place_matches, polar_information, triangulate_rays,
+                                          widen_by_chi)
 from ringscan.kernels.triangulation import STATUS_NAMES
 from tests.support.stereo_rig import CAM1, CAM2, CENTER, PROJ, VOLUME, project_points, surface_hits, warp_array as _w
 
@@ -74,6 +75,50 @@ def test_noise_three_rays_beat_two_and_sigma_and_chi2_are_honest(device):
         assert abs(np.mean(T.chi2.numpy()[ok]) / dof - 1) < 0.15
         out[name] = np.median(np.linalg.norm(e, axis=1))
     assert out["three"] < 0.8 * out["two"], out
+
+
+def test_widen_by_chi_grows_a_point_by_its_own_disagreement(device):
+    """The Birge ratio of each placed point's fit: sigma x sqrt(chi2 / dof) where above 1, else as it was (and
+    unplaced points as they were). On noisy rays with 5 % of camera 2's pixels 8 sigmas off (a misread
+    code), those points' share beyond 3 of their sigmas falls to under a third (two rays 71 -> 17 %, three
+    22 -> 0 %), and a typical point keeps its sigma (chi^2 / dof under 1 for most of them)."""
+    tri = RayTriangulation(points=wp.zeros(4, dtype=wp.vec3, device=device),
+                           status=_w(np.array([0, 0, 0, STATUS_NAMES.index("inconsistent")]), wp.int32, device),
+                           residual=_w(np.zeros(4), wp.float32, device),
+                           chi2=_w(np.array([0.5, 4.0, 12.0, 50.0]), wp.float32, device),
+                           sigma=_w(np.array([1.0, 1.0, 2.0, 1.0]), wp.float32, device))
+    np.testing.assert_allclose(widen_by_chi(tri, dof=1).sigma.numpy(), [1.0, 2.0, 2.0 * np.sqrt(12.0), 1.0], rtol=1e-6)
+    np.testing.assert_allclose(widen_by_chi(tri, dof=3).sigma.numpy(), [1.0, np.sqrt(4 / 3), 4.0, 1.0], rtol=1e-6)
+    with pytest.raises(ValueError, match="dof"):
+        widen_by_chi(tri, dof=0)
+
+    rng = np.random.default_rng(21)
+    uv1, X, uv2, p = _tri_inputs(rng, 4000)
+    c1, c2, light = _models()
+    n = len(uv1)
+    s1, s2 = 0.05, 0.2
+    uv2n = uv2 + rng.normal(0, s2, uv2.shape)
+    bad = rng.random(n) < 0.05
+    turn = rng.uniform(0, 2 * np.pi, n)
+    uv2n[bad] += 8 * s2 * np.c_[np.cos(turn), np.sin(turn)][bad]
+    pj = _w(p + rng.normal(0, 0.05, p.shape), wp.vec2, device)
+    spa = _w(np.full(n, 0.05), wp.float32, device)
+    d1 = (X - CAM1.center) / np.linalg.norm(X - CAM1.center, axis=1, keepdims=True)
+    for kw, dof in (({}, 1), ({"light": light, "proj": pj, "proj_info": polar_information(pj, spa, spa, center=CENTER)},
+                              3)):
+        T = triangulate_rays(_w(uv1 + rng.normal(0, s1, uv1.shape), wp.vec2, device), _w(uv2n, wp.vec2, device),
+                             _w(np.full(n, s1), wp.float32, device), _w(np.full(n, s2), wp.float32, device),
+                             camera1=c1, camera2=c2, volume=VOLUME, max_residual_px=50.0, **kw)
+        W = widen_by_chi(T, dof=dof)
+        ok = T.status.numpy() == 0
+        z = np.abs(np.sum((T.points.numpy() - X) * d1, axis=1))
+        before, after = z / T.sigma.numpy(), z / W.sigma.numpy()
+        # two rays: a pixel moved along its epipolar line moves the point with no residual (those stay beyond);
+        # three: the projector's ray holds the point (fewer beyond to start with), and the chi sees every one
+        assert np.mean(before[ok & bad] > 3) > 0.2 and np.mean(after[ok & bad] > 3) < 0.25, dof
+        assert np.mean(after[ok & bad] > 3) < 0.3 * np.mean(before[ok & bad] > 3), dof
+        grown = W.sigma.numpy()[ok & ~bad] / T.sigma.numpy()[ok & ~bad]
+        assert np.median(grown) < 1.05 and np.all(grown >= 1.0), dof
 
 
 def _surface_map(p, h=0.5):
