@@ -39,6 +39,7 @@ from ringscan.kernels.triangulation import (
     STATUS_OK,
     STATUS_OUTSIDE,
     STATUS_UNDISTORT_FAILED,
+    birge_ratio,
     quad,
 )
 
@@ -593,9 +594,7 @@ def chi_widen_kernel(
     i = i0 + wp.tid()
     out[i] = sigma[i]
     if status[i] == STATUS_OK:
-        r = chi2[i] / dof
-        if r > 1.0:
-            out[i] = sigma[i] * wp.sqrt(r)
+        out[i] = sigma[i] * birge_ratio(chi2[i] / dof)
 
 
 # ----------------------------------------------------------------------------- host

@@ -417,6 +417,13 @@ def full_solution(
 
 
 @wp.func
+def birge_ratio(chi2_per_dof: float):
+    """A fit's chi-square over its degrees of freedom, square-rooted where above 1, else 1: the factor a
+    sigma grows by where the fit's own numbers disagree beyond their sigmas (the Birge ratio)."""
+    return wp.sqrt(wp.max(chi2_per_dof, 1.0))
+
+
+@wp.func
 def disagreement_factor(res: float, vboth: float, floor: float):
     """The factor a point's sigma grows by where its two projector coordinates disagree across the epipolar
     line (``res`` px, from :func:`full_solution`) beyond what both sigmas and the calibration floor allow
@@ -424,9 +431,7 @@ def disagreement_factor(res: float, vboth: float, floor: float):
     light): its chi (the Birge ratio of one degree of freedom) where above 1, else 1 (1 without a residual)."""
     factor = float(1.0)
     if vboth > 0.0 and res >= 0.0:
-        chi2 = res * res / (vboth + floor * floor)
-        if chi2 > 1.0:
-            factor = wp.sqrt(chi2)
+        factor = birge_ratio(res * res / (vboth + floor * floor))
     return factor
 
 
